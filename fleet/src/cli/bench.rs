@@ -1,0 +1,80 @@
+//! `fleet bench`: the paper's Table 1 timings and the Fig. 7 accuracy study on this machine,
+//! as Markdown tables (and JSON with `--out`). Timings live here, never in tests.
+
+use anyhow::Context;
+use clap::Subcommand;
+use fleet::experiment::{eig_study, table1};
+use std::path::PathBuf;
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    #[command(subcommand)]
+    what: What,
+    /// Write the figures as JSON here.
+    #[arg(long, global = true)]
+    out: Option<PathBuf>,
+}
+
+#[derive(Subcommand, Debug)]
+enum What {
+    /// Table 1: whole online runs of batch, general and long-term DMD, four cases.
+    Table1 {
+        #[arg(long, default_value_t = 5)]
+        repeats: usize,
+    },
+    /// Fig. 7: dominant eigenvalue estimates at three noise levels, with and without debiasing.
+    EigStudy {
+        #[arg(long, default_value_t = 10)]
+        trials: usize,
+        #[arg(long, default_value_t = 1234)]
+        seed: u64,
+    },
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let json = match args.what {
+        What::Table1 { repeats } => {
+            let total = table1::methods().len() * 2 * 4;
+            let pb = super::progress_bar(total as u64, "table 1");
+            let rows = table1::run(repeats, |msg| {
+                pb.set_message(msg.to_string());
+                pb.inc(1);
+            })?;
+            pb.finish_and_clear();
+            println!("| case | method | eig | median s | min s | paper s | speed-up vs paper |");
+            println!("|---|---|---|---|---|---|---|");
+            for r in &rows {
+                println!(
+                    "| {} | {} | {} | {:.4} | {:.4} | {} | {:.0}x |",
+                    r.case,
+                    r.method,
+                    if r.with_eig { "yes" } else { "no" },
+                    r.median_s,
+                    r.min_s,
+                    r.paper_s,
+                    r.paper_s / r.median_s
+                );
+            }
+            serde_json::to_value(rows)?
+        }
+        What::EigStudy { trials, seed } => {
+            let variants = eig_study::default_variants();
+            let vars = [0.01, 0.04, 0.1];
+            let pb = super::progress_bar((variants.len() * vars.len() * trials) as u64, "eig study");
+            let levels = eig_study::run(&variants, &vars, trials, seed, || pb.inc(1))?;
+            pb.finish_and_clear();
+            println!("| noise var | variant | median Re | median abs error |");
+            println!("|---|---|---|---|");
+            for l in &levels {
+                for v in &l.variants {
+                    println!("| {} | {} | {:.4} | {:.4} |", l.noise_var, v.label, v.median_real, v.median_abs_error);
+                }
+            }
+            serde_json::to_value(levels)?
+        }
+    };
+    if let Some(out) = args.out {
+        std::fs::write(&out, serde_json::to_string_pretty(&json)?).with_context(|| format!("writing {}", out.display()))?;
+    }
+    Ok(())
+}

@@ -1,0 +1,40 @@
+//! Subcommands of the `fleet` binary.
+
+mod bench;
+mod dmd;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser, Debug)]
+#[command(name = "fleet", version, about = "hetfleet: a heterogeneous robot team models, predicts and samples a changing field")]
+pub struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Fit a DMD model (batch, general or long-term online) to a field and report its spectrum.
+    Dmd(dmd::Args),
+    /// Measure the paper's timing and accuracy studies on this machine.
+    Bench(bench::Args),
+}
+
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Dmd(a) => dmd::run(a),
+        Command::Bench(a) => bench::run(a),
+    }
+}
+
+/// A progress bar on stderr that stays quiet when stderr is not a terminal.
+pub fn progress_bar(len: u64, what: &str) -> indicatif::ProgressBar {
+    let pb = indicatif::ProgressBar::new(len);
+    pb.set_style(
+        indicatif::ProgressStyle::with_template("{msg:>12} [{bar:40}] {pos}/{len} ({elapsed}, eta {eta})")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    pb.set_message(what.to_string());
+    pb
+}

@@ -1,0 +1,124 @@
+//! Exact DMD recomputed from all stored pairs (paper eqs. 2-8), the baseline the online methods
+//! are measured against:
+//! `X = U S W^T`, `A~ = U^T Y W S^-1`, `A~ V = V Lambda`, `Phi = Y W S^-1 V`.
+
+use super::debias::{debiased_eig, Debias};
+use super::linalg::{div_cols, eig, scale_rows, thin_svd};
+use super::{Dmd, DmdError, Method, Modes, RankPolicy, SnapshotPairs};
+use faer::{Mat, MatRef};
+
+/// The projected pieces of one exact-DMD fit.
+#[derive(Clone, Debug)]
+pub(crate) struct ProjectedFit {
+    /// POD basis `U_r` (N x r).
+    pub u: Mat<f64>,
+    /// Singular values `s_r`.
+    pub s: Vec<f64>,
+    /// `Y W S^-1` (N x r): exact modes are this times the eigenvectors of `A~`.
+    pub yws: Mat<f64>,
+}
+
+impl ProjectedFit {
+    pub fn rank(&self) -> usize {
+        self.s.len()
+    }
+
+    /// `A~ = U^T (Y W S^-1)`.
+    pub fn atilde(&self) -> Mat<f64> {
+        self.u.transpose() * &self.yws
+    }
+
+    /// Eigenvalues and modes: exact DMD, or a debiased operator on the projected data.
+    pub fn decompose(&self, debias: Debias, pairs: &SnapshotPairs, xt: Option<Mat<f64>>) -> Result<Modes, DmdError> {
+        match debias {
+            Debias::None => {
+                let (eigenvalues, v) = eig(self.atilde().as_ref())?;
+                let modes = super::linalg::to_complex(self.yws.as_ref()) * v;
+                Ok(Modes { eigenvalues, modes })
+            }
+            kind => {
+                let xt = match xt {
+                    Some(xt) => xt,
+                    None => self.u.transpose() * pairs.x(),
+                };
+                let yt = self.u.transpose() * pairs.y();
+                let (eigenvalues, v) = debiased_eig(kind, xt.as_ref(), yt.as_ref())?;
+                let modes = super::linalg::to_complex(self.u.as_ref()) * v;
+                Ok(Modes { eigenvalues, modes })
+            }
+        }
+    }
+}
+
+/// Exact DMD of `(X, Y)` truncated by `rank`.
+pub(crate) fn exact_fit(x: MatRef<'_, f64>, y: MatRef<'_, f64>, rank: RankPolicy) -> Result<(ProjectedFit, Mat<f64>), DmdError> {
+    let svd = thin_svd(x)?;
+    let r = rank.select(&svd.s, x.nrows(), x.ncols());
+    if r == 0 {
+        return Err(DmdError::ZeroRank);
+    }
+    let svd = svd.truncate(r);
+    let yws = div_cols(y * &svd.v, &svd.s);
+    // U^T X = S W^T, kept for debiasing without another product with X.
+    let xt = scale_rows(svd.v.transpose().to_owned(), &svd.s);
+    Ok((ProjectedFit { u: svd.u, s: svd.s, yws }, xt))
+}
+
+/// Batch exact DMD: every update re-fits from all pairs.
+#[derive(Clone, Debug)]
+pub struct BatchDmd {
+    pairs: SnapshotPairs,
+    rank: RankPolicy,
+    debias: Debias,
+    fit: ProjectedFit,
+    xt: Mat<f64>,
+}
+
+impl BatchDmd {
+    pub fn fit(x: MatRef<'_, f64>, y: MatRef<'_, f64>, rank: RankPolicy, debias: Debias) -> Result<Self, DmdError> {
+        let pairs = SnapshotPairs::new(x, y)?;
+        let (fit, xt) = exact_fit(x, y, rank)?;
+        Ok(Self { pairs, rank, debias, fit, xt })
+    }
+
+    /// POD singular values of the current fit.
+    pub fn singular_values(&self) -> &[f64] {
+        &self.fit.s
+    }
+
+    /// The projected operator `A~` (r x r).
+    pub fn atilde(&self) -> Mat<f64> {
+        self.fit.atilde()
+    }
+}
+
+impl Dmd for BatchDmd {
+    fn method(&self) -> Method {
+        Method::Batch
+    }
+
+    fn update(&mut self, x_new: MatRef<'_, f64>, y_new: MatRef<'_, f64>) -> Result<(), DmdError> {
+        self.pairs.push(x_new, y_new)?;
+        let (fit, xt) = exact_fit(self.pairs.x(), self.pairs.y(), self.rank)?;
+        self.fit = fit;
+        self.xt = xt;
+        Ok(())
+    }
+
+    fn decompose(&self) -> Result<Modes, DmdError> {
+        let xt = (self.debias != Debias::None).then(|| self.xt.clone());
+        self.fit.decompose(self.debias, &self.pairs, xt)
+    }
+
+    fn rank(&self) -> usize {
+        self.fit.rank()
+    }
+
+    fn pairs(&self) -> usize {
+        self.pairs.len()
+    }
+
+    fn dim(&self) -> usize {
+        self.pairs.dim()
+    }
+}

@@ -1,0 +1,97 @@
+//! Noise-robust eigenvalues. Sensor noise in `X` biases exact DMD's eigenvalues toward damping
+//! (least squares attributes the noise energy in `X` to a smaller gain). Two standard cures,
+//! both applied to the data projected on the model's POD basis `U_r` (`r x m` matrices):
+//!
+//! - **forward-backward** (Dawson et al. 2016): fit the forward operator `A_f` (X -> Y) and the
+//!   backward one `A_b` (Y -> X); the noise bias of the two is opposite to first order, so
+//!   `A = (A_f A_b^-1)^(1/2)`. Its eigenvectors are those of `A_f A_b^-1`, its eigenvalues the
+//!   principal square roots; no matrix square root is formed.
+//! - **total least squares** (Hemati et al. 2017): project `X` and `Y` onto the leading `r`
+//!   right singular vectors of the stacked `[X; Y]`, which removes the noise subspace from both.
+//!
+//! Both return eigenvectors in the projected coordinates, so the modes are `U_r V` (projected
+//! modes) rather than exact DMD modes.
+
+use super::linalg::{eig, thin_svd};
+use super::DmdError;
+use faer::linalg::solvers::Solve;
+use faer::{c64, Mat, MatRef};
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::str::FromStr;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Debias {
+    /// Plain exact DMD.
+    #[default]
+    None,
+    /// Forward-backward DMD.
+    Fb,
+    /// Total-least-squares DMD.
+    Tls,
+}
+
+impl fmt::Display for Debias {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Debias::None => "none",
+            Debias::Fb => "fb",
+            Debias::Tls => "tls",
+        })
+    }
+}
+
+impl FromStr for Debias {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "none" => Ok(Debias::None),
+            "fb" => Ok(Debias::Fb),
+            "tls" => Ok(Debias::Tls),
+            _ => Err(format!("debias must be none, fb or tls, got {s:?}")),
+        }
+    }
+}
+
+/// Eigenvalues and projected eigenvectors of the debiased `r x r` operator for projected data
+/// `xt = U_r^T X`, `yt = U_r^T Y`.
+pub fn debiased_eig(kind: Debias, xt: MatRef<'_, f64>, yt: MatRef<'_, f64>) -> Result<(Vec<c64>, Mat<c64>), DmdError> {
+    let r = xt.nrows();
+    if xt.ncols() < r {
+        return Err(DmdError::Unsupported(format!(
+            "debiasing needs at least as many snapshot pairs as the rank ({} < {r})",
+            xt.ncols()
+        )));
+    }
+    match kind {
+        Debias::None => Err(DmdError::Unsupported("debiased_eig called without a debias method".into())),
+        Debias::Fb => {
+            let af = least_squares_operator(xt, yt)?; // Y ~ A_f X
+            let ab = least_squares_operator(yt, xt)?; // X ~ A_b Y
+            // M = A_f A_b^-1, via M^T = A_b^-T A_f^T (a solve, no inverse).
+            let mt = ab.transpose().partial_piv_lu().solve(af.transpose());
+            let m = mt.transpose().to_owned();
+            let (mu, v) = eig(m.as_ref())?;
+            Ok((mu.iter().map(|z| z.sqrt()).collect(), v))
+        }
+        Debias::Tls => {
+            let stacked = Mat::from_fn(2 * r, xt.ncols(), |i, j| if i < r { xt[(i, j)] } else { yt[(i - r, j)] });
+            let svd = thin_svd(stacked.as_ref())?;
+            let vr = svd.v.subcols(0, r);
+            let xb = xt * vr;
+            let yb = yt * vr;
+            // A = Yb Xb^-1  <=>  A^T = Xb^-T Yb^T
+            let at = xb.transpose().partial_piv_lu().solve(yb.transpose());
+            eig(at.transpose())
+        }
+    }
+}
+
+/// `B A^+` for `r x m` data of full row rank: the least-squares operator mapping the columns of
+/// `a` to those of `b`, through the SVD of `a` (no normal equations, so no squared condition).
+fn least_squares_operator(a: MatRef<'_, f64>, b: MatRef<'_, f64>) -> Result<Mat<f64>, DmdError> {
+    let svd = thin_svd(a)?;
+    let bv = super::linalg::div_cols(b * &svd.v, &svd.s);
+    Ok(bv * svd.u.transpose())
+}

@@ -1,0 +1,172 @@
+//! The paper's "general" online DMD (Sect. 4.3.1): Brand's incremental SVD of `X` with a batch
+//! `X_new` of any size per update, then the projected operator from `Y W S^-1`.
+//!
+//! Per update, with `U` (N x r), `S`, and `YW = Y W` (N x r) maintained:
+//! `L = U^T X_new`, `H = X_new - U L` (re-projected once more: "twice is enough"),
+//! `H = J P` (thin SVD of `H`, so `J` only holds the directions `H` really has),
+//! `Z = [[S, L], [0, P]] = U' S' W'^T`, then `U <- [U J] U'_r`, `S <- S'_r`,
+//! `YW <- YW W'_top + Y_new W'_bottom` (so `W` itself is never needed).
+//!
+//! **Orthogonality over thousands of updates.** Each update loses a little orthogonality of `U`
+//! to rounding. Every [`REORTH_EVERY`] updates `max|U^T U - I|` is measured and, above
+//! [`REORTH_TOL`], `U` is re-orthonormalised without changing the factorisation: `U = Q R`,
+//! `R S = U_R S_R W_R^T`, `U <- Q U_R`, `S <- S_R`, `YW <- YW W_R` (exact, since
+//! `X = U S W^T = Q U_R S_R (W W_R)^T`). The snapshots are kept, as the paper requires, both for
+//! debiasing and for re-fitting when late data arrives.
+//!
+//! Rank: `Full` keeps every direction above the numerical-rank tolerance; `Fixed(r)` truncates to
+//! `r` after the first fit and after every update (path dependent, like any truncated iSVD);
+//! `Energy` and `Optimal` choose `r` from the full spectrum at the first fit and then hold it.
+
+use super::batch::{exact_fit, ProjectedFit};
+use super::debias::Debias;
+use super::linalg::{div_cols, orthogonality_error, scale_rows, thin_svd};
+use super::{numerical_rank, Dmd, DmdError, Method, Modes, RankPolicy, SnapshotPairs};
+use faer::{Mat, MatRef};
+
+/// Updates between orthogonality checks of `U`.
+pub const REORTH_EVERY: usize = 16;
+/// Largest tolerated `max|U^T U - I|` before re-orthonormalising.
+pub const REORTH_TOL: f64 = 1e-13;
+
+#[derive(Clone, Debug)]
+pub struct GeneralDmd {
+    pairs: SnapshotPairs,
+    /// The rank rule applied after each update (energy / optimal are frozen to a number at init).
+    rank: RankPolicy,
+    debias: Debias,
+    u: Mat<f64>,
+    s: Vec<f64>,
+    yw: Mat<f64>,
+    updates: usize,
+    reorthogonalisations: usize,
+}
+
+impl GeneralDmd {
+    pub fn init(x: MatRef<'_, f64>, y: MatRef<'_, f64>, rank: RankPolicy, debias: Debias) -> Result<Self, DmdError> {
+        let pairs = SnapshotPairs::new(x, y)?;
+        let (fit, _) = exact_fit(x, y, rank)?;
+        let ProjectedFit { u, s, yws } = fit;
+        let held = match rank {
+            RankPolicy::Full | RankPolicy::Fixed(_) => rank,
+            RankPolicy::Energy(_) | RankPolicy::Optimal => RankPolicy::Fixed(s.len()),
+        };
+        let yw = scale_cols(yws, &s);
+        Ok(Self { pairs, rank: held, debias, u, s, yw, updates: 0, reorthogonalisations: 0 })
+    }
+
+    /// Current singular values of `X`'s retained factorisation.
+    pub fn singular_values(&self) -> &[f64] {
+        &self.s
+    }
+
+    /// `max|U^T U - I|` now.
+    pub fn orthogonality_error(&self) -> f64 {
+        orthogonality_error(self.u.as_ref())
+    }
+
+    /// How many times `U` has been re-orthonormalised.
+    pub fn reorthogonalisations(&self) -> usize {
+        self.reorthogonalisations
+    }
+
+    fn projected(&self) -> ProjectedFit {
+        ProjectedFit { u: self.u.clone(), s: self.s.clone(), yws: div_cols(self.yw.clone(), &self.s) }
+    }
+
+    fn reorthonormalise(&mut self) -> Result<(), DmdError> {
+        let qr = self.u.qr();
+        let q = qr.compute_thin_Q();
+        let rs = scale_cols(qr.thin_R().to_owned(), &self.s);
+        let svd = thin_svd(rs.as_ref())?;
+        self.u = q * &svd.u;
+        self.s = svd.s;
+        self.yw = &self.yw * &svd.v;
+        self.reorthogonalisations += 1;
+        Ok(())
+    }
+}
+
+/// `a * diag(d)`.
+fn scale_cols(mut a: Mat<f64>, d: &[f64]) -> Mat<f64> {
+    for (j, &dj) in d.iter().enumerate() {
+        for x in a.col_mut(j).iter_mut() {
+            *x *= dj;
+        }
+    }
+    a
+}
+
+impl Dmd for GeneralDmd {
+    fn method(&self) -> Method {
+        Method::General
+    }
+
+    fn update(&mut self, x_new: MatRef<'_, f64>, y_new: MatRef<'_, f64>) -> Result<(), DmdError> {
+        self.pairs.push(x_new, y_new)?;
+        let (n, r, tau) = (self.u.nrows(), self.u.ncols(), x_new.ncols());
+        let ut = self.u.transpose();
+        let mut l = ut * x_new;
+        let mut h = x_new - &self.u * &l;
+        let l2 = ut * &h;
+        h -= &self.u * &l2;
+        l += &l2;
+
+        // Directions of H that are really new (none when U already spans R^N).
+        let (j, p) = if r < n {
+            let hs = thin_svd(h.as_ref())?;
+            let scale = self.s.first().copied().unwrap_or(0.0).max(hs.s.first().copied().unwrap_or(0.0));
+            let tol = (n.max(self.pairs.len()) as f64) * f64::EPSILON * scale;
+            let k = hs.s.iter().filter(|&&v| v > tol).count().min(n - r);
+            let hs = hs.truncate(k);
+            let p = scale_rows(hs.v.transpose().to_owned(), &hs.s);
+            (hs.u, p)
+        } else {
+            (Mat::zeros(n, 0), Mat::zeros(0, tau))
+        };
+        let k = j.ncols();
+
+        let mut z = Mat::<f64>::zeros(r + k, r + tau);
+        for i in 0..r {
+            z[(i, i)] = self.s[i];
+        }
+        z.submatrix_mut(0, r, r, tau).copy_from(&l);
+        z.submatrix_mut(r, r, k, tau).copy_from(&p);
+        let zs = thin_svd(z.as_ref())?;
+        let keep = match self.rank {
+            RankPolicy::Full => numerical_rank(&zs.s, n, self.pairs.len()),
+            policy => policy.select(&zs.s, n, self.pairs.len()),
+        }
+        .max(1);
+        let zs = zs.truncate(keep);
+
+        let mut u = &self.u * zs.u.subrows(0, r);
+        if k > 0 {
+            u += &j * zs.u.subrows(r, k);
+        }
+        self.yw = &self.yw * zs.v.subrows(0, r) + y_new * zs.v.subrows(r, tau);
+        self.u = u;
+        self.s = zs.s;
+        self.updates += 1;
+        if self.updates % REORTH_EVERY == 0 && self.orthogonality_error() > REORTH_TOL {
+            self.reorthonormalise()?;
+        }
+        Ok(())
+    }
+
+    fn decompose(&self) -> Result<Modes, DmdError> {
+        self.projected().decompose(self.debias, &self.pairs, None)
+    }
+
+    fn rank(&self) -> usize {
+        self.s.len()
+    }
+
+    fn pairs(&self) -> usize {
+        self.pairs.len()
+    }
+
+    fn dim(&self) -> usize {
+        self.pairs.dim()
+    }
+}

@@ -1,0 +1,145 @@
+//! Dynamic Mode Decomposition: one interface, three ways to keep it up to date.
+//!
+//! - [`BatchDmd`]: exact DMD recomputed from every stored pair (paper eqs. 2-8); the baseline.
+//! - [`GeneralDmd`]: Brand's incremental SVD of `X` with a batch of any size per update, keeping
+//!   the snapshots (paper Sect. 4.3.1). Its speed comes from the rank it keeps.
+//! - [`LongTermDmd`]: `A = Q S` with a batch Woodbury update and a forgetting factor (paper
+//!   Sect. 4.3.2); keeps no snapshots, needs `N` small (a few hundred) and a full-row-rank start.
+//!
+//! At full rank and `gamma = 1` all three give the same operator. Build one with [`DmdConfig::init`],
+//! feed it with [`Dmd::update`], read it with [`Dmd::decompose`], and turn the result into a
+//! predictive [`DmdModel`] with [`Modes::model`].
+
+mod batch;
+mod debias;
+mod general;
+pub mod linalg;
+mod longterm;
+mod model;
+mod rank;
+mod snapshots;
+
+pub use batch::BatchDmd;
+pub use debias::Debias;
+pub use general::GeneralDmd;
+pub use longterm::LongTermDmd;
+pub use model::{DmdModel, Modes};
+pub use rank::{numerical_rank, RankPolicy};
+pub use snapshots::SnapshotPairs;
+
+use faer::MatRef;
+use serde::{Deserialize, Serialize};
+use std::fmt;
+use std::str::FromStr;
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum DmdError {
+    #[error("shape: {0}")]
+    Shape(String),
+    #[error("non-finite value at row {row}, column {col} of the snapshots")]
+    NonFinite { row: usize, col: usize },
+    #[error(
+        "the long-term method needs X (N x m) to have full row rank N = {n}: it has {m} snapshot pairs \
+         of numerical rank {rank}; initialise it with at least {n} linearly independent snapshots \
+         (e.g. the first {n} or more pairs of a noisy or rich field), or use the general method"
+    )]
+    NotFullRowRank { n: usize, m: usize, rank: usize },
+    #[error("the data is all zeros or has no numerical rank")]
+    ZeroRank,
+    #[error("{0}")]
+    Unsupported(String),
+    #[error("numerical failure: {0}")]
+    Numerical(String),
+    #[error("forgetting factor gamma must be in (0, 1], got {0}")]
+    Gamma(f64),
+}
+
+/// Which update scheme a model uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    Batch,
+    General,
+    LongTerm,
+}
+
+impl fmt::Display for Method {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Method::Batch => "batch",
+            Method::General => "general",
+            Method::LongTerm => "long-term",
+        })
+    }
+}
+
+impl FromStr for Method {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "batch" => Ok(Method::Batch),
+            "general" => Ok(Method::General),
+            "long-term" | "longterm" => Ok(Method::LongTerm),
+            _ => Err(format!("method must be batch, general or long-term, got {s:?}")),
+        }
+    }
+}
+
+/// Everything needed to start a model.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct DmdConfig {
+    pub method: Method,
+    pub rank: RankPolicy,
+    /// Noise-robust eigenvalues (batch and general only).
+    pub debias: Debias,
+    /// Forgetting factor of the long-term method, in (0, 1]; 1 keeps everything.
+    pub gamma: f64,
+}
+
+impl Default for DmdConfig {
+    fn default() -> Self {
+        Self { method: Method::Batch, rank: RankPolicy::Full, debias: Debias::None, gamma: 1.0 }
+    }
+}
+
+impl DmdConfig {
+    /// Fit the first model from snapshot pairs (columns of `x`, `y`, with `y_j` following `x_j`).
+    pub fn init(&self, x: MatRef<'_, f64>, y: MatRef<'_, f64>) -> Result<Box<dyn Dmd>, DmdError> {
+        Ok(match self.method {
+            Method::Batch => Box::new(BatchDmd::fit(x, y, self.rank, self.debias)?),
+            Method::General => Box::new(GeneralDmd::init(x, y, self.rank, self.debias)?),
+            Method::LongTerm => {
+                if self.debias != Debias::None {
+                    return Err(DmdError::Unsupported(
+                        "the long-term method keeps no snapshots, so it cannot debias; use batch or general".into(),
+                    ));
+                }
+                Box::new(LongTermDmd::init(x, y, self.gamma)?)
+            }
+        })
+    }
+}
+
+/// A DMD model that assimilates snapshot pairs and yields its eigendecomposition.
+pub trait Dmd: Send + Sync {
+    fn method(&self) -> Method;
+    /// Fold in new pairs: column `j` of `y_new` is the snapshot one step after column `j` of
+    /// `x_new`. Any number of columns, including one.
+    fn update(&mut self, x_new: MatRef<'_, f64>, y_new: MatRef<'_, f64>) -> Result<(), DmdError>;
+    /// Eigenvalues (discrete time) and modes of the current operator.
+    fn decompose(&self) -> Result<Modes, DmdError>;
+    /// Number of modes the model currently keeps.
+    fn rank(&self) -> usize;
+    /// Number of snapshot pairs assimilated so far.
+    fn pairs(&self) -> usize;
+    /// State dimension `N`.
+    fn dim(&self) -> usize;
+}
+
+/// Split a snapshot sequence (columns, in time order) into the pairs `X = Z[:, :-1]`,
+/// `Y = Z[:, 1:]`.
+pub fn pairs_of(z: MatRef<'_, f64>) -> (MatRef<'_, f64>, MatRef<'_, f64>) {
+    let m = z.ncols().saturating_sub(1);
+    (z.subcols(0, m), z.subcols(1, m))
+}

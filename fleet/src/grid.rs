@@ -1,0 +1,314 @@
+//! The workspace discretisation: a `rows x cols` raster of square cells.
+//!
+//! Every field in hetfleet is a flat `Vec<f64>` in row-major (C) order, `i = row * cols + col`,
+//! which is what numpy's `reshape(-1)` of a `(rows, cols)` array gives. Cell `(row, col)` has its
+//! centre at `((col + 0.5) * cell_m, (row + 0.5) * cell_m)` metres from the workspace corner.
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+/// A cell by row and column.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct Cell {
+    pub row: usize,
+    pub col: usize,
+}
+
+impl Cell {
+    pub const fn new(row: usize, col: usize) -> Self {
+        Self { row, col }
+    }
+}
+
+#[derive(Debug, Error, PartialEq)]
+pub enum GridError {
+    #[error("a grid needs at least one row and one column (got {rows} x {cols})")]
+    Empty { rows: usize, cols: usize },
+    #[error("cell size must be finite and positive (got {0} m)")]
+    CellSize(f64),
+    #[error("field has {got} values but the {rows} x {cols} grid has {expected} cells")]
+    Length { got: usize, expected: usize, rows: usize, cols: usize },
+    #[error("stride must be at least 1")]
+    Stride,
+    #[error("grids cover different extents ({a_w} x {a_h} m vs {b_w} x {b_h} m)")]
+    Extent { a_w: f64, a_h: f64, b_w: f64, b_h: f64 },
+}
+
+/// A rectangular workspace of `rows x cols` square cells of side `cell_m` metres.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Grid {
+    pub rows: usize,
+    pub cols: usize,
+    /// Side of one cell in metres.
+    pub cell_m: f64,
+}
+
+impl Grid {
+    pub fn new(rows: usize, cols: usize, cell_m: f64) -> Result<Self, GridError> {
+        if rows == 0 || cols == 0 {
+            return Err(GridError::Empty { rows, cols });
+        }
+        if !(cell_m.is_finite() && cell_m > 0.0) {
+            return Err(GridError::CellSize(cell_m));
+        }
+        Ok(Self { rows, cols, cell_m })
+    }
+
+    /// Number of cells `N`.
+    pub fn len(&self) -> usize {
+        self.rows * self.cols
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    pub fn width_m(&self) -> f64 {
+        self.cols as f64 * self.cell_m
+    }
+
+    pub fn height_m(&self) -> f64 {
+        self.rows as f64 * self.cell_m
+    }
+
+    /// Flat row-major index of a cell (the cell must be inside the grid).
+    pub fn index(&self, c: Cell) -> usize {
+        debug_assert!(self.contains(c));
+        c.row * self.cols + c.col
+    }
+
+    /// The cell of a flat index.
+    pub fn cell(&self, i: usize) -> Cell {
+        debug_assert!(i < self.len());
+        Cell::new(i / self.cols, i % self.cols)
+    }
+
+    pub fn contains(&self, c: Cell) -> bool {
+        c.row < self.rows && c.col < self.cols
+    }
+
+    /// Centre of a cell in metres, `(x, y)` with x along columns.
+    pub fn centre_m(&self, c: Cell) -> (f64, f64) {
+        ((c.col as f64 + 0.5) * self.cell_m, (c.row as f64 + 0.5) * self.cell_m)
+    }
+
+    /// The cell containing a point in metres, or `None` outside the workspace.
+    pub fn cell_at(&self, x_m: f64, y_m: f64) -> Option<Cell> {
+        if !(x_m.is_finite() && y_m.is_finite()) || x_m < 0.0 || y_m < 0.0 {
+            return None;
+        }
+        let c = Cell::new((y_m / self.cell_m) as usize, (x_m / self.cell_m) as usize);
+        self.contains(c).then_some(c)
+    }
+
+    /// Check that a field has one value per cell.
+    pub fn check_len(&self, n: usize) -> Result<(), GridError> {
+        if n != self.len() {
+            return Err(GridError::Length { got: n, expected: self.len(), rows: self.rows, cols: self.cols });
+        }
+        Ok(())
+    }
+
+    /// Flat indices of the cells whose centres lie within `radius` cells of `centre`'s centre
+    /// (paper eq. sensing-region), clipped at the borders, in increasing index order.
+    pub fn disk(&self, centre: Cell, radius: f64) -> Vec<usize> {
+        let r = radius.max(0.0);
+        let reach = r.floor() as usize;
+        let r0 = centre.row.saturating_sub(reach);
+        let r1 = (centre.row + reach).min(self.rows - 1);
+        let c0 = centre.col.saturating_sub(reach);
+        let c1 = (centre.col + reach).min(self.cols - 1);
+        let r2 = r * r + 1e-9;
+        let mut out = Vec::with_capacity((2 * reach + 1) * (2 * reach + 1));
+        for row in r0..=r1 {
+            let dr = row as f64 - centre.row as f64;
+            for col in c0..=c1 {
+                let dc = col as f64 - centre.col as f64;
+                if dr * dr + dc * dc <= r2 {
+                    out.push(row * self.cols + col);
+                }
+            }
+        }
+        out
+    }
+
+    /// The coarse grid and values obtained by keeping every `stride`-th cell in each direction,
+    /// starting at cell (0, 0). The coarse cells are `stride` times larger and their centres sit
+    /// on the kept fine cells' centres' lattice, shifted so both grids cover the same corner.
+    pub fn stride_downsample(&self, field: &[f64], stride: usize) -> Result<(StridedGrid, Vec<f64>), GridError> {
+        self.check_len(field.len())?;
+        if stride == 0 {
+            return Err(GridError::Stride);
+        }
+        let rows = self.rows.div_ceil(stride);
+        let cols = self.cols.div_ceil(stride);
+        let mut out = Vec::with_capacity(rows * cols);
+        for r in 0..rows {
+            for c in 0..cols {
+                out.push(field[r * stride * self.cols + c * stride]);
+            }
+        }
+        Ok((StridedGrid { fine: *self, stride, rows, cols }, out))
+    }
+
+    /// Bilinear interpolation of `values`, given at the centres of the cells of `coarse`, onto
+    /// the centres of this grid's cells. Both grids must cover the same extent. Points outside
+    /// the convex hull of the coarse centres take the value at the nearest point of the hull
+    /// (clamped), so nothing is extrapolated from noisy data.
+    pub fn upsample_bilinear(&self, coarse: &Grid, values: &[f64]) -> Result<Vec<f64>, GridError> {
+        coarse.check_len(values.len())?;
+        let tol = 1e-9 * (self.width_m() + self.height_m());
+        if (coarse.width_m() - self.width_m()).abs() > tol || (coarse.height_m() - self.height_m()).abs() > tol {
+            return Err(GridError::Extent {
+                a_w: coarse.width_m(),
+                a_h: coarse.height_m(),
+                b_w: self.width_m(),
+                b_h: self.height_m(),
+            });
+        }
+        // Fractional coarse coordinate of every fine row / column centre (separable).
+        let axis = |n_fine: usize, n_coarse: usize| -> Vec<(usize, usize, f64)> {
+            (0..n_fine)
+                .map(|i| {
+                    let u = ((i as f64 + 0.5) * self.cell_m / coarse.cell_m - 0.5).clamp(0.0, (n_coarse - 1) as f64);
+                    let i0 = (u.floor() as usize).min(n_coarse - 1);
+                    let i1 = (i0 + 1).min(n_coarse - 1);
+                    (i0, i1, u - i0 as f64)
+                })
+                .collect()
+        };
+        Ok(bilinear(&axis(self.rows, coarse.rows), &axis(self.cols, coarse.cols), coarse.cols, values))
+    }
+}
+
+/// The coarse lattice of a stride downsampling: coarse cell `(r, c)` is fine cell
+/// `(r * stride, c * stride)`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StridedGrid {
+    pub fine: Grid,
+    pub stride: usize,
+    pub rows: usize,
+    pub cols: usize,
+}
+
+impl StridedGrid {
+    /// Bilinear interpolation from the kept cells back to every fine cell (clamped beyond the
+    /// last kept row / column). Exact for fields bilinear in (row, col) inside the lattice.
+    pub fn upsample_bilinear(&self, values: &[f64]) -> Result<Vec<f64>, GridError> {
+        if values.len() != self.rows * self.cols {
+            return Err(GridError::Length {
+                got: values.len(),
+                expected: self.rows * self.cols,
+                rows: self.rows,
+                cols: self.cols,
+            });
+        }
+        let axis = |n_fine: usize, n_coarse: usize| -> Vec<(usize, usize, f64)> {
+            (0..n_fine)
+                .map(|i| {
+                    let u = (i as f64 / self.stride as f64).min((n_coarse - 1) as f64);
+                    let i0 = u.floor() as usize;
+                    let i1 = (i0 + 1).min(n_coarse - 1);
+                    (i0, i1, u - i0 as f64)
+                })
+                .collect()
+        };
+        Ok(bilinear(&axis(self.fine.rows, self.rows), &axis(self.fine.cols, self.cols), self.cols, values))
+    }
+}
+
+/// Separable bilinear interpolation given, per output row and column, the two coarse neighbours
+/// and the weight of the second.
+fn bilinear(rows: &[(usize, usize, f64)], cols: &[(usize, usize, f64)], coarse_cols: usize, v: &[f64]) -> Vec<f64> {
+    let mut out = Vec::with_capacity(rows.len() * cols.len());
+    for &(r0, r1, fr) in rows {
+        for &(c0, c1, fc) in cols {
+            let top = v[r0 * coarse_cols + c0] * (1.0 - fc) + v[r0 * coarse_cols + c1] * fc;
+            let bot = v[r1 * coarse_cols + c0] * (1.0 - fc) + v[r1 * coarse_cols + c1] * fc;
+            out.push(top * (1.0 - fr) + bot * fr);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn index_and_cell_round_trip() {
+        let g = Grid::new(7, 11, 2.0).unwrap();
+        for i in 0..g.len() {
+            assert_eq!(g.index(g.cell(i)), i);
+        }
+        assert_eq!(g.cell(12), Cell::new(1, 1));
+        assert_eq!(g.cell_at(3.0, 1.0), Some(Cell::new(0, 1)));
+        assert_eq!(g.cell_at(22.0, 1.0), None);
+        assert_eq!(g.cell_at(f64::NAN, 1.0), None);
+    }
+
+    #[test]
+    fn rejects_bad_grids() {
+        assert!(Grid::new(0, 3, 1.0).is_err());
+        assert!(Grid::new(3, 3, 0.0).is_err());
+        assert!(Grid::new(3, 3, f64::INFINITY).is_err());
+    }
+
+    #[test]
+    fn disk_is_euclidean_and_clipped() {
+        let g = Grid::new(20, 20, 1.0).unwrap();
+        // Radius 1: the centre and its 4 neighbours.
+        assert_eq!(g.disk(Cell::new(5, 5), 1.0).len(), 5);
+        // Radius 2 in the open: the 13 lattice points with dr^2 + dc^2 <= 4.
+        assert_eq!(g.disk(Cell::new(5, 5), 2.0).len(), 13);
+        // Corner: a quarter of the radius-2 disk, i.e. 6 cells.
+        let d = g.disk(Cell::new(0, 0), 2.0);
+        assert_eq!(d, vec![0, 1, 2, 20, 21, 40]);
+        assert_eq!(g.disk(Cell::new(3, 3), 0.0), vec![63]);
+    }
+
+    #[test]
+    fn stride_upsampling_is_exact_on_bilinear_fields() {
+        let g = Grid::new(13, 17, 1.0).unwrap();
+        let f: Vec<f64> = (0..g.len())
+            .map(|i| {
+                let c = g.cell(i);
+                let (r, k) = (c.row as f64, c.col as f64);
+                1.5 - 0.3 * r + 0.7 * k + 0.05 * r * k
+            })
+            .collect();
+        let (sg, coarse) = g.stride_downsample(&f, 4).unwrap();
+        assert_eq!((sg.rows, sg.cols), (4, 5));
+        let up = sg.upsample_bilinear(&coarse).unwrap();
+        // Inside the lattice (rows <= 12, cols <= 16 here: everything) it is exact.
+        for i in 0..g.len() {
+            assert!((up[i] - f[i]).abs() < 1e-12, "cell {i}: {} vs {}", up[i], f[i]);
+        }
+    }
+
+    #[test]
+    fn grid_to_grid_upsampling_is_exact_on_bilinear_fields_inside_the_hull() {
+        let fine = Grid::new(24, 48, 1.0).unwrap();
+        let coarse = Grid::new(6, 12, 4.0).unwrap();
+        let bil = |x: f64, y: f64| 2.0 + 0.1 * x - 0.2 * y + 0.03 * x * y;
+        let cv: Vec<f64> = (0..coarse.len())
+            .map(|i| {
+                let (x, y) = coarse.centre_m(coarse.cell(i));
+                bil(x, y)
+            })
+            .collect();
+        let up = fine.upsample_bilinear(&coarse, &cv).unwrap();
+        let (lo, hi_x, hi_y) = (2.0, 46.0, 22.0); // first / last coarse centres
+        let mut checked = 0;
+        for i in 0..fine.len() {
+            let (x, y) = fine.centre_m(fine.cell(i));
+            if x >= lo && x <= hi_x && y >= lo && y <= hi_y {
+                assert!((up[i] - bil(x, y)).abs() < 1e-12);
+                checked += 1;
+            }
+        }
+        assert!(checked > fine.len() / 2);
+        let other = Grid::new(6, 13, 4.0).unwrap();
+        assert!(fine.upsample_bilinear(&other, &vec![0.0; other.len()]).is_err());
+    }
+}

@@ -1,0 +1,22 @@
+//! hetfleet's shared library: the paper's mathematics (no network here) and the pieces the
+//! `fleet` CLI, the model server and the vehicle nodes all call.
+//!
+//! One module per idea: [`grid`] (the workspace raster and sensing disks), [`dmd`] (batch,
+//! general online and long-term online DMD), [`process`] (field sources), [`experiment`]
+//! (the paper's studies), [`npy`] (numpy-compatible files).
+
+pub mod dmd;
+pub mod experiment;
+pub mod grid;
+pub mod npy;
+pub mod process;
+
+/// Set faer's parallelism from `HETFLEET_LINALG_THREADS` (default 1). On the 2-core machines
+/// we run on, faer's rayon parallelism made the decompositions DMD uses (eig 400 x 400, SVD
+/// 400 x 1000, 4608 x 100) 1.3-1.5x *slower* than sequential, and the fleet's nodes run
+/// several processes at once anyway. Call once at start-up.
+pub fn configure_linalg_threads() -> usize {
+    let n = std::env::var("HETFLEET_LINALG_THREADS").ok().and_then(|v| v.parse::<usize>().ok()).unwrap_or(1).max(1);
+    faer::set_global_parallelism(if n == 1 { faer::Par::Seq } else { faer::Par::rayon(n) });
+    n
+}

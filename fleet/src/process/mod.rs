@@ -1,0 +1,27 @@
+//! Field sources: synthetic fields with known dynamics (and, later, the plasma-cloud simulator
+//! and `.npy` datasets). Every source yields [`FieldSeries`]: snapshots as the columns of an
+//! `N x T` matrix on a grid, a step `dt` apart.
+
+pub mod synthetic;
+
+use faer::Mat;
+
+/// A field sampled on a `rows x cols` grid at `T` times: column `t` is the row-major snapshot.
+#[derive(Clone, Debug)]
+pub struct FieldSeries {
+    pub rows: usize,
+    pub cols: usize,
+    /// Seconds between consecutive snapshots.
+    pub dt: f64,
+    pub snapshots: Mat<f64>,
+}
+
+impl FieldSeries {
+    pub fn frames(&self) -> usize {
+        self.snapshots.ncols()
+    }
+
+    pub fn dim(&self) -> usize {
+        self.snapshots.nrows()
+    }
+}

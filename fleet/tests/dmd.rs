@@ -1,0 +1,357 @@
+//! The DMD core against analytic cases, against itself (the three methods agree at full rank),
+//! and against the peer libraries' reference outputs in `reference/` (PyDMD, odmd, numpy).
+
+use faer::{c64, Mat, MatRef};
+use fleet::dmd::{pairs_of, Debias, Dmd, DmdConfig, DmdError, GeneralDmd, LongTermDmd, Method, RankPolicy};
+use fleet::dmd::{BatchDmd, Modes};
+use fleet::experiment::run_online;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal, StandardNormal};
+use std::path::PathBuf;
+
+fn reference_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../reference")
+}
+
+fn cfg(method: Method, rank: RankPolicy) -> DmdConfig {
+    DmdConfig { method, rank, debias: Debias::None, gamma: 1.0 }
+}
+
+fn randn(rows: usize, cols: usize, seed: u64) -> Mat<f64> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    Mat::from_fn(rows, cols, |_, _| StandardNormal.sample(&mut rng))
+}
+
+/// A real 6 x 6 operator with eigenvalues 0.95, 0.8, 0.9 e^{+-0.3i}, 0.5 e^{+-1.0i}, built as
+/// `P D P^-1` with a random well-conditioned `P` and `D` real block-diagonal.
+fn known_system() -> (Mat<f64>, Vec<c64>) {
+    let blocks = [(0.95, 0.0), (0.8, 0.0), (0.9, 0.3), (0.5, 1.0)];
+    let mut d = Mat::<f64>::zeros(6, 6);
+    let mut eigs = vec![];
+    let mut k = 0;
+    for (r, th) in blocks {
+        if th == 0.0 {
+            d[(k, k)] = r;
+            eigs.push(c64::new(r, 0.0));
+            k += 1;
+        } else {
+            let (c, s) = (r * f64::cos(th), r * f64::sin(th));
+            d[(k, k)] = c;
+            d[(k, k + 1)] = -s;
+            d[(k + 1, k)] = s;
+            d[(k + 1, k + 1)] = c;
+            eigs.push(c64::new(c, s));
+            eigs.push(c64::new(c, -s));
+            k += 2;
+        }
+    }
+    let p = randn(6, 6, 3) + Mat::<f64>::identity(6, 6) * faer::Scale(3.0);
+    use faer::linalg::solvers::DenseSolveCore;
+    let pinv = p.partial_piv_lu().inverse();
+    (&p * &d * &pinv, eigs)
+}
+
+/// Largest distance from an eigenvalue in `a` to its nearest in `b`, both ways (Hausdorff).
+fn spectrum_distance(a: &[c64], b: &[c64]) -> f64 {
+    let one = |a: &[c64], b: &[c64]| a.iter().map(|x| b.iter().map(|y| (x - y).norm()).fold(f64::INFINITY, f64::min)).fold(0.0, f64::max);
+    one(a, b).max(one(b, a))
+}
+
+fn eigenvalues(m: &dyn Dmd) -> Vec<c64> {
+    m.decompose().unwrap().eigenvalues
+}
+
+#[test]
+fn a_known_linear_system_is_recovered_by_all_three_methods() {
+    let (a, truth) = known_system();
+    // Snapshot pairs from random states (well conditioned) ...
+    let x = randn(6, 40, 11);
+    let y = &a * &x;
+    for method in [Method::Batch, Method::General, Method::LongTerm] {
+        let mut m = cfg(method, RankPolicy::Full).init(x.subcols(0, 10), y.subcols(0, 10)).unwrap();
+        for (start, w) in [(10, 1), (11, 7), (18, 3), (21, 19)] {
+            m.update(x.subcols(start, w), y.subcols(start, w)).unwrap();
+        }
+        let d = spectrum_distance(&eigenvalues(m.as_ref()), &truth);
+        assert!(d < 1e-10, "{method}: eigenvalues off by {d:e}");
+    }
+    // ... and from one trajectory x_{k+1} = A x_k.
+    let mut z = Mat::<f64>::zeros(6, 25);
+    z.col_mut(0).copy_from(randn(6, 1, 5).col(0));
+    for k in 1..25 {
+        let next = &a * z.col(k - 1);
+        z.col_mut(k).copy_from(&next);
+    }
+    let (zx, zy) = pairs_of(z.as_ref());
+    let b = BatchDmd::fit(zx, zy, RankPolicy::Full, Debias::None).unwrap();
+    let d = spectrum_distance(&eigenvalues(&b), &truth);
+    assert!(d < 1e-10, "trajectory: eigenvalues off by {d:e}");
+}
+
+#[test]
+fn exact_modes_reconstruct_and_forecast_a_noise_free_trajectory() {
+    let (a, _) = known_system();
+    let mut z = Mat::<f64>::zeros(6, 30);
+    z.col_mut(0).copy_from(randn(6, 1, 9).col(0));
+    for k in 1..30 {
+        let next = &a * z.col(k - 1);
+        z.col_mut(k).copy_from(&next);
+    }
+    // Fit on the first 20 snapshots, forecast the last 10.
+    let (x, y) = pairs_of(z.subcols(0, 20));
+    let m = BatchDmd::fit(x, y, RankPolicy::Full, Debias::None).unwrap();
+    let x0: Vec<f64> = z.col(0).iter().copied().collect();
+    let model = m.decompose().unwrap().model(&x0, 0.1).unwrap();
+    for t in [0usize, 5, 19, 25, 29] {
+        let p = model.predict(t as f64);
+        let err = p.iter().zip(z.col(t).iter()).map(|(u, v)| (u - v).abs()).fold(0.0, f64::max);
+        let scale = z.col(t).iter().map(|v| v.abs()).fold(0.0, f64::max);
+        assert!(err < 1e-9 * scale.max(1.0), "step {t}: error {err:e}");
+    }
+    // Continuous-time eigenvalues are ln(lambda)/dt.
+    let ct = model.continuous_eigenvalues();
+    let dom = model.modes.dominant().unwrap();
+    assert!((ct[dom].re - 0.95f64.ln() / 0.1).abs() < 1e-9);
+}
+
+fn load_case1() -> Mat<f64> {
+    let a = fleet::npy::read(reference_dir().join("dmd_case1_Z.npy")).unwrap();
+    assert_eq!(a.shape, vec![100, 501]);
+    Mat::from_fn(100, 501, |i, j| a.data[i * 501 + j])
+}
+
+fn reference() -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(reference_dir().join("dmd_reference.json")).unwrap()).unwrap()
+}
+
+fn ref_eigs(v: &serde_json::Value) -> Vec<c64> {
+    v.as_array().unwrap().iter().map(|p| c64::new(p[0].as_f64().unwrap(), p[1].as_f64().unwrap())).collect()
+}
+
+/// Match each reference eigenvalue to its nearest computed one; return the largest relative
+/// difference `|a - b| / max(|b|, 1e-3)`.
+fn matched_relative(ours: &[c64], reference: &[c64]) -> f64 {
+    assert_eq!(ours.len(), reference.len(), "different number of eigenvalues");
+    let mut used = vec![false; ours.len()];
+    let mut worst: f64 = 0.0;
+    for r in reference {
+        let (j, d) = ours
+            .iter()
+            .enumerate()
+            .filter(|(j, _)| !used[*j])
+            .map(|(j, o)| (j, (o - r).norm()))
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .unwrap();
+        used[j] = true;
+        worst = worst.max(d / r.norm().max(1e-3));
+    }
+    worst
+}
+
+/// Case 1 of Table 1 as the peers ran it: init on 100 pairs, then batches of 10.
+fn online_case1(c: DmdConfig) -> Box<dyn Dmd> {
+    run_online(&c, load_case1().as_ref(), 100, 10, |_| Ok(())).unwrap()
+}
+
+#[test]
+fn batch_matches_the_pydmd_numpy_reference() {
+    let r = reference();
+    let z = load_case1();
+    let (x, y) = pairs_of(z.as_ref());
+    for (key, rank) in [("batch_svd", RankPolicy::Full), ("batch_svd_r10", RankPolicy::Fixed(10))] {
+        let b = BatchDmd::fit(x, y, rank, Debias::None).unwrap();
+        let rel = matched_relative(&eigenvalues(&b), &ref_eigs(&r[key]));
+        assert!(rel < 1e-6, "{key}: relative eigenvalue difference {rel:e}");
+    }
+}
+
+#[test]
+fn general_matches_the_reference_at_full_and_truncated_rank() {
+    let r = reference();
+    let g = online_case1(cfg(Method::General, RankPolicy::Full));
+    let rel = matched_relative(&eigenvalues(g.as_ref()), &ref_eigs(&r["general"]));
+    assert!(rel < 1e-6, "general: {rel:e}");
+    // Truncated Brand updates are path dependent; the reference took the same path.
+    let g10 = online_case1(cfg(Method::General, RankPolicy::Fixed(10)));
+    let rel = matched_relative(&eigenvalues(g10.as_ref()), &ref_eigs(&r["general_r10"]));
+    assert!(rel < 1e-6, "general r10: {rel:e}");
+}
+
+#[test]
+fn long_term_matches_odmd_and_the_reference_with_and_without_forgetting() {
+    let r = reference();
+    for (key, gamma) in [("longterm_g1", 1.0), ("longterm_g0.95", 0.95)] {
+        let c = DmdConfig { gamma, ..cfg(Method::LongTerm, RankPolicy::Full) };
+        let m = online_case1(c);
+        let rel = matched_relative(&eigenvalues(m.as_ref()), &ref_eigs(&r[key]["eigs"]));
+        assert!(rel < 1e-6, "{key}: {rel:e}");
+        // And the operator itself, entry by entry.
+        let lt = LongTermDmd::init(load_case1().subcols(0, 100), load_case1().subcols(1, 100), gamma).unwrap();
+        let mut lt = lt;
+        let z = load_case1();
+        let mut col = 100;
+        while col < 500 {
+            lt.update(z.subcols(col, 10), z.subcols(col + 1, 10)).unwrap();
+            col += 10;
+        }
+        let a = lt.operator();
+        let fro = a.norm_l2();
+        assert!((fro - r[key]["A_fro"].as_f64().unwrap()).abs() < 1e-8 * fro);
+        for i in 0..3 {
+            for j in 0..3 {
+                let want = r[key]["A_00_22"][i][j].as_f64().unwrap();
+                assert!((a[(i, j)] - want).abs() < 1e-8 * fro, "{key} A[{i},{j}]");
+            }
+        }
+    }
+}
+
+#[test]
+fn general_equals_batch_after_many_updates_of_varied_size() {
+    let z = load_case1();
+    let (x, y) = pairs_of(z.as_ref());
+    let mut g = GeneralDmd::init(x.subcols(0, 40), y.subcols(0, 40), RankPolicy::Full, Debias::None).unwrap();
+    let sizes = [1usize, 3, 7, 10, 2, 1, 13, 5];
+    let (mut col, mut k, mut updates) = (40, 0, 0);
+    while col < 500 {
+        let w = sizes[k % sizes.len()].min(500 - col);
+        g.update(x.subcols(col, w), y.subcols(col, w)).unwrap();
+        col += w;
+        k += 1;
+        updates += 1;
+    }
+    assert!(updates > 80);
+    let b = BatchDmd::fit(x, y, RankPolicy::Full, Debias::None).unwrap();
+    let d = spectrum_distance(&eigenvalues(&g), &eigenvalues(&b));
+    assert!(d < 1e-8, "general vs batch: {d:e}");
+    // The singular values of X agree as well.
+    for (a, b) in g.singular_values().iter().zip(b.singular_values()) {
+        assert!((a - b).abs() < 1e-8 * b.max(1.0));
+    }
+}
+
+#[test]
+fn long_term_with_gamma_one_is_the_batch_least_squares_operator() {
+    let z = load_case1();
+    let (x, y) = pairs_of(z.as_ref());
+    let m = online_case1(cfg(Method::LongTerm, RankPolicy::Full));
+    // Y X^+ through the SVD of X.
+    let svd = x.thin_svd().unwrap();
+    let s = svd.S().column_vector();
+    let vs = Mat::from_fn(500, 100, |i, j| svd.V()[(i, j)] / s[j]);
+    let a_ls = y * &vs * svd.U().transpose();
+    let modes = m.decompose().unwrap();
+    let (ev_ls, _) = fleet::dmd::linalg::eig(a_ls.as_ref()).unwrap();
+    let d = spectrum_distance(&modes.eigenvalues, &ev_ls);
+    assert!(d < 1e-8, "spectrum {d:e}");
+}
+
+/// A system that switches from A1 to A2 halfway: forgetting must track A2, gamma = 1 must not.
+#[test]
+fn forgetting_tracks_a_system_whose_dynamics_switch() {
+    let (a1, _) = known_system();
+    let a2 = Mat::from_fn(6, 6, |i, j| if i == j { 0.6 - 0.1 * i as f64 } else { 0.0 });
+    let x = randn(6, 400, 21);
+    let mut y = Mat::<f64>::zeros(6, 400);
+    let noise = Normal::new(0.0, 1e-3).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    for j in 0..400 {
+        let a = if j < 200 { &a1 } else { &a2 };
+        let col = a * x.col(j);
+        for i in 0..6 {
+            y[(i, j)] = col[i] + noise.sample(&mut rng);
+        }
+    }
+    let truth2: Vec<c64> = (0..6).map(|i| c64::new(0.6 - 0.1 * i as f64, 0.0)).collect();
+    let run = |gamma: f64| {
+        let c = DmdConfig { gamma, ..cfg(Method::LongTerm, RankPolicy::Full) };
+        let mut m = c.init(x.subcols(0, 20), y.subcols(0, 20)).unwrap();
+        let mut col = 20;
+        while col < 400 {
+            m.update(x.subcols(col, 20), y.subcols(col, 20)).unwrap();
+            col += 20;
+        }
+        let Modes { eigenvalues, .. } = m.decompose().unwrap();
+        spectrum_distance(&eigenvalues, &truth2)
+    };
+    let err_forget = run(0.9);
+    let err_keep = run(1.0);
+    assert!(err_forget < 0.01, "gamma 0.9 should track the new dynamics: spectrum off by {err_forget}");
+    assert!(err_keep > 0.1, "gamma 1 averages both regimes: spectrum off by {err_keep}");
+}
+
+#[test]
+fn general_stays_orthogonal_over_thousands_of_single_updates() {
+    // A slowly rotating low-rank field plus noise, 3000 single-snapshot updates at rank 10.
+    let n = 300;
+    let steps = 3001;
+    let basis = randn(n, 12, 8);
+    let mut rng = ChaCha8Rng::seed_from_u64(17);
+    let z = Mat::from_fn(n, steps, |i, t| {
+        let tt = t as f64 * 0.01;
+        let mut v = 0.0;
+        for k in 0..12 {
+            v += basis[(i, k)] * ((k as f64 + 1.0) * tt).sin() / (k as f64 + 1.0);
+        }
+        v + 1e-3 * <StandardNormal as Distribution<f64>>::sample(&StandardNormal, &mut rng)
+    });
+    let (x, y) = pairs_of(z.as_ref());
+    let mut g = GeneralDmd::init(x.subcols(0, 20), y.subcols(0, 20), RankPolicy::Fixed(10), Debias::None).unwrap();
+    for j in 20..3000 {
+        g.update(x.subcols(j, 1), y.subcols(j, 1)).unwrap();
+    }
+    assert_eq!(g.rank(), 10);
+    assert_eq!(g.pairs(), 3000);
+    let e = g.orthogonality_error();
+    assert!(e < 1e-12, "max |U^T U - I| = {e:e} after 2980 updates");
+}
+
+#[test]
+fn long_term_refuses_a_start_without_full_row_rank() {
+    let z = load_case1();
+    // 100 states but only 60 pairs.
+    let err = LongTermDmd::init(z.subcols(0, 60), z.subcols(1, 60), 1.0).unwrap_err();
+    match &err {
+        DmdError::NotFullRowRank { n: 100, m: 60, rank } => assert_eq!(*rank, 60),
+        e => panic!("wrong error {e:?}"),
+    }
+    let msg = err.to_string();
+    assert!(msg.contains("at least 100"), "{msg}");
+    // Enough columns but rank 3.
+    let low = &randn(100, 3, 1) * &randn(3, 150, 2);
+    let (x, y) = (low.subcols(0, 149), low.subcols(1, 149));
+    assert!(matches!(LongTermDmd::init(x, y, 1.0), Err(DmdError::NotFullRowRank { rank: 3, .. })));
+    assert!(matches!(LongTermDmd::init(z.subcols(0, 200), z.subcols(1, 200), 1.5), Err(DmdError::Gamma(_))));
+}
+
+#[test]
+fn bad_input_is_rejected_not_panicked_on() {
+    let z = load_case1();
+    let mut g = cfg(Method::General, RankPolicy::Full).init(z.subcols(0, 50), z.subcols(1, 50)).unwrap();
+    let mut bad = z.subcols(50, 5).to_owned();
+    bad[(3, 2)] = f64::NAN;
+    assert!(matches!(g.update(bad.as_ref(), z.subcols(51, 5)), Err(DmdError::NonFinite { row: 3, col: 2 })));
+    assert!(matches!(g.update(z.subcols(50, 5), z.subcols(51, 4)), Err(DmdError::Shape(_))));
+    let short: MatRef<f64> = z.submatrix(0, 50, 99, 5);
+    assert!(matches!(g.update(short, short), Err(DmdError::Shape(_))));
+    // The model is unchanged by the rejected updates.
+    assert_eq!(g.pairs(), 50);
+    let lt = DmdConfig { debias: Debias::Fb, ..cfg(Method::LongTerm, RankPolicy::Full) };
+    assert!(matches!(lt.init(z.subcols(0, 200), z.subcols(1, 200)), Err(DmdError::Unsupported(_))));
+    let zero = Mat::<f64>::zeros(10, 20);
+    assert!(matches!(cfg(Method::Batch, RankPolicy::Full).init(zero.as_ref(), zero.as_ref()), Err(DmdError::ZeroRank)));
+}
+
+#[test]
+fn an_exactly_low_rank_field_gets_its_rank() {
+    let low = &randn(80, 4, 31) * &randn(4, 60, 32);
+    let (x, y) = pairs_of(low.as_ref());
+    for method in [Method::Batch, Method::General] {
+        let mut m = cfg(method, RankPolicy::Full).init(x.subcols(0, 20), y.subcols(0, 20)).unwrap();
+        m.update(x.subcols(20, 39), y.subcols(20, 39)).unwrap();
+        assert_eq!(m.rank(), 4, "{method}");
+    }
+    let e = cfg(Method::Batch, RankPolicy::Energy(0.5)).init(x, y).unwrap();
+    assert!(e.rank() >= 1 && e.rank() <= 4);
+}

@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# The whole test suite, from a fresh clone: installs what the cross-checks need, builds the
+# workspace once in release (tests run in the same profile as the binaries), runs every test.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+# Python peers used by cross-check tests (PyDMD, odmd, pysensors, numpy/scipy).
+if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors" 2>/dev/null; then
+  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors)"
+  python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore \
+    numpy scipy pydmd odmd python-sensors
+fi
+echo "== building (release)"
+cargo build --release --workspace --all-targets
+echo "== testing (release)"
+cargo test --release --workspace
