@@ -3,7 +3,7 @@
 //! `X = U S W^T`, `A~ = U^T Y W S^-1`, `A~ V = V Lambda`, `Phi = Y W S^-1 V`.
 
 use super::debias::{debiased_eig, Debias};
-use super::linalg::{div_cols, eig, scale_rows, thin_svd};
+use super::linalg::{div_cols, eig, pod, scale_rows};
 use super::{Dmd, DmdError, Method, Modes, RankPolicy, SnapshotPairs};
 use faer::{Mat, MatRef};
 
@@ -52,12 +52,10 @@ impl ProjectedFit {
 
 /// Exact DMD of `(X, Y)` truncated by `rank`.
 pub(crate) fn exact_fit(x: MatRef<'_, f64>, y: MatRef<'_, f64>, rank: RankPolicy) -> Result<(ProjectedFit, Mat<f64>), DmdError> {
-    let svd = thin_svd(x)?;
-    let r = rank.select(&svd.s, x.nrows(), x.ncols());
-    if r == 0 {
+    let svd = pod(x, |s| rank.select(s, x.nrows(), x.ncols()))?;
+    if svd.s.is_empty() {
         return Err(DmdError::ZeroRank);
     }
-    let svd = svd.truncate(r);
     let yws = div_cols(y * &svd.v, &svd.s);
     // U^T X = S W^T, kept for debiasing without another product with X.
     let xt = scale_rows(svd.v.transpose().to_owned(), &svd.s);

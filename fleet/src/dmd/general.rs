@@ -20,7 +20,7 @@
 
 use super::batch::{exact_fit, ProjectedFit};
 use super::debias::Debias;
-use super::linalg::{div_cols, orthogonality_error, scale_rows, thin_svd};
+use super::linalg::{div_cols, orthogonality_error, scale_cols_by, scale_rows, thin_svd};
 use super::{numerical_rank, Dmd, DmdError, Method, Modes, RankPolicy, SnapshotPairs};
 use faer::{Mat, MatRef};
 
@@ -51,7 +51,7 @@ impl GeneralDmd {
             RankPolicy::Full | RankPolicy::Fixed(_) => rank,
             RankPolicy::Energy(_) | RankPolicy::Optimal => RankPolicy::Fixed(s.len()),
         };
-        let yw = scale_cols(yws, &s);
+        let yw = scale_cols_by(yws, &s);
         Ok(Self { pairs, rank: held, debias, u, s, yw, updates: 0, reorthogonalisations: 0 })
     }
 
@@ -77,7 +77,7 @@ impl GeneralDmd {
     fn reorthonormalise(&mut self) -> Result<(), DmdError> {
         let qr = self.u.qr();
         let q = qr.compute_thin_Q();
-        let rs = scale_cols(qr.thin_R().to_owned(), &self.s);
+        let rs = scale_cols_by(qr.thin_R().to_owned(), &self.s);
         let svd = thin_svd(rs.as_ref())?;
         self.u = q * &svd.u;
         self.s = svd.s;
@@ -85,16 +85,6 @@ impl GeneralDmd {
         self.reorthogonalisations += 1;
         Ok(())
     }
-}
-
-/// `a * diag(d)`.
-fn scale_cols(mut a: Mat<f64>, d: &[f64]) -> Mat<f64> {
-    for (j, &dj) in d.iter().enumerate() {
-        for x in a.col_mut(j).iter_mut() {
-            *x *= dj;
-        }
-    }
-    a
 }
 
 impl Dmd for GeneralDmd {

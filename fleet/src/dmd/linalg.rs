@@ -23,6 +23,54 @@ impl Svd {
     }
 }
 
+/// Smallest kept singular value, relative to the largest, for which [`pod`] may take the
+/// method-of-snapshots path: there the error of `s_i` from the Gram matrix is about
+/// `eps (s_0 / s_i)^2 <= 2e-8` relative.
+pub const SNAPSHOT_METHOD_MIN_RATIO: f64 = 1e-4;
+
+/// Truncated SVD `A ~ U_r diag(s_r) V_r^T` with `r = select(all singular values)`.
+///
+/// For tall data (`rows >= 4 cols`, the usual grid-by-snapshots case) it uses Sirovich's
+/// method of snapshots: the eigendecomposition of the small Gram matrix `A^T A` gives `s` and
+/// `V`, then `U_r = A V_r / s_r` is re-orthonormalised exactly (QR, then an `r x r` SVD). That is
+/// 2-3x faster than a full thin SVD, and exact to ~1e-8 relative as long as every kept singular
+/// value is at least [`SNAPSHOT_METHOD_MIN_RATIO`] of the largest; otherwise (or for wide data) it
+/// falls back to the thin SVD.
+pub fn pod(a: MatRef<'_, f64>, select: impl Fn(&[f64]) -> usize) -> Result<Svd, DmdError> {
+    let (n, m) = (a.nrows(), a.ncols());
+    if n >= 4 * m && m > 0 {
+        let gram = a.transpose() * a;
+        let evd = gram
+            .self_adjoint_eigen(Side::Lower)
+            .map_err(|e| DmdError::Numerical(format!("Gram eigendecomposition did not converge: {e:?}")))?;
+        // Ascending eigenvalues -> descending singular values.
+        let s_all: Vec<f64> = (0..m).rev().map(|i| evd.S().column_vector()[i].max(0.0).sqrt()).collect();
+        let r = select(&s_all);
+        if r > 0 && s_all[r - 1] >= SNAPSHOT_METHOD_MIN_RATIO * s_all[0] {
+            let v = Mat::from_fn(m, r, |i, j| evd.U()[(i, m - 1 - j)]);
+            let u = div_cols(a * &v, &s_all[..r]);
+            // Exact re-orthonormalisation: U = Q R, R S = U_R S_R W_R^T.
+            let qr = u.qr();
+            let rs = scale_cols_by(qr.thin_R().to_owned(), &s_all[..r]);
+            let small = thin_svd(rs.as_ref())?;
+            return Ok(Svd { u: qr.compute_thin_Q() * &small.u, s: small.s, v: v * &small.v });
+        }
+    }
+    let svd = thin_svd(a)?;
+    let r = select(&svd.s);
+    Ok(svd.truncate(r))
+}
+
+/// `a * diag(d)`.
+pub fn scale_cols_by(mut a: Mat<f64>, d: &[f64]) -> Mat<f64> {
+    for (j, &dj) in d.iter().enumerate() {
+        for x in a.col_mut(j).iter_mut() {
+            *x *= dj;
+        }
+    }
+    a
+}
+
 pub fn thin_svd(a: MatRef<'_, f64>) -> Result<Svd, DmdError> {
     let svd = a.thin_svd().map_err(|e| DmdError::Numerical(format!("SVD did not converge: {e:?}")))?;
     let s = svd.S().column_vector().iter().copied().collect();
@@ -104,4 +152,49 @@ pub fn orthogonality_error(a: MatRef<'_, f64>) -> f64 {
 /// Frobenius norm of a real matrix.
 pub fn fro(a: MatRef<'_, f64>) -> f64 {
     a.norm_l2()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, StandardNormal};
+
+    fn randn(r: usize, c: usize, seed: u64) -> Mat<f64> {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        Mat::from_fn(r, c, |_, _| StandardNormal.sample(&mut rng))
+    }
+
+    #[test]
+    fn method_of_snapshots_agrees_with_the_thin_svd_on_tall_data() {
+        // Rank-8 signal with decaying scales plus small noise, 2000 x 60.
+        let scales = Mat::from_fn(8, 8, |i, j| if i == j { 10f64.powi(-(i as i32) / 2) } else { 0.0 });
+        let a = &randn(2000, 8, 1) * &scales * &randn(8, 60, 2) + randn(2000, 60, 3) * faer::Scale(1e-6);
+        let pod = pod(a.as_ref(), |_| 8).unwrap();
+        let svd = thin_svd(a.as_ref()).unwrap().truncate(8);
+        for (p, s) in pod.s.iter().zip(&svd.s) {
+            assert!((p - s).abs() < 1e-9 * s, "{p} vs {s}");
+        }
+        assert!(orthogonality_error(pod.u.as_ref()) < 1e-13);
+        assert!(orthogonality_error(pod.v.as_ref()) < 1e-12);
+        // Same subspaces: the singular values of U_pod^T U_svd are all 1.
+        let overlap = thin_svd((pod.u.transpose() * &svd.u).as_ref()).unwrap();
+        for c in overlap.s {
+            assert!((c - 1.0).abs() < 1e-9, "principal cosine {c}");
+        }
+        // Reconstruction: U S V^T equals the rank-8 truncation.
+        let rec = super::scale_cols_by(pod.u.clone(), &pod.s) * pod.v.transpose();
+        let rec2 = super::scale_cols_by(svd.u.clone(), &svd.s) * svd.v.transpose();
+        assert!((&rec - &rec2).norm_l2() < 1e-9 * rec2.norm_l2());
+    }
+
+    #[test]
+    fn method_of_snapshots_falls_back_when_a_kept_value_is_too_small() {
+        // Exactly rank 3 asked for rank 5: the 4th and 5th values are ~0, so the SVD is used and
+        // reports them accurately (tiny), where the Gram matrix could only give ~1e-8 s0.
+        let a = &randn(500, 3, 4) * &randn(3, 40, 5);
+        let pod = pod(a.as_ref(), |_| 5).unwrap();
+        assert_eq!(pod.s.len(), 5);
+        assert!(pod.s[3] < 1e-12 * pod.s[0], "{:?}", pod.s);
+    }
 }
