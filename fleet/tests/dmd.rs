@@ -355,3 +355,31 @@ fn an_exactly_low_rank_field_gets_its_rank() {
     let e = cfg(Method::Batch, RankPolicy::Energy(0.5)).init(x, y).unwrap();
     assert!(e.rank() >= 1 && e.rank() <= 4);
 }
+
+/// Updates whose new directions are rank deficient (repeated and dependent columns) must not
+/// let arbitrary directions into the basis.
+#[test]
+fn general_handles_rank_deficient_updates() {
+    let basis = randn(50, 12, 41);
+    let coeffs = randn(12, 30, 42);
+    let mut x = &basis * &coeffs;
+    // Columns 20..26: [a, 2a, b, a + b, 3b, c] with a, b, c new combinations.
+    let (a, b, c) = (x.col(20).to_owned(), x.col(22).to_owned(), x.col(25).to_owned());
+    x.col_mut(21).copy_from(&(&a * faer::Scale(2.0)));
+    x.col_mut(23).copy_from(&(&a + &b));
+    x.col_mut(24).copy_from(&(&b * faer::Scale(3.0)));
+    let _ = c;
+    let y = &randn(50, 50, 43) * &x;
+    // Start on 8 pairs (rank 8 < 12), then one batch of 6 with internal dependencies, then the rest.
+    let mut g = GeneralDmd::init(x.subcols(0, 8), y.subcols(0, 8), RankPolicy::Full, Debias::None).unwrap();
+    g.update(x.subcols(8, 12), y.subcols(8, 12)).unwrap();
+    g.update(x.subcols(20, 6), y.subcols(20, 6)).unwrap();
+    g.update(x.subcols(26, 4), y.subcols(26, 4)).unwrap();
+    assert!(g.orthogonality_error() < 1e-12, "{:e}", g.orthogonality_error());
+    let b = BatchDmd::fit(x.as_ref(), y.as_ref(), RankPolicy::Full, Debias::None).unwrap();
+    assert_eq!(g.rank(), b.rank());
+    assert_eq!(g.rank(), 12);
+    let d = spectrum_distance(&eigenvalues(&g), &eigenvalues(&b));
+    let scale = eigenvalues(&b).iter().map(|z| z.norm()).fold(0.0, f64::max);
+    assert!(d < 1e-8 * scale, "general vs batch: {d:e}");
+}

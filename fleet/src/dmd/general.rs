@@ -3,7 +3,7 @@
 //!
 //! Per update, with `U` (N x r), `S`, and `YW = Y W` (N x r) maintained:
 //! `L = U^T X_new`, `H = X_new - U L` (re-projected once more: "twice is enough"),
-//! `H = J P` (thin SVD of `H`, so `J` only holds the directions `H` really has),
+//! `H = J P` (column-pivoted QR of `H`, so `J` only holds the directions `H` really has),
 //! `Z = [[S, L], [0, P]] = U' S' W'^T`, then `U <- [U J] U'_r`, `S <- S'_r`,
 //! `YW <- YW W'_top + Y_new W'_bottom` (so `W` itself is never needed).
 //!
@@ -20,7 +20,7 @@
 
 use super::batch::{exact_fit, ProjectedFit};
 use super::debias::Debias;
-use super::linalg::{div_cols, orthogonality_error, scale_cols_by, scale_rows, thin_svd};
+use super::linalg::{div_cols, orthogonality_error, scale_cols_by, thin_svd};
 use super::{numerical_rank, Dmd, DmdError, Method, Modes, RankPolicy, SnapshotPairs};
 use faer::{Mat, MatRef};
 
@@ -87,6 +87,28 @@ impl GeneralDmd {
     }
 }
 
+/// `H ~ J P` with `J` orthonormal (N x k) and `k` the numerical rank of `H` (at most `max_k`),
+/// from a column-pivoted QR (2-4x cheaper than an SVD of `H`). Unpivoted QR would not do: for a
+/// rank-deficient `H` its extra columns of `J` are arbitrary and not orthogonal to `U`.
+fn new_directions(h: MatRef<'_, f64>, s0: f64, max_k: usize) -> (Mat<f64>, Mat<f64>) {
+    let (n, tau) = (h.nrows(), h.ncols());
+    let qr = h.col_piv_qr();
+    let r = qr.thin_R();
+    let scale = s0.max(if r.nrows() > 0 && tau > 0 { r[(0, 0)].abs() } else { 0.0 });
+    let tol = (n.max(tau) as f64) * f64::EPSILON * scale;
+    let k = (0..r.nrows().min(tau)).take_while(|&i| r[(i, i)].abs() > tol).count().min(max_k);
+    let j = qr.compute_thin_Q().subcols(0, k).to_owned();
+    // Undo the column permutation: column c of R belongs to column fwd[c] of H.
+    let (fwd, _) = qr.P().arrays();
+    let mut p = Mat::<f64>::zeros(k, tau);
+    for (c, &orig) in fwd.iter().enumerate() {
+        for i in 0..k {
+            p[(i, orig)] = r[(i, c)];
+        }
+    }
+    (j, p)
+}
+
 impl Dmd for GeneralDmd {
     fn method(&self) -> Method {
         Method::General
@@ -102,18 +124,9 @@ impl Dmd for GeneralDmd {
         h -= &self.u * &l2;
         l += &l2;
 
-        // Directions of H that are really new (none when U already spans R^N).
-        let (j, p) = if r < n {
-            let hs = thin_svd(h.as_ref())?;
-            let scale = self.s.first().copied().unwrap_or(0.0).max(hs.s.first().copied().unwrap_or(0.0));
-            let tol = (n.max(self.pairs.len()) as f64) * f64::EPSILON * scale;
-            let k = hs.s.iter().filter(|&&v| v > tol).count().min(n - r);
-            let hs = hs.truncate(k);
-            let p = scale_rows(hs.v.transpose().to_owned(), &hs.s);
-            (hs.u, p)
-        } else {
-            (Mat::zeros(n, 0), Mat::zeros(0, tau))
-        };
+        // Directions of H that are really new (none when U already spans R^N), by a
+        // rank-revealing (column-pivoted) QR: H P = J R, keeping the rows of R above rounding.
+        let (j, p) = if r < n { new_directions(h.as_ref(), self.s.first().copied().unwrap_or(0.0), n - r) } else { (Mat::zeros(n, 0), Mat::zeros(0, tau)) };
         let k = j.ncols();
 
         let mut z = Mat::<f64>::zeros(r + k, r + tau);
