@@ -3,13 +3,15 @@
 //!
 //! One module per idea: [`grid`] (the workspace raster and sensing disks), [`dmd`] (batch,
 //! general online and long-term online DMD), [`process`] (field sources), [`experiment`]
-//! (the paper's studies), [`npy`] (numpy-compatible files).
+//! (the paper's studies), [`sensing`] (gappy reconstruction and QR sensor placement),
+//! [`npy`] (numpy-compatible files).
 
 pub mod dmd;
 pub mod experiment;
 pub mod grid;
 pub mod npy;
 pub mod process;
+pub mod sensing;
 
 /// Set faer's parallelism from `HETFLEET_LINALG_THREADS` (default 1). On the 2-core machines
 /// we run on, faer's rayon parallelism made the decompositions DMD uses (eig 400 x 400, SVD

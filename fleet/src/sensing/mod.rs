@@ -1,0 +1,36 @@
+//! Where to sense next, from the model's spatial modes (paper Sect. 4.2.1): gappy
+//! reconstruction from sparse measurements, greedy pivoted-QR point selection (Alg. 1), and
+//! block pivoted QR over sensing disks of radius k (Alg. 2) with a D-optimal alternative.
+//!
+//! Everything works on a real basis `Phi` (N x r) and never forms the N x N matrix
+//! `Phi Phi^T`: its column `p` is `Q (R phi_p^T)` for `Phi = Q R`, so its norms and its
+//! deflations live in r dimensions. DMD modes are complex; [`real_basis`] turns them into an
+//! orthonormal real basis of the same real span (`[Re Phi, Im Phi]`).
+
+pub mod gappy;
+pub mod qr;
+
+use crate::dmd::linalg::thin_svd;
+use faer::{Mat, MatRef};
+use thiserror::Error;
+
+#[derive(Debug, Error)]
+pub enum SensingError {
+    #[error("{rows} measured cells of rank {rank} cannot determine {modes} modes; measure more (or more varied) cells or lower the rank")]
+    Underdetermined { rows: usize, rank: usize, modes: usize },
+    #[error("{0}")]
+    Input(String),
+    #[error("numerical failure: {0}")]
+    Numerical(String),
+}
+
+/// An orthonormal real basis (N x q) of the real span of complex modes: the left singular
+/// vectors of `[Re Phi, Im Phi]` above the numerical-rank tolerance (a conjugate pair gives two
+/// directions, a real mode one).
+pub fn real_basis(modes: MatRef<'_, faer::c64>) -> Result<Mat<f64>, SensingError> {
+    let (n, r) = (modes.nrows(), modes.ncols());
+    let stacked = Mat::from_fn(n, 2 * r, |i, j| if j < r { modes[(i, j)].re } else { modes[(i, j - r)].im });
+    let svd = thin_svd(stacked.as_ref()).map_err(|e| SensingError::Numerical(e.to_string()))?;
+    let q = crate::dmd::numerical_rank(&svd.s, n, 2 * r);
+    Ok(svd.truncate(q).u)
+}
