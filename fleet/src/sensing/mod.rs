@@ -7,6 +7,7 @@
 //! deflations live in r dimensions. DMD modes are complex; [`real_basis`] turns them into an
 //! orthonormal real basis of the same real span (`[Re Phi, Im Phi]`).
 
+pub mod assign;
 pub mod gappy;
 pub mod qr;
 
