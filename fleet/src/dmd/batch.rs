@@ -29,7 +29,7 @@ impl ProjectedFit {
     }
 
     /// Eigenvalues and modes: exact DMD, or a debiased operator on the projected data.
-    pub fn decompose(&self, debias: Debias, pairs: &SnapshotPairs, xt: Option<Mat<f64>>) -> Result<Modes, DmdError> {
+    pub fn decompose(&self, debias: Debias, pairs: &SnapshotPairs, xt: Option<MatRef<'_, f64>>) -> Result<Modes, DmdError> {
         match debias {
             Debias::None => {
                 let (eigenvalues, v) = eig(self.atilde().as_ref())?;
@@ -37,12 +37,16 @@ impl ProjectedFit {
                 Ok(Modes { eigenvalues, modes })
             }
             kind => {
+                let computed;
                 let xt = match xt {
                     Some(xt) => xt,
-                    None => self.u.transpose() * pairs.x(),
+                    None => {
+                        computed = self.u.transpose() * pairs.x();
+                        computed.as_ref()
+                    }
                 };
                 let yt = self.u.transpose() * pairs.y();
-                let (eigenvalues, v) = debiased_eig(kind, xt.as_ref(), yt.as_ref())?;
+                let (eigenvalues, v) = debiased_eig(kind, xt, yt.as_ref())?;
                 let modes = super::linalg::to_complex(self.u.as_ref()) * v;
                 Ok(Modes { eigenvalues, modes })
             }
@@ -104,8 +108,7 @@ impl Dmd for BatchDmd {
     }
 
     fn decompose(&self) -> Result<Modes, DmdError> {
-        let xt = (self.debias != Debias::None).then(|| self.xt.clone());
-        self.fit.decompose(self.debias, &self.pairs, xt)
+        self.fit.decompose(self.debias, &self.pairs, Some(self.xt.as_ref()))
     }
 
     fn rank(&self) -> usize {

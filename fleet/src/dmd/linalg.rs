@@ -2,7 +2,7 @@
 //! reads like the paper's equations.
 
 use super::DmdError;
-use faer::linalg::solvers::{DenseSolveCore, Solve, SolveLstsq};
+use faer::linalg::solvers::{Solve, SolveLstsq};
 use faer::{c64, Mat, MatRef, Side};
 
 /// Thin SVD `A = U diag(s) V^T` with `s` non-increasing.
@@ -84,13 +84,6 @@ pub fn eig(a: MatRef<'_, f64>) -> Result<(Vec<c64>, Mat<c64>), DmdError> {
     Ok((vals, e.U().to_owned()))
 }
 
-/// Eigenvalues and right eigenvectors of a complex square matrix.
-pub fn eig_complex(a: MatRef<'_, c64>) -> Result<(Vec<c64>, Mat<c64>), DmdError> {
-    let e = a.eigen().map_err(|e| DmdError::Numerical(format!("eigendecomposition did not converge: {e:?}")))?;
-    let vals = e.S().column_vector().iter().copied().collect();
-    Ok((vals, e.U().to_owned()))
-}
-
 pub fn to_complex(a: MatRef<'_, f64>) -> Mat<c64> {
     Mat::from_fn(a.nrows(), a.ncols(), |i, j| c64::new(a[(i, j)], 0.0))
 }
@@ -131,11 +124,6 @@ pub fn solve_spd(g: MatRef<'_, f64>, b: MatRef<'_, f64>) -> Mat<f64> {
     }
 }
 
-/// Inverse of a small complex square matrix by LU (used once per decomposition on r x r).
-pub fn inverse_complex(a: MatRef<'_, c64>) -> Mat<c64> {
-    a.partial_piv_lu().inverse()
-}
-
 /// `max |a^T a - I|`, how far the columns of `a` are from orthonormal.
 pub fn orthogonality_error(a: MatRef<'_, f64>) -> f64 {
     let g = a.transpose() * a;
@@ -149,10 +137,6 @@ pub fn orthogonality_error(a: MatRef<'_, f64>) -> f64 {
     e
 }
 
-/// Frobenius norm of a real matrix.
-pub fn fro(a: MatRef<'_, f64>) -> f64 {
-    a.norm_l2()
-}
 
 #[cfg(test)]
 mod tests {
