@@ -177,7 +177,7 @@ impl Grid {
                 })
                 .collect()
         };
-        Ok(bilinear(&axis(self.rows, coarse.rows), &axis(self.cols, coarse.cols), coarse.cols, values))
+        Ok(bilinear(&axis(self.rows, coarse.rows), &axis(self.cols, coarse.cols), coarse.cols, values, false))
     }
 }
 
@@ -195,14 +195,34 @@ impl StridedGrid {
     /// Bilinear interpolation from the kept cells back to every fine cell (clamped beyond the
     /// last kept row / column). Exact for fields bilinear in (row, col) inside the lattice.
     pub fn upsample_bilinear(&self, values: &[f64]) -> Result<Vec<f64>, GridError> {
-        if values.len() != self.rows * self.cols {
-            return Err(GridError::Length {
-                got: values.len(),
-                expected: self.rows * self.cols,
-                rows: self.rows,
-                cols: self.cols,
-            });
+        self.check_coarse_len(values.len())?;
+        let (rows, cols) = self.axes();
+        Ok(bilinear(&rows, &cols, self.cols, values, false))
+    }
+
+    /// The variance of [`Self::upsample_bilinear`]'s output when the coarse values carry
+    /// independent errors of variance `variance`: each fine cell gets `sum_i w_i^2 var_i` over
+    /// its bilinear weights `w_i`.
+    pub fn upsample_variance(&self, variance: &[f64]) -> Result<Vec<f64>, GridError> {
+        self.check_coarse_len(variance.len())?;
+        let (rows, cols) = self.axes();
+        Ok(bilinear(&rows, &cols, self.cols, variance, true))
+    }
+
+    /// The fine cell a coarse cell sits on.
+    pub fn fine_cell(&self, coarse_index: usize) -> Cell {
+        Cell::new((coarse_index / self.cols) * self.stride, (coarse_index % self.cols) * self.stride)
+    }
+
+    fn check_coarse_len(&self, n: usize) -> Result<(), GridError> {
+        if n != self.rows * self.cols {
+            return Err(GridError::Length { got: n, expected: self.rows * self.cols, rows: self.rows, cols: self.cols });
         }
+        Ok(())
+    }
+
+    /// Per fine row and per fine column: the two coarse neighbours and the weight of the second.
+    fn axes(&self) -> (Vec<(usize, usize, f64)>, Vec<(usize, usize, f64)>) {
         let axis = |n_fine: usize, n_coarse: usize| -> Vec<(usize, usize, f64)> {
             (0..n_fine)
                 .map(|i| {
@@ -213,19 +233,21 @@ impl StridedGrid {
                 })
                 .collect()
         };
-        Ok(bilinear(&axis(self.fine.rows, self.rows), &axis(self.fine.cols, self.cols), self.cols, values))
+        (axis(self.fine.rows, self.rows), axis(self.fine.cols, self.cols))
     }
 }
 
 /// Separable bilinear interpolation given, per output row and column, the two coarse neighbours
-/// and the weight of the second.
-fn bilinear(rows: &[(usize, usize, f64)], cols: &[(usize, usize, f64)], coarse_cols: usize, v: &[f64]) -> Vec<f64> {
+/// and the weight of the second. With `squared`, the weights are squared (variance propagation
+/// for independent errors; at a clamped border the duplicated neighbour has weight 0).
+fn bilinear(rows: &[(usize, usize, f64)], cols: &[(usize, usize, f64)], coarse_cols: usize, v: &[f64], squared: bool) -> Vec<f64> {
     let mut out = Vec::with_capacity(rows.len() * cols.len());
+    let w = |a: f64| if squared { a * a } else { a };
     for &(r0, r1, fr) in rows {
         for &(c0, c1, fc) in cols {
-            let top = v[r0 * coarse_cols + c0] * (1.0 - fc) + v[r0 * coarse_cols + c1] * fc;
-            let bot = v[r1 * coarse_cols + c0] * (1.0 - fc) + v[r1 * coarse_cols + c1] * fc;
-            out.push(top * (1.0 - fr) + bot * fr);
+            let top = v[r0 * coarse_cols + c0] * w(1.0 - fc) + v[r0 * coarse_cols + c1] * w(fc);
+            let bot = v[r1 * coarse_cols + c0] * w(1.0 - fc) + v[r1 * coarse_cols + c1] * w(fc);
+            out.push(top * w(1.0 - fr) + bot * w(fr));
         }
     }
     out

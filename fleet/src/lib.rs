@@ -3,11 +3,13 @@
 //!
 //! One module per idea: [`grid`] (the workspace raster and sensing disks), [`dmd`] (batch,
 //! general online and long-term online DMD), [`process`] (field sources), [`experiment`]
-//! (the paper's studies), [`sensing`] (gappy reconstruction and QR sensor placement),
+//! (the paper's studies), [`sensing`] (gappy reconstruction, QR placement, coverage,
+//! assignment), [`fusion`] (aerial frames and their combination with the boats' estimate),
 //! [`npy`] (numpy-compatible files).
 
 pub mod dmd;
 pub mod experiment;
+pub mod fusion;
 pub mod grid;
 pub mod npy;
 pub mod process;

@@ -8,6 +8,7 @@
 //! orthonormal real basis of the same real span (`[Re Phi, Im Phi]`).
 
 pub mod assign;
+pub mod coverage;
 pub mod gappy;
 pub mod qr;
 
