@@ -71,6 +71,7 @@ fn trial(seed: u64) -> Trial {
 #[test]
 fn inverse_variance_fusion_beats_either_source_alone() {
     let t = trial(11);
+    println!("fused MSE: aerial {:.4}, boats {:.4}, paper {:.4}, inverse-variance {:.4}", t.aerial, t.hifi, t.paper, t.inverse);
     assert!(t.inverse < t.aerial && t.inverse < t.hifi, "inverse-variance {} vs aerial {} and boats {}", t.inverse, t.aerial, t.hifi);
     // ... and the paper's unweighted mean, which ignores how good each source is here.
     assert!(t.inverse <= t.paper, "inverse-variance {} vs paper {}", t.inverse, t.paper);

@@ -2,6 +2,7 @@
 
 use faer::Mat;
 use fleet::grid::{Cell, Grid};
+use fleet::process::synthetic::smooth_basis;
 use fleet::sensing::gappy::reconstruct;
 use fleet::sensing::qr::{block_dopt, block_qr, point_qr, Disk};
 use fleet::sensing::SensingError;
@@ -35,22 +36,6 @@ fn point_qr_selects_exactly_the_pysensors_pivots() {
     // A rank-20 basis has 20 meaningful pivots and no more.
     let (more, _) = point_qr(pod_basis().as_ref(), 30);
     assert_eq!(more.len(), 20);
-}
-
-/// An orthonormal basis of `r` smooth random functions on the grid.
-fn smooth_basis(grid: &Grid, r: usize, seed: u64) -> Mat<f64> {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let raw = Mat::from_fn(grid.len(), r, |_, _| 0.0);
-    let mut raw = raw;
-    for j in 0..r {
-        let (kx, ky, px, py): (f64, f64, f64, f64) = (rng.random_range(0.5..3.0), rng.random_range(0.5..3.0), rng.random_range(0.0..6.3), rng.random_range(0.0..6.3));
-        for i in 0..grid.len() {
-            let c = grid.cell(i);
-            let (x, y) = (c.col as f64 / grid.cols as f64, c.row as f64 / grid.rows as f64);
-            raw[(i, j)] = (kx * 6.28 * x + px).sin() * (ky * 6.28 * y + py).cos() + 0.3 * (x - 0.5) * (j as f64);
-        }
-    }
-    raw.qr().compute_thin_Q()
 }
 
 fn assert_disks_valid(grid: &Grid, disks: &[Disk], radius: f64) {

@@ -1,9 +1,10 @@
-//! `fleet bench`: the paper's Table 1 timings and the Fig. 7 accuracy study on this machine,
+//! `fleet bench`: the paper's Table 1 timings, the Fig. 7 accuracy study, and the sensing
+//! timings on this machine,
 //! as Markdown tables (and JSON with `--out`). Timings live here, never in tests.
 
 use anyhow::Context;
 use clap::Subcommand;
-use fleet::experiment::{eig_study, table1};
+use fleet::experiment::{eig_study, sensing_timing, table1};
 use std::path::PathBuf;
 
 #[derive(clap::Args, Debug)]
@@ -28,6 +29,14 @@ enum What {
         trials: usize,
         #[arg(long, default_value_t = 1234)]
         seed: u64,
+    },
+    /// Sensor placement (point QR beside pysensors, block QR, D-optimal) and gappy timings.
+    Sensing {
+        #[arg(long, default_value_t = 20)]
+        repeats: usize,
+        /// Skip the pysensors comparison (no Python needed).
+        #[arg(long)]
+        no_peers: bool,
     },
 }
 
@@ -71,6 +80,24 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 }
             }
             serde_json::to_value(levels)?
+        }
+        What::Sensing { repeats, no_peers } => {
+            let pb = super::progress_bar(7, "sensing");
+            let rows = sensing_timing::run(repeats, !no_peers, |msg| {
+                pb.set_message(msg.to_string());
+                pb.inc(1);
+            });
+            pb.finish_and_clear();
+            println!("| operation | median ms | min ms | peer | peer median ms | speed-up |");
+            println!("|---|---|---|---|---|---|");
+            for r in &rows {
+                let (peer, pm, up) = match (&r.peer, r.peer_median_ms) {
+                    (Some(p), Some(ms)) => (p.as_str(), format!("{ms:.3}"), format!("{:.1}x", ms / r.median_ms)),
+                    _ => ("", String::new(), String::new()),
+                };
+                println!("| {} | {:.3} | {:.3} | {peer} | {pm} | {up} |", r.what, r.median_ms, r.min_ms);
+            }
+            serde_json::to_value(rows)?
         }
     };
     if let Some(out) = args.out {

@@ -169,3 +169,23 @@ pub fn smooth_sphere_field(times: &[f64], noise: f64, seed: u64) -> FieldSeries 
     }
     FieldSeries { rows: NLAT, cols: NLON, dt: times.get(1).map_or(1.0, |t1| t1 - times[0]), snapshots: z }
 }
+
+/// An orthonormal basis (N x r) of `r` smooth random functions on `grid` (products of random
+/// low-frequency sines and cosines plus a tilt): a stand-in for a model's spatial modes in
+/// sensing tests and benchmarks.
+pub fn smooth_basis(grid: &crate::grid::Grid, r: usize, seed: u64) -> Mat<f64> {
+    use rand::RngExt;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let tau = std::f64::consts::TAU;
+    let mut raw = Mat::zeros(grid.len(), r);
+    for j in 0..r {
+        let (kx, ky, px, py): (f64, f64, f64, f64) =
+            (rng.random_range(0.5..3.0), rng.random_range(0.5..3.0), rng.random_range(0.0..tau), rng.random_range(0.0..tau));
+        for i in 0..grid.len() {
+            let c = grid.cell(i);
+            let (x, y) = (c.col as f64 / grid.cols as f64, c.row as f64 / grid.rows as f64);
+            raw[(i, j)] = (kx * tau * x + px).sin() * (ky * tau * y + py).cos() + 0.3 * (x - 0.5) * (j as f64);
+        }
+    }
+    raw.qr().compute_thin_Q()
+}

@@ -29,23 +29,136 @@ pub struct Disk {
     pub share: f64,
 }
 
-/// `c_p` for every cell: the r x N matrix `R Phi^T` with `Phi = Q R`.
-fn column_coordinates(phi: MatRef<'_, f64>) -> Mat<f64> {
-    let qr = phi.qr();
-    qr.thin_R() * phi.transpose()
+/// `c_p = R phi_p^T` for every cell `p` (`Phi = Q R`), stored as `r` rows of `N` values so
+/// the passes over all cells run along contiguous memory (and vectorise across cells).
+///
+/// Deflation is lazy: the chosen directions `q_1..q_k` are orthonormal, so the residual of
+/// `c_p` after removing them has `q_{k+1} . residual = q_{k+1} . c_p`, and its squared norm
+/// drops by exactly that dot squared. A pick therefore costs one pass over the original
+/// columns; a norm that has lost more than half its digits to cancellation is recomputed from
+/// the explicit residual (LAPACK's pivoted QR does the same).
+struct Coords {
+    r: usize,
+    n: usize,
+    rows: Vec<f64>,
+    /// Directions removed so far (orthonormal, length r each).
+    removed: Vec<Vec<f64>>,
+    /// Squared residual norms, and the originals (for the cancellation test).
+    n2: Vec<f64>,
+    n2_orig: Vec<f64>,
 }
 
-fn col_norms(c: &Mat<f64>) -> Vec<f64> {
-    (0..c.ncols()).map(|j| c.col(j).norm_l2()).collect()
-}
-
-/// Remove direction `q` (unit, length r) from every column of `c`.
-fn deflate(c: &mut Mat<f64>, q: &[f64]) {
-    for j in 0..c.ncols() {
-        let dot: f64 = q.iter().zip(c.col(j).iter()).map(|(a, b)| a * b).sum();
-        for (x, qi) in c.col_mut(j).iter_mut().zip(q) {
-            *x -= dot * qi;
+/// An upper-triangular `R` with `R^T R = Phi^T Phi` (so `|R phi_p^T|` are the column norms of
+/// `Phi Phi^T`): the Cholesky factor of the small Gram matrix, which is 3-5x cheaper than a QR of
+/// the tall `Phi`; the QR's `R` when the Gram matrix is too ill-conditioned for Cholesky to be
+/// accurate (diagonal ratio below 1e-6, i.e. condition above 1e12).
+fn triangular_factor(phi: MatRef<'_, f64>) -> Mat<f64> {
+    let gram = phi.transpose() * phi;
+    if let Ok(llt) = gram.llt(faer::Side::Lower) {
+        let l = llt.L();
+        let d: Vec<f64> = (0..l.nrows()).map(|i| l[(i, i)].abs()).collect();
+        let (lo, hi) = d.iter().fold((f64::INFINITY, 0.0f64), |(a, b), &v| (a.min(v), b.max(v)));
+        if lo > 1e-6 * hi {
+            return l.transpose().to_owned();
         }
+    }
+    phi.qr().thin_R().to_owned()
+}
+
+impl Coords {
+    fn new(phi: MatRef<'_, f64>) -> Self {
+        let (n, r) = (phi.nrows(), phi.ncols());
+        let rm = triangular_factor(phi);
+        let cols: Vec<Vec<f64>> = (0..r).map(|k| phi.col(k).iter().copied().collect()).collect();
+        let mut rows = vec![0.0; n * r];
+        for (i, row) in rows.chunks_exact_mut(n).enumerate() {
+            // Row i of R Phi^T = sum_k R[i, k] Phi[:, k]^T (R upper triangular).
+            for (k, col) in cols.iter().enumerate().skip(i) {
+                let a = rm[(i, k)];
+                for (x, v) in row.iter_mut().zip(col) {
+                    *x += a * v;
+                }
+            }
+        }
+        let mut n2 = vec![0.0; n];
+        for row in rows.chunks_exact(n) {
+            for (s, v) in n2.iter_mut().zip(row) {
+                *s += v * v;
+            }
+        }
+        Self { r, n, rows, removed: vec![], n2_orig: n2.clone(), n2 }
+    }
+
+    /// Current residual norms (recomputing the ones cancellation has made unreliable).
+    fn norms(&mut self) -> Vec<f64> {
+        for p in 0..self.n {
+            if self.n2[p] < 1e-8 * self.n2_orig[p] && !self.removed.is_empty() {
+                self.n2[p] = self.residual(p).iter().map(|v| v * v).sum();
+                // Exact from here on: compare future cancellation with this value.
+                self.n2_orig[p] = self.n2[p];
+            }
+        }
+        self.n2.iter().map(|v| v.max(0.0).sqrt()).collect()
+    }
+
+    /// The residual of column `p` after the removed directions (twice, for orthogonality).
+    fn residual(&self, p: usize) -> Vec<f64> {
+        let mut c: Vec<f64> = (0..self.r).map(|i| self.rows[i * self.n + p]).collect();
+        for _ in 0..2 {
+            project_out(&mut c, &self.removed);
+        }
+        c
+    }
+
+    /// Remove direction `q` (length r) from every column.
+    fn deflate(&mut self, q: &[f64]) {
+        let mut q = q.to_vec();
+        for _ in 0..2 {
+            project_out(&mut q, &self.removed);
+        }
+        let nq = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if !(nq > 1e-12) {
+            return;
+        }
+        q.iter_mut().for_each(|v| *v /= nq);
+        let mut dots = vec![0.0; self.n];
+        for (row, &qi) in self.rows.chunks_exact(self.n).zip(&q) {
+            for (d, v) in dots.iter_mut().zip(row) {
+                *d += qi * v;
+            }
+        }
+        self.removed.push(q);
+        for (n2, d) in self.n2.iter_mut().zip(&dots) {
+            *n2 -= d * d;
+        }
+    }
+
+    /// The leading left singular vector of the block of residual columns `cells` (the
+    /// eigenvector of its r x r Gram matrix with the largest eigenvalue), or `None` for a zero
+    /// block.
+    fn leading_direction(&self, cells: &[usize]) -> Result<Option<Vec<f64>>, SensingError> {
+        let r = self.r;
+        let mut gram = Mat::<f64>::zeros(r, r);
+        for &p in cells {
+            let c = self.residual(p);
+            for j in 0..r {
+                for i in j..r {
+                    gram[(i, j)] += c[i] * c[j];
+                }
+            }
+        }
+        let eig = gram.self_adjoint_eigen(faer::Side::Lower).map_err(|e| SensingError::Numerical(format!("{e:?}")))?;
+        let s = eig.S().column_vector();
+        // Eigenvalues come in ascending order.
+        Ok((s[r - 1] > 0.0).then(|| eig.U().col(r - 1).iter().copied().collect()))
+    }
+}
+
+/// `c -= sum_j q_j (q_j . c)` for orthonormal `q_j`.
+fn project_out(c: &mut [f64], qs: &[Vec<f64>]) {
+    for q in qs {
+        let d: f64 = q.iter().zip(c.iter()).map(|(a, b)| a * b).sum();
+        c.iter_mut().zip(q).for_each(|(x, qi)| *x -= d * qi);
     }
 }
 
@@ -53,37 +166,40 @@ fn deflate(c: &mut Mat<f64>, q: &[f64]) {
 /// whose direction is then removed from all columns. Stops early when the basis is exhausted
 /// (a rank-r basis has at most r meaningful pivots). Returns the cells and their `|R_ii|`.
 pub fn point_qr(phi: MatRef<'_, f64>, k: usize) -> (Vec<usize>, Vec<f64>) {
-    let mut c = column_coordinates(phi);
-    let first = col_norms(&c).into_iter().fold(0.0, f64::max);
-    let mut chosen = vec![];
+    let mut c = Coords::new(phi);
+    let first = c.norms().into_iter().fold(0.0, f64::max);
+    let mut chosen: Vec<usize> = vec![];
     let mut rdiag = vec![];
-    let mut taken = vec![false; c.ncols()];
-    for _ in 0..k.min(c.ncols()) {
-        let norms = col_norms(&c);
-        let Some((p, &np)) = norms.iter().enumerate().filter(|(j, _)| !taken[*j]).max_by(|a, b| a.1.total_cmp(b.1).then(b.0.cmp(&a.0)))
-        else {
-            break;
-        };
-        if !(np > 1e-12 * first) {
+    for _ in 0..k.min(phi.nrows()) {
+        let norms = c.norms();
+        // The largest residual norm, the lowest index on ties, among cells not yet chosen.
+        let (mut p, mut np) = (usize::MAX, f64::NEG_INFINITY);
+        for (j, &v) in norms.iter().enumerate() {
+            if v > np && !chosen.contains(&j) {
+                (p, np) = (j, v);
+            }
+        }
+        if p == usize::MAX || !(np > 1e-12 * first) {
             break;
         }
-        taken[p] = true;
         chosen.push(p);
         rdiag.push(np);
-        let q: Vec<f64> = c.col(p).iter().map(|v| v / np).collect();
-        deflate(&mut c, &q);
+        let q = c.residual(p);
+        c.deflate(&q);
     }
     (chosen, rdiag)
 }
 
-/// Per-row prefix sums of a field, for O(2k+1) disk sums.
+/// Per-row prefix sums of a field, for O(2k+1) sums over disks of one radius.
 struct DiskSums {
     grid: Grid,
     prefix: Vec<f64>, // rows x (cols + 1)
+    /// Half-width in columns of the disk's row at each row offset `-reach..=reach`.
+    half: Vec<i64>,
 }
 
 impl DiskSums {
-    fn new(grid: Grid, v: &[f64]) -> Self {
+    fn new(grid: Grid, v: &[f64], k: f64) -> Self {
         let w = grid.cols + 1;
         let mut prefix = vec![0.0; grid.rows * w];
         for r in 0..grid.rows {
@@ -91,20 +207,22 @@ impl DiskSums {
                 prefix[r * w + c + 1] = prefix[r * w + c] + v[r * grid.cols + c];
             }
         }
-        Self { grid, prefix }
+        let k = k.max(0.0);
+        let reach = k.floor() as i64;
+        let half = (-reach..=reach).map(|dr| ((k * k + 1e-9 - (dr * dr) as f64).max(0.0)).sqrt().floor() as i64).collect();
+        Self { grid, prefix, half }
     }
 
-    /// Sum over the disk of radius `k` centred on `cell` (same cells as [`Grid::disk`]).
-    fn disk_sum(&self, cell: Cell, k: f64) -> f64 {
-        let reach = k.max(0.0).floor() as i64;
+    /// Sum over the disk centred on `cell` (same cells as [`Grid::disk`]).
+    fn disk_sum(&self, cell: Cell) -> f64 {
+        let reach = (self.half.len() / 2) as i64;
         let w = self.grid.cols + 1;
         let mut s = 0.0;
-        for dr in -reach..=reach {
+        for (dr, &hw) in (-reach..=reach).zip(&self.half) {
             let row = cell.row as i64 + dr;
             if row < 0 || row >= self.grid.rows as i64 {
                 continue;
             }
-            let hw = ((k * k + 1e-9 - (dr * dr) as f64).max(0.0)).sqrt().floor() as i64;
             let c0 = (cell.col as i64 - hw).max(0) as usize;
             let c1 = ((cell.col as i64 + hw) as usize).min(self.grid.cols - 1);
             let base = row as usize * w;
@@ -132,15 +250,13 @@ fn check(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Result<(),
 
 /// Pick the best valid candidate by `score`; `taken` marks covered cells (a candidate is
 /// valid when its disk covers none of them).
-fn best_candidate(grid: &Grid, radius: f64, taken: &DiskSums, score: impl Fn(Cell) -> f64) -> Option<(Cell, f64)> {
+fn best_candidate(grid: &Grid, taken: &DiskSums, score: impl Fn(Cell) -> f64) -> Option<(Cell, f64)> {
     let mut best: Option<(Cell, f64)> = None;
     for i in 0..grid.len() {
         let cell = grid.cell(i);
-        if taken.disk_sum(cell, radius) > 0.5 {
-            continue;
-        }
         let s = score(cell);
-        if best.is_none_or(|(_, b)| s > b) {
+        // The overlap test only for a candidate that would win (most do not).
+        if best.is_none_or(|(_, b)| s > b) && taken.disk_sum(cell) < 0.5 {
             best = Some((cell, s));
         }
     }
@@ -151,22 +267,22 @@ fn best_candidate(grid: &Grid, radius: f64, taken: &DiskSums, score: impl Fn(Cel
 /// `radius` cells. Fewer are returned only when no non-overlapping disk is left.
 pub fn block_qr(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Result<Vec<Disk>, SensingError> {
     check(phi, grid, m, radius)?;
-    let mut c = column_coordinates(phi);
-    let original = DiskSums::new(*grid, &col_norms(&c));
+    let mut c = Coords::new(phi);
+    let mut norms = c.norms();
+    let original = DiskSums::new(*grid, &norms, radius);
     let mut covered = vec![0.0; grid.len()];
     let mut first_total: Option<f64> = None;
     let mut out = vec![];
     for _ in 0..m {
-        let norms = col_norms(&c);
         let total: f64 = norms.iter().sum();
         let first = *first_total.get_or_insert(total);
-        let sums = DiskSums::new(*grid, &norms);
-        let taken = DiskSums::new(*grid, &covered);
+        let sums = DiskSums::new(*grid, &norms, radius);
+        let taken = DiskSums::new(*grid, &covered, radius);
         let exhausted = !(total > 1e-12 * first);
         let pick = if exhausted {
-            best_candidate(grid, radius, &taken, |cell| original.disk_sum(cell, radius))
+            best_candidate(grid, &taken, |cell| original.disk_sum(cell))
         } else {
-            best_candidate(grid, radius, &taken, |cell| sums.disk_sum(cell, radius))
+            best_candidate(grid, &taken, |cell| sums.disk_sum(cell))
         };
         let Some((centre, _)) = pick else { break };
         let cells = grid.disk(centre, radius);
@@ -176,11 +292,9 @@ pub fn block_qr(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Res
         }
         if !exhausted {
             // Deflate by the block's leading left singular vector.
-            let block = Mat::from_fn(c.nrows(), cells.len(), |i, j| c[(i, cells[j])]);
-            let svd = crate::dmd::linalg::thin_svd(block.as_ref()).map_err(|e| SensingError::Numerical(e.to_string()))?;
-            if svd.s.first().is_some_and(|&s| s > 0.0) {
-                let q: Vec<f64> = svd.u.col(0).iter().copied().collect();
-                deflate(&mut c, &q);
+            if let Some(q) = c.leading_direction(&cells)? {
+                c.deflate(&q);
+                norms = c.norms();
             }
         }
         out.push(Disk { centre, cells, weight, share: if total > 0.0 { weight / total } else { 0.0 } });
@@ -206,12 +320,12 @@ pub fn block_dopt(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> R
         let mut g = phi.transpose().to_owned();
         faer::linalg::triangular_solve::solve_lower_triangular_in_place(llt.L(), g.as_mut(), faer::Par::Seq);
         // Disk sums of every entry of g_p g_p^T.
-        let sums: Vec<DiskSums> = packed.iter().map(|&(a, b)| DiskSums::new(*grid, &(0..n).map(|p| g[(a, p)] * g[(b, p)]).collect::<Vec<_>>())).collect();
-        let taken = DiskSums::new(*grid, &covered);
+        let sums: Vec<DiskSums> = packed.iter().map(|&(a, b)| DiskSums::new(*grid, &(0..n).map(|p| g[(a, p)] * g[(b, p)]).collect::<Vec<_>>(), radius)).collect();
+        let taken = DiskSums::new(*grid, &covered, radius);
         let gain = |cell: Cell| -> f64 {
             let mut b = Mat::<f64>::identity(r, r);
             for (k, &(i, j)) in packed.iter().enumerate() {
-                let v = sums[k].disk_sum(cell, radius);
+                let v = sums[k].disk_sum(cell);
                 b[(i, j)] += v;
                 if i != j {
                     b[(j, i)] += v;
@@ -222,7 +336,7 @@ pub fn block_dopt(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> R
                 Err(_) => f64::NEG_INFINITY,
             }
         };
-        let Some((centre, g_best)) = best_candidate(grid, radius, &taken, gain) else { break };
+        let Some((centre, g_best)) = best_candidate(grid, &taken, gain) else { break };
         let cells = grid.disk(centre, radius);
         for &p in &cells {
             covered[p] = 1.0;
