@@ -12,6 +12,7 @@ pub mod experiment;
 pub mod fusion;
 pub mod grid;
 pub mod npy;
+pub mod plot;
 pub mod process;
 pub mod sensing;
 

@@ -2,6 +2,8 @@
 
 mod bench;
 mod dmd;
+mod render;
+mod simulate;
 
 use clap::{Parser, Subcommand};
 
@@ -18,12 +20,18 @@ enum Command {
     Dmd(dmd::Args),
     /// Measure the paper's timing and accuracy studies on this machine.
     Bench(bench::Args),
+    /// Generate a truth field (plasma cloud, synthetic fields) as .npy plus a JSON sidecar.
+    Simulate(simulate::Args),
+    /// Draw a frame of a field (.npy) as a PNG, or the whole sequence as a GIF.
+    Render(render::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Dmd(a) => dmd::run(a),
         Command::Bench(a) => bench::run(a),
+        Command::Simulate(a) => simulate::run(a),
+        Command::Render(a) => render::run(a),
     }
 }
 

@@ -2,6 +2,8 @@
 //! and `.npy` datasets). Every source yields [`FieldSeries`]: snapshots as the columns of an
 //! `N x T` matrix on a grid, a step `dt` apart.
 
+pub mod dataset;
+pub mod plasma;
 pub mod synthetic;
 
 use faer::Mat;

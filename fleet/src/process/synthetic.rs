@@ -189,3 +189,35 @@ pub fn smooth_basis(grid: &crate::grid::Grid, r: usize, seed: u64) -> Mat<f64> {
     }
     raw.qr().compute_thin_Q()
 }
+
+/// A moving, rotating, slowly spreading Gaussian plume on a `rows x cols` grid over
+/// `[0, 2] x [0, 1]` (x along columns): the centre circles the domain's middle once over the
+/// record while the plume's long axis turns half a turn and its amplitude decays as `e^-0.2 t`,
+/// `t` in `[0, 10]`; plus i.i.d. noise of variance `noise_var`. A field whose modes are not
+/// few: what a changing plume looks like to DMD.
+pub fn plume_field(rows: usize, cols: usize, frames: usize, noise_var: f64, seed: u64) -> FieldSeries {
+    let pi = std::f64::consts::PI;
+    let t_end = 10.0;
+    let dt = if frames > 1 { t_end / (frames - 1) as f64 } else { 1.0 };
+    let mut z = Mat::zeros(rows * cols, frames);
+    for k in 0..frames {
+        let t = k as f64 * dt;
+        let phase = 2.0 * pi * t / t_end;
+        let (xc, yc) = (1.0 + 0.5 * phase.cos(), 0.5 + 0.25 * phase.sin());
+        let angle = 0.5 * phase;
+        let (ca, sa) = (angle.cos(), angle.sin());
+        let (sl, sw) = (0.25 + 0.01 * t, 0.08 + 0.005 * t);
+        let amp = (-0.2 * t).exp();
+        for r in 0..rows {
+            let y = (r as f64 + 0.5) / rows as f64;
+            for c in 0..cols {
+                let x = 2.0 * (c as f64 + 0.5) / cols as f64;
+                let (dx, dy) = (x - xc, y - yc);
+                let (along, across) = (ca * dx + sa * dy, -sa * dx + ca * dy);
+                z[(r * cols + c, k)] = amp * (-0.5 * (along * along / (sl * sl) + across * across / (sw * sw))).exp();
+            }
+        }
+    }
+    add_noise(&mut z, noise_var, seed);
+    FieldSeries { rows, cols, dt, snapshots: z }
+}
