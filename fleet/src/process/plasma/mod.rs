@@ -82,6 +82,7 @@ impl Default for PlasmaParams {
 
 /// The three named clouds (the paper's names; parameters ours, see the README).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
 pub enum Preset {
     /// The specification's defaults: fingers by t ~ 20-25.
     Cloud1,
