@@ -253,9 +253,70 @@ fn bilinear(rows: &[(usize, usize, f64)], cols: &[(usize, usize, f64)], coarse_c
     out
 }
 
+/// Area-weighted average of a `rows x cols` field onto a `to_rows x to_cols` raster covering
+/// the same extent (the plasma specification's downsampling: 2x2 blocks from 96 x 384 to
+/// 48 x 192, fractional blocks to 10 x 39). Separable: each coarse cell averages the fine cells
+/// it overlaps, weighted by the overlapped fraction.
+pub fn area_average(values: &[f64], rows: usize, cols: usize, to_rows: usize, to_cols: usize) -> Result<Vec<f64>, GridError> {
+    if rows == 0 || cols == 0 || to_rows == 0 || to_cols == 0 {
+        return Err(GridError::Empty { rows: to_rows.min(rows), cols: to_cols.min(cols) });
+    }
+    if values.len() != rows * cols {
+        return Err(GridError::Length { got: values.len(), expected: rows * cols, rows, cols });
+    }
+    // Per coarse index: (fine index, weight) with weights summing to 1.
+    let axis = |n: usize, m: usize| -> Vec<Vec<(usize, f64)>> {
+        (0..m)
+            .map(|k| {
+                let (a, b) = (k as f64 * n as f64 / m as f64, (k + 1) as f64 * n as f64 / m as f64);
+                let mut w = vec![];
+                for i in (a.floor() as usize)..(b.ceil() as usize).min(n) {
+                    let overlap = (b.min(i as f64 + 1.0) - a.max(i as f64)).max(0.0);
+                    if overlap > 0.0 {
+                        w.push((i, overlap / (b - a)));
+                    }
+                }
+                w
+            })
+            .collect()
+    };
+    let (wr, wc) = (axis(rows, to_rows), axis(cols, to_cols));
+    // Columns first (rows x to_cols), then rows.
+    let mut tmp = vec![0.0; rows * to_cols];
+    for r in 0..rows {
+        for (k, w) in wc.iter().enumerate() {
+            tmp[r * to_cols + k] = w.iter().map(|&(c, x)| x * values[r * cols + c]).sum();
+        }
+    }
+    let mut out = vec![0.0; to_rows * to_cols];
+    for (k, w) in wr.iter().enumerate() {
+        for c in 0..to_cols {
+            out[k * to_cols + c] = w.iter().map(|&(r, x)| x * tmp[r * to_cols + c]).sum();
+        }
+    }
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn area_average_keeps_the_mean_and_averages_blocks() {
+        let (rows, cols) = (96, 384);
+        let f: Vec<f64> = (0..rows * cols).map(|i| ((i * 7919) % 101) as f64).collect();
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        // 2 x 2 blocks exactly.
+        let half = area_average(&f, rows, cols, 48, 192).unwrap();
+        assert!((half[0] - (f[0] + f[1] + f[cols] + f[cols + 1]) / 4.0).abs() < 1e-12);
+        // Fractional blocks: the mean is kept (equal-area coarse cells).
+        for (r, c) in [(48, 192), (10, 39), (7, 5)] {
+            let a = area_average(&f, rows, cols, r, c).unwrap();
+            assert!((mean(&a) - mean(&f)).abs() < 1e-9, "{r} x {c}");
+        }
+        assert!(area_average(&f, rows, cols, 0, 3).is_err());
+        assert!(area_average(&f[1..], rows, cols, 3, 3).is_err());
+    }
 
     #[test]
     fn index_and_cell_round_trip() {
