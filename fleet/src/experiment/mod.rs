@@ -4,6 +4,7 @@
 pub mod eig_study;
 pub mod sensing_timing;
 pub mod table1;
+pub mod team;
 
 use crate::dmd::{Dmd, DmdConfig, DmdError, Modes};
 use faer::MatRef;
