@@ -200,3 +200,129 @@ pub fn gif<'a>(
     }
     Ok(())
 }
+
+/// One named line of a chart.
+#[derive(Debug, Clone)]
+pub struct Series {
+    pub name: String,
+    pub points: Vec<(f64, f64)>,
+}
+
+fn palette(i: usize) -> RGBColor {
+    const C: [RGBColor; 6] = [RGBColor(31, 119, 180), RGBColor(255, 127, 14), RGBColor(44, 160, 44), RGBColor(214, 39, 40), RGBColor(148, 103, 189), RGBColor(140, 86, 75)];
+    C[i % C.len()]
+}
+
+fn chart_fail(path: &Path) -> impl Fn(String) -> PlotError + '_ {
+    move |msg| PlotError::Draw { path: path.display().to_string(), msg }
+}
+
+fn need_font() -> Result<(), PlotError> {
+    if font_ready() {
+        Ok(())
+    } else {
+        Err(PlotError::Input("charts need a font: install fonts-dejavu-core or set HETFLEET_FONT".into()))
+    }
+}
+
+/// A line chart (log-scaled y when `log_y`, for errors spanning decades).
+pub fn lines(path: impl AsRef<Path>, title: &str, x_desc: &str, y_desc: &str, series: &[Series], log_y: bool) -> Result<(), PlotError> {
+    need_font()?;
+    let path = path.as_ref();
+    let fail = chart_fail(path);
+    let pts = || series.iter().flat_map(|s| s.points.iter()).filter(|p| p.0.is_finite() && p.1.is_finite() && (!log_y || p.1 > 0.0));
+    let (x0, x1) = pts().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.0), b.max(p.0)));
+    let (y0, y1) = pts().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.1), b.max(p.1)));
+    if !(x0.is_finite() && y0.is_finite()) {
+        return Err(PlotError::Input(format!("{title}: no finite points")));
+    }
+    let (x1, y1) = (if x1 > x0 { x1 } else { x0 + 1.0 }, if y1 > y0 { y1 } else { y0 + y0.abs().max(1e-12) });
+    let root = BitMapBackend::new(path, (960, 520)).into_drawing_area();
+    let e = |e: DrawingAreaErrorKind<_>| fail(e.to_string());
+    root.fill(&WHITE).map_err(e)?;
+    macro_rules! draw_chart {
+        ($chart:expr) => {{
+            let mut chart = $chart;
+            chart.configure_mesh().x_desc(x_desc).y_desc(y_desc).label_style((FONT, 14)).draw().map_err(e)?;
+            for (i, s) in series.iter().enumerate() {
+                let c = palette(i);
+                let p: Vec<(f64, f64)> = s.points.iter().copied().filter(|p| p.0.is_finite() && p.1.is_finite() && (!log_y || p.1 > 0.0)).collect();
+                chart
+                    .draw_series(LineSeries::new(p, c.stroke_width(2)))
+                    .map_err(e)?
+                    .label(s.name.clone())
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+            }
+            chart.configure_series_labels().label_font((FONT, 14)).background_style(WHITE.mix(0.85)).border_style(BLACK).draw().map_err(e)?;
+        }};
+    }
+    let builder = || {
+        let mut b = ChartBuilder::on(&root);
+        b.caption(title, (FONT, 20)).margin(12).x_label_area_size(40).y_label_area_size(80);
+        b
+    };
+    if log_y {
+        draw_chart!(builder().build_cartesian_2d(x0..x1, (y0 * 0.8..y1 * 1.25).log_scale()).map_err(e)?);
+    } else {
+        let pad = 0.05 * (y1 - y0);
+        draw_chart!(builder().build_cartesian_2d(x0..x1, (y0 - pad)..(y1 + pad)).map_err(e)?);
+    }
+    root.present().map_err(|er| fail(er.to_string()))?;
+    Ok(())
+}
+
+/// Box plots (quartile box, median line, whiskers to min and max, points on top) of named
+/// groups of values, with a dashed reference line at `reference` when given.
+pub fn boxes(path: impl AsRef<Path>, title: &str, y_desc: &str, groups: &[(String, Vec<f64>)], reference: Option<f64>) -> Result<(), PlotError> {
+    need_font()?;
+    let path = path.as_ref();
+    let fail = chart_fail(path);
+    let all: Vec<f64> = groups.iter().flat_map(|g| g.1.iter().copied()).filter(|v| v.is_finite()).chain(reference).collect();
+    if all.is_empty() {
+        return Err(PlotError::Input(format!("{title}: no finite values")));
+    }
+    let (lo, hi) = all.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    let pad = 0.08 * (hi - lo).max(1e-9);
+    let root = BitMapBackend::new(path, (960, 520)).into_drawing_area();
+    let e = |e: DrawingAreaErrorKind<_>| fail(e.to_string());
+    root.fill(&WHITE).map_err(e)?;
+    let n = groups.len() as f64;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, (FONT, 20))
+        .margin(12)
+        .x_label_area_size(70)
+        .y_label_area_size(80)
+        .build_cartesian_2d(-0.5..n - 0.5, (lo - pad)..(hi + pad))
+        .map_err(e)?;
+    let names: Vec<String> = groups.iter().map(|g| g.0.clone()).collect();
+    let fmt = |x: &f64| -> String {
+        let i = x.round();
+        if (x - i).abs() < 1e-6 && i >= 0.0 && (i as usize) < names.len() { names[i as usize].clone() } else { String::new() }
+    };
+    chart.configure_mesh().x_labels(groups.len().max(1) * 2 + 1).x_label_formatter(&fmt).y_desc(y_desc).label_style((FONT, 13)).disable_x_mesh().draw().map_err(e)?;
+    if let Some(r) = reference {
+        chart.draw_series(DashedLineSeries::new(vec![(-0.5, r), (n - 0.5, r)], 6, 4, BLACK.stroke_width(1))).map_err(e)?;
+    }
+    for (i, (_, v)) in groups.iter().enumerate() {
+        let mut v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+        if v.is_empty() {
+            continue;
+        }
+        v.sort_by(f64::total_cmp);
+        let q = |p: f64| {
+            let t = p * (v.len() - 1) as f64;
+            let (a, b) = (t.floor() as usize, t.ceil() as usize);
+            v[a] + (v[b] - v[a]) * (t - a as f64)
+        };
+        let (x, c) = (i as f64, palette(i));
+        let w = 0.25;
+        chart.draw_series(std::iter::once(Rectangle::new([(x - w, q(0.25)), (x + w, q(0.75))], c.mix(0.35).filled()))).map_err(e)?;
+        chart.draw_series(std::iter::once(Rectangle::new([(x - w, q(0.25)), (x + w, q(0.75))], c.stroke_width(2)))).map_err(e)?;
+        chart.draw_series(std::iter::once(PathElement::new(vec![(x - w, q(0.5)), (x + w, q(0.5))], BLACK.stroke_width(2)))).map_err(e)?;
+        chart.draw_series(std::iter::once(PathElement::new(vec![(x, v[0]), (x, q(0.25))], c.stroke_width(1)))).map_err(e)?;
+        chart.draw_series(std::iter::once(PathElement::new(vec![(x, q(0.75)), (x, v[v.len() - 1])], c.stroke_width(1)))).map_err(e)?;
+        chart.draw_series(v.iter().map(|&y| Circle::new((x, y), 3, c.filled()))).map_err(e)?;
+    }
+    root.present().map_err(|er| fail(er.to_string()))?;
+    Ok(())
+}

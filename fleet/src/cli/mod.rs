@@ -2,6 +2,7 @@
 
 mod bench;
 mod dmd;
+mod experiment;
 mod render;
 mod simulate;
 
@@ -24,6 +25,8 @@ enum Command {
     Simulate(simulate::Args),
     /// Draw a frame of a field (.npy) as a PNG, or the whole sequence as a GIF.
     Render(render::Args),
+    /// The paper's evaluation end to end (Table 2, Figs. 7, 8, 10, 11) as a report.
+    Experiment(experiment::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -32,6 +35,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(a) => bench::run(a),
         Command::Simulate(a) => simulate::run(a),
         Command::Render(a) => render::run(a),
+        Command::Experiment(a) => experiment::run(a),
     }
 }
 

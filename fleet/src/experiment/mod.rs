@@ -2,6 +2,7 @@
 //! Sect. 5 (eigenvalue accuracy, Fig. 7; execution time, Table 1).
 
 pub mod eig_study;
+pub mod paper;
 pub mod sensing_timing;
 pub mod table1;
 pub mod team;

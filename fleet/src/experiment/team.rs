@@ -38,7 +38,7 @@ pub enum Placement {
 
 /// Every choice of one run.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(default, deny_unknown_fields)]
 pub struct TeamConfig {
     pub aerials: usize,
     /// Aerial frames every this many steps (time rate).
