@@ -30,6 +30,15 @@ enum What {
         #[arg(long, default_value_t = 1234)]
         seed: u64,
     },
+    /// One Table 2 row (cloud1 area-averaged to 48 x 96, 100 steps, 2 aerials, 5 boats, rank
+    /// 10), excluding the simulation.
+    Team {
+        #[arg(long, default_value_t = 3)]
+        repeats: usize,
+        /// Use this (frames, rows, cols) .npy as the truth instead of simulating cloud1.
+        #[arg(long)]
+        truth: Option<PathBuf>,
+    },
     /// Sensor placement (point QR beside pysensors, block QR, D-optimal) and gappy timings.
     Sensing {
         #[arg(long, default_value_t = 20)]
@@ -80,6 +89,40 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 }
             }
             serde_json::to_value(levels)?
+        }
+        What::Team { repeats, truth } => {
+            use fleet::experiment::team::{self, TeamConfig};
+            let full = match truth {
+                Some(p) => fleet::process::dataset::load(&p, 1.0)?,
+                None => {
+                    eprintln!("simulating cloud1 at 96 x 384, 100 frames (not timed)...");
+                    fleet::process::plasma::PlasmaCloud::new(fleet::process::plasma::Preset::Cloud1.params())?.run(100, |_| {})?
+                }
+            };
+            let (rows, cols) = (48, 96);
+            let mut snaps = faer::Mat::zeros(rows * cols, full.frames());
+            for k in 0..full.frames() {
+                let col: Vec<f64> = full.snapshots.col(k).iter().copied().collect();
+                for (i, v) in fleet::grid::area_average(&col, full.rows, full.cols, rows, cols)?.into_iter().enumerate() {
+                    snaps[(i, k)] = v;
+                }
+            }
+            let truth = fleet::process::FieldSeries { rows, cols, dt: full.dt, snapshots: snaps };
+            let cfg = TeamConfig { aerial_stride: 3, aerial_sigma0: 0.15, boat_sigma: 0.15, radius: 3.75, ..TeamConfig::default() };
+            let mut ts = vec![];
+            let mut last = None;
+            for _ in 0..repeats.max(1) {
+                let t0 = std::time::Instant::now();
+                last = Some(team::run(&cfg, &truth, |_, _| {})?);
+                ts.push(t0.elapsed().as_secs_f64());
+            }
+            let median = eig_study::median(&mut ts);
+            let o = last.expect("at least one run");
+            println!(
+                "one Table 2 row, {} x {} x {} steps, 2 aerials, 5 boats, general DMD rank 10: median {:.3} s over {} runs (MSE heterogeneous {:.4e})",
+                rows, cols, truth.frames(), median, ts.len(), o.mean_heterogeneous
+            );
+            serde_json::json!({ "median_s": median, "runs": ts })
         }
         What::Sensing { repeats, no_peers } => {
             let pb = super::progress_bar(7, "sensing");

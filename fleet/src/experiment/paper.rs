@@ -211,6 +211,11 @@ pub fn run(cfg: &ExperimentConfig, mut progress: impl FnMut(&str)) -> anyhow::Re
             progress(&format!("Fig. 8 {label}"));
             let mut points = vec![];
             run_online(&c, z, EigStudy::INIT, 60, |m| {
+                // From the first update on: the initial fit of 400 pairs on a 400-cell grid is
+                // square and fits the noise (its dominant eigenvalue is a spurious growing mode).
+                if m.pairs() == EigStudy::INIT {
+                    return Ok(());
+                }
                 let modes = m.decompose()?;
                 if let Some(l) = dominant_continuous(&modes, field.dt) {
                     points.push((m.pairs() as f64, l.re));
@@ -354,6 +359,12 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
         let series: Vec<Series> = res.forgetting.iter().map(|c| Series { name: c.label.clone(), points: c.points.clone() }).collect();
         plot::lines(dir.join("fig8.png"), "Dominant eigenvalue (real part) as pairs arrive; true value -1", "pairs assimilated", "Re(lambda)", &series, false)?;
         writeln!(md, "![fig8](fig8.png)\n")?;
+        writeln!(
+            md,
+            "With `N = 400` cells, a forgetting factor keeps an effective memory of about `1/(1 - gamma)` pairs: \
+             below ~400 (gamma 0.99 and less) the operator is fitted to fewer pairs than it has unknowns per row and its \
+             dominant eigenvalue follows the noise.\n"
+        )?;
         figures.push("fig8.png".into());
     }
     std::fs::write(dir.join("report.md"), md)?;
