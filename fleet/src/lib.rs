@@ -14,6 +14,7 @@ pub mod grid;
 pub mod npy;
 pub mod plot;
 pub mod process;
+pub mod protocol;
 pub mod sensing;
 
 /// Set faer's parallelism from `HETFLEET_LINALG_THREADS` (default 1). On the 2-core machines

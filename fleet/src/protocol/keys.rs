@@ -1,0 +1,93 @@
+//! The key space of DESIGN.md, all under `fleet/<mission>/`, in one place.
+
+use super::ProtocolError;
+
+/// Root of every key.
+pub const ROOT: &str = "fleet";
+/// Longest mission or vehicle id we accept.
+pub const MAX_ID_LEN: usize = 32;
+
+/// An id is 1-32 characters of `[A-Za-z0-9_-]`: nothing a Zenoh key expression would read as
+/// a separator or wildcard (`/`, `*`, `$`, `?`, `#`).
+pub fn check_id(what: &str, id: &str) -> Result<(), ProtocolError> {
+    let ok = !id.is_empty() && id.len() <= MAX_ID_LEN && id.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+    if ok {
+        Ok(())
+    } else {
+        Err(ProtocolError::Invalid(format!("{what} id {id:?} must be 1-{MAX_ID_LEN} characters of A-Z a-z 0-9 _ -")))
+    }
+}
+
+/// Keys of one mission.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Keys {
+    mission: String,
+}
+
+impl Keys {
+    pub fn new(mission: &str) -> Result<Self, ProtocolError> {
+        check_id("mission", mission)?;
+        Ok(Self { mission: mission.into() })
+    }
+
+    fn vehicle(&self, id: &str, leaf: &str) -> String {
+        format!("{ROOT}/{}/vehicle/{id}/{leaf}", self.mission)
+    }
+
+    /// A vehicle's measurement batches.
+    pub fn measurements(&self, id: &str) -> String {
+        self.vehicle(id, "measurements")
+    }
+
+    /// Every vehicle's measurement batches (the server's subscription).
+    pub fn all_measurements(&self) -> String {
+        self.vehicle("*", "measurements")
+    }
+
+    pub fn telemetry(&self, id: &str) -> String {
+        self.vehicle(id, "telemetry")
+    }
+
+    pub fn ack(&self, id: &str) -> String {
+        self.vehicle(id, "ack")
+    }
+
+    pub fn model_latest(&self) -> String {
+        format!("{ROOT}/{}/model/latest", self.mission)
+    }
+
+    pub fn plan(&self, id: &str) -> String {
+        format!("{ROOT}/{}/plan/{id}", self.mission)
+    }
+
+    pub fn alive(&self, id: &str) -> String {
+        format!("{ROOT}/{}/alive/{id}", self.mission)
+    }
+
+    /// The vehicle id in a concrete key of this mission's vehicle space, if it is one.
+    pub fn vehicle_of(&self, key: &str) -> Option<String> {
+        let rest = key.strip_prefix(&format!("{ROOT}/{}/vehicle/", self.mission))?;
+        let id = rest.split('/').next()?;
+        check_id("vehicle", id).ok().map(|_| id.to_string())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_and_ids() {
+        let k = Keys::new("tank-1").unwrap();
+        assert_eq!(k.measurements("boat-3"), "fleet/tank-1/vehicle/boat-3/measurements");
+        assert_eq!(k.all_measurements(), "fleet/tank-1/vehicle/*/measurements");
+        assert_eq!(k.model_latest(), "fleet/tank-1/model/latest");
+        assert_eq!(k.plan("av-1"), "fleet/tank-1/plan/av-1");
+        assert_eq!(k.vehicle_of("fleet/tank-1/vehicle/boat-3/measurements").as_deref(), Some("boat-3"));
+        assert_eq!(k.vehicle_of("fleet/other/vehicle/boat-3/measurements"), None);
+        for bad in ["", "a/b", "*", "a$", "x".repeat(33).as_str(), "ü"] {
+            assert!(check_id("vehicle", bad).is_err(), "{bad:?}");
+            assert!(Keys::new(bad).is_err());
+        }
+    }
+}

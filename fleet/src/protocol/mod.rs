@@ -1,0 +1,435 @@
+//! The fleet's wire protocol (DESIGN.md "The fleet"): typed messages, one self-describing
+//! binary encoding (CBOR, Zenoh encoding [`ENCODING`]), a schema version in every message, and
+//! validation of everything that comes in.
+//!
+//! One entry point each way: [`encode`] and [`decode`]. `decode` refuses oversized payloads
+//! before parsing, trailing bytes after the message, unknown schema versions, and then checks
+//! the message against what the receiver knows ([`Context`]: grid, vehicles, limits), so a
+//! node only ever sees messages it can use. Every refusal is a [`ProtocolError`] that says
+//! why; nodes count them by [`ProtocolError::reason`].
+//!
+//! A message is a CBOR map `{"v": 1, "type": "<kind>", ...fields}`; any CBOR library decodes
+//! it (see the README for a Python snippet).
+
+pub mod keys;
+
+use crate::grid::Grid;
+use serde::{Deserialize, Serialize};
+
+/// Schema version carried by every message; bumped on any incompatible change.
+pub const SCHEMA_VERSION: u16 = 1;
+/// Zenoh encoding set on every publication.
+pub const ENCODING: &str = "application/cbor;hetfleet-v1";
+/// Default size limit of one payload (a 384 x 768 model at rank 10 is ~50 MB; batches are
+/// far smaller). Receivers may lower it.
+pub const MAX_PAYLOAD: usize = 64 << 20;
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ProtocolError {
+    #[error("payload of {size} bytes exceeds the {limit}-byte limit")]
+    TooLarge { size: usize, limit: usize },
+    #[error("malformed CBOR: {0}")]
+    Malformed(String),
+    #[error("{0} trailing bytes after the message")]
+    Trailing(usize),
+    #[error("schema version {got} (this node speaks {SCHEMA_VERSION})")]
+    Version { got: u16 },
+    #[error("unknown vehicle {0:?}")]
+    UnknownVehicle(String),
+    #[error("invalid message: {0}")]
+    Invalid(String),
+}
+
+impl ProtocolError {
+    /// A short stable name for counters and logs.
+    pub fn reason(&self) -> &'static str {
+        match self {
+            Self::TooLarge { .. } => "too_large",
+            Self::Malformed(_) => "malformed",
+            Self::Trailing(_) => "trailing_bytes",
+            Self::Version { .. } => "schema_version",
+            Self::UnknownVehicle(_) => "unknown_vehicle",
+            Self::Invalid(_) => "invalid",
+        }
+    }
+}
+
+/// What kind of vehicle.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum VehicleKind {
+    Aerial,
+    Boat,
+}
+
+/// A sensor's noise: standard deviation `sigma0 + growth_per_m * distance` (boats: growth 0).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Noise {
+    pub sigma0: f64,
+    pub growth_per_m: f64,
+}
+
+/// What one vehicle measured at one step.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Sample {
+    pub step: u64,
+    /// Where the vehicle was, metres `(x, y)`.
+    pub position: [f64; 2],
+    /// Flat grid indices of the measured cells (aerials: the cells their coarse lattice sits on).
+    pub cells: Vec<u32>,
+    pub values: Vec<f64>,
+}
+
+/// A vehicle's batch of samples; `seq` is per vehicle and gap-free from 0.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MeasurementBatch {
+    pub vehicle: String,
+    pub kind: VehicleKind,
+    pub seq: u64,
+    pub noise: Noise,
+    pub samples: Vec<Sample>,
+}
+
+/// Link as a vehicle sees it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LinkState {
+    Up,
+    Down,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Telemetry {
+    pub vehicle: String,
+    pub step: u64,
+    pub position: [f64; 2],
+    /// Radians from +x.
+    pub heading: f64,
+    /// Fraction 0..1.
+    pub battery: f64,
+    pub link: LinkState,
+    pub outbox_depth: u64,
+}
+
+/// The highest gap-free `seq` of a vehicle the server has assimilated.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Ack {
+    pub vehicle: String,
+    pub seq: u64,
+}
+
+/// The model the server publishes on `model/latest`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModelUpdate {
+    pub version: u64,
+    pub epoch: u64,
+    /// Step of the snapshot the amplitudes are fitted to (forecasts count from it).
+    pub step: u64,
+    pub grid: Grid,
+    pub dt: f64,
+    /// Discrete-time eigenvalues `[re, im]`, one per mode.
+    pub eigenvalues: Vec<[f64; 2]>,
+    /// Modes, row-major `N x r`, real and imaginary parts separately.
+    pub modes_re: Vec<f64>,
+    pub modes_im: Vec<f64>,
+    pub amplitudes: Vec<[f64; 2]>,
+    /// Per-cell error variance of the latest estimate.
+    pub variance: Vec<f64>,
+}
+
+/// One target of a plan.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Target {
+    pub step: u64,
+    /// Where to be, metres `(x, y)`, and the sensing radius there (cells; 0 for aerials).
+    pub position: [f64; 2],
+    pub radius: f64,
+}
+
+/// A vehicle's allocation for the next epochs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Plan {
+    pub vehicle: String,
+    pub model_version: u64,
+    pub targets: Vec<Target>,
+}
+
+/// Every message, tagged by `type`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "kebab-case")]
+pub enum Body {
+    Batch(MeasurementBatch),
+    Telemetry(Telemetry),
+    Ack(Ack),
+    Model(ModelUpdate),
+    Plan(Plan),
+}
+
+#[derive(Serialize, Deserialize)]
+struct Wire {
+    v: u16,
+    #[serde(flatten)]
+    body: Body,
+}
+
+/// Encode a message with the current schema version.
+pub fn encode(body: &Body) -> Vec<u8> {
+    let mut out = vec![];
+    ciborium::into_writer(&Wire { v: SCHEMA_VERSION, body: body.clone() }, &mut out).expect("writing CBOR to memory cannot fail");
+    out
+}
+
+/// Limits and knowledge a receiver checks messages against.
+#[derive(Debug, Clone)]
+pub struct Context {
+    pub grid: Grid,
+    /// Known vehicle ids (empty: any well-formed id).
+    pub vehicles: Vec<String>,
+    pub max_payload: usize,
+    /// Most samples in one batch and most cells in one sample.
+    pub max_samples: usize,
+    pub max_cells: usize,
+}
+
+impl Context {
+    pub fn new(grid: Grid) -> Self {
+        Self { grid, vehicles: vec![], max_payload: MAX_PAYLOAD, max_samples: 10_000, max_cells: grid.len() }
+    }
+}
+
+/// Decode and validate one payload.
+pub fn decode(bytes: &[u8], ctx: &Context) -> Result<Body, ProtocolError> {
+    if bytes.len() > ctx.max_payload {
+        return Err(ProtocolError::TooLarge { size: bytes.len(), limit: ctx.max_payload });
+    }
+    // The version first, so an incompatible sender gets the right error, not "malformed".
+    #[derive(Deserialize)]
+    struct Version {
+        v: u16,
+    }
+    let mut cursor = std::io::Cursor::new(bytes);
+    let value: ciborium::Value = ciborium::from_reader(&mut cursor).map_err(|e| ProtocolError::Malformed(e.to_string()))?;
+    let rest = bytes.len() - cursor.position() as usize;
+    if rest > 0 {
+        return Err(ProtocolError::Trailing(rest));
+    }
+    let v: Version = value.deserialized().map_err(|e| ProtocolError::Malformed(format!("no schema version: {e}")))?;
+    if v.v != SCHEMA_VERSION {
+        return Err(ProtocolError::Version { got: v.v });
+    }
+    let wire: Wire = value.deserialized().map_err(|e| ProtocolError::Malformed(e.to_string()))?;
+    validate(&wire.body, ctx)?;
+    Ok(wire.body)
+}
+
+fn finite(what: &str, v: &[f64]) -> Result<(), ProtocolError> {
+    match v.iter().position(|x| !x.is_finite()) {
+        Some(i) => Err(ProtocolError::Invalid(format!("{what}[{i}] is not finite"))),
+        None => Ok(()),
+    }
+}
+
+fn vehicle(id: &str, ctx: &Context) -> Result<(), ProtocolError> {
+    keys::check_id("vehicle", id)?;
+    if !ctx.vehicles.is_empty() && !ctx.vehicles.iter().any(|v| v == id) {
+        return Err(ProtocolError::UnknownVehicle(id.into()));
+    }
+    Ok(())
+}
+
+fn position(p: [f64; 2], grid: &Grid) -> Result<(), ProtocolError> {
+    finite("position", &p)?;
+    if p[0] < 0.0 || p[1] < 0.0 || p[0] > grid.width_m() || p[1] > grid.height_m() {
+        return Err(ProtocolError::Invalid(format!("position {p:?} outside the {} x {} m workspace", grid.width_m(), grid.height_m())));
+    }
+    Ok(())
+}
+
+/// Check a decoded message against the receiver's context.
+pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
+    let inv = |m: String| Err(ProtocolError::Invalid(m));
+    let n = ctx.grid.len();
+    match body {
+        Body::Batch(b) => {
+            vehicle(&b.vehicle, ctx)?;
+            finite("noise", &[b.noise.sigma0, b.noise.growth_per_m])?;
+            if b.noise.sigma0 < 0.0 || b.noise.growth_per_m < 0.0 {
+                return inv("noise must be >= 0".into());
+            }
+            if b.samples.is_empty() || b.samples.len() > ctx.max_samples {
+                return inv(format!("a batch holds 1-{} samples, got {}", ctx.max_samples, b.samples.len()));
+            }
+            for (k, s) in b.samples.iter().enumerate() {
+                position(s.position, &ctx.grid)?;
+                if s.cells.len() != s.values.len() {
+                    return inv(format!("sample {k}: {} cells but {} values", s.cells.len(), s.values.len()));
+                }
+                if s.cells.is_empty() || s.cells.len() > ctx.max_cells {
+                    return inv(format!("sample {k}: 1-{} cells, got {}", ctx.max_cells, s.cells.len()));
+                }
+                if let Some(c) = s.cells.iter().find(|&&c| c as usize >= n) {
+                    return inv(format!("sample {k}: cell {c} outside the {n}-cell grid"));
+                }
+                finite(&format!("sample {k} values"), &s.values)?;
+            }
+        }
+        Body::Telemetry(t) => {
+            vehicle(&t.vehicle, ctx)?;
+            position(t.position, &ctx.grid)?;
+            finite("telemetry", &[t.heading, t.battery])?;
+            if !(0.0..=1.0).contains(&t.battery) {
+                return inv(format!("battery {} outside 0..1", t.battery));
+            }
+        }
+        Body::Ack(a) => vehicle(&a.vehicle, ctx)?,
+        Body::Model(m) => {
+            if m.grid != ctx.grid {
+                return inv(format!("model grid {:?} is not ours {:?}", m.grid, ctx.grid));
+            }
+            let r = m.eigenvalues.len();
+            if m.modes_re.len() != n * r || m.modes_im.len() != n * r || m.amplitudes.len() != r || m.variance.len() != n {
+                return inv(format!("model of rank {r} on {n} cells has {} / {} mode values, {} amplitudes, {} variances", m.modes_re.len(), m.modes_im.len(), m.amplitudes.len(), m.variance.len()));
+            }
+            if !(m.dt.is_finite() && m.dt > 0.0) {
+                return inv(format!("dt {} must be positive", m.dt));
+            }
+            finite("eigenvalues", m.eigenvalues.as_flattened())?;
+            finite("amplitudes", m.amplitudes.as_flattened())?;
+            finite("modes_re", &m.modes_re)?;
+            finite("modes_im", &m.modes_im)?;
+            finite("variance", &m.variance)?;
+        }
+        Body::Plan(p) => {
+            vehicle(&p.vehicle, ctx)?;
+            if p.targets.len() > ctx.max_samples {
+                return inv(format!("plan of {} targets", p.targets.len()));
+            }
+            for t in &p.targets {
+                position(t.position, &ctx.grid)?;
+                if !(t.radius.is_finite() && t.radius >= 0.0) {
+                    return inv(format!("target radius {}", t.radius));
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ctx() -> Context {
+        let mut c = Context::new(Grid::new(4, 5, 1.0).unwrap());
+        c.vehicles = vec!["boat-1".into(), "av-1".into()];
+        c
+    }
+
+    fn batch() -> Body {
+        Body::Batch(MeasurementBatch {
+            vehicle: "boat-1".into(),
+            kind: VehicleKind::Boat,
+            seq: 3,
+            noise: Noise { sigma0: 0.1, growth_per_m: 0.0 },
+            samples: vec![Sample { step: 10, position: [1.5, 2.5], cells: vec![0, 7, 19], values: vec![0.3, 0.4, 0.5] }],
+        })
+    }
+
+    #[test]
+    fn round_trips_every_message() {
+        let g = Grid::new(4, 5, 1.0).unwrap();
+        let msgs = vec![
+            batch(),
+            Body::Telemetry(Telemetry { vehicle: "av-1".into(), step: 2, position: [0.0, 4.0], heading: 1.0, battery: 0.5, link: LinkState::Down, outbox_depth: 7 }),
+            Body::Ack(Ack { vehicle: "boat-1".into(), seq: 9 }),
+            Body::Model(ModelUpdate {
+                version: 1,
+                epoch: 2,
+                step: 40,
+                grid: g,
+                dt: 0.25,
+                eigenvalues: vec![[0.9, 0.1]],
+                modes_re: vec![0.1; 20],
+                modes_im: vec![0.0; 20],
+                amplitudes: vec![[1.0, 0.0]],
+                variance: vec![0.01; 20],
+            }),
+            Body::Plan(Plan { vehicle: "boat-1".into(), model_version: 1, targets: vec![Target { step: 45, position: [2.0, 2.0], radius: 1.5 }] }),
+        ];
+        for m in msgs {
+            assert_eq!(decode(&encode(&m), &ctx()).unwrap(), m);
+        }
+    }
+
+    #[test]
+    fn the_wire_is_a_flat_cbor_map_with_version_and_type() {
+        let v: ciborium::Value = ciborium::from_reader(&encode(&batch())[..]).unwrap();
+        let map = v.as_map().unwrap();
+        let get = |k: &str| map.iter().find(|(a, _)| a.as_text() == Some(k)).map(|(_, b)| b.clone());
+        assert_eq!(get("v").and_then(|x| x.as_integer()).map(i128::from), Some(1));
+        assert_eq!(get("type").and_then(|x| x.as_text().map(str::to_string)).as_deref(), Some("batch"));
+        assert_eq!(get("vehicle").and_then(|x| x.as_text().map(str::to_string)).as_deref(), Some("boat-1"));
+    }
+
+    #[test]
+    fn refuses_what_it_cannot_use() {
+        let c = ctx();
+        let good = encode(&batch());
+        let mut trailing = good.clone();
+        trailing.push(0);
+        assert_eq!(decode(&trailing, &c), Err(ProtocolError::Trailing(1)));
+        assert_eq!(decode(&good[..good.len() - 1], &c).unwrap_err().reason(), "malformed");
+        let mut small = c.clone();
+        small.max_payload = 8;
+        assert_eq!(decode(&good, &small).unwrap_err().reason(), "too_large");
+        // Another schema version.
+        let mut v2 = vec![];
+        ciborium::into_writer(&Wire { v: 2, body: batch() }, &mut v2).unwrap();
+        assert_eq!(decode(&v2, &c), Err(ProtocolError::Version { got: 2 }));
+        let bad = |f: &dyn Fn(&mut MeasurementBatch)| {
+            let Body::Batch(mut b) = batch() else { unreachable!() };
+            f(&mut b);
+            decode(&encode(&Body::Batch(b)), &c).unwrap_err()
+        };
+        assert_eq!(bad(&|b| b.vehicle = "boat-2".into()).reason(), "unknown_vehicle");
+        assert_eq!(bad(&|b| b.vehicle = "boat/1".into()).reason(), "invalid");
+        assert!(bad(&|b| b.samples[0].values[1] = f64::NAN).to_string().contains("not finite"));
+        assert!(bad(&|b| b.samples[0].cells[2] = 20).to_string().contains("outside the 20-cell grid"));
+        assert!(bad(&|b| b.samples[0].values.pop().map(|_| ()).unwrap_or(())).to_string().contains("3 cells but 2 values"));
+        assert!(bad(&|b| b.samples[0].position = [9.0, 1.0]).to_string().contains("outside"));
+        assert!(bad(&|b| b.samples.clear()).to_string().contains("1-10000 samples"));
+        assert!(bad(&|b| b.noise.sigma0 = -1.0).to_string().contains("noise"));
+    }
+
+    #[test]
+    fn random_bytes_never_panic() {
+        use rand::{RngExt, SeedableRng};
+        let c = ctx();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let good = encode(&batch());
+        let mut refused = 0;
+        for i in 0..20_000 {
+            let bytes: Vec<u8> = if i % 2 == 0 {
+                (0..rng.random_range(0..64)).map(|_| rng.random()).collect()
+            } else {
+                // Mutate a valid message: flip, drop or insert bytes.
+                let mut b = good.clone();
+                for _ in 0..rng.random_range(1..4) {
+                    let at = rng.random_range(0..b.len());
+                    match rng.random_range(0..3) {
+                        0 => b[at] ^= 1 << rng.random_range(0..8),
+                        1 => {
+                            b.remove(at);
+                        }
+                        _ => b.insert(at, rng.random()),
+                    }
+                }
+                b
+            };
+            if decode(&bytes, &c).is_err() {
+                refused += 1;
+            }
+        }
+        assert!(refused > 15_000, "{refused}");
+    }
+}
