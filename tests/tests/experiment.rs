@@ -21,7 +21,7 @@ fn tiny_experiment_writes_a_deterministic_report() {
     }
     // The paper's claims on the most complex cloud of the run (cloud10, noise 0.15).
     let res: serde_json::Value = serde_json::from_slice(&ja).unwrap();
-    assert_eq!(res["verdict"]["preset"], "cloud10");
+    assert_eq!(res["verdict"]["preset"], "Cloud10");
     assert_eq!(res["verdict"]["heterogeneous_beats_both"], true, "{}", res["rows"][1]["qr"]["mean_heterogeneous"]);
     assert_eq!(res["verdict"]["qr_beats_random"], true);
 }
@@ -36,4 +36,29 @@ fn a_bad_experiment_file_is_a_clear_error() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && !stderr.contains("panicked"));
     assert!(stderr.contains("cloud9") || stderr.contains("preset"), "{stderr}");
+}
+
+#[test]
+fn a_dataset_can_be_the_truth() {
+    let dir = std::env::temp_dir().join(format!("hetfleet-exp-ds-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let npy = dir.join("plume.npy");
+    let out = run("fleet", &["simulate", "plume", "--grid", "48x96", "--frames", "40", "--out", npy.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let toml = dir.join("ds.toml");
+    std::fs::write(
+        &toml,
+        format!(
+            "seed = 3\ntruth_grid = [48, 96]\nframes = 40\nradius = 6.0\n[team]\nboats = 3\ninit_steps = 10\nrank = \"6\"\n\
+             [[row]]\ndataset = {:?}\nav_time = 1\nmv_time = 5\nav_space = 6\nmv_space = 2\nnoise = 0.05\n",
+            npy.to_str().unwrap()
+        ),
+    )
+    .unwrap();
+    let rep = dir.join("rep");
+    let out = run("fleet", &["experiment", toml.to_str().unwrap(), "--out", rep.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report = std::fs::read_to_string(rep.join("report.md")).unwrap();
+    assert!(report.contains("| plume | 1 | 5 | 6 | 2 | 0.05 | 24 x 48 |"), "{report}");
+    assert!(rep.join("fig10-plume.png").exists());
 }

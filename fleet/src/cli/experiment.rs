@@ -30,8 +30,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     std::fs::write(args.out.join("timings.json"), serde_json::to_string_pretty(&serde_json::json!({ "seconds": secs }))?)?;
     for r in &res.rows {
         println!(
-            "{:?} AV {}/{} MV {}/{} noise {}: MSE heterogeneous {:.4e} (random disks {:.4e}), aerial-only {:.4e}, boat-only {:.4e}",
-            r.row.preset, r.row.av_time, r.row.av_space, r.row.mv_time, r.row.mv_space, r.row.noise,
+            "{} AV {}/{} MV {}/{} noise {}: MSE heterogeneous {:.4e} (random disks {:.4e}), aerial-only {:.4e}, boat-only {:.4e}",
+            r.row.name(), r.row.av_time, r.row.av_space, r.row.mv_time, r.row.mv_space, r.row.noise,
             r.qr.mean_heterogeneous, r.random.mean_heterogeneous, r.qr.mean_aerial_only, r.qr.mean_boat_only
         );
     }

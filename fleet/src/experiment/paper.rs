@@ -25,7 +25,13 @@ use std::path::Path;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Row {
-    pub preset: Preset,
+    /// The simulator's cloud, or
+    #[serde(default)]
+    pub preset: Option<Preset>,
+    /// a `(frames, rows, cols)` `.npy` dataset as the truth (at the simulator grid's scale:
+    /// it is area-averaged by `mv_space` like the simulator's output).
+    #[serde(default)]
+    pub dataset: Option<std::path::PathBuf>,
     pub av_time: usize,
     pub mv_time: usize,
     pub av_space: usize,
@@ -59,6 +65,17 @@ pub struct ExperimentConfig {
     pub forgetting: Vec<f64>,
 }
 
+impl Row {
+    /// The truth's name in tables and figure files: the preset (`Cloud1`) or the file stem.
+    pub fn name(&self) -> String {
+        match (&self.preset, &self.dataset) {
+            (Some(p), _) => format!("{p:?}"),
+            (None, Some(d)) => d.file_stem().map_or("dataset".into(), |s| s.to_string_lossy().to_string()),
+            (None, None) => "?".into(),
+        }
+    }
+}
+
 impl ExperimentConfig {
     pub fn from_toml(text: &str) -> anyhow::Result<Self> {
         let cfg: Self = toml::from_str(text)?;
@@ -66,6 +83,9 @@ impl ExperimentConfig {
             bail!("the experiment has no [[row]]");
         }
         for r in &cfg.rows {
+            if r.preset.is_some() == r.dataset.is_some() {
+                bail!("row {r:?}: give exactly one of preset or dataset");
+            }
             if r.av_time == 0 || r.mv_time == 0 || r.av_space == 0 || r.mv_space == 0 || r.av_space % r.mv_space != 0 {
                 bail!("row {r:?}: rates must be >= 1 and av_space a multiple of mv_space");
             }
@@ -135,24 +155,36 @@ pub struct Results {
 /// The two claims the paper makes, checked on the most complex preset run.
 #[derive(Debug, Clone, Serialize)]
 pub struct Verdict {
-    pub preset: Option<Preset>,
+    /// The row's truth (the most complex preset run, else the first dataset).
+    pub preset: Option<String>,
     pub heterogeneous_beats_both: Option<bool>,
     pub qr_beats_random: Option<bool>,
 }
 
-/// The truth of a row on its model grid: the simulator at `truth_grid`, area-averaged by
-/// `mv_space`.
-fn truth_for(cfg: &ExperimentConfig, preset: Preset, mv_space: usize, cache: &mut BTreeMap<String, FieldSeries>) -> anyhow::Result<FieldSeries> {
-    let key = format!("{preset:?}");
+/// The truth of a row on its model grid: the simulator at `truth_grid` (or the dataset),
+/// area-averaged by `mv_space`.
+fn truth_for(cfg: &ExperimentConfig, row: &Row, cache: &mut BTreeMap<String, FieldSeries>) -> anyhow::Result<FieldSeries> {
+    let key = row.name();
     if !cache.contains_key(&key) {
-        let mut p = preset.params();
-        (p.ny, p.nx) = (cfg.truth_grid[0], cfg.truth_grid[1]);
-        p.seed = cfg.seed;
-        let mut sim = PlasmaCloud::new(p).with_context(|| format!("simulating {key}"))?;
-        cache.insert(key.clone(), sim.run(cfg.frames, |_| {})?);
+        let full = match (&row.preset, &row.dataset) {
+            (Some(preset), _) => {
+                let mut p = preset.params();
+                (p.ny, p.nx) = (cfg.truth_grid[0], cfg.truth_grid[1]);
+                p.seed = cfg.seed;
+                let mut sim = PlasmaCloud::new(p).with_context(|| format!("simulating {key}"))?;
+                sim.run(cfg.frames, |_| {})?
+            }
+            (None, Some(path)) => crate::process::dataset::load(path, 1.0).with_context(|| format!("loading the dataset {}", path.display()))?,
+            (None, None) => bail!("row without a truth"),
+        };
+        cache.insert(key.clone(), full);
     }
     let full = &cache[&key];
+    let mv_space = row.mv_space;
     let (rows, cols) = (full.rows / mv_space, full.cols / mv_space);
+    if rows < 4 || cols < 4 {
+        bail!("{key}: {} x {} averaged by {mv_space} leaves less than 4 x 4 cells", full.rows, full.cols);
+    }
     let mut snapshots = Mat::zeros(rows * cols, full.frames());
     for k in 0..full.frames() {
         let col: Vec<f64> = full.snapshots.col(k).iter().copied().collect();
@@ -178,8 +210,8 @@ pub fn run(cfg: &ExperimentConfig, mut progress: impl FnMut(&str)) -> anyhow::Re
     let mut cache = BTreeMap::new();
     let mut rows = vec![];
     for r in &cfg.rows {
-        progress(&format!("{:?} {}/{} {}/{}", r.preset, r.av_time, r.mv_time, r.av_space, r.mv_space));
-        let truth = truth_for(cfg, r.preset, r.mv_space, &mut cache)?;
+        progress(&format!("{} {}/{} {}/{}", r.name(), r.av_time, r.mv_time, r.av_space, r.mv_space));
+        let truth = truth_for(cfg, r, &mut cache)?;
         let qr = team::run(&cfg.team_for(r, Placement::Qr), &truth, |_, _| {})?;
         let random = team::run(&cfg.team_for(r, Placement::Random), &truth, |_, _| {})?;
         rows.push(RowResult { row: r.clone(), model_grid: [truth.rows, truth.cols], qr, random });
@@ -225,10 +257,13 @@ pub fn run(cfg: &ExperimentConfig, mut progress: impl FnMut(&str)) -> anyhow::Re
             forgetting.push(ForgettingCurve { label, points });
         }
     }
-    let top = rows.iter().map(|r| r.row.preset).max_by_key(|p| rank_of(*p));
-    let first_of_top = top.and_then(|p| rows.iter().find(|r| r.row.preset == p));
+    let top = rows.iter().filter_map(|r| r.row.preset).max_by_key(|p| rank_of(*p));
+    let first_of_top = match top {
+        Some(p) => rows.iter().find(|r| r.row.preset == Some(p)),
+        None => rows.first(),
+    };
     let verdict = Verdict {
-        preset: top,
+        preset: first_of_top.map(|r| r.row.name()),
         heterogeneous_beats_both: first_of_top.map(|r| r.qr.mean_heterogeneous < r.qr.mean_aerial_only && r.qr.mean_heterogeneous < r.qr.mean_boat_only),
         qr_beats_random: first_of_top.map(|r| r.qr.mean_heterogeneous < r.random.mean_heterogeneous),
     };
@@ -271,8 +306,8 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
         let w = &r.row;
         writeln!(
             md,
-            "| {:?} | {} | {} | {} | {} | {} | {} x {} | {:.4e} | {:.4e} | {:.4e} | {:.4e} | {} |",
-            w.preset,
+            "| {} | {} | {} | {} | {} | {} | {} x {} | {:.4e} | {:.4e} | {:.4e} | {:.4e} | {} |",
+            w.name(),
             w.av_time,
             w.mv_time,
             w.av_space,
@@ -289,10 +324,10 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
     }
     let v = &res.verdict;
     writeln!(md)?;
-    if let (Some(p), Some(h), Some(q)) = (v.preset, v.heterogeneous_beats_both, v.qr_beats_random) {
+    if let (Some(p), Some(h), Some(q)) = (&v.preset, v.heterogeneous_beats_both, v.qr_beats_random) {
         writeln!(
             md,
-            "On the most complex cloud run ({p:?}, first row): the heterogeneous team's MSE is {} both homogeneous teams', and QR placement {} random placement.\n",
+            "On the most complex cloud run ({p}, first row): the heterogeneous team's MSE is {} both homogeneous teams', and QR placement {} random placement.\n",
             if h { "below" } else { "**not** below" },
             if q { "beats" } else { "does **not** beat" }
         )?;
@@ -301,21 +336,21 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
     writeln!(md, "## Fig. 10: MSE over time\n")?;
     let mut seen = vec![];
     for r in &res.rows {
-        if seen.contains(&r.row.preset) {
+        if seen.contains(&r.row.name()) {
             continue;
         }
-        seen.push(r.row.preset);
-        let name = format!("fig10-{:?}.png", r.row.preset).to_lowercase();
+        seen.push(r.row.name());
+        let name = format!("fig10-{}.png", r.row.name()).to_lowercase();
         let s = |label: &str, v: &[f64]| Series { name: label.into(), points: v.iter().enumerate().map(|(k, &e)| (k as f64, e)).collect() };
         let series = [s("heterogeneous", &r.qr.heterogeneous), s("aerial-only", &r.qr.aerial_only), s("boat-only", &r.qr.boat_only), s("heterogeneous, random disks", &r.random.heterogeneous)];
-        plot::lines(dir.join(&name), &format!("{:?}: MSE over the grid at each step", r.row.preset), "step", "MSE", &series, true)?;
+        plot::lines(dir.join(&name), &format!("{}: MSE over the grid at each step", r.row.name()), "step", "MSE", &series, true)?;
         writeln!(md, "![{name}]({name})\n")?;
         figures.push(name);
     }
     // Fig. 11: the most complex cloud's first row, three boat steps.
-    if let Some(r) = v.preset.and_then(|p| res.rows.iter().find(|r| r.row.preset == p)) {
-        writeln!(md, "## Fig. 11: truth and reconstruction ({:?}), boats' disks in white\n", r.row.preset)?;
-        let truth = &truths[&format!("{:?}", r.row.preset)];
+    if let Some(r) = v.preset.as_ref().and_then(|p| res.rows.iter().find(|r| &r.row.name() == p)) {
+        writeln!(md, "## Fig. 11: truth and reconstruction ({}), boats' disks in white\n", r.row.name())?;
+        let truth = &truths[&r.row.name()];
         let (rows, cols) = (r.model_grid[0], r.model_grid[1]);
         let steps = &r.qr.boat_steps;
         let picks: Vec<usize> = if steps.len() >= 3 { vec![0, steps.len() / 2, steps.len() - 1] } else { (0..steps.len()).collect() };
