@@ -11,6 +11,7 @@ pub mod dmd;
 pub mod experiment;
 pub mod fusion;
 pub mod grid;
+pub mod mission;
 pub mod npy;
 pub mod plot;
 pub mod process;

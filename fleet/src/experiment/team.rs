@@ -14,14 +14,14 @@
 //!   first `init_steps` steps) the measured cells' mean fills the grid.
 
 use crate::dmd::{Dmd, DmdConfig, DmdModel, Method, RankPolicy};
-use crate::fusion::{fuse, AerialFrame, AerialNoise, Estimate, Measured, Scheme};
-use crate::grid::{Cell, Grid};
+use crate::fusion::Scheme;
+use crate::grid::Grid;
+use crate::mission;
 use crate::process::FieldSeries;
-use crate::sensing::{assign::assign, coverage, gappy, qr, real_basis};
+use crate::protocol::Sample;
+use crate::sensing::{gappy, real_basis};
 use faer::Mat;
-use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
 /// Where boats go.
@@ -162,55 +162,33 @@ fn column(m: &Mat<f64>, k: usize) -> Vec<f64> {
     m.col(k).iter().copied().collect()
 }
 
-fn to_mat(cols: &[Vec<f64>]) -> Mat<f64> {
-    let n = cols.first().map_or(0, |c| c.len());
-    Mat::from_fn(n, cols.len(), |i, j| cols[j][i])
-}
 
-/// `m` random non-overlapping disks (rejection sampling; fewer if the grid is full).
-fn random_disks(grid: &Grid, m: usize, radius: f64, rng: &mut ChaCha8Rng) -> Vec<Vec<usize>> {
-    let mut taken = vec![false; grid.len()];
-    let mut out = vec![];
-    for _ in 0..m * 200 {
-        if out.len() == m {
-            break;
-        }
-        let c = Cell::new(rng.random_range(0..grid.rows), rng.random_range(0..grid.cols));
-        let d = grid.disk(c, radius);
-        if d.iter().all(|&i| !taken[i]) {
-            d.iter().for_each(|&i| taken[i] = true);
-            out.push(d);
-        }
-    }
-    out
-}
-
-/// The model after fitting/updating, ready to predict forward from its newest snapshot.
+/// The boat-only team's model fitted to its newest snapshot, and a real basis of its modes.
 fn fitted(model: &dyn Dmd, newest: &[f64]) -> Result<(DmdModel, Mat<f64>), TeamError> {
     let modes = model.decompose()?;
     let basis = real_basis(modes.modes.as_ref())?;
     Ok((modes.model(newest, 1.0)?, basis))
 }
 
-/// Run the loop on `truth` (already on the model grid).
+/// Run the loop on `truth` (already on the model grid): the vehicles sense with their own
+/// random streams ([`mission::sense_aerial`], [`mission::sense_boat`]) and the
+/// [`mission::Assimilator`] does the server's part, exactly as the networked fleet does.
 pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize, usize)) -> Result<TeamOutcome, TeamError> {
     let grid = Grid::new(truth.rows, truth.cols, 1.0)?;
     let frames = truth.frames();
-    let rank = cfg.validate(&grid, frames)?;
+    let mut server = mission::Assimilator::new(cfg, grid, frames)?;
     let n = grid.len();
-    let dmd = DmdConfig { method: cfg.method, rank, debias: Default::default(), gamma: cfg.gamma };
-    let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
-    let noise = AerialNoise { sigma0: cfg.aerial_sigma0, growth_per_m: cfg.aerial_growth_per_cell };
     let boat_var = cfg.boat_sigma * cfg.boat_sigma;
+    let noise = server.aerial_noise();
     let truth_at = |k: usize| column(&truth.snapshots, k);
-
-    let mut aerials = coverage::uniform_formation(&grid, cfg.aerials)?.positions;
-    let mut aerial_est: Option<Estimate> = None;
-    let sense_aerial = |k: usize, aerials: &[(f64, f64)], rng: &mut ChaCha8Rng, held: &mut Option<Estimate>| -> Result<Estimate, TeamError> {
-        if k % cfg.aerial_period == 0 || held.is_none() {
-            *held = Some(AerialFrame::sense(&grid, &truth_at(k), cfg.aerial_stride, aerials, noise, rng)?.upsample()?);
+    let mut rngs: Vec<ChaCha8Rng> = (0..cfg.aerials + cfg.boats).map(|v| mission::vehicle_rng(cfg.seed, v)).collect();
+    // The aerials' frame at step k (every `aerial_period` steps), each aerial its own region.
+    let aerial_samples = |k: usize, positions: &[(f64, f64)], rngs: &mut [ChaCha8Rng]| -> Result<Vec<Sample>, TeamError> {
+        if k % cfg.aerial_period != 0 {
+            return Ok(vec![]);
         }
-        Ok(held.clone().expect("set above"))
+        let x = truth_at(k);
+        (0..cfg.aerials).map(|a| mission::sense_aerial(&grid, &x, k as u64, cfg.aerial_stride, positions, a, noise, &mut rngs[a])).collect()
     };
 
     let mut out = TeamOutcome {
@@ -228,125 +206,69 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
     };
 
     // 1. Initialisation: aerial frames only; the first model from them.
-    let mut snaps: Vec<Vec<f64>> = vec![];
+    let mut init = vec![];
     for k in 0..cfg.init_steps {
-        let a = sense_aerial(k, &aerials, &mut rng, &mut aerial_est)?;
-        let x = truth_at(k);
-        let e = mse(&a.values, &x);
+        let positions = server.aerial_positions().to_vec();
+        let samples = aerial_samples(k, &positions, &mut rngs)?;
+        let a = server.aerial_estimate(&samples)?;
+        let e = mse(&a.values, &truth_at(k));
         out.heterogeneous.push(e);
         out.aerial_only.push(e);
-        snaps.push(a.values);
+        init.push(a.values);
         progress(k + 1, frames);
     }
-    let z = to_mat(&snaps);
-    let m0 = snaps.len() - 1;
-    let mut model = dmd.init(z.subcols(0, m0), z.subcols(1, m0))?;
-    let mut boats: Vec<(f64, f64)> = (0..cfg.boats).map(|_| (rng.random_range(0.0..grid.width_m()), rng.random_range(0.0..grid.height_m()))).collect();
-    // Boat-only team: its snapshots at boat steps, its model once it has enough.
+    server.initialise(init)?;
+    // Boat-only team: its snapshots at boat steps, its model once it has enough. It knows
+    // nothing before its first sample: its estimate is 0 until then (those steps count against
+    // it), then its latest snapshot until it has a model.
+    let boat_cfg = DmdConfig { method: Method::Batch, rank: cfg.rank.parse().map_err(TeamError::Config)?, debias: Default::default(), gamma: cfg.gamma };
     let mut boat_snaps: Vec<Vec<f64>> = vec![];
     let mut boat_model: Option<(DmdModel, Mat<f64>, usize)> = None; // model, basis, step of its newest snapshot
-    let boat_cfg = DmdConfig { method: Method::Batch, ..dmd };
-    // The boat-only team knows nothing before its first sample: its estimate is 0 until then
-    // (those steps count against it), then its latest snapshot until it has a model.
     let mut boat_guess: Vec<f64> = vec![0.0; n];
     for k in 0..cfg.init_steps {
         out.boat_only.push(mse(&boat_guess, &truth_at(k)));
     }
-    // Prediction variance for inverse-variance fusion: mean squared innovation seen so far.
-    let mut pred_var = aerial_est.as_ref().map_or(1.0, |a| a.variance.iter().sum::<f64>() / n as f64).max(1e-12);
-    // The aerials' error beyond their noise model (interpolation), calibrated at boat steps.
-    let mut aerial_extra = 0.0;
 
     let mut k0 = cfg.init_steps;
     while k0 < frames {
-        let newest = snaps.last().expect("init snapshots").clone();
-        let (pred, basis) = fitted(model.as_ref(), &newest)?;
-        // 4. Placement from the current model.
-        let disks: Vec<Vec<usize>> = match cfg.placement {
-            Placement::Qr => qr::block_qr(basis.as_ref(), &grid, cfg.boats, cfg.radius)?.into_iter().map(|d| d.cells).collect(),
-            Placement::DOptimal => qr::block_dopt(basis.as_ref(), &grid, cfg.boats, cfg.radius)?.into_iter().map(|d| d.cells).collect(),
-            Placement::Random => random_disks(&grid, cfg.boats, cfg.radius, &mut rng),
-        };
-        let centres: Vec<(usize, usize)> = disks
-            .iter()
-            .map(|d| {
-                // The disk's centre cell: the mean of its cells, snapped to a cell.
-                let (r, c) = d.iter().fold((0.0, 0.0), |(r, c), &i| (r + grid.cell(i).row as f64, c + grid.cell(i).col as f64));
-                ((r / d.len() as f64).round() as usize, (c / d.len() as f64).round() as usize)
-            })
-            .collect();
-        let targets: Vec<(f64, f64)> = centres.iter().map(|&(r, c)| grid.centre_m(Cell::new(r, c))).collect();
-        let (assignment, _) = assign(&boats, &targets, 1.0)?;
-        for (b, a) in boats.iter_mut().zip(&assignment) {
-            if let Some(t) = a {
-                *b = targets[*t];
-            }
-        }
-        let density = coverage::temporal_density(&pred, cfg.density_floor)?;
-        aerials = coverage::lloyd(&grid, &density, &aerials, 50, 1e-3)?.positions;
-
+        // 4. Placement from the current model; vehicles go there.
+        let plan = server.allocate()?;
         let k_end = (k0 + cfg.boat_period).min(frames);
-        let boat_step = k_end - 1;
-        let mut epoch: Vec<Vec<f64>> = vec![];
+        let boat_step = (k_end - k0 == cfg.boat_period).then_some(k_end - 1);
+        let mut epoch = vec![];
         for k in k0..k_end {
             let x = truth_at(k);
-            let aerial = sense_aerial(k, &aerials, &mut rng, &mut aerial_est)?;
-            let ahead = (k + 1 - k0) as f64;
-            let predicted = pred.predict(ahead);
-            let mut aerial = aerial;
-            let (hifi, measured_cells, measured_vals) = if k == boat_step && k_end - k0 == cfg.boat_period {
-                let cells: Vec<usize> = disks.iter().flatten().copied().collect();
-                let vals: Vec<f64> = cells.iter().map(|&c| x[c] + cfg.boat_sigma * <StandardNormal as Distribution<f64>>::sample(&StandardNormal, &mut rng)).collect();
-                // Calibrate each source's error against the boats' measurements (innovations
-                // at the measured cells, less the boats' own noise): the aerials' error is
-                // mostly interpolation, the prediction's mostly model error, and neither is in
-                // their noise models.
-                let innovation = |est: &[f64]| -> f64 {
-                    let m = cells.iter().zip(&vals).map(|(&c, v)| (est[c] - v).powi(2)).sum::<f64>() / cells.len() as f64;
-                    (m - boat_var).max(1e-12)
-                };
-                let noise_part = cells.iter().map(|&c| aerial.variance[c]).sum::<f64>() / cells.len() as f64;
-                aerial_extra = (innovation(&aerial.values) - noise_part).max(0.0);
-                pred_var = innovation(&predicted);
-                let est = match gappy::reconstruct(basis.as_ref(), &cells, &vals, boat_var) {
-                    Ok(g) => {
-                        // Truncation error: the fit's residual at the measured cells, inflated
-                        // for the degrees of freedom the fit used.
-                        let dof = (cells.len() as f64 - basis.ncols() as f64).max(1.0);
-                        let resid = cells.iter().zip(&vals).map(|(&c, v)| (g.field[c] - v).powi(2)).sum::<f64>() / dof;
-                        let extra = (resid - boat_var).max(0.0);
-                        Estimate { values: g.field, variance: g.variance.iter().map(|v| v + extra).collect() }
-                    }
-                    // Too few independent cells for the modes: keep the prediction.
-                    Err(crate::sensing::SensingError::Underdetermined { .. }) => Estimate { values: predicted.clone(), variance: vec![pred_var; n] },
-                    Err(e) => return Err(e.into()),
-                };
-                (est, cells, vals)
+            let samples = aerial_samples(k, &plan.aerials, &mut rngs)?;
+            let aerial = server.aerial_estimate(&samples)?;
+            let boats: Vec<Sample> = if Some(k) == boat_step {
+                plan.boats
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(b, d)| d.as_ref().map(|(cells, _)| (b, cells)))
+                    .map(|(b, cells)| mission::sense_boat(&x, k as u64, server.boat_positions()[b], cells, cfg.boat_sigma, &mut rngs[cfg.aerials + b]))
+                    .collect()
             } else {
-                (Estimate { values: predicted.clone(), variance: vec![pred_var; n] }, vec![], vec![])
+                vec![]
             };
-            aerial.variance.iter_mut().for_each(|v| *v += aerial_extra);
-            let measured = (!measured_cells.is_empty()).then_some(Measured { cells: &measured_cells, values: &measured_vals, noise_var: boat_var });
-            let fused = fuse(cfg.fusion, n, &[&aerial, &hifi], measured)?;
+            let fused = server.fuse_step((k + 1 - k0) as u64, &aerial, &boats)?;
             out.heterogeneous.push(mse(&fused.values, &x));
             out.aerial_only.push(mse(&aerial.values, &x));
 
-            // Boat-only team.
+            // Boat-only team, from the same boat samples.
+            let measured_cells: Vec<usize> = boats.iter().flat_map(|s| s.cells.iter().map(|&c| c as usize)).collect();
+            let measured_vals: Vec<f64> = boats.iter().flat_map(|s| s.values.iter().copied()).collect();
             let boat_est = if !measured_cells.is_empty() {
-                let est = match &boat_model {
-                    Some((_, b, _)) => match gappy::reconstruct(b.as_ref(), &measured_cells, &measured_vals, boat_var) {
-                        Ok(g) => g.field,
-                        Err(_) => vec![measured_vals.iter().sum::<f64>() / measured_vals.len() as f64; n],
-                    },
-                    None => vec![measured_vals.iter().sum::<f64>() / measured_vals.len() as f64; n],
+                let mean = measured_vals.iter().sum::<f64>() / measured_vals.len() as f64;
+                let mut est = match &boat_model {
+                    Some((_, b, _)) => gappy::reconstruct(b.as_ref(), &measured_cells, &measured_vals, boat_var).map(|g| g.field).unwrap_or_else(|_| vec![mean; n]),
+                    None => vec![mean; n],
                 };
-                let mut est = est;
                 for (&c, &v) in measured_cells.iter().zip(&measured_vals) {
                     est[c] = v;
                 }
                 boat_snaps.push(est.clone());
                 if boat_snaps.len() >= 3 {
-                    let z = to_mat(&boat_snaps);
+                    let z = mission::to_mat(&boat_snaps);
                     let m = boat_snaps.len() - 1;
                     let bm = boat_cfg.init(z.subcols(0, m), z.subcols(1, m))?;
                     let (p, b) = fitted(bm.as_ref(), &est)?;
@@ -362,28 +284,23 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
                 }
             };
             out.boat_only.push(mse(&boat_est, &x));
-            if k == boat_step {
+            if Some(k) == boat_step {
                 out.boat_steps.push(k);
-                out.disks.push(centres.clone());
-                out.aerial_positions.push(aerials.clone());
+                out.disks.push(plan.boats.iter().flatten().map(|(_, c)| *c).collect());
+                out.aerial_positions.push(plan.aerials.clone());
                 out.snapshots.push(fused.values.clone());
             }
             epoch.push(fused.values);
             progress(k + 1, frames);
         }
-        // 3. Assimilate the epoch's snapshots (pairs chained from the last one).
-        let mut chain = vec![newest];
-        chain.extend(epoch.iter().cloned());
-        let z = to_mat(&chain);
-        let m = chain.len() - 1;
-        model.update(z.subcols(0, m), z.subcols(1, m))?;
-        snaps.extend(epoch);
+        // 3. Assimilate the epoch's snapshots.
+        server.assimilate(epoch)?;
         k0 = k_end;
     }
     let tail = |v: &[f64]| v[cfg.init_steps..].iter().sum::<f64>() / (v.len() - cfg.init_steps).max(1) as f64;
     out.mean_heterogeneous = tail(&out.heterogeneous);
     out.mean_aerial_only = tail(&out.aerial_only);
     out.mean_boat_only = tail(&out.boat_only);
-    out.rank = model.rank();
+    out.rank = server.rank();
     Ok(out)
 }
