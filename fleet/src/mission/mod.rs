@@ -5,6 +5,8 @@
 //! places). The offline experiment drives both in one process; the Zenoh nodes run the same
 //! functions on either side of the network, so the two give the same numbers.
 
+pub mod server;
+
 use crate::dmd::{Dmd, DmdConfig, DmdModel, RankPolicy};
 use crate::experiment::team::{Placement, TeamConfig, TeamError};
 use crate::fusion::{fuse, AerialNoise, Estimate, Measured};
@@ -110,6 +112,10 @@ impl Assimilator {
             boat_positions,
             aerial_positions: coverage::uniform_formation(&grid, cfg.aerials)?.positions,
         })
+    }
+
+    pub fn grid(&self) -> &Grid {
+        &self.grid
     }
 
     pub fn aerial_noise(&self) -> AerialNoise {

@@ -1,0 +1,266 @@
+//! The model server's core, without the network: measurement batches in (any order, any
+//! number of times), each assimilated exactly once, epochs folded into the model in step order
+//! as soon as they are complete, acks, plans and model updates out. The Zenoh node wraps this.
+//!
+//! The epoch contract: every vehicle sends one batch per epoch it takes part in, and its `seq`
+//! counts those batches from 0 without gaps. Aerials take part from epoch 0 (the aerial-only
+//! initialisation, one sample per aerial step); boats from epoch 1 (their `seq` is the epoch
+//! minus one; a last, shorter epoch has no boat step and no boat batch). Epoch `e >= 1` covers
+//! steps `init + (e-1) * boat_period ..` and is complete when every vehicle's batch for it is in.
+
+use super::{Allocation, Assimilator};
+use crate::experiment::team::{TeamConfig, TeamError};
+use crate::grid::Grid;
+use crate::protocol::{self, Ack, MeasurementBatch, Plan, Sample, Target, VehicleKind};
+use std::collections::BTreeMap;
+
+/// A vehicle of the mission: its id and kind; its index is its place in the list (aerials
+/// first), which also picks its random stream.
+#[derive(Debug, Clone, PartialEq)]
+pub struct VehicleSpec {
+    pub id: String,
+    pub kind: VehicleKind,
+}
+
+/// The vehicles of a team: `av-1..` then `boat-1..`.
+pub fn team_vehicles(cfg: &TeamConfig) -> Vec<VehicleSpec> {
+    (1..=cfg.aerials)
+        .map(|i| VehicleSpec { id: format!("av-{i}"), kind: VehicleKind::Aerial })
+        .chain((1..=cfg.boats).map(|i| VehicleSpec { id: format!("boat-{i}"), kind: VehicleKind::Boat }))
+        .collect()
+}
+
+/// What happened to one batch.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Ingested {
+    /// Already assimilated or already waiting: dropped (and acked again).
+    Duplicate,
+    /// Kept until its epoch is complete.
+    Buffered,
+    /// Completed these epochs, which are now in the model.
+    Assimilated(Vec<u64>),
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum IngestError {
+    #[error(transparent)]
+    Protocol(#[from] protocol::ProtocolError),
+    #[error("batch from {vehicle}: {why}")]
+    Rejected { vehicle: String, why: String },
+    #[error(transparent)]
+    Model(#[from] TeamError),
+}
+
+/// Counters a node reports.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct Counters {
+    pub batches: u64,
+    pub duplicates: u64,
+    pub rejected: BTreeMap<String, u64>,
+    pub epochs: u64,
+}
+
+pub struct ServerCore {
+    cfg: TeamConfig,
+    frames: usize,
+    vehicles: Vec<VehicleSpec>,
+    assim: Assimilator,
+    /// Next epoch to assimilate.
+    epoch: u64,
+    /// Batches waiting, by epoch then vehicle index.
+    pending: BTreeMap<u64, BTreeMap<usize, MeasurementBatch>>,
+    /// The plan each epoch was sensed under (to check boats measured their disks).
+    plans: BTreeMap<u64, Allocation>,
+    pub counters: Counters,
+    /// Model version: bumped at every assimilated epoch.
+    pub version: u64,
+    /// Fused snapshots of every step assimilated so far (for metrics).
+    pub snapshots: Vec<Vec<f64>>,
+}
+
+impl ServerCore {
+    pub fn new(cfg: &TeamConfig, grid: Grid, frames: usize) -> Result<Self, TeamError> {
+        Ok(Self {
+            assim: Assimilator::new(cfg, grid, frames)?,
+            cfg: cfg.clone(),
+            frames,
+            vehicles: team_vehicles(cfg),
+            epoch: 0,
+            pending: BTreeMap::new(),
+            plans: BTreeMap::new(),
+            counters: Counters::default(),
+            version: 0,
+            snapshots: vec![],
+        })
+    }
+
+    pub fn vehicles(&self) -> &[VehicleSpec] {
+        &self.vehicles
+    }
+
+    /// The epoch the server waits for next.
+    pub fn next_epoch(&self) -> u64 {
+        self.epoch
+    }
+
+    /// Steps of epoch `e` (empty past the end of the mission).
+    pub fn steps_of(&self, e: u64) -> std::ops::Range<usize> {
+        let init = self.cfg.init_steps;
+        if e == 0 {
+            return 0..init;
+        }
+        let a = init + (e as usize - 1) * self.cfg.boat_period;
+        a.min(self.frames)..(a + self.cfg.boat_period).min(self.frames)
+    }
+
+    /// Whether every step of the mission is in the model.
+    pub fn finished(&self) -> bool {
+        self.steps_of(self.epoch).is_empty() && self.epoch > 0
+    }
+
+    fn reject(&mut self, vehicle: &str, why: String) -> IngestError {
+        *self.counters.rejected.entry("invalid_batch".into()).or_default() += 1;
+        IngestError::Rejected { vehicle: vehicle.into(), why }
+    }
+
+    /// The epoch a batch belongs to, from its vehicle's kind and seq.
+    fn epoch_of(kind: VehicleKind, seq: u64) -> u64 {
+        match kind {
+            VehicleKind::Aerial => seq,
+            VehicleKind::Boat => seq + 1,
+        }
+    }
+
+    /// Take one batch (already decoded and validated against the grid).
+    pub fn ingest(&mut self, batch: MeasurementBatch) -> Result<Ingested, IngestError> {
+        self.counters.batches += 1;
+        let Some(index) = self.vehicles.iter().position(|v| v.id == batch.vehicle) else {
+            *self.counters.rejected.entry("unknown_vehicle".into()).or_default() += 1;
+            return Err(protocol::ProtocolError::UnknownVehicle(batch.vehicle).into());
+        };
+        if self.vehicles[index].kind != batch.kind {
+            return Err(self.reject(&batch.vehicle, format!("declared {:?}, registered {:?}", batch.kind, self.vehicles[index].kind)));
+        }
+        let e = Self::epoch_of(batch.kind, batch.seq);
+        if e < self.epoch || self.pending.get(&e).is_some_and(|m| m.contains_key(&index)) {
+            self.counters.duplicates += 1;
+            return Ok(Ingested::Duplicate);
+        }
+        let steps = self.steps_of(e);
+        if steps.is_empty() {
+            return Err(self.reject(&batch.vehicle, format!("seq {} is past the end of the mission", batch.seq)));
+        }
+        let want: Vec<usize> = match batch.kind {
+            VehicleKind::Aerial => steps.clone().filter(|k| k % self.cfg.aerial_period == 0).collect(),
+            // Boats sample at the last step of a full epoch.
+            VehicleKind::Boat => (steps.len() == self.cfg.boat_period).then(|| steps.end - 1).into_iter().collect(),
+        };
+        let got: Vec<usize> = batch.samples.iter().map(|s| s.step as usize).collect();
+        if got != want && !(batch.kind == VehicleKind::Boat && want.is_empty()) {
+            return Err(self.reject(&batch.vehicle, format!("epoch {e} wants samples at steps {want:?}, got {got:?}")));
+        }
+        self.pending.entry(e).or_default().insert(index, batch);
+        let mut done = vec![];
+        while self.epoch_complete(self.epoch) {
+            let e = self.epoch;
+            self.assimilate_epoch(e)?;
+            done.push(e);
+        }
+        Ok(if done.is_empty() { Ingested::Buffered } else { Ingested::Assimilated(done) })
+    }
+
+    /// Aerials take part in every epoch; boats in every full epoch after the first (a last,
+    /// shorter epoch has no boat step).
+    fn takes_part(&self, index: usize, e: u64) -> bool {
+        self.vehicles[index].kind == VehicleKind::Aerial || (e >= 1 && self.steps_of(e).len() == self.cfg.boat_period)
+    }
+
+    fn epoch_complete(&self, e: u64) -> bool {
+        if self.steps_of(e).is_empty() {
+            return false;
+        }
+        let have = self.pending.get(&e).map_or(0, |m| m.len());
+        have == (0..self.vehicles.len()).filter(|&i| self.takes_part(i, e)).count()
+    }
+
+    /// Samples of every vehicle of a kind at step `k`, in vehicle order.
+    fn samples_at(batches: &BTreeMap<usize, MeasurementBatch>, kind: VehicleKind, k: usize) -> Vec<Sample> {
+        batches.values().filter(|b| b.kind == kind).flat_map(|b| b.samples.iter().filter(|s| s.step as usize == k).cloned()).collect()
+    }
+
+    fn assimilate_epoch(&mut self, e: u64) -> Result<(), TeamError> {
+        let batches = self.pending.remove(&e).unwrap_or_default();
+        let steps = self.steps_of(e);
+        if e == 0 {
+            let mut init = vec![];
+            for k in steps {
+                let est = self.assim.aerial_estimate(&Self::samples_at(&batches, VehicleKind::Aerial, k))?;
+                init.push(est.values);
+            }
+            self.snapshots.extend(init.iter().cloned());
+            self.assim.initialise(init)?;
+        } else {
+            let k0 = steps.start;
+            let mut epoch = vec![];
+            for k in steps {
+                let aerial = self.assim.aerial_estimate(&Self::samples_at(&batches, VehicleKind::Aerial, k))?;
+                let boats = Self::samples_at(&batches, VehicleKind::Boat, k);
+                epoch.push(self.assim.fuse_step((k + 1 - k0) as u64, &aerial, &boats)?.values);
+            }
+            self.snapshots.extend(epoch.iter().cloned());
+            self.assim.assimilate(epoch)?;
+        }
+        self.epoch = e + 1;
+        self.version += 1;
+        self.counters.epochs += 1;
+        if !self.finished() {
+            let plan = self.assim.allocate()?;
+            self.plans.insert(self.epoch, plan);
+        }
+        Ok(())
+    }
+
+    /// The allocation vehicles sense epoch `e` under (`None` before it is computed). Epoch 0
+    /// is the uniform formation.
+    pub fn allocation(&self, e: u64) -> Option<Allocation> {
+        if e == 0 {
+            return Some(Allocation { boats: vec![None; self.cfg.boats], aerials: self.assim.aerial_positions().to_vec() });
+        }
+        self.plans.get(&e).cloned()
+    }
+
+    /// The plan of one vehicle for epoch `e`: where to be at each of its sampling steps.
+    pub fn plan(&self, vehicle: &str, e: u64) -> Option<Plan> {
+        let index = self.vehicles.iter().position(|v| v.id == vehicle)?;
+        let alloc = self.allocation(e)?;
+        let steps = self.steps_of(e);
+        let grid = self.assim.grid();
+        let (position, radius) = match self.vehicles[index].kind {
+            VehicleKind::Aerial => (alloc.aerials[index], 0.0),
+            VehicleKind::Boat => {
+                let b = index - self.cfg.aerials;
+                match &alloc.boats[b] {
+                    Some((_, (r, c))) => (grid.centre_m(crate::grid::Cell::new(*r, *c)), self.cfg.radius),
+                    None => (self.assim.boat_positions()[b], 0.0),
+                }
+            }
+        };
+        Some(Plan { vehicle: vehicle.into(), model_version: self.version, targets: steps.map(|k| Target { step: k as u64, position: [position.0, position.1], radius }).collect() })
+    }
+
+    /// The ack of a vehicle: the highest seq assimilated (`None` before its first).
+    pub fn ack(&self, vehicle: &str) -> Option<Ack> {
+        let index = self.vehicles.iter().position(|v| v.id == vehicle)?;
+        let kind = self.vehicles[index].kind;
+        let done = self.epoch; // epochs < done are assimilated
+        let seq = match kind {
+            VehicleKind::Aerial => done.checked_sub(1)?,
+            VehicleKind::Boat => done.checked_sub(2)?,
+        };
+        Some(Ack { vehicle: vehicle.into(), seq })
+    }
+
+    pub fn assimilator(&self) -> &Assimilator {
+        &self.assim
+    }
+}

@@ -1,0 +1,93 @@
+//! The model server's core fed by simulated vehicles, batches shuffled and repeated: every
+//! batch is assimilated once, and the result is the offline experiment's, step for step.
+
+use fleet::experiment::team::{self, TeamConfig};
+use fleet::grid::Grid;
+use fleet::mission::server::{Ingested, ServerCore};
+use fleet::mission::{sense_aerial, sense_boat, vehicle_rng};
+use fleet::process::synthetic::plume_field;
+use fleet::protocol::{MeasurementBatch, Noise, VehicleKind};
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
+
+#[test]
+fn shuffled_and_repeated_batches_give_the_offline_result() {
+    let truth = plume_field(24, 48, 42, 0.0, 5);
+    let grid = Grid::new(24, 48, 1.0).unwrap();
+    let cfg = TeamConfig { aerials: 2, boats: 3, radius: 3.0, rank: "6".into(), init_steps: 10, aerial_stride: 3, aerial_sigma0: 0.05, boat_sigma: 0.05, ..TeamConfig::default() };
+    let offline = team::run(&cfg, &truth, |_, _| {}).unwrap();
+
+    let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
+    let vehicles = server.vehicles().to_vec();
+    let mut rngs: Vec<_> = (0..vehicles.len()).map(|v| vehicle_rng(cfg.seed, v)).collect();
+    let mut shuffle = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+    let mut sent: Vec<MeasurementBatch> = vec![];
+    let mut assimilated = 0;
+    let mut e = 0u64;
+    while !server.finished() {
+        let alloc = server.allocation(e).expect("plan of the epoch");
+        let steps = server.steps_of(e);
+        let mut batches = vec![];
+        for (v, spec) in vehicles.iter().enumerate() {
+            let samples: Vec<_> = match spec.kind {
+                VehicleKind::Aerial => steps
+                    .clone()
+                    .filter(|k| k % cfg.aerial_period == 0)
+                    .map(|k| sense_aerial(&grid, &x(k), k as u64, cfg.aerial_stride, &alloc.aerials, v, server.assimilator().aerial_noise(), &mut rngs[v]).unwrap())
+                    .collect(),
+                VehicleKind::Boat if e == 0 => continue,
+                VehicleKind::Boat => {
+                    let b = v - cfg.aerials;
+                    match (&alloc.boats[b], steps.len() == cfg.boat_period) {
+                        (Some((cells, _)), true) => {
+                            let k = steps.end - 1;
+                            vec![sense_boat(&x(k), k as u64, server.assimilator().boat_positions()[b], cells, cfg.boat_sigma, &mut rngs[v])]
+                        }
+                        _ => continue,
+                    }
+                }
+            };
+            let seq = if spec.kind == VehicleKind::Aerial { e } else { e - 1 };
+            batches.push(MeasurementBatch { vehicle: spec.id.clone(), kind: spec.kind, seq, noise: Noise { sigma0: 0.05, growth_per_m: 0.0 }, samples });
+        }
+        batches.shuffle(&mut shuffle);
+        // Replays of everything sent before arrive mixed in.
+        let mut arrivals: Vec<MeasurementBatch> = batches.clone();
+        arrivals.extend(sent.iter().cloned());
+        arrivals.shuffle(&mut shuffle);
+        for b in arrivals {
+            if let Ingested::Assimilated(epochs) = server.ingest(b).unwrap() {
+                assimilated += epochs.len();
+            }
+        }
+        sent.extend(batches);
+        e += 1;
+    }
+    assert_eq!(assimilated as u64, server.counters.epochs);
+    assert_eq!(server.counters.batches - server.counters.duplicates, sent.len() as u64, "each batch assimilated once");
+    // Step for step, the server's fused snapshots are the offline experiment's.
+    let mse: Vec<f64> = server.snapshots.iter().enumerate().map(|(k, s)| s.iter().zip(x(k)).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / s.len() as f64).collect();
+    assert_eq!(mse, offline.heterogeneous);
+    assert_eq!(server.ack("av-1").unwrap().seq, e - 1);
+}
+
+#[test]
+fn bad_batches_are_rejected_and_counted() {
+    let grid = Grid::new(24, 48, 1.0).unwrap();
+    let cfg = TeamConfig { aerials: 1, boats: 1, radius: 3.0, rank: "4".into(), init_steps: 5, ..TeamConfig::default() };
+    let mut server = ServerCore::new(&cfg, grid, 20).unwrap();
+    let b = |id: &str, kind, seq, steps: Vec<u64>| MeasurementBatch {
+        vehicle: id.into(),
+        kind,
+        seq,
+        noise: Noise { sigma0: 0.1, growth_per_m: 0.0 },
+        samples: steps.into_iter().map(|s| fleet::protocol::Sample { step: s, position: [1.0, 1.0], cells: vec![0], values: vec![0.5] }).collect(),
+    };
+    assert!(server.ingest(b("boat-9", VehicleKind::Boat, 0, vec![9])).is_err());
+    assert!(server.ingest(b("av-1", VehicleKind::Boat, 0, vec![9])).is_err());
+    assert!(server.ingest(b("av-1", VehicleKind::Aerial, 0, vec![0, 1])).is_err(), "missing steps");
+    assert!(server.ingest(b("av-1", VehicleKind::Aerial, 99, vec![0])).is_err(), "past the end");
+    assert_eq!(server.counters.rejected.values().sum::<u64>(), 4);
+    assert_eq!(server.next_epoch(), 0);
+}
