@@ -70,6 +70,12 @@ fn shuffled_and_repeated_batches_give_the_offline_result() {
     let mse: Vec<f64> = server.snapshots.iter().enumerate().map(|(k, s)| s.iter().zip(x(k)).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / s.len() as f64).collect();
     assert_eq!(mse, offline.heterogeneous);
     assert_eq!(server.ack("av-1").unwrap().seq, e - 1);
+    // What model/latest carries decodes and validates on a receiver with the same grid.
+    let update = server.model_update().unwrap();
+    assert_eq!(update.eigenvalues.len(), offline.rank);
+    let bytes = fleet::protocol::encode(&fleet::protocol::Body::Model(update.clone()));
+    let got = fleet::protocol::decode(&bytes, &fleet::protocol::Context::new(grid)).unwrap();
+    assert_eq!(got, fleet::protocol::Body::Model(update));
 }
 
 #[test]

@@ -114,6 +114,11 @@ impl Assimilator {
         })
     }
 
+    /// The calibrated variance of the model's prediction (per cell).
+    pub fn prediction_variance(&self) -> f64 {
+        self.pred_var
+    }
+
     pub fn grid(&self) -> &Grid {
         &self.grid
     }

@@ -11,7 +11,7 @@
 use super::{Allocation, Assimilator};
 use crate::experiment::team::{TeamConfig, TeamError};
 use crate::grid::Grid;
-use crate::protocol::{self, Ack, MeasurementBatch, Plan, Sample, Target, VehicleKind};
+use crate::protocol::{self, Ack, MeasurementBatch, ModelUpdate, Plan, Sample, Target, VehicleKind};
 use std::collections::BTreeMap;
 
 /// A vehicle of the mission: its id and kind; its index is its place in the list (aerials
@@ -258,6 +258,33 @@ impl ServerCore {
             VehicleKind::Boat => done.checked_sub(2)?,
         };
         Some(Ack { vehicle: vehicle.into(), seq })
+    }
+
+    /// The model as published on `model/latest` (`None` before the first fit). The variance
+    /// is the model's calibrated prediction error per cell.
+    pub fn model_update(&self) -> Option<ModelUpdate> {
+        let m = self.assim.model()?;
+        let (n, r) = (m.modes.modes.nrows(), m.modes.modes.ncols());
+        let mut modes_re = Vec::with_capacity(n * r);
+        let mut modes_im = Vec::with_capacity(n * r);
+        for i in 0..n {
+            for j in 0..r {
+                modes_re.push(m.modes.modes[(i, j)].re);
+                modes_im.push(m.modes.modes[(i, j)].im);
+            }
+        }
+        Some(ModelUpdate {
+            version: self.version,
+            epoch: self.epoch.saturating_sub(1),
+            step: self.snapshots.len().saturating_sub(1) as u64,
+            grid: *self.assim.grid(),
+            dt: m.dt,
+            eigenvalues: m.modes.eigenvalues.iter().map(|l| [l.re, l.im]).collect(),
+            modes_re,
+            modes_im,
+            amplitudes: m.amplitudes.iter().map(|a| [a.re, a.im]).collect(),
+            variance: vec![self.assim.prediction_variance(); n],
+        })
     }
 
     pub fn assimilator(&self) -> &Assimilator {
