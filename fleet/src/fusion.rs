@@ -16,6 +16,7 @@
 //! estimate, boat measurement) by the inverse of its variance in each cell.
 
 use crate::grid::{Grid, StridedGrid};
+use crate::protocol::Sample;
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
@@ -79,6 +80,47 @@ impl AerialNoise {
     }
 }
 
+/// What aerial `me` sees of `truth` at one step: the cells of the stride lattice nearer to it
+/// than to any other aerial (its Voronoi region), each with noise `sigma0 + growth * distance`.
+#[allow(clippy::too_many_arguments)]
+pub fn sense_aerial<R: Rng + ?Sized>(
+    grid: &Grid,
+    truth: &[f64],
+    step: u64,
+    stride: usize,
+    aerials: &[(f64, f64)],
+    me: usize,
+    noise: AerialNoise,
+    rng: &mut R,
+) -> Result<Sample, FusionError> {
+    noise.validate()?;
+    let pos = *aerials.get(me).ok_or_else(|| FusionError::Input(format!("aerial {me} of {}", aerials.len())))?;
+    let (lattice, clean) = grid.stride_downsample(truth, stride)?;
+    let (mut cells, mut values) = (vec![], vec![]);
+    for (k, v) in clean.iter().enumerate() {
+        let cell = lattice.fine_cell(k);
+        let (x, y) = grid.centre_m(cell);
+        if nearest(aerials, x, y) == me {
+            let z: f64 = <StandardNormal as Distribution<f64>>::sample(&StandardNormal, rng);
+            cells.push(grid.index(cell) as u32);
+            values.push(v + noise.std_at((pos.0 - x).hypot(pos.1 - y)) * z);
+        }
+    }
+    Ok(Sample { step, position: [pos.0, pos.1], cells, values })
+}
+
+/// Index of the point nearest to `(x, y)` (the lower index on ties).
+fn nearest(points: &[(f64, f64)], x: f64, y: f64) -> usize {
+    let mut best = (0, f64::INFINITY);
+    for (j, p) in points.iter().enumerate() {
+        let d = (p.0 - x).powi(2) + (p.1 - y).powi(2);
+        if d < best.1 {
+            best = (j, d);
+        }
+    }
+    best.0
+}
+
 /// What the aerials saw at one step: the coarse lattice, values and noise variance per coarse
 /// cell.
 #[derive(Debug, Clone)]
@@ -86,11 +128,13 @@ pub struct AerialFrame {
     pub lattice: StridedGrid,
     pub values: Vec<f64>,
     pub variance: Vec<f64>,
+    /// Which coarse cells some aerial saw (the others hold 0 with variance 0).
+    pub seen: Vec<bool>,
 }
 
 impl AerialFrame {
-    /// Simulate the aerials' frame of `truth`: every `stride`-th cell, each seen by the nearest
-    /// aerial (positions in metres) with noise from `noise`.
+    /// Simulate every aerial's sample of `truth` (see [`sense_aerial`]) from one random stream
+    /// and assemble the frame.
     pub fn sense<R: Rng + ?Sized>(
         grid: &Grid,
         truth: &[f64],
@@ -99,22 +143,35 @@ impl AerialFrame {
         noise: AerialNoise,
         rng: &mut R,
     ) -> Result<Self, FusionError> {
-        noise.validate()?;
         if aerials.is_empty() {
             return Err(FusionError::Input("an aerial frame needs at least one aerial".into()));
         }
-        let (lattice, clean) = grid.stride_downsample(truth, stride)?;
-        let mut values = Vec::with_capacity(clean.len());
-        let mut variance = Vec::with_capacity(clean.len());
-        for (k, v) in clean.iter().enumerate() {
-            let (x, y) = grid.centre_m(lattice.fine_cell(k));
-            let d = aerials.iter().map(|a| (a.0 - x).hypot(a.1 - y)).fold(f64::INFINITY, f64::min);
-            let s = noise.std_at(d);
-            let z: f64 = <StandardNormal as Distribution<f64>>::sample(&StandardNormal, rng);
-            values.push(v + s * z);
-            variance.push(s * s);
+        let samples = (0..aerials.len()).map(|me| sense_aerial(grid, truth, 0, stride, aerials, me, noise, rng)).collect::<Result<Vec<_>, _>>()?;
+        Self::assemble(grid, stride, &samples, noise)
+    }
+
+    /// The frame from the aerials' samples of one step (any order): each coarse value with its
+    /// sampling aerial's noise variance at that distance.
+    pub fn assemble(grid: &Grid, stride: usize, samples: &[Sample], noise: AerialNoise) -> Result<Self, FusionError> {
+        noise.validate()?;
+        let lattice = grid.strided(stride)?;
+        let m = lattice.rows * lattice.cols;
+        let mut frame = Self { lattice, values: vec![0.0; m], variance: vec![0.0; m], seen: vec![false; m] };
+        for s in samples {
+            for (&c, &v) in s.cells.iter().zip(&s.values) {
+                if c as usize >= grid.len() {
+                    return Err(FusionError::Input(format!("aerial cell {c} outside the {}-cell grid", grid.len())));
+                }
+                let cell = grid.cell(c as usize);
+                let k = lattice.coarse_index(cell).ok_or_else(|| FusionError::Input(format!("aerial cell {c} is not on the stride-{stride} lattice")))?;
+                let (x, y) = grid.centre_m(cell);
+                let sd = noise.std_at((s.position[0] - x).hypot(s.position[1] - y));
+                frame.values[k] = v;
+                frame.variance[k] = sd * sd;
+                frame.seen[k] = true;
+            }
         }
-        Ok(Self { lattice, values, variance })
+        Ok(frame)
     }
 
     /// Bilinear upsampling to the fine grid, with the propagated variance.

@@ -137,18 +137,17 @@ impl Grid {
     /// on the kept fine cells' centres' lattice, shifted so both grids cover the same corner.
     pub fn stride_downsample(&self, field: &[f64], stride: usize) -> Result<(StridedGrid, Vec<f64>), GridError> {
         self.check_len(field.len())?;
+        let lattice = self.strided(stride)?;
+        let out = (0..lattice.rows * lattice.cols).map(|k| field[self.index(lattice.fine_cell(k))]).collect();
+        Ok((lattice, out))
+    }
+
+    /// The lattice of every `stride`-th cell (see [`Self::stride_downsample`]), without data.
+    pub fn strided(&self, stride: usize) -> Result<StridedGrid, GridError> {
         if stride == 0 {
             return Err(GridError::Stride);
         }
-        let rows = self.rows.div_ceil(stride);
-        let cols = self.cols.div_ceil(stride);
-        let mut out = Vec::with_capacity(rows * cols);
-        for r in 0..rows {
-            for c in 0..cols {
-                out.push(field[r * stride * self.cols + c * stride]);
-            }
-        }
-        Ok((StridedGrid { fine: *self, stride, rows, cols }, out))
+        Ok(StridedGrid { fine: *self, stride, rows: self.rows.div_ceil(stride), cols: self.cols.div_ceil(stride) })
     }
 
     /// Bilinear interpolation of `values`, given at the centres of the cells of `coarse`, onto
@@ -212,6 +211,11 @@ impl StridedGrid {
     /// The fine cell a coarse cell sits on.
     pub fn fine_cell(&self, coarse_index: usize) -> Cell {
         Cell::new((coarse_index / self.cols) * self.stride, (coarse_index % self.cols) * self.stride)
+    }
+
+    /// The coarse index of a fine cell, if the lattice has a node on it.
+    pub fn coarse_index(&self, cell: Cell) -> Option<usize> {
+        (cell.row % self.stride == 0 && cell.col % self.stride == 0).then(|| (cell.row / self.stride) * self.cols + cell.col / self.stride)
     }
 
     fn check_coarse_len(&self, n: usize) -> Result<(), GridError> {

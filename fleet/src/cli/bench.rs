@@ -99,15 +99,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     fleet::process::plasma::PlasmaCloud::new(fleet::process::plasma::Preset::Cloud1.params())?.run(100, |_| {})?
                 }
             };
-            let (rows, cols) = (48, 96);
-            let mut snaps = faer::Mat::zeros(rows * cols, full.frames());
-            for k in 0..full.frames() {
-                let col: Vec<f64> = full.snapshots.col(k).iter().copied().collect();
-                for (i, v) in fleet::grid::area_average(&col, full.rows, full.cols, rows, cols)?.into_iter().enumerate() {
-                    snaps[(i, k)] = v;
-                }
-            }
-            let truth = fleet::process::FieldSeries { rows, cols, dt: full.dt, snapshots: snaps };
+            let truth = full.area_averaged(48, 96)?;
             let cfg = TeamConfig { aerial_stride: 3, aerial_sigma0: 0.15, boat_sigma: 0.15, radius: 3.75, ..TeamConfig::default() };
             let mut ts = vec![];
             let mut last = None;
@@ -120,7 +112,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let o = last.expect("at least one run");
             println!(
                 "one Table 2 row, {} x {} x {} steps, 2 aerials, 5 boats, general DMD rank 10: median {:.3} s over {} runs (MSE heterogeneous {:.4e})",
-                rows, cols, truth.frames(), median, ts.len(), o.mean_heterogeneous
+                truth.rows, truth.cols, truth.frames(), median, ts.len(), o.mean_heterogeneous
             );
             serde_json::json!({ "median_s": median, "runs": ts })
         }

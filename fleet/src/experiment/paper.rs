@@ -14,7 +14,6 @@ use crate::process::plasma::{PlasmaCloud, Preset};
 use crate::process::synthetic::EigStudy;
 use crate::process::FieldSeries;
 use anyhow::{bail, Context};
-use faer::Mat;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -185,15 +184,7 @@ fn truth_for(cfg: &ExperimentConfig, row: &Row, cache: &mut BTreeMap<String, Fie
     if rows < 4 || cols < 4 {
         bail!("{key}: {} x {} averaged by {mv_space} leaves less than 4 x 4 cells", full.rows, full.cols);
     }
-    let mut snapshots = Mat::zeros(rows * cols, full.frames());
-    for k in 0..full.frames() {
-        let col: Vec<f64> = full.snapshots.col(k).iter().copied().collect();
-        let a = area_average(&col, full.rows, full.cols, rows, cols)?;
-        for (i, v) in a.into_iter().enumerate() {
-            snapshots[(i, k)] = v;
-        }
-    }
-    Ok(FieldSeries { rows, cols, dt: full.dt, snapshots })
+    Ok(full.area_averaged(rows, cols)?)
 }
 
 fn rank_of(p: Preset) -> u8 {

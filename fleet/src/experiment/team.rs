@@ -13,13 +13,13 @@
 //!   its own model's modes, between boat steps its own prediction. Until it has a model (the
 //!   first `init_steps` steps) the measured cells' mean fills the grid.
 
-use crate::dmd::{Dmd, DmdConfig, DmdModel, Method, RankPolicy};
+use crate::dmd::{DmdConfig, DmdModel, Method, RankPolicy};
 use crate::fusion::Scheme;
 use crate::grid::Grid;
 use crate::mission;
 use crate::process::FieldSeries;
 use crate::protocol::Sample;
-use crate::sensing::{gappy, real_basis};
+use crate::sensing::gappy;
 use faer::Mat;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -163,13 +163,6 @@ fn column(m: &Mat<f64>, k: usize) -> Vec<f64> {
 }
 
 
-/// The boat-only team's model fitted to its newest snapshot, and a real basis of its modes.
-fn fitted(model: &dyn Dmd, newest: &[f64]) -> Result<(DmdModel, Mat<f64>), TeamError> {
-    let modes = model.decompose()?;
-    let basis = real_basis(modes.modes.as_ref())?;
-    Ok((modes.model(newest, 1.0)?, basis))
-}
-
 /// Run the loop on `truth` (already on the model grid): the vehicles sense with their own
 /// random streams ([`mission::sense_aerial`], [`mission::sense_boat`]) and the
 /// [`mission::Assimilator`] does the server's part, exactly as the networked fleet does.
@@ -188,7 +181,7 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
             return Ok(vec![]);
         }
         let x = truth_at(k);
-        (0..cfg.aerials).map(|a| mission::sense_aerial(&grid, &x, k as u64, cfg.aerial_stride, positions, a, noise, &mut rngs[a])).collect()
+        (0..cfg.aerials).map(|a| mission::sense_aerial(&grid, &x, k as u64, cfg.aerial_stride, positions, a, noise, &mut rngs[a]).map_err(TeamError::from)).collect()
     };
 
     let mut out = TeamOutcome {
@@ -271,7 +264,7 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
                     let z = mission::to_mat(&boat_snaps);
                     let m = boat_snaps.len() - 1;
                     let bm = boat_cfg.init(z.subcols(0, m), z.subcols(1, m))?;
-                    let (p, b) = fitted(bm.as_ref(), &est)?;
+                    let (p, b) = mission::fit_to(bm.as_ref(), &est)?;
                     boat_model = Some((p, b, k));
                 }
                 boat_guess = est.clone();

@@ -9,8 +9,8 @@ pub mod server;
 
 use crate::dmd::{Dmd, DmdConfig, DmdModel, RankPolicy};
 use crate::experiment::team::{Placement, TeamConfig, TeamError};
-use crate::fusion::{fuse, AerialNoise, Estimate, Measured};
-use crate::grid::{Cell, Grid, StridedGrid};
+use crate::fusion::{fuse, AerialFrame, AerialNoise, Estimate, Measured};
+use crate::grid::{Cell, Grid};
 use crate::protocol::Sample;
 use crate::sensing::{assign::assign, coverage, gappy, qr, real_basis};
 use faer::Mat;
@@ -30,34 +30,8 @@ fn gauss(rng: &mut ChaCha8Rng) -> f64 {
     <StandardNormal as Distribution<f64>>::sample(&StandardNormal, rng)
 }
 
-/// What aerial `me` sees of `truth` at one step: the cells of the stride lattice nearer to it
-/// than to any other aerial (its Voronoi region), each with noise `sigma0 + growth * distance`.
-pub fn sense_aerial(grid: &Grid, truth: &[f64], step: u64, stride: usize, aerials: &[(f64, f64)], me: usize, noise: AerialNoise, rng: &mut ChaCha8Rng) -> Result<Sample, TeamError> {
-    let (lattice, clean) = grid.stride_downsample(truth, stride)?;
-    let pos = aerials[me];
-    let (mut cells, mut values) = (vec![], vec![]);
-    for (k, v) in clean.iter().enumerate() {
-        let cell = lattice.fine_cell(k);
-        let (x, y) = grid.centre_m(cell);
-        if nearest(aerials, x, y) == me {
-            let d = (pos.0 - x).hypot(pos.1 - y);
-            cells.push(grid.index(cell) as u32);
-            values.push(v + noise.std_at(d) * gauss(rng));
-        }
-    }
-    Ok(Sample { step, position: [pos.0, pos.1], cells, values })
-}
-
-fn nearest(points: &[(f64, f64)], x: f64, y: f64) -> usize {
-    let mut best = (0, f64::INFINITY);
-    for (j, p) in points.iter().enumerate() {
-        let d = (p.0 - x).powi(2) + (p.1 - y).powi(2);
-        if d < best.1 {
-            best = (j, d);
-        }
-    }
-    best.0
-}
+/// What aerial `me` sees at one step (the sensor model lives with the fusion that inverts it).
+pub use crate::fusion::sense_aerial;
 
 /// What a boat measures at one step: every cell of its disk, with noise `sigma`.
 pub fn sense_boat(truth: &[f64], step: u64, position: (f64, f64), cells: &[usize], sigma: f64, rng: &mut ChaCha8Rng) -> Sample {
@@ -148,37 +122,17 @@ impl Assimilator {
         if samples.is_empty() {
             return self.held_aerial.clone().ok_or_else(|| TeamError::Config("no aerial data yet".into()));
         }
-        let stride = self.cfg.aerial_stride;
-        let (lattice, _) = self.grid.stride_downsample(&vec![0.0; self.grid.len()], stride)?;
-        let coarse_of = |lat: &StridedGrid, cell: Cell| -> Option<usize> {
-            (cell.row % stride == 0 && cell.col % stride == 0).then(|| (cell.row / stride) * lat.cols + cell.col / stride)
-        };
-        let m = lattice.rows * lattice.cols;
-        let (mut values, mut variance, mut seen) = (vec![0.0; m], vec![0.0; m], vec![false; m]);
-        let noise = self.aerial_noise();
-        for s in samples {
-            for (&c, &v) in s.cells.iter().zip(&s.values) {
-                let cell = self.grid.cell(c as usize);
-                let k = coarse_of(&lattice, cell).ok_or_else(|| TeamError::Config(format!("aerial cell {c} is not on the stride-{stride} lattice")))?;
-                let (x, y) = self.grid.centre_m(cell);
-                let sd = noise.std_at((s.position[0] - x).hypot(s.position[1] - y));
-                values[k] = v;
-                variance[k] = sd * sd;
-                seen[k] = true;
-            }
-        }
-        if let Some(k) = seen.iter().position(|s| !s) {
+        let mut frame = AerialFrame::assemble(&self.grid, self.cfg.aerial_stride, samples, self.aerial_noise())?;
+        if frame.seen.iter().any(|s| !s) {
             // A lattice cell nobody saw this step: take the held estimate there.
-            let held = self.held_aerial.as_ref().ok_or_else(|| TeamError::Config(format!("lattice cell {k} unseen and no earlier frame")))?;
-            for (k, s) in seen.iter().enumerate() {
-                if !s {
-                    let i = self.grid.index(lattice.fine_cell(k));
-                    values[k] = held.values[i];
-                    variance[k] = held.variance[i];
-                }
+            let held = self.held_aerial.as_ref().ok_or_else(|| TeamError::Config("part of the lattice unseen and no earlier frame".into()))?;
+            for k in (0..frame.seen.len()).filter(|&k| !frame.seen[k]) {
+                let i = self.grid.index(frame.lattice.fine_cell(k));
+                frame.values[k] = held.values[i];
+                frame.variance[k] = held.variance[i];
             }
         }
-        let est = Estimate { values: lattice.upsample_bilinear(&values)?, variance: lattice.upsample_variance(&variance)? };
+        let est = frame.upsample()?;
         self.held_aerial = Some(est.clone());
         Ok(est)
     }
@@ -198,10 +152,8 @@ impl Assimilator {
 
     fn refit(&mut self) -> Result<(), TeamError> {
         let model = self.model.as_ref().ok_or_else(|| TeamError::Config("no model yet".into()))?;
-        let modes = model.decompose()?;
-        let basis = real_basis(modes.modes.as_ref())?;
         let newest = self.snapshots.last().expect("snapshots after init");
-        self.fitted = Some((modes.model(newest, 1.0)?, basis));
+        self.fitted = Some(fit_to(model.as_ref(), newest)?);
         Ok(())
     }
 
@@ -301,6 +253,14 @@ impl Assimilator {
         self.snapshots.extend(epoch);
         self.refit()
     }
+}
+
+/// A model fitted to its newest snapshot (forecasts count from it), and an orthonormal real
+/// basis of its modes (for gappy reconstruction and placement).
+pub(crate) fn fit_to(model: &dyn Dmd, newest: &[f64]) -> Result<(DmdModel, Mat<f64>), TeamError> {
+    let modes = model.decompose()?;
+    let basis = real_basis(modes.modes.as_ref())?;
+    Ok((modes.model(newest, 1.0)?, basis))
 }
 
 /// Columns to a matrix.

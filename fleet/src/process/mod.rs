@@ -26,4 +26,17 @@ impl FieldSeries {
     pub fn dim(&self) -> usize {
         self.snapshots.nrows()
     }
+
+    /// Every frame area-averaged onto a `rows x cols` raster of the same extent
+    /// ([`crate::grid::area_average`]).
+    pub fn area_averaged(&self, rows: usize, cols: usize) -> Result<FieldSeries, crate::grid::GridError> {
+        let mut snapshots = Mat::zeros(rows * cols, self.frames());
+        for k in 0..self.frames() {
+            let col: Vec<f64> = self.snapshots.col(k).iter().copied().collect();
+            for (i, v) in crate::grid::area_average(&col, self.rows, self.cols, rows, cols)?.into_iter().enumerate() {
+                snapshots[(i, k)] = v;
+            }
+        }
+        Ok(FieldSeries { rows, cols, dt: self.dt, snapshots })
+    }
 }
