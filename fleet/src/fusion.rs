@@ -59,29 +59,59 @@ impl Estimate {
     }
 }
 
-/// An aerial's sensor noise: standard deviation `sigma0 + growth_per_m * d` at distance `d`
-/// metres from the aerial.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct AerialNoise {
-    pub sigma0: f64,
-    pub growth_per_m: f64,
+/// An aerial's sensor noise (the wire's [`Noise`](crate::protocol::Noise)): standard
+/// deviation `sigma0 + growth_per_m * d` at distance `d` metres from the sensor.
+pub type AerialNoise = crate::protocol::Noise;
+
+fn check_noise(noise: &AerialNoise) -> Result<(), FusionError> {
+    if !(noise.sigma0.is_finite() && noise.sigma0 >= 0.0 && noise.growth_per_m.is_finite() && noise.growth_per_m >= 0.0) {
+        return Err(FusionError::Input(format!("sensor noise must be finite and >= 0, got {noise:?}")));
+    }
+    Ok(())
 }
 
-impl AerialNoise {
-    pub fn std_at(&self, d_m: f64) -> f64 {
-        self.sigma0 + self.growth_per_m * d_m
+/// The cells of the stride lattice aerial `me` covers: those nearer to it than to any other
+/// aerial (its Voronoi region), in lattice order. The server hands each aerial its region in
+/// its plan; the aerial senses exactly those cells ([`sense_cells`]).
+pub fn aerial_region(grid: &Grid, stride: usize, aerials: &[(f64, f64)], me: usize) -> Result<Vec<usize>, FusionError> {
+    if me >= aerials.len() {
+        return Err(FusionError::Input(format!("aerial {me} of {}", aerials.len())));
     }
-
-    fn validate(&self) -> Result<(), FusionError> {
-        if !(self.sigma0.is_finite() && self.sigma0 >= 0.0 && self.growth_per_m.is_finite() && self.growth_per_m >= 0.0) {
-            return Err(FusionError::Input(format!("aerial noise must be finite and >= 0, got {self:?}")));
-        }
-        Ok(())
-    }
+    let lattice = grid.strided(stride)?;
+    Ok((0..lattice.rows * lattice.cols)
+        .map(|k| lattice.fine_cell(k))
+        .filter(|&cell| {
+            let (x, y) = grid.centre_m(cell);
+            nearest(aerials, x, y) == me
+        })
+        .map(|cell| grid.index(cell))
+        .collect())
 }
 
-/// What aerial `me` sees of `truth` at one step: the cells of the stride lattice nearer to it
-/// than to any other aerial (its Voronoi region), each with noise `sigma0 + growth * distance`.
+/// What a sensor at `pos` (metres) measures of `truth` at `cells` at one step: each value with
+/// noise of std `sigma0 + growth * distance`, one normal draw per cell in the order given.
+/// Aerials (growth > 0) and boats (growth 0) are the same sensor model with other numbers.
+pub fn sense_cells<R: Rng + ?Sized>(grid: &Grid, truth: &[f64], step: u64, pos: (f64, f64), cells: &[usize], noise: AerialNoise, rng: &mut R) -> Result<Sample, FusionError> {
+    check_noise(&noise)?;
+    if truth.len() != grid.len() {
+        return Err(FusionError::Input(format!("truth of {} values on a {}-cell grid", truth.len(), grid.len())));
+    }
+    if let Some(c) = cells.iter().find(|&&c| c >= grid.len()) {
+        return Err(FusionError::Input(format!("cell {c} outside the {}-cell grid", grid.len())));
+    }
+    let values = cells
+        .iter()
+        .map(|&c| {
+            let (x, y) = grid.centre_m(grid.cell(c));
+            let z: f64 = <StandardNormal as Distribution<f64>>::sample(&StandardNormal, rng);
+            truth[c] + noise.std_at((pos.0 - x).hypot(pos.1 - y)) * z
+        })
+        .collect();
+    Ok(Sample { step, position: [pos.0, pos.1], cells: cells.iter().map(|&c| c as u32).collect(), values })
+}
+
+/// What aerial `me` sees of `truth` at one step: its region ([`aerial_region`]) sensed from
+/// where it is ([`sense_cells`]).
 #[allow(clippy::too_many_arguments)]
 pub fn sense_aerial<R: Rng + ?Sized>(
     grid: &Grid,
@@ -93,20 +123,8 @@ pub fn sense_aerial<R: Rng + ?Sized>(
     noise: AerialNoise,
     rng: &mut R,
 ) -> Result<Sample, FusionError> {
-    noise.validate()?;
-    let pos = *aerials.get(me).ok_or_else(|| FusionError::Input(format!("aerial {me} of {}", aerials.len())))?;
-    let (lattice, clean) = grid.stride_downsample(truth, stride)?;
-    let (mut cells, mut values) = (vec![], vec![]);
-    for (k, v) in clean.iter().enumerate() {
-        let cell = lattice.fine_cell(k);
-        let (x, y) = grid.centre_m(cell);
-        if nearest(aerials, x, y) == me {
-            let z: f64 = <StandardNormal as Distribution<f64>>::sample(&StandardNormal, rng);
-            cells.push(grid.index(cell) as u32);
-            values.push(v + noise.std_at((pos.0 - x).hypot(pos.1 - y)) * z);
-        }
-    }
-    Ok(Sample { step, position: [pos.0, pos.1], cells, values })
+    let region = aerial_region(grid, stride, aerials, me)?;
+    sense_cells(grid, truth, step, aerials[me], &region, noise, rng)
 }
 
 /// Index of the point nearest to `(x, y)` (the lower index on ties).
@@ -153,7 +171,7 @@ impl AerialFrame {
     /// The frame from the aerials' samples of one step (any order): each coarse value with its
     /// sampling aerial's noise variance at that distance.
     pub fn assemble(grid: &Grid, stride: usize, samples: &[Sample], noise: AerialNoise) -> Result<Self, FusionError> {
-        noise.validate()?;
+        check_noise(&noise)?;
         let lattice = grid.strided(stride)?;
         let m = lattice.rows * lattice.cols;
         let mut frame = Self { lattice, values: vec![0.0; m], variance: vec![0.0; m], seen: vec![false; m] };

@@ -4,7 +4,8 @@
 use fleet::experiment::team::{self, TeamConfig};
 use fleet::grid::Grid;
 use fleet::mission::server::{Ingested, ServerCore};
-use fleet::mission::{sense_aerial, sense_boat, vehicle_rng};
+use fleet::mission::vehicle::VehicleBrain;
+use fleet::mission::vehicle_rng;
 use fleet::process::synthetic::plume_field;
 use fleet::protocol::{MeasurementBatch, Noise, VehicleKind};
 use rand::seq::SliceRandom;
@@ -18,38 +19,30 @@ fn shuffled_and_repeated_batches_give_the_offline_result() {
     let offline = team::run(&cfg, &truth, |_, _| {}).unwrap();
 
     let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
-    let vehicles = server.vehicles().to_vec();
-    let mut rngs: Vec<_> = (0..vehicles.len()).map(|v| vehicle_rng(cfg.seed, v)).collect();
-    let mut shuffle = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+    let schedule = *server.schedule();
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+    // Each vehicle as the vehicle node runs it: its own random stream, the plan it is given.
+    let mut brains: Vec<VehicleBrain> = server
+        .vehicles()
+        .iter()
+        .enumerate()
+        .map(|(v, spec)| {
+            let noise = match spec.kind {
+                VehicleKind::Aerial => server.assimilator().aerial_noise(),
+                VehicleKind::Boat => Noise { sigma0: cfg.boat_sigma, growth_per_m: 0.0 },
+            };
+            VehicleBrain::new(&spec.id, spec.kind, grid, schedule, noise, vehicle_rng(cfg.seed, v), 1e3)
+        })
+        .collect();
+    let mut shuffle = rand_chacha::ChaCha8Rng::seed_from_u64(4);
     let mut sent: Vec<MeasurementBatch> = vec![];
     let mut assimilated = 0;
     let mut e = 0u64;
     while !server.finished() {
-        let alloc = server.allocation(e).expect("plan of the epoch");
-        let steps = server.steps_of(e);
         let mut batches = vec![];
-        for (v, spec) in vehicles.iter().enumerate() {
-            let samples: Vec<_> = match spec.kind {
-                VehicleKind::Aerial => steps
-                    .clone()
-                    .filter(|k| k % cfg.aerial_period == 0)
-                    .map(|k| sense_aerial(&grid, &x(k), k as u64, cfg.aerial_stride, &alloc.aerials, v, server.assimilator().aerial_noise(), &mut rngs[v]).unwrap())
-                    .collect(),
-                VehicleKind::Boat if e == 0 => continue,
-                VehicleKind::Boat => {
-                    let b = v - cfg.aerials;
-                    match (&alloc.boats[b], steps.len() == cfg.boat_period) {
-                        (Some((cells, _)), true) => {
-                            let k = steps.end - 1;
-                            vec![sense_boat(&x(k), k as u64, server.assimilator().boat_positions()[b], cells, cfg.boat_sigma, &mut rngs[v])]
-                        }
-                        _ => continue,
-                    }
-                }
-            };
-            let seq = if spec.kind == VehicleKind::Aerial { e } else { e - 1 };
-            batches.push(MeasurementBatch { vehicle: spec.id.clone(), kind: spec.kind, seq, noise: Noise { sigma0: 0.05, growth_per_m: 0.0 }, samples });
+        for brain in &mut brains {
+            brain.set_plan(server.plan(&brain.id, e, 2).expect("plan of the epoch"));
+            batches.extend(brain.sense_epoch(e, x).unwrap());
         }
         batches.shuffle(&mut shuffle);
         // Replays of everything sent before arrive mixed in.
@@ -70,6 +63,7 @@ fn shuffled_and_repeated_batches_give_the_offline_result() {
     let mse: Vec<f64> = server.snapshots.iter().enumerate().map(|(k, s)| s.iter().zip(x(k)).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / s.len() as f64).collect();
     assert_eq!(mse, offline.heterogeneous);
     assert_eq!(server.ack("av-1").unwrap().seq, e - 1);
+    assert!(brains.iter().all(|b| b.off_target == 0), "every vehicle reached its targets");
     // What model/latest carries decodes and validates on a receiver with the same grid.
     let update = server.model_update().unwrap();
     assert_eq!(update.eigenvalues.len(), offline.rank);

@@ -1,10 +1,35 @@
-//! The model server node. Its Zenoh transport comes with the fleet issue; until then it only
-//! states what it will do, and exits non-zero so no script mistakes it for a running server.
+//! The model server node: a Zenoh router that takes every vehicle's measurement batches,
+//! assimilates complete epochs with the same `fleet::mission::server::ServerCore` the offline
+//! experiment is tested against, and publishes models, acks, plans and its own status.
+
+mod node;
+
+use clap::Parser;
+
+#[derive(Parser, Debug)]
+#[command(name = "model-server", version, about = "hetfleet's model server: assimilates measurement batches over Zenoh and publishes models and plans")]
+pub struct Args {
+    #[command(flatten)]
+    pub node: fleet_net::NodeArgs,
+    /// Write one JSON event per line on stdout (for `fleet up` and scripts).
+    #[arg(long)]
+    pub events: bool,
+    /// Write the summary (summary.json) and the final model (model.cbor) here at the end.
+    #[arg(long)]
+    pub out: Option<std::path::PathBuf>,
+    /// Exit once the mission is finished and every vehicle has left (or `--linger-ms` later).
+    #[arg(long)]
+    pub exit_when_done: bool,
+    #[arg(long, default_value_t = 10_000)]
+    pub linger_ms: u64,
+}
 
 fn main() {
-    eprintln!(
-        "model-server {}: the Zenoh node is not built yet; use `fleet dmd` for the model itself",
-        env!("CARGO_PKG_VERSION")
-    );
-    std::process::exit(2);
+    fleet_net::init_tracing();
+    let args = Args::parse();
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("a tokio runtime");
+    if let Err(e) = rt.block_on(node::run(args)) {
+        eprintln!("model-server: {e:#}");
+        std::process::exit(2);
+    }
 }

@@ -1,7 +1,31 @@
-//! The vehicle node (aerial or boat). Its Zenoh and MAVLink sides come with their issues; until
-//! then it exits non-zero so no script mistakes it for a running vehicle.
+//! The vehicle node, aerial or boat: one process per vehicle of the mission file. In mixed
+//! reality it senses the truth field at its own position with its own noise model and random
+//! stream, follows the plans the model server gives it, and publishes its batches until they
+//! are acknowledged.
+
+mod node;
+
+use clap::Parser;
+
+#[derive(Parser, Debug)]
+#[command(name = "vehicle", version, about = "hetfleet's vehicle node (aerial or boat)")]
+pub struct Args {
+    /// This vehicle's id in the mission (`av-1`, `boat-3`, ...).
+    #[arg(long)]
+    pub id: String,
+    #[command(flatten)]
+    pub node: fleet_net::NodeArgs,
+    /// Give up waiting for the final acknowledgement after this long (ms).
+    #[arg(long, default_value_t = 60_000)]
+    pub final_ack_ms: u64,
+}
 
 fn main() {
-    eprintln!("vehicle {}: the vehicle node is not built yet", env!("CARGO_PKG_VERSION"));
-    std::process::exit(2);
+    fleet_net::init_tracing();
+    let args = Args::parse();
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().expect("a tokio runtime");
+    if let Err(e) = rt.block_on(node::run(args)) {
+        eprintln!("vehicle: {e:#}");
+        std::process::exit(2);
+    }
 }

@@ -10,7 +10,8 @@ use super::{dominant_continuous, eig_study, run_online};
 use crate::dmd::{DmdConfig, Method, RankPolicy};
 use crate::grid::area_average;
 use crate::plot::{self, Panel, Series};
-use crate::process::plasma::{PlasmaCloud, Preset};
+use crate::process::plasma::Preset;
+use crate::process::truth::{averaged_by, TruthSource};
 use crate::process::synthetic::EigStudy;
 use crate::process::FieldSeries;
 use anyhow::{bail, Context};
@@ -165,26 +166,10 @@ pub struct Verdict {
 fn truth_for(cfg: &ExperimentConfig, row: &Row, cache: &mut BTreeMap<String, FieldSeries>) -> anyhow::Result<FieldSeries> {
     let key = row.name();
     if !cache.contains_key(&key) {
-        let full = match (&row.preset, &row.dataset) {
-            (Some(preset), _) => {
-                let mut p = preset.params();
-                (p.ny, p.nx) = (cfg.truth_grid[0], cfg.truth_grid[1]);
-                p.seed = cfg.seed;
-                let mut sim = PlasmaCloud::new(p).with_context(|| format!("simulating {key}"))?;
-                sim.run(cfg.frames, |_| {})?
-            }
-            (None, Some(path)) => crate::process::dataset::load(path, 1.0).with_context(|| format!("loading the dataset {}", path.display()))?,
-            (None, None) => bail!("row without a truth"),
-        };
-        cache.insert(key.clone(), full);
+        let source = TruthSource { preset: row.preset, dataset: row.dataset.clone() };
+        cache.insert(key.clone(), source.full(cfg.truth_grid, cfg.frames, cfg.seed, |_| {}).with_context(|| key.clone())?);
     }
-    let full = &cache[&key];
-    let mv_space = row.mv_space;
-    let (rows, cols) = (full.rows / mv_space, full.cols / mv_space);
-    if rows < 4 || cols < 4 {
-        bail!("{key}: {} x {} averaged by {mv_space} leaves less than 4 x 4 cells", full.rows, full.cols);
-    }
-    Ok(full.area_averaged(rows, cols)?)
+    averaged_by(&cache[&key], row.mv_space).with_context(|| key.clone())
 }
 
 fn rank_of(p: Preset) -> u8 {

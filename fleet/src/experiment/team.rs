@@ -238,8 +238,8 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
                     .iter()
                     .enumerate()
                     .filter_map(|(b, d)| d.as_ref().map(|(cells, _)| (b, cells)))
-                    .map(|(b, cells)| mission::sense_boat(&x, k as u64, server.boat_positions()[b], cells, cfg.boat_sigma, &mut rngs[cfg.aerials + b]))
-                    .collect()
+                    .map(|(b, cells)| mission::sense_boat(&grid, &x, k as u64, server.boat_positions()[b], cells, cfg.boat_sigma, &mut rngs[cfg.aerials + b]))
+                    .collect::<Result<_, _>>()?
             } else {
                 vec![]
             };

@@ -5,6 +5,10 @@
 //! places). The offline experiment drives both in one process; the Zenoh nodes run the same
 //! functions on either side of the network, so the two give the same numbers.
 
+pub mod config;
+pub mod report;
+pub mod schedule;
+pub mod vehicle;
 pub mod server;
 
 use crate::dmd::{Dmd, DmdConfig, DmdModel, RankPolicy};
@@ -16,7 +20,6 @@ use crate::sensing::{assign::assign, coverage, gappy, qr, real_basis};
 use faer::Mat;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, StandardNormal};
 
 /// A vehicle's own random stream: the same seed and vehicle give the same noise whichever
 /// process the vehicle runs in. Aerials are vehicles `0..aerials`, boats follow.
@@ -26,17 +29,13 @@ pub fn vehicle_rng(seed: u64, vehicle: usize) -> ChaCha8Rng {
     rng
 }
 
-fn gauss(rng: &mut ChaCha8Rng) -> f64 {
-    <StandardNormal as Distribution<f64>>::sample(&StandardNormal, rng)
-}
-
-/// What aerial `me` sees at one step (the sensor model lives with the fusion that inverts it).
-pub use crate::fusion::sense_aerial;
+/// What aerial `me` sees at one step, and what any sensor sees at given cells (the sensor
+/// model lives with the fusion that inverts it).
+pub use crate::fusion::{aerial_region, sense_aerial, sense_cells};
 
 /// What a boat measures at one step: every cell of its disk, with noise `sigma`.
-pub fn sense_boat(truth: &[f64], step: u64, position: (f64, f64), cells: &[usize], sigma: f64, rng: &mut ChaCha8Rng) -> Sample {
-    let values = cells.iter().map(|&c| truth[c] + sigma * gauss(rng)).collect();
-    Sample { step, position: [position.0, position.1], cells: cells.iter().map(|&c| c as u32).collect(), values }
+pub fn sense_boat(grid: &Grid, truth: &[f64], step: u64, position: (f64, f64), cells: &[usize], sigma: f64, rng: &mut ChaCha8Rng) -> Result<Sample, crate::fusion::FusionError> {
+    sense_cells(grid, truth, step, position, cells, crate::protocol::Noise { sigma0: sigma, growth_per_m: 0.0 }, rng)
 }
 
 /// Where every vehicle should be for the next epoch.
@@ -314,7 +313,7 @@ mod tests {
             }
             server.initialise(init).unwrap();
             let plan = server.allocate().unwrap();
-            let mut boats: Vec<Sample> = plan.boats.iter().enumerate().filter_map(|(b, d)| d.as_ref().map(|(c, _)| sense_boat(&x(10), 10, (0.0, 0.0), c, 0.01, &mut rngs[3 + b]))).collect();
+            let mut boats: Vec<Sample> = plan.boats.iter().enumerate().filter_map(|(b, d)| d.as_ref().map(|(c, _)| sense_boat(&grid, &x(10), 10, (0.0, 0.0), c, 0.01, &mut rngs[3 + b]).unwrap())).collect();
             if shuffle {
                 boats.shuffle(&mut order);
             }

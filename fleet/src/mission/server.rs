@@ -2,13 +2,12 @@
 //! number of times), each assimilated exactly once, epochs folded into the model in step order
 //! as soon as they are complete, acks, plans and model updates out. The Zenoh node wraps this.
 //!
-//! The epoch contract: every vehicle sends one batch per epoch it takes part in, and its `seq`
-//! counts those batches from 0 without gaps. Aerials take part from epoch 0 (the aerial-only
-//! initialisation, one sample per aerial step); boats from epoch 1 (their `seq` is the epoch
-//! minus one; a last, shorter epoch has no boat step and no boat batch). Epoch `e >= 1` covers
-//! steps `init + (e-1) * boat_period ..` and is complete when every vehicle's batch for it is in.
+//! The epoch contract ([`Schedule`]): every vehicle sends one batch per epoch it takes part
+//! in, and its `seq` counts those batches from 0 without gaps. Aerials take part from epoch 0
+//! (the aerial-only initialisation); boats in every full epoch from epoch 1 (a boat left
+//! without a disk sends an empty batch). An epoch is complete when every batch for it is in.
 
-use super::{Allocation, Assimilator};
+use super::{schedule::Schedule, Allocation, Assimilator};
 use crate::experiment::team::{TeamConfig, TeamError};
 use crate::grid::Grid;
 use crate::protocol::{self, Ack, MeasurementBatch, ModelUpdate, Plan, Sample, Target, VehicleKind};
@@ -52,7 +51,7 @@ pub enum IngestError {
 }
 
 /// Counters a node reports.
-#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Counters {
     pub batches: u64,
     pub duplicates: u64,
@@ -62,7 +61,7 @@ pub struct Counters {
 
 pub struct ServerCore {
     cfg: TeamConfig,
-    frames: usize,
+    schedule: Schedule,
     vehicles: Vec<VehicleSpec>,
     assim: Assimilator,
     /// Next epoch to assimilate.
@@ -83,7 +82,7 @@ impl ServerCore {
         Ok(Self {
             assim: Assimilator::new(cfg, grid, frames)?,
             cfg: cfg.clone(),
-            frames,
+            schedule: Schedule::new(cfg, frames),
             vehicles: team_vehicles(cfg),
             epoch: 0,
             pending: BTreeMap::new(),
@@ -103,14 +102,27 @@ impl ServerCore {
         self.epoch
     }
 
+    pub fn schedule(&self) -> &Schedule {
+        &self.schedule
+    }
+
     /// Steps of epoch `e` (empty past the end of the mission).
     pub fn steps_of(&self, e: u64) -> std::ops::Range<usize> {
-        let init = self.cfg.init_steps;
-        if e == 0 {
-            return 0..init;
-        }
-        let a = init + (e as usize - 1) * self.cfg.boat_period;
-        a.min(self.frames)..(a + self.cfg.boat_period).min(self.frames)
+        self.schedule.steps_of(e)
+    }
+
+    /// Vehicles whose batch for the next epoch has not come in.
+    pub fn waiting_for(&self) -> Vec<String> {
+        let have = self.pending.get(&self.epoch);
+        (0..self.vehicles.len())
+            .filter(|&i| self.takes_part(i, self.epoch) && !have.is_some_and(|m| m.contains_key(&i)))
+            .map(|i| self.vehicles[i].id.clone())
+            .collect()
+    }
+
+    /// Epochs with some batches in, waiting for the rest.
+    pub fn pending_epochs(&self) -> u64 {
+        self.pending.len() as u64
     }
 
     /// Whether every step of the mission is in the model.
@@ -123,14 +135,6 @@ impl ServerCore {
         IngestError::Rejected { vehicle: vehicle.into(), why }
     }
 
-    /// The epoch a batch belongs to, from its vehicle's kind and seq.
-    fn epoch_of(kind: VehicleKind, seq: u64) -> u64 {
-        match kind {
-            VehicleKind::Aerial => seq,
-            VehicleKind::Boat => seq + 1,
-        }
-    }
-
     /// Take one batch (already decoded and validated against the grid).
     pub fn ingest(&mut self, batch: MeasurementBatch) -> Result<Ingested, IngestError> {
         self.counters.batches += 1;
@@ -141,7 +145,7 @@ impl ServerCore {
         if self.vehicles[index].kind != batch.kind {
             return Err(self.reject(&batch.vehicle, format!("declared {:?}, registered {:?}", batch.kind, self.vehicles[index].kind)));
         }
-        let e = Self::epoch_of(batch.kind, batch.seq);
+        let e = Schedule::epoch_of(batch.kind, batch.seq);
         if e < self.epoch || self.pending.get(&e).is_some_and(|m| m.contains_key(&index)) {
             self.counters.duplicates += 1;
             return Ok(Ingested::Duplicate);
@@ -150,13 +154,11 @@ impl ServerCore {
         if steps.is_empty() {
             return Err(self.reject(&batch.vehicle, format!("seq {} is past the end of the mission", batch.seq)));
         }
-        let want: Vec<usize> = match batch.kind {
-            VehicleKind::Aerial => steps.clone().filter(|k| k % self.cfg.aerial_period == 0).collect(),
-            // Boats sample at the last step of a full epoch.
-            VehicleKind::Boat => (steps.len() == self.cfg.boat_period).then(|| steps.end - 1).into_iter().collect(),
-        };
+        let want = self.schedule.sample_steps(batch.kind, e);
         let got: Vec<usize> = batch.samples.iter().map(|s| s.step as usize).collect();
-        if got != want && !(batch.kind == VehicleKind::Boat && want.is_empty()) {
+        // A boat the plan left without a disk sends an empty batch.
+        let idle_boat = batch.kind == VehicleKind::Boat && got.is_empty() && self.plans.get(&e).is_some_and(|p| p.boats[index - self.cfg.aerials].is_none());
+        if got != want && !idle_boat {
             return Err(self.reject(&batch.vehicle, format!("epoch {e} wants samples at steps {want:?}, got {got:?}")));
         }
         self.pending.entry(e).or_default().insert(index, batch);
@@ -172,7 +174,7 @@ impl ServerCore {
     /// Aerials take part in every epoch; boats in every full epoch after the first (a last,
     /// shorter epoch has no boat step).
     fn takes_part(&self, index: usize, e: u64) -> bool {
-        self.vehicles[index].kind == VehicleKind::Aerial || (e >= 1 && self.steps_of(e).len() == self.cfg.boat_period)
+        !self.schedule.sample_steps(self.vehicles[index].kind, e).is_empty()
     }
 
     fn epoch_complete(&self, e: u64) -> bool {
@@ -229,23 +231,34 @@ impl ServerCore {
         self.plans.get(&e).cloned()
     }
 
-    /// The plan of one vehicle for epoch `e`: where to be at each of its sampling steps.
-    pub fn plan(&self, vehicle: &str, e: u64) -> Option<Plan> {
+    /// The plan of one vehicle from epoch `e` on: where to be and what to sense at each of
+    /// its sampling steps of epochs `e .. e + horizon`, all under epoch `e`'s allocation (the
+    /// model's spatial modes, and so the disks, stay until the next update; a vehicle cut off
+    /// from the server keeps following the later targets).
+    pub fn plan(&self, vehicle: &str, e: u64, horizon: u64) -> Option<Plan> {
         let index = self.vehicles.iter().position(|v| v.id == vehicle)?;
         let alloc = self.allocation(e)?;
-        let steps = self.steps_of(e);
         let grid = self.assim.grid();
-        let (position, radius) = match self.vehicles[index].kind {
-            VehicleKind::Aerial => (alloc.aerials[index], 0.0),
+        let kind = self.vehicles[index].kind;
+        let (position, radius, cells) = match kind {
+            VehicleKind::Aerial => {
+                let region = crate::fusion::aerial_region(grid, self.cfg.aerial_stride, &alloc.aerials, index).ok()?;
+                (alloc.aerials[index], 0.0, region)
+            }
             VehicleKind::Boat => {
                 let b = index - self.cfg.aerials;
                 match &alloc.boats[b] {
-                    Some((_, (r, c))) => (grid.centre_m(crate::grid::Cell::new(*r, *c)), self.cfg.radius),
-                    None => (self.assim.boat_positions()[b], 0.0),
+                    Some((cells, (r, c))) => (grid.centre_m(crate::grid::Cell::new(*r, *c)), self.cfg.radius, cells.clone()),
+                    None => (self.assim.boat_positions()[b], 0.0, vec![]),
                 }
             }
         };
-        Some(Plan { vehicle: vehicle.into(), model_version: self.version, targets: steps.map(|k| Target { step: k as u64, position: [position.0, position.1], radius }).collect() })
+        let cells: Vec<u32> = cells.into_iter().map(|c| c as u32).collect();
+        let targets = (e..e.saturating_add(horizon.max(1)))
+            .flat_map(|ep| self.schedule.sample_steps(kind, ep).into_iter().map(move |k| (ep, k)))
+            .map(|(ep, k)| Target { epoch: ep, step: k as u64, position: [position.0, position.1], radius, cells: cells.clone() })
+            .collect();
+        Some(Plan { vehicle: vehicle.into(), model_version: self.version, epoch: e, targets })
     }
 
     /// The ack of a vehicle: the highest seq assimilated (`None` before its first).

@@ -5,6 +5,7 @@
 pub mod dataset;
 pub mod plasma;
 pub mod synthetic;
+pub mod truth;
 
 use faer::Mat;
 

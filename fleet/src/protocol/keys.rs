@@ -64,11 +64,31 @@ impl Keys {
         format!("{ROOT}/{}/alive/{id}", self.mission)
     }
 
+    /// Every node's liveliness token.
+    pub fn all_alive(&self) -> String {
+        self.alive("*")
+    }
+
+    /// Every vehicle's plan (the server's queryable).
+    pub fn all_plans(&self) -> String {
+        self.plan("*")
+    }
+
+    /// The server's own status (counters, link view).
+    pub fn server_status(&self) -> String {
+        format!("{ROOT}/{}/server/status", self.mission)
+    }
+
     /// The vehicle id in a concrete key of this mission's vehicle space, if it is one.
     pub fn vehicle_of(&self, key: &str) -> Option<String> {
-        let rest = key.strip_prefix(&format!("{ROOT}/{}/vehicle/", self.mission))?;
+        self.id_after(key, "vehicle")
+    }
+
+    /// The id in a concrete `plan/<id>` or `alive/<id>` key (`space` is `plan` or `alive`).
+    pub fn id_after(&self, key: &str, space: &str) -> Option<String> {
+        let rest = key.strip_prefix(&format!("{ROOT}/{}/{space}/", self.mission))?;
         let id = rest.split('/').next()?;
-        check_id("vehicle", id).ok().map(|_| id.to_string())
+        check_id(space, id).ok().map(|_| id.to_string())
     }
 }
 
@@ -85,6 +105,9 @@ mod tests {
         assert_eq!(k.plan("av-1"), "fleet/tank-1/plan/av-1");
         assert_eq!(k.vehicle_of("fleet/tank-1/vehicle/boat-3/measurements").as_deref(), Some("boat-3"));
         assert_eq!(k.vehicle_of("fleet/other/vehicle/boat-3/measurements"), None);
+        assert_eq!(k.id_after("fleet/tank-1/plan/av-2", "plan").as_deref(), Some("av-2"));
+        assert_eq!(k.id_after("fleet/tank-1/alive/boat-1", "alive").as_deref(), Some("boat-1"));
+        assert_eq!(k.id_after("fleet/tank-1/plan/*", "plan"), None);
         for bad in ["", "a/b", "*", "a$", "x".repeat(33).as_str(), "ü"] {
             assert!(check_id("vehicle", bad).is_err(), "{bad:?}");
             assert!(Keys::new(bad).is_err());

@@ -69,6 +69,13 @@ pub struct Noise {
     pub growth_per_m: f64,
 }
 
+impl Noise {
+    /// The standard deviation at `d_m` metres from the sensor.
+    pub fn std_at(&self, d_m: f64) -> f64 {
+        self.sigma0 + self.growth_per_m * d_m
+    }
+}
+
 /// What one vehicle measured at one step.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Sample {
@@ -137,21 +144,49 @@ pub struct ModelUpdate {
     pub variance: Vec<f64>,
 }
 
-/// One target of a plan.
+/// One target of a plan: a sampling step of the vehicle.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Target {
+    pub epoch: u64,
     pub step: u64,
     /// Where to be, metres `(x, y)`, and the sensing radius there (cells; 0 for aerials).
     pub position: [f64; 2],
     pub radius: f64,
+    /// What to sense there: a boat's disk, an aerial's region of the coarse lattice (flat grid
+    /// indices; empty: nothing, the vehicle still reports for the epoch).
+    pub cells: Vec<u32>,
 }
 
-/// A vehicle's allocation for the next epochs.
+/// A vehicle's allocation from `epoch` on, for the next H epochs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Plan {
     pub vehicle: String,
     pub model_version: u64,
+    pub epoch: u64,
     pub targets: Vec<Target>,
+}
+
+/// The server's own status on `server/status`: model version, counters and its view of the
+/// links.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ServerStatus {
+    pub version: u64,
+    /// The epoch the server waits for next, and whether the mission is done.
+    pub next_epoch: u64,
+    pub finished: bool,
+    pub batches: u64,
+    pub duplicates: u64,
+    /// Refusals by reason.
+    pub rejected: std::collections::BTreeMap<String, u64>,
+    /// Vehicles whose liveliness token is present.
+    pub alive: Vec<String>,
+    /// Vehicles whose batch for the next epoch is missing (the lag), and epochs waiting
+    /// complete or in part behind it.
+    pub waiting_for: Vec<String>,
+    pub pending_epochs: u64,
+    /// From the last batch of an epoch arriving to its model being published (ms).
+    pub latency_p50_ms: f64,
+    pub latency_p99_ms: f64,
 }
 
 /// Every message, tagged by `type`.
@@ -163,6 +198,7 @@ pub enum Body {
     Ack(Ack),
     Model(ModelUpdate),
     Plan(Plan),
+    Status(ServerStatus),
 }
 
 #[derive(Serialize, Deserialize)]
@@ -256,16 +292,17 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
             if b.noise.sigma0 < 0.0 || b.noise.growth_per_m < 0.0 {
                 return inv("noise must be >= 0".into());
             }
-            if b.samples.is_empty() || b.samples.len() > ctx.max_samples {
-                return inv(format!("a batch holds 1-{} samples, got {}", ctx.max_samples, b.samples.len()));
+            // An empty batch is a vehicle reporting an epoch in which it had nothing to sense.
+            if b.samples.len() > ctx.max_samples {
+                return inv(format!("a batch holds at most {} samples, got {}", ctx.max_samples, b.samples.len()));
             }
             for (k, s) in b.samples.iter().enumerate() {
                 position(s.position, &ctx.grid)?;
                 if s.cells.len() != s.values.len() {
                     return inv(format!("sample {k}: {} cells but {} values", s.cells.len(), s.values.len()));
                 }
-                if s.cells.is_empty() || s.cells.len() > ctx.max_cells {
-                    return inv(format!("sample {k}: 1-{} cells, got {}", ctx.max_cells, s.cells.len()));
+                if s.cells.len() > ctx.max_cells {
+                    return inv(format!("sample {k}: at most {} cells, got {}", ctx.max_cells, s.cells.len()));
                 }
                 if let Some(c) = s.cells.iter().find(|&&c| c as usize >= n) {
                     return inv(format!("sample {k}: cell {c} outside the {n}-cell grid"));
@@ -299,6 +336,12 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
             finite("modes_im", &m.modes_im)?;
             finite("variance", &m.variance)?;
         }
+        Body::Status(s) => {
+            finite("latency", &[s.latency_p50_ms, s.latency_p99_ms])?;
+            for id in s.alive.iter().chain(&s.waiting_for) {
+                keys::check_id("vehicle", id)?;
+            }
+        }
         Body::Plan(p) => {
             vehicle(&p.vehicle, ctx)?;
             if p.targets.len() > ctx.max_samples {
@@ -308,6 +351,12 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
                 position(t.position, &ctx.grid)?;
                 if !(t.radius.is_finite() && t.radius >= 0.0) {
                     return inv(format!("target radius {}", t.radius));
+                }
+                if t.cells.len() > ctx.max_cells {
+                    return inv(format!("target of {} cells", t.cells.len()));
+                }
+                if let Some(c) = t.cells.iter().find(|&&c| c as usize >= n) {
+                    return inv(format!("target cell {c} outside the {n}-cell grid"));
                 }
             }
         }
@@ -354,7 +403,7 @@ mod tests {
                 amplitudes: vec![[1.0, 0.0]],
                 variance: vec![0.01; 20],
             }),
-            Body::Plan(Plan { vehicle: "boat-1".into(), model_version: 1, targets: vec![Target { step: 45, position: [2.0, 2.0], radius: 1.5 }] }),
+            Body::Plan(Plan { vehicle: "boat-1".into(), model_version: 1, epoch: 3, targets: vec![Target { epoch: 3, step: 45, position: [2.0, 2.0], radius: 1.5, cells: vec![0, 1, 5] }] }),
         ];
         for m in msgs {
             assert_eq!(decode(&encode(&m), &ctx()).unwrap(), m);
@@ -397,7 +446,9 @@ mod tests {
         assert!(bad(&|b| b.samples[0].cells[2] = 20).to_string().contains("outside the 20-cell grid"));
         assert!(bad(&|b| b.samples[0].values.pop().map(|_| ()).unwrap_or(())).to_string().contains("3 cells but 2 values"));
         assert!(bad(&|b| b.samples[0].position = [9.0, 1.0]).to_string().contains("outside"));
-        assert!(bad(&|b| b.samples.clear()).to_string().contains("1-10000 samples"));
+        let mut huge = c.clone();
+        huge.max_samples = 0;
+        assert!(decode(&good, &huge).unwrap_err().to_string().contains("at most 0 samples"));
         assert!(bad(&|b| b.noise.sigma0 = -1.0).to_string().contains("noise"));
     }
 

@@ -1,0 +1,196 @@
+//! The mission file (`config/mission.toml`): which field, which team, how the nodes reach each
+//! other and how fast the mission runs. Every node of a mission reads the same file, so the
+//! server and each vehicle agree on the grid, the schedule and the vehicles without talking.
+
+use super::schedule::Schedule;
+use super::server::{team_vehicles, VehicleSpec};
+use crate::experiment::team::TeamConfig;
+use crate::grid::Grid;
+use crate::process::truth::{averaged_by, TruthSource};
+use crate::process::FieldSeries;
+use crate::protocol::{keys, Noise, VehicleKind};
+use anyhow::{bail, Context};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// The bundled default mission (`fleet up` without an argument).
+pub const DEFAULT_MISSION: &str = include_str!("../../../config/mission.toml");
+
+/// The mixed-reality truth: a simulator preset or a dataset, on `grid`, averaged by
+/// `average` onto the model grid.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TruthSpec {
+    #[serde(flatten)]
+    pub source: TruthSource,
+    /// Simulator grid `[rows, cols]` (ignored for a dataset).
+    #[serde(default = "default_sim_grid")]
+    pub grid: [usize; 2],
+    #[serde(default = "default_frames")]
+    pub frames: usize,
+    #[serde(default = "one")]
+    pub average: usize,
+}
+
+fn default_sim_grid() -> [usize; 2] {
+    [96, 192]
+}
+fn default_frames() -> usize {
+    100
+}
+fn one() -> usize {
+    1
+}
+
+/// How nodes reach each other (Zenoh endpoints; a Zenoh JSON5 file may override anything).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Network {
+    /// Where the server, in router mode, listens.
+    pub listen: Vec<String>,
+    /// Where vehicles connect (the server or a `zenohd` router).
+    pub connect: Vec<String>,
+    /// Optional Zenoh JSON5 configs, applied before the endpoints above.
+    pub server_config: Option<std::path::PathBuf>,
+    pub vehicle_config: Option<std::path::PathBuf>,
+}
+
+impl Default for Network {
+    fn default() -> Self {
+        Self { listen: vec!["tcp/127.0.0.1:7447".into()], connect: vec!["tcp/127.0.0.1:7447".into()], server_config: None, vehicle_config: None }
+    }
+}
+
+/// Pace of a mixed-reality run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Pace {
+    /// Wall-clock milliseconds per step (0: as fast as the plans come).
+    pub step_ms: u64,
+    /// How long a vehicle waits for the plan of its next epoch before it follows the horizon
+    /// of the plan it holds.
+    pub plan_timeout_ms: u64,
+    /// How often unacknowledged batches are sent again.
+    pub resend_ms: u64,
+    /// Epochs each plan covers.
+    pub horizon: u64,
+}
+
+impl Default for Pace {
+    fn default() -> Self {
+        Self { step_ms: 0, plan_timeout_ms: 30_000, resend_ms: 1_000, horizon: 3 }
+    }
+}
+
+/// Vehicle kinematics (metres per step on the model grid, 1 m cells).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Motion {
+    pub aerial_speed: f64,
+    pub boat_speed: f64,
+}
+
+impl Default for Motion {
+    fn default() -> Self {
+        Self { aerial_speed: 200.0, boat_speed: 40.0 }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MissionConfig {
+    /// The mission id: every key lives under `fleet/<mission>/`.
+    pub mission: String,
+    pub truth: TruthSpec,
+    #[serde(default)]
+    pub team: TeamConfig,
+    #[serde(default)]
+    pub network: Network,
+    #[serde(default)]
+    pub pace: Pace,
+    #[serde(default)]
+    pub motion: Motion,
+}
+
+impl MissionConfig {
+    pub fn from_toml(text: &str) -> anyhow::Result<Self> {
+        let cfg: Self = toml::from_str(text).context("reading the mission file")?;
+        keys::check_id("mission", &cfg.mission)?;
+        cfg.truth.source.check().context("[truth]")?;
+        if cfg.truth.frames < 10 || cfg.truth.average == 0 {
+            bail!("[truth]: need at least 10 frames and average >= 1");
+        }
+        if cfg.network.listen.is_empty() && cfg.network.connect.is_empty() {
+            bail!("[network]: give listen or connect endpoints");
+        }
+        if !(cfg.motion.aerial_speed > 0.0 && cfg.motion.boat_speed > 0.0) {
+            bail!("[motion]: speeds must be > 0");
+        }
+        if cfg.pace.horizon == 0 {
+            bail!("[pace]: horizon must be >= 1");
+        }
+        Ok(cfg)
+    }
+
+    /// The mission file at `path`, or the bundled default.
+    pub fn load(path: Option<&Path>) -> anyhow::Result<Self> {
+        match path {
+            Some(p) => Self::from_toml(&std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?).with_context(|| p.display().to_string()),
+            None => Self::from_toml(DEFAULT_MISSION).context("the bundled default mission"),
+        }
+    }
+
+    /// The truth on the model grid (runs the simulator: seconds to minutes).
+    pub fn truth(&self, progress: impl FnMut(usize)) -> anyhow::Result<FieldSeries> {
+        let full = self.truth.source.full(self.truth.grid, self.truth.frames, self.team.seed, progress)?;
+        averaged_by(&full, self.truth.average)
+    }
+
+    /// Check a truth field against the mission, then the workspace grid and length it gives.
+    pub fn workspace(&self, truth: &FieldSeries) -> anyhow::Result<(Grid, usize)> {
+        let grid = Grid::new(truth.rows, truth.cols, 1.0)?;
+        self.team.validate(&grid, truth.frames())?;
+        Ok((grid, truth.frames()))
+    }
+
+    pub fn vehicles(&self) -> Vec<VehicleSpec> {
+        team_vehicles(&self.team)
+    }
+
+    pub fn schedule(&self, frames: usize) -> Schedule {
+        Schedule::new(&self.team, frames)
+    }
+
+    /// A vehicle's index (its random stream) and kind.
+    pub fn vehicle(&self, id: &str) -> anyhow::Result<(usize, VehicleKind)> {
+        self.vehicles().iter().position(|v| v.id == id).map(|i| (i, self.vehicles()[i].kind)).with_context(|| format!("no vehicle {id:?} in mission {:?}", self.mission))
+    }
+
+    /// A vehicle's sensor noise.
+    pub fn noise(&self, kind: VehicleKind) -> Noise {
+        match kind {
+            VehicleKind::Aerial => Noise { sigma0: self.team.aerial_sigma0, growth_per_m: self.team.aerial_growth_per_cell },
+            VehicleKind::Boat => Noise { sigma0: self.team.boat_sigma, growth_per_m: 0.0 },
+        }
+    }
+
+    pub fn speed(&self, kind: VehicleKind) -> f64 {
+        match kind {
+            VehicleKind::Aerial => self.motion.aerial_speed,
+            VehicleKind::Boat => self.motion.boat_speed,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_default_mission_reads() {
+        let m = MissionConfig::load(None).unwrap();
+        assert_eq!(m.vehicles().len(), m.team.aerials + m.team.boats);
+        assert!(MissionConfig::from_toml("mission = \"a/b\"\n[truth]\npreset = \"cloud1\"\n").is_err());
+        assert!(MissionConfig::from_toml("mission = \"m\"\n[truth]\n").unwrap_err().to_string().contains("[truth]"));
+    }
+}

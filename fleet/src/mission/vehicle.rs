@@ -1,0 +1,119 @@
+//! A vehicle's own loop, without the network: keep the newest plan, move toward its targets
+//! at a bounded speed, sense what the plan says at each sampling step, and number the batches.
+//! The Zenoh vehicle node wraps this; the server tests drive it directly.
+//!
+//! A vehicle that has not reached its target by the sampling step senses from where it is:
+//! an aerial its planned region (with the noise of the longer distance), a boat the disk
+//! around its own cell. With speeds that let every vehicle arrive (the default mission) the
+//! samples are exactly the offline experiment's.
+
+use super::schedule::Schedule;
+use crate::fusion::{sense_cells, AerialNoise, FusionError};
+use crate::grid::Grid;
+use crate::protocol::{MeasurementBatch, Plan, Sample, Target, VehicleKind};
+use rand_chacha::ChaCha8Rng;
+
+pub struct VehicleBrain {
+    pub id: String,
+    pub kind: VehicleKind,
+    grid: Grid,
+    schedule: Schedule,
+    noise: AerialNoise,
+    rng: ChaCha8Rng,
+    /// Metres per step.
+    speed: f64,
+    plan: Option<Plan>,
+    position: Option<(f64, f64)>,
+    last_step: Option<usize>,
+    /// Samples taken away from their planned place.
+    pub off_target: u64,
+}
+
+impl VehicleBrain {
+    pub fn new(id: &str, kind: VehicleKind, grid: Grid, schedule: Schedule, noise: AerialNoise, rng: ChaCha8Rng, speed: f64) -> Self {
+        Self { id: id.into(), kind, grid, schedule, noise, rng, speed, plan: None, position: None, last_step: None, off_target: 0 }
+    }
+
+    pub fn schedule(&self) -> &Schedule {
+        &self.schedule
+    }
+
+    /// Where the vehicle is (`None` before its first target).
+    pub fn position(&self) -> Option<(f64, f64)> {
+        self.position
+    }
+
+    pub fn plan(&self) -> Option<&Plan> {
+        self.plan.as_ref()
+    }
+
+    /// Take a plan unless it is older than the one held.
+    pub fn set_plan(&mut self, plan: Plan) {
+        let newer = self.plan.as_ref().is_none_or(|p| (plan.epoch, plan.model_version) >= (p.epoch, p.model_version));
+        if plan.vehicle == self.id && newer {
+            self.plan = Some(plan);
+        }
+    }
+
+    /// Whether the held plan covers epoch `e` (the vehicle can sense it without the server).
+    pub fn covers(&self, e: u64) -> bool {
+        self.plan.as_ref().is_some_and(|p| p.epoch <= e && p.targets.iter().any(|t| t.epoch == e))
+    }
+
+    /// Move toward `target` for the steps since the last sample.
+    fn move_to(&mut self, target: &Target) -> (f64, f64) {
+        let goal = (target.position[0], target.position[1]);
+        let pos = match (self.position, self.last_step) {
+            (Some(p), Some(last)) => {
+                let reach = self.speed * (target.step as usize).saturating_sub(last) as f64;
+                let (dx, dy) = (goal.0 - p.0, goal.1 - p.1);
+                let d = dx.hypot(dy);
+                if d <= reach {
+                    goal
+                } else {
+                    (p.0 + dx * reach / d, p.1 + dy * reach / d)
+                }
+            }
+            // Launched at its first target.
+            _ => goal,
+        };
+        self.position = Some(pos);
+        self.last_step = Some(target.step as usize);
+        pos
+    }
+
+    /// Sense epoch `e` under the held plan: its batch (`None`: this vehicle sends none for
+    /// `e`). `truth_at(k)` is the field at step `k` (mixed reality: a dataset or simulator).
+    pub fn sense_epoch(&mut self, e: u64, truth_at: impl Fn(usize) -> Vec<f64>) -> Result<Option<MeasurementBatch>, FusionError> {
+        let Some(seq) = self.schedule.seq_of(self.kind, e) else { return Ok(None) };
+        let steps = self.schedule.sample_steps(self.kind, e);
+        let targets: Vec<Target> = match &self.plan {
+            Some(p) => steps.iter().filter_map(|&k| p.targets.iter().find(|t| t.step as usize == k).cloned()).collect(),
+            None => vec![],
+        };
+        if targets.len() != steps.len() {
+            return Err(FusionError::Input(format!("{}: no plan covers epoch {e}", self.id)));
+        }
+        let mut samples: Vec<Sample> = vec![];
+        for t in &targets {
+            // A boat left without a disk reports the epoch with nothing in it.
+            if t.cells.is_empty() && self.kind == VehicleKind::Boat {
+                continue;
+            }
+            let pos = self.move_to(t);
+            let arrived = pos == (t.position[0], t.position[1]);
+            let cells: Vec<usize> = match (self.kind, arrived) {
+                (VehicleKind::Boat, false) => {
+                    let here = self.grid.cell_at(pos.0, pos.1).ok_or_else(|| FusionError::Input(format!("{}: position {pos:?} off the grid", self.id)))?;
+                    self.grid.disk(here, t.radius)
+                }
+                _ => t.cells.iter().map(|&c| c as usize).collect(),
+            };
+            if !arrived {
+                self.off_target += 1;
+            }
+            samples.push(sense_cells(&self.grid, &truth_at(t.step as usize), t.step, pos, &cells, self.noise, &mut self.rng)?);
+        }
+        Ok(Some(MeasurementBatch { vehicle: self.id.clone(), kind: self.kind, seq, noise: self.noise, samples }))
+    }
+}

@@ -1,0 +1,293 @@
+//! The server's event loop: one task owns the `ServerCore` and reacts to batches, plan and
+//! model queries, liveliness changes and a status tick. Everything that reaches the core has
+//! been decoded and validated; everything refused is counted by reason and logged once.
+
+use crate::Args;
+use anyhow::Context as _;
+use fleet::mission::config::MissionConfig;
+use fleet::mission::report::{Percentiles, ServerEvent, ServerSummary};
+use fleet::mission::server::{Ingested, ServerCore};
+use fleet::process::FieldSeries;
+use fleet::protocol::{self, keys::Keys, Body, Context, ServerStatus};
+use fleet_net::{zenoh, Role};
+use std::collections::{BTreeMap, BTreeSet};
+use std::io::Write as _;
+use std::time::{Duration, Instant};
+use tracing::{info, warn};
+use zenoh::sample::SampleKind;
+
+struct Server {
+    mission: MissionConfig,
+    keys: Keys,
+    core: ServerCore,
+    ctx: Context,
+    truth: FieldSeries,
+    events: bool,
+    alive: BTreeSet<String>,
+    link_ups: BTreeMap<String, u64>,
+    latencies: Vec<f64>,
+    mse: Vec<f64>,
+    /// Reasons already logged (each refusal reason is logged once, then only counted).
+    logged: BTreeSet<String>,
+    started: Instant,
+}
+
+fn emit(on: bool, e: &ServerEvent) {
+    if on {
+        let mut out = std::io::stdout().lock();
+        let _ = writeln!(out, "{}", serde_json::to_string(e).expect("events serialise"));
+        let _ = out.flush();
+    }
+}
+
+impl Server {
+    fn refuse(&mut self, reason: &str, detail: String) {
+        *self.core.counters.rejected.entry(reason.into()).or_default() += 1;
+        if self.logged.insert(reason.to_string()) {
+            warn!(reason, "refused a message: {detail} (further refusals of this kind are only counted)");
+        }
+    }
+
+    fn status(&self) -> ServerStatus {
+        let p = Percentiles::of(&self.latencies);
+        ServerStatus {
+            version: self.core.version,
+            next_epoch: self.core.next_epoch(),
+            finished: self.core.finished(),
+            batches: self.core.counters.batches,
+            duplicates: self.core.counters.duplicates,
+            rejected: self.core.counters.rejected.clone(),
+            alive: self.alive.iter().cloned().collect(),
+            waiting_for: self.core.waiting_for(),
+            pending_epochs: self.core.pending_epochs(),
+            latency_p50_ms: p.p50,
+            latency_p99_ms: p.p99,
+        }
+    }
+
+    /// A batch arrived on `key` at `t0`.
+    async fn on_batch(&mut self, session: &zenoh::Session, key: &str, sample: &zenoh::sample::Sample, t0: Instant) -> anyhow::Result<()> {
+        let body = match fleet_net::decode(sample, &self.ctx) {
+            Ok(b) => b,
+            Err(e) => {
+                self.core.counters.batches += 1;
+                self.refuse(e.reason(), format!("{key}: {e}"));
+                return Ok(());
+            }
+        };
+        let Body::Batch(batch) = body else {
+            self.refuse("wrong_type", format!("{key}: not a batch"));
+            return Ok(());
+        };
+        // A vehicle speaks only for itself.
+        if self.keys.vehicle_of(key).as_deref() != Some(batch.vehicle.as_str()) {
+            self.refuse("key_mismatch", format!("{key} carries a batch of {}", batch.vehicle));
+            return Ok(());
+        }
+        let vehicle = batch.vehicle.clone();
+        match self.core.ingest(batch) {
+            Ok(Ingested::Assimilated(epochs)) => {
+                self.publish_model(session).await?;
+                let latency_ms = t0.elapsed().as_secs_f64() * 1e3;
+                for v in self.core.vehicles().to_vec() {
+                    self.ack(session, &v.id).await?;
+                }
+                for e in epochs {
+                    self.latencies.push(latency_ms);
+                    let steps = self.core.steps_of(e);
+                    let mse = self.evaluate(steps);
+                    info!(epoch = e, version = self.core.version, latency_ms = format!("{latency_ms:.1}"), mse = mse.map(|m| format!("{m:.3e}")), "epoch assimilated");
+                    emit(self.events, &ServerEvent::Epoch { epoch: e, version: self.core.version, mse, latency_ms, alive: self.alive.len(), batches: self.core.counters.batches });
+                }
+            }
+            Ok(Ingested::Duplicate) => self.ack(session, &vehicle).await?,
+            Ok(Ingested::Buffered) => {}
+            Err(e) => self.refuse("invalid_batch", e.to_string()),
+        }
+        Ok(())
+    }
+
+    /// Mean squared error of the fused snapshots of `steps` against the truth.
+    fn evaluate(&mut self, steps: std::ops::Range<usize>) -> Option<f64> {
+        let mut sum = 0.0;
+        for k in steps.clone() {
+            let est = self.core.snapshots.get(k)?;
+            let n = est.len() as f64;
+            let e = est.iter().zip(self.truth.snapshots.col(k).iter()).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / n;
+            if self.mse.len() == k {
+                self.mse.push(e);
+            }
+            sum += e;
+        }
+        (!steps.is_empty()).then(|| sum / steps.len() as f64)
+    }
+
+    async fn publish_model(&self, session: &zenoh::Session) -> anyhow::Result<()> {
+        if let Some(m) = self.core.model_update() {
+            fleet_net::put(session, &self.keys.model_latest(), &Body::Model(m)).await?;
+        }
+        Ok(())
+    }
+
+    async fn ack(&self, session: &zenoh::Session, vehicle: &str) -> anyhow::Result<()> {
+        if let Some(a) = self.core.ack(vehicle) {
+            fleet_net::put(session, &self.keys.ack(vehicle), &Body::Ack(a)).await?;
+        }
+        Ok(())
+    }
+
+    /// `plan/<id>?epoch=<e>`: the vehicle's plan from epoch `e`, or an error reply saying it
+    /// does not exist yet (the vehicle asks again).
+    async fn on_plan_query(&mut self, q: zenoh::query::Query) {
+        let key = q.key_expr().as_str().to_string();
+        let id = self.keys.id_after(&key, "plan");
+        let epoch = q.parameters().get("epoch").and_then(|e| e.parse::<u64>().ok());
+        let reply = match (id, epoch) {
+            (Some(id), Some(e)) => match self.core.plan(&id, e, self.mission.pace.horizon) {
+                Some(plan) => Ok(Body::Plan(plan)),
+                None if self.core.vehicles().iter().any(|v| v.id == id) => Err(format!("no plan for epoch {e} yet (model at epoch {})", self.core.next_epoch())),
+                None => Err(format!("unknown vehicle {id:?}")),
+            },
+            _ => Err(format!("ask {key}?epoch=<n> for a known vehicle")),
+        };
+        let sent = match reply {
+            Ok(body) => q.reply(q.key_expr().clone(), protocol::encode(&body)).encoding(fleet_net::encoding()).await,
+            Err(why) => q.reply_err(why.into_bytes()).await,
+        };
+        if let Err(e) = sent {
+            warn!("replying to {key}: {e}");
+        }
+    }
+
+    async fn on_model_query(&self, q: zenoh::query::Query) {
+        let sent = match self.core.model_update() {
+            Some(m) => q.reply(q.key_expr().clone(), protocol::encode(&Body::Model(m))).encoding(fleet_net::encoding()).await,
+            None => q.reply_err("no model yet".as_bytes().to_vec()).await,
+        };
+        if let Err(e) = sent {
+            warn!("replying to a model query: {e}");
+        }
+    }
+
+    fn on_liveliness(&mut self, key: &str, kind: SampleKind) {
+        let Some(id) = self.keys.id_after(key, "alive") else { return };
+        if !self.core.vehicles().iter().any(|v| v.id == id) {
+            return;
+        }
+        let up = kind == SampleKind::Put;
+        let changed = if up { self.alive.insert(id.clone()) } else { self.alive.remove(&id) };
+        if changed {
+            if up {
+                *self.link_ups.entry(id.clone()).or_default() += 1;
+            }
+            info!(vehicle = id, alive = up, "link");
+            emit(self.events, &ServerEvent::Link { vehicle: id, alive: up });
+        }
+    }
+
+    fn summary(&self) -> ServerSummary {
+        let eigenvalues = self.core.model_update().map(|m| m.eigenvalues).unwrap_or_default();
+        ServerSummary {
+            mission: self.mission.mission.clone(),
+            vehicles: self.core.vehicles().iter().map(|v| v.id.clone()).collect(),
+            epochs: self.core.counters.epochs,
+            model_version: self.core.version,
+            rank: self.core.assimilator().rank(),
+            counters: self.core.counters.clone(),
+            latency_ms: Percentiles::of(&self.latencies),
+            mean_mse: (!self.mse.is_empty()).then(|| self.mse.iter().sum::<f64>() / self.mse.len() as f64),
+            mse: self.mse.clone(),
+            eigenvalues,
+            link_ups: self.link_ups.clone(),
+            wall_s: self.started.elapsed().as_secs_f64(),
+        }
+    }
+}
+
+pub async fn run(args: Args) -> anyhow::Result<()> {
+    let (mission, truth) = args.node.load()?;
+    let (grid, frames) = mission.workspace(&truth)?;
+    let keys = Keys::new(&mission.mission)?;
+    let core = ServerCore::new(&mission.team, grid, frames)?;
+    let mut ctx = Context::new(grid);
+    ctx.vehicles = core.vehicles().iter().map(|v| v.id.clone()).collect();
+    let session = fleet_net::open(args.node.zenoh_config(Role::Server, &mission.network)?).await?;
+    let batches = session.declare_subscriber(keys.all_measurements()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let plans = session.declare_queryable(keys.all_plans()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let models = session.declare_queryable(keys.model_latest()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let links = session.liveliness().declare_subscriber(keys.all_alive()).history(true).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let _token = session.liveliness().declare_token(keys.alive("server")).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+
+    let epochs = core.schedule().epochs();
+    let mut s = Server {
+        keys,
+        core,
+        ctx,
+        truth,
+        events: args.events,
+        alive: BTreeSet::new(),
+        link_ups: BTreeMap::new(),
+        latencies: vec![],
+        mse: vec![],
+        logged: BTreeSet::new(),
+        started: Instant::now(),
+        mission,
+    };
+    info!(mission = s.mission.mission, epochs, vehicles = s.core.vehicles().len(), "model server up");
+    emit(s.events, &ServerEvent::Ready { mission: s.mission.mission.clone(), epochs, vehicles: s.core.vehicles().iter().map(|v| v.id.clone()).collect() });
+
+    let mut tick = tokio::time::interval(Duration::from_secs(1));
+    let mut done_at: Option<Instant> = None;
+    let linger = Duration::from_millis(args.linger_ms);
+    loop {
+        tokio::select! {
+            r = batches.recv_async() => {
+                let sample = r.map_err(|e| anyhow::anyhow!("batch subscriber closed: {e}"))?;
+                let t0 = Instant::now();
+                let key = sample.key_expr().as_str().to_string();
+                s.on_batch(&session, &key, &sample, t0).await?;
+            }
+            r = plans.recv_async() => {
+                if let Ok(q) = r { s.on_plan_query(q).await; }
+            }
+            r = models.recv_async() => {
+                if let Ok(q) = r { s.on_model_query(q).await; }
+            }
+            r = links.recv_async() => {
+                if let Ok(sample) = r { s.on_liveliness(sample.key_expr().as_str(), sample.kind()); }
+            }
+            _ = tick.tick() => {
+                fleet_net::put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
+            }
+            _ = tokio::signal::ctrl_c() => {
+                info!("interrupted");
+                break;
+            }
+        }
+        if s.core.finished() && done_at.is_none() {
+            done_at = Some(Instant::now());
+            let summary = s.summary();
+            if let Some(dir) = &args.out {
+                write_outputs(dir, &summary, &s.core)?;
+            }
+            info!(epochs = summary.epochs, batches = summary.counters.batches, p99_ms = summary.latency_ms.p99, "mission finished");
+            emit(s.events, &ServerEvent::Finished { summary: Box::new(summary) });
+        }
+        if let Some(t) = done_at {
+            if args.exit_when_done && (s.alive.is_empty() || t.elapsed() > linger) {
+                break;
+            }
+        }
+    }
+    session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    Ok(())
+}
+
+fn write_outputs(dir: &std::path::Path, summary: &ServerSummary, core: &ServerCore) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(summary)?)?;
+    if let Some(m) = core.model_update() {
+        std::fs::write(dir.join("model.cbor"), protocol::encode(&Body::Model(m)))?;
+    }
+    Ok(())
+}

@@ -1,0 +1,145 @@
+//! hetfleet's Zenoh glue, shared by the model server and the vehicle nodes: open a session in
+//! the role a node plays (DESIGN.md "Facts about the dependencies": the server is a router,
+//! vehicles are clients that keep retrying), and put or read [`fleet::protocol`] messages with
+//! the protocol's encoding. Nothing here knows the math; nodes stay thin.
+
+use anyhow::Context as _;
+use fleet::mission::config::Network;
+use fleet::protocol::{self, Body, Context, ProtocolError, ENCODING};
+use std::path::Path;
+use zenoh::bytes::Encoding;
+use zenoh::sample::Sample;
+use zenoh::Session;
+
+pub use zenoh;
+
+/// What a node is on the network.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Role {
+    /// The model server: a Zenoh router listening on the mission's endpoints, so vehicles on
+    /// other hosts reach it directly (no separate `zenohd` needed).
+    Server,
+    /// A vehicle: a client connecting to the server or a router, retrying forever when the
+    /// link is down instead of exiting.
+    Vehicle,
+}
+
+/// Endpoints given on a node's command line, which replace the mission file's.
+#[derive(Debug, Clone, Default)]
+pub struct Endpoints {
+    pub listen: Vec<String>,
+    pub connect: Vec<String>,
+}
+
+fn json_list(v: &[String]) -> String {
+    serde_json::to_string(v).expect("a list of strings serialises")
+}
+
+/// The Zenoh configuration of a node: its role's JSON5 file from the mission (if any), then
+/// the role's mode and endpoints.
+pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -> anyhow::Result<zenoh::Config> {
+    let file = base.map(Path::to_path_buf).or_else(|| match role {
+        Role::Server => net.server_config.clone(),
+        Role::Vehicle => net.vehicle_config.clone(),
+    });
+    let mut cfg = match &file {
+        Some(p) => zenoh::Config::from_file(p).map_err(|e| anyhow::anyhow!("{e}")).with_context(|| format!("reading the Zenoh config {}", p.display()))?,
+        None => zenoh::Config::default(),
+    };
+    let set = |cfg: &mut zenoh::Config, key: &str, value: &str| cfg.insert_json5(key, value).map_err(|e| anyhow::anyhow!("Zenoh config {key} = {value}: {e}"));
+    // No multicast scouting: a fleet finds its router by its endpoints, and a shared network
+    // must not see our nodes join its peers.
+    set(&mut cfg, "scouting/multicast/enabled", "false")?;
+    match role {
+        Role::Server => {
+            set(&mut cfg, "mode", "\"router\"")?;
+            let listen = if cli.listen.is_empty() { &net.listen } else { &cli.listen };
+            if !listen.is_empty() {
+                set(&mut cfg, "listen/endpoints", &json_list(listen))?;
+            }
+            let connect = &cli.connect;
+            if !connect.is_empty() {
+                set(&mut cfg, "connect/endpoints", &json_list(connect))?;
+            }
+        }
+        Role::Vehicle => {
+            set(&mut cfg, "mode", "\"client\"")?;
+            let connect = if cli.connect.is_empty() { &net.connect } else { &cli.connect };
+            set(&mut cfg, "connect/endpoints", &json_list(connect))?;
+            set(&mut cfg, "connect/timeout_ms", "-1")?;
+            set(&mut cfg, "connect/exit_on_failure", "false")?;
+        }
+    }
+    Ok(cfg)
+}
+
+/// Open a session.
+pub async fn open(cfg: zenoh::Config) -> anyhow::Result<Session> {
+    zenoh::open(cfg).await.map_err(|e| anyhow::anyhow!("opening the Zenoh session: {e}"))
+}
+
+/// The protocol's encoding, as Zenoh carries it.
+pub fn encoding() -> Encoding {
+    Encoding::from(ENCODING)
+}
+
+/// Put one message on `key`.
+pub async fn put(session: &Session, key: &str, body: &Body) -> anyhow::Result<()> {
+    session.put(key, protocol::encode(body)).encoding(encoding()).await.map_err(|e| anyhow::anyhow!("put on {key}: {e}"))
+}
+
+/// Decode and validate a received sample (refusing oversized payloads before copying them).
+pub fn decode(sample: &Sample, ctx: &Context) -> Result<Body, ProtocolError> {
+    let payload = sample.payload();
+    if payload.len() > ctx.max_payload {
+        return Err(ProtocolError::TooLarge { size: payload.len(), limit: ctx.max_payload });
+    }
+    protocol::decode(&payload.to_bytes(), ctx)
+}
+
+/// Logging for a node: `RUST_LOG` (default `info`) to stderr.
+pub fn init_tracing() {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
+    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
+}
+
+/// Command-line options every node takes.
+#[derive(Debug, Clone, clap::Args)]
+pub struct NodeArgs {
+    /// The mission file (default: the bundled default mission).
+    #[arg(long)]
+    pub mission: Option<std::path::PathBuf>,
+    /// The mixed-reality truth as .npy (default: generate it from the mission's [truth]).
+    #[arg(long)]
+    pub truth: Option<std::path::PathBuf>,
+    /// Zenoh endpoints to listen on (server) instead of the mission's.
+    #[arg(long)]
+    pub listen: Vec<String>,
+    /// Zenoh endpoints to connect to instead of the mission's.
+    #[arg(long)]
+    pub connect: Vec<String>,
+    /// A Zenoh JSON5 config file applied before the endpoints (TLS, auth, tuning).
+    #[arg(long)]
+    pub zenoh_config: Option<std::path::PathBuf>,
+}
+
+impl NodeArgs {
+    /// The mission and its truth on the model grid.
+    pub fn load(&self) -> anyhow::Result<(fleet::mission::config::MissionConfig, fleet::process::FieldSeries)> {
+        let mission = fleet::mission::config::MissionConfig::load(self.mission.as_deref())?;
+        let truth = match &self.truth {
+            Some(p) => fleet::process::dataset::load(p, 1.0).with_context(|| format!("loading the truth {}", p.display()))?,
+            None => mission.truth(|_| {})?,
+        };
+        Ok((mission, truth))
+    }
+
+    pub fn endpoints(&self) -> Endpoints {
+        Endpoints { listen: self.listen.clone(), connect: self.connect.clone() }
+    }
+
+    /// This node's Zenoh configuration.
+    pub fn zenoh_config(&self, role: Role, net: &Network) -> anyhow::Result<zenoh::Config> {
+        config(role, net, self.zenoh_config.as_deref(), &self.endpoints())
+    }
+}
