@@ -3,11 +3,13 @@
 # workspace once in release (tests run in the same profile as the binaries), runs every test.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-# Python peers used by cross-check tests (PyDMD, odmd, pysensors, numpy/scipy).
-if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors" 2>/dev/null; then
-  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors)"
+# Python peers used by cross-check tests (PyDMD, odmd, pysensors, numpy/scipy) and the
+# Python Zenoh client that reads the fleet's model (eclipse-zenoh, the same 1.10 line as the
+# Rust side, and cbor2).
+if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2" 2>/dev/null; then
+  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors eclipse-zenoh cbor2)"
   python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore \
-    numpy scipy pydmd odmd python-sensors
+    numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2
 fi
 echo "== building (release)"
 cargo build --release --workspace --all-targets

@@ -97,8 +97,11 @@ pub fn decode(sample: &Sample, ctx: &Context) -> Result<Body, ProtocolError> {
     protocol::decode(&payload.to_bytes(), ctx)
 }
 
-/// Logging for a node: `RUST_LOG` (default `info`) to stderr.
-pub fn init_tracing() {
+/// Set-up every node does first: the linear algebra's threads as the `fleet` binary sets them
+/// (so a node computes bit for bit what the offline loop computes), and logging: `RUST_LOG`
+/// (default `info`) to stderr.
+pub fn init_node() {
+    fleet::configure_linalg_threads();
     let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
     let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
 }

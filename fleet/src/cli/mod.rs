@@ -5,6 +5,7 @@ mod dmd;
 mod experiment;
 mod render;
 mod simulate;
+mod up;
 
 use clap::{Parser, Subcommand};
 
@@ -27,6 +28,8 @@ enum Command {
     Render(render::Args),
     /// The paper's evaluation end to end (Table 2, Figs. 7, 8, 10, 11) as a report.
     Experiment(experiment::Args),
+    /// Run a mission: the model server and every vehicle as processes over Zenoh, with a report.
+    Up(up::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -36,6 +39,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Simulate(a) => simulate::run(a),
         Command::Render(a) => render::run(a),
         Command::Experiment(a) => experiment::run(a),
+        Command::Up(a) => up::run(a),
     }
 }
 

@@ -88,3 +88,68 @@ mod tests {
         assert_eq!(serde_json::from_str::<ServerEvent>(&line).unwrap(), e);
     }
 }
+
+/// The report `fleet up` writes: the networked mission beside the offline loop on the same
+/// truth and seed (which it must equal), the single-kind teams, and the fleet's statistics.
+pub fn write_mission_report(
+    dir: &std::path::Path,
+    mission: &super::config::MissionConfig,
+    summary: &ServerSummary,
+    offline: &crate::experiment::team::TeamOutcome,
+    dt: f64,
+    command: &str,
+) -> anyhow::Result<String> {
+    use crate::plot::{self, Series};
+    use std::fmt::Write as _;
+    let max_diff = summary.mse.iter().zip(&offline.heterogeneous).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+    // Equal up to rounding: faer's kernels may round differently in another process (memory
+    // alignment picks the vector code path), so bit-for-bit is not promised.
+    let same = summary.mse.len() == offline.heterogeneous.len() && max_diff <= 1e-9 * offline.mean_heterogeneous.abs().max(f64::MIN_POSITIVE);
+    // The offline loop's convention: the mean over the steps after initialisation.
+    let init = mission.team.init_steps.min(summary.mse.len());
+    let network_mean = summary.mse[init..].iter().sum::<f64>() / (summary.mse.len() - init).max(1) as f64;
+    let t = &mission.team;
+    let mut md = String::new();
+    writeln!(md, "# Mission `{}`\n", summary.mission)?;
+    writeln!(md, "Command: `{command}`. The model server and {} vehicles ({} aerials, {} boats, radius {}) ran as separate processes over Zenoh; the truth is {} (mixed reality).\n",
+        summary.vehicles.len(), t.aerials, t.boats, t.radius,
+        match (&mission.truth.source.preset, &mission.truth.source.dataset) {
+            (Some(p), _) => format!("the {p:?} plasma cloud at {} x {}, {} frames, averaged by {}", mission.truth.grid[0], mission.truth.grid[1], mission.truth.frames, mission.truth.average),
+            (_, Some(d)) => format!("the dataset {}", d.display()),
+            _ => "?".into(),
+        })?;
+    writeln!(md, "## Estimation error (mean squared error over the {} steps after the {init} of initialisation)\n", summary.mse.len() - init)?;
+    writeln!(md, "| team | MSE |\n|---|---|")?;
+    writeln!(md, "| heterogeneous, over the network | {:.4e} |", network_mean)?;
+    writeln!(md, "| heterogeneous, offline loop (same truth and seed) | {:.4e} |", offline.mean_heterogeneous)?;
+    writeln!(md, "| aerials only | {:.4e} |", offline.mean_aerial_only)?;
+    writeln!(md, "| boats only | {:.4e} |\n", offline.mean_boat_only)?;
+    writeln!(md, "Network equals offline: **{}** (largest per-step difference {max_diff:.1e}).\n", if same { "yes, to 1e-9 relative" } else { "no" })?;
+    writeln!(md, "![MSE per step](mse.png)\n")?;
+    writeln!(md, "## Fleet\n")?;
+    let c = &summary.counters;
+    let rejected: u64 = c.rejected.values().sum();
+    writeln!(md, "| | |\n|---|---|")?;
+    writeln!(md, "| epochs assimilated | {} (model version {}, rank {}) |", summary.epochs, summary.model_version, summary.rank)?;
+    writeln!(md, "| batches received | {} ({} duplicates, {rejected} refused {:?}) |", c.batches, c.duplicates, c.rejected)?;
+    writeln!(md, "| last batch of an epoch to model published | p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms ({} epochs) |", summary.latency_ms.p50, summary.latency_ms.p99, summary.latency_ms.max, summary.latency_ms.count)?;
+    writeln!(md, "| liveliness tokens seen (link ups) | {} |", summary.link_ups.iter().map(|(k, v)| format!("{k} {v}")).collect::<Vec<_>>().join(", "))?;
+    writeln!(md, "| server wall time | {:.2} s |\n", summary.wall_s)?;
+    writeln!(md, "## Final model: continuous-time eigenvalues ln(lambda)/dt\n")?;
+    writeln!(md, "| # | growth rate | frequency (rad/s) |\n|---|---|---|")?;
+    for (j, l) in summary.eigenvalues.iter().enumerate() {
+        let z = num_complex::Complex64::new(l[0], l[1]).ln() / dt;
+        writeln!(md, "| {} | {:.4} | {:.4} |", j + 1, z.re, z.im)?;
+    }
+    let series = |name: &str, v: &[f64]| Series { name: name.into(), points: v.iter().enumerate().map(|(k, &e)| (k as f64, e)).collect() };
+    plot::lines(
+        dir.join("mse.png"),
+        &format!("Mission {}: estimation error per step", summary.mission),
+        "step",
+        "MSE",
+        &[series("heterogeneous (network)", &summary.mse), series("aerials only", &offline.aerial_only), series("boats only", &offline.boat_only)],
+        true,
+    )?;
+    std::fs::write(dir.join("report.md"), &md)?;
+    Ok(md)
+}

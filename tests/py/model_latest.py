@@ -1,0 +1,47 @@
+"""A Python eclipse-zenoh client reads the fleet's model: it asks `fleet/<mission>/model/latest`
+(the server answers with the newest model), decodes the CBOR, and checks the shapes and the
+eigenvalues against the server's summary.json. Exit 0 when every check holds.
+
+usage: model_latest.py <endpoint> <mission> <summary.json>
+"""
+import json
+import sys
+
+import cbor2
+import numpy as np
+import zenoh
+
+
+def main():
+    endpoint, mission, summary_path = sys.argv[1:4]
+    summary = json.load(open(summary_path))
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(conf) as session:
+        replies = list(session.get(f"fleet/{mission}/model/latest", timeout=10.0))
+    ok = [r.ok for r in replies if r.ok is not None]
+    assert ok, f"no model reply ({len(replies)} replies)"
+    sample = ok[0]
+    assert str(sample.encoding).startswith("application/cbor"), sample.encoding
+    m = cbor2.loads(sample.payload.to_bytes())
+    assert m["v"] == 1 and m["type"] == "model", (m["v"], m["type"])
+    rows, cols = m["grid"]["rows"], m["grid"]["cols"]
+    lam = np.array(m["eigenvalues"], dtype=float)
+    r = lam.shape[0]
+    modes = np.array(m["modes_re"]).reshape(rows * cols, r) + 1j * np.array(m["modes_im"]).reshape(rows * cols, r)
+    assert r == summary["rank"], (r, summary["rank"])
+    assert len(m["amplitudes"]) == r and len(m["variance"]) == rows * cols
+    assert m["version"] == summary["model_version"], (m["version"], summary["model_version"])
+    expected = np.array(summary["eigenvalues"], dtype=float)
+    assert np.allclose(lam, expected, rtol=0, atol=1e-12), (lam, expected)
+    # The forecast a client would make: Phi diag(lambda)^t alpha, finite and real-valued.
+    alpha = np.array(m["amplitudes"], dtype=float) @ np.array([1, 1j])
+    x1 = modes @ ((lam @ np.array([1, 1j])) * alpha)
+    assert np.all(np.isfinite(x1)) and np.abs(x1.imag).max() < 1e-6 * max(1.0, np.abs(x1.real).max())
+    print(f"python eclipse-zenoh {zenoh.__name__}: model v{m['version']} rank {r} on {rows}x{cols}, eigenvalues match")
+
+
+if __name__ == "__main__":
+    main()

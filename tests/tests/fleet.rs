@@ -1,0 +1,130 @@
+//! The fleet over real Zenoh sockets between separate processes: `fleet up`, a Python
+//! eclipse-zenoh client, and a vehicle on another network namespace.
+
+use fleet::experiment::team;
+use fleet::mission::config::MissionConfig;
+use fleet::mission::report::ServerSummary;
+use hetfleet_tests::*;
+use std::path::Path;
+
+/// The number of batches the mission's vehicles send (one per epoch each takes part in).
+fn expected_batches(m: &MissionConfig, frames: usize) -> u64 {
+    let s = m.schedule(frames);
+    m.vehicles().iter().map(|v| (0..s.epochs()).filter(|&e| s.seq_of(v.kind, e).is_some()).count() as u64).sum()
+}
+
+/// Every batch assimilated exactly once, and the networked model's error equal, step for
+/// step, to the offline loop's on the same truth and seed.
+fn check_against_offline(mission: &Path, summary: &ServerSummary) {
+    let m = MissionConfig::load(Some(mission)).unwrap();
+    let truth = m.truth(|_| {}).unwrap();
+    let offline = team::run(&m.team, &truth, |_, _| {}).unwrap();
+    let c = &summary.counters;
+    assert_eq!(c.rejected.values().sum::<u64>(), 0, "{:?}", c.rejected);
+    assert_eq!(c.batches - c.duplicates, expected_batches(&m, truth.frames()), "each batch assimilated once");
+    assert_eq!(summary.epochs, m.schedule(truth.frames()).epochs());
+    assert_eq!(summary.mse.len(), offline.heterogeneous.len());
+    for (k, (a, b)) in summary.mse.iter().zip(&offline.heterogeneous).enumerate() {
+        assert!((a - b).abs() <= 1e-9 * b.abs(), "step {k}: network {a} vs offline {b}");
+    }
+    assert_eq!(summary.rank, offline.rank);
+}
+
+#[test]
+fn fleet_up_runs_a_mission_that_equals_the_offline_loop() {
+    let dir = scratch("up");
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = tiny_mission(&dir, &[ep.clone()], &[ep]);
+    let out = dir.join("run");
+    let o = run("fleet", &["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "fleet up failed: {}\n{}", String::from_utf8_lossy(&o.stderr), String::from_utf8_lossy(&o.stdout));
+    let summary: ServerSummary = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    check_against_offline(&mission, &summary);
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(report.contains("Network equals offline: **yes"), "{report}");
+    assert!(out.join("mse.png").exists() && out.join("model.cbor").exists());
+    assert_eq!(summary.link_ups.len(), summary.vehicles.len(), "every vehicle was seen alive");
+}
+
+#[test]
+fn a_python_eclipse_zenoh_client_decodes_model_latest() {
+    let dir = scratch("py");
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = tiny_mission(&dir, &[ep.clone()], &[ep.clone()]);
+    let m = mission.to_str().unwrap();
+    let out = dir.join("out");
+    let mut procs = Procs::default();
+    let server = start_server(&mut procs, &["--mission", m, "--out", out.to_str().unwrap()], &dir.join("server.log"));
+    for v in MissionConfig::load(Some(&mission)).unwrap().vehicles() {
+        start_vehicle(&mut procs, &[], &["--mission", m, "--id", &v.id], &dir.join(format!("{}.log", v.id)));
+    }
+    server.finished(120);
+    let o = std::process::Command::new("python3")
+        .arg(root().join("tests/py/model_latest.py"))
+        .args([&ep, "tiny", out.join("summary.json").to_str().unwrap()])
+        .output()
+        .expect("python3");
+    assert!(o.status.success(), "the Python client failed (scripts/test.sh installs eclipse-zenoh and cbor2):\n{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    println!("{}", String::from_utf8_lossy(&o.stdout));
+}
+
+/// Run a command as root, panicking with its output if it fails.
+fn sh(args: &[&str]) {
+    let o = std::process::Command::new(args[0]).args(&args[1..]).output().unwrap_or_else(|e| panic!("{args:?}: {e}"));
+    assert!(o.status.success(), "{args:?}: {}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// A network namespace joined to this host by a veth link, removed when dropped.
+struct Netns(String);
+
+impl Drop for Netns {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("ip").args(["netns", "del", &self.0]).output();
+        let _ = std::process::Command::new("ip").args(["link", "del", &format!("{}a", self.0)]).output();
+    }
+}
+
+#[test]
+fn a_vehicle_on_another_host_reaches_the_server_through_its_router() {
+    let is_root = std::process::Command::new("id").arg("-u").output().map(|o| String::from_utf8_lossy(&o.stdout).trim() == "0").unwrap_or(false);
+    let has_ip = std::process::Command::new("ip").arg("-V").output().is_ok();
+    if !(is_root && has_ip) {
+        println!("SKIPPED: needs root and iproute2 for a network namespace (CI runs it as root)");
+        return;
+    }
+    // Host "boat" in its own namespace, 10.77.<x>.2, linked to this host's 10.77.<x>.1.
+    let x = std::process::id() % 200 + 20;
+    let ns = Netns(format!("hf{x}"));
+    let (here, there) = (format!("10.77.{x}.1"), format!("10.77.{x}.2"));
+    let (va, vb) = (format!("{}a", ns.0), format!("{}b", ns.0));
+    sh(&["ip", "netns", "add", &ns.0]);
+    sh(&["ip", "link", "add", &va, "type", "veth", "peer", "name", &vb]);
+    sh(&["ip", "link", "set", &vb, "netns", &ns.0]);
+    sh(&["ip", "addr", "add", &format!("{here}/24"), "dev", &va]);
+    sh(&["ip", "link", "set", &va, "up"]);
+    sh(&["ip", "netns", "exec", &ns.0, "ip", "addr", "add", &format!("{there}/24"), "dev", &vb]);
+    sh(&["ip", "netns", "exec", &ns.0, "ip", "link", "set", &vb, "up"]);
+    sh(&["ip", "netns", "exec", &ns.0, "ip", "link", "set", "lo", "up"]);
+
+    let dir = scratch("netns");
+    let port = free_port();
+    let (local, remote) = (format!("tcp/127.0.0.1:{port}"), format!("tcp/{here}:{port}"));
+    // The server routes on both: loopback for the vehicles here, the veth for the other host.
+    let mission = tiny_mission(&dir, &[local.clone(), remote.clone()], &[local]);
+    let m = mission.to_str().unwrap();
+    let mut procs = Procs::default();
+    let server = start_server(&mut procs, &["--mission", m], &dir.join("server.log"));
+    let prefix = ["ip", "netns", "exec", ns.0.as_str()];
+    for v in MissionConfig::load(Some(&mission)).unwrap().vehicles() {
+        let log = dir.join(format!("{}.log", v.id));
+        if v.id == "boat-1" {
+            start_vehicle(&mut procs, &prefix, &["--mission", m, "--id", &v.id, "--connect", &remote], &log);
+        } else {
+            start_vehicle(&mut procs, &[], &["--mission", m, "--id", &v.id], &log);
+        }
+    }
+    let summary = server.finished(120);
+    assert!(summary.link_ups.contains_key("boat-1"), "boat-1's liveliness crossed the link");
+    // Its own namespace cannot reach this host's loopback: the data came over the veth.
+    check_against_offline(&mission, &summary);
+}
