@@ -35,8 +35,9 @@ fn json_list(v: &[String]) -> String {
     serde_json::to_string(v).expect("a list of strings serialises")
 }
 
-/// The Zenoh configuration of a node: its role's JSON5 file from the mission (if any), then
-/// the role's mode and endpoints.
+/// The Zenoh configuration of a node: its role's JSON5 file (from the command line or the
+/// mission, if any), then the role's mode (the server a router, vehicles clients that retry
+/// forever) and endpoints.
 pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -> anyhow::Result<zenoh::Config> {
     let file = base.map(Path::to_path_buf).or_else(|| match role {
         Role::Server => net.server_config.clone(),
@@ -50,25 +51,28 @@ pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -
     // No multicast scouting: a fleet finds its router by its endpoints, and a shared network
     // must not see our nodes join its peers.
     set(&mut cfg, "scouting/multicast/enabled", "false")?;
-    match role {
-        Role::Server => {
-            set(&mut cfg, "mode", "\"router\"")?;
-            let listen = if cli.listen.is_empty() { &net.listen } else { &cli.listen };
-            if !listen.is_empty() {
-                set(&mut cfg, "listen/endpoints", &json_list(listen))?;
-            }
-            let connect = &cli.connect;
-            if !connect.is_empty() {
-                set(&mut cfg, "connect/endpoints", &json_list(connect))?;
-            }
+    // Endpoints: the command line's, else the JSON5 file's, else the mission's.
+    let pick = |cfg: &zenoh::Config, key: &str, cli: &[String], mission: &[String]| -> Option<String> {
+        if !cli.is_empty() {
+            return Some(json_list(cli));
         }
-        Role::Vehicle => {
-            set(&mut cfg, "mode", "\"client\"")?;
-            let connect = if cli.connect.is_empty() { &net.connect } else { &cli.connect };
-            set(&mut cfg, "connect/endpoints", &json_list(connect))?;
-            set(&mut cfg, "connect/timeout_ms", "-1")?;
-            set(&mut cfg, "connect/exit_on_failure", "false")?;
-        }
+        let in_file = file.is_some() && cfg.get_json(key).is_ok_and(|j| j.contains("/"));
+        (!in_file && !mission.is_empty()).then(|| json_list(mission))
+    };
+    let (mode, listen, connect) = match role {
+        Role::Server => ("\"router\"", pick(&cfg, "listen/endpoints", &cli.listen, &net.listen), pick(&cfg, "connect/endpoints", &cli.connect, &[])),
+        Role::Vehicle => ("\"client\"", None, pick(&cfg, "connect/endpoints", &cli.connect, &net.connect)),
+    };
+    set(&mut cfg, "mode", mode)?;
+    if let Some(l) = listen {
+        set(&mut cfg, "listen/endpoints", &l)?;
+    }
+    if let Some(c) = connect {
+        set(&mut cfg, "connect/endpoints", &c)?;
+    }
+    if role == Role::Vehicle {
+        set(&mut cfg, "connect/timeout_ms", "-1")?;
+        set(&mut cfg, "connect/exit_on_failure", "false")?;
     }
     Ok(cfg)
 }
@@ -144,5 +148,33 @@ impl NodeArgs {
     /// This node's Zenoh configuration.
     pub fn zenoh_config(&self, role: Role, net: &Network) -> anyhow::Result<zenoh::Config> {
         config(role, net, self.zenoh_config.as_deref(), &self.endpoints())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn root() -> std::path::PathBuf {
+        std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
+    }
+
+    #[test]
+    fn bundled_zenoh_configs_load_and_endpoints_take_precedence() {
+        let net = Network::default();
+        for f in ["router", "client", "peer"] {
+            zenoh::Config::from_file(root().join(format!("config/zenoh/{f}.json5"))).unwrap_or_else(|e| panic!("{f}.json5: {e}"));
+        }
+        let client = root().join("config/zenoh/client.json5");
+        // The file's endpoints beat the mission's; the command line's beat both.
+        let c = config(Role::Vehicle, &net, Some(&client), &Endpoints::default()).unwrap();
+        assert!(c.get_json("connect/endpoints").unwrap().contains("192.0.2.10"));
+        assert!(c.get_json("mode").unwrap().contains("client"));
+        let c = config(Role::Vehicle, &net, Some(&client), &Endpoints { listen: vec![], connect: vec!["tcp/10.0.0.1:7000".into()] }).unwrap();
+        assert!(c.get_json("connect/endpoints").unwrap().contains("10.0.0.1"));
+        let c = config(Role::Server, &net, None, &Endpoints::default()).unwrap();
+        assert!(c.get_json("listen/endpoints").unwrap().contains("127.0.0.1:7447"));
+        assert!(c.get_json("mode").unwrap().contains("router"));
+        assert!(config(Role::Server, &net, Some(Path::new("/nonexistent.json5")), &Endpoints::default()).is_err());
     }
 }
