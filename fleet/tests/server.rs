@@ -91,3 +91,31 @@ fn bad_batches_are_rejected_and_counted() {
     assert_eq!(server.counters.rejected.values().sum::<u64>(), 4);
     assert_eq!(server.next_epoch(), 0);
 }
+
+#[test]
+fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
+    let truth = plume_field(24, 48, 42, 0.0, 5);
+    let grid = Grid::new(24, 48, 1.0).unwrap();
+    let cfg = TeamConfig { aerials: 1, boats: 2, radius: 3.0, rank: "6".into(), init_steps: 10, aerial_stride: 3, ..TeamConfig::default() };
+    let server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
+    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+    let mut av = VehicleBrain::new("av-1", VehicleKind::Aerial, grid, *server.schedule(), server.assimilator().aerial_noise(), vehicle_rng(cfg.seed, 0), 1e3);
+    // Without a plan there is nothing to follow.
+    assert!(av.sense_epoch(0, x).is_err());
+    // Epoch 0's plan with a horizon of 3 epochs: the aerial senses epochs 0, 1 and 2 without
+    // hearing from the server again, with gap-free seqs; epoch 3 is beyond the horizon.
+    av.set_plan(server.plan("av-1", 0, 3).unwrap());
+    for e in 0..3 {
+        assert!(av.covers(e));
+        let b = av.sense_epoch(e, x).unwrap().unwrap();
+        assert_eq!(b.seq, e);
+        assert_eq!(b.samples.iter().map(|s| s.step as usize).collect::<Vec<_>>(), server.schedule().sample_steps(VehicleKind::Aerial, e));
+    }
+    assert!(!av.covers(3));
+    assert!(av.sense_epoch(3, x).is_err());
+    // A stale plan never replaces a newer one.
+    let newer = fleet::protocol::Plan { model_version: 5, ..server.plan("av-1", 0, 3).unwrap() };
+    av.set_plan(newer.clone());
+    av.set_plan(fleet::protocol::Plan { model_version: 4, targets: vec![], ..newer.clone() });
+    assert_eq!(av.plan(), Some(&newer));
+}
