@@ -112,6 +112,13 @@ fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
         assert_eq!(b.samples.iter().map(|s| s.step as usize).collect::<Vec<_>>(), server.schedule().sample_steps(VehicleKind::Aerial, e));
     }
     assert!(!av.covers(3));
+    // A vehicle restarted from a committed state draws exactly what it would have drawn.
+    let mut again = VehicleBrain::new("av-1", VehicleKind::Aerial, grid, *server.schedule(), server.assimilator().aerial_noise(), vehicle_rng(cfg.seed, 0), 1e3);
+    let mut first = VehicleBrain::new("av-1", VehicleKind::Aerial, grid, *server.schedule(), server.assimilator().aerial_noise(), vehicle_rng(cfg.seed, 0), 1e3);
+    first.set_plan(server.plan("av-1", 0, 3).unwrap());
+    first.sense_epoch(0, x).unwrap();
+    again.restore(first.state(1));
+    assert_eq!(again.sense_epoch(1, x).unwrap(), first.sense_epoch(1, x).unwrap());
     assert!(av.sense_epoch(3, x).is_err());
     // A stale plan never replaces a newer one.
     let newer = fleet::protocol::Plan { model_version: 5, ..server.plan("av-1", 0, 3).unwrap() };

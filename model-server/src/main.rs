@@ -17,6 +17,10 @@ pub struct Args {
     /// Write the summary (summary.json) and the final model (model.cbor) here at the end.
     #[arg(long)]
     pub out: Option<std::path::PathBuf>,
+    /// Where the journal of accepted batches lives (`<state-dir>/<mission>.redb`); a restart
+    /// replays it and carries on.
+    #[arg(long, default_value = "server-state")]
+    pub state_dir: std::path::PathBuf,
     /// Exit once the mission is finished and every vehicle has left (or `--linger-ms` later).
     #[arg(long)]
     pub exit_when_done: bool,

@@ -9,6 +9,7 @@ use fleet::mission::report::{Percentiles, ServerEvent, ServerSummary};
 use fleet::mission::server::{Ingested, ServerCore};
 use fleet::process::FieldSeries;
 use fleet::protocol::{self, keys::Keys, Body, Context, ServerStatus};
+use fleet_net::store::Store;
 use fleet_net::{zenoh, Role};
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::Write as _;
@@ -27,6 +28,9 @@ struct Server {
     link_ups: BTreeMap<String, u64>,
     latencies: Vec<f64>,
     mse: Vec<f64>,
+    /// Every accepted batch, durably, before it is acknowledged: the model is a pure function
+    /// of this set, so a restart replays it and carries on.
+    journal: Store,
     /// Reasons already logged (each refusal reason is logged once, then only counted).
     logged: BTreeSet<String>,
     started: Instant,
@@ -84,8 +88,12 @@ impl Server {
             self.refuse("key_mismatch", format!("{key} carries a batch of {}", batch.vehicle));
             return Ok(());
         }
-        let vehicle = batch.vehicle.clone();
-        match self.core.ingest(batch) {
+        let (vehicle, seq) = (batch.vehicle.clone(), batch.seq);
+        let ingested = self.core.ingest(batch);
+        if matches!(ingested, Ok(Ingested::Buffered | Ingested::Assimilated(_))) {
+            self.journal.commit(&[((vehicle.as_str(), seq), &sample.payload().to_bytes())], &[])?;
+        }
+        match ingested {
             Ok(Ingested::Assimilated(epochs)) => {
                 self.publish_model(session).await?;
                 let latency_ms = t0.elapsed().as_secs_f64() * 1e3;
@@ -204,13 +212,35 @@ impl Server {
     }
 }
 
+/// Replay the journal into a fresh core (a restart after a crash); returns how many batches.
+fn replay(journal: &Store, core: &mut ServerCore, ctx: &Context) -> anyhow::Result<u64> {
+    let mut n = 0;
+    for ((vehicle, seq), bytes) in journal.messages()? {
+        match protocol::decode(&bytes, ctx) {
+            Ok(Body::Batch(b)) => {
+                core.ingest(b).with_context(|| format!("replaying batch {seq} of {vehicle}"))?;
+                n += 1;
+            }
+            Ok(_) => anyhow::bail!("the journal holds a message that is not a batch ({vehicle}, {seq})"),
+            Err(e) => anyhow::bail!("the journal's batch {seq} of {vehicle} does not decode: {e}"),
+        }
+    }
+    core.counters.restored = n;
+    Ok(n)
+}
+
 pub async fn run(args: Args) -> anyhow::Result<()> {
     let (mission, truth) = args.node.load()?;
     let (grid, frames) = mission.workspace(&truth)?;
     let keys = Keys::new(&mission.mission)?;
-    let core = ServerCore::new(&mission.team, grid, frames)?;
+    let mut core = ServerCore::new(&mission.team, grid, frames)?;
     let mut ctx = Context::new(grid);
     ctx.vehicles = core.vehicles().iter().map(|v| v.id.clone()).collect();
+    let journal = Store::open(&args.state_dir.join(format!("{}.redb", mission.mission)))?;
+    let restored = replay(&journal, &mut core, &ctx)?;
+    if restored > 0 {
+        info!(restored, next_epoch = core.next_epoch(), "resumed from the journal");
+    }
     let session = fleet_net::open(args.node.zenoh_config(Role::Server, &mission.network)?).await?;
     let batches = session.declare_subscriber(keys.all_measurements()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let plans = session.declare_queryable(keys.all_plans()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
@@ -231,8 +261,18 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         mse: vec![],
         logged: BTreeSet::new(),
         started: Instant::now(),
+        journal,
         mission,
     };
+    // After a restart: the model and every vehicle's ack again, and the error of what is in.
+    if restored > 0 {
+        s.publish_model(&session).await?;
+        for v in s.core.vehicles().to_vec() {
+            s.ack(&session, &v.id).await?;
+        }
+        let done = s.core.schedule().steps_of(s.core.next_epoch()).start;
+        s.evaluate(0..done);
+    }
     info!(mission = s.mission.mission, epochs, vehicles = s.core.vehicles().len(), "model server up");
     emit(s.events, &ServerEvent::Ready { mission: s.mission.mission.clone(), epochs, vehicles: s.core.vehicles().iter().map(|v| v.id.clone()).collect() });
 

@@ -11,6 +11,8 @@ use zenoh::bytes::Encoding;
 use zenoh::sample::Sample;
 use zenoh::Session;
 
+pub mod store;
+
 pub use zenoh;
 
 /// What a node is on the network.

@@ -54,9 +54,11 @@ fn a_python_eclipse_zenoh_client_decodes_model_latest() {
     let m = mission.to_str().unwrap();
     let out = dir.join("out");
     let mut procs = Procs::default();
-    let server = start_server(&mut procs, &["--mission", m, "--out", out.to_str().unwrap()], &dir.join("server.log"));
+    let state = dir.join("state");
+    let st = state.to_str().unwrap();
+    let server = start_server(&mut procs, &["--mission", m, "--out", out.to_str().unwrap(), "--state-dir", st], &dir.join("server.log"));
     for v in MissionConfig::load(Some(&mission)).unwrap().vehicles() {
-        start_vehicle(&mut procs, &[], &["--mission", m, "--id", &v.id], &dir.join(format!("{}.log", v.id)));
+        start_vehicle(&mut procs, &[], &["--mission", m, "--id", &v.id, "--state-dir", st], &dir.join(format!("{}.log", v.id)));
     }
     server.finished(120);
     let o = std::process::Command::new("python3")
@@ -113,14 +115,16 @@ fn a_vehicle_on_another_host_reaches_the_server_through_its_router() {
     let mission = tiny_mission(&dir, &[local.clone(), remote.clone()], &[local]);
     let m = mission.to_str().unwrap();
     let mut procs = Procs::default();
-    let server = start_server(&mut procs, &["--mission", m], &dir.join("server.log"));
+    let st = dir.join("state");
+    let st = st.to_str().unwrap();
+    let server = start_server(&mut procs, &["--mission", m, "--state-dir", st], &dir.join("server.log"));
     let prefix = ["ip", "netns", "exec", ns.0.as_str()];
     for v in MissionConfig::load(Some(&mission)).unwrap().vehicles() {
         let log = dir.join(format!("{}.log", v.id));
         if v.id == "boat-1" {
-            start_vehicle(&mut procs, &prefix, &["--mission", m, "--id", &v.id, "--connect", &remote], &log);
+            start_vehicle(&mut procs, &prefix, &["--mission", m, "--id", &v.id, "--connect", &remote, "--state-dir", st], &log);
         } else {
-            start_vehicle(&mut procs, &[], &["--mission", m, "--id", &v.id], &log);
+            start_vehicle(&mut procs, &[], &["--mission", m, "--id", &v.id, "--state-dir", st], &log);
         }
     }
     let summary = server.finished(120);

@@ -15,6 +15,12 @@ pub struct Args {
     pub id: String,
     #[command(flatten)]
     pub node: fleet_net::NodeArgs,
+    /// Where the durable outbox lives (`<state-dir>/<id>.redb`); a restart resumes from it.
+    #[arg(long, default_value = "vehicle-state")]
+    pub state_dir: std::path::PathBuf,
+    /// Bound of the outbox on disk (MiB); when full the vehicle holds until acks make room.
+    #[arg(long, default_value_t = 256)]
+    pub outbox_limit_mb: u64,
     /// Give up waiting for the final acknowledgement after this long (ms).
     #[arg(long, default_value_t = 60_000)]
     pub final_ack_ms: u64,

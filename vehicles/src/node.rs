@@ -4,32 +4,80 @@
 //! covers it (re-sent every `resend_ms`).
 
 use crate::Args;
-use fleet::mission::vehicle::VehicleBrain;
+use fleet::mission::vehicle::{BrainState, VehicleBrain};
 use fleet::mission::vehicle_rng;
 use fleet::protocol::{self, keys::Keys, Body, Context, LinkState, Telemetry};
+use fleet_net::store::Store;
 use fleet_net::{zenoh, Role};
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 use tracing::{debug, info, warn};
 use zenoh::sample::SampleKind;
 
-/// Batches sent and not yet acknowledged, by seq. (Kept in memory here; the durable outbox
-/// is its own issue.)
+/// Batches not yet acknowledged, on disk: each is committed (with the vehicle's state) before
+/// it is sent, re-sent until the server's ack covers it, and removed only then. It survives
+/// `kill -9`; past `limit` bytes the vehicle stops sensing until acks make room (no batch is
+/// ever dropped), with a warning at 80%.
 struct Outbox {
-    batches: BTreeMap<u64, (Vec<u8>, Instant)>,
+    store: Store,
+    id: String,
     acked: Option<u64>,
+    /// When each held batch was last sent (restored batches: never, so they go at once).
+    sent: BTreeMap<u64, Instant>,
+    limit: u64,
+    warned: bool,
 }
 
 impl Outbox {
-    fn ack(&mut self, seq: u64) {
-        if self.acked.is_none_or(|a| seq > a) {
-            self.acked = Some(seq);
+    fn open(path: &std::path::Path, id: &str, limit: u64) -> anyhow::Result<Self> {
+        let store = Store::open(path)?;
+        let acked = store.meta("acked")?.and_then(|b| String::from_utf8(b).ok()).and_then(|s| s.parse().ok());
+        Ok(Self { store, id: id.into(), acked, sent: BTreeMap::new(), limit, warned: false })
+    }
+
+    fn state(&self) -> anyhow::Result<Option<BrainState>> {
+        match self.store.meta("state")? {
+            Some(b) => Ok(Some(ciborium::from_reader(&b[..]).map_err(|e| anyhow::anyhow!("the stored vehicle state is unreadable: {e}"))?)),
+            None => Ok(None),
         }
-        self.batches.retain(|&s, _| s > seq);
+    }
+
+    /// Commit a batch and the state after it, in one transaction.
+    fn commit(&mut self, seq: u64, bytes: &[u8], state: &BrainState) -> anyhow::Result<()> {
+        let mut st = vec![];
+        ciborium::into_writer(state, &mut st).expect("state serialises");
+        self.store.commit(&[((self.id.as_str(), seq), bytes)], &[("state", &st)])?;
+        let (used, _) = self.store.size();
+        if used * 5 >= self.limit * 4 && !self.warned {
+            warn!(used, limit = self.limit, "outbox at 80% of its bound: the vehicle will pause sensing when it is full");
+            self.warned = true;
+        }
+        Ok(())
+    }
+
+    fn ack(&mut self, seq: u64) -> anyhow::Result<()> {
+        if self.acked.is_some_and(|a| seq <= a) {
+            return Ok(());
+        }
+        self.store.remove_through(&self.id, seq, &[("acked", seq.to_string().as_bytes())])?;
+        self.acked = Some(seq);
+        self.sent.retain(|&s, _| s > seq);
+        if self.store.size().0 * 5 < self.limit * 4 {
+            self.warned = false;
+        }
+        Ok(())
     }
 
     fn covers(&self, seq: u64) -> bool {
         self.acked.is_some_and(|a| a >= seq)
+    }
+
+    fn depth(&self) -> u64 {
+        self.store.size().1
+    }
+
+    fn full(&self) -> bool {
+        self.store.size().0 >= self.limit
     }
 }
 
@@ -51,7 +99,9 @@ impl Vehicle {
         while let Ok(Some(s)) = acks.try_recv() {
             match fleet_net::decode(&s, &self.ctx) {
                 Ok(Body::Ack(a)) if a.vehicle == self.brain.id => {
-                    self.outbox.ack(a.seq);
+                    if let Err(e) = self.outbox.ack(a.seq) {
+                        warn!("recording ack {}: {e:#}", a.seq);
+                    }
                     got = true;
                 }
                 Ok(_) => warn!("ignored a message on the ack key that is not our ack"),
@@ -68,17 +118,23 @@ impl Vehicle {
         got
     }
 
-    async fn resend_due(&mut self, session: &zenoh::Session) {
-        let key = self.keys.measurements(&self.brain.id);
-        for (seq, (bytes, sent)) in self.outbox.batches.iter_mut() {
-            if sent.elapsed() >= self.resend {
-                debug!(seq, "re-sending");
-                if let Err(e) = session.put(&key, bytes.clone()).encoding(fleet_net::encoding()).await {
-                    warn!("re-sending batch {seq}: {e}");
-                }
-                *sent = Instant::now();
-            }
+    async fn resend_due(&mut self, session: &zenoh::Session) -> anyhow::Result<()> {
+        let due: Vec<u64> = {
+            let held: Vec<u64> = self.outbox.store.messages()?.into_iter().map(|((_, seq), _)| seq).collect();
+            held.into_iter().filter(|s| self.outbox.sent.get(s).is_none_or(|t| t.elapsed() >= self.resend)).collect()
+        };
+        if due.is_empty() {
+            return Ok(());
         }
+        let key = self.keys.measurements(&self.brain.id);
+        for ((_, seq), bytes) in self.outbox.store.messages()?.into_iter().filter(|((_, s), _)| due.contains(s)) {
+            debug!(seq, "sending from the outbox");
+            if let Err(e) = session.put(&key, bytes).encoding(fleet_net::encoding()).await {
+                warn!("sending batch {seq}: {e}");
+            }
+            self.outbox.sent.insert(seq, Instant::now());
+        }
+        Ok(())
     }
 
     /// Ask the server for the plan from epoch `e`; `Ok(false)` when it has none yet.
@@ -110,7 +166,7 @@ impl Vehicle {
             // A simulated battery: linear drain over the mission.
             battery: (1.0 - 0.5 * self.step as f64 / self.brain.schedule().frames.max(1) as f64).clamp(0.0, 1.0),
             link: if self.server_alive { LinkState::Up } else { LinkState::Down },
-            outbox_depth: self.outbox.batches.len() as u64,
+            outbox_depth: self.outbox.depth(),
         };
         if let Err(e) = fleet_net::put(session, &self.keys.telemetry(&self.brain.id), &Body::Telemetry(t)).await {
             warn!("telemetry: {e}");
@@ -133,13 +189,34 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let acks = session.declare_subscriber(keys.ack(&args.id)).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let links = session.liveliness().declare_subscriber(keys.alive("server")).history(true).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let pace = mission.pace.clone();
-    let mut v = Vehicle { keys, ctx, brain, outbox: Outbox { batches: BTreeMap::new(), acked: None }, server_alive: false, resend: Duration::from_millis(pace.resend_ms), step: 0, args };
+    let outbox = Outbox::open(&args.state_dir.join(format!("{}.redb", args.id)), &args.id, args.outbox_limit_mb << 20)?;
+    let mut v = Vehicle { keys, ctx, brain, outbox, server_alive: false, resend: Duration::from_millis(pace.resend_ms), step: 0, args };
+    let first = match v.outbox.state()? {
+        Some(state) => {
+            let e = state.next_epoch;
+            v.brain.restore(state);
+            info!(vehicle = v.brain.id, epoch = e, unacknowledged = v.outbox.depth(), "resuming from the outbox");
+            e
+        }
+        None => 0,
+    };
     info!(vehicle = v.brain.id, ?kind, epochs = schedule.epochs(), "vehicle up");
 
     let truth_at = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
-    for e in 0..schedule.epochs() {
+    for e in first..schedule.epochs() {
         if schedule.seq_of(kind, e).is_none() {
             continue;
+        }
+        // A full outbox holds sensing until acks make room (nothing is dropped).
+        let mut said = false;
+        while v.outbox.full() {
+            if !said {
+                warn!(depth = v.outbox.depth(), "outbox full: holding until the server acknowledges");
+                said = true;
+            }
+            v.absorb(&acks, &links);
+            v.resend_due(&session).await?;
+            tokio::time::sleep(Duration::from_millis(50)).await;
         }
         // The plan of this epoch: asked when an ack says the model moved, or every 250 ms.
         let deadline = Instant::now() + Duration::from_millis(pace.plan_timeout_ms);
@@ -161,7 +238,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
                 if v.absorb(&acks, &links) {
                     break;
                 }
-                v.resend_due(&session).await;
+                v.resend_due(&session).await?;
                 tokio::time::sleep(Duration::from_millis(5)).await;
             }
         }
@@ -172,8 +249,12 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         v.step = steps.end.saturating_sub(1) as u64;
         if let Some(batch) = v.brain.sense_epoch(e, truth_at)? {
             let bytes = protocol::encode(&Body::Batch(batch.clone()));
-            session.put(v.keys.measurements(&v.brain.id), bytes.clone()).encoding(fleet_net::encoding()).await.map_err(|err| anyhow::anyhow!("{err}"))?;
-            v.outbox.batches.insert(batch.seq, (bytes, Instant::now()));
+            // Durable first, then sent: a crash in between re-sends it after the restart.
+            v.outbox.commit(batch.seq, &bytes, &v.brain.state(e + 1))?;
+            if let Err(err) = session.put(v.keys.measurements(&v.brain.id), bytes).encoding(fleet_net::encoding()).await {
+                warn!("sending batch {}: {err} (kept in the outbox)", batch.seq);
+            }
+            v.outbox.sent.insert(batch.seq, Instant::now());
         }
         v.absorb(&acks, &links);
         v.telemetry(&session).await;
@@ -188,9 +269,9 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             break;
         }
         if Instant::now() > deadline {
-            anyhow::bail!("{}: batch {last} not acknowledged after {} ms ({} unacknowledged)", v.brain.id, v.args.final_ack_ms, v.outbox.batches.len());
+            anyhow::bail!("{}: batch {last} not acknowledged after {} ms ({} unacknowledged, kept in {})", v.brain.id, v.args.final_ack_ms, v.outbox.depth(), v.outbox.store.path().display());
         }
-        v.resend_due(&session).await;
+        v.resend_due(&session).await?;
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     v.telemetry(&session).await;

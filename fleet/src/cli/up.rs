@@ -78,8 +78,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     fleet::process::dataset::save(&truth_path, &truth, None)?;
     println!("mission {}: {} x {} grid, {frames} steps, {} vehicles (truth made in {:.1} s)", mission.mission, grid.rows, grid.cols, mission.vehicles().len(), t0.elapsed().as_secs_f64());
 
+    // A new run starts from empty outboxes and an empty journal.
+    let state = out.join("state");
+    let _ = std::fs::remove_dir_all(&state);
     let node_args = |c: &mut Command| {
-        c.arg("--mission").arg(&mission_path).arg("--truth").arg(&truth_path);
+        c.arg("--mission").arg(&mission_path).arg("--truth").arg(&truth_path).arg("--state-dir").arg(&state);
     };
     let mut fleet = Fleet(vec![]);
     let mut server = Command::new(&server_bin);

@@ -57,6 +57,9 @@ pub struct Counters {
     pub duplicates: u64,
     pub rejected: BTreeMap<String, u64>,
     pub epochs: u64,
+    /// Batches replayed from the journal at a restart (included in `batches`).
+    #[serde(default)]
+    pub restored: u64,
 }
 
 pub struct ServerCore {

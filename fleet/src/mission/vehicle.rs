@@ -13,6 +13,20 @@ use crate::grid::Grid;
 use crate::protocol::{MeasurementBatch, Plan, Sample, Target, VehicleKind};
 use rand_chacha::ChaCha8Rng;
 
+/// What a vehicle must keep across a crash to carry on exactly where it was: the next epoch
+/// to sense, its random stream's position, its plan and where it is. Committed with each batch
+/// (in the same transaction), so a restart neither repeats nor skips a draw.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct BrainState {
+    pub next_epoch: u64,
+    /// The random stream's word position, high and low halves.
+    rng_word_pos: [u64; 2],
+    plan: Option<Plan>,
+    position: Option<(f64, f64)>,
+    last_step: Option<usize>,
+    off_target: u64,
+}
+
 pub struct VehicleBrain {
     pub id: String,
     pub kind: VehicleKind,
@@ -45,6 +59,18 @@ impl VehicleBrain {
 
     pub fn plan(&self) -> Option<&Plan> {
         self.plan.as_ref()
+    }
+
+    /// The state to commit once everything before `next_epoch` is sensed.
+    pub fn state(&self, next_epoch: u64) -> BrainState {
+        let w = self.rng.get_word_pos();
+        BrainState { next_epoch, rng_word_pos: [(w >> 64) as u64, w as u64], plan: self.plan.clone(), position: self.position, last_step: self.last_step, off_target: self.off_target }
+    }
+
+    /// Carry on from a committed state.
+    pub fn restore(&mut self, s: BrainState) {
+        self.rng.set_word_pos(((s.rng_word_pos[0] as u128) << 64) | s.rng_word_pos[1] as u128);
+        (self.plan, self.position, self.last_step, self.off_target) = (s.plan, s.position, s.last_step, s.off_target);
     }
 
     /// Take a plan unless it is older than the one held.
