@@ -72,6 +72,9 @@ pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -
     if let Some(c) = connect {
         set(&mut cfg, "connect/endpoints", &c)?;
     }
+    if let Some(lease) = net.lease_ms {
+        set(&mut cfg, "transport/link/tx/lease", &lease.to_string())?;
+    }
     if role == Role::Vehicle {
         set(&mut cfg, "connect/timeout_ms", "-1")?;
         set(&mut cfg, "connect/exit_on_failure", "false")?;

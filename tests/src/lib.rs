@@ -68,9 +68,12 @@ impl Drop for Procs {
 /// The model server started with `--events`; its events arrive on `events`.
 pub struct Server {
     pub events: std::sync::mpsc::Receiver<fleet::mission::report::ServerEvent>,
+    /// Its place in the `Procs` it was started into.
+    pub index: usize,
 }
 
-/// Start `model-server` with `args` (plus `--events`), stderr to `log`.
+/// Start `model-server` with `args` (plus `--events`), stderr to `log` (appended, so a
+/// restarted server's log follows the first one's).
 pub fn start_server(procs: &mut Procs, args: &[&str], log: &std::path::Path) -> Server {
     use std::io::BufRead;
     let mut child = Command::new(bin("model-server"))
@@ -78,7 +81,7 @@ pub fn start_server(procs: &mut Procs, args: &[&str], log: &std::path::Path) -> 
         .arg("--events")
         .current_dir(root())
         .stdout(std::process::Stdio::piped())
-        .stderr(std::fs::File::create(log).expect("server log"))
+        .stderr(std::fs::OpenOptions::new().create(true).append(true).open(log).expect("server log"))
         .spawn()
         .expect("starting model-server (build with `cargo build --release --workspace`)");
     let out = child.stdout.take().expect("piped");
@@ -93,10 +96,23 @@ pub fn start_server(procs: &mut Procs, args: &[&str], log: &std::path::Path) -> 
             }
         }
     });
-    Server { events: rx }
+    Server { events: rx, index: procs.0.len() - 1 }
 }
 
 impl Server {
+    /// Wait until epoch `e` is in the model (panics after `secs`).
+    pub fn epoch(&self, e: u64, secs: u64) {
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(secs);
+        loop {
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            match self.events.recv_timeout(left) {
+                Ok(fleet::mission::report::ServerEvent::Epoch { epoch, .. }) if epoch >= e => return,
+                Ok(_) => {}
+                Err(err) => panic!("epoch {e} not reached in {secs} s: {err}"),
+            }
+        }
+    }
+
     /// Wait for the mission's summary (panics after `secs`).
     pub fn finished(&self, secs: u64) -> fleet::mission::report::ServerSummary {
         let deadline = std::time::Instant::now() + std::time::Duration::from_secs(secs);
@@ -112,7 +128,8 @@ impl Server {
 }
 
 /// Start a vehicle node: `prefix` runs it under another command (e.g. `ip netns exec ns`).
-pub fn start_vehicle(procs: &mut Procs, prefix: &[&str], args: &[&str], log: &std::path::Path) {
+/// Returns its place in `procs`. The log is appended to (restarts follow on).
+pub fn start_vehicle(procs: &mut Procs, prefix: &[&str], args: &[&str], log: &std::path::Path) -> usize {
     let mut cmd = match prefix.split_first() {
         Some((p, rest)) => {
             let mut c = Command::new(p);
@@ -121,6 +138,126 @@ pub fn start_vehicle(procs: &mut Procs, prefix: &[&str], args: &[&str], log: &st
         }
         None => Command::new(bin("vehicle")),
     };
-    let child = cmd.args(args).current_dir(root()).stderr(std::fs::File::create(log).expect("vehicle log")).spawn().expect("starting a vehicle");
+    let log = std::fs::OpenOptions::new().create(true).append(true).open(log).expect("vehicle log");
+    let child = cmd.args(args).current_dir(root()).stderr(log).spawn().expect("starting a vehicle");
     procs.0.push(child);
+    procs.0.len() - 1
+}
+
+impl Procs {
+    /// `kill -9` one of them.
+    pub fn kill(&mut self, i: usize) {
+        self.0[i].kill().expect("SIGKILL");
+        self.0[i].wait().expect("reaped");
+    }
+
+    /// Wait for every process to exit successfully (killed ones are already reaped).
+    pub fn wait_all(&mut self, secs: u64) {
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(secs);
+        for c in &mut self.0 {
+            loop {
+                match c.try_wait().expect("try_wait") {
+                    Some(s) => {
+                        // Killed on purpose (SIGKILL) or finished: only a failure is an error.
+                        use std::os::unix::process::ExitStatusExt;
+                        assert!(s.success() || s.signal() == Some(9), "a node failed: {s}");
+                        break;
+                    }
+                    None if std::time::Instant::now() > deadline => panic!("a node did not exit in {secs} s"),
+                    None => std::thread::sleep(std::time::Duration::from_millis(50)),
+                }
+            }
+        }
+    }
+}
+
+/// Replace `from` by `to` in a text file (tests adjust a mission).
+pub fn edit(path: &std::path::Path, from: &str, to: &str) {
+    let text = std::fs::read_to_string(path).expect("reading");
+    assert!(text.contains(from), "{from:?} not in {}", path.display());
+    std::fs::write(path, text.replace(from, to)).expect("writing");
+}
+
+/// The number of batches a mission's vehicles send (one per epoch each takes part in).
+pub fn expected_batches(m: &fleet::mission::config::MissionConfig, frames: usize) -> u64 {
+    let s = m.schedule(frames);
+    m.vehicles().iter().map(|v| (0..s.epochs()).filter(|&e| s.seq_of(v.kind, e).is_some()).count() as u64).sum()
+}
+
+/// A degraded radio link in user space, for kernels without `netem`: a UDP relay between
+/// Zenoh's UDP endpoints that drops a fraction of the datagrams each way and delays the rest
+/// by a random 0..`jitter_ms` (so they also arrive out of order). Seeded.
+pub struct LossyRelay {
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    pub passed: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    pub dropped: std::sync::Arc<std::sync::atomic::AtomicU64>,
+}
+
+impl Drop for LossyRelay {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::SeqCst);
+    }
+}
+
+pub fn lossy_udp_relay(listen_port: u16, upstream: std::net::SocketAddr, loss: f64, jitter_ms: u64, seed: u64) -> LossyRelay {
+    use rand::{RngExt, SeedableRng};
+    use std::net::UdpSocket;
+    use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+    use std::sync::{Arc, Mutex};
+    let stop = Arc::new(AtomicBool::new(false));
+    let (passed, dropped) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
+    let front = Arc::new(UdpSocket::bind(("127.0.0.1", listen_port)).expect("relay port"));
+    front.set_read_timeout(Some(std::time::Duration::from_millis(100))).unwrap();
+    let rng = Arc::new(Mutex::new(rand_chacha::ChaCha8Rng::seed_from_u64(seed)));
+    // Forward one datagram, maybe: dropped, or sent after a random delay.
+    let forward = {
+        let (rng, passed, dropped) = (rng.clone(), passed.clone(), dropped.clone());
+        move |sock: Arc<UdpSocket>, to: Option<std::net::SocketAddr>, data: Vec<u8>| {
+            let (lose, delay) = {
+                let mut r = rng.lock().unwrap();
+                (r.random::<f64>() < loss, r.random_range(0..=jitter_ms))
+            };
+            if lose {
+                dropped.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
+            passed.fetch_add(1, Ordering::Relaxed);
+            std::thread::spawn(move || {
+                std::thread::sleep(std::time::Duration::from_millis(delay));
+                let _ = match to {
+                    Some(a) => sock.send_to(&data, a),
+                    None => sock.send(&data),
+                };
+            });
+        }
+    };
+    let s = stop.clone();
+    std::thread::spawn(move || {
+        let mut clients: std::collections::HashMap<std::net::SocketAddr, Arc<UdpSocket>> = Default::default();
+        let mut buf = vec![0u8; 65536];
+        while !s.load(Ordering::SeqCst) {
+            let Ok((n, from)) = front.recv_from(&mut buf) else { continue };
+            let up = clients
+                .entry(from)
+                .or_insert_with(|| {
+                    // One upstream socket per client, and a thread carrying the replies back.
+                    let up = Arc::new(UdpSocket::bind("127.0.0.1:0").expect("upstream socket"));
+                    up.connect(upstream).expect("upstream");
+                    up.set_read_timeout(Some(std::time::Duration::from_millis(100))).unwrap();
+                    let (up2, front2, s2, fwd) = (up.clone(), front.clone(), s.clone(), forward.clone());
+                    std::thread::spawn(move || {
+                        let mut buf = vec![0u8; 65536];
+                        while !s2.load(Ordering::SeqCst) {
+                            if let Ok(n) = up2.recv(&mut buf) {
+                                fwd(front2.clone(), Some(from), buf[..n].to_vec());
+                            }
+                        }
+                    });
+                    up
+                })
+                .clone();
+            forward(up, None, buf[..n].to_vec());
+        }
+    });
+    LossyRelay { stop, passed, dropped }
 }

@@ -7,12 +7,6 @@ use fleet::mission::report::ServerSummary;
 use hetfleet_tests::*;
 use std::path::Path;
 
-/// The number of batches the mission's vehicles send (one per epoch each takes part in).
-fn expected_batches(m: &MissionConfig, frames: usize) -> u64 {
-    let s = m.schedule(frames);
-    m.vehicles().iter().map(|v| (0..s.epochs()).filter(|&e| s.seq_of(v.kind, e).is_some()).count() as u64).sum()
-}
-
 /// Every batch assimilated exactly once, and the networked model's error equal, step for
 /// step, to the offline loop's on the same truth and seed.
 fn check_against_offline(mission: &Path, summary: &ServerSummary) {

@@ -53,11 +53,13 @@ pub struct Network {
     /// Optional Zenoh JSON5 configs, applied before the endpoints above.
     pub server_config: Option<std::path::PathBuf>,
     pub vehicle_config: Option<std::path::PathBuf>,
+    /// Zenoh link lease (ms): how soon a silent link counts as lost (Zenoh's default 10 s).
+    pub lease_ms: Option<u64>,
 }
 
 impl Default for Network {
     fn default() -> Self {
-        Self { listen: vec!["tcp/127.0.0.1:7447".into()], connect: vec!["tcp/127.0.0.1:7447".into()], server_config: None, vehicle_config: None }
+        Self { listen: vec!["tcp/127.0.0.1:7447".into()], connect: vec!["tcp/127.0.0.1:7447".into()], server_config: None, vehicle_config: None, lease_ms: None }
     }
 }
 
