@@ -261,3 +261,69 @@ pub fn lossy_udp_relay(listen_port: u16, upstream: std::net::SocketAddr, loss: f
     });
     LossyRelay { stop, passed, dropped }
 }
+
+/// Whether this process may make network namespaces (root with iproute2).
+pub fn is_root_with_ip() -> bool {
+    let root = std::process::Command::new("id").arg("-u").output().map(|o| String::from_utf8_lossy(&o.stdout).trim() == "0").unwrap_or(false);
+    root && std::process::Command::new("ip").arg("-V").output().is_ok()
+}
+
+/// Run a command, panicking with its output if it fails.
+pub fn sh(args: &[&str]) {
+    let o = std::process::Command::new(args[0]).args(&args[1..]).output().unwrap_or_else(|e| panic!("{args:?}: {e}"));
+    assert!(o.status.success(), "{args:?}: {}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// Another host: a network namespace behind a veth link, removed when dropped.
+pub struct Host {
+    pub ns: String,
+    /// This host's address on the link, and the other host's.
+    pub here: String,
+    pub there: String,
+}
+
+impl Host {
+    pub fn new(tag: u32) -> Self {
+        let x = (std::process::id() + tag) % 200 + 20;
+        let h = Host { ns: format!("hft{x}"), here: format!("10.78.{x}.1"), there: format!("10.78.{x}.2") };
+        let (va, vb) = (h.veth(), format!("{}b", h.ns));
+        sh(&["ip", "netns", "add", &h.ns]);
+        sh(&["ip", "link", "add", &va, "type", "veth", "peer", "name", &vb]);
+        sh(&["ip", "link", "set", &vb, "netns", &h.ns]);
+        sh(&["ip", "addr", "add", &format!("{}/24", h.here), "dev", &va]);
+        sh(&["ip", "link", "set", &va, "up"]);
+        sh(&["ip", "netns", "exec", &h.ns, "ip", "addr", "add", &format!("{}/24", h.there), "dev", &vb]);
+        sh(&["ip", "netns", "exec", &h.ns, "ip", "link", "set", &vb, "up"]);
+        sh(&["ip", "netns", "exec", &h.ns, "ip", "link", "set", "lo", "up"]);
+        h
+    }
+
+    /// This side of the link.
+    pub fn veth(&self) -> String {
+        format!("{}a", self.ns)
+    }
+}
+
+impl Drop for Host {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("ip").args(["netns", "del", &self.ns]).output();
+        let _ = std::process::Command::new("ip").args(["link", "del", &self.veth()]).output();
+    }
+}
+
+
+/// Start every vehicle of `mission` with its outbox under `state` and its log in `dir`; the
+/// vehicle `away` (if any) runs on another host (`ip netns exec <ns>`) and connects to
+/// `endpoint` there.
+pub fn start_vehicles(procs: &mut Procs, mission: &std::path::Path, state: &str, dir: &std::path::Path, away: Option<(&str, &Host, &str)>) {
+    let m = mission.to_str().expect("utf-8 path");
+    for v in fleet::mission::config::MissionConfig::load(Some(mission)).expect("mission").vehicles() {
+        let log = dir.join(format!("{}.log", v.id));
+        match away {
+            Some((id, host, endpoint)) if id == v.id => {
+                start_vehicle(procs, &["ip", "netns", "exec", host.ns.as_str()], &["--mission", m, "--id", &v.id, "--connect", endpoint, "--state-dir", state], &log)
+            }
+            _ => start_vehicle(procs, &[], &["--mission", m, "--id", &v.id, "--state-dir", state], &log),
+        };
+    }
+}

@@ -95,52 +95,6 @@ fn kill_9_of_the_server_and_of_a_boat_loses_nothing_and_counts_nothing_twice() {
     println!("kill -9: restored {} batches, {} duplicates re-sent and dropped", summary.counters.restored, summary.counters.duplicates);
 }
 
-fn is_root_with_ip() -> bool {
-    let root = std::process::Command::new("id").arg("-u").output().map(|o| String::from_utf8_lossy(&o.stdout).trim() == "0").unwrap_or(false);
-    root && std::process::Command::new("ip").arg("-V").output().is_ok()
-}
-
-fn sh(args: &[&str]) {
-    let o = std::process::Command::new(args[0]).args(&args[1..]).output().unwrap_or_else(|e| panic!("{args:?}: {e}"));
-    assert!(o.status.success(), "{args:?}: {}", String::from_utf8_lossy(&o.stderr));
-}
-
-/// Another host: a network namespace behind a veth link, removed when dropped.
-struct Host {
-    ns: String,
-    here: String,
-    there: String,
-}
-
-impl Host {
-    fn new(tag: u32) -> Self {
-        let x = (std::process::id() + tag) % 200 + 20;
-        let h = Host { ns: format!("hft{x}"), here: format!("10.78.{x}.1"), there: format!("10.78.{x}.2") };
-        let (va, vb) = (h.veth(), format!("{}b", h.ns));
-        sh(&["ip", "netns", "add", &h.ns]);
-        sh(&["ip", "link", "add", &va, "type", "veth", "peer", "name", &vb]);
-        sh(&["ip", "link", "set", &vb, "netns", &h.ns]);
-        sh(&["ip", "addr", "add", &format!("{}/24", h.here), "dev", &va]);
-        sh(&["ip", "link", "set", &va, "up"]);
-        sh(&["ip", "netns", "exec", &h.ns, "ip", "addr", "add", &format!("{}/24", h.there), "dev", &vb]);
-        sh(&["ip", "netns", "exec", &h.ns, "ip", "link", "set", &vb, "up"]);
-        sh(&["ip", "netns", "exec", &h.ns, "ip", "link", "set", "lo", "up"]);
-        h
-    }
-
-    /// This side of the link.
-    fn veth(&self) -> String {
-        format!("{}a", self.ns)
-    }
-}
-
-impl Drop for Host {
-    fn drop(&mut self) {
-        let _ = std::process::Command::new("ip").args(["netns", "del", &self.ns]).output();
-        let _ = std::process::Command::new("ip").args(["link", "del", &self.veth()]).output();
-    }
-}
-
 #[test]
 fn a_boat_whose_link_drops_on_a_schedule_loses_nothing() {
     if !is_root_with_ip() {
@@ -157,15 +111,7 @@ fn a_boat_whose_link_drops_on_a_schedule_loses_nothing() {
     let st = state.to_str().unwrap();
     let mut procs = Procs::default();
     let server = start_server(&mut procs, &["--mission", m, "--out", out.to_str().unwrap(), "--state-dir", st, "--exit-when-done"], &dir.join("server.log"));
-    let prefix = ["ip", "netns", "exec", host.ns.as_str()];
-    for v in MissionConfig::load(Some(&mission)).unwrap().vehicles() {
-        let log = dir.join(format!("{}.log", v.id));
-        if v.id == "boat-1" {
-            start_vehicle(&mut procs, &prefix, &["--mission", m, "--id", &v.id, "--connect", &remote, "--state-dir", st], &log);
-        } else {
-            start_vehicle(&mut procs, &[], &["--mission", m, "--id", &v.id, "--state-dir", st], &log);
-        }
-    }
+    start_vehicles(&mut procs, &mission, st, &dir, Some(("boat-1", &host, &remote)));
     // Seeded outages of the boat's link while the mission runs: down 0.5-2.5 s, up 0.3-1 s.
     server.epoch(0, 60);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
@@ -202,9 +148,7 @@ fn thirty_percent_loss_with_reordering_on_every_link() {
     let st = state.to_str().unwrap();
     let mut procs = Procs::default();
     let server = start_server(&mut procs, &["--mission", m, "--out", out.to_str().unwrap(), "--state-dir", st, "--exit-when-done"], &dir.join("server.log"));
-    for v in MissionConfig::load(Some(&mission)).unwrap().vehicles() {
-        start_vehicle(&mut procs, &[], &["--mission", m, "--id", &v.id, "--state-dir", st], &dir.join(format!("{}.log", v.id)));
-    }
+    start_vehicles(&mut procs, &mission, st, &dir, None);
     let summary = server.finished(300);
     procs.wait_all(120);
     check_exactly_once_and_same_model(&mission, &state, &out);

@@ -51,9 +51,7 @@ fn a_python_eclipse_zenoh_client_decodes_model_latest() {
     let state = dir.join("state");
     let st = state.to_str().unwrap();
     let server = start_server(&mut procs, &["--mission", m, "--out", out.to_str().unwrap(), "--state-dir", st], &dir.join("server.log"));
-    for v in MissionConfig::load(Some(&mission)).unwrap().vehicles() {
-        start_vehicle(&mut procs, &[], &["--mission", m, "--id", &v.id, "--state-dir", st], &dir.join(format!("{}.log", v.id)));
-    }
+    start_vehicles(&mut procs, &mission, st, &dir, None);
     server.finished(120);
     let o = std::process::Command::new("python3")
         .arg(root().join("tests/py/model_latest.py"))
@@ -64,44 +62,15 @@ fn a_python_eclipse_zenoh_client_decodes_model_latest() {
     println!("{}", String::from_utf8_lossy(&o.stdout));
 }
 
-/// Run a command as root, panicking with its output if it fails.
-fn sh(args: &[&str]) {
-    let o = std::process::Command::new(args[0]).args(&args[1..]).output().unwrap_or_else(|e| panic!("{args:?}: {e}"));
-    assert!(o.status.success(), "{args:?}: {}", String::from_utf8_lossy(&o.stderr));
-}
-
-/// A network namespace joined to this host by a veth link, removed when dropped.
-struct Netns(String);
-
-impl Drop for Netns {
-    fn drop(&mut self) {
-        let _ = std::process::Command::new("ip").args(["netns", "del", &self.0]).output();
-        let _ = std::process::Command::new("ip").args(["link", "del", &format!("{}a", self.0)]).output();
-    }
-}
-
 #[test]
 fn a_vehicle_on_another_host_reaches_the_server_through_its_router() {
-    let is_root = std::process::Command::new("id").arg("-u").output().map(|o| String::from_utf8_lossy(&o.stdout).trim() == "0").unwrap_or(false);
-    let has_ip = std::process::Command::new("ip").arg("-V").output().is_ok();
-    if !(is_root && has_ip) {
+    if !is_root_with_ip() {
         println!("SKIPPED: needs root and iproute2 for a network namespace (CI runs it as root)");
         return;
     }
-    // Host "boat" in its own namespace, 10.77.<x>.2, linked to this host's 10.77.<x>.1.
-    let x = std::process::id() % 200 + 20;
-    let ns = Netns(format!("hf{x}"));
-    let (here, there) = (format!("10.77.{x}.1"), format!("10.77.{x}.2"));
-    let (va, vb) = (format!("{}a", ns.0), format!("{}b", ns.0));
-    sh(&["ip", "netns", "add", &ns.0]);
-    sh(&["ip", "link", "add", &va, "type", "veth", "peer", "name", &vb]);
-    sh(&["ip", "link", "set", &vb, "netns", &ns.0]);
-    sh(&["ip", "addr", "add", &format!("{here}/24"), "dev", &va]);
-    sh(&["ip", "link", "set", &va, "up"]);
-    sh(&["ip", "netns", "exec", &ns.0, "ip", "addr", "add", &format!("{there}/24"), "dev", &vb]);
-    sh(&["ip", "netns", "exec", &ns.0, "ip", "link", "set", &vb, "up"]);
-    sh(&["ip", "netns", "exec", &ns.0, "ip", "link", "set", "lo", "up"]);
-
+    // Host "boat" in its own namespace, linked to this host by a veth pair.
+    let host = Host::new(0);
+    let here = host.here.clone();
     let dir = scratch("netns");
     let port = free_port();
     let (local, remote) = (format!("tcp/127.0.0.1:{port}"), format!("tcp/{here}:{port}"));
@@ -112,15 +81,7 @@ fn a_vehicle_on_another_host_reaches_the_server_through_its_router() {
     let st = dir.join("state");
     let st = st.to_str().unwrap();
     let server = start_server(&mut procs, &["--mission", m, "--state-dir", st], &dir.join("server.log"));
-    let prefix = ["ip", "netns", "exec", ns.0.as_str()];
-    for v in MissionConfig::load(Some(&mission)).unwrap().vehicles() {
-        let log = dir.join(format!("{}.log", v.id));
-        if v.id == "boat-1" {
-            start_vehicle(&mut procs, &prefix, &["--mission", m, "--id", &v.id, "--connect", &remote, "--state-dir", st], &log);
-        } else {
-            start_vehicle(&mut procs, &[], &["--mission", m, "--id", &v.id, "--state-dir", st], &log);
-        }
-    }
+    start_vehicles(&mut procs, &mission, st, &dir, Some(("boat-1", &host, &remote)));
     let summary = server.finished(120);
     assert!(summary.link_ups.contains_key("boat-1"), "boat-1's liveliness crossed the link");
     // Its own namespace cannot reach this host's loopback: the data came over the veth.

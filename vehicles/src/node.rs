@@ -22,7 +22,9 @@ struct Outbox {
     store: Store,
     id: String,
     acked: Option<u64>,
-    /// When each held batch was last sent (restored batches: never, so they go at once).
+    /// Seqs held on disk, and when each was last sent (restored ones: never, so they go at
+    /// once).
+    held: std::collections::BTreeSet<u64>,
     sent: BTreeMap<u64, Instant>,
     limit: u64,
     warned: bool,
@@ -32,7 +34,8 @@ impl Outbox {
     fn open(path: &std::path::Path, id: &str, limit: u64) -> anyhow::Result<Self> {
         let store = Store::open(path)?;
         let acked = store.meta("acked")?.and_then(|b| String::from_utf8(b).ok()).and_then(|s| s.parse().ok());
-        Ok(Self { store, id: id.into(), acked, sent: BTreeMap::new(), limit, warned: false })
+        let held = store.messages()?.into_iter().map(|((_, seq), _)| seq).collect();
+        Ok(Self { store, id: id.into(), acked, held, sent: BTreeMap::new(), limit, warned: false })
     }
 
     fn state(&self) -> anyhow::Result<Option<BrainState>> {
@@ -47,6 +50,7 @@ impl Outbox {
         let mut st = vec![];
         ciborium::into_writer(state, &mut st).expect("state serialises");
         self.store.commit(&[((self.id.as_str(), seq), bytes)], &[("state", &st)])?;
+        self.held.insert(seq);
         let (used, _) = self.store.size();
         if used * 5 >= self.limit * 4 && !self.warned {
             warn!(used, limit = self.limit, "outbox at 80% of its bound: the vehicle will pause sensing when it is full");
@@ -61,6 +65,7 @@ impl Outbox {
         }
         self.store.remove_through(&self.id, seq, &[("acked", seq.to_string().as_bytes())])?;
         self.acked = Some(seq);
+        self.held.retain(|&s| s > seq);
         self.sent.retain(|&s, _| s > seq);
         if self.store.size().0 * 5 < self.limit * 4 {
             self.warned = false;
@@ -119,10 +124,7 @@ impl Vehicle {
     }
 
     async fn resend_due(&mut self, session: &zenoh::Session) -> anyhow::Result<()> {
-        let due: Vec<u64> = {
-            let held: Vec<u64> = self.outbox.store.messages()?.into_iter().map(|((_, seq), _)| seq).collect();
-            held.into_iter().filter(|s| self.outbox.sent.get(s).is_none_or(|t| t.elapsed() >= self.resend)).collect()
-        };
+        let due: Vec<u64> = self.outbox.held.iter().copied().filter(|s| self.outbox.sent.get(s).is_none_or(|t| t.elapsed() >= self.resend)).collect();
         if due.is_empty() {
             return Ok(());
         }
