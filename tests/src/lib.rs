@@ -100,6 +100,18 @@ pub fn start_server(procs: &mut Procs, args: &[&str], log: &std::path::Path) -> 
 }
 
 impl Server {
+    /// Whether another epoch enters the model within `timeout`.
+    pub fn next_epoch(&self, timeout: std::time::Duration) -> bool {
+        let deadline = std::time::Instant::now() + timeout;
+        loop {
+            match self.events.recv_timeout(deadline.saturating_duration_since(std::time::Instant::now())) {
+                Ok(fleet::mission::report::ServerEvent::Epoch { .. }) => return true,
+                Ok(_) => {}
+                Err(_) => return false,
+            }
+        }
+    }
+
     /// Wait until epoch `e` is in the model (panics after `secs`).
     pub fn epoch(&self, e: u64, secs: u64) {
         let deadline = std::time::Instant::now() + std::time::Duration::from_secs(secs);
