@@ -126,3 +126,70 @@ fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
     av.set_plan(fleet::protocol::Plan { model_version: 4, targets: vec![], ..newer.clone() });
     assert_eq!(av.plan(), Some(&newer));
 }
+
+#[test]
+fn a_late_boat_is_waited_out_then_refitted_to_the_model_of_all_the_data() {
+    let truth = plume_field(24, 48, 42, 0.0, 5);
+    let grid = Grid::new(24, 48, 1.0).unwrap();
+    let cfg = TeamConfig { aerials: 2, boats: 3, radius: 3.0, rank: "6".into(), init_steps: 10, aerial_stride: 3, aerial_sigma0: 0.05, boat_sigma: 0.05, ..TeamConfig::default() };
+    let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
+    let schedule = *server.schedule();
+    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+    let mut brains: Vec<VehicleBrain> = server
+        .vehicles()
+        .iter()
+        .enumerate()
+        .map(|(v, spec)| {
+            let noise = match spec.kind {
+                VehicleKind::Aerial => server.assimilator().aerial_noise(),
+                VehicleKind::Boat => Noise { sigma0: cfg.boat_sigma, growth_per_m: 0.0 },
+            };
+            VehicleBrain::new(&spec.id, spec.kind, grid, schedule, noise, vehicle_rng(cfg.seed, v), 1e3)
+        })
+        .collect();
+    // boat-2 is out of range for epochs 2-4: it senses along its plan's horizon and its
+    // batches wait on board; the server assimilates those epochs without it (a timeout).
+    let mut all: Vec<MeasurementBatch> = vec![];
+    let mut held: Vec<MeasurementBatch> = vec![];
+    for e in 0..schedule.epochs() {
+        for brain in &mut brains {
+            let away = brain.id == "boat-2" && (2..=4).contains(&e);
+            if !away {
+                brain.set_plan(server.plan(&brain.id, e, 4).expect("plan"));
+            }
+            let Some(b) = brain.sense_epoch(e, x).unwrap() else { continue };
+            all.push(b.clone());
+            if away {
+                held.push(b);
+            } else {
+                server.ingest(b).unwrap();
+            }
+        }
+        if (2..=4).contains(&e) {
+            assert!(server.waiting_for().contains(&"boat-2".to_string()));
+            assert!(server.force().unwrap(), "epoch {e} assimilated without boat-2");
+            assert_eq!(server.ack("boat-2").unwrap().seq, 0, "boat-2's ack stops before its gap");
+        }
+    }
+    assert!(!server.finished(), "not finished while boat-2's batches are out");
+    // The link returns: the backlog arrives (newest first, for spite) and re-fits the model.
+    held.reverse();
+    for b in held {
+        assert!(matches!(server.ingest(b).unwrap(), Ingested::Refitted(_)));
+    }
+    assert!(server.finished());
+    assert_eq!(server.counters.forced, 3);
+    assert_eq!(server.counters.refits, 3);
+    assert_eq!(server.ack("boat-2").unwrap().seq, schedule.last_seq(VehicleKind::Boat).unwrap());
+    // The same batches fed in step order to a fresh server give the same model and snapshots.
+    let mut offline = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
+    all.sort_by_key(|b| (fleet::mission::schedule::Schedule::epoch_of(b.kind, b.seq), b.vehicle.clone()));
+    for b in all {
+        offline.ingest(b).unwrap();
+    }
+    assert!(offline.finished());
+    assert_eq!(server.snapshots, offline.snapshots);
+    let (a, b) = (server.model_update().unwrap(), offline.model_update().unwrap());
+    assert_eq!(a.eigenvalues, b.eigenvalues);
+    assert_eq!(a.modes_re, b.modes_re);
+}

@@ -90,28 +90,64 @@ impl Server {
         }
         let (vehicle, seq) = (batch.vehicle.clone(), batch.seq);
         let ingested = self.core.ingest(batch);
-        if matches!(ingested, Ok(Ingested::Buffered | Ingested::Assimilated(_))) {
+        if matches!(ingested, Ok(Ingested::Buffered | Ingested::Assimilated(_) | Ingested::Refitted(_))) {
             self.journal.commit(&[((vehicle.as_str(), seq), &sample.payload().to_bytes())], &[])?;
         }
         match ingested {
-            Ok(Ingested::Assimilated(epochs)) => {
-                self.publish_model(session).await?;
-                let latency_ms = t0.elapsed().as_secs_f64() * 1e3;
-                for v in self.core.vehicles().to_vec() {
-                    self.ack(session, &v.id).await?;
-                }
-                for e in epochs {
-                    self.latencies.push(latency_ms);
-                    let steps = self.core.steps_of(e);
-                    let mse = self.evaluate(steps);
-                    info!(epoch = e, version = self.core.version, latency_ms = format!("{latency_ms:.1}"), mse = mse.map(|m| format!("{m:.3e}")), "epoch assimilated");
-                    emit(self.events, &ServerEvent::Epoch { epoch: e, version: self.core.version, mse, latency_ms, alive: self.alive.len(), batches: self.core.counters.batches });
-                }
+            Ok(Ingested::Assimilated(epochs)) => self.model_changed(session, epochs, t0, false).await?,
+            Ok(Ingested::Refitted(e)) => {
+                info!(vehicle, seq, epoch = e, "late batch: model re-fitted with it");
+                let done = (0..self.core.next_epoch()).collect();
+                self.model_changed(session, done, t0, true).await?
             }
             Ok(Ingested::Duplicate) => self.ack(session, &vehicle).await?,
             Ok(Ingested::Buffered) => {}
             Err(e) => self.refuse("invalid_batch", e.to_string()),
         }
+        Ok(())
+    }
+
+    /// A new model: publish it and every ack, then account for `epochs` (latency, error,
+    /// events). After a re-fit every epoch's error is computed again.
+    async fn model_changed(&mut self, session: &zenoh::Session, epochs: Vec<u64>, t0: Instant, refit: bool) -> anyhow::Result<()> {
+        self.publish_model(session).await?;
+        let latency_ms = t0.elapsed().as_secs_f64() * 1e3;
+        for v in self.core.vehicles().to_vec() {
+            self.ack(session, &v.id).await?;
+        }
+        if refit {
+            self.mse.clear();
+        }
+        for e in epochs {
+            let steps = self.core.steps_of(e);
+            let mse = self.evaluate(steps);
+            if refit {
+                continue;
+            }
+            self.latencies.push(latency_ms);
+            info!(epoch = e, version = self.core.version, latency_ms = format!("{latency_ms:.1}"), mse = mse.map(|m| format!("{m:.3e}")), "epoch assimilated");
+            emit(self.events, &ServerEvent::Epoch { epoch: e, version: self.core.version, mse, latency_ms, alive: self.alive.len(), batches: self.core.counters.batches });
+        }
+        Ok(())
+    }
+
+    /// The next epoch has waited `timeout` for a late vehicle: assimilate it without.
+    async fn force_if_due(&mut self, session: &zenoh::Session, since: &mut (u64, Instant), timeout: Option<Duration>) -> anyhow::Result<()> {
+        if since.0 != self.core.next_epoch() {
+            *since = (self.core.next_epoch(), Instant::now());
+        }
+        let Some(timeout) = timeout else { return Ok(()) };
+        if since.1.elapsed() < timeout {
+            return Ok(());
+        }
+        let before = self.core.next_epoch();
+        let t0 = Instant::now();
+        if self.core.force()? {
+            warn!(epoch = before, missing = ?self.core.waiting_for(), "epoch assimilated without late vehicles; their batches will re-fit it");
+            let done = (before..self.core.next_epoch()).collect();
+            self.model_changed(session, done, t0, false).await?;
+        }
+        *since = (self.core.next_epoch(), Instant::now());
         Ok(())
     }
 
@@ -277,6 +313,9 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     emit(s.events, &ServerEvent::Ready { mission: s.mission.mission.clone(), epochs, vehicles: s.core.vehicles().iter().map(|v| v.id.clone()).collect() });
 
     let mut tick = tokio::time::interval(Duration::from_secs(1));
+    let mut check = tokio::time::interval(Duration::from_millis(50));
+    let epoch_timeout = (s.mission.pace.epoch_timeout_ms > 0).then(|| Duration::from_millis(s.mission.pace.epoch_timeout_ms));
+    let mut since = (s.core.next_epoch(), Instant::now());
     let mut done_at: Option<Instant> = None;
     let linger = Duration::from_millis(args.linger_ms);
     loop {
@@ -295,6 +334,9 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             }
             r = links.recv_async() => {
                 if let Ok(sample) = r { s.on_liveliness(sample.key_expr().as_str(), sample.kind()); }
+            }
+            _ = check.tick() => {
+                s.force_if_due(&session, &mut since, epoch_timeout).await?;
             }
             _ = tick.tick() => {
                 fleet_net::put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;

@@ -76,11 +76,14 @@ pub struct Pace {
     pub resend_ms: u64,
     /// Epochs each plan covers.
     pub horizon: u64,
+    /// How long the server waits for a late vehicle's batch before it assimilates an epoch
+    /// without it (0: wait for every batch); the late batch re-fits the model when it comes.
+    pub epoch_timeout_ms: u64,
 }
 
 impl Default for Pace {
     fn default() -> Self {
-        Self { step_ms: 0, plan_timeout_ms: 30_000, resend_ms: 1_000, horizon: 3 }
+        Self { step_ms: 0, plan_timeout_ms: 30_000, resend_ms: 1_000, horizon: 3, epoch_timeout_ms: 0 }
     }
 }
 

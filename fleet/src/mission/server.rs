@@ -38,6 +38,9 @@ pub enum Ingested {
     Buffered,
     /// Completed these epochs, which are now in the model.
     Assimilated(Vec<u64>),
+    /// Arrived for an epoch already assimilated without it (forced by a timeout): the model
+    /// was re-fitted from that epoch on, with everything now in.
+    Refitted(u64),
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -60,6 +63,11 @@ pub struct Counters {
     /// Batches replayed from the journal at a restart (included in `batches`).
     #[serde(default)]
     pub restored: u64,
+    /// Epochs assimilated without every batch (a timeout), and re-fits when the rest came.
+    #[serde(default)]
+    pub forced: u64,
+    #[serde(default)]
+    pub refits: u64,
 }
 
 pub struct ServerCore {
@@ -69,8 +77,9 @@ pub struct ServerCore {
     assim: Assimilator,
     /// Next epoch to assimilate.
     epoch: u64,
-    /// Batches waiting, by epoch then vehicle index.
-    pending: BTreeMap<u64, BTreeMap<usize, MeasurementBatch>>,
+    /// Every batch accepted, by epoch then vehicle index: the model is a function of this
+    /// set, so late batches re-fit it from their epoch on.
+    received: BTreeMap<u64, BTreeMap<usize, MeasurementBatch>>,
     /// The plan each epoch was sensed under (to check boats measured their disks).
     plans: BTreeMap<u64, Allocation>,
     pub counters: Counters,
@@ -88,7 +97,7 @@ impl ServerCore {
             schedule: Schedule::new(cfg, frames),
             vehicles: team_vehicles(cfg),
             epoch: 0,
-            pending: BTreeMap::new(),
+            received: BTreeMap::new(),
             plans: BTreeMap::new(),
             counters: Counters::default(),
             version: 0,
@@ -114,23 +123,72 @@ impl ServerCore {
         self.schedule.steps_of(e)
     }
 
-    /// Vehicles whose batch for the next epoch has not come in.
+    /// Vehicles whose batch for epoch `e` has not come in.
+    fn missing(&self, e: u64) -> impl Iterator<Item = usize> + '_ {
+        let have = self.received.get(&e);
+        (0..self.vehicles.len()).filter(move |&i| self.takes_part(i, e) && !have.is_some_and(|m| m.contains_key(&i)))
+    }
+
+    /// Vehicles whose batch for the next epoch, or for an epoch assimilated without it, has
+    /// not come in.
     pub fn waiting_for(&self) -> Vec<String> {
-        let have = self.pending.get(&self.epoch);
-        (0..self.vehicles.len())
-            .filter(|&i| self.takes_part(i, self.epoch) && !have.is_some_and(|m| m.contains_key(&i)))
-            .map(|i| self.vehicles[i].id.clone())
-            .collect()
+        let mut ids: Vec<usize> = (0..=self.epoch).flat_map(|e| self.missing(e).collect::<Vec<_>>()).collect();
+        ids.sort_unstable();
+        ids.dedup();
+        ids.into_iter().map(|i| self.vehicles[i].id.clone()).collect()
     }
 
-    /// Epochs with some batches in, waiting for the rest.
+    /// Epochs beyond the model with some batches in, waiting for the rest.
     pub fn pending_epochs(&self) -> u64 {
-        self.pending.len() as u64
+        self.received.range(self.epoch..).count() as u64
     }
 
-    /// Whether every step of the mission is in the model.
+    /// Whether every step of the mission is in the model, with every batch.
     pub fn finished(&self) -> bool {
+        self.all_assimilated() && (0..self.epoch).all(|e| self.missing(e).next().is_none())
+    }
+
+    fn all_assimilated(&self) -> bool {
         self.steps_of(self.epoch).is_empty() && self.epoch > 0
+    }
+
+    /// Assimilate the next epoch with the batches it has (a vehicle is late); its missing
+    /// batches re-fit the model when they come. Epoch 0 (the first model) is never forced.
+    pub fn force(&mut self) -> Result<bool, TeamError> {
+        let e = self.epoch;
+        if e == 0 || self.steps_of(e).is_empty() || self.missing(e).next().is_none() {
+            return Ok(false);
+        }
+        self.assimilate_epoch(e)?;
+        self.counters.forced += 1;
+        while self.epoch_complete(self.epoch) {
+            self.assimilate_epoch(self.epoch)?;
+        }
+        Ok(true)
+    }
+
+    /// Rebuild the model from the first epoch with every batch now in (the general method's
+    /// snapshots are a function of the batches, so this is the re-fit from the earliest
+    /// affected step, done from the start for simplicity). Plans already handed out stay as
+    /// history; the next epoch's plan is the re-fitted model's.
+    fn refit(&mut self) -> Result<(), TeamError> {
+        let upto = self.epoch;
+        let version = self.version;
+        let history = std::mem::take(&mut self.plans);
+        self.assim = Assimilator::new(&self.cfg, *self.assim.grid(), self.schedule.frames)?;
+        self.snapshots.clear();
+        self.epoch = 0;
+        while self.epoch < upto {
+            self.assimilate_epoch(self.epoch)?;
+        }
+        let next = self.plans.remove(&upto);
+        self.plans = history;
+        if let Some(p) = next {
+            self.plans.insert(upto, p);
+        }
+        self.version = version + 1;
+        self.counters.refits += 1;
+        Ok(())
     }
 
     fn reject(&mut self, vehicle: &str, why: String) -> IngestError {
@@ -149,7 +207,7 @@ impl ServerCore {
             return Err(self.reject(&batch.vehicle, format!("declared {:?}, registered {:?}", batch.kind, self.vehicles[index].kind)));
         }
         let e = Schedule::epoch_of(batch.kind, batch.seq);
-        if e < self.epoch || self.pending.get(&e).is_some_and(|m| m.contains_key(&index)) {
+        if self.received.get(&e).is_some_and(|m| m.contains_key(&index)) {
             self.counters.duplicates += 1;
             return Ok(Ingested::Duplicate);
         }
@@ -164,7 +222,14 @@ impl ServerCore {
         if got != want && !idle_boat {
             return Err(self.reject(&batch.vehicle, format!("epoch {e} wants samples at steps {want:?}, got {got:?}")));
         }
-        self.pending.entry(e).or_default().insert(index, batch);
+        self.received.entry(e).or_default().insert(index, batch);
+        if e < self.epoch {
+            self.refit()?;
+            while self.epoch_complete(self.epoch) {
+                self.assimilate_epoch(self.epoch)?;
+            }
+            return Ok(Ingested::Refitted(e));
+        }
         let mut done = vec![];
         while self.epoch_complete(self.epoch) {
             let e = self.epoch;
@@ -184,8 +249,7 @@ impl ServerCore {
         if self.steps_of(e).is_empty() {
             return false;
         }
-        let have = self.pending.get(&e).map_or(0, |m| m.len());
-        have == (0..self.vehicles.len()).filter(|&i| self.takes_part(i, e)).count()
+        self.missing(e).next().is_none()
     }
 
     /// Samples of every vehicle of a kind at step `k`, in vehicle order.
@@ -194,7 +258,7 @@ impl ServerCore {
     }
 
     fn assimilate_epoch(&mut self, e: u64) -> Result<(), TeamError> {
-        let batches = self.pending.remove(&e).unwrap_or_default();
+        let batches = self.received.get(&e).cloned().unwrap_or_default();
         let steps = self.steps_of(e);
         if e == 0 {
             let mut init = vec![];
@@ -217,8 +281,8 @@ impl ServerCore {
         }
         self.epoch = e + 1;
         self.version += 1;
-        self.counters.epochs += 1;
-        if !self.finished() {
+        self.counters.epochs = self.epoch;
+        if !self.all_assimilated() {
             let plan = self.assim.allocate()?;
             self.plans.insert(self.epoch, plan);
         }
@@ -264,16 +328,20 @@ impl ServerCore {
         Some(Plan { vehicle: vehicle.into(), model_version: self.version, epoch: e, targets })
     }
 
-    /// The ack of a vehicle: the highest seq assimilated (`None` before its first).
+    /// The ack of a vehicle: the highest seq up to which all of its batches are in the model
+    /// (`None` before its first).
     pub fn ack(&self, vehicle: &str) -> Option<Ack> {
         let index = self.vehicles.iter().position(|v| v.id == vehicle)?;
         let kind = self.vehicles[index].kind;
-        let done = self.epoch; // epochs < done are assimilated
-        let seq = match kind {
-            VehicleKind::Aerial => done.checked_sub(1)?,
-            VehicleKind::Boat => done.checked_sub(2)?,
-        };
-        Some(Ack { vehicle: vehicle.into(), seq })
+        let mut seq = None;
+        for e in 0..self.epoch {
+            let Some(s) = self.schedule.seq_of(kind, e) else { continue };
+            if !self.received.get(&e).is_some_and(|m| m.contains_key(&index)) {
+                break;
+            }
+            seq = Some(s);
+        }
+        Some(Ack { vehicle: vehicle.into(), seq: seq? })
     }
 
     /// The model as published on `model/latest` (`None` before the first fit). The variance
