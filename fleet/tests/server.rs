@@ -11,18 +11,9 @@ use fleet::protocol::{MeasurementBatch, Noise, VehicleKind};
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 
-#[test]
-fn shuffled_and_repeated_batches_give_the_offline_result() {
-    let truth = plume_field(24, 48, 42, 0.0, 5);
-    let grid = Grid::new(24, 48, 1.0).unwrap();
-    let cfg = TeamConfig { aerials: 2, boats: 3, radius: 3.0, rank: "6".into(), init_steps: 10, aerial_stride: 3, aerial_sigma0: 0.05, boat_sigma: 0.05, ..TeamConfig::default() };
-    let offline = team::run(&cfg, &truth, |_, _| {}).unwrap();
-
-    let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
-    let schedule = *server.schedule();
-    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
-    // Each vehicle as the vehicle node runs it: its own random stream, the plan it is given.
-    let mut brains: Vec<VehicleBrain> = server
+/// Every vehicle of the team as the vehicle node runs it: its own random stream and noise.
+fn brains_of(server: &ServerCore, cfg: &TeamConfig, grid: Grid) -> Vec<VehicleBrain> {
+    server
         .vehicles()
         .iter()
         .enumerate()
@@ -31,9 +22,22 @@ fn shuffled_and_repeated_batches_give_the_offline_result() {
                 VehicleKind::Aerial => server.assimilator().aerial_noise(),
                 VehicleKind::Boat => Noise { sigma0: cfg.boat_sigma, growth_per_m: 0.0 },
             };
-            VehicleBrain::new(&spec.id, spec.kind, grid, schedule, noise, vehicle_rng(cfg.seed, v), 1e3)
+            VehicleBrain::new(&spec.id, spec.kind, grid, *server.schedule(), noise, vehicle_rng(cfg.seed, v), 1e3)
         })
-        .collect();
+        .collect()
+}
+
+#[test]
+fn shuffled_and_repeated_batches_give_the_offline_result() {
+    let truth = plume_field(24, 48, 42, 0.0, 5);
+    let grid = Grid::new(24, 48, 1.0).unwrap();
+    let cfg = TeamConfig { aerials: 2, boats: 3, radius: 3.0, rank: "6".into(), init_steps: 10, aerial_stride: 3, aerial_sigma0: 0.05, boat_sigma: 0.05, ..TeamConfig::default() };
+    let offline = team::run(&cfg, &truth, |_, _| {}).unwrap();
+
+    let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
+    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+    // Each vehicle as the vehicle node runs it: its own random stream, the plan it is given.
+    let mut brains = brains_of(&server, &cfg, grid);
     let mut shuffle = rand_chacha::ChaCha8Rng::seed_from_u64(4);
     let mut sent: Vec<MeasurementBatch> = vec![];
     let mut assimilated = 0;
@@ -135,18 +139,7 @@ fn a_late_boat_is_waited_out_then_refitted_to_the_model_of_all_the_data() {
     let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
     let schedule = *server.schedule();
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
-    let mut brains: Vec<VehicleBrain> = server
-        .vehicles()
-        .iter()
-        .enumerate()
-        .map(|(v, spec)| {
-            let noise = match spec.kind {
-                VehicleKind::Aerial => server.assimilator().aerial_noise(),
-                VehicleKind::Boat => Noise { sigma0: cfg.boat_sigma, growth_per_m: 0.0 },
-            };
-            VehicleBrain::new(&spec.id, spec.kind, grid, schedule, noise, vehicle_rng(cfg.seed, v), 1e3)
-        })
-        .collect();
+    let mut brains = brains_of(&server, &cfg, grid);
     // boat-2 is out of range for epochs 2-4: it senses along its plan's horizon and its
     // batches wait on board; the server assimilates those epochs without it (a timeout).
     let mut all: Vec<MeasurementBatch> = vec![];
