@@ -31,9 +31,5 @@ pub struct Args {
 fn main() {
     fleet_net::init_node();
     let args = Args::parse();
-    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("a tokio runtime");
-    if let Err(e) = rt.block_on(node::run(args)) {
-        eprintln!("model-server: {e:#}");
-        std::process::exit(2);
-    }
+    fleet_net::run_node("model-server", 2, node::run(args));
 }

@@ -183,3 +183,13 @@ mod tests {
         assert!(config(Role::Server, &net, Some(Path::new("/nonexistent.json5")), &Endpoints::default()).is_err());
     }
 }
+
+/// Run a node's async main on a multi-threaded runtime (Zenoh refuses the current-thread
+/// one) after [`init_node`]; an error is one line on stderr and exit code 2.
+pub fn run_node<F: std::future::Future<Output = anyhow::Result<()>>>(name: &str, workers: usize, main: F) {
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(workers).enable_all().build().expect("a tokio runtime");
+    if let Err(e) = rt.block_on(main) {
+        eprintln!("{name}: {e:#}");
+        std::process::exit(2);
+    }
+}
