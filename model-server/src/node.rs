@@ -126,7 +126,14 @@ impl Server {
             }
             self.latencies.push(latency_ms);
             info!(epoch = e, version = self.core.version, latency_ms = format!("{latency_ms:.1}"), mse = mse.map(|m| format!("{m:.3e}")), "epoch assimilated");
-            emit(self.events, &ServerEvent::Epoch { epoch: e, version: self.core.version, mse, latency_ms, alive: self.alive.len(), batches: self.core.counters.batches });
+            let next = e + 1;
+            let places = self
+                .core
+                .vehicles()
+                .iter()
+                .filter_map(|v| self.core.plan(&v.id, next, 1).and_then(|p| p.targets.into_iter().find(|t| !t.cells.is_empty())).map(|t| (v.id.clone(), t.position)))
+                .collect();
+            emit(self.events, &ServerEvent::Epoch { epoch: e, version: self.core.version, mse, latency_ms, alive: self.alive.len(), batches: self.core.counters.batches, held: self.core.held_at(next), places });
         }
         Ok(())
     }
@@ -229,6 +236,25 @@ impl Server {
         }
     }
 
+    /// A vehicle's telemetry: whether its autopilot lets the planner allocate it.
+    fn on_telemetry(&mut self, sample: &zenoh::sample::Sample) {
+        let key = sample.key_expr().as_str();
+        let t = match fleet_net::decode(sample, &self.ctx) {
+            Ok(Body::Telemetry(t)) => t,
+            Ok(_) => return self.refuse("wrong_type", format!("{key}: not telemetry")),
+            Err(e) => return self.refuse(e.reason(), format!("{key}: {e}")),
+        };
+        if self.keys.vehicle_of(key).as_deref() != Some(t.vehicle.as_str()) {
+            return self.refuse("key_mismatch", format!("{key} carries telemetry of {}", t.vehicle));
+        }
+        let available = t.available();
+        if self.core.set_available(&t.vehicle, available) {
+            let mode = t.autopilot.as_ref().map_or_else(String::new, |a| format!("{} ({:?})", a.mode, a.link));
+            info!(vehicle = t.vehicle, held = !available, mode, "allocation: {} from the next epoch", if available { "back in" } else { "left out" });
+            emit(self.events, &ServerEvent::Hold { vehicle: t.vehicle, held: !available, mode });
+        }
+    }
+
     fn summary(&self) -> ServerSummary {
         let eigenvalues = self.core.model_update().map(|m| m.eigenvalues).unwrap_or_default();
         ServerSummary {
@@ -281,6 +307,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let batches = session.declare_subscriber(keys.all_measurements()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let plans = session.declare_queryable(keys.all_plans()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let models = session.declare_queryable(keys.model_latest()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let telemetry = session.declare_subscriber(keys.telemetry("*")).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let links = session.liveliness().declare_subscriber(keys.all_alive()).history(true).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let _token = session.liveliness().declare_token(keys.alive("server")).await.map_err(|e| anyhow::anyhow!("{e}"))?;
 
@@ -331,6 +358,9 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             }
             r = models.recv_async() => {
                 if let Ok(q) = r { s.on_model_query(q).await; }
+            }
+            r = telemetry.recv_async() => {
+                if let Ok(sample) = r { s.on_telemetry(&sample); }
             }
             r = links.recv_async() => {
                 if let Ok(sample) = r { s.on_liveliness(sample.key_expr().as_str(), sample.kind()); }

@@ -21,6 +21,11 @@ pub struct Args {
     /// Bound of the outbox on disk (MiB); when full the vehicle holds until acks make room.
     #[arg(long, default_value_t = 256)]
     pub outbox_limit_mb: u64,
+    /// The autopilot: `sim`, `none`, or a MAVLink connection string (`udpin:0.0.0.0:14551`,
+    /// `udpout:192.168.1.20:14550`, `tcpout:127.0.0.1:5760`, `serial:/dev/ttyACM0:57600`).
+    /// Default: the mission's `[mavlink] autopilot`.
+    #[arg(long)]
+    pub autopilot: Option<String>,
     /// Give up waiting for the final acknowledgement after this long (ms).
     #[arg(long, default_value_t = 60_000)]
     pub final_ack_ms: u64,

@@ -4,13 +4,19 @@
 //! covers it (re-sent every `resend_ms`).
 
 use crate::Args;
-use fleet::mission::vehicle::{BrainState, VehicleBrain};
+use fleet::grid::Grid;
+use fleet::mission::config::MissionConfig;
+use fleet::mission::vehicle::{BrainState, Fix, VehicleBrain};
 use fleet::mission::vehicle_rng;
 use fleet::protocol::{self, keys::Keys, Body, Context, LinkState, Telemetry};
 use fleet_net::store::Store;
 use fleet_net::{zenoh, Role};
 use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
+use vehicles::autopilot::modes::Frame;
+use vehicles::autopilot::site::Site;
+use vehicles::bridge::{Bridge, BridgeSpec};
 use tracing::{debug, info, warn};
 use zenoh::sample::SampleKind;
 
@@ -95,6 +101,9 @@ struct Vehicle {
     server_alive: bool,
     resend: Duration,
     step: u64,
+    bridge: Option<Arc<Bridge>>,
+    /// The newest telemetry (the autopilot watch re-sends it when the autopilot changes).
+    last_telemetry: Arc<Mutex<Option<Telemetry>>>,
 }
 
 impl Vehicle {
@@ -164,16 +173,121 @@ impl Vehicle {
             vehicle: self.brain.id.clone(),
             step: self.step,
             position: self.brain.position().map_or([0.0, 0.0], |p| [p.0, p.1]),
+            autopilot: self.bridge.as_ref().map(|b| b.status()),
             heading: 0.0,
             // A simulated battery: linear drain over the mission.
             battery: (1.0 - 0.5 * self.step as f64 / self.brain.schedule().frames.max(1) as f64).clamp(0.0, 1.0),
             link: if self.server_alive { LinkState::Up } else { LinkState::Down },
             outbox_depth: self.outbox.depth(),
         };
+        *self.last_telemetry.lock().unwrap_or_else(|p| p.into_inner()) = Some(t.clone());
         if let Err(e) = fleet_net::put(session, &self.keys.telemetry(&self.brain.id), &Body::Telemetry(t)).await {
             warn!("telemetry: {e}");
         }
     }
+
+    /// Drive the autopilot to each place epoch `e` senses and wait (up to the arrival timeout)
+    /// until it is there; the fixes say where it was. Without an autopilot: none.
+    async fn drive(&self, e: u64, grid: &Grid, timeout: Duration) -> BTreeMap<u64, Fix> {
+        let mut fixes = BTreeMap::new();
+        let Some(b) = &self.bridge else { return fixes };
+        for t in self.brain.targets_of(e).iter().filter(|t| !t.cells.is_empty()) {
+            let goal = (t.position[0], t.position[1]);
+            let deadline = Instant::now() + timeout;
+            // Still being armed and set to GUIDED (the first epoch): wait for it.
+            while b.status().link == protocol::AutopilotLink::Connecting && Instant::now() < deadline {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+            let mut sent: Option<Instant> = None;
+            while !b.arrived(goal) && Instant::now() < deadline && b.drivable() {
+                // Again every second: a guided target on a lossy radio may not arrive.
+                if sent.is_none_or(|s| s.elapsed() >= Duration::from_secs(1)) {
+                    b.goto(goal);
+                    sent = Some(Instant::now());
+                }
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+            if let Some(p) = b.position() {
+                // Sensing happens on the grid, wherever the autopilot drifted.
+                let (w, h) = (grid.cols as f64 * grid.cell_m, grid.rows as f64 * grid.cell_m);
+                let position = (p.0.clamp(0.0, w - 1e-9), p.1.clamp(0.0, h - 1e-9));
+                fixes.insert(t.step, Fix { position, arrived: b.arrived(goal) });
+            }
+        }
+        fixes
+    }
+}
+
+/// The MAVLink bridge, unless the autopilot is `none`; its frames go to `gcs`.
+fn open_bridge(args: &Args, mission: &MissionConfig, grid: &Grid, gcs: vehicles::bridge::GcsSink) -> anyhow::Result<Option<Arc<Bridge>>> {
+    let m = &mission.mavlink;
+    let address = args.autopilot.clone().unwrap_or_else(|| m.autopilot.clone());
+    if address == "none" {
+        return Ok(None);
+    }
+    let (index, kind) = mission.vehicle(&args.id)?;
+    let frame = Frame::of(kind);
+    let site = Site::new(m, grid);
+    // Launched from points along the south shore.
+    let n = mission.vehicles().len() as f64;
+    let home = site.ned_of(((index as f64 + 0.5) * grid.cols as f64 * grid.cell_m / n, 0.5 * grid.cell_m), 0.0);
+    let spec = BridgeSpec {
+        frame,
+        sysid: mission.sysid(&args.id)?,
+        site,
+        cruise_alt: m.cruise_alt_m,
+        acceptance_m: m.acceptance_m,
+        heartbeat_timeout: Duration::from_millis(m.heartbeat_timeout_ms),
+        sim_speed: match frame {
+            Frame::Boat => m.boat_speed_ms,
+            Frame::Multirotor => m.multirotor_speed_ms,
+        },
+        sim_turn_rate: m.boat_turn_rate_dps.to_radians(),
+        sim_speedup: m.sim_speedup,
+        home,
+    };
+    Ok(Some(Arc::new(Bridge::connect(&address, spec, Some(gcs))?)))
+}
+
+/// The MAVLink side's tasks: the autopilot's frames out to the ground-station gateway, the
+/// gateway's frames in to the autopilot, and telemetry again whenever the autopilot's link or
+/// mode changes (so the server leaves a held vehicle out of the next allocation).
+fn spawn_mavlink_tasks(session: &zenoh::Session, keys: &Keys, id: &str, bridge: Arc<Bridge>, mut frames: tokio::sync::mpsc::UnboundedReceiver<Vec<u8>>, last: Arc<Mutex<Option<Telemetry>>>) {
+    let (s, key) = (session.clone(), keys.mavlink(id));
+    tokio::spawn(async move {
+        while let Some(f) = frames.recv().await {
+            let _ = s.put(&key, f).await;
+        }
+    });
+    let (s, key, b) = (session.clone(), keys.gcs(id), bridge.clone());
+    tokio::spawn(async move {
+        let Ok(sub) = s.declare_subscriber(&key).await else { return warn!("cannot subscribe to {key}") };
+        while let Ok(sample) = sub.recv_async().await {
+            if let Err(e) = b.from_gcs(&sample.payload().to_bytes()) {
+                debug!("ground-station frame refused: {e}");
+            }
+        }
+    });
+    let (s, key) = (session.clone(), keys.telemetry(id));
+    tokio::spawn(async move {
+        let mut shown = None;
+        loop {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            let status = bridge.status();
+            let now = (status.link, status.guided, status.mode.clone());
+            if shown.as_ref() == Some(&now) {
+                continue;
+            }
+            let base = last.lock().unwrap_or_else(|p| p.into_inner()).clone();
+            if let Some(mut t) = base {
+                info!(link = ?status.link, mode = status.mode, armed = status.armed, "autopilot");
+                t.autopilot = Some(status);
+                if fleet_net::put(&s, &key, &Body::Telemetry(t)).await.is_ok() {
+                    shown = Some(now);
+                }
+            }
+        }
+    });
 }
 
 pub async fn run(args: Args) -> anyhow::Result<()> {
@@ -186,13 +300,21 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let mut ctx = Context::new(grid);
     ctx.vehicles = mission.vehicles().into_iter().map(|v| v.id).collect();
 
+    let (gcs_tx, gcs_rx) = tokio::sync::mpsc::unbounded_channel();
+    let bridge = open_bridge(&args, &mission, &grid, gcs_tx)?;
+    let last_telemetry = Arc::new(Mutex::new(None));
     let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &mission.network)?).await?;
+    if let Some(b) = &bridge {
+        spawn_mavlink_tasks(&session, &keys, &args.id, b.clone(), gcs_rx, last_telemetry.clone());
+    }
     let _token = session.liveliness().declare_token(keys.alive(&args.id)).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let acks = session.declare_subscriber(keys.ack(&args.id)).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let links = session.liveliness().declare_subscriber(keys.alive("server")).history(true).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let pace = mission.pace.clone();
     let outbox = Outbox::open(&args.state_dir.join(format!("{}.redb", args.id)), &args.id, args.outbox_limit_mb << 20)?;
-    let mut v = Vehicle { keys, ctx, brain, outbox, server_alive: false, resend: Duration::from_millis(pace.resend_ms), step: 0, args };
+    let arrival_timeout = Duration::from_millis(mission.mavlink.arrival_timeout_ms);
+    let mut v = Vehicle { keys, ctx, brain, outbox, server_alive: false, resend: Duration::from_millis(pace.resend_ms), step: 0, args, bridge, last_telemetry };
+    v.telemetry(&session).await;
     let first = match v.outbox.state()? {
         Some(state) => {
             let e = state.next_epoch;
@@ -244,12 +366,13 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
                 tokio::time::sleep(Duration::from_millis(5)).await;
             }
         }
+        let fixes = v.drive(e, &grid, arrival_timeout).await;
         let steps = schedule.steps_of(e);
         if pace.step_ms > 0 {
             tokio::time::sleep(Duration::from_millis(pace.step_ms * steps.len() as u64)).await;
         }
         v.step = steps.end.saturating_sub(1) as u64;
-        if let Some(batch) = v.brain.sense_epoch(e, truth_at)? {
+        if let Some(batch) = v.brain.sense_epoch_at(e, truth_at, &fixes)? {
             let bytes = protocol::encode(&Body::Batch(batch.clone()));
             // Durable first, then sent: a crash in between re-sends it after the restart.
             v.outbox.commit(batch.seq, &bytes, &v.brain.state(e + 1))?;
@@ -277,6 +400,10 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     v.telemetry(&session).await;
+    if let Some(b) = &v.bridge {
+        let c = b.counters();
+        info!(received = c.received, sent = c.sent, unreadable = c.unreadable, from_gcs = c.from_gcs, refused_from_gcs = c.refused_from_gcs, "MAVLink link to the autopilot");
+    }
     info!(vehicle = v.brain.id, off_target = v.brain.off_target, "mission done, every batch acknowledged");
     session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(())

@@ -104,6 +104,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
         }
     });
+    // The ground-station gateway runs until the run ends (dropped, so killed, at the end).
+    let mut _gateway = Fleet(vec![]);
+    if !mission.mavlink.gcs.is_empty() {
+        let bin = sibling("gcs-gateway")?;
+        let mut c = Command::new(&bin);
+        c.arg("--mission").arg(&mission_path).stdout(Stdio::null()).stderr(log_file(&logs, "gcs-gateway")?);
+        _gateway.0.push(("gcs-gateway".into(), c.spawn().with_context(|| format!("starting {}", bin.display()))?));
+        println!("ground stations: the fleet is on {} (MAVLink 2; each vehicle its own system id)", mission.mavlink.gcs);
+    }
     for v in mission.vehicles() {
         let mut c = Command::new(&vehicle_bin);
         node_args(&mut c);
@@ -129,6 +138,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 alive = if up { alive + 1 } else { alive.saturating_sub(1) };
             }
             Ok(ServerEvent::Ready { .. }) => pb.set_message("server ready"),
+            Ok(ServerEvent::Hold { vehicle, held, mode }) => pb.println(format!("{vehicle}: {} ({mode})", if held { "left out of the allocation" } else { "back in the allocation" })),
             Ok(ServerEvent::Finished { summary }) => break summary,
             Err(mpsc::RecvTimeoutError::Timeout) => {}
             Err(mpsc::RecvTimeoutError::Disconnected) => bail!("the model server stopped before the mission finished (see {})", logs.join("server.log").display()),

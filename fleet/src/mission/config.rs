@@ -101,6 +101,82 @@ impl Default for Motion {
     }
 }
 
+/// How vehicle nodes reach their autopilots and ground stations (MAVLink 2, common dialect).
+/// The workspace grid is placed on the Earth by `origin` (its (0, 0) corner) and `size_m`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MavlinkConfig {
+    /// Each vehicle's autopilot: `sim` (a simulated one in the vehicle node), `none` (the
+    /// node's own kinematics, no MAVLink), or a connection string (`udpin:`, `udpout:`,
+    /// `tcpout:`, `serial:/dev/ttyUSB0:57600`). A vehicle's `--autopilot` overrides it.
+    pub autopilot: String,
+    /// Where the ground-station gateway offers the whole fleet (`udpout:` to where QGroundControl
+    /// or MAVProxy listens, or `udpin:` to be connected to); empty: no gateway.
+    pub gcs: String,
+    /// Latitude and longitude (degrees) and altitude (m, AMSL) of the workspace's (0, 0) corner.
+    pub origin: [f64; 3],
+    /// Physical extent of the workspace, east and north (m); default: the grid's own metres.
+    pub size_m: Option<[f64; 2]>,
+    /// The simulated autopilots run this many times faster than the wall clock (SITL's
+    /// speed-up), so a 100 m leg of a 2 m/s boat does not hold a test for a minute.
+    pub sim_speedup: f64,
+    /// Simulated boat: top speed (m/s) and turn-rate limit (deg/s).
+    pub boat_speed_ms: f64,
+    pub boat_turn_rate_dps: f64,
+    /// Simulated multirotor: top speed (m/s) and cruise altitude above the origin (m).
+    pub multirotor_speed_ms: f64,
+    pub cruise_alt_m: f64,
+    /// A target counts as reached within this distance (m, physical).
+    pub acceptance_m: f64,
+    /// How long a vehicle waits at a sampling step for its autopilot to reach the target
+    /// before it senses from where it is.
+    pub arrival_timeout_ms: u64,
+    /// No HEARTBEAT from the autopilot for this long: autopilot lost.
+    pub heartbeat_timeout_ms: u64,
+}
+
+impl Default for MavlinkConfig {
+    fn default() -> Self {
+        Self {
+            autopilot: "none".into(),
+            gcs: String::new(),
+            // The paper's tank sits nowhere in particular; a harbour basin in Copenhagen.
+            origin: [55.6761, 12.5683, 0.0],
+            size_m: None,
+            sim_speedup: 1.0,
+            boat_speed_ms: 2.0,
+            boat_turn_rate_dps: 90.0,
+            multirotor_speed_ms: 10.0,
+            cruise_alt_m: 30.0,
+            acceptance_m: 0.25,
+            arrival_timeout_ms: 20_000,
+            heartbeat_timeout_ms: 3_000,
+        }
+    }
+}
+
+impl MavlinkConfig {
+    fn check(&self) -> anyhow::Result<()> {
+        let [lat, lon, alt] = self.origin;
+        if !(lat.abs() < 85.0 && lon.abs() <= 180.0 && alt.is_finite()) {
+            bail!("[mavlink] origin: latitude within +-85, longitude within +-180, finite altitude");
+        }
+        if let Some([e, n]) = self.size_m {
+            if !(e > 0.0 && n > 0.0 && e.is_finite() && n.is_finite()) {
+                bail!("[mavlink] size_m: two positive extents");
+            }
+        }
+        let positive = [self.sim_speedup, self.boat_speed_ms, self.boat_turn_rate_dps, self.multirotor_speed_ms, self.acceptance_m];
+        if !positive.iter().all(|v| *v > 0.0 && v.is_finite()) || !(self.cruise_alt_m >= 0.0) {
+            bail!("[mavlink]: speeds, speed-up, turn rate and acceptance must be > 0, cruise_alt_m >= 0");
+        }
+        if self.heartbeat_timeout_ms == 0 {
+            bail!("[mavlink] heartbeat_timeout_ms must be > 0");
+        }
+        Ok(())
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MissionConfig {
@@ -115,6 +191,8 @@ pub struct MissionConfig {
     pub pace: Pace,
     #[serde(default)]
     pub motion: Motion,
+    #[serde(default)]
+    pub mavlink: MavlinkConfig,
 }
 
 impl MissionConfig {
@@ -131,6 +209,7 @@ impl MissionConfig {
         if !(cfg.motion.aerial_speed > 0.0 && cfg.motion.boat_speed > 0.0) {
             bail!("[motion]: speeds must be > 0");
         }
+        cfg.mavlink.check()?;
         if cfg.pace.horizon == 0 {
             bail!("[pace]: horizon must be >= 1");
         }
@@ -177,6 +256,12 @@ impl MissionConfig {
             VehicleKind::Aerial => Noise { sigma0: self.team.aerial_sigma0, growth_per_m: self.team.aerial_growth_per_cell },
             VehicleKind::Boat => Noise { sigma0: self.team.boat_sigma, growth_per_m: 0.0 },
         }
+    }
+
+    /// A vehicle's MAVLink system id: its place in the mission, from 1.
+    pub fn sysid(&self, id: &str) -> anyhow::Result<u8> {
+        let (i, _) = self.vehicle(id)?;
+        u8::try_from(i + 1).ok().filter(|s| *s < 255).with_context(|| format!("{id}: MAVLink has system ids 1-254 only"))
     }
 
     pub fn speed(&self, kind: VehicleKind) -> f64 {

@@ -46,6 +46,16 @@ pub struct Allocation {
     pub boats: Vec<Option<(Vec<usize>, (usize, usize))>>,
     /// Per aerial: its coverage position (metres).
     pub aerials: Vec<(f64, f64)>,
+    /// Vehicles (by index: aerials, then boats) left out: on operator hold or without an
+    /// autopilot. They sense nothing; the others share the work.
+    pub held: std::collections::BTreeSet<usize>,
+}
+
+impl Allocation {
+    /// The aerials that take part, and their positions.
+    pub fn active_aerials(&self) -> (Vec<usize>, Vec<(f64, f64)>) {
+        (0..self.aerials.len()).filter(|a| !self.held.contains(a)).map(|a| (a, self.aerials[a])).unzip()
+    }
 }
 
 /// The model server's state: the model, the snapshots it was built from, and the calibrated
@@ -164,12 +174,21 @@ impl Assimilator {
     /// Next epoch's places: block QR (or the configured alternative) on the model's modes,
     /// boats assigned by least total travel, aerials by Lloyd under the temporal density.
     pub fn allocate(&mut self) -> Result<Allocation, TeamError> {
+        self.allocate_without(&Default::default())
+    }
+
+    /// [`Self::allocate`] with some vehicles (indices: aerials, then boats) left out: the
+    /// disks go to the other boats (as many disks as boats free), Lloyd places the other
+    /// aerials, and the held keep their places.
+    pub fn allocate_without(&mut self, held: &std::collections::BTreeSet<usize>) -> Result<Allocation, TeamError> {
         let (pred, basis) = self.fitted.as_ref().ok_or_else(|| TeamError::Config("no model yet".into()))?;
         let (cfg, grid) = (&self.cfg, &self.grid);
-        let disks: Vec<Vec<usize>> = match cfg.placement {
-            Placement::Qr => qr::block_qr(basis.as_ref(), grid, cfg.boats, cfg.radius)?.into_iter().map(|d| d.cells).collect(),
-            Placement::DOptimal => qr::block_dopt(basis.as_ref(), grid, cfg.boats, cfg.radius)?.into_iter().map(|d| d.cells).collect(),
-            Placement::Random => random_disks(grid, cfg.boats, cfg.radius, &mut self.placement_rng),
+        let free: Vec<usize> = (0..cfg.boats).filter(|b| !held.contains(&(cfg.aerials + b))).collect();
+        let disks: Vec<Vec<usize>> = match (free.len(), cfg.placement) {
+            (0, _) => vec![],
+            (k, Placement::Qr) => qr::block_qr(basis.as_ref(), grid, k, cfg.radius)?.into_iter().map(|d| d.cells).collect(),
+            (k, Placement::DOptimal) => qr::block_dopt(basis.as_ref(), grid, k, cfg.radius)?.into_iter().map(|d| d.cells).collect(),
+            (k, Placement::Random) => random_disks(grid, k, cfg.radius, &mut self.placement_rng),
         };
         let centres: Vec<(usize, usize)> = disks
             .iter()
@@ -179,16 +198,25 @@ impl Assimilator {
             })
             .collect();
         let targets: Vec<(f64, f64)> = centres.iter().map(|&(r, c)| grid.centre_m(Cell::new(r, c))).collect();
-        let (assignment, _) = assign(&self.boat_positions, &targets, 1.0)?;
-        let boats = assignment.iter().map(|a| a.map(|t| (disks[t].clone(), centres[t]))).collect();
-        for (b, a) in self.boat_positions.iter_mut().zip(&assignment) {
+        let starts: Vec<(f64, f64)> = free.iter().map(|&b| self.boat_positions[b]).collect();
+        let (assignment, _) = if free.is_empty() { (vec![], 0.0) } else { assign(&starts, &targets, 1.0)? };
+        let mut boats = vec![None; cfg.boats];
+        for (&b, a) in free.iter().zip(&assignment) {
             if let Some(t) = a {
-                *b = targets[*t];
+                boats[b] = Some((disks[*t].clone(), centres[*t]));
+                self.boat_positions[b] = targets[*t];
             }
         }
         let density = coverage::temporal_density(pred, cfg.density_floor)?;
-        self.aerial_positions = coverage::lloyd(grid, &density, &self.aerial_positions, 50, 1e-3)?.positions;
-        Ok(Allocation { boats, aerials: self.aerial_positions.clone() })
+        let flying: Vec<usize> = (0..cfg.aerials).filter(|a| !held.contains(a)).collect();
+        if !flying.is_empty() {
+            let starts: Vec<(f64, f64)> = flying.iter().map(|&a| self.aerial_positions[a]).collect();
+            let placed = coverage::lloyd(grid, &density, &starts, 50, 1e-3)?.positions;
+            for (&a, p) in flying.iter().zip(placed) {
+                self.aerial_positions[a] = p;
+            }
+        }
+        Ok(Allocation { boats, aerials: self.aerial_positions.clone(), held: held.clone() })
     }
 
     /// Fuse one step `ahead` steps after the model's newest snapshot: the aerial estimate with

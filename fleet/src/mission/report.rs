@@ -22,7 +22,15 @@ pub enum ServerEvent {
         latency_ms: f64,
         alive: usize,
         batches: u64,
+        /// Vehicles left out of the next epoch's allocation (operator hold, autopilot lost).
+        #[serde(default)]
+        held: Vec<String>,
+        /// Where the next epoch's allocation sends each vehicle that senses (grid metres).
+        #[serde(default)]
+        places: std::collections::BTreeMap<String, [f64; 2]>,
     },
+    /// A vehicle left the allocation (its autopilot is on operator hold or lost) or came back.
+    Hold { vehicle: String, held: bool, mode: String },
     /// Every step is in the model.
     Finished { summary: Box<ServerSummary> },
 }

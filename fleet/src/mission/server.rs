@@ -11,7 +11,7 @@ use super::{schedule::Schedule, Allocation, Assimilator};
 use crate::experiment::team::{TeamConfig, TeamError};
 use crate::grid::Grid;
 use crate::protocol::{self, Ack, MeasurementBatch, ModelUpdate, Plan, Sample, Target, VehicleKind};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 /// A vehicle of the mission: its id and kind; its index is its place in the list (aerials
 /// first), which also picks its random stream.
@@ -82,6 +82,10 @@ pub struct ServerCore {
     received: BTreeMap<u64, BTreeMap<usize, MeasurementBatch>>,
     /// The plan each epoch was sensed under (to check boats measured their disks).
     plans: BTreeMap<u64, Allocation>,
+    /// Vehicles (by index) the operator holds or whose autopilot is lost, as telemetry says.
+    held: BTreeSet<usize>,
+    /// The held set each epoch's allocation was made with (a re-fit makes the same plans).
+    holds: BTreeMap<u64, BTreeSet<usize>>,
     pub counters: Counters,
     /// Model version: bumped at every assimilated epoch.
     pub version: u64,
@@ -99,6 +103,8 @@ impl ServerCore {
             epoch: 0,
             received: BTreeMap::new(),
             plans: BTreeMap::new(),
+            held: BTreeSet::new(),
+            holds: BTreeMap::new(),
             counters: Counters::default(),
             version: 0,
             snapshots: vec![],
@@ -189,6 +195,27 @@ impl ServerCore {
         self.version = version + 1;
         self.counters.refits += 1;
         Ok(())
+    }
+
+    /// Whether the planner may allocate a vehicle (from its telemetry); takes effect at the next
+    /// allocation. Returns whether it changed.
+    pub fn set_available(&mut self, vehicle: &str, available: bool) -> bool {
+        let Some(index) = self.vehicles.iter().position(|v| v.id == vehicle) else { return false };
+        if available {
+            self.held.remove(&index)
+        } else {
+            self.held.insert(index)
+        }
+    }
+
+    /// Vehicles left out of the next allocation.
+    pub fn held(&self) -> Vec<String> {
+        self.held.iter().map(|&i| self.vehicles[i].id.clone()).collect()
+    }
+
+    /// Vehicles left out of epoch `e`'s allocation.
+    pub fn held_at(&self, e: u64) -> Vec<String> {
+        self.holds.get(&e).map_or_else(Vec::new, |h| h.iter().map(|&i| self.vehicles[i].id.clone()).collect())
     }
 
     fn reject(&mut self, vehicle: &str, why: String) -> IngestError {
@@ -283,7 +310,8 @@ impl ServerCore {
         self.version += 1;
         self.counters.epochs = self.epoch;
         if !self.all_assimilated() {
-            let plan = self.assim.allocate()?;
+            let held = self.holds.entry(self.epoch).or_insert_with(|| self.held.clone()).clone();
+            let plan = self.assim.allocate_without(&held)?;
             self.plans.insert(self.epoch, plan);
         }
         Ok(())
@@ -293,7 +321,7 @@ impl ServerCore {
     /// is the uniform formation.
     pub fn allocation(&self, e: u64) -> Option<Allocation> {
         if e == 0 {
-            return Some(Allocation { boats: vec![None; self.cfg.boats], aerials: self.assim.aerial_positions().to_vec() });
+            return Some(Allocation { boats: vec![None; self.cfg.boats], aerials: self.assim.aerial_positions().to_vec(), held: BTreeSet::new() });
         }
         self.plans.get(&e).cloned()
     }
@@ -308,8 +336,13 @@ impl ServerCore {
         let grid = self.assim.grid();
         let kind = self.vehicles[index].kind;
         let (position, radius, cells) = match kind {
+            // Left out: stays where it is, senses nothing.
+            VehicleKind::Aerial if alloc.held.contains(&index) => (alloc.aerials[index], 0.0, vec![]),
+            VehicleKind::Boat if alloc.held.contains(&index) => (self.assim.boat_positions()[index - self.cfg.aerials], 0.0, vec![]),
             VehicleKind::Aerial => {
-                let region = crate::fusion::aerial_region(grid, self.cfg.aerial_stride, &alloc.aerials, index).ok()?;
+                let (ids, positions) = alloc.active_aerials();
+                let me = ids.iter().position(|&a| a == index)?;
+                let region = crate::fusion::aerial_region(grid, self.cfg.aerial_stride, &positions, me).ok()?;
                 (alloc.aerials[index], 0.0, region)
             }
             VehicleKind::Boat => {

@@ -27,6 +27,15 @@ pub struct BrainState {
     off_target: u64,
 }
 
+/// Where an autopilot put the vehicle for a sampling step: its reported position (grid
+/// metres) and whether that is within the acceptance distance of the target (then the
+/// vehicle senses exactly its planned place, as the offline experiment does).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Fix {
+    pub position: (f64, f64),
+    pub arrived: bool,
+}
+
 pub struct VehicleBrain {
     pub id: String,
     pub kind: VehicleKind,
@@ -111,22 +120,42 @@ impl VehicleBrain {
     /// Sense epoch `e` under the held plan: its batch (`None`: this vehicle sends none for
     /// `e`). `truth_at(k)` is the field at step `k` (mixed reality: a dataset or simulator).
     pub fn sense_epoch(&mut self, e: u64, truth_at: impl Fn(usize) -> Vec<f64>) -> Result<Option<MeasurementBatch>, FusionError> {
-        let Some(seq) = self.schedule.seq_of(self.kind, e) else { return Ok(None) };
+        self.sense_epoch_at(e, truth_at, &std::collections::BTreeMap::new())
+    }
+
+    /// The targets of epoch `e`'s sampling steps under the held plan (empty without one).
+    pub fn targets_of(&self, e: u64) -> Vec<Target> {
         let steps = self.schedule.sample_steps(self.kind, e);
-        let targets: Vec<Target> = match &self.plan {
+        match &self.plan {
             Some(p) => steps.iter().filter_map(|&k| p.targets.iter().find(|t| t.step as usize == k).cloned()).collect(),
             None => vec![],
-        };
+        }
+    }
+
+    /// [`Self::sense_epoch`] with the positions an autopilot reported, by step; steps without a
+    /// fix use the vehicle's own kinematics.
+    pub fn sense_epoch_at(&mut self, e: u64, truth_at: impl Fn(usize) -> Vec<f64>, fixes: &std::collections::BTreeMap<u64, Fix>) -> Result<Option<MeasurementBatch>, FusionError> {
+        let Some(seq) = self.schedule.seq_of(self.kind, e) else { return Ok(None) };
+        let steps = self.schedule.sample_steps(self.kind, e);
+        let targets = self.targets_of(e);
         if targets.len() != steps.len() {
             return Err(FusionError::Input(format!("{}: no plan covers epoch {e}", self.id)));
         }
         let mut samples: Vec<Sample> = vec![];
         for t in &targets {
-            // A boat left without a disk reports the epoch with nothing in it.
-            if t.cells.is_empty() && self.kind == VehicleKind::Boat {
+            // A vehicle left out of the allocation (a boat without a disk, or one on operator
+            // hold) reports the epoch with nothing in it.
+            if t.cells.is_empty() {
                 continue;
             }
-            let pos = self.move_to(t);
+            let pos = match fixes.get(&t.step) {
+                Some(f) => {
+                    let pos = if f.arrived { (t.position[0], t.position[1]) } else { f.position };
+                    (self.position, self.last_step) = (Some(pos), Some(t.step as usize));
+                    pos
+                }
+                None => self.move_to(t),
+            };
             let arrived = pos == (t.position[0], t.position[1]);
             let cells: Vec<usize> = match (self.kind, arrived) {
                 (VehicleKind::Boat, false) => {

@@ -48,6 +48,20 @@ impl Keys {
         self.vehicle(id, "telemetry")
     }
 
+    /// A vehicle's autopilot stream, MAVLink 2 frames as they come (for ground stations).
+    pub fn mavlink(&self, id: &str) -> String {
+        self.vehicle(id, "mavlink")
+    }
+
+    pub fn all_mavlink(&self) -> String {
+        self.vehicle("*", "mavlink")
+    }
+
+    /// Frames from ground stations for one vehicle's autopilot (only the gateway puts here).
+    pub fn gcs(&self, id: &str) -> String {
+        format!("{ROOT}/{}/gcs/{id}/mavlink", self.mission)
+    }
+
     pub fn ack(&self, id: &str) -> String {
         self.vehicle(id, "ack")
     }
@@ -103,6 +117,8 @@ mod tests {
         assert_eq!(k.all_measurements(), "fleet/tank-1/vehicle/*/measurements");
         assert_eq!(k.model_latest(), "fleet/tank-1/model/latest");
         assert_eq!(k.plan("av-1"), "fleet/tank-1/plan/av-1");
+        assert_eq!(k.mavlink("boat-3"), "fleet/tank-1/vehicle/boat-3/mavlink");
+        assert_eq!(k.gcs("boat-3"), "fleet/tank-1/gcs/boat-3/mavlink");
         assert_eq!(k.vehicle_of("fleet/tank-1/vehicle/boat-3/measurements").as_deref(), Some("boat-3"));
         assert_eq!(k.vehicle_of("fleet/other/vehicle/boat-3/measurements"), None);
         assert_eq!(k.id_after("fleet/tank-1/plan/av-2", "plan").as_deref(), Some("av-2"));

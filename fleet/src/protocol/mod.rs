@@ -116,6 +116,45 @@ pub struct Telemetry {
     pub battery: f64,
     pub link: LinkState,
     pub outbox_depth: u64,
+    /// The vehicle's autopilot as its MAVLink bridge sees it (`None`: no autopilot).
+    #[serde(default)]
+    pub autopilot: Option<AutopilotStatus>,
+}
+
+impl Telemetry {
+    /// Whether the planner may allocate this vehicle: no autopilot, or one still being set up,
+    /// or one in GUIDED mode. An operator's mode (hold, return, mission) or a lost autopilot
+    /// takes it out of the allocation until it is back.
+    pub fn available(&self) -> bool {
+        self.autopilot.as_ref().is_none_or(|a| match a.link {
+            AutopilotLink::Connecting => true,
+            AutopilotLink::Up => a.guided,
+            AutopilotLink::Lost => false,
+        })
+    }
+}
+
+/// An autopilot's link to its vehicle node.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AutopilotLink {
+    /// No HEARTBEAT yet, or the node is still arming it and setting GUIDED.
+    Connecting,
+    Up,
+    /// No HEARTBEAT within the timeout.
+    Lost,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AutopilotStatus {
+    pub link: AutopilotLink,
+    /// MAVLink system id (0 before the first HEARTBEAT).
+    pub sysid: u8,
+    /// Mode by name (`GUIDED`, `HOLD`, `AUTO`, ...).
+    pub mode: String,
+    pub armed: bool,
+    /// In GUIDED mode, armed: the fleet's planner drives it.
+    pub guided: bool,
 }
 
 /// The highest gap-free `seq` of a vehicle the server has assimilated.
@@ -314,6 +353,9 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
             vehicle(&t.vehicle, ctx)?;
             position(t.position, &ctx.grid)?;
             finite("telemetry", &[t.heading, t.battery])?;
+            if t.autopilot.as_ref().is_some_and(|a| a.mode.len() > 32) {
+                return inv("autopilot mode name over 32 characters".into());
+            }
             if !(0.0..=1.0).contains(&t.battery) {
                 return inv(format!("battery {} outside 0..1", t.battery));
             }
@@ -389,7 +431,7 @@ mod tests {
         let g = Grid::new(4, 5, 1.0).unwrap();
         let msgs = vec![
             batch(),
-            Body::Telemetry(Telemetry { vehicle: "av-1".into(), step: 2, position: [0.0, 4.0], heading: 1.0, battery: 0.5, link: LinkState::Down, outbox_depth: 7 }),
+            Body::Telemetry(Telemetry { vehicle: "av-1".into(), step: 2, position: [0.0, 4.0], heading: 1.0, battery: 0.5, link: LinkState::Down, outbox_depth: 7, autopilot: None }),
             Body::Ack(Ack { vehicle: "boat-1".into(), seq: 9 }),
             Body::Model(ModelUpdate {
                 version: 1,

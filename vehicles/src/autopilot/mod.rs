@@ -1,0 +1,7 @@
+//! The autopilot side of a vehicle: where the workspace is on the Earth, the modes, a simulated
+//! autopilot, and serving it on a MAVLink connection as an autopilot's serial or UDP port.
+
+pub mod modes;
+pub mod serve;
+pub mod site;
+pub mod sim;

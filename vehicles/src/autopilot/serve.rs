@@ -1,0 +1,94 @@
+//! A simulated autopilot on a MAVLink connection (`udpin:` as SITL does, or any other the
+//! `mavlink` crate opens): its own thread ticks the physics every 10 ms and sends HEARTBEAT and
+//! SYS_STATUS at 1 Hz, GLOBAL_POSITION_INT, LOCAL_POSITION_NED (and its guided target) at
+//! 10 Hz, and replies as they come. Frames it cannot read are counted and skipped.
+
+use super::sim::SimAutopilot;
+use mavlink::dialects::common::MavMessage;
+use mavlink::{Connection, MavConnection, MavHeader};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{mpsc, Arc};
+use std::time::{Duration, Instant};
+
+/// What a served autopilot has seen.
+#[derive(Debug, Default)]
+pub struct ServeStats {
+    pub received: AtomicU64,
+    /// Frames that did not parse (bad CRC, unknown id, truncated).
+    pub unreadable: AtomicU64,
+    pub sent: AtomicU64,
+}
+
+/// Serve `sim` on `address` until `stop`; the reader thread ends with the process.
+pub fn spawn(address: &str, sim: SimAutopilot, stop: Arc<AtomicBool>) -> std::io::Result<Arc<ServeStats>> {
+    let conn = Arc::new(mavlink::connect::<MavMessage>(address)?);
+    let stats = Arc::new(ServeStats::default());
+    let (tx, rx) = mpsc::channel();
+    {
+        let (conn, stats) = (conn.clone(), stats.clone());
+        std::thread::Builder::new().name("sim-autopilot-rx".into()).spawn(move || loop {
+            match conn.recv() {
+                Ok(m) => {
+                    stats.received.fetch_add(1, Ordering::Relaxed);
+                    if tx.send(m).is_err() {
+                        return;
+                    }
+                }
+                Err(mavlink::error::MessageReadError::Io(e)) if e.kind() != std::io::ErrorKind::InvalidData => std::thread::sleep(Duration::from_millis(20)),
+                Err(_) => {
+                    stats.unreadable.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+        })?;
+    }
+    let st = stats.clone();
+    std::thread::Builder::new().name("sim-autopilot".into()).spawn(move || run(conn, sim, rx, stop, st))?;
+    Ok(stats)
+}
+
+fn run(conn: Arc<Connection<MavMessage>>, mut sim: SimAutopilot, rx: mpsc::Receiver<(MavHeader, MavMessage)>, stop: Arc<AtomicBool>, stats: Arc<ServeStats>) {
+    let mut header = MavHeader { system_id: sim.spec.sysid as u32, component_id: 1, sequence: 0 };
+    let mut send = |m: &MavMessage| {
+        // No peer yet (udpin before the first datagram), or it went away: dropped, as on a radio.
+        if conn.send(&header, m).is_ok() {
+            stats.sent.fetch_add(1, Ordering::Relaxed);
+        }
+        header.sequence = header.sequence.wrapping_add(1);
+    };
+    let start = Instant::now();
+    let (mut last, mut fast, mut slow) = (Instant::now(), 0u64, 0u64);
+    // What the last HEARTBEAT said; a change (or the first peer) is announced at once.
+    let mut shown: Option<(u32, bool)> = None;
+    while !stop.load(Ordering::Relaxed) {
+        let mut heard = false;
+        while let Ok((h, m)) = rx.try_recv() {
+            sim.handle(&h, &m);
+            heard = true;
+        }
+        if (heard && shown.is_none()) || shown.is_some_and(|s| s != (sim.mode, sim.armed)) {
+            send(&sim.heartbeat());
+            shown = Some((sim.mode, sim.armed));
+        }
+        let now = Instant::now();
+        sim.step(now.duration_since(last).as_secs_f64());
+        last = now;
+        for m in sim.take() {
+            send(&m);
+        }
+        let ms = start.elapsed().as_millis() as u64;
+        if ms / 100 >= fast {
+            fast = ms / 100 + 1;
+            for m in sim.position() {
+                send(&m);
+            }
+        }
+        if ms / 1000 >= slow {
+            slow = ms / 1000 + 1;
+            send(&sim.heartbeat());
+            shown = shown.map(|_| (sim.mode, sim.armed));
+            send(&sim.sys_status());
+            send(&sim.mission_current());
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}

@@ -1,0 +1,606 @@
+//! A simulated autopilot that speaks MAVLink as ArduPilot does: a kinematic boat (speed and
+//! turn-rate limits, on the surface) or multirotor (speed limit, at cruise altitude), with
+//! modes, arming, guided targets (SET_POSITION_TARGET_LOCAL_NED, MAV_CMD_DO_REPOSITION) and the
+//! mission protocol (upload, download, clear, run with MISSION_CURRENT and
+//! MISSION_ITEM_REACHED). Pure: messages in, messages out, time passed in; `serve` puts it on a
+//! socket.
+//!
+//! Mission items are run from item 0 (the protocol's own numbering; ArduPilot's "item 0 is
+//! home" convention is not followed) and must be MAV_CMD_NAV_WAYPOINT in a global frame.
+
+// Ground stations still send SET_MODE, MISSION_REQUEST and the *_INT frame names: we take them.
+#![allow(deprecated)]
+
+use super::modes::{Frame, Role};
+use super::site::Site;
+use mavlink::dialects::common::*;
+use mavlink::{MavHeader, Message};
+use nalgebra::Vector3;
+use std::f64::consts::PI;
+
+/// Longest mission we take.
+pub const MAX_MISSION_ITEMS: u16 = 500;
+/// Physics step (simulated seconds).
+const SUBSTEP_S: f64 = 0.05;
+/// An upload waits this long (wall seconds) for an item before asking again, five times.
+const UPLOAD_RETRY_S: f64 = 0.5;
+
+#[derive(Debug, Clone)]
+pub struct SimSpec {
+    pub frame: Frame,
+    pub sysid: u8,
+    pub site: Site,
+    /// m/s
+    pub max_speed: f64,
+    /// rad/s (boats only)
+    pub turn_rate: f64,
+    /// m above the origin (multirotors)
+    pub cruise_alt: f64,
+    /// Simulated seconds per wall second.
+    pub speedup: f64,
+}
+
+struct Upload {
+    count: u16,
+    items: Vec<MISSION_ITEM_INT_DATA>,
+    from: (u8, u8),
+    asked_at: f64,
+    tries: u32,
+}
+
+pub struct SimAutopilot {
+    pub spec: SimSpec,
+    /// Local NED (m).
+    pub pos: Vector3<f64>,
+    pub vel: Vector3<f64>,
+    /// Radians from north, clockwise.
+    pub heading: f64,
+    pub armed: bool,
+    pub mode: u32,
+    mode_before_pause: Option<u32>,
+    goal: Option<Vector3<f64>>,
+    home: Vector3<f64>,
+    pub mission: Vec<MISSION_ITEM_INT_DATA>,
+    pub current: u16,
+    upload: Option<Upload>,
+    /// Wall seconds since boot.
+    pub wall_s: f64,
+    battery: f64,
+    out: Vec<MavMessage>,
+}
+
+fn wrap(a: f64) -> f64 {
+    (a + PI).rem_euclid(2.0 * PI) - PI
+}
+
+impl SimAutopilot {
+    /// Boots disarmed, in the frame's boot mode, at `home` (local NED).
+    pub fn new(spec: SimSpec, home: Vector3<f64>) -> Self {
+        let mode = spec.frame.boot_mode();
+        Self { spec, pos: home, vel: Vector3::zeros(), heading: 0.0, armed: false, mode, mode_before_pause: None, goal: None, home, mission: vec![], current: 0, upload: None, wall_s: 0.0, battery: 1.0, out: vec![] }
+    }
+
+    pub fn role(&self) -> Option<Role> {
+        self.spec.frame.role(self.mode)
+    }
+
+    /// Messages to send (replies and events), oldest first.
+    pub fn take(&mut self) -> Vec<MavMessage> {
+        std::mem::take(&mut self.out)
+    }
+
+    fn for_me(&self, msg: &MavMessage) -> bool {
+        msg.target_system_id().is_none_or(|t| t == 0 || t == self.spec.sysid)
+    }
+
+    fn ack(&mut self, command: MavCmd, ok: bool) {
+        let result = if ok { MavResult::MAV_RESULT_ACCEPTED } else { MavResult::MAV_RESULT_DENIED };
+        self.out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA { command, result }));
+    }
+
+    fn set_mode(&mut self, mode: u32) -> bool {
+        let Some(role) = self.spec.frame.role(mode) else { return false };
+        if role == Role::Auto && self.mode != mode {
+            self.current = self.current.min(self.mission.len().saturating_sub(1) as u16);
+        }
+        if role != Role::Guided {
+            self.goal = None;
+        }
+        self.mode = mode;
+        true
+    }
+
+    /// The surface (boats) or cruise altitude (multirotors) under a point.
+    fn at_altitude(&self, mut p: Vector3<f64>) -> Vector3<f64> {
+        p.z = match self.spec.frame {
+            Frame::Boat => 0.0,
+            Frame::Multirotor => p.z.min(0.0),
+        };
+        p
+    }
+
+    fn command(&mut self, command: MavCmd, p: [f32; 7], global: Option<(f64, f64, f64)>) {
+        use MavCmd::*;
+        let ok = match command {
+            MAV_CMD_COMPONENT_ARM_DISARM => {
+                self.armed = p[0] >= 0.5;
+                true
+            }
+            MAV_CMD_DO_SET_MODE => self.set_mode(p[1] as u32),
+            MAV_CMD_NAV_RETURN_TO_LAUNCH => self.set_mode(self.spec.frame.mode(Role::Return)),
+            MAV_CMD_MISSION_START => !self.mission.is_empty() && self.set_mode(self.spec.frame.mode(Role::Auto)),
+            MAV_CMD_DO_PAUSE_CONTINUE if p[0] < 0.5 => {
+                self.mode_before_pause = Some(self.mode);
+                self.set_mode(self.spec.frame.hold_mode())
+            }
+            MAV_CMD_DO_PAUSE_CONTINUE => {
+                let back = self.mode_before_pause.take().unwrap_or(self.spec.frame.mode(Role::Guided));
+                self.set_mode(back)
+            }
+            MAV_CMD_DO_REPOSITION => {
+                // COMMAND_INT carries degrees * 1e7 in x, y; COMMAND_LONG degrees in params 5, 6.
+                let (lat, lon, alt) = global.unwrap_or((p[4] as f64, p[5] as f64, p[6] as f64));
+                if lat.is_finite() && lon.is_finite() && lat.abs() <= 90.0 && lon.abs() <= 180.0 {
+                    let up = if alt.is_finite() { alt } else { self.spec.cruise_alt };
+                    let ned = self.spec.site.ned_of_global(lat, lon, self.spec.site.origin[2] + up);
+                    self.set_mode(self.spec.frame.mode(Role::Guided));
+                    self.goal = Some(self.at_altitude(ned));
+                    true
+                } else {
+                    false
+                }
+            }
+            _ => {
+                self.out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA { command, result: MavResult::MAV_RESULT_UNSUPPORTED }));
+                return;
+            }
+        };
+        self.ack(command, ok);
+    }
+
+    fn mission_ack(&mut self, to: (u8, u8), result: MavMissionResult) {
+        self.out.push(MavMessage::MISSION_ACK(MISSION_ACK_DATA { target_system: to.0, target_component: to.1, mavtype: result }));
+    }
+
+    fn request_item(&mut self, seq: u16) {
+        if let Some(u) = &mut self.upload {
+            u.asked_at = self.wall_s;
+            let (target_system, target_component) = u.from;
+            self.out.push(MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq, target_system, target_component }));
+        }
+    }
+
+    /// Whether an uploaded item is one we can fly.
+    fn flyable(item: &MISSION_ITEM_INT_DATA) -> Result<(), MavMissionResult> {
+        use MavFrame::*;
+        if item.command != MavCmd::MAV_CMD_NAV_WAYPOINT {
+            return Err(MavMissionResult::MAV_MISSION_UNSUPPORTED);
+        }
+        if !matches!(item.frame, MAV_FRAME_GLOBAL | MAV_FRAME_GLOBAL_INT | MAV_FRAME_GLOBAL_RELATIVE_ALT | MAV_FRAME_GLOBAL_RELATIVE_ALT_INT) {
+            return Err(MavMissionResult::MAV_MISSION_UNSUPPORTED_FRAME);
+        }
+        if item.x.unsigned_abs() > 900_000_000 || item.y.unsigned_abs() > 1_800_000_000 || !item.z.is_finite() {
+            return Err(MavMissionResult::MAV_MISSION_INVALID);
+        }
+        Ok(())
+    }
+
+    fn item_position(&self, item: &MISSION_ITEM_INT_DATA) -> Vector3<f64> {
+        let relative = matches!(item.frame, MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT | MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT_INT);
+        let alt = if relative { self.spec.site.origin[2] + item.z as f64 } else { item.z as f64 };
+        self.at_altitude(self.spec.site.ned_of_global(item.x as f64 * 1e-7, item.y as f64 * 1e-7, alt))
+    }
+
+    /// Take one message from a ground station or companion computer.
+    pub fn handle(&mut self, from: &MavHeader, msg: &MavMessage) {
+        if !self.for_me(msg) {
+            return;
+        }
+        let Ok(sysid) = u8::try_from(from.system_id) else { return };
+        let sender = (sysid, from.component_id);
+        match msg {
+            MavMessage::COMMAND_LONG(c) => self.command(c.command, [c.param1, c.param2, c.param3, c.param4, c.param5, c.param6, c.param7], None),
+            MavMessage::COMMAND_INT(c) => {
+                let global = Some((c.x as f64 * 1e-7, c.y as f64 * 1e-7, c.z as f64));
+                self.command(c.command, [c.param1, c.param2, c.param3, c.param4, 0.0, 0.0, c.z], global)
+            }
+            MavMessage::SET_MODE(m) => {
+                self.set_mode(m.custom_mode);
+            }
+            MavMessage::SET_POSITION_TARGET_LOCAL_NED(t) if self.role() == Some(Role::Guided) && t.coordinate_frame == MavFrame::MAV_FRAME_LOCAL_NED => {
+                let p = Vector3::new(t.x as f64, t.y as f64, t.z as f64);
+                if p.iter().all(|v| v.is_finite()) {
+                    self.goal = Some(self.at_altitude(p));
+                }
+            }
+            MavMessage::MISSION_COUNT(c) => {
+                if c.count == 0 {
+                    self.mission.clear();
+                    self.mission_ack(sender, MavMissionResult::MAV_MISSION_ACCEPTED);
+                } else if c.count > MAX_MISSION_ITEMS {
+                    self.mission_ack(sender, MavMissionResult::MAV_MISSION_NO_SPACE);
+                } else {
+                    self.upload = Some(Upload { count: c.count, items: vec![], from: sender, asked_at: self.wall_s, tries: 0 });
+                    self.request_item(0);
+                }
+            }
+            MavMessage::MISSION_ITEM_INT(item) => self.take_item(sender, item),
+            MavMessage::MISSION_REQUEST_LIST(_) => {
+                let count = self.mission.len() as u16;
+                self.out.push(MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count, target_system: sender.0, target_component: sender.1 }));
+            }
+            MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq, .. }) | MavMessage::MISSION_REQUEST(MISSION_REQUEST_DATA { seq, .. }) => match self.mission.get(*seq as usize) {
+                Some(item) => {
+                    let mut item = item.clone();
+                    (item.target_system, item.target_component, item.current) = (sender.0, sender.1, u8::from(*seq == self.current));
+                    self.out.push(MavMessage::MISSION_ITEM_INT(item));
+                }
+                None => self.mission_ack(sender, MavMissionResult::MAV_MISSION_INVALID_SEQUENCE),
+            },
+            MavMessage::MISSION_CLEAR_ALL(_) => {
+                self.mission.clear();
+                self.current = 0;
+                self.mission_ack(sender, MavMissionResult::MAV_MISSION_ACCEPTED);
+            }
+            MavMessage::MISSION_SET_CURRENT(s) if (s.seq as usize) < self.mission.len() => {
+                self.current = s.seq;
+                self.out.push(MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current }));
+            }
+            MavMessage::PARAM_REQUEST_LIST(_) => {
+                // One parameter, so ground stations finish their parameter download.
+                let mut id = [0u8; 16];
+                id[..13].copy_from_slice(b"SYSID_THISMAV");
+                self.out.push(MavMessage::PARAM_VALUE(PARAM_VALUE_DATA {
+                    param_value: self.spec.sysid as f32,
+                    param_count: 1,
+                    param_index: 0,
+                    param_id: id.into(),
+                    param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+                }));
+            }
+            _ => {}
+        }
+    }
+
+    fn take_item(&mut self, sender: (u8, u8), item: &MISSION_ITEM_INT_DATA) {
+        let Some(u) = &mut self.upload else { return };
+        if u.from != sender {
+            return;
+        }
+        let next = u.items.len() as u16;
+        if item.seq < next {
+            // A repeat: the request for the next was lost; ask again.
+            self.request_item(next);
+            return;
+        }
+        if item.seq > next {
+            self.mission_ack(sender, MavMissionResult::MAV_MISSION_INVALID_SEQUENCE);
+            self.upload = None;
+            return;
+        }
+        if let Err(why) = Self::flyable(item) {
+            self.mission_ack(sender, why);
+            self.upload = None;
+            return;
+        }
+        u.items.push(item.clone());
+        u.tries = 0;
+        if u.items.len() as u16 == u.count {
+            let done = self.upload.take().expect("upload in progress");
+            self.mission = done.items;
+            self.current = 0;
+            self.mission_ack(sender, MavMissionResult::MAV_MISSION_ACCEPTED);
+        } else {
+            self.request_item(next + 1);
+        }
+    }
+
+    /// Where the mode sends the vehicle (`None`: stay).
+    fn destination(&self) -> Option<Vector3<f64>> {
+        match self.role()? {
+            Role::Guided => self.goal,
+            Role::Auto => self.mission.get(self.current as usize).map(|i| self.item_position(i)),
+            Role::Return => Some(self.at_altitude(Vector3::new(self.home.x, self.home.y, -self.spec.cruise_alt))),
+            Role::Hold => None,
+        }
+    }
+
+    /// Advance `dt_wall` wall seconds (`dt_wall * speedup` of simulated flight).
+    pub fn step(&mut self, dt_wall: f64) {
+        self.wall_s += dt_wall;
+        self.retry_upload();
+        let mut left = dt_wall * self.spec.speedup;
+        while left > 1e-12 {
+            let dt = left.min(SUBSTEP_S);
+            left -= dt;
+            let before = self.pos;
+            let reached = match (self.armed, self.destination()) {
+                (true, Some(goal)) => self.move_toward(goal, dt),
+                _ => false,
+            };
+            self.vel = (self.pos - before) / dt;
+            if reached && self.role() == Some(Role::Auto) {
+                self.item_reached();
+            }
+        }
+        self.battery = (self.battery - dt_wall * self.spec.speedup / 3600.0).max(0.0);
+    }
+
+    fn retry_upload(&mut self) {
+        let Some(u) = &mut self.upload else { return };
+        if self.wall_s - u.asked_at < UPLOAD_RETRY_S {
+            return;
+        }
+        u.tries += 1;
+        let (from, tries, next) = (u.from, u.tries, u.items.len() as u16);
+        if tries > 5 {
+            self.upload = None;
+            self.mission_ack(from, MavMissionResult::MAV_MISSION_OPERATION_CANCELLED);
+        } else {
+            self.request_item(next);
+        }
+    }
+
+    fn item_reached(&mut self) {
+        let seq = self.current;
+        self.out.push(MavMessage::MISSION_ITEM_REACHED(MISSION_ITEM_REACHED_DATA { seq }));
+        if (seq as usize) + 1 < self.mission.len() {
+            self.current = seq + 1;
+            self.out.push(MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current }));
+        } else {
+            // End of the mission: hold there (as ArduRover does).
+            self.set_mode(self.spec.frame.hold_mode());
+        }
+    }
+
+    /// One physics step toward `goal`; whether it is reached.
+    fn move_toward(&mut self, goal: Vector3<f64>, dt: f64) -> bool {
+        let d = goal - self.pos;
+        let dist = d.norm();
+        let reach = self.spec.max_speed * dt;
+        if dist <= 1e-9 {
+            return true;
+        }
+        match self.spec.frame {
+            Frame::Multirotor => {
+                self.heading = d.y.atan2(d.x);
+                if dist <= reach {
+                    self.pos = goal;
+                    return true;
+                }
+                self.pos += d * (reach / dist);
+            }
+            Frame::Boat => {
+                let err = wrap(d.y.atan2(d.x) - self.heading);
+                let turn = err.clamp(-self.spec.turn_rate * dt, self.spec.turn_rate * dt);
+                self.heading = wrap(self.heading + turn);
+                let left = err - turn;
+                if dist <= reach && left.abs() < PI / 2.0 {
+                    self.pos = goal;
+                    return true;
+                }
+                // Slow while turning; pivot when the goal is behind.
+                let step = reach * left.cos().max(0.0);
+                self.pos += Vector3::new(self.heading.cos(), self.heading.sin(), 0.0) * step;
+            }
+        }
+        false
+    }
+
+    fn time_boot_ms(&self) -> u32 {
+        (self.wall_s * 1000.0) as u32
+    }
+
+    pub fn heartbeat(&self) -> MavMessage {
+        let mut base = MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | MavModeFlag::MAV_MODE_FLAG_STABILIZE_ENABLED;
+        if self.armed {
+            base |= MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED;
+        }
+        match self.role() {
+            Some(Role::Guided) => base |= MavModeFlag::MAV_MODE_FLAG_GUIDED_ENABLED,
+            Some(Role::Auto) => base |= MavModeFlag::MAV_MODE_FLAG_AUTO_ENABLED | MavModeFlag::MAV_MODE_FLAG_GUIDED_ENABLED,
+            _ => {}
+        }
+        MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+            custom_mode: self.mode,
+            mavtype: self.spec.frame.mav_type(),
+            autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
+            base_mode: base,
+            system_status: if self.armed { MavState::MAV_STATE_ACTIVE } else { MavState::MAV_STATE_STANDBY },
+            mavlink_version: 3,
+        })
+    }
+
+    pub fn sys_status(&self) -> MavMessage {
+        let sensors = MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_3D_GYRO
+            | MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_3D_ACCEL
+            | MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_GPS
+            | MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
+            | MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_BATTERY;
+        MavMessage::SYS_STATUS(SYS_STATUS_DATA {
+            onboard_control_sensors_present: sensors,
+            onboard_control_sensors_enabled: sensors,
+            onboard_control_sensors_health: sensors,
+            load: 150,
+            voltage_battery: (11_000.0 + 1_600.0 * self.battery) as u16,
+            current_battery: if self.armed { 800 } else { 50 },
+            battery_remaining: (100.0 * self.battery) as i8,
+            ..Default::default()
+        })
+    }
+
+    /// The position messages (sent at 10 Hz).
+    pub fn position(&self) -> Vec<MavMessage> {
+        let (lat, lon, alt) = self.spec.site.global_of(&self.pos);
+        let hdg = (self.heading.to_degrees().rem_euclid(360.0) * 100.0) as u16;
+        let t = self.time_boot_ms();
+        let mut out = vec![
+            MavMessage::GLOBAL_POSITION_INT(GLOBAL_POSITION_INT_DATA {
+                time_boot_ms: t,
+                lat: (lat * 1e7).round() as i32,
+                lon: (lon * 1e7).round() as i32,
+                alt: (alt * 1000.0).round() as i32,
+                relative_alt: (-self.pos.z * 1000.0).round() as i32,
+                vx: (self.vel.x * 100.0) as i16,
+                vy: (self.vel.y * 100.0) as i16,
+                vz: (self.vel.z * 100.0) as i16,
+                hdg,
+            }),
+            MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+                time_boot_ms: t,
+                x: self.pos.x as f32,
+                y: self.pos.y as f32,
+                z: self.pos.z as f32,
+                vx: self.vel.x as f32,
+                vy: self.vel.y as f32,
+                vz: self.vel.z as f32,
+            }),
+        ];
+        if let (Some(Role::Guided), Some(g)) = (self.role(), self.goal) {
+            out.push(MavMessage::POSITION_TARGET_LOCAL_NED(POSITION_TARGET_LOCAL_NED_DATA {
+                time_boot_ms: t,
+                x: g.x as f32,
+                y: g.y as f32,
+                z: g.z as f32,
+                coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+                ..Default::default()
+            }));
+        }
+        out
+    }
+
+    pub fn mission_current(&self) -> MavMessage {
+        MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use fleet::grid::Grid;
+    use fleet::mission::config::MavlinkConfig;
+
+    fn sim(frame: Frame) -> SimAutopilot {
+        let site = Site::new(&MavlinkConfig::default(), &Grid::new(48, 96, 1.0).unwrap());
+        let spec = SimSpec { frame, sysid: 3, site, max_speed: 2.0, turn_rate: PI / 2.0, cruise_alt: 30.0, speedup: 1.0 };
+        SimAutopilot::new(spec, Vector3::zeros())
+    }
+
+    const GCS: MavHeader = MavHeader { system_id: 255, component_id: 190, sequence: 0 };
+
+    fn long(command: MavCmd, p1: f32, p2: f32) -> MavMessage {
+        MavMessage::COMMAND_LONG(COMMAND_LONG_DATA { command, param1: p1, param2: p2, target_system: 3, target_component: 1, ..Default::default() })
+    }
+
+    fn results(out: &[MavMessage]) -> Vec<MavResult> {
+        out.iter().filter_map(|m| if let MavMessage::COMMAND_ACK(a) = m { Some(a.result) } else { None }).collect()
+    }
+
+    #[test]
+    fn a_boat_arms_goes_guided_and_reaches_its_target_within_its_limits() {
+        let mut s = sim(Frame::Boat);
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 15.0));
+        assert_eq!(results(&s.take()), [MavResult::MAV_RESULT_ACCEPTED; 2]);
+        // Behind it (heading north, goal south-east): it must turn first.
+        let goal = Vector3::new(-6.0, 8.0, 5.0);
+        let target = SET_POSITION_TARGET_LOCAL_NED_DATA { x: goal.x as f32, y: goal.y as f32, z: goal.z as f32, target_system: 3, coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED, ..Default::default() };
+        s.handle(&GCS, &MavMessage::SET_POSITION_TARGET_LOCAL_NED(target));
+        let mut t = 0.0;
+        let mut last = s.pos;
+        let mut last_heading = s.heading;
+        while s.pos.xy() != goal.xy() && t < 30.0 {
+            s.step(0.05);
+            t += 0.05;
+            assert!((s.pos - last).norm() <= 2.0 * 0.05 + 1e-9, "speed limit");
+            assert!(wrap(s.heading - last_heading).abs() <= PI / 2.0 * 0.05 + 1e-9, "turn-rate limit");
+            assert_eq!(s.pos.z, 0.0, "a boat stays on the surface");
+            (last, last_heading) = (s.pos, s.heading);
+        }
+        // 10 m at 2 m/s, plus the turn: more than 5 s, well under 30.
+        assert!(t > 5.0 && t < 30.0, "took {t} s");
+    }
+
+    #[test]
+    fn an_unarmed_or_held_vehicle_does_not_move_and_unknown_commands_are_unsupported() {
+        let mut s = sim(Frame::Multirotor);
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 4.0));
+        s.handle(&GCS, &MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA { x: 10.0, target_system: 3, coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED, ..Default::default() }));
+        s.step(1.0);
+        assert_eq!(s.pos, Vector3::zeros(), "disarmed");
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 0.0, 0.0));
+        s.step(1.0);
+        assert_eq!(s.pos, Vector3::zeros(), "held");
+        assert_eq!(s.role(), Some(Role::Hold));
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 1.0, 0.0));
+        assert_eq!(s.role(), Some(Role::Guided));
+        s.take();
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 99.0));
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_GRIPPER, 0.0, 0.0));
+        assert_eq!(results(&s.take()), [MavResult::MAV_RESULT_DENIED, MavResult::MAV_RESULT_UNSUPPORTED]);
+        // Another system's command is not ours.
+        let mut other = long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 0.0, 0.0);
+        *other.target_system_id_mut().unwrap() = 4;
+        s.handle(&GCS, &other);
+        assert!(s.armed && s.take().is_empty());
+    }
+
+    #[test]
+    fn a_mission_uploads_with_the_handshake_runs_and_reports_each_item() {
+        let mut s = sim(Frame::Boat);
+        let site = s.spec.site;
+        s.handle(&GCS, &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count: 3, target_system: 3, target_component: 1 }));
+        let wps = [(5.0, 0.0), (5.0, 5.0), (0.0, 5.0)];
+        for (seq, (n, e)) in wps.iter().enumerate() {
+            let out = s.take();
+            assert!(matches!(&out[..], [MavMessage::MISSION_REQUEST_INT(r)] if r.seq == seq as u16 && r.target_system == 255), "{out:?}");
+            let (lat, lon, _) = site.global_of(&Vector3::new(*n, *e, 0.0));
+            let item = MISSION_ITEM_INT_DATA {
+                seq: seq as u16,
+                command: MavCmd::MAV_CMD_NAV_WAYPOINT,
+                frame: MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                x: (lat * 1e7).round() as i32,
+                y: (lon * 1e7).round() as i32,
+                target_system: 3,
+                autocontinue: 1,
+                ..Default::default()
+            };
+            s.handle(&GCS, &MavMessage::MISSION_ITEM_INT(item));
+        }
+        assert!(matches!(&s.take()[..], [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_ACCEPTED));
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 10.0));
+        let mut reached = vec![];
+        for _ in 0..2000 {
+            s.step(0.05);
+            reached.extend(s.take().into_iter().filter_map(|m| if let MavMessage::MISSION_ITEM_REACHED(r) = m { Some(r.seq) } else { None }));
+        }
+        assert_eq!(reached, [0, 1, 2]);
+        assert!((s.pos - Vector3::new(0.0, 5.0, 0.0)).norm() < 0.05, "{}", s.pos);
+        assert_eq!(s.role(), Some(Role::Hold), "holds at the end");
+        // Download gives the same items back.
+        s.handle(&GCS, &MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA { target_system: 3, target_component: 1 }));
+        assert!(matches!(&s.take()[..], [MavMessage::MISSION_COUNT(c)] if c.count == 3));
+    }
+
+    #[test]
+    fn a_stalled_upload_is_asked_again_then_cancelled() {
+        let mut s = sim(Frame::Boat);
+        s.handle(&GCS, &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count: 2, target_system: 3, target_component: 1 }));
+        s.take();
+        let mut asks = 0;
+        let mut cancelled = false;
+        for _ in 0..100 {
+            s.step(0.1);
+            for m in s.take() {
+                match m {
+                    MavMessage::MISSION_REQUEST_INT(r) => asks += usize::from(r.seq == 0),
+                    MavMessage::MISSION_ACK(a) => cancelled = a.mavtype == MavMissionResult::MAV_MISSION_OPERATION_CANCELLED,
+                    _ => {}
+                }
+            }
+        }
+        assert_eq!((asks, cancelled), (5, true));
+    }
+}

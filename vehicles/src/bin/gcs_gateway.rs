@@ -1,0 +1,97 @@
+//! `gcs-gateway`: offers every vehicle of the mission to ground stations on one MAVLink
+//! endpoint (see `vehicles::gateway`). Runs beside the model server; `fleet up` starts it when
+//! the mission's `[mavlink] gcs` is set.
+
+use clap::Parser;
+use fleet::mission::config::MissionConfig;
+use fleet::protocol::keys::Keys;
+use fleet_net::Role;
+use mavlink::dialects::common::MavMessage;
+use mavlink::error::MessageReadError;
+use mavlink::{MavConnection, MavHeader};
+use std::sync::Arc;
+use std::time::Duration;
+use tracing::{debug, info, warn};
+use vehicles::bridge::frame_bytes;
+use vehicles::gateway::Router;
+
+#[derive(Parser, Debug)]
+#[command(name = "gcs-gateway", version, about = "hetfleet's ground-station gateway: the whole fleet on one MAVLink endpoint")]
+struct Args {
+    #[command(flatten)]
+    node: fleet_net::NodeArgs,
+    /// The ground-station endpoint (default: the mission's `[mavlink] gcs`).
+    #[arg(long)]
+    gcs: Option<String>,
+}
+
+fn main() {
+    fleet_net::init_node();
+    let args = Args::parse();
+    fleet_net::run_node("gcs-gateway", 1, run(args));
+}
+
+async fn run(args: Args) -> anyhow::Result<()> {
+    let mission = MissionConfig::load(args.node.mission.as_deref())?;
+    let keys = Keys::new(&mission.mission)?;
+    let address = args.gcs.clone().unwrap_or_else(|| mission.mavlink.gcs.clone());
+    if address.is_empty() {
+        anyhow::bail!("no ground-station endpoint: set [mavlink] gcs in the mission or give --gcs");
+    }
+    let gcs = Arc::new(mavlink::connect::<MavMessage>(&address).map_err(|e| anyhow::anyhow!("ground-station endpoint {address}: {e}"))?);
+    let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &mission.network)?).await?;
+    let from_vehicles = session.declare_subscriber(keys.all_mavlink()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let _token = session.liveliness().declare_token(keys.alive("gcs-gateway")).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    info!(gcs = address, mission = mission.mission, "ground-station gateway up");
+
+    // The ground station's frames, read on a thread (the connection blocks).
+    let (tx, mut from_gcs) = tokio::sync::mpsc::unbounded_channel::<Vec<u8>>();
+    let reader = gcs.clone();
+    std::thread::Builder::new().name("gcs-rx".into()).spawn(move || loop {
+        match reader.recv() {
+            Ok((h, m)) => {
+                if tx.send(frame_bytes(h, &m)).is_err() {
+                    return;
+                }
+            }
+            // Nobody listening yet on a udpout endpoint: ICMP refusals come back as errors.
+            Err(MessageReadError::Io(_)) => std::thread::sleep(Duration::from_millis(50)),
+            Err(e) => debug!("unreadable frame from the ground station: {e}"),
+        }
+    })?;
+
+    let mut router = Router::default();
+    let mut stats = tokio::time::interval(Duration::from_secs(10));
+    let (mut up, mut down) = (0u64, 0u64);
+    loop {
+        tokio::select! {
+            s = from_vehicles.recv_async() => {
+                let Ok(s) = s else { break };
+                let Some(vehicle) = keys.vehicle_of(s.key_expr().as_str()) else { continue };
+                let bytes = s.payload().to_bytes();
+                match router.from_vehicle(&vehicle, &bytes) {
+                    Ok((h, m)) => {
+                        let _ = gcs.send(&MavHeader { sequence: h.sequence, ..h }, &m);
+                        down += 1;
+                    }
+                    Err(e) => warn!(vehicle, "refused a frame: {e}"),
+                }
+            }
+            Some(bytes) = from_gcs.recv() => match router.from_gcs(&bytes) {
+                Ok(vehicles) => {
+                    for v in vehicles {
+                        if let Err(e) = session.put(keys.gcs(&v), bytes.clone()).await {
+                            warn!(vehicle = v, "forwarding a ground-station frame: {e}");
+                        }
+                    }
+                    up += 1;
+                }
+                Err(e) => debug!("ground-station frame not routed: {e}"),
+            },
+            _ = stats.tick() => info!(to_gcs = down, from_gcs = up, refused = router.refused, systems = ?router.systems(), "gateway"),
+            _ = tokio::signal::ctrl_c() => break,
+        }
+    }
+    session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    Ok(())
+}

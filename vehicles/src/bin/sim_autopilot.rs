@@ -1,0 +1,77 @@
+//! `sim-autopilot`: a simulated boat or multirotor autopilot on its own MAVLink endpoint, as
+//! ArduPilot's SITL is. Point a vehicle node at it (`vehicle --autopilot udpout:HOST:PORT`) or
+//! a ground station straight at it (`mavproxy.py --master=udpout:HOST:PORT`).
+
+use clap::{Parser, ValueEnum};
+use fleet::grid::Grid;
+use fleet::mission::config::MissionConfig;
+use nalgebra::Vector3;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+use vehicles::autopilot::modes::Frame;
+use vehicles::autopilot::serve;
+use vehicles::autopilot::sim::{SimAutopilot, SimSpec};
+use vehicles::autopilot::site::Site;
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum Airframe {
+    Boat,
+    Multirotor,
+}
+
+#[derive(Parser, Debug)]
+#[command(name = "sim-autopilot", version, about = "A simulated MAVLink autopilot (boat or multirotor)")]
+struct Args {
+    #[arg(long, value_enum, default_value = "boat")]
+    frame: Airframe,
+    /// MAVLink system id.
+    #[arg(long, default_value_t = 1)]
+    sysid: u8,
+    /// Where it serves (any `mavlink` connection string; SITL's habit is `udpin:`).
+    #[arg(long, default_value = "udpin:127.0.0.1:14600")]
+    listen: String,
+    /// The mission whose `[mavlink]` section gives the site, speeds and speed-up (default: the
+    /// bundled one); the grid is taken as the mission's model grid of 1 m cells.
+    #[arg(long)]
+    mission: Option<std::path::PathBuf>,
+    /// Model-grid rows and columns the site spans.
+    #[arg(long, num_args = 2, default_values_t = [48, 96])]
+    grid: Vec<usize>,
+    /// Start here (grid metres, x east and y north).
+    #[arg(long, num_args = 2, default_values_t = [0.0, 0.0])]
+    home: Vec<f64>,
+}
+
+fn main() -> anyhow::Result<()> {
+    fleet_net::init_node();
+    let args = Args::parse();
+    let mission = MissionConfig::load(args.mission.as_deref())?;
+    let m = &mission.mavlink;
+    let site = Site::new(m, &Grid::new(args.grid[0], args.grid[1], 1.0)?);
+    let frame = match args.frame {
+        Airframe::Boat => Frame::Boat,
+        Airframe::Multirotor => Frame::Multirotor,
+    };
+    let (max_speed, up) = match frame {
+        Frame::Boat => (m.boat_speed_ms, 0.0),
+        Frame::Multirotor => (m.multirotor_speed_ms, 0.0),
+    };
+    let spec = SimSpec { frame, sysid: args.sysid, site, max_speed, turn_rate: m.boat_turn_rate_dps.to_radians(), cruise_alt: m.cruise_alt_m, speedup: m.sim_speedup };
+    let home: Vector3<f64> = site.ned_of((args.home[0], args.home[1]), up);
+    let stop = Arc::new(AtomicBool::new(false));
+    let stats = serve::spawn(&args.listen, SimAutopilot::new(spec, home), stop.clone())?;
+    tracing::info!(listen = args.listen, sysid = args.sysid, ?frame, "simulated autopilot up");
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+    rt.block_on(async {
+        let mut tick = tokio::time::interval(Duration::from_secs(10));
+        loop {
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => break,
+                _ = tick.tick() => tracing::info!(received = stats.received.load(Ordering::Relaxed), sent = stats.sent.load(Ordering::Relaxed), unreadable = stats.unreadable.load(Ordering::Relaxed), "autopilot"),
+            }
+        }
+    });
+    stop.store(true, Ordering::Relaxed);
+    Ok(())
+}

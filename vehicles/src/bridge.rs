@@ -1,0 +1,319 @@
+//! The vehicle node's MAVLink bridge to its autopilot, reached by a connection string (`sim`
+//! starts a simulated one in this process on a loopback UDP port; `udpin:`, `udpout:`,
+//! `tcpout:`, `serial:` reach a real one). It learns the autopilot's system id from its
+//! HEARTBEAT, arms it and sets GUIDED once, sends the planner's sensing places as guided
+//! targets, reads the true position back, and declares the autopilot lost when HEARTBEATs stop.
+//! Every message from the autopilot is also handed to the ground-station side as a MAVLink 2
+//! frame; frames from ground stations addressed to this autopilot are passed on to it.
+//! Unreadable input is counted and skipped; nothing here panics on what comes off a link.
+
+use crate::autopilot::modes::{Frame, Role};
+use crate::autopilot::serve;
+use crate::autopilot::sim::{SimAutopilot, SimSpec};
+use crate::autopilot::site::Site;
+use fleet::protocol::{AutopilotLink, AutopilotStatus};
+use mavlink::dialects::common::*;
+use mavlink::error::MessageReadError;
+use mavlink::{Connection, MavConnection, MavHeader, MavlinkVersion, Message};
+use nalgebra::Vector3;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tracing::{info, warn};
+
+/// The companion computer's component id (MAV_COMP_ID_ONBOARD_COMPUTER).
+pub const COMPANION_COMPONENT: u8 = 191;
+/// Longest MAVLink 2 frame.
+pub const MAX_FRAME: usize = 280;
+
+/// Where a bridge's autopilot is and how it moves.
+#[derive(Debug, Clone)]
+pub struct BridgeSpec {
+    pub frame: Frame,
+    /// The vehicle's system id in the mission (the simulated autopilot's; a real one has its own).
+    pub sysid: u8,
+    pub site: Site,
+    pub cruise_alt: f64,
+    pub acceptance_m: f64,
+    pub heartbeat_timeout: Duration,
+    /// For `sim`: speed limits, speed-up and where it starts (local NED).
+    pub sim_speed: f64,
+    pub sim_turn_rate: f64,
+    pub sim_speedup: f64,
+    pub home: Vector3<f64>,
+}
+
+/// Counters of the autopilot link (MAVLink messages).
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct LinkCounters {
+    pub received: u64,
+    pub unreadable: u64,
+    pub sent: u64,
+    pub from_gcs: u64,
+    pub refused_from_gcs: u64,
+}
+
+#[derive(Debug, Default)]
+struct Seen {
+    sysid: Option<u8>,
+    mode: Option<u32>,
+    armed: bool,
+    ned: Option<Vector3<f64>>,
+    heartbeat: Option<Instant>,
+    /// Arming and GUIDED are asked for once; `Some(true)` when done (or given up).
+    setup: Option<bool>,
+    counters: LinkCounters,
+}
+
+/// Frames for the ground-station side.
+pub type GcsSink = tokio::sync::mpsc::UnboundedSender<Vec<u8>>;
+
+pub struct Bridge {
+    conn: Arc<Connection<MavMessage>>,
+    spec: BridgeSpec,
+    seen: Arc<Mutex<Seen>>,
+    stop: Arc<AtomicBool>,
+}
+
+/// A free loopback UDP port (for the in-process simulated autopilot).
+fn free_udp_port() -> std::io::Result<u16> {
+    Ok(std::net::UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port())
+}
+
+/// A MAVLink 2 frame of a message.
+pub fn frame_bytes(header: MavHeader, msg: &MavMessage) -> Vec<u8> {
+    let mut buf = Vec::with_capacity(64);
+    // Writing to a Vec cannot fail.
+    let _ = mavlink::write_versioned_msg(&mut buf, MavlinkVersion::V2, header, msg);
+    buf
+}
+
+/// The message of one MAVLink frame (v1 or v2), checked (CRC, known id, length).
+pub fn parse_frame(bytes: &[u8]) -> Result<(MavHeader, MavMessage), String> {
+    if bytes.len() > MAX_FRAME {
+        return Err(format!("{} bytes: longer than a MAVLink frame", bytes.len()));
+    }
+    mavlink::MavlinkReader::new(bytes).read_any_message::<MavMessage>().map_err(|e| format!("not a MAVLink frame: {e}"))
+}
+
+fn lock(seen: &Mutex<Seen>) -> std::sync::MutexGuard<'_, Seen> {
+    seen.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl Bridge {
+    /// Open the autopilot link; `gcs` receives every autopilot message as a frame.
+    pub fn connect(address: &str, spec: BridgeSpec, gcs: Option<GcsSink>) -> anyhow::Result<Self> {
+        let stop = Arc::new(AtomicBool::new(false));
+        let address = if address == "sim" {
+            let port = free_udp_port()?;
+            let sim = SimSpec { frame: spec.frame, sysid: spec.sysid, site: spec.site, max_speed: spec.sim_speed, turn_rate: spec.sim_turn_rate, cruise_alt: spec.cruise_alt, speedup: spec.sim_speedup };
+            serve::spawn(&format!("udpin:127.0.0.1:{port}"), SimAutopilot::new(sim, spec.home), stop.clone())?;
+            format!("udpout:127.0.0.1:{port}")
+        } else {
+            address.to_string()
+        };
+        let conn = Arc::new(mavlink::connect::<MavMessage>(&address).map_err(|e| anyhow::anyhow!("autopilot at {address}: {e}"))?);
+        info!(autopilot = address, "MAVLink bridge up");
+        let bridge = Self { conn, spec, seen: Arc::new(Mutex::new(Seen::default())), stop };
+        bridge.spawn_reader(gcs)?;
+        bridge.spawn_heartbeat()?;
+        Ok(bridge)
+    }
+
+    fn own_header(&self) -> MavHeader {
+        MavHeader { system_id: self.spec.sysid as u32, component_id: COMPANION_COMPONENT, sequence: 0 }
+    }
+
+    fn send(&self, msg: &MavMessage) {
+        match self.conn.send(&self.own_header(), msg) {
+            Ok(_) => lock(&self.seen).counters.sent += 1,
+            Err(e) => warn!("to the autopilot: {e}"),
+        }
+    }
+
+    fn spawn_reader(&self, gcs: Option<GcsSink>) -> std::io::Result<()> {
+        let (conn, seen, frame, stop) = (self.conn.clone(), self.seen.clone(), self.spec.frame, self.stop.clone());
+        std::thread::Builder::new().name("mavlink-autopilot-rx".into()).spawn(move || {
+            while !stop.load(Ordering::Relaxed) {
+                match conn.recv() {
+                    Ok((h, m)) => {
+                        {
+                            let mut s = lock(&seen);
+                            s.counters.received += 1;
+                            // A companion (ours or another) is not the autopilot.
+                            let from = u8::try_from(h.system_id).ok();
+                            let autopilot = h.component_id != COMPANION_COMPONENT && from.is_some() && (s.sysid.is_none() || s.sysid == from);
+                            match &m {
+                                MavMessage::HEARTBEAT(hb) if hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID && autopilot => {
+                                    if s.sysid.is_none() {
+                                        info!(sysid = h.system_id, kind = ?hb.mavtype, mode = frame.name(hb.custom_mode), "autopilot found");
+                                    }
+                                    s.sysid = from;
+                                    s.mode = Some(hb.custom_mode);
+                                    s.armed = hb.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
+                                    s.heartbeat = Some(Instant::now());
+                                }
+                                MavMessage::LOCAL_POSITION_NED(p) if autopilot && s.sysid.is_some() => {
+                                    let ned = Vector3::new(p.x as f64, p.y as f64, p.z as f64);
+                                    if ned.iter().all(|v| v.is_finite()) {
+                                        s.ned = Some(ned);
+                                    } else {
+                                        s.counters.unreadable += 1;
+                                    }
+                                }
+                                _ => {}
+                            }
+                        }
+                        if let Some(gcs) = &gcs {
+                            let _ = gcs.send(frame_bytes(h, &m));
+                        }
+                    }
+                    Err(MessageReadError::Io(e)) if !matches!(e.kind(), std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof) => {
+                        std::thread::sleep(Duration::from_millis(20));
+                    }
+                    Err(_) => lock(&seen).counters.unreadable += 1,
+                }
+            }
+        })?;
+        Ok(())
+    }
+
+    /// The companion's HEARTBEAT at 1 Hz (it also tells a `udpin:` autopilot where we are), and
+    /// the one-time set-up: arm and GUIDED, asked again each second until the autopilot shows
+    /// both, for at most 10 s.
+    fn spawn_heartbeat(&self) -> std::io::Result<()> {
+        let me = Self { conn: self.conn.clone(), spec: self.spec.clone(), seen: self.seen.clone(), stop: self.stop.clone() };
+        std::thread::Builder::new().name("mavlink-companion".into()).spawn(move || {
+            let (mut tries, mut tick) = (0, 0u64);
+            while !me.stop.load(Ordering::Relaxed) {
+                // Every 100 ms: the set-up's progress; every second: the heartbeat and asking again.
+                std::thread::sleep(Duration::from_millis(100));
+                tick += 1;
+                let (target, mode, armed, setup) = {
+                    let s = lock(&me.seen);
+                    (s.sysid, s.mode, s.armed, s.setup)
+                };
+                let guided = me.spec.frame.mode(Role::Guided);
+                let second = tick % 10 == 1;
+                if second {
+                    me.send(&MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                        custom_mode: 0,
+                        mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+                        autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+                        base_mode: MavModeFlag::empty(),
+                        system_status: MavState::MAV_STATE_ACTIVE,
+                        mavlink_version: 3,
+                    }));
+                }
+                let Some(target) = target else { continue };
+                match setup {
+                    Some(true) => {}
+                    _ if mode == Some(guided) && armed => {
+                        lock(&me.seen).setup = Some(true);
+                        info!(sysid = target, "autopilot armed and in GUIDED: the planner drives it");
+                    }
+                    Some(false) if !second => {}
+                    _ if tries >= 10 => {
+                        lock(&me.seen).setup = Some(true);
+                        warn!(sysid = target, mode = me.spec.frame.name(mode.unwrap_or(0)), armed, "the autopilot did not take GUIDED and arming: left to the operator");
+                    }
+                    _ => {
+                        tries += 1;
+                        lock(&me.seen).setup = Some(false);
+                        let cmd = |command, param1, param2| MavMessage::COMMAND_LONG(COMMAND_LONG_DATA { command, param1, param2, target_system: target, target_component: 1, ..Default::default() });
+                        me.send(&cmd(MavCmd::MAV_CMD_DO_SET_MODE, MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED.bits() as f32, guided as f32));
+                        me.send(&cmd(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+                    }
+                }
+            }
+        })?;
+        Ok(())
+    }
+
+    /// The link as telemetry reports it.
+    pub fn status(&self) -> AutopilotStatus {
+        let s = lock(&self.seen);
+        let link = match (s.heartbeat, s.setup) {
+            (Some(t), _) if t.elapsed() > self.spec.heartbeat_timeout => AutopilotLink::Lost,
+            (Some(_), Some(true)) => AutopilotLink::Up,
+            _ => AutopilotLink::Connecting,
+        };
+        let guided = s.mode.is_some_and(|m| self.spec.frame.role(m) == Some(Role::Guided)) && s.armed;
+        AutopilotStatus { link, sysid: s.sysid.unwrap_or(0), mode: s.mode.map_or_else(|| "unknown".into(), |m| self.spec.frame.name(m)), armed: s.armed, guided }
+    }
+
+    /// Whether the planner may send it targets now.
+    pub fn drivable(&self) -> bool {
+        let st = self.status();
+        st.guided && st.link != AutopilotLink::Lost
+    }
+
+    pub fn counters(&self) -> LinkCounters {
+        lock(&self.seen).counters
+    }
+
+    /// Where the autopilot says it is, in grid metres.
+    pub fn position(&self) -> Option<(f64, f64)> {
+        lock(&self.seen).ned.map(|n| self.spec.site.grid_of(&n))
+    }
+
+    fn target_ned(&self, grid_xy: (f64, f64)) -> Vector3<f64> {
+        let up = match self.spec.frame {
+            Frame::Boat => 0.0,
+            Frame::Multirotor => self.spec.cruise_alt,
+        };
+        self.spec.site.ned_of(grid_xy, up)
+    }
+
+    /// Send a guided target (a grid point); false when the autopilot is not ours to drive.
+    pub fn goto(&self, grid_xy: (f64, f64)) -> bool {
+        let Some(target) = lock(&self.seen).sysid else { return false };
+        if !self.drivable() {
+            return false;
+        }
+        let ned = self.target_ned(grid_xy);
+        // Position only: ignore velocity, acceleration, yaw and yaw rate.
+        let mask = PositionTargetTypemask::from_bits_truncate(0b0000_1101_1111_1000);
+        self.send(&MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA {
+            x: ned.x as f32,
+            y: ned.y as f32,
+            z: ned.z as f32,
+            type_mask: mask,
+            target_system: target,
+            target_component: 1,
+            coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+            ..Default::default()
+        }));
+        true
+    }
+
+    /// Whether the autopilot is within the acceptance distance of a grid point.
+    pub fn arrived(&self, grid_xy: (f64, f64)) -> bool {
+        let goal = self.target_ned(grid_xy);
+        lock(&self.seen).ned.is_some_and(|n| (n.xy() - goal.xy()).norm() <= self.spec.acceptance_m)
+    }
+
+    /// A frame from a ground station: passed on when it is readable and addressed to this
+    /// autopilot (or to every system); otherwise refused with the reason.
+    pub fn from_gcs(&self, bytes: &[u8]) -> Result<(), String> {
+        let result = parse_frame(bytes).and_then(|(h, m)| {
+            let ours = lock(&self.seen).sysid.unwrap_or(self.spec.sysid);
+            match m.target_system_id() {
+                Some(t) if t != 0 && t != ours => Err(format!("{} for system {t}, not {ours}", m.message_name())),
+                _ => self.conn.send(&h, &m).map(|_| ()).map_err(|e| format!("to the autopilot: {e}")),
+            }
+        });
+        let mut s = lock(&self.seen);
+        match &result {
+            Ok(()) => s.counters.from_gcs += 1,
+            Err(_) => s.counters.refused_from_gcs += 1,
+        }
+        result
+    }
+}
+
+impl Drop for Bridge {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+}
