@@ -6,10 +6,10 @@ cd "$(dirname "$0")/.."
 # Python peers used by cross-check tests (PyDMD, odmd, pysensors, numpy/scipy) and the
 # Python Zenoh client that reads the fleet's model (eclipse-zenoh, the same 1.10 line as the
 # Rust side, and cbor2).
-if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2" 2>/dev/null; then
-  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors eclipse-zenoh cbor2)"
+if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pymavlink" 2>/dev/null; then
+  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors eclipse-zenoh cbor2 pymavlink)"
   python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore \
-    numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2
+    numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2 pymavlink==2.4.50
 fi
 echo "== building (release)"
 cargo build --release --workspace --all-targets

@@ -127,12 +127,7 @@ impl Server {
             self.latencies.push(latency_ms);
             info!(epoch = e, version = self.core.version, latency_ms = format!("{latency_ms:.1}"), mse = mse.map(|m| format!("{m:.3e}")), "epoch assimilated");
             let next = e + 1;
-            let places = self
-                .core
-                .vehicles()
-                .iter()
-                .filter_map(|v| self.core.plan(&v.id, next, 1).and_then(|p| p.targets.into_iter().find(|t| !t.cells.is_empty())).map(|t| (v.id.clone(), t.position)))
-                .collect();
+            let places = places_at(&self.core, next);
             emit(self.events, &ServerEvent::Epoch { epoch: e, version: self.core.version, mse, latency_ms, alive: self.alive.len(), batches: self.core.counters.batches, held: self.core.held_at(next), places });
         }
         Ok(())
@@ -274,6 +269,11 @@ impl Server {
     }
 }
 
+/// Where epoch `e`'s allocation sends each vehicle that senses.
+fn places_at(core: &ServerCore, e: u64) -> BTreeMap<String, [f64; 2]> {
+    core.vehicles().iter().filter_map(|v| core.plan(&v.id, e, 1).and_then(|p| p.targets.into_iter().find(|t| !t.cells.is_empty())).map(|t| (v.id.clone(), t.position))).collect()
+}
+
 /// Replay the journal into a fresh core (a restart after a crash); returns how many batches.
 fn replay(journal: &Store, core: &mut ServerCore, ctx: &Context) -> anyhow::Result<u64> {
     let mut n = 0;
@@ -337,7 +337,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         s.evaluate(0..done);
     }
     info!(mission = s.mission.mission, epochs, vehicles = s.core.vehicles().len(), "model server up");
-    emit(s.events, &ServerEvent::Ready { mission: s.mission.mission.clone(), epochs, vehicles: s.core.vehicles().iter().map(|v| v.id.clone()).collect() });
+    emit(s.events, &ServerEvent::Ready { mission: s.mission.mission.clone(), epochs, vehicles: s.core.vehicles().iter().map(|v| v.id.clone()).collect(), places: places_at(&s.core, s.core.next_epoch()) });
 
     let mut tick = tokio::time::interval(Duration::from_secs(1));
     let mut check = tokio::time::interval(Duration::from_millis(50));

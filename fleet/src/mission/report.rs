@@ -10,7 +10,14 @@ use std::collections::BTreeMap;
 #[serde(tag = "event", rename_all = "kebab-case")]
 pub enum ServerEvent {
     /// Listening; the mission has this many epochs and vehicles.
-    Ready { mission: String, epochs: u64, vehicles: Vec<String> },
+    Ready {
+        mission: String,
+        epochs: u64,
+        vehicles: Vec<String>,
+        /// Where the first epoch's formation sends each vehicle (grid metres).
+        #[serde(default)]
+        places: std::collections::BTreeMap<String, [f64; 2]>,
+    },
     /// A liveliness token appeared (`alive`) or went away.
     Link { vehicle: String, alive: bool },
     /// An epoch entered the model.

@@ -1,0 +1,144 @@
+"""A ground station made of pymavlink, against a running hetfleet fleet (tests/tests/mavlink.rs).
+
+It listens where the fleet's gateway sends (udpin), and:
+  1. discovers every vehicle by HEARTBEAT (system id, MAV_TYPE, autopilot);
+  2. watches each vehicle's guided target (POSITION_TARGET_LOCAL_NED) and position
+     (LOCAL_POSITION_NED) and reports how far it was from its target, first and last;
+  3. uploads a 3-item mission to one vehicle with the standard handshake
+     (MISSION_COUNT -> MISSION_REQUEST_INT -> MISSION_ITEM_INT ... -> MISSION_ACK), sets AUTO
+     and waits for MISSION_ITEM_REACHED 0, 1, 2;
+  4. puts another vehicle on HOLD (SET_MODE) and waits for its HEARTBEAT to show it.
+Prints one JSON object with what it saw; the Rust test checks it against the server.
+"""
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+
+os.environ["MAVLINK20"] = "1"
+from pymavlink import mavutil  # noqa: E402
+
+ap = argparse.ArgumentParser()
+ap.add_argument("--port", type=int, required=True)
+ap.add_argument("--vehicles", required=True, help="sysid:type,... e.g. 1:2,3:11")
+ap.add_argument("--mission-sysid", type=int, required=True)
+ap.add_argument("--hold-sysid", type=int, required=True)
+ap.add_argument("--hold-mode", type=int, default=4)
+ap.add_argument("--auto-mode", type=int, default=10)
+ap.add_argument("--watch-s", type=float, default=15.0)
+args = ap.parse_args()
+
+want = {int(s): int(t) for s, t in (p.split(":") for p in args.vehicles.split(","))}
+m = mavutil.mavlink_connection(f"udpin:127.0.0.1:{args.port}", source_system=255, source_component=190)
+out = {"heartbeats": {}, "targets": {}, "approach": {}, "mission": {}, "hold": {}}
+
+
+def fail(why):
+    out["error"] = why
+    print(json.dumps(out))
+    sys.exit(1)
+
+
+def recv(types, timeout):
+    msg = m.recv_match(type=types, blocking=True, timeout=timeout)
+    return msg
+
+
+# 1. Discovery.
+deadline = time.time() + 30
+while time.time() < deadline and set(out["heartbeats"]) != set(want):
+    hb = recv("HEARTBEAT", 1.0)
+    if hb is None or hb.get_srcComponent() != 1:
+        continue
+    out["heartbeats"][hb.get_srcSystem()] = {"type": hb.type, "autopilot": hb.autopilot, "mode": hb.custom_mode}
+if set(out["heartbeats"]) != set(want):
+    fail(f"heartbeats from {sorted(out['heartbeats'])}, wanted {sorted(want)}")
+
+# 2. Targets and positions: distance to the newest guided target, first and last seen, until
+# every vehicle with a target has reached it (or the watch ends).
+first, last, targets, since = {}, {}, {}, {}
+watch_end = time.time() + args.watch_s
+while time.time() < watch_end:
+    msg = recv(["POSITION_TARGET_LOCAL_NED", "LOCAL_POSITION_NED"], 0.5)
+    if msg is None:
+        continue
+    s = msg.get_srcSystem()
+    if msg.get_type() == "POSITION_TARGET_LOCAL_NED":
+        t = (round(msg.x, 3), round(msg.y, 3))
+        targets.setdefault(s, [])
+        if t not in targets[s]:
+            targets[s].append(t)
+            # A new target: measure the approach to it afresh.
+            first.pop(s, None)
+            last.pop(s, None)
+    elif s in targets:
+        tx, ty = targets[s][-1]
+        d = math.hypot(msg.x - tx, msg.y - ty)
+        if s not in first:
+            first[s], since[s] = d, time.time()
+        last[s] = d
+        boats = [v for v, t in want.items() if t == 11]
+        if all(b in last and last[b] < 0.5 for b in boats) and any(first[b] - last[b] > 2.0 for b in boats):
+            break
+out["targets"] = {s: [list(t) for t in ts] for s, ts in targets.items()}
+out["approach"] = {s: [first[s], last[s], time.time() - since[s]] for s in last}
+
+# 3. Mission upload to one vehicle, then AUTO, then each item reached.
+sysid = args.mission_sysid
+pos = recv("GLOBAL_POSITION_INT", 5.0)
+while pos is not None and pos.get_srcSystem() != sysid:
+    pos = recv("GLOBAL_POSITION_INT", 5.0)
+if pos is None:
+    fail("no position from the mission vehicle")
+lat0, lon0 = pos.lat, pos.lon
+# Three points a few metres around it (1e-7 deg of latitude is about 1.1 cm).
+items = [(lat0 + 300, lon0), (lat0 + 300, lon0 + 500), (lat0, lon0 + 500)]
+t0 = time.time()
+m.mav.mission_count_send(sysid, 1, len(items))
+sent = 0
+while True:
+    msg = recv(["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"], 5.0)
+    if msg is None:
+        fail(f"mission upload stalled after {sent} items")
+    if msg.get_srcSystem() != sysid:
+        continue
+    if msg.get_type() == "MISSION_ACK":
+        out["mission"]["ack"] = msg.type
+        break
+    lat, lon = items[msg.seq]
+    m.mav.mission_item_int_send(sysid, 1, msg.seq, mavutil.mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                                mavutil.mavlink.MAV_CMD_NAV_WAYPOINT, 0, 1, 0, 0, 0, 0, lat, lon, 0)
+    sent += 1
+out["mission"]["items_sent"] = sent
+out["mission"]["upload_ms"] = (time.time() - t0) * 1e3
+if out["mission"]["ack"] != mavutil.mavlink.MAV_MISSION_ACCEPTED:
+    fail(f"mission refused: {out['mission']['ack']}")
+m.mav.command_long_send(sysid, 1, mavutil.mavlink.MAV_CMD_DO_SET_MODE, 0,
+                        mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, args.auto_mode, 0, 0, 0, 0, 0)
+reached = []
+deadline = time.time() + 20
+while time.time() < deadline and len(reached) < len(items):
+    msg = recv(["MISSION_ITEM_REACHED", "COMMAND_ACK"], 1.0)
+    if msg is None or msg.get_srcSystem() != sysid:
+        continue
+    if msg.get_type() == "COMMAND_ACK":
+        out["mission"]["mode_ack"] = msg.result
+    elif msg.seq not in reached:
+        reached.append(msg.seq)
+out["mission"]["reached"] = reached
+
+# 4. Operator hold on another vehicle.
+hold = args.hold_sysid
+m.mav.set_mode_send(hold, mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, args.hold_mode)
+deadline = time.time() + 10
+while time.time() < deadline:
+    hb = recv("HEARTBEAT", 1.0)
+    if hb is not None and hb.get_srcSystem() == hold and hb.get_srcComponent() == 1 and hb.custom_mode == args.hold_mode:
+        out["hold"] = {"mode": hb.custom_mode, "at": time.time()}
+        break
+if not out["hold"]:
+    fail("the held vehicle never showed HOLD")
+print(json.dumps(out))

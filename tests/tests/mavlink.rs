@@ -1,0 +1,125 @@
+//! MAVLink against a running fleet: a pymavlink ground station on the gateway's endpoint
+//! discovers every vehicle, watches them drive to their allocated places, uploads a mission
+//! to one and holds another, and the server leaves both out of the next allocation.
+
+use fleet::mission::config::MissionConfig;
+use fleet::mission::report::ServerEvent;
+use hetfleet_tests::*;
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
+fn free_udp_port() -> u16 {
+    std::net::UdpSocket::bind("127.0.0.1:0").and_then(|s| s.local_addr()).expect("a free UDP port").port()
+}
+
+#[test]
+fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehicle() {
+    let dir = scratch("gcs");
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = tiny_mission(&dir, &[ep.clone()], &[ep]);
+    let gcs_port = free_udp_port();
+    // Slow enough for a ground station to act between epochs: 250 ms a step, 60 steps.
+    edit(&mission, "resend_ms = 500", "resend_ms = 500\nstep_ms = 250");
+    edit(&mission, "frames = 40", "frames = 60");
+    edit(&mission, r#"autopilot = "sim""#, &format!("autopilot = \"sim\"\ngcs = \"udpout:127.0.0.1:{gcs_port}\""));
+    // A boat at 20 m/s, so the ground station sees it on its way.
+    edit(&mission, "sim_speedup = 100.0", "sim_speedup = 10.0");
+    let m = MissionConfig::load(Some(&mission)).unwrap();
+    let mp = mission.to_str().unwrap();
+    let state = dir.join("state");
+    let st = state.to_str().unwrap();
+
+    let mut procs = Procs::default();
+    let vehicles: Vec<String> = m.vehicles().iter().map(|v| v.id.clone()).collect();
+    let spec: Vec<String> = m.vehicles().iter().map(|v| format!("{}:{}", m.sysid(&v.id).unwrap(), if v.kind == fleet::protocol::VehicleKind::Boat { 11 } else { 2 })).collect();
+    let (mission_vehicle, hold_vehicle) = ("boat-1", "boat-2");
+    let python = std::process::Command::new("python3")
+        .arg(root().join("tests/py/ground_station.py"))
+        .args(["--port", &gcs_port.to_string(), "--vehicles", &spec.join(",")])
+        .args(["--mission-sysid", &m.sysid(mission_vehicle).unwrap().to_string(), "--hold-sysid", &m.sysid(hold_vehicle).unwrap().to_string()])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("python3");
+    let server = start_server(&mut procs, &["--mission", mp, "--state-dir", st], &dir.join("server.log"));
+    let gateway = std::process::Command::new(bin("gcs-gateway"))
+        .args(["--mission", mp])
+        .stderr(std::fs::File::create(dir.join("gateway.log")).unwrap())
+        .spawn()
+        .expect("gcs-gateway");
+    procs.0.push(gateway);
+    start_vehicles(&mut procs, &mission, st, &dir, None);
+
+    let o = python.wait_with_output().expect("the ground station ran");
+    let said = String::from_utf8_lossy(&o.stdout).to_string();
+    assert!(o.status.success(), "ground station failed: {said}\n{}", String::from_utf8_lossy(&o.stderr));
+    let gs: serde_json::Value = serde_json::from_str(said.trim()).unwrap_or_else(|e| panic!("{e}: {said}"));
+    println!("ground station saw: {gs}");
+
+    // Every vehicle, by its system id, as its type, from an ArduPilot-style autopilot.
+    for v in m.vehicles() {
+        let hb = &gs["heartbeats"][m.sysid(&v.id).unwrap().to_string()];
+        let want = if v.kind == fleet::protocol::VehicleKind::Boat { 11 } else { 2 };
+        assert_eq!((hb["type"].as_i64(), hb["autopilot"].as_i64()), (Some(want), Some(3)), "{}: {hb}", v.id);
+    }
+    // The mission: accepted after the handshake, every item reached in order.
+    assert_eq!(gs["mission"]["ack"].as_i64(), Some(0));
+    assert_eq!(gs["mission"]["items_sent"].as_i64(), Some(3));
+    assert_eq!(gs["mission"]["reached"], serde_json::json!([0, 1, 2]));
+
+    // The rest of the mission, and every event on the way.
+    let mut events = vec![];
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let summary = loop {
+        match server.events.recv_timeout(deadline.saturating_duration_since(Instant::now())) {
+            Ok(ServerEvent::Finished { summary }) => break summary,
+            Ok(e) => events.push(e),
+            Err(e) => panic!("the mission did not finish: {e}"),
+        }
+    };
+    assert_eq!(summary.counters.rejected.values().sum::<u64>(), 0, "{:?}", summary.counters.rejected);
+    let truth = m.truth(|_| {}).unwrap();
+    assert_eq!(summary.counters.batches - summary.counters.duplicates, expected_batches(&m, truth.frames()), "held vehicles still report every epoch");
+
+    // Guided targets seen by the ground station are places the server allocated, and each
+    // vehicle closed on its newest one.
+    let mut places: BTreeMap<String, Vec<[f64; 2]>> = BTreeMap::new();
+    for e in &events {
+        if let ServerEvent::Epoch { places: p, .. } | ServerEvent::Ready { places: p, .. } = e {
+            for (v, xy) in p {
+                places.entry(v.clone()).or_default().push(*xy);
+            }
+        }
+    }
+    for v in &vehicles {
+        let sysid = m.sysid(v).unwrap().to_string();
+        let Some(targets) = gs["targets"][&sysid].as_array() else { continue };
+        for t in targets {
+            // Local NED (north, east) is grid (x east, y north) on the default 1 m site.
+            let (n, e) = (t[0].as_f64().unwrap(), t[1].as_f64().unwrap());
+            assert!(places[v].iter().any(|p| (p[0] - e).abs() < 1e-3 && (p[1] - n).abs() < 1e-3), "{v}: target ({e}, {n}) is no allocated place {:?}", places[v]);
+        }
+    }
+    // Never away from the target it drives to, and some seen covering metres toward it.
+    let approach = gs["approach"].as_object().unwrap();
+    let mut closed = 0.0f64;
+    for (sysid, a) in approach {
+        let (first, last) = (a[0].as_f64().unwrap(), a[1].as_f64().unwrap());
+        assert!(last <= first + 1e-3, "system {sysid}: from {first} m to {last} m of its target");
+        closed = closed.max(first - last);
+    }
+    assert!(closed > 2.0, "no vehicle seen driving toward its place: {approach:?}");
+
+    // The held vehicle and the one on its mission left the allocation, and stayed out.
+    for v in [mission_vehicle, hold_vehicle] {
+        let at = events.iter().position(|e| matches!(e, ServerEvent::Hold { vehicle, held: true, .. } if vehicle == v)).unwrap_or_else(|| panic!("no hold of {v}: {events:?}"));
+        // (The last epoch has no next allocation: no places.)
+        let later: Vec<_> = events[at..].iter().filter_map(|e| if let ServerEvent::Epoch { held, places, .. } = e { Some((held, places)) } else { None }).filter(|(_, p)| !p.is_empty()).collect();
+        assert!(later.len() >= 2, "{v}: too few epochs after the hold");
+        // The allocation made when the hold came in may predate it; from the next on, out.
+        for (held, places) in &later[1..] {
+            assert!(held.iter().any(|h| h == v) && !places.contains_key(v), "{v} still allocated: held {held:?}");
+        }
+        assert!(!events[at..].iter().any(|e| matches!(e, ServerEvent::Hold { vehicle, held: false, .. } if vehicle == v)), "{v} came back");
+    }
+}
