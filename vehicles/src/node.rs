@@ -104,6 +104,9 @@ struct Vehicle {
     bridge: Option<Arc<Bridge>>,
     /// The newest telemetry (the autopilot watch re-sends it when the autopilot changes).
     last_telemetry: Arc<Mutex<Option<Telemetry>>>,
+    /// When the epoch's plan came in, and how long after it each first guided target left (ms).
+    plan_at: Option<Instant>,
+    guided_ms: Vec<f64>,
 }
 
 impl Vehicle {
@@ -188,9 +191,9 @@ impl Vehicle {
 
     /// Drive the autopilot to each place epoch `e` senses and wait (up to the arrival timeout)
     /// until it is there; the fixes say where it was. Without an autopilot: none.
-    async fn drive(&self, e: u64, grid: &Grid, timeout: Duration) -> BTreeMap<u64, Fix> {
+    async fn drive(&mut self, e: u64, grid: &Grid, timeout: Duration) -> BTreeMap<u64, Fix> {
         let mut fixes = BTreeMap::new();
-        let Some(b) = &self.bridge else { return fixes };
+        let Some(b) = self.bridge.clone() else { return fixes };
         for t in self.brain.targets_of(e).iter().filter(|t| !t.cells.is_empty()) {
             let goal = (t.position[0], t.position[1]);
             let deadline = Instant::now() + timeout;
@@ -202,7 +205,11 @@ impl Vehicle {
             while !b.arrived(goal) && Instant::now() < deadline && b.drivable() {
                 // Again every second: a guided target on a lossy radio may not arrive.
                 if sent.is_none_or(|s| s.elapsed() >= Duration::from_secs(1)) {
-                    b.goto(goal);
+                    if b.goto(goal) {
+                        if let Some(t) = self.plan_at.take() {
+                            self.guided_ms.push(t.elapsed().as_secs_f64() * 1e3);
+                        }
+                    }
                     sent = Some(Instant::now());
                 }
                 tokio::time::sleep(Duration::from_millis(5)).await;
@@ -313,7 +320,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let pace = mission.pace.clone();
     let outbox = Outbox::open(&args.state_dir.join(format!("{}.redb", args.id)), &args.id, args.outbox_limit_mb << 20)?;
     let arrival_timeout = Duration::from_millis(mission.mavlink.arrival_timeout_ms);
-    let mut v = Vehicle { keys, ctx, brain, outbox, server_alive: false, resend: Duration::from_millis(pace.resend_ms), step: 0, args, bridge, last_telemetry };
+    let mut v = Vehicle { keys, ctx, brain, outbox, server_alive: false, resend: Duration::from_millis(pace.resend_ms), step: 0, args, bridge, last_telemetry, plan_at: None, guided_ms: vec![] };
     v.telemetry(&session).await;
     let first = match v.outbox.state()? {
         Some(state) => {
@@ -347,6 +354,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         let mut warned = false;
         loop {
             if v.query_plan(&session, e).await? {
+                v.plan_at = Some(Instant::now());
                 break;
             }
             if Instant::now() > deadline && v.brain.covers(e) {
@@ -402,7 +410,8 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     v.telemetry(&session).await;
     if let Some(b) = &v.bridge {
         let c = b.counters();
-        info!(received = c.received, sent = c.sent, unreadable = c.unreadable, from_gcs = c.from_gcs, refused_from_gcs = c.refused_from_gcs, "MAVLink link to the autopilot");
+        let p = fleet::mission::report::Percentiles::of(&v.guided_ms);
+        info!(received = c.received, sent = c.sent, unreadable = c.unreadable, from_gcs = c.from_gcs, refused_from_gcs = c.refused_from_gcs, plan_to_guided_p50_ms = format!("{:.3}", p.p50), plan_to_guided_max_ms = format!("{:.3}", p.max), targets = p.count, "MAVLink link to the autopilot");
     }
     info!(vehicle = v.brain.id, off_target = v.brain.off_target, "mission done, every batch acknowledged");
     session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
