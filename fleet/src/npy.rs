@@ -4,7 +4,7 @@
 
 use npyz::{Order, WriterBuilder};
 use std::fs::File;
-use std::io::{BufReader, BufWriter};
+use std::io::BufWriter;
 use std::path::Path;
 use thiserror::Error;
 
@@ -16,6 +16,8 @@ pub enum NpyError {
     DType { path: String, dtype: String },
     #[error("{path}: expected {expected}, found shape {shape:?}")]
     Shape { path: String, expected: String, shape: Vec<u64> },
+    #[error("{path}: {why}")]
+    Header { path: String, why: String },
     #[error("{path}: value {index} is not finite ({value})")]
     NonFinite { path: String, index: usize, value: f64 },
 }
@@ -37,19 +39,37 @@ impl Array {
     }
 }
 
+/// Most values one array may hold (8 GiB of float64): a header may not make us allocate more.
+pub const MAX_VALUES: usize = 1 << 30;
+
 pub fn read(path: impl AsRef<Path>) -> Result<Array, NpyError> {
     let p = path.as_ref().display().to_string();
-    let io = |source| NpyError::Io { path: p.clone(), source };
-    let file = File::open(path.as_ref()).map_err(io)?;
-    let npy = npyz::NpyFile::new(BufReader::new(file)).map_err(io)?;
+    let bytes = std::fs::read(path.as_ref()).map_err(|source| NpyError::Io { path: p.clone(), source })?;
+    from_bytes(&bytes, &p)
+}
+
+/// Parse a whole `.npy` file held in memory (`name` is for messages). The header's shape is
+/// checked against the bytes that follow before anything is allocated from it.
+pub fn from_bytes(bytes: &[u8], name: &str) -> Result<Array, NpyError> {
+    let io = |source| NpyError::Io { path: name.into(), source };
+    let npy = npyz::NpyFile::new(bytes).map_err(io)?;
     let dtype = npy.dtype();
     let ok = matches!(&dtype, npyz::DType::Plain(ts) if ts.to_string() == "<f8");
     if !ok {
-        return Err(NpyError::DType { path: p, dtype: format!("{dtype:?}") });
+        return Err(NpyError::DType { path: name.into(), dtype: format!("{dtype:?}") });
     }
+    let header = |why: String| NpyError::Header { path: name.into(), why };
+    let total = npy.shape().iter().try_fold(1usize, |acc, &s| acc.checked_mul(usize::try_from(s).ok()?));
+    let total = match total {
+        Some(t) if t <= MAX_VALUES && t.saturating_mul(8) <= bytes.len() => t,
+        _ => return Err(header(format!("the header's shape {:?} does not fit the file's {} bytes", npy.shape(), bytes.len()))),
+    };
     let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
     let order = npy.order();
     let raw: Vec<f64> = npy.into_vec().map_err(io)?;
+    if raw.len() != total {
+        return Err(header(format!("{} values for shape {shape:?}", raw.len())));
+    }
     let data = match order {
         Order::C => raw,
         Order::Fortran => fortran_to_c(&raw, &shape),
