@@ -186,3 +186,38 @@ fn a_late_boat_is_waited_out_then_refitted_to_the_model_of_all_the_data() {
     assert_eq!(a.eigenvalues, b.eigenvalues);
     assert_eq!(a.modes_re, b.modes_re);
 }
+
+#[test]
+fn vehicles_on_hold_are_left_out_and_their_empty_batches_accepted() {
+    let truth = plume_field(24, 48, 42, 0.0, 5);
+    let grid = Grid::new(24, 48, 1.0).unwrap();
+    let cfg = TeamConfig { aerials: 2, boats: 3, radius: 3.0, rank: "6".into(), init_steps: 10, aerial_stride: 3, aerial_sigma0: 0.05, boat_sigma: 0.05, ..TeamConfig::default() };
+    let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
+    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+    let mut brains = brains_of(&server, &cfg, grid);
+    let mut e = 0u64;
+    while !server.finished() {
+        if e == 1 {
+            // The operator holds one aerial and one boat: from the next allocation on, out.
+            assert!(server.set_available("av-2", false) && server.set_available("boat-2", false));
+            assert!(!server.set_available("boat-2", false), "no change");
+        }
+        for brain in &mut brains {
+            brain.set_plan(server.plan(&brain.id, e, 1).unwrap());
+            if let Some(b) = brain.sense_epoch(e, x).unwrap() {
+                server.ingest(b).unwrap();
+            }
+        }
+        e += 1;
+    }
+    assert_eq!(server.counters.rejected.values().sum::<u64>(), 0, "held vehicles' empty batches are accepted");
+    for e in 2..server.next_epoch() {
+        let Some(alloc) = server.allocation(e) else { continue };
+        assert_eq!(server.held_at(e), ["av-2", "boat-2"]);
+        assert!(alloc.boats[1].is_none() && alloc.boats[0].is_some() && alloc.boats[2].is_some(), "the other boats get the disks");
+        let p = server.plan("av-1", e, 1).unwrap();
+        let lattice = grid.strided(3).unwrap();
+        assert_eq!(p.targets[0].cells.len(), lattice.rows * lattice.cols, "the other aerial covers the whole lattice");
+        assert!(server.plan("av-2", e, 1).unwrap().targets.iter().all(|t| t.cells.is_empty()));
+    }
+}

@@ -310,7 +310,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let (gcs_tx, gcs_rx) = tokio::sync::mpsc::unbounded_channel();
     let bridge = open_bridge(&args, &mission, &grid, gcs_tx)?;
     let last_telemetry = Arc::new(Mutex::new(None));
-    let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &mission.network)?).await?;
+    let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &mission.network.for_node(&args.id))?).await?;
     if let Some(b) = &bridge {
         spawn_mavlink_tasks(&session, &keys, &args.id, b.clone(), gcs_rx, last_telemetry.clone());
     }

@@ -4,6 +4,7 @@ mod bench;
 mod dmd;
 mod experiment;
 mod render;
+mod secure;
 mod simulate;
 mod up;
 
@@ -30,6 +31,8 @@ enum Command {
     Experiment(experiment::Args),
     /// Run a mission: the model server and every vehicle as processes over Zenoh, with a report.
     Up(up::Args),
+    /// Zenoh configs of a secured mission: passwords, mutual TLS, access control per vehicle.
+    Secure(secure::Args),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -40,6 +43,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Render(a) => render::run(a),
         Command::Experiment(a) => experiment::run(a),
         Command::Up(a) => up::run(a),
+        Command::Secure(a) => secure::run(a),
     }
 }
 

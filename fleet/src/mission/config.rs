@@ -52,9 +52,19 @@ pub struct Network {
     pub connect: Vec<String>,
     /// Optional Zenoh JSON5 configs, applied before the endpoints above.
     pub server_config: Option<std::path::PathBuf>,
+    /// `{id}` in it is the node's id (`secure/{id}.json5`: each vehicle its own credentials).
     pub vehicle_config: Option<std::path::PathBuf>,
     /// Zenoh link lease (ms): how soon a silent link counts as lost (Zenoh's default 10 s).
     pub lease_ms: Option<u64>,
+}
+
+impl Network {
+    /// This network as node `id` sees it: `{id}` in the vehicle config's path replaced.
+    pub fn for_node(&self, id: &str) -> Self {
+        let mut n = self.clone();
+        n.vehicle_config = n.vehicle_config.map(|p| std::path::PathBuf::from(p.to_string_lossy().replace("{id}", id)));
+        n
+    }
 }
 
 impl Default for Network {

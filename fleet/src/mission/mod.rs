@@ -8,6 +8,7 @@
 pub mod config;
 pub mod report;
 pub mod schedule;
+pub mod security;
 pub mod vehicle;
 pub mod server;
 

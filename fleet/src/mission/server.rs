@@ -244,9 +244,10 @@ impl ServerCore {
         }
         let want = self.schedule.sample_steps(batch.kind, e);
         let got: Vec<usize> = batch.samples.iter().map(|s| s.step as usize).collect();
-        // A boat the plan left without a disk sends an empty batch.
-        let idle_boat = batch.kind == VehicleKind::Boat && got.is_empty() && self.plans.get(&e).is_some_and(|p| p.boats[index - self.cfg.aerials].is_none());
-        if got != want && !idle_boat {
+        // A boat the plan left without a disk, or a vehicle on hold, sends an empty batch.
+        let idle = got.is_empty()
+            && self.plans.get(&e).is_some_and(|p| p.held.contains(&index) || (batch.kind == VehicleKind::Boat && p.boats[index - self.cfg.aerials].is_none()));
+        if got != want && !idle {
             return Err(self.reject(&batch.vehicle, format!("epoch {e} wants samples at steps {want:?}, got {got:?}")));
         }
         self.received.entry(e).or_default().insert(index, batch);

@@ -39,7 +39,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         anyhow::bail!("no ground-station endpoint: set [mavlink] gcs in the mission or give --gcs");
     }
     let gcs = Arc::new(mavlink::connect::<MavMessage>(&address).map_err(|e| anyhow::anyhow!("ground-station endpoint {address}: {e}"))?);
-    let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &mission.network)?).await?;
+    let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &mission.network.for_node(fleet::mission::security::GATEWAY))?).await?;
     let from_vehicles = session.declare_subscriber(keys.all_mavlink()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let _token = session.liveliness().declare_token(keys.alive("gcs-gateway")).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     info!(gcs = address, mission = mission.mission, "ground-station gateway up");

@@ -1,0 +1,61 @@
+//! `fleet secure [mission] --out DIR [--tls CERTDIR]`: the Zenoh configs of a secured mission
+//! (see `fleet::mission::security`): `router.json5` for the model server, `<user>.json5` for
+//! each vehicle, the ground-station gateway and an observer, and `credentials.txt` (the
+//! router's password dictionary, fresh random passwords, mode 0600).
+
+use anyhow::Context;
+use fleet::mission::config::MissionConfig;
+use fleet::mission::security::{client_config, router_config, users, Tls};
+use std::io::Read;
+use std::path::PathBuf;
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// The mission file (default: the bundled mission).
+    pub mission: Option<PathBuf>,
+    /// Where to write the configs and the password dictionary.
+    #[arg(long, default_value = "secure")]
+    pub out: PathBuf,
+    /// Turn on mutual TLS with the certificates in this directory (`ca.pem`, `server.pem` /
+    /// `.key`, `<user>.pem` / `.key`; `scripts/make-test-ca.sh` makes a throw-away set).
+    #[arg(long)]
+    pub tls: Option<PathBuf>,
+}
+
+/// 24 hex characters from the kernel's random source.
+fn password() -> anyhow::Result<String> {
+    let mut b = [0u8; 12];
+    std::fs::File::open("/dev/urandom")?.read_exact(&mut b)?;
+    Ok(b.iter().map(|x| format!("{x:02x}")).collect())
+}
+
+/// Written readable by the owner only: these hold passwords.
+fn private(path: &std::path::Path, text: &str) -> anyhow::Result<()> {
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
+    std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o600))?;
+    Ok(())
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let mission = MissionConfig::load(args.mission.as_deref())?;
+    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    let out = std::fs::canonicalize(&args.out)?;
+    let tls = match &args.tls {
+        Some(d) => Some(Tls { dir: std::fs::canonicalize(d).with_context(|| format!("the certificate directory {}", d.display()))? }),
+        None => None,
+    };
+    let dictionary = out.join("credentials.txt");
+    let mut lines = String::new();
+    for user in users(&mission) {
+        let pw = password()?;
+        lines.push_str(&format!("{user}:{pw}\n"));
+        let cfg = client_config(&mission, &user, &pw, tls.as_ref());
+        private(&out.join(format!("{user}.json5")), &serde_json::to_string_pretty(&cfg)?)?;
+    }
+    private(&dictionary, &lines)?;
+    std::fs::write(out.join("router.json5"), serde_json::to_string_pretty(&router_config(&mission, &dictionary, tls.as_ref()))?)?;
+    println!("wrote {}/router.json5, credentials.txt and one client config per user ({})", out.display(), users(&mission).join(", "));
+    println!("in the mission's [network]: server_config = \"{0}/router.json5\", vehicle_config = \"{0}/{{id}}.json5\"", out.display());
+    Ok(())
+}
