@@ -14,4 +14,6 @@ fi
 echo "== building (release)"
 cargo build --release --workspace --all-targets
 echo "== testing (release)"
-cargo test --release --workspace
+cargo test --release --workspace -- --skip malformed_inputs_never_panic_a_decoder
+echo "== fuzzing the decoders (release; prints how many inputs)"
+cargo test --release -p hetfleet-tests --test fuzz -- --nocapture

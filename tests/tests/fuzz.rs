@@ -90,7 +90,7 @@ fn wire_seeds() -> Vec<Vec<u8>> {
             battery: 0.5,
             link: LinkState::Up,
             outbox_depth: 7,
-            autopilot: Some(AutopilotStatus { link: AutopilotLink::Up, sysid: 1, mode: "GUIDED".into(), armed: true, guided: true }),
+            autopilot: Some(AutopilotStatus { link: AutopilotLink::Up, sysid: 1, mode: "GUIDED".into(), armed: true, guided: true, unreadable: 0, refused_from_gcs: 2 }),
         }),
         Body::Ack(Ack { vehicle: "boat-1".into(), seq: 9 }),
         Body::Model(ModelUpdate { version: 1, epoch: 2, step: 40, grid: g, dt: 0.25, eigenvalues: vec![[0.9, 0.1]], modes_re: vec![0.1; n], modes_im: vec![0.0; n], amplitudes: vec![[1.0, 0.0]], variance: vec![0.01; n] }),

@@ -239,7 +239,15 @@ impl Bridge {
             _ => AutopilotLink::Connecting,
         };
         let guided = s.mode.is_some_and(|m| self.spec.frame.role(m) == Some(Role::Guided)) && s.armed;
-        AutopilotStatus { link, sysid: s.sysid.unwrap_or(0), mode: s.mode.map_or_else(|| "unknown".into(), |m| self.spec.frame.name(m)), armed: s.armed, guided }
+        AutopilotStatus {
+            link,
+            sysid: s.sysid.unwrap_or(0),
+            mode: s.mode.map_or_else(|| "unknown".into(), |m| self.spec.frame.name(m)),
+            armed: s.armed,
+            guided,
+            unreadable: s.counters.unreadable,
+            refused_from_gcs: s.counters.refused_from_gcs,
+        }
     }
 
     /// Whether the planner may send it targets now.

@@ -148,6 +148,7 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
     assert!(bridge.from_gcs(&vec![0xfd; 4096]).is_err(), "oversized");
     let c = bridge.counters();
     assert_eq!((c.from_gcs, c.refused_from_gcs), (1, 502));
+    assert_eq!(bridge.status().refused_from_gcs, 502, "telemetry carries the refusals");
     alive(u32::MAX);
 }
 

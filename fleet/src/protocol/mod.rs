@@ -155,6 +155,11 @@ pub struct AutopilotStatus {
     pub armed: bool,
     /// In GUIDED mode, armed: the fleet's planner drives it.
     pub guided: bool,
+    /// Frames from the autopilot that did not parse, and ground-station frames refused.
+    #[serde(default)]
+    pub unreadable: u64,
+    #[serde(default)]
+    pub refused_from_gcs: u64,
 }
 
 /// The highest gap-free `seq` of a vehicle the server has assimilated.
