@@ -167,7 +167,7 @@ mod tests {
     #[test]
     fn bundled_zenoh_configs_load_and_endpoints_take_precedence() {
         let net = Network::default();
-        for f in ["router", "client", "peer"] {
+        for f in ["router", "client", "peer", "secure-example/router", "secure-example/boat-1"] {
             zenoh::Config::from_file(root().join(format!("config/zenoh/{f}.json5"))).unwrap_or_else(|e| panic!("{f}.json5: {e}"));
         }
         let client = root().join("config/zenoh/client.json5");

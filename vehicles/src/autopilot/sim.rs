@@ -585,6 +585,29 @@ mod tests {
     }
 
     #[test]
+    fn return_to_launch_brings_it_home_and_reposition_sends_it_out() {
+        let mut s = sim(Frame::Multirotor);
+        let site = s.spec.site;
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+        // DO_REPOSITION by COMMAND_INT (degrees * 1e7) to 40 m north, 30 m east, 20 m up.
+        let (lat, lon, _) = site.global_of(&Vector3::new(40.0, 30.0, 0.0));
+        let c = COMMAND_INT_DATA { command: MavCmd::MAV_CMD_DO_REPOSITION, x: (lat * 1e7).round() as i32, y: (lon * 1e7).round() as i32, z: 20.0, target_system: 3, ..Default::default() };
+        s.handle(&GCS, &MavMessage::COMMAND_INT(c));
+        assert_eq!(s.role(), Some(Role::Guided));
+        for _ in 0..1000 {
+            s.step(0.05);
+        }
+        assert!((s.pos - Vector3::new(40.0, 30.0, -20.0)).norm() < 0.05, "{}", s.pos);
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0, 0.0));
+        assert_eq!(s.role(), Some(Role::Return));
+        for _ in 0..1000 {
+            s.step(0.05);
+        }
+        assert!(s.pos.xy().norm() < 0.05 && (s.pos.z + 30.0).abs() < 0.05, "home at cruise altitude: {}", s.pos);
+        assert!(results(&s.take()).iter().all(|r| *r == MavResult::MAV_RESULT_ACCEPTED));
+    }
+
+    #[test]
     fn a_stalled_upload_is_asked_again_then_cancelled() {
         let mut s = sim(Frame::Boat);
         s.handle(&GCS, &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count: 2, target_system: 3, target_component: 1 }));
