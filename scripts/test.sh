@@ -16,4 +16,5 @@ cargo build --release --workspace --all-targets
 echo "== testing (release)"
 cargo test --release --workspace -- --skip malformed_inputs_never_panic_a_decoder
 echo "== fuzzing the decoders (release; prints how many inputs)"
-cargo test --release -p hetfleet-tests --test fuzz -- --nocapture
+# (--workspace keeps the features of the build above: no second build of zenoh)
+cargo test --release --workspace --test fuzz -- --nocapture
