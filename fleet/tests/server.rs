@@ -27,11 +27,15 @@ fn brains_of(server: &ServerCore, cfg: &TeamConfig, grid: Grid) -> Vec<VehicleBr
         .collect()
 }
 
+/// A moving plume on a 24 x 48 grid and a team of 2 aerials and 3 boats.
+fn plume_team() -> (fleet::process::FieldSeries, Grid, TeamConfig) {
+    let cfg = TeamConfig { aerials: 2, boats: 3, radius: 3.0, rank: "6".into(), init_steps: 10, aerial_stride: 3, aerial_sigma0: 0.05, boat_sigma: 0.05, ..TeamConfig::default() };
+    (plume_field(24, 48, 42, 0.0, 5), Grid::new(24, 48, 1.0).unwrap(), cfg)
+}
+
 #[test]
 fn shuffled_and_repeated_batches_give_the_offline_result() {
-    let truth = plume_field(24, 48, 42, 0.0, 5);
-    let grid = Grid::new(24, 48, 1.0).unwrap();
-    let cfg = TeamConfig { aerials: 2, boats: 3, radius: 3.0, rank: "6".into(), init_steps: 10, aerial_stride: 3, aerial_sigma0: 0.05, boat_sigma: 0.05, ..TeamConfig::default() };
+    let (truth, grid, cfg) = plume_team();
     let offline = team::run(&cfg, &truth, |_, _| {}).unwrap();
 
     let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
@@ -133,9 +137,7 @@ fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
 
 #[test]
 fn a_late_boat_is_waited_out_then_refitted_to_the_model_of_all_the_data() {
-    let truth = plume_field(24, 48, 42, 0.0, 5);
-    let grid = Grid::new(24, 48, 1.0).unwrap();
-    let cfg = TeamConfig { aerials: 2, boats: 3, radius: 3.0, rank: "6".into(), init_steps: 10, aerial_stride: 3, aerial_sigma0: 0.05, boat_sigma: 0.05, ..TeamConfig::default() };
+    let (truth, grid, cfg) = plume_team();
     let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
     let schedule = *server.schedule();
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
@@ -189,9 +191,7 @@ fn a_late_boat_is_waited_out_then_refitted_to_the_model_of_all_the_data() {
 
 #[test]
 fn vehicles_on_hold_are_left_out_and_their_empty_batches_accepted() {
-    let truth = plume_field(24, 48, 42, 0.0, 5);
-    let grid = Grid::new(24, 48, 1.0).unwrap();
-    let cfg = TeamConfig { aerials: 2, boats: 3, radius: 3.0, rank: "6".into(), init_steps: 10, aerial_stride: 3, aerial_sigma0: 0.05, boat_sigma: 0.05, ..TeamConfig::default() };
+    let (truth, grid, cfg) = plume_team();
     let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
     let mut brains = brains_of(&server, &cfg, grid);

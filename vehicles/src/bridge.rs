@@ -10,7 +10,6 @@
 use crate::autopilot::modes::{Frame, Role};
 use crate::autopilot::serve;
 use crate::autopilot::sim::{SimAutopilot, SimSpec};
-use crate::autopilot::site::Site;
 use fleet::protocol::{AutopilotLink, AutopilotStatus};
 use mavlink::dialects::common::*;
 use mavlink::error::MessageReadError;
@@ -29,17 +28,12 @@ pub const MAX_FRAME: usize = 280;
 /// Where a bridge's autopilot is and how it moves.
 #[derive(Debug, Clone)]
 pub struct BridgeSpec {
-    pub frame: Frame,
-    /// The vehicle's system id in the mission (the simulated autopilot's; a real one has its own).
-    pub sysid: u8,
-    pub site: Site,
-    pub cruise_alt: f64,
+    /// The airframe, the vehicle's system id in the mission (the simulated autopilot's; a real
+    /// one has its own), the site and cruise altitude; for `sim` also its speeds and speed-up.
+    pub vehicle: SimSpec,
     pub acceptance_m: f64,
     pub heartbeat_timeout: Duration,
-    /// For `sim`: speed limits, speed-up and where it starts (local NED).
-    pub sim_speed: f64,
-    pub sim_turn_rate: f64,
-    pub sim_speedup: f64,
+    /// Where a `sim` autopilot starts (local NED).
     pub home: Vector3<f64>,
 }
 
@@ -106,8 +100,7 @@ impl Bridge {
         let stop = Arc::new(AtomicBool::new(false));
         let address = if address == "sim" {
             let port = free_udp_port()?;
-            let sim = SimSpec { frame: spec.frame, sysid: spec.sysid, site: spec.site, max_speed: spec.sim_speed, turn_rate: spec.sim_turn_rate, cruise_alt: spec.cruise_alt, speedup: spec.sim_speedup };
-            serve::spawn(&format!("udpin:127.0.0.1:{port}"), SimAutopilot::new(sim, spec.home), stop.clone())?;
+            serve::spawn(&format!("udpin:127.0.0.1:{port}"), SimAutopilot::new(spec.vehicle.clone(), spec.home), stop.clone())?;
             format!("udpout:127.0.0.1:{port}")
         } else {
             address.to_string()
@@ -121,7 +114,7 @@ impl Bridge {
     }
 
     fn own_header(&self) -> MavHeader {
-        MavHeader { system_id: self.spec.sysid as u32, component_id: COMPANION_COMPONENT, sequence: 0 }
+        MavHeader { system_id: self.spec.vehicle.sysid as u32, component_id: COMPANION_COMPONENT, sequence: 0 }
     }
 
     fn send(&self, msg: &MavMessage) {
@@ -132,7 +125,7 @@ impl Bridge {
     }
 
     fn spawn_reader(&self, gcs: Option<GcsSink>) -> std::io::Result<()> {
-        let (conn, seen, frame, stop) = (self.conn.clone(), self.seen.clone(), self.spec.frame, self.stop.clone());
+        let (conn, seen, frame, stop) = (self.conn.clone(), self.seen.clone(), self.spec.vehicle.frame, self.stop.clone());
         std::thread::Builder::new().name("mavlink-autopilot-rx".into()).spawn(move || {
             while !stop.load(Ordering::Relaxed) {
                 match conn.recv() {
@@ -193,7 +186,7 @@ impl Bridge {
                     let s = lock(&me.seen);
                     (s.sysid, s.mode, s.armed, s.setup)
                 };
-                let guided = me.spec.frame.mode(Role::Guided);
+                let guided = me.spec.vehicle.frame.mode(Role::Guided);
                 let second = tick % 10 == 1;
                 if second {
                     me.send(&MavMessage::HEARTBEAT(HEARTBEAT_DATA {
@@ -215,7 +208,7 @@ impl Bridge {
                     Some(false) if !second => {}
                     _ if tries >= 10 => {
                         lock(&me.seen).setup = Some(true);
-                        warn!(sysid = target, mode = me.spec.frame.name(mode.unwrap_or(0)), armed, "the autopilot did not take GUIDED and arming: left to the operator");
+                        warn!(sysid = target, mode = me.spec.vehicle.frame.name(mode.unwrap_or(0)), armed, "the autopilot did not take GUIDED and arming: left to the operator");
                     }
                     _ => {
                         tries += 1;
@@ -230,30 +223,41 @@ impl Bridge {
         Ok(())
     }
 
-    /// The link as telemetry reports it.
-    pub fn status(&self) -> AutopilotStatus {
-        let s = lock(&self.seen);
-        let link = match (s.heartbeat, s.setup) {
+    fn link_of(&self, s: &Seen) -> AutopilotLink {
+        match (s.heartbeat, s.setup) {
             (Some(t), _) if t.elapsed() > self.spec.heartbeat_timeout => AutopilotLink::Lost,
             (Some(_), Some(true)) => AutopilotLink::Up,
             _ => AutopilotLink::Connecting,
-        };
-        let guided = s.mode.is_some_and(|m| self.spec.frame.role(m) == Some(Role::Guided)) && s.armed;
+        }
+    }
+
+    fn guided_of(&self, s: &Seen) -> bool {
+        s.mode.is_some_and(|m| self.spec.vehicle.frame.role(m) == Some(Role::Guided)) && s.armed
+    }
+
+    /// The link as telemetry reports it.
+    pub fn status(&self) -> AutopilotStatus {
+        let s = lock(&self.seen);
         AutopilotStatus {
-            link,
+            link: self.link_of(&s),
             sysid: s.sysid.unwrap_or(0),
-            mode: s.mode.map_or_else(|| "unknown".into(), |m| self.spec.frame.name(m)),
+            mode: s.mode.map_or_else(|| "unknown".into(), |m| self.spec.vehicle.frame.name(m)),
             armed: s.armed,
-            guided,
+            guided: self.guided_of(&s),
             unreadable: s.counters.unreadable,
             refused_from_gcs: s.counters.refused_from_gcs,
         }
     }
 
+    /// The link state alone (polled while waiting; no allocation).
+    pub fn link(&self) -> AutopilotLink {
+        self.link_of(&lock(&self.seen))
+    }
+
     /// Whether the planner may send it targets now.
     pub fn drivable(&self) -> bool {
-        let st = self.status();
-        st.guided && st.link != AutopilotLink::Lost
+        let s = lock(&self.seen);
+        self.guided_of(&s) && self.link_of(&s) != AutopilotLink::Lost
     }
 
     pub fn counters(&self) -> LinkCounters {
@@ -262,15 +266,15 @@ impl Bridge {
 
     /// Where the autopilot says it is, in grid metres.
     pub fn position(&self) -> Option<(f64, f64)> {
-        lock(&self.seen).ned.map(|n| self.spec.site.grid_of(&n))
+        lock(&self.seen).ned.map(|n| self.spec.vehicle.site.grid_of(&n))
     }
 
     fn target_ned(&self, grid_xy: (f64, f64)) -> Vector3<f64> {
-        let up = match self.spec.frame {
+        let up = match self.spec.vehicle.frame {
             Frame::Boat => 0.0,
-            Frame::Multirotor => self.spec.cruise_alt,
+            Frame::Multirotor => self.spec.vehicle.cruise_alt,
         };
-        self.spec.site.ned_of(grid_xy, up)
+        self.spec.vehicle.site.ned_of(grid_xy, up)
     }
 
     /// Send a guided target (a grid point); false when the autopilot is not ours to drive.
@@ -305,7 +309,7 @@ impl Bridge {
     /// autopilot (or to every system); otherwise refused with the reason.
     pub fn from_gcs(&self, bytes: &[u8]) -> Result<(), String> {
         let result = parse_frame(bytes).and_then(|(h, m)| {
-            let ours = lock(&self.seen).sysid.unwrap_or(self.spec.sysid);
+            let ours = lock(&self.seen).sysid.unwrap_or(self.spec.vehicle.sysid);
             match m.target_system_id() {
                 Some(t) if t != 0 && t != ours => Err(format!("{} for system {t}, not {ours}", m.message_name())),
                 _ => self.conn.send(&h, &m).map(|_| ()).map_err(|e| format!("to the autopilot: {e}")),

@@ -15,6 +15,7 @@ use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use vehicles::autopilot::modes::Frame;
+use vehicles::autopilot::sim::SimSpec;
 use vehicles::autopilot::site::Site;
 use vehicles::bridge::{Bridge, BridgeSpec};
 use tracing::{debug, info, warn};
@@ -198,7 +199,7 @@ impl Vehicle {
             let goal = (t.position[0], t.position[1]);
             let deadline = Instant::now() + timeout;
             // Still being armed and set to GUIDED (the first epoch): wait for it.
-            while b.status().link == protocol::AutopilotLink::Connecting && Instant::now() < deadline {
+            while b.link() == protocol::AutopilotLink::Connecting && Instant::now() < deadline {
                 tokio::time::sleep(Duration::from_millis(20)).await;
             }
             let mut sent: Option<Instant> = None;
@@ -216,7 +217,7 @@ impl Vehicle {
             }
             if let Some(p) = b.position() {
                 // Sensing happens on the grid, wherever the autopilot drifted.
-                let (w, h) = (grid.cols as f64 * grid.cell_m, grid.rows as f64 * grid.cell_m);
+                let (w, h) = (grid.width_m(), grid.height_m());
                 let position = (p.0.clamp(0.0, w - 1e-9), p.1.clamp(0.0, h - 1e-9));
                 fixes.insert(t.step, Fix { position, arrived: b.arrived(goal) });
             }
@@ -233,24 +234,14 @@ fn open_bridge(args: &Args, mission: &MissionConfig, grid: &Grid, gcs: vehicles:
         return Ok(None);
     }
     let (index, kind) = mission.vehicle(&args.id)?;
-    let frame = Frame::of(kind);
     let site = Site::new(m, grid);
     // Launched from points along the south shore.
     let n = mission.vehicles().len() as f64;
-    let home = site.ned_of(((index as f64 + 0.5) * grid.cols as f64 * grid.cell_m / n, 0.5 * grid.cell_m), 0.0);
+    let home = site.ned_of(((index as f64 + 0.5) * grid.width_m() / n, 0.5 * grid.cell_m), 0.0);
     let spec = BridgeSpec {
-        frame,
-        sysid: mission.sysid(&args.id)?,
-        site,
-        cruise_alt: m.cruise_alt_m,
+        vehicle: SimSpec::from_config(Frame::of(kind), mission.sysid(&args.id)?, site, m),
         acceptance_m: m.acceptance_m,
         heartbeat_timeout: Duration::from_millis(m.heartbeat_timeout_ms),
-        sim_speed: match frame {
-            Frame::Boat => m.boat_speed_ms,
-            Frame::Multirotor => m.multirotor_speed_ms,
-        },
-        sim_turn_rate: m.boat_turn_rate_dps.to_radians(),
-        sim_speedup: m.sim_speedup,
         home,
     };
     Ok(Some(Arc::new(Bridge::connect(&address, spec, Some(gcs))?)))

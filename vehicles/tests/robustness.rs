@@ -73,15 +73,9 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
     let ap = UdpSocket::bind("127.0.0.1:0").unwrap();
     ap.set_read_timeout(Some(Duration::from_millis(200))).unwrap();
     let spec = BridgeSpec {
-        frame: Frame::Boat,
-        sysid: 7,
-        site: site(),
-        cruise_alt: 0.0,
+        vehicle: SimSpec { frame: Frame::Boat, sysid: 7, site: site(), max_speed: 2.0, turn_rate: 1.0, cruise_alt: 0.0, speedup: 1.0 },
         acceptance_m: 0.25,
         heartbeat_timeout: Duration::from_millis(400),
-        sim_speed: 2.0,
-        sim_turn_rate: 1.0,
-        sim_speedup: 1.0,
         home: Vector3::zeros(),
     };
     let bridge = Bridge::connect(&format!("udpout:{}", ap.local_addr().unwrap()), spec, None).unwrap();

@@ -40,6 +40,17 @@ pub struct SimSpec {
     pub speedup: f64,
 }
 
+impl SimSpec {
+    /// The simulated airframe the mission's `[mavlink]` section describes.
+    pub fn from_config(frame: Frame, sysid: u8, site: Site, m: &fleet::mission::config::MavlinkConfig) -> Self {
+        let max_speed = match frame {
+            Frame::Boat => m.boat_speed_ms,
+            Frame::Multirotor => m.multirotor_speed_ms,
+        };
+        Self { frame, sysid, site, max_speed, turn_rate: m.boat_turn_rate_dps.to_radians(), cruise_alt: m.cruise_alt_m, speedup: m.sim_speedup }
+    }
+}
+
 struct Upload {
     count: u16,
     items: Vec<MISSION_ITEM_INT_DATA>,

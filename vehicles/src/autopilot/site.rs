@@ -20,7 +20,7 @@ pub struct Site {
 
 impl Site {
     pub fn new(cfg: &MavlinkConfig, grid: &Grid) -> Self {
-        let (w, h) = (grid.cols as f64 * grid.cell_m, grid.rows as f64 * grid.cell_m);
+        let (w, h) = (grid.width_m(), grid.height_m());
         let scale = cfg.size_m.map_or(Vector2::new(1.0, 1.0), |[e, n]| Vector2::new(e / w, n / h));
         Self { origin: cfg.origin, scale }
     }

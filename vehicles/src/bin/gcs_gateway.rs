@@ -8,7 +8,7 @@ use fleet::protocol::keys::Keys;
 use fleet_net::Role;
 use mavlink::dialects::common::MavMessage;
 use mavlink::error::MessageReadError;
-use mavlink::{MavConnection, MavHeader};
+use mavlink::MavConnection;
 use std::sync::Arc;
 use std::time::Duration;
 use tracing::{debug, info, warn};
@@ -71,7 +71,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 let bytes = s.payload().to_bytes();
                 match router.from_vehicle(&vehicle, &bytes) {
                     Ok((h, m)) => {
-                        let _ = gcs.send(&MavHeader { sequence: h.sequence, ..h }, &m);
+                        let _ = gcs.send(&h, &m);
                         down += 1;
                     }
                     Err(e) => warn!(vehicle, "refused a frame: {e}"),

@@ -53,12 +53,8 @@ fn main() -> anyhow::Result<()> {
         Airframe::Boat => Frame::Boat,
         Airframe::Multirotor => Frame::Multirotor,
     };
-    let (max_speed, up) = match frame {
-        Frame::Boat => (m.boat_speed_ms, 0.0),
-        Frame::Multirotor => (m.multirotor_speed_ms, 0.0),
-    };
-    let spec = SimSpec { frame, sysid: args.sysid, site, max_speed, turn_rate: m.boat_turn_rate_dps.to_radians(), cruise_alt: m.cruise_alt_m, speedup: m.sim_speedup };
-    let home: Vector3<f64> = site.ned_of((args.home[0], args.home[1]), up);
+    let spec = SimSpec::from_config(frame, args.sysid, site, m);
+    let home: Vector3<f64> = site.ned_of((args.home[0], args.home[1]), 0.0);
     let stop = Arc::new(AtomicBool::new(false));
     let stats = serve::spawn(&args.listen, SimAutopilot::new(spec, home), stop.clone())?;
     tracing::info!(listen = args.listen, sysid = args.sysid, ?frame, "simulated autopilot up");
