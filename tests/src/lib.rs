@@ -3,6 +3,8 @@
 use std::path::PathBuf;
 use std::process::{Command, Output};
 
+pub mod lossy_link;
+
 /// The workspace root.
 pub fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().expect("tests/ has a parent").to_path_buf()
@@ -196,84 +198,6 @@ pub fn expected_batches(m: &fleet::mission::config::MissionConfig, frames: usize
     m.vehicles().iter().map(|v| (0..s.epochs()).filter(|&e| s.seq_of(v.kind, e).is_some()).count() as u64).sum()
 }
 
-/// A degraded radio link in user space, for kernels without `netem`: a UDP relay between
-/// Zenoh's UDP endpoints that drops a fraction of the datagrams each way and delays the rest
-/// by a random 0..`jitter_ms` (so they also arrive out of order). Seeded.
-pub struct LossyRelay {
-    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
-    pub passed: std::sync::Arc<std::sync::atomic::AtomicU64>,
-    pub dropped: std::sync::Arc<std::sync::atomic::AtomicU64>,
-}
-
-impl Drop for LossyRelay {
-    fn drop(&mut self) {
-        self.stop.store(true, std::sync::atomic::Ordering::SeqCst);
-    }
-}
-
-pub fn lossy_udp_relay(listen_port: u16, upstream: std::net::SocketAddr, loss: f64, jitter_ms: u64, seed: u64) -> LossyRelay {
-    use rand::{RngExt, SeedableRng};
-    use std::net::UdpSocket;
-    use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-    use std::sync::{Arc, Mutex};
-    let stop = Arc::new(AtomicBool::new(false));
-    let (passed, dropped) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
-    let front = Arc::new(UdpSocket::bind(("127.0.0.1", listen_port)).expect("relay port"));
-    front.set_read_timeout(Some(std::time::Duration::from_millis(100))).unwrap();
-    let rng = Arc::new(Mutex::new(rand_chacha::ChaCha8Rng::seed_from_u64(seed)));
-    // Forward one datagram, maybe: dropped, or sent after a random delay.
-    let forward = {
-        let (rng, passed, dropped) = (rng.clone(), passed.clone(), dropped.clone());
-        move |sock: Arc<UdpSocket>, to: Option<std::net::SocketAddr>, data: Vec<u8>| {
-            let (lose, delay) = {
-                let mut r = rng.lock().unwrap();
-                (r.random::<f64>() < loss, r.random_range(0..=jitter_ms))
-            };
-            if lose {
-                dropped.fetch_add(1, Ordering::Relaxed);
-                return;
-            }
-            passed.fetch_add(1, Ordering::Relaxed);
-            std::thread::spawn(move || {
-                std::thread::sleep(std::time::Duration::from_millis(delay));
-                let _ = match to {
-                    Some(a) => sock.send_to(&data, a),
-                    None => sock.send(&data),
-                };
-            });
-        }
-    };
-    let s = stop.clone();
-    std::thread::spawn(move || {
-        let mut clients: std::collections::HashMap<std::net::SocketAddr, Arc<UdpSocket>> = Default::default();
-        let mut buf = vec![0u8; 65536];
-        while !s.load(Ordering::SeqCst) {
-            let Ok((n, from)) = front.recv_from(&mut buf) else { continue };
-            let up = clients
-                .entry(from)
-                .or_insert_with(|| {
-                    // One upstream socket per client, and a thread carrying the replies back.
-                    let up = Arc::new(UdpSocket::bind("127.0.0.1:0").expect("upstream socket"));
-                    up.connect(upstream).expect("upstream");
-                    up.set_read_timeout(Some(std::time::Duration::from_millis(100))).unwrap();
-                    let (up2, front2, s2, fwd) = (up.clone(), front.clone(), s.clone(), forward.clone());
-                    std::thread::spawn(move || {
-                        let mut buf = vec![0u8; 65536];
-                        while !s2.load(Ordering::SeqCst) {
-                            if let Ok(n) = up2.recv(&mut buf) {
-                                fwd(front2.clone(), Some(from), buf[..n].to_vec());
-                            }
-                        }
-                    });
-                    up
-                })
-                .clone();
-            forward(up, None, buf[..n].to_vec());
-        }
-    });
-    LossyRelay { stop, passed, dropped }
-}
-
 /// Whether this process may make network namespaces (root with iproute2).
 pub fn is_root_with_ip() -> bool {
     let root = std::process::Command::new("id").arg("-u").output().map(|o| String::from_utf8_lossy(&o.stdout).trim() == "0").unwrap_or(false);
@@ -326,16 +250,14 @@ impl Drop for Host {
 
 /// Start every vehicle of `mission` with its outbox under `state` and its log in `dir`; the
 /// vehicle `away` (if any) runs on another host (`ip netns exec <ns>`) and connects to
-/// `endpoint` there.
-pub fn start_vehicles(procs: &mut Procs, mission: &std::path::Path, state: &str, dir: &std::path::Path, away: Option<(&str, &Host, &str)>) {
+/// `endpoint` there. `away` lists such vehicles as (id, namespace, endpoint).
+pub fn start_vehicles(procs: &mut Procs, mission: &std::path::Path, state: &str, dir: &std::path::Path, away: &[(&str, &str, &str)]) {
     let m = mission.to_str().expect("utf-8 path");
     for v in fleet::mission::config::MissionConfig::load(Some(mission)).expect("mission").vehicles() {
         let log = dir.join(format!("{}.log", v.id));
-        match away {
-            Some((id, host, endpoint)) if id == v.id => {
-                start_vehicle(procs, &["ip", "netns", "exec", host.ns.as_str()], &["--mission", m, "--id", &v.id, "--connect", endpoint, "--state-dir", state], &log)
-            }
-            _ => start_vehicle(procs, &[], &["--mission", m, "--id", &v.id, "--state-dir", state], &log),
+        match away.iter().find(|(id, _, _)| *id == v.id) {
+            Some((_, ns, endpoint)) => start_vehicle(procs, &["ip", "netns", "exec", ns], &["--mission", m, "--id", &v.id, "--connect", endpoint, "--state-dir", state], &log),
+            None => start_vehicle(procs, &[], &["--mission", m, "--id", &v.id, "--state-dir", state], &log),
         };
     }
 }

@@ -51,7 +51,7 @@ fn a_python_eclipse_zenoh_client_decodes_model_latest() {
     let state = dir.join("state");
     let st = state.to_str().unwrap();
     let server = start_server(&mut procs, &["--mission", m, "--out", out.to_str().unwrap(), "--state-dir", st], &dir.join("server.log"));
-    start_vehicles(&mut procs, &mission, st, &dir, None);
+    start_vehicles(&mut procs, &mission, st, &dir, &[]);
     server.finished(120);
     let o = std::process::Command::new("python3")
         .arg(root().join("tests/py/model_latest.py"))
@@ -81,7 +81,7 @@ fn a_vehicle_on_another_host_reaches_the_server_through_its_router() {
     let st = dir.join("state");
     let st = st.to_str().unwrap();
     let server = start_server(&mut procs, &["--mission", m, "--state-dir", st], &dir.join("server.log"));
-    start_vehicles(&mut procs, &mission, st, &dir, Some(("boat-1", &host, &remote)));
+    start_vehicles(&mut procs, &mission, st, &dir, &[("boat-1", &host.ns, &remote)]);
     let summary = server.finished(120);
     assert!(summary.link_ups.contains_key("boat-1"), "boat-1's liveliness crossed the link");
     // Its own namespace cannot reach this host's loopback: the data came over the veth.

@@ -48,7 +48,7 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
         .spawn()
         .expect("gcs-gateway");
     procs.0.push(gateway);
-    start_vehicles(&mut procs, &mission, st, &dir, None);
+    start_vehicles(&mut procs, &mission, st, &dir, &[]);
 
     let o = python.wait_with_output().expect("the ground station ran");
     let said = String::from_utf8_lossy(&o.stdout).to_string();

@@ -98,7 +98,7 @@ fn secured_fleet(tls: bool) {
     assert!(!anonymous_in, "a session without credentials was let in");
     assert!(!cross_put, "boat-1 read boat-2's plan");
 
-    start_vehicles(&mut procs, &mission, st, &dir, None);
+    start_vehicles(&mut procs, &mission, st, &dir, &[]);
     let summary = server.finished(120);
     let c = &summary.counters;
     let truth = m.truth(|_| {}).unwrap();
