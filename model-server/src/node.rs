@@ -98,7 +98,8 @@ impl Server {
             Ok(Ingested::Refitted(e)) => {
                 info!(vehicle, seq, epoch = e, "late batch: model re-fitted with it");
                 let done = (0..self.core.next_epoch()).collect();
-                self.model_changed(session, done, t0, true).await?
+                self.model_changed(session, done, t0, true).await?;
+                emit(self.events, &ServerEvent::Late { vehicle, epoch: e, version: self.core.version });
             }
             Ok(Ingested::Duplicate) => self.ack(session, &vehicle).await?,
             Ok(Ingested::Buffered) => {}
@@ -128,7 +129,7 @@ impl Server {
             info!(epoch = e, version = self.core.version, latency_ms = format!("{latency_ms:.1}"), mse = mse.map(|m| format!("{m:.3e}")), "epoch assimilated");
             let next = e + 1;
             let places = places_at(&self.core, next);
-            emit(self.events, &ServerEvent::Epoch { epoch: e, version: self.core.version, mse, latency_ms, alive: self.alive.len(), batches: self.core.counters.batches, held: self.core.held_at(next), places });
+            emit(self.events, &ServerEvent::Epoch { epoch: e, version: self.core.version, mse, latency_ms, alive: self.alive.len(), batches: self.core.counters.batches, held: self.core.held_at(next), places, missing: self.core.missing_at(e) });
         }
         Ok(())
     }

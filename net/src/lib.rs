@@ -78,6 +78,11 @@ pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -
     if role == Role::Vehicle {
         set(&mut cfg, "connect/timeout_ms", "-1")?;
         set(&mut cfg, "connect/exit_on_failure", "false")?;
+        // Back on the link within a second of the radio returning (Zenoh's default backs off
+        // to 4 s between attempts), unless a config file says otherwise.
+        if file.is_none() {
+            set(&mut cfg, "connect/retry", "{ period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2 }")?;
+        }
     }
     Ok(cfg)
 }

@@ -129,7 +129,11 @@ impl Vehicle {
         while let Ok(Some(s)) = links.try_recv() {
             let up = s.kind() == SampleKind::Put;
             if up != self.server_alive {
-                info!(server_alive = up, "link to the model server");
+                info!(server_alive = up, backlog = self.outbox.depth(), "link to the model server");
+                if up {
+                    // Back in range: the whole backlog is due now, oldest first.
+                    self.outbox.sent.clear();
+                }
             }
             self.server_alive = up;
         }
@@ -329,6 +333,10 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         if schedule.seq_of(kind, e).is_none() {
             continue;
         }
+        // What came while driving and sensing; a returned link sends the backlog before this
+        // epoch's work.
+        v.absorb(&acks, &links);
+        v.resend_due(&session).await?;
         // A full outbox holds sensing until acks make room (nothing is dropped).
         let mut said = false;
         while v.outbox.full() {
@@ -348,8 +356,10 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
                 v.plan_at = Some(Instant::now());
                 break;
             }
-            if Instant::now() > deadline && v.brain.covers(e) {
-                warn!(epoch = e, "no plan from the server in time: following the held plan's horizon");
+            // Cut off from the server (its liveliness token gone): no use waiting out the
+            // timeout, the held horizon says where to sense, at the mission's pace.
+            if (Instant::now() > deadline || !v.server_alive) && v.brain.covers(e) {
+                warn!(epoch = e, server_alive = v.server_alive, "no plan from the server: following the held plan's horizon");
                 break;
             }
             if Instant::now() > deadline && !warned {

@@ -139,6 +139,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
             Ok(ServerEvent::Ready { .. }) => pb.set_message("server ready"),
             Ok(ServerEvent::Hold { vehicle, held, mode }) => pb.println(format!("{vehicle}: {} ({mode})", if held { "left out of the allocation" } else { "back in the allocation" })),
+            Ok(ServerEvent::Late { vehicle, epoch, version }) => pb.println(format!("{vehicle}: late batch of epoch {epoch} re-fitted the model (v{version})")),
             Ok(ServerEvent::Finished { summary }) => break summary,
             Err(mpsc::RecvTimeoutError::Timeout) => {}
             Err(mpsc::RecvTimeoutError::Disconnected) => bail!("the model server stopped before the mission finished (see {})", logs.join("server.log").display()),

@@ -35,7 +35,13 @@ pub enum ServerEvent {
         /// Where the next epoch's allocation sends each vehicle that senses (grid metres).
         #[serde(default)]
         places: std::collections::BTreeMap<String, [f64; 2]>,
+        /// Vehicles it was assimilated without (late: their batches will re-fit it).
+        #[serde(default)]
+        missing: Vec<String>,
     },
+    /// A late batch (of an epoch assimilated without it) is in the model: re-fitted and
+    /// published as `version`.
+    Late { vehicle: String, epoch: u64, version: u64 },
     /// A vehicle left the allocation (its autopilot is on operator hold or lost) or came back.
     Hold { vehicle: String, held: bool, mode: String },
     /// Every step is in the model.

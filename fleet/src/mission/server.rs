@@ -135,6 +135,12 @@ impl ServerCore {
         (0..self.vehicles.len()).filter(move |&i| self.takes_part(i, e) && !have.is_some_and(|m| m.contains_key(&i)))
     }
 
+    /// Vehicles whose batch for epoch `e` has not come in (for an assimilated epoch: the ones it
+    /// was assimilated without).
+    pub fn missing_at(&self, e: u64) -> Vec<String> {
+        self.missing(e).map(|i| self.vehicles[i].id.clone()).collect()
+    }
+
     /// Vehicles whose batch for the next epoch, or for an epoch assimilated without it, has
     /// not come in.
     pub fn waiting_for(&self) -> Vec<String> {
