@@ -1,5 +1,8 @@
 //! Criterion benchmarks of the DMD core (the Python side: `bench/peers/`, see the README).
 
+#[global_allocator]
+static ALLOCATOR: fleet::Allocator = fleet::Allocator;
+
 use criterion::{criterion_group, criterion_main, Criterion};
 use fleet::dmd::{pairs_of, Debias, DmdConfig, Method, RankPolicy};
 use fleet::process::synthetic::smooth_sphere_field;

@@ -1,6 +1,9 @@
 //! Criterion benchmarks of sensor placement (the same cases with pysensors beside them:
 //! `fleet bench sensing`).
 
+#[global_allocator]
+static ALLOCATOR: fleet::Allocator = fleet::Allocator;
+
 use criterion::{criterion_group, criterion_main, Criterion};
 use fleet::grid::Grid;
 use fleet::process::synthetic::smooth_basis;

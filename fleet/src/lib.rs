@@ -18,6 +18,12 @@ pub mod process;
 pub mod protocol;
 pub mod sensing;
 
+/// The allocator hetfleet's binaries and benchmarks use (`#[global_allocator] static A:
+/// fleet::Allocator = fleet::Allocator;`): a fit allocates and frees matrices of megabytes,
+/// which glibc's malloc maps and unmaps each time (page faults were 60% of a 4608 x 100 batch
+/// fit); mimalloc reuses them.
+pub use mimalloc::MiMalloc as Allocator;
+
 /// Set faer's parallelism from `HETFLEET_LINALG_THREADS` (default 1). On the 2-core machines
 /// we run on, faer's rayon parallelism made the decompositions DMD uses (eig 400 x 400, SVD
 /// 400 x 1000, 4608 x 100) 1.3-1.5x *slower* than sequential, and the fleet's nodes run

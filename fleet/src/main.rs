@@ -2,6 +2,9 @@
 
 mod cli;
 
+#[global_allocator]
+static ALLOCATOR: fleet::Allocator = fleet::Allocator;
+
 use clap::Parser;
 
 fn main() {

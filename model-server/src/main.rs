@@ -4,6 +4,9 @@
 
 mod node;
 
+#[global_allocator]
+static ALLOCATOR: fleet::Allocator = fleet::Allocator;
+
 use clap::Parser;
 
 #[derive(Parser, Debug)]

@@ -3,6 +3,9 @@
 //! stream, follows the plans the model server gives it, and publishes its batches until they
 //! are acknowledged.
 
+#[global_allocator]
+static ALLOCATOR: fleet::Allocator = fleet::Allocator;
+
 mod node;
 
 use clap::Parser;
