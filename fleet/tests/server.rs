@@ -135,15 +135,15 @@ fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
     assert_eq!(av.plan(), Some(&newer));
 }
 
-#[test]
-fn a_late_boat_is_waited_out_then_refitted_to_the_model_of_all_the_data() {
+/// boat-2 out of range for epochs 2-4: it senses along its plan's horizon and its batches wait
+/// on board; the server assimilates those epochs without it (a timeout). Returns the server,
+/// boat-2's backlog, every batch of the mission, and the fresh server the offline check uses.
+fn a_boat_away_for_epochs_2_to_4() -> (ServerCore, Vec<MeasurementBatch>, Vec<MeasurementBatch>, ServerCore) {
     let (truth, grid, cfg) = plume_team();
     let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
     let schedule = *server.schedule();
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
     let mut brains = brains_of(&server, &cfg, grid);
-    // boat-2 is out of range for epochs 2-4: it senses along its plan's horizon and its
-    // batches wait on board; the server assimilates those epochs without it (a timeout).
     let mut all: Vec<MeasurementBatch> = vec![];
     let mut held: Vec<MeasurementBatch> = vec![];
     for e in 0..schedule.epochs() {
@@ -167,17 +167,17 @@ fn a_late_boat_is_waited_out_then_refitted_to_the_model_of_all_the_data() {
         }
     }
     assert!(!server.finished(), "not finished while boat-2's batches are out");
-    // The link returns: the backlog arrives (newest first, for spite) and re-fits the model.
-    held.reverse();
-    for b in held {
-        assert!(matches!(server.ingest(b).unwrap(), Ingested::Refitted(_)));
-    }
-    assert!(server.finished());
     assert_eq!(server.counters.forced, 3);
-    assert_eq!(server.counters.refits, 3);
-    assert_eq!(server.ack("boat-2").unwrap().seq, schedule.last_seq(VehicleKind::Boat).unwrap());
-    // The same batches fed in step order to a fresh server give the same model and snapshots.
-    let mut offline = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
+    // The backlog arrives newest first, for spite.
+    held.reverse();
+    let offline = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
+    (server, held, all, offline)
+}
+
+/// The same batches fed in step order to a fresh server give the same model and snapshots.
+fn equals_offline(server: &ServerCore, mut all: Vec<MeasurementBatch>, mut offline: ServerCore) {
+    let last = server.schedule().last_seq(VehicleKind::Boat).unwrap();
+    assert_eq!(server.ack("boat-2").unwrap().seq, last);
     all.sort_by_key(|b| (fleet::mission::schedule::Schedule::epoch_of(b.kind, b.seq), b.vehicle.clone()));
     for b in all {
         offline.ingest(b).unwrap();
@@ -187,6 +187,33 @@ fn a_late_boat_is_waited_out_then_refitted_to_the_model_of_all_the_data() {
     let (a, b) = (server.model_update().unwrap(), offline.model_update().unwrap());
     assert_eq!(a.eigenvalues, b.eigenvalues);
     assert_eq!(a.modes_re, b.modes_re);
+}
+
+#[test]
+fn a_late_boat_is_waited_out_then_refitted_to_the_model_of_all_the_data() {
+    let (mut server, held, all, offline) = a_boat_away_for_epochs_2_to_4();
+    for b in held {
+        assert!(matches!(server.ingest(b).unwrap(), Ingested::Refitted(_)));
+    }
+    assert!(server.finished());
+    assert_eq!(server.counters.refits, 3, "one re-fit per late batch");
+    equals_offline(&server, all, offline);
+}
+
+#[test]
+fn a_backlog_taken_as_a_burst_is_refitted_once_to_the_same_model() {
+    let (mut server, held, all, offline) = a_boat_away_for_epochs_2_to_4();
+    let version = server.version;
+    for b in held {
+        assert!(matches!(server.ingest_deferred(b).unwrap(), Ingested::Refitted(_)));
+    }
+    assert!(!server.finished(), "not finished before the re-fit");
+    assert_eq!((server.version, server.counters.refits), (version, 0), "nothing re-fitted yet");
+    assert!(server.settle().unwrap());
+    assert!(!server.settle().unwrap(), "a second settle has nothing to do");
+    assert!(server.finished());
+    assert_eq!(server.counters.refits, 1, "one re-fit for the whole burst");
+    equals_offline(&server, all, offline);
 }
 
 #[test]

@@ -34,6 +34,9 @@ struct Server {
     /// Reasons already logged (each refusal reason is logged once, then only counted).
     logged: BTreeSet<String>,
     started: Instant,
+    /// Late batches (vehicle, seq, epoch) taken but not yet re-fitted: a backlog arrives as a
+    /// burst, re-fitted once after it.
+    late: Vec<(String, u64, u64)>,
 }
 
 fn emit(on: bool, e: &ServerEvent) {
@@ -89,21 +92,32 @@ impl Server {
             return Ok(());
         }
         let (vehicle, seq) = (batch.vehicle.clone(), batch.seq);
-        let ingested = self.core.ingest(batch);
+        let ingested = self.core.ingest_deferred(batch);
         if matches!(ingested, Ok(Ingested::Buffered | Ingested::Assimilated(_) | Ingested::Refitted(_))) {
             self.journal.commit(&[((vehicle.as_str(), seq), &sample.payload().to_bytes())], &[])?;
         }
         match ingested {
             Ok(Ingested::Assimilated(epochs)) => self.model_changed(session, epochs, t0, false).await?,
-            Ok(Ingested::Refitted(e)) => {
-                info!(vehicle, seq, epoch = e, "late batch: model re-fitted with it");
-                let done = (0..self.core.next_epoch()).collect();
-                self.model_changed(session, done, t0, true).await?;
-                emit(self.events, &ServerEvent::Late { vehicle, epoch: e, version: self.core.version });
-            }
+            Ok(Ingested::Refitted(e)) => self.late.push((vehicle, seq, e)),
             Ok(Ingested::Duplicate) => self.ack(session, &vehicle).await?,
             Ok(Ingested::Buffered) => {}
             Err(e) => self.refuse("invalid_batch", e.to_string()),
+        }
+        Ok(())
+    }
+
+    /// Re-fit once with the late batches of the burst just taken, publish, and report each.
+    async fn settle_late(&mut self, session: &zenoh::Session, t0: Instant) -> anyhow::Result<()> {
+        if self.late.is_empty() {
+            return Ok(());
+        }
+        if self.core.settle()? {
+            let done = (0..self.core.next_epoch()).collect();
+            self.model_changed(session, done, t0, true).await?;
+        }
+        for (vehicle, seq, e) in std::mem::take(&mut self.late) {
+            info!(vehicle, seq, epoch = e, "late batch: model re-fitted with it");
+            emit(self.events, &ServerEvent::Late { vehicle, epoch: e, version: self.core.version });
         }
         Ok(())
     }
@@ -325,6 +339,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         mse: vec![],
         logged: BTreeSet::new(),
         started: Instant::now(),
+        late: vec![],
         journal,
         mission,
     };
@@ -353,6 +368,12 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
                 let t0 = Instant::now();
                 let key = sample.key_expr().as_str().to_string();
                 s.on_batch(&session, &key, &sample, t0).await?;
+                // A backlog comes as a burst: take what is queued already, then re-fit once.
+                while let Ok(Some(sample)) = batches.try_recv() {
+                    let key = sample.key_expr().as_str().to_string();
+                    s.on_batch(&session, &key, &sample, Instant::now()).await?;
+                }
+                s.settle_late(&session, t0).await?;
             }
             r = plans.recv_async() => {
                 if let Ok(q) = r { s.on_plan_query(q).await; }

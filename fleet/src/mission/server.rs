@@ -39,7 +39,8 @@ pub enum Ingested {
     /// Completed these epochs, which are now in the model.
     Assimilated(Vec<u64>),
     /// Arrived for an epoch already assimilated without it (forced by a timeout): the model
-    /// was re-fitted from that epoch on, with everything now in.
+    /// was re-fitted from that epoch on, with everything now in (by `ingest`; after
+    /// `ingest_deferred`, once `settle` has run).
     Refitted(u64),
 }
 
@@ -91,6 +92,8 @@ pub struct ServerCore {
     pub version: u64,
     /// Fused snapshots of every step assimilated so far (for metrics).
     pub snapshots: Vec<Vec<f64>>,
+    /// Late batches taken by [`Self::ingest_deferred`] and not yet re-fitted.
+    stale: bool,
 }
 
 impl ServerCore {
@@ -108,6 +111,7 @@ impl ServerCore {
             counters: Counters::default(),
             version: 0,
             snapshots: vec![],
+            stale: false,
         })
     }
 
@@ -157,7 +161,7 @@ impl ServerCore {
 
     /// Whether every step of the mission is in the model, with every batch.
     pub fn finished(&self) -> bool {
-        self.all_assimilated() && (0..self.epoch).all(|e| self.missing(e).next().is_none())
+        !self.stale && self.all_assimilated() && (0..self.epoch).all(|e| self.missing(e).next().is_none())
     }
 
     fn all_assimilated(&self) -> bool {
@@ -167,6 +171,7 @@ impl ServerCore {
     /// Assimilate the next epoch with the batches it has (a vehicle is late); its missing
     /// batches re-fit the model when they come. Epoch 0 (the first model) is never forced.
     pub fn force(&mut self) -> Result<bool, TeamError> {
+        self.settle()?;
         let e = self.epoch;
         if e == 0 || self.steps_of(e).is_empty() || self.missing(e).next().is_none() {
             return Ok(false);
@@ -231,6 +236,30 @@ impl ServerCore {
 
     /// Take one batch (already decoded and validated against the grid).
     pub fn ingest(&mut self, batch: MeasurementBatch) -> Result<Ingested, IngestError> {
+        let taken = self.ingest_deferred(batch)?;
+        self.settle()?;
+        Ok(taken)
+    }
+
+    /// Re-fit with the late batches [`Self::ingest_deferred`] took, if any (then assimilate
+    /// every epoch that is complete). Returns whether it re-fitted.
+    pub fn settle(&mut self) -> Result<bool, TeamError> {
+        if !self.stale {
+            return Ok(false);
+        }
+        self.refit()?;
+        self.stale = false;
+        while self.epoch_complete(self.epoch) {
+            self.assimilate_epoch(self.epoch)?;
+        }
+        Ok(true)
+    }
+
+    /// [`Self::ingest`] without the re-fit a late batch needs: a boat's backlog arrives as a
+    /// burst of late batches, and one [`Self::settle`] after the burst re-fits once instead of
+    /// once per batch. Until `settle`, the model and plans do not yet include the late batches
+    /// (a batch that completes the next epoch settles first).
+    pub fn ingest_deferred(&mut self, batch: MeasurementBatch) -> Result<Ingested, IngestError> {
         self.counters.batches += 1;
         let Some(index) = self.vehicles.iter().position(|v| v.id == batch.vehicle) else {
             *self.counters.rejected.entry("unknown_vehicle".into()).or_default() += 1;
@@ -258,11 +287,13 @@ impl ServerCore {
         }
         self.received.entry(e).or_default().insert(index, batch);
         if e < self.epoch {
-            self.refit()?;
-            while self.epoch_complete(self.epoch) {
-                self.assimilate_epoch(self.epoch)?;
-            }
+            self.stale = true;
             return Ok(Ingested::Refitted(e));
+        }
+        if self.stale && self.epoch_complete(self.epoch) {
+            let before = self.epoch;
+            self.settle()?;
+            return Ok(Ingested::Assimilated((before..self.epoch).collect()));
         }
         let mut done = vec![];
         while self.epoch_complete(self.epoch) {
