@@ -383,3 +383,26 @@ fn general_handles_rank_deficient_updates() {
     let scale = eigenvalues(&b).iter().map(|z| z.norm()).fold(0.0, f64::max);
     assert!(d < 1e-8 * scale, "general vs batch: {d:e}");
 }
+
+#[test]
+fn long_term_starts_from_an_ill_conditioned_full_rank_x() {
+    // X = U diag(s) V^T with s from 1 down to 1e-12: full numerical rank (the tolerance is
+    // 40 eps = 9e-15), but beyond the QR start's margin (kappa_F >= cond = 1e12, and 1e12 x 40
+    // x eps > 1e-3), so the SVD start takes it. Y = A X exactly.
+    let (n, m) = (20, 40);
+    let u = randn(n, n, 3).qr().compute_thin_Q();
+    let v = randn(m, n, 4).qr().compute_thin_Q();
+    let s = Mat::from_fn(n, n, |i, j| if i == j { 10f64.powf(-12.0 * i as f64 / (n - 1) as f64) } else { 0.0 });
+    let x = &u * &s * v.transpose();
+    let a_true = randn(n, n, 5) * faer::Scale(0.1);
+    let y = &a_true * &x;
+    let lt = LongTermDmd::init(x.as_ref(), y.as_ref(), 1.0).expect("full row rank");
+    let err = (lt.operator() - &a_true).norm_l2() / a_true.norm_l2();
+    assert!(err < 1e-2, "relative error {err:e} (cond 1e12)");
+    // Well conditioned: the QR start, exact to rounding.
+    let x = randn(n, m, 6);
+    let y = &a_true * &x;
+    let lt = LongTermDmd::init(x.as_ref(), y.as_ref(), 1.0).unwrap();
+    let err = (lt.operator() - &a_true).norm_l2() / a_true.norm_l2();
+    assert!(err < 1e-13, "relative error {err:e}");
+}

@@ -37,6 +37,11 @@ impl LongTermDmd {
         let w: Vec<f64> = (0..m).map(|j| gamma.sqrt().powi((m - 1 - j) as i32)).collect();
         let xw = Mat::from_fn(n, m, |i, j| x[(i, j)] * w[j]);
         let yw = Mat::from_fn(n, m, |i, j| y[(i, j)] * w[j]);
+        if m >= n {
+            if let Some((a, s)) = by_qr(xw.as_ref(), yw.as_ref()) {
+                return Ok(Self { a, s: symmetrised(s), gamma, pairs: m });
+            }
+        }
         let svd = thin_svd(xw.as_ref())?;
         let rank = numerical_rank(&svd.s, n, m);
         if m < n || rank < n {
@@ -57,6 +62,26 @@ impl LongTermDmd {
     pub fn gamma(&self) -> f64 {
         self.gamma
     }
+}
+
+/// `(A, S)` from a Householder QR `X^T = Q R` (backward stable, no squared condition number):
+/// `X X^T = R^T R`, so `S = R^-1 R^-T` and `A = Y X^T S = (Y Q) R^-T`, about a third of the
+/// work of the SVD. Only when `R` is far from singular: `kappa_F(R) = |R|_F |R^-1|_F` bounds
+/// `cond(X)` from above, and must stay 1000x inside the numerical-rank tolerance; otherwise
+/// `None`, and the SVD decides the rank.
+fn by_qr(x: MatRef<'_, f64>, y: MatRef<'_, f64>) -> Option<(Mat<f64>, Mat<f64>)> {
+    let (n, m) = (x.nrows(), x.ncols());
+    let qr = x.transpose().qr();
+    let r = qr.thin_R();
+    let mut rinv = Mat::<f64>::zeros(n, n);
+    faer::linalg::triangular_inverse::invert_upper_triangular(rinv.as_mut(), r, faer::get_global_parallelism());
+    let kappa = r.norm_l2() * rinv.norm_l2();
+    if !kappa.is_finite() || kappa * (n.max(m) as f64) * f64::EPSILON > 1e-3 {
+        return None;
+    }
+    let s = &rinv * rinv.transpose();
+    let a = (y * qr.compute_thin_Q()) * rinv.transpose();
+    Some((a, s))
 }
 
 fn symmetrised(s: Mat<f64>) -> Mat<f64> {
