@@ -73,7 +73,8 @@ impl Server {
     }
 
     /// A batch arrived on `key` at `t0`.
-    async fn on_batch(&mut self, session: &zenoh::Session, key: &str, sample: &zenoh::sample::Sample, t0: Instant) -> anyhow::Result<()> {
+    async fn on_batch(&mut self, session: &zenoh::Session, sample: &zenoh::sample::Sample, t0: Instant) -> anyhow::Result<()> {
+        let key = sample.key_expr().as_str();
         let body = match fleet_net::decode(sample, &self.ctx) {
             Ok(b) => b,
             Err(e) => {
@@ -366,12 +367,10 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             r = batches.recv_async() => {
                 let sample = r.map_err(|e| anyhow::anyhow!("batch subscriber closed: {e}"))?;
                 let t0 = Instant::now();
-                let key = sample.key_expr().as_str().to_string();
-                s.on_batch(&session, &key, &sample, t0).await?;
+                s.on_batch(&session, &sample, t0).await?;
                 // A backlog comes as a burst: take what is queued already, then re-fit once.
                 while let Ok(Some(sample)) = batches.try_recv() {
-                    let key = sample.key_expr().as_str().to_string();
-                    s.on_batch(&session, &key, &sample, Instant::now()).await?;
+                    s.on_batch(&session, &sample, Instant::now()).await?;
                 }
                 s.settle_late(&session, t0).await?;
             }

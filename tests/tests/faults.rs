@@ -104,6 +104,18 @@ fn kill_9_of_the_server_and_of_a_boat_loses_nothing_and_counts_nothing_twice() {
     println!("kill -9: restored {} batches, {} duplicates re-sent and dropped", summary.counters.restored, summary.counters.duplicates);
 }
 
+/// Start the server (until the mission is done) and every vehicle, those in `away` (id,
+/// namespace, endpoint) on their hosts. Returns the processes, the server, and its out and
+/// state directories under `dir`.
+fn start_mission(dir: &Path, mission: &Path, away: &[(&str, &str, &str)]) -> (Procs, Server, std::path::PathBuf, std::path::PathBuf) {
+    let (out, state) = (dir.join("out"), dir.join("state"));
+    let (m, st) = (mission.to_str().unwrap(), state.to_str().unwrap());
+    let mut procs = Procs::default();
+    let server = start_server(&mut procs, &["--mission", m, "--out", out.to_str().unwrap(), "--state-dir", st, "--exit-when-done"], &dir.join("server.log"));
+    start_vehicles(&mut procs, mission, st, dir, away);
+    (procs, server, out, state)
+}
+
 /// One boat's seeded outages, in server epochs: down once epoch `start` is in the model, up
 /// once epoch `end` is. At most 10 epochs each, at most half of the mission's epochs in all;
 /// `longest_first`: the first outage is the longest allowed.
@@ -145,12 +157,8 @@ fn boats_whose_links_drop_on_random_schedules_lose_nothing() {
     edit(&mission, "resend_ms", "epoch_timeout_ms = 400\nhorizon = 16\nresend_ms");
     let epochs = MissionConfig::load(Some(&mission)).unwrap().schedule(60).epochs();
     let plans: Vec<Vec<(u64, u64)>> = (0..3).map(|i| outage_schedule(epochs, 11 + i, i == 2)).collect();
-    let (m, out, state) = (mission.to_str().unwrap(), dir.join("out"), dir.join("state"));
-    let st = state.to_str().unwrap();
-    let mut procs = Procs::default();
-    let server = start_server(&mut procs, &["--mission", m, "--out", out.to_str().unwrap(), "--state-dir", st, "--exit-when-done"], &dir.join("server.log"));
     let away: Vec<(&str, &str, &str)> = boats.iter().zip(&hosts).zip(&remote).map(|((b, h), e)| (b.as_str(), h.ns.as_str(), e.as_str())).collect();
-    start_vehicles(&mut procs, &mission, st, &dir, &away);
+    let (mut procs, server, out, state) = start_mission(&dir, &mission, &away);
 
     // Drive the links from the server's epochs; note when each came back and which of that
     // boat's epochs the model was then missing.
@@ -252,12 +260,8 @@ fn thirty_percent_loss_with_reordering_on_every_link() {
         .collect();
     let remote: Vec<String> = hosts.iter().map(|h| format!("tcp/{}:{port}", h.here)).collect();
     let mission = tiny_mission(&dir, &[vec![local.clone()], remote.clone()].concat(), &[local]);
-    let (m, out, state) = (mission.to_str().unwrap(), dir.join("out"), dir.join("state"));
-    let st = state.to_str().unwrap();
-    let mut procs = Procs::default();
-    let server = start_server(&mut procs, &["--mission", m, "--out", out.to_str().unwrap(), "--state-dir", st, "--exit-when-done"], &dir.join("server.log"));
     let away: Vec<(&str, &str, &str)> = ids.iter().zip(&hosts).zip(&remote).map(|((id, h), e)| (id.as_str(), h.ns.as_str(), e.as_str())).collect();
-    start_vehicles(&mut procs, &mission, st, &dir, &away);
+    let (mut procs, server, out, state) = start_mission(&dir, &mission, &away);
     let summary = server.finished(600);
     procs.wait_all(120);
     check_exactly_once_and_same_model(&mission, &state, &out);

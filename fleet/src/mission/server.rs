@@ -178,10 +178,16 @@ impl ServerCore {
         }
         self.assimilate_epoch(e)?;
         self.counters.forced += 1;
+        self.assimilate_complete()?;
+        Ok(true)
+    }
+
+    /// Assimilate every epoch from the next on that has all its batches.
+    fn assimilate_complete(&mut self) -> Result<(), TeamError> {
         while self.epoch_complete(self.epoch) {
             self.assimilate_epoch(self.epoch)?;
         }
-        Ok(true)
+        Ok(())
     }
 
     /// Rebuild the model from the first epoch with every batch now in (the general method's
@@ -249,9 +255,7 @@ impl ServerCore {
         }
         self.refit()?;
         self.stale = false;
-        while self.epoch_complete(self.epoch) {
-            self.assimilate_epoch(self.epoch)?;
-        }
+        self.assimilate_complete()?;
         Ok(true)
     }
 
@@ -290,18 +294,14 @@ impl ServerCore {
             self.stale = true;
             return Ok(Ingested::Refitted(e));
         }
-        if self.stale && self.epoch_complete(self.epoch) {
-            let before = self.epoch;
+        let before = self.epoch;
+        // An epoch completed on top of a model still missing late batches: re-fit first.
+        if self.stale && self.epoch_complete(before) {
             self.settle()?;
-            return Ok(Ingested::Assimilated((before..self.epoch).collect()));
+        } else {
+            self.assimilate_complete()?;
         }
-        let mut done = vec![];
-        while self.epoch_complete(self.epoch) {
-            let e = self.epoch;
-            self.assimilate_epoch(e)?;
-            done.push(e);
-        }
-        Ok(if done.is_empty() { Ingested::Buffered } else { Ingested::Assimilated(done) })
+        Ok(if self.epoch == before { Ingested::Buffered } else { Ingested::Assimilated((before..self.epoch).collect()) })
     }
 
     /// Aerials take part in every epoch; boats in every full epoch after the first (a last,
