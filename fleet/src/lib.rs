@@ -5,9 +5,10 @@
 //! general online and long-term online DMD), [`process`] (field sources), [`experiment`]
 //! (the paper's studies), [`sensing`] (gappy reconstruction, QR placement, coverage,
 //! assignment), [`fusion`] (aerial frames and their combination with the boats' estimate),
-//! [`npy`] (numpy-compatible files).
+//! [`npy`] (numpy-compatible files), [`exit`] (every binary's exit codes and one-line errors).
 
 pub mod dmd;
+pub mod exit;
 pub mod experiment;
 pub mod fusion;
 pub mod grid;

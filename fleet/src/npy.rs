@@ -1,6 +1,6 @@
 //! `.npy` input and output of float64 arrays, so numpy users can load what hetfleet writes and
-//! hand it their own data. Only little-endian float64 in C or Fortran order is accepted; anything
-//! else is a clear error, never a panic.
+//! hand it their own data. Little-endian float64 or float32 (widened exactly to float64) in C or
+//! Fortran order is accepted; anything else is a clear error, never a panic.
 
 use npyz::{Order, WriterBuilder};
 use std::fs::File;
@@ -12,7 +12,7 @@ use thiserror::Error;
 pub enum NpyError {
     #[error("{path}: {source}")]
     Io { path: String, source: std::io::Error },
-    #[error("{path}: expected float64 data, found dtype {dtype}")]
+    #[error("{path}: expected float64 or float32 data, found dtype {dtype}")]
     DType { path: String, dtype: String },
     #[error("{path}: expected {expected}, found shape {shape:?}")]
     Shape { path: String, expected: String, shape: Vec<u64> },
@@ -42,6 +42,15 @@ impl Array {
 /// Most values one array may hold (8 GiB of float64): a header may not make us allocate more.
 pub const MAX_VALUES: usize = 1 << 30;
 
+/// The shape in a `.npy` file's header (the data is not read).
+pub fn read_shape(path: impl AsRef<Path>) -> Result<Vec<usize>, NpyError> {
+    let p = path.as_ref().display().to_string();
+    let io = |source| NpyError::Io { path: p.clone(), source };
+    let f = std::io::BufReader::new(File::open(path.as_ref()).map_err(io)?);
+    let npy = npyz::NpyFile::new(f).map_err(io)?;
+    Ok(npy.shape().iter().map(|&s| s as usize).collect())
+}
+
 pub fn read(path: impl AsRef<Path>) -> Result<Array, NpyError> {
     let p = path.as_ref().display().to_string();
     let bytes = std::fs::read(path.as_ref()).map_err(|source| NpyError::Io { path: p.clone(), source })?;
@@ -54,19 +63,21 @@ pub fn from_bytes(bytes: &[u8], name: &str) -> Result<Array, NpyError> {
     let io = |source| NpyError::Io { path: name.into(), source };
     let npy = npyz::NpyFile::new(bytes).map_err(io)?;
     let dtype = npy.dtype();
-    let ok = matches!(&dtype, npyz::DType::Plain(ts) if ts.to_string() == "<f8");
-    if !ok {
-        return Err(NpyError::DType { path: name.into(), dtype: format!("{dtype:?}") });
-    }
+    let width = match &dtype {
+        npyz::DType::Plain(ts) if ts.to_string() == "<f8" => 8,
+        npyz::DType::Plain(ts) if ts.to_string() == "<f4" => 4,
+        npyz::DType::Plain(ts) => return Err(NpyError::DType { path: name.into(), dtype: ts.to_string() }),
+        _ => return Err(NpyError::DType { path: name.into(), dtype: "a structured or array dtype".into() }),
+    };
     let header = |why: String| NpyError::Header { path: name.into(), why };
     let total = npy.shape().iter().try_fold(1usize, |acc, &s| acc.checked_mul(usize::try_from(s).ok()?));
     let total = match total {
-        Some(t) if t <= MAX_VALUES && t.saturating_mul(8) <= bytes.len() => t,
+        Some(t) if t <= MAX_VALUES && t.saturating_mul(width) <= bytes.len() => t,
         _ => return Err(header(format!("the header's shape {:?} does not fit the file's {} bytes", npy.shape(), bytes.len()))),
     };
     let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
     let order = npy.order();
-    let raw: Vec<f64> = npy.into_vec().map_err(io)?;
+    let raw: Vec<f64> = if width == 8 { npy.into_vec().map_err(io)? } else { npy.into_vec::<f32>().map_err(io)?.into_iter().map(f64::from).collect() };
     if raw.len() != total {
         return Err(header(format!("{} values for shape {shape:?}", raw.len())));
     }

@@ -248,3 +248,114 @@ fn vehicles_on_hold_are_left_out_and_their_empty_batches_accepted() {
         assert!(server.plan("av-2", e, 1).unwrap().targets.iter().all(|t| t.cells.is_empty()));
     }
 }
+
+/// What the server node journals: every batch it accepted, and the epoch records the core
+/// hands over after each change (the newest under each key).
+#[derive(Default, Clone)]
+struct Journal {
+    batches: Vec<MeasurementBatch>,
+    records: std::collections::BTreeMap<String, Vec<u8>>,
+}
+
+impl Journal {
+    fn ingest(&mut self, server: &mut ServerCore, b: MeasurementBatch) {
+        if matches!(server.ingest(b.clone()).unwrap(), Ingested::Buffered | Ingested::Assimilated(_) | Ingested::Refitted(_)) {
+            self.batches.push(b);
+        }
+        self.take(server);
+    }
+
+    fn take(&mut self, server: &mut ServerCore) {
+        self.records.extend(server.take_journal_records());
+    }
+
+    /// A server restarted from this journal (the batches in the journal's key order).
+    fn restart(&self, cfg: &TeamConfig, grid: Grid, frames: usize) -> ServerCore {
+        let mut fresh = ServerCore::new(cfg, grid, frames).unwrap();
+        let mut batches = self.batches.clone();
+        batches.sort_by_key(|b| (b.vehicle.clone(), b.seq));
+        let records: Vec<(String, Vec<u8>)> = self.records.clone().into_iter().collect();
+        assert_eq!(fresh.restore(batches, &records).unwrap(), self.batches.len() as u64);
+        fresh
+    }
+}
+
+/// av-2 and boat-2 held from epoch 1, boat-2 back from epoch 3; the server killed (and
+/// restarted from its journal) after each epoch in `kills`.
+fn a_mission_with_holds(kills: &[u64]) -> ServerCore {
+    let (truth, grid, cfg) = plume_team();
+    let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
+    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+    let mut brains = brains_of(&server, &cfg, grid);
+    let mut journal = Journal::default();
+    let mut e = 0u64;
+    while !server.finished() {
+        match e {
+            1 => assert!(server.set_available("av-2", false) && server.set_available("boat-2", false)),
+            3 => assert!(server.set_available("boat-2", true)),
+            _ => {}
+        }
+        for brain in &mut brains {
+            brain.set_plan(server.plan(&brain.id, e, 1).unwrap());
+            if let Some(b) = brain.sense_epoch(e, x).unwrap() {
+                journal.ingest(&mut server, b);
+            }
+        }
+        if kills.contains(&e) {
+            let fresh = journal.restart(&cfg, grid, truth.frames());
+            assert_eq!((fresh.next_epoch(), fresh.held(), fresh.version), (server.next_epoch(), server.held(), server.version), "restarted after epoch {e}");
+            for v in server.vehicles() {
+                assert_eq!(fresh.plan(&v.id, e + 1, 2), server.plan(&v.id, e + 1, 2), "{}'s plan after the restart", v.id);
+            }
+            server = fresh;
+        }
+        e += 1;
+    }
+    assert_eq!(server.counters.rejected.values().sum::<u64>(), 0, "held vehicles' empty batches are accepted, before and after a restart");
+    server
+}
+
+#[test]
+fn a_server_that_held_vehicles_restarts_from_its_journal_to_the_same_model() {
+    let uninterrupted = a_mission_with_holds(&[]);
+    let restarted = a_mission_with_holds(&[1, 2, 4]);
+    assert_eq!(restarted.snapshots, uninterrupted.snapshots);
+    let (a, b) = (restarted.model_update().unwrap(), uninterrupted.model_update().unwrap());
+    assert_eq!((a.eigenvalues, a.modes_re, a.amplitudes), (b.eigenvalues, b.modes_re, b.amplitudes));
+    for e in 2..uninterrupted.next_epoch() {
+        assert_eq!(restarted.held_at(e), uninterrupted.held_at(e), "epoch {e}'s holds");
+    }
+}
+
+#[test]
+fn a_server_restarted_after_forcing_epochs_reaches_the_same_epoch_and_takes_the_backlog() {
+    let (truth, grid, cfg) = plume_team();
+    let (mut server, held, all, offline) = a_boat_away_for_epochs_2_to_4();
+    // The journal of that run: every batch but boat-2's backlog, and the forced epochs.
+    let mut journal = Journal::default();
+    journal.batches = all.iter().filter(|b| !held.contains(b)).cloned().collect();
+    journal.take(&mut server);
+    let mut fresh = journal.restart(&cfg, grid, truth.frames());
+    assert_eq!(fresh.next_epoch(), server.next_epoch(), "the forced epochs are assimilated again without boat-2");
+    assert_eq!(fresh.snapshots, server.snapshots);
+    assert_eq!(fresh.counters.forced, 3);
+    for b in held {
+        assert!(matches!(fresh.ingest(b).unwrap(), Ingested::Refitted(_)));
+    }
+    assert!(fresh.finished());
+    equals_offline(&fresh, all, offline);
+}
+
+#[test]
+fn an_empty_batch_is_a_vehicle_that_sensed_nothing_except_an_aerial_the_first_model_needs() {
+    let (_, grid, cfg) = plume_team();
+    let mut server = ServerCore::new(&cfg, grid, 42).unwrap();
+    let empty = |id: &str, kind, seq| MeasurementBatch { vehicle: id.into(), kind, seq, noise: Noise { sigma0: 0.05, growth_per_m: 0.0 }, samples: vec![] };
+    // Epoch 0 builds the first model from the whole lattice: an aerial given cells must send them.
+    assert!(server.ingest(empty("av-1", VehicleKind::Aerial, 0)).is_err());
+    assert_eq!(server.counters.rejected["invalid_batch"], 1, "counted once");
+    // Later, an empty batch is accepted whatever the server's plan said (a vehicle following
+    // an older plan's horizon, a boat that lost its autopilot): it waits for its epoch.
+    assert_eq!(server.ingest(empty("boat-1", VehicleKind::Boat, 2)).unwrap(), Ingested::Buffered);
+    assert_eq!(server.ingest(empty("av-2", VehicleKind::Aerial, 3)).unwrap(), Ingested::Buffered);
+}

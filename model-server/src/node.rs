@@ -6,15 +6,16 @@ use crate::Args;
 use anyhow::Context as _;
 use fleet::mission::config::MissionConfig;
 use fleet::mission::report::{Percentiles, ServerEvent, ServerSummary};
-use fleet::mission::server::{Ingested, ServerCore};
+use fleet::exit::bad_input;
+use fleet::mission::server::{EpochRecord, IngestError, Ingested, ServerCore};
 use fleet::process::FieldSeries;
 use fleet::protocol::{self, keys::Keys, Body, Context, ServerStatus};
-use fleet_net::store::Store;
+use fleet_net::store::{Store, StoreError};
 use fleet_net::{zenoh, Role};
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::Write as _;
 use std::time::{Duration, Instant};
-use tracing::{info, warn};
+use tracing::{error, info, warn};
 use zenoh::sample::SampleKind;
 
 struct Server {
@@ -37,6 +38,8 @@ struct Server {
     /// Late batches (vehicle, seq, epoch) taken but not yet re-fitted: a backlog arrives as a
     /// burst, re-fitted once after it.
     late: Vec<(String, u64, u64)>,
+    /// Vehicles already reported as having batches the journal lost.
+    lost_reported: BTreeSet<String>,
 }
 
 fn emit(on: bool, e: &ServerEvent) {
@@ -48,11 +51,29 @@ fn emit(on: bool, e: &ServerEvent) {
 }
 
 impl Server {
+    /// Count a refusal the node made itself, and log it (once per reason).
     fn refuse(&mut self, reason: &str, detail: String) {
         *self.core.counters.rejected.entry(reason.into()).or_default() += 1;
+        self.log_refusal(reason, detail);
+    }
+
+    /// Log a refusal (already counted, by the node or the core): the first of each reason.
+    fn log_refusal(&mut self, reason: &str, detail: String) {
         if self.logged.insert(reason.to_string()) {
             warn!(reason, "refused a message: {detail} (further refusals of this kind are only counted)");
         }
+    }
+
+    /// Commit the core's changed epoch records (and a batch, if any) in one transaction: before
+    /// any ack or plan that depends on them leaves the server.
+    fn journal(&mut self, batch: Option<((&str, u64), &[u8])>) -> anyhow::Result<()> {
+        let records = self.core.take_journal_records();
+        if batch.is_none() && records.is_empty() {
+            return Ok(());
+        }
+        let meta: Vec<(&str, &[u8])> = records.iter().map(|(k, v)| (k.as_str(), v.as_slice())).collect();
+        self.journal.commit(batch.as_slice(), &meta)?;
+        Ok(())
     }
 
     fn status(&self) -> ServerStatus {
@@ -93,16 +114,31 @@ impl Server {
             return Ok(());
         }
         let (vehicle, seq) = (batch.vehicle.clone(), batch.seq);
-        let ingested = self.core.ingest_deferred(batch);
-        if matches!(ingested, Ok(Ingested::Buffered | Ingested::Assimilated(_) | Ingested::Refitted(_))) {
-            self.journal.commit(&[((vehicle.as_str(), seq), &sample.payload().to_bytes())], &[])?;
+        let ingested = match self.core.ingest_deferred(batch) {
+            Ok(i) => i,
+            // The vehicle's fault: counted by the core, logged here; its epoch cannot complete.
+            Err(IngestError::Rejected { why, .. }) => {
+                self.log_refusal("invalid_batch", format!("{key}: {why}"));
+                error!(vehicle, seq, "batch refused: {why}; the vehicle re-sends the same batch, so its epoch cannot complete");
+                emit(self.events, &ServerEvent::Refused { vehicle, seq, reason: "invalid_batch".into(), detail: why });
+                return Ok(());
+            }
+            Err(e @ IngestError::Protocol(_)) => {
+                self.log_refusal("unknown_vehicle", format!("{key}: {e}"));
+                return Ok(());
+            }
+            // The server's own failure (the model's numerics): as everywhere else, it ends the
+            // server (exit 1); the journal is intact.
+            Err(IngestError::Model(e)) => return Err(anyhow::Error::new(e).context(format!("assimilating batch {seq} of {vehicle}"))),
+        };
+        if matches!(ingested, Ingested::Buffered | Ingested::Assimilated(_) | Ingested::Refitted(_)) {
+            self.journal(Some(((vehicle.as_str(), seq), &sample.payload().to_bytes())))?;
         }
         match ingested {
-            Ok(Ingested::Assimilated(epochs)) => self.model_changed(session, epochs, t0, false).await?,
-            Ok(Ingested::Refitted(e)) => self.late.push((vehicle, seq, e)),
-            Ok(Ingested::Duplicate) => self.ack(session, &vehicle).await?,
-            Ok(Ingested::Buffered) => {}
-            Err(e) => self.refuse("invalid_batch", e.to_string()),
+            Ingested::Assimilated(epochs) => self.model_changed(session, epochs, t0, false).await?,
+            Ingested::Refitted(e) => self.late.push((vehicle, seq, e)),
+            Ingested::Duplicate => self.ack(session, &vehicle).await?,
+            Ingested::Buffered => {}
         }
         Ok(())
     }
@@ -113,6 +149,7 @@ impl Server {
             return Ok(());
         }
         if self.core.settle()? {
+            self.journal(None)?;
             let done = (0..self.core.next_epoch()).collect();
             self.model_changed(session, done, t0, true).await?;
         }
@@ -161,6 +198,7 @@ impl Server {
         let before = self.core.next_epoch();
         let t0 = Instant::now();
         if self.core.force()? {
+            self.journal(None)?;
             warn!(epoch = before, missing = ?self.core.waiting_for(), "epoch assimilated without late vehicles; their batches will re-fit it");
             let done = (before..self.core.next_epoch()).collect();
             self.model_changed(session, done, t0, false).await?;
@@ -258,6 +296,14 @@ impl Server {
         if self.keys.vehicle_of(key).as_deref() != Some(t.vehicle.as_str()) {
             return self.refuse("key_mismatch", format!("{key} carries telemetry of {}", t.vehicle));
         }
+        if let Some(acked) = t.acked {
+            let lacking = self.core.lacks_through(&t.vehicle, acked);
+            if !lacking.is_empty() && self.lost_reported.insert(t.vehicle.clone()) {
+                error!(vehicle = t.vehicle, acked, lost = ?lacking, journal = %self.journal.path().display(), "the vehicle says these batches were acknowledged, but the journal does not hold them: the journal was deleted, replaced or rolled back, and the epochs that need them cannot complete");
+                self.core.counters.lost += lacking.len() as u64;
+                emit(self.events, &ServerEvent::Lost { vehicle: t.vehicle.clone(), seqs: lacking });
+            }
+        }
         let available = t.available();
         if self.core.set_available(&t.vehicle, available) {
             let mode = t.autopilot.as_ref().map_or_else(String::new, |a| format!("{} ({:?})", a.mode, a.link));
@@ -290,21 +336,56 @@ fn places_at(core: &ServerCore, e: u64) -> BTreeMap<String, [f64; 2]> {
     core.vehicles().iter().filter_map(|v| core.plan(&v.id, e, 1).and_then(|p| p.targets.into_iter().find(|t| !t.cells.is_empty())).map(|t| (v.id.clone(), t.position))).collect()
 }
 
-/// Replay the journal into a fresh core (a restart after a crash); returns how many batches.
-fn replay(journal: &Store, core: &mut ServerCore, ctx: &Context) -> anyhow::Result<u64> {
-    let mut n = 0;
-    for ((vehicle, seq), bytes) in journal.messages()? {
-        match protocol::decode(&bytes, ctx) {
-            Ok(Body::Batch(b)) => {
-                core.ingest(b).with_context(|| format!("replaying batch {seq} of {vehicle}"))?;
-                n += 1;
+/// What to do about a state file the server cannot use, said after the error.
+const JOURNAL_RECOVERY: &str = "to go on, move the file aside (keep it for inspection) and start the server again: it starts a new journal, and the vehicles re-send every batch still in their outboxes (batches they had already had acknowledged are lost with the old journal, and the server says which)";
+
+/// The journal at `path`, checked whole, and a core restored from it (a restart after a
+/// crash); returns the journal and how many batches it held. A damaged or foreign journal is
+/// refused (bad input) and left as it is.
+fn open_journal(path: &std::path::Path, mission: &str, core: &mut ServerCore, ctx: &Context) -> anyhow::Result<(Store, u64)> {
+    let existed = path.exists();
+    let journal = Store::open(path).map_err(|e| match e {
+        e @ (StoreError::Damaged { .. } | StoreError::Empty { .. }) => bad_input(anyhow::anyhow!("the journal {e}; {JOURNAL_RECOVERY}")),
+        e @ StoreError::InUse { .. } => bad_input(anyhow::anyhow!("the journal {e}: is another model server running with this --state-dir?")),
+        e => anyhow::Error::new(e).context("opening the journal"),
+    })?;
+    let damaged = |what: String| bad_input(anyhow::anyhow!("the journal {} is damaged: {what} (the file was left as it is); {JOURNAL_RECOVERY}", path.display()));
+    let fingerprint = core.fingerprint();
+    match journal.meta("fingerprint").map_err(|e| damaged(e.to_string()))? {
+        Some(f) if f != fingerprint.as_bytes() => {
+            return Err(bad_input(anyhow::anyhow!(
+                "the journal {} was written for another configuration of mission {mission:?} (team, grid or length differ): give this configuration its own --state-dir, or move the journal aside",
+                path.display()
+            )))
+        }
+        Some(_) => {}
+        None => {
+            let held = journal.size().1;
+            if held > 0 {
+                return Err(damaged(format!("it holds {held} batches but no mission fingerprint")));
             }
-            Ok(_) => anyhow::bail!("the journal holds a message that is not a batch ({vehicle}, {seq})"),
-            Err(e) => anyhow::bail!("the journal's batch {seq} of {vehicle} does not decode: {e}"),
         }
     }
-    core.counters.restored = n;
-    Ok(n)
+    let mut batches = vec![];
+    for ((vehicle, seq), bytes) in journal.messages().map_err(|e| damaged(e.to_string()))? {
+        match protocol::decode(&bytes, ctx) {
+            Ok(Body::Batch(b)) if b.vehicle == vehicle && b.seq == seq => batches.push(b),
+            Ok(_) => return Err(damaged(format!("record ({vehicle}, {seq}) is not that vehicle's batch {seq}"))),
+            Err(e) => return Err(damaged(format!("batch {seq} of {vehicle} does not decode: {e}"))),
+        }
+    }
+    let records = journal.meta_with_prefix(EpochRecord::PREFIX).map_err(|e| damaged(e.to_string()))?;
+    let n = core.restore(batches, &records).map_err(|e| damaged(e.to_string()))?;
+    let mut journal = journal;
+    if !existed || n == 0 {
+        journal.commit(&[], &[("fingerprint", fingerprint.as_bytes())])?;
+    }
+    match (existed, n) {
+        (false, _) => info!(journal = %path.display(), "journal: none yet, starting a new one"),
+        (true, 0) => info!(journal = %path.display(), "journal: empty, starting the mission"),
+        (true, n) => info!(journal = %path.display(), batches = n, next_epoch = core.next_epoch(), "journal: resuming"),
+    }
+    Ok((journal, n))
 }
 
 pub async fn run(args: Args) -> anyhow::Result<()> {
@@ -314,11 +395,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let mut core = ServerCore::new(&mission.team, grid, frames)?;
     let mut ctx = Context::new(grid);
     ctx.vehicles = core.vehicles().iter().map(|v| v.id.clone()).collect();
-    let journal = Store::open(&args.state_dir.join(format!("{}.redb", mission.mission)))?;
-    let restored = replay(&journal, &mut core, &ctx)?;
-    if restored > 0 {
-        info!(restored, next_epoch = core.next_epoch(), "resumed from the journal");
-    }
+    let (journal, restored) = open_journal(&args.state_dir.join(format!("{}.redb", mission.mission)), &mission.mission, &mut core, &ctx)?;
     let session = fleet_net::open(args.node.zenoh_config(Role::Server, &mission.network)?).await?;
     let batches = session.declare_subscriber(keys.all_measurements()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let plans = session.declare_queryable(keys.all_plans()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
@@ -341,6 +418,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         logged: BTreeSet::new(),
         started: Instant::now(),
         late: vec![],
+        lost_reported: BTreeSet::new(),
         journal,
         mission,
     };
@@ -356,6 +434,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     info!(mission = s.mission.mission, epochs, vehicles = s.core.vehicles().len(), "model server up");
     emit(s.events, &ServerEvent::Ready { mission: s.mission.mission.clone(), epochs, vehicles: s.core.vehicles().iter().map(|v| v.id.clone()).collect(), places: places_at(&s.core, s.core.next_epoch()) });
 
+    let mut stop = fleet_net::StopSignals::new()?;
     let mut tick = tokio::time::interval(Duration::from_secs(1));
     let mut check = tokio::time::interval(Duration::from_millis(50));
     let epoch_timeout = (s.mission.pace.epoch_timeout_ms > 0).then(|| Duration::from_millis(s.mission.pace.epoch_timeout_ms));
@@ -392,8 +471,8 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             _ = tick.tick() => {
                 fleet_net::put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
             }
-            _ = tokio::signal::ctrl_c() => {
-                info!("interrupted");
+            sig = stop.recv() => {
+                info!(signal = sig, "stopping: the journal holds every accepted batch, a restart resumes");
                 break;
             }
         }
@@ -405,6 +484,8 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             }
             info!(epochs = summary.epochs, batches = summary.counters.batches, p99_ms = summary.latency_ms.p99, "mission finished");
             emit(s.events, &ServerEvent::Finished { summary: Box::new(summary) });
+            // Observers see the end at once, not at the next tick (which may never come).
+            fleet_net::put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
         }
         if let Some(t) = done_at {
             if args.exit_when_done && (s.alive.is_empty() || t.elapsed() > linger) {
@@ -412,6 +493,8 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             }
         }
     }
+    // The last word on the status key, whatever ended the loop.
+    fleet_net::put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
     session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(())
 }

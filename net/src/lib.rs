@@ -46,7 +46,7 @@ pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -
         Role::Vehicle => net.vehicle_config.clone(),
     });
     let mut cfg = match &file {
-        Some(p) => zenoh::Config::from_file(p).map_err(|e| anyhow::anyhow!("{e}")).with_context(|| format!("reading the Zenoh config {}", p.display()))?,
+        Some(p) => zenoh::Config::from_file(p).map_err(|e| fleet::exit::bad_input(anyhow::anyhow!("the Zenoh config {}: {e}", p.display())))?,
         None => zenoh::Config::default(),
     };
     let set = |cfg: &mut zenoh::Config, key: &str, value: &str| cfg.insert_json5(key, value).map_err(|e| anyhow::anyhow!("Zenoh config {key} = {value}: {e}"));
@@ -117,7 +117,9 @@ pub fn decode(sample: &Sample, ctx: &Context) -> Result<Body, ProtocolError> {
 pub fn init_node() {
     fleet::configure_linalg_threads();
     let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
-    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
+    // Colour only on a terminal: a log file gets plain text.
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_ansi(ansi).with_writer(std::io::stderr).try_init();
 }
 
 /// Command-line options every node takes.
@@ -145,7 +147,11 @@ impl NodeArgs {
     pub fn load(&self) -> anyhow::Result<(fleet::mission::config::MissionConfig, fleet::process::FieldSeries)> {
         let mission = fleet::mission::config::MissionConfig::load(self.mission.as_deref())?;
         let truth = match &self.truth {
-            Some(p) => fleet::process::dataset::load(p, 1.0).with_context(|| format!("loading the truth {}", p.display()))?,
+            Some(p) => {
+                let t = fleet::process::dataset::load(p, 1.0).map_err(fleet::exit::bad_input).with_context(|| format!("--truth {}", p.display()))?;
+                mission.check_truth(&t, p)?;
+                t
+            }
             None => mission.truth(|_| {})?,
         };
         Ok((mission, truth))
@@ -189,12 +195,42 @@ mod tests {
     }
 }
 
+/// The stop signals a node obeys (SIGTERM, SIGINT, SIGHUP), registered once so none is
+/// missed between two polls of an event loop.
+pub struct StopSignals {
+    term: tokio::signal::unix::Signal,
+    int: tokio::signal::unix::Signal,
+    hup: tokio::signal::unix::Signal,
+}
+
+impl StopSignals {
+    pub fn new() -> anyhow::Result<Self> {
+        use tokio::signal::unix::{signal, SignalKind};
+        Ok(Self { term: signal(SignalKind::terminate())?, int: signal(SignalKind::interrupt())?, hup: signal(SignalKind::hangup())? })
+    }
+
+    /// The next stop signal's name.
+    pub async fn recv(&mut self) -> &'static str {
+        tokio::select! {
+            _ = self.term.recv() => "SIGTERM",
+            _ = self.int.recv() => "SIGINT",
+            _ = self.hup.recv() => "SIGHUP",
+        }
+    }
+}
+
 /// Run a node's async main on a multi-threaded runtime (Zenoh refuses the current-thread
-/// one) after [`init_node`]; an error is one line on stderr and exit code 2.
+/// one) after [`init_node`]; an error is one line on stderr and the exit status of
+/// [`fleet::exit`] (2 bad input, 1 internal).
 pub fn run_node<F: std::future::Future<Output = anyhow::Result<()>>>(name: &str, workers: usize, main: F) {
-    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(workers).enable_all().build().expect("a tokio runtime");
-    if let Err(e) = rt.block_on(main) {
-        eprintln!("{name}: {e:#}");
-        std::process::exit(2);
+    let rt = match tokio::runtime::Builder::new_multi_thread().worker_threads(workers).enable_all().build() {
+        Ok(rt) => rt,
+        Err(e) => fleet::exit::fail(name, &anyhow::Error::new(e).context("starting the runtime")),
+    };
+    let result = rt.block_on(main);
+    // Do not wait for blocking readers (a MAVLink socket) to notice the end.
+    rt.shutdown_timeout(std::time::Duration::from_millis(200));
+    if let Err(e) = result {
+        fleet::exit::fail(name, &e);
     }
 }

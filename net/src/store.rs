@@ -1,15 +1,97 @@
 //! The nodes' durable state: an embedded transactional store (redb, every commit durable when
 //! it returns). A vehicle's outbox and the server's journal are both "messages by (vehicle,
 //! seq)" plus a little metadata, so they share this one small layer.
+//!
+//! **Integrity.** redb checks its own commit slots, not the values it holds, and a damaged
+//! file can make it panic. So every value is sealed with a CRC-32 over what it is (table, key
+//! and bytes), checked on every read; and a file is checked whole before it is opened for
+//! writing, on a copy, so a damaged file is refused with one error naming it and what is
+//! wrong, and is never changed by the refusal (opening a file for writing may repair it).
 
-use anyhow::Context as _;
 use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition};
 use std::path::{Path, PathBuf};
 
-/// `(vehicle, seq) -> encoded message`.
+/// `(vehicle, seq) -> sealed message`.
 const MESSAGES: TableDefinition<(&str, u64), &[u8]> = TableDefinition::new("messages");
-/// Small named values (a vehicle's state, the highest ack).
+/// Small named values (a vehicle's state, the highest ack, the server's decisions), sealed.
 const META: TableDefinition<&str, &[u8]> = TableDefinition::new("meta");
+
+/// A sealed value: `MAGIC`, then the CRC-32 (little-endian) of the table tag, the key and the
+/// payload, then the payload.
+const MAGIC: [u8; 3] = *b"hf\x01";
+const HEADER: usize = MAGIC.len() + 4;
+
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    /// The file cannot be trusted: a record fails its checksum, or the store itself is broken.
+    #[error("{} is damaged: {what} (the file was left as it is)", path.display())]
+    Damaged { path: PathBuf, what: String },
+    #[error("{} is empty (0 bytes): it was created but never written, or cut off (the file was left as it is)", path.display())]
+    Empty { path: PathBuf },
+    #[error("{} is in use by another process: one node per state file", path.display())]
+    InUse { path: PathBuf },
+    #[error("{}: {source}", path.display())]
+    Io { path: PathBuf, source: std::io::Error },
+    /// The store failed at run time (a full disk, an I/O error under a commit).
+    #[error("{}: {what}", path.display())]
+    Failed { path: PathBuf, what: String },
+}
+
+impl StoreError {
+    /// Whether the file itself is bad (damaged or empty), as opposed to the machine failing.
+    pub fn is_bad_file(&self) -> bool {
+        matches!(self, Self::Damaged { .. } | Self::Empty { .. })
+    }
+}
+
+type Result<T> = std::result::Result<T, StoreError>;
+
+fn checksum(table: u8, key: &[u8], payload: &[u8]) -> u32 {
+    let mut h = crc32fast::Hasher::new();
+    h.update(&[table]);
+    h.update(&(key.len() as u32).to_le_bytes());
+    h.update(key);
+    h.update(payload);
+    h.finalize()
+}
+
+fn message_key(vehicle: &str, seq: u64) -> Vec<u8> {
+    let mut k = vehicle.as_bytes().to_vec();
+    k.push(0);
+    k.extend_from_slice(&seq.to_le_bytes());
+    k
+}
+
+fn seal(table: u8, key: &[u8], payload: &[u8]) -> Vec<u8> {
+    let mut v = Vec::with_capacity(HEADER + payload.len());
+    v.extend_from_slice(&MAGIC);
+    v.extend_from_slice(&checksum(table, key, payload).to_le_bytes());
+    v.extend_from_slice(payload);
+    v
+}
+
+/// The payload of a sealed value, or what is wrong with it.
+fn unseal<'a>(table: u8, key: &[u8], sealed: &'a [u8]) -> std::result::Result<&'a [u8], &'static str> {
+    if sealed.len() < HEADER || sealed[..MAGIC.len()] != MAGIC {
+        return Err("has no integrity header (written by another program or an older hetfleet)");
+    }
+    let want = u32::from_le_bytes(sealed[MAGIC.len()..HEADER].try_into().expect("4 bytes"));
+    let payload = &sealed[HEADER..];
+    if checksum(table, key, payload) != want {
+        return Err("fails its checksum");
+    }
+    Ok(payload)
+}
+
+/// Run `f`, turning a panic inside the store into an error (without the default hook's
+/// report on stderr: the error says it in one line).
+fn contained<T>(f: impl FnOnce() -> T) -> std::result::Result<T, String> {
+    let hook = std::panic::take_hook();
+    std::panic::set_hook(Box::new(|_| {}));
+    let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
+    std::panic::set_hook(hook);
+    r.map_err(|p| p.downcast_ref::<&str>().map(|s| s.to_string()).or_else(|| p.downcast_ref::<String>().cloned()).unwrap_or_else(|| "the store panicked".into()))
+}
 
 pub struct Store {
     db: Database,
@@ -19,27 +101,23 @@ pub struct Store {
     count: u64,
 }
 
-fn err<E: std::fmt::Display>(e: E) -> anyhow::Error {
-    anyhow::anyhow!("{e}")
-}
-
 impl Store {
-    /// Open (or create) the store at `path`, and count what it holds.
-    pub fn open(path: &Path) -> anyhow::Result<Self> {
-        if let Some(dir) = path.parent() {
-            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    /// Open (or create) the store at `path`, after checking every record of an existing file
+    /// (on a copy: a damaged file is refused and left as it is).
+    pub fn open(path: &Path) -> Result<Self> {
+        let io = |source| StoreError::Io { path: path.to_path_buf(), source };
+        match std::fs::metadata(path) {
+            Ok(m) if m.len() == 0 => return Err(StoreError::Empty { path: path.into() }),
+            Ok(_) => verify_copy(path)?,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+                    std::fs::create_dir_all(dir).map_err(|source| StoreError::Io { path: dir.into(), source })?;
+                }
+            }
+            Err(e) => return Err(io(e)),
         }
-        let db = Database::create(path).map_err(err).with_context(|| format!("opening the store {}", path.display()))?;
-        let tx = db.begin_write().map_err(err)?;
-        tx.open_table(MESSAGES).map_err(err)?;
-        tx.open_table(META).map_err(err)?;
-        tx.commit().map_err(err)?;
-        let mut s = Self { db, path: path.to_path_buf(), bytes: 0, count: 0 };
-        for (_, v) in s.messages()? {
-            s.bytes += v.len() as u64;
-            s.count += 1;
-        }
-        Ok(s)
+        let (db, bytes, count) = open_checked(path)?;
+        Ok(Self { db, path: path.to_path_buf(), bytes, count })
     }
 
     pub fn path(&self) -> &Path {
@@ -51,83 +129,171 @@ impl Store {
         (self.bytes, self.count)
     }
 
+    fn failed(&self, e: &dyn std::fmt::Display) -> StoreError {
+        StoreError::Failed { path: self.path.clone(), what: e.to_string() }
+    }
+
     /// One durable transaction: these messages (replacing any under the same key) and these
     /// metadata values, all or nothing.
-    pub fn commit(&mut self, messages: &[((&str, u64), &[u8])], meta: &[(&str, &[u8])]) -> anyhow::Result<()> {
-        let mut tx = self.db.begin_write().map_err(err)?;
-        tx.set_durability(Durability::Immediate).map_err(err)?;
+    pub fn commit(&mut self, messages: &[((&str, u64), &[u8])], meta: &[(&str, &[u8])]) -> Result<()> {
+        let mut tx = self.db.begin_write().map_err(|e| self.failed(&e))?;
+        tx.set_durability(Durability::Immediate).map_err(|e| self.failed(&e))?;
         let (mut bytes, mut count) = (self.bytes, self.count);
         {
-            let mut t = tx.open_table(MESSAGES).map_err(err)?;
-            for (k, v) in messages {
-                match t.insert(*k, *v).map_err(err)? {
-                    Some(old) => bytes -= old.value().len() as u64,
+            let mut t = tx.open_table(MESSAGES).map_err(|e| self.failed(&e))?;
+            for ((vehicle, seq), v) in messages {
+                match t.insert((*vehicle, *seq), seal(b'M', &message_key(vehicle, *seq), v).as_slice()).map_err(|e| self.failed(&e))? {
+                    Some(old) => bytes -= (old.value().len() - HEADER) as u64,
                     None => count += 1,
                 }
                 bytes += v.len() as u64;
             }
-            let mut m = tx.open_table(META).map_err(err)?;
+            let mut m = tx.open_table(META).map_err(|e| self.failed(&e))?;
             for (k, v) in meta {
-                m.insert(*k, *v).map_err(err)?;
+                m.insert(*k, seal(b'T', k.as_bytes(), v).as_slice()).map_err(|e| self.failed(&e))?;
             }
         }
-        tx.commit().map_err(err)?;
+        tx.commit().map_err(|e| self.failed(&e))?;
         (self.bytes, self.count) = (bytes, count);
         Ok(())
     }
 
     /// Drop `vehicle`'s messages with seq `<= seq`, and record `meta` in the same transaction.
-    pub fn remove_through(&mut self, vehicle: &str, seq: u64, meta: &[(&str, &[u8])]) -> anyhow::Result<u64> {
-        let mut tx = self.db.begin_write().map_err(err)?;
-        tx.set_durability(Durability::Immediate).map_err(err)?;
+    pub fn remove_through(&mut self, vehicle: &str, seq: u64, meta: &[(&str, &[u8])]) -> Result<u64> {
+        let mut tx = self.db.begin_write().map_err(|e| self.failed(&e))?;
+        tx.set_durability(Durability::Immediate).map_err(|e| self.failed(&e))?;
         let (mut bytes, mut count, mut removed) = (self.bytes, self.count, 0);
         {
-            let mut t = tx.open_table(MESSAGES).map_err(err)?;
-            let gone = t.extract_from_if((vehicle, 0)..=(vehicle, seq), |_, _| true).map_err(err)?;
+            let mut t = tx.open_table(MESSAGES).map_err(|e| self.failed(&e))?;
+            let gone = t.extract_from_if((vehicle, 0)..=(vehicle, seq), |_, _| true).map_err(|e| self.failed(&e))?;
             for item in gone {
-                let (_, v) = item.map_err(err)?;
-                bytes -= v.value().len() as u64;
+                let (_, v) = item.map_err(|e| self.failed(&e))?;
+                bytes -= v.value().len().saturating_sub(HEADER) as u64;
                 count -= 1;
                 removed += 1;
             }
-            let mut m = tx.open_table(META).map_err(err)?;
+            let mut m = tx.open_table(META).map_err(|e| self.failed(&e))?;
             for (k, v) in meta {
-                m.insert(*k, *v).map_err(err)?;
+                m.insert(*k, seal(b'T', k.as_bytes(), v).as_slice()).map_err(|e| self.failed(&e))?;
             }
         }
-        tx.commit().map_err(err)?;
+        tx.commit().map_err(|e| self.failed(&e))?;
         (self.bytes, self.count) = (bytes, count);
         Ok(removed)
     }
 
-    /// Every message, in key order.
-    pub fn messages(&self) -> anyhow::Result<Vec<((String, u64), Vec<u8>)>> {
-        let tx = self.db.begin_read().map_err(err)?;
-        let t = tx.open_table(MESSAGES).map_err(err)?;
-        let mut out = vec![];
-        for item in t.iter().map_err(err)? {
-            let (k, v) = item.map_err(err)?;
-            let (id, seq) = k.value();
-            out.push(((id.to_string(), seq), v.value().to_vec()));
-        }
-        Ok(out)
+    /// Every message, in key order, each checked against its checksum.
+    pub fn messages(&self) -> Result<Vec<((String, u64), Vec<u8>)>> {
+        read_messages(&self.db, &self.path)
     }
 
-    pub fn meta(&self, key: &str) -> anyhow::Result<Option<Vec<u8>>> {
-        let tx = self.db.begin_read().map_err(err)?;
-        let t = tx.open_table(META).map_err(err)?;
-        Ok(t.get(key).map_err(err)?.map(|v| v.value().to_vec()))
+    /// A metadata value, checked against its checksum.
+    pub fn meta(&self, key: &str) -> Result<Option<Vec<u8>>> {
+        let tx = self.db.begin_read().map_err(|e| self.failed(&e))?;
+        let t = tx.open_table(META).map_err(|e| self.failed(&e))?;
+        let Some(v) = t.get(key).map_err(|e| self.failed(&e))? else { return Ok(None) };
+        let sealed = v.value();
+        unseal(b'T', key.as_bytes(), sealed).map(|p| Some(p.to_vec())).map_err(|what| damaged(&self.path, format!("metadata {key:?} {what}")))
     }
+
+    /// Every metadata value whose key starts with `prefix`, in key order, each checked.
+    pub fn meta_with_prefix(&self, prefix: &str) -> Result<Vec<(String, Vec<u8>)>> {
+        read_meta(&self.db, &self.path, prefix)
+    }
+}
+
+fn damaged(path: &Path, what: String) -> StoreError {
+    StoreError::Damaged { path: path.into(), what }
+}
+
+fn read_messages(db: &impl ReadableDatabase, path: &Path) -> Result<Vec<((String, u64), Vec<u8>)>> {
+    let bad = |e: &dyn std::fmt::Display| damaged(path, e.to_string());
+    let tx = db.begin_read().map_err(|e| bad(&e))?;
+    let t = tx.open_table(MESSAGES).map_err(|e| bad(&e))?;
+    let mut out = vec![];
+    for item in t.iter().map_err(|e| bad(&e))? {
+        let (k, v) = item.map_err(|e| bad(&e))?;
+        let (id, seq) = k.value();
+        let payload = unseal(b'M', &message_key(id, seq), v.value()).map_err(|what| damaged(path, format!("record ({id}, {seq}) {what}")))?;
+        out.push(((id.to_string(), seq), payload.to_vec()));
+    }
+    Ok(out)
+}
+
+fn read_meta(db: &impl ReadableDatabase, path: &Path, prefix: &str) -> Result<Vec<(String, Vec<u8>)>> {
+    let bad = |e: &dyn std::fmt::Display| damaged(path, e.to_string());
+    let tx = db.begin_read().map_err(|e| bad(&e))?;
+    let t = tx.open_table(META).map_err(|e| bad(&e))?;
+    let mut out = vec![];
+    for item in t.range(prefix..).map_err(|e| bad(&e))? {
+        let (k, v) = item.map_err(|e| bad(&e))?;
+        let key = k.value();
+        if !key.starts_with(prefix) {
+            break;
+        }
+        let payload = unseal(b'T', key.as_bytes(), v.value()).map_err(|what| damaged(path, format!("metadata {key:?} {what}")))?;
+        out.push((key.to_string(), payload.to_vec()));
+    }
+    Ok(out)
+}
+
+/// Open `path` for writing (creating the tables), read every record back (checked), and count
+/// the messages; a panic inside the store is an error.
+fn open_checked(path: &Path) -> Result<(Database, u64, u64)> {
+    let opened = contained(|| -> Result<(Database, u64, u64)> {
+        let db = Database::create(path).map_err(|e| match e {
+            redb::DatabaseError::DatabaseAlreadyOpen => StoreError::InUse { path: path.into() },
+            // redb reports some damage as I/O errors of these kinds.
+            redb::DatabaseError::Storage(redb::StorageError::Io(source)) if matches!(source.kind(), std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof) => damaged(path, source.to_string()),
+            redb::DatabaseError::Storage(redb::StorageError::Io(source)) => StoreError::Io { path: path.into(), source },
+            other => damaged(path, other.to_string()),
+        })?;
+        let bad = |e: &dyn std::fmt::Display| damaged(path, e.to_string());
+        let tx = db.begin_write().map_err(|e| bad(&e))?;
+        tx.open_table(MESSAGES).map_err(|e| bad(&e))?;
+        tx.open_table(META).map_err(|e| bad(&e))?;
+        tx.commit().map_err(|e| bad(&e))?;
+        let messages = read_messages(&db, path)?;
+        read_meta(&db, path, "")?;
+        let bytes = messages.iter().map(|(_, v)| v.len() as u64).sum();
+        Ok((db, bytes, messages.len() as u64))
+    });
+    opened.map_err(|panic| damaged(path, format!("the store could not read it ({panic})")))?
+}
+
+/// Check an existing file whole, on a copy beside it (removed after), so the file itself is
+/// opened for writing only once it is known to be sound.
+fn verify_copy(path: &Path) -> Result<()> {
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let copy = path.with_file_name(format!(".{name}.check-{}", std::process::id()));
+    std::fs::copy(path, &copy).map_err(|source| StoreError::Io { path: path.into(), source })?;
+    // Closing it too: redb writes its allocator state when a database is dropped, and a
+    // damaged one can panic there.
+    let checked = contained(|| open_checked(&copy).map(drop)).unwrap_or_else(|panic| Err(damaged(&copy, format!("the store could not close it ({panic})"))));
+    let _ = std::fs::remove_file(&copy);
+    // Errors name the file the operator gave, not the copy.
+    checked.map_err(|e| match e {
+        StoreError::Damaged { what, .. } => damaged(path, what),
+        StoreError::Io { source, .. } => StoreError::Io { path: path.into(), source },
+        StoreError::Failed { what, .. } => StoreError::Failed { path: path.into(), what },
+        other => other,
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    fn scratch(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("hetfleet-store-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
     #[test]
     fn keeps_what_was_committed_across_reopening() {
-        let dir = std::env::temp_dir().join(format!("hetfleet-store-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
+        let dir = scratch("keep");
         let path = dir.join("s.redb");
         {
             let mut s = Store::open(&path).unwrap();
@@ -143,6 +309,41 @@ mod tests {
         assert_eq!(s.meta("state").unwrap().as_deref(), Some(&b"x"[..]));
         assert_eq!(s.meta("acked").unwrap().as_deref(), Some(&b"0"[..]));
         assert_eq!(s.meta("nothing").unwrap(), None);
+        drop(s);
+        // No copy left behind by the check.
+        let left: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
+        assert_eq!(left, vec![std::ffi::OsString::from("s.redb")]);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_record_is_bound_to_its_key() {
+        // The same bytes under another key fail: a flip that moves a value is caught too.
+        let sealed = seal(b'M', &message_key("boat-1", 3), b"payload");
+        assert_eq!(unseal(b'M', &message_key("boat-1", 3), &sealed), Ok(&b"payload"[..]));
+        assert!(unseal(b'M', &message_key("boat-1", 4), &sealed).is_err());
+        assert!(unseal(b'M', &message_key("boat-2", 3), &sealed).is_err());
+        assert!(unseal(b'T', &message_key("boat-1", 3), &sealed).is_err());
+        let mut flipped = sealed.clone();
+        *flipped.last_mut().unwrap() ^= 1;
+        assert!(unseal(b'M', &message_key("boat-1", 3), &flipped).is_err());
+        assert!(unseal(b'M', b"", b"hf").is_err(), "too short");
+    }
+
+    #[test]
+    fn an_empty_file_and_a_second_opener_are_refused() {
+        let dir = scratch("empty");
+        let path = dir.join("e.redb");
+        std::fs::write(&path, b"").unwrap();
+        assert!(matches!(Store::open(&path), Err(StoreError::Empty { .. })));
+        assert_eq!(std::fs::metadata(&path).unwrap().len(), 0, "left as it was");
+        let other = dir.join("o.redb");
+        let _first = Store::open(&other).unwrap();
+        match Store::open(&other) {
+            Err(StoreError::InUse { .. }) => {}
+            Err(e) => panic!("expected in use, got {e}"),
+            Ok(_) => panic!("opened twice"),
+        }
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -261,3 +261,136 @@ pub fn start_vehicles(procs: &mut Procs, mission: &std::path::Path, state: &str,
         };
     }
 }
+
+/// The journal holds every batch of the mission once; fed to a fresh core in step order it
+/// gives the model the server published (to 1e-9 relative).
+pub fn check_exactly_once_and_same_model(mission: &std::path::Path, state: &std::path::Path, out: &std::path::Path) {
+    let m = fleet::mission::config::MissionConfig::load(Some(mission)).unwrap();
+    let truth = m.truth(|_| {}).unwrap();
+    let (grid, frames) = m.workspace(&truth).unwrap();
+    let journal = fleet_net::store::Store::open(&state.join(format!("{}.redb", m.mission))).unwrap();
+    let mut ctx = fleet::protocol::Context::new(grid);
+    ctx.vehicles = m.vehicles().into_iter().map(|v| v.id).collect();
+    let mut batches: Vec<_> = journal
+        .messages()
+        .unwrap()
+        .into_iter()
+        .map(|(_, bytes)| match fleet::protocol::decode(&bytes, &ctx).unwrap() {
+            fleet::protocol::Body::Batch(b) => b,
+            other => panic!("not a batch: {other:?}"),
+        })
+        .collect();
+    assert_eq!(batches.len() as u64, expected_batches(&m, frames), "every batch in the journal exactly once");
+    let order = |id: &str| ctx.vehicles.iter().position(|v| v == id).unwrap();
+    batches.sort_by_key(|b| (fleet::mission::schedule::Schedule::epoch_of(b.kind, b.seq), order(&b.vehicle)));
+    let mut core = fleet::mission::server::ServerCore::new(&m.team, grid, frames).unwrap();
+    for b in batches {
+        core.ingest(b).unwrap();
+    }
+    assert!(core.finished());
+    let offline = core.model_update().unwrap();
+    let fleet::protocol::Body::Model(served) = fleet::protocol::decode(&std::fs::read(out.join("model.cbor")).unwrap(), &ctx).unwrap() else { panic!("model.cbor") };
+    let close = |what: &str, a: &[f64], b: &[f64]| {
+        let scale = b.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+        let diff = a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs()));
+        assert!(a.len() == b.len() && diff <= 1e-9 * scale, "{what}: differs by {diff:e} (scale {scale:e})");
+    };
+    close("eigenvalues", served.eigenvalues.as_flattened(), offline.eigenvalues.as_flattened());
+    // Each mode times its amplitude: an eigenvector is only defined up to a complex factor
+    // (rounding 1e-19 apart can pick another phase), the model it makes is not.
+    let scaled = |u: &fleet::protocol::ModelUpdate| -> Vec<f64> {
+        let r = u.amplitudes.len();
+        let each = |k: usize| {
+            let ([mr, mi], [ar, ai]) = ([u.modes_re[k], u.modes_im[k]], u.amplitudes[k % r]);
+            [mr * ar - mi * ai, mr * ai + mi * ar]
+        };
+        (0..u.modes_re.len()).flat_map(each).collect()
+    };
+    close("modes times amplitudes", &scaled(&served), &scaled(&offline));
+}
+
+
+/// A ground station on a UDP port that the gateway sends the fleet to (`gcs =
+/// "udpout:127.0.0.1:<port>"`): it reads the stream and answers the gateway.
+pub struct GroundStation {
+    conn: Box<dyn mavlink::MavConnection<mavlink::dialects::common::MavMessage> + Send + Sync>,
+}
+
+impl GroundStation {
+    pub fn listen(port: u16) -> Self {
+        Self { conn: Box::new(mavlink::connect::<mavlink::dialects::common::MavMessage>(&format!("udpin:127.0.0.1:{port}")).expect("a ground-station socket")) }
+    }
+
+    /// The next frame (blocks until the gateway sends one).
+    pub fn recv(&self) -> (mavlink::MavHeader, mavlink::dialects::common::MavMessage) {
+        loop {
+            if let Ok(f) = self.conn.recv() {
+                return f;
+            }
+        }
+    }
+
+    /// Wait for a HEARTBEAT of `sysid` (so the gateway is the one answered), then set its
+    /// mode, as QGroundControl's mode menu does (SET_MODE, sent three times: UDP).
+    #[allow(deprecated)]
+    pub fn set_mode(&self, sysid: u8, custom_mode: u32) {
+        use mavlink::dialects::common::*;
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+        loop {
+            assert!(std::time::Instant::now() < deadline, "no HEARTBEAT from system {sysid}");
+            if let (h, MavMessage::HEARTBEAT(_)) = self.recv() {
+                if h.system_id == sysid as u32 {
+                    break;
+                }
+            }
+        }
+        let m = MavMessage::SET_MODE(SET_MODE_DATA { target_system: sysid, custom_mode, ..Default::default() });
+        for _ in 0..3 {
+            self.conn.send(&mavlink::MavHeader { system_id: 255, component_id: 190, sequence: 0 }, &m).expect("sending SET_MODE");
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+    }
+}
+
+/// Processes (other than this one) whose command line contains `needle`.
+pub fn pids_with(needle: &str) -> Vec<u32> {
+    let me = std::process::id();
+    std::fs::read_dir("/proc")
+        .expect("/proc")
+        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
+        .filter(|&pid| pid != me)
+        .filter(|pid| std::fs::read(format!("/proc/{pid}/cmdline")).is_ok_and(|c| String::from_utf8_lossy(&c).replace('\0', " ").contains(needle)))
+        .collect()
+}
+
+/// A process's command line, arguments separated by spaces.
+pub fn cmdline(pid: u32) -> String {
+    std::fs::read(format!("/proc/{pid}/cmdline")).map(|c| String::from_utf8_lossy(&c).replace('\0', " ")).unwrap_or_default()
+}
+
+/// Wait for `what` to hold, polling (panics after `secs`).
+pub fn eventually(secs: u64, what: &str, mut f: impl FnMut() -> bool) {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(secs);
+    while !f() {
+        assert!(std::time::Instant::now() < deadline, "{what}: not within {secs} s");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+}
+
+impl Server {
+    /// Wait for the first event `pick` accepts (panics after `secs`).
+    pub fn wait_for<T>(&self, secs: u64, what: &str, mut pick: impl FnMut(&fleet::mission::report::ServerEvent) -> Option<T>) -> T {
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(secs);
+        loop {
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            match self.events.recv_timeout(left) {
+                Ok(e) => {
+                    if let Some(t) = pick(&e) {
+                        return t;
+                    }
+                }
+                Err(err) => panic!("{what}: not within {secs} s ({err})"),
+            }
+        }
+    }
+}

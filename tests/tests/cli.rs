@@ -53,8 +53,84 @@ fn bad_input_gets_a_clear_error_and_a_non_zero_exit() {
         full.extend(args.iter().cloned());
         let out = Command::new(bin("fleet")).args(&full).current_dir(root()).output().unwrap();
         let stderr = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success(), "{args:?} should fail");
+        assert_eq!(out.status.code(), Some(2), "{args:?}: bad input is exit 2: {stderr}");
+        // (clap's usage errors add its "try --help" line, as every clap program does.)
+        let usage = stderr.contains("try '--help'");
+        assert!(usage || stderr.trim().lines().count() == 1, "{args:?}: one line: {stderr}");
         assert!(!stderr.contains("panicked"), "{args:?} panicked: {stderr}");
         assert!(stderr.contains(needle), "{args:?}: expected {needle:?} in {stderr}");
+    }
+}
+
+/// Exit status and stderr of a workspace binary run with `args`.
+fn status_and_stderr(binary: &str, args: &[&str]) -> (Option<i32>, String) {
+    let out = Command::new(bin(binary)).args(args).current_dir(root()).output().unwrap();
+    (out.status.code(), String::from_utf8_lossy(&out.stderr).to_string())
+}
+
+/// Refused as bad input: exit 2, one line `<binary>: ...` containing `needle`, no panic.
+fn assert_refused(binary: &str, args: &[&str], needle: &str) {
+    let (code, err) = status_and_stderr(binary, args);
+    assert_eq!(code, Some(2), "{args:?}: exit 2 for bad input, got {code:?}: {err}");
+    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
+    assert_eq!(lines.len(), 1, "{args:?}: one line: {err}");
+    assert!(lines[0].starts_with(&format!("{binary}: ")) && lines[0].contains(needle), "{args:?}: expected {needle:?} in {err}");
+    assert!(!err.contains("panicked") && !err.contains("{ ") && !err.contains("Os {"), "{args:?}: no panic, no debug formatting: {err}");
+}
+
+#[test]
+fn configurations_that_cannot_run_are_refused_up_front_naming_the_field() {
+    let dir = hetfleet_tests::scratch("configs");
+    let cases = [
+        ("aerial_stride = 3", "aerial_stride = 12\naerials = 10", "aerials = 10: the aerial lattice has only 8 cells"),
+        ("radius = 3.0", "radius = 500.0", "radius = 500: 3 boats' disks of that radius do not fit"),
+        ("seed = 5", "seed = 5\ngamma = 0.9", "gamma = 0.9: the forgetting factor applies to method = \"long-term\" only"),
+        ("boats = 3", "boats = \"three\"", "invalid type: string \"three\", expected usize (at [team] boats, line"),
+        ("rank = \"6\"", "rank = -6", "rank: give \"full\""),
+    ];
+    for (i, (from, to, needle)) in cases.into_iter().enumerate() {
+        let m = hetfleet_tests::tiny_mission(&dir, &["tcp/127.0.0.1:7461".into()], &["tcp/127.0.0.1:7461".into()]);
+        hetfleet_tests::edit(&m, from, to);
+        if to.contains("aerials = 10") {
+            hetfleet_tests::edit(&m, "aerials = 2\n", "");
+        }
+        let out = dir.join(format!("run-{i}"));
+        assert_refused("fleet", &["up", m.to_str().unwrap(), "--out", out.to_str().unwrap()], needle);
+        assert!(!out.join("state").exists(), "{to}: nothing started");
+    }
+    // An integer rank is a rank.
+    let m = hetfleet_tests::tiny_mission(&dir, &[], &["tcp/127.0.0.1:7461".into()]);
+    hetfleet_tests::edit(&m, "rank = \"6\"", "rank = 6");
+    assert_eq!(fleet::mission::config::MissionConfig::load(Some(&m)).unwrap().team.rank, "6");
+}
+
+#[test]
+fn a_truth_that_is_not_the_missions_and_oversized_or_misnamed_outputs_are_refused() {
+    let dir = hetfleet_tests::scratch("truths");
+    let m = hetfleet_tests::tiny_mission(&dir, &["tcp/127.0.0.1:7461".into()], &["tcp/127.0.0.1:7461".into()]);
+    let small = dir.join("small.npy");
+    fleet::npy::write(&small, &[40, 24, 24], &vec![0.5; 40 * 24 * 24]).unwrap();
+    for node in ["vehicle", "model-server"] {
+        let mut args = vec!["--mission", m.to_str().unwrap(), "--truth", small.to_str().unwrap(), "--state-dir", dir.to_str().unwrap()];
+        if node == "vehicle" {
+            args.extend(["--id", "boat-1"]);
+        }
+        assert_refused(node, &args, "is 24 x 24 cells for 40 steps, but mission \"tiny\" senses 24 x 48 cells for 40 steps");
+    }
+    assert_refused("vehicle", &["--mission", m.to_str().unwrap(), "--id", "boat-9", "--state-dir", dir.to_str().unwrap()], "--id boat-9: no such vehicle");
+    let out = dir.join("f.npy");
+    assert_refused("fleet", &["simulate", "plume", "--frames", "100000000", "--out", out.to_str().unwrap()], "--grid/--frames");
+    assert_refused("fleet", &["simulate", "plume", "--grid", "100000x100000", "--out", out.to_str().unwrap()], "--grid/--frames");
+    assert_refused("fleet", &["simulate", "plasma-cloud", "--grid", "100000x100000", "--out", out.to_str().unwrap()], "--grid/--frames");
+    assert!(!out.exists());
+    assert_refused("fleet", &["render", small.to_str().unwrap(), "--gif", "--out", dir.join("x.png").to_str().unwrap()], "--gif writes a GIF, name it .gif");
+    assert!(!dir.join("x.png").exists());
+    assert_refused("fleet", &["dmd", "--gamma", "0.9"], "--gamma 0.9: forgetting applies to --method long-term only");
+    // float32 data is widened, not refused.
+    let f32_path = dir.join("f32.npy");
+    let text = "import numpy as np, sys; np.save(sys.argv[1], np.random.default_rng(1).random((30, 4, 5)).astype(np.float32))";
+    if Command::new("python3").args(["-c", text, f32_path.to_str().unwrap()]).status().is_ok_and(|s| s.success()) {
+        let (code, err) = status_and_stderr("fleet", &["dmd", "--input", f32_path.to_str().unwrap(), "--top", "2"]);
+        assert_eq!(code, Some(0), "{err}");
     }
 }

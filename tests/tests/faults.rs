@@ -6,60 +6,9 @@
 //! the model computed offline from the same batches fed in step order.
 
 use fleet::mission::config::MissionConfig;
-use fleet::mission::schedule::Schedule;
-use fleet::mission::server::ServerCore;
-use fleet::protocol::{self, Body, Context};
-use fleet_net::store::Store;
 use hetfleet_tests::*;
 use std::path::Path;
 use std::time::Duration;
-
-/// The journal holds every batch of the mission once; fed to a fresh core in step order it
-/// gives the model the server published (to 1e-9 relative).
-fn check_exactly_once_and_same_model(mission: &Path, state: &Path, out: &Path) {
-    let m = MissionConfig::load(Some(mission)).unwrap();
-    let truth = m.truth(|_| {}).unwrap();
-    let (grid, frames) = m.workspace(&truth).unwrap();
-    let journal = Store::open(&state.join(format!("{}.redb", m.mission))).unwrap();
-    let mut ctx = Context::new(grid);
-    ctx.vehicles = m.vehicles().into_iter().map(|v| v.id).collect();
-    let mut batches: Vec<_> = journal
-        .messages()
-        .unwrap()
-        .into_iter()
-        .map(|(_, bytes)| match protocol::decode(&bytes, &ctx).unwrap() {
-            Body::Batch(b) => b,
-            other => panic!("not a batch: {other:?}"),
-        })
-        .collect();
-    assert_eq!(batches.len() as u64, expected_batches(&m, frames), "every batch in the journal exactly once");
-    let order = |id: &str| ctx.vehicles.iter().position(|v| v == id).unwrap();
-    batches.sort_by_key(|b| (Schedule::epoch_of(b.kind, b.seq), order(&b.vehicle)));
-    let mut core = ServerCore::new(&m.team, grid, frames).unwrap();
-    for b in batches {
-        core.ingest(b).unwrap();
-    }
-    assert!(core.finished());
-    let offline = core.model_update().unwrap();
-    let Body::Model(served) = protocol::decode(&std::fs::read(out.join("model.cbor")).unwrap(), &ctx).unwrap() else { panic!("model.cbor") };
-    let close = |what: &str, a: &[f64], b: &[f64]| {
-        let scale = b.iter().fold(0.0f64, |m, x| m.max(x.abs()));
-        let diff = a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs()));
-        assert!(a.len() == b.len() && diff <= 1e-9 * scale, "{what}: differs by {diff:e} (scale {scale:e})");
-    };
-    close("eigenvalues", served.eigenvalues.as_flattened(), offline.eigenvalues.as_flattened());
-    // Each mode times its amplitude: an eigenvector is only defined up to a complex factor
-    // (rounding 1e-19 apart can pick another phase), the model it makes is not.
-    let scaled = |u: &fleet::protocol::ModelUpdate| -> Vec<f64> {
-        let r = u.amplitudes.len();
-        let each = |k: usize| {
-            let ([mr, mi], [ar, ai]) = ([u.modes_re[k], u.modes_im[k]], u.amplitudes[k % r]);
-            [mr * ar - mi * ai, mr * ai + mi * ar]
-        };
-        (0..u.modes_re.len()).flat_map(each).collect()
-    };
-    close("modes times amplitudes", &scaled(&served), &scaled(&offline));
-}
 
 /// A paced tiny mission (so there is time to break things mid-way) on a fresh port.
 fn paced_mission(dir: &Path, listen: &[String], connect: &[String], step_ms: u64) -> std::path::PathBuf {

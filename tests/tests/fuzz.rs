@@ -1,5 +1,6 @@
 //! Every decoder that reads what comes from outside, fed generated malformed input: the wire
-//! protocol (Zenoh payloads), MAVLink frames, mission files and `.npy` files. Each input is a
+//! protocol (Zenoh payloads), MAVLink frames, mission files, `.npy` files and the nodes' state
+//! files (journal, outbox). Each input is a
 //! valid one mutated (bytes flipped, replaced, inserted, deleted, truncated) or plain random
 //! bytes. Properties: nothing panics, and whatever is accepted satisfies the decoder's own
 //! checks (finite values, cells on the grid, shapes that match their data). The total count is
@@ -17,6 +18,8 @@ use vehicles::bridge::{frame_bytes, parse_frame};
 
 /// Inputs per decoder.
 const CASES: u32 = 30_000;
+/// Whole state files (each one written, checked on a copy, opened and read).
+const STORE_CASES: u32 = 10_000;
 
 static INPUTS: AtomicU64 = AtomicU64::new(0);
 
@@ -56,7 +59,11 @@ fn malformed() -> impl Strategy<Value = (usize, Vec<Edit>, Option<usize>, Vec<u8
 
 /// Run `check` on `CASES` mutations of the `seeds`.
 fn fuzz(name: &str, seeds: &[Vec<u8>], check: impl Fn(&[u8]) -> Result<(), TestCaseError>) {
-    let mut runner = TestRunner::new(Config { cases: CASES, failure_persistence: None, ..Config::default() });
+    fuzz_n(name, seeds, CASES, check)
+}
+
+fn fuzz_n(name: &str, seeds: &[Vec<u8>], cases: u32, check: impl Fn(&[u8]) -> Result<(), TestCaseError>) {
+    let mut runner = TestRunner::new(Config { cases, failure_persistence: None, ..Config::default() });
     runner
         .run(&malformed(), |(which, edits, cut, random)| {
             INPUTS.fetch_add(1, Ordering::Relaxed);
@@ -91,6 +98,7 @@ fn wire_seeds() -> Vec<Vec<u8>> {
             link: LinkState::Up,
             outbox_depth: 7,
             autopilot: Some(AutopilotStatus { link: AutopilotLink::Up, sysid: 1, mode: "GUIDED".into(), armed: true, guided: true, unreadable: 0, refused_from_gcs: 2 }),
+            acked: Some(4),
         }),
         Body::Ack(Ack { vehicle: "boat-1".into(), seq: 9 }),
         Body::Model(ModelUpdate { version: 1, epoch: 2, step: 40, grid: g, dt: 0.25, eigenvalues: vec![[0.9, 0.1]], modes_re: vec![0.1; n], modes_im: vec![0.0; n], amplitudes: vec![[1.0, 0.0]], variance: vec![0.01; n] }),
@@ -161,7 +169,39 @@ fn malformed_inputs_never_panic_a_decoder() {
         Ok(())
     });
 
+    // The nodes' state files (a journal, an outbox): each input is a whole file, opened and
+    // read as a node does, so fewer of them. Accepted means read back exactly as written.
+    let dir = hetfleet_tests::scratch("fuzz-store");
+    let mut stores = vec![];
+    for (k, (vehicles, meta)) in [(&["av-1", "boat-1"][..], "epoch/0000000001"), (&["boat-1"][..], "state")].into_iter().enumerate() {
+        let p = dir.join(format!("seed-{k}.redb"));
+        let mut s = fleet_net::store::Store::open(&p).unwrap();
+        for seq in 0..6u64 {
+            for v in vehicles {
+                s.commit(&[((v, seq), &wire_seeds()[0])], &[(meta, format!("{v} {seq}").as_bytes())]).unwrap();
+            }
+        }
+        s.remove_through(vehicles[0], 1, &[]).unwrap();
+        let contents = (s.messages().unwrap(), s.meta_with_prefix("").unwrap());
+        drop(s);
+        stores.push((std::fs::read(&p).unwrap(), contents));
+    }
+    let seeds: Vec<Vec<u8>> = stores.iter().map(|(b, _)| b.clone()).collect();
+    let case = dir.join("case.redb");
+    fuzz_n("journal and outbox files", &seeds, STORE_CASES, |bytes| {
+        std::fs::write(&case, bytes).unwrap();
+        let read = fleet_net::store::Store::open(&case).and_then(|s| Ok((s.messages()?, s.meta_with_prefix("")?)));
+        match read {
+            Ok(contents) => prop_assert!(stores.iter().any(|(_, c)| *c == contents), "a damaged store opened with different data"),
+            Err(e) => {
+                prop_assert!(e.is_bad_file(), "{}", e);
+                prop_assert_eq!(std::fs::read(&case).unwrap(), bytes.to_vec(), "the refusal changed the file");
+            }
+        }
+        Ok(())
+    });
+
     let n = INPUTS.load(Ordering::Relaxed);
-    println!("fuzzed {n} generated malformed inputs across 4 decoders (wire protocol, MAVLink, mission TOML, .npy): 0 panics");
+    println!("fuzzed {n} generated malformed inputs across 5 decoders (wire protocol, MAVLink, mission TOML, .npy, journal/outbox files): 0 panics");
     assert!(n >= 100_000, "only {n} inputs");
 }

@@ -126,6 +126,7 @@ impl Bridge {
 
     fn spawn_reader(&self, gcs: Option<GcsSink>) -> std::io::Result<()> {
         let (conn, seen, frame, stop) = (self.conn.clone(), self.seen.clone(), self.spec.vehicle.frame, self.stop.clone());
+        let mission_sysid = self.spec.vehicle.sysid;
         std::thread::Builder::new().name("mavlink-autopilot-rx".into()).spawn(move || {
             while !stop.load(Ordering::Relaxed) {
                 match conn.recv() {
@@ -140,6 +141,9 @@ impl Bridge {
                                 MavMessage::HEARTBEAT(hb) if hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID && autopilot => {
                                     if s.sysid.is_none() {
                                         info!(sysid = h.system_id, kind = ?hb.mavtype, mode = frame.name(hb.custom_mode), "autopilot found");
+                                        if h.system_id != mission_sysid as u32 {
+                                            warn!(autopilot = h.system_id, mission = mission_sysid, "the autopilot's system id is not the one the mission gives this vehicle: the ground-station gateway accepts and routes only the mission's (set SYSID_THISMAV to it)");
+                                        }
                                     }
                                     s.sysid = from;
                                     s.mode = Some(hb.custom_mode);

@@ -9,7 +9,7 @@ use fleet::mission::config::MissionConfig;
 use fleet::mission::vehicle::{BrainState, Fix, VehicleBrain};
 use fleet::mission::vehicle_rng;
 use fleet::protocol::{self, keys::Keys, Body, Context, LinkState, Telemetry};
-use fleet_net::store::Store;
+use fleet_net::store::{Store, StoreError};
 use fleet_net::{zenoh, Role};
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
@@ -39,7 +39,12 @@ struct Outbox {
 
 impl Outbox {
     fn open(path: &std::path::Path, id: &str, limit: u64) -> anyhow::Result<Self> {
-        let store = Store::open(path)?;
+        const RECOVERY: &str = "to go on, move the file aside (keep it for inspection) and start the vehicle again: it starts over from the first epoch, senses again what the plans say and the server keeps what it already has (batches held only in this outbox are lost)";
+        let store = Store::open(path).map_err(|e| match e {
+            e @ (StoreError::Damaged { .. } | StoreError::Empty { .. }) => fleet::exit::bad_input(anyhow::anyhow!("the outbox {e}; {RECOVERY}")),
+            e @ StoreError::InUse { .. } => fleet::exit::bad_input(anyhow::anyhow!("the outbox {e}: is this vehicle already running?")),
+            e => anyhow::Error::new(e).context("opening the outbox"),
+        })?;
         let acked = store.meta("acked")?.and_then(|b| String::from_utf8(b).ok()).and_then(|s| s.parse().ok());
         let held = store.messages()?.into_iter().map(|((_, seq), _)| seq).collect();
         Ok(Self { store, id: id.into(), acked, held, sent: BTreeMap::new(), limit, warned: false })
@@ -47,7 +52,7 @@ impl Outbox {
 
     fn state(&self) -> anyhow::Result<Option<BrainState>> {
         match self.store.meta("state")? {
-            Some(b) => Ok(Some(ciborium::from_reader(&b[..]).map_err(|e| anyhow::anyhow!("the stored vehicle state is unreadable: {e}"))?)),
+            Some(b) => Ok(Some(ciborium::from_reader(&b[..]).map_err(|e| fleet::exit::bad_input(anyhow::anyhow!("the outbox {}: the vehicle state in it is unreadable ({e})", self.store.path().display())))?)),
             None => Ok(None),
         }
     }
@@ -187,6 +192,7 @@ impl Vehicle {
             battery: (1.0 - 0.5 * self.step as f64 / self.brain.schedule().frames.max(1) as f64).clamp(0.0, 1.0),
             link: if self.server_alive { LinkState::Up } else { LinkState::Down },
             outbox_depth: self.outbox.depth(),
+            acked: self.outbox.acked,
         };
         *self.last_telemetry.lock().unwrap_or_else(|p| p.into_inner()) = Some(t.clone());
         if let Err(e) = fleet_net::put(session, &self.keys.telemetry(&self.brain.id), &Body::Telemetry(t)).await {
@@ -302,6 +308,8 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let mut ctx = Context::new(grid);
     ctx.vehicles = mission.vehicles().into_iter().map(|v| v.id).collect();
 
+    // Local state first: a damaged outbox is refused before anything goes on the network.
+    let outbox = Outbox::open(&args.state_dir.join(format!("{}.redb", args.id)), &args.id, args.outbox_limit_mb << 20)?;
     let (gcs_tx, gcs_rx) = tokio::sync::mpsc::unbounded_channel();
     let bridge = open_bridge(&args, &mission, &grid, gcs_tx)?;
     let last_telemetry = Arc::new(Mutex::new(None));
@@ -313,7 +321,6 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let acks = session.declare_subscriber(keys.ack(&args.id)).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let links = session.liveliness().declare_subscriber(keys.alive("server")).history(true).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let pace = mission.pace.clone();
-    let outbox = Outbox::open(&args.state_dir.join(format!("{}.redb", args.id)), &args.id, args.outbox_limit_mb << 20)?;
     let arrival_timeout = Duration::from_millis(mission.mavlink.arrival_timeout_ms);
     let mut v = Vehicle { keys, ctx, brain, outbox, server_alive: false, resend: Duration::from_millis(pace.resend_ms), step: 0, args, bridge, last_telemetry, plan_at: None, guided_ms: vec![] };
     v.telemetry(&session).await;

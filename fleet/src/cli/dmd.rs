@@ -1,5 +1,6 @@
 //! `fleet dmd`: fit a model online to a field and print its spectrum and errors.
 
+use fleet::exit::{bad_input, InputResult};
 use anyhow::{bail, Context};
 use clap::ValueEnum;
 use faer::Mat;
@@ -89,12 +90,24 @@ fn load(args: &Args) -> anyhow::Result<FieldSeries> {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let mut field = load(&args)?;
+    let field = load(&args).input()?;
+    let init = check(&args, &field).input()?;
+    run_checked(args, field, init)
+}
+
+/// The arguments against the field: `--dt`, `--gamma` (long-term only), enough snapshots for
+/// `--init`. Returns the initial fit's pairs.
+fn check(args: &Args, field: &FieldSeries) -> anyhow::Result<usize> {
     if let Some(dt) = args.dt {
         if !(dt.is_finite() && dt > 0.0) {
             bail!("--dt must be positive, got {dt}");
         }
-        field.dt = dt;
+    }
+    if !(args.gamma > 0.0 && args.gamma <= 1.0) {
+        bail!("--gamma {}: a forgetting factor is in (0, 1]", args.gamma);
+    }
+    if args.gamma != 1.0 && args.method != Method::LongTerm {
+        bail!("--gamma {}: forgetting applies to --method long-term only (the {} method keeps every snapshot)", args.gamma, args.method);
     }
     let (n, pairs) = (field.dim(), field.frames().saturating_sub(1));
     if pairs < 2 {
@@ -107,6 +120,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if init > pairs {
         bail!("--init {init} is more than the {pairs} snapshot pairs available");
     }
+    Ok(init)
+}
+
+fn run_checked(args: Args, mut field: FieldSeries, init: usize) -> anyhow::Result<()> {
+    if let Some(dt) = args.dt {
+        field.dt = dt;
+    }
+    let (n, pairs) = (field.dim(), field.frames() - 1);
     let cfg = DmdConfig { method: args.method, rank: args.rank, debias: args.debias, gamma: args.gamma };
     let updates = (pairs - init).div_ceil(args.tau.max(1));
     let pb = super::progress_bar(updates as u64 + 1, "assimilating");
@@ -115,6 +136,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         pb.inc(1);
         Ok(())
     })
+    .map_err(|e| if e.is_input() { bad_input(e) } else { anyhow::Error::new(e) })
     .context("fitting the model")?;
     let fit_s = t0.elapsed().as_secs_f64();
     pb.finish_and_clear();

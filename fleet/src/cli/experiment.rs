@@ -1,6 +1,7 @@
 //! `fleet experiment [config.toml] --out <dir>`: the paper's evaluation as a report.
 
 use anyhow::Context;
+use fleet::exit::bad_input;
 use fleet::experiment::paper::{self, ExperimentConfig};
 use std::path::PathBuf;
 
@@ -15,8 +16,8 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let text = std::fs::read_to_string(&args.config).with_context(|| format!("reading {}", args.config.display()))?;
-    let cfg = ExperimentConfig::from_toml(&text).with_context(|| format!("in {}", args.config.display()))?;
+    let text = std::fs::read_to_string(&args.config).map_err(|e| bad_input(anyhow::anyhow!("{}: {e}", args.config.display())))?;
+    let cfg = ExperimentConfig::from_toml(&text).map_err(bad_input).with_context(|| args.config.display().to_string())?;
     let pb = super::progress_bar(paper::units(&cfg) as u64, "experiment");
     let t0 = std::time::Instant::now();
     let (res, truths) = paper::run(&cfg, |msg| {

@@ -6,6 +6,7 @@ mod experiment;
 mod render;
 mod secure;
 mod simulate;
+mod supervise;
 mod up;
 
 use clap::{Parser, Subcommand};

@@ -1,7 +1,7 @@
 //! `fleet render`: a frame of a `(frames, rows, cols)` `.npy` as a PNG (viridis, colour bar),
 //! or the whole sequence as a GIF.
 
-use anyhow::{bail, Context};
+use fleet::exit::bad_input;
 use fleet::plot::{self, Panel};
 use fleet::process::dataset;
 use std::path::PathBuf;
@@ -25,7 +25,13 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let field = dataset::load(&args.input, 1.0).with_context(|| format!("reading {}", args.input.display()))?;
+    let ext = args.out.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+    match (args.gif, ext.as_deref()) {
+        (true, Some("gif")) | (false, Some("png")) => {}
+        (true, _) => return Err(bad_input(anyhow::anyhow!("--out {}: --gif writes a GIF, name it .gif", args.out.display()))),
+        (false, _) => return Err(bad_input(anyhow::anyhow!("--out {}: a frame is written as PNG, name it .png (or give --gif and .gif)", args.out.display()))),
+    }
+    let field = dataset::load(&args.input, 1.0).map_err(bad_input)?;
     let (n, frames) = (field.dim(), field.frames());
     let name = args.input.file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
     let columns: Vec<Vec<f64>> = (0..frames).map(|k| field.snapshots.col(k).iter().copied().collect()).collect();
@@ -38,7 +44,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         pb.finish_and_clear();
     } else {
         if let Some(&k) = args.frame.iter().find(|&&k| k >= frames) {
-            bail!("frame {k} out of range: {} has frames 0..{}", args.input.display(), frames - 1);
+            return Err(bad_input(anyhow::anyhow!("--frame {k} out of range: {} has frames 0..{}", args.input.display(), frames - 1)));
         }
         let panels: Vec<Panel> = args.frame.iter().map(|&k| panel(k)).collect();
         plot::png(&args.out, &panels, None)?;

@@ -42,7 +42,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let out = std::fs::canonicalize(&args.out)?;
     let tls = match &args.tls {
-        Some(d) => Some(Tls { dir: std::fs::canonicalize(d).with_context(|| format!("the certificate directory {}", d.display()))? }),
+        Some(d) => Some(Tls { dir: std::fs::canonicalize(d).map_err(|e| fleet::exit::bad_input(anyhow::anyhow!("--tls {}: {e}", d.display())))? }),
         None => None,
     };
     let dictionary = out.join("credentials.txt");

@@ -1,6 +1,7 @@
 //! `fleet simulate`: generate a truth field as a `(frames, rows, cols)` `.npy` plus a JSON
 //! sidecar of every parameter.
 
+use fleet::exit::InputResult;
 use anyhow::{bail, Context};
 use clap::ValueEnum;
 use fleet::process::plasma::{PlasmaCloud, Preset};
@@ -61,6 +62,11 @@ fn parse_grid(s: &str) -> anyhow::Result<(usize, usize)> {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    simulate(args).input()
+}
+
+/// Every error here is the arguments' (the simulators refuse what they cannot do).
+fn simulate(args: Args) -> anyhow::Result<()> {
     let process = match (args.process, args.process_flag) {
         (Some(a), Some(b)) if a != b => bail!("two different processes given ({a:?} and {b:?})"),
         (Some(a), _) | (None, Some(a)) => a,
@@ -82,6 +88,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             if frames == 0 {
                 bail!("--frames must be at least 1");
             }
+            fleet::process::check_size(params.ny, params.nx, frames).map_err(|e| anyhow::anyhow!("--grid/--frames: {e}"))?;
             let mut sim = PlasmaCloud::new(params.clone()).context("setting up the plasma cloud")?;
             let pb = super::progress_bar(frames as u64, "plasma cloud");
             let field = sim
@@ -132,6 +139,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             if frames == 0 {
                 bail!("--frames must be at least 1");
             }
+            fleet::process::check_size(rows, cols, frames).map_err(|e| anyhow::anyhow!("--grid/--frames: {e}"))?;
             let f = plume_field(rows, cols, frames, args.noise, args.seed);
             let meta = json!({"process": "plume", "grid": [rows, cols], "frames": frames, "noise_var": args.noise, "seed": args.seed, "dt": f.dt});
             (f, meta)

@@ -2,14 +2,22 @@
 //! starts the model server and every vehicle as separate processes on loopback Zenoh, shows
 //! progress from the server's event stream, and ends with the report (the networked run
 //! beside the offline loop on the same truth and seed) and the fleet's statistics.
+//!
+//! `up` owns its nodes: they run in one process group of their own, a signal to `up`
+//! (SIGTERM, SIGINT, SIGHUP) stops the whole group, and each node dies with `up` even if `up`
+//! is killed outright (the parent-death signal). A new run is prepared beside the previous one
+//! and replaces it only once its server is up, so a failed start leaves the previous run as it
+//! was.
 
+use super::supervise::{self, Supervisor};
 use anyhow::{bail, Context};
+use fleet::exit::InputResult;
 use fleet::experiment::team;
 use fleet::mission::config::{MissionConfig, DEFAULT_MISSION};
 use fleet::mission::report::{write_mission_report, ServerEvent};
-use std::io::BufRead;
+use std::io::{BufRead, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
@@ -17,7 +25,7 @@ use std::time::{Duration, Instant};
 pub struct Args {
     /// Mission file (default: the bundled mission, config/mission.toml).
     mission: Option<PathBuf>,
-    /// Directory for the truth, logs, summary.json, report.md and mse.png.
+    /// Directory for the truth, logs, events.jsonl, summary.json, report.md and mse.png.
     #[arg(long, default_value = "fleet-run")]
     out: PathBuf,
     /// Give up if the mission is not finished after this many seconds.
@@ -25,19 +33,8 @@ pub struct Args {
     timeout_s: u64,
 }
 
-/// Children killed when `up` ends, however it ends.
-struct Fleet(Vec<(String, Child)>);
-
-impl Drop for Fleet {
-    fn drop(&mut self) {
-        for (_, c) in &mut self.0 {
-            if matches!(c.try_wait(), Ok(None)) {
-                let _ = c.kill();
-                let _ = c.wait();
-            }
-        }
-    }
-}
+/// What a run leaves in `--out` (replaced as a whole by the next run's).
+const RUN_FILES: [&str; 9] = ["state", "logs", "truth.npy", "mission.toml", "events.jsonl", "report.md", "mse.png", "summary.json", "model.cbor"];
 
 /// A sibling binary of this executable (the workspace builds them side by side).
 fn sibling(name: &str) -> anyhow::Result<PathBuf> {
@@ -49,127 +46,238 @@ fn sibling(name: &str) -> anyhow::Result<PathBuf> {
     Ok(path)
 }
 
-fn log_file(dir: &Path, name: &str) -> anyhow::Result<std::fs::File> {
-    std::fs::File::create(dir.join(format!("{name}.log"))).with_context(|| format!("creating the log of {name}"))
+fn log_file(dir: &Path, name: &str) -> anyhow::Result<(std::fs::File, PathBuf)> {
+    let path = dir.join(format!("{name}.log"));
+    let f = std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
+    Ok((f, path))
+}
+
+/// Notices for the operator: above the progress bar on a terminal, plain lines otherwise, and
+/// always in `logs/fleet-up.log`.
+struct Notices {
+    pb: indicatif::ProgressBar,
+    tty: bool,
+    log: std::fs::File,
+}
+
+impl Notices {
+    fn say(&mut self, text: String) {
+        if self.tty {
+            self.pb.println(&text);
+        } else {
+            println!("{text}");
+        }
+        let _ = writeln!(self.log, "{text}");
+    }
+}
+
+/// Refuse endpoints another process holds before anything is started or replaced.
+fn check_ports_free(mission: &MissionConfig) -> anyhow::Result<()> {
+    for ep in &mission.network.listen {
+        let Some(addr) = ep.strip_prefix("tcp/").and_then(|a| a.parse::<std::net::SocketAddr>().ok()) else { continue };
+        if let Err(e) = std::net::TcpListener::bind(addr) {
+            return Err(fleet::exit::bad_input(anyhow::anyhow!("[network] listen {ep}: {e} (another fleet or program is using it; stop it or change the endpoint)")));
+        }
+    }
+    if let Some(addr) = mission.mavlink.gcs.strip_prefix("udpin:").and_then(|a| a.parse::<std::net::SocketAddr>().ok()) {
+        if let Err(e) = std::net::UdpSocket::bind(addr) {
+            return Err(fleet::exit::bad_input(anyhow::anyhow!("[mavlink] gcs {}: {e}", mission.mavlink.gcs)));
+        }
+    }
+    Ok(())
+}
+
+/// Replace the previous run in `out` by the staged one.
+fn commit_start(out: &Path, staging: &Path) -> anyhow::Result<()> {
+    for name in RUN_FILES {
+        let old = out.join(name);
+        if old.is_dir() {
+            std::fs::remove_dir_all(&old).with_context(|| format!("removing the previous run's {}", old.display()))?;
+        } else if old.exists() {
+            std::fs::remove_file(&old).with_context(|| format!("removing the previous run's {}", old.display()))?;
+        }
+        let new = staging.join(name);
+        if new.exists() {
+            std::fs::rename(&new, &old).with_context(|| format!("moving {} into place", new.display()))?;
+        }
+    }
+    let _ = std::fs::remove_dir_all(staging);
+    Ok(())
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let t0 = Instant::now();
     let mission = MissionConfig::load(args.mission.as_deref())?;
     let out = &args.out;
-    let logs = out.join("logs");
-    std::fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
-    // Every node reads the same file: the default is written out beside the run.
-    let mission_path = match &args.mission {
-        Some(p) => p.clone(),
-        None => {
-            let p = out.join("mission.toml");
-            std::fs::write(&p, DEFAULT_MISSION)?;
-            p
-        }
-    };
     let (server_bin, vehicle_bin) = (sibling("model-server")?, sibling("vehicle")?);
+    let gateway_bin = if mission.mavlink.gcs.is_empty() { None } else { Some(sibling("gcs-gateway")?) };
+    check_ports_free(&mission)?;
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display())).input()?;
+    // Staged beside the previous run until the server is up.
+    let staging = out.join(format!(".starting-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&staging);
+    let logs = staging.join("logs");
+    std::fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
+    let cleanup = StagingGuard(Some(staging.clone()));
+    let mission_file = |dir: &Path| args.mission.clone().unwrap_or_else(|| dir.join("mission.toml"));
+    if args.mission.is_none() {
+        std::fs::write(staging.join("mission.toml"), DEFAULT_MISSION)?;
+    }
 
     let pb = super::progress_bar(mission.truth.frames as u64, "truth");
     let truth = mission.truth(|k| pb.set_position(k as u64))?;
     pb.finish_and_clear();
     let (grid, frames) = mission.workspace(&truth)?;
-    let truth_path = out.join("truth.npy");
-    fleet::process::dataset::save(&truth_path, &truth, None)?;
+    fleet::process::dataset::save(staging.join("truth.npy"), &truth, None)?;
     println!("mission {}: {} x {} grid, {frames} steps, {} vehicles (truth made in {:.1} s)", mission.mission, grid.rows, grid.cols, mission.vehicles().len(), t0.elapsed().as_secs_f64());
 
-    // A new run starts from empty outboxes and an empty journal.
-    let state = out.join("state");
-    let _ = std::fs::remove_dir_all(&state);
-    let node_args = |c: &mut Command| {
-        c.arg("--mission").arg(&mission_path).arg("--truth").arg(&truth_path).arg("--state-dir").arg(&state);
-    };
-    let mut fleet = Fleet(vec![]);
+    let stop = supervise::catch_stop_signals()?;
+    let mut fleet = Supervisor::default();
     let mut server = Command::new(&server_bin);
-    node_args(&mut server);
-    server.arg("--events").arg("--out").arg(out).arg("--exit-when-done").stdout(Stdio::piped()).stderr(log_file(&logs, "server")?);
-    let mut server = server.spawn().with_context(|| format!("starting {}", server_bin.display()))?;
-    let stdout = server.stdout.take().expect("piped stdout");
-    fleet.0.push(("server".into(), server));
+    server.arg("--mission").arg(mission_file(&staging)).arg("--truth").arg(staging.join("truth.npy")).arg("--state-dir").arg(staging.join("state"));
+    let (server_log, server_log_path) = log_file(&logs, "server")?;
+    server.arg("--events").arg("--out").arg(out).arg("--exit-when-done").stdout(Stdio::piped()).stderr(server_log);
+    let mut stdout = fleet.spawn("model-server", server, out.join("logs/server.log"))?;
+    let stdout = stdout.take().expect("piped stdout");
     let (tx, rx) = mpsc::channel();
+    let mut events_file = std::fs::File::create(staging.join("events.jsonl"))?;
     std::thread::spawn(move || {
         for line in std::io::BufReader::new(stdout).lines().map_while(Result::ok) {
-            match serde_json::from_str::<ServerEvent>(&line) {
-                Ok(e) => {
-                    if tx.send(e).is_err() {
-                        break;
-                    }
-                }
-                Err(e) => eprintln!("server said something that is not an event ({e}): {line}"),
+            let event = serde_json::from_str::<ServerEvent>(&line).map_err(|e| format!("the server said something that is not an event ({e}): {line}"));
+            if event.is_ok() {
+                let _ = writeln!(events_file, "{line}");
+            }
+            if tx.send(event).is_err() {
+                break;
             }
         }
     });
-    // The ground-station gateway runs until the run ends (dropped, so killed, at the end).
-    let mut _gateway = Fleet(vec![]);
-    if !mission.mavlink.gcs.is_empty() {
-        let bin = sibling("gcs-gateway")?;
-        let mut c = Command::new(&bin);
-        c.arg("--mission").arg(&mission_path).stdout(Stdio::null()).stderr(log_file(&logs, "gcs-gateway")?);
-        _gateway.0.push(("gcs-gateway".into(), c.spawn().with_context(|| format!("starting {}", bin.display()))?));
+
+    // The start: until the server is up, a failure leaves the previous run as it was.
+    let ready_by = Instant::now() + Duration::from_secs(120);
+    loop {
+        if let Some(sig) = stop.received() {
+            fleet.stop();
+            bail!("stopped by signal {sig} before the server was up (the previous run in {} is unchanged)", out.display());
+        }
+        match rx.recv_timeout(Duration::from_millis(100)) {
+            Ok(Ok(ServerEvent::Ready { .. })) => break,
+            Ok(_) | Err(mpsc::RecvTimeoutError::Timeout) => {}
+            Err(mpsc::RecvTimeoutError::Disconnected) => {}
+        }
+        if let Some(dead) = fleet.exited() {
+            // Its log is still in the staging directory.
+            let why = supervise::last_line(&server_log_path);
+            return Err(dead.into_error(why, &format!("the previous run in {} is unchanged", out.display())));
+        }
+        if Instant::now() > ready_by {
+            fleet.stop();
+            bail!("the model server was not up after 120 s (its log: {}; the previous run in {} is unchanged)", server_log_path.display(), out.display());
+        }
+    }
+    commit_start(out, &staging)?;
+    drop(cleanup);
+    let logs = out.join("logs");
+    let state = out.join("state");
+    let truth_path = out.join("truth.npy");
+    let mission_path = mission_file(out);
+    let node_args = |c: &mut Command| {
+        c.arg("--mission").arg(&mission_path).arg("--truth").arg(&truth_path).arg("--state-dir").arg(&state);
+    };
+    if let Some(bin) = &gateway_bin {
+        let mut c = Command::new(bin);
+        let (log, path) = log_file(&logs, "gcs-gateway")?;
+        c.arg("--mission").arg(&mission_path).stdout(Stdio::null()).stderr(log);
+        fleet.spawn("gcs-gateway", c, path)?;
         println!("ground stations: the fleet is on {} (MAVLink 2; each vehicle its own system id)", mission.mavlink.gcs);
     }
     for v in mission.vehicles() {
         let mut c = Command::new(&vehicle_bin);
         node_args(&mut c);
-        c.arg("--id").arg(&v.id).stdout(Stdio::null()).stderr(log_file(&logs, &v.id)?);
-        fleet.0.push((v.id.clone(), c.spawn().with_context(|| format!("starting {}", vehicle_bin.display()))?));
+        let (log, path) = log_file(&logs, &v.id)?;
+        c.arg("--id").arg(&v.id).stdout(Stdio::null()).stderr(log);
+        fleet.spawn(&v.id, c, path)?;
     }
 
     let epochs = mission.schedule(frames).epochs();
     let pb = super::progress_bar(epochs, "epochs");
+    let tty = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let mut notices = Notices { pb: pb.clone(), tty, log: std::fs::File::create(logs.join("fleet-up.log"))? };
     let deadline = Instant::now() + Duration::from_secs(args.timeout_s);
     let mut alive = 0usize;
+    let mut events = vec![];
     let summary = loop {
+        if let Some(sig) = stop.received() {
+            pb.finish_and_clear();
+            fleet.stop();
+            notices.say(format!("stopped by signal {sig}: every node of the fleet stopped; the run's state is in {} (nodes restarted on it resume)", state.display()));
+            std::process::exit(128 + sig);
+        }
         if Instant::now() > deadline {
             bail!("the mission did not finish in {} s (logs in {})", args.timeout_s, logs.display());
         }
         match rx.recv_timeout(Duration::from_millis(200)) {
-            Ok(ServerEvent::Epoch { epoch, version, mse, alive: a, .. }) => {
-                alive = a;
-                pb.set_position(epoch + 1);
-                pb.set_message(format!("v{version} {a} alive mse {}", mse.map_or("-".into(), |m| format!("{m:.2e}"))));
-            }
-            Ok(ServerEvent::Link { alive: up, .. }) => {
-                alive = if up { alive + 1 } else { alive.saturating_sub(1) };
-            }
-            Ok(ServerEvent::Ready { .. }) => pb.set_message("server ready"),
-            Ok(ServerEvent::Hold { vehicle, held, mode }) => pb.println(format!("{vehicle}: {} ({mode})", if held { "left out of the allocation" } else { "back in the allocation" })),
-            Ok(ServerEvent::Late { vehicle, epoch, version }) => pb.println(format!("{vehicle}: late batch of epoch {epoch} re-fitted the model (v{version})")),
-            Ok(ServerEvent::Finished { summary }) => break summary,
-            Err(mpsc::RecvTimeoutError::Timeout) => {}
-            Err(mpsc::RecvTimeoutError::Disconnected) => bail!("the model server stopped before the mission finished (see {})", logs.join("server.log").display()),
-        }
-        for (name, c) in &mut fleet.0 {
-            if let Ok(Some(status)) = c.try_wait() {
-                if !status.success() {
-                    bail!("{name} exited with {status} (see {})", logs.join(format!("{name}.log")).display());
+            Ok(Ok(e)) => {
+                match &e {
+                    ServerEvent::Epoch { epoch, version, mse, alive: a, .. } => {
+                        alive = *a;
+                        pb.set_position(epoch + 1);
+                        pb.set_message(format!("v{version} {a} alive mse {}", mse.map_or("-".into(), |m| format!("{m:.2e}"))));
+                    }
+                    ServerEvent::Link { alive: up, .. } => alive = if *up { alive + 1 } else { alive.saturating_sub(1) },
+                    ServerEvent::Ready { .. } => pb.set_message("server ready"),
+                    ServerEvent::Hold { vehicle, held, mode } => notices.say(format!("{vehicle}: {} ({mode})", if *held { "left out of the allocation" } else { "back in the allocation" })),
+                    ServerEvent::Late { vehicle, epoch, version } => notices.say(format!("{vehicle}: late batch of epoch {epoch} re-fitted the model (v{version})")),
+                    ServerEvent::Refused { vehicle, seq, detail, .. } => {
+                        notices.say(format!("{vehicle}: batch {seq} refused by the server: {detail}"));
+                        bail!("{vehicle}'s batch {seq} was refused ({detail}): its epoch cannot complete, so the mission cannot finish (logs in {})", logs.display());
+                    }
+                    ServerEvent::Lost { vehicle, seqs } => notices.say(format!("{vehicle}: batches {seqs:?} were acknowledged but are not in the journal: lost")),
+                    ServerEvent::Finished { .. } => {}
                 }
+                if let ServerEvent::Finished { summary } = e {
+                    break summary;
+                }
+                events.push(e);
             }
+            Ok(Err(said)) => notices.say(said),
+            Err(mpsc::RecvTimeoutError::Timeout) => {}
+            Err(mpsc::RecvTimeoutError::Disconnected) => {
+                // The server's pipe closed: it has exited; say why in its own words.
+                std::thread::sleep(Duration::from_millis(200));
+                let dead = fleet.exited();
+                let why = supervise::last_line(&logs.join("server.log"));
+                return Err(match dead {
+                    Some(d) => d.into_error(why, "the mission did not finish"),
+                    None => anyhow::anyhow!("the model server closed its output before the mission finished: {}", why.unwrap_or_default()),
+                });
+            }
+        }
+        if let Some(dead) = fleet.exited() {
+            let why = supervise::last_line(&dead.log);
+            return Err(dead.into_error(why, "the mission did not finish"));
         }
     };
     pb.finish_and_clear();
     // Vehicles leave once their last batch is acknowledged; then the server exits.
-    let wait_until = Instant::now() + Duration::from_secs(60);
-    for (name, c) in &mut fleet.0 {
-        loop {
-            match c.try_wait()? {
-                Some(s) if s.success() => break,
-                Some(s) => bail!("{name} exited with {s} (see {})", logs.join(format!("{name}.log")).display()),
-                None if Instant::now() > wait_until => bail!("{name} did not exit after the mission"),
-                None => std::thread::sleep(Duration::from_millis(50)),
-            }
-        }
-    }
+    fleet.wait_nodes(Duration::from_secs(60), &["gcs-gateway"])?;
+    fleet.stop();
 
     let offline = team::run(&mission.team, &truth, |_, _| {})?;
     let command = format!("fleet up{} --out {}", args.mission.as_ref().map_or(String::new(), |p| format!(" {}", p.display())), out.display());
-    let md = write_mission_report(out, &mission, &summary, &offline, truth.dt, &command)?;
+    let md = write_mission_report(out, &mission, &summary, &offline, truth.dt, &command, &events)?;
     println!("{md}");
-    println!("wrote {}/report.md, mse.png, summary.json, model.cbor and logs/ ({:.1} s in all)", out.display(), t0.elapsed().as_secs_f64());
+    println!("wrote {}/report.md, mse.png, events.jsonl, summary.json, model.cbor and logs/ ({:.1} s in all)", out.display(), t0.elapsed().as_secs_f64());
     Ok(())
+}
+
+/// Removes the staging directory however `run` ends (after a committed start it is gone).
+struct StagingGuard(Option<PathBuf>);
+
+impl Drop for StagingGuard {
+    fn drop(&mut self) {
+        if let Some(d) = self.0.take() {
+            let _ = std::fs::remove_dir_all(d);
+        }
+    }
 }

@@ -55,6 +55,13 @@ pub enum DmdError {
     Gamma(f64),
 }
 
+impl DmdError {
+    /// Whether the data or the settings given are at fault (rather than the numerics).
+    pub fn is_input(&self) -> bool {
+        !matches!(self, Self::Numerical(_))
+    }
+}
+
 /// Which update scheme a model uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]

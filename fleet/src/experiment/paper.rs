@@ -78,22 +78,23 @@ impl Row {
 
 impl ExperimentConfig {
     pub fn from_toml(text: &str) -> anyhow::Result<Self> {
-        let cfg: Self = toml::from_str(text)?;
+        let cfg: Self = toml::from_str(text).map_err(|e| anyhow::anyhow!(crate::exit::toml_error(text, &e)))?;
         if cfg.rows.is_empty() {
             bail!("the experiment has no [[row]]");
         }
-        for r in &cfg.rows {
+        for (i, r) in cfg.rows.iter().enumerate() {
+            let r_ = format!("[[row]] {} ({})", i + 1, r.name());
             if r.preset.is_some() == r.dataset.is_some() {
-                bail!("row {r:?}: give exactly one of preset or dataset");
+                bail!("{r_}: give exactly one of preset or dataset");
             }
             if r.av_time == 0 || r.mv_time == 0 || r.av_space == 0 || r.mv_space == 0 || r.av_space % r.mv_space != 0 {
-                bail!("row {r:?}: rates must be >= 1 and av_space a multiple of mv_space");
+                bail!("{r_}: rates must be >= 1 and av_space a multiple of mv_space");
             }
             if !(r.noise.is_finite() && r.noise >= 0.0) {
-                bail!("row {r:?}: noise must be >= 0");
+                bail!("{r_}: noise must be >= 0");
             }
             if cfg.truth_grid[0] / r.mv_space < 4 || cfg.truth_grid[1] / r.mv_space < 4 {
-                bail!("row {r:?}: the model grid would be smaller than 4 x 4");
+                bail!("{r_}: the model grid would be smaller than 4 x 4");
             }
         }
         if cfg.frames < 10 || cfg.truth_grid.iter().any(|&n| n < 8) {

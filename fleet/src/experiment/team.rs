@@ -57,7 +57,8 @@ pub struct TeamConfig {
     pub boat_sigma: f64,
     /// Steps of aerial-only data before the first model.
     pub init_steps: usize,
-    /// `full`, `optimal`, `energy:<f>` or an integer.
+    /// `full`, `optimal`, `energy:<f>` or an integer (`rank = 6` or `rank = "6"`).
+    #[serde(deserialize_with = "rank_text")]
     pub rank: String,
     pub method: Method,
     pub gamma: f64,
@@ -150,8 +151,56 @@ impl TeamConfig {
         if grid.len() == 0 {
             return bad("empty grid".into());
         }
+        if self.method != Method::LongTerm && self.gamma != 1.0 {
+            return bad(format!("gamma = {}: the forgetting factor applies to method = \"long-term\" only ({:?} keeps every snapshot)", self.gamma, self.method));
+        }
+        if !(self.gamma > 0.0 && self.gamma <= 1.0) {
+            return bad(format!("gamma = {}: must be in (0, 1]", self.gamma));
+        }
+        let lattice = grid.strided(self.aerial_stride)?;
+        if self.aerials > lattice.rows * lattice.cols {
+            return bad(format!(
+                "aerials = {}: the aerial lattice has only {} cells ({} x {} grid, aerial_stride {}), so some aerial would see nothing; use at most {} aerials or a smaller aerial_stride",
+                self.aerials, lattice.rows * lattice.cols, grid.rows, grid.cols, self.aerial_stride, lattice.rows * lattice.cols
+            ));
+        }
+        if !disk_fits(grid, self.boats, self.radius) {
+            return bad(match largest_radius(grid, self.boats) {
+                Some(r) => format!("radius = {}: {} boats' disks of that radius do not fit side by side on the {} x {} grid; at most radius {r}", self.radius, self.boats, grid.rows, grid.cols),
+                None => format!("boats = {}: more boats than cells on the {} x {} grid", self.boats, grid.rows, grid.cols),
+            });
+        }
         Ok(rank)
     }
+}
+
+/// The rank as text, from a string (`"optimal"`, `"6"`) or a bare integer (`6`).
+fn rank_text<'de, D: serde::Deserializer<'de>>(d: D) -> Result<String, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Rank {
+        Text(String),
+        Number(u64),
+    }
+    match Rank::deserialize(d).map_err(|_| serde::de::Error::custom("rank: give \"full\", \"optimal\", \"energy:<fraction>\" or a positive integer"))? {
+        Rank::Text(t) => Ok(t),
+        Rank::Number(n) => Ok(n.to_string()),
+    }
+}
+
+/// The largest sensing radius (cells) at which `boats` disks fit side by side on `grid`: a
+/// disk inside the grid, and the disks' cells together no more than the grid's.
+fn largest_radius(grid: &Grid, boats: usize) -> Option<usize> {
+    (0..grid.rows.min(grid.cols)).take_while(|&r| disk_fits(grid, boats, r as f64)).last()
+}
+
+fn disk_fits(grid: &Grid, boats: usize, radius: f64) -> bool {
+    let span = 2 * radius.floor() as usize + 1;
+    if span > grid.rows.min(grid.cols) {
+        return false;
+    }
+    let centre = crate::grid::Cell::new(grid.rows / 2, grid.cols / 2);
+    boats.saturating_mul(grid.disk(centre, radius).len()) <= grid.len()
 }
 
 fn mse(a: &[f64], b: &[f64]) -> f64 {

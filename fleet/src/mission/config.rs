@@ -206,8 +206,13 @@ pub struct MissionConfig {
 }
 
 impl MissionConfig {
+    /// Parse and check a mission; every error is bad input ([`crate::exit`]), on one line.
     pub fn from_toml(text: &str) -> anyhow::Result<Self> {
-        let cfg: Self = toml::from_str(text).context("reading the mission file")?;
+        Self::parse(text).map_err(crate::exit::bad_input)
+    }
+
+    fn parse(text: &str) -> anyhow::Result<Self> {
+        let cfg: Self = toml::from_str(text).map_err(|e| anyhow::anyhow!(crate::exit::toml_error(text, &e)))?;
         keys::check_id("mission", &cfg.mission)?;
         cfg.truth.source.check().context("[truth]")?;
         if cfg.truth.frames < 10 || cfg.truth.average == 0 {
@@ -229,7 +234,10 @@ impl MissionConfig {
     /// The mission file at `path`, or the bundled default.
     pub fn load(path: Option<&Path>) -> anyhow::Result<Self> {
         match path {
-            Some(p) => Self::from_toml(&std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?).with_context(|| p.display().to_string()),
+            Some(p) => {
+                let text = std::fs::read_to_string(p).map_err(|e| crate::exit::bad_input(anyhow::anyhow!("{}: {e}", p.display())))?;
+                Self::from_toml(&text).with_context(|| p.display().to_string())
+            }
             None => Self::from_toml(DEFAULT_MISSION).context("the bundled default mission"),
         }
     }
@@ -241,10 +249,45 @@ impl MissionConfig {
     }
 
     /// Check a truth field against the mission, then the workspace grid and length it gives.
+    /// Bad input: a truth that does not fit the team (see [`TeamConfig::validate`]).
     pub fn workspace(&self, truth: &FieldSeries) -> anyhow::Result<(Grid, usize)> {
-        let grid = Grid::new(truth.rows, truth.cols, 1.0)?;
-        self.team.validate(&grid, truth.frames())?;
+        let grid = Grid::new(truth.rows, truth.cols, 1.0).map_err(crate::exit::bad_input)?;
+        self.team.validate(&grid, truth.frames()).map_err(|e| crate::exit::bad_input(anyhow::anyhow!("[team] {e}")))?;
         Ok((grid, truth.frames()))
+    }
+
+    /// The model grid `(rows, cols)` and steps the mission senses, when the mission file alone
+    /// says it: a simulator preset always, a dataset when its file can be read here. Every
+    /// node's truth must have this shape, or the nodes sense different cells.
+    pub fn model_shape(&self) -> Option<(usize, usize, usize)> {
+        let a = self.truth.average.max(1);
+        match (&self.truth.source.preset, &self.truth.source.dataset) {
+            (Some(_), _) => Some((self.truth.grid[0] / a, self.truth.grid[1] / a, self.truth.frames)),
+            (None, Some(path)) => {
+                let shape = crate::npy::read_shape(path).ok()?;
+                match shape.as_slice() {
+                    &[t, r, c] => Some((r / a, c / a, t)),
+                    _ => None,
+                }
+            }
+            _ => None,
+        }
+    }
+
+    /// Check a truth given to a node (`--truth`) against [`Self::model_shape`].
+    pub fn check_truth(&self, truth: &FieldSeries, path: &Path) -> anyhow::Result<()> {
+        let Some((rows, cols, frames)) = self.model_shape() else { return Ok(()) };
+        if (truth.rows, truth.cols, truth.frames()) != (rows, cols, frames) {
+            return Err(crate::exit::bad_input(anyhow::anyhow!(
+                "--truth {} is {} x {} cells for {} steps, but mission {:?} senses {rows} x {cols} cells for {frames} steps: give the truth `fleet up` or the server made for this mission (every node must sense the same field)",
+                path.display(),
+                truth.rows,
+                truth.cols,
+                truth.frames(),
+                self.mission
+            )));
+        }
+        Ok(())
     }
 
     pub fn vehicles(&self) -> Vec<VehicleSpec> {
@@ -257,7 +300,10 @@ impl MissionConfig {
 
     /// A vehicle's index (its random stream) and kind.
     pub fn vehicle(&self, id: &str) -> anyhow::Result<(usize, VehicleKind)> {
-        self.vehicles().iter().position(|v| v.id == id).map(|i| (i, self.vehicles()[i].kind)).with_context(|| format!("no vehicle {id:?} in mission {:?}", self.mission))
+        let known = self.vehicles();
+        known.iter().position(|v| v.id == id).map(|i| (i, known[i].kind)).ok_or_else(|| {
+            crate::exit::bad_input(anyhow::anyhow!("--id {id}: no such vehicle in mission {:?} (it has {})", self.mission, known.iter().map(|v| v.id.as_str()).collect::<Vec<_>>().join(", ")))
+        })
     }
 
     /// A vehicle's sensor noise.

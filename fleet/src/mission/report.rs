@@ -44,6 +44,12 @@ pub enum ServerEvent {
     Late { vehicle: String, epoch: u64, version: u64 },
     /// A vehicle left the allocation (its autopilot is on operator hold or lost) or came back.
     Hold { vehicle: String, held: bool, mode: String },
+    /// A batch of a mission vehicle was refused: its epoch cannot complete with it (the
+    /// vehicle re-sends the same batch), so a mission waiting for it will not finish.
+    Refused { vehicle: String, seq: u64, reason: String, detail: String },
+    /// A vehicle says the server acknowledged batches the journal does not hold (a journal
+    /// deleted, replaced or rolled back): they are lost, and the epochs that need them wait.
+    Lost { vehicle: String, seqs: Vec<u64> },
     /// Every step is in the model.
     Finished { summary: Box<ServerSummary> },
 }
@@ -110,6 +116,44 @@ mod tests {
     }
 }
 
+/// Why a networked run differs from the offline loop, from what the server reported: each
+/// vehicle held out of the allocation (and why), late batches, refusals and lost batches.
+fn differences(events: &[ServerEvent], c: &Counters) -> String {
+    let mut why: Vec<String> = vec![];
+    // Per vehicle, how often it was left out, and why (operator modes, lost autopilots).
+    let mut held: BTreeMap<&str, BTreeMap<String, u32>> = BTreeMap::new();
+    for e in events {
+        match e {
+            ServerEvent::Hold { vehicle, held: true, mode } => {
+                let why = if mode.contains("(Lost)") {
+                    "autopilot lost".to_string()
+                } else if mode.is_empty() {
+                    "held".to_string()
+                } else {
+                    format!("mode {}", mode.split(" (").next().unwrap_or(mode))
+                };
+                *held.entry(vehicle).or_default().entry(why).or_default() += 1;
+            }
+            ServerEvent::Late { vehicle, epoch, .. } => why.push(format!("{vehicle}'s batch of epoch {epoch} came late: the epoch was assimilated without it and the model re-fitted when it came (plans made in between differ from the offline loop's)")),
+            ServerEvent::Refused { vehicle, seq, detail, .. } => why.push(format!("{vehicle}'s batch {seq} was refused: {detail}")),
+            ServerEvent::Lost { vehicle, seqs } => why.push(format!("{vehicle}'s batches {seqs:?} were lost with the journal")),
+            _ => {}
+        }
+    }
+    let times = |n: u32| if n == 1 { "once".to_string() } else { format!("{n} times") };
+    for (v, reasons) in held.iter().rev() {
+        let list = reasons.iter().map(|(r, n)| format!("{r} {}", times(*n))).collect::<Vec<_>>().join(", ");
+        why.insert(0, format!("{v} was left out of the allocation ({list}): the offline loop allocates every vehicle every epoch"));
+    }
+    if c.forced > 0 && !why.iter().any(|w| w.contains("late")) {
+        why.push(format!("{} epochs were assimilated without a late vehicle", c.forced));
+    }
+    if why.is_empty() {
+        return "Why: nothing the server reported (no hold, late batch, refusal or loss) explains it; a vehicle that sensed away from its planned place (its log counts `off_target`) would, and otherwise it is a defect to report.\n".into();
+    }
+    format!("Why:\n\n{}\n", why.iter().map(|w| format!("- {w}")).collect::<Vec<_>>().join("\n"))
+}
+
 /// The report `fleet up` writes: the networked mission beside the offline loop on the same
 /// truth and seed (which it must equal), the single-kind teams, and the fleet's statistics.
 pub fn write_mission_report(
@@ -119,6 +163,7 @@ pub fn write_mission_report(
     offline: &crate::experiment::team::TeamOutcome,
     dt: f64,
     command: &str,
+    events: &[ServerEvent],
 ) -> anyhow::Result<String> {
     use crate::plot::{self, Series};
     use std::fmt::Write as _;
@@ -146,6 +191,9 @@ pub fn write_mission_report(
     writeln!(md, "| aerials only | {:.4e} |", offline.mean_aerial_only)?;
     writeln!(md, "| boats only | {:.4e} |\n", offline.mean_boat_only)?;
     writeln!(md, "Network equals offline: **{}** (largest per-step difference {max_diff:.1e}).\n", if same { "yes, to 1e-9 relative" } else { "no" })?;
+    if !same {
+        writeln!(md, "{}", differences(events, &summary.counters))?;
+    }
     writeln!(md, "![MSE per step](mse.png)\n")?;
     writeln!(md, "## Fleet\n")?;
     let c = &summary.counters;

@@ -44,12 +44,48 @@ pub enum Ingested {
     Refitted(u64),
 }
 
+/// Why [`ServerCore::check`] refuses a batch.
+enum BatchFault {
+    Unknown,
+    Invalid(String),
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum IngestError {
     #[error(transparent)]
     Protocol(#[from] protocol::ProtocolError),
     #[error("batch from {vehicle}: {why}")]
     Rejected { vehicle: String, why: String },
+    #[error(transparent)]
+    Model(#[from] TeamError),
+}
+
+/// What the server decided about one epoch that its batches alone do not say: the vehicles
+/// left out of the epoch's allocation (from telemetry: operator hold, autopilot lost), and
+/// whether it was assimilated without some batch (a late vehicle). Journalled with the
+/// batches, so a restarted server makes the same plans and reaches the same epoch.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct EpochRecord {
+    pub held: Vec<String>,
+    pub forced: bool,
+}
+
+impl EpochRecord {
+    /// The journal's metadata key of epoch `e`'s record (zero-padded: key order is epoch order).
+    pub fn key(e: u64) -> String {
+        format!("{}{e:010}", Self::PREFIX)
+    }
+    pub const PREFIX: &'static str = "epoch/";
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum RestoreError {
+    #[error("record {key:?} is unreadable: {why}")]
+    Record { key: String, why: String },
+    #[error("record {key:?} names {vehicle:?}, which is not in the mission")]
+    UnknownVehicle { key: String, vehicle: String },
+    #[error("batch {seq} of {vehicle}: {why}")]
+    Batch { vehicle: String, seq: u64, why: String },
     #[error(transparent)]
     Model(#[from] TeamError),
 }
@@ -69,6 +105,9 @@ pub struct Counters {
     pub forced: u64,
     #[serde(default)]
     pub refits: u64,
+    /// Batches vehicles say were acknowledged but the journal does not hold (lost with it).
+    #[serde(default)]
+    pub lost: u64,
 }
 
 pub struct ServerCore {
@@ -94,6 +133,10 @@ pub struct ServerCore {
     pub snapshots: Vec<Vec<f64>>,
     /// Late batches taken by [`Self::ingest_deferred`] and not yet re-fitted.
     stale: bool,
+    /// Epochs assimilated without some batch (by [`Self::force`]).
+    forced: BTreeSet<u64>,
+    /// Epochs whose [`EpochRecord`] changed since the node last journalled them.
+    unjournalled: BTreeSet<u64>,
 }
 
 impl ServerCore {
@@ -112,6 +155,8 @@ impl ServerCore {
             version: 0,
             snapshots: vec![],
             stale: false,
+            forced: BTreeSet::new(),
+            unjournalled: BTreeSet::new(),
         })
     }
 
@@ -178,6 +223,8 @@ impl ServerCore {
         }
         self.assimilate_epoch(e)?;
         self.counters.forced += 1;
+        self.forced.insert(e);
+        self.unjournalled.insert(e);
         self.assimilate_complete()?;
         Ok(true)
     }
@@ -198,6 +245,7 @@ impl ServerCore {
         let upto = self.epoch;
         let version = self.version;
         let history = std::mem::take(&mut self.plans);
+        let unjournalled = std::mem::take(&mut self.unjournalled);
         self.assim = Assimilator::new(&self.cfg, *self.assim.grid(), self.schedule.frames)?;
         self.snapshots.clear();
         self.epoch = 0;
@@ -206,6 +254,7 @@ impl ServerCore {
         }
         let next = self.plans.remove(&upto);
         self.plans = history;
+        self.unjournalled = unjournalled;
         if let Some(p) = next {
             self.plans.insert(upto, p);
         }
@@ -265,30 +314,18 @@ impl ServerCore {
     /// (a batch that completes the next epoch settles first).
     pub fn ingest_deferred(&mut self, batch: MeasurementBatch) -> Result<Ingested, IngestError> {
         self.counters.batches += 1;
-        let Some(index) = self.vehicles.iter().position(|v| v.id == batch.vehicle) else {
-            *self.counters.rejected.entry("unknown_vehicle".into()).or_default() += 1;
-            return Err(protocol::ProtocolError::UnknownVehicle(batch.vehicle).into());
+        let (index, e) = match self.check(&batch) {
+            Ok(Some(found)) => found,
+            Ok(None) => {
+                self.counters.duplicates += 1;
+                return Ok(Ingested::Duplicate);
+            }
+            Err(BatchFault::Unknown) => {
+                *self.counters.rejected.entry("unknown_vehicle".into()).or_default() += 1;
+                return Err(protocol::ProtocolError::UnknownVehicle(batch.vehicle).into());
+            }
+            Err(BatchFault::Invalid(why)) => return Err(self.reject(&batch.vehicle, why)),
         };
-        if self.vehicles[index].kind != batch.kind {
-            return Err(self.reject(&batch.vehicle, format!("declared {:?}, registered {:?}", batch.kind, self.vehicles[index].kind)));
-        }
-        let e = Schedule::epoch_of(batch.kind, batch.seq);
-        if self.received.get(&e).is_some_and(|m| m.contains_key(&index)) {
-            self.counters.duplicates += 1;
-            return Ok(Ingested::Duplicate);
-        }
-        let steps = self.steps_of(e);
-        if steps.is_empty() {
-            return Err(self.reject(&batch.vehicle, format!("seq {} is past the end of the mission", batch.seq)));
-        }
-        let want = self.schedule.sample_steps(batch.kind, e);
-        let got: Vec<usize> = batch.samples.iter().map(|s| s.step as usize).collect();
-        // A boat the plan left without a disk, or a vehicle on hold, sends an empty batch.
-        let idle = got.is_empty()
-            && self.plans.get(&e).is_some_and(|p| p.held.contains(&index) || (batch.kind == VehicleKind::Boat && p.boats[index - self.cfg.aerials].is_none()));
-        if got != want && !idle {
-            return Err(self.reject(&batch.vehicle, format!("epoch {e} wants samples at steps {want:?}, got {got:?}")));
-        }
         self.received.entry(e).or_default().insert(index, batch);
         if e < self.epoch {
             self.stale = true;
@@ -302,6 +339,95 @@ impl ServerCore {
             self.assimilate_complete()?;
         }
         Ok(if self.epoch == before { Ingested::Buffered } else { Ingested::Assimilated((before..self.epoch).collect()) })
+    }
+
+    /// Where a batch belongs (its vehicle's index and its epoch), `None` for a duplicate, or
+    /// why it is refused. What decides it is the mission alone (the schedule, and epoch 0's
+    /// formation), never the server's later decisions, so a restarted server accepts exactly
+    /// what the live one did. An empty batch is a vehicle reporting that it sensed nothing
+    /// (left out of the allocation, a boat without a disk, an aerial whose region has no
+    /// lattice cell, a vehicle that followed an older plan's horizon): always accepted, except
+    /// an aerial's at epoch 0 when the formation gave it cells (the first model needs the whole
+    /// lattice).
+    fn check(&self, batch: &MeasurementBatch) -> Result<Option<(usize, u64)>, BatchFault> {
+        let index = self.vehicles.iter().position(|v| v.id == batch.vehicle).ok_or(BatchFault::Unknown)?;
+        if self.vehicles[index].kind != batch.kind {
+            return Err(BatchFault::Invalid(format!("declared {:?}, registered {:?}", batch.kind, self.vehicles[index].kind)));
+        }
+        let e = Schedule::epoch_of(batch.kind, batch.seq);
+        if self.received.get(&e).is_some_and(|m| m.contains_key(&index)) {
+            return Ok(None);
+        }
+        if self.steps_of(e).is_empty() {
+            return Err(BatchFault::Invalid(format!("seq {} is past the end of the mission", batch.seq)));
+        }
+        let want = self.schedule.sample_steps(batch.kind, e);
+        let got: Vec<usize> = batch.samples.iter().map(|s| s.step as usize).collect();
+        let idle_allowed = e > 0 || self.plan(&batch.vehicle, 0, 1).is_some_and(|p| p.targets.iter().all(|t| t.cells.is_empty()));
+        if got != want && !(got.is_empty() && idle_allowed) {
+            return Err(BatchFault::Invalid(format!("epoch {e} wants samples at steps {want:?}, got {got:?}")));
+        }
+        Ok(Some((index, e)))
+    }
+
+    /// The records of the epochs whose decisions changed since the last call, as the journal's
+    /// metadata (key, CBOR): the node commits them with the batch that caused them, before any
+    /// plan of those epochs is handed out.
+    pub fn take_journal_records(&mut self) -> Vec<(String, Vec<u8>)> {
+        std::mem::take(&mut self.unjournalled)
+            .into_iter()
+            .map(|e| {
+                let held = self.holds.get(&e).map_or_else(Vec::new, |h| h.iter().map(|&i| self.vehicles[i].id.clone()).collect());
+                let mut bytes = vec![];
+                ciborium::into_writer(&EpochRecord { held, forced: self.forced.contains(&e) }, &mut bytes).expect("a record serialises");
+                (EpochRecord::key(e), bytes)
+            })
+            .collect()
+    }
+
+    /// A restarted server's state from its journal: the batches it had accepted (any order) and
+    /// its epoch records. Every epoch that was complete or forced is assimilated again, in step
+    /// order, with the holds it was allocated under; the held set goes on as the newest
+    /// epoch's. Returns how many batches.
+    pub fn restore(&mut self, batches: Vec<MeasurementBatch>, records: &[(String, Vec<u8>)]) -> Result<u64, RestoreError> {
+        for (key, bytes) in records {
+            let bad = |why: String| RestoreError::Record { key: key.clone(), why };
+            let e: u64 = key.strip_prefix(EpochRecord::PREFIX).and_then(|n| n.parse().ok()).ok_or_else(|| bad("not an epoch record".into()))?;
+            let r: EpochRecord = ciborium::from_reader(&bytes[..]).map_err(|err| bad(err.to_string()))?;
+            let mut held = BTreeSet::new();
+            for id in r.held {
+                let i = self.vehicles.iter().position(|v| v.id == id).ok_or_else(|| RestoreError::UnknownVehicle { key: key.clone(), vehicle: id.clone() })?;
+                held.insert(i);
+            }
+            self.holds.insert(e, held);
+            if r.forced {
+                self.forced.insert(e);
+            }
+        }
+        let n = batches.len() as u64;
+        for b in batches {
+            let (vehicle, seq) = (b.vehicle.clone(), b.seq);
+            let why = |why: String| RestoreError::Batch { vehicle: vehicle.clone(), seq, why };
+            match self.check(&b) {
+                Ok(Some((index, e))) => {
+                    self.received.entry(e).or_default().insert(index, b);
+                }
+                Ok(None) => return Err(why("twice in the journal".into())),
+                Err(BatchFault::Unknown) => return Err(why("not a vehicle of the mission".into())),
+                Err(BatchFault::Invalid(w)) => return Err(why(w)),
+            }
+        }
+        self.counters.batches += n;
+        self.counters.restored = n;
+        while self.epoch_complete(self.epoch) || (self.epoch > 0 && self.forced.contains(&self.epoch) && !self.steps_of(self.epoch).is_empty()) {
+            if !self.epoch_complete(self.epoch) {
+                self.counters.forced += 1;
+            }
+            self.assimilate_epoch(self.epoch)?;
+        }
+        self.held = self.holds.get(&self.epoch).cloned().unwrap_or_default();
+        self.unjournalled.clear();
+        Ok(n)
     }
 
     /// Aerials take part in every epoch; boats in every full epoch after the first (a last,
@@ -348,8 +474,11 @@ impl ServerCore {
         self.version += 1;
         self.counters.epochs = self.epoch;
         if !self.all_assimilated() {
-            let held = self.holds.entry(self.epoch).or_insert_with(|| self.held.clone()).clone();
-            let plan = self.assim.allocate_without(&held)?;
+            if !self.holds.contains_key(&self.epoch) {
+                self.holds.insert(self.epoch, self.held.clone());
+                self.unjournalled.insert(self.epoch);
+            }
+            let plan = self.assim.allocate_without(&self.holds[&self.epoch])?;
             self.plans.insert(self.epoch, plan);
         }
         Ok(())
@@ -397,6 +526,27 @@ impl ServerCore {
             .map(|(ep, k)| Target { epoch: ep, step: k as u64, position: [position.0, position.1], radius, cells: cells.clone() })
             .collect();
         Some(Plan { vehicle: vehicle.into(), model_version: self.version, epoch: e, targets })
+    }
+
+    /// The seqs `0..=through` of `vehicle` this server does not hold (empty for an unknown
+    /// vehicle). A vehicle has dropped every batch the server acknowledged, so after a restart
+    /// any of them missing means the journal lost data.
+    pub fn lacks_through(&self, vehicle: &str, through: u64) -> Vec<u64> {
+        let Some(index) = self.vehicles.iter().position(|v| v.id == vehicle) else { return vec![] };
+        let kind = self.vehicles[index].kind;
+        (0..self.schedule.epochs())
+            .filter_map(|e| self.schedule.seq_of(kind, e).map(|s| (e, s)))
+            .take_while(|&(_, s)| s <= through)
+            .filter(|(e, _)| !self.received.get(e).is_some_and(|m| m.contains_key(&index)))
+            .map(|(_, s)| s)
+            .collect()
+    }
+
+    /// A fingerprint of what the journal's batches mean: the team, the grid and the mission's
+    /// length. A journal written under another one is refused, not replayed.
+    pub fn fingerprint(&self) -> String {
+        let g = self.assim.grid();
+        format!("{} grid {}x{} frames {}", serde_json::to_string(&self.cfg).expect("the team serialises"), g.rows, g.cols, self.schedule.frames)
     }
 
     /// The ack of a vehicle: the highest seq up to which all of its batches are in the model

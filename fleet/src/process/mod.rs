@@ -9,6 +9,32 @@ pub mod truth;
 
 use faer::Mat;
 
+/// Refuse a field too large to hold: more values than a `.npy` may carry
+/// ([`crate::npy::MAX_VALUES`]) or, in bytes, more than this machine has available. Call before
+/// allocating a field whose size comes from the command line or a file.
+pub fn check_size(rows: usize, cols: usize, frames: usize) -> Result<(), String> {
+    let values = rows.checked_mul(cols).and_then(|n| n.checked_mul(frames));
+    let gib = |b: f64| b / (1u64 << 30) as f64;
+    match values {
+        Some(v) if v <= crate::npy::MAX_VALUES => {}
+        _ => return Err(format!("{frames} frames of {rows} x {cols} is more than the {} values a field may hold (8 GiB)", crate::npy::MAX_VALUES)),
+    }
+    let bytes = values.unwrap_or(usize::MAX) as f64 * 8.0;
+    if let Some(avail) = available_memory() {
+        if bytes > avail as f64 {
+            return Err(format!("{frames} frames of {rows} x {cols} need {:.1} GiB, and this machine has {:.1} GiB available", gib(bytes), gib(avail as f64)));
+        }
+    }
+    Ok(())
+}
+
+/// `MemAvailable` from /proc/meminfo (bytes), where there is one.
+fn available_memory() -> Option<u64> {
+    let info = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = info.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    line.split_whitespace().nth(1)?.parse::<u64>().ok().map(|kb| kb * 1024)
+}
+
 /// A field sampled on a `rows x cols` grid at `T` times: column `t` is the row-major snapshot.
 #[derive(Clone, Debug)]
 pub struct FieldSeries {

@@ -119,6 +119,10 @@ pub struct Telemetry {
     /// The vehicle's autopilot as its MAVLink bridge sees it (`None`: no autopilot).
     #[serde(default)]
     pub autopilot: Option<AutopilotStatus>,
+    /// The highest seq the server has acknowledged (the vehicle has dropped every batch up to
+    /// it): a server whose journal lacks one of them has lost data, and says so.
+    #[serde(default)]
+    pub acked: Option<u64>,
 }
 
 impl Telemetry {
@@ -436,7 +440,7 @@ mod tests {
         let g = Grid::new(4, 5, 1.0).unwrap();
         let msgs = vec![
             batch(),
-            Body::Telemetry(Telemetry { vehicle: "av-1".into(), step: 2, position: [0.0, 4.0], heading: 1.0, battery: 0.5, link: LinkState::Down, outbox_depth: 7, autopilot: None }),
+            Body::Telemetry(Telemetry { vehicle: "av-1".into(), step: 2, position: [0.0, 4.0], heading: 1.0, battery: 0.5, link: LinkState::Down, outbox_depth: 7, autopilot: None, acked: Some(3) }),
             Body::Ack(Ack { vehicle: "boat-1".into(), seq: 9 }),
             Body::Model(ModelUpdate {
                 version: 1,

@@ -13,7 +13,7 @@ use std::sync::Arc;
 use std::time::Duration;
 use tracing::{debug, info, warn};
 use vehicles::bridge::frame_bytes;
-use vehicles::gateway::Router;
+use vehicles::gateway::{RefusalLog, Router};
 
 #[derive(Parser, Debug)]
 #[command(name = "gcs-gateway", version, about = "hetfleet's ground-station gateway: the whole fleet on one MAVLink endpoint")]
@@ -42,7 +42,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &mission.network.for_node(fleet::mission::security::GATEWAY))?).await?;
     let from_vehicles = session.declare_subscriber(keys.all_mavlink()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let _token = session.liveliness().declare_token(keys.alive("gcs-gateway")).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-    info!(gcs = address, mission = mission.mission, "ground-station gateway up");
+    // Every vehicle's system id, pinned from the mission (never learned from the streams).
+    let systems: Vec<(String, u8)> = mission.vehicles().iter().map(|v| Ok((v.id.clone(), mission.sysid(&v.id)?))).collect::<anyhow::Result<_>>()?;
+    let mut router = Router::new(systems);
+    info!(gcs = address, mission = mission.mission, systems = ?router.systems(), "ground-station gateway up");
 
     // The ground station's frames, read on a thread (the connection blocks).
     let (tx, mut from_gcs) = tokio::sync::mpsc::unbounded_channel::<Vec<u8>>();
@@ -60,7 +63,8 @@ async fn run(args: Args) -> anyhow::Result<()> {
         }
     })?;
 
-    let mut router = Router::default();
+    let mut refusals = RefusalLog::new(Duration::from_secs(10));
+    let mut stop = fleet_net::StopSignals::new()?;
     let mut stats = tokio::time::interval(Duration::from_secs(10));
     let (mut up, mut down) = (0u64, 0u64);
     loop {
@@ -74,7 +78,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
                         let _ = gcs.send(&h, &m);
                         down += 1;
                     }
-                    Err(e) => warn!(vehicle, "refused a frame: {e}"),
+                    Err(r) => if let Some(line) = refusals.note(&r) { warn!(vehicle, "{line}") },
                 }
             }
             Some(bytes) = from_gcs.recv() => match router.from_gcs(&bytes) {
@@ -86,10 +90,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
                     }
                     up += 1;
                 }
-                Err(e) => debug!("ground-station frame not routed: {e}"),
+                Err(r) => if let Some(line) = refusals.note(&r) { warn!("{line}") },
             },
-            _ = stats.tick() => info!(to_gcs = down, from_gcs = up, refused = router.refused, systems = ?router.systems(), "gateway"),
-            _ = tokio::signal::ctrl_c() => break,
+            _ = stats.tick() => info!(to_gcs = down, from_gcs = up, refused = ?router.refused, "gateway"),
+            sig = stop.recv() => { info!(signal = sig, "stopping"); break }
         }
     }
     session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;

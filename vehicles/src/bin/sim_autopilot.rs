@@ -2,6 +2,7 @@
 //! ArduPilot's SITL is. Point a vehicle node at it (`vehicle --autopilot udpout:HOST:PORT`) or
 //! a ground station straight at it (`mavproxy.py --master=udpout:HOST:PORT`).
 
+use anyhow::Context as _;
 use clap::{Parser, ValueEnum};
 use fleet::grid::Grid;
 use fleet::mission::config::MissionConfig;
@@ -43,12 +44,16 @@ struct Args {
     home: Vec<f64>,
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() {
     fleet_net::init_node();
     let args = Args::parse();
+    fleet_net::run_node("sim-autopilot", 1, run(args));
+}
+
+async fn run(args: Args) -> anyhow::Result<()> {
     let mission = MissionConfig::load(args.mission.as_deref())?;
     let m = &mission.mavlink;
-    let site = Site::new(m, &Grid::new(args.grid[0], args.grid[1], 1.0)?);
+    let site = Site::new(m, &Grid::new(args.grid[0], args.grid[1], 1.0).map_err(fleet::exit::bad_input).context("--grid")?);
     let frame = match args.frame {
         Airframe::Boat => Frame::Boat,
         Airframe::Multirotor => Frame::Multirotor,
@@ -56,18 +61,16 @@ fn main() -> anyhow::Result<()> {
     let spec = SimSpec::from_config(frame, args.sysid, site, m);
     let home: Vector3<f64> = site.ned_of((args.home[0], args.home[1]), 0.0);
     let stop = Arc::new(AtomicBool::new(false));
-    let stats = serve::spawn(&args.listen, SimAutopilot::new(spec, home), stop.clone())?;
+    let stats = serve::spawn(&args.listen, SimAutopilot::new(spec, home), stop.clone()).with_context(|| format!("--listen {}", args.listen))?;
     tracing::info!(listen = args.listen, sysid = args.sysid, ?frame, "simulated autopilot up");
-    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
-    rt.block_on(async {
-        let mut tick = tokio::time::interval(Duration::from_secs(10));
-        loop {
-            tokio::select! {
-                _ = tokio::signal::ctrl_c() => break,
-                _ = tick.tick() => tracing::info!(received = stats.received.load(Ordering::Relaxed), sent = stats.sent.load(Ordering::Relaxed), unreadable = stats.unreadable.load(Ordering::Relaxed), "autopilot"),
-            }
+    let mut signals = fleet_net::StopSignals::new()?;
+    let mut tick = tokio::time::interval(Duration::from_secs(10));
+    loop {
+        tokio::select! {
+            _ = signals.recv() => break,
+            _ = tick.tick() => tracing::info!(received = stats.received.load(Ordering::Relaxed), sent = stats.sent.load(Ordering::Relaxed), unreadable = stats.unreadable.load(Ordering::Relaxed), "autopilot"),
         }
-    });
+    }
     stop.store(true, Ordering::Relaxed);
     Ok(())
 }

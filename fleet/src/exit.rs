@@ -1,0 +1,130 @@
+//! One convention for every binary's exit: 0 done, 2 bad input or usage (a file, a field, an
+//! argument the operator can fix), 1 internal failure (ours, or the machine's). The message
+//! is one line on stderr, `<binary>: <what>`, naming the file or field once.
+//!
+//! An error is bad input when something in its chain was marked with [`BadInput`] (by
+//! [`bad_input`] or [`InputResult::input`]) where the input was read; everything else is
+//! internal.
+
+use std::fmt;
+
+/// Exit status: the work is done.
+pub const DONE: i32 = 0;
+/// Exit status: an internal failure (a bug, or the machine: disk, network, memory).
+pub const INTERNAL: i32 = 1;
+/// Exit status: bad input or usage (clap's usage errors use 2 as well).
+pub const BAD_INPUT: i32 = 2;
+
+/// Marks an error as the operator's input being wrong.
+#[derive(Debug)]
+pub struct BadInput(pub anyhow::Error);
+
+impl fmt::Display for BadInput {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{:#}", self.0)
+    }
+}
+
+impl std::error::Error for BadInput {}
+
+/// `e` as bad input.
+pub fn bad_input(e: impl Into<anyhow::Error>) -> anyhow::Error {
+    anyhow::Error::new(BadInput(e.into()))
+}
+
+/// Mark a result's error as bad input.
+pub trait InputResult<T> {
+    fn input(self) -> anyhow::Result<T>;
+}
+
+impl<T, E: Into<anyhow::Error>> InputResult<T> for Result<T, E> {
+    fn input(self) -> anyhow::Result<T> {
+        self.map_err(bad_input)
+    }
+}
+
+/// The exit status of an error.
+pub fn code_of(e: &anyhow::Error) -> i32 {
+    if e.chain().any(|c| c.is::<BadInput>()) {
+        BAD_INPUT
+    } else {
+        INTERNAL
+    }
+}
+
+/// The error on one line: its chain joined by ": ", each link's own line breaks folded.
+pub fn one_line(e: &anyhow::Error) -> String {
+    let mut parts: Vec<String> = vec![];
+    for c in e.chain() {
+        // A BadInput shows its inner chain itself; skip the links it already printed.
+        let text = c.to_string().split_whitespace().collect::<Vec<_>>().join(" ");
+        if parts.last().is_some_and(|p| p.ends_with(&text)) {
+            continue;
+        }
+        parts.push(text);
+        if c.is::<BadInput>() {
+            break;
+        }
+    }
+    parts.join(": ")
+}
+
+/// Print `e` as one line after the binary's name and exit with its status.
+pub fn fail(binary: &str, e: &anyhow::Error) -> ! {
+    eprintln!("{binary}: {}", one_line(e));
+    std::process::exit(code_of(e))
+}
+
+/// A TOML error as one line, reason first: `<reason> (at [table] key, line L column C)`.
+pub fn toml_error(text: &str, e: &toml::de::Error) -> String {
+    let reason = e.message().split_whitespace().collect::<Vec<_>>().join(" ");
+    let Some(span) = e.span() else { return reason };
+    let start = span.start.min(text.len());
+    let line_no = text[..start].matches('\n').count() + 1;
+    let line_start = text[..start].rfind('\n').map_or(0, |i| i + 1);
+    let col = text[line_start..start].chars().count() + 1;
+    let line = text[line_start..].lines().next().unwrap_or("");
+    let table = text[..line_start].lines().rev().map(str::trim).find(|l| l.starts_with('[')).map(|l| format!("{} ", l.split('#').next().unwrap_or(l).trim()));
+    let key = line.split_once('=').map(|(k, _)| k.trim()).filter(|k| !k.is_empty() && !k.starts_with('['));
+    match key {
+        Some(k) => format!("{reason} (at {}{k}, line {line_no} column {col})", table.unwrap_or_default()),
+        None => format!("{reason} (line {line_no} column {col})"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(serde::Deserialize, Debug)]
+    #[allow(dead_code)]
+    struct T {
+        team: Team,
+    }
+    #[derive(serde::Deserialize, Debug)]
+    #[allow(dead_code)]
+    struct Team {
+        boats: usize,
+    }
+
+    #[test]
+    fn a_toml_error_is_one_line_reason_first_with_where() {
+        let text = "[team]\nboats = \"five\"\n";
+        let e = toml::from_str::<T>(text).unwrap_err();
+        let s = toml_error(text, &e);
+        assert!(!s.contains('\n'), "{s}");
+        assert!(s.starts_with("invalid type"), "{s}");
+        assert!(s.contains("[team] boats, line 2"), "{s}");
+    }
+
+    #[test]
+    fn bad_input_is_exit_2_and_everything_else_1() {
+        let e = anyhow::anyhow!("disk full");
+        assert_eq!(code_of(&e), INTERNAL);
+        let e = bad_input(anyhow::anyhow!("rank: must be positive")).context("mission.toml");
+        assert_eq!(code_of(&e), BAD_INPUT);
+        assert_eq!(one_line(&e), "mission.toml: rank: must be positive");
+        let r: Result<(), std::io::Error> = Err(std::io::Error::other("x\ny"));
+        assert_eq!(one_line(&r.input().unwrap_err()), "x y");
+    }
+}
