@@ -57,6 +57,25 @@ impl Server {
         self.log_refusal(reason, detail);
     }
 
+    /// Sessions the router refused at the handshake (counted in `sessions_refused`; the first of
+    /// each kind logged). Zenoh does not tell its host which user tried: the client's own log
+    /// names it.
+    fn note_session_refusals(&mut self) {
+        use fleet_net::SessionRefusal::*;
+        for r in fleet_net::session_refusals() {
+            let what = match r {
+                InvalidPassword => "a client's password is wrong for its user",
+                UnknownUser => "a client's user is not in the router's dictionary",
+                NoCredentials => "a client gave no credentials",
+                RefusedByRouter => continue,
+            };
+            self.core.counters.sessions_refused += 1;
+            if self.logged.insert(what.to_string()) {
+                warn!(sessions_refused = self.core.counters.sessions_refused, "refused a Zenoh session: {what} (Zenoh does not give its host the user's name; the client's own log says which; further refusals of this kind are only counted)");
+            }
+        }
+    }
+
     /// Log a refusal (already counted, by the node or the core): the first of each reason.
     fn log_refusal(&mut self, reason: &str, detail: String) {
         if self.logged.insert(reason.to_string()) {
@@ -469,6 +488,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
                 s.force_if_due(&session, &mut since, epoch_timeout).await?;
             }
             _ = tick.tick() => {
+                s.note_session_refusals();
                 fleet_net::put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
             }
             sig = stop.recv() => {

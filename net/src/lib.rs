@@ -113,13 +113,102 @@ pub fn decode(sample: &Sample, ctx: &Context) -> Result<Body, ProtocolError> {
 
 /// Set-up every node does first: the linear algebra's threads as the `fleet` binary sets them
 /// (so a node computes bit for bit what the offline loop computes), and logging: `RUST_LOG`
-/// (default `info`) to stderr.
+/// (default `info`) to stderr, plus [`session_refusals`]'s watch on Zenoh's handshakes.
 pub fn init_node() {
+    use tracing_subscriber::layer::SubscriberExt as _;
+    use tracing_subscriber::util::SubscriberInitExt as _;
+    use tracing_subscriber::Layer as _;
     fleet::configure_linalg_threads();
     let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
     // Colour only on a terminal: a log file gets plain text.
     let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
-    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_ansi(ansi).with_writer(std::io::stderr).try_init();
+    let fmt = tracing_subscriber::fmt::layer().with_ansi(ansi).with_writer(std::io::stderr).with_filter(filter);
+    let watch = SessionWatch.with_filter(tracing_subscriber::filter::Targets::new().with_target("zenoh_transport::unicast::establishment", tracing::Level::DEBUG));
+    let _ = tracing_subscriber::registry().with(fmt).with(watch).try_init();
+}
+
+/// A session refused at Zenoh's handshake, as Zenoh reports it to its own log (it tells no
+/// one else): on a router, a client's credentials were wrong; on a client, the router closed
+/// its session as invalid.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SessionRefusal {
+    /// (Router side.) A client gave a password that does not match its user's.
+    InvalidPassword,
+    /// (Router side.) A client gave a user the dictionary does not have.
+    UnknownUser,
+    /// (Router side.) A client gave no credentials where they are required.
+    NoCredentials,
+    /// (Client side.) The router closed this session's handshake after it sent its
+    /// credentials (Zenoh 1.10 says "reason GENERIC" for a wrong password).
+    RefusedByRouter,
+}
+
+static REFUSALS: std::sync::Mutex<Vec<SessionRefusal>> = std::sync::Mutex::new(Vec::new());
+
+/// The session refusals seen since the last call.
+pub fn session_refusals() -> Vec<SessionRefusal> {
+    std::mem::take(&mut *REFUSALS.lock().unwrap_or_else(|p| p.into_inner()))
+}
+
+/// Reads Zenoh's handshake events (debug level on the router side, error on the client side)
+/// for the refusals above; never prints anything itself.
+struct SessionWatch;
+
+impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for SessionWatch {
+    fn on_event(&self, event: &tracing::Event<'_>, _: tracing_subscriber::layer::Context<'_, S>) {
+        struct Message(String);
+        impl tracing::field::Visit for Message {
+            fn record_debug(&mut self, field: &tracing::field::Field, value: &dyn std::fmt::Debug) {
+                if field.name() == "message" {
+                    self.0 = format!("{value:?}");
+                }
+            }
+        }
+        let mut m = Message(String::new());
+        event.record(&mut m);
+        let r = if m.0.contains("UsrPwd extension - Recv OpenSyn. Invalid password") {
+            SessionRefusal::InvalidPassword
+        } else if m.0.contains("UsrPwd extension - Recv OpenSyn. Invalid user") {
+            SessionRefusal::UnknownUser
+        } else if m.0.contains("UsrPwd extension - Recv OpenSyn. Expected extension") || m.0.contains("UsrPwd extension - Recv InitSyn. Expected extension") {
+            SessionRefusal::NoCredentials
+        } else if m.0.contains("Received a close message (reason") && m.0.contains("in response to an OpenSyn") && !m.0.contains("MAX_LINKS") {
+            SessionRefusal::RefusedByRouter
+        } else {
+            return;
+        };
+        REFUSALS.lock().unwrap_or_else(|p| p.into_inner()).push(r);
+    }
+}
+
+/// Refusals of this client's session since it was last known connected.
+static REFUSED_SINCE_CONNECTED: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+
+/// A client node says it is connected (it heard the server): earlier refusals were passing.
+pub fn mark_connected() {
+    REFUSED_SINCE_CONNECTED.store(0, std::sync::atomic::Ordering::Relaxed);
+}
+
+/// A client node's watch for a router that refuses its credentials: they never fix
+/// themselves, so instead of retrying forever on a generic close the node says so (naming the
+/// user and its config file) and exits as bad input. Armed only for a node with credentials;
+/// three refusals with no connection between them (Zenoh also closes a handshake as invalid
+/// when a link breaks mid-way, which a retry gets past).
+pub fn exit_when_refused(node: &'static str, cfg: &zenoh::Config, file: Option<std::path::PathBuf>) {
+    use std::sync::atomic::Ordering;
+    let user = cfg.get_json("transport/auth/usrpwd/user").ok().map(|u| u.trim_matches('"').to_string()).filter(|u| !u.is_empty() && u != "null");
+    let Some(user) = user else { return };
+    tokio::spawn(async move {
+        loop {
+            tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+            let refused = session_refusals().iter().filter(|r| **r == SessionRefusal::RefusedByRouter).count() as u32;
+            if REFUSED_SINCE_CONNECTED.fetch_add(refused, Ordering::Relaxed) + refused >= 3 {
+                let from = file.as_ref().map_or_else(String::new, |f| format!(" of {}", f.display()));
+                let e = fleet::exit::bad_input(anyhow::anyhow!("the router refused this node's session 3 times after it sent its credentials (user {user:?}{from}): a wrong password, a user it does not know, or a certificate it does not accept; fix the credentials and start it again"));
+                fleet::exit::fail(node, &e);
+            }
+        }
+    });
 }
 
 /// Command-line options every node takes.
@@ -164,6 +253,14 @@ impl NodeArgs {
     /// This node's Zenoh configuration.
     pub fn zenoh_config(&self, role: Role, net: &Network) -> anyhow::Result<zenoh::Config> {
         config(role, net, self.zenoh_config.as_deref(), &self.endpoints())
+    }
+
+    /// The Zenoh JSON5 file this node's configuration starts from, if any.
+    pub fn zenoh_file(&self, role: Role, net: &Network) -> Option<std::path::PathBuf> {
+        self.zenoh_config.clone().or_else(|| match role {
+            Role::Server => net.server_config.clone(),
+            Role::Vehicle => net.vehicle_config.clone(),
+        })
     }
 }
 

@@ -98,11 +98,26 @@ fn secured_fleet(tls: bool) {
     assert!(!anonymous_in, "a session without credentials was let in");
     assert!(!cross_put, "boat-1 read boat-2's plan");
 
+    // A vehicle whose password is wrong says so and stops (exit 2) instead of retrying forever.
+    let wrong = dir.join("boat-1-wrong.json5");
+    std::fs::write(&wrong, std::fs::read_to_string(secure.join("boat-1.json5")).unwrap().replacen("password\": \"", "password\": \"x", 1)).unwrap();
+    let o = std::process::Command::new(bin("vehicle"))
+        .args(["--mission", mp, "--id", "boat-1", "--state-dir", dir.join("wrong-state").to_str().unwrap(), "--zenoh-config", wrong.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    let last = err.trim().lines().last().unwrap_or("");
+    assert!(last.starts_with("vehicle: the router refused this node's session") && last.contains("user \"boat-1\"") && last.contains("boat-1-wrong.json5"), "{err}");
+
     start_vehicles(&mut procs, &mission, st, &dir, &[]);
     let summary = server.finished(120);
     let c = &summary.counters;
     let truth = m.truth(|_| {}).unwrap();
     assert_eq!(c.rejected.values().sum::<u64>(), 1, "only boat-1's garbage on its own key reached the server: {:?}", c.rejected);
+    assert!(c.sessions_refused >= 3, "the router counted the sessions it refused: {}", c.sessions_refused);
+    let log = std::fs::read_to_string(dir.join("server.log")).unwrap();
+    assert!(log.contains("a client's password is wrong for its user"), "and logged why: {log}");
     assert_eq!(c.batches - c.duplicates - 1, expected_batches(&m, truth.frames()), "the secured fleet ran the whole mission");
 
     rt.block_on(async {

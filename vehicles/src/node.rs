@@ -133,6 +133,9 @@ impl Vehicle {
         }
         while let Ok(Some(s)) = links.try_recv() {
             let up = s.kind() == SampleKind::Put;
+            if up {
+                fleet_net::mark_connected();
+            }
             if up != self.server_alive {
                 info!(server_alive = up, backlog = self.outbox.depth(), "link to the model server");
                 if up {
@@ -313,7 +316,10 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let (gcs_tx, gcs_rx) = tokio::sync::mpsc::unbounded_channel();
     let bridge = open_bridge(&args, &mission, &grid, gcs_tx)?;
     let last_telemetry = Arc::new(Mutex::new(None));
-    let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &mission.network.for_node(&args.id))?).await?;
+    let network = mission.network.for_node(&args.id);
+    let zenoh_config = args.node.zenoh_config(Role::Vehicle, &network)?;
+    fleet_net::exit_when_refused("vehicle", &zenoh_config, args.node.zenoh_file(Role::Vehicle, &network));
+    let session = fleet_net::open(zenoh_config).await?;
     if let Some(b) = &bridge {
         spawn_mavlink_tasks(&session, &keys, &args.id, b.clone(), gcs_rx, last_telemetry.clone());
     }

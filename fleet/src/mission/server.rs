@@ -108,6 +108,9 @@ pub struct Counters {
     /// Batches vehicles say were acknowledged but the journal does not hold (lost with it).
     #[serde(default)]
     pub lost: u64,
+    /// Zenoh sessions the router refused at the handshake (wrong or missing credentials).
+    #[serde(default)]
+    pub sessions_refused: u64,
 }
 
 pub struct ServerCore {

@@ -39,7 +39,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
         anyhow::bail!("no ground-station endpoint: set [mavlink] gcs in the mission or give --gcs");
     }
     let gcs = Arc::new(mavlink::connect::<MavMessage>(&address).map_err(|e| anyhow::anyhow!("ground-station endpoint {address}: {e}"))?);
-    let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &mission.network.for_node(fleet::mission::security::GATEWAY))?).await?;
+    let network = mission.network.for_node(fleet::mission::security::GATEWAY);
+    let zenoh_config = args.node.zenoh_config(Role::Vehicle, &network)?;
+    fleet_net::exit_when_refused("gcs-gateway", &zenoh_config, args.node.zenoh_file(Role::Vehicle, &network));
+    let session = fleet_net::open(zenoh_config).await?;
     let from_vehicles = session.declare_subscriber(keys.all_mavlink()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let _token = session.liveliness().declare_token(keys.alive("gcs-gateway")).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     // Every vehicle's system id, pinned from the mission (never learned from the streams).
@@ -71,6 +74,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         tokio::select! {
             s = from_vehicles.recv_async() => {
                 let Ok(s) = s else { break };
+                fleet_net::mark_connected();
                 let Some(vehicle) = keys.vehicle_of(s.key_expr().as_str()) else { continue };
                 let bytes = s.payload().to_bytes();
                 match router.from_vehicle(&vehicle, &bytes) {
