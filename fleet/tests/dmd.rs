@@ -129,30 +129,46 @@ fn ref_eigs(v: &serde_json::Value) -> Vec<c64> {
     v.as_array().unwrap().iter().map(|p| c64::new(p[0].as_f64().unwrap(), p[1].as_f64().unwrap())).collect()
 }
 
-/// Match each reference eigenvalue to its nearest computed one; return the largest relative
-/// difference `|a - b| / max(|b|, 1e-3)`.
+/// Match the eigenvalues one to one (the assignment of least total distance, Kuhn-Munkres, so
+/// two reference eigenvalues never claim the same computed one); return the largest relative
+/// difference `|a - b| / max(|b|, 1e-3)` over the matched pairs.
 fn matched_relative(ours: &[c64], reference: &[c64]) -> f64 {
     assert_eq!(ours.len(), reference.len(), "different number of eigenvalues");
-    let mut used = vec![false; ours.len()];
-    let mut worst: f64 = 0.0;
-    for r in reference {
-        let (j, d) = ours
-            .iter()
-            .enumerate()
-            .filter(|(j, _)| !used[*j])
-            .map(|(j, o)| (j, (o - r).norm()))
-            .min_by(|a, b| a.1.total_cmp(&b.1))
-            .unwrap();
-        used[j] = true;
-        worst = worst.max(d / r.norm().max(1e-3));
-    }
-    worst
+    let scale = reference.iter().map(|r| r.norm()).fold(1e-300, f64::max);
+    // Integer weights (pathfinding's Kuhn-Munkres needs an ordered type): 1e-15 of the scale.
+    let w = |a: &c64, b: &c64| ((a - b).norm() / scale * 1e15).round() as i64;
+    let weights = pathfinding::matrix::Matrix::from_rows(reference.iter().map(|r| ours.iter().map(|o| w(o, r)).collect::<Vec<_>>())).unwrap();
+    let (_, assignment) = pathfinding::kuhn_munkres::kuhn_munkres_min(&weights);
+    reference.iter().zip(assignment).map(|(r, j)| (ours[j] - r).norm() / r.norm().max(1e-3)).fold(0.0, f64::max)
+}
+
+#[test]
+fn one_to_one_matching_does_not_let_two_eigenvalues_share_one() {
+    // Nearest-each would match both references to 1.0 and report 0; the assignment pairs the
+    // second with 3.0.
+    let ours = [c64::new(1.0, 0.0), c64::new(3.0, 0.0)];
+    let reference = [c64::new(1.0, 0.0), c64::new(1.0 + 1e-9, 0.0)];
+    assert!(matched_relative(&ours, &reference) > 1.0);
+    assert!(matched_relative(&[c64::new(3.0, 0.0), c64::new(1.0, 0.0)], &[c64::new(1.0, 0.0), c64::new(3.0, 0.0)]) < 1e-15);
 }
 
 /// Case 1 of Table 1 as the peers ran it: init on 100 pairs, then batches of 10.
 fn online_case1(c: DmdConfig) -> Box<dyn Dmd> {
     run_online(&c, load_case1().as_ref(), 100, 10, |_| Ok(())).unwrap()
 }
+
+/// Eigenvalues agree with the peers' to this relative difference. Measured (session 6): batch
+/// 1.9e-14 (full) and 3.2e-13 (rank 10), general 1.0e-12 and 7.8e-14, long-term 1.0e-12 and
+/// 5.5e-13: two eigensolvers (LAPACK's and faer's QR iterations) on a 100 x 100 nonsymmetric
+/// matrix whose eigenvalues have condition numbers up to ~1e3, so ~1e3 * 1e-16 * (updates
+/// accumulated) is the expected scale; 1e-10 leaves 100x for other machines' kernels (FMA,
+/// vector width) without admitting a wrong eigenvalue (a wrong one is off by > 1e-4).
+const EIG_TOL: f64 = 1e-10;
+
+/// The long-term operator's entries agree with odmd's to this fraction of its Frobenius norm:
+/// measured 8.6e-16 (gamma 1) and 7.8e-16 (0.95), Frobenius norms to 3.4e-15; a rounding-level
+/// quantity (no eigensolver in between), so 1e-13 is 100x the measured.
+const OPERATOR_TOL: f64 = 1e-13;
 
 #[test]
 fn batch_matches_the_pydmd_numpy_reference() {
@@ -162,7 +178,8 @@ fn batch_matches_the_pydmd_numpy_reference() {
     for (key, rank) in [("batch_svd", RankPolicy::Full), ("batch_svd_r10", RankPolicy::Fixed(10))] {
         let b = BatchDmd::fit(x, y, rank, Debias::None).unwrap();
         let rel = matched_relative(&eigenvalues(&b), &ref_eigs(&r[key]));
-        assert!(rel < 1e-6, "{key}: relative eigenvalue difference {rel:e}");
+        println!("MEASURED {key}: {rel:e}");
+        assert!(rel < EIG_TOL, "{key}: relative eigenvalue difference {rel:e}");
     }
 }
 
@@ -171,11 +188,13 @@ fn general_matches_the_reference_at_full_and_truncated_rank() {
     let r = reference();
     let g = online_case1(cfg(Method::General, RankPolicy::Full));
     let rel = matched_relative(&eigenvalues(g.as_ref()), &ref_eigs(&r["general"]));
-    assert!(rel < 1e-6, "general: {rel:e}");
+    println!("MEASURED general: {rel:e}");
+    assert!(rel < EIG_TOL, "general: {rel:e}");
     // Truncated Brand updates are path dependent; the reference took the same path.
     let g10 = online_case1(cfg(Method::General, RankPolicy::Fixed(10)));
     let rel = matched_relative(&eigenvalues(g10.as_ref()), &ref_eigs(&r["general_r10"]));
-    assert!(rel < 1e-6, "general r10: {rel:e}");
+    println!("MEASURED general r10: {rel:e}");
+    assert!(rel < EIG_TOL, "general r10: {rel:e}");
 }
 
 #[test]
@@ -185,7 +204,8 @@ fn long_term_matches_odmd_and_the_reference_with_and_without_forgetting() {
         let c = DmdConfig { gamma, ..cfg(Method::LongTerm, RankPolicy::Full) };
         let m = online_case1(c);
         let rel = matched_relative(&eigenvalues(m.as_ref()), &ref_eigs(&r[key]["eigs"]));
-        assert!(rel < 1e-6, "{key}: {rel:e}");
+        println!("MEASURED {key}: {rel:e}");
+        assert!(rel < EIG_TOL, "{key}: {rel:e}");
         // And the operator itself, entry by entry.
         let lt = LongTermDmd::init(load_case1().subcols(0, 100), load_case1().subcols(1, 100), gamma).unwrap();
         let mut lt = lt;
@@ -197,11 +217,13 @@ fn long_term_matches_odmd_and_the_reference_with_and_without_forgetting() {
         }
         let a = lt.operator();
         let fro = a.norm_l2();
-        assert!((fro - r[key]["A_fro"].as_f64().unwrap()).abs() < 1e-8 * fro);
+        let worst = (0..3).flat_map(|i| (0..3).map(move |j| (i, j))).map(|(i, j)| (a[(i, j)] - r[key]["A_00_22"][i][j].as_f64().unwrap()).abs()).fold(0.0, f64::max);
+        println!("MEASURED {key} A: fro {:e}, entries {:e}", (fro - r[key]["A_fro"].as_f64().unwrap()).abs() / fro, worst / fro);
+        assert!((fro - r[key]["A_fro"].as_f64().unwrap()).abs() < OPERATOR_TOL * fro);
         for i in 0..3 {
             for j in 0..3 {
                 let want = r[key]["A_00_22"][i][j].as_f64().unwrap();
-                assert!((a[(i, j)] - want).abs() < 1e-8 * fro, "{key} A[{i},{j}]");
+                assert!((a[(i, j)] - want).abs() < OPERATOR_TOL * fro, "{key} A[{i},{j}]");
             }
         }
     }
@@ -305,6 +327,25 @@ fn general_stays_orthogonal_over_thousands_of_single_updates() {
     assert_eq!(g.pairs(), 3000);
     let e = g.orthogonality_error();
     assert!(e < 1e-12, "max |U^T U - I| = {e:e} after 2980 updates");
+    // The protection ran (an unprotected run drifts to ~3.5e-13, past the 1e-13 trigger, so a
+    // run without it would also pass the bound above: the count is what shows it works).
+    let n_reorth = g.reorthogonalisations();
+    println!("MEASURED re-orthonormalisations: {n_reorth} in {} checks, final error {e:e}", 2980 / 16);
+    assert!(n_reorth > 0, "the re-orthonormalisation never ran");
+    // And the model is still the data's. With 12 components and rank 10 the truncation is
+    // path dependent (measured 2.9e-3 from batch DMD at rank 10); on a field of exactly 10
+    // components plus the same noise, the 2,980 protected updates must land where one batch fit
+    // of the same pairs does, to well inside the modes' spacing (0.01 rad).
+    let z10 = Mat::from_fn(n, steps, |i, t| z[(i, t)] - (10..12).map(|k| basis[(i, k)] * ((k as f64 + 1.0) * t as f64 * 0.01).sin() / (k as f64 + 1.0)).sum::<f64>());
+    let (x10, y10) = pairs_of(z10.as_ref());
+    let mut g10 = GeneralDmd::init(x10.subcols(0, 20), y10.subcols(0, 20), RankPolicy::Fixed(10), Debias::None).unwrap();
+    for j in 20..3000 {
+        g10.update(x10.subcols(j, 1), y10.subcols(j, 1)).unwrap();
+    }
+    let b = BatchDmd::fit(x10, y10, RankPolicy::Fixed(10), Debias::None).unwrap();
+    let rel = matched_relative(&eigenvalues(&g10), &eigenvalues(&b));
+    println!("MEASURED exact rank 10, general after 2980 single updates vs batch: {rel:e} (re-orthonormalised {} times)", g10.reorthogonalisations());
+    assert!(rel < 1e-4, "general {rel:e} from batch DMD at the same rank");
 }
 
 #[test]
@@ -405,4 +446,45 @@ fn long_term_starts_from_an_ill_conditioned_full_rank_x() {
     let lt = LongTermDmd::init(x.as_ref(), y.as_ref(), 1.0).unwrap();
     let err = (lt.operator() - &a_true).norm_l2() / a_true.norm_l2();
     assert!(err < 1e-13, "relative error {err:e}");
+}
+
+/// A 6 x 6 operator with a period-2 mode (real eigenvalue -0.9), a pair in the left half-plane
+/// (0.98 e^{+-2.2i}), and three in the right.
+fn left_half_plane_system() -> (Mat<f64>, Vec<c64>) {
+    let (c, s) = (0.98 * f64::cos(2.2), 0.98 * f64::sin(2.2));
+    let mut d = Mat::<f64>::zeros(6, 6);
+    d[(0, 0)] = -0.9;
+    d[(1, 1)] = c;
+    d[(1, 2)] = -s;
+    d[(2, 1)] = s;
+    d[(2, 2)] = c;
+    d[(3, 3)] = 0.7;
+    d[(4, 4)] = 0.5;
+    d[(5, 5)] = 0.3;
+    let eigs = vec![c64::new(-0.9, 0.0), c64::new(c, s), c64::new(c, -s), c64::new(0.7, 0.0), c64::new(0.5, 0.0), c64::new(0.3, 0.0)];
+    let p = randn(6, 6, 13) + Mat::<f64>::identity(6, 6) * faer::Scale(3.0);
+    use faer::linalg::solvers::DenseSolveCore;
+    let pinv = p.partial_piv_lu().inverse();
+    (&p * &d * &pinv, eigs)
+}
+
+#[test]
+fn forward_backward_keeps_the_sign_of_eigenvalues_in_the_left_half_plane() {
+    let (a, truth) = left_half_plane_system();
+    // Noise-free pairs: forward-backward must give the operator's own spectrum.
+    let x = randn(6, 60, 31);
+    let y = &a * &x;
+    let b = BatchDmd::fit(x.as_ref(), y.as_ref(), RankPolicy::Fixed(6), Debias::Fb).unwrap();
+    let got = eigenvalues(&b);
+    // (The principal root returned +0.9 for -0.9 and +0.577+0.792i for -0.577+0.792i.)
+    let rel = matched_relative(&got, &truth);
+    assert!(rel < 1e-9, "forward-backward eigenvalues {got:?} vs {truth:?}: {rel:e}");
+    assert!(got.iter().any(|l| (l - c64::new(-0.9, 0.0)).norm() < 1e-9), "the period-2 mode keeps its sign");
+    // With noise, still on the right side of the plane.
+    let noise = Normal::new(0.0, 1e-3).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(2);
+    let yn = Mat::from_fn(6, 60, |i, j| y[(i, j)] + noise.sample(&mut rng));
+    let g = GeneralDmd::init(x.as_ref(), yn.as_ref(), RankPolicy::Fixed(6), Debias::Fb).unwrap();
+    let rel = matched_relative(&eigenvalues(&g), &truth);
+    assert!(rel < 0.05, "noisy: {rel:e}");
 }

@@ -185,3 +185,98 @@ fn disks_never_overlap_and_stay_in_the_grid() {
     assert!(a.len() < 50);
     assert!(block_qr(phi.as_ref(), &Grid::new(5, 5, 1.0).unwrap(), 2, 1.0).is_err());
 }
+
+/// Every valid disk centre on `grid` (disks not touching `taken`), in cell order.
+fn free_centres(grid: &Grid, radius: f64, taken: &[bool]) -> Vec<Cell> {
+    (0..grid.len()).map(|i| grid.cell(i)).filter(|&c| grid.disk(c, radius).iter().all(|&p| !taken[p])).collect()
+}
+
+fn random_basis(n: usize, r: usize, seed: u64) -> Mat<f64> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    Mat::from_fn(n, r, |_, _| StandardNormal.sample(&mut rng))
+}
+
+/// Block QR by its definition, with nothing clever: the N x N matrix `G = Phi Phi^T`; a disk's
+/// weight is the sum of its columns' norms; the best free disk is chosen; the block's leading
+/// left singular vector `u` is removed from every column (`G <- (I - u u^T) G`).
+fn block_qr_by_definition(phi: &Mat<f64>, grid: &Grid, m: usize, radius: f64) -> Vec<Cell> {
+    let mut g = phi * phi.transpose();
+    let mut taken = vec![false; grid.len()];
+    let mut out = vec![];
+    for _ in 0..m {
+        let norms: Vec<f64> = (0..grid.len()).map(|p| g.col(p).norm_l2()).collect();
+        let weight = |c: Cell| grid.disk(c, radius).iter().map(|&p| norms[p]).sum::<f64>();
+        let best = free_centres(grid, radius, &taken).into_iter().max_by(|a, b| weight(*a).total_cmp(&weight(*b))).unwrap();
+        let cells = grid.disk(best, radius);
+        let block = Mat::from_fn(grid.len(), cells.len(), |i, j| g[(i, cells[j])]);
+        let svd = block.thin_svd().unwrap();
+        let u = svd.U().col(0).to_owned();
+        g = &g - &u * (u.transpose() * &g);
+        cells.iter().for_each(|&p| taken[p] = true);
+        out.push(best);
+    }
+    out
+}
+
+/// Greedy D-optimal by its definition: each pick maximises `log det(I_k + sum_{p in L} phi_p^T
+/// phi_p)` over the free disks, with `I_0 = eps I` as in the implementation.
+fn dopt_by_definition(phi: &Mat<f64>, grid: &Grid, m: usize, radius: f64) -> Vec<Cell> {
+    let r = phi.ncols();
+    let trace: f64 = (0..r).map(|j| phi.col(j).squared_norm_l2()).sum();
+    let mut info = Mat::<f64>::identity(r, r) * faer::Scale(1e-9 * trace / r as f64);
+    let logdet = |a: &Mat<f64>| a.llt(faer::Side::Lower).unwrap().L().diagonal().column_vector().iter().map(|d| 2.0 * d.ln()).sum::<f64>();
+    let mut taken = vec![false; grid.len()];
+    let mut out = vec![];
+    for _ in 0..m {
+        let with = |c: Cell| {
+            let mut a = info.clone();
+            for &p in &grid.disk(c, radius) {
+                let row = phi.row(p);
+                a += row.transpose() * row;
+            }
+            a
+        };
+        let best = free_centres(grid, radius, &taken).into_iter().max_by(|a, b| logdet(&with(*a)).total_cmp(&logdet(&with(*b)))).unwrap();
+        info = with(best);
+        grid.disk(best, radius).iter().for_each(|&p| taken[p] = true);
+        out.push(best);
+    }
+    out
+}
+
+#[test]
+fn block_qr_and_d_optimal_pick_what_their_definitions_pick_on_a_tiny_grid() {
+    let grid = Grid::new(7, 9, 1.0).unwrap();
+    for seed in 0..20 {
+        let phi = random_basis(grid.len(), 4, seed);
+        let fast: Vec<Cell> = block_qr(phi.as_ref(), &grid, 3, 1.0).unwrap().iter().map(|d| d.centre).collect();
+        assert_eq!(fast, block_qr_by_definition(&phi, &grid, 3, 1.0), "block QR, basis {seed}");
+        let fast: Vec<Cell> = block_dopt(phi.as_ref(), &grid, 3, 1.0).unwrap().iter().map(|d| d.centre).collect();
+        assert_eq!(fast, dopt_by_definition(&phi, &grid, 3, 1.0), "D-optimal, basis {seed}");
+    }
+}
+
+#[test]
+fn real_basis_of_a_conjugate_pair_and_a_real_mode_is_three_orthonormal_directions() {
+    use faer::c64;
+    let n = 30;
+    let b = random_basis(n, 3, 77);
+    // A conjugate pair a +- i b and a real mode c, scaled and rotated by arbitrary phases.
+    let phase = c64::new(0.6, 0.8);
+    let modes = Mat::from_fn(n, 3, |i, j| match j {
+        0 => c64::new(b[(i, 0)], b[(i, 1)]) * phase,
+        1 => c64::new(b[(i, 0)], -b[(i, 1)]) * phase.conj(),
+        _ => c64::new(2.0 * b[(i, 2)], 0.0) * c64::new(0.0, 1.0),
+    });
+    let q = fleet::sensing::real_basis(modes.as_ref()).unwrap();
+    assert_eq!(q.ncols(), 3, "a pair spans two real directions, a real mode one");
+    let gram = q.transpose() * &q;
+    for i in 0..3 {
+        for j in 0..3 {
+            assert!((gram[(i, j)] - if i == j { 1.0 } else { 0.0 }).abs() < 1e-12, "orthonormal");
+        }
+    }
+    // It spans exactly b's columns: projecting them on q leaves nothing.
+    let resid = &b - &q * (q.transpose() * &b);
+    assert!(resid.norm_l2() < 1e-10 * b.norm_l2(), "spans the modes' real span: residual {:e}", resid.norm_l2());
+}

@@ -5,7 +5,9 @@
 //! - **forward-backward** (Dawson et al. 2016): fit the forward operator `A_f` (X -> Y) and the
 //!   backward one `A_b` (Y -> X); the noise bias of the two is opposite to first order, so
 //!   `A = (A_f A_b^-1)^(1/2)`. Its eigenvectors are those of `A_f A_b^-1`, its eigenvalues the
-//!   principal square roots; no matrix square root is formed.
+//!   square roots nearer the forward operator's estimate along each eigenvector (the principal
+//!   root would flip every eigenvalue with a negative real part); no matrix square root is
+//!   formed.
 //! - **total least squares** (Hemati et al. 2017): project `X` and `Y` onto the leading `r`
 //!   right singular vectors of the stacked `[X; Y]`, which removes the noise subspace from both.
 //!
@@ -73,7 +75,25 @@ pub fn debiased_eig(kind: Debias, xt: MatRef<'_, f64>, yt: MatRef<'_, f64>) -> R
             let mt = ab.transpose().partial_piv_lu().solve(af.transpose());
             let m = mt.transpose().to_owned();
             let (mu, v) = eig(m.as_ref())?;
-            Ok((mu.iter().map(|z| z.sqrt()).collect(), v))
+            // A square root has two signs; the right one is the one nearer the forward
+            // operator's own estimate along the same eigenvector (its Rayleigh quotient). The
+            // principal root alone turns every eigenvalue with a negative real part around.
+            let afc = Mat::from_fn(r, r, |i, j| c64::new(af[(i, j)], 0.0));
+            let lambda = mu
+                .iter()
+                .enumerate()
+                .map(|(k, z)| {
+                    let vk = v.col(k);
+                    let forward = (vk.adjoint() * &afc * vk) / vk.norm_l2().powi(2).max(f64::MIN_POSITIVE);
+                    let root = z.sqrt();
+                    if (root - forward).norm() <= (-root - forward).norm() {
+                        root
+                    } else {
+                        -root
+                    }
+                })
+                .collect();
+            Ok((lambda, v))
         }
         Debias::Tls => {
             let stacked = Mat::from_fn(2 * r, xt.ncols(), |i, j| if i < r { xt[(i, j)] } else { yt[(i - r, j)] });
