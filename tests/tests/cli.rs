@@ -87,6 +87,7 @@ fn configurations_that_cannot_run_are_refused_up_front_naming_the_field() {
         ("seed = 5", "seed = 5\ngamma = 0.9", "gamma = 0.9: the forgetting factor applies to method = \"long-term\" only"),
         ("boats = 3", "boats = \"three\"", "invalid type: string \"three\", expected usize (at [team] boats, line"),
         ("rank = \"6\"", "rank = -6", "rank: give \"full\""),
+        ("seed = 5", "seed = 5\nmethod = \"long-term\"", "method = \"long-term\": its operator has every one of the grid's N modes"),
     ];
     for (i, (from, to, needle)) in cases.into_iter().enumerate() {
         let m = hetfleet_tests::tiny_mission(&dir, &["tcp/127.0.0.1:7461".into()], &["tcp/127.0.0.1:7461".into()]);
@@ -133,4 +134,27 @@ fn a_truth_that_is_not_the_missions_and_oversized_or_misnamed_outputs_are_refuse
         let (code, err) = status_and_stderr("fleet", &["dmd", "--input", f32_path.to_str().unwrap(), "--top", "2"]);
         assert_eq!(code, Some(0), "{err}");
     }
+}
+
+#[test]
+fn fleet_dmd_saves_the_model_for_numpy() {
+    let dir = hetfleet_tests::scratch("dmd-save");
+    let save = dir.join("model");
+    let (code, err) = status_and_stderr("fleet", &["dmd", "--input", "reference/dmd_case1_Z.npy", "--method", "batch", "--rank", "10", "--save", save.to_str().unwrap()]);
+    assert_eq!(code, Some(0), "{err}");
+    // The README's three lines: the record rebuilt in numpy from what was saved, with the error
+    // fleet reported.
+    let script = r#"
+import json, sys, numpy as np
+d, z = sys.argv[1], np.load(sys.argv[2])
+lam, phi, b = np.load(d + "/eigenvalues.npy"), np.load(d + "/modes.npy"), np.load(d + "/amplitudes.npy")
+x = (phi @ (b[:, None] * lam[:, None] ** np.arange(z.shape[1]))).real
+assert lam.dtype == np.complex128 and phi.shape == (100, 10) and b.shape == (10,)
+print(abs(np.linalg.norm(x - z) / np.linalg.norm(z) - json.load(open(d + "/summary.json"))["relative_reconstruction_error"]))
+"#;
+    let o = Command::new("python3").args(["-c", script, save.to_str().unwrap(), root().join("reference/dmd_case1_Z.npy").to_str().unwrap()]).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let diff: f64 = String::from_utf8_lossy(&o.stdout).trim().parse().unwrap();
+    // Both sums run over the same 50,100 values in float64: rounding differences only.
+    assert!(diff < 1e-12, "numpy's reconstruction error differs from fleet's by {diff:e}");
 }

@@ -65,6 +65,11 @@ pub struct Args {
     /// Write the model summary as JSON here.
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Write the model for numpy into this directory: eigenvalues.npy (complex128, r),
+    /// modes.npy (complex128, N x r), amplitudes.npy (complex128, r, fitted to the first
+    /// snapshot) and summary.json (the JSON of --out).
+    #[arg(long)]
+    save: Option<PathBuf>,
 }
 
 fn load(args: &Args) -> anyhow::Result<FieldSeries> {
@@ -180,13 +185,25 @@ fn run_checked(args: Args, mut field: FieldSeries, init: usize) -> anyhow::Resul
     }
     let rel = (err2 / norm2.max(f64::MIN_POSITIVE)).sqrt();
     println!("relative reconstruction error over the record (from x(0)): {rel:.4}");
+    let doc = json!({
+        "config": cfg, "grid": [field.rows, field.cols], "frames": field.frames(), "init": init,
+        "tau": args.tau, "model": summary, "relative_reconstruction_error": rel,
+    });
     if let Some(out) = &args.out {
-        let doc = json!({
-            "config": cfg, "grid": [field.rows, field.cols], "frames": field.frames(), "init": init,
-            "tau": args.tau, "model": summary, "relative_reconstruction_error": rel,
-        });
         std::fs::write(out, serde_json::to_string_pretty(&doc)?).with_context(|| format!("writing {}", out.display()))?;
         println!("wrote {}", out.display());
+    }
+    if let Some(dir) = &args.save {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        let m = &fitted.modes.modes;
+        let (rows, r) = (m.nrows(), m.ncols());
+        let modes: Vec<num_complex::Complex64> = (0..rows).flat_map(|i| (0..r).map(move |j| (i, j))).map(|(i, j)| num_complex::Complex64::new(m[(i, j)].re, m[(i, j)].im)).collect();
+        let c = |v: &[faer::c64]| v.iter().map(|z| num_complex::Complex64::new(z.re, z.im)).collect::<Vec<_>>();
+        fleet::npy::write_complex(dir.join("eigenvalues.npy"), &[r], &c(&fitted.modes.eigenvalues))?;
+        fleet::npy::write_complex(dir.join("modes.npy"), &[rows, r], &modes)?;
+        fleet::npy::write_complex(dir.join("amplitudes.npy"), &[r], &c(&fitted.amplitudes))?;
+        std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(&doc)?).with_context(|| format!("writing {}", dir.join("summary.json").display()))?;
+        println!("wrote {}/eigenvalues.npy, modes.npy, amplitudes.npy and summary.json", dir.display());
     }
     Ok(())
 }

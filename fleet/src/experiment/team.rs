@@ -151,6 +151,9 @@ impl TeamConfig {
         if grid.len() == 0 {
             return bad("empty grid".into());
         }
+        if self.method == Method::LongTerm {
+            return bad("method = \"long-term\": its operator has every one of the grid's N modes, so the boats' gappy fit is underdetermined and every disk scores the same (block QR sees Phi Phi^T = I); a team or mission uses \"general\" (default) or \"batch\", which keep the rank".into());
+        }
         if self.method != Method::LongTerm && self.gamma != 1.0 {
             return bad(format!("gamma = {}: the forgetting factor applies to method = \"long-term\" only ({:?} keeps every snapshot)", self.gamma, self.method));
         }
