@@ -227,10 +227,28 @@ fn need_font() -> Result<(), PlotError> {
 
 /// A line chart (log-scaled y when `log_y`, for errors spanning decades).
 pub fn lines(path: impl AsRef<Path>, title: &str, x_desc: &str, y_desc: &str, series: &[Series], log_y: bool) -> Result<(), PlotError> {
+    let bands: Vec<Band> = series.iter().map(|s| Band { name: s.name.clone(), points: s.points.iter().map(|&(x, y)| (x, y, y, y)).collect() }).collect();
+    bands_chart(path, title, x_desc, y_desc, &bands, log_y, false)
+}
+
+/// A named line with a shaded band around it: `(x, y, lo, hi)`.
+#[derive(Debug, Clone)]
+pub struct Band {
+    pub name: String,
+    pub points: Vec<(f64, f64, f64, f64)>,
+}
+
+/// Lines (e.g. means over seeds) each with its shaded interval (e.g. 95%).
+pub fn bands(path: impl AsRef<Path>, title: &str, x_desc: &str, y_desc: &str, bands: &[Band], log_y: bool) -> Result<(), PlotError> {
+    bands_chart(path, title, x_desc, y_desc, bands, log_y, true)
+}
+
+fn bands_chart(path: impl AsRef<Path>, title: &str, x_desc: &str, y_desc: &str, bands: &[Band], log_y: bool, shade: bool) -> Result<(), PlotError> {
     need_font()?;
     let path = path.as_ref();
     let fail = chart_fail(path);
-    let pts = || series.iter().flat_map(|s| s.points.iter()).filter(|p| p.0.is_finite() && p.1.is_finite() && (!log_y || p.1 > 0.0));
+    let ok = |v: f64| v.is_finite() && (!log_y || v > 0.0);
+    let pts = || bands.iter().flat_map(|s| s.points.iter()).flat_map(|p| [(p.0, p.1), (p.0, p.2), (p.0, p.3)]).filter(|p| p.0.is_finite() && ok(p.1));
     let (x0, x1) = pts().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.0), b.max(p.0)));
     let (y0, y1) = pts().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.1), b.max(p.1)));
     if !(x0.is_finite() && y0.is_finite()) {
@@ -244,11 +262,18 @@ pub fn lines(path: impl AsRef<Path>, title: &str, x_desc: &str, y_desc: &str, se
         ($chart:expr) => {{
             let mut chart = $chart;
             chart.configure_mesh().x_desc(x_desc).y_desc(y_desc).label_style((FONT, 14)).draw().map_err(e)?;
-            for (i, s) in series.iter().enumerate() {
+            for (i, s) in bands.iter().enumerate() {
                 let c = palette(i);
-                let p: Vec<(f64, f64)> = s.points.iter().copied().filter(|p| p.0.is_finite() && p.1.is_finite() && (!log_y || p.1 > 0.0)).collect();
+                let p: Vec<&(f64, f64, f64, f64)> = s.points.iter().filter(|p| p.0.is_finite() && ok(p.1)).collect();
+                if shade {
+                    // The band: upper edge forward, lower edge back (clamped into the axis).
+                    let floor = if log_y { y0 * 0.8 } else { f64::NEG_INFINITY };
+                    let mut poly: Vec<(f64, f64)> = p.iter().map(|q| (q.0, q.3.min(y1 * 1.25).max(floor))).collect();
+                    poly.extend(p.iter().rev().map(|q| (q.0, q.2.max(floor).min(y1 * 1.25))));
+                    chart.draw_series(std::iter::once(Polygon::new(poly, c.mix(0.18).filled()))).map_err(e)?;
+                }
                 chart
-                    .draw_series(LineSeries::new(p, c.stroke_width(2)))
+                    .draw_series(LineSeries::new(p.iter().map(|q| (q.0, q.1)), c.stroke_width(2)))
                     .map_err(e)?
                     .label(s.name.clone())
                     .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));

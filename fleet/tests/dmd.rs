@@ -2,7 +2,7 @@
 //! and against the peer libraries' reference outputs in `reference/` (PyDMD, odmd, numpy).
 
 use faer::{c64, Mat, MatRef};
-use fleet::dmd::{pairs_of, Debias, Dmd, DmdConfig, DmdError, GeneralDmd, LongTermDmd, Method, RankPolicy};
+use fleet::dmd::{pairs_of, Debias, Dmd, DmdConfig, DmdError, Forgetting, ForgettingDirections, ForgettingUnit, GeneralDmd, LongTermDmd, Method, RankPolicy};
 use fleet::dmd::{BatchDmd, Modes};
 use fleet::experiment::run_online;
 use rand::SeedableRng;
@@ -14,8 +14,11 @@ fn reference_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../reference")
 }
 
+/// odmd's forgetting (per pair, every direction), which the peer references use.
+const ODMD: Forgetting = Forgetting { unit: ForgettingUnit::Pair, directions: ForgettingDirections::All };
+
 fn cfg(method: Method, rank: RankPolicy) -> DmdConfig {
-    DmdConfig { method, rank, debias: Debias::None, gamma: 1.0 }
+    DmdConfig { method, rank, debias: Debias::None, gamma: 1.0, forgetting: ODMD }
 }
 
 fn randn(rows: usize, cols: usize, seed: u64) -> Mat<f64> {
@@ -287,7 +290,8 @@ fn forgetting_tracks_a_system_whose_dynamics_switch() {
     }
     let truth2: Vec<c64> = (0..6).map(|i| c64::new(0.6 - 0.1 * i as f64, 0.0)).collect();
     let run = |gamma: f64| {
-        let c = DmdConfig { gamma, ..cfg(Method::LongTerm, RankPolicy::Full) };
+        // Per pair, as this test was written (0.9 per pair: the past fades by 0.9^20 per batch).
+        let c = DmdConfig { gamma, forgetting: Forgetting { unit: ForgettingUnit::Pair, directions: ForgettingDirections::Excited }, ..cfg(Method::LongTerm, RankPolicy::Full) };
         let mut m = c.init(x.subcols(0, 20), y.subcols(0, 20)).unwrap();
         let mut col = 20;
         while col < 400 {
@@ -487,4 +491,79 @@ fn forward_backward_keeps_the_sign_of_eigenvalues_in_the_left_half_plane() {
     let g = GeneralDmd::init(x.as_ref(), yn.as_ref(), RankPolicy::Fixed(6), Debias::Fb).unwrap();
     let rel = matched_relative(&eigenvalues(&g), &truth);
     assert!(rel < 0.05, "noisy: {rel:e}");
+}
+
+/// A noise-free stream that excites only 5 of N = 50 directions: states in span(U5), where the
+/// true operator is `U5 B U5^T` (plus 0.5 on the rest, never seen). The start (60 random states)
+/// has full row rank, as the method needs.
+fn rank5_stream(updates: usize) -> (Mat<f64>, Mat<f64>, Mat<f64>, Mat<f64>, Mat<f64>) {
+    let n = 50;
+    let u5 = randn(n, 5, 41).qr().compute_thin_Q();
+    let (a6, _) = known_system();
+    let b = a6.subrows(0, 5).subcols(0, 5).to_owned() * faer::Scale(0.9);
+    let a_true = &u5 * &b * u5.transpose() + (Mat::<f64>::identity(n, n) - &u5 * u5.transpose()) * faer::Scale(0.5);
+    let x0 = randn(n, 60, 42);
+    let y0 = &a_true * &x0;
+    // One long trajectory inside span(U5), renormalised now and then (the operator damps it).
+    let mut z = Mat::<f64>::zeros(n, updates + 1);
+    let mut c = randn(5, 1, 43);
+    for k in 0..=updates {
+        if k % 25 == 0 {
+            c = randn(5, 1, 100 + k as u64);
+        }
+        let v = &u5 * &c;
+        z.col_mut(k).copy_from(v.col(0));
+        c = &b * &c;
+    }
+    (a_true, u5, x0, y0, z)
+}
+
+/// The operator on the excited subspace: `|A U5 - A_true U5| / |A_true U5|`.
+fn excited_error(a: MatRef<'_, f64>, a_true: &Mat<f64>, u5: &Mat<f64>) -> f64 {
+    (a * u5 - a_true * u5).norm_l2() / (a_true * u5).norm_l2()
+}
+
+#[test]
+fn directional_forgetting_stays_bounded_on_data_that_excites_few_directions() {
+    let updates = 2000;
+    let (a_true, u5, x0, y0, z) = rank5_stream(updates);
+    for gamma in [0.95, 0.99] {
+        for unit in [ForgettingUnit::Pair, ForgettingUnit::Batch] {
+            let f = Forgetting { unit, directions: ForgettingDirections::Excited };
+            let mut m = LongTermDmd::init_with(x0.as_ref(), y0.as_ref(), gamma, f).unwrap();
+            let s0 = m.s().norm_max();
+            for k in 0..updates {
+                // Pairs within the stream (never across a renormalisation).
+                let (x, y) = if (k + 1) % 25 == 0 { continue } else { (z.subcols(k, 1), z.subcols(k + 1, 1)) };
+                m.update(x, y).unwrap_or_else(|e| panic!("gamma {gamma} {unit:?}: update {k}: {e}"));
+            }
+            let (s_max, err) = (m.s().norm_max(), excited_error(m.operator(), &a_true, &u5));
+            println!("MEASURED gamma {gamma} {unit:?} excited: max|S| {s_max:.3e} (start {s0:.3e}), operator on the excited subspace {err:.2e}");
+            assert!(s_max.is_finite() && s_max <= s0 * (1.0 + 1e-9), "S grew: {s_max:e} from {s0:e}");
+            assert!(err < 1e-8, "gamma {gamma} {unit:?}: the operator on the excited subspace is off by {err:e}");
+        }
+    }
+}
+
+#[test]
+fn forgetting_every_direction_blows_up_there_and_says_so() {
+    // odmd's forgetting on the same stream: S grows as gamma^-k in the 45 unexcited
+    // directions; the method stops with an error instead of going on with NaN or an indefinite S.
+    let updates = 2000;
+    let (_, _, x0, y0, z) = rank5_stream(updates);
+    let mut m = LongTermDmd::init_with(x0.as_ref(), y0.as_ref(), 0.95, ODMD).unwrap();
+    let mut failed = None;
+    for k in 0..updates {
+        if (k + 1) % 25 == 0 {
+            continue;
+        }
+        if let Err(e) = m.update(z.subcols(k, 1), z.subcols(k + 1, 1)) {
+            failed = Some((k, e));
+            break;
+        }
+        assert!(m.s().norm_max().is_finite(), "S went non-finite at update {k} without an error");
+    }
+    let (k, e) = failed.expect("every-direction forgetting at 0.95 cannot stay bounded for 2,000 updates here");
+    println!("MEASURED odmd's forgetting at 0.95 stopped at update {k}: {e}");
+    assert!(matches!(e, DmdError::Numerical(_)), "{e}");
 }

@@ -19,11 +19,33 @@ fn tiny_experiment_writes_a_deterministic_report() {
         assert!(report.contains(fig), "{fig} not in the report");
         assert_eq!(&std::fs::read(a.join(fig)).unwrap()[..4], b"\x89PNG", "{fig}");
     }
-    // The paper's claims on the most complex cloud of the run (cloud10, noise 0.15).
+    assert_eq!(std::fs::read(a.join("per_step.csv")).unwrap(), std::fs::read(b.join("per_step.csv")).unwrap());
+    // The verdicts on the most complex cloud of the run (cloud10, noise 0.15), read from the
+    // paired intervals over the 3 seeds of the tiny file.
     let res: serde_json::Value = serde_json::from_slice(&ja).unwrap();
-    assert_eq!(res["verdict"]["preset"], "Cloud10");
-    assert_eq!(res["verdict"]["heterogeneous_beats_both"], true, "{}", res["rows"][1]["qr"]["mean_heterogeneous"]);
-    assert_eq!(res["verdict"]["qr_beats_random"], true);
+    let v = &res["verdict"];
+    assert_eq!(v["preset"], "Cloud10");
+    for key in ["heterogeneous_vs_aerial_only", "heterogeneous_vs_boat_only", "qr_vs_random"] {
+        assert!(["better", "worse", "not-distinguishable"].contains(&v[key].as_str().unwrap()), "{key}: {}", v[key]);
+        assert!(report.contains(&format!("**{}**", v[key].as_str().unwrap().replace('-', " "))), "the report states the {key} verdict");
+    }
+    // per_step.csv recomputes the table: the mean of one team's scored steps for one seed is
+    // the number in results.json.
+    let csv = std::fs::read_to_string(a.join("per_step.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(lines.next(), Some("row,preset,seed,team,step,mse"));
+    let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+    let row = &res["rows"][1];
+    let from = row["scored_from"].as_u64().unwrap() as usize;
+    let seed = row["seeds"][0]["seed"].as_u64().unwrap().to_string();
+    for team in ["heterogeneous", "aerial-only", "boat-only", "heterogeneous-random"] {
+        let v: Vec<(usize, f64)> = rows.iter().filter(|r| r[0] == "2" && r[1] == "Cloud10" && r[2] == seed && r[3] == team).map(|r| (r[4].parse().unwrap(), r[5].parse().unwrap())).collect();
+        assert!(v.iter().all(|(k, _)| team != "boat-only" || *k >= from), "no boat-only line before its first data");
+        let scored: Vec<f64> = v.iter().filter(|(k, _)| *k >= from).map(|(_, e)| *e).collect();
+        let mean = scored.iter().sum::<f64>() / scored.len() as f64;
+        let want = row["seeds"][0]["mse"][team].as_f64().unwrap();
+        assert!((mean - want).abs() <= 1e-12 * want, "{team}: per_step.csv gives {mean}, results.json {want}");
+    }
 }
 
 #[test]

@@ -4,6 +4,7 @@ use fleet::exit::{bad_input, InputResult};
 use anyhow::{bail, Context};
 use clap::ValueEnum;
 use faer::Mat;
+use fleet::dmd::{Forgetting, ForgettingDirections, ForgettingUnit};
 use fleet::dmd::{Debias, DmdConfig, Method, RankPolicy};
 use fleet::experiment::run_online;
 use fleet::process::synthetic::{table1_field, EigStudy, Table1Profile, TABLE1_CASES};
@@ -50,6 +51,14 @@ pub struct Args {
     /// Forgetting factor of the long-term method.
     #[arg(long, default_value_t = 1.0)]
     gamma: f64,
+    /// What gamma multiplies: the past once per update (batch, the paper's reading) or each
+    /// pair by its age (pair, odmd's).
+    #[arg(long, value_enum, default_value = "batch")]
+    forgetting: ForgettingUnit,
+    /// Which directions forgetting applies to: only those the new data excites (bounded), or
+    /// all (odmd's; unbounded when the data does not excite every direction).
+    #[arg(long, value_enum, default_value = "excited")]
+    forgetting_directions: ForgettingDirections,
     /// Snapshot pairs in the initial fit (default: a fifth of the pairs, at least N for long-term).
     #[arg(long)]
     init: Option<usize>,
@@ -133,7 +142,7 @@ fn run_checked(args: Args, mut field: FieldSeries, init: usize) -> anyhow::Resul
         field.dt = dt;
     }
     let (n, pairs) = (field.dim(), field.frames() - 1);
-    let cfg = DmdConfig { method: args.method, rank: args.rank, debias: args.debias, gamma: args.gamma };
+    let cfg = DmdConfig { method: args.method, rank: args.rank, debias: args.debias, gamma: args.gamma, forgetting: Forgetting { unit: args.forgetting, directions: args.forgetting_directions } };
     let updates = (pairs - init).div_ceil(args.tau.max(1));
     let pb = super::progress_bar(updates as u64 + 1, "assimilating");
     let t0 = std::time::Instant::now();

@@ -30,10 +30,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let figures = paper::write_report(&args.out, &res, &truths, &command)?;
     std::fs::write(args.out.join("timings.json"), serde_json::to_string_pretty(&serde_json::json!({ "seconds": secs }))?)?;
     for r in &res.rows {
+        let m = |t: &str| r.teams[t].mean;
         println!(
-            "{} AV {}/{} MV {}/{} noise {}: MSE heterogeneous {:.4e} (random disks {:.4e}), aerial-only {:.4e}, boat-only {:.4e}",
-            r.row.name(), r.row.av_time, r.row.av_space, r.row.mv_time, r.row.mv_space, r.row.noise,
-            r.qr.mean_heterogeneous, r.random.mean_heterogeneous, r.qr.mean_aerial_only, r.qr.mean_boat_only
+            "{} AV {}/{} MV {}/{} noise {}: mean MSE over {} seeds from step {}: heterogeneous {:.4e} (random disks {:.4e}), aerial-only {:.4e}, boat-only {:.4e}; {}",
+            r.row.name(), r.row.av_time, r.row.av_space, r.row.mv_time, r.row.mv_space, r.row.noise, r.seeds.len(), r.scored_from,
+            m(paper::HETEROGENEOUS), m(paper::RANDOM), m(paper::AERIAL_ONLY), m(paper::BOAT_ONLY),
+            r.comparisons.iter().map(|c| format!("{} vs {}: {}", c.first, c.second, c.verdict.words())).collect::<Vec<_>>().join(", ")
         );
     }
     println!("wrote {}/report.md with {} figures ({secs:.1} s)", args.out.display(), figures.len());

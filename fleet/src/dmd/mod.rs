@@ -22,7 +22,7 @@ mod snapshots;
 pub use batch::BatchDmd;
 pub use debias::Debias;
 pub use general::GeneralDmd;
-pub use longterm::LongTermDmd;
+pub use longterm::{Forgetting, ForgettingDirections, ForgettingUnit, LongTermDmd};
 pub use model::{DmdModel, Modes};
 pub use rank::{numerical_rank, RankPolicy};
 pub use snapshots::SnapshotPairs;
@@ -102,11 +102,14 @@ pub struct DmdConfig {
     pub debias: Debias,
     /// Forgetting factor of the long-term method, in (0, 1]; 1 keeps everything.
     pub gamma: f64,
+    /// How the long-term method forgets with `gamma < 1`.
+    #[serde(default)]
+    pub forgetting: Forgetting,
 }
 
 impl Default for DmdConfig {
     fn default() -> Self {
-        Self { method: Method::Batch, rank: RankPolicy::Full, debias: Debias::None, gamma: 1.0 }
+        Self { method: Method::Batch, rank: RankPolicy::Full, debias: Debias::None, gamma: 1.0, forgetting: Forgetting::default() }
     }
 }
 
@@ -122,7 +125,7 @@ impl DmdConfig {
                         "the long-term method keeps no snapshots, so it cannot debias; use batch or general".into(),
                     ));
                 }
-                Box::new(LongTermDmd::init(x, y, self.gamma)?)
+                Box::new(LongTermDmd::init_with(x, y, self.gamma, self.forgetting)?)
             }
         })
     }

@@ -16,7 +16,7 @@ pub struct Variant {
 
 impl Variant {
     pub fn new(label: &str, method: Method, rank: RankPolicy, debias: Debias, gamma: f64) -> Self {
-        Self { label: label.into(), config: DmdConfig { method, rank, debias, gamma } }
+        Self { label: label.into(), config: DmdConfig { method, rank, debias, gamma, forgetting: Default::default() } }
     }
 }
 

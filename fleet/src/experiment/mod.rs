@@ -4,6 +4,7 @@
 pub mod eig_study;
 pub mod paper;
 pub mod sensing_timing;
+pub mod stats;
 pub mod table1;
 pub mod team;
 

@@ -5,6 +5,7 @@
 //! figures and `results.json`. Same file and seed, same JSON, byte for byte (timings go to
 //! `timings.json`).
 
+use super::stats::{Interval, Verdict as StatVerdict};
 use super::team::{self, Placement, TeamConfig, TeamOutcome};
 use super::{dominant_continuous, eig_study, run_online};
 use crate::dmd::{DmdConfig, Method, RankPolicy};
@@ -46,7 +47,18 @@ pub struct Row {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ExperimentConfig {
+    /// The truth's seed (one simulated cloud per preset, as the paper has one dataset per
+    /// cloud) and Figs. 7-8's.
     pub seed: u64,
+    /// The teams' seeds: sensor noise, the vehicles' random streams, random placement. Every
+    /// team of a seed sees the same truth and the same noise; Table 2 gives the mean over seeds
+    /// with a 95% interval, and paired differences. Default: `[seed]`.
+    #[serde(default)]
+    pub seeds: Vec<u64>,
+    /// Fusion schemes run besides the team's (the heterogeneous team, QR disks), reported as
+    /// `heterogeneous-<scheme>`.
+    #[serde(default)]
+    pub extra_fusions: Vec<crate::fusion::Scheme>,
     /// Simulator grid `[rows, cols]` and frames.
     pub truth_grid: [usize; 2],
     pub frames: usize,
@@ -63,6 +75,10 @@ pub struct ExperimentConfig {
     /// Forgetting factors of Fig. 8 (empty skips it).
     #[serde(default)]
     pub forgetting: Vec<f64>,
+    /// What Fig. 8's factors multiply: the past once per update (`batch`, the paper's
+    /// reading, default) or each pair by its age (`pair`, odmd's).
+    #[serde(default)]
+    pub forgetting_unit: crate::dmd::ForgettingUnit,
 }
 
 impl Row {
@@ -103,11 +119,34 @@ impl ExperimentConfig {
         if cfg.forgetting.iter().any(|g| !(*g > 0.0 && *g <= 1.0)) {
             bail!("forgetting factors must be in (0, 1]");
         }
+        let mut seeds = cfg.seeds.clone();
+        seeds.sort_unstable();
+        seeds.dedup();
+        if seeds.len() != cfg.seeds.len() {
+            bail!("seeds: each seed once (a repeated seed would count the same run twice)");
+        }
+        if cfg.extra_fusions.contains(&cfg.team.fusion) {
+            bail!("extra_fusions: {} is the team's own fusion already", cfg.team.fusion);
+        }
         Ok(cfg)
     }
 
-    /// The team of one row.
+    /// The teams' seeds.
+    pub fn seeds(&self) -> Vec<u64> {
+        if self.seeds.is_empty() {
+            vec![self.seed]
+        } else {
+            self.seeds.clone()
+        }
+    }
+
+    /// The team of one row, with the first seed.
     pub fn team_for(&self, r: &Row, placement: Placement) -> TeamConfig {
+        self.team_for_seed(r, placement, self.seeds()[0])
+    }
+
+    /// The team of one row for one seed.
+    pub fn team_for_seed(&self, r: &Row, placement: Placement, seed: u64) -> TeamConfig {
         TeamConfig {
             aerial_period: r.av_time,
             boat_period: r.mv_time,
@@ -116,18 +155,76 @@ impl ExperimentConfig {
             boat_sigma: r.noise,
             radius: self.radius / r.mv_space as f64,
             placement,
-            seed: self.seed,
+            seed,
             ..self.team.clone()
         }
     }
+}
+
+/// One seed of one row: every team's time-averaged MSE over the steps where all have data.
+#[derive(Debug, Clone, Serialize)]
+pub struct SeedResult {
+    pub seed: u64,
+    /// By team name (`heterogeneous`, `aerial-only`, `boat-only`, `heterogeneous-random`,
+    /// `heterogeneous-<scheme>`).
+    pub mse: BTreeMap<String, f64>,
+    /// From step 0, for the teams that have data there (labelled in the report).
+    pub heterogeneous_from_step0: f64,
+    pub aerial_only_from_step0: f64,
+}
+
+/// A paired difference of two teams' time-averaged MSE over seeds, and what it says.
+#[derive(Debug, Clone, Serialize)]
+pub struct Comparison {
+    pub first: String,
+    pub second: String,
+    pub difference: Interval,
+    pub verdict: StatVerdict,
 }
 
 #[derive(Debug, Clone, Serialize)]
 pub struct RowResult {
     pub row: Row,
     pub model_grid: [usize; 2],
-    pub qr: TeamOutcome,
-    pub random: TeamOutcome,
+    /// The first step every team has data at (the boat-only team's first sample): scoring
+    /// starts there for every team.
+    pub scored_from: usize,
+    pub seeds: Vec<SeedResult>,
+    /// Mean over seeds with its 95% interval, by team.
+    pub teams: BTreeMap<String, Interval>,
+    pub heterogeneous_from_step0: Interval,
+    pub aerial_only_from_step0: Interval,
+    /// heterogeneous - aerial-only, heterogeneous - boat-only, QR - random (and each extra
+    /// fusion scheme - the team's own).
+    pub comparisons: Vec<Comparison>,
+    /// The first seed's QR run (Fig. 11).
+    #[serde(skip)]
+    pub figure: TeamOutcome,
+    /// Per seed, per team, per step MSE (`None`: the team has no data yet): `per_step.csv`
+    /// and Fig. 10.
+    #[serde(skip)]
+    pub per_step: Vec<(u64, Vec<(String, Vec<Option<f64>>)>)>,
+}
+
+impl RowResult {
+    /// Mean over seeds with the 95% interval at each step, by team (steps where a team has no
+    /// data are left out).
+    pub fn curves(&self) -> Vec<(String, Vec<(usize, Interval)>)> {
+        let Some((_, first)) = self.per_step.first() else { return vec![] };
+        first
+            .iter()
+            .enumerate()
+            .map(|(t, (name, steps))| {
+                let points = (0..steps.len())
+                    .filter_map(|k| {
+                        let v: Vec<f64> = self.per_step.iter().filter_map(|(_, teams)| teams[t].1[k]).collect();
+                        (v.len() == self.per_step.len()).then(|| (k, Interval::of(&v)))
+                    })
+                    .collect();
+                (name.clone(), points)
+            })
+            .collect()
+    }
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -153,24 +250,15 @@ pub struct Results {
     pub verdict: Verdict,
 }
 
-/// The two claims the paper makes, checked on the most complex preset run.
+/// The two claims the paper makes, checked on the most complex preset run: each verdict read
+/// from the 95% interval of the paired difference over seeds.
 #[derive(Debug, Clone, Serialize)]
 pub struct Verdict {
     /// The row's truth (the most complex preset run, else the first dataset).
     pub preset: Option<String>,
-    pub heterogeneous_beats_both: Option<bool>,
-    pub qr_beats_random: Option<bool>,
-}
-
-/// The truth of a row on its model grid: the simulator at `truth_grid` (or the dataset),
-/// area-averaged by `mv_space`.
-fn truth_for(cfg: &ExperimentConfig, row: &Row, cache: &mut BTreeMap<String, FieldSeries>) -> anyhow::Result<FieldSeries> {
-    let key = row.name();
-    if !cache.contains_key(&key) {
-        let source = TruthSource { preset: row.preset, dataset: row.dataset.clone() };
-        cache.insert(key.clone(), source.full(cfg.truth_grid, cfg.frames, cfg.seed, |_| {}).with_context(|| key.clone())?);
-    }
-    averaged_by(&cache[&key], row.mv_space).with_context(|| key.clone())
+    pub heterogeneous_vs_aerial_only: Option<StatVerdict>,
+    pub heterogeneous_vs_boat_only: Option<StatVerdict>,
+    pub qr_vs_random: Option<StatVerdict>,
 }
 
 fn rank_of(p: Preset) -> u8 {
@@ -181,18 +269,119 @@ fn rank_of(p: Preset) -> u8 {
     }
 }
 
-/// Run everything; `progress(message)` is called as work proceeds (for a progress bar), and
-/// `units()` tells how many calls to expect.
-pub fn run(cfg: &ExperimentConfig, mut progress: impl FnMut(&str)) -> anyhow::Result<(Results, BTreeMap<String, FieldSeries>)> {
-    let mut cache = BTreeMap::new();
-    let mut rows = vec![];
-    for r in &cfg.rows {
-        progress(&format!("{} {}/{} {}/{}", r.name(), r.av_time, r.mv_time, r.av_space, r.mv_space));
-        let truth = truth_for(cfg, r, &mut cache)?;
-        let qr = team::run(&cfg.team_for(r, Placement::Qr), &truth, |_, _| {})?;
-        let random = team::run(&cfg.team_for(r, Placement::Random), &truth, |_, _| {})?;
-        rows.push(RowResult { row: r.clone(), model_grid: [truth.rows, truth.cols], qr, random });
+/// Team names in `per_step.csv` and the tables.
+pub const HETEROGENEOUS: &str = "heterogeneous";
+pub const AERIAL_ONLY: &str = "aerial-only";
+pub const BOAT_ONLY: &str = "boat-only";
+pub const RANDOM: &str = "heterogeneous-random";
+
+/// Every team of one row and seed: the QR run (all three teams), the random-placement run, and
+/// each extra fusion scheme's run.
+fn run_seed(cfg: &ExperimentConfig, r: &Row, truth: &FieldSeries, seed: u64) -> Result<(SeedResult, TeamOutcome, Vec<(String, Vec<Option<f64>>)>), team::TeamError> {
+    let qr = team::run(&cfg.team_for_seed(r, Placement::Qr, seed), truth, |_, _| {})?;
+    let random = team::run(&cfg.team_for_seed(r, Placement::Random, seed), truth, |_, _| {})?;
+    let some = |v: &[f64]| v.iter().map(|&x| Some(x)).collect::<Vec<_>>();
+    let mut mse = BTreeMap::from([(HETEROGENEOUS.to_string(), qr.mean_heterogeneous), (AERIAL_ONLY.into(), qr.mean_aerial_only), (BOAT_ONLY.into(), qr.mean_boat_only), (RANDOM.into(), random.mean_heterogeneous)]);
+    let mut steps = vec![(HETEROGENEOUS.to_string(), some(&qr.heterogeneous)), (AERIAL_ONLY.into(), some(&qr.aerial_only)), (BOAT_ONLY.into(), qr.boat_only.clone()), (RANDOM.into(), some(&random.heterogeneous))];
+    for &scheme in &cfg.extra_fusions {
+        let other = team::run(&TeamConfig { fusion: scheme, ..cfg.team_for_seed(r, Placement::Qr, seed) }, truth, |_, _| {})?;
+        let name = format!("{HETEROGENEOUS}-{scheme}");
+        mse.insert(name.clone(), other.mean_heterogeneous);
+        steps.push((name, some(&other.heterogeneous)));
     }
+    let result = SeedResult { seed, mse, heterogeneous_from_step0: qr.heterogeneous_from_step0, aerial_only_from_step0: qr.aerial_only_from_step0 };
+    Ok((result, qr, steps))
+}
+
+/// `f` over `jobs` on every core, results in job order (so the output does not depend on the
+/// scheduling: each job is deterministic on its own).
+fn parallel<J: Sync, T: Send>(jobs: &[J], f: impl Fn(&J) -> T + Sync) -> Vec<T> {
+    let workers = std::thread::available_parallelism().map_or(1, |n| n.get()).min(jobs.len().max(1));
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let done: std::sync::Mutex<Vec<(usize, T)>> = std::sync::Mutex::new(Vec::with_capacity(jobs.len()));
+    std::thread::scope(|s| {
+        for _ in 0..workers {
+            s.spawn(|| loop {
+                let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                let Some(job) = jobs.get(i) else { break };
+                let out = f(job);
+                done.lock().unwrap_or_else(|p| p.into_inner()).push((i, out));
+            });
+        }
+    });
+    let mut done = done.into_inner().unwrap_or_else(|p| p.into_inner());
+    done.sort_by_key(|(i, _)| *i);
+    done.into_iter().map(|(_, t)| t).collect()
+}
+
+/// Run everything; `progress(message)` is called as work proceeds (for a progress bar), and
+/// `units()` tells how many calls to expect. Rows and seeds run in parallel.
+pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow::Result<(Results, BTreeMap<String, FieldSeries>)> {
+    let progress = std::sync::Mutex::new(progress);
+    let say = |m: &str| (progress.lock().unwrap_or_else(|p| p.into_inner()))(m);
+    // One truth per cloud, simulated once (in parallel).
+    let mut names: Vec<&Row> = vec![];
+    for r in &cfg.rows {
+        if !names.iter().any(|n| n.name() == r.name()) {
+            names.push(r);
+        }
+    }
+    let fulls = parallel(&names, |r| {
+        let out = TruthSource { preset: r.preset, dataset: r.dataset.clone() }.full(cfg.truth_grid, cfg.frames, cfg.seed, |_| {}).with_context(|| r.name());
+        say(&format!("truth {}", r.name()));
+        out
+    });
+    let mut cache = BTreeMap::new();
+    for (r, full) in names.iter().zip(fulls) {
+        cache.insert(r.name(), full?);
+    }
+    let truths: Vec<FieldSeries> = cfg.rows.iter().map(|r| averaged_by(&cache[&r.name()], r.mv_space).with_context(|| r.name())).collect::<anyhow::Result<_>>()?;
+    let seeds = cfg.seeds();
+    let jobs: Vec<(usize, u64)> = (0..cfg.rows.len()).flat_map(|i| seeds.iter().map(move |&s| (i, s))).collect();
+    let outs = parallel(&jobs, |&(i, seed)| {
+        let r = &cfg.rows[i];
+        let out = run_seed(cfg, r, &truths[i], seed).with_context(|| format!("{} {}/{} {}/{} seed {seed}", r.name(), r.av_time, r.mv_time, r.av_space, r.mv_space));
+        say(&format!("{} {}/{} {}/{} seed {seed}", r.name(), r.av_time, r.mv_time, r.av_space, r.mv_space));
+        out
+    });
+    let mut outs = outs.into_iter();
+    let mut rows = vec![];
+    for (i, r) in cfg.rows.iter().enumerate() {
+        let mut seed_results = vec![];
+        let mut per_step = vec![];
+        let mut figure = None;
+        for &seed in &seeds {
+            let (result, qr, steps) = outs.next().expect("one output per job")?;
+            seed_results.push(result);
+            per_step.push((seed, steps));
+            figure.get_or_insert(qr);
+        }
+        let figure = figure.expect("at least one seed");
+        let of = |team: &str| seed_results.iter().map(|s| s.mse[team]).collect::<Vec<f64>>();
+        let teams: BTreeMap<String, Interval> = seed_results[0].mse.keys().map(|t| (t.clone(), Interval::of(&of(t)))).collect();
+        let compare = |a: &str, b: &str| {
+            let d = Interval::paired(&of(a), &of(b));
+            Comparison { first: a.into(), second: b.into(), difference: d, verdict: StatVerdict::of(&d) }
+        };
+        let mut comparisons = vec![compare(HETEROGENEOUS, AERIAL_ONLY), compare(HETEROGENEOUS, BOAT_ONLY), compare(HETEROGENEOUS, RANDOM)];
+        for scheme in &cfg.extra_fusions {
+            comparisons.push(compare(&format!("{HETEROGENEOUS}-{scheme}"), HETEROGENEOUS));
+        }
+        let step0 = |f: fn(&SeedResult) -> f64| Interval::of(&seed_results.iter().map(f).collect::<Vec<_>>());
+        rows.push(RowResult {
+            row: r.clone(),
+            model_grid: [truths[i].rows, truths[i].cols],
+            scored_from: figure.scored_from,
+            heterogeneous_from_step0: step0(|s| s.heterogeneous_from_step0),
+            aerial_only_from_step0: step0(|s| s.aerial_only_from_step0),
+            seeds: seed_results,
+            teams,
+            comparisons,
+            figure,
+            per_step,
+        });
+    }
+    let progress = |m: &str| say(m);
     let mut eig = vec![];
     if cfg.eig_trials > 0 {
         let methods = [("batch", Method::Batch), ("general", Method::General), ("long-term", Method::LongTerm)];
@@ -212,9 +401,9 @@ pub fn run(cfg: &ExperimentConfig, mut progress: impl FnMut(&str)) -> anyhow::Re
         let field = EigStudy::field(0.01, cfg.seed);
         let z = field.snapshots.as_ref();
         let mut curves: Vec<(String, DmdConfig)> =
-            vec![("batch".into(), DmdConfig { method: Method::Batch, rank: RankPolicy::Full, debias: Default::default(), gamma: 1.0 })];
+            vec![("batch".into(), DmdConfig { method: Method::Batch, rank: RankPolicy::Full, debias: Default::default(), gamma: 1.0, forgetting: Default::default() })];
         for &g in &cfg.forgetting {
-            curves.push((format!("long-term gamma {g}"), DmdConfig { method: Method::LongTerm, rank: RankPolicy::Full, debias: Default::default(), gamma: g }));
+            curves.push((format!("long-term gamma {g}"), DmdConfig { method: Method::LongTerm, rank: RankPolicy::Full, debias: Default::default(), gamma: g, forgetting: cfg.forgetting_unit.into() }));
         }
         for (label, c) in curves {
             progress(&format!("Fig. 8 {label}"));
@@ -239,32 +428,55 @@ pub fn run(cfg: &ExperimentConfig, mut progress: impl FnMut(&str)) -> anyhow::Re
         Some(p) => rows.iter().find(|r| r.row.preset == Some(p)),
         None => rows.first(),
     };
+    let verdict_of = |r: &RowResult, second: &str| r.comparisons.iter().find(|c| c.first == HETEROGENEOUS && c.second == second).map(|c| c.verdict);
     let verdict = Verdict {
         preset: first_of_top.map(|r| r.row.name()),
-        heterogeneous_beats_both: first_of_top.map(|r| r.qr.mean_heterogeneous < r.qr.mean_aerial_only && r.qr.mean_heterogeneous < r.qr.mean_boat_only),
-        qr_beats_random: first_of_top.map(|r| r.qr.mean_heterogeneous < r.random.mean_heterogeneous),
+        heterogeneous_vs_aerial_only: first_of_top.and_then(|r| verdict_of(r, AERIAL_ONLY)),
+        heterogeneous_vs_boat_only: first_of_top.and_then(|r| verdict_of(r, BOAT_ONLY)),
+        qr_vs_random: first_of_top.and_then(|r| verdict_of(r, RANDOM)),
     };
     Ok((Results { config: cfg.clone(), rows, eig_study: eig, forgetting, verdict }, cache))
 }
 
 /// Work units `run` reports, for a progress bar.
 pub fn units(cfg: &ExperimentConfig) -> usize {
-    cfg.rows.len() + if cfg.eig_trials > 0 { 9 } else { 0 } + if cfg.forgetting.is_empty() { 0 } else { cfg.forgetting.len() + 1 }
+    let clouds = cfg.rows.iter().map(Row::name).collect::<std::collections::BTreeSet<_>>().len();
+    clouds + cfg.rows.len() * cfg.seeds().len() + if cfg.eig_trials > 0 { 9 } else { 0 } + if cfg.forgetting.is_empty() { 0 } else { cfg.forgetting.len() + 1 }
 }
 
-/// Write `results.json`, the figures and `report.md` into `dir`.
+/// `per_step.csv`: one line per row, seed, team and step where the team has data
+/// (`row,preset,seed,team,step,mse`; `row` counts the experiment's rows from 1), so every
+/// figure and table can be recomputed with pandas.
+fn write_per_step(dir: &Path, res: &Results) -> anyhow::Result<()> {
+    let mut csv = String::from("row,preset,seed,team,step,mse\n");
+    for (i, r) in res.rows.iter().enumerate() {
+        for (seed, teams) in &r.per_step {
+            for (team, steps) in teams {
+                for (k, v) in steps.iter().enumerate() {
+                    if let Some(v) = v {
+                        writeln!(csv, "{},{},{seed},{team},{k},{v:e}", i + 1, r.row.name())?;
+                    }
+                }
+            }
+        }
+    }
+    std::fs::write(dir.join("per_step.csv"), csv)?;
+    Ok(())
+}
+
+/// Write `results.json`, `per_step.csv`, the figures and `report.md` into `dir`.
 pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSeries>, command: &str) -> anyhow::Result<Vec<String>> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     std::fs::write(dir.join("results.json"), serde_json::to_string_pretty(res)?)?;
     let mut figures = vec![];
     let mut md = String::new();
     writeln!(md, "# hetfleet experiment report\n")?;
-    writeln!(md, "Made by `{command}` (seed {}). Every number is in `results.json`.\n", res.config.seed)?;
+    writeln!(md, "Made by `{command}`. Every number is in `results.json`, every per-step error in `per_step.csv` (`row,preset,seed,team,step,mse`).\n")?;
     writeln!(
         md,
         "Truth: the plasma-cloud simulator at {} x {}, {} frames, area-averaged by the boats' space rate to the model grid. \
          Team: {} aerials, {} boats of radius {} simulator cells, {} DMD at rank `{}`, `{}` fusion, {} initial aerial-only steps. \
-         MSE is averaged over the grid and over the steps after initialisation.\n",
+         MSE is averaged over the grid at each step, then over the scored steps.\n",
         res.config.truth_grid[0],
         res.config.truth_grid[1],
         res.config.frames,
@@ -276,41 +488,64 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
         res.config.team.fusion,
         res.config.team.init_steps
     )?;
-    writeln!(md, "## Table 2: time-averaged MSE\n")?;
-    writeln!(md, "| cloud | AV time | MV time | AV space | MV space | noise | model grid | heterogeneous (QR) | aerial-only | boat-only | heterogeneous (random) | paper |")?;
-    writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|---|")?;
+    write_per_step(dir, res)?;
+    let e3 = |v: f64| format!("{v:.3e}");
+    let cell = |i: &Interval| if i.n > 1 { format!("{} [{}, {}]", e3(i.mean), e3(i.lo), e3(i.hi)) } else { e3(i.mean) };
+    let seeds = res.config.seeds();
+    writeln!(md, "## Table 2: time-averaged MSE, mean over {} seeds [95% interval]\n", seeds.len())?;
+    writeln!(
+        md,
+        "Every team is scored over the same steps: from the first step where every team has data (the boat-only team's first sample, step `scored from`) to the end. \
+         No team is scored where it has no data. Seeds {seeds:?} vary the sensor noise, the vehicles' random streams and the random placement; every team of a seed sees the same truth and noise. \
+         The truth is one simulated cloud per preset (seed {}), as the paper has one dataset per cloud.\n",
+        res.config.seed
+    )?;
+    let extra: Vec<String> = res.config.extra_fusions.iter().map(|f| format!("{HETEROGENEOUS}-{f}")).collect();
+    write!(md, "| cloud | AV time | MV time | AV space | MV space | noise | model grid | scored from | heterogeneous (QR) | aerial-only | boat-only | heterogeneous (random) |")?;
+    for x in &extra {
+        write!(md, " {x} |")?;
+    }
+    writeln!(md, " paper |")?;
+    writeln!(md, "|{}", "---|".repeat(13 + extra.len()))?;
     for r in &res.rows {
         let w = &r.row;
-        writeln!(
-            md,
-            "| {} | {} | {} | {} | {} | {} | {} x {} | {:.4e} | {:.4e} | {:.4e} | {:.4e} | {} |",
-            w.name(),
-            w.av_time,
-            w.mv_time,
-            w.av_space,
-            w.mv_space,
-            w.noise,
-            r.model_grid[0],
-            r.model_grid[1],
-            r.qr.mean_heterogeneous,
-            r.qr.mean_aerial_only,
-            r.qr.mean_boat_only,
-            r.random.mean_heterogeneous,
-            w.paper_mse.map_or("".into(), |v| format!("{v}"))
-        )?;
+        write!(md, "| {} | {} | {} | {} | {} | {} | {} x {} | {} |", w.name(), w.av_time, w.mv_time, w.av_space, w.mv_space, w.noise, r.model_grid[0], r.model_grid[1], r.scored_from)?;
+        for t in [HETEROGENEOUS, AERIAL_ONLY, BOAT_ONLY, RANDOM].iter().map(|t| t.to_string()).chain(extra.iter().cloned()) {
+            write!(md, " {} |", cell(&r.teams[&t]))?;
+        }
+        writeln!(md, " {} |", w.paper_mse.map_or("".into(), |v| format!("{v}")))?;
+    }
+    writeln!(md, "\n### Paired differences (same seed, same truth and noise), mean [95% interval], and what they say\n")?;
+    let heads: Vec<String> = res.rows.first().map_or(vec![], |r| r.comparisons.iter().map(|c| format!("{} - {}", c.first, c.second)).collect());
+    writeln!(md, "| cloud | AV/MV time | AV/MV space | noise |{}", heads.iter().map(|h| format!(" {h} |")).collect::<String>())?;
+    writeln!(md, "|{}", "---|".repeat(4 + heads.len()))?;
+    for r in &res.rows {
+        let w = &r.row;
+        write!(md, "| {} | {}/{} | {}/{} | {} |", w.name(), w.av_time, w.mv_time, w.av_space, w.mv_space, w.noise)?;
+        for c in &r.comparisons {
+            write!(md, " {} **{}** |", cell(&c.difference), c.verdict.words())?;
+        }
+        writeln!(md)?;
+    }
+    writeln!(md, "\nScored from step 0 instead (labelled: only the teams with data there):\n")?;
+    writeln!(md, "| cloud | AV/MV time | AV/MV space | noise | heterogeneous, from step 0 | aerial-only, from step 0 |\n|---|---|---|---|---|---|")?;
+    for r in &res.rows {
+        let w = &r.row;
+        writeln!(md, "| {} | {}/{} | {}/{} | {} | {} | {} |", w.name(), w.av_time, w.mv_time, w.av_space, w.mv_space, w.noise, cell(&r.heterogeneous_from_step0), cell(&r.aerial_only_from_step0))?;
     }
     let v = &res.verdict;
     writeln!(md)?;
-    if let (Some(p), Some(h), Some(q)) = (&v.preset, v.heterogeneous_beats_both, v.qr_beats_random) {
+    if let (Some(p), Some(a), Some(b), Some(q)) = (&v.preset, v.heterogeneous_vs_aerial_only, v.heterogeneous_vs_boat_only, v.qr_vs_random) {
         writeln!(
             md,
-            "On the most complex cloud run ({p}, first row): the heterogeneous team's MSE is {} both homogeneous teams', and QR placement {} random placement.\n",
-            if h { "below" } else { "**not** below" },
-            if q { "beats" } else { "does **not** beat" }
+            "On the most complex cloud run ({p}, its first row), read from the paired intervals: heterogeneous against aerial-only **{}**, heterogeneous against boat-only **{}**, QR placement against random placement **{}**.\n",
+            a.words(),
+            b.words(),
+            q.words()
         )?;
     }
-    // Fig. 10: per cloud, its first row.
-    writeln!(md, "## Fig. 10: MSE over time\n")?;
+    // Fig. 10: per cloud, its first row: the mean over seeds with its 95% band.
+    writeln!(md, "## Fig. 10: MSE over time, mean over seeds with the 95% interval shaded\n")?;
     let mut seen = vec![];
     for r in &res.rows {
         if seen.contains(&r.row.name()) {
@@ -318,18 +553,21 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
         }
         seen.push(r.row.name());
         let name = format!("fig10-{}.png", r.row.name()).to_lowercase();
-        let s = |label: &str, v: &[f64]| Series { name: label.into(), points: v.iter().enumerate().map(|(k, &e)| (k as f64, e)).collect() };
-        let series = [s("heterogeneous", &r.qr.heterogeneous), s("aerial-only", &r.qr.aerial_only), s("boat-only", &r.qr.boat_only), s("heterogeneous, random disks", &r.random.heterogeneous)];
-        plot::lines(dir.join(&name), &format!("{}: MSE over the grid at each step", r.row.name()), "step", "MSE", &series, true)?;
+        let bands: Vec<plot::Band> = r
+            .curves()
+            .into_iter()
+            .map(|(team, pts)| plot::Band { name: team, points: pts.iter().map(|(k, i)| (*k as f64, i.mean, if i.n > 1 { i.lo } else { i.mean }, if i.n > 1 { i.hi } else { i.mean })).collect() })
+            .collect();
+        plot::bands(dir.join(&name), &format!("{}: MSE over the grid at each step ({} seeds; scored from step {})", r.row.name(), seeds.len(), r.scored_from), "step", "MSE", &bands, true)?;
         writeln!(md, "![{name}]({name})\n")?;
         figures.push(name);
     }
-    // Fig. 11: the most complex cloud's first row, three boat steps.
+    // Fig. 11: the most complex cloud's first row, first seed, three boat steps.
     if let Some(r) = v.preset.as_ref().and_then(|p| res.rows.iter().find(|r| &r.row.name() == p)) {
-        writeln!(md, "## Fig. 11: truth and reconstruction ({}), boats' disks in white\n", r.row.name())?;
+        writeln!(md, "## Fig. 11: truth and reconstruction ({}, seed {}), boats' disks in white\n", r.row.name(), seeds[0])?;
         let truth = &truths[&r.row.name()];
         let (rows, cols) = (r.model_grid[0], r.model_grid[1]);
-        let steps = &r.qr.boat_steps;
+        let steps = &r.figure.boat_steps;
         let picks: Vec<usize> = if steps.len() >= 3 { vec![0, steps.len() / 2, steps.len() - 1] } else { (0..steps.len()).collect() };
         let radius = res.config.radius / r.row.mv_space as f64;
         let mut owned = vec![];
@@ -340,9 +578,9 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
         }
         let mut panels = vec![];
         for (k, i, t) in &owned {
-            let disks: Vec<(f64, f64, f64)> = r.qr.disks[*i].iter().map(|&(a, b)| (a as f64, b as f64, radius)).collect();
+            let disks: Vec<(f64, f64, f64)> = r.figure.disks[*i].iter().map(|&(a, b)| (a as f64, b as f64, radius)).collect();
             panels.push(Panel { values: t, rows, cols, title: format!("truth, step {k}"), disks: disks.clone() });
-            panels.push(Panel { values: &r.qr.snapshots[*i], rows, cols, title: format!("heterogeneous estimate, step {k}"), disks });
+            panels.push(Panel { values: &r.figure.snapshots[*i], rows, cols, title: format!("heterogeneous estimate, step {k}"), disks });
         }
         let range = plot::range_of(&panels[..panels.len().min(1)]);
         plot::png(dir.join("fig11.png"), &panels, Some(range))?;
@@ -367,15 +605,19 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
         writeln!(md)?;
     }
     if !res.forgetting.is_empty() {
-        writeln!(md, "## Fig. 8: forgetting factor (eigenvalue-study field, noise variance 0.01)\n")?;
+        let unit = match res.config.forgetting_unit {
+            crate::dmd::ForgettingUnit::Batch => "per update of 60 pairs (the paper's reading: each update multiplies the past by gamma)",
+            crate::dmd::ForgettingUnit::Pair => "per pair (odmd's: each pair weighs gamma^age)",
+        };
+        writeln!(md, "## Fig. 8: forgetting factor (eigenvalue-study field, noise variance 0.01), gamma {unit}, along the directions each update excites\n")?;
         let series: Vec<Series> = res.forgetting.iter().map(|c| Series { name: c.label.clone(), points: c.points.clone() }).collect();
         plot::lines(dir.join("fig8.png"), "Dominant eigenvalue (real part) as pairs arrive; true value -1", "pairs assimilated", "Re(lambda)", &series, false)?;
         writeln!(md, "![fig8](fig8.png)\n")?;
         writeln!(
             md,
-            "With `N = 400` cells, a forgetting factor keeps an effective memory of about `1/(1 - gamma)` pairs: \
-             below ~400 (gamma 0.99 and less) the operator is fitted to fewer pairs than it has unknowns per row and its \
-             dominant eigenvalue follows the noise.\n"
+            "A forgetting factor keeps an effective memory of about `1/(1 - gamma)` updates (per batch) or pairs (per pair). \
+             With `N = 400` cells, a memory below ~400 pairs fits the operator to fewer pairs than it has unknowns per row, and its \
+             dominant eigenvalue follows the noise. Set `forgetting_unit = \"pair\"` in the experiment file for odmd's reading.\n"
         )?;
         figures.push("fig8.png".into());
     }

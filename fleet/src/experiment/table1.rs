@@ -15,7 +15,7 @@ pub const PAPER_EIG: [[f64; 3]; 4] = [[13.59, 0.537, 0.413], [2.756, 1.950, 1.31
 /// The rows we time: label, config, and which paper column it corresponds to (0 batch,
 /// 1 general, 2 long-term).
 pub fn methods() -> Vec<(&'static str, DmdConfig, usize)> {
-    let c = |method, rank| DmdConfig { method, rank, debias: Debias::None, gamma: 1.0 };
+    let c = |method, rank| DmdConfig { method, rank, debias: Debias::None, gamma: 1.0, forgetting: Default::default() };
     vec![
         ("batch", c(Method::Batch, RankPolicy::Full), 0),
         ("general", c(Method::General, RankPolicy::Full), 1),

@@ -10,8 +10,9 @@
 //! - aerial-only: the upsampled aerial frame (held between frames);
 //! - boat-only: a DMD model built from boat data alone, the boats at the heterogeneous
 //!   model's disks (the paper's reading): at a boat step its snapshot is the gappy estimate on
-//!   its own model's modes, between boat steps its own prediction. Until it has a model (the
-//!   first `init_steps` steps) the measured cells' mean fills the grid.
+//!   its own model's modes, between boat steps its own prediction. It has no estimate before
+//!   its first sample (those steps are not scored for any team: every team is scored over the
+//!   same steps); until it has a model the measured cells' mean fills the grid.
 
 use crate::dmd::{DmdConfig, DmdModel, Method, RankPolicy};
 use crate::fusion::Scheme;
@@ -108,15 +109,26 @@ pub enum TeamError {
 }
 
 /// Per-step mean squared errors of the three teams, and what the fleet did.
+///
+/// Scoring (every team over the same steps, never a team without data): the heterogeneous and
+/// aerial-only teams have data from step 0; the boat-only team from its first boat sample
+/// (`boat_only[k]` is `None` before). The `mean_*` are over steps `scored_from..`, the first
+/// step where every team has data; `*_from_step0` (the two teams that have data there) are
+/// reported beside them, labelled.
 #[derive(Debug, Clone, Serialize)]
 pub struct TeamOutcome {
     pub heterogeneous: Vec<f64>,
     pub aerial_only: Vec<f64>,
-    pub boat_only: Vec<f64>,
-    /// Time-averaged MSE over the steps after initialisation.
+    pub boat_only: Vec<Option<f64>>,
+    /// The first step where every team has data.
+    pub scored_from: usize,
+    /// Time-averaged MSE over steps `scored_from..`.
     pub mean_heterogeneous: f64,
     pub mean_aerial_only: f64,
     pub mean_boat_only: f64,
+    /// Time-averaged MSE over every step (teams with data from step 0 only).
+    pub heterogeneous_from_step0: f64,
+    pub aerial_only_from_step0: f64,
     /// Boat disk centres `(row, col)` at each boat step, and the aerials' positions (m).
     pub boat_steps: Vec<usize>,
     pub disks: Vec<Vec<(usize, usize)>>,
@@ -240,9 +252,12 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
         heterogeneous: vec![],
         aerial_only: vec![],
         boat_only: vec![],
+        scored_from: 0,
         mean_heterogeneous: 0.0,
         mean_aerial_only: 0.0,
         mean_boat_only: 0.0,
+        heterogeneous_from_step0: 0.0,
+        aerial_only_from_step0: 0.0,
         boat_steps: vec![],
         disks: vec![],
         aerial_positions: vec![],
@@ -263,16 +278,14 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
         progress(k + 1, frames);
     }
     server.initialise(init)?;
-    // Boat-only team: its snapshots at boat steps, its model once it has enough. It knows
-    // nothing before its first sample: its estimate is 0 until then (those steps count against
-    // it), then its latest snapshot until it has a model.
-    let boat_cfg = DmdConfig { method: Method::Batch, rank: cfg.rank.parse().map_err(TeamError::Config)?, debias: Default::default(), gamma: cfg.gamma };
+    // Boat-only team: its snapshots at boat steps, its model once it has enough. It has no
+    // estimate before its first sample (those steps are not scored), then its latest snapshot
+    // until it has a model.
+    let boat_cfg = DmdConfig { method: Method::Batch, rank: cfg.rank.parse().map_err(TeamError::Config)?, debias: Default::default(), gamma: cfg.gamma, forgetting: Default::default() };
     let mut boat_snaps: Vec<Vec<f64>> = vec![];
     let mut boat_model: Option<(DmdModel, Mat<f64>, usize)> = None; // model, basis, step of its newest snapshot
-    let mut boat_guess: Vec<f64> = vec![0.0; n];
-    for k in 0..cfg.init_steps {
-        out.boat_only.push(mse(&boat_guess, &truth_at(k)));
-    }
+    let mut boat_guess: Option<Vec<f64>> = None;
+    out.boat_only.resize(cfg.init_steps, None);
 
     let mut k0 = cfg.init_steps;
     while k0 < frames {
@@ -319,16 +332,16 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
                     let (p, b) = mission::fit_to(bm.as_ref(), &est)?;
                     boat_model = Some((p, b, k));
                 }
-                boat_guess = est.clone();
-                est
+                boat_guess = Some(est.clone());
+                Some(est)
             } else {
                 match &boat_model {
                     // Its model steps are boat periods.
-                    Some((p, _, at)) => p.predict((k - at) as f64 / cfg.boat_period as f64),
+                    Some((p, _, at)) => Some(p.predict((k - at) as f64 / cfg.boat_period as f64)),
                     None => boat_guess.clone(),
                 }
             };
-            out.boat_only.push(mse(&boat_est, &x));
+            out.boat_only.push(boat_est.map(|b| mse(&b, &x)));
             if Some(k) == boat_step {
                 out.boat_steps.push(k);
                 out.disks.push(plan.boats.iter().flatten().map(|(_, c)| *c).collect());
@@ -342,10 +355,13 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
         server.assimilate(epoch)?;
         k0 = k_end;
     }
-    let tail = |v: &[f64]| v[cfg.init_steps..].iter().sum::<f64>() / (v.len() - cfg.init_steps).max(1) as f64;
-    out.mean_heterogeneous = tail(&out.heterogeneous);
-    out.mean_aerial_only = tail(&out.aerial_only);
-    out.mean_boat_only = tail(&out.boat_only);
+    out.scored_from = out.boat_only.iter().position(Option::is_some).unwrap_or(frames);
+    let mean_from = |v: &[f64], from: usize| v[from.min(v.len())..].iter().sum::<f64>() / v.len().saturating_sub(from).max(1) as f64;
+    out.mean_heterogeneous = mean_from(&out.heterogeneous, out.scored_from);
+    out.mean_aerial_only = mean_from(&out.aerial_only, out.scored_from);
+    out.mean_boat_only = mean_from(&out.boat_only.iter().map(|v| v.unwrap_or(0.0)).collect::<Vec<_>>(), out.scored_from);
+    out.heterogeneous_from_step0 = mean_from(&out.heterogeneous, 0);
+    out.aerial_only_from_step0 = mean_from(&out.aerial_only, 0);
     out.rank = server.rank();
     Ok(out)
 }

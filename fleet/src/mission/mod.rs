@@ -83,7 +83,7 @@ impl Assimilator {
         let mut placement_rng = ChaCha8Rng::seed_from_u64(cfg.seed);
         let boat_positions = (0..cfg.boats).map(|_| (placement_rng.random_range(0.0..grid.width_m()), placement_rng.random_range(0.0..grid.height_m()))).collect();
         Ok(Self {
-            dmd: DmdConfig { method: cfg.method, rank, debias: Default::default(), gamma: cfg.gamma },
+            dmd: DmdConfig { method: cfg.method, rank, debias: Default::default(), gamma: cfg.gamma, forgetting: Default::default() },
             cfg: cfg.clone(),
             grid,
             model: None,
