@@ -53,9 +53,26 @@ print(json.dumps([[float(z.real), float(z.imag)] for z in e]))
     let doc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&ours).unwrap()).unwrap();
     let mine: Vec<[f64; 2]> = serde_json::from_value(doc["model"]["eigenvalues"].clone()).unwrap();
     assert_eq!(mine.len(), theirs.len());
-    for th in &theirs {
-        let best = mine.iter().map(|m| ((m[0] - th[0]).powi(2) + (m[1] - th[1]).powi(2)).sqrt()).fold(f64::INFINITY, f64::min);
-        let scale = (th[0].powi(2) + th[1].powi(2)).sqrt().max(1e-3);
-        assert!(best / scale < 1e-6, "PyDMD eigenvalue {th:?} has no match in ours {mine:?}");
+    // One to one: the pairing (over all 720 of 6) with the smallest worst relative difference,
+    // so two of PyDMD's eigenvalues never match the same one of ours.
+    let rel = |m: &[f64; 2], t: &[f64; 2]| ((m[0] - t[0]).powi(2) + (m[1] - t[1]).powi(2)).sqrt() / (t[0].powi(2) + t[1].powi(2)).sqrt().max(1e-3);
+    let mut best = f64::INFINITY;
+    let mut order: Vec<usize> = (0..mine.len()).collect();
+    permutations(&mut order, 0, &mut |p| best = best.min(theirs.iter().zip(p).map(|(t, &j)| rel(&mine[j], t)).fold(0.0, f64::max)));
+    println!("MEASURED PyDMD vs ours, batch rank 6, one to one: {best:e}");
+    // Measured 5.3e-14; two SVD and eigensolver implementations on a 6 x 6 reduced
+    // operator: 1e-9 leaves 1e4 for other machines, far below a wrong eigenvalue's 1e-3.
+    assert!(best < 1e-9, "PyDMD's eigenvalues {theirs:?} vs ours {mine:?}: {best:e}");
+}
+
+/// Call `f` with every permutation of `v[k..]` (Heap's order is not needed: all of them).
+fn permutations(v: &mut Vec<usize>, k: usize, f: &mut impl FnMut(&[usize])) {
+    if k == v.len() {
+        return f(v);
+    }
+    for i in k..v.len() {
+        v.swap(k, i);
+        permutations(v, k + 1, f);
+        v.swap(k, i);
     }
 }
