@@ -17,12 +17,14 @@
 use crate::dmd::{DmdConfig, DmdModel, Method, RankPolicy};
 use crate::fusion::Scheme;
 use crate::grid::Grid;
+use crate::fusion::AerialNoise;
+use crate::mission::server::ServerCore;
+use crate::mission::vehicle::VehicleBrain;
 use crate::mission;
 use crate::process::FieldSeries;
-use crate::protocol::Sample;
+use crate::protocol::{Sample, VehicleKind};
 use crate::sensing::gappy;
 use faer::Mat;
-use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 /// Where boats go.
@@ -227,26 +229,32 @@ fn column(m: &Mat<f64>, k: usize) -> Vec<f64> {
 }
 
 
-/// Run the loop on `truth` (already on the model grid): the vehicles sense with their own
-/// random streams ([`mission::sense_aerial`], [`mission::sense_boat`]) and the
-/// [`mission::Assimilator`] does the server's part, exactly as the networked fleet does.
+/// Run the loop on `truth` (already on the model grid) with the fleet's own engine: every
+/// vehicle a [`VehicleBrain`] sensing with its own random stream under the plans of a
+/// [`ServerCore`], which assimilates their batches epoch by epoch, exactly as the networked
+/// fleet does (so the networked run equals this one by construction). Only the baselines are
+/// added here: the aerial-only team reads the server's aerial estimate of each step, the
+/// boat-only team builds its own model from the boats' samples.
 pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize, usize)) -> Result<TeamOutcome, TeamError> {
     let grid = Grid::new(truth.rows, truth.cols, 1.0)?;
     let frames = truth.frames();
-    let mut server = mission::Assimilator::new(cfg, grid, frames)?;
+    let mut server = ServerCore::new(cfg, grid, frames)?;
     let n = grid.len();
     let boat_var = cfg.boat_sigma * cfg.boat_sigma;
-    let noise = server.aerial_noise();
     let truth_at = |k: usize| column(&truth.snapshots, k);
-    let mut rngs: Vec<ChaCha8Rng> = (0..cfg.aerials + cfg.boats).map(|v| mission::vehicle_rng(cfg.seed, v)).collect();
-    // The aerials' frame at step k (every `aerial_period` steps), each aerial its own region.
-    let aerial_samples = |k: usize, positions: &[(f64, f64)], rngs: &mut [ChaCha8Rng]| -> Result<Vec<Sample>, TeamError> {
-        if k % cfg.aerial_period != 0 {
-            return Ok(vec![]);
-        }
-        let x = truth_at(k);
-        (0..cfg.aerials).map(|a| mission::sense_aerial(&grid, &x, k as u64, cfg.aerial_stride, positions, a, noise, &mut rngs[a]).map_err(TeamError::from)).collect()
-    };
+    // Each vehicle as the vehicle node runs it; offline they reach every place in time.
+    let mut brains: Vec<VehicleBrain> = server
+        .vehicles()
+        .iter()
+        .enumerate()
+        .map(|(v, spec)| {
+            let noise = match spec.kind {
+                VehicleKind::Aerial => server.assimilator().aerial_noise(),
+                VehicleKind::Boat => AerialNoise { sigma0: cfg.boat_sigma, growth_per_m: 0.0 },
+            };
+            VehicleBrain::new(&spec.id, spec.kind, grid, *server.schedule(), noise, mission::vehicle_rng(cfg.seed, v), f64::MAX)
+        })
+        .collect();
 
     let mut out = TeamOutcome {
         heterogeneous: vec![],
@@ -264,20 +272,6 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
         snapshots: vec![],
         rank: 0,
     };
-
-    // 1. Initialisation: aerial frames only; the first model from them.
-    let mut init = vec![];
-    for k in 0..cfg.init_steps {
-        let positions = server.aerial_positions().to_vec();
-        let samples = aerial_samples(k, &positions, &mut rngs)?;
-        let a = server.aerial_estimate(&samples)?;
-        let e = mse(&a.values, &truth_at(k));
-        out.heterogeneous.push(e);
-        out.aerial_only.push(e);
-        init.push(a.values);
-        progress(k + 1, frames);
-    }
-    server.initialise(init)?;
     // Boat-only team: its snapshots at boat steps, its model once it has enough. It has no
     // estimate before its first sample (those steps are not scored), then its latest snapshot
     // until it has a model.
@@ -285,36 +279,34 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
     let mut boat_snaps: Vec<Vec<f64>> = vec![];
     let mut boat_model: Option<(DmdModel, Mat<f64>, usize)> = None; // model, basis, step of its newest snapshot
     let mut boat_guess: Option<Vec<f64>> = None;
-    out.boat_only.resize(cfg.init_steps, None);
 
-    let mut k0 = cfg.init_steps;
-    while k0 < frames {
-        // 4. Placement from the current model; vehicles go there.
-        let plan = server.allocate()?;
-        let k_end = (k0 + cfg.boat_period).min(frames);
-        let boat_step = (k_end - k0 == cfg.boat_period).then_some(k_end - 1);
-        let mut epoch = vec![];
-        for k in k0..k_end {
+    for e in 0..server.schedule().epochs() {
+        let steps = server.steps_of(e);
+        let allocation = server.allocation(e).ok_or_else(|| TeamError::Config(format!("no allocation for epoch {e}")))?;
+        let mut batches = vec![];
+        for brain in &mut brains {
+            let plan = server.plan(&brain.id, e, 1).ok_or_else(|| TeamError::Config(format!("no plan of {} for epoch {e}", brain.id)))?;
+            brain.set_plan(plan);
+            batches.extend(brain.sense_epoch(e, truth_at)?);
+        }
+        let boat_samples: Vec<Sample> = batches.iter().filter(|b| b.kind == VehicleKind::Boat).flat_map(|b| b.samples.iter().cloned()).collect();
+        for b in batches {
+            server.ingest(b).map_err(|err| match err {
+                crate::mission::server::IngestError::Model(m) => m,
+                other => TeamError::Config(other.to_string()),
+            })?;
+        }
+        if server.next_epoch() != e + 1 {
+            return Err(TeamError::Config(format!("epoch {e} was not assimilated with every batch in")));
+        }
+        for k in steps.clone() {
             let x = truth_at(k);
-            let samples = aerial_samples(k, &plan.aerials, &mut rngs)?;
-            let aerial = server.aerial_estimate(&samples)?;
-            let boats: Vec<Sample> = if Some(k) == boat_step {
-                plan.boats
-                    .iter()
-                    .enumerate()
-                    .filter_map(|(b, d)| d.as_ref().map(|(cells, _)| (b, cells)))
-                    .map(|(b, cells)| mission::sense_boat(&grid, &x, k as u64, server.boat_positions()[b], cells, cfg.boat_sigma, &mut rngs[cfg.aerials + b]))
-                    .collect::<Result<_, _>>()?
-            } else {
-                vec![]
-            };
-            let fused = server.fuse_step((k + 1 - k0) as u64, &aerial, &boats)?;
-            out.heterogeneous.push(mse(&fused.values, &x));
-            out.aerial_only.push(mse(&aerial.values, &x));
-
+            out.heterogeneous.push(mse(&server.snapshots[k], &x));
+            out.aerial_only.push(mse(&server.aerial_estimates[k], &x));
             // Boat-only team, from the same boat samples.
-            let measured_cells: Vec<usize> = boats.iter().flat_map(|s| s.cells.iter().map(|&c| c as usize)).collect();
-            let measured_vals: Vec<f64> = boats.iter().flat_map(|s| s.values.iter().copied()).collect();
+            let here: Vec<&Sample> = boat_samples.iter().filter(|s| s.step as usize == k).collect();
+            let measured_cells: Vec<usize> = here.iter().flat_map(|s| s.cells.iter().map(|&c| c as usize)).collect();
+            let measured_vals: Vec<f64> = here.iter().flat_map(|s| s.values.iter().copied()).collect();
             let boat_est = if !measured_cells.is_empty() {
                 let mean = measured_vals.iter().sum::<f64>() / measured_vals.len() as f64;
                 let mut est = match &boat_model {
@@ -342,18 +334,14 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
                 }
             };
             out.boat_only.push(boat_est.map(|b| mse(&b, &x)));
-            if Some(k) == boat_step {
+            if e > 0 && server.schedule().sample_steps(VehicleKind::Boat, e).contains(&k) {
                 out.boat_steps.push(k);
-                out.disks.push(plan.boats.iter().flatten().map(|(_, c)| *c).collect());
-                out.aerial_positions.push(plan.aerials.clone());
-                out.snapshots.push(fused.values.clone());
+                out.disks.push(allocation.boats.iter().flatten().map(|(_, c)| *c).collect());
+                out.aerial_positions.push(allocation.aerials.clone());
+                out.snapshots.push(server.snapshots[k].clone());
             }
-            epoch.push(fused.values);
             progress(k + 1, frames);
         }
-        // 3. Assimilate the epoch's snapshots.
-        server.assimilate(epoch)?;
-        k0 = k_end;
     }
     out.scored_from = out.boat_only.iter().position(Option::is_some).unwrap_or(frames);
     let mean_from = |v: &[f64], from: usize| v[from.min(v.len())..].iter().sum::<f64>() / v.len().saturating_sub(from).max(1) as f64;
@@ -362,6 +350,6 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
     out.mean_boat_only = mean_from(&out.boat_only.iter().map(|v| v.unwrap_or(0.0)).collect::<Vec<_>>(), out.scored_from);
     out.heterogeneous_from_step0 = mean_from(&out.heterogeneous, 0);
     out.aerial_only_from_step0 = mean_from(&out.aerial_only, 0);
-    out.rank = server.rank();
+    out.rank = server.assimilator().rank();
     Ok(out)
 }

@@ -134,6 +134,8 @@ pub struct ServerCore {
     pub version: u64,
     /// Fused snapshots of every step assimilated so far (for metrics).
     pub snapshots: Vec<Vec<f64>>,
+    /// The aerial estimate of every step assimilated so far (the aerial-only team's map).
+    pub aerial_estimates: Vec<Vec<f64>>,
     /// Late batches taken by [`Self::ingest_deferred`] and not yet re-fitted.
     stale: bool,
     /// Epochs assimilated without some batch (by [`Self::force`]).
@@ -157,6 +159,7 @@ impl ServerCore {
             counters: Counters::default(),
             version: 0,
             snapshots: vec![],
+            aerial_estimates: vec![],
             stale: false,
             forced: BTreeSet::new(),
             unjournalled: BTreeSet::new(),
@@ -251,6 +254,7 @@ impl ServerCore {
         let unjournalled = std::mem::take(&mut self.unjournalled);
         self.assim = Assimilator::new(&self.cfg, *self.assim.grid(), self.schedule.frames)?;
         self.snapshots.clear();
+        self.aerial_estimates.clear();
         self.epoch = 0;
         while self.epoch < upto {
             self.assimilate_epoch(self.epoch)?;
@@ -458,6 +462,7 @@ impl ServerCore {
             let mut init = vec![];
             for k in steps {
                 let est = self.assim.aerial_estimate(&Self::samples_at(&batches, VehicleKind::Aerial, k))?;
+                self.aerial_estimates.push(est.values.clone());
                 init.push(est.values);
             }
             self.snapshots.extend(init.iter().cloned());
@@ -467,6 +472,7 @@ impl ServerCore {
             let mut epoch = vec![];
             for k in steps {
                 let aerial = self.assim.aerial_estimate(&Self::samples_at(&batches, VehicleKind::Aerial, k))?;
+                self.aerial_estimates.push(aerial.values.clone());
                 let boats = Self::samples_at(&batches, VehicleKind::Boat, k);
                 epoch.push(self.assim.fuse_step((k + 1 - k0) as u64, &aerial, &boats)?.values);
             }
