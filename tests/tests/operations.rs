@@ -363,3 +363,40 @@ fn a_failed_start_leaves_the_previous_run_and_a_dead_node_is_reported_in_its_own
     assert!(err.contains("boat-2 exited (killed by signal 9)") && err.contains("it said:"), "{err}");
     eventually(15, "every node gone", || pids_with(dir.to_str().unwrap()).is_empty());
 }
+
+#[test]
+fn a_batch_that_decodes_but_is_invalid_is_counted_once_in_the_status() {
+    use fleet::protocol::{Body, MeasurementBatch, Noise, Sample, VehicleKind};
+    let dir = scratch("counted-once");
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = tiny_mission(&dir, &[ep.clone()], &[ep.clone()]);
+    let m = MissionConfig::load(Some(&mission)).unwrap();
+    let mut procs = Procs::default();
+    let server = start_server(&mut procs, &["--mission", mission.to_str().unwrap(), "--state-dir", dir.join("state").to_str().unwrap()], &dir.join("server.log"));
+    server.wait_for(30, "the server up", |e| matches!(e, ServerEvent::Ready { .. }).then_some(()));
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let keys = fleet::protocol::keys::Keys::new("tiny").unwrap();
+    let status = rt.block_on(async {
+        let cfg = fleet_net::config(fleet_net::Role::Vehicle, &m.network, None, &fleet_net::Endpoints::default()).unwrap();
+        let session = fleet_net::open(cfg).await.unwrap();
+        let statuses = session.declare_subscriber(keys.server_status()).await.unwrap();
+        let batch = |kind, steps: Vec<u64>| MeasurementBatch { vehicle: "boat-1".into(), kind, seq: 0, noise: Noise { sigma0: 0.05, growth_per_m: 0.0 }, samples: steps.into_iter().map(|s| Sample { step: s, position: [1.0, 1.0], cells: vec![0], values: vec![0.5] }).collect() };
+        // Wrong kind (boat-1 declares itself an aerial), then wrong steps: two invalid batches.
+        for b in [batch(VehicleKind::Aerial, vec![0]), batch(VehicleKind::Boat, vec![3, 4])] {
+            fleet_net::put(&session, &keys.measurements("boat-1"), &Body::Batch(b)).await.unwrap();
+        }
+        let ctx = fleet::protocol::Context::new(fleet::grid::Grid::new(24, 48, 1.0).unwrap());
+        loop {
+            let s = tokio::time::timeout(Duration::from_secs(10), statuses.recv_async()).await.expect("a status").unwrap();
+            if let Ok(Body::Status(st)) = fleet_net::decode(&s, &ctx) {
+                if st.batches >= 2 {
+                    break st;
+                }
+            }
+        }
+    });
+    assert_eq!(status.rejected, std::collections::BTreeMap::from([("invalid_batch".to_string(), 2)]), "each invalid batch counted exactly once");
+    assert_eq!(status.batches, 2);
+    let log = std::fs::read_to_string(dir.join("server.log")).unwrap();
+    assert!(log.contains("declared Aerial, registered Boat"), "the refusal is logged with its reason: {log}");
+}
