@@ -139,7 +139,13 @@ fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
 /// on board; the server assimilates those epochs without it (a timeout). Returns the server,
 /// boat-2's backlog, every batch of the mission, and the fresh server the offline check uses.
 fn a_boat_away_for_epochs_2_to_4() -> (ServerCore, Vec<MeasurementBatch>, Vec<MeasurementBatch>, ServerCore) {
-    let (truth, grid, cfg) = plume_team();
+    a_boat_away(42, 2..=4)
+}
+
+/// [`a_boat_away_for_epochs_2_to_4`] for any mission length and outage.
+fn a_boat_away(frames: usize, away: std::ops::RangeInclusive<u64>) -> (ServerCore, Vec<MeasurementBatch>, Vec<MeasurementBatch>, ServerCore) {
+    let (_, grid, cfg) = plume_team();
+    let truth = plume_field(24, 48, frames, 0.0, 5);
     let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
     let schedule = *server.schedule();
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
@@ -148,7 +154,7 @@ fn a_boat_away_for_epochs_2_to_4() -> (ServerCore, Vec<MeasurementBatch>, Vec<Me
     let mut held: Vec<MeasurementBatch> = vec![];
     for e in 0..schedule.epochs() {
         for brain in &mut brains {
-            let away = brain.id == "boat-2" && (2..=4).contains(&e);
+            let away = brain.id == "boat-2" && away.contains(&e);
             if !away {
                 brain.set_plan(server.plan(&brain.id, e, 4).expect("plan"));
             }
@@ -160,14 +166,14 @@ fn a_boat_away_for_epochs_2_to_4() -> (ServerCore, Vec<MeasurementBatch>, Vec<Me
                 server.ingest(b).unwrap();
             }
         }
-        if (2..=4).contains(&e) {
+        if away.contains(&e) {
             assert!(server.waiting_for().contains(&"boat-2".to_string()));
             assert!(server.force().unwrap(), "epoch {e} assimilated without boat-2");
-            assert_eq!(server.ack("boat-2").unwrap().seq, 0, "boat-2's ack stops before its gap");
+            assert_eq!(server.ack("boat-2").unwrap().seq, away.start() - 2, "boat-2's ack stops before its gap");
         }
     }
     assert!(!server.finished(), "not finished while boat-2's batches are out");
-    assert_eq!(server.counters.forced, 3);
+    assert_eq!(server.counters.forced, away.count() as u64);
     // The backlog arrives newest first, for spite.
     held.reverse();
     let offline = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
@@ -358,4 +364,20 @@ fn an_empty_batch_is_a_vehicle_that_sensed_nothing_except_an_aerial_the_first_mo
     // an older plan's horizon, a boat that lost its autopilot): it waits for its epoch.
     assert_eq!(server.ingest(empty("boat-1", VehicleKind::Boat, 2)).unwrap(), Ingested::Buffered);
     assert_eq!(server.ingest(empty("av-2", VehicleKind::Aerial, 3)).unwrap(), Ingested::Buffered);
+}
+
+#[test]
+fn a_late_batch_refits_from_the_newest_checkpoint_before_it_to_the_same_model() {
+    // 21 epochs; boat-2 away for epochs 13-15: the re-fit starts from the checkpoint before
+    // epoch 12, not from epoch 0, and lands on the model of all the data.
+    let (mut server, held, all, offline) = a_boat_away(112, 13..=15);
+    let epochs = server.next_epoch();
+    for b in held {
+        server.ingest_deferred(b).unwrap();
+    }
+    assert!(server.settle().unwrap());
+    assert!(server.finished());
+    assert_eq!(server.counters.refits, 1);
+    assert_eq!(server.counters.refit_epochs, epochs - 12, "re-fitted from epoch 12 (the checkpoint at or before 13)");
+    equals_offline(&server, all, offline);
 }

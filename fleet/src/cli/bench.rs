@@ -39,6 +39,16 @@ enum What {
         #[arg(long)]
         truth: Option<PathBuf>,
     },
+    /// A late batch's re-fit: a long mission whose boat's backlog of its last epochs arrives at
+    /// the end, re-fitted from a checkpoint and from epoch 0.
+    Refit {
+        #[arg(long, default_value_t = 200)]
+        epochs: usize,
+        #[arg(long, default_value_t = 5)]
+        late: u64,
+        #[arg(long, default_value = "48x96")]
+        grid: String,
+    },
     /// Sensor placement (point QR beside pysensors, block QR, D-optimal) and gappy timings.
     Sensing {
         #[arg(long, default_value_t = 20)]
@@ -115,6 +125,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 truth.rows, truth.cols, truth.frames(), median, ts.len(), o.mean_heterogeneous
             );
             serde_json::json!({ "median_s": median, "runs": ts })
+        }
+        What::Refit { epochs, late, grid } => {
+            let (rows, cols) = grid.split_once('x').and_then(|(r, c)| Some((r.parse().ok()?, c.parse().ok()?))).ok_or_else(|| fleet::exit::bad_input(anyhow::anyhow!("--grid {grid}: expected ROWSxCOLS")))?;
+            eprintln!("driving a {epochs}-epoch mission twice (not timed)...");
+            let t = fleet::experiment::refit_timing::run(rows, cols, epochs, late)?;
+            println!(
+                "{} epochs at {} x {}, boat-2's last {} epochs late: re-fit from a checkpoint {:.1} ms ({} epochs again), from epoch 0 {:.1} ms ({} epochs); same model: {}",
+                t.epochs, t.grid[0], t.grid[1], t.late_epochs, t.with_checkpoints_s * 1e3, t.with_checkpoints_epochs, t.from_epoch_0_s * 1e3, t.from_epoch_0_epochs, t.same_model
+            );
+            serde_json::to_value(t)?
         }
         What::Sensing { repeats, no_peers } => {
             let pb = super::progress_bar(7, "sensing");

@@ -122,4 +122,8 @@ impl Dmd for BatchDmd {
     fn dim(&self) -> usize {
         self.pairs.dim()
     }
+
+    fn boxed(&self) -> Box<dyn Dmd> {
+        Box::new(self.clone())
+    }
 }

@@ -172,4 +172,8 @@ impl Dmd for GeneralDmd {
     fn dim(&self) -> usize {
         self.pairs.dim()
     }
+
+    fn boxed(&self) -> Box<dyn Dmd> {
+        Box::new(self.clone())
+    }
 }

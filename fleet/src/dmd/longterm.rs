@@ -237,4 +237,8 @@ impl Dmd for LongTermDmd {
     fn dim(&self) -> usize {
         self.a.nrows()
     }
+
+    fn boxed(&self) -> Box<dyn Dmd> {
+        Box::new(self.clone())
+    }
 }

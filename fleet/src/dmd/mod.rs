@@ -145,6 +145,8 @@ pub trait Dmd: Send + Sync {
     fn pairs(&self) -> usize;
     /// State dimension `N`.
     fn dim(&self) -> usize;
+    /// A copy (a server keeps copies as checkpoints, to re-fit from the middle).
+    fn boxed(&self) -> Box<dyn Dmd>;
 }
 
 /// Split a snapshot sequence (columns, in time order) into the pairs `X = Z[:, :-1]`,

@@ -3,6 +3,7 @@
 
 pub mod eig_study;
 pub mod paper;
+pub mod refit_timing;
 pub mod sensing_timing;
 pub mod stats;
 pub mod table1;

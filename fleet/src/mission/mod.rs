@@ -77,7 +77,51 @@ pub struct Assimilator {
     aerial_positions: Vec<(f64, f64)>,
 }
 
+/// The Assimilator's state between two epochs, without its snapshots (they are only appended
+/// to: a checkpoint keeps how many there were) nor the fitted model (recomputed from the model
+/// and the newest snapshot, bit for bit).
+pub struct AssimilatorCheckpoint {
+    model: Option<Box<dyn Dmd>>,
+    snapshots: usize,
+    held_aerial: Option<Estimate>,
+    pred_var: f64,
+    aerial_extra: f64,
+    placement_rng: ChaCha8Rng,
+    boat_positions: Vec<(f64, f64)>,
+    aerial_positions: Vec<(f64, f64)>,
+}
+
 impl Assimilator {
+    /// Its state now, to come back to with [`Self::rewind`].
+    pub fn checkpoint(&self) -> AssimilatorCheckpoint {
+        AssimilatorCheckpoint {
+            model: self.model.as_ref().map(|m| m.boxed()),
+            snapshots: self.snapshots.len(),
+            held_aerial: self.held_aerial.clone(),
+            pred_var: self.pred_var,
+            aerial_extra: self.aerial_extra,
+            placement_rng: self.placement_rng.clone(),
+            boat_positions: self.boat_positions.clone(),
+            aerial_positions: self.aerial_positions.clone(),
+        }
+    }
+
+    /// Back to a checkpoint taken earlier on this same Assimilator.
+    pub fn rewind(&mut self, c: &AssimilatorCheckpoint) -> Result<(), TeamError> {
+        self.model = c.model.as_ref().map(|m| m.boxed());
+        self.snapshots.truncate(c.snapshots);
+        self.held_aerial = c.held_aerial.clone();
+        (self.pred_var, self.aerial_extra) = (c.pred_var, c.aerial_extra);
+        self.placement_rng = c.placement_rng.clone();
+        self.boat_positions = c.boat_positions.clone();
+        self.aerial_positions = c.aerial_positions.clone();
+        self.fitted = None;
+        if self.model.is_some() {
+            self.refit()?;
+        }
+        Ok(())
+    }
+
     pub fn new(cfg: &TeamConfig, grid: Grid, frames: usize) -> Result<Self, TeamError> {
         let rank: RankPolicy = cfg.validate(&grid, frames)?;
         let mut placement_rng = ChaCha8Rng::seed_from_u64(cfg.seed);
