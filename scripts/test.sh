@@ -11,8 +11,11 @@ if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pyma
   python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore \
     numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2 pymavlink==2.4.50
 fi
+echo "== house style (rustfmt.toml; clippy with warnings as errors)"
+cargo fmt --all --check
 echo "== building (release)"
 cargo build --release --workspace --all-targets
+cargo clippy --release --workspace --all-targets -- -D warnings
 echo "== testing (release)"
 cargo test --release --workspace -- --skip malformed_inputs_never_panic_a_decoder
 echo "== fuzzing the decoders (release; prints how many inputs)"

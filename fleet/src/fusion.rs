@@ -43,11 +43,7 @@ impl Estimate {
     /// Check lengths, finiteness, and non-negative variances.
     pub fn validate(&self, n: usize) -> Result<(), FusionError> {
         if self.values.len() != n || self.variance.len() != n {
-            return Err(FusionError::Input(format!(
-                "estimate has {} values and {} variances for {n} cells",
-                self.values.len(),
-                self.variance.len()
-            )));
+            return Err(FusionError::Input(format!("estimate has {} values and {} variances for {n} cells", self.values.len(), self.variance.len())));
         }
         if let Some(i) = self.values.iter().position(|v| !v.is_finite()) {
             return Err(FusionError::Input(format!("estimate value at cell {i} is not finite")));
@@ -113,16 +109,7 @@ pub fn sense_cells<R: Rng + ?Sized>(grid: &Grid, truth: &[f64], step: u64, pos: 
 /// What aerial `me` sees of `truth` at one step: its region ([`aerial_region`]) sensed from
 /// where it is ([`sense_cells`]).
 #[allow(clippy::too_many_arguments)]
-pub fn sense_aerial<R: Rng + ?Sized>(
-    grid: &Grid,
-    truth: &[f64],
-    step: u64,
-    stride: usize,
-    aerials: &[(f64, f64)],
-    me: usize,
-    noise: AerialNoise,
-    rng: &mut R,
-) -> Result<Sample, FusionError> {
+pub fn sense_aerial<R: Rng + ?Sized>(grid: &Grid, truth: &[f64], step: u64, stride: usize, aerials: &[(f64, f64)], me: usize, noise: AerialNoise, rng: &mut R) -> Result<Sample, FusionError> {
     let region = aerial_region(grid, stride, aerials, me)?;
     sense_cells(grid, truth, step, aerials[me], &region, noise, rng)
 }
@@ -153,14 +140,7 @@ pub struct AerialFrame {
 impl AerialFrame {
     /// Simulate every aerial's sample of `truth` (see [`sense_aerial`]) from one random stream
     /// and assemble the frame.
-    pub fn sense<R: Rng + ?Sized>(
-        grid: &Grid,
-        truth: &[f64],
-        stride: usize,
-        aerials: &[(f64, f64)],
-        noise: AerialNoise,
-        rng: &mut R,
-    ) -> Result<Self, FusionError> {
+    pub fn sense<R: Rng + ?Sized>(grid: &Grid, truth: &[f64], stride: usize, aerials: &[(f64, f64)], noise: AerialNoise, rng: &mut R) -> Result<Self, FusionError> {
         if aerials.is_empty() {
             return Err(FusionError::Input("an aerial frame needs at least one aerial".into()));
         }
@@ -270,8 +250,8 @@ pub fn fuse(scheme: Scheme, n: usize, estimates: &[&Estimate], measured: Option<
             // Per cell: sum of w*x and of w = 1/var over the sources; exact sources separately.
             let mut acc = vec![Acc::default(); n];
             for e in estimates {
-                for i in 0..n {
-                    acc[i].add(e.values[i], e.variance[i]);
+                for (a, (v, var)) in acc.iter_mut().zip(e.values.iter().zip(&e.variance)) {
+                    a.add(*v, *var);
                 }
             }
             if let Some(m) = measured {

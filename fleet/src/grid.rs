@@ -158,12 +158,7 @@ impl Grid {
         coarse.check_len(values.len())?;
         let tol = 1e-9 * (self.width_m() + self.height_m());
         if (coarse.width_m() - self.width_m()).abs() > tol || (coarse.height_m() - self.height_m()).abs() > tol {
-            return Err(GridError::Extent {
-                a_w: coarse.width_m(),
-                a_h: coarse.height_m(),
-                b_w: self.width_m(),
-                b_h: self.height_m(),
-            });
+            return Err(GridError::Extent { a_w: coarse.width_m(), a_h: coarse.height_m(), b_w: self.width_m(), b_h: self.height_m() });
         }
         // Fractional coarse coordinate of every fine row / column centre (separable).
         let axis = |n_fine: usize, n_coarse: usize| -> Vec<(usize, usize, f64)> {
@@ -190,6 +185,9 @@ pub struct StridedGrid {
     pub cols: usize,
 }
 
+/// A fine row (or column) between two coarse ones: their indices and the second's weight.
+type Neighbours = (usize, usize, f64);
+
 impl StridedGrid {
     /// Bilinear interpolation from the kept cells back to every fine cell (clamped beyond the
     /// last kept row / column). Exact for fields bilinear in (row, col) inside the lattice.
@@ -215,7 +213,7 @@ impl StridedGrid {
 
     /// The coarse index of a fine cell, if the lattice has a node on it.
     pub fn coarse_index(&self, cell: Cell) -> Option<usize> {
-        (cell.row % self.stride == 0 && cell.col % self.stride == 0).then(|| (cell.row / self.stride) * self.cols + cell.col / self.stride)
+        (cell.row.is_multiple_of(self.stride) && cell.col.is_multiple_of(self.stride)).then(|| (cell.row / self.stride) * self.cols + cell.col / self.stride)
     }
 
     fn check_coarse_len(&self, n: usize) -> Result<(), GridError> {
@@ -226,7 +224,7 @@ impl StridedGrid {
     }
 
     /// Per fine row and per fine column: the two coarse neighbours and the weight of the second.
-    fn axes(&self) -> (Vec<(usize, usize, f64)>, Vec<(usize, usize, f64)>) {
+    fn axes(&self) -> (Vec<Neighbours>, Vec<Neighbours>) {
         let axis = |n_fine: usize, n_coarse: usize| -> Vec<(usize, usize, f64)> {
             (0..n_fine)
                 .map(|i| {
@@ -387,10 +385,10 @@ mod tests {
         let up = fine.upsample_bilinear(&coarse, &cv).unwrap();
         let (lo, hi_x, hi_y) = (2.0, 46.0, 22.0); // first / last coarse centres
         let mut checked = 0;
-        for i in 0..fine.len() {
+        for (i, u) in up.iter().enumerate() {
             let (x, y) = fine.centre_m(fine.cell(i));
             if x >= lo && x <= hi_x && y >= lo && y <= hi_y {
-                assert!((up[i] - bil(x, y)).abs() < 1e-12);
+                assert!((u - bil(x, y)).abs() < 1e-12);
                 checked += 1;
             }
         }

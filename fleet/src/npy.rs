@@ -116,21 +116,12 @@ pub fn write(path: impl AsRef<Path>, shape: &[usize], data: &[f64]) -> Result<()
     let p = path.as_ref().display().to_string();
     let expected: usize = shape.iter().product();
     if expected != data.len() {
-        return Err(NpyError::Shape {
-            path: p,
-            expected: format!("{expected} values"),
-            shape: shape.iter().map(|&s| s as u64).collect(),
-        });
+        return Err(NpyError::Shape { path: p, expected: format!("{expected} values"), shape: shape.iter().map(|&s| s as u64).collect() });
     }
     let io = |source| NpyError::Io { path: p.clone(), source };
     let file = File::create(path.as_ref()).map_err(io)?;
     let shape64: Vec<u64> = shape.iter().map(|&s| s as u64).collect();
-    let mut w = npyz::WriteOptions::new()
-        .default_dtype()
-        .shape(&shape64)
-        .writer(BufWriter::new(file))
-        .begin_nd()
-        .map_err(io)?;
+    let mut w = npyz::WriteOptions::new().default_dtype().shape(&shape64).writer(BufWriter::new(file)).begin_nd().map_err(io)?;
     w.extend(data.iter().copied()).map_err(io)?;
     w.finish().map_err(io)
 }

@@ -121,8 +121,7 @@ fn draw<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, panels: &[Panel<'_>],
         }
         for &(r, c, rad) in &p.disks {
             let centre = (PAD as i32 + ((c + 0.5) * s as f64) as i32, top + h - ((r + 0.5) * s as f64) as i32);
-            area.draw(&Circle::new(centre, (rad * s as f64) as i32, ShapeStyle { color: WHITE.to_rgba(), filled: false, stroke_width: 2 }))
-                .map_err(err)?;
+            area.draw(&Circle::new(centre, (rad * s as f64) as i32, ShapeStyle { color: WHITE.to_rgba(), filled: false, stroke_width: 2 })).map_err(err)?;
         }
         y0 += h;
     }
@@ -174,13 +173,7 @@ pub fn png(path: impl AsRef<Path>, panels: &[Panel<'_>], range: Option<(f64, f64
 
 /// Write a sequence of frames (each a list of panels of the same shapes) as an animated GIF on
 /// one colour scale; `on_frame` is called after each frame (for progress bars).
-pub fn gif<'a>(
-    path: impl AsRef<Path>,
-    frames: impl IntoIterator<Item = Vec<Panel<'a>>>,
-    range: (f64, f64),
-    delay_ms: u32,
-    mut on_frame: impl FnMut(),
-) -> Result<(), PlotError> {
+pub fn gif<'a>(path: impl AsRef<Path>, frames: impl IntoIterator<Item = Vec<Panel<'a>>>, range: (f64, f64), delay_ms: u32, mut on_frame: impl FnMut()) -> Result<(), PlotError> {
     let path = path.as_ref();
     let fail = |msg: String| PlotError::Draw { path: path.display().to_string(), msg };
     let mut frames = frames.into_iter().peekable();
@@ -312,17 +305,15 @@ pub fn boxes(path: impl AsRef<Path>, title: &str, y_desc: &str, groups: &[(Strin
     let e = |e: DrawingAreaErrorKind<_>| fail(e.to_string());
     root.fill(&WHITE).map_err(e)?;
     let n = groups.len() as f64;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, (FONT, 20))
-        .margin(12)
-        .x_label_area_size(70)
-        .y_label_area_size(80)
-        .build_cartesian_2d(-0.5..n - 0.5, (lo - pad)..(hi + pad))
-        .map_err(e)?;
+    let mut chart = ChartBuilder::on(&root).caption(title, (FONT, 20)).margin(12).x_label_area_size(70).y_label_area_size(80).build_cartesian_2d(-0.5..n - 0.5, (lo - pad)..(hi + pad)).map_err(e)?;
     let names: Vec<String> = groups.iter().map(|g| g.0.clone()).collect();
     let fmt = |x: &f64| -> String {
         let i = x.round();
-        if (x - i).abs() < 1e-6 && i >= 0.0 && (i as usize) < names.len() { names[i as usize].clone() } else { String::new() }
+        if (x - i).abs() < 1e-6 && i >= 0.0 && (i as usize) < names.len() {
+            names[i as usize].clone()
+        } else {
+            String::new()
+        }
     };
     chart.configure_mesh().x_labels(groups.len().max(1) * 2 + 1).x_label_formatter(&fmt).y_desc(y_desc).label_style((FONT, 13)).disable_x_mesh().draw().map_err(e)?;
     if let Some(r) = reference {

@@ -496,7 +496,7 @@ fn forward_backward_keeps_the_sign_of_eigenvalues_in_the_left_half_plane() {
 /// A noise-free stream that excites only 5 of N = 50 directions: states in span(U5), where the
 /// true operator is `U5 B U5^T` (plus 0.5 on the rest, never seen). The start (60 random states)
 /// has full row rank, as the method needs.
-fn rank5_stream(updates: usize) -> (Mat<f64>, Mat<f64>, Mat<f64>, Mat<f64>, Mat<f64>) {
+fn rank5_stream(updates: usize) -> Rank5Stream {
     let n = 50;
     let u5 = randn(n, 5, 41).qr().compute_thin_Q();
     let (a6, _) = known_system();
@@ -515,7 +515,16 @@ fn rank5_stream(updates: usize) -> (Mat<f64>, Mat<f64>, Mat<f64>, Mat<f64>, Mat<
         z.col_mut(k).copy_from(v.col(0));
         c = &b * &c;
     }
-    (a_true, u5, x0, y0, z)
+    Rank5Stream { a_true, u5, x0, y0, z }
+}
+
+/// The true operator, the excited subspace's basis, the start's pairs and the stream.
+struct Rank5Stream {
+    a_true: Mat<f64>,
+    u5: Mat<f64>,
+    x0: Mat<f64>,
+    y0: Mat<f64>,
+    z: Mat<f64>,
 }
 
 /// The operator on the excited subspace: `|A U5 - A_true U5| / |A_true U5|`.
@@ -526,7 +535,7 @@ fn excited_error(a: MatRef<'_, f64>, a_true: &Mat<f64>, u5: &Mat<f64>) -> f64 {
 #[test]
 fn directional_forgetting_stays_bounded_on_data_that_excites_few_directions() {
     let updates = 2000;
-    let (a_true, u5, x0, y0, z) = rank5_stream(updates);
+    let Rank5Stream { a_true, u5, x0, y0, z } = rank5_stream(updates);
     for gamma in [0.95, 0.99] {
         for unit in [ForgettingUnit::Pair, ForgettingUnit::Batch] {
             let f = Forgetting { unit, directions: ForgettingDirections::Excited };
@@ -550,7 +559,7 @@ fn forgetting_every_direction_blows_up_there_and_says_so() {
     // odmd's forgetting on the same stream: S grows as gamma^-k in the 45 unexcited
     // directions; the method stops with an error instead of going on with NaN or an indefinite S.
     let updates = 2000;
-    let (_, _, x0, y0, z) = rank5_stream(updates);
+    let Rank5Stream { x0, y0, z, .. } = rank5_stream(updates);
     let mut m = LongTermDmd::init_with(x0.as_ref(), y0.as_ref(), 0.95, ODMD).unwrap();
     let mut failed = None;
     for k in 0..updates {

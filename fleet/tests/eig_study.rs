@@ -3,8 +3,8 @@
 //! must be at least twice as close in median. Measured when this test was written (same seeds):
 //! exact full rank -1.244 (error 0.244), optimal-rank TLS error ~0.03, forward-backward ~0.02.
 
-use fleet::experiment::eig_study::{estimate, median, trial_seed, Variant};
 use fleet::dmd::{Debias, Method, RankPolicy};
+use fleet::experiment::eig_study::{estimate, median, trial_seed, Variant};
 
 fn median_error(v: &Variant) -> f64 {
     let mut errs: Vec<f64> = (0..10)
@@ -21,11 +21,7 @@ fn debiasing_halves_the_eigenvalue_error_at_noise_variance_0_01() {
     let exact = median_error(&Variant::new("batch", Method::Batch, RankPolicy::Full, Debias::None, 1.0));
     // The paper's regime: a clear damping bias, of the size the peers measured (-1.25).
     assert!(exact > 0.15 && exact < 0.4, "exact DMD error {exact}");
-    for (label, method, debias) in [
-        ("batch tls", Method::Batch, Debias::Tls),
-        ("batch fb", Method::Batch, Debias::Fb),
-        ("general tls", Method::General, Debias::Tls),
-    ] {
+    for (label, method, debias) in [("batch tls", Method::Batch, Debias::Tls), ("batch fb", Method::Batch, Debias::Fb), ("general tls", Method::General, Debias::Tls)] {
         let e = median_error(&Variant::new(label, method, RankPolicy::Optimal, debias, 1.0));
         assert!(e <= 0.5 * exact, "{label}: median error {e} vs exact {exact}");
     }

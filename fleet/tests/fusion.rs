@@ -49,10 +49,7 @@ fn trial(seed: u64) -> Trial {
     // Three boats, radius 3, noise variance 0.25.
     let noise_var: f64 = 0.25;
     let cells: Vec<usize> = [Cell::new(10, 15), Cell::new(30, 50), Cell::new(40, 85)].iter().flat_map(|&c| g.disk(c, 3.0)).collect();
-    let values: Vec<f64> = cells
-        .iter()
-        .map(|&c| truth[c] + noise_var.sqrt() * <StandardNormal as Distribution<f64>>::sample(&StandardNormal, &mut rng))
-        .collect();
+    let values: Vec<f64> = cells.iter().map(|&c| truth[c] + noise_var.sqrt() * <StandardNormal as Distribution<f64>>::sample(&StandardNormal, &mut rng)).collect();
     let gappy = reconstruct(phi.as_ref(), &cells, &values, noise_var).unwrap();
     let hifi = Estimate { values: gappy.field, variance: gappy.variance };
     let measured = Some(Measured { cells: &cells, values: &values, noise_var });

@@ -24,8 +24,7 @@ fn pod_basis() -> Mat<f64> {
 
 #[test]
 fn point_qr_selects_exactly_the_pysensors_pivots() {
-    let refj: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(reference_dir().join("qr_reference.json")).unwrap()).unwrap();
+    let refj: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(reference_dir().join("qr_reference.json")).unwrap()).unwrap();
     let want: Vec<usize> = serde_json::from_value(refj["cases"]["pod_r20"]["pysensors_QR_pivots_first_20"].clone()).unwrap();
     let rdiag: Vec<f64> = serde_json::from_value(refj["cases"]["pod_r20"]["abs_R_diag"].clone()).unwrap();
     let (got, r) = point_qr(pod_basis().as_ref(), 20);

@@ -338,8 +338,7 @@ fn a_server_restarted_after_forcing_epochs_reaches_the_same_epoch_and_takes_the_
     let (truth, grid, cfg) = plume_team();
     let (mut server, held, all, offline) = a_boat_away_for_epochs_2_to_4();
     // The journal of that run: every batch but boat-2's backlog, and the forced epochs.
-    let mut journal = Journal::default();
-    journal.batches = all.iter().filter(|b| !held.contains(b)).cloned().collect();
+    let mut journal = Journal { batches: all.iter().filter(|b| !held.contains(b)).cloned().collect(), ..Journal::default() };
     journal.take(&mut server);
     let mut fresh = journal.restart(&cfg, grid, truth.frames());
     assert_eq!(fresh.next_epoch(), server.next_epoch(), "the forced epochs are assimilated again without boat-2");

@@ -4,9 +4,9 @@
 
 use crate::Args;
 use anyhow::Context as _;
+use fleet::exit::bad_input;
 use fleet::mission::config::MissionConfig;
 use fleet::mission::report::{Percentiles, ServerEvent, ServerSummary};
-use fleet::exit::bad_input;
 use fleet::mission::server::{EpochRecord, IngestError, Ingested, ServerCore};
 use fleet::process::FieldSeries;
 use fleet::protocol::{self, keys::Keys, Body, Context, ServerStatus};
@@ -71,7 +71,10 @@ impl Server {
             };
             self.core.counters.sessions_refused += 1;
             if self.logged.insert(what.to_string()) {
-                warn!(sessions_refused = self.core.counters.sessions_refused, "refused a Zenoh session: {what} (Zenoh does not give its host the user's name; the client's own log says which; further refusals of this kind are only counted)");
+                warn!(
+                    sessions_refused = self.core.counters.sessions_refused,
+                    "refused a Zenoh session: {what} (Zenoh does not give its host the user's name; the client's own log says which; further refusals of this kind are only counted)"
+                );
             }
         }
     }
@@ -200,7 +203,20 @@ impl Server {
             info!(epoch = e, version = self.core.version, latency_ms = format!("{latency_ms:.1}"), mse = mse.map(|m| format!("{m:.3e}")), "epoch assimilated");
             let next = e + 1;
             let places = places_at(&self.core, next);
-            emit(self.events, &ServerEvent::Epoch { epoch: e, version: self.core.version, mse, latency_ms, alive: self.alive.len(), batches: self.core.counters.batches, held: self.core.held_at(next), places, missing: self.core.missing_at(e) });
+            emit(
+                self.events,
+                &ServerEvent::Epoch {
+                    epoch: e,
+                    version: self.core.version,
+                    mse,
+                    latency_ms,
+                    alive: self.alive.len(),
+                    batches: self.core.counters.batches,
+                    held: self.core.held_at(next),
+                    places,
+                    missing: self.core.missing_at(e),
+                },
+            );
         }
         Ok(())
     }
@@ -451,7 +467,10 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         s.evaluate(0..done);
     }
     info!(mission = s.mission.mission, epochs, vehicles = s.core.vehicles().len(), "model server up");
-    emit(s.events, &ServerEvent::Ready { mission: s.mission.mission.clone(), epochs, vehicles: s.core.vehicles().iter().map(|v| v.id.clone()).collect(), places: places_at(&s.core, s.core.next_epoch()) });
+    emit(
+        s.events,
+        &ServerEvent::Ready { mission: s.mission.mission.clone(), epochs, vehicles: s.core.vehicles().iter().map(|v| v.id.clone()).collect(), places: places_at(&s.core, s.core.next_epoch()) },
+    );
 
     let mut stop = fleet_net::StopSignals::new()?;
     let mut tick = tokio::time::interval(Duration::from_secs(1));

@@ -264,34 +264,6 @@ impl NodeArgs {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn root() -> std::path::PathBuf {
-        std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
-    }
-
-    #[test]
-    fn bundled_zenoh_configs_load_and_endpoints_take_precedence() {
-        let net = Network::default();
-        for f in ["router", "client", "peer", "secure-example/router", "secure-example/boat-1"] {
-            zenoh::Config::from_file(root().join(format!("config/zenoh/{f}.json5"))).unwrap_or_else(|e| panic!("{f}.json5: {e}"));
-        }
-        let client = root().join("config/zenoh/client.json5");
-        // The file's endpoints beat the mission's; the command line's beat both.
-        let c = config(Role::Vehicle, &net, Some(&client), &Endpoints::default()).unwrap();
-        assert!(c.get_json("connect/endpoints").unwrap().contains("192.0.2.10"));
-        assert!(c.get_json("mode").unwrap().contains("client"));
-        let c = config(Role::Vehicle, &net, Some(&client), &Endpoints { listen: vec![], connect: vec!["tcp/10.0.0.1:7000".into()] }).unwrap();
-        assert!(c.get_json("connect/endpoints").unwrap().contains("10.0.0.1"));
-        let c = config(Role::Server, &net, None, &Endpoints::default()).unwrap();
-        assert!(c.get_json("listen/endpoints").unwrap().contains("127.0.0.1:7447"));
-        assert!(c.get_json("mode").unwrap().contains("router"));
-        assert!(config(Role::Server, &net, Some(Path::new("/nonexistent.json5")), &Endpoints::default()).is_err());
-    }
-}
-
 /// The stop signals a node obeys (SIGTERM, SIGINT, SIGHUP), registered once so none is
 /// missed between two polls of an event loop.
 pub struct StopSignals {
@@ -329,5 +301,33 @@ pub fn run_node<F: std::future::Future<Output = anyhow::Result<()>>>(name: &str,
     rt.shutdown_timeout(std::time::Duration::from_millis(200));
     if let Err(e) = result {
         fleet::exit::fail(name, &e);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn root() -> std::path::PathBuf {
+        std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
+    }
+
+    #[test]
+    fn bundled_zenoh_configs_load_and_endpoints_take_precedence() {
+        let net = Network::default();
+        for f in ["router", "client", "peer", "secure-example/router", "secure-example/boat-1"] {
+            zenoh::Config::from_file(root().join(format!("config/zenoh/{f}.json5"))).unwrap_or_else(|e| panic!("{f}.json5: {e}"));
+        }
+        let client = root().join("config/zenoh/client.json5");
+        // The file's endpoints beat the mission's; the command line's beat both.
+        let c = config(Role::Vehicle, &net, Some(&client), &Endpoints::default()).unwrap();
+        assert!(c.get_json("connect/endpoints").unwrap().contains("192.0.2.10"));
+        assert!(c.get_json("mode").unwrap().contains("client"));
+        let c = config(Role::Vehicle, &net, Some(&client), &Endpoints { listen: vec![], connect: vec!["tcp/10.0.0.1:7000".into()] }).unwrap();
+        assert!(c.get_json("connect/endpoints").unwrap().contains("10.0.0.1"));
+        let c = config(Role::Server, &net, None, &Endpoints::default()).unwrap();
+        assert!(c.get_json("listen/endpoints").unwrap().contains("127.0.0.1:7447"));
+        assert!(c.get_json("mode").unwrap().contains("router"));
+        assert!(config(Role::Server, &net, Some(Path::new("/nonexistent.json5")), &Endpoints::default()).is_err());
     }
 }

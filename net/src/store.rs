@@ -46,6 +46,9 @@ impl StoreError {
 
 type Result<T> = std::result::Result<T, StoreError>;
 
+/// A message as stored: its key `(vehicle, seq)` and its bytes.
+pub type Record = ((String, u64), Vec<u8>);
+
 fn checksum(table: u8, key: &[u8], payload: &[u8]) -> u32 {
     let mut h = crc32fast::Hasher::new();
     h.update(&[table]);
@@ -183,7 +186,7 @@ impl Store {
     }
 
     /// Every message, in key order, each checked against its checksum.
-    pub fn messages(&self) -> Result<Vec<((String, u64), Vec<u8>)>> {
+    pub fn messages(&self) -> Result<Vec<Record>> {
         read_messages(&self.db, &self.path)
     }
 
@@ -206,7 +209,7 @@ fn damaged(path: &Path, what: String) -> StoreError {
     StoreError::Damaged { path: path.into(), what }
 }
 
-fn read_messages(db: &impl ReadableDatabase, path: &Path) -> Result<Vec<((String, u64), Vec<u8>)>> {
+fn read_messages(db: &impl ReadableDatabase, path: &Path) -> Result<Vec<Record>> {
     let bad = |e: &dyn std::fmt::Display| damaged(path, e.to_string());
     let tx = db.begin_read().map_err(|e| bad(&e))?;
     let t = tx.open_table(MESSAGES).map_err(|e| bad(&e))?;
@@ -244,7 +247,9 @@ fn open_checked(path: &Path) -> Result<(Database, u64, u64)> {
         let db = Database::create(path).map_err(|e| match e {
             redb::DatabaseError::DatabaseAlreadyOpen => StoreError::InUse { path: path.into() },
             // redb reports some damage as I/O errors of these kinds.
-            redb::DatabaseError::Storage(redb::StorageError::Io(source)) if matches!(source.kind(), std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof) => damaged(path, source.to_string()),
+            redb::DatabaseError::Storage(redb::StorageError::Io(source)) if matches!(source.kind(), std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof) => {
+                damaged(path, source.to_string())
+            }
             redb::DatabaseError::Storage(redb::StorageError::Io(source)) => StoreError::Io { path: path.into(), source },
             other => damaged(path, other.to_string()),
         })?;

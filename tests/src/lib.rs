@@ -22,11 +22,7 @@ pub fn bin(name: &str) -> PathBuf {
 /// Run a workspace binary with arguments, from the workspace root.
 pub fn run(name: &str, args: &[&str]) -> Output {
     let path = bin(name);
-    Command::new(&path)
-        .args(args)
-        .current_dir(root())
-        .output()
-        .unwrap_or_else(|e| panic!("cannot start {}: {e} (build it with `cargo build --release --workspace`)", path.display()))
+    Command::new(&path).args(args).current_dir(root()).output().unwrap_or_else(|e| panic!("cannot start {}: {e} (build it with `cargo build --release --workspace`)", path.display()))
 }
 
 /// A scratch directory for one test (removed and made afresh).
@@ -46,9 +42,7 @@ pub fn free_port() -> u16 {
 pub fn tiny_mission(dir: &std::path::Path, listen: &[String], connect: &[String]) -> PathBuf {
     let text = std::fs::read_to_string(root().join("config/mission-tiny.toml")).expect("the tiny mission");
     let list = |v: &[String]| format!("[{}]", v.iter().map(|e| format!("{e:?}")).collect::<Vec<_>>().join(", "));
-    let text = text
-        .replace(r#"listen = ["tcp/127.0.0.1:7461"]"#, &format!("listen = {}", list(listen)))
-        .replace(r#"connect = ["tcp/127.0.0.1:7461"]"#, &format!("connect = {}", list(connect)));
+    let text = text.replace(r#"listen = ["tcp/127.0.0.1:7461"]"#, &format!("listen = {}", list(listen))).replace(r#"connect = ["tcp/127.0.0.1:7461"]"#, &format!("connect = {}", list(connect)));
     let path = dir.join("mission.toml");
     std::fs::write(&path, text).expect("writing the mission");
     path
@@ -247,7 +241,6 @@ impl Drop for Host {
     }
 }
 
-
 /// Start every vehicle of `mission` with its outbox under `state` and its log in `dir`; the
 /// vehicle `away` (if any) runs on another host (`ip netns exec <ns>`) and connects to
 /// `endpoint` there. `away` lists such vehicles as (id, namespace, endpoint).
@@ -308,7 +301,6 @@ pub fn check_exactly_once_and_same_model(mission: &std::path::Path, state: &std:
     };
     close("modes times amplitudes", &scaled(&served), &scaled(&offline));
 }
-
 
 /// A ground station on a UDP port that the gateway sends the fleet to (`gcs =
 /// "udpout:127.0.0.1:<port>"`): it reads the stream and answers the gateway.

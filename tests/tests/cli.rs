@@ -17,17 +17,13 @@ fn fleet_dmd_reads_a_reference_file_and_writes_json() {
     let dir = std::env::temp_dir().join(format!("hetfleet-cli-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let json = dir.join("m.json");
-    let out = run(
-        "fleet",
-        &["dmd", "--input", "reference/dmd_case1_Z.npy", "--method", "long-term", "--init", "100", "--out", json.to_str().unwrap()],
-    );
+    let out = run("fleet", &["dmd", "--input", "reference/dmd_case1_Z.npy", "--method", "long-term", "--init", "100", "--out", json.to_str().unwrap()]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let doc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     assert_eq!(doc["model"]["rank"], 100);
     // The long-term operator's top eigenvalue is the reference's (0.8714, from numpy/odmd).
     let top = doc["model"]["eigenvalues"][0][0].as_f64().unwrap();
-    let reference: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(root().join("reference/dmd_reference.json")).unwrap()).unwrap();
+    let reference: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(root().join("reference/dmd_reference.json")).unwrap()).unwrap();
     let want = reference["longterm_g1"]["eigs"][0][0].as_f64().unwrap();
     assert!((top - want).abs() < 1e-8, "{top} vs {want}");
 }

@@ -22,7 +22,7 @@ fn paced_mission(dir: &Path, listen: &[String], connect: &[String], step_ms: u64
 fn kill_9_of_the_server_and_of_a_boat_loses_nothing_and_counts_nothing_twice() {
     let dir = scratch("kill");
     let ep = format!("tcp/127.0.0.1:{}", free_port());
-    let mission = paced_mission(&dir, &[ep.clone()], &[ep], 60);
+    let mission = paced_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep), 60);
     let (m, out, state) = (mission.to_str().unwrap().to_string(), dir.join("out"), dir.join("state"));
     let server_args = ["--mission", &m, "--out", out.to_str().unwrap(), "--state-dir", state.to_str().unwrap(), "--exit-when-done"];
     let mut procs = Procs::default();
@@ -204,9 +204,8 @@ fn thirty_percent_loss_with_reordering_on_every_link() {
     let port = free_port();
     let local = format!("tcp/127.0.0.1:{port}");
     let ids: Vec<String> = MissionConfig::load(Some(&root().join("config/mission-tiny.toml"))).unwrap().vehicles().into_iter().map(|v| v.id).collect();
-    let hosts: Vec<LossyHost> = (0..ids.len())
-        .map(|i| LossyHost::new(10 + i as u32, Degradation { loss: 0.3, delay_ms: 2, jitter_ms: 20, seed: 7 + i as u64 }).expect("a TUN link (needs /dev/net/tun)"))
-        .collect();
+    let hosts: Vec<LossyHost> =
+        (0..ids.len()).map(|i| LossyHost::new(10 + i as u32, Degradation { loss: 0.3, delay_ms: 2, jitter_ms: 20, seed: 7 + i as u64 }).expect("a TUN link (needs /dev/net/tun)")).collect();
     let remote: Vec<String> = hosts.iter().map(|h| format!("tcp/{}:{port}", h.here)).collect();
     let mission = tiny_mission(&dir, &[vec![local.clone()], remote.clone()].concat(), &[local]);
     let away: Vec<(&str, &str, &str)> = ids.iter().zip(&hosts).zip(&remote).map(|((id, h), e)| (id.as_str(), h.ns.as_str(), e.as_str())).collect();

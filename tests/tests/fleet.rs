@@ -28,7 +28,7 @@ fn check_against_offline(mission: &Path, summary: &ServerSummary) {
 fn fleet_up_runs_a_mission_that_equals_the_offline_loop() {
     let dir = scratch("up");
     let ep = format!("tcp/127.0.0.1:{}", free_port());
-    let mission = tiny_mission(&dir, &[ep.clone()], &[ep]);
+    let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
     let out = dir.join("run");
     let o = run("fleet", &["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()]);
     assert!(o.status.success(), "fleet up failed: {}\n{}", String::from_utf8_lossy(&o.stderr), String::from_utf8_lossy(&o.stdout));
@@ -44,7 +44,7 @@ fn fleet_up_runs_a_mission_that_equals_the_offline_loop() {
 fn a_python_eclipse_zenoh_client_decodes_model_latest() {
     let dir = scratch("py");
     let ep = format!("tcp/127.0.0.1:{}", free_port());
-    let mission = tiny_mission(&dir, &[ep.clone()], &[ep.clone()]);
+    let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
     let m = mission.to_str().unwrap();
     let out = dir.join("out");
     let mut procs = Procs::default();
@@ -53,11 +53,7 @@ fn a_python_eclipse_zenoh_client_decodes_model_latest() {
     let server = start_server(&mut procs, &["--mission", m, "--out", out.to_str().unwrap(), "--state-dir", st], &dir.join("server.log"));
     start_vehicles(&mut procs, &mission, st, &dir, &[]);
     server.finished(120);
-    let o = std::process::Command::new("python3")
-        .arg(root().join("tests/py/model_latest.py"))
-        .args([&ep, "tiny", out.join("summary.json").to_str().unwrap()])
-        .output()
-        .expect("python3");
+    let o = std::process::Command::new("python3").arg(root().join("tests/py/model_latest.py")).args([&ep, "tiny", out.join("summary.json").to_str().unwrap()]).output().expect("python3");
     assert!(o.status.success(), "the Python client failed (scripts/test.sh installs eclipse-zenoh and cbor2):\n{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
     println!("{}", String::from_utf8_lossy(&o.stdout));
 }

@@ -81,7 +81,7 @@ fn ctx() -> Context {
 fn wire_seeds() -> Vec<Vec<u8>> {
     let g = Grid::new(6, 8, 1.0).unwrap();
     let n = g.len();
-    let bodies = vec![
+    let bodies = [
         Body::Batch(MeasurementBatch {
             vehicle: "boat-1".into(),
             kind: VehicleKind::Boat,
@@ -101,7 +101,18 @@ fn wire_seeds() -> Vec<Vec<u8>> {
             acked: Some(4),
         }),
         Body::Ack(Ack { vehicle: "boat-1".into(), seq: 9 }),
-        Body::Model(ModelUpdate { version: 1, epoch: 2, step: 40, grid: g, dt: 0.25, eigenvalues: vec![[0.9, 0.1]], modes_re: vec![0.1; n], modes_im: vec![0.0; n], amplitudes: vec![[1.0, 0.0]], variance: vec![0.01; n] }),
+        Body::Model(ModelUpdate {
+            version: 1,
+            epoch: 2,
+            step: 40,
+            grid: g,
+            dt: 0.25,
+            eigenvalues: vec![[0.9, 0.1]],
+            modes_re: vec![0.1; n],
+            modes_im: vec![0.0; n],
+            amplitudes: vec![[1.0, 0.0]],
+            variance: vec![0.01; n],
+        }),
         Body::Plan(Plan { vehicle: "boat-1".into(), model_version: 1, epoch: 3, targets: vec![Target { epoch: 3, step: 45, position: [2.0, 2.0], radius: 1.5, cells: vec![0, 1, 5] }] }),
     ];
     bodies.iter().map(encode).collect()

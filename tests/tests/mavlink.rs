@@ -16,7 +16,7 @@ fn free_udp_port() -> u16 {
 fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehicle() {
     let dir = scratch("gcs");
     let ep = format!("tcp/127.0.0.1:{}", free_port());
-    let mission = tiny_mission(&dir, &[ep.clone()], &[ep]);
+    let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
     let gcs_port = free_udp_port();
     // Slow enough for a ground station to act between epochs: 250 ms a step, 60 steps.
     edit(&mission, "resend_ms = 500", "resend_ms = 500\nstep_ms = 250");
@@ -42,11 +42,7 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
         .spawn()
         .expect("python3");
     let server = start_server(&mut procs, &["--mission", mp, "--state-dir", st], &dir.join("server.log"));
-    let gateway = std::process::Command::new(bin("gcs-gateway"))
-        .args(["--mission", mp])
-        .stderr(std::fs::File::create(dir.join("gateway.log")).unwrap())
-        .spawn()
-        .expect("gcs-gateway");
+    let gateway = std::process::Command::new(bin("gcs-gateway")).args(["--mission", mp]).stderr(std::fs::File::create(dir.join("gateway.log")).unwrap()).spawn().expect("gcs-gateway");
     procs.0.push(gateway);
     start_vehicles(&mut procs, &mission, st, &dir, &[]);
 

@@ -21,7 +21,7 @@ const HOLD: u32 = 4;
 /// `gcs_port`, autopilots declared lost after 1.5 s without a HEARTBEAT.
 fn slow_mission(dir: &Path, gcs_port: u16) -> (PathBuf, String) {
     let ep = format!("tcp/127.0.0.1:{}", free_port());
-    let m = tiny_mission(dir, &[ep.clone()], &[ep.clone()]);
+    let m = tiny_mission(dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
     edit(&m, "plan_timeout_ms = 20000", "plan_timeout_ms = 1500\nstep_ms = 150");
     edit(&m, "frames = 40", "frames = 80");
     edit(&m, "listen = [", "lease_ms = 1000\nlisten = [");
@@ -61,9 +61,11 @@ fn a_server_that_held_vehicles_restarts_after_kill_9_and_the_mission_completes()
         start_vehicle(&mut procs, &[], &args, &dir.join(format!("{}.log", v.id)));
     }
     let held = |who: &'static str| move |e: &ServerEvent| matches!(e, ServerEvent::Hold { vehicle, held: true, .. } if vehicle == who).then_some(());
-    let epoch_at_least = |n: u64| move |e: &ServerEvent| match e {
-        ServerEvent::Epoch { epoch, .. } if *epoch >= n => Some(*epoch),
-        _ => None,
+    let epoch_at_least = |n: u64| {
+        move |e: &ServerEvent| match e {
+            ServerEvent::Epoch { epoch, .. } if *epoch >= n => Some(*epoch),
+            _ => None,
+        }
     };
 
     // An operator puts boat-1 on HOLD; its empty batches are journalled; the server dies.
@@ -118,7 +120,7 @@ fn find(bytes: &[u8], needle: &[u8]) -> usize {
 fn damaged_journals_and_outboxes_are_refused_by_the_nodes_and_left_as_they_are() {
     let dir = scratch("damaged");
     let ep = format!("tcp/127.0.0.1:{}", free_port());
-    let mission = tiny_mission(&dir, &[ep.clone()], &[ep]);
+    let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
     // A finished run's journal, and a vehicle's outbox holding unacknowledged batches.
     let run_dir = dir.join("run");
     let o = run("fleet", &["up", mission.to_str().unwrap(), "--out", run_dir.to_str().unwrap()]);
@@ -183,7 +185,7 @@ fn the_gateway_pins_system_ids_from_the_mission_whatever_arrives_first() {
     let dir = scratch("impostor");
     let gcs_port = free_udp_port();
     let ep = format!("tcp/127.0.0.1:{}", free_port());
-    let mission = tiny_mission(&dir, &[ep.clone()], &[ep.clone()]);
+    let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
     edit(&mission, r#"autopilot = "sim""#, &format!("autopilot = \"sim\"\ngcs = \"udpout:127.0.0.1:{gcs_port}\""));
     let m = MissionConfig::load(Some(&mission)).unwrap();
     let mp = mission.to_str().unwrap();
@@ -199,7 +201,12 @@ fn the_gateway_pins_system_ids_from_the_mission_whatever_arrives_first() {
         let cfg = fleet_net::config(fleet_net::Role::Vehicle, &m.network, None, &fleet_net::Endpoints::default()).unwrap();
         fleet_net::open(cfg).await.unwrap()
     });
-    let hb = |sysid: u8, mode: u32| vehicles::bridge::frame_bytes(mavlink::MavHeader { system_id: sysid as u32, component_id: 1, sequence: 0 }, &MavMessage::HEARTBEAT(HEARTBEAT_DATA { custom_mode: mode, mavtype: MavType::MAV_TYPE_SURFACE_BOAT, ..Default::default() }));
+    let hb = |sysid: u8, mode: u32| {
+        vehicles::bridge::frame_bytes(
+            mavlink::MavHeader { system_id: sysid as u32, component_id: 1, sequence: 0 },
+            &MavMessage::HEARTBEAT(HEARTBEAT_DATA { custom_mode: mode, mavtype: MavType::MAV_TYPE_SURFACE_BOAT, ..Default::default() }),
+        )
+    };
     let put = |key: String, bytes: Vec<u8>| rt.block_on(async { session.put(&key, bytes).await.unwrap() });
     let gcs_in = |id: &str| rt.block_on(async { session.declare_subscriber(keys.gcs(id)).await.unwrap() });
     let (to1, to2) = (gcs_in("boat-1"), gcs_in("boat-2"));
@@ -235,10 +242,13 @@ fn the_gateway_pins_system_ids_from_the_mission_whatever_arrives_first() {
     // The HOLD went to boat-2, not to the impostor.
     let got = rt.block_on(async { tokio::time::timeout(Duration::from_secs(5), to2.recv_async()).await });
     assert!(matches!(got, Ok(Ok(_))), "the HOLD reached boat-2");
-    assert!(to1.try_recv().ok().flatten().is_none_or(|s| {
-        let (_, msg) = vehicles::bridge::parse_frame(&s.payload().to_bytes()).unwrap();
-        !matches!(msg, MavMessage::SET_MODE(_))
-    }), "nothing for boat-2 went to boat-1");
+    assert!(
+        to1.try_recv().ok().flatten().is_none_or(|s| {
+            let (_, msg) = vehicles::bridge::parse_frame(&s.payload().to_bytes()).unwrap();
+            !matches!(msg, MavMessage::SET_MODE(_))
+        }),
+        "nothing for boat-2 went to boat-1"
+    );
     drop(procs);
     let log = std::fs::read_to_string(dir.join("gateway.log")).unwrap();
     let lines = log.lines().filter(|l| l.contains("impostor")).count();
@@ -369,7 +379,7 @@ fn a_batch_that_decodes_but_is_invalid_is_counted_once_in_the_status() {
     use fleet::protocol::{Body, MeasurementBatch, Noise, Sample, VehicleKind};
     let dir = scratch("counted-once");
     let ep = format!("tcp/127.0.0.1:{}", free_port());
-    let mission = tiny_mission(&dir, &[ep.clone()], &[ep.clone()]);
+    let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
     let m = MissionConfig::load(Some(&mission)).unwrap();
     let mut procs = Procs::default();
     let server = start_server(&mut procs, &["--mission", mission.to_str().unwrap(), "--state-dir", dir.join("state").to_str().unwrap()], &dir.join("server.log"));
@@ -380,7 +390,13 @@ fn a_batch_that_decodes_but_is_invalid_is_counted_once_in_the_status() {
         let cfg = fleet_net::config(fleet_net::Role::Vehicle, &m.network, None, &fleet_net::Endpoints::default()).unwrap();
         let session = fleet_net::open(cfg).await.unwrap();
         let statuses = session.declare_subscriber(keys.server_status()).await.unwrap();
-        let batch = |kind, steps: Vec<u64>| MeasurementBatch { vehicle: "boat-1".into(), kind, seq: 0, noise: Noise { sigma0: 0.05, growth_per_m: 0.0 }, samples: steps.into_iter().map(|s| Sample { step: s, position: [1.0, 1.0], cells: vec![0], values: vec![0.5] }).collect() };
+        let batch = |kind, steps: Vec<u64>| MeasurementBatch {
+            vehicle: "boat-1".into(),
+            kind,
+            seq: 0,
+            noise: Noise { sigma0: 0.05, growth_per_m: 0.0 },
+            samples: steps.into_iter().map(|s| Sample { step: s, position: [1.0, 1.0], cells: vec![0], values: vec![0.5] }).collect(),
+        };
         // Wrong kind (boat-1 declares itself an aerial), then wrong steps: two invalid batches.
         for b in [batch(VehicleKind::Aerial, vec![0]), batch(VehicleKind::Boat, vec![3, 4])] {
             fleet_net::put(&session, &keys.measurements("boat-1"), &Body::Batch(b)).await.unwrap();

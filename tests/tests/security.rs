@@ -13,7 +13,7 @@ use std::time::Duration;
 /// The tiny mission with its configs from `fleet secure` (and a test CA with `tls`).
 fn secure_mission(dir: &Path, tls: bool) -> (PathBuf, PathBuf) {
     let ep = format!("tcp/127.0.0.1:{}", free_port());
-    let mission = tiny_mission(dir, &[ep.clone()], &[ep.clone()]);
+    let mission = tiny_mission(dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
     let secure = dir.join("secure");
     let mut args = vec!["secure".to_string(), mission.display().to_string(), "--out".into(), secure.display().to_string()];
     if tls {

@@ -44,11 +44,9 @@ fn plasma_cloud_writes_npy_and_sidecar_then_renders() {
 #[test]
 fn synthetic_processes_are_written_with_their_shapes() {
     let dir = tmp("synth");
-    for (args, shape) in [
-        (vec!["table1", "--case", "3"], vec![1001, 20, 20]),
-        (vec!["eig-study", "--noise", "0.01"], vec![1001, 20, 20]),
-        (vec!["plume", "--grid", "12x30", "--frames", "7"], vec![7, 12, 30]),
-    ] {
+    for (args, shape) in
+        [(vec!["table1", "--case", "3"], vec![1001, 20, 20]), (vec!["eig-study", "--noise", "0.01"], vec![1001, 20, 20]), (vec!["plume", "--grid", "12x30", "--frames", "7"], vec![7, 12, 30])]
+    {
         let out_path = dir.join(format!("{}.npy", args[0]));
         let mut full = vec!["simulate"];
         full.extend(&args);

@@ -14,11 +14,11 @@ use fleet_net::{zenoh, Role};
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
+use tracing::{debug, info, warn};
 use vehicles::autopilot::modes::Frame;
 use vehicles::autopilot::sim::SimSpec;
 use vehicles::autopilot::site::Site;
 use vehicles::bridge::{Bridge, BridgeSpec};
-use tracing::{debug, info, warn};
 use zenoh::sample::SampleKind;
 
 /// Batches not yet acknowledged, on disk: each is committed (with the vehicle's state) before
@@ -52,7 +52,9 @@ impl Outbox {
 
     fn state(&self) -> anyhow::Result<Option<BrainState>> {
         match self.store.meta("state")? {
-            Some(b) => Ok(Some(ciborium::from_reader(&b[..]).map_err(|e| fleet::exit::bad_input(anyhow::anyhow!("the outbox {}: the vehicle state in it is unreadable ({e})", self.store.path().display())))?)),
+            Some(b) => {
+                Ok(Some(ciborium::from_reader(&b[..]).map_err(|e| fleet::exit::bad_input(anyhow::anyhow!("the outbox {}: the vehicle state in it is unreadable ({e})", self.store.path().display())))?))
+            }
             None => Ok(None),
         }
     }
@@ -425,7 +427,17 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     if let Some(b) = &v.bridge {
         let c = b.counters();
         let p = fleet::mission::report::Percentiles::of(&v.guided_ms);
-        info!(received = c.received, sent = c.sent, unreadable = c.unreadable, from_gcs = c.from_gcs, refused_from_gcs = c.refused_from_gcs, plan_to_guided_p50_ms = format!("{:.3}", p.p50), plan_to_guided_max_ms = format!("{:.3}", p.max), targets = p.count, "MAVLink link to the autopilot");
+        info!(
+            received = c.received,
+            sent = c.sent,
+            unreadable = c.unreadable,
+            from_gcs = c.from_gcs,
+            refused_from_gcs = c.refused_from_gcs,
+            plan_to_guided_p50_ms = format!("{:.3}", p.p50),
+            plan_to_guided_max_ms = format!("{:.3}", p.max),
+            targets = p.count,
+            "MAVLink link to the autopilot"
+        );
     }
     info!(vehicle = v.brain.id, off_target = v.brain.off_target, "mission done, every batch acknowledged");
     session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;

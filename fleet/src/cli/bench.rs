@@ -72,16 +72,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             println!("| case | method | eig | median s | min s | paper s | speed-up vs paper |");
             println!("|---|---|---|---|---|---|---|");
             for r in &rows {
-                println!(
-                    "| {} | {} | {} | {:.4} | {:.4} | {} | {:.0}x |",
-                    r.case,
-                    r.method,
-                    if r.with_eig { "yes" } else { "no" },
-                    r.median_s,
-                    r.min_s,
-                    r.paper_s,
-                    r.paper_s / r.median_s
-                );
+                println!("| {} | {} | {} | {:.4} | {:.4} | {} | {:.0}x |", r.case, r.method, if r.with_eig { "yes" } else { "no" }, r.median_s, r.min_s, r.paper_s, r.paper_s / r.median_s);
             }
             serde_json::to_value(rows)?
         }
@@ -122,17 +113,31 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let o = last.expect("at least one run");
             println!(
                 "one Table 2 row, {} x {} x {} steps, 2 aerials, 5 boats, general DMD rank 10: median {:.3} s over {} runs (MSE heterogeneous {:.4e})",
-                truth.rows, truth.cols, truth.frames(), median, ts.len(), o.mean_heterogeneous
+                truth.rows,
+                truth.cols,
+                truth.frames(),
+                median,
+                ts.len(),
+                o.mean_heterogeneous
             );
             serde_json::json!({ "median_s": median, "runs": ts })
         }
         What::Refit { epochs, late, grid } => {
-            let (rows, cols) = grid.split_once('x').and_then(|(r, c)| Some((r.parse().ok()?, c.parse().ok()?))).ok_or_else(|| fleet::exit::bad_input(anyhow::anyhow!("--grid {grid}: expected ROWSxCOLS")))?;
+            let (rows, cols) =
+                grid.split_once('x').and_then(|(r, c)| Some((r.parse().ok()?, c.parse().ok()?))).ok_or_else(|| fleet::exit::bad_input(anyhow::anyhow!("--grid {grid}: expected ROWSxCOLS")))?;
             eprintln!("driving a {epochs}-epoch mission twice (not timed)...");
             let t = fleet::experiment::refit_timing::run(rows, cols, epochs, late)?;
             println!(
                 "{} epochs at {} x {}, boat-2's last {} epochs late: re-fit from a checkpoint {:.1} ms ({} epochs again), from epoch 0 {:.1} ms ({} epochs); same model: {}",
-                t.epochs, t.grid[0], t.grid[1], t.late_epochs, t.with_checkpoints_s * 1e3, t.with_checkpoints_epochs, t.from_epoch_0_s * 1e3, t.from_epoch_0_epochs, t.same_model
+                t.epochs,
+                t.grid[0],
+                t.grid[1],
+                t.late_epochs,
+                t.with_checkpoints_s * 1e3,
+                t.with_checkpoints_epochs,
+                t.from_epoch_0_s * 1e3,
+                t.from_epoch_0_epochs,
+                t.same_model
             );
             serde_json::to_value(t)?
         }

@@ -1,11 +1,11 @@
 //! `fleet dmd`: fit a model online to a field and print its spectrum and errors.
 
-use fleet::exit::{bad_input, InputResult};
 use anyhow::{bail, Context};
 use clap::ValueEnum;
 use faer::Mat;
-use fleet::dmd::{Forgetting, ForgettingDirections, ForgettingUnit};
 use fleet::dmd::{Debias, DmdConfig, Method, RankPolicy};
+use fleet::dmd::{Forgetting, ForgettingDirections, ForgettingUnit};
+use fleet::exit::{bad_input, InputResult};
 use fleet::experiment::run_online;
 use fleet::process::synthetic::{table1_field, EigStudy, Table1Profile, TABLE1_CASES};
 use fleet::process::FieldSeries;
@@ -182,15 +182,7 @@ fn run_checked(args: Args, mut field: FieldSeries, init: usize) -> anyhow::Resul
     );
     println!("{:>4}  {:>24}  {:>10}  {:>26}", "#", "lambda (discrete)", "|lambda|", "ln(lambda)/dt");
     for (i, (l, c)) in summary.eigenvalues.iter().zip(&summary.continuous_eigenvalues).take(args.top).enumerate() {
-        println!(
-            "{:>4}  {:>11.6} {:>+11.6}i  {:>10.6}  {:>12.5} {:>+12.5}i",
-            i + 1,
-            l[0],
-            l[1],
-            (l[0] * l[0] + l[1] * l[1]).sqrt(),
-            c[0],
-            c[1]
-        );
+        println!("{:>4}  {:>11.6} {:>+11.6}i  {:>10.6}  {:>12.5} {:>+12.5}i", i + 1, l[0], l[1], (l[0] * l[0] + l[1] * l[1]).sqrt(), c[0], c[1]);
     }
     let rel = (err2 / norm2.max(f64::MIN_POSITIVE)).sqrt();
     println!("relative reconstruction error over the record (from x(0)): {rel:.4}");

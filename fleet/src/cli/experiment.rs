@@ -33,8 +33,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let m = |t: &str| r.teams[t].mean;
         println!(
             "{} AV {}/{} MV {}/{} noise {}: mean MSE over {} seeds from step {}: heterogeneous {:.4e} (random disks {:.4e}), aerial-only {:.4e}, boat-only {:.4e}; {}",
-            r.row.name(), r.row.av_time, r.row.av_space, r.row.mv_time, r.row.mv_space, r.row.noise, r.seeds.len(), r.scored_from,
-            m(paper::HETEROGENEOUS), m(paper::RANDOM), m(paper::AERIAL_ONLY), m(paper::BOAT_ONLY),
+            r.row.name(),
+            r.row.av_time,
+            r.row.av_space,
+            r.row.mv_time,
+            r.row.mv_space,
+            r.row.noise,
+            r.seeds.len(),
+            r.scored_from,
+            m(paper::HETEROGENEOUS),
+            m(paper::RANDOM),
+            m(paper::AERIAL_ONLY),
+            m(paper::BOAT_ONLY),
             r.comparisons.iter().map(|c| format!("{} vs {}: {}", c.first, c.second, c.verdict.words())).collect::<Vec<_>>().join(", ")
         );
     }

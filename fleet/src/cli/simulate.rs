@@ -1,9 +1,9 @@
 //! `fleet simulate`: generate a truth field as a `(frames, rows, cols)` `.npy` plus a JSON
 //! sidecar of every parameter.
 
-use fleet::exit::InputResult;
 use anyhow::{bail, Context};
 use clap::ValueEnum;
+use fleet::exit::InputResult;
 use fleet::process::plasma::{PlasmaCloud, Preset};
 use fleet::process::synthetic::{plume_field, table1_field, EigStudy, Table1Profile, TABLE1_CASES};
 use fleet::process::{dataset, FieldSeries};
@@ -146,13 +146,6 @@ fn simulate(args: Args) -> anyhow::Result<()> {
         }
     };
     dataset::save(&args.out, &field, Some(&meta))?;
-    println!(
-        "wrote {} ({} frames of {} x {}) and {}",
-        args.out.display(),
-        field.frames(),
-        field.rows,
-        field.cols,
-        dataset::sidecar_path(&args.out).display()
-    );
+    println!("wrote {} ({} frames of {} x {}) and {}", args.out.display(), field.frames(), field.rows, field.cols, dataset::sidecar_path(&args.out).display());
     Ok(())
 }

@@ -61,17 +61,14 @@ impl FromStr for Debias {
 pub fn debiased_eig(kind: Debias, xt: MatRef<'_, f64>, yt: MatRef<'_, f64>) -> Result<(Vec<c64>, Mat<c64>), DmdError> {
     let r = xt.nrows();
     if xt.ncols() < r {
-        return Err(DmdError::Unsupported(format!(
-            "debiasing needs at least as many snapshot pairs as the rank ({} < {r})",
-            xt.ncols()
-        )));
+        return Err(DmdError::Unsupported(format!("debiasing needs at least as many snapshot pairs as the rank ({} < {r})", xt.ncols())));
     }
     match kind {
         Debias::None => Err(DmdError::Unsupported("debiased_eig called without a debias method".into())),
         Debias::Fb => {
             let af = least_squares_operator(xt, yt)?; // Y ~ A_f X
             let ab = least_squares_operator(yt, xt)?; // X ~ A_b Y
-            // M = A_f A_b^-1, via M^T = A_b^-T A_f^T (a solve, no inverse).
+                                                      // M = A_f A_b^-1, via M^T = A_b^-T A_f^T (a solve, no inverse).
             let mt = ab.transpose().partial_piv_lu().solve(af.transpose());
             let m = mt.transpose().to_owned();
             let (mu, v) = eig(m.as_ref())?;

@@ -151,7 +151,7 @@ impl Dmd for GeneralDmd {
         self.u = u;
         self.s = zs.s;
         self.updates += 1;
-        if self.updates % REORTH_EVERY == 0 && self.orthogonality_error() > REORTH_TOL {
+        if self.updates.is_multiple_of(REORTH_EVERY) && self.orthogonality_error() > REORTH_TOL {
             self.reorthonormalise()?;
         }
         Ok(())

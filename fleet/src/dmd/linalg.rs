@@ -40,9 +40,7 @@ pub fn pod(a: MatRef<'_, f64>, select: impl Fn(&[f64]) -> usize) -> Result<Svd, 
     let (n, m) = (a.nrows(), a.ncols());
     if n >= 4 * m && m > 0 {
         let gram = a.transpose() * a;
-        let evd = gram
-            .self_adjoint_eigen(Side::Lower)
-            .map_err(|e| DmdError::Numerical(format!("Gram eigendecomposition did not converge: {e:?}")))?;
+        let evd = gram.self_adjoint_eigen(Side::Lower).map_err(|e| DmdError::Numerical(format!("Gram eigendecomposition did not converge: {e:?}")))?;
         // Ascending eigenvalues -> descending singular values.
         let s_all: Vec<f64> = (0..m).rev().map(|i| evd.S().column_vector()[i].max(0.0).sqrt()).collect();
         let r = select(&s_all);
@@ -136,7 +134,6 @@ pub fn orthogonality_error(a: MatRef<'_, f64>) -> f64 {
     }
     e
 }
-
 
 #[cfg(test)]
 mod tests {

@@ -121,9 +121,7 @@ impl DmdConfig {
             Method::General => Box::new(GeneralDmd::init(x, y, self.rank, self.debias)?),
             Method::LongTerm => {
                 if self.debias != Debias::None {
-                    return Err(DmdError::Unsupported(
-                        "the long-term method keeps no snapshots, so it cannot debias; use batch or general".into(),
-                    ));
+                    return Err(DmdError::Unsupported("the long-term method keeps no snapshots, so it cannot debias; use batch or general".into()));
                 }
                 Box::new(LongTermDmd::init_with(x, y, self.gamma, self.forgetting)?)
             }

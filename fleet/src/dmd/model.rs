@@ -29,11 +29,7 @@ impl Modes {
     /// fits to its newest one to forecast forward).
     pub fn model(self, x_ref: &[f64], dt: f64) -> Result<DmdModel, DmdError> {
         if x_ref.len() != self.modes.nrows() {
-            return Err(DmdError::Shape(format!(
-                "reference snapshot has {} values, the modes {}",
-                x_ref.len(),
-                self.modes.nrows()
-            )));
+            return Err(DmdError::Shape(format!("reference snapshot has {} values, the modes {}", x_ref.len(), self.modes.nrows())));
         }
         if let Some(i) = x_ref.iter().position(|v| !v.is_finite()) {
             return Err(DmdError::NonFinite { row: i, col: 0 });

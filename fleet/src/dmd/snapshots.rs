@@ -56,13 +56,7 @@ fn append_cols(dst: &mut Mat<f64>, src: MatRef<'_, f64>) {
 /// Shapes agree, there is at least one pair, and every value is finite.
 pub fn check_pairs(x: MatRef<'_, f64>, y: MatRef<'_, f64>, dim: Option<usize>) -> Result<(), DmdError> {
     if x.nrows() != y.nrows() || x.ncols() != y.ncols() {
-        return Err(DmdError::Shape(format!(
-            "X is {} x {} but Y is {} x {}; they must match",
-            x.nrows(),
-            x.ncols(),
-            y.nrows(),
-            y.ncols()
-        )));
+        return Err(DmdError::Shape(format!("X is {} x {} but Y is {} x {}; they must match", x.nrows(), x.ncols(), y.nrows(), y.ncols())));
     }
     if x.ncols() == 0 || x.nrows() == 0 {
         return Err(DmdError::Shape("no snapshot pairs given".into()));

@@ -12,8 +12,8 @@ use crate::dmd::{DmdConfig, Method, RankPolicy};
 use crate::grid::area_average;
 use crate::plot::{self, Panel, Series};
 use crate::process::plasma::Preset;
-use crate::process::truth::{averaged_by, TruthSource};
 use crate::process::synthetic::EigStudy;
+use crate::process::truth::{averaged_by, TruthSource};
 use crate::process::FieldSeries;
 use anyhow::{bail, Context};
 use serde::{Deserialize, Serialize};
@@ -161,6 +161,9 @@ impl ExperimentConfig {
     }
 }
 
+/// A team's name and its MSE at each step (`None`: no data yet).
+pub type TeamSteps = (String, Vec<Option<f64>>);
+
 /// One seed of one row: every team's time-averaged MSE over the steps where all have data.
 #[derive(Debug, Clone, Serialize)]
 pub struct SeedResult {
@@ -203,7 +206,7 @@ pub struct RowResult {
     /// Per seed, per team, per step MSE (`None`: the team has no data yet): `per_step.csv`
     /// and Fig. 10.
     #[serde(skip)]
-    pub per_step: Vec<(u64, Vec<(String, Vec<Option<f64>>)>)>,
+    pub per_step: Vec<(u64, Vec<TeamSteps>)>,
 }
 
 impl RowResult {
@@ -277,12 +280,18 @@ pub const RANDOM: &str = "heterogeneous-random";
 
 /// Every team of one row and seed: the QR run (all three teams), the random-placement run, and
 /// each extra fusion scheme's run.
-fn run_seed(cfg: &ExperimentConfig, r: &Row, truth: &FieldSeries, seed: u64) -> Result<(SeedResult, TeamOutcome, Vec<(String, Vec<Option<f64>>)>), team::TeamError> {
+fn run_seed(cfg: &ExperimentConfig, r: &Row, truth: &FieldSeries, seed: u64) -> Result<(SeedResult, TeamOutcome, Vec<TeamSteps>), team::TeamError> {
     let qr = team::run(&cfg.team_for_seed(r, Placement::Qr, seed), truth, |_, _| {})?;
     let random = team::run(&cfg.team_for_seed(r, Placement::Random, seed), truth, |_, _| {})?;
     let some = |v: &[f64]| v.iter().map(|&x| Some(x)).collect::<Vec<_>>();
-    let mut mse = BTreeMap::from([(HETEROGENEOUS.to_string(), qr.mean_heterogeneous), (AERIAL_ONLY.into(), qr.mean_aerial_only), (BOAT_ONLY.into(), qr.mean_boat_only), (RANDOM.into(), random.mean_heterogeneous)]);
-    let mut steps = vec![(HETEROGENEOUS.to_string(), some(&qr.heterogeneous)), (AERIAL_ONLY.into(), some(&qr.aerial_only)), (BOAT_ONLY.into(), qr.boat_only.clone()), (RANDOM.into(), some(&random.heterogeneous))];
+    let mut mse = BTreeMap::from([
+        (HETEROGENEOUS.to_string(), qr.mean_heterogeneous),
+        (AERIAL_ONLY.into(), qr.mean_aerial_only),
+        (BOAT_ONLY.into(), qr.mean_boat_only),
+        (RANDOM.into(), random.mean_heterogeneous),
+    ]);
+    let mut steps =
+        vec![(HETEROGENEOUS.to_string(), some(&qr.heterogeneous)), (AERIAL_ONLY.into(), some(&qr.aerial_only)), (BOAT_ONLY.into(), qr.boat_only.clone()), (RANDOM.into(), some(&random.heterogeneous))];
     for &scheme in &cfg.extra_fusions {
         let other = team::run(&TeamConfig { fusion: scheme, ..cfg.team_for_seed(r, Placement::Qr, seed) }, truth, |_, _| {})?;
         let name = format!("{HETEROGENEOUS}-{scheme}");
@@ -389,9 +398,7 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
             for (label, method) in methods {
                 progress(&format!("Fig. 7 {label} var {var}"));
                 let v = eig_study::Variant::new(label, method, RankPolicy::Full, Default::default(), 1.0);
-                let estimates = (0..cfg.eig_trials)
-                    .map(|t| eig_study::estimate(&v, var, eig_study::trial_seed(cfg.seed, level, t)))
-                    .collect::<Result<Vec<_>, _>>()?;
+                let estimates = (0..cfg.eig_trials).map(|t| eig_study::estimate(&v, var, eig_study::trial_seed(cfg.seed, level, t))).collect::<Result<Vec<_>, _>>()?;
                 eig.push(EigBox { method: label.into(), noise_var: var, estimates });
             }
         }

@@ -15,12 +15,12 @@
 //!   same steps); until it has a model the measured cells' mean fills the grid.
 
 use crate::dmd::{DmdConfig, DmdModel, Method, RankPolicy};
+use crate::fusion::AerialNoise;
 use crate::fusion::Scheme;
 use crate::grid::Grid;
-use crate::fusion::AerialNoise;
+use crate::mission;
 use crate::mission::server::ServerCore;
 use crate::mission::vehicle::VehicleBrain;
-use crate::mission;
 use crate::process::FieldSeries;
 use crate::protocol::{Sample, VehicleKind};
 use crate::sensing::gappy;
@@ -162,7 +162,7 @@ impl TeamConfig {
         if self.density_floor > 1.0 {
             return bad("density_floor must be in [0, 1]".into());
         }
-        if grid.len() == 0 {
+        if grid.is_empty() {
             return bad("empty grid".into());
         }
         if self.method == Method::LongTerm {
@@ -178,7 +178,12 @@ impl TeamConfig {
         if self.aerials > lattice.rows * lattice.cols {
             return bad(format!(
                 "aerials = {}: the aerial lattice has only {} cells ({} x {} grid, aerial_stride {}), so some aerial would see nothing; use at most {} aerials or a smaller aerial_stride",
-                self.aerials, lattice.rows * lattice.cols, grid.rows, grid.cols, self.aerial_stride, lattice.rows * lattice.cols
+                self.aerials,
+                lattice.rows * lattice.cols,
+                grid.rows,
+                grid.cols,
+                self.aerial_stride,
+                lattice.rows * lattice.cols
             ));
         }
         if !disk_fits(grid, self.boats, self.radius) {
@@ -227,7 +232,6 @@ fn mse(a: &[f64], b: &[f64]) -> f64 {
 fn column(m: &Mat<f64>, k: usize) -> Vec<f64> {
     m.col(k).iter().copied().collect()
 }
-
 
 /// Run the loop on `truth` (already on the model grid) with the fleet's own engine: every
 /// vehicle a [`VehicleBrain`] sensing with its own random stream under the plans of a

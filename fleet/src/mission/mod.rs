@@ -9,8 +9,8 @@ pub mod config;
 pub mod report;
 pub mod schedule;
 pub mod security;
-pub mod vehicle;
 pub mod server;
+pub mod vehicle;
 
 use crate::dmd::{Dmd, DmdConfig, DmdModel, RankPolicy};
 use crate::experiment::team::{Placement, TeamConfig, TeamError};
@@ -39,12 +39,15 @@ pub fn sense_boat(grid: &Grid, truth: &[f64], step: u64, position: (f64, f64), c
     sense_cells(grid, truth, step, position, cells, crate::protocol::Noise { sigma0: sigma, growth_per_m: 0.0 }, rng)
 }
 
+/// A boat's disk: the cells it covers and its centre `(row, col)`.
+pub type BoatDisk = (Vec<usize>, (usize, usize));
+
 /// Where every vehicle should be for the next epoch.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Allocation {
     /// Per boat (in vehicle order): the disk's cells and centre, or `None` when there are more
     /// boats than disks.
-    pub boats: Vec<Option<(Vec<usize>, (usize, usize))>>,
+    pub boats: Vec<Option<BoatDisk>>,
     /// Per aerial: its coverage position (metres).
     pub aerials: Vec<(f64, f64)>,
     /// Vehicles (by index: aerials, then boats) left out: on operator hold or without an
@@ -386,7 +389,8 @@ mod tests {
             }
             server.initialise(init).unwrap();
             let plan = server.allocate().unwrap();
-            let mut boats: Vec<Sample> = plan.boats.iter().enumerate().filter_map(|(b, d)| d.as_ref().map(|(c, _)| sense_boat(&grid, &x(10), 10, (0.0, 0.0), c, 0.01, &mut rngs[3 + b]).unwrap())).collect();
+            let mut boats: Vec<Sample> =
+                plan.boats.iter().enumerate().filter_map(|(b, d)| d.as_ref().map(|(c, _)| sense_boat(&grid, &x(10), 10, (0.0, 0.0), c, 0.01, &mut rngs[3 + b]).unwrap())).collect();
             if shuffle {
                 boats.shuffle(&mut order);
             }

@@ -94,28 +94,6 @@ pub struct ServerSummary {
     pub wall_s: f64,
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn percentiles_by_nearest_rank() {
-        let v: Vec<f64> = (1..=100).map(f64::from).collect();
-        let p = Percentiles::of(&v);
-        assert_eq!((p.count, p.p50, p.p99, p.max), (100, 50.0, 99.0, 100.0));
-        assert_eq!(Percentiles::of(&[]).p99, 0.0);
-        assert_eq!(Percentiles::of(&[3.0]).p50, 3.0);
-    }
-
-    #[test]
-    fn events_are_one_json_object_each() {
-        let e = ServerEvent::Link { vehicle: "boat-1".into(), alive: true };
-        let line = serde_json::to_string(&e).unwrap();
-        assert_eq!(line, r#"{"event":"link","vehicle":"boat-1","alive":true}"#);
-        assert_eq!(serde_json::from_str::<ServerEvent>(&line).unwrap(), e);
-    }
-}
-
 /// Why a networked run differs from the offline loop, from what the server reported: each
 /// vehicle held out of the allocation (and why), late batches, refusals and lost batches.
 fn differences(events: &[ServerEvent], c: &Counters) -> String {
@@ -134,7 +112,9 @@ fn differences(events: &[ServerEvent], c: &Counters) -> String {
                 };
                 *held.entry(vehicle).or_default().entry(why).or_default() += 1;
             }
-            ServerEvent::Late { vehicle, epoch, .. } => why.push(format!("{vehicle}'s batch of epoch {epoch} came late: the epoch was assimilated without it and the model re-fitted when it came (plans made in between differ from the offline loop's)")),
+            ServerEvent::Late { vehicle, epoch, .. } => why.push(format!(
+                "{vehicle}'s batch of epoch {epoch} came late: the epoch was assimilated without it and the model re-fitted when it came (plans made in between differ from the offline loop's)"
+            )),
             ServerEvent::Refused { vehicle, seq, detail, .. } => why.push(format!("{vehicle}'s batch {seq} was refused: {detail}")),
             ServerEvent::Lost { vehicle, seqs } => why.push(format!("{vehicle}'s batches {seqs:?} were lost with the journal")),
             _ => {}
@@ -179,13 +159,19 @@ pub fn write_mission_report(
     let t = &mission.team;
     let mut md = String::new();
     writeln!(md, "# Mission `{}`\n", summary.mission)?;
-    writeln!(md, "Command: `{command}`. The model server and {} vehicles ({} aerials, {} boats, radius {}) ran as separate processes over Zenoh; the truth is {} (mixed reality).\n",
-        summary.vehicles.len(), t.aerials, t.boats, t.radius,
+    writeln!(
+        md,
+        "Command: `{command}`. The model server and {} vehicles ({} aerials, {} boats, radius {}) ran as separate processes over Zenoh; the truth is {} (mixed reality).\n",
+        summary.vehicles.len(),
+        t.aerials,
+        t.boats,
+        t.radius,
         match (&mission.truth.source.preset, &mission.truth.source.dataset) {
             (Some(p), _) => format!("the {p:?} plasma cloud at {} x {}, {} frames, averaged by {}", mission.truth.grid[0], mission.truth.grid[1], mission.truth.frames, mission.truth.average),
             (_, Some(d)) => format!("the dataset {}", d.display()),
             _ => "?".into(),
-        })?;
+        }
+    )?;
     writeln!(md, "## Estimation error\n")?;
     writeln!(
         md,
@@ -213,7 +199,11 @@ pub fn write_mission_report(
     writeln!(md, "| | |\n|---|---|")?;
     writeln!(md, "| epochs assimilated | {} (model version {}, rank {}) |", summary.epochs, summary.model_version, summary.rank)?;
     writeln!(md, "| batches received | {} ({} duplicates, {rejected} refused {:?}) |", c.batches, c.duplicates, c.rejected)?;
-    writeln!(md, "| last batch of an epoch to model published | p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms ({} epochs) |", summary.latency_ms.p50, summary.latency_ms.p99, summary.latency_ms.max, summary.latency_ms.count)?;
+    writeln!(
+        md,
+        "| last batch of an epoch to model published | p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms ({} epochs) |",
+        summary.latency_ms.p50, summary.latency_ms.p99, summary.latency_ms.max, summary.latency_ms.count
+    )?;
     writeln!(md, "| liveliness tokens seen (link ups) | {} |", summary.link_ups.iter().map(|(k, v)| format!("{k} {v}")).collect::<Vec<_>>().join(", "))?;
     writeln!(md, "| server wall time | {:.2} s |\n", summary.wall_s)?;
     writeln!(md, "## Final model: continuous-time eigenvalues ln(lambda)/dt\n")?;
@@ -235,4 +225,26 @@ pub fn write_mission_report(
     )?;
     std::fs::write(dir.join("report.md"), &md)?;
     Ok(md)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percentiles_by_nearest_rank() {
+        let v: Vec<f64> = (1..=100).map(f64::from).collect();
+        let p = Percentiles::of(&v);
+        assert_eq!((p.count, p.p50, p.p99, p.max), (100, 50.0, 99.0, 100.0));
+        assert_eq!(Percentiles::of(&[]).p99, 0.0);
+        assert_eq!(Percentiles::of(&[3.0]).p50, 3.0);
+    }
+
+    #[test]
+    fn events_are_one_json_object_each() {
+        let e = ServerEvent::Link { vehicle: "boat-1".into(), alive: true };
+        let line = serde_json::to_string(&e).unwrap();
+        assert_eq!(line, r#"{"event":"link","vehicle":"boat-1","alive":true}"#);
+        assert_eq!(serde_json::from_str::<ServerEvent>(&line).unwrap(), e);
+    }
 }

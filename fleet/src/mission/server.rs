@@ -498,7 +498,7 @@ impl ServerCore {
     }
 
     fn assimilate_epoch(&mut self, e: u64) -> Result<(), TeamError> {
-        if e > 0 && e % CHECKPOINT_EVERY == 0 {
+        if e > 0 && e.is_multiple_of(CHECKPOINT_EVERY) {
             let steps = self.snapshots.len();
             if let Some(c) = self.checkpoints.as_mut() {
                 c.insert(e, (self.assim.checkpoint(), steps));

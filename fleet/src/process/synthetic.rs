@@ -128,9 +128,7 @@ impl EigStudy {
         }
         let mut z = Mat::from_fn(n * n, Self::STEPS + 1, |i, j| {
             let t = j as f64 * Self::DT;
-            g1[i] * (-t).exp()
-                + 0.5 * (-4.0 * t).exp() * (a[i] * (2.0 * pi * t).cos() + b[i] * (2.0 * pi * t).sin())
-                + 0.3 * g4[i] * (-8.0 * t).exp()
+            g1[i] * (-t).exp() + 0.5 * (-4.0 * t).exp() * (a[i] * (2.0 * pi * t).cos() + b[i] * (2.0 * pi * t).sin()) + 0.3 * g4[i] * (-8.0 * t).exp()
         });
         add_noise(&mut z, noise_var, seed);
         FieldSeries { rows: n, cols: n, dt: Self::DT, snapshots: z }
@@ -153,10 +151,7 @@ pub fn smooth_sphere_field(times: &[f64], noise: f64, seed: u64) -> FieldSeries 
         for (a, &th) in th.iter().enumerate() {
             for (b, &ph) in ph.iter().enumerate() {
                 let (s, c) = (th.sin(), th.cos());
-                let mut f = s * s * (2.0 * (ph - 0.3 * t)).cos()
-                    + 0.7 * s.powi(3) * c * (3.0 * (ph + 0.2 * t)).sin()
-                    + 0.3 * c * (0.7 * t).cos()
-                    + 0.4 * c * c * (0.5 * t).sin();
+                let mut f = s * s * (2.0 * (ph - 0.3 * t)).cos() + 0.7 * s.powi(3) * c * (3.0 * (ph + 0.2 * t)).sin() + 0.3 * c * (0.7 * t).cos() + 0.4 * c * c * (0.5 * t).sin();
                 let d = ph - phc;
                 let dph = d.sin().atan2(d.cos());
                 f += 0.8 * (-((th - thc).powi(2) + (s * dph).powi(2)) / 0.1).exp();
@@ -179,8 +174,7 @@ pub fn smooth_basis(grid: &crate::grid::Grid, r: usize, seed: u64) -> Mat<f64> {
     let tau = std::f64::consts::TAU;
     let mut raw = Mat::zeros(grid.len(), r);
     for j in 0..r {
-        let (kx, ky, px, py): (f64, f64, f64, f64) =
-            (rng.random_range(0.5..3.0), rng.random_range(0.5..3.0), rng.random_range(0.0..tau), rng.random_range(0.0..tau));
+        let (kx, ky, px, py): (f64, f64, f64, f64) = (rng.random_range(0.5..3.0), rng.random_range(0.5..3.0), rng.random_range(0.0..tau), rng.random_range(0.0..tau));
         for i in 0..grid.len() {
             let c = grid.cell(i);
             let (x, y) = (c.col as f64 / grid.cols as f64, c.row as f64 / grid.rows as f64);

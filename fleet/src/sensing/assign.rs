@@ -21,8 +21,7 @@ pub fn assign(boats: &[(f64, f64)], targets: &[(f64, f64)], speed: f64) -> Resul
     // The solver needs rows <= columns: put the smaller side on the rows.
     let boats_are_rows = boats.len() <= targets.len();
     let (rows, cols) = if boats_are_rows { (boats, targets) } else { (targets, boats) };
-    let weights = Matrix::from_rows(rows.iter().map(|a| cols.iter().map(|b| micros(a, b)).collect::<Vec<_>>()))
-        .map_err(|e| SensingError::Numerical(format!("{e:?}")))?;
+    let weights = Matrix::from_rows(rows.iter().map(|a| cols.iter().map(|b| micros(a, b)).collect::<Vec<_>>())).map_err(|e| SensingError::Numerical(format!("{e:?}")))?;
     let (total, row_to_col) = pathfinding::kuhn_munkres::kuhn_munkres_min(&weights);
     let mut out = vec![None; boats.len()];
     for (r, &c) in row_to_col.iter().enumerate() {
@@ -43,7 +42,8 @@ mod tests {
     /// Best total over all injective maps from the smaller side to the larger, by brute force.
     fn brute(boats: &[(f64, f64)], targets: &[(f64, f64)], speed: f64) -> i64 {
         let micros = |b: &(f64, f64), t: &(f64, f64)| (((b.0 - t.0).hypot(b.1 - t.1) / speed) * 1e6).round() as i64;
-        fn go(i: usize, used: &mut Vec<bool>, a: &[(f64, f64)], b: &[(f64, f64)], f: &dyn Fn(&(f64, f64), &(f64, f64)) -> i64) -> i64 {
+        type Cost<'a> = &'a dyn Fn(&(f64, f64), &(f64, f64)) -> i64;
+        fn go(i: usize, used: &mut Vec<bool>, a: &[(f64, f64)], b: &[(f64, f64)], f: Cost<'_>) -> i64 {
             if i == a.len() {
                 return 0;
             }
@@ -67,9 +67,7 @@ mod tests {
         for nb in 1..=6 {
             for nt in 1..=6 {
                 for _ in 0..20 {
-                    let pts = |n: usize, rng: &mut rand_chacha::ChaCha8Rng| -> Vec<(f64, f64)> {
-                        (0..n).map(|_| (rng.random_range(0.0..500.0), rng.random_range(0.0..300.0))).collect()
-                    };
+                    let pts = |n: usize, rng: &mut rand_chacha::ChaCha8Rng| -> Vec<(f64, f64)> { (0..n).map(|_| (rng.random_range(0.0..500.0), rng.random_range(0.0..300.0))).collect() };
                     let (b, t) = (pts(nb, &mut rng), pts(nt, &mut rng));
                     let (a, total) = assign(&b, &t, 1.5).unwrap();
                     let best = brute(&b, &t, 1.5);

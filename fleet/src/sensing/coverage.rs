@@ -193,15 +193,11 @@ mod tests {
         // Mode 0 neutral (|lambda| = 1) everywhere; mode 1 decays, living on the left half only.
         let g = Grid::new(4, 8, 1.0).unwrap();
         let modes = Mat::from_fn(g.len(), 2, |q, j| c64::new(if j == 0 || g.cell(q).col < 4 { 1.0 } else { 0.0 }, 0.0));
-        let model = DmdModel {
-            modes: Modes { eigenvalues: vec![c64::new(1.0, 0.0), c64::new(0.5, 0.0)], modes },
-            amplitudes: vec![c64::new(1.0, 0.0), c64::new(2.0, 0.0)],
-            dt: 0.1,
-        };
+        let model = DmdModel { modes: Modes { eigenvalues: vec![c64::new(1.0, 0.0), c64::new(0.5, 0.0)], modes }, amplitudes: vec![c64::new(1.0, 0.0), c64::new(2.0, 0.0)], dt: 0.1 };
         let d = temporal_density(&model, 0.2).unwrap();
-        for q in 0..g.len() {
+        for (q, dq) in d.iter().enumerate() {
             let want = if g.cell(q).col < 4 { 1.0 } else { 0.2 };
-            assert!((d[q] - want).abs() < 1e-12, "cell {q}: {}", d[q]);
+            assert!((dq - want).abs() < 1e-12, "cell {q}: {dq}");
         }
         // Only neutral modes: uniform.
         let mut flat = model.clone();

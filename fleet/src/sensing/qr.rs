@@ -279,11 +279,7 @@ pub fn block_qr(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Res
         let sums = DiskSums::new(*grid, &norms, radius);
         let taken = DiskSums::new(*grid, &covered, radius);
         let exhausted = !(total > 1e-12 * first);
-        let pick = if exhausted {
-            best_candidate(grid, &taken, |cell| original.disk_sum(cell))
-        } else {
-            best_candidate(grid, &taken, |cell| sums.disk_sum(cell))
-        };
+        let pick = if exhausted { best_candidate(grid, &taken, |cell| original.disk_sum(cell)) } else { best_candidate(grid, &taken, |cell| sums.disk_sum(cell)) };
         let Some((centre, _)) = pick else { break };
         let cells = grid.disk(centre, radius);
         let weight: f64 = cells.iter().map(|&p| norms[p]).sum();

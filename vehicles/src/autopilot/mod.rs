@@ -3,5 +3,5 @@
 
 pub mod modes;
 pub mod serve;
-pub mod site;
 pub mod sim;
+pub mod site;

@@ -45,9 +45,26 @@ impl Frame {
     fn table(self) -> &'static [(u32, &'static str, Role)] {
         match self {
             // ArduRover
-            Self::Boat => &[(0, "MANUAL", Role::Hold), (4, "HOLD", Role::Hold), (5, "LOITER", Role::Hold), (10, "AUTO", Role::Auto), (11, "RTL", Role::Return), (12, "SMART_RTL", Role::Return), (15, "GUIDED", Role::Guided)],
+            Self::Boat => &[
+                (0, "MANUAL", Role::Hold),
+                (4, "HOLD", Role::Hold),
+                (5, "LOITER", Role::Hold),
+                (10, "AUTO", Role::Auto),
+                (11, "RTL", Role::Return),
+                (12, "SMART_RTL", Role::Return),
+                (15, "GUIDED", Role::Guided),
+            ],
             // ArduCopter
-            Self::Multirotor => &[(0, "STABILIZE", Role::Hold), (2, "ALT_HOLD", Role::Hold), (3, "AUTO", Role::Auto), (4, "GUIDED", Role::Guided), (5, "LOITER", Role::Hold), (6, "RTL", Role::Return), (16, "POSHOLD", Role::Hold), (17, "BRAKE", Role::Hold)],
+            Self::Multirotor => &[
+                (0, "STABILIZE", Role::Hold),
+                (2, "ALT_HOLD", Role::Hold),
+                (3, "AUTO", Role::Auto),
+                (4, "GUIDED", Role::Guided),
+                (5, "LOITER", Role::Hold),
+                (6, "RTL", Role::Return),
+                (16, "POSHOLD", Role::Hold),
+                (17, "BRAKE", Role::Hold),
+            ],
         }
     }
 

@@ -88,7 +88,23 @@ impl SimAutopilot {
     /// Boots disarmed, in the frame's boot mode, at `home` (local NED).
     pub fn new(spec: SimSpec, home: Vector3<f64>) -> Self {
         let mode = spec.frame.boot_mode();
-        Self { spec, pos: home, vel: Vector3::zeros(), heading: 0.0, armed: false, mode, mode_before_pause: None, goal: None, home, mission: vec![], current: 0, upload: None, wall_s: 0.0, battery: 1.0, out: vec![] }
+        Self {
+            spec,
+            pos: home,
+            vel: Vector3::zeros(),
+            heading: 0.0,
+            armed: false,
+            mode,
+            mode_before_pause: None,
+            goal: None,
+            home,
+            mission: vec![],
+            current: 0,
+            upload: None,
+            wall_s: 0.0,
+            battery: 1.0,
+            out: vec![],
+        }
     }
 
     pub fn role(&self) -> Option<Role> {
@@ -515,7 +531,8 @@ mod tests {
         assert_eq!(results(&s.take()), [MavResult::MAV_RESULT_ACCEPTED; 2]);
         // Behind it (heading north, goal south-east): it must turn first.
         let goal = Vector3::new(-6.0, 8.0, 5.0);
-        let target = SET_POSITION_TARGET_LOCAL_NED_DATA { x: goal.x as f32, y: goal.y as f32, z: goal.z as f32, target_system: 3, coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED, ..Default::default() };
+        let target =
+            SET_POSITION_TARGET_LOCAL_NED_DATA { x: goal.x as f32, y: goal.y as f32, z: goal.z as f32, target_system: 3, coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED, ..Default::default() };
         s.handle(&GCS, &MavMessage::SET_POSITION_TARGET_LOCAL_NED(target));
         let mut t = 0.0;
         let mut last = s.pos;
@@ -536,7 +553,10 @@ mod tests {
     fn an_unarmed_or_held_vehicle_does_not_move_and_unknown_commands_are_unsupported() {
         let mut s = sim(Frame::Multirotor);
         s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 4.0));
-        s.handle(&GCS, &MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA { x: 10.0, target_system: 3, coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED, ..Default::default() }));
+        s.handle(
+            &GCS,
+            &MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA { x: 10.0, target_system: 3, coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED, ..Default::default() }),
+        );
         s.step(1.0);
         assert_eq!(s.pos, Vector3::zeros(), "disarmed");
         s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));

@@ -128,7 +128,23 @@ impl PlasmaParams {
         if self.nx * self.ny > 50_000_000 {
             return bad(format!("grid of {} cells is too large", self.nx * self.ny));
         }
-        let finite = [self.lx, self.e0[0], self.e0[1], self.n_b, self.eps, self.sigma_x, self.diffusion, self.u_frame[0], self.u_frame[1], self.centre[0], self.centre[1], self.out_dt, self.sponge, self.tol, self.cfl];
+        let finite = [
+            self.lx,
+            self.e0[0],
+            self.e0[1],
+            self.n_b,
+            self.eps,
+            self.sigma_x,
+            self.diffusion,
+            self.u_frame[0],
+            self.u_frame[1],
+            self.centre[0],
+            self.centre[1],
+            self.out_dt,
+            self.sponge,
+            self.tol,
+            self.cfl,
+        ];
         if finite.iter().any(|v| !v.is_finite()) {
             return bad("every parameter must be finite".into());
         }
@@ -144,7 +160,7 @@ impl PlasmaParams {
         if self.sigma_x < 0.0 || self.diffusion < 0.0 {
             return bad("sigma_x and diffusion must be >= 0".into());
         }
-        if self.out_dt <= 0.0 || !(0.0..1.0).contains(&self.sponge) || !(self.tol > 0.0 && self.tol < 1.0) || !(self.cfl > 0.0 && self.cfl <= 1.0) {
+        if !(self.out_dt > 0.0 && (0.0..1.0).contains(&self.sponge) && self.tol > 0.0 && self.tol < 1.0 && self.cfl > 0.0 && self.cfl <= 1.0) {
             return bad("out_dt > 0, sponge in [0, 1), tol in (0, 1) and cfl in (0, 1] are required".into());
         }
         Ok(())

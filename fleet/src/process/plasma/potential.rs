@@ -199,9 +199,7 @@ impl PotentialSolver {
         for j in 0..ny {
             let src = if src_is_r { &self.r } else { &self.z };
             self.row_in.copy_from_slice(&src[j * nx..(j + 1) * nx]);
-            self.r2c
-                .process_with_scratch(&mut self.row_in, &mut self.spec[j * nk..(j + 1) * nk], &mut self.scratch_r)
-                .expect("buffer sizes from the plan");
+            self.r2c.process_with_scratch(&mut self.row_in, &mut self.spec[j * nk..(j + 1) * nk], &mut self.scratch_r).expect("buffer sizes from the plan");
         }
         for j in 0..ny {
             for k in 0..nk {
@@ -222,9 +220,7 @@ impl PotentialSolver {
             if nx % 2 == 0 {
                 self.spec[j * nk + nk - 1].im = 0.0;
             }
-            self.c2r
-                .process_with_scratch(&mut self.spec[j * nk..(j + 1) * nk], &mut self.z[j * nx..(j + 1) * nx], &mut self.scratch_r)
-                .expect("buffer sizes from the plan");
+            self.c2r.process_with_scratch(&mut self.spec[j * nk..(j + 1) * nk], &mut self.z[j * nx..(j + 1) * nx], &mut self.scratch_r).expect("buffer sizes from the plan");
         }
     }
 
