@@ -3,5 +3,5 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    let _ = fleet::mission::config::MissionConfig::from_toml(&String::from_utf8_lossy(data));
+    let _ = fleet_mission::config::MissionConfig::from_toml(&String::from_utf8_lossy(data));
 });

@@ -1,11 +1,11 @@
 //! The model server node: a Zenoh router that takes every vehicle's measurement batches,
-//! assimilates complete epochs with the same `fleet::mission::server::ServerCore` the offline
+//! assimilates complete epochs with the same `fleet_mission::server::ServerCore` the offline
 //! experiment is tested against, and publishes models, acks, plans and its own status.
 
 mod node;
 
 #[global_allocator]
-static ALLOCATOR: fleet::Allocator = fleet::Allocator;
+static ALLOCATOR: fleet_mission::Allocator = fleet_mission::Allocator;
 
 use clap::Parser;
 

@@ -4,12 +4,12 @@
 
 use crate::Args;
 use anyhow::Context as _;
-use fleet::exit::bad_input;
-use fleet::mission::config::MissionConfig;
-use fleet::mission::report::{Percentiles, ServerEvent, ServerSummary};
-use fleet::mission::server::{EpochRecord, IngestError, Ingested, ServerCore};
-use fleet::process::FieldSeries;
-use fleet::protocol::{self, keys::Keys, Body, Context, ServerStatus};
+use fleet_mission::config::MissionConfig;
+use fleet_mission::events::{Percentiles, ServerEvent, ServerSummary};
+use fleet_mission::exit::bad_input;
+use fleet_mission::process::FieldSeries;
+use fleet_mission::protocol::{self, keys::Keys, Body, Context, ServerStatus};
+use fleet_mission::server::{EpochRecord, IngestError, Ingested, ServerCore};
 use fleet_net::store::{Store, StoreError};
 use fleet_net::{zenoh, Role};
 use std::collections::{BTreeMap, BTreeSet};

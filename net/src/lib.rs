@@ -1,11 +1,11 @@
 //! hetfleet's Zenoh glue, shared by the model server and the vehicle nodes: open a session in
 //! the role a node plays (DESIGN.md "Facts about the dependencies": the server is a router,
-//! vehicles are clients that keep retrying), and put or read [`fleet::protocol`] messages with
+//! vehicles are clients that keep retrying), and put or read [`fleet_mission::protocol`] messages with
 //! the protocol's encoding. Nothing here knows the math; nodes stay thin.
 
 use anyhow::Context as _;
-use fleet::mission::config::Network;
-use fleet::protocol::{self, Body, Context, ProtocolError, ENCODING};
+use fleet_mission::config::Network;
+use fleet_mission::protocol::{self, Body, Context, ProtocolError, ENCODING};
 use std::path::Path;
 use zenoh::bytes::Encoding;
 use zenoh::sample::Sample;
@@ -46,7 +46,7 @@ pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -
         Role::Vehicle => net.vehicle_config.clone(),
     });
     let mut cfg = match &file {
-        Some(p) => zenoh::Config::from_file(p).map_err(|e| fleet::exit::bad_input(anyhow::anyhow!("the Zenoh config {}: {e}", p.display())))?,
+        Some(p) => zenoh::Config::from_file(p).map_err(|e| fleet_mission::exit::bad_input(anyhow::anyhow!("the Zenoh config {}: {e}", p.display())))?,
         None => zenoh::Config::default(),
     };
     let set = |cfg: &mut zenoh::Config, key: &str, value: &str| cfg.insert_json5(key, value).map_err(|e| anyhow::anyhow!("Zenoh config {key} = {value}: {e}"));
@@ -118,7 +118,7 @@ pub fn init_node() {
     use tracing_subscriber::layer::SubscriberExt as _;
     use tracing_subscriber::util::SubscriberInitExt as _;
     use tracing_subscriber::Layer as _;
-    fleet::configure_linalg_threads();
+    fleet_mission::configure_linalg_threads();
     let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
     // Colour only on a terminal: a log file gets plain text.
     let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
@@ -204,8 +204,8 @@ pub fn exit_when_refused(node: &'static str, cfg: &zenoh::Config, file: Option<s
             let refused = session_refusals().iter().filter(|r| **r == SessionRefusal::RefusedByRouter).count() as u32;
             if REFUSED_SINCE_CONNECTED.fetch_add(refused, Ordering::Relaxed) + refused >= 3 {
                 let from = file.as_ref().map_or_else(String::new, |f| format!(" of {}", f.display()));
-                let e = fleet::exit::bad_input(anyhow::anyhow!("the router refused this node's session 3 times after it sent its credentials (user {user:?}{from}): a wrong password, a user it does not know, or a certificate it does not accept; fix the credentials and start it again"));
-                fleet::exit::fail(node, &e);
+                let e = fleet_mission::exit::bad_input(anyhow::anyhow!("the router refused this node's session 3 times after it sent its credentials (user {user:?}{from}): a wrong password, a user it does not know, or a certificate it does not accept; fix the credentials and start it again"));
+                fleet_mission::exit::fail(node, &e);
             }
         }
     });
@@ -233,11 +233,11 @@ pub struct NodeArgs {
 
 impl NodeArgs {
     /// The mission and its truth on the model grid.
-    pub fn load(&self) -> anyhow::Result<(fleet::mission::config::MissionConfig, fleet::process::FieldSeries)> {
-        let mission = fleet::mission::config::MissionConfig::load(self.mission.as_deref())?;
+    pub fn load(&self) -> anyhow::Result<(fleet_mission::config::MissionConfig, fleet_mission::process::FieldSeries)> {
+        let mission = fleet_mission::config::MissionConfig::load(self.mission.as_deref())?;
         let truth = match &self.truth {
             Some(p) => {
-                let t = fleet::process::dataset::load(p, 1.0).map_err(fleet::exit::bad_input).with_context(|| format!("--truth {}", p.display()))?;
+                let t = fleet_mission::process::dataset::load(p, 1.0).map_err(fleet_mission::exit::bad_input).with_context(|| format!("--truth {}", p.display()))?;
                 mission.check_truth(&t, p)?;
                 t
             }
@@ -290,17 +290,17 @@ impl StopSignals {
 
 /// Run a node's async main on a multi-threaded runtime (Zenoh refuses the current-thread
 /// one) after [`init_node`]; an error is one line on stderr and the exit status of
-/// [`fleet::exit`] (2 bad input, 1 internal).
+/// [`fleet_mission::exit`] (2 bad input, 1 internal).
 pub fn run_node<F: std::future::Future<Output = anyhow::Result<()>>>(name: &str, workers: usize, main: F) {
     let rt = match tokio::runtime::Builder::new_multi_thread().worker_threads(workers).enable_all().build() {
         Ok(rt) => rt,
-        Err(e) => fleet::exit::fail(name, &anyhow::Error::new(e).context("starting the runtime")),
+        Err(e) => fleet_mission::exit::fail(name, &anyhow::Error::new(e).context("starting the runtime")),
     };
     let result = rt.block_on(main);
     // Do not wait for blocking readers (a MAVLink socket) to notice the end.
     rt.shutdown_timeout(std::time::Duration::from_millis(200));
     if let Err(e) = result {
-        fleet::exit::fail(name, &e);
+        fleet_mission::exit::fail(name, &e);
     }
 }
 

@@ -10,7 +10,7 @@
 use crate::autopilot::modes::{Frame, Role};
 use crate::autopilot::serve;
 use crate::autopilot::sim::{SimAutopilot, SimSpec};
-use fleet::protocol::{AutopilotLink, AutopilotStatus};
+use fleet_mission::protocol::{AutopilotLink, AutopilotStatus};
 use mavlink::dialects::common::*;
 use mavlink::error::MessageReadError;
 use mavlink::{Connection, MavConnection, MavHeader, MavlinkVersion, Message};

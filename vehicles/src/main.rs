@@ -4,7 +4,7 @@
 //! are acknowledged.
 
 #[global_allocator]
-static ALLOCATOR: fleet::Allocator = fleet::Allocator;
+static ALLOCATOR: fleet_mission::Allocator = fleet_mission::Allocator;
 
 mod node;
 

@@ -4,11 +4,11 @@
 //! covers it (re-sent every `resend_ms`).
 
 use crate::Args;
-use fleet::grid::Grid;
-use fleet::mission::config::MissionConfig;
-use fleet::mission::vehicle::{BrainState, Fix, VehicleBrain};
-use fleet::mission::vehicle_rng;
-use fleet::protocol::{self, keys::Keys, Body, Context, LinkState, Telemetry};
+use fleet_mission::config::MissionConfig;
+use fleet_mission::grid::Grid;
+use fleet_mission::protocol::{self, keys::Keys, Body, Context, LinkState, Telemetry};
+use fleet_mission::vehicle::{BrainState, Fix, VehicleBrain};
+use fleet_mission::vehicle_rng;
 use fleet_net::store::{Store, StoreError};
 use fleet_net::{zenoh, Role};
 use std::collections::BTreeMap;
@@ -41,8 +41,8 @@ impl Outbox {
     fn open(path: &std::path::Path, id: &str, limit: u64) -> anyhow::Result<Self> {
         const RECOVERY: &str = "to go on, move the file aside (keep it for inspection) and start the vehicle again: it starts over from the first epoch, senses again what the plans say and the server keeps what it already has (batches held only in this outbox are lost)";
         let store = Store::open(path).map_err(|e| match e {
-            e @ (StoreError::Damaged { .. } | StoreError::Empty { .. }) => fleet::exit::bad_input(anyhow::anyhow!("the outbox {e}; {RECOVERY}")),
-            e @ StoreError::InUse { .. } => fleet::exit::bad_input(anyhow::anyhow!("the outbox {e}: is this vehicle already running?")),
+            e @ (StoreError::Damaged { .. } | StoreError::Empty { .. }) => fleet_mission::exit::bad_input(anyhow::anyhow!("the outbox {e}; {RECOVERY}")),
+            e @ StoreError::InUse { .. } => fleet_mission::exit::bad_input(anyhow::anyhow!("the outbox {e}: is this vehicle already running?")),
             e => anyhow::Error::new(e).context("opening the outbox"),
         })?;
         let acked = store.meta("acked")?.and_then(|b| String::from_utf8(b).ok()).and_then(|s| s.parse().ok());
@@ -52,9 +52,10 @@ impl Outbox {
 
     fn state(&self) -> anyhow::Result<Option<BrainState>> {
         match self.store.meta("state")? {
-            Some(b) => {
-                Ok(Some(ciborium::from_reader(&b[..]).map_err(|e| fleet::exit::bad_input(anyhow::anyhow!("the outbox {}: the vehicle state in it is unreadable ({e})", self.store.path().display())))?))
-            }
+            Some(b) => Ok(Some(
+                ciborium::from_reader(&b[..])
+                    .map_err(|e| fleet_mission::exit::bad_input(anyhow::anyhow!("the outbox {}: the vehicle state in it is unreadable ({e})", self.store.path().display())))?,
+            )),
             None => Ok(None),
         }
     }
@@ -426,7 +427,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     v.telemetry(&session).await;
     if let Some(b) = &v.bridge {
         let c = b.counters();
-        let p = fleet::mission::report::Percentiles::of(&v.guided_ms);
+        let p = fleet_mission::events::Percentiles::of(&v.guided_ms);
         info!(
             received = c.received,
             sent = c.sent,

@@ -2,9 +2,9 @@
 //! truncated frames and a silent autopilot must leave the bridge and the simulated autopilot
 //! working, with the loss shown on the bridge's status.
 
-use fleet::grid::Grid;
-use fleet::mission::config::MavlinkConfig;
-use fleet::protocol::AutopilotLink;
+use fleet_mission::config::MavlinkConfig;
+use fleet_mission::grid::Grid;
+use fleet_mission::protocol::AutopilotLink;
 use mavlink::dialects::common::*;
 use mavlink::MavHeader;
 use nalgebra::Vector3;

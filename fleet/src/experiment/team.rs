@@ -14,101 +14,18 @@
 //!   its first sample (those steps are not scored for any team: every team is scored over the
 //!   same steps); until it has a model the measured cells' mean fills the grid.
 
-use crate::dmd::{DmdConfig, DmdModel, Method, RankPolicy};
+use crate::dmd::{DmdConfig, DmdModel, Method};
 use crate::fusion::AerialNoise;
-use crate::fusion::Scheme;
 use crate::grid::Grid;
 use crate::mission;
 use crate::mission::server::ServerCore;
+pub use crate::mission::team::{Placement, TeamConfig, TeamError};
 use crate::mission::vehicle::VehicleBrain;
 use crate::process::FieldSeries;
 use crate::protocol::{Sample, VehicleKind};
 use crate::sensing::gappy;
 use faer::Mat;
-use serde::{Deserialize, Serialize};
-
-/// Where boats go.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Placement {
-    /// Block pivoted QR over the model's spatial modes (Alg. 2).
-    Qr,
-    /// Greedy D-optimal disks.
-    DOptimal,
-    /// Uniformly random non-overlapping disks (seeded): the baseline.
-    Random,
-}
-
-/// Every choice of one run.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct TeamConfig {
-    pub aerials: usize,
-    /// Aerial frames every this many steps (time rate).
-    pub aerial_period: usize,
-    /// Aerials keep every this-many-th cell (space rate).
-    pub aerial_stride: usize,
-    /// Aerial noise std at the aerial, and its growth per cell of distance.
-    pub aerial_sigma0: f64,
-    pub aerial_growth_per_cell: f64,
-    pub boats: usize,
-    /// Boat samples (and model updates) every this many steps.
-    pub boat_period: usize,
-    /// Sensing radius in cells.
-    pub radius: f64,
-    /// Boat noise standard deviation.
-    pub boat_sigma: f64,
-    /// Steps of aerial-only data before the first model.
-    pub init_steps: usize,
-    /// `full`, `optimal`, `energy:<f>` or an integer (`rank = 6` or `rank = "6"`).
-    #[serde(deserialize_with = "rank_text")]
-    pub rank: String,
-    pub method: Method,
-    pub gamma: f64,
-    pub placement: Placement,
-    pub fusion: Scheme,
-    /// Floor of the aerials' coverage density.
-    pub density_floor: f64,
-    pub seed: u64,
-}
-
-impl Default for TeamConfig {
-    fn default() -> Self {
-        Self {
-            aerials: 2,
-            aerial_period: 1,
-            aerial_stride: 5,
-            aerial_sigma0: 0.01,
-            aerial_growth_per_cell: 0.0005,
-            boats: 5,
-            boat_period: 5,
-            radius: 10.0,
-            boat_sigma: 0.01,
-            init_steps: 20,
-            rank: "10".into(),
-            method: Method::General,
-            gamma: 1.0,
-            placement: Placement::Qr,
-            fusion: Scheme::InverseVariance,
-            density_floor: 0.2,
-            seed: 7,
-        }
-    }
-}
-
-#[derive(Debug, thiserror::Error)]
-pub enum TeamError {
-    #[error("invalid configuration: {0}")]
-    Config(String),
-    #[error(transparent)]
-    Dmd(#[from] crate::dmd::DmdError),
-    #[error(transparent)]
-    Sensing(#[from] crate::sensing::SensingError),
-    #[error(transparent)]
-    Fusion(#[from] crate::fusion::FusionError),
-    #[error(transparent)]
-    Grid(#[from] crate::grid::GridError),
-}
+use serde::Serialize;
 
 /// Per-step mean squared errors of the three teams, and what the fleet did.
 ///
@@ -140,89 +57,6 @@ pub struct TeamOutcome {
     pub snapshots: Vec<Vec<f64>>,
     /// Model rank after the last update.
     pub rank: usize,
-}
-
-impl TeamConfig {
-    pub fn validate(&self, grid: &Grid, frames: usize) -> Result<RankPolicy, TeamError> {
-        let bad = |m: String| Err(TeamError::Config(m));
-        let rank: RankPolicy = self.rank.parse().map_err(|e: String| TeamError::Config(e))?;
-        if self.aerials == 0 || self.boats == 0 {
-            return bad("a heterogeneous team needs at least one aerial and one boat".into());
-        }
-        if self.aerial_period == 0 || self.boat_period == 0 || self.aerial_stride == 0 {
-            return bad("periods and stride must be at least 1".into());
-        }
-        if self.init_steps < 3 || self.init_steps + self.boat_period > frames {
-            return bad(format!("init_steps {} must be >= 3 and leave at least one epoch of {} steps in {frames} frames", self.init_steps, self.boat_period));
-        }
-        let nonneg = [self.aerial_sigma0, self.aerial_growth_per_cell, self.boat_sigma, self.density_floor];
-        if nonneg.iter().any(|v| !(v.is_finite() && *v >= 0.0)) || !(self.radius.is_finite() && self.radius >= 0.0) {
-            return bad("noise, radius and density floor must be finite and >= 0".into());
-        }
-        if self.density_floor > 1.0 {
-            return bad("density_floor must be in [0, 1]".into());
-        }
-        if grid.is_empty() {
-            return bad("empty grid".into());
-        }
-        if self.method == Method::LongTerm {
-            return bad("method = \"long-term\": its operator has every one of the grid's N modes, so the boats' gappy fit is underdetermined and every disk scores the same (block QR sees Phi Phi^T = I); a team or mission uses \"general\" (default) or \"batch\", which keep the rank".into());
-        }
-        if self.method != Method::LongTerm && self.gamma != 1.0 {
-            return bad(format!("gamma = {}: the forgetting factor applies to method = \"long-term\" only ({:?} keeps every snapshot)", self.gamma, self.method));
-        }
-        if !(self.gamma > 0.0 && self.gamma <= 1.0) {
-            return bad(format!("gamma = {}: must be in (0, 1]", self.gamma));
-        }
-        let lattice = grid.strided(self.aerial_stride)?;
-        if self.aerials > lattice.rows * lattice.cols {
-            return bad(format!(
-                "aerials = {}: the aerial lattice has only {} cells ({} x {} grid, aerial_stride {}), so some aerial would see nothing; use at most {} aerials or a smaller aerial_stride",
-                self.aerials,
-                lattice.rows * lattice.cols,
-                grid.rows,
-                grid.cols,
-                self.aerial_stride,
-                lattice.rows * lattice.cols
-            ));
-        }
-        if !disk_fits(grid, self.boats, self.radius) {
-            return bad(match largest_radius(grid, self.boats) {
-                Some(r) => format!("radius = {}: {} boats' disks of that radius do not fit side by side on the {} x {} grid; at most radius {r}", self.radius, self.boats, grid.rows, grid.cols),
-                None => format!("boats = {}: more boats than cells on the {} x {} grid", self.boats, grid.rows, grid.cols),
-            });
-        }
-        Ok(rank)
-    }
-}
-
-/// The rank as text, from a string (`"optimal"`, `"6"`) or a bare integer (`6`).
-fn rank_text<'de, D: serde::Deserializer<'de>>(d: D) -> Result<String, D::Error> {
-    #[derive(Deserialize)]
-    #[serde(untagged)]
-    enum Rank {
-        Text(String),
-        Number(u64),
-    }
-    match Rank::deserialize(d).map_err(|_| serde::de::Error::custom("rank: give \"full\", \"optimal\", \"energy:<fraction>\" or a positive integer"))? {
-        Rank::Text(t) => Ok(t),
-        Rank::Number(n) => Ok(n.to_string()),
-    }
-}
-
-/// The largest sensing radius (cells) at which `boats` disks fit side by side on `grid`: a
-/// disk inside the grid, and the disks' cells together no more than the grid's.
-fn largest_radius(grid: &Grid, boats: usize) -> Option<usize> {
-    (0..grid.rows.min(grid.cols)).take_while(|&r| disk_fits(grid, boats, r as f64)).last()
-}
-
-fn disk_fits(grid: &Grid, boats: usize, radius: f64) -> bool {
-    let span = 2 * radius.floor() as usize + 1;
-    if span > grid.rows.min(grid.cols) {
-        return false;
-    }
-    let centre = crate::grid::Cell::new(grid.rows / 2, grid.cols / 2);
-    boats.saturating_mul(grid.disk(centre, radius).len()) <= grid.len()
 }
 
 fn mse(a: &[f64], b: &[f64]) -> f64 {

@@ -1,98 +1,9 @@
-//! What the model server tells whoever started it (`fleet up`, a test, a field operator's
-//! script): one JSON event per line on stdout as the mission goes, and a summary at the end.
+//! The report `fleet up` writes from the server's summary and events (the event and summary
+//! types live with the server, in `fleet-mission`'s `events`).
 
-use super::server::Counters;
-use serde::{Deserialize, Serialize};
+pub use fleet_mission::events::*;
+use fleet_mission::server::Counters;
 use std::collections::BTreeMap;
-
-/// One line of the server's `--events` stream.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "event", rename_all = "kebab-case")]
-pub enum ServerEvent {
-    /// Listening; the mission has this many epochs and vehicles.
-    Ready {
-        mission: String,
-        epochs: u64,
-        vehicles: Vec<String>,
-        /// Where the first epoch's formation sends each vehicle (grid metres).
-        #[serde(default)]
-        places: std::collections::BTreeMap<String, [f64; 2]>,
-    },
-    /// A liveliness token appeared (`alive`) or went away.
-    Link { vehicle: String, alive: bool },
-    /// An epoch entered the model.
-    Epoch {
-        epoch: u64,
-        version: u64,
-        /// Mean squared error of the epoch's fused snapshots against the truth (mixed reality).
-        mse: Option<f64>,
-        latency_ms: f64,
-        alive: usize,
-        batches: u64,
-        /// Vehicles left out of the next epoch's allocation (operator hold, autopilot lost).
-        #[serde(default)]
-        held: Vec<String>,
-        /// Where the next epoch's allocation sends each vehicle that senses (grid metres).
-        #[serde(default)]
-        places: std::collections::BTreeMap<String, [f64; 2]>,
-        /// Vehicles it was assimilated without (late: their batches will re-fit it).
-        #[serde(default)]
-        missing: Vec<String>,
-    },
-    /// A late batch (of an epoch assimilated without it) is in the model: re-fitted and
-    /// published as `version`.
-    Late { vehicle: String, epoch: u64, version: u64 },
-    /// A vehicle left the allocation (its autopilot is on operator hold or lost) or came back.
-    Hold { vehicle: String, held: bool, mode: String },
-    /// A batch of a mission vehicle was refused: its epoch cannot complete with it (the
-    /// vehicle re-sends the same batch), so a mission waiting for it will not finish.
-    Refused { vehicle: String, seq: u64, reason: String, detail: String },
-    /// A vehicle says the server acknowledged batches the journal does not hold (a journal
-    /// deleted, replaced or rolled back): they are lost, and the epochs that need them wait.
-    Lost { vehicle: String, seqs: Vec<u64> },
-    /// Every step is in the model.
-    Finished { summary: Box<ServerSummary> },
-}
-
-/// Percentiles of a set of durations (ms).
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct Percentiles {
-    pub count: usize,
-    pub p50: f64,
-    pub p99: f64,
-    pub max: f64,
-}
-
-impl Percentiles {
-    /// Nearest-rank percentiles (0 for an empty set).
-    pub fn of(values: &[f64]) -> Self {
-        let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
-        v.sort_by(f64::total_cmp);
-        let at = |q: f64| if v.is_empty() { 0.0 } else { v[((q * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1] };
-        Self { count: v.len(), p50: at(0.5), p99: at(0.99), max: v.last().copied().unwrap_or(0.0) }
-    }
-}
-
-/// The server's account of a mission.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ServerSummary {
-    pub mission: String,
-    pub vehicles: Vec<String>,
-    pub epochs: u64,
-    pub model_version: u64,
-    pub rank: usize,
-    pub counters: Counters,
-    /// Last batch of an epoch in to its model update out.
-    pub latency_ms: Percentiles,
-    /// Per step, the fused snapshot's mean squared error against the truth (mixed reality).
-    pub mse: Vec<f64>,
-    pub mean_mse: Option<f64>,
-    /// The final model's discrete-time eigenvalues `[re, im]`.
-    pub eigenvalues: Vec<[f64; 2]>,
-    /// Times each vehicle's liveliness token appeared (1: never lost).
-    pub link_ups: BTreeMap<String, u64>,
-    pub wall_s: f64,
-}
 
 /// Why a networked run differs from the offline loop, from what the server reported: each
 /// vehicle held out of the allocation (and why), late batches, refusals and lost batches.
@@ -138,7 +49,7 @@ fn differences(events: &[ServerEvent], c: &Counters) -> String {
 /// truth and seed (which it must equal), the single-kind teams, and the fleet's statistics.
 pub fn write_mission_report(
     dir: &std::path::Path,
-    mission: &super::config::MissionConfig,
+    mission: &fleet_mission::config::MissionConfig,
     summary: &ServerSummary,
     offline: &crate::experiment::team::TeamOutcome,
     dt: f64,
@@ -225,26 +136,4 @@ pub fn write_mission_report(
     )?;
     std::fs::write(dir.join("report.md"), &md)?;
     Ok(md)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn percentiles_by_nearest_rank() {
-        let v: Vec<f64> = (1..=100).map(f64::from).collect();
-        let p = Percentiles::of(&v);
-        assert_eq!((p.count, p.p50, p.p99, p.max), (100, 50.0, 99.0, 100.0));
-        assert_eq!(Percentiles::of(&[]).p99, 0.0);
-        assert_eq!(Percentiles::of(&[3.0]).p50, 3.0);
-    }
-
-    #[test]
-    fn events_are_one_json_object_each() {
-        let e = ServerEvent::Link { vehicle: "boat-1".into(), alive: true };
-        let line = serde_json::to_string(&e).unwrap();
-        assert_eq!(line, r#"{"event":"link","vehicle":"boat-1","alive":true}"#);
-        assert_eq!(serde_json::from_str::<ServerEvent>(&line).unwrap(), e);
-    }
 }

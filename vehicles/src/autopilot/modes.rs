@@ -27,10 +27,10 @@ pub enum Frame {
 }
 
 impl Frame {
-    pub fn of(kind: fleet::protocol::VehicleKind) -> Self {
+    pub fn of(kind: fleet_mission::protocol::VehicleKind) -> Self {
         match kind {
-            fleet::protocol::VehicleKind::Boat => Self::Boat,
-            fleet::protocol::VehicleKind::Aerial => Self::Multirotor,
+            fleet_mission::protocol::VehicleKind::Boat => Self::Boat,
+            fleet_mission::protocol::VehicleKind::Aerial => Self::Multirotor,
         }
     }
 

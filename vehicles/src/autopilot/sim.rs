@@ -42,7 +42,7 @@ pub struct SimSpec {
 
 impl SimSpec {
     /// The simulated airframe the mission's `[mavlink]` section describes.
-    pub fn from_config(frame: Frame, sysid: u8, site: Site, m: &fleet::mission::config::MavlinkConfig) -> Self {
+    pub fn from_config(frame: Frame, sysid: u8, site: Site, m: &fleet_mission::config::MavlinkConfig) -> Self {
         let max_speed = match frame {
             Frame::Boat => m.boat_speed_ms,
             Frame::Multirotor => m.multirotor_speed_ms,
@@ -504,8 +504,8 @@ impl SimAutopilot {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use fleet::grid::Grid;
-    use fleet::mission::config::MavlinkConfig;
+    use fleet_mission::config::MavlinkConfig;
+    use fleet_mission::grid::Grid;
 
     fn sim(frame: Frame) -> SimAutopilot {
         let site = Site::new(&MavlinkConfig::default(), &Grid::new(48, 96, 1.0).unwrap());

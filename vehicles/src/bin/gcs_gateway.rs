@@ -3,8 +3,8 @@
 //! the mission's `[mavlink] gcs` is set.
 
 use clap::Parser;
-use fleet::mission::config::MissionConfig;
-use fleet::protocol::keys::Keys;
+use fleet_mission::config::MissionConfig;
+use fleet_mission::protocol::keys::Keys;
 use fleet_net::Role;
 use mavlink::dialects::common::MavMessage;
 use mavlink::error::MessageReadError;
@@ -39,7 +39,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         anyhow::bail!("no ground-station endpoint: set [mavlink] gcs in the mission or give --gcs");
     }
     let gcs = Arc::new(mavlink::connect::<MavMessage>(&address).map_err(|e| anyhow::anyhow!("ground-station endpoint {address}: {e}"))?);
-    let network = mission.network.for_node(fleet::mission::security::GATEWAY);
+    let network = mission.network.for_node(fleet_mission::security::GATEWAY);
     let zenoh_config = args.node.zenoh_config(Role::Vehicle, &network)?;
     fleet_net::exit_when_refused("gcs-gateway", &zenoh_config, args.node.zenoh_file(Role::Vehicle, &network));
     let session = fleet_net::open(zenoh_config).await?;

@@ -4,8 +4,8 @@
 
 use anyhow::Context as _;
 use clap::{Parser, ValueEnum};
-use fleet::grid::Grid;
-use fleet::mission::config::MissionConfig;
+use fleet_mission::config::MissionConfig;
+use fleet_mission::grid::Grid;
 use nalgebra::Vector3;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -53,7 +53,7 @@ fn main() {
 async fn run(args: Args) -> anyhow::Result<()> {
     let mission = MissionConfig::load(args.mission.as_deref())?;
     let m = &mission.mavlink;
-    let site = Site::new(m, &Grid::new(args.grid[0], args.grid[1], 1.0).map_err(fleet::exit::bad_input).context("--grid")?);
+    let site = Site::new(m, &Grid::new(args.grid[0], args.grid[1], 1.0).map_err(fleet_mission::exit::bad_input).context("--grid")?);
     let frame = match args.frame {
         Airframe::Boat => Frame::Boat,
         Airframe::Multirotor => Frame::Multirotor,

@@ -6,8 +6,8 @@
 //! `aerial_period` steps and send one batch per epoch (`seq = e`); boats sample at the last
 //! step of a full epoch and send one batch for it (`seq = e - 1`).
 
-use crate::experiment::team::TeamConfig;
 use crate::protocol::VehicleKind;
+use crate::team::TeamConfig;
 use std::ops::Range;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -2,19 +2,19 @@
 //! other and how fast the mission runs. Every node of a mission reads the same file, so the
 //! server and each vehicle agree on the grid, the schedule and the vehicles without talking.
 
-use super::schedule::Schedule;
-use super::server::{team_vehicles, VehicleSpec};
-use crate::experiment::team::TeamConfig;
 use crate::grid::Grid;
 use crate::process::truth::{averaged_by, TruthSource};
 use crate::process::FieldSeries;
 use crate::protocol::{keys, Noise, VehicleKind};
+use crate::schedule::Schedule;
+use crate::server::{team_vehicles, VehicleSpec};
+use crate::team::TeamConfig;
 use anyhow::{bail, Context};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 /// The bundled default mission (`fleet up` without an argument).
-pub const DEFAULT_MISSION: &str = include_str!("../../../config/mission.toml");
+pub const DEFAULT_MISSION: &str = include_str!("../../config/mission.toml");
 
 /// The mixed-reality truth: a simulator preset or a dataset, on `grid`, averaged by
 /// `average` onto the model grid.
@@ -245,7 +245,7 @@ impl MissionConfig {
     /// The truth on the model grid (runs the simulator: seconds to minutes).
     pub fn truth(&self, progress: impl FnMut(usize)) -> anyhow::Result<FieldSeries> {
         let full = self.truth.source.full(self.truth.grid, self.truth.frames, self.team.seed, progress)?;
-        averaged_by(&full, self.truth.average)
+        Ok(averaged_by(&full, self.truth.average)?)
     }
 
     /// Check a truth field against the mission, then the workspace grid and length it gives.

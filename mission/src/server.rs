@@ -7,10 +7,10 @@
 //! (the aerial-only initialisation); boats in every full epoch from epoch 1 (a boat left
 //! without a disk sends an empty batch). An epoch is complete when every batch for it is in.
 
-use super::{schedule::Schedule, Allocation, Assimilator};
-use crate::experiment::team::{TeamConfig, TeamError};
 use crate::grid::Grid;
 use crate::protocol::{self, Ack, MeasurementBatch, ModelUpdate, Plan, Sample, Target, VehicleKind};
+use crate::team::{TeamConfig, TeamError};
+use crate::{schedule::Schedule, Allocation, Assimilator};
 use std::collections::{BTreeMap, BTreeSet};
 
 /// Epochs between checkpoints of the model state (a late batch re-fits at most this many
@@ -152,7 +152,7 @@ pub struct ServerCore {
     /// The state before every `CHECKPOINT_EVERY`-th epoch: a re-fit starts from the newest one
     /// at or before the earliest late epoch, so its cost grows with how late the batch is, not
     /// with the mission's length. (`None`: checkpoints off, every re-fit from epoch 0.)
-    checkpoints: Option<BTreeMap<u64, (super::AssimilatorCheckpoint, usize)>>,
+    checkpoints: Option<BTreeMap<u64, (crate::AssimilatorCheckpoint, usize)>>,
     /// Epochs assimilated without some batch (by [`Self::force`]).
     forced: BTreeSet<u64>,
     /// Epochs whose [`EpochRecord`] changed since the node last journalled them.

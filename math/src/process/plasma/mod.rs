@@ -81,7 +81,7 @@ impl Default for PlasmaParams {
 }
 
 /// The three named clouds (the paper's names; parameters ours, see the README).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Preset {
     /// The specification's defaults: fingers by t ~ 20-25.
@@ -90,6 +90,18 @@ pub enum Preset {
     Cloud2,
     /// The most unstable: M = 5, twice the noise, frames further apart (t to ~30).
     Cloud10,
+}
+
+impl std::str::FromStr for Preset {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "cloud1" => Ok(Self::Cloud1),
+            "cloud2" => Ok(Self::Cloud2),
+            "cloud10" => Ok(Self::Cloud10),
+            _ => Err(format!("preset must be cloud1, cloud2 or cloud10, got {s:?}")),
+        }
+    }
 }
 
 impl Preset {

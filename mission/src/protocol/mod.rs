@@ -62,30 +62,9 @@ pub enum VehicleKind {
     Boat,
 }
 
-/// A sensor's noise: standard deviation `sigma0 + growth_per_m * distance` (boats: growth 0).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Noise {
-    pub sigma0: f64,
-    pub growth_per_m: f64,
-}
-
-impl Noise {
-    /// The standard deviation at `d_m` metres from the sensor.
-    pub fn std_at(&self, d_m: f64) -> f64 {
-        self.sigma0 + self.growth_per_m * d_m
-    }
-}
-
-/// What one vehicle measured at one step.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Sample {
-    pub step: u64,
-    /// Where the vehicle was, metres `(x, y)`.
-    pub position: [f64; 2],
-    /// Flat grid indices of the measured cells (aerials: the cells their coarse lattice sits on).
-    pub cells: Vec<u32>,
-    pub values: Vec<f64>,
-}
+/// A sensor's noise and what one vehicle measured at one step: the sensor model's types,
+/// defined with it in `fleet-math` and carried on the wire as they are.
+pub use crate::fusion::{Noise, Sample};
 
 /// A vehicle's batch of samples; `seq` is per vehicle and gap-free from 0.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -5,7 +5,7 @@
 //! reads the model and the server's status; only the server (the router itself) puts models,
 //! plans and acks. `fleet secure` writes these files.
 
-use super::config::MissionConfig;
+use crate::config::MissionConfig;
 use crate::protocol::keys::ROOT;
 use serde_json::{json, Value};
 

@@ -7,10 +7,10 @@
 //! around its own cell. With speeds that let every vehicle arrive (the default mission) the
 //! samples are exactly the offline experiment's.
 
-use super::schedule::Schedule;
 use crate::fusion::{sense_cells, AerialNoise, FusionError};
 use crate::grid::Grid;
 use crate::protocol::{MeasurementBatch, Plan, Sample, Target, VehicleKind};
+use crate::schedule::Schedule;
 use rand_chacha::ChaCha8Rng;
 
 /// What a vehicle must keep across a crash to carry on exactly where it was: the next epoch

@@ -37,7 +37,7 @@ use faer::{Mat, MatRef};
 use serde::{Deserialize, Serialize};
 
 /// What a forgetting factor multiplies at each update.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case")]
 pub enum ForgettingUnit {
     /// Everything before an update, once per update (the paper's reading).
@@ -48,7 +48,7 @@ pub enum ForgettingUnit {
 }
 
 /// Which directions of the data forgetting applies to.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case")]
 pub enum ForgettingDirections {
     /// Only those the new batch excites (bounded).
@@ -63,6 +63,28 @@ pub enum ForgettingDirections {
 pub struct Forgetting {
     pub unit: ForgettingUnit,
     pub directions: ForgettingDirections,
+}
+
+impl std::str::FromStr for ForgettingUnit {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "batch" => Ok(Self::Batch),
+            "pair" => Ok(Self::Pair),
+            _ => Err(format!("forgetting must be batch or pair, got {s:?}")),
+        }
+    }
+}
+
+impl std::str::FromStr for ForgettingDirections {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "excited" => Ok(Self::Excited),
+            "all" => Ok(Self::All),
+            _ => Err(format!("forgetting directions must be excited or all, got {s:?}")),
+        }
+    }
 }
 
 impl From<ForgettingUnit> for Forgetting {

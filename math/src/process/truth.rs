@@ -3,9 +3,22 @@
 
 use super::plasma::{PlasmaCloud, Preset};
 use super::FieldSeries;
-use anyhow::{bail, Context};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
+
+#[derive(Debug, thiserror::Error)]
+pub enum TruthError {
+    #[error("give exactly one of preset or dataset")]
+    Source,
+    #[error("simulating {preset:?}: {source}")]
+    Simulation { preset: Preset, source: super::plasma::PlasmaError },
+    #[error("loading the dataset {}: {source}", path.display())]
+    Dataset { path: PathBuf, source: super::dataset::DatasetError },
+    #[error("{rows} x {cols} averaged by {factor} leaves less than 4 x 4 cells")]
+    TooCoarse { rows: usize, cols: usize, factor: usize },
+    #[error(transparent)]
+    Grid(#[from] crate::grid::GridError),
+}
 
 /// Where the truth comes from (exactly one of the two).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -18,36 +31,37 @@ pub struct TruthSource {
 }
 
 impl TruthSource {
-    pub fn check(&self) -> anyhow::Result<()> {
+    pub fn check(&self) -> Result<(), TruthError> {
         if self.preset.is_some() == self.dataset.is_some() {
-            bail!("give exactly one of preset or dataset");
+            return Err(TruthError::Source);
         }
         Ok(())
     }
 
     /// The field at full resolution: the simulator at `grid` `[rows, cols]` for `frames`
     /// frames (seeded), or the dataset as it is.
-    pub fn full(&self, grid: [usize; 2], frames: usize, seed: u64, progress: impl FnMut(usize)) -> anyhow::Result<FieldSeries> {
+    pub fn full(&self, grid: [usize; 2], frames: usize, seed: u64, progress: impl FnMut(usize)) -> Result<FieldSeries, TruthError> {
         self.check()?;
         match (&self.preset, &self.dataset) {
             (Some(preset), _) => {
                 let mut p = preset.params();
                 (p.ny, p.nx) = (grid[0], grid[1]);
                 p.seed = seed;
-                let mut sim = PlasmaCloud::new(p).with_context(|| format!("simulating {preset:?}"))?;
-                Ok(sim.run(frames, progress)?)
+                let sim_err = |source| TruthError::Simulation { preset: *preset, source };
+                let mut sim = PlasmaCloud::new(p).map_err(sim_err)?;
+                sim.run(frames, progress).map_err(sim_err)
             }
-            (None, Some(path)) => super::dataset::load(path, 1.0).with_context(|| format!("loading the dataset {}", path.display())),
+            (None, Some(path)) => super::dataset::load(path, 1.0).map_err(|source| TruthError::Dataset { path: path.clone(), source }),
             (None, None) => unreachable!("checked above"),
         }
     }
 }
 
 /// `full` area-averaged by `factor` in both directions (the model grid of that space rate).
-pub fn averaged_by(full: &FieldSeries, factor: usize) -> anyhow::Result<FieldSeries> {
+pub fn averaged_by(full: &FieldSeries, factor: usize) -> Result<FieldSeries, TruthError> {
     let (rows, cols) = (full.rows / factor.max(1), full.cols / factor.max(1));
     if rows < 4 || cols < 4 {
-        bail!("{} x {} averaged by {factor} leaves less than 4 x 4 cells", full.rows, full.cols);
+        return Err(TruthError::TooCoarse { rows: full.rows, cols: full.cols, factor });
     }
     Ok(full.area_averaged(rows, cols)?)
 }

@@ -16,7 +16,6 @@
 //! estimate, boat measurement) by the inverse of its variance in each cell.
 
 use crate::grid::{Grid, StridedGrid};
-use crate::protocol::Sample;
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
@@ -55,9 +54,34 @@ impl Estimate {
     }
 }
 
-/// An aerial's sensor noise (the wire's [`Noise`](crate::protocol::Noise)): standard
+/// An aerial's sensor noise ([`Noise`]): standard
 /// deviation `sigma0 + growth_per_m * d` at distance `d` metres from the sensor.
-pub type AerialNoise = crate::protocol::Noise;
+pub type AerialNoise = Noise;
+
+/// A sensor's noise: standard deviation `sigma0 + growth_per_m * distance` (boats: growth 0).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Noise {
+    pub sigma0: f64,
+    pub growth_per_m: f64,
+}
+
+impl Noise {
+    /// The standard deviation at `d_m` metres from the sensor.
+    pub fn std_at(&self, d_m: f64) -> f64 {
+        self.sigma0 + self.growth_per_m * d_m
+    }
+}
+
+/// What one vehicle measured at one step.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Sample {
+    pub step: u64,
+    /// Where the vehicle was, metres `(x, y)`.
+    pub position: [f64; 2],
+    /// Flat grid indices of the measured cells (aerials: the cells their coarse lattice sits on).
+    pub cells: Vec<u32>,
+    pub values: Vec<f64>,
+}
 
 fn check_noise(noise: &AerialNoise) -> Result<(), FusionError> {
     if !(noise.sigma0.is_finite() && noise.sigma0 >= 0.0 && noise.growth_per_m.is_finite() && noise.growth_per_m >= 0.0) {

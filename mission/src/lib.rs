@@ -1,0 +1,24 @@
+//! hetfleet's mission without the network: what the nodes say to each other ([`protocol`]),
+//! what a mission and a team are ([`config`], [`team`]), the epoch [`schedule`] every node
+//! agrees on, the model server's core ([`server`], with the [`assimilator`] that fuses and
+//! allocates), the vehicle's brain ([`vehicle`]), the server's events ([`events`]), the
+//! secured configs ([`security`]) and the binaries' exit convention ([`exit`]). Pure and
+//! testable without a socket; the nodes wrap it.
+//!
+//! The mathematics it stands on is re-exported from `fleet-math` at the root (`grid`, `dmd`,
+//! `sensing`, `fusion`, `process`, `npy`).
+
+pub use fleet_math::{configure_linalg_threads, dmd, fusion, grid, npy, process, sensing, Allocator};
+
+pub mod assimilator;
+pub mod config;
+pub mod events;
+pub mod exit;
+pub mod protocol;
+pub mod schedule;
+pub mod security;
+pub mod server;
+pub mod team;
+pub mod vehicle;
+
+pub use assimilator::*;
