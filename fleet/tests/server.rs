@@ -29,7 +29,8 @@ fn brains_of(server: &ServerCore, cfg: &TeamConfig, grid: Grid) -> Vec<VehicleBr
 
 /// A moving plume on a 24 x 48 grid and a team of 2 aerials and 3 boats.
 fn plume_team() -> (fleet::process::FieldSeries, Grid, TeamConfig) {
-    let cfg = TeamConfig { aerials: 2, boats: 3, radius: 3.0, rank: "6".into(), init_steps: 10, aerial_stride: 3, aerial_sigma0: 0.05, boat_sigma: 0.05, ..TeamConfig::default() };
+    let cfg =
+        TeamConfig { aerials: 2, boats: 3, radius: 3.0, rank: fleet::dmd::RankPolicy::Fixed(6), init_steps: 10, aerial_stride: 3, aerial_sigma0: 0.05, boat_sigma: 0.05, ..TeamConfig::default() };
     (plume_field(24, 48, 42, 0.0, 5), Grid::new(24, 48, 1.0).unwrap(), cfg)
 }
 
@@ -83,7 +84,7 @@ fn shuffled_and_repeated_batches_give_the_offline_result() {
 #[test]
 fn bad_batches_are_rejected_and_counted() {
     let grid = Grid::new(24, 48, 1.0).unwrap();
-    let cfg = TeamConfig { aerials: 1, boats: 1, radius: 3.0, rank: "4".into(), init_steps: 5, ..TeamConfig::default() };
+    let cfg = TeamConfig { aerials: 1, boats: 1, radius: 3.0, rank: fleet::dmd::RankPolicy::Fixed(4), init_steps: 5, ..TeamConfig::default() };
     let mut server = ServerCore::new(&cfg, grid, 20).unwrap();
     let b = |id: &str, kind, seq, steps: Vec<u64>| MeasurementBatch {
         vehicle: id.into(),
@@ -104,7 +105,7 @@ fn bad_batches_are_rejected_and_counted() {
 fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
     let truth = plume_field(24, 48, 42, 0.0, 5);
     let grid = Grid::new(24, 48, 1.0).unwrap();
-    let cfg = TeamConfig { aerials: 1, boats: 2, radius: 3.0, rank: "6".into(), init_steps: 10, aerial_stride: 3, ..TeamConfig::default() };
+    let cfg = TeamConfig { aerials: 1, boats: 2, radius: 3.0, rank: fleet::dmd::RankPolicy::Fixed(6), init_steps: 10, aerial_stride: 3, ..TeamConfig::default() };
     let server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
     let mut av = VehicleBrain::new("av-1", VehicleKind::Aerial, grid, *server.schedule(), server.assimilator().aerial_noise(), vehicle_rng(cfg.seed, 0), 1e3);

@@ -24,7 +24,7 @@ fn tiny_config() -> TeamConfig {
         boat_sigma: 0.15,
         radius: 3.0,
         boats: 4,
-        rank: "8".into(),
+        rank: fleet::dmd::RankPolicy::Fixed(8),
         init_steps: 10,
         boat_period: 5,
         ..TeamConfig::default()

@@ -10,6 +10,7 @@
 pub mod dmd;
 pub mod fusion;
 pub mod grid;
+pub mod kalman;
 pub mod npy;
 pub mod process;
 pub mod sensing;

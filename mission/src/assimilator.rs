@@ -5,12 +5,12 @@
 //! places). The offline experiment drives both in one process; the Zenoh nodes run the same
 //! functions on either side of the network, so the two give the same numbers.
 
-use crate::dmd::{Dmd, DmdConfig, DmdModel, RankPolicy};
+use crate::dmd::{Dmd, DmdConfig, DmdModel};
 use crate::fusion::{fuse, AerialFrame, AerialNoise, Estimate, Measured};
 use crate::grid::{Cell, Grid};
 use crate::protocol::Sample;
 use crate::sensing::{assign::assign, coverage, gappy, qr, real_basis};
-use crate::team::{Placement, TeamConfig, TeamError};
+use crate::team::{Missing, Placement, TeamConfig, TeamError};
 use faer::Mat;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -119,7 +119,8 @@ impl Assimilator {
     }
 
     pub fn new(cfg: &TeamConfig, grid: Grid, frames: usize) -> Result<Self, TeamError> {
-        let rank: RankPolicy = cfg.validate(&grid, frames)?;
+        cfg.validate(&grid, frames)?;
+        let rank = cfg.rank;
         let mut placement_rng = ChaCha8Rng::seed_from_u64(cfg.seed);
         let boat_positions = (0..cfg.boats).map(|_| (placement_rng.random_range(0.0..grid.width_m()), placement_rng.random_range(0.0..grid.height_m()))).collect();
         Ok(Self {
@@ -170,12 +171,12 @@ impl Assimilator {
     /// with its variance. A step without aerial samples holds the previous estimate.
     pub fn aerial_estimate(&mut self, samples: &[Sample]) -> Result<Estimate, TeamError> {
         if samples.is_empty() {
-            return self.held_aerial.clone().ok_or_else(|| TeamError::Config("no aerial data yet".into()));
+            return self.held_aerial.clone().ok_or(TeamError::NotReady(Missing::AerialData));
         }
         let mut frame = AerialFrame::assemble(&self.grid, self.cfg.aerial_stride, samples, self.aerial_noise())?;
         if frame.seen.iter().any(|s| !s) {
             // A lattice cell nobody saw this step: take the held estimate there.
-            let held = self.held_aerial.as_ref().ok_or_else(|| TeamError::Config("part of the lattice unseen and no earlier frame".into()))?;
+            let held = self.held_aerial.as_ref().ok_or(TeamError::NotReady(Missing::EarlierFrame))?;
             for k in (0..frame.seen.len()).filter(|&k| !frame.seen[k]) {
                 let i = self.grid.index(frame.lattice.fine_cell(k));
                 frame.values[k] = held.values[i];
@@ -190,7 +191,7 @@ impl Assimilator {
     /// The first model, from the initialisation's aerial estimates (one per step).
     pub fn initialise(&mut self, estimates: Vec<Vec<f64>>) -> Result<(), TeamError> {
         if estimates.len() < 3 {
-            return Err(TeamError::Config("the first model needs at least 3 snapshots".into()));
+            return Err(TeamError::NotReady(Missing::Snapshots { have: estimates.len() }));
         }
         let z = to_mat(&estimates);
         let m = estimates.len() - 1;
@@ -201,7 +202,7 @@ impl Assimilator {
     }
 
     fn refit(&mut self) -> Result<(), TeamError> {
-        let model = self.model.as_ref().ok_or_else(|| TeamError::Config("no model yet".into()))?;
+        let model = self.model.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
         let newest = self.snapshots.last().expect("snapshots after init");
         self.fitted = Some(fit_to(model.as_ref(), newest)?);
         Ok(())
@@ -222,9 +223,10 @@ impl Assimilator {
     /// disks go to the other boats (as many disks as boats free), Lloyd places the other
     /// aerials, and the held keep their places.
     pub fn allocate_without(&mut self, held: &std::collections::BTreeSet<usize>) -> Result<Allocation, TeamError> {
-        let (pred, basis) = self.fitted.as_ref().ok_or_else(|| TeamError::Config("no model yet".into()))?;
+        let (pred, basis) = self.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
         let (cfg, grid) = (&self.cfg, &self.grid);
-        let free: Vec<usize> = (0..cfg.boats).filter(|b| !held.contains(&(cfg.aerials + b))).collect();
+        let roster = crate::roster::Roster::of(cfg);
+        let free: Vec<usize> = (0..cfg.boats).filter(|&b| !held.contains(&roster.boat_index(b))).collect();
         let disks: Vec<Vec<usize>> = match (free.len(), cfg.placement) {
             (0, _) => vec![],
             (k, Placement::Qr) => qr::block_qr(basis.as_ref(), grid, k, cfg.radius)?.into_iter().map(|d| d.cells).collect(),
@@ -266,7 +268,7 @@ impl Assimilator {
     pub fn fuse_step(&mut self, ahead: u64, aerial: &Estimate, boats: &[Sample]) -> Result<Estimate, TeamError> {
         let n = self.grid.len();
         let boat_var = self.cfg.boat_sigma * self.cfg.boat_sigma;
-        let (pred, basis) = self.fitted.as_ref().ok_or_else(|| TeamError::Config("no model yet".into()))?;
+        let (pred, basis) = self.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
         let predicted = pred.predict(ahead as f64);
         let mut aerial = aerial.clone();
         // A canonical order (disks do not overlap, so first cells differ): the result does not
@@ -317,7 +319,7 @@ impl Assimilator {
         chain.extend(epoch.iter().cloned());
         let z = to_mat(&chain);
         let m = chain.len() - 1;
-        self.model.as_mut().ok_or_else(|| TeamError::Config("no model yet".into()))?.update(z.subcols(0, m), z.subcols(1, m))?;
+        self.model.as_mut().ok_or(TeamError::NotReady(Missing::Model))?.update(z.subcols(0, m), z.subcols(1, m))?;
         self.snapshots.extend(epoch);
         self.refit()
     }
@@ -365,7 +367,7 @@ mod tests {
     fn arrival_order_does_not_change_the_estimates() {
         let truth = plume_field(24, 48, 30, 0.0, 1);
         let grid = Grid::new(24, 48, 1.0).unwrap();
-        let cfg = TeamConfig { aerials: 3, boats: 4, radius: 3.0, rank: "6".into(), init_steps: 10, aerial_stride: 3, ..TeamConfig::default() };
+        let cfg = TeamConfig { aerials: 3, boats: 4, radius: 3.0, rank: crate::dmd::RankPolicy::Fixed(6), init_steps: 10, aerial_stride: 3, ..TeamConfig::default() };
         let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
         let run = |shuffle: bool| -> (Vec<f64>, Vec<f64>) {
             let mut server = Assimilator::new(&cfg, grid, 30).unwrap();

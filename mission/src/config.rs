@@ -3,17 +3,30 @@
 //! server and each vehicle agree on the grid, the schedule and the vehicles without talking.
 
 use crate::grid::Grid;
-use crate::process::truth::{averaged_by, TruthSource};
+use crate::process::truth::{averaged_by, TruthError, TruthSource};
 use crate::process::FieldSeries;
 use crate::protocol::{keys, Noise, VehicleKind};
+use crate::roster::{Roster, VehicleSpec};
 use crate::schedule::Schedule;
-use crate::server::{team_vehicles, VehicleSpec};
 use crate::team::TeamConfig;
-use anyhow::{bail, Context};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 /// The bundled default mission (`fleet up` without an argument).
+/// What is wrong with a mission file, or with a node's inputs against it. Every variant is the
+/// operator's to fix (exit 2), named by file or field.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("{0}")]
+    Invalid(String),
+    #[error("{}: {source}", path.display())]
+    Read { path: std::path::PathBuf, source: std::io::Error },
+    #[error("{file}: {source}")]
+    InFile { file: String, source: Box<ConfigError> },
+    #[error("[team] {0}")]
+    Team(crate::team::TeamError),
+}
+
 pub const DEFAULT_MISSION: &str = include_str!("../../config/mission.toml");
 
 /// The mixed-reality truth: a simulator preset or a dataset, on `grid`, averaged by
@@ -166,22 +179,22 @@ impl Default for MavlinkConfig {
 }
 
 impl MavlinkConfig {
-    fn check(&self) -> anyhow::Result<()> {
+    fn check(&self) -> Result<(), ConfigError> {
         let [lat, lon, alt] = self.origin;
         if !(lat.abs() < 85.0 && lon.abs() <= 180.0 && alt.is_finite()) {
-            bail!("[mavlink] origin: latitude within +-85, longitude within +-180, finite altitude");
+            return Err(ConfigError::Invalid("[mavlink] origin: latitude within +-85, longitude within +-180, finite altitude".into()));
         }
         if let Some([e, n]) = self.size_m {
             if !(e > 0.0 && n > 0.0 && e.is_finite() && n.is_finite()) {
-                bail!("[mavlink] size_m: two positive extents");
+                return Err(ConfigError::Invalid("[mavlink] size_m: two positive extents".into()));
             }
         }
         let positive = [self.sim_speedup, self.boat_speed_ms, self.boat_turn_rate_dps, self.multirotor_speed_ms, self.acceptance_m];
         if !positive.iter().all(|v| *v > 0.0 && v.is_finite()) || !(self.cruise_alt_m >= 0.0) {
-            bail!("[mavlink]: speeds, speed-up, turn rate and acceptance must be > 0, cruise_alt_m >= 0");
+            return Err(ConfigError::Invalid("[mavlink]: speeds, speed-up, turn rate and acceptance must be > 0, cruise_alt_m >= 0".into()));
         }
         if self.heartbeat_timeout_ms == 0 {
-            bail!("[mavlink] heartbeat_timeout_ms must be > 0");
+            return Err(ConfigError::Invalid("[mavlink] heartbeat_timeout_ms must be > 0".into()));
         }
         Ok(())
     }
@@ -207,52 +220,48 @@ pub struct MissionConfig {
 
 impl MissionConfig {
     /// Parse and check a mission; every error is bad input ([`crate::exit`]), on one line.
-    pub fn from_toml(text: &str) -> anyhow::Result<Self> {
-        Self::parse(text).map_err(crate::exit::bad_input)
-    }
-
-    fn parse(text: &str) -> anyhow::Result<Self> {
-        let cfg: Self = toml::from_str(text).map_err(|e| anyhow::anyhow!(crate::exit::toml_error(text, &e)))?;
-        keys::check_id("mission", &cfg.mission)?;
-        cfg.truth.source.check().context("[truth]")?;
+    pub fn from_toml(text: &str) -> Result<Self, ConfigError> {
+        let cfg: Self = toml::from_str(text).map_err(|e| ConfigError::Invalid(crate::exit::toml_error(text, &e)))?;
+        keys::check_id("mission", &cfg.mission).map_err(|e| ConfigError::Invalid(e.to_string()))?;
         if cfg.truth.frames < 10 || cfg.truth.average == 0 {
-            bail!("[truth]: need at least 10 frames and average >= 1");
+            return Err(ConfigError::Invalid("[truth]: need at least 10 frames and average >= 1".into()));
         }
         if cfg.network.listen.is_empty() && cfg.network.connect.is_empty() {
-            bail!("[network]: give listen or connect endpoints");
+            return Err(ConfigError::Invalid("[network]: give listen or connect endpoints".into()));
         }
         if !(cfg.motion.aerial_speed > 0.0 && cfg.motion.boat_speed > 0.0) {
-            bail!("[motion]: speeds must be > 0");
+            return Err(ConfigError::Invalid("[motion]: speeds must be > 0".into()));
         }
         cfg.mavlink.check()?;
         if cfg.pace.horizon == 0 {
-            bail!("[pace]: horizon must be >= 1");
+            return Err(ConfigError::Invalid("[pace]: horizon must be >= 1".into()));
         }
         Ok(cfg)
     }
 
     /// The mission file at `path`, or the bundled default.
-    pub fn load(path: Option<&Path>) -> anyhow::Result<Self> {
+    pub fn load(path: Option<&Path>) -> Result<Self, ConfigError> {
+        let in_file = |file: String| move |e| ConfigError::InFile { file, source: Box::new(e) };
         match path {
             Some(p) => {
-                let text = std::fs::read_to_string(p).map_err(|e| crate::exit::bad_input(anyhow::anyhow!("{}: {e}", p.display())))?;
-                Self::from_toml(&text).with_context(|| p.display().to_string())
+                let text = std::fs::read_to_string(p).map_err(|source| ConfigError::Read { path: p.into(), source })?;
+                Self::from_toml(&text).map_err(in_file(p.display().to_string()))
             }
-            None => Self::from_toml(DEFAULT_MISSION).context("the bundled default mission"),
+            None => Self::from_toml(DEFAULT_MISSION).map_err(in_file("the bundled default mission".into())),
         }
     }
 
     /// The truth on the model grid (runs the simulator: seconds to minutes).
-    pub fn truth(&self, progress: impl FnMut(usize)) -> anyhow::Result<FieldSeries> {
+    pub fn truth(&self, progress: impl FnMut(usize)) -> Result<FieldSeries, TruthError> {
         let full = self.truth.source.full(self.truth.grid, self.truth.frames, self.team.seed, progress)?;
-        Ok(averaged_by(&full, self.truth.average)?)
+        averaged_by(&full, self.truth.average)
     }
 
     /// Check a truth field against the mission, then the workspace grid and length it gives.
     /// Bad input: a truth that does not fit the team (see [`TeamConfig::validate`]).
-    pub fn workspace(&self, truth: &FieldSeries) -> anyhow::Result<(Grid, usize)> {
-        let grid = Grid::new(truth.rows, truth.cols, 1.0).map_err(crate::exit::bad_input)?;
-        self.team.validate(&grid, truth.frames()).map_err(|e| crate::exit::bad_input(anyhow::anyhow!("[team] {e}")))?;
+    pub fn workspace(&self, truth: &FieldSeries) -> Result<(Grid, usize), ConfigError> {
+        let grid = Grid::new(truth.rows, truth.cols, 1.0).map_err(|e| ConfigError::Invalid(format!("the truth's grid: {e}")))?;
+        self.team.validate(&grid, truth.frames()).map_err(ConfigError::Team)?;
         Ok((grid, truth.frames()))
     }
 
@@ -261,24 +270,23 @@ impl MissionConfig {
     /// node's truth must have this shape, or the nodes sense different cells.
     pub fn model_shape(&self) -> Option<(usize, usize, usize)> {
         let a = self.truth.average.max(1);
-        match (&self.truth.source.preset, &self.truth.source.dataset) {
-            (Some(_), _) => Some((self.truth.grid[0] / a, self.truth.grid[1] / a, self.truth.frames)),
-            (None, Some(path)) => {
+        match &self.truth.source {
+            TruthSource::Preset(_) => Some((self.truth.grid[0] / a, self.truth.grid[1] / a, self.truth.frames)),
+            TruthSource::Dataset(path) => {
                 let shape = crate::npy::read_shape(path).ok()?;
                 match shape.as_slice() {
                     &[t, r, c] => Some((r / a, c / a, t)),
                     _ => None,
                 }
             }
-            _ => None,
         }
     }
 
     /// Check a truth given to a node (`--truth`) against [`Self::model_shape`].
-    pub fn check_truth(&self, truth: &FieldSeries, path: &Path) -> anyhow::Result<()> {
+    pub fn check_truth(&self, truth: &FieldSeries, path: &Path) -> Result<(), ConfigError> {
         let Some((rows, cols, frames)) = self.model_shape() else { return Ok(()) };
         if (truth.rows, truth.cols, truth.frames()) != (rows, cols, frames) {
-            return Err(crate::exit::bad_input(anyhow::anyhow!(
+            return Err(ConfigError::Invalid(format!(
                 "--truth {} is {} x {} cells for {} steps, but mission {:?} senses {rows} x {cols} cells for {frames} steps: give the truth `fleet up` or the server made for this mission (every node must sense the same field)",
                 path.display(),
                 truth.rows,
@@ -291,7 +299,11 @@ impl MissionConfig {
     }
 
     pub fn vehicles(&self) -> Vec<VehicleSpec> {
-        team_vehicles(&self.team)
+        self.roster().all().to_vec()
+    }
+
+    pub fn roster(&self) -> Roster {
+        Roster::of(&self.team)
     }
 
     pub fn schedule(&self, frames: usize) -> Schedule {
@@ -299,11 +311,9 @@ impl MissionConfig {
     }
 
     /// A vehicle's index (its random stream) and kind.
-    pub fn vehicle(&self, id: &str) -> anyhow::Result<(usize, VehicleKind)> {
-        let known = self.vehicles();
-        known.iter().position(|v| v.id == id).map(|i| (i, known[i].kind)).ok_or_else(|| {
-            crate::exit::bad_input(anyhow::anyhow!("--id {id}: no such vehicle in mission {:?} (it has {})", self.mission, known.iter().map(|v| v.id.as_str()).collect::<Vec<_>>().join(", ")))
-        })
+    pub fn vehicle(&self, id: &str) -> Result<(usize, VehicleKind), ConfigError> {
+        let roster = self.roster();
+        roster.get(id).map(|v| (v.index, v.kind)).ok_or_else(|| ConfigError::Invalid(format!("--id {id}: no such vehicle in mission {:?} (it has {})", self.mission, roster.ids().join(", "))))
     }
 
     /// A vehicle's sensor noise.
@@ -315,9 +325,9 @@ impl MissionConfig {
     }
 
     /// A vehicle's MAVLink system id: its place in the mission, from 1.
-    pub fn sysid(&self, id: &str) -> anyhow::Result<u8> {
+    pub fn sysid(&self, id: &str) -> Result<u8, ConfigError> {
         let (i, _) = self.vehicle(id)?;
-        u8::try_from(i + 1).ok().filter(|s| *s < 255).with_context(|| format!("{id}: MAVLink has system ids 1-254 only"))
+        u8::try_from(i + 1).ok().filter(|s| *s < 255).ok_or_else(|| ConfigError::Invalid(format!("{id}: MAVLink has system ids 1-254 only (the mission has {} vehicles)", self.roster().len())))
     }
 
     pub fn speed(&self, kind: VehicleKind) -> f64 {

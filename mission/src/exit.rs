@@ -2,9 +2,11 @@
 //! argument the operator can fix), 1 internal failure (ours, or the machine's). The message
 //! is one line on stderr, `<binary>: <what>`, naming the file or field once.
 //!
-//! An error is bad input when something in its chain was marked with [`BadInput`] (by
+//! An error is bad input when something in its chain is a [`crate::config::ConfigError`] (a
+//! mission file or a node's inputs against it) or was marked with [`BadInput`] (by
 //! [`bad_input`] or [`InputResult::input`]) where the input was read; everything else is
-//! internal.
+//! internal. This is the binaries' convention, so it speaks `anyhow` (the one module of the
+//! libraries that does: the libraries' own errors are typed).
 
 use std::fmt;
 
@@ -45,7 +47,7 @@ impl<T, E: Into<anyhow::Error>> InputResult<T> for Result<T, E> {
 
 /// The exit status of an error.
 pub fn code_of(e: &anyhow::Error) -> i32 {
-    if e.chain().any(|c| c.is::<BadInput>()) {
+    if e.chain().any(|c| c.is::<BadInput>() || c.is::<crate::config::ConfigError>()) {
         BAD_INPUT
     } else {
         INTERNAL

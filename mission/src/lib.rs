@@ -1,5 +1,5 @@
 //! hetfleet's mission without the network: what the nodes say to each other ([`protocol`]),
-//! what a mission and a team are ([`config`], [`team`]), the epoch [`schedule`] every node
+//! what a mission and a team are ([`config`], [`team`], the [`roster`] of its vehicles), the epoch [`schedule`] every node
 //! agrees on, the model server's core ([`server`], with the [`assimilator`] that fuses and
 //! allocates), the vehicle's brain ([`vehicle`]), the server's events ([`events`]), the
 //! secured configs ([`security`]) and the binaries' exit convention ([`exit`]). Pure and
@@ -15,6 +15,7 @@ pub mod config;
 pub mod events;
 pub mod exit;
 pub mod protocol;
+pub mod roster;
 pub mod schedule;
 pub mod security;
 pub mod server;

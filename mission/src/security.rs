@@ -6,7 +6,8 @@
 //! plans and acks. `fleet secure` writes these files.
 
 use crate::config::MissionConfig;
-use crate::protocol::keys::ROOT;
+use crate::protocol::keys::Keys;
+use crate::protocol::ProtocolError;
 use serde_json::{json, Value};
 
 /// Users besides the vehicles.
@@ -30,10 +31,10 @@ fn rule(id: &str, flow: &str, messages: &[&str], keys: &[String]) -> Value {
     json!({ "id": id, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": keys })
 }
 
-/// The access-control section of the router's config.
-pub fn access_control(mission: &MissionConfig, tls: bool) -> Value {
-    let r = format!("{ROOT}/{}", mission.mission);
-    let k = |s: &str| format!("{r}/{s}");
+/// The access-control section of the router's config. Every key pattern comes from
+/// [`Keys`], the one definition of the key space (a key renamed there is renamed here).
+pub fn access_control(mission: &MissionConfig, tls: bool) -> Result<Value, ProtocolError> {
+    let k = Keys::new(&mission.mission)?;
     let mut rules = vec![];
     let mut subjects = vec![];
     let mut policies = vec![];
@@ -49,22 +50,22 @@ pub fn access_control(mission: &MissionConfig, tls: bool) -> Value {
     };
     // Every authenticated node learns where subscribers and queryables are (declarations only,
     // no data), so its puts and queries are routed at all.
-    let declarations = |user: &str| rule(&format!("{user}/declarations"), "egress", &["declare_subscriber", "declare_queryable"], &[k("**")]);
+    let declarations = |user: &str| rule(&format!("{user}/declarations"), "egress", &["declare_subscriber", "declare_queryable"], &[k.everything()]);
+    let server = k.alive("server");
     for v in mission.vehicles() {
         let id = v.id.as_str();
-        let mine = |leaf: &str| k(&format!("vehicle/{id}/{leaf}"));
-        let inbound = vec![mine("ack"), k(&format!("gcs/{id}/mavlink")), k("model/latest")];
+        let inbound = vec![k.ack(id), k.gcs(id), k.model_latest()];
         add(
             id,
             vec![
-                rule(&format!("{id}/put"), "ingress", &["put"], &[mine("measurements"), mine("telemetry"), mine("mavlink")]),
+                rule(&format!("{id}/put"), "ingress", &["put"], &[k.measurements(id), k.telemetry(id), k.mavlink(id)]),
                 rule(&format!("{id}/subscribe"), "ingress", &["declare_subscriber"], &inbound),
                 rule(&format!("{id}/receive"), "egress", &["put"], &inbound),
-                rule(&format!("{id}/ask-plan"), "ingress", &["query"], &[k(&format!("plan/{id}"))]),
-                rule(&format!("{id}/get-plan"), "egress", &["reply"], &[k(&format!("plan/{id}"))]),
-                rule(&format!("{id}/token"), "ingress", &["liveliness_token"], &[k(&format!("alive/{id}"))]),
-                rule(&format!("{id}/watch-server"), "ingress", &["declare_liveliness_subscriber", "liveliness_query"], &[k("alive/server")]),
-                rule(&format!("{id}/server-alive"), "egress", &["liveliness_token", "reply"], &[k("alive/server")]),
+                rule(&format!("{id}/ask-plan"), "ingress", &["query"], &[k.plan(id)]),
+                rule(&format!("{id}/get-plan"), "egress", &["reply"], &[k.plan(id)]),
+                rule(&format!("{id}/token"), "ingress", &["liveliness_token"], &[k.alive(id)]),
+                rule(&format!("{id}/watch-server"), "ingress", &["declare_liveliness_subscriber", "liveliness_query"], std::slice::from_ref(&server)),
+                rule(&format!("{id}/server-alive"), "egress", &["liveliness_token", "reply"], std::slice::from_ref(&server)),
                 declarations(id),
             ],
         );
@@ -72,25 +73,25 @@ pub fn access_control(mission: &MissionConfig, tls: bool) -> Value {
     add(
         GATEWAY,
         vec![
-            rule("gcs-gateway/subscribe", "ingress", &["declare_subscriber"], &[k("vehicle/*/mavlink")]),
-            rule("gcs-gateway/receive", "egress", &["put"], &[k("vehicle/*/mavlink")]),
-            rule("gcs-gateway/put", "ingress", &["put"], &[k("gcs/*/mavlink")]),
-            rule("gcs-gateway/token", "ingress", &["liveliness_token"], &[k(&format!("alive/{GATEWAY}"))]),
+            rule("gcs-gateway/subscribe", "ingress", &["declare_subscriber"], &[k.all_mavlink()]),
+            rule("gcs-gateway/receive", "egress", &["put"], &[k.all_mavlink()]),
+            rule("gcs-gateway/put", "ingress", &["put"], &[k.all_gcs()]),
+            rule("gcs-gateway/token", "ingress", &["liveliness_token"], &[k.alive(GATEWAY)]),
             declarations(GATEWAY),
         ],
     );
-    let seen = vec![k("model/latest"), k("server/status")];
+    let seen = vec![k.model_latest(), k.server_status()];
     add(
         OBSERVER,
         vec![
-            rule("observer/ask-model", "ingress", &["query"], &[k("model/latest")]),
-            rule("observer/get-model", "egress", &["reply"], &[k("model/latest")]),
+            rule("observer/ask-model", "ingress", &["query"], &[k.model_latest()]),
+            rule("observer/get-model", "egress", &["reply"], &[k.model_latest()]),
             rule("observer/subscribe", "ingress", &["declare_subscriber"], &seen),
             rule("observer/receive", "egress", &["put"], &seen),
             declarations(OBSERVER),
         ],
     );
-    json!({ "enabled": true, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies })
+    Ok(json!({ "enabled": true, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies }))
 }
 
 /// Every user of the mission: the vehicles, the gateway and the observer.
@@ -106,13 +107,13 @@ fn endpoints(list: &[String], tls: bool) -> Vec<String> {
 }
 
 /// The router's (model server's) config: listen, the password dictionary, TLS, access control.
-pub fn router_config(mission: &MissionConfig, dictionary: &std::path::Path, tls: Option<&Tls>) -> Value {
+pub fn router_config(mission: &MissionConfig, dictionary: &std::path::Path, tls: Option<&Tls>) -> Result<Value, ProtocolError> {
     let mut c = json!({
         "mode": "router",
         "listen": { "endpoints": endpoints(&mission.network.listen, tls.is_some()) },
         "scouting": { "multicast": { "enabled": false } },
         "transport": { "auth": { "usrpwd": { "dictionary_file": dictionary.display().to_string() } } },
-        "access_control": access_control(mission, tls.is_some()),
+        "access_control": access_control(mission, tls.is_some())?,
     });
     if let Some(t) = tls {
         c["transport"]["link"] = json!({ "tls": {
@@ -122,7 +123,7 @@ pub fn router_config(mission: &MissionConfig, dictionary: &std::path::Path, tls:
             "enable_mtls": true,
         }});
     }
-    c
+    Ok(c)
 }
 
 /// One user's client config: where the router is, its credentials and certificate.
@@ -151,7 +152,7 @@ mod tests {
     #[test]
     fn each_vehicle_may_put_only_under_its_own_key() {
         let m = MissionConfig::load(None).unwrap();
-        let acl = access_control(&m, false);
+        let acl = access_control(&m, false).unwrap();
         let puts: Vec<&Value> = acl["rules"].as_array().unwrap().iter().filter(|r| r["id"] == "boat-1/put").collect();
         assert_eq!(puts.len(), 1);
         for key in puts[0]["key_exprs"].as_array().unwrap() {

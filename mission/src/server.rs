@@ -18,21 +18,7 @@ use std::collections::{BTreeMap, BTreeSet};
 /// estimate, about 0.8 MB at 48 x 96 and rank 10).
 pub const CHECKPOINT_EVERY: u64 = 4;
 
-/// A vehicle of the mission: its id and kind; its index is its place in the list (aerials
-/// first), which also picks its random stream.
-#[derive(Debug, Clone, PartialEq)]
-pub struct VehicleSpec {
-    pub id: String,
-    pub kind: VehicleKind,
-}
-
-/// The vehicles of a team: `av-1..` then `boat-1..`.
-pub fn team_vehicles(cfg: &TeamConfig) -> Vec<VehicleSpec> {
-    (1..=cfg.aerials)
-        .map(|i| VehicleSpec { id: format!("av-{i}"), kind: VehicleKind::Aerial })
-        .chain((1..=cfg.boats).map(|i| VehicleSpec { id: format!("boat-{i}"), kind: VehicleKind::Boat }))
-        .collect()
-}
+pub use crate::roster::{Roster, VehicleSpec};
 
 /// What happened to one batch.
 #[derive(Debug, Clone, PartialEq)]
@@ -125,7 +111,7 @@ pub struct Counters {
 pub struct ServerCore {
     cfg: TeamConfig,
     schedule: Schedule,
-    vehicles: Vec<VehicleSpec>,
+    vehicles: Roster,
     assim: Assimilator,
     /// Next epoch to assimilate.
     epoch: u64,
@@ -165,7 +151,7 @@ impl ServerCore {
             assim: Assimilator::new(cfg, grid, frames)?,
             cfg: cfg.clone(),
             schedule: Schedule::new(cfg, frames),
-            vehicles: team_vehicles(cfg),
+            vehicles: Roster::of(cfg),
             epoch: 0,
             received: BTreeMap::new(),
             plans: BTreeMap::new(),
@@ -184,6 +170,10 @@ impl ServerCore {
     }
 
     pub fn vehicles(&self) -> &[VehicleSpec] {
+        self.vehicles.all()
+    }
+
+    pub fn roster(&self) -> &Roster {
         &self.vehicles
     }
 
@@ -210,7 +200,7 @@ impl ServerCore {
     /// Vehicles whose batch for epoch `e` has not come in (for an assimilated epoch: the ones it
     /// was assimilated without).
     pub fn missing_at(&self, e: u64) -> Vec<String> {
-        self.missing(e).map(|i| self.vehicles[i].id.clone()).collect()
+        self.missing(e).map(|i| self.vehicles.at(i).id.clone()).collect()
     }
 
     /// Vehicles whose batch for the next epoch, or for an epoch assimilated without it, has
@@ -219,7 +209,7 @@ impl ServerCore {
         let mut ids: Vec<usize> = (0..=self.epoch).flat_map(|e| self.missing(e).collect::<Vec<_>>()).collect();
         ids.sort_unstable();
         ids.dedup();
-        ids.into_iter().map(|i| self.vehicles[i].id.clone()).collect()
+        ids.into_iter().map(|i| self.vehicles.at(i).id.clone()).collect()
     }
 
     /// Epochs beyond the model with some batches in, waiting for the rest.
@@ -314,7 +304,7 @@ impl ServerCore {
     /// Whether the planner may allocate a vehicle (from its telemetry); takes effect at the next
     /// allocation. Returns whether it changed.
     pub fn set_available(&mut self, vehicle: &str, available: bool) -> bool {
-        let Some(index) = self.vehicles.iter().position(|v| v.id == vehicle) else { return false };
+        let Some(index) = self.vehicles.index_of(vehicle) else { return false };
         if available {
             self.held.remove(&index)
         } else {
@@ -324,12 +314,12 @@ impl ServerCore {
 
     /// Vehicles left out of the next allocation.
     pub fn held(&self) -> Vec<String> {
-        self.held.iter().map(|&i| self.vehicles[i].id.clone()).collect()
+        self.held.iter().map(|&i| self.vehicles.at(i).id.clone()).collect()
     }
 
     /// Vehicles left out of epoch `e`'s allocation.
     pub fn held_at(&self, e: u64) -> Vec<String> {
-        self.holds.get(&e).map_or_else(Vec::new, |h| h.iter().map(|&i| self.vehicles[i].id.clone()).collect())
+        self.holds.get(&e).map_or_else(Vec::new, |h| h.iter().map(|&i| self.vehicles.at(i).id.clone()).collect())
     }
 
     fn reject(&mut self, vehicle: &str, why: String) -> IngestError {
@@ -399,9 +389,9 @@ impl ServerCore {
     /// an aerial's at epoch 0 when the formation gave it cells (the first model needs the whole
     /// lattice).
     fn check(&self, batch: &MeasurementBatch) -> Result<Option<(usize, u64)>, BatchFault> {
-        let index = self.vehicles.iter().position(|v| v.id == batch.vehicle).ok_or(BatchFault::Unknown)?;
-        if self.vehicles[index].kind != batch.kind {
-            return Err(BatchFault::Invalid(format!("declared {:?}, registered {:?}", batch.kind, self.vehicles[index].kind)));
+        let index = self.vehicles.index_of(&batch.vehicle).ok_or(BatchFault::Unknown)?;
+        if self.vehicles.at(index).kind != batch.kind {
+            return Err(BatchFault::Invalid(format!("declared {:?}, registered {:?}", batch.kind, self.vehicles.at(index).kind)));
         }
         let e = Schedule::epoch_of(batch.kind, batch.seq);
         if self.received.get(&e).is_some_and(|m| m.contains_key(&index)) {
@@ -426,7 +416,7 @@ impl ServerCore {
         std::mem::take(&mut self.unjournalled)
             .into_iter()
             .map(|e| {
-                let held = self.holds.get(&e).map_or_else(Vec::new, |h| h.iter().map(|&i| self.vehicles[i].id.clone()).collect());
+                let held = self.holds.get(&e).map_or_else(Vec::new, |h| h.iter().map(|&i| self.vehicles.at(i).id.clone()).collect());
                 let mut bytes = vec![];
                 ciborium::into_writer(&EpochRecord { held, forced: self.forced.contains(&e) }, &mut bytes).expect("a record serialises");
                 (EpochRecord::key(e), bytes)
@@ -445,7 +435,7 @@ impl ServerCore {
             let r: EpochRecord = ciborium::from_reader(&bytes[..]).map_err(|err| bad(err.to_string()))?;
             let mut held = BTreeSet::new();
             for id in r.held {
-                let i = self.vehicles.iter().position(|v| v.id == id).ok_or_else(|| RestoreError::UnknownVehicle { key: key.clone(), vehicle: id.clone() })?;
+                let i = self.vehicles.index_of(&id).ok_or_else(|| RestoreError::UnknownVehicle { key: key.clone(), vehicle: id.clone() })?;
                 held.insert(i);
             }
             self.holds.insert(e, held);
@@ -482,7 +472,7 @@ impl ServerCore {
     /// Aerials take part in every epoch; boats in every full epoch after the first (a last,
     /// shorter epoch has no boat step).
     fn takes_part(&self, index: usize, e: u64) -> bool {
-        !self.schedule.sample_steps(self.vehicles[index].kind, e).is_empty()
+        !self.schedule.sample_steps(self.vehicles.at(index).kind, e).is_empty()
     }
 
     fn epoch_complete(&self, e: u64) -> bool {
@@ -555,27 +545,23 @@ impl ServerCore {
     /// model's spatial modes, and so the disks, stay until the next update; a vehicle cut off
     /// from the server keeps following the later targets).
     pub fn plan(&self, vehicle: &str, e: u64, horizon: u64) -> Option<Plan> {
-        let index = self.vehicles.iter().position(|v| v.id == vehicle)?;
+        let &VehicleSpec { index, kind, slot, .. } = self.vehicles.get(vehicle)?;
         let alloc = self.allocation(e)?;
         let grid = self.assim.grid();
-        let kind = self.vehicles[index].kind;
         let (position, radius, cells) = match kind {
             // Left out: stays where it is, senses nothing.
             VehicleKind::Aerial if alloc.held.contains(&index) => (alloc.aerials[index], 0.0, vec![]),
-            VehicleKind::Boat if alloc.held.contains(&index) => (self.assim.boat_positions()[index - self.cfg.aerials], 0.0, vec![]),
+            VehicleKind::Boat if alloc.held.contains(&index) => (self.assim.boat_positions()[slot], 0.0, vec![]),
             VehicleKind::Aerial => {
                 let (ids, positions) = alloc.active_aerials();
                 let me = ids.iter().position(|&a| a == index)?;
                 let region = crate::fusion::aerial_region(grid, self.cfg.aerial_stride, &positions, me).ok()?;
                 (alloc.aerials[index], 0.0, region)
             }
-            VehicleKind::Boat => {
-                let b = index - self.cfg.aerials;
-                match &alloc.boats[b] {
-                    Some((cells, (r, c))) => (grid.centre_m(crate::grid::Cell::new(*r, *c)), self.cfg.radius, cells.clone()),
-                    None => (self.assim.boat_positions()[b], 0.0, vec![]),
-                }
-            }
+            VehicleKind::Boat => match &alloc.boats[slot] {
+                Some((cells, (r, c))) => (grid.centre_m(crate::grid::Cell::new(*r, *c)), self.cfg.radius, cells.clone()),
+                None => (self.assim.boat_positions()[slot], 0.0, vec![]),
+            },
         };
         let cells: Vec<u32> = cells.into_iter().map(|c| c as u32).collect();
         let targets = (e..e.saturating_add(horizon.max(1)))
@@ -589,8 +575,8 @@ impl ServerCore {
     /// vehicle). A vehicle has dropped every batch the server acknowledged, so after a restart
     /// any of them missing means the journal lost data.
     pub fn lacks_through(&self, vehicle: &str, through: u64) -> Vec<u64> {
-        let Some(index) = self.vehicles.iter().position(|v| v.id == vehicle) else { return vec![] };
-        let kind = self.vehicles[index].kind;
+        let Some(index) = self.vehicles.index_of(vehicle) else { return vec![] };
+        let kind = self.vehicles.at(index).kind;
         (0..self.schedule.epochs())
             .filter_map(|e| self.schedule.seq_of(kind, e).map(|s| (e, s)))
             .take_while(|&(_, s)| s <= through)
@@ -609,8 +595,8 @@ impl ServerCore {
     /// The ack of a vehicle: the highest seq up to which all of its batches are in the model
     /// (`None` before its first).
     pub fn ack(&self, vehicle: &str) -> Option<Ack> {
-        let index = self.vehicles.iter().position(|v| v.id == vehicle)?;
-        let kind = self.vehicles[index].kind;
+        let index = self.vehicles.index_of(vehicle)?;
+        let kind = self.vehicles.at(index).kind;
         let mut seq = None;
         for e in 0..self.epoch {
             let Some(s) = self.schedule.seq_of(kind, e) else { continue };

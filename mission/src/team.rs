@@ -41,8 +41,7 @@ pub struct TeamConfig {
     /// Steps of aerial-only data before the first model.
     pub init_steps: usize,
     /// `full`, `optimal`, `energy:<f>` or an integer (`rank = 6` or `rank = "6"`).
-    #[serde(deserialize_with = "rank_text")]
-    pub rank: String,
+    pub rank: RankPolicy,
     pub method: Method,
     pub gamma: f64,
     pub placement: Placement,
@@ -65,7 +64,7 @@ impl Default for TeamConfig {
             radius: 10.0,
             boat_sigma: 0.01,
             init_steps: 20,
-            rank: "10".into(),
+            rank: RankPolicy::Fixed(10),
             method: Method::General,
             gamma: 1.0,
             placement: Placement::Qr,
@@ -80,6 +79,9 @@ impl Default for TeamConfig {
 pub enum TeamError {
     #[error("invalid configuration: {0}")]
     Config(String),
+    /// Asked for something the run has not reached yet (a state error, not a configuration one).
+    #[error("not yet: {0}")]
+    NotReady(Missing),
     #[error(transparent)]
     Dmd(#[from] crate::dmd::DmdError),
     #[error(transparent)]
@@ -91,9 +93,8 @@ pub enum TeamError {
 }
 
 impl TeamConfig {
-    pub fn validate(&self, grid: &Grid, frames: usize) -> Result<RankPolicy, TeamError> {
+    pub fn validate(&self, grid: &Grid, frames: usize) -> Result<(), TeamError> {
         let bad = |m: String| Err(TeamError::Config(m));
-        let rank: RankPolicy = self.rank.parse().map_err(|e: String| TeamError::Config(e))?;
         if self.aerials == 0 || self.boats == 0 {
             return bad("a heterogeneous team needs at least one aerial and one boat".into());
         }
@@ -140,22 +141,23 @@ impl TeamConfig {
                 None => format!("boats = {}: more boats than cells on the {} x {} grid", self.boats, grid.rows, grid.cols),
             });
         }
-        Ok(rank)
+        Ok(())
     }
 }
 
-/// The rank as text, from a string (`"optimal"`, `"6"`) or a bare integer (`6`).
-fn rank_text<'de, D: serde::Deserializer<'de>>(d: D) -> Result<String, D::Error> {
-    #[derive(Deserialize)]
-    #[serde(untagged)]
-    enum Rank {
-        Text(String),
-        Number(u64),
-    }
-    match Rank::deserialize(d).map_err(|_| serde::de::Error::custom("rank: give \"full\", \"optimal\", \"energy:<fraction>\" or a positive integer"))? {
-        Rank::Text(t) => Ok(t),
-        Rank::Number(n) => Ok(n.to_string()),
-    }
+/// What a run lacks when it is asked too early.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum Missing {
+    #[error("no aerial data yet")]
+    AerialData,
+    #[error("part of the lattice unseen and no earlier frame")]
+    EarlierFrame,
+    #[error("the first model needs at least 3 snapshots, there are {have}")]
+    Snapshots { have: usize },
+    #[error("no model yet")]
+    Model,
+    #[error("no plan for epoch {epoch}")]
+    Plan { epoch: u64 },
 }
 
 /// The largest sensing radius (cells) at which `boats` disks fit side by side on `grid`: a

@@ -1,7 +1,8 @@
 //! hetfleet's Zenoh glue, shared by the model server and the vehicle nodes: open a session in
 //! the role a node plays (DESIGN.md "Facts about the dependencies": the server is a router,
 //! vehicles are clients that keep retrying), and put or read [`fleet_mission::protocol`] messages with
-//! the protocol's encoding. Nothing here knows the math; nodes stay thin.
+//! the protocol's encoding; the durable state ([`store`], and a vehicle's [`outbox`] over it). Nothing
+//! here knows the math; nodes stay thin.
 
 use anyhow::Context as _;
 use fleet_mission::config::Network;
@@ -11,6 +12,7 @@ use zenoh::bytes::Encoding;
 use zenoh::sample::Sample;
 use zenoh::Session;
 
+pub mod outbox;
 pub mod store;
 
 pub use zenoh;

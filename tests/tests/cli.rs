@@ -98,7 +98,7 @@ fn configurations_that_cannot_run_are_refused_up_front_naming_the_field() {
     // An integer rank is a rank.
     let m = hetfleet_tests::tiny_mission(&dir, &[], &["tcp/127.0.0.1:7461".into()]);
     hetfleet_tests::edit(&m, "rank = \"6\"", "rank = 6");
-    assert_eq!(fleet::mission::config::MissionConfig::load(Some(&m)).unwrap().team.rank, "6");
+    assert_eq!(fleet::mission::config::MissionConfig::load(Some(&m)).unwrap().team.rank, fleet::dmd::RankPolicy::Fixed(6));
 }
 
 #[test]

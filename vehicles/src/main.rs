@@ -15,7 +15,7 @@ use clap::Parser;
 pub struct Args {
     /// This vehicle's id in the mission (`av-1`, `boat-3`, ...).
     #[arg(long)]
-    pub id: String,
+    pub id: fleet_mission::roster::VehicleId,
     #[command(flatten)]
     pub node: fleet_net::NodeArgs,
     /// Where the durable outbox lives (`<state-dir>/<id>.redb`); a restart resumes from it.

@@ -1,19 +1,23 @@
-//! The vehicle's loop over the mission's epochs: get the plan of the epoch (asking again when
-//! an ack says the model moved on; after `plan_timeout_ms` without an answer, follow the
-//! horizon of the plan it holds), sense, publish, and keep every batch until the server's ack
-//! covers it (re-sent every `resend_ms`).
+//! The vehicle's loop over the mission's epochs, one `select!` over what can happen: an ack
+//! (trim the outbox; the model moved, so ask for the plan again), the server's liveliness (a
+//! returned link sends the whole backlog), the resend tick (re-send what is due; ask for the
+//! plan every 250 ms; after `plan_timeout_ms` without an answer, follow the horizon of the plan
+//! held), a plan reply (drive and sense the epoch) and the end of an epoch's drive and step
+//! timer (commit the batch, send it, go on). Every batch is kept until the server's ack covers
+//! it.
 
 use crate::Args;
 use fleet_mission::config::MissionConfig;
 use fleet_mission::grid::Grid;
-use fleet_mission::protocol::{self, keys::Keys, Body, Context, LinkState, Telemetry};
+use fleet_mission::protocol::{self, keys::Keys, Body, Context, LinkState, Plan, Target, Telemetry};
 use fleet_mission::vehicle::{BrainState, Fix, VehicleBrain};
 use fleet_mission::vehicle_rng;
-use fleet_net::store::{Store, StoreError};
+use fleet_net::outbox::{Outbox, OutboxError};
 use fleet_net::{zenoh, Role};
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
+use tokio::sync::mpsc;
 use tracing::{debug, info, warn};
 use vehicles::autopilot::modes::Frame;
 use vehicles::autopilot::sim::SimSpec;
@@ -21,95 +25,57 @@ use vehicles::autopilot::site::Site;
 use vehicles::bridge::{Bridge, BridgeSpec};
 use zenoh::sample::SampleKind;
 
-/// Batches not yet acknowledged, on disk: each is committed (with the vehicle's state) before
-/// it is sent, re-sent until the server's ack covers it, and removed only then. It survives
-/// `kill -9`; past `limit` bytes the vehicle stops sensing until acks make room (no batch is
-/// ever dropped), with a warning at 80%.
-struct Outbox {
-    store: Store,
-    id: String,
-    acked: Option<u64>,
-    /// Seqs held on disk, and when each was last sent (restored ones: never, so they go at
-    /// once).
-    held: std::collections::BTreeSet<u64>,
-    sent: BTreeMap<u64, Instant>,
-    limit: u64,
-    warned: bool,
+/// How often the plan is asked for while none has come (an ack asks at once).
+const ASK_EVERY: Duration = Duration::from_millis(250);
+
+/// Where the vehicle is in its mission.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Phase {
+    /// Waiting for the plan of `epoch`.
+    Plan {
+        epoch: u64,
+        deadline: Instant,
+        warned: bool,
+        next_ask: Instant,
+    },
+    /// Driving to and sensing `epoch` (a task reports the fixes when its step timer ends).
+    Sense {
+        epoch: u64,
+    },
+    /// The outbox is at its bound: `epoch` waits for acks to make room (nothing is dropped).
+    Full {
+        epoch: u64,
+    },
+    /// Every epoch sensed: waiting until the last batch is acknowledged.
+    Finish {
+        deadline: Instant,
+    },
+    Done,
 }
 
-impl Outbox {
-    fn open(path: &std::path::Path, id: &str, limit: u64) -> anyhow::Result<Self> {
-        const RECOVERY: &str = "to go on, move the file aside (keep it for inspection) and start the vehicle again: it starts over from the first epoch, senses again what the plans say and the server keeps what it already has (batches held only in this outbox are lost)";
-        let store = Store::open(path).map_err(|e| match e {
-            e @ (StoreError::Damaged { .. } | StoreError::Empty { .. }) => fleet_mission::exit::bad_input(anyhow::anyhow!("the outbox {e}; {RECOVERY}")),
-            e @ StoreError::InUse { .. } => fleet_mission::exit::bad_input(anyhow::anyhow!("the outbox {e}: is this vehicle already running?")),
-            e => anyhow::Error::new(e).context("opening the outbox"),
-        })?;
-        let acked = store.meta("acked")?.and_then(|b| String::from_utf8(b).ok()).and_then(|s| s.parse().ok());
-        let held = store.messages()?.into_iter().map(|((_, seq), _)| seq).collect();
-        Ok(Self { store, id: id.into(), acked, held, sent: BTreeMap::new(), limit, warned: false })
-    }
-
-    fn state(&self) -> anyhow::Result<Option<BrainState>> {
-        match self.store.meta("state")? {
-            Some(b) => Ok(Some(
-                ciborium::from_reader(&b[..])
-                    .map_err(|e| fleet_mission::exit::bad_input(anyhow::anyhow!("the outbox {}: the vehicle state in it is unreadable ({e})", self.store.path().display())))?,
-            )),
-            None => Ok(None),
-        }
-    }
-
-    /// Commit a batch and the state after it, in one transaction.
-    fn commit(&mut self, seq: u64, bytes: &[u8], state: &BrainState) -> anyhow::Result<()> {
-        let mut st = vec![];
-        ciborium::into_writer(state, &mut st).expect("state serialises");
-        self.store.commit(&[((self.id.as_str(), seq), bytes)], &[("state", &st)])?;
-        self.held.insert(seq);
-        let (used, _) = self.store.size();
-        if used * 5 >= self.limit * 4 && !self.warned {
-            warn!(used, limit = self.limit, "outbox at 80% of its bound: the vehicle will pause sensing when it is full");
-            self.warned = true;
-        }
-        Ok(())
-    }
-
-    fn ack(&mut self, seq: u64) -> anyhow::Result<()> {
-        if self.acked.is_some_and(|a| seq <= a) {
-            return Ok(());
-        }
-        self.store.remove_through(&self.id, seq, &[("acked", seq.to_string().as_bytes())])?;
-        self.acked = Some(seq);
-        self.held.retain(|&s| s > seq);
-        self.sent.retain(|&s, _| s > seq);
-        if self.store.size().0 * 5 < self.limit * 4 {
-            self.warned = false;
-        }
-        Ok(())
-    }
-
-    fn covers(&self, seq: u64) -> bool {
-        self.acked.is_some_and(|a| a >= seq)
-    }
-
-    fn depth(&self) -> u64 {
-        self.store.size().1
-    }
-
-    fn full(&self) -> bool {
-        self.store.size().0 >= self.limit
-    }
-}
+/// What a drive task reports: the epoch, where the autopilot was at each sampling step, and
+/// how long after the plan the first guided target left (ms).
+type Driven = (u64, BTreeMap<u64, Fix>, Option<f64>);
 
 struct Vehicle {
     args: Args,
+    session: zenoh::Session,
     keys: Keys,
     ctx: Context,
+    grid: Grid,
     brain: VehicleBrain,
     outbox: Outbox,
     server_alive: bool,
     resend: Duration,
+    plan_timeout: Duration,
+    arrival_timeout: Duration,
+    step_ms: u64,
     step: u64,
+    phase: Phase,
+    /// A plan query is out (one at a time).
+    asking: bool,
+    plans: mpsc::UnboundedSender<(u64, Option<Plan>)>,
+    driven: mpsc::UnboundedSender<Driven>,
     bridge: Option<Arc<Bridge>>,
     /// The newest telemetry (the autopilot watch re-sends it when the autopilot changes).
     last_telemetry: Arc<Mutex<Option<Telemetry>>>,
@@ -118,76 +84,184 @@ struct Vehicle {
     guided_ms: Vec<f64>,
 }
 
-impl Vehicle {
-    /// Take what arrived: acks and the server's liveliness. Returns whether an ack came.
-    fn absorb(&mut self, acks: &zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>, links: &zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>) -> bool {
-        let mut got = false;
-        while let Ok(Some(s)) = acks.try_recv() {
-            match fleet_net::decode(&s, &self.ctx) {
-                Ok(Body::Ack(a)) if a.vehicle == self.brain.id => {
-                    if let Err(e) = self.outbox.ack(a.seq) {
-                        warn!("recording ack {}: {e:#}", a.seq);
-                    }
-                    got = true;
-                }
-                Ok(_) => warn!("ignored a message on the ack key that is not our ack"),
-                Err(e) => warn!("refused an ack: {e}"),
-            }
-        }
-        while let Ok(Some(s)) = links.try_recv() {
-            let up = s.kind() == SampleKind::Put;
-            if up {
-                fleet_net::mark_connected();
-            }
-            if up != self.server_alive {
-                info!(server_alive = up, backlog = self.outbox.depth(), "link to the model server");
-                if up {
-                    // Back in range: the whole backlog is due now, oldest first.
-                    self.outbox.sent.clear();
-                }
-            }
-            self.server_alive = up;
-        }
-        got
+fn outbox_error(e: OutboxError) -> anyhow::Error {
+    const RECOVERY: &str = "to go on, move the file aside (keep it for inspection) and start the vehicle again: it starts over from the first epoch, senses again what the plans say and the server keeps what it already has (batches held only in this outbox are lost)";
+    match e {
+        OutboxError::Store(e @ fleet_net::store::StoreError::InUse { .. }) => fleet_mission::exit::bad_input(anyhow::anyhow!("the outbox {e}: is this vehicle already running?")),
+        e if e.is_bad_file() => fleet_mission::exit::bad_input(anyhow::anyhow!("the outbox {e}; {RECOVERY}")),
+        e => anyhow::Error::new(e).context("the outbox"),
     }
+}
 
-    async fn resend_due(&mut self, session: &zenoh::Session) -> anyhow::Result<()> {
-        let due: Vec<u64> = self.outbox.held.iter().copied().filter(|s| self.outbox.sent.get(s).is_none_or(|t| t.elapsed() >= self.resend)).collect();
-        if due.is_empty() {
-            return Ok(());
-        }
-        let key = self.keys.measurements(&self.brain.id);
-        for ((_, seq), bytes) in self.outbox.store.messages()?.into_iter().filter(|((_, s), _)| due.contains(s)) {
-            debug!(seq, "sending from the outbox");
-            if let Err(e) = session.put(&key, bytes).encoding(fleet_net::encoding()).await {
-                warn!("sending batch {seq}: {e}");
+impl Vehicle {
+    fn on_ack(&mut self, sample: &zenoh::sample::Sample) -> anyhow::Result<()> {
+        match fleet_net::decode(sample, &self.ctx) {
+            Ok(Body::Ack(a)) if a.vehicle == self.brain.id => {
+                if let Err(e) = self.outbox.ack(a.seq) {
+                    warn!("recording ack {}: {e:#}", a.seq);
+                }
+                match self.phase {
+                    // The model moved on: its plan may be there now.
+                    Phase::Plan { ref mut next_ask, .. } => *next_ask = Instant::now(),
+                    Phase::Full { epoch } if !self.outbox.full() => self.begin(epoch),
+                    Phase::Finish { .. } => self.finish_if_acknowledged(),
+                    _ => {}
+                }
             }
-            self.outbox.sent.insert(seq, Instant::now());
+            Ok(_) => warn!("ignored a message on the ack key that is not our ack"),
+            Err(e) => warn!("refused an ack: {e}"),
         }
         Ok(())
     }
 
-    /// Ask the server for the plan from epoch `e`; `Ok(false)` when it has none yet.
-    async fn query_plan(&mut self, session: &zenoh::Session, e: u64) -> anyhow::Result<bool> {
-        let selector = format!("{}?epoch={e}", self.keys.plan(&self.brain.id));
-        let replies = session.get(&selector).timeout(Duration::from_secs(2)).await.map_err(|err| anyhow::anyhow!("{err}"))?;
-        while let Ok(reply) = replies.recv_async().await {
-            match reply.result() {
-                Ok(sample) => match fleet_net::decode(sample, &self.ctx) {
-                    Ok(Body::Plan(p)) if p.epoch == e => {
-                        self.brain.set_plan(p);
-                        return Ok(true);
-                    }
-                    Ok(_) => warn!("a plan reply for another epoch or of another type"),
-                    Err(err) => warn!("refused a plan: {err}"),
-                },
-                Err(err) => debug!("no plan yet: {}", String::from_utf8_lossy(&err.payload().to_bytes())),
+    fn on_link(&mut self, sample: &zenoh::sample::Sample) {
+        let up = sample.kind() == SampleKind::Put;
+        if up {
+            fleet_net::mark_connected();
+        }
+        if up != self.server_alive {
+            info!(server_alive = up, backlog = self.outbox.depth(), "link to the model server");
+            if up {
+                // Back in range: the whole backlog is due now, oldest first.
+                self.outbox.resend_all();
             }
         }
-        Ok(false)
+        self.server_alive = up;
     }
 
-    async fn telemetry(&self, session: &zenoh::Session) {
+    async fn resend_due(&mut self) -> anyhow::Result<()> {
+        let key = self.keys.measurements(&self.brain.id);
+        for (seq, bytes) in self.outbox.due(Instant::now(), self.resend).map_err(outbox_error)? {
+            debug!(seq, "sending from the outbox");
+            if let Err(e) = self.session.put(&key, bytes).encoding(fleet_net::encoding()).await {
+                warn!("sending batch {seq}: {e}");
+            }
+        }
+        Ok(())
+    }
+
+    /// Start epoch `e` (or the next one this vehicle senses): ask for its plan, unless the
+    /// outbox is full; past the last epoch, wait for the final ack.
+    fn begin(&mut self, from: u64) {
+        let schedule = *self.brain.schedule();
+        let Some(e) = (from..schedule.epochs()).find(|&e| schedule.seq_of(self.brain.kind, e).is_some()) else {
+            self.phase = Phase::Finish { deadline: Instant::now() + Duration::from_millis(self.args.final_ack_ms) };
+            return self.finish_if_acknowledged();
+        };
+        if self.outbox.full() {
+            warn!(depth = self.outbox.depth(), "outbox full: holding until the server acknowledges");
+            self.phase = Phase::Full { epoch: e };
+            return;
+        }
+        let now = Instant::now();
+        self.phase = Phase::Plan { epoch: e, deadline: now + self.plan_timeout, warned: false, next_ask: now };
+    }
+
+    fn finish_if_acknowledged(&mut self) {
+        if schedule_last(&self.brain).is_none_or(|last| self.outbox.covers(last)) {
+            self.phase = Phase::Done;
+        }
+    }
+
+    /// Ask the server for the plan from epoch `e`, in a task; the reply comes on `plans`.
+    fn ask_plan(&mut self, e: u64) {
+        self.asking = true;
+        let (session, ctx, tx) = (self.session.clone(), self.ctx.clone(), self.plans.clone());
+        let selector = format!("{}?epoch={e}", self.keys.plan(&self.brain.id));
+        tokio::spawn(async move {
+            let _ = tx.send((e, query_plan(&session, &selector, &ctx, e).await));
+        });
+    }
+
+    /// The resend tick: what is due goes out; the plan is asked for again, or, past the
+    /// timeout (or with the server gone), the held plan's horizon is followed.
+    async fn on_tick(&mut self) -> anyhow::Result<()> {
+        self.resend_due().await?;
+        let now = Instant::now();
+        match self.phase {
+            Phase::Plan { epoch, deadline, warned, next_ask } => {
+                // Cut off from the server (its liveliness token gone): no use waiting out the
+                // timeout, the held horizon says where to sense, at the mission's pace.
+                if (now > deadline || !self.server_alive) && self.brain.covers(epoch) {
+                    warn!(epoch, server_alive = self.server_alive, "no plan from the server: following the held plan's horizon");
+                    self.sense(epoch);
+                    return Ok(());
+                }
+                if now > deadline && !warned {
+                    warn!(epoch, "no plan from the server and none held: still asking");
+                }
+                let next_ask = if !self.asking && now >= next_ask {
+                    self.ask_plan(epoch);
+                    now + ASK_EVERY
+                } else {
+                    next_ask
+                };
+                self.phase = Phase::Plan { epoch, deadline, warned: warned || now > deadline, next_ask };
+            }
+            Phase::Finish { deadline } if now > deadline => {
+                let last = schedule_last(&self.brain).unwrap_or_default();
+                anyhow::bail!(
+                    "{}: batch {last} not acknowledged after {} ms ({} unacknowledged, kept in {})",
+                    self.brain.id,
+                    self.args.final_ack_ms,
+                    self.outbox.depth(),
+                    self.outbox.path().display()
+                );
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+
+    fn on_plan(&mut self, e: u64, plan: Option<Plan>) {
+        self.asking = false;
+        match (self.phase, plan) {
+            (Phase::Plan { epoch, .. }, Some(p)) if epoch == e => {
+                self.brain.set_plan(p);
+                self.plan_at = Some(Instant::now());
+                self.sense(e);
+            }
+            // Asked again at once when an ack came meanwhile.
+            _ => {}
+        }
+    }
+
+    /// Drive to epoch `e`'s places and wait out its steps, in a task (acks, resends and the
+    /// link keep being handled meanwhile); [`Self::on_driven`] senses when it reports.
+    fn sense(&mut self, e: u64) {
+        self.phase = Phase::Sense { epoch: e };
+        let (bridge, targets, grid, timeout, tx) = (self.bridge.clone(), self.brain.targets_of(e), self.grid, self.arrival_timeout, self.driven.clone());
+        let (plan_at, pace) = (self.plan_at.take(), Duration::from_millis(self.step_ms * self.brain.schedule().steps_of(e).len() as u64));
+        tokio::spawn(async move {
+            let (fixes, guided) = drive(bridge, targets, grid, timeout, plan_at).await;
+            tokio::time::sleep(pace).await;
+            let _ = tx.send((e, fixes, guided));
+        });
+    }
+
+    /// Epoch `e` driven: sense it, commit the batch (durable first, then sent: a crash in
+    /// between re-sends it after the restart), send it, go on.
+    async fn on_driven(&mut self, (e, fixes, guided): Driven, truth: &fleet_mission::process::FieldSeries) -> anyhow::Result<()> {
+        self.guided_ms.extend(guided);
+        self.step = self.brain.schedule().steps_of(e).end.saturating_sub(1) as u64;
+        let truth_at = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+        if let Some(batch) = self.brain.sense_epoch_at(e, truth_at, &fixes)? {
+            let bytes = protocol::encode(&Body::Batch(batch.clone()));
+            let state: BrainState = self.brain.state(e + 1);
+            if self.outbox.commit(batch.seq, &bytes, &state).map_err(outbox_error)? {
+                warn!(depth = self.outbox.depth(), limit = self.args.outbox_limit_mb << 20, "outbox at 80% of its bound: the vehicle will pause sensing when it is full");
+            }
+            if let Err(err) = self.session.put(self.keys.measurements(&self.brain.id), bytes).encoding(fleet_net::encoding()).await {
+                warn!("sending batch {}: {err} (kept in the outbox)", batch.seq);
+            }
+            self.outbox.mark_sent(batch.seq, Instant::now());
+        }
+        self.telemetry().await;
+        self.begin(e + 1);
+        Ok(())
+    }
+
+    async fn telemetry(&self) {
         let t = Telemetry {
             vehicle: self.brain.id.clone(),
             step: self.step,
@@ -198,48 +272,75 @@ impl Vehicle {
             battery: (1.0 - 0.5 * self.step as f64 / self.brain.schedule().frames.max(1) as f64).clamp(0.0, 1.0),
             link: if self.server_alive { LinkState::Up } else { LinkState::Down },
             outbox_depth: self.outbox.depth(),
-            acked: self.outbox.acked,
+            acked: self.outbox.acked(),
         };
         *self.last_telemetry.lock().unwrap_or_else(|p| p.into_inner()) = Some(t.clone());
-        if let Err(e) = fleet_net::put(session, &self.keys.telemetry(&self.brain.id), &Body::Telemetry(t)).await {
+        if let Err(e) = fleet_net::put(&self.session, &self.keys.telemetry(&self.brain.id), &Body::Telemetry(t)).await {
             warn!("telemetry: {e}");
         }
     }
+}
 
-    /// Drive the autopilot to each place epoch `e` senses and wait (up to the arrival timeout)
-    /// until it is there; the fixes say where it was. Without an autopilot: none.
-    async fn drive(&mut self, e: u64, grid: &Grid, timeout: Duration) -> BTreeMap<u64, Fix> {
-        let mut fixes = BTreeMap::new();
-        let Some(b) = self.bridge.clone() else { return fixes };
-        for t in self.brain.targets_of(e).iter().filter(|t| !t.cells.is_empty()) {
-            let goal = (t.position[0], t.position[1]);
-            let deadline = Instant::now() + timeout;
-            // Still being armed and set to GUIDED (the first epoch): wait for it.
-            while b.link() == protocol::AutopilotLink::Connecting && Instant::now() < deadline {
-                tokio::time::sleep(Duration::from_millis(20)).await;
-            }
-            let mut sent: Option<Instant> = None;
-            while !b.arrived(goal) && Instant::now() < deadline && b.drivable() {
-                // Again every second: a guided target on a lossy radio may not arrive.
-                if sent.is_none_or(|s| s.elapsed() >= Duration::from_secs(1)) {
-                    if b.goto(goal) {
-                        if let Some(t) = self.plan_at.take() {
-                            self.guided_ms.push(t.elapsed().as_secs_f64() * 1e3);
-                        }
-                    }
-                    sent = Some(Instant::now());
-                }
-                tokio::time::sleep(Duration::from_millis(5)).await;
-            }
-            if let Some(p) = b.position() {
-                // Sensing happens on the grid, wherever the autopilot drifted.
-                let (w, h) = (grid.width_m(), grid.height_m());
-                let position = (p.0.clamp(0.0, w - 1e-9), p.1.clamp(0.0, h - 1e-9));
-                fixes.insert(t.step, Fix { position, arrived: b.arrived(goal) });
-            }
+/// The last batch this vehicle sends (none: it senses nothing in this mission).
+fn schedule_last(brain: &VehicleBrain) -> Option<u64> {
+    brain.schedule().last_seq(brain.kind)
+}
+
+/// The plan from epoch `e`, or none yet.
+async fn query_plan(session: &zenoh::Session, selector: &str, ctx: &Context, e: u64) -> Option<Plan> {
+    let replies = match session.get(selector).timeout(Duration::from_secs(2)).await {
+        Ok(r) => r,
+        Err(err) => {
+            warn!("asking for the plan: {err}");
+            return None;
         }
-        fixes
+    };
+    while let Ok(reply) = replies.recv_async().await {
+        match reply.result() {
+            Ok(sample) => match fleet_net::decode(sample, ctx) {
+                Ok(Body::Plan(p)) if p.epoch == e => return Some(p),
+                Ok(_) => warn!("a plan reply for another epoch or of another type"),
+                Err(err) => warn!("refused a plan: {err}"),
+            },
+            Err(err) => debug!("no plan yet: {}", String::from_utf8_lossy(&err.payload().to_bytes())),
+        }
     }
+    None
+}
+
+/// Drive the autopilot to each place of `targets` and wait (up to the arrival timeout) until
+/// it is there; the fixes say where it was. Without an autopilot: none.
+async fn drive(bridge: Option<Arc<Bridge>>, targets: Vec<Target>, grid: Grid, timeout: Duration, mut plan_at: Option<Instant>) -> (BTreeMap<u64, Fix>, Option<f64>) {
+    let (mut fixes, mut guided) = (BTreeMap::new(), None);
+    let Some(b) = bridge else { return (fixes, guided) };
+    for t in targets.iter().filter(|t| !t.cells.is_empty()) {
+        let goal = (t.position[0], t.position[1]);
+        let deadline = Instant::now() + timeout;
+        // Still being armed and set to GUIDED (the first epoch): wait for it.
+        while b.link() == protocol::AutopilotLink::Connecting && Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        let mut sent: Option<Instant> = None;
+        while !b.arrived(goal) && Instant::now() < deadline && b.drivable() {
+            // Again every second: a guided target on a lossy radio may not arrive.
+            if sent.is_none_or(|s| s.elapsed() >= Duration::from_secs(1)) {
+                if b.goto(goal) {
+                    if let Some(t) = plan_at.take() {
+                        guided = Some(t.elapsed().as_secs_f64() * 1e3);
+                    }
+                }
+                sent = Some(Instant::now());
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        if let Some(p) = b.position() {
+            // Sensing happens on the grid, wherever the autopilot drifted.
+            let (w, h) = (grid.width_m(), grid.height_m());
+            let position = (p.0.clamp(0.0, w - 1e-9), p.1.clamp(0.0, h - 1e-9));
+            fixes.insert(t.step, Fix { position, arrived: b.arrived(goal) });
+        }
+    }
+    (fixes, guided)
 }
 
 /// The MAVLink bridge, unless the autopilot is `none`; its frames go to `gcs`.
@@ -315,7 +416,8 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     ctx.vehicles = mission.vehicles().into_iter().map(|v| v.id).collect();
 
     // Local state first: a damaged outbox is refused before anything goes on the network.
-    let outbox = Outbox::open(&args.state_dir.join(format!("{}.redb", args.id)), &args.id, args.outbox_limit_mb << 20)?;
+    let outbox = Outbox::open(&args.state_dir.join(format!("{}.redb", args.id)), &args.id, args.outbox_limit_mb << 20).map_err(outbox_error)?;
+    let state: Option<BrainState> = outbox.state().map_err(outbox_error)?;
     let (gcs_tx, gcs_rx) = tokio::sync::mpsc::unbounded_channel();
     let bridge = open_bridge(&args, &mission, &grid, gcs_tx)?;
     let last_telemetry = Arc::new(Mutex::new(None));
@@ -329,11 +431,34 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let _token = session.liveliness().declare_token(keys.alive(&args.id)).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let acks = session.declare_subscriber(keys.ack(&args.id)).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let links = session.liveliness().declare_subscriber(keys.alive("server")).history(true).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let (plans_tx, mut plans) = mpsc::unbounded_channel();
+    let (driven_tx, mut driven) = mpsc::unbounded_channel();
     let pace = mission.pace.clone();
-    let arrival_timeout = Duration::from_millis(mission.mavlink.arrival_timeout_ms);
-    let mut v = Vehicle { keys, ctx, brain, outbox, server_alive: false, resend: Duration::from_millis(pace.resend_ms), step: 0, args, bridge, last_telemetry, plan_at: None, guided_ms: vec![] };
-    v.telemetry(&session).await;
-    let first = match v.outbox.state()? {
+    let mut v = Vehicle {
+        session: session.clone(),
+        keys,
+        ctx,
+        grid,
+        brain,
+        outbox,
+        server_alive: false,
+        resend: Duration::from_millis(pace.resend_ms),
+        plan_timeout: Duration::from_millis(pace.plan_timeout_ms),
+        arrival_timeout: Duration::from_millis(mission.mavlink.arrival_timeout_ms),
+        step_ms: pace.step_ms,
+        step: 0,
+        phase: Phase::Done,
+        asking: false,
+        plans: plans_tx,
+        driven: driven_tx,
+        args,
+        bridge,
+        last_telemetry,
+        plan_at: None,
+        guided_ms: vec![],
+    };
+    v.telemetry().await;
+    let first = match state {
         Some(state) => {
             let e = state.next_epoch;
             v.brain.restore(state);
@@ -343,88 +468,26 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         None => 0,
     };
     info!(vehicle = v.brain.id, ?kind, epochs = schedule.epochs(), "vehicle up");
+    v.begin(first);
 
-    let truth_at = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
-    for e in first..schedule.epochs() {
-        if schedule.seq_of(kind, e).is_none() {
-            continue;
+    let mut tick = tokio::time::interval(Duration::from_millis(20));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    while v.phase != Phase::Done {
+        tokio::select! {
+            r = acks.recv_async() => {
+                let sample = r.map_err(|e| anyhow::anyhow!("ack subscriber closed: {e}"))?;
+                v.on_ack(&sample)?;
+            }
+            r = links.recv_async() => {
+                let sample = r.map_err(|e| anyhow::anyhow!("liveliness subscriber closed: {e}"))?;
+                v.on_link(&sample);
+            }
+            _ = tick.tick() => v.on_tick().await?,
+            Some((e, plan)) = plans.recv() => v.on_plan(e, plan),
+            Some(d) = driven.recv() => v.on_driven(d, &truth).await?,
         }
-        // What came while driving and sensing; a returned link sends the backlog before this
-        // epoch's work.
-        v.absorb(&acks, &links);
-        v.resend_due(&session).await?;
-        // A full outbox holds sensing until acks make room (nothing is dropped).
-        let mut said = false;
-        while v.outbox.full() {
-            if !said {
-                warn!(depth = v.outbox.depth(), "outbox full: holding until the server acknowledges");
-                said = true;
-            }
-            v.absorb(&acks, &links);
-            v.resend_due(&session).await?;
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
-        // The plan of this epoch: asked when an ack says the model moved, or every 250 ms.
-        let deadline = Instant::now() + Duration::from_millis(pace.plan_timeout_ms);
-        let mut warned = false;
-        loop {
-            if v.query_plan(&session, e).await? {
-                v.plan_at = Some(Instant::now());
-                break;
-            }
-            // Cut off from the server (its liveliness token gone): no use waiting out the
-            // timeout, the held horizon says where to sense, at the mission's pace.
-            if (Instant::now() > deadline || !v.server_alive) && v.brain.covers(e) {
-                warn!(epoch = e, server_alive = v.server_alive, "no plan from the server: following the held plan's horizon");
-                break;
-            }
-            if Instant::now() > deadline && !warned {
-                warn!(epoch = e, "no plan from the server and none held: still asking");
-                warned = true;
-            }
-            let wait = Instant::now() + Duration::from_millis(250);
-            while Instant::now() < wait {
-                if v.absorb(&acks, &links) {
-                    break;
-                }
-                v.resend_due(&session).await?;
-                tokio::time::sleep(Duration::from_millis(5)).await;
-            }
-        }
-        let fixes = v.drive(e, &grid, arrival_timeout).await;
-        let steps = schedule.steps_of(e);
-        if pace.step_ms > 0 {
-            tokio::time::sleep(Duration::from_millis(pace.step_ms * steps.len() as u64)).await;
-        }
-        v.step = steps.end.saturating_sub(1) as u64;
-        if let Some(batch) = v.brain.sense_epoch_at(e, truth_at, &fixes)? {
-            let bytes = protocol::encode(&Body::Batch(batch.clone()));
-            // Durable first, then sent: a crash in between re-sends it after the restart.
-            v.outbox.commit(batch.seq, &bytes, &v.brain.state(e + 1))?;
-            if let Err(err) = session.put(v.keys.measurements(&v.brain.id), bytes).encoding(fleet_net::encoding()).await {
-                warn!("sending batch {}: {err} (kept in the outbox)", batch.seq);
-            }
-            v.outbox.sent.insert(batch.seq, Instant::now());
-        }
-        v.absorb(&acks, &links);
-        v.telemetry(&session).await;
     }
-
-    // Stay until the server has everything.
-    let last = schedule.last_seq(kind);
-    let deadline = Instant::now() + Duration::from_millis(v.args.final_ack_ms);
-    while let Some(last) = last {
-        v.absorb(&acks, &links);
-        if v.outbox.covers(last) {
-            break;
-        }
-        if Instant::now() > deadline {
-            anyhow::bail!("{}: batch {last} not acknowledged after {} ms ({} unacknowledged, kept in {})", v.brain.id, v.args.final_ack_ms, v.outbox.depth(), v.outbox.store.path().display());
-        }
-        v.resend_due(&session).await?;
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-    v.telemetry(&session).await;
+    v.telemetry().await;
     if let Some(b) = &v.bridge {
         let c = b.counters();
         let p = fleet_mission::events::Percentiles::of(&v.guided_ms);

@@ -54,7 +54,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         private(&out.join(format!("{user}.json5")), &serde_json::to_string_pretty(&cfg)?)?;
     }
     private(&dictionary, &lines)?;
-    std::fs::write(out.join("router.json5"), serde_json::to_string_pretty(&router_config(&mission, &dictionary, tls.as_ref()))?)?;
+    std::fs::write(out.join("router.json5"), serde_json::to_string_pretty(&router_config(&mission, &dictionary, tls.as_ref())?)?)?;
     println!("wrote {}/router.json5, credentials.txt and one client config per user ({})", out.display(), users(&mission).join(", "));
     println!("in the mission's [network]: server_config = \"{0}/router.json5\", vehicle_config = \"{0}/{{id}}.json5\"", out.display());
     Ok(())

@@ -26,13 +26,11 @@ use std::path::Path;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Row {
-    /// The simulator's cloud, or
-    #[serde(default)]
-    pub preset: Option<Preset>,
-    /// a `(frames, rows, cols)` `.npy` dataset as the truth (at the simulator grid's scale:
-    /// it is area-averaged by `mv_space` like the simulator's output).
-    #[serde(default)]
-    pub dataset: Option<std::path::PathBuf>,
+    /// The simulator's cloud (`preset = "cloud1"`), or a `(frames, rows, cols)` `.npy`
+    /// dataset (`dataset = "f.npy"`) as the truth (at the simulator grid's scale: it is
+    /// area-averaged by `mv_space` like the simulator's output).
+    #[serde(flatten)]
+    pub truth: TruthSource,
     pub av_time: usize,
     pub mv_time: usize,
     pub av_space: usize,
@@ -84,11 +82,7 @@ pub struct ExperimentConfig {
 impl Row {
     /// The truth's name in tables and figure files: the preset (`Cloud1`) or the file stem.
     pub fn name(&self) -> String {
-        match (&self.preset, &self.dataset) {
-            (Some(p), _) => format!("{p:?}"),
-            (None, Some(d)) => d.file_stem().map_or("dataset".into(), |s| s.to_string_lossy().to_string()),
-            (None, None) => "?".into(),
-        }
+        self.truth.name()
     }
 }
 
@@ -100,9 +94,6 @@ impl ExperimentConfig {
         }
         for (i, r) in cfg.rows.iter().enumerate() {
             let r_ = format!("[[row]] {} ({})", i + 1, r.name());
-            if r.preset.is_some() == r.dataset.is_some() {
-                bail!("{r_}: give exactly one of preset or dataset");
-            }
             if r.av_time == 0 || r.mv_time == 0 || r.av_space == 0 || r.mv_space == 0 || r.av_space % r.mv_space != 0 {
                 bail!("{r_}: rates must be >= 1 and av_space a multiple of mv_space");
             }
@@ -336,7 +327,7 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
         }
     }
     let fulls = parallel(&names, |r| {
-        let out = TruthSource { preset: r.preset, dataset: r.dataset.clone() }.full(cfg.truth_grid, cfg.frames, cfg.seed, |_| {}).with_context(|| r.name());
+        let out = r.truth.full(cfg.truth_grid, cfg.frames, cfg.seed, |_| {}).with_context(|| r.name());
         say(&format!("truth {}", r.name()));
         out
     });
@@ -430,9 +421,9 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
             forgetting.push(ForgettingCurve { label, points });
         }
     }
-    let top = rows.iter().filter_map(|r| r.row.preset).max_by_key(|p| rank_of(*p));
+    let top = rows.iter().filter_map(|r| r.row.truth.preset()).max_by_key(|p| rank_of(*p));
     let first_of_top = match top {
-        Some(p) => rows.iter().find(|r| r.row.preset == Some(p)),
+        Some(p) => rows.iter().find(|r| r.row.truth.preset() == Some(p)),
         None => rows.first(),
     };
     let verdict_of = |r: &RowResult, second: &str| r.comparisons.iter().find(|c| c.first == HETEROGENEOUS && c.second == second).map(|c| c.verdict);

@@ -55,7 +55,7 @@ pub fn run(rows: usize, cols: usize, epochs: usize, late: u64) -> Result<RefitTi
             for brain in &mut brains {
                 let gone = brain.id == "boat-2" && away.contains(&e);
                 if !gone {
-                    brain.set_plan(server.plan(&brain.id, e, late + 1).ok_or_else(|| TeamError::Config(format!("no plan for epoch {e}")))?);
+                    brain.set_plan(server.plan(&brain.id, e, late + 1).ok_or(TeamError::NotReady(crate::mission::team::Missing::Plan { epoch: e }))?);
                 }
                 let Some(b) = brain.sense_epoch(e, x)? else { continue };
                 if gone {

@@ -113,7 +113,7 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
     // Boat-only team: its snapshots at boat steps, its model once it has enough. It has no
     // estimate before its first sample (those steps are not scored), then its latest snapshot
     // until it has a model.
-    let boat_cfg = DmdConfig { method: Method::Batch, rank: cfg.rank.parse().map_err(TeamError::Config)?, debias: Default::default(), gamma: cfg.gamma, forgetting: Default::default() };
+    let boat_cfg = DmdConfig { method: Method::Batch, rank: cfg.rank, debias: Default::default(), gamma: cfg.gamma, forgetting: Default::default() };
     let mut boat_snaps: Vec<Vec<f64>> = vec![];
     let mut boat_model: Option<(DmdModel, Mat<f64>, usize)> = None; // model, basis, step of its newest snapshot
     let mut boat_guess: Option<Vec<f64>> = None;

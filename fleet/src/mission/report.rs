@@ -2,6 +2,7 @@
 //! types live with the server, in `fleet-mission`'s `events`).
 
 pub use fleet_mission::events::*;
+use fleet_mission::process::truth::TruthSource;
 use fleet_mission::server::Counters;
 use std::collections::BTreeMap;
 
@@ -77,10 +78,10 @@ pub fn write_mission_report(
         t.aerials,
         t.boats,
         t.radius,
-        match (&mission.truth.source.preset, &mission.truth.source.dataset) {
-            (Some(p), _) => format!("the {p:?} plasma cloud at {} x {}, {} frames, averaged by {}", mission.truth.grid[0], mission.truth.grid[1], mission.truth.frames, mission.truth.average),
-            (_, Some(d)) => format!("the dataset {}", d.display()),
-            _ => "?".into(),
+        match &mission.truth.source {
+            TruthSource::Preset(p) =>
+                format!("the {p:?} plasma cloud at {} x {}, {} frames, averaged by {}", mission.truth.grid[0], mission.truth.grid[1], mission.truth.frames, mission.truth.average),
+            TruthSource::Dataset(d) => format!("the dataset {}", d.display()),
         }
     )?;
     writeln!(md, "## Estimation error\n")?;

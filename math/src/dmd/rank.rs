@@ -1,12 +1,10 @@
 //! How many singular values a DMD keeps (the same choices PyDMD offers).
 
-use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::str::FromStr;
 
 /// Truncation rank of the SVD of the snapshot matrix.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum RankPolicy {
     /// Keep every singular value above the numerical-rank tolerance (no truncation).
     Full,
@@ -83,6 +81,30 @@ impl fmt::Display for RankPolicy {
             RankPolicy::Energy(e) => write!(f, "energy:{e}"),
             RankPolicy::Optimal => write!(f, "optimal"),
         }
+    }
+}
+
+/// In files: `"full"`, `"optimal"`, `"energy:<f>"`, or an integer (`6` or `"6"`).
+impl serde::Serialize for RankPolicy {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for RankPolicy {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        #[derive(serde::Deserialize)]
+        #[serde(untagged)]
+        enum Rank {
+            Text(String),
+            Number(u64),
+        }
+        const WHAT: &str = "rank: give \"full\", \"optimal\", \"energy:<fraction>\" or a positive integer";
+        let text = match Rank::deserialize(d).map_err(|_| serde::de::Error::custom(WHAT))? {
+            Rank::Text(t) => t,
+            Rank::Number(n) => n.to_string(),
+        };
+        text.parse().map_err(|e| serde::de::Error::custom(format!("rank: {e}")))
     }
 }
 

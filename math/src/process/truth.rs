@@ -8,7 +8,7 @@ use std::path::PathBuf;
 
 #[derive(Debug, thiserror::Error)]
 pub enum TruthError {
-    #[error("give exactly one of preset or dataset")]
+    #[error("give exactly one of `preset` or `dataset` (in [truth] of a mission file, in each [[row]] of an experiment file)")]
     Source,
     #[error("simulating {preset:?}: {source}")]
     Simulation { preset: Preset, source: super::plasma::PlasmaError },
@@ -20,30 +20,66 @@ pub enum TruthError {
     Grid(#[from] crate::grid::GridError),
 }
 
-/// Where the truth comes from (exactly one of the two).
+/// Where the truth comes from: the plasma-cloud simulator's preset, or a `(frames, rows,
+/// cols)` `.npy` dataset. In files it is written as one of two keys, `preset = "cloud1"` or
+/// `dataset = "path.npy"`; giving both or neither is refused where the file is read.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct TruthSource {
+#[serde(try_from = "TruthKeys", into = "TruthKeys")]
+pub enum TruthSource {
+    Preset(Preset),
+    Dataset(PathBuf),
+}
+
+/// The two keys as they stand in a file.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct TruthKeys {
     #[serde(default)]
-    pub preset: Option<Preset>,
+    preset: Option<Preset>,
     #[serde(default)]
-    pub dataset: Option<PathBuf>,
+    dataset: Option<PathBuf>,
+}
+
+impl TryFrom<TruthKeys> for TruthSource {
+    type Error = TruthError;
+    fn try_from(k: TruthKeys) -> Result<Self, TruthError> {
+        match (k.preset, k.dataset) {
+            (Some(p), None) => Ok(Self::Preset(p)),
+            (None, Some(d)) => Ok(Self::Dataset(d)),
+            _ => Err(TruthError::Source),
+        }
+    }
+}
+
+impl From<TruthSource> for TruthKeys {
+    fn from(s: TruthSource) -> Self {
+        match s {
+            TruthSource::Preset(p) => Self { preset: Some(p), dataset: None },
+            TruthSource::Dataset(d) => Self { preset: None, dataset: Some(d) },
+        }
+    }
 }
 
 impl TruthSource {
-    pub fn check(&self) -> Result<(), TruthError> {
-        if self.preset.is_some() == self.dataset.is_some() {
-            return Err(TruthError::Source);
+    pub fn preset(&self) -> Option<Preset> {
+        match self {
+            Self::Preset(p) => Some(*p),
+            Self::Dataset(_) => None,
         }
-        Ok(())
+    }
+
+    /// The truth's name in tables and figure files: the preset (`Cloud1`) or the file stem.
+    pub fn name(&self) -> String {
+        match self {
+            Self::Preset(p) => format!("{p:?}"),
+            Self::Dataset(d) => d.file_stem().map_or("dataset".into(), |s| s.to_string_lossy().to_string()),
+        }
     }
 
     /// The field at full resolution: the simulator at `grid` `[rows, cols]` for `frames`
     /// frames (seeded), or the dataset as it is.
     pub fn full(&self, grid: [usize; 2], frames: usize, seed: u64, progress: impl FnMut(usize)) -> Result<FieldSeries, TruthError> {
-        self.check()?;
-        match (&self.preset, &self.dataset) {
-            (Some(preset), _) => {
+        match self {
+            Self::Preset(preset) => {
                 let mut p = preset.params();
                 (p.ny, p.nx) = (grid[0], grid[1]);
                 p.seed = seed;
@@ -51,8 +87,7 @@ impl TruthSource {
                 let mut sim = PlasmaCloud::new(p).map_err(sim_err)?;
                 sim.run(frames, progress).map_err(sim_err)
             }
-            (None, Some(path)) => super::dataset::load(path, 1.0).map_err(|source| TruthError::Dataset { path: path.clone(), source }),
-            (None, None) => unreachable!("checked above"),
+            Self::Dataset(path) => super::dataset::load(path, 1.0).map_err(|source| TruthError::Dataset { path: path.clone(), source }),
         }
     }
 }

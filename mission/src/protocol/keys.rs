@@ -83,6 +83,16 @@ impl Keys {
         self.alive("*")
     }
 
+    /// Every ground-station stream (what the gateway puts).
+    pub fn all_gcs(&self) -> String {
+        self.gcs("*")
+    }
+
+    /// Everything of this mission.
+    pub fn everything(&self) -> String {
+        format!("{ROOT}/{}/**", self.mission)
+    }
+
     /// Every vehicle's plan (the server's queryable).
     pub fn all_plans(&self) -> String {
         self.plan("*")
