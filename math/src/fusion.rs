@@ -218,6 +218,9 @@ pub enum Scheme {
     Paper,
     /// Per-cell inverse-variance weighting of every source, measured cells included.
     InverseVariance,
+    /// A Kalman filter in the model's modal coordinates (`crate::kalman`; the assimilator runs
+    /// it). As a one-step combination of estimates without a model, it is inverse-variance.
+    Kalman,
 }
 
 impl FromStr for Scheme {
@@ -226,7 +229,8 @@ impl FromStr for Scheme {
         match s {
             "paper" => Ok(Self::Paper),
             "inverse-variance" => Ok(Self::InverseVariance),
-            _ => Err(format!("unknown fusion scheme {s:?} (paper | inverse-variance)")),
+            "kalman" => Ok(Self::Kalman),
+            _ => Err(format!("unknown fusion scheme {s:?} (paper | inverse-variance | kalman)")),
         }
     }
 }
@@ -236,6 +240,7 @@ impl fmt::Display for Scheme {
         f.write_str(match self {
             Self::Paper => "paper",
             Self::InverseVariance => "inverse-variance",
+            Self::Kalman => "kalman",
         })
     }
 }
@@ -270,7 +275,7 @@ pub fn fuse(scheme: Scheme, n: usize, estimates: &[&Estimate], measured: Option<
                 }
             }
         }
-        Scheme::InverseVariance => {
+        Scheme::InverseVariance | Scheme::Kalman => {
             // Per cell: sum of w*x and of w = 1/var over the sources; exact sources separately.
             let mut acc = vec![Acc::default(); n];
             for e in estimates {

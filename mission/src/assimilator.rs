@@ -8,6 +8,7 @@
 use crate::dmd::{Dmd, DmdConfig, DmdModel};
 use crate::fusion::{fuse, AerialFrame, AerialNoise, Estimate, Measured};
 use crate::grid::{Cell, Grid};
+use crate::kalman::{self, ModalFilter, Observation};
 use crate::protocol::Sample;
 use crate::sensing::{assign::assign, coverage, gappy, qr, real_basis};
 use crate::team::{Missing, Placement, TeamConfig, TeamError};
@@ -71,6 +72,9 @@ pub struct Assimilator {
     placement_rng: ChaCha8Rng,
     boat_positions: Vec<(f64, f64)>,
     aerial_positions: Vec<(f64, f64)>,
+    /// `fusion = "kalman"`: the modal filter, and how many steps past the newest snapshot its
+    /// state is.
+    filter: Option<(ModalFilter, u64)>,
 }
 
 /// The Assimilator's state between two epochs, without its snapshots (they are only appended
@@ -85,6 +89,7 @@ pub struct AssimilatorCheckpoint {
     placement_rng: ChaCha8Rng,
     boat_positions: Vec<(f64, f64)>,
     aerial_positions: Vec<(f64, f64)>,
+    filter: Option<(ModalFilter, u64)>,
 }
 
 impl Assimilator {
@@ -99,6 +104,7 @@ impl Assimilator {
             placement_rng: self.placement_rng.clone(),
             boat_positions: self.boat_positions.clone(),
             aerial_positions: self.aerial_positions.clone(),
+            filter: self.filter.clone(),
         }
     }
 
@@ -111,6 +117,7 @@ impl Assimilator {
         self.placement_rng = c.placement_rng.clone();
         self.boat_positions = c.boat_positions.clone();
         self.aerial_positions = c.aerial_positions.clone();
+        self.filter = c.filter.clone();
         self.fitted = None;
         if self.model.is_some() {
             self.refit()?;
@@ -136,6 +143,7 @@ impl Assimilator {
             placement_rng,
             boat_positions,
             aerial_positions: coverage::uniform_formation(&grid, cfg.aerials)?.positions,
+            filter: None,
         })
     }
 
@@ -198,7 +206,91 @@ impl Assimilator {
         self.model = Some(self.dmd.init(z.subcols(0, m), z.subcols(1, m))?);
         self.pred_var = self.held_aerial.as_ref().map_or(1.0, |a| a.variance.iter().sum::<f64>() / self.grid.len() as f64).max(1e-12);
         self.snapshots = estimates;
-        self.refit()
+        self.refit()?;
+        self.move_filter()
+    }
+
+    /// `fusion = "kalman"`: carry the filter into the refitted model's basis and dynamics (or
+    /// start it, at the newest snapshot, with the calibrated prediction variance per cell).
+    /// Its state is then at the newest snapshot: the fused one of the last step, which is the
+    /// filter's own posterior mean.
+    fn move_filter(&mut self) -> Result<(), TeamError> {
+        if self.cfg.fusion != crate::fusion::Scheme::Kalman {
+            return Ok(());
+        }
+        let (pred, basis) = self.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
+        let dynamics = kalman::modal_dynamics(pred.modes.modes.as_ref(), &pred.modes.eigenvalues, basis.as_ref())?;
+        match self.filter.take() {
+            Some((mut f, _)) => {
+                f.reproject(basis.clone(), dynamics)?;
+                self.filter = Some((f, 0));
+            }
+            None => {
+                let newest = self.snapshots.last().expect("snapshots after init");
+                let mean: Vec<f64> = (0..basis.ncols()).map(|j| basis.col(j).iter().zip(newest).map(|(b, x)| b * x).sum()).collect();
+                // The start: the modal state as uncertain as the prediction is per cell; the
+                // process noise a hundredth of it per step and the model error the
+                // prediction's variance, both re-estimated from the boats' innovations.
+                let q = basis.ncols();
+                let cov = Mat::from_fn(q, q, |i, j| if i == j { self.pred_var } else { 0.0 });
+                self.filter = Some((ModalFilter::new(basis.clone(), dynamics, mean, cov, 0.01 * self.pred_var, self.pred_var)?, 0));
+            }
+        }
+        Ok(())
+    }
+
+    /// `fusion = "kalman"`: one step of the filter. The aerial estimate observes every cell
+    /// (its variance: the noise at that distance, the interpolation's, and the calibrated
+    /// extra); the boats observe their disks' cells with their noise. The process noise and
+    /// the model error are re-estimated at boat steps from the boats' innovations (their
+    /// expected square is `h P h' + s + boat noise`), smoothed, and clamped to the field's
+    /// variance: they cannot run away.
+    fn filter_step(&mut self, ahead: u64, aerial: &Estimate, cells: &[usize], vals: &[f64]) -> Result<Estimate, TeamError> {
+        let boat_var = self.cfg.boat_sigma * self.cfg.boat_sigma;
+        let Some((f, at)) = self.filter.as_mut() else { return Err(TeamError::NotReady(Missing::Model)) };
+        while *at < ahead {
+            f.predict();
+            *at += 1;
+        }
+        let all: Vec<usize> = (0..aerial.values.len()).collect();
+        let aerial_var: Vec<f64> = aerial.variance.iter().map(|v| (v + self.aerial_extra).max(1e-12)).collect();
+        let boat_vars = vec![boat_var.max(1e-12); cells.len()];
+        // Boat innovations against the forecast, for the noise estimates.
+        let (prior_mean, prior_var) = f.field();
+        f.update(&[Observation { cells: &all, values: &aerial.values, variance: &aerial_var }, Observation { cells, values: vals, variance: &boat_vars }])?;
+        if !cells.is_empty() {
+            let field_var = {
+                let m = vals.iter().sum::<f64>() / vals.len() as f64;
+                (vals.iter().map(|v| (v - m).powi(2)).sum::<f64>() / vals.len() as f64).max(1e-12)
+            };
+            let d2 = cells.iter().zip(vals).map(|(&c, v)| (v - prior_mean[c]).powi(2)).sum::<f64>() / cells.len() as f64;
+            let expected = cells.iter().map(|&c| prior_var[c]).sum::<f64>() / cells.len() as f64 + boat_var;
+            let s_hat = (d2 - expected + f.model_error).clamp(0.0, field_var);
+            f.model_error = (0.7 * f.model_error + 0.3 * s_hat).clamp(1e-12, field_var);
+            let nis = (d2 / expected).clamp(0.25, 4.0);
+            f.process = (f.process * nis.sqrt()).clamp(1e-12, field_var);
+        }
+        let (mut values, mut variance) = f.field();
+        // What the modes cannot hold (`e`, variance `s` per cell, independent): its posterior
+        // at every cell from the residuals of the aerial estimate and, on the disks, of the
+        // boats' measurements, each weighted by its precision.
+        let s = f.model_error;
+        let mut boat_at = vec![None; values.len()];
+        for (&c, &v) in cells.iter().zip(vals) {
+            boat_at[c] = Some(v);
+        }
+        let boat_var = boat_var.max(1e-12);
+        for i in 0..values.len() {
+            let mut precision = 1.0 / s + 1.0 / aerial_var[i];
+            let mut weighted = (aerial.values[i] - values[i]) / aerial_var[i];
+            if let Some(v) = boat_at[i] {
+                precision += 1.0 / boat_var;
+                weighted += (v - values[i]) / boat_var;
+            }
+            values[i] += weighted / precision;
+            variance[i] = (variance[i] - s).max(0.0) + 1.0 / precision;
+        }
+        Ok(Estimate { values, variance })
     }
 
     fn refit(&mut self) -> Result<(), TeamError> {
@@ -304,6 +396,9 @@ impl Assimilator {
         } else {
             Estimate { values: predicted, variance: vec![self.pred_var; n] }
         };
+        if self.cfg.fusion == crate::fusion::Scheme::Kalman {
+            return self.filter_step(ahead, &aerial, &cells, &vals);
+        }
         aerial.variance.iter_mut().for_each(|v| *v += self.aerial_extra);
         let measured = (!cells.is_empty()).then_some(Measured { cells: &cells, values: &vals, noise_var: boat_var });
         Ok(fuse(self.cfg.fusion, n, &[&aerial, &hifi], measured)?)
@@ -321,7 +416,8 @@ impl Assimilator {
         let m = chain.len() - 1;
         self.model.as_mut().ok_or(TeamError::NotReady(Missing::Model))?.update(z.subcols(0, m), z.subcols(1, m))?;
         self.snapshots.extend(epoch);
-        self.refit()
+        self.refit()?;
+        self.move_filter()
     }
 }
 

@@ -89,6 +89,8 @@ pub enum TeamError {
     #[error(transparent)]
     Fusion(#[from] crate::fusion::FusionError),
     #[error(transparent)]
+    Filter(#[from] crate::kalman::FilterError),
+    #[error(transparent)]
     Grid(#[from] crate::grid::GridError),
 }
 
