@@ -4,7 +4,8 @@
 //! One module per idea: [`grid`] (the workspace raster and sensing disks), [`dmd`] (batch,
 //! general online and long-term online DMD), [`sensing`] (gappy reconstruction, QR placement,
 //! coverage, assignment), [`fusion`] (the sensor model, aerial frames and their combination
-//! with the boats' estimate), [`process`] (field sources: the plasma-cloud simulator,
+//! with the boats' estimate), [`kalman`] (a Kalman filter in a DMD model's modal coordinates:
+//! the fused map as a posterior), [`process`] (field sources: the plasma-cloud simulator,
 //! synthetic fields, `.npy` datasets), [`npy`] (numpy-compatible files).
 
 pub mod dmd;
