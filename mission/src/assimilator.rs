@@ -56,6 +56,18 @@ impl Allocation {
     }
 }
 
+/// One step of the aerials: the estimate on the fine grid (the coarse frame upsampled, for
+/// the heuristic schemes and the aerial-only team) and what they saw this step, the lattice
+/// cells with each value's own noise variance (what the Kalman filter observes: those errors
+/// are independent, the upsampled field's are not).
+#[derive(Debug, Clone)]
+pub struct AerialSight {
+    pub estimate: Estimate,
+    pub cells: Vec<usize>,
+    pub values: Vec<f64>,
+    pub variance: Vec<f64>,
+}
+
 /// The model server's state: the model, the snapshots it was built from, and the calibrated
 /// error of each source.
 pub struct Assimilator {
@@ -177,11 +189,16 @@ impl Assimilator {
     /// The aerial estimate of a step from the aerials' samples (any order): the coarse frame
     /// reassembled, each value with its sampling aerial's noise at that distance, upsampled
     /// with its variance. A step without aerial samples holds the previous estimate.
-    pub fn aerial_estimate(&mut self, samples: &[Sample]) -> Result<Estimate, TeamError> {
+    pub fn aerial_estimate(&mut self, samples: &[Sample]) -> Result<AerialSight, TeamError> {
         if samples.is_empty() {
-            return self.held_aerial.clone().ok_or(TeamError::NotReady(Missing::AerialData));
+            let estimate = self.held_aerial.clone().ok_or(TeamError::NotReady(Missing::AerialData))?;
+            return Ok(AerialSight { estimate, cells: vec![], values: vec![], variance: vec![] });
         }
         let mut frame = AerialFrame::assemble(&self.grid, self.cfg.aerial_stride, samples, self.aerial_noise())?;
+        let seen: Vec<usize> = (0..frame.seen.len()).filter(|&k| frame.seen[k]).collect();
+        let cells = seen.iter().map(|&k| self.grid.index(frame.lattice.fine_cell(k))).collect();
+        let values = seen.iter().map(|&k| frame.values[k]).collect();
+        let variance = seen.iter().map(|&k| frame.variance[k].max(1e-12)).collect();
         if frame.seen.iter().any(|s| !s) {
             // A lattice cell nobody saw this step: take the held estimate there.
             let held = self.held_aerial.as_ref().ok_or(TeamError::NotReady(Missing::EarlierFrame))?;
@@ -191,9 +208,9 @@ impl Assimilator {
                 frame.variance[k] = held.variance[i];
             }
         }
-        let est = frame.upsample()?;
-        self.held_aerial = Some(est.clone());
-        Ok(est)
+        let estimate = frame.upsample()?;
+        self.held_aerial = Some(estimate.clone());
+        Ok(AerialSight { estimate, cells, values, variance })
     }
 
     /// The first model, from the initialisation's aerial estimates (one per step).
@@ -239,57 +256,52 @@ impl Assimilator {
         Ok(())
     }
 
-    /// `fusion = "kalman"`: one step of the filter. The aerial estimate observes every cell
-    /// (its variance: the noise at that distance, the interpolation's, and the calibrated
-    /// extra); the boats observe their disks' cells with their noise. The process noise and
-    /// the model error are re-estimated at boat steps from the boats' innovations (their
-    /// expected square is `h P h' + s + boat noise`), smoothed, and clamped to the field's
-    /// variance: they cannot run away.
-    fn filter_step(&mut self, ahead: u64, aerial: &Estimate, cells: &[usize], vals: &[f64]) -> Result<Estimate, TeamError> {
-        let boat_var = self.cfg.boat_sigma * self.cfg.boat_sigma;
+    /// `fusion = "kalman"`: one step of the filter. The modes see the lattice cells the
+    /// aerials saw this step (each with its noise at that distance) and the boats' disks (their
+    /// noise); the detail (what the modes cannot hold) then sees the residuals. The process
+    /// noise and the model error are re-estimated at boat steps from the boats' innovations
+    /// (their expected square is `h P h' + detail variance + boat noise`), smoothed, and
+    /// clamped to the field's variance: they cannot run away.
+    fn filter_step(&mut self, ahead: u64, aerial: &AerialSight, cells: &[usize], vals: &[f64]) -> Result<Estimate, TeamError> {
+        let boat_var = (self.cfg.boat_sigma * self.cfg.boat_sigma).max(1e-12);
+        let aerial_extra = self.aerial_extra;
         let Some((f, at)) = self.filter.as_mut() else { return Err(TeamError::NotReady(Missing::Model)) };
         while *at < ahead {
             f.predict();
             *at += 1;
         }
-        let all: Vec<usize> = (0..aerial.values.len()).collect();
-        let aerial_var: Vec<f64> = aerial.variance.iter().map(|v| (v + self.aerial_extra).max(1e-12)).collect();
-        let boat_vars = vec![boat_var.max(1e-12); cells.len()];
+        let boat_vars = vec![boat_var; cells.len()];
         // Boat innovations against the forecast, for the noise estimates.
         let (prior_mean, prior_var) = f.field();
-        f.update(&[Observation { cells: &all, values: &aerial.values, variance: &aerial_var }, Observation { cells, values: vals, variance: &boat_vars }])?;
+        let prior_detail_var = f.detail_var.clone();
+        let boats = Observation { cells, values: vals, variance: &boat_vars };
+        let lattice = Observation { cells: &aerial.cells, values: &aerial.values, variance: &aerial.variance };
+        if !aerial.cells.is_empty() {
+            f.learn_persistence(&lattice, 1.0)?;
+        }
+        f.update(&[lattice, boats])?;
+        // The detail: the aerial estimate at every cell (noise, interpolation and the
+        // calibrated extra), then the boats.
+        let all: Vec<usize> = (0..aerial.estimate.values.len()).collect();
+        let aerial_var: Vec<f64> = aerial.estimate.variance.iter().map(|v| (v + aerial_extra).max(1e-12)).collect();
+        f.update_detail(&[Observation { cells: &all, values: &aerial.estimate.values, variance: &aerial_var }, boats])?;
+        // The boats' innovations against the forecast: their expected square is the forecast's
+        // variance there plus the boats' noise.
         if !cells.is_empty() {
+            let mean_at = |v: &[f64]| cells.iter().map(|&c| v[c]).sum::<f64>() / cells.len() as f64;
             let field_var = {
                 let m = vals.iter().sum::<f64>() / vals.len() as f64;
                 (vals.iter().map(|v| (v - m).powi(2)).sum::<f64>() / vals.len() as f64).max(1e-12)
             };
             let d2 = cells.iter().zip(vals).map(|(&c, v)| (v - prior_mean[c]).powi(2)).sum::<f64>() / cells.len() as f64;
-            let expected = cells.iter().map(|&c| prior_var[c]).sum::<f64>() / cells.len() as f64 + boat_var;
-            let s_hat = (d2 - expected + f.model_error).clamp(0.0, field_var);
+            let (detail_part, expected) = (mean_at(&prior_detail_var).max(1e-12), mean_at(&prior_var) + boat_var);
+            let modal_part = expected - boat_var - detail_part;
+            let s_hat = (f.model_error * (d2 - modal_part - boat_var) / detail_part).clamp(0.0, field_var);
             f.model_error = (0.7 * f.model_error + 0.3 * s_hat).clamp(1e-12, field_var);
             let nis = (d2 / expected).clamp(0.25, 4.0);
             f.process = (f.process * nis.sqrt()).clamp(1e-12, field_var);
         }
-        let (mut values, mut variance) = f.field();
-        // What the modes cannot hold (`e`, variance `s` per cell, independent): its posterior
-        // at every cell from the residuals of the aerial estimate and, on the disks, of the
-        // boats' measurements, each weighted by its precision.
-        let s = f.model_error;
-        let mut boat_at = vec![None; values.len()];
-        for (&c, &v) in cells.iter().zip(vals) {
-            boat_at[c] = Some(v);
-        }
-        let boat_var = boat_var.max(1e-12);
-        for i in 0..values.len() {
-            let mut precision = 1.0 / s + 1.0 / aerial_var[i];
-            let mut weighted = (aerial.values[i] - values[i]) / aerial_var[i];
-            if let Some(v) = boat_at[i] {
-                precision += 1.0 / boat_var;
-                weighted += (v - values[i]) / boat_var;
-            }
-            values[i] += weighted / precision;
-            variance[i] = (variance[i] - s).max(0.0) + 1.0 / precision;
-        }
+        let (values, variance) = f.field();
         Ok(Estimate { values, variance })
     }
 
@@ -357,12 +369,12 @@ impl Assimilator {
     /// Fuse one step `ahead` steps after the model's newest snapshot: the aerial estimate with
     /// the boats' gappy estimate (when `boats` has samples) or the model's prediction. Boat
     /// steps also re-calibrate each source against the boats' measurements.
-    pub fn fuse_step(&mut self, ahead: u64, aerial: &Estimate, boats: &[Sample]) -> Result<Estimate, TeamError> {
+    pub fn fuse_step(&mut self, ahead: u64, sight: &AerialSight, boats: &[Sample]) -> Result<Estimate, TeamError> {
         let n = self.grid.len();
         let boat_var = self.cfg.boat_sigma * self.cfg.boat_sigma;
         let (pred, basis) = self.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
         let predicted = pred.predict(ahead as f64);
-        let mut aerial = aerial.clone();
+        let mut aerial = sight.estimate.clone();
         // A canonical order (disks do not overlap, so first cells differ): the result does not
         // depend on the order the boats' samples arrived in.
         let mut boats: Vec<&Sample> = boats.iter().collect();
@@ -397,7 +409,7 @@ impl Assimilator {
             Estimate { values: predicted, variance: vec![self.pred_var; n] }
         };
         if self.cfg.fusion == crate::fusion::Scheme::Kalman {
-            return self.filter_step(ahead, &aerial, &cells, &vals);
+            return self.filter_step(ahead, sight, &cells, &vals);
         }
         aerial.variance.iter_mut().for_each(|v| *v += self.aerial_extra);
         let measured = (!cells.is_empty()).then_some(Measured { cells: &cells, values: &vals, noise_var: boat_var });
@@ -476,7 +488,7 @@ mod tests {
                 if shuffle {
                     s.shuffle(&mut order);
                 }
-                init.push(server.aerial_estimate(&s).unwrap().values);
+                init.push(server.aerial_estimate(&s).unwrap().estimate.values);
             }
             server.initialise(init).unwrap();
             let plan = server.allocate().unwrap();

@@ -131,6 +131,8 @@ pub struct ServerCore {
     pub snapshots: Vec<Vec<f64>>,
     /// The aerial estimate of every step assimilated so far (the aerial-only team's map).
     pub aerial_estimates: Vec<Vec<f64>>,
+    /// The reported variance per cell of every fused snapshot (for calibration).
+    pub variances: Vec<Vec<f64>>,
     /// Late batches taken by [`Self::ingest_deferred`] and not yet re-fitted.
     stale: bool,
     /// The earliest epoch those late batches belong to: the re-fit starts there.
@@ -161,6 +163,7 @@ impl ServerCore {
             version: 0,
             snapshots: vec![],
             aerial_estimates: vec![],
+            variances: vec![],
             stale: false,
             stale_from: u64::MAX,
             checkpoints: Some(BTreeMap::new()),
@@ -271,12 +274,14 @@ impl ServerCore {
                 self.assim.rewind(cp)?;
                 self.snapshots.truncate(*steps);
                 self.aerial_estimates.truncate(*steps);
+                self.variances.truncate(*steps);
                 self.epoch = e;
             }
             None => {
                 self.assim = Assimilator::new(&self.cfg, *self.assim.grid(), self.schedule.frames)?;
                 self.snapshots.clear();
                 self.aerial_estimates.clear();
+                self.variances.clear();
                 self.epoch = 0;
             }
         }
@@ -500,8 +505,9 @@ impl ServerCore {
             let mut init = vec![];
             for k in steps {
                 let est = self.assim.aerial_estimate(&Self::samples_at(&batches, VehicleKind::Aerial, k))?;
-                self.aerial_estimates.push(est.values.clone());
-                init.push(est.values);
+                self.aerial_estimates.push(est.estimate.values.clone());
+                self.variances.push(est.estimate.variance);
+                init.push(est.estimate.values);
             }
             self.snapshots.extend(init.iter().cloned());
             self.assim.initialise(init)?;
@@ -510,9 +516,11 @@ impl ServerCore {
             let mut epoch = vec![];
             for k in steps {
                 let aerial = self.assim.aerial_estimate(&Self::samples_at(&batches, VehicleKind::Aerial, k))?;
-                self.aerial_estimates.push(aerial.values.clone());
+                self.aerial_estimates.push(aerial.estimate.values.clone());
                 let boats = Self::samples_at(&batches, VehicleKind::Boat, k);
-                epoch.push(self.assim.fuse_step((k + 1 - k0) as u64, &aerial, &boats)?.values);
+                let fused = self.assim.fuse_step((k + 1 - k0) as u64, &aerial, &boats)?;
+                self.variances.push(fused.variance);
+                epoch.push(fused.values);
             }
             self.snapshots.extend(epoch.iter().cloned());
             self.assim.assimilate(epoch)?;

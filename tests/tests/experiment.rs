@@ -33,7 +33,7 @@ fn tiny_experiment_writes_a_deterministic_report() {
     // the number in results.json.
     let csv = std::fs::read_to_string(a.join("per_step.csv")).unwrap();
     let mut lines = csv.lines();
-    assert_eq!(lines.next(), Some("row,preset,seed,team,step,mse"));
+    assert_eq!(lines.next(), Some("row,preset,seed,team,step,mse,calibration"));
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     let row = &res["rows"][1];
     let from = row["scored_from"].as_u64().unwrap() as usize;

@@ -152,8 +152,20 @@ impl ExperimentConfig {
     }
 }
 
-/// A team's name and its MSE at each step (`None`: no data yet).
-pub type TeamSteps = (String, Vec<Option<f64>>);
+/// A team's MSE at each step (`None`: no data yet) and, for a fused team, its calibration
+/// at each step (mean over cells of error^2 / reported variance).
+#[derive(Debug, Clone)]
+pub struct TeamSteps {
+    pub team: String,
+    pub mse: Vec<Option<f64>>,
+    pub calibration: Option<Vec<f64>>,
+}
+
+impl TeamSteps {
+    fn fused(team: &str, o: &TeamOutcome) -> Self {
+        Self { team: team.into(), mse: o.heterogeneous.iter().map(|&x| Some(x)).collect(), calibration: Some(o.calibration.clone()) }
+    }
+}
 
 /// One seed of one row: every team's time-averaged MSE over the steps where all have data.
 #[derive(Debug, Clone, Serialize)]
@@ -165,6 +177,8 @@ pub struct SeedResult {
     /// From step 0, for the teams that have data there (labelled in the report).
     pub heterogeneous_from_step0: f64,
     pub aerial_only_from_step0: f64,
+    /// Fused teams: calibration averaged over the scored steps.
+    pub calibration: BTreeMap<String, f64>,
 }
 
 /// A paired difference of two teams' time-averaged MSE over seeds, and what it says.
@@ -191,6 +205,12 @@ pub struct RowResult {
     /// heterogeneous - aerial-only, heterogeneous - boat-only, QR - random (and each extra
     /// fusion scheme - the team's own).
     pub comparisons: Vec<Comparison>,
+    /// Fused teams: calibration (mean error^2 / reported variance over cells and scored
+    /// steps), mean over seeds with its 95% interval.
+    pub calibration: BTreeMap<String, Interval>,
+    /// Fused teams: the fraction of scored steps, pooled over seeds, where the team's MSE is
+    /// at most the better single team's (aerial-only or boat-only).
+    pub at_most_best_single: BTreeMap<String, f64>,
     /// The first seed's QR run (Fig. 11).
     #[serde(skip)]
     pub figure: TeamOutcome,
@@ -208,14 +228,14 @@ impl RowResult {
         first
             .iter()
             .enumerate()
-            .map(|(t, (name, steps))| {
-                let points = (0..steps.len())
+            .map(|(t, steps)| {
+                let points = (0..steps.mse.len())
                     .filter_map(|k| {
-                        let v: Vec<f64> = self.per_step.iter().filter_map(|(_, teams)| teams[t].1[k]).collect();
+                        let v: Vec<f64> = self.per_step.iter().filter_map(|(_, teams)| teams[t].mse[k]).collect();
                         (v.len() == self.per_step.len()).then(|| (k, Interval::of(&v)))
                     })
                     .collect();
-                (name.clone(), points)
+                (steps.team.clone(), points)
             })
             .collect()
     }
@@ -274,22 +294,27 @@ pub const RANDOM: &str = "heterogeneous-random";
 fn run_seed(cfg: &ExperimentConfig, r: &Row, truth: &FieldSeries, seed: u64) -> Result<(SeedResult, TeamOutcome, Vec<TeamSteps>), team::TeamError> {
     let qr = team::run(&cfg.team_for_seed(r, Placement::Qr, seed), truth, |_, _| {})?;
     let random = team::run(&cfg.team_for_seed(r, Placement::Random, seed), truth, |_, _| {})?;
-    let some = |v: &[f64]| v.iter().map(|&x| Some(x)).collect::<Vec<_>>();
     let mut mse = BTreeMap::from([
         (HETEROGENEOUS.to_string(), qr.mean_heterogeneous),
         (AERIAL_ONLY.into(), qr.mean_aerial_only),
         (BOAT_ONLY.into(), qr.mean_boat_only),
         (RANDOM.into(), random.mean_heterogeneous),
     ]);
-    let mut steps =
-        vec![(HETEROGENEOUS.to_string(), some(&qr.heterogeneous)), (AERIAL_ONLY.into(), some(&qr.aerial_only)), (BOAT_ONLY.into(), qr.boat_only.clone()), (RANDOM.into(), some(&random.heterogeneous))];
+    let mut calibration = BTreeMap::from([(HETEROGENEOUS.to_string(), qr.mean_calibration), (RANDOM.into(), random.mean_calibration)]);
+    let mut steps = vec![
+        TeamSteps::fused(HETEROGENEOUS, &qr),
+        TeamSteps { team: AERIAL_ONLY.into(), mse: qr.aerial_only.iter().map(|&x| Some(x)).collect(), calibration: None },
+        TeamSteps { team: BOAT_ONLY.into(), mse: qr.boat_only.clone(), calibration: None },
+        TeamSteps::fused(RANDOM, &random),
+    ];
     for &scheme in &cfg.extra_fusions {
         let other = team::run(&TeamConfig { fusion: scheme, ..cfg.team_for_seed(r, Placement::Qr, seed) }, truth, |_, _| {})?;
         let name = format!("{HETEROGENEOUS}-{scheme}");
         mse.insert(name.clone(), other.mean_heterogeneous);
-        steps.push((name, some(&other.heterogeneous)));
+        calibration.insert(name.clone(), other.mean_calibration);
+        steps.push(TeamSteps::fused(&name, &other));
     }
-    let result = SeedResult { seed, mse, heterogeneous_from_step0: qr.heterogeneous_from_step0, aerial_only_from_step0: qr.aerial_only_from_step0 };
+    let result = SeedResult { seed, mse, heterogeneous_from_step0: qr.heterogeneous_from_step0, aerial_only_from_step0: qr.aerial_only_from_step0, calibration };
     Ok((result, qr, steps))
 }
 
@@ -367,6 +392,8 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
         for scheme in &cfg.extra_fusions {
             comparisons.push(compare(&format!("{HETEROGENEOUS}-{scheme}"), HETEROGENEOUS));
         }
+        let calibration = seed_results[0].calibration.keys().map(|t| (t.clone(), Interval::of(&seed_results.iter().map(|s| s.calibration[t]).collect::<Vec<_>>()))).collect();
+        let at_most_best_single = at_most_best_single(&per_step, figure.scored_from);
         let step0 = |f: fn(&SeedResult) -> f64| Interval::of(&seed_results.iter().map(f).collect::<Vec<_>>());
         rows.push(RowResult {
             row: r.clone(),
@@ -377,6 +404,8 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
             seeds: seed_results,
             teams,
             comparisons,
+            calibration,
+            at_most_best_single,
             figure,
             per_step,
         });
@@ -436,6 +465,28 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
     Ok((Results { config: cfg.clone(), rows, eig_study: eig, forgetting, verdict }, cache))
 }
 
+/// For each fused team: the fraction of steps from `from` on, pooled over seeds, where its
+/// MSE is at most the better of the aerial-only and boat-only teams'.
+fn at_most_best_single(per_step: &[(u64, Vec<TeamSteps>)], from: usize) -> BTreeMap<String, f64> {
+    let mut count: BTreeMap<String, (usize, usize)> = BTreeMap::new();
+    for (_, teams) in per_step {
+        let of = |name: &str| teams.iter().find(|t| t.team == name).map(|t| &t.mse);
+        let (Some(a), Some(b)) = (of(AERIAL_ONLY), of(BOAT_ONLY)) else { continue };
+        for t in teams.iter().filter(|t| t.calibration.is_some()) {
+            let c = count.entry(t.team.clone()).or_default();
+            for k in from..t.mse.len() {
+                if let (Some(x), Some(a), Some(b)) = (t.mse[k], a[k], b[k]) {
+                    c.1 += 1;
+                    if x <= a.min(b) {
+                        c.0 += 1;
+                    }
+                }
+            }
+        }
+    }
+    count.into_iter().map(|(t, (wins, all))| (t, wins as f64 / all.max(1) as f64)).collect()
+}
+
 /// Work units `run` reports, for a progress bar.
 pub fn units(cfg: &ExperimentConfig) -> usize {
     let clouds = cfg.rows.iter().map(Row::name).collect::<std::collections::BTreeSet<_>>().len();
@@ -443,16 +494,18 @@ pub fn units(cfg: &ExperimentConfig) -> usize {
 }
 
 /// `per_step.csv`: one line per row, seed, team and step where the team has data
-/// (`row,preset,seed,team,step,mse`; `row` counts the experiment's rows from 1), so every
+/// (`row,preset,seed,team,step,mse,calibration`; `row` counts the experiment's rows from 1;
+/// `calibration` is empty for the single-source teams, which report no variance), so every
 /// figure and table can be recomputed with pandas.
 fn write_per_step(dir: &Path, res: &Results) -> anyhow::Result<()> {
-    let mut csv = String::from("row,preset,seed,team,step,mse\n");
+    let mut csv = String::from("row,preset,seed,team,step,mse,calibration\n");
     for (i, r) in res.rows.iter().enumerate() {
         for (seed, teams) in &r.per_step {
-            for (team, steps) in teams {
-                for (k, v) in steps.iter().enumerate() {
+            for t in teams {
+                for (k, v) in t.mse.iter().enumerate() {
                     if let Some(v) = v {
-                        writeln!(csv, "{},{},{seed},{team},{k},{v:e}", i + 1, r.row.name())?;
+                        let c = t.calibration.as_ref().map_or(String::new(), |c| format!("{:e}", c[k]));
+                        writeln!(csv, "{},{},{seed},{},{k},{v:e},{c}", i + 1, r.row.name(), t.team)?;
                     }
                 }
             }
@@ -469,7 +522,7 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
     let mut figures = vec![];
     let mut md = String::new();
     writeln!(md, "# hetfleet experiment report\n")?;
-    writeln!(md, "Made by `{command}`. Every number is in `results.json`, every per-step error in `per_step.csv` (`row,preset,seed,team,step,mse`).\n")?;
+    writeln!(md, "Made by `{command}`. Every number is in `results.json`, every per-step error in `per_step.csv` (`row,preset,seed,team,step,mse,calibration`).\n")?;
     writeln!(
         md,
         "Truth: the plasma-cloud simulator at {} x {}, {} frames, area-averaged by the boats' space rate to the model grid. \
@@ -530,6 +583,28 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
     for r in &res.rows {
         let w = &r.row;
         writeln!(md, "| {} | {}/{} | {}/{} | {} | {} | {} |", w.name(), w.av_time, w.mv_time, w.av_space, w.mv_space, w.noise, cell(&r.heterogeneous_from_step0), cell(&r.aerial_only_from_step0))?;
+    }
+    writeln!(
+        md,
+        "\n### The fused teams: calibration and per-step wins\n\n\
+         Calibration: the mean over cells and scored steps of error^2 / reported variance, mean over seeds [95% interval] (1 is calibrated; above 1 the reported variance is too small). \
+         Steps won: the fraction of scored steps, pooled over seeds, where the team's MSE is at most the better single team's (aerial-only or boat-only) at that step.\n"
+    )?;
+    let fused: Vec<String> = res.rows.first().map_or(vec![], |r| r.calibration.keys().cloned().collect());
+    writeln!(md, "| cloud | AV/MV time | AV/MV space | noise |{}", fused.iter().map(|t| format!(" {t}: calibration | {t}: steps won |")).collect::<String>())?;
+    writeln!(md, "|{}", "---|".repeat(4 + 2 * fused.len()))?;
+    for r in &res.rows {
+        let w = &r.row;
+        write!(md, "| {} | {}/{} | {}/{} | {} |", w.name(), w.av_time, w.mv_time, w.av_space, w.mv_space, w.noise)?;
+        for t in &fused {
+            write!(
+                md,
+                " {} | {:.1}% |",
+                r.calibration.get(t).map_or("".into(), |i| format!("{:.3} [{:.3}, {:.3}]", i.mean, i.lo, i.hi)),
+                100.0 * r.at_most_best_single.get(t).copied().unwrap_or(0.0)
+            )?;
+        }
+        writeln!(md)?;
     }
     let v = &res.verdict;
     writeln!(md)?;

@@ -39,12 +39,17 @@ pub struct TeamOutcome {
     pub heterogeneous: Vec<f64>,
     pub aerial_only: Vec<f64>,
     pub boat_only: Vec<Option<f64>>,
+    /// The heterogeneous team's calibration at each step: the mean over cells of error^2 /
+    /// reported variance (1 when the reported variance is the error's).
+    pub calibration: Vec<f64>,
     /// The first step where every team has data.
     pub scored_from: usize,
     /// Time-averaged MSE over steps `scored_from..`.
     pub mean_heterogeneous: f64,
     pub mean_aerial_only: f64,
     pub mean_boat_only: f64,
+    /// Calibration averaged over steps `scored_from..`.
+    pub mean_calibration: f64,
     /// Time-averaged MSE over every step (teams with data from step 0 only).
     pub heterogeneous_from_step0: f64,
     pub aerial_only_from_step0: f64,
@@ -61,6 +66,11 @@ pub struct TeamOutcome {
 
 fn mse(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / a.len().max(1) as f64
+}
+
+/// Mean over cells of error^2 / reported variance.
+fn calibration(estimate: &[f64], variance: &[f64], truth: &[f64]) -> f64 {
+    estimate.iter().zip(variance).zip(truth).map(|((e, v), t)| (e - t).powi(2) / v.max(1e-300)).sum::<f64>() / estimate.len().max(1) as f64
 }
 
 fn column(m: &Mat<f64>, k: usize) -> Vec<f64> {
@@ -98,10 +108,12 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
         heterogeneous: vec![],
         aerial_only: vec![],
         boat_only: vec![],
+        calibration: vec![],
         scored_from: 0,
         mean_heterogeneous: 0.0,
         mean_aerial_only: 0.0,
         mean_boat_only: 0.0,
+        mean_calibration: 0.0,
         heterogeneous_from_step0: 0.0,
         aerial_only_from_step0: 0.0,
         boat_steps: vec![],
@@ -140,6 +152,7 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
         for k in steps.clone() {
             let x = truth_at(k);
             out.heterogeneous.push(mse(&server.snapshots[k], &x));
+            out.calibration.push(calibration(&server.snapshots[k], &server.variances[k], &x));
             out.aerial_only.push(mse(&server.aerial_estimates[k], &x));
             // Boat-only team, from the same boat samples.
             let here: Vec<&Sample> = boat_samples.iter().filter(|s| s.step as usize == k).collect();
@@ -186,6 +199,7 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
     out.mean_heterogeneous = mean_from(&out.heterogeneous, out.scored_from);
     out.mean_aerial_only = mean_from(&out.aerial_only, out.scored_from);
     out.mean_boat_only = mean_from(&out.boat_only.iter().map(|v| v.unwrap_or(0.0)).collect::<Vec<_>>(), out.scored_from);
+    out.mean_calibration = mean_from(&out.calibration, out.scored_from);
     out.heterogeneous_from_step0 = mean_from(&out.heterogeneous, 0);
     out.aerial_only_from_step0 = mean_from(&out.aerial_only, 0);
     out.rank = server.assimilator().rank();
