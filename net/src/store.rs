@@ -8,7 +8,7 @@
 //! writing, on a copy, so a damaged file is refused with one error naming it and what is
 //! wrong, and is never changed by the refusal (opening a file for writing may repair it).
 
-use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition};
+use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition, TableHandle};
 use std::path::{Path, PathBuf};
 
 /// `(vehicle, seq) -> sealed message`.
@@ -119,7 +119,8 @@ impl Store {
             }
             Err(e) => return Err(io(e)),
         }
-        let (db, bytes, count) = open_checked(path)?;
+        let existing = path.exists();
+        let (db, bytes, count) = open_checked(path, existing)?;
         Ok(Self { db, path: path.to_path_buf(), bytes, count })
     }
 
@@ -240,9 +241,11 @@ fn read_meta(db: &impl ReadableDatabase, path: &Path, prefix: &str) -> Result<Ve
     Ok(out)
 }
 
-/// Open `path` for writing (creating the tables), read every record back (checked), and count
-/// the messages; a panic inside the store is an error.
-fn open_checked(path: &Path) -> Result<(Database, u64, u64)> {
+/// Open `path` for writing (creating the tables of a new file; an existing file must have
+/// exactly ours: a damaged table name would otherwise read as a missing table, created empty),
+/// read every record back (checked), and count the messages; a panic inside the store is an
+/// error.
+fn open_checked(path: &Path, existing: bool) -> Result<(Database, u64, u64)> {
     let opened = contained(|| -> Result<(Database, u64, u64)> {
         let db = Database::create(path).map_err(|e| match e {
             redb::DatabaseError::DatabaseAlreadyOpen => StoreError::InUse { path: path.into() },
@@ -254,6 +257,17 @@ fn open_checked(path: &Path) -> Result<(Database, u64, u64)> {
             other => damaged(path, other.to_string()),
         })?;
         let bad = |e: &dyn std::fmt::Display| damaged(path, e.to_string());
+        if existing {
+            let tables: Vec<String> = db.begin_read().map_err(|e| bad(&e))?.list_tables().map_err(|e| bad(&e))?.map(|t| t.name().to_string()).collect();
+            for want in [MESSAGES.name(), META.name()] {
+                if !tables.iter().any(|t| t == want) {
+                    return Err(damaged(path, format!("its `{want}` table is missing (tables: {tables:?})")));
+                }
+            }
+            if let Some(other) = tables.iter().find(|t| *t != MESSAGES.name() && *t != META.name()) {
+                return Err(damaged(path, format!("it has a table this store never writes, `{other}`")));
+            }
+        }
         let tx = db.begin_write().map_err(|e| bad(&e))?;
         tx.open_table(MESSAGES).map_err(|e| bad(&e))?;
         tx.open_table(META).map_err(|e| bad(&e))?;
@@ -274,7 +288,7 @@ fn verify_copy(path: &Path) -> Result<()> {
     std::fs::copy(path, &copy).map_err(|source| StoreError::Io { path: path.into(), source })?;
     // Closing it too: redb writes its allocator state when a database is dropped, and a
     // damaged one can panic there.
-    let checked = contained(|| open_checked(&copy).map(drop)).unwrap_or_else(|panic| Err(damaged(&copy, format!("the store could not close it ({panic})"))));
+    let checked = contained(|| open_checked(&copy, true).map(drop)).unwrap_or_else(|panic| Err(damaged(&copy, format!("the store could not close it ({panic})"))));
     let _ = std::fs::remove_file(&copy);
     // Errors name the file the operator gave, not the copy.
     checked.map_err(|e| match e {
@@ -294,6 +308,24 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
         dir
+    }
+
+    #[test]
+    fn a_damaged_table_name_is_refused_not_read_as_an_empty_table() {
+        // Found by the fuzz test: one flipped byte in the name `messages` made the table look
+        // missing, and opening created it anew, empty: every message silently gone.
+        let dir = scratch("table-name");
+        let p = dir.join("s.redb");
+        let mut s = Store::open(&p).unwrap();
+        s.commit(&[(("boat-1", 0), b"abc")], &[]).unwrap();
+        drop(s);
+        let mut bytes = std::fs::read(&p).unwrap();
+        let at = bytes.windows(8).position(|w| w == b"messages").expect("the table name is in the file");
+        bytes[at] ^= 0x20;
+        std::fs::write(&p, &bytes).unwrap();
+        let err = Store::open(&p).err().expect("refused");
+        assert!(err.is_bad_file() && err.to_string().contains("`messages` table is missing"), "{err}");
+        assert_eq!(std::fs::read(&p).unwrap(), bytes, "the refusal changed the file");
     }
 
     #[test]
