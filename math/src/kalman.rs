@@ -107,6 +107,10 @@ impl ModalFilter {
         self.basis.as_ref()
     }
 
+    pub fn dynamics(&self) -> MatRef<'_, f64> {
+        self.dynamics.as_ref()
+    }
+
     /// One step of the dynamics: `a = A a`, `P = A P A^T + q I`; the detail decays towards
     /// 0 and its variance towards `s`.
     pub fn predict(&mut self) {

@@ -10,7 +10,7 @@ use crate::fusion::{fuse, AerialFrame, AerialNoise, Estimate, Measured};
 use crate::grid::{Cell, Grid};
 use crate::kalman::{self, ModalFilter, Observation};
 use crate::protocol::Sample;
-use crate::sensing::{assign::assign, coverage, gappy, qr, real_basis};
+use crate::sensing::{assign::assign, coverage, gappy, horizon, qr, real_basis};
 use crate::team::{Missing, Placement, TeamConfig, TeamError};
 use faer::Mat;
 use rand::{RngExt, SeedableRng};
@@ -63,6 +63,8 @@ impl Allocation {
 #[derive(Debug, Clone)]
 pub struct AerialSight {
     pub estimate: Estimate,
+    /// The interpolation's own error variance per fine cell (from the frame's curvature).
+    pub interpolation: Vec<f64>,
     pub cells: Vec<usize>,
     pub values: Vec<f64>,
     pub variance: Vec<f64>,
@@ -79,6 +81,7 @@ pub struct Assimilator {
     /// The model fitted to its newest snapshot, and a real basis of its modes.
     fitted: Option<(DmdModel, Mat<f64>)>,
     held_aerial: Option<Estimate>,
+    held_interpolation: Vec<f64>,
     pred_var: f64,
     aerial_extra: f64,
     placement_rng: ChaCha8Rng,
@@ -87,6 +90,8 @@ pub struct Assimilator {
     /// `fusion = "kalman"`: the modal filter, and how many steps past the newest snapshot its
     /// state is.
     filter: Option<(ModalFilter, u64)>,
+    /// How far a boat goes in one step (m; infinite offline), for `placement = "horizon"`.
+    boat_speed: f64,
 }
 
 /// The Assimilator's state between two epochs, without its snapshots (they are only appended
@@ -96,6 +101,7 @@ pub struct AssimilatorCheckpoint {
     model: Option<Box<dyn Dmd>>,
     snapshots: usize,
     held_aerial: Option<Estimate>,
+    held_interpolation: Vec<f64>,
     pred_var: f64,
     aerial_extra: f64,
     placement_rng: ChaCha8Rng,
@@ -111,6 +117,7 @@ impl Assimilator {
             model: self.model.as_ref().map(|m| m.boxed()),
             snapshots: self.snapshots.len(),
             held_aerial: self.held_aerial.clone(),
+            held_interpolation: self.held_interpolation.clone(),
             pred_var: self.pred_var,
             aerial_extra: self.aerial_extra,
             placement_rng: self.placement_rng.clone(),
@@ -125,6 +132,7 @@ impl Assimilator {
         self.model = c.model.as_ref().map(|m| m.boxed());
         self.snapshots.truncate(c.snapshots);
         self.held_aerial = c.held_aerial.clone();
+        self.held_interpolation = c.held_interpolation.clone();
         (self.pred_var, self.aerial_extra) = (c.pred_var, c.aerial_extra);
         self.placement_rng = c.placement_rng.clone();
         self.boat_positions = c.boat_positions.clone();
@@ -150,18 +158,35 @@ impl Assimilator {
             snapshots: vec![],
             fitted: None,
             held_aerial: None,
+            held_interpolation: vec![0.0; grid.len()],
             pred_var: 1.0,
             aerial_extra: 0.0,
             placement_rng,
             boat_positions,
             aerial_positions: coverage::uniform_formation(&grid, cfg.aerials)?.positions,
             filter: None,
+            boat_speed: f64::INFINITY,
         })
+    }
+
+    /// Boats go at most `speed` metres per step: `placement = "horizon"` plans only disks
+    /// they can reach by their sampling step.
+    pub fn set_boat_speed(&mut self, speed: f64) {
+        self.boat_speed = speed;
     }
 
     /// The calibrated variance of the model's prediction (per cell).
     pub fn prediction_variance(&self) -> f64 {
         self.pred_var
+    }
+
+    /// The variance per cell of the forecast `h` steps after the newest snapshot: the Kalman
+    /// filter's, or the calibrated prediction variance for the other schemes.
+    pub fn forecast_variance(&self, h: u64) -> Vec<f64> {
+        match &self.filter {
+            Some((f, at)) => f.forecast(h.saturating_sub(*at) as usize).1,
+            None => vec![self.pred_var; self.grid.len()],
+        }
     }
 
     pub fn grid(&self) -> &Grid {
@@ -192,7 +217,7 @@ impl Assimilator {
     pub fn aerial_estimate(&mut self, samples: &[Sample]) -> Result<AerialSight, TeamError> {
         if samples.is_empty() {
             let estimate = self.held_aerial.clone().ok_or(TeamError::NotReady(Missing::AerialData))?;
-            return Ok(AerialSight { estimate, cells: vec![], values: vec![], variance: vec![] });
+            return Ok(AerialSight { estimate, interpolation: self.held_interpolation.clone(), cells: vec![], values: vec![], variance: vec![] });
         }
         let mut frame = AerialFrame::assemble(&self.grid, self.cfg.aerial_stride, samples, self.aerial_noise())?;
         let seen: Vec<usize> = (0..frame.seen.len()).filter(|&k| frame.seen[k]).collect();
@@ -209,8 +234,10 @@ impl Assimilator {
             }
         }
         let estimate = frame.upsample()?;
+        let interpolation = frame.interpolation_variance()?;
         self.held_aerial = Some(estimate.clone());
-        Ok(AerialSight { estimate, cells, values, variance })
+        self.held_interpolation = interpolation.clone();
+        Ok(AerialSight { estimate, interpolation, cells, values, variance })
     }
 
     /// The first model, from the initialisation's aerial estimates (one per step).
@@ -283,7 +310,7 @@ impl Assimilator {
         // The detail: the aerial estimate at every cell (noise, interpolation and the
         // calibrated extra), then the boats.
         let all: Vec<usize> = (0..aerial.estimate.values.len()).collect();
-        let aerial_var: Vec<f64> = aerial.estimate.variance.iter().map(|v| (v + aerial_extra).max(1e-12)).collect();
+        let aerial_var: Vec<f64> = (0..all.len()).map(|i| (aerial.estimate.variance[i] + aerial.interpolation[i] + aerial_extra).max(1e-12)).collect();
         f.update_detail(&[Observation { cells: &all, values: &aerial.estimate.values, variance: &aerial_var }, boats])?;
         // The boats' innovations against the forecast: their expected square is the forecast's
         // variance there plus the boats' noise.
@@ -331,30 +358,72 @@ impl Assimilator {
         let (cfg, grid) = (&self.cfg, &self.grid);
         let roster = crate::roster::Roster::of(cfg);
         let free: Vec<usize> = (0..cfg.boats).filter(|&b| !held.contains(&roster.boat_index(b))).collect();
-        let disks: Vec<Vec<usize>> = match (free.len(), cfg.placement) {
-            (0, _) => vec![],
-            (k, Placement::Qr) => qr::block_qr(basis.as_ref(), grid, k, cfg.radius)?.into_iter().map(|d| d.cells).collect(),
-            (k, Placement::DOptimal) => qr::block_dopt(basis.as_ref(), grid, k, cfg.radius)?.into_iter().map(|d| d.cells).collect(),
-            (k, Placement::Random) => random_disks(grid, k, cfg.radius, &mut self.placement_rng),
-        };
-        let centres: Vec<(usize, usize)> = disks
-            .iter()
-            .map(|d| {
-                let (r, c) = d.iter().fold((0.0, 0.0), |(r, c), &i| (r + grid.cell(i).row as f64, c + grid.cell(i).col as f64));
-                ((r / d.len() as f64).round() as usize, (c / d.len() as f64).round() as usize)
-            })
-            .collect();
-        let targets: Vec<(f64, f64)> = centres.iter().map(|&(r, c)| grid.centre_m(Cell::new(r, c))).collect();
-        let starts: Vec<(f64, f64)> = free.iter().map(|&b| self.boat_positions[b]).collect();
-        let (assignment, _) = if free.is_empty() { (vec![], 0.0) } else { assign(&starts, &targets, 1.0)? };
         let mut boats = vec![None; cfg.boats];
-        for (&b, a) in free.iter().zip(&assignment) {
-            if let Some(t) = a {
-                boats[b] = Some((disks[*t].clone(), centres[*t]));
-                self.boat_positions[b] = targets[*t];
+        // The filter's forecast at the next sampling step (`placement = "horizon"`).
+        let forecast = match (cfg.placement, &self.filter) {
+            (Placement::Horizon, Some((f, at))) => {
+                let mut g = f.clone();
+                for _ in *at..cfg.boat_period as u64 {
+                    g.predict();
+                }
+                Some(g)
+            }
+            (Placement::Horizon, None) => return Err(TeamError::NotReady(Missing::Model)),
+            _ => None,
+        };
+        if let Some(g) = &forecast {
+            let reach = self.boat_speed * cfg.boat_period as f64;
+            let fleet: Vec<horizon::Boat> = free.iter().map(|&b| horizon::Boat { position: self.boat_positions[b], reach_m: if reach.is_finite() { reach } else { f64::MAX } }).collect();
+            let f = horizon::Forecast {
+                basis: g.basis(),
+                dynamics: g.dynamics(),
+                cov: g.cov.as_ref(),
+                detail_var: &g.detail_var,
+                persistence: g.persistence,
+                period: cfg.boat_period,
+                epochs: cfg.horizon_epochs,
+            };
+            let boat_var = (cfg.boat_sigma * cfg.boat_sigma).max(1e-12);
+            for c in horizon::plan(grid, &f, &fleet, cfg.radius, boat_var)? {
+                let b = free[c.boat];
+                self.boat_positions[b] = grid.centre_m(c.centre);
+                boats[b] = Some((c.cells, (c.centre.row, c.centre.col)));
+            }
+        } else {
+            let disks: Vec<Vec<usize>> = match (free.len(), cfg.placement) {
+                (0, _) => vec![],
+                (k, Placement::Qr) => qr::block_qr(basis.as_ref(), grid, k, cfg.radius)?.into_iter().map(|d| d.cells).collect(),
+                (k, Placement::DOptimal) => qr::block_dopt(basis.as_ref(), grid, k, cfg.radius)?.into_iter().map(|d| d.cells).collect(),
+                (k, Placement::Random) => random_disks(grid, k, cfg.radius, &mut self.placement_rng),
+                (_, Placement::Horizon) => return Err(TeamError::NotReady(Missing::Model)),
+            };
+            let centres: Vec<(usize, usize)> = disks
+                .iter()
+                .map(|d| {
+                    let (r, c) = d.iter().fold((0.0, 0.0), |(r, c), &i| (r + grid.cell(i).row as f64, c + grid.cell(i).col as f64));
+                    ((r / d.len() as f64).round() as usize, (c / d.len() as f64).round() as usize)
+                })
+                .collect();
+            let targets: Vec<(f64, f64)> = centres.iter().map(|&(r, c)| grid.centre_m(Cell::new(r, c))).collect();
+            let starts: Vec<(f64, f64)> = free.iter().map(|&b| self.boat_positions[b]).collect();
+            let (assignment, _) = if free.is_empty() { (vec![], 0.0) } else { assign(&starts, &targets, 1.0)? };
+            for (&b, a) in free.iter().zip(&assignment) {
+                if let Some(t) = a {
+                    boats[b] = Some((disks[*t].clone(), centres[*t]));
+                    self.boat_positions[b] = targets[*t];
+                }
             }
         }
-        let density = coverage::temporal_density(pred, cfg.density_floor)?;
+        // Aerials: Lloyd under the temporal density, or (horizon) under the forecast's
+        // variance, floored.
+        let density = match &forecast {
+            Some(g) => {
+                let (_, var) = g.field();
+                let top = var.iter().cloned().fold(0.0, f64::max).max(1e-300);
+                var.iter().map(|v| cfg.density_floor + (1.0 - cfg.density_floor) * v / top).collect()
+            }
+            None => coverage::temporal_density(pred, cfg.density_floor)?,
+        };
         let flying: Vec<usize> = (0..cfg.aerials).filter(|a| !held.contains(a)).collect();
         if !flying.is_empty() {
             let starts: Vec<(f64, f64)> = flying.iter().map(|&a| self.aerial_positions[a]).collect();
@@ -389,7 +458,10 @@ impl Assimilator {
                 let m = cells.iter().zip(&vals).map(|(&c, v)| (est[c] - v).powi(2)).sum::<f64>() / cells.len() as f64;
                 (m - boat_var).max(1e-12)
             };
-            let noise_part = cells.iter().map(|&c| aerial.variance[c]).sum::<f64>() / cells.len() as f64;
+            // (The Kalman filter models the interpolation's error itself: the extra is what
+            // is left beyond it.)
+            let modelled = |c: usize| aerial.variance[c] + if self.cfg.fusion == crate::fusion::Scheme::Kalman { sight.interpolation[c] } else { 0.0 };
+            let noise_part = cells.iter().map(|&c| modelled(c)).sum::<f64>() / cells.len() as f64;
             self.aerial_extra = (innovation(&aerial.values) - noise_part).max(0.0);
             self.pred_var = innovation(&predicted);
             match gappy::reconstruct(basis.as_ref(), &cells, &vals, boat_var) {

@@ -9,7 +9,7 @@
 
 use crate::grid::Grid;
 use crate::protocol::{self, Ack, MeasurementBatch, ModelUpdate, Plan, Sample, Target, VehicleKind};
-use crate::team::{TeamConfig, TeamError};
+use crate::team::{LearnFrom, TeamConfig, TeamError};
 use crate::{schedule::Schedule, Allocation, Assimilator};
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -145,6 +145,8 @@ pub struct ServerCore {
     forced: BTreeSet<u64>,
     /// Epochs whose [`EpochRecord`] changed since the node last journalled them.
     unjournalled: BTreeSet<u64>,
+    /// How far a boat goes in one step (m), for `placement = "horizon"`.
+    boat_speed: f64,
 }
 
 impl ServerCore {
@@ -169,6 +171,7 @@ impl ServerCore {
             checkpoints: Some(BTreeMap::new()),
             forced: BTreeSet::new(),
             unjournalled: BTreeSet::new(),
+            boat_speed: f64::INFINITY,
         })
     }
 
@@ -279,6 +282,7 @@ impl ServerCore {
             }
             None => {
                 self.assim = Assimilator::new(&self.cfg, *self.assim.grid(), self.schedule.frames)?;
+                self.assim.set_boat_speed(self.boat_speed);
                 self.snapshots.clear();
                 self.aerial_estimates.clear();
                 self.variances.clear();
@@ -513,17 +517,21 @@ impl ServerCore {
             self.assim.initialise(init)?;
         } else {
             let k0 = steps.start;
-            let mut epoch = vec![];
+            let (mut epoch, mut learn) = (vec![], vec![]);
             for k in steps {
                 let aerial = self.assim.aerial_estimate(&Self::samples_at(&batches, VehicleKind::Aerial, k))?;
                 self.aerial_estimates.push(aerial.estimate.values.clone());
                 let boats = Self::samples_at(&batches, VehicleKind::Boat, k);
                 let fused = self.assim.fuse_step((k + 1 - k0) as u64, &aerial, &boats)?;
                 self.variances.push(fused.variance);
+                learn.push(match self.cfg.learn_from {
+                    LearnFrom::Posterior => fused.values.clone(),
+                    LearnFrom::Aerial => aerial.estimate.values,
+                });
                 epoch.push(fused.values);
             }
-            self.snapshots.extend(epoch.iter().cloned());
-            self.assim.assimilate(epoch)?;
+            self.snapshots.extend(epoch);
+            self.assim.assimilate(learn)?;
         }
         self.epoch = e + 1;
         self.version += 1;
@@ -616,8 +624,8 @@ impl ServerCore {
         Some(Ack { vehicle: vehicle.into(), seq: seq? })
     }
 
-    /// The model as published on `model/latest` (`None` before the first fit). The variance
-    /// is the model's calibrated prediction error per cell.
+    /// The model as published on `model/latest` (`None` before the first fit), with the
+    /// newest estimate's reported variance per cell and the forecast's to the next boat step.
     pub fn model_update(&self) -> Option<ModelUpdate> {
         let m = self.assim.model()?;
         let (n, r) = (m.modes.modes.nrows(), m.modes.modes.ncols());
@@ -639,8 +647,18 @@ impl ServerCore {
             modes_re,
             modes_im,
             amplitudes: m.amplitudes.iter().map(|a| [a.re, a.im]).collect(),
-            variance: vec![self.assim.prediction_variance(); n],
+            variance: self.variances.last().cloned().unwrap_or_else(|| vec![self.assim.prediction_variance(); n]),
+            forecast_steps: self.cfg.boat_period as u64,
+            forecast_variance: self.assim.forecast_variance(self.cfg.boat_period as u64),
         })
+    }
+
+    /// Boats go at most `speed` metres per step (the mission's `[motion]`): horizon placement
+    /// plans only disks they reach in time. Set before the first epoch.
+    pub fn with_boat_speed(mut self, speed: f64) -> Self {
+        self.boat_speed = speed;
+        self.assim.set_boat_speed(speed);
+        self
     }
 
     pub fn assimilator(&self) -> &Assimilator {

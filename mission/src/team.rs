@@ -17,6 +17,43 @@ pub enum Placement {
     DOptimal,
     /// Uniformly random non-overlapping disks (seeded): the baseline.
     Random,
+    /// The disks that remove the most forecast uncertainty over the next `horizon_epochs`
+    /// epochs, within each boat's reach, disks and boats chosen together (needs `fusion =
+    /// "kalman"`: it plans on the filter's forecast covariance).
+    Horizon,
+}
+
+impl std::fmt::Display for Placement {
+    /// The name a configuration gives it.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Placement::Qr => "qr",
+            Placement::DOptimal => "d-optimal",
+            Placement::Random => "random",
+            Placement::Horizon => "horizon",
+        })
+    }
+}
+
+/// What the online DMD is fed at each step after the first model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LearnFrom {
+    /// The fused estimate (the filter's posterior mean): every source, at every step.
+    #[default]
+    Posterior,
+    /// The aerials' interpolated frame alone: no forecast in it, so the model can never learn
+    /// its own predictions back, but coarse and noisy.
+    Aerial,
+}
+
+impl std::fmt::Display for LearnFrom {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            LearnFrom::Posterior => "posterior",
+            LearnFrom::Aerial => "aerial",
+        })
+    }
 }
 
 /// Every choice of one run.
@@ -45,7 +82,11 @@ pub struct TeamConfig {
     pub method: Method,
     pub gamma: f64,
     pub placement: Placement,
+    /// `placement = "horizon"`: how many epochs ahead the uncertainty counts.
+    pub horizon_epochs: usize,
     pub fusion: Scheme,
+    /// What the model learns from (README, "What the model learns from").
+    pub learn_from: LearnFrom,
     /// Floor of the aerials' coverage density.
     pub density_floor: f64,
     pub seed: u64,
@@ -68,7 +109,9 @@ impl Default for TeamConfig {
             method: Method::General,
             gamma: 1.0,
             placement: Placement::Qr,
-            fusion: Scheme::InverseVariance,
+            horizon_epochs: 3,
+            fusion: Scheme::Kalman,
+            learn_from: LearnFrom::Posterior,
             density_floor: 0.2,
             seed: 7,
         }
@@ -95,6 +138,17 @@ pub enum TeamError {
 }
 
 impl TeamConfig {
+    /// The choices that must go together, whatever the grid.
+    pub fn check_choices(&self) -> Result<(), TeamError> {
+        if self.placement == Placement::Horizon && self.fusion != Scheme::Kalman {
+            return Err(TeamError::Config(format!("placement = \"horizon\" plans on the Kalman filter's forecast covariance: it needs fusion = \"kalman\", not \"{}\"", self.fusion)));
+        }
+        if self.horizon_epochs == 0 {
+            return Err(TeamError::Config("horizon_epochs must be at least 1".into()));
+        }
+        Ok(())
+    }
+
     pub fn validate(&self, grid: &Grid, frames: usize) -> Result<(), TeamError> {
         let bad = |m: String| Err(TeamError::Config(m));
         if self.aerials == 0 || self.boats == 0 {
@@ -110,6 +164,7 @@ impl TeamConfig {
         if nonneg.iter().any(|v| !(v.is_finite() && *v >= 0.0)) || !(self.radius.is_finite() && self.radius >= 0.0) {
             return bad("noise, radius and density floor must be finite and >= 0".into());
         }
+        self.check_choices()?;
         if self.density_floor > 1.0 {
             return bad("density_floor must be in [0, 1]".into());
         }

@@ -427,7 +427,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let (mission, truth) = args.node.load()?;
     let (grid, frames) = mission.workspace(&truth)?;
     let keys = Keys::new(&mission.mission)?;
-    let mut core = ServerCore::new(&mission.team, grid, frames)?;
+    let mut core = ServerCore::new(&mission.team, grid, frames)?.with_boat_speed(mission.motion.boat_speed);
     let mut ctx = Context::new(grid);
     ctx.vehicles = core.vehicles().iter().map(|v| v.id.clone()).collect();
     let (journal, restored) = open_journal(&args.state_dir.join(format!("{}.redb", mission.mission)), &mission.mission, &mut core, &ctx)?;

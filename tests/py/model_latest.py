@@ -33,6 +33,10 @@ def main():
     modes = np.array(m["modes_re"]).reshape(rows * cols, r) + 1j * np.array(m["modes_im"]).reshape(rows * cols, r)
     assert r == summary["rank"], (r, summary["rank"])
     assert len(m["amplitudes"]) == r and len(m["variance"]) == rows * cols
+    # The estimate's reported variance and the forecast's to the next boat step, per cell.
+    var, fvar = np.array(m["variance"]), np.array(m["forecast_variance"])
+    assert fvar.shape == var.shape and m["forecast_steps"] > 0, (fvar.shape, m["forecast_steps"])
+    assert np.all(var >= 0) and np.all(fvar >= 0) and np.all(np.isfinite(fvar)), "variances finite and >= 0"
     assert m["version"] == summary["model_version"], (m["version"], summary["model_version"])
     expected = np.array(summary["eigenvalues"], dtype=float)
     assert np.allclose(lam, expected, rtol=0, atol=1e-12), (lam, expected)

@@ -276,7 +276,7 @@ pub fn check_exactly_once_and_same_model(mission: &std::path::Path, state: &std:
     assert_eq!(batches.len() as u64, expected_batches(&m, frames), "every batch in the journal exactly once");
     let order = |id: &str| ctx.vehicles.iter().position(|v| v == id).unwrap();
     batches.sort_by_key(|b| (fleet::mission::schedule::Schedule::epoch_of(b.kind, b.seq), order(&b.vehicle)));
-    let mut core = fleet::mission::server::ServerCore::new(&m.team, grid, frames).unwrap();
+    let mut core = fleet::mission::server::ServerCore::new(&m.team, grid, frames).unwrap().with_boat_speed(m.motion.boat_speed);
     for b in batches {
         core.ingest(b).unwrap();
     }

@@ -15,7 +15,7 @@ fn tiny_experiment_writes_a_deterministic_report() {
     assert_eq!(ja, std::fs::read(b.join("results.json")).unwrap(), "same seed, different numbers");
     let report = std::fs::read_to_string(a.join("report.md")).unwrap();
     assert!(report.contains("## Table 2"), "{report}");
-    for fig in ["fig10-cloud2.png", "fig10-cloud10.png", "fig11.png"] {
+    for fig in ["fig10-cloud2.png", "fig10-cloud10.png", "fig11.png", "fig11-uncertainty.png"] {
         assert!(report.contains(fig), "{fig} not in the report");
         assert_eq!(&std::fs::read(a.join(fig)).unwrap()[..4], b"\x89PNG", "{fig}");
     }

@@ -49,7 +49,7 @@ enum What {
         #[arg(long, default_value = "48x96")]
         grid: String,
     },
-    /// Sensor placement (point QR beside pysensors, block QR, D-optimal) and gappy timings.
+    /// Sensor placement (point QR beside pysensors, block QR, D-optimal, horizon) and gappy timings.
     Sensing {
         #[arg(long, default_value_t = 20)]
         repeats: usize,
@@ -142,7 +142,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             serde_json::to_value(t)?
         }
         What::Sensing { repeats, no_peers } => {
-            let pb = super::progress_bar(7, "sensing");
+            let pb = super::progress_bar(10, "sensing");
             let rows = sensing_timing::run(repeats, !no_peers, |msg| {
                 pb.set_message(msg.to_string());
                 pb.inc(1);

@@ -57,6 +57,10 @@ pub struct ExperimentConfig {
     /// `heterogeneous-<scheme>`.
     #[serde(default)]
     pub extra_fusions: Vec<crate::fusion::Scheme>,
+    /// Placements run besides QR and random (with the team's fusion), reported as
+    /// `heterogeneous-<placement>` and compared with both.
+    #[serde(default)]
+    pub extra_placements: Vec<Placement>,
     /// Simulator grid `[rows, cols]` and frames.
     pub truth_grid: [usize; 2],
     pub frames: usize,
@@ -118,6 +122,12 @@ impl ExperimentConfig {
         }
         if cfg.extra_fusions.contains(&cfg.team.fusion) {
             bail!("extra_fusions: {} is the team's own fusion already", cfg.team.fusion);
+        }
+        if let Some(p) = cfg.extra_placements.iter().find(|p| matches!(p, Placement::Qr | Placement::Random)) {
+            bail!("extra_placements: {p} runs already (every row has the QR and the random team)");
+        }
+        for &placement in &cfg.extra_placements {
+            TeamConfig { placement, ..cfg.team.clone() }.check_choices().with_context(|| format!("extra_placements: {placement}"))?;
         }
         Ok(cfg)
     }
@@ -314,6 +324,13 @@ fn run_seed(cfg: &ExperimentConfig, r: &Row, truth: &FieldSeries, seed: u64) -> 
         calibration.insert(name.clone(), other.mean_calibration);
         steps.push(TeamSteps::fused(&name, &other));
     }
+    for &placement in &cfg.extra_placements {
+        let other = team::run(&cfg.team_for_seed(r, placement, seed), truth, |_, _| {})?;
+        let name = format!("{HETEROGENEOUS}-{placement}");
+        mse.insert(name.clone(), other.mean_heterogeneous);
+        calibration.insert(name.clone(), other.mean_calibration);
+        steps.push(TeamSteps::fused(&name, &other));
+    }
     let result = SeedResult { seed, mse, heterogeneous_from_step0: qr.heterogeneous_from_step0, aerial_only_from_step0: qr.aerial_only_from_step0, calibration };
     Ok((result, qr, steps))
 }
@@ -391,6 +408,11 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
         let mut comparisons = vec![compare(HETEROGENEOUS, AERIAL_ONLY), compare(HETEROGENEOUS, BOAT_ONLY), compare(HETEROGENEOUS, RANDOM)];
         for scheme in &cfg.extra_fusions {
             comparisons.push(compare(&format!("{HETEROGENEOUS}-{scheme}"), HETEROGENEOUS));
+        }
+        for placement in &cfg.extra_placements {
+            let name = format!("{HETEROGENEOUS}-{placement}");
+            comparisons.push(compare(&name, HETEROGENEOUS));
+            comparisons.push(compare(&name, RANDOM));
         }
         let calibration = seed_results[0].calibration.keys().map(|t| (t.clone(), Interval::of(&seed_results.iter().map(|s| s.calibration[t]).collect::<Vec<_>>()))).collect();
         let at_most_best_single = at_most_best_single(&per_step, figure.scored_from);
@@ -551,7 +573,7 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
          The truth is one simulated cloud per preset (seed {}), as the paper has one dataset per cloud.\n",
         res.config.seed
     )?;
-    let extra: Vec<String> = res.config.extra_fusions.iter().map(|f| format!("{HETEROGENEOUS}-{f}")).collect();
+    let extra: Vec<String> = res.config.extra_fusions.iter().map(|f| f.to_string()).chain(res.config.extra_placements.iter().map(|p| p.to_string())).map(|x| format!("{HETEROGENEOUS}-{x}")).collect();
     write!(md, "| cloud | AV time | MV time | AV space | MV space | noise | model grid | scored from | heterogeneous (QR) | aerial-only | boat-only | heterogeneous (random) |")?;
     for x in &extra {
         write!(md, " {x} |")?;
@@ -659,6 +681,20 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
         plot::png(dir.join("fig11.png"), &panels, Some(range))?;
         writeln!(md, "![fig11](fig11.png)\n")?;
         figures.push("fig11.png".into());
+        // The uncertainty the estimate reports beside the error it makes, on one scale.
+        writeln!(md, "Below, at the same steps: the standard deviation the estimate reports at each cell beside its actual error (absolute value), on one colour scale.\n")?;
+        let sd: Vec<(usize, Vec<f64>, Vec<f64>)> = owned
+            .iter()
+            .map(|(k, i, t)| (*k, r.figure.snapshot_variances[*i].iter().map(|v| v.max(0.0).sqrt()).collect(), r.figure.snapshots[*i].iter().zip(t).map(|(e, x)| (e - x).abs()).collect()))
+            .collect();
+        let mut panels = vec![];
+        for (k, std, err) in &sd {
+            panels.push(Panel { values: std, rows, cols, title: format!("reported standard deviation, step {k}"), disks: vec![] });
+            panels.push(Panel { values: err, rows, cols, title: format!("|error|, step {k}"), disks: vec![] });
+        }
+        plot::png(dir.join("fig11-uncertainty.png"), &panels, Some(plot::range_of(&panels)))?;
+        writeln!(md, "![fig11-uncertainty](fig11-uncertainty.png)\n")?;
+        figures.push("fig11-uncertainty.png".into());
     }
     if !res.eig_study.is_empty() {
         writeln!(md, "## Fig. 7: dominant continuous-time eigenvalue (true -1 + 0i), {} trials\n", res.config.eig_trials)?;

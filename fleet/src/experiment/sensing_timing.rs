@@ -6,6 +6,7 @@ use crate::dmd::linalg::thin_svd;
 use crate::grid::Grid;
 use crate::process::synthetic::{smooth_basis, smooth_sphere_field};
 use crate::sensing::gappy::reconstruct;
+use crate::sensing::horizon::{plan, Boat, Forecast};
 use crate::sensing::qr::{block_dopt, block_qr, point_qr};
 use faer::Mat;
 use serde::Serialize;
@@ -79,7 +80,8 @@ pub fn pysensors_qr_ms(basis: &Mat<f64>, repeats: usize) -> Option<f64> {
 }
 
 /// Every sensing timing: point QR at r = 10 and 20 (beside pysensors), block QR and D-optimal
-/// at 48 x 96 (r 10, radius 10, 5 boats) and 96 x 384 (radius 15), gappy reconstruction at
+/// at 48 x 96 (r 10, radius 10, 5 boats) and 96 x 384 (radius 15), horizon placement at 48 x 96
+/// and 192 x 384, gappy reconstruction at
 /// 48 x 96 from 5 disks.
 pub fn run(repeats: usize, peers: bool, mut progress: impl FnMut(&str)) -> Vec<Timing> {
     let mut out = vec![];
@@ -108,6 +110,32 @@ pub fn run(repeats: usize, peers: bool, mut progress: impl FnMut(&str)) -> Vec<T
             std::hint::black_box(block_dopt(phi.as_ref(), &grid, 5, radius).expect("placement"));
         });
         push(format!("D-optimal blocks {rows} x {cols}, r 10, radius {radius}, 5 boats"), t, None);
+    }
+    // Horizon placement (issue 19's targets: under 50 ms at 48 x 96 with 5 boats, under 1 s
+    // at 192 x 384): a forecast over 10 modes, 3 epochs of 5 steps, boats spread over the grid
+    // reaching a quarter of its width; 192 x 384 at the same physical radius (40) and at 10.
+    for (rows, cols, radius) in [(48, 96, 10.0), (192, 384, 40.0), (192, 384, 10.0)] {
+        progress(&format!("horizon {rows}x{cols} radius {radius}"));
+        let grid = Grid::new(rows, cols, 1.0).expect("valid grid");
+        let phi = smooth_basis(&grid, 10, 7);
+        let q = phi.ncols();
+        let a = Mat::<f64>::from_fn(q, q, |i, j| {
+            if i == j {
+                0.97
+            } else if j == i + 1 {
+                0.05
+            } else {
+                0.0
+            }
+        });
+        let p = Mat::<f64>::from_fn(q, q, |i, j| if i == j { 0.1 } else { 0.0 });
+        let detail = vec![0.01; grid.len()];
+        let f = Forecast { basis: phi.as_ref(), dynamics: a.as_ref(), cov: p.as_ref(), detail_var: &detail, persistence: 0.9, period: 5, epochs: 3 };
+        let boats: Vec<Boat> = (0..5).map(|b| Boat { position: ((b as f64 + 0.5) * cols as f64 / 5.0, rows as f64 / 2.0), reach_m: cols as f64 / 4.0 }).collect();
+        let t = time_ms(repeats, || {
+            std::hint::black_box(plan(&grid, &f, &boats, radius, 1e-4).expect("placement"));
+        });
+        push(format!("horizon placement {rows} x {cols}, r 10, radius {radius}, 5 boats, 3 epochs"), t, None);
     }
     progress("gappy 48x96");
     let grid = Grid::new(48, 96, 1.0).expect("valid grid");

@@ -60,6 +60,9 @@ pub struct TeamOutcome {
     /// The heterogeneous team's fused snapshot at each boat step (for figures).
     #[serde(skip)]
     pub snapshots: Vec<Vec<f64>>,
+    /// Their reported variance per cell.
+    #[serde(skip)]
+    pub snapshot_variances: Vec<Vec<f64>>,
     /// Model rank after the last update.
     pub rank: usize,
 }
@@ -120,6 +123,7 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
         disks: vec![],
         aerial_positions: vec![],
         snapshots: vec![],
+        snapshot_variances: vec![],
         rank: 0,
     };
     // Boat-only team: its snapshots at boat steps, its model once it has enough. It has no
@@ -190,6 +194,7 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
                 out.disks.push(allocation.boats.iter().flatten().map(|(_, c)| *c).collect());
                 out.aerial_positions.push(allocation.aerials.clone());
                 out.snapshots.push(server.snapshots[k].clone());
+                out.snapshot_variances.push(server.variances[k].clone());
             }
             progress(k + 1, frames);
         }

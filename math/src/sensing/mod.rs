@@ -10,6 +10,7 @@
 pub mod assign;
 pub mod coverage;
 pub mod gappy;
+pub mod horizon;
 pub mod qr;
 
 use crate::dmd::linalg::thin_svd;

@@ -167,8 +167,13 @@ pub struct ModelUpdate {
     pub modes_re: Vec<f64>,
     pub modes_im: Vec<f64>,
     pub amplitudes: Vec<[f64; 2]>,
-    /// Per-cell error variance of the latest estimate.
+    /// Per-cell error variance the newest estimate (step `step`) reports: the fusion's
+    /// posterior variance.
     pub variance: Vec<f64>,
+    /// How many steps after `step` the forecast variance is for (the next boat step).
+    pub forecast_steps: u64,
+    /// Per-cell variance of the forecast `forecast_steps` ahead.
+    pub forecast_variance: Vec<f64>,
 }
 
 /// One target of a plan: a sampling step of the vehicle.
@@ -354,8 +359,18 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
                 return inv(format!("model grid {:?} is not ours {:?}", m.grid, ctx.grid));
             }
             let r = m.eigenvalues.len();
-            if m.modes_re.len() != n * r || m.modes_im.len() != n * r || m.amplitudes.len() != r || m.variance.len() != n {
-                return inv(format!("model of rank {r} on {n} cells has {} / {} mode values, {} amplitudes, {} variances", m.modes_re.len(), m.modes_im.len(), m.amplitudes.len(), m.variance.len()));
+            if m.modes_re.len() != n * r || m.modes_im.len() != n * r || m.amplitudes.len() != r || m.variance.len() != n || m.forecast_variance.len() != n {
+                return inv(format!(
+                    "model of rank {r} on {n} cells has {} / {} mode values, {} amplitudes, {} variances, {} forecast variances",
+                    m.modes_re.len(),
+                    m.modes_im.len(),
+                    m.amplitudes.len(),
+                    m.variance.len(),
+                    m.forecast_variance.len()
+                ));
+            }
+            if m.variance.iter().chain(&m.forecast_variance).any(|v| *v < 0.0) {
+                return inv("a variance is negative".into());
             }
             if !(m.dt.is_finite() && m.dt > 0.0) {
                 return inv(format!("dt {} must be positive", m.dt));
@@ -365,6 +380,7 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
             finite("modes_re", &m.modes_re)?;
             finite("modes_im", &m.modes_im)?;
             finite("variance", &m.variance)?;
+            finite("forecast_variance", &m.forecast_variance)?;
         }
         Body::Status(s) => {
             finite("latency", &[s.latency_p50_ms, s.latency_p99_ms])?;
@@ -432,6 +448,8 @@ mod tests {
                 modes_im: vec![0.0; 20],
                 amplitudes: vec![[1.0, 0.0]],
                 variance: vec![0.01; 20],
+                forecast_steps: 5,
+                forecast_variance: vec![0.02; 20],
             }),
             Body::Plan(Plan { vehicle: "boat-1".into(), model_version: 1, epoch: 3, targets: vec![Target { epoch: 3, step: 45, position: [2.0, 2.0], radius: 1.5, cells: vec![0, 1, 5] }] }),
         ];

@@ -1,0 +1,239 @@
+//! Placement over the horizon (`placement = "horizon"`): the boats' disks chosen by how much
+//! of the forecast's uncertainty they remove over the next `H` epochs, only where each boat can
+//! be by its sampling step, disks and boats chosen together.
+//!
+//! The forecast at the next sampling step is the filter's: modal covariance `P` (q x q, over an
+//! orthonormal basis `B`) and a detail variance `v_i` per cell. Measuring a disk `D` with noise
+//! `b` takes the modal covariance to `P (I + J P)^-1`, `J = sum_{i in D} h_i h_i^T / (v_i + b)`
+//! (the detail marginalised), and each detail variance on the disk to `v_i b / (v_i + b)`. What
+//! that removes now and at the next `H - 1` sampling steps (`p` steps apart, dynamics `A`,
+//! detail persistence `rho`) is `tr(dP M)`, `M = sum_k (A^{kp})^T A^{kp}` (the basis is
+//! orthonormal, so the field's variance is `tr` of the modal one), plus the detail's part
+//! times `sum_k rho^{2kp}`: the objective is the expected reduction of the trace of the
+//! forecast covariance summed over the horizon.
+//!
+//! Greedy on that objective, one disk at a time, each conditioned on the disks already chosen,
+//! among disks that do not overlap them and keep a boat for every chosen disk within reach (a
+//! matching, checked at each pick); the final boat-to-disk matching is the one of least total
+//! travel among those within reach.
+
+use super::SensingError;
+use crate::grid::{Cell, Grid};
+use faer::{Mat, MatRef};
+use pathfinding::matrix::Matrix;
+
+/// The forecast at the next sampling step, and what to plan over.
+pub struct Forecast<'a> {
+    pub basis: MatRef<'a, f64>,
+    /// One step of the modal dynamics.
+    pub dynamics: MatRef<'a, f64>,
+    /// Modal covariance at the sampling step.
+    pub cov: MatRef<'a, f64>,
+    /// Detail variance per cell at the sampling step, and its persistence per step.
+    pub detail_var: &'a [f64],
+    pub persistence: f64,
+    /// Steps between sampling steps, and how many sampling steps to count.
+    pub period: usize,
+    pub epochs: usize,
+}
+
+/// A boat: where it is (metres) and how far it can go before the sampling step.
+#[derive(Debug, Clone, Copy)]
+pub struct Boat {
+    pub position: (f64, f64),
+    pub reach_m: f64,
+}
+
+/// A chosen disk: its cells, centre, and the boat that goes there.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Chosen {
+    pub cells: Vec<usize>,
+    pub centre: Cell,
+    pub boat: usize,
+}
+
+struct Candidate {
+    cells: Vec<usize>,
+    centre: Cell,
+    at: (f64, f64),
+    info: Mat<f64>,
+    detail_gain: f64,
+}
+
+/// The disks and their boats (at most one disk per boat; fewer when no admissible disk is
+/// left), `noise_var` the boats' noise variance, `radius` the disks' in cells.
+pub fn plan(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, noise_var: f64) -> Result<Vec<Chosen>, SensingError> {
+    let (n, q) = (f.basis.nrows(), f.basis.ncols());
+    grid.check_len(n).map_err(|e| SensingError::Input(e.to_string()))?;
+    if f.dynamics.nrows() != q || f.dynamics.ncols() != q || f.cov.nrows() != q || f.cov.ncols() != q || f.detail_var.len() != n {
+        return Err(SensingError::Input(format!("a forecast over {q} modes on {n} cells needs {q} x {q} dynamics and covariance and {n} detail variances")));
+    }
+    if !(noise_var > 0.0 && noise_var.is_finite() && radius >= 0.0 && radius.is_finite()) {
+        return Err(SensingError::Input(format!("noise variance {noise_var} and radius {radius} must be positive and finite")));
+    }
+    if let Some(b) = boats.iter().find(|b| !(b.position.0.is_finite() && b.position.1.is_finite() && b.reach_m >= 0.0)) {
+        return Err(SensingError::Input(format!("boat at {:?} with reach {}", b.position, b.reach_m)));
+    }
+    if f.detail_var.iter().any(|v| !(v.is_finite() && *v >= 0.0)) {
+        return Err(SensingError::Input("detail variances must be finite and >= 0".into()));
+    }
+    // M = sum_k (A^{kp})^T A^{kp}, and the detail's weight over the same steps.
+    let step_p = (0..f.period).fold(Mat::<f64>::identity(q, q), |acc, _| f.dynamics * acc.as_ref());
+    let (mut m, mut power) = (Mat::<f64>::zeros(q, q), Mat::<f64>::identity(q, q));
+    let mut detail_weight = 0.0;
+    for k in 0..f.epochs.max(1) {
+        m += power.transpose() * power.as_ref();
+        power = step_p.as_ref() * power.as_ref();
+        detail_weight += f.persistence.powi(2 * (k * f.period) as i32);
+    }
+    // Candidate centres every half radius (every cell for small disks).
+    let every = ((radius / 2.0).floor() as usize).max(1);
+    let mut candidates = vec![];
+    for r in (0..grid.rows).step_by(every) {
+        for c in (0..grid.cols).step_by(every) {
+            let centre = Cell::new(r, c);
+            let cells = grid.disk(centre, radius);
+            let mut info = Mat::<f64>::zeros(q, q);
+            let mut detail_gain = 0.0;
+            for &i in &cells {
+                let w = 1.0 / (f.detail_var[i] + noise_var);
+                let h = f.basis.row(i);
+                for a in 0..q {
+                    for b in 0..q {
+                        info[(a, b)] += h[a] * h[b] * w;
+                    }
+                }
+                let v = f.detail_var[i];
+                detail_gain += v * v / (v + noise_var);
+            }
+            candidates.push(Candidate { at: grid.centre_m(centre), cells, centre, info, detail_gain: detail_gain * detail_weight });
+        }
+    }
+    let mut cov = f.cov.to_owned();
+    let mut taken = vec![false; n];
+    let mut chosen: Vec<usize> = vec![];
+    let reachable = |b: &Boat, at: (f64, f64)| (b.position.0 - at.0).hypot(b.position.1 - at.1) <= b.reach_m;
+    while chosen.len() < boats.len() {
+        let mut best: Option<(f64, usize, Mat<f64>)> = None;
+        for (ci, cand) in candidates.iter().enumerate() {
+            if cand.cells.is_empty() || cand.cells.iter().any(|&i| taken[i]) || !boats.iter().any(|b| reachable(b, cand.at)) {
+                continue;
+            }
+            let post = conditioned(cov.as_ref(), cand.info.as_ref())?;
+            let gain = trace_product(&(cov.as_ref() - post.as_ref()), &m) + cand.detail_gain;
+            if best.as_ref().is_none_or(|(g, _, _)| gain > *g) {
+                let mut with = chosen.clone();
+                with.push(ci);
+                if matching(&with, &candidates, boats, reachable)?.is_some() {
+                    best = Some((gain, ci, post));
+                }
+            }
+        }
+        let Some((_, ci, post)) = best else { break };
+        cov = post;
+        candidates[ci].cells.iter().for_each(|&i| taken[i] = true);
+        chosen.push(ci);
+    }
+    let Some(assignment) = matching(&chosen, &candidates, boats, reachable)? else { return Ok(vec![]) };
+    Ok(chosen.iter().zip(assignment).map(|(&ci, boat)| Chosen { cells: candidates[ci].cells.clone(), centre: candidates[ci].centre, boat }).collect())
+}
+
+/// `P (I + J P)^-1`.
+fn conditioned(p: MatRef<'_, f64>, j: MatRef<'_, f64>) -> Result<Mat<f64>, SensingError> {
+    let q = p.nrows();
+    let mut a = p * j;
+    for i in 0..q {
+        a[(i, i)] += 1.0;
+    }
+    let post = faer::linalg::solvers::Solve::solve(&a.partial_piv_lu(), p);
+    if post.col_iter().any(|c| c.iter().any(|v| !v.is_finite())) {
+        return Err(SensingError::Numerical("conditioning the forecast covariance lost finiteness".into()));
+    }
+    Ok(post)
+}
+
+fn trace_product(a: &Mat<f64>, b: &Mat<f64>) -> f64 {
+    (0..a.nrows()).map(|i| (0..a.ncols()).map(|k| a[(i, k)] * b[(k, i)]).sum::<f64>()).sum()
+}
+
+/// For the disks `chosen` (indices into `candidates`), the boat of each in a matching of least
+/// total travel with every boat within reach of its disk (`None`: no such matching).
+fn matching(chosen: &[usize], candidates: &[Candidate], boats: &[Boat], reachable: impl Fn(&Boat, (f64, f64)) -> bool) -> Result<Option<Vec<usize>>, SensingError> {
+    if chosen.is_empty() {
+        return Ok(Some(vec![]));
+    }
+    if chosen.len() > boats.len() {
+        return Ok(None);
+    }
+    // Travel in millimetres; out of reach costs more than every reachable leg together.
+    let far = 1i64 << 50;
+    let weights = Matrix::from_rows(chosen.iter().map(|&ci| {
+        let at = candidates[ci].at;
+        boats.iter().map(|b| if reachable(b, at) { ((b.position.0 - at.0).hypot(b.position.1 - at.1) * 1e3).round() as i64 } else { far }).collect::<Vec<_>>()
+    }))
+    .map_err(|e| SensingError::Numerical(format!("{e:?}")))?;
+    let (total, row_to_col) = pathfinding::kuhn_munkres::kuhn_munkres_min(&weights);
+    Ok((total < far).then_some(row_to_col))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One mode that lives on the left half of a 10 x 20 grid: every disk on the right half
+    /// removes nothing of the modal uncertainty.
+    fn left_mode(grid: &Grid) -> Mat<f64> {
+        let raw: Vec<f64> = (0..grid.len()).map(|i| if grid.cell(i).col < 10 { 1.0 } else { 0.0 }).collect();
+        let norm = raw.iter().map(|v| v * v).sum::<f64>().sqrt();
+        Mat::from_fn(grid.len(), 1, |i, _| raw[i] / norm)
+    }
+
+    #[test]
+    fn disks_go_where_the_uncertainty_is_and_each_boat_within_reach() {
+        let grid = Grid::new(10, 20, 1.0).unwrap();
+        let b = left_mode(&grid);
+        let a = Mat::from_fn(1, 1, |_, _| 0.95);
+        let p = Mat::from_fn(1, 1, |_, _| 1.0);
+        let dv = vec![1e-6; grid.len()];
+        let f = Forecast { basis: b.as_ref(), dynamics: a.as_ref(), cov: p.as_ref(), detail_var: &dv, persistence: 0.5, period: 5, epochs: 3 };
+        let boats = [Boat { position: (19.5, 5.5), reach_m: 100.0 }];
+        let got = plan(&grid, &f, &boats, 2.0, 1e-4).unwrap();
+        assert_eq!(got.len(), 1);
+        assert!(got[0].centre.col < 10, "the disk goes where the mode is: {:?}", got[0].centre);
+        // Out of reach of the left half, the boat still gets the best place it can reach
+        // (nothing to gain there, but a place), never one it cannot.
+        let slow = [Boat { position: (19.5, 5.5), reach_m: 3.0 }];
+        let got = plan(&grid, &f, &slow, 2.0, 1e-4).unwrap();
+        for c in &got {
+            let (x, y) = grid.centre_m(c.centre);
+            assert!((x - 19.5).hypot(y - 5.5) <= 3.0, "disk at {:?} out of reach", c.centre);
+        }
+    }
+
+    #[test]
+    fn the_greedy_gain_counts_what_earlier_disks_removed() {
+        // A persistent detail, equal everywhere: two boats pick two disjoint disks, and the
+        // second disk is a different place (the first one's detail is known now).
+        let grid = Grid::new(10, 20, 1.0).unwrap();
+        let b = left_mode(&grid);
+        let a = Mat::from_fn(1, 1, |_, _| 0.9);
+        let p = Mat::from_fn(1, 1, |_, _| 1e-9);
+        let dv = vec![1.0; grid.len()];
+        let f = Forecast { basis: b.as_ref(), dynamics: a.as_ref(), cov: p.as_ref(), detail_var: &dv, persistence: 0.9, period: 1, epochs: 2 };
+        let boats = [Boat { position: (0.0, 0.0), reach_m: 1e9 }, Boat { position: (20.0, 10.0), reach_m: 1e9 }];
+        let got = plan(&grid, &f, &boats, 2.0, 1e-2).unwrap();
+        assert_eq!(got.len(), 2);
+        assert!(got[0].cells.iter().all(|c| !got[1].cells.contains(c)), "disks overlap");
+        assert_ne!(got[0].boat, got[1].boat);
+    }
+
+    #[test]
+    fn bad_input_is_refused() {
+        let grid = Grid::new(4, 4, 1.0).unwrap();
+        let b = Mat::<f64>::zeros(16, 1);
+        let a = Mat::<f64>::identity(1, 1);
+        let dv = vec![f64::NAN; 16];
+        let f = Forecast { basis: b.as_ref(), dynamics: a.as_ref(), cov: a.as_ref(), detail_var: &dv, persistence: 0.5, period: 1, epochs: 1 };
+        assert!(plan(&grid, &f, &[], 1.0, 1e-4).is_err());
+    }
+}
