@@ -202,7 +202,19 @@ pub struct Series {
 }
 
 fn palette(i: usize) -> RGBColor {
-    const C: [RGBColor; 6] = [RGBColor(31, 119, 180), RGBColor(255, 127, 14), RGBColor(44, 160, 44), RGBColor(214, 39, 40), RGBColor(148, 103, 189), RGBColor(140, 86, 75)];
+    // Ten distinct colours (matplotlib's tab10): a report draws up to 8 teams.
+    const C: [RGBColor; 10] = [
+        RGBColor(31, 119, 180),
+        RGBColor(255, 127, 14),
+        RGBColor(44, 160, 44),
+        RGBColor(214, 39, 40),
+        RGBColor(148, 103, 189),
+        RGBColor(140, 86, 75),
+        RGBColor(227, 119, 194),
+        RGBColor(127, 127, 127),
+        RGBColor(188, 189, 34),
+        RGBColor(23, 190, 207),
+    ];
     C[i % C.len()]
 }
 
@@ -254,7 +266,10 @@ fn bands_chart(path: impl AsRef<Path>, title: &str, x_desc: &str, y_desc: &str, 
     macro_rules! draw_chart {
         ($chart:expr) => {{
             let mut chart = $chart;
-            chart.configure_mesh().x_desc(x_desc).y_desc(y_desc).label_style((FONT, 14)).draw().map_err(e)?;
+            // Explicit tick text: the log axis's own labels print float noise (0.000000000001).
+            let x_tick = |v: &f64| if v.fract() == 0.0 { format!("{v:.0}") } else { format_tick(*v) };
+            let y_tick = |v: &f64| format_tick(*v);
+            chart.configure_mesh().x_desc(x_desc).y_desc(y_desc).x_label_formatter(&x_tick).y_label_formatter(&y_tick).label_style((FONT, 14)).draw().map_err(e)?;
             for (i, s) in bands.iter().enumerate() {
                 let c = palette(i);
                 let p: Vec<&(f64, f64, f64, f64)> = s.points.iter().filter(|p| p.0.is_finite() && ok(p.1)).collect();

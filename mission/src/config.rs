@@ -349,4 +349,18 @@ mod tests {
         assert!(MissionConfig::from_toml("mission = \"a/b\"\n[truth]\npreset = \"cloud1\"\n").is_err());
         assert!(MissionConfig::from_toml("mission = \"m\"\n[truth]\n").unwrap_err().to_string().contains("[truth]"));
     }
+
+    /// The names configurations ask for, and the choices that cannot go together.
+    #[test]
+    fn team_choices_parse_by_name_and_horizon_needs_the_filter() {
+        use crate::team::{LearnFrom, Placement, TeamConfig};
+        let t: TeamConfig = toml::from_str("placement = \"horizon\"\nfusion = \"kalman\"\nlearn_from = \"aerial\"\nhorizon_epochs = 2\n").unwrap();
+        assert_eq!((t.placement, t.learn_from, t.horizon_epochs), (Placement::Horizon, LearnFrom::Aerial, 2));
+        t.check_choices().unwrap();
+        assert_eq!(TeamConfig::default().learn_from, LearnFrom::Posterior);
+        let e = TeamConfig { fusion: crate::fusion::Scheme::InverseVariance, ..t.clone() }.check_choices().unwrap_err().to_string();
+        assert!(e.contains("needs fusion = \"kalman\""), "{e}");
+        assert!(TeamConfig { horizon_epochs: 0, ..t }.check_choices().is_err());
+        assert!(toml::from_str::<TeamConfig>("learn_from = \"forecast\"\n").is_err());
+    }
 }

@@ -38,7 +38,7 @@ fn tiny_experiment_writes_a_deterministic_report() {
     let row = &res["rows"][1];
     let from = row["scored_from"].as_u64().unwrap() as usize;
     let seed = row["seeds"][0]["seed"].as_u64().unwrap().to_string();
-    for team in ["heterogeneous", "aerial-only", "boat-only", "heterogeneous-random"] {
+    for team in ["heterogeneous", "aerial-only", "boat-only", "heterogeneous-random", "heterogeneous-horizon"] {
         let v: Vec<(usize, f64)> = rows.iter().filter(|r| r[0] == "2" && r[1] == "Cloud10" && r[2] == seed && r[3] == team).map(|r| (r[4].parse().unwrap(), r[5].parse().unwrap())).collect();
         assert!(v.iter().all(|(k, _)| team != "boat-only" || *k >= from), "no boat-only line before its first data");
         let scored: Vec<f64> = v.iter().filter(|(k, _)| *k >= from).map(|(_, e)| *e).collect();
@@ -58,6 +58,14 @@ fn a_bad_experiment_file_is_a_clear_error() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && !stderr.contains("panicked"));
     assert!(stderr.contains("cloud9") || stderr.contains("preset"), "{stderr}");
+    // Horizon placement plans on the filter's forecast: with another fusion it is refused,
+    // by name, before anything runs.
+    let tiny = std::fs::read_to_string(hetfleet_tests::root().join("config/experiment-tiny.toml")).unwrap();
+    std::fs::write(&bad, tiny.replace("rank = \"8\"", "rank = \"8\"\nfusion = \"inverse-variance\"")).unwrap();
+    let out = run("fleet", &["experiment", bad.to_str().unwrap(), "--out", dir.join("r").to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("extra_placements: horizon") && stderr.contains("kalman"), "{stderr}");
 }
 
 #[test]

@@ -651,9 +651,13 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
         let bands: Vec<plot::Band> = r
             .curves()
             .into_iter()
-            .map(|(team, pts)| plot::Band { name: team, points: pts.iter().map(|(k, i)| (*k as f64, i.mean, if i.n > 1 { i.lo } else { i.mean }, if i.n > 1 { i.hi } else { i.mean })).collect() })
+            .map(|(team, pts)| plot::Band {
+                name: team,
+                // Every team from the first step where all have data (the scored steps).
+                points: pts.iter().filter(|(k, _)| *k >= r.scored_from).map(|(k, i)| (*k as f64, i.mean, if i.n > 1 { i.lo } else { i.mean }, if i.n > 1 { i.hi } else { i.mean })).collect(),
+            })
             .collect();
-        plot::bands(dir.join(&name), &format!("{}: MSE over the grid at each step ({} seeds; scored from step {})", r.row.name(), seeds.len(), r.scored_from), "step", "MSE", &bands, true)?;
+        plot::bands(dir.join(&name), &format!("{}: MSE at each step from step {} (all teams have data; {} seeds)", r.row.name(), r.scored_from, seeds.len()), "step", "MSE", &bands, true)?;
         writeln!(md, "![{name}]({name})\n")?;
         figures.push(name);
     }
