@@ -81,6 +81,50 @@ fn shuffled_and_repeated_batches_give_the_offline_result() {
     assert_eq!(got, fleet::protocol::Body::Model(update));
 }
 
+/// `placement = "horizon"` in the server: every planned disk is within the boat's reach
+/// (speed x steps of an epoch) of where the previous plan left it, and `model/latest` carries
+/// the filter's variances (positive, finite, the forecast's at least the posterior's on
+/// average: the forecast has not seen the next step's data).
+#[test]
+fn horizon_placement_keeps_each_boat_within_reach_and_the_model_carries_its_variance() {
+    let (truth, grid, cfg) = plume_team();
+    let cfg = TeamConfig { placement: team::Placement::Horizon, ..cfg };
+    let speed = 1.0; // metres per step; 1 m cells
+    let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap().with_boat_speed(speed);
+    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+    let mut brains = brains_of(&server, &cfg, grid);
+    let reach = speed * cfg.boat_period as f64;
+    let mut before = server.assimilator().boat_positions().to_vec();
+    let mut e = 0u64;
+    let mut checked = 0;
+    while !server.finished() {
+        for brain in &mut brains {
+            brain.set_plan(server.plan(&brain.id, e, 2).expect("plan of the epoch"));
+            if let Some(b) = brain.sense_epoch(e, x).unwrap() {
+                server.ingest(b).unwrap();
+            }
+        }
+        if let Some(a) = server.allocation(e + 1) {
+            for (b, disk) in a.boats.iter().enumerate() {
+                if let Some((_, (r, c))) = disk {
+                    let at = grid.centre_m(fleet::grid::Cell::new(*r, *c));
+                    let d = (at.0 - before[b].0).hypot(at.1 - before[b].1);
+                    assert!(d <= reach + 1e-9, "epoch {}: boat {b} planned {d} m away, reach {reach} m", e + 1);
+                    checked += 1;
+                }
+            }
+            before = server.assimilator().boat_positions().to_vec();
+        }
+        e += 1;
+    }
+    assert!(checked >= 3 * 4, "horizon plans checked: {checked}");
+    let m = server.model_update().unwrap();
+    assert_eq!((m.variance.len(), m.forecast_variance.len()), (grid.len(), grid.len()));
+    assert!(m.variance.iter().chain(&m.forecast_variance).all(|v| v.is_finite() && *v > 0.0));
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    assert!(mean(&m.forecast_variance) >= mean(&m.variance), "forecast {} < posterior {}", mean(&m.forecast_variance), mean(&m.variance));
+}
+
 #[test]
 fn bad_batches_are_rejected_and_counted() {
     let grid = Grid::new(24, 48, 1.0).unwrap();
