@@ -360,7 +360,14 @@ mod tests {
         assert_eq!(TeamConfig::default().learn_from, LearnFrom::Posterior);
         let e = TeamConfig { fusion: crate::fusion::Scheme::InverseVariance, ..t.clone() }.check_choices().unwrap_err().to_string();
         assert!(e.contains("needs fusion = \"kalman\""), "{e}");
-        assert!(TeamConfig { horizon_epochs: 0, ..t }.check_choices().is_err());
+        assert!(TeamConfig { horizon_epochs: 0, ..t.clone() }.check_choices().is_err());
+        // Further ahead than the run lasts: refused with the run's length (100 frames, 20
+        // initial steps, epochs of 5: 16 epochs).
+        let grid = crate::grid::Grid::new(48, 96, 1.0).unwrap();
+        TeamConfig { horizon_epochs: 16, ..t.clone() }.validate(&grid, 100).unwrap();
+        TeamConfig { horizon_epochs: 17, placement: Placement::Qr, ..t.clone() }.validate(&grid, 100).unwrap();
+        let e = TeamConfig { horizon_epochs: 1_000_000_000_000, ..t }.validate(&grid, 100).unwrap_err().to_string();
+        assert!(e.contains("beyond the run's 16 boat epochs"), "{e}");
         assert!(toml::from_str::<TeamConfig>("learn_from = \"forecast\"\n").is_err());
     }
 }

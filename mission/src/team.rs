@@ -160,6 +160,11 @@ impl TeamConfig {
         if self.init_steps < 3 || self.init_steps + self.boat_period > frames {
             return bad(format!("init_steps {} must be >= 3 and leave at least one epoch of {} steps in {frames} frames", self.init_steps, self.boat_period));
         }
+        // Planning further ahead than the run lasts costs time and changes nothing.
+        let epochs = (frames - self.init_steps) / self.boat_period;
+        if self.placement == Placement::Horizon && self.horizon_epochs > epochs {
+            return bad(format!("horizon_epochs {} is beyond the run's {epochs} boat epochs", self.horizon_epochs));
+        }
         let nonneg = [self.aerial_sigma0, self.aerial_growth_per_cell, self.boat_sigma, self.density_floor];
         if nonneg.iter().any(|v| !(v.is_finite() && *v >= 0.0)) || !(self.radius.is_finite() && self.radius >= 0.0) {
             return bad("noise, radius and density floor must be finite and >= 0".into());

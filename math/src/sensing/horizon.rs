@@ -84,7 +84,7 @@ pub fn plan(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, noise_va
     for k in 0..f.epochs.max(1) {
         m += power.transpose() * power.as_ref();
         power = step_p.as_ref() * power.as_ref();
-        detail_weight += f.persistence.powi(2 * (k * f.period) as i32);
+        detail_weight += f.persistence.powf(2.0 * (k as f64) * (f.period as f64));
     }
     // Candidate centres every half radius (every cell for small disks).
     let every = ((radius / 2.0).floor() as usize).max(1);
