@@ -239,11 +239,16 @@ impl ModalFilter {
     /// The field `h` steps ahead of the filter's state (0: the posterior) with its variance per
     /// cell: `diag(B P_h B^T) + s`.
     pub fn forecast(&self, h: usize) -> (Vec<f64>, Vec<f64>) {
+        self.ahead(h).field()
+    }
+
+    /// The filter `h` steps of prediction ahead of this one (no data).
+    pub fn ahead(&self, h: usize) -> Self {
         let mut f = self.clone();
         for _ in 0..h {
             f.predict();
         }
-        f.field()
+        f
     }
 
     /// The field of the current state and its variance per cell.

@@ -175,6 +175,10 @@ impl Assimilator {
         self.boat_speed = speed;
     }
 
+    pub fn boat_speed(&self) -> f64 {
+        self.boat_speed
+    }
+
     /// The calibrated variance of the model's prediction (per cell).
     pub fn prediction_variance(&self) -> f64 {
         self.pred_var
@@ -361,19 +365,13 @@ impl Assimilator {
         let mut boats = vec![None; cfg.boats];
         // The filter's forecast at the next sampling step (`placement = "horizon"`).
         let forecast = match (cfg.placement, &self.filter) {
-            (Placement::Horizon, Some((f, at))) => {
-                let mut g = f.clone();
-                for _ in *at..cfg.boat_period as u64 {
-                    g.predict();
-                }
-                Some(g)
-            }
+            (Placement::Horizon, Some((f, at))) => Some(f.ahead((cfg.boat_period as u64).saturating_sub(*at) as usize)),
             (Placement::Horizon, None) => return Err(TeamError::NotReady(Missing::Model)),
             _ => None,
         };
         if let Some(g) = &forecast {
             let reach = self.boat_speed * cfg.boat_period as f64;
-            let fleet: Vec<horizon::Boat> = free.iter().map(|&b| horizon::Boat { position: self.boat_positions[b], reach_m: if reach.is_finite() { reach } else { f64::MAX } }).collect();
+            let fleet: Vec<horizon::Boat> = free.iter().map(|&b| horizon::Boat { position: self.boat_positions[b], reach_m: reach }).collect();
             let f = horizon::Forecast {
                 basis: g.basis(),
                 dynamics: g.dynamics(),

@@ -145,8 +145,6 @@ pub struct ServerCore {
     forced: BTreeSet<u64>,
     /// Epochs whose [`EpochRecord`] changed since the node last journalled them.
     unjournalled: BTreeSet<u64>,
-    /// How far a boat goes in one step (m), for `placement = "horizon"`.
-    boat_speed: f64,
 }
 
 impl ServerCore {
@@ -171,7 +169,6 @@ impl ServerCore {
             checkpoints: Some(BTreeMap::new()),
             forced: BTreeSet::new(),
             unjournalled: BTreeSet::new(),
-            boat_speed: f64::INFINITY,
         })
     }
 
@@ -281,8 +278,9 @@ impl ServerCore {
                 self.epoch = e;
             }
             None => {
+                let speed = self.assim.boat_speed();
                 self.assim = Assimilator::new(&self.cfg, *self.assim.grid(), self.schedule.frames)?;
-                self.assim.set_boat_speed(self.boat_speed);
+                self.assim.set_boat_speed(speed);
                 self.snapshots.clear();
                 self.aerial_estimates.clear();
                 self.variances.clear();
@@ -656,7 +654,6 @@ impl ServerCore {
     /// Boats go at most `speed` metres per step (the mission's `[motion]`): horizon placement
     /// plans only disks they reach in time. Set before the first epoch.
     pub fn with_boat_speed(mut self, speed: f64) -> Self {
-        self.boat_speed = speed;
         self.assim.set_boat_speed(speed);
         self
     }
