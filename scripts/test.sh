@@ -11,6 +11,12 @@ if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pyma
   python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore \
     numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2 pymavlink==2.4.50
 fi
+# Debian's chromium for the live view's browser test.
+if ! command -v chromium >/dev/null; then
+  echo "== installing chromium (the live view's browser test)"
+  export DEBIAN_FRONTEND=noninteractive
+  apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null
+fi
 echo "== house style (rustfmt.toml; clippy with warnings as errors)"
 cargo fmt --all --check
 echo "== building (release)"

@@ -80,14 +80,18 @@ pub fn access_control(mission: &MissionConfig, tls: bool) -> Result<Value, Proto
             declarations(GATEWAY),
         ],
     );
-    let seen = vec![k.model_latest(), k.server_status()];
+    // The observer (the live view): the model, the server's status, every vehicle's
+    // telemetry and plans; it puts nothing.
+    let seen = vec![k.model_latest(), k.server_status(), k.telemetry("*")];
     add(
         OBSERVER,
         vec![
-            rule("observer/ask-model", "ingress", &["query"], &[k.model_latest()]),
-            rule("observer/get-model", "egress", &["reply"], &[k.model_latest()]),
+            rule("observer/ask-model", "ingress", &["query"], &[k.model_latest(), k.all_plans()]),
+            rule("observer/get-model", "egress", &["reply"], &[k.model_latest(), k.all_plans()]),
             rule("observer/subscribe", "ingress", &["declare_subscriber"], &seen),
             rule("observer/receive", "egress", &["put"], &seen),
+            rule("observer/watch-links", "ingress", &["declare_liveliness_subscriber", "liveliness_query"], &[k.all_alive()]),
+            rule("observer/links", "egress", &["liveliness_token", "reply"], &[k.all_alive()]),
             declarations(OBSERVER),
         ],
     );

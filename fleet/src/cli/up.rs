@@ -31,6 +31,9 @@ pub struct Args {
     /// Give up if the mission is not finished after this many seconds.
     #[arg(long, default_value_t = 900)]
     timeout_s: u64,
+    /// Serve the live view here (e.g. 127.0.0.1:8080) while the mission runs (`fleet-watch`).
+    #[arg(long)]
+    web: Option<std::net::SocketAddr>,
 }
 
 /// What a run leaves in `--out` (replaced as a whole by the next run's).
@@ -112,6 +115,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let (server_bin, vehicle_bin) = (sibling("model-server")?, sibling("vehicle")?);
     let gateway_bin = if mission.mavlink.gcs.is_empty() { None } else { Some(sibling("gcs-gateway")?) };
     check_ports_free(&mission)?;
+    if let Some(addr) = args.web {
+        std::net::TcpListener::bind(addr).with_context(|| format!("--web {addr}: cannot serve the live view there")).input()?;
+    }
+    let watch_bin = args.web.map(|_| sibling("fleet-watch")).transpose()?;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display())).input()?;
     // Staged beside the previous run until the server is up.
     let staging = out.join(format!(".starting-{}", std::process::id()));
@@ -199,6 +206,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         fleet.spawn(&v.id, c, path)?;
     }
 
+    if let Some(addr) = args.web {
+        let mut c = Command::new(watch_bin.as_ref().expect("found with --web"));
+        c.arg("--mission").arg(&mission_path).arg("--truth").arg(&truth_path);
+        let (log, path) = log_file(&logs, "fleet-watch")?;
+        c.arg("--http").arg(addr.to_string()).arg("--run-dir").arg(out).stdout(Stdio::null()).stderr(log);
+        fleet.spawn("fleet-watch", c, path)?;
+        println!("live view: http://{addr}/");
+    }
     let epochs = mission.schedule(frames).epochs();
     let pb = super::progress_bar(epochs, "epochs");
     let tty = std::io::IsTerminal::is_terminal(&std::io::stderr());
@@ -260,7 +275,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     pb.finish_and_clear();
     // Vehicles leave once their last batch is acknowledged; then the server exits.
-    fleet.wait_nodes(Duration::from_secs(60), &["gcs-gateway"])?;
+    fleet.wait_nodes(Duration::from_secs(60), &["gcs-gateway", "fleet-watch"])?;
     fleet.stop();
 
     let offline = team::run(&mission.team, &truth, |_, _| {})?;

@@ -1,0 +1,244 @@
+//! The live view in a real browser: `fleet up --web` on a paced tiny mission, headless
+//! Chromium (Debian's `chromium`, installed by scripts/test.sh) opens the page twice, sees
+//! every vehicle and the model version advance, logs nothing to the console, and saves a
+//! screenshot. `/api/state` says the same; bad requests get 4xx; a lost vehicle is marked.
+
+use fleet::mission::config::MissionConfig;
+use hetfleet_tests::*;
+use std::io::{Read, Write};
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+/// `(status, body)` of one plain HTTP/1.0 request.
+fn http(port: u16, method: &str, path: &str) -> Option<(u16, String)> {
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).ok()?;
+    s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    write!(s, "{method} {path} HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n").ok()?;
+    let mut bytes = vec![];
+    s.read_to_end(&mut bytes).ok()?;
+    let text = String::from_utf8_lossy(&bytes);
+    let status = text.split_whitespace().nth(1)?.parse().ok()?;
+    Some((status, text.split_once("\r\n\r\n").map_or(String::new(), |(_, b)| b.to_string())))
+}
+
+fn state(port: u16) -> Option<serde_json::Value> {
+    let (status, body) = http(port, "GET", "/api/state")?;
+    (status == 200).then(|| serde_json::from_str(&body).expect("/api/state is JSON"))
+}
+
+fn version(s: &serde_json::Value) -> u64 {
+    s["model"]["version"].as_u64().unwrap_or(0)
+}
+
+/// Headless Chromium driven over the DevTools protocol on a pipe (`--remote-debugging-pipe`:
+/// NUL-separated JSON on fds 3 and 4, no WebSocket client needed): it opens a page, reads
+/// values out of it while it runs, and records every console message and uncaught exception.
+struct Chromium {
+    child: std::process::Child,
+    to: std::fs::File,
+    from: std::io::BufReader<std::fs::File>,
+    next: u64,
+    session: String,
+    console: Vec<String>,
+}
+
+impl Chromium {
+    fn open(url: &str, dir: &Path) -> Self {
+        use std::os::fd::FromRawFd;
+        use std::os::unix::process::CommandExt;
+        let pipe = || {
+            let mut fds = [0; 2];
+            assert_eq!(unsafe { libc::pipe2(fds.as_mut_ptr(), libc::O_CLOEXEC) }, 0);
+            (fds[0], fds[1])
+        };
+        let ((chrome_reads, we_write), (we_read, chrome_writes)) = (pipe(), pipe());
+        let mut c = Command::new("chromium");
+        c.args(["--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--remote-debugging-pipe", "--window-size=1400,1500"]);
+        c.arg(format!("--user-data-dir={}", dir.join("chromium-profile").display()));
+        c.stdin(Stdio::null()).stdout(Stdio::null()).stderr(std::fs::File::create(dir.join("chromium.log")).unwrap());
+        // SAFETY: only async-signal-safe calls between fork and exec. Copies above 10 first, so
+        // neither target fd is clobbered; dup2 clears close-on-exec on 3 and 4.
+        unsafe {
+            c.pre_exec(move || {
+                let (r, w) = (libc::fcntl(chrome_reads, libc::F_DUPFD, 10), libc::fcntl(chrome_writes, libc::F_DUPFD, 10));
+                if r < 0 || w < 0 || libc::dup2(r, 3) < 0 || libc::dup2(w, 4) < 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+        let child = c.spawn().expect("chromium runs (scripts/test.sh installs Debian's chromium)");
+        unsafe {
+            libc::close(chrome_reads);
+            libc::close(chrome_writes);
+        }
+        let (to, from) = unsafe { (std::fs::File::from_raw_fd(we_write), std::io::BufReader::new(std::fs::File::from_raw_fd(we_read))) };
+        let mut b = Self { child, to, from, next: 0, session: String::new(), console: vec![] };
+        let target = b.call("Target.createTarget", serde_json::json!({ "url": "about:blank" }))["targetId"].as_str().unwrap().to_string();
+        b.session = b.call("Target.attachToTarget", serde_json::json!({ "targetId": target, "flatten": true }))["sessionId"].as_str().unwrap().to_string();
+        for domain in ["Runtime.enable", "Log.enable", "Page.enable"] {
+            b.call(domain, serde_json::json!({}));
+        }
+        b.call("Page.navigate", serde_json::json!({ "url": url }));
+        b
+    }
+
+    /// One command (on the page's session once attached); events seen meanwhile are kept.
+    fn call(&mut self, method: &str, params: serde_json::Value) -> serde_json::Value {
+        use std::io::BufRead;
+        self.next += 1;
+        let mut msg = serde_json::json!({ "id": self.next, "method": method, "params": params });
+        if !self.session.is_empty() {
+            msg["sessionId"] = self.session.clone().into();
+        }
+        let mut bytes = serde_json::to_vec(&msg).unwrap();
+        bytes.push(0);
+        self.to.write_all(&bytes).expect("writing to chromium");
+        loop {
+            let mut buf = vec![];
+            let n = self.from.read_until(0, &mut buf).expect("reading from chromium");
+            assert!(n > 0, "chromium closed its pipe");
+            buf.pop();
+            let m: serde_json::Value = serde_json::from_slice(&buf).expect("chromium speaks JSON");
+            match m["method"].as_str() {
+                Some("Runtime.consoleAPICalled") => self.console.push(format!("console.{}: {}", m["params"]["type"], m["params"]["args"])),
+                Some("Runtime.exceptionThrown") => self.console.push(format!("exception: {}", m["params"]["exceptionDetails"])),
+                Some("Log.entryAdded") => self.console.push(format!("log: {}", m["params"]["entry"])),
+                _ => {}
+            }
+            if m["id"].as_u64() == Some(self.next) {
+                assert!(m.get("error").is_none(), "{method}: {m}");
+                return m["result"].clone();
+            }
+        }
+    }
+
+    /// A JavaScript expression's value in the page.
+    fn eval(&mut self, js: &str) -> serde_json::Value {
+        self.call("Runtime.evaluate", serde_json::json!({ "expression": js, "returnByValue": true }))["result"]["value"].clone()
+    }
+
+    fn screenshot(&mut self, path: &Path) {
+        use base64::Engine as _;
+        let png = self.call("Page.captureScreenshot", serde_json::json!({ "format": "png" }))["data"].as_str().unwrap().to_string();
+        std::fs::write(path, base64::engine::general_purpose::STANDARD.decode(png).unwrap()).unwrap();
+    }
+}
+
+impl Drop for Chromium {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+#[test]
+fn a_real_browser_sees_every_vehicle_and_the_model_advance_without_console_errors() {
+    let dir = scratch("web");
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
+    edit(&mission, "plan_timeout_ms = 20000", "plan_timeout_ms = 1500\nstep_ms = 600");
+    let port = free_port();
+    let mut procs = Procs::default();
+    let up = Command::new(bin("fleet"))
+        .args(["up", mission.to_str().unwrap(), "--out", dir.join("run").to_str().unwrap(), "--web", &format!("127.0.0.1:{port}")])
+        .current_dir(root())
+        .stdout(std::fs::File::create(dir.join("up.log")).unwrap())
+        .stderr(std::fs::File::create(dir.join("up.err")).unwrap())
+        .spawn()
+        .expect("fleet up");
+    procs.0.push(up);
+    let url = format!("http://127.0.0.1:{port}/");
+    eventually(60, "the view has a model", || state(port).is_some_and(|s| version(&s) >= 1));
+
+    // The JSON endpoint the page uses, as documented in the README.
+    let s = state(port).unwrap();
+    let ids: Vec<String> = MissionConfig::load(Some(&mission)).unwrap().vehicles().into_iter().map(|v| v.id).collect();
+    let vehicles = s["vehicles"].as_array().unwrap();
+    assert_eq!(vehicles.len(), ids.len());
+    for v in vehicles {
+        for field in ["id", "kind", "position", "mode", "link", "outbox_depth"] {
+            assert!(v.get(field).is_some(), "vehicle without {field}: {v}");
+        }
+    }
+    for field in ["batches", "duplicates", "rejected", "waiting_for", "next_epoch"] {
+        assert!(s["server"].get(field).is_some(), "server without {field}: {s}");
+    }
+    assert!(s["model"]["epoch"].is_u64());
+
+    // Bad requests: 4xx, and the view still answers.
+    assert_eq!(http(port, "POST", "/api/state").map(|r| r.0), Some(405));
+    assert_eq!(http(port, "GET", "/no/such/thing").map(|r| r.0), Some(404));
+    assert_eq!(http(port, "GET", "/api/state?x=%ff%00").map(|r| r.0), Some(200));
+    assert_eq!(http(port, "DELETE", "/").map(|r| r.0), Some(405));
+    let (status, npy) = http(port, "GET", "/api/estimate.npy").unwrap();
+    assert_eq!(status, 200);
+    assert!(npy.get(..12).is_some_and(|h| h.contains("NUMPY")), "an .npy file");
+
+    // The browser: every vehicle listed, the model version advancing on the page (pushed,
+    // not reloaded), nothing on the console, and a screenshot.
+    let mut page = Chromium::open(&url, &dir);
+    let shown = |p: &mut Chromium| p.eval("Number(document.getElementById('version').textContent) || 0").as_u64().unwrap_or(0);
+    eventually(30, "the page shows a model", || shown(&mut page) >= 1);
+    let v1 = shown(&mut page);
+    let listed = page.eval("[...document.querySelectorAll('#vehicles tr')].map(r => r.dataset.id)");
+    for id in &ids {
+        assert!(listed.as_array().unwrap().iter().any(|x| x == id), "the page lists {id}: {listed}");
+    }
+    eventually(60, "the page's model advances", || shown(&mut page) > v1);
+    let v2 = shown(&mut page);
+    let shot = dir.join("live-view.png");
+    page.screenshot(&shot);
+    let png = std::fs::read(&shot).expect("a screenshot");
+    assert!(png.starts_with(b"\x89PNG") && png.len() > 10_000, "a real screenshot ({} bytes)", png.len());
+    assert!(page.console.is_empty(), "the page logged to the console: {:#?}", page.console);
+    println!("browser saw model v{v1} then v{v2}, {} vehicles; screenshot {}", ids.len(), shot.display());
+    drop(page);
+
+    procs.wait_all(120);
+}
+
+#[test]
+fn a_vehicle_that_goes_silent_is_marked_lost_within_the_lease_and_a_public_address_needs_a_credential() {
+    let dir = scratch("web-silent");
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
+    edit(&mission, "plan_timeout_ms = 20000", "plan_timeout_ms = 1500\nstep_ms = 200");
+    edit(&mission, "listen = [", "lease_ms = 1000\nlisten = [");
+    let m = mission.to_str().unwrap();
+
+    // Bound beyond loopback without a credential: refused, exit 2, one line naming the flag.
+    let out = Command::new(bin("fleet-watch")).args(["--mission", m, "--http", "0.0.0.0:1"]).output().unwrap();
+    assert_eq!(out.status.code(), Some(2), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--credential"));
+
+    let (out_dir, state_dir) = (dir.join("out"), dir.join("state"));
+    let mut procs = Procs::default();
+    let server = start_server(&mut procs, &["--mission", m, "--out", out_dir.to_str().unwrap(), "--state-dir", state_dir.to_str().unwrap(), "--exit-when-done"], &dir.join("server.log"));
+    let port = free_port();
+    let watch = Command::new(bin("fleet-watch")).args(["--mission", m, "--http", &format!("127.0.0.1:{port}")]).stderr(std::fs::File::create(dir.join("watch.log")).unwrap()).spawn().unwrap();
+    procs.0.push(watch);
+    let mut boat2 = 0;
+    for v in MissionConfig::load(Some(&mission)).unwrap().vehicles() {
+        let args = ["--mission", m, "--id", &v.id, "--state-dir", state_dir.to_str().unwrap()];
+        let i = start_vehicle(&mut procs, &[], &args, &dir.join(format!("{}.log", v.id)));
+        if v.id == "boat-2" {
+            boat2 = i;
+        }
+    }
+    let link = |s: &serde_json::Value, id: &str| s["vehicles"].as_array().unwrap().iter().find(|v| v["id"] == id).map(|v| v["link"].as_str().unwrap_or("").to_string()).unwrap();
+    eventually(60, "boat-2's link is up", || state(port).is_some_and(|s| link(&s, "boat-2") == "up"));
+    server.epoch(1, 60);
+    procs.kill(boat2);
+    let killed = std::time::Instant::now();
+    eventually(10, "boat-2 marked lost", || state(port).is_some_and(|s| link(&s, "boat-2") == "lost"));
+    let after = killed.elapsed().as_secs_f64();
+    // Its liveliness token goes when the link does (at once for a closed socket, within the
+    // 1 s lease for a silent one); the view pushes every 0.25 s.
+    assert!(after < 1.5, "marked lost {after:.2} s after it died");
+    let s = state(port).unwrap();
+    assert!(s["vehicles"].as_array().unwrap().iter().find(|v| v["id"] == "boat-2").unwrap()["lost_since_s"].is_f64());
+    assert_eq!(link(&s, "boat-1"), "up", "the others are not");
+    println!("boat-2 marked lost {after:.2} s after kill -9 (lease 1 s)");
+}

@@ -1,0 +1,159 @@
+//! The watch's one event loop: joins the mission over Zenoh like any client (the observer role
+//! under the secure configs), feeds what it hears into the [`View`], and publishes a fresh
+//! [`Snapshot`] for the pages after each change (at most [`PUSH_EVERY`] apart).
+
+use crate::http::{self, Snapshot};
+use crate::state::{Geo, View};
+use anyhow::Context as _;
+use fleet_mission::protocol::{keys::Keys, Body, Context};
+use fleet_net::Role;
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tracing::{info, warn};
+
+/// Pushes to the pages are coalesced to at most one per this interval.
+pub const PUSH_EVERY: Duration = Duration::from_millis(250);
+
+#[derive(clap::Parser, Debug)]
+#[command(name = "fleet-watch", version, about = "hetfleet's live operations view: joins a mission over Zenoh and serves it to a browser")]
+pub struct Args {
+    #[command(flatten)]
+    pub node: fleet_net::NodeArgs,
+    /// Where to serve the page (loopback unless told otherwise).
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    pub http: SocketAddr,
+    /// `user:password` the page asks for (HTTP Basic). Required when `--http` is not loopback.
+    /// Or a file holding it: `--credential @path`.
+    #[arg(long)]
+    pub credential: Option<String>,
+    /// A run directory (`fleet up --out`): the page offers its report.md once it exists.
+    #[arg(long)]
+    pub run_dir: Option<std::path::PathBuf>,
+}
+
+/// The credential from `--credential` (inline or `@file`), checked against the bind address.
+fn credential(args: &Args) -> anyhow::Result<Option<String>> {
+    let c = match &args.credential {
+        None => None,
+        Some(c) => Some(match c.strip_prefix('@') {
+            Some(path) => std::fs::read_to_string(path).with_context(|| format!("--credential: reading {path}")).map_err(fleet_mission::exit::bad_input)?.trim().to_string(),
+            None => c.clone(),
+        }),
+    };
+    if let Some(c) = &c {
+        if !c.contains(':') || c.starts_with(':') || c.ends_with(':') {
+            return Err(fleet_mission::exit::bad_input(anyhow::anyhow!("--credential: expected user:password")));
+        }
+    }
+    if c.is_none() && !args.http.ip().is_loopback() {
+        return Err(fleet_mission::exit::bad_input(anyhow::anyhow!("--http {}: a non-loopback address needs --credential user:password (the page is readable by anyone who can reach it)", args.http)));
+    }
+    Ok(c)
+}
+
+pub async fn run(args: Args) -> anyhow::Result<()> {
+    let credential = credential(&args)?;
+    let (mission, truth) = args.node.load()?;
+    let (grid, _frames) = mission.workspace(&truth)?;
+    let keys = Keys::new(&mission.mission)?;
+    let site = vehicles::autopilot::site::Site::new(&mission.mavlink, &grid);
+    let ne = site.global_of(&site.ned_of((grid.width_m(), grid.height_m()), 0.0));
+    let geo = Geo { south_west: [mission.mavlink.origin[0], mission.mavlink.origin[1]], north_east: [ne.0, ne.1], size_m: [grid.width_m() * site.scale.x, grid.height_m() * site.scale.y] };
+    let specs: Vec<_> = mission.vehicles().into_iter().map(|v| (v.id, v.kind)).collect();
+    let lease_s = mission.network.lease_ms.unwrap_or(10_000) as f64 / 1000.0;
+    let truth_steps = (0..truth.frames()).map(|t| truth.snapshots.col(t).iter().copied().collect()).collect();
+    let mut ctx = Context::new(grid);
+    ctx.vehicles = specs.iter().map(|(id, _)| id.clone()).collect();
+    let view = Arc::new(Mutex::new(View::new(&mission.mission, grid, geo, lease_s, &specs, Some(truth_steps))));
+    let (tx, rx) = tokio::sync::watch::channel(Arc::new(Snapshot::of(&view.lock().expect("view lock"))));
+
+    let listener = tokio::net::TcpListener::bind(args.http).await.with_context(|| format!("--http {}: cannot listen there", args.http)).map_err(fleet_mission::exit::bad_input)?;
+    let app = http::router(http::Shared { view: view.clone(), snapshots: rx, credential, run_dir: args.run_dir.clone() });
+    info!(url = %format!("http://{}/", listener.local_addr()?), "serving the view");
+    let server = tokio::spawn(async move { axum::serve(listener, app).await });
+
+    // A client like any vehicle; under the secure configs, as the observer (read-only).
+    let network = mission.network.for_node(fleet_mission::security::OBSERVER);
+    let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &network)?).await?;
+    let sub = |key: String| {
+        let s = &session;
+        async move { s.declare_subscriber(key).await.map_err(|e| anyhow::anyhow!("{e}")) }
+    };
+    let telemetry = sub(keys.telemetry("*")).await?;
+    let models = sub(keys.model_latest()).await?;
+    let status = sub(keys.server_status()).await?;
+    // Link state: the vehicles' liveliness tokens (Zenoh drops one when its session says
+    // nothing within the link lease).
+    let links = session.liveliness().declare_subscriber(keys.all_alive()).history(true).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let mut stop = fleet_net::StopSignals::new()?;
+    let t0 = Instant::now();
+    let mut tick = tokio::time::interval(PUSH_EVERY);
+    let mut dirty = true;
+    // A page opened mid-mission sees the current model at once: ask for it.
+    let mut ask_model = true;
+    loop {
+        if ask_model {
+            ask_model = false;
+            if let Ok(replies) = session.get(keys.model_latest()).await {
+                while let Ok(r) = replies.recv_async().await {
+                    if let Ok(s) = r.result() {
+                        dirty |= take(&view, fleet_net::decode(s, &ctx));
+                    }
+                }
+            }
+        }
+        tokio::select! {
+            s = telemetry.recv_async() => if let Ok(s) = s { dirty |= take(&view, fleet_net::decode(&s, &ctx)) },
+            s = status.recv_async() => if let Ok(s) = s { dirty |= take(&view, fleet_net::decode(&s, &ctx)) },
+            s = models.recv_async() => if let Ok(s) = s {
+                dirty |= take(&view, fleet_net::decode(&s, &ctx));
+                // The plans that go with the new model: from the epoch after its own (the
+                // server answers one vehicle's key at a time).
+                let next = view.lock().expect("view lock").state().model.map(|m| m.epoch + 1);
+                for id in next.map(|_| &ctx.vehicles[..]).unwrap_or_default() {
+                    let selector = format!("{}?epoch={}", keys.plan(id), next.unwrap_or_default());
+                    if let Ok(replies) = session.get(selector).await {
+                        while let Ok(r) = replies.recv_async().await {
+                            if let Ok(s) = r.result() {
+                                dirty |= take(&view, fleet_net::decode(s, &ctx));
+                            }
+                        }
+                    }
+                }
+            },
+            s = links.recv_async() => if let Ok(s) = s {
+                if let Some(id) = keys.id_after(s.key_expr().as_str(), "alive") {
+                    let alive = s.kind() == fleet_net::zenoh::sample::SampleKind::Put;
+                    dirty |= view.lock().expect("view lock").liveliness(&id, alive, t0.elapsed().as_secs_f64());
+                }
+            },
+            _ = tick.tick() => {
+                if dirty {
+                    dirty = false;
+                    let snap = Snapshot::of(&view.lock().expect("view lock"));
+                    tx.send_replace(Arc::new(snap));
+                }
+            }
+            sig = stop.recv() => {
+                info!(signal = sig, "stopping");
+                break;
+            }
+        }
+    }
+    server.abort();
+    Ok(())
+}
+
+/// Apply one decoded message; a message that does not decode is counted, never fatal.
+fn take(view: &Mutex<View>, body: Result<Body, fleet_mission::protocol::ProtocolError>) -> bool {
+    let mut v = view.lock().expect("view lock");
+    match body {
+        Ok(b) => v.apply(b),
+        Err(e) => {
+            warn!("refused a message: {e}");
+            v.refuse();
+            true
+        }
+    }
+}

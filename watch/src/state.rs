@@ -1,0 +1,323 @@
+//! What the view knows about the mission, built from the messages it receives (pure: no
+//! network, no clock of its own; times are seconds since the watch started, passed in).
+//! `/api/state` is [`View::state`]; the heat maps are [`View::fields`].
+
+use fleet_mission::grid::Grid;
+use fleet_mission::protocol::{AutopilotLink, Body, LinkState, ModelUpdate, Plan, ServerStatus, Telemetry, VehicleKind};
+use serde::Serialize;
+use std::collections::{BTreeMap, VecDeque};
+
+/// How many past positions of each vehicle the view keeps (its track).
+pub const TRACK_LEN: usize = 300;
+
+/// The workspace on the Earth: latitude and longitude of the grid's corners.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Geo {
+    /// South-west (grid (0, 0)) and north-east corners, `[lat, lon]` degrees.
+    pub south_west: [f64; 2],
+    pub north_east: [f64; 2],
+    /// Physical extent, east and north (m).
+    pub size_m: [f64; 2],
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct VehicleView {
+    pub id: String,
+    pub kind: VehicleKind,
+    pub position: Option<[f64; 2]>,
+    /// Radians from +x (east).
+    pub heading: Option<f64>,
+    pub battery: Option<f64>,
+    pub step: Option<u64>,
+    /// `up` (its Zenoh liveliness token is present), `lost` (the token went: no word within
+    /// the link lease), or `unseen` (never heard of).
+    pub link: &'static str,
+    /// Seconds since the watch started at which it was lost.
+    pub lost_since_s: Option<f64>,
+    /// What the vehicle says of its own radio link in its last telemetry (`up`, `down`).
+    pub radio: Option<&'static str>,
+    pub outbox_depth: Option<u64>,
+    pub mode: String,
+    pub track: VecDeque<[f64; 2]>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct ModelView {
+    pub version: u64,
+    pub epoch: u64,
+    pub step: u64,
+    /// Continuous-time eigenvalues `ln(lambda) / dt`, `[re, im]`.
+    pub eigenvalues_ct: Vec<[f64; 2]>,
+    pub forecast_steps: u64,
+}
+
+/// The per-cell fields behind the heat maps (row-major, the model grid).
+#[derive(Debug, Clone, Serialize)]
+pub struct Fields {
+    pub version: u64,
+    pub step: u64,
+    pub rows: usize,
+    pub cols: usize,
+    pub estimate: Vec<f64>,
+    pub variance: Vec<f64>,
+    /// The mixed-reality truth at the estimate's step (absent in the field).
+    pub truth: Option<Vec<f64>>,
+}
+
+/// The view's whole state.
+pub struct View {
+    mission: String,
+    grid: Grid,
+    geo: Geo,
+    lease_s: f64,
+    vehicles: BTreeMap<String, VehicleView>,
+    model: Option<ModelView>,
+    fields: Option<Fields>,
+    status: Option<ServerStatus>,
+    plans: BTreeMap<String, Plan>,
+    /// `(epoch, MSE of the estimate against the truth)` per model, when the truth is known.
+    mse: Vec<(u64, f64)>,
+    truth: Option<Vec<Vec<f64>>>,
+    /// Messages the watch refused (not decodable, wrong grid, unknown vehicle).
+    refused: u64,
+}
+
+/// `/api/state`: everything but the per-cell fields.
+#[derive(Serialize)]
+pub struct State<'a> {
+    pub mission: &'a str,
+    pub grid: [usize; 2],
+    pub cell_m: f64,
+    pub geo: Geo,
+    pub lease_s: f64,
+    pub vehicles: Vec<&'a VehicleView>,
+    pub model: Option<&'a ModelView>,
+    pub server: Option<&'a ServerStatus>,
+    pub plans: Vec<&'a Plan>,
+    pub mse: &'a [(u64, f64)],
+    pub refused: u64,
+}
+
+impl View {
+    /// A view of `vehicles` (id, kind) on `grid`; `truth` one field per step when known.
+    pub fn new(mission: &str, grid: Grid, geo: Geo, lease_s: f64, vehicles: &[(String, VehicleKind)], truth: Option<Vec<Vec<f64>>>) -> Self {
+        let vehicles = vehicles
+            .iter()
+            .map(|(id, kind)| {
+                let v = VehicleView {
+                    id: id.clone(),
+                    kind: *kind,
+                    position: None,
+                    heading: None,
+                    battery: None,
+                    step: None,
+                    link: "unseen",
+                    lost_since_s: None,
+                    radio: None,
+                    outbox_depth: None,
+                    mode: String::new(),
+                    track: VecDeque::new(),
+                };
+                (id.clone(), v)
+            })
+            .collect();
+        Self { mission: mission.into(), grid, geo, lease_s, vehicles, model: None, fields: None, status: None, plans: BTreeMap::new(), mse: vec![], truth, refused: 0 }
+    }
+
+    pub fn grid(&self) -> Grid {
+        self.grid
+    }
+
+    /// Take one decoded message. Returns whether the view changed.
+    pub fn apply(&mut self, body: Body) -> bool {
+        match body {
+            Body::Telemetry(t) => self.telemetry(t),
+            Body::Model(m) => self.model(m),
+            Body::Status(s) => {
+                self.status = Some(s);
+                true
+            }
+            Body::Plan(p) => {
+                if !self.vehicles.contains_key(&p.vehicle) {
+                    self.refused += 1;
+                    return false;
+                }
+                self.plans.insert(p.vehicle.clone(), p);
+                true
+            }
+            Body::Batch(_) | Body::Ack(_) => false,
+        }
+    }
+
+    /// Count a message the watch could not use.
+    pub fn refuse(&mut self) {
+        self.refused += 1;
+    }
+
+    fn telemetry(&mut self, t: Telemetry) -> bool {
+        let Some(v) = self.vehicles.get_mut(&t.vehicle) else {
+            self.refused += 1;
+            return false;
+        };
+        v.position = Some(t.position);
+        v.heading = Some(t.heading);
+        v.battery = Some(t.battery);
+        v.step = Some(t.step);
+        v.outbox_depth = Some(t.outbox_depth);
+        v.radio = Some(match t.link {
+            LinkState::Up => "up",
+            LinkState::Down => "down",
+        });
+        v.mode = match &t.autopilot {
+            None => "fleet".into(),
+            Some(a) => match a.link {
+                AutopilotLink::Connecting => "connecting".into(),
+                AutopilotLink::Lost => "autopilot lost".into(),
+                AutopilotLink::Up => format!("{}{}", a.mode, if a.armed { ", armed" } else { "" }),
+            },
+        };
+        if v.track.back() != Some(&t.position) {
+            v.track.push_back(t.position);
+            if v.track.len() > TRACK_LEN {
+                v.track.pop_front();
+            }
+        }
+        true
+    }
+
+    fn model(&mut self, m: ModelUpdate) -> bool {
+        let n = self.grid.len();
+        let r = m.eigenvalues.len();
+        if m.grid != self.grid || m.modes_re.len() != n * r || m.modes_im.len() != n * r || m.amplitudes.len() != r || m.variance.len() != n {
+            self.refused += 1;
+            return false;
+        }
+        if self.model.as_ref().is_some_and(|old| old.version >= m.version) {
+            return false;
+        }
+        // The estimate at the model's step: Re(Phi alpha).
+        let estimate: Vec<f64> = (0..n).map(|i| (0..r).map(|k| m.modes_re[i * r + k] * m.amplitudes[k][0] - m.modes_im[i * r + k] * m.amplitudes[k][1]).sum()).collect();
+        let truth = self.truth.as_ref().and_then(|t| t.get(m.step as usize)).cloned();
+        if let Some(t) = &truth {
+            let mse = estimate.iter().zip(t).map(|(e, x)| (e - x).powi(2)).sum::<f64>() / n as f64;
+            self.mse.retain(|(e, _)| *e != m.epoch);
+            self.mse.push((m.epoch, mse));
+        }
+        let eigenvalues_ct = m
+            .eigenvalues
+            .iter()
+            .map(|&[re, im]| {
+                let (modulus, arg) = (re.hypot(im), im.atan2(re));
+                [modulus.ln() / m.dt, arg / m.dt]
+            })
+            .collect();
+        self.model = Some(ModelView { version: m.version, epoch: m.epoch, step: m.step, eigenvalues_ct, forecast_steps: m.forecast_steps });
+        self.fields = Some(Fields { version: m.version, step: m.step, rows: self.grid.rows, cols: self.grid.cols, estimate, variance: m.variance, truth });
+        true
+    }
+
+    /// A vehicle's Zenoh liveliness token appeared (`alive`) or went (its session said nothing
+    /// within the link lease, or it left) at `now_s`. Returns whether the view changed.
+    pub fn liveliness(&mut self, id: &str, alive: bool, now_s: f64) -> bool {
+        let Some(v) = self.vehicles.get_mut(id) else { return false };
+        let (link, since) = if alive { ("up", None) } else { ("lost", Some(now_s)) };
+        if v.link == link {
+            return false;
+        }
+        (v.link, v.lost_since_s) = (link, since);
+        true
+    }
+
+    pub fn state(&self) -> State<'_> {
+        State {
+            mission: &self.mission,
+            grid: [self.grid.rows, self.grid.cols],
+            cell_m: self.grid.cell_m,
+            geo: self.geo,
+            lease_s: self.lease_s,
+            vehicles: self.vehicles.values().collect(),
+            model: self.model.as_ref(),
+            server: self.status.as_ref(),
+            plans: self.plans.values().collect(),
+            mse: &self.mse,
+            refused: self.refused,
+        }
+    }
+
+    pub fn fields(&self) -> Option<&Fields> {
+        self.fields.as_ref()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn view() -> View {
+        let grid = Grid::new(2, 3, 1.0).unwrap();
+        let geo = Geo { south_west: [55.0, 12.0], north_east: [55.1, 12.1], size_m: [3.0, 2.0] };
+        let truth = vec![vec![1.0; 6]; 4];
+        View::new("m", grid, geo, 2.0, &[("boat-1".into(), VehicleKind::Boat), ("av-1".into(), VehicleKind::Aerial)], Some(truth))
+    }
+
+    fn tele(id: &str, x: f64) -> Body {
+        Body::Telemetry(Telemetry { vehicle: id.into(), step: 1, position: [x, 0.5], heading: 0.0, battery: 0.9, link: LinkState::Up, outbox_depth: 3, autopilot: None, acked: None })
+    }
+
+    fn model(version: u64, amplitude: f64) -> Body {
+        let grid = Grid::new(2, 3, 1.0).unwrap();
+        Body::Model(ModelUpdate {
+            version,
+            epoch: version,
+            step: 2,
+            grid,
+            dt: 1.0,
+            eigenvalues: vec![[0.5, 0.0]],
+            modes_re: vec![1.0; 6],
+            modes_im: vec![0.0; 6],
+            amplitudes: vec![[amplitude, 0.0]],
+            variance: vec![0.1; 6],
+            forecast_steps: 1,
+            forecast_variance: vec![0.2; 6],
+        })
+    }
+
+    #[test]
+    fn telemetry_builds_tracks_and_a_lost_token_marks_the_vehicle_lost() {
+        let mut v = view();
+        assert!(v.apply(tele("boat-1", 0.5)));
+        assert!(v.apply(tele("boat-1", 1.5)));
+        assert!(!v.apply(tele("intruder", 1.5)), "an unknown vehicle is refused");
+        assert_eq!(v.state().refused, 1);
+        let boat = |v: &View| v.state().vehicles.iter().find(|x| x.id == "boat-1").map(|x| (*x).clone()).unwrap();
+        let b = boat(&v);
+        assert_eq!((b.track.len(), b.link, b.radio, b.outbox_depth), (2, "unseen", Some("up"), Some(3)));
+        assert!(v.liveliness("boat-1", true, 1.5));
+        assert!(!v.liveliness("boat-1", true, 1.6), "no change");
+        assert!(v.liveliness("boat-1", false, 3.0));
+        assert_eq!((boat(&v).link, boat(&v).lost_since_s), ("lost", Some(3.0)));
+        assert!(!v.liveliness("intruder", true, 3.0));
+        assert!(v.liveliness("boat-1", true, 4.0));
+        assert_eq!((boat(&v).link, boat(&v).lost_since_s), ("up", None));
+    }
+
+    #[test]
+    fn a_model_gives_the_estimate_its_error_and_continuous_eigenvalues() {
+        let mut v = view();
+        assert!(v.apply(model(1, 3.0)));
+        let f = v.fields().unwrap();
+        assert_eq!(f.estimate, vec![3.0; 6]);
+        assert_eq!(f.truth.as_deref(), Some(&[1.0; 6][..]));
+        // (3 - 1)^2 = 4 at every cell.
+        assert_eq!(v.state().mse, &[(1, 4.0)]);
+        let ct = &v.state().model.unwrap().eigenvalues_ct[0];
+        assert!((ct[0] - 0.5f64.ln()).abs() < 1e-15 && ct[1] == 0.0);
+        assert!(!v.apply(model(1, 5.0)), "an older or repeated version is not taken");
+        let mut bad = model(2, 1.0);
+        if let Body::Model(m) = &mut bad {
+            m.variance.pop();
+        }
+        assert!(!v.apply(bad), "a model of the wrong size is refused");
+        assert_eq!(v.state().refused, 1);
+    }
+}
