@@ -1,6 +1,6 @@
 //! The page and its API, read-only: `GET /` (the page, every asset inside the binary),
 //! `GET /api/state` (JSON), `GET /api/events` (server-sent events: `state` on every change,
-//! `fields` when the model changes), `GET /api/estimate.npy` and `/api/variance.npy`, and
+//! `fields` when the model changes, `plans` when they do), `GET /api/estimate.npy` and `/api/variance.npy`, and
 //! `GET /api/report.md` (the finished run's report). Anything else is a 4xx.
 
 use crate::state::View;
@@ -20,16 +20,46 @@ const PAGE: &str = include_str!("../assets/index.html");
 
 /// The JSON the pages are sent, serialised once per change however many pages are open.
 pub struct Snapshot {
+    /// The full state (`/api/state`) and the state pages are pushed (without the plans).
     pub state: String,
+    pub pushed: String,
+    /// How many plans the view has taken, and every current plan's JSON.
+    pub plans: (u64, String),
     /// The model version the fields are of, and their JSON.
     pub fields: Option<(u64, String)>,
 }
 
 impl Snapshot {
     pub fn of(view: &View) -> Self {
-        let state = serde_json::to_string(&view.state()).expect("the state serialises");
-        let fields = view.fields().map(|f| (f.version, serde_json::to_string(f).expect("the fields serialise")));
-        Self { state, fields }
+        let mut st = view.state();
+        let state = serde_json::to_string(&st).expect("the state serialises");
+        st.plans = None;
+        let pushed = serde_json::to_string(&st).expect("the state serialises");
+        let (taken, plans) = view.plans();
+        let plans = (taken, serde_json::to_string(&plans).expect("the plans serialise"));
+        let fields = view.fields().map(|f| (f.version, serde_json::to_string(&FieldsWire::of(f)).expect("the fields serialise")));
+        Self { state, pushed, plans, fields }
+    }
+}
+
+/// The fields as pushed to pages: little-endian f32, base64 (7 significant digits, more than
+/// a colour scale can show; the `.npy` exports keep double): a quarter of the bytes of f64 text.
+#[derive(serde::Serialize)]
+struct FieldsWire {
+    version: u64,
+    step: u64,
+    rows: usize,
+    cols: usize,
+    estimate: String,
+    variance: String,
+    truth: Option<String>,
+}
+
+impl FieldsWire {
+    fn of(f: &crate::state::Fields) -> Self {
+        use base64::Engine as _;
+        let packed = |v: &[f64]| base64::engine::general_purpose::STANDARD.encode(v.iter().flat_map(|&x| (x as f32).to_le_bytes()).collect::<Vec<u8>>());
+        Self { version: f.version, step: f.step, rows: f.rows, cols: f.cols, estimate: packed(&f.estimate), variance: packed(&f.variance), truth: f.truth.as_deref().map(packed) }
     }
 }
 
@@ -95,17 +125,21 @@ async fn state(State(s): State<Shared>) -> Response {
 async fn events(State(s): State<Shared>) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
     let mut rx = s.snapshots.clone();
     rx.mark_changed();
-    let stream = stream::unfold((rx, None::<u64>), |(mut rx, mut sent_version)| async move {
+    let stream = stream::unfold((rx, None::<u64>, None::<u64>), |(mut rx, mut sent_version, mut sent_plans)| async move {
         rx.changed().await.ok()?;
         let snap = rx.borrow_and_update().clone();
-        let mut events = vec![Ok(Event::default().event("state").data(snap.state.clone()))];
+        let mut events = vec![Ok(Event::default().event("state").data(snap.pushed.clone()))];
         if let Some((v, json)) = &snap.fields {
             if sent_version != Some(*v) {
                 sent_version = Some(*v);
                 events.push(Ok(Event::default().event("fields").data(json.clone())));
             }
         }
-        Some((stream::iter(events), (rx, sent_version)))
+        if sent_plans != Some(snap.plans.0) {
+            sent_plans = Some(snap.plans.0);
+            events.push(Ok(Event::default().event("plans").data(snap.plans.1.clone())));
+        }
+        Some((stream::iter(events), (rx, sent_version, sent_plans)))
     });
     Sse::new(futures_util::StreamExt::flatten(stream)).keep_alive(KeepAlive::default())
 }

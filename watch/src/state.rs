@@ -38,7 +38,8 @@ pub struct VehicleView {
     pub radio: Option<&'static str>,
     pub outbox_depth: Option<u64>,
     pub mode: String,
-    pub track: VecDeque<[f64; 2]>,
+    /// Past positions (single precision: centimetres over kilometres).
+    pub track: VecDeque<[f32; 2]>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -80,6 +81,7 @@ pub struct View {
     truth: Option<Vec<Vec<f64>>>,
     /// Messages the watch refused (not decodable, wrong grid, unknown vehicle).
     refused: u64,
+    plans_taken: u64,
 }
 
 /// `/api/state`: everything but the per-cell fields.
@@ -93,7 +95,9 @@ pub struct State<'a> {
     pub vehicles: Vec<&'a VehicleView>,
     pub model: Option<&'a ModelView>,
     pub server: Option<&'a ServerStatus>,
-    pub plans: Vec<&'a Plan>,
+    /// Absent from the pushed state (pages get the plans as their own event, once per change).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub plans: Option<Vec<&'a Plan>>,
     pub mse: &'a [(u64, f64)],
     pub refused: u64,
 }
@@ -121,7 +125,7 @@ impl View {
                 (id.clone(), v)
             })
             .collect();
-        Self { mission: mission.into(), grid, geo, lease_s, vehicles, model: None, fields: None, status: None, plans: BTreeMap::new(), mse: vec![], truth, refused: 0 }
+        Self { mission: mission.into(), grid, geo, lease_s, vehicles, model: None, fields: None, status: None, plans: BTreeMap::new(), mse: vec![], truth, refused: 0, plans_taken: 0 }
     }
 
     pub fn grid(&self) -> Grid {
@@ -142,7 +146,11 @@ impl View {
                     self.refused += 1;
                     return false;
                 }
+                if self.plans.get(&p.vehicle) == Some(&p) {
+                    return false;
+                }
                 self.plans.insert(p.vehicle.clone(), p);
+                self.plans_taken += 1;
                 true
             }
             Body::Batch(_) | Body::Ack(_) => false,
@@ -176,8 +184,9 @@ impl View {
                 AutopilotLink::Up => format!("{}{}", a.mode, if a.armed { ", armed" } else { "" }),
             },
         };
-        if v.track.back() != Some(&t.position) {
-            v.track.push_back(t.position);
+        let at = [t.position[0] as f32, t.position[1] as f32];
+        if v.track.back() != Some(&at) {
+            v.track.push_back(at);
             if v.track.len() > TRACK_LEN {
                 v.track.pop_front();
             }
@@ -238,10 +247,15 @@ impl View {
             vehicles: self.vehicles.values().collect(),
             model: self.model.as_ref(),
             server: self.status.as_ref(),
-            plans: self.plans.values().collect(),
+            plans: Some(self.plans.values().collect()),
             mse: &self.mse,
             refused: self.refused,
         }
+    }
+
+    /// Every vehicle's plan, and how many plans have been taken (changes when they do).
+    pub fn plans(&self) -> (u64, Vec<&Plan>) {
+        (self.plans_taken, self.plans.values().collect())
     }
 
     pub fn fields(&self) -> Option<&Fields> {
