@@ -386,3 +386,22 @@ impl Server {
         }
     }
 }
+
+/// `(status, body)` of one plain HTTP/1.0 request to 127.0.0.1 (the live view's tests).
+pub fn http(port: u16, method: &str, path: &str) -> Option<(u16, String)> {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).ok()?;
+    s.set_read_timeout(Some(std::time::Duration::from_secs(5))).ok()?;
+    write!(s, "{method} {path} HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n").ok()?;
+    let mut bytes = vec![];
+    s.read_to_end(&mut bytes).ok()?;
+    let text = String::from_utf8_lossy(&bytes);
+    let status = text.split_whitespace().nth(1)?.parse().ok()?;
+    Some((status, text.split_once("\r\n\r\n").map_or(String::new(), |(_, b)| b.to_string())))
+}
+
+/// The live view's `/api/state`, once it answers.
+pub fn web_state(port: u16) -> Option<serde_json::Value> {
+    let (status, body) = http(port, "GET", "/api/state")?;
+    (status == 200).then(|| serde_json::from_str(&body).expect("/api/state is JSON"))
+}

@@ -110,8 +110,24 @@ fn secured_fleet(tls: bool) {
     let last = err.trim().lines().last().unwrap_or("");
     assert!(last.starts_with("vehicle: the router refused this node's session") && last.contains("user \"boat-1\"") && last.contains("boat-1-wrong.json5"), "{err}");
 
+    // The live view joins as the observer (its config from `fleet secure`).
+    let view_port = free_port();
+    let watch = std::process::Command::new(bin("fleet-watch"))
+        .args(["--mission", mp, "--http", &format!("127.0.0.1:{view_port}")])
+        .stderr(std::fs::File::create(dir.join("watch.log")).unwrap())
+        .spawn()
+        .unwrap();
+    procs.0.push(watch);
     start_vehicles(&mut procs, &mission, st, &dir, &[]);
     let summary = server.finished(120);
+    // What the observer may see, it saw: the model, every vehicle's telemetry and liveliness,
+    // the plans, the server's status.
+    eventually(10, "the view has the final model", || web_state(view_port).is_some_and(|s| s["model"]["version"].as_u64() == Some(summary.model_version)));
+    let view = web_state(view_port).unwrap();
+    for v in view["vehicles"].as_array().unwrap() {
+        assert!(v["position"].is_array() && v["link"] != "unseen", "the observer saw {}: {v}", v["id"]);
+    }
+    assert!(!view["plans"].as_array().unwrap().is_empty() && view["server"]["batches"].as_u64() > Some(0), "{view}");
     let c = &summary.counters;
     let truth = m.truth(|_| {}).unwrap();
     assert_eq!(c.rejected.values().sum::<u64>(), 1, "only boat-1's garbage on its own key reached the server: {:?}", c.rejected);

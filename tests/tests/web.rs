@@ -5,27 +5,9 @@
 
 use fleet::mission::config::MissionConfig;
 use hetfleet_tests::*;
-use std::io::{Read, Write};
+use std::io::Write;
 use std::path::Path;
 use std::process::{Command, Stdio};
-use std::time::Duration;
-
-/// `(status, body)` of one plain HTTP/1.0 request.
-fn http(port: u16, method: &str, path: &str) -> Option<(u16, String)> {
-    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).ok()?;
-    s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
-    write!(s, "{method} {path} HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n").ok()?;
-    let mut bytes = vec![];
-    s.read_to_end(&mut bytes).ok()?;
-    let text = String::from_utf8_lossy(&bytes);
-    let status = text.split_whitespace().nth(1)?.parse().ok()?;
-    Some((status, text.split_once("\r\n\r\n").map_or(String::new(), |(_, b)| b.to_string())))
-}
-
-fn state(port: u16) -> Option<serde_json::Value> {
-    let (status, body) = http(port, "GET", "/api/state")?;
-    (status == 200).then(|| serde_json::from_str(&body).expect("/api/state is JSON"))
-}
 
 fn version(s: &serde_json::Value) -> u64 {
     s["model"]["version"].as_u64().unwrap_or(0)
@@ -150,10 +132,10 @@ fn a_real_browser_sees_every_vehicle_and_the_model_advance_without_console_error
         .expect("fleet up");
     procs.0.push(up);
     let url = format!("http://127.0.0.1:{port}/");
-    eventually(60, "the view has a model", || state(port).is_some_and(|s| version(&s) >= 1));
+    eventually(60, "the view has a model", || web_state(port).is_some_and(|s| version(&s) >= 1));
 
     // The JSON endpoint the page uses, as documented in the README.
-    let s = state(port).unwrap();
+    let s = web_state(port).unwrap();
     let ids: Vec<String> = MissionConfig::load(Some(&mission)).unwrap().vehicles().into_iter().map(|v| v.id).collect();
     let vehicles = s["vehicles"].as_array().unwrap();
     assert_eq!(vehicles.len(), ids.len());
@@ -228,16 +210,16 @@ fn a_vehicle_that_goes_silent_is_marked_lost_within_the_lease_and_a_public_addre
         }
     }
     let link = |s: &serde_json::Value, id: &str| s["vehicles"].as_array().unwrap().iter().find(|v| v["id"] == id).map(|v| v["link"].as_str().unwrap_or("").to_string()).unwrap();
-    eventually(60, "boat-2's link is up", || state(port).is_some_and(|s| link(&s, "boat-2") == "up"));
+    eventually(60, "boat-2's link is up", || web_state(port).is_some_and(|s| link(&s, "boat-2") == "up"));
     server.epoch(1, 60);
     procs.kill(boat2);
     let killed = std::time::Instant::now();
-    eventually(10, "boat-2 marked lost", || state(port).is_some_and(|s| link(&s, "boat-2") == "lost"));
+    eventually(10, "boat-2 marked lost", || web_state(port).is_some_and(|s| link(&s, "boat-2") == "lost"));
     let after = killed.elapsed().as_secs_f64();
     // Its liveliness token goes when the link does (at once for a closed socket, within the
     // 1 s lease for a silent one); the view pushes every 0.25 s.
     assert!(after < 1.5, "marked lost {after:.2} s after it died");
-    let s = state(port).unwrap();
+    let s = web_state(port).unwrap();
     assert!(s["vehicles"].as_array().unwrap().iter().find(|v| v["id"] == "boat-2").unwrap()["lost_since_s"].is_f64());
     assert_eq!(link(&s, "boat-1"), "up", "the others are not");
     println!("boat-2 marked lost {after:.2} s after kill -9 (lease 1 s)");
