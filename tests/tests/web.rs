@@ -1,7 +1,8 @@
 //! The live view in a real browser: `fleet up --web` on a paced tiny mission, headless
 //! Chromium (Debian's `chromium`, installed by scripts/test.sh) opens the page twice, sees
 //! every vehicle and the model version advance, logs nothing to the console, and saves a
-//! screenshot. `/api/state` says the same; bad requests get 4xx; a lost vehicle is marked.
+//! screenshot; the mission outlives a killed view and the open page reconnects to a new one.
+//! `/api/state` says the same; bad requests get 4xx; a lost vehicle is marked.
 
 use fleet::mission::config::MissionConfig;
 use hetfleet_tests::*;
@@ -120,7 +121,7 @@ fn a_real_browser_sees_every_vehicle_and_the_model_advance_without_console_error
     let dir = scratch("web");
     let ep = format!("tcp/127.0.0.1:{}", free_port());
     let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
-    edit(&mission, "plan_timeout_ms = 20000", "plan_timeout_ms = 1500\nstep_ms = 600");
+    edit(&mission, "plan_timeout_ms = 20000", "plan_timeout_ms = 1500\nstep_ms = 800");
     let port = free_port();
     let mut procs = Procs::default();
     let up = Command::new(bin("fleet"))
@@ -168,15 +169,37 @@ fn a_real_browser_sees_every_vehicle_and_the_model_advance_without_console_error
     for id in &ids {
         assert!(listed.as_array().unwrap().iter().any(|x| x == id), "the page lists {id}: {listed}");
     }
+    assert!(page.console.is_empty(), "the page logged to the console: {:#?}", page.console);
+    // The view dies mid-mission: the mission goes on (fleet up ends 0 below), the page says
+    // it is reconnecting, and once a view is back on the same address the same page (not
+    // reloaded) is live again and follows the model.
+    let watch: Vec<u32> = pids_with(&format!("127.0.0.1:{port}")).into_iter().filter(|p| cmdline(*p).contains("fleet-watch")).collect();
+    assert_eq!(watch.len(), 1, "one fleet-watch");
+    unsafe { libc::kill(watch[0] as i32, libc::SIGKILL) };
+    let badge = |p: &mut Chromium| p.eval("document.getElementById('conn').textContent").as_str().unwrap_or("").to_string();
+    eventually(10, "the page says it is reconnecting", || badge(&mut page) == "reconnecting");
+    let mut view = Procs::default();
+    let truth = dir.join("run/truth.npy");
+    let restarted = Command::new(bin("fleet-watch"))
+        .args(["--mission", mission.to_str().unwrap(), "--truth", truth.to_str().unwrap(), "--http", &format!("127.0.0.1:{port}")])
+        .stderr(std::fs::File::create(dir.join("watch-restarted.log")).unwrap())
+        .spawn()
+        .unwrap();
+    view.0.push(restarted);
+    eventually(30, "the page is live again", || badge(&mut page) == "live");
     eventually(60, "the page's model advances", || shown(&mut page) > v1);
     let v2 = shown(&mut page);
     let shot = dir.join("live-view.png");
     page.screenshot(&shot);
     let png = std::fs::read(&shot).expect("a screenshot");
     assert!(png.starts_with(b"\x89PNG") && png.len() > 10_000, "a real screenshot ({} bytes)", png.len());
-    assert!(page.console.is_empty(), "the page logged to the console: {:#?}", page.console);
-    println!("browser saw model v{v1} then v{v2}, {} vehicles; screenshot {}", ids.len(), shot.display());
+    // After the kill, only the browser's own notes that the event stream broke and could
+    // not reconnect until the view was back.
+    let unexpected: Vec<_> = page.console.iter().filter(|l| !(l.starts_with("log: ") && l.contains("\"source\":\"network\"") && l.contains("/api/events"))).collect();
+    assert!(unexpected.is_empty(), "the page logged to the console: {unexpected:#?}");
+    println!("browser saw model v{v1}, the view killed and back, then v{v2}; {} vehicles; screenshot {}", ids.len(), shot.display());
     drop(page);
+    drop(view);
 
     procs.wait_all(120);
 }

@@ -53,6 +53,8 @@ pub struct Supervisor {
     /// The process group every child joins (the first child's pid).
     group: Option<i32>,
     children: Vec<(String, Child, PathBuf)>,
+    /// Children the mission does not depend on (the live view): their end is news, not failure.
+    optional: Vec<String>,
     stopped: bool,
 }
 
@@ -82,7 +84,7 @@ impl Supervisor {
     /// The first child that has exited with a failure, or that exited at all while `up`
     /// still needs it (every node must run until the mission is finished).
     pub fn exited(&mut self) -> Option<Exited> {
-        for (name, c, log) in &mut self.children {
+        for (name, c, log) in self.children.iter_mut().filter(|(n, _, _)| !self.optional.contains(n)) {
             if let Ok(Some(status)) = c.try_wait() {
                 if !status.success() {
                     return Some(Exited { name: name.clone(), status, log: log.clone() });
@@ -90,6 +92,19 @@ impl Supervisor {
             }
         }
         None
+    }
+
+    /// Mark a child as one the mission does not depend on: [`Self::exited`] skips it.
+    pub fn optional(&mut self, name: &str) {
+        self.optional.push(name.to_string());
+    }
+
+    /// An optional child that has ended (any status), taken off the list so it is told once.
+    pub fn optional_exited(&mut self) -> Option<Exited> {
+        let i = self.children.iter_mut().position(|(n, c, _)| self.optional.contains(n) && matches!(c.try_wait(), Ok(Some(_))))?;
+        let (name, mut c, log) = self.children.remove(i);
+        let status = c.wait().ok()?;
+        Some(Exited { name, status, log })
     }
 
     /// Wait until every node except `except` has exited successfully.

@@ -212,6 +212,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let (log, path) = log_file(&logs, "fleet-watch")?;
         c.arg("--http").arg(addr.to_string()).arg("--run-dir").arg(out).stdout(Stdio::null()).stderr(log);
         fleet.spawn("fleet-watch", c, path)?;
+        // The mission does not depend on its view: if the view dies, it is said, not fatal.
+        fleet.optional("fleet-watch");
         println!("live view: http://{addr}/");
     }
     let epochs = mission.schedule(frames).epochs();
@@ -271,6 +273,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if let Some(dead) = fleet.exited() {
             let why = supervise::last_line(&dead.log);
             return Err(dead.into_error(why, "the mission did not finish"));
+        }
+        if let Some(view) = fleet.optional_exited() {
+            let why = supervise::last_line(&view.log).unwrap_or_default();
+            notices.say(format!("the live view stopped ({}): the mission goes on without it; {why} (log: {})", view.status, view.log.display()));
         }
     };
     pb.finish_and_clear();
