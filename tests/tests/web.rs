@@ -125,7 +125,7 @@ fn a_real_browser_sees_every_vehicle_and_the_model_advance_without_console_error
     let port = free_port();
     let mut procs = Procs::default();
     let up = Command::new(bin("fleet"))
-        .args(["up", mission.to_str().unwrap(), "--out", dir.join("run").to_str().unwrap(), "--web", &format!("127.0.0.1:{port}")])
+        .args(["up", mission.to_str().unwrap(), "--out", dir.join("run").to_str().unwrap(), "--web", &format!("127.0.0.1:{port}"), "--web-linger-s", "0"])
         .current_dir(root())
         .stdout(std::fs::File::create(dir.join("up.log")).unwrap())
         .stderr(std::fs::File::create(dir.join("up.err")).unwrap())

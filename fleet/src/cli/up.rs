@@ -34,6 +34,10 @@ pub struct Args {
     /// Serve the live view here (e.g. 127.0.0.1:8080) while the mission runs (`fleet-watch`).
     #[arg(long)]
     web: Option<std::net::SocketAddr>,
+    /// With --web: keep the view up this many seconds after the mission, to look at the
+    /// finished run and save its report (Ctrl-C ends it sooner; 0: stop with the mission).
+    #[arg(long, default_value_t = 600)]
+    web_linger_s: u64,
 }
 
 /// What a run leaves in `--out` (replaced as a whole by the next run's).
@@ -282,13 +286,26 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     pb.finish_and_clear();
     // Vehicles leave once their last batch is acknowledged; then the server exits.
     fleet.wait_nodes(Duration::from_secs(60), &["gcs-gateway", "fleet-watch"])?;
-    fleet.stop();
+    if args.web.is_none() {
+        fleet.stop();
+    }
 
     let offline = team::run(&mission.team, &truth, |_, _| {})?;
     let command = format!("fleet up{} --out {}", args.mission.as_ref().map_or(String::new(), |p| format!(" {}", p.display())), out.display());
     let md = write_mission_report(out, &mission, &summary, &offline, truth.dt, &command, &events)?;
     println!("{md}");
     println!("wrote {}/report.md, mse.png, events.jsonl, summary.json, model.cbor and logs/ ({:.1} s in all)", out.display(), t0.elapsed().as_secs_f64());
+    if let (Some(addr), linger) = (args.web, args.web_linger_s) {
+        if linger > 0 {
+            println!("the live view stays at http://{addr}/ for {linger} s (the finished run, its report); Ctrl-C ends it");
+            let until = Instant::now() + Duration::from_secs(linger);
+            // The mission is done: a stop signal now just ends the view (exit 0).
+            while Instant::now() < until && stop.received().is_none() {
+                std::thread::sleep(Duration::from_millis(100));
+            }
+        }
+        fleet.stop();
+    }
     Ok(())
 }
 
