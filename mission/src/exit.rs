@@ -47,7 +47,11 @@ impl<T, E: Into<anyhow::Error>> InputResult<T> for Result<T, E> {
 
 /// The exit status of an error.
 pub fn code_of(e: &anyhow::Error) -> i32 {
-    if e.chain().any(|c| c.is::<BadInput>() || c.is::<crate::config::ConfigError>()) {
+    use crate::process::dataset::DatasetError;
+    // A dataset that cannot be used as it is (unreadable, wrong shape, not finite, no such
+    // variable) is the user's input wherever it was read; failing to write one is not.
+    let bad_dataset = |c: &(dyn std::error::Error + 'static)| c.downcast_ref::<DatasetError>().is_some_and(|d| !matches!(d, DatasetError::Io { .. }));
+    if e.chain().any(|c| c.is::<BadInput>() || c.is::<crate::config::ConfigError>() || bad_dataset(c)) {
         BAD_INPUT
     } else {
         INTERNAL

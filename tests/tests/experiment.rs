@@ -92,3 +92,64 @@ fn a_dataset_can_be_the_truth() {
     assert!(report.contains("| plume | 1 | 5 | 6 | 2 | 0.05 | 24 x 48 |"), "{report}");
     assert!(rep.join("fig10-plume.png").exists());
 }
+
+#[test]
+fn a_netcdf_variable_can_be_the_truth_and_gives_the_same_results_as_the_npy() {
+    let dir = std::env::temp_dir().join(format!("hetfleet-exp-nc-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let npy = dir.join("plume.npy");
+    let out = run("fleet", &["simulate", "plume", "--grid", "48x96", "--frames", "40", "--out", npy.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // The same field as NetCDF-3, written by the tool people use (scipy's netcdf_file), with a
+    // second variable beside it.
+    let nc = dir.join("plume.nc");
+    let py = format!(
+        "import numpy as np\nfrom scipy.io import netcdf_file\na = np.load({:?})\nf = netcdf_file({:?}, 'w')\n\
+         f.createDimension('time', a.shape[0]); f.createDimension('y', a.shape[1]); f.createDimension('x', a.shape[2])\n\
+         v = f.createVariable('density', 'd', ('time', 'y', 'x')); v[:] = a; v.units = '1'\n\
+         w = f.createVariable('depth', 'f', ('y', 'x')); w[:] = 0\nf.close()\n",
+        npy.to_str().unwrap(),
+        nc.to_str().unwrap()
+    );
+    let o = std::process::Command::new("python3").args(["-c", &py]).output().expect("python3");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let experiment = |name: &str, truth: &str| {
+        let toml = dir.join(format!("{name}.toml"));
+        std::fs::write(
+            &toml,
+            format!(
+                "seed = 3\nseeds = [1, 2]\ntruth_grid = [48, 96]\nframes = 40\nradius = 6.0\n[team]\nboats = 3\ninit_steps = 10\nrank = \"6\"\n\
+                 [[row]]\n{truth}\nav_time = 1\nmv_time = 5\nav_space = 6\nmv_space = 2\nnoise = 0.05\n"
+            ),
+        )
+        .unwrap();
+        let rep = dir.join(name);
+        let out = run("fleet", &["experiment", toml.to_str().unwrap(), "--out", rep.to_str().unwrap()]);
+        (out, rep)
+    };
+    let (a, rep_npy) = experiment("npy", &format!("dataset = {:?}", npy.to_str().unwrap()));
+    let (b, rep_nc) = experiment("nc", &format!("dataset = {:?}\nvariable = \"density\"", nc.to_str().unwrap()));
+    assert!(a.status.success() && b.status.success(), "{}{}", String::from_utf8_lossy(&a.stderr), String::from_utf8_lossy(&b.stderr));
+    let mse = |rep: &std::path::Path| std::fs::read_to_string(rep.join("per_step.csv")).unwrap().lines().map(|l| l.split(',').nth(5).unwrap_or("").to_string()).collect::<Vec<_>>();
+    assert_eq!(mse(&rep_npy), mse(&rep_nc), "the same field, the same results, step by step");
+    // Bad NetCDF truths: exit 2 with one line naming what is wrong.
+    for (truth, says) in [
+        (format!("dataset = {:?}", nc.to_str().unwrap()), "`variable`"),
+        (format!("dataset = {:?}\nvariable = \"salinity\"", nc.to_str().unwrap()), "no variable \"salinity\" (it has: "),
+        (format!("dataset = {:?}\nvariable = \"depth\"", nc.to_str().unwrap()), "expected shape (frames, rows, cols)"),
+        (format!("dataset = {:?}\nvariable = \"density\"", npy.to_str().unwrap()), "`variable`"),
+    ] {
+        let (o, _) = experiment("bad", &truth);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{truth}: {err}");
+        assert!(err.contains(says), "{truth}: {err}");
+    }
+    let cut = dir.join("cut.nc");
+    let bytes = std::fs::read(&nc).unwrap();
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let (o, _) = experiment("cut", &format!("dataset = {:?}\nvariable = \"density\"", cut.to_str().unwrap()));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("cut.nc: not a readable NetCDF-3 file"), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
+}

@@ -82,6 +82,7 @@ pub fn write_mission_report(
             TruthSource::Preset(p) =>
                 format!("the {p:?} plasma cloud at {} x {}, {} frames, averaged by {}", mission.truth.grid[0], mission.truth.grid[1], mission.truth.frames, mission.truth.average),
             TruthSource::Dataset(d) => format!("the dataset {}", d.display()),
+            TruthSource::NetCdf { path, variable } => format!("the variable {variable} of {}", path.display()),
         }
     )?;
     writeln!(md, "## Estimation error\n")?;

@@ -1,6 +1,7 @@
-//! `.npy` datasets as field sources: any float64 array of shape `(frames, rows, cols)` is a
+//! Datasets as field sources: any float64 `.npy` array of shape `(frames, rows, cols)` is a
 //! truth field (what `fleet simulate` writes and numpy users load with `np.load`), and a JSON
-//! sidecar beside it records how it was made.
+//! sidecar beside it records how it was made; or one variable of a NetCDF-3 file (float or
+//! double, dimensions `(time, y, x)` in that order), as environmental data usually comes.
 
 use super::FieldSeries;
 use crate::npy::{self, NpyError};
@@ -17,6 +18,12 @@ pub enum DatasetError {
     TooSmall { path: String, shape: Vec<usize>, min: usize },
     #[error("writing {path}: {source}")]
     Io { path: String, source: std::io::Error },
+    #[error("{path}: not a readable NetCDF-3 file ({why})")]
+    NetCdf { path: String, why: String },
+    #[error("{path}: no variable {variable:?} (it has: {have})")]
+    NoVariable { path: String, variable: String, have: String },
+    #[error("{path}: variable {variable:?} is {found}; a truth needs float or double data")]
+    NotFloat { path: String, variable: String, found: String },
 }
 
 /// Load a `(frames, rows, cols)` float64 `.npy`, checked for shape and finiteness. `dt` is
@@ -34,6 +41,51 @@ pub fn load(path: impl AsRef<Path>, dt: f64) -> Result<FieldSeries, DatasetError
     a.check_finite(&p)?;
     let n = rows * cols;
     Ok(FieldSeries { rows, cols, dt, snapshots: Mat::from_fn(n, t, |i, j| a.data[j * n + i]) })
+}
+
+/// Load variable `variable` of a NetCDF-3 file (classic or 64-bit offset) as a field: its
+/// dimensions must be `(frames, rows, cols)` (time first, then y, then x), its type float or
+/// double, every value finite (a fill value is refused like a NaN), and the whole file
+/// readable. `dt` as for [`load`].
+pub fn load_netcdf(path: impl AsRef<Path>, variable: &str, dt: f64) -> Result<FieldSeries, DatasetError> {
+    let path = path.as_ref();
+    let p = path.display().to_string();
+    let unreadable = |e: netcdf3::error::ReadError| DatasetError::NetCdf { path: p.clone(), why: format!("{e:?}") };
+    let mut reader = netcdf3::FileReader::open(path).map_err(unreadable)?;
+    let (shape, data_type) = {
+        let Some(var) = reader.data_set().get_var(variable) else {
+            return Err(DatasetError::NoVariable { path: p, variable: variable.into(), have: reader.data_set().get_var_names().join(", ") });
+        };
+        (var.get_dims().iter().map(|d| d.size()).collect::<Vec<usize>>(), var.data_type())
+    };
+    let &[t, rows, cols] = shape.as_slice() else {
+        return Err(DatasetError::Shape { path: format!("{p} ({variable})"), shape });
+    };
+    if t < 1 || rows == 0 || cols == 0 {
+        return Err(DatasetError::TooSmall { path: format!("{p} ({variable})"), shape, min: 1 });
+    }
+    // Every variable is read, not only this one: a file cut short anywhere is refused, not
+    // half used.
+    let mut all = reader.read_all_vars().map_err(unreadable)?;
+    let data: Vec<f64> = match all.remove(variable).ok_or_else(|| DatasetError::NetCdf { path: p.clone(), why: format!("variable {variable:?} has no data") })? {
+        netcdf3::DataVector::F64(v) => v,
+        netcdf3::DataVector::F32(v) => v.into_iter().map(f64::from).collect(),
+        _ => return Err(DatasetError::NotFloat { path: p, variable: variable.into(), found: format!("{data_type:?}") }),
+    };
+    let n = rows * cols;
+    if data.len() != n * t {
+        return Err(DatasetError::NetCdf { path: p, why: format!("variable {variable:?} holds {} values for its {t} x {rows} x {cols} shape", data.len()) });
+    }
+    if let Some((index, value)) = data.iter().copied().enumerate().find(|(_, v)| !v.is_finite()) {
+        return Err(NpyError::NonFinite { path: format!("{p} ({variable})"), index, value }.into());
+    }
+    Ok(FieldSeries { rows, cols, dt, snapshots: Mat::from_fn(n, t, |i, j| data[j * n + i]) })
+}
+
+/// The `(frames, rows, cols)` of a NetCDF variable, from the header alone.
+pub fn netcdf_shape(path: impl AsRef<Path>, variable: &str) -> Option<Vec<usize>> {
+    let reader = netcdf3::FileReader::open(path).ok()?;
+    Some(reader.data_set().get_var(variable)?.get_dims().iter().map(|d| d.size()).collect())
 }
 
 /// Write a field as a `(frames, rows, cols)` float64 `.npy`, plus `sidecar` as pretty JSON at
@@ -79,6 +131,53 @@ mod tests {
         npy::write(dir.join("nan.npy"), &[1, 2, 2], &[0.0, f64::NAN, 0.0, 0.0]).unwrap();
         assert!(load(dir.join("nan.npy"), 1.0).is_err());
         assert!(load(dir.join("missing.npy"), 1.0).is_err());
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// A NetCDF-3 classic file with `name(time, y, x)` of doubles (written by `netcdf3`).
+    fn write_nc(path: &Path, name: &str, shape: [usize; 3], data: &[f64]) {
+        let mut ds = netcdf3::DataSet::new();
+        for (d, n) in ["time", "y", "x"].iter().zip(shape) {
+            ds.add_fixed_dim(d, n).unwrap();
+        }
+        ds.add_var_f64(name, &["time", "y", "x"]).unwrap();
+        ds.add_var_f32("flat", &["y", "x"]).unwrap();
+        let mut w = netcdf3::FileWriter::open(path).unwrap();
+        w.set_def(&ds, netcdf3::Version::Classic, 0).unwrap();
+        w.write_var_f64(name, data).unwrap();
+        w.write_var_f32("flat", &vec![0.0; shape[1] * shape[2]]).unwrap();
+        w.close().unwrap();
+    }
+
+    #[test]
+    fn netcdf_datasets_load_like_npy_and_bad_ones_are_named() {
+        let dir = std::env::temp_dir().join(format!("hetfleet-nc-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let data: Vec<f64> = (0..24).map(|k| k as f64 * 0.5 - 3.0).collect();
+        let nc = dir.join("f.nc");
+        write_nc(&nc, "density", [4, 2, 3], &data);
+        let npy_path = dir.join("f.npy");
+        npy::write(&npy_path, &[4, 2, 3], &data).unwrap();
+        let (a, b) = (load_netcdf(&nc, "density", 0.5).unwrap(), load(&npy_path, 0.5).unwrap());
+        assert_eq!((a.rows, a.cols, a.frames()), (2, 3, 4));
+        assert_eq!(a.snapshots, b.snapshots, "the same field as the .npy");
+        assert_eq!(netcdf_shape(&nc, "density"), Some(vec![4, 2, 3]));
+        let e = load_netcdf(&nc, "temperature", 1.0).unwrap_err().to_string();
+        assert!(e.contains("no variable \"temperature\"") && e.contains("density") && e.contains("f.nc"), "{e}");
+        assert!(matches!(load_netcdf(&nc, "flat", 1.0), Err(DatasetError::Shape { .. })));
+        let mut bad = data.clone();
+        bad[7] = f64::NAN;
+        write_nc(&dir.join("nan.nc"), "density", [4, 2, 3], &bad);
+        assert!(load_netcdf(dir.join("nan.nc"), "density", 1.0).unwrap_err().to_string().contains("not finite"));
+        // Truncated anywhere (header or data): an error naming the file, never a panic.
+        let bytes = std::fs::read(&nc).unwrap();
+        for cut in [0, 3, 10, 40, bytes.len() / 2, bytes.len() - 1] {
+            let t = dir.join(format!("cut{cut}.nc"));
+            std::fs::write(&t, &bytes[..cut]).unwrap();
+            let e = load_netcdf(&t, "density", 1.0).unwrap_err().to_string();
+            assert!(e.contains(&format!("cut{cut}.nc")), "{e}");
+        }
+        assert!(load_netcdf(dir.join("missing.nc"), "density", 1.0).is_err());
         std::fs::remove_dir_all(&dir).ok();
     }
 }

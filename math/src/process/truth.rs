@@ -10,6 +10,8 @@ use std::path::PathBuf;
 pub enum TruthError {
     #[error("give exactly one of `preset` or `dataset` (in [truth] of a mission file, in each [[row]] of an experiment file)")]
     Source,
+    #[error("`variable` goes with a NetCDF dataset (`dataset = \"f.nc\"`, `variable = \"density\"`), and a NetCDF dataset needs it")]
+    Variable,
     #[error("simulating {preset:?}: {source}")]
     Simulation { preset: Preset, source: super::plasma::PlasmaError },
     #[error("loading the dataset {}: {source}", path.display())]
@@ -20,14 +22,16 @@ pub enum TruthError {
     Grid(#[from] crate::grid::GridError),
 }
 
-/// Where the truth comes from: the plasma-cloud simulator's preset, or a `(frames, rows,
-/// cols)` `.npy` dataset. In files it is written as one of two keys, `preset = "cloud1"` or
-/// `dataset = "path.npy"`; giving both or neither is refused where the file is read.
+/// Where the truth comes from: the plasma-cloud simulator's preset, a `(frames, rows, cols)`
+/// `.npy` dataset, or a `(time, y, x)` variable of a NetCDF-3 file. In files it is written as
+/// one of two keys, `preset = "cloud1"` or `dataset = "path.npy"` (`dataset = "f.nc"` with
+/// `variable = "density"`); giving both or neither is refused where the file is read.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(try_from = "TruthKeys", into = "TruthKeys")]
 pub enum TruthSource {
     Preset(Preset),
     Dataset(PathBuf),
+    NetCdf { path: PathBuf, variable: String },
 }
 
 /// The two keys as they stand in a file.
@@ -37,15 +41,20 @@ struct TruthKeys {
     preset: Option<Preset>,
     #[serde(default)]
     dataset: Option<PathBuf>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    variable: Option<String>,
 }
 
 impl TryFrom<TruthKeys> for TruthSource {
     type Error = TruthError;
     fn try_from(k: TruthKeys) -> Result<Self, TruthError> {
-        match (k.preset, k.dataset) {
-            (Some(p), None) => Ok(Self::Preset(p)),
-            (None, Some(d)) => Ok(Self::Dataset(d)),
-            _ => Err(TruthError::Source),
+        let netcdf = |d: &PathBuf| d.extension().is_some_and(|e| e.eq_ignore_ascii_case("nc"));
+        match (k.preset, k.dataset, k.variable) {
+            (Some(p), None, None) => Ok(Self::Preset(p)),
+            (None, Some(d), None) if !netcdf(&d) => Ok(Self::Dataset(d)),
+            (None, Some(d), Some(variable)) if netcdf(&d) => Ok(Self::NetCdf { path: d, variable }),
+            (Some(_), Some(_), _) | (None, None, _) => Err(TruthError::Source),
+            _ => Err(TruthError::Variable),
         }
     }
 }
@@ -53,8 +62,9 @@ impl TryFrom<TruthKeys> for TruthSource {
 impl From<TruthSource> for TruthKeys {
     fn from(s: TruthSource) -> Self {
         match s {
-            TruthSource::Preset(p) => Self { preset: Some(p), dataset: None },
-            TruthSource::Dataset(d) => Self { preset: None, dataset: Some(d) },
+            TruthSource::Preset(p) => Self { preset: Some(p), dataset: None, variable: None },
+            TruthSource::Dataset(d) => Self { preset: None, dataset: Some(d), variable: None },
+            TruthSource::NetCdf { path, variable } => Self { preset: None, dataset: Some(path), variable: Some(variable) },
         }
     }
 }
@@ -63,7 +73,7 @@ impl TruthSource {
     pub fn preset(&self) -> Option<Preset> {
         match self {
             Self::Preset(p) => Some(*p),
-            Self::Dataset(_) => None,
+            Self::Dataset(_) | Self::NetCdf { .. } => None,
         }
     }
 
@@ -71,7 +81,7 @@ impl TruthSource {
     pub fn name(&self) -> String {
         match self {
             Self::Preset(p) => format!("{p:?}"),
-            Self::Dataset(d) => d.file_stem().map_or("dataset".into(), |s| s.to_string_lossy().to_string()),
+            Self::Dataset(d) | Self::NetCdf { path: d, .. } => d.file_stem().map_or("dataset".into(), |s| s.to_string_lossy().to_string()),
         }
     }
 
@@ -88,6 +98,7 @@ impl TruthSource {
                 sim.run(frames, progress).map_err(sim_err)
             }
             Self::Dataset(path) => super::dataset::load(path, 1.0).map_err(|source| TruthError::Dataset { path: path.clone(), source }),
+            Self::NetCdf { path, variable } => super::dataset::load_netcdf(path, variable, 1.0).map_err(|source| TruthError::Dataset { path: path.clone(), source }),
         }
     }
 }
