@@ -272,12 +272,8 @@ impl MissionConfig {
         let a = self.truth.average.max(1);
         match &self.truth.source {
             TruthSource::Preset(_) => Some((self.truth.grid[0] / a, self.truth.grid[1] / a, self.truth.frames)),
-            TruthSource::Dataset(_) | TruthSource::NetCdf { .. } => {
-                let shape = match &self.truth.source {
-                    TruthSource::NetCdf { path, variable } => crate::process::dataset::netcdf_shape(path, variable)?,
-                    TruthSource::Dataset(path) => crate::npy::read_shape(path).ok()?,
-                    TruthSource::Preset(_) => return None,
-                };
+            source => {
+                let shape = source.file_shape()?;
                 match shape.as_slice() {
                     &[t, r, c] => Some((r / a, c / a, t)),
                     _ => None,

@@ -20,8 +20,7 @@ const PAGE: &str = include_str!("../assets/index.html");
 
 /// The JSON the pages are sent, serialised once per change however many pages are open.
 pub struct Snapshot {
-    /// The full state (`/api/state`) and the state pages are pushed (without the plans).
-    pub state: String,
+    /// The state pages are pushed (without the plans; `/api/state` is serialised on request).
     pub pushed: String,
     /// How many plans the view has taken, and every current plan's JSON.
     pub plans: (u64, String),
@@ -32,13 +31,12 @@ pub struct Snapshot {
 impl Snapshot {
     pub fn of(view: &View) -> Self {
         let mut st = view.state();
-        let state = serde_json::to_string(&st).expect("the state serialises");
         st.plans = None;
         let pushed = serde_json::to_string(&st).expect("the state serialises");
         let (taken, plans) = view.plans();
         let plans = (taken, serde_json::to_string(&plans).expect("the plans serialise"));
         let fields = view.fields().map(|f| (f.version, serde_json::to_string(&FieldsWire::of(f)).expect("the fields serialise")));
-        Self { state, pushed, plans, fields }
+        Self { pushed, plans, fields }
     }
 }
 
@@ -116,7 +114,7 @@ async fn not_found() -> Response {
 }
 
 async fn state(State(s): State<Shared>) -> Response {
-    let json = s.snapshots.borrow().state.clone();
+    let json = serde_json::to_string(&s.view.lock().expect("view lock").state()).expect("the state serialises");
     ([(header::CONTENT_TYPE, "application/json")], json).into_response()
 }
 

@@ -89,20 +89,9 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let mut stop = fleet_net::StopSignals::new()?;
     let t0 = Instant::now();
     let mut tick = tokio::time::interval(PUSH_EVERY);
-    let mut dirty = true;
     // A page opened mid-mission sees the current model at once: ask for it.
-    let mut ask_model = true;
+    let mut dirty = ask(&session, keys.model_latest(), &view, &ctx).await;
     loop {
-        if ask_model {
-            ask_model = false;
-            if let Ok(replies) = session.get(keys.model_latest()).await {
-                while let Ok(r) = replies.recv_async().await {
-                    if let Ok(s) = r.result() {
-                        dirty |= take(&view, fleet_net::decode(s, &ctx));
-                    }
-                }
-            }
-        }
         tokio::select! {
             s = telemetry.recv_async() => if let Ok(s) = s { dirty |= take(&view, fleet_net::decode(&s, &ctx)) },
             s = status.recv_async() => if let Ok(s) = s { dirty |= take(&view, fleet_net::decode(&s, &ctx)) },
@@ -111,14 +100,9 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
                 // The plans that go with the new model: from the epoch after its own (the
                 // server answers one vehicle's key at a time).
                 let next = view.lock().expect("view lock").state().model.map(|m| m.epoch + 1);
-                for id in next.map(|_| &ctx.vehicles[..]).unwrap_or_default() {
-                    let selector = format!("{}?epoch={}", keys.plan(id), next.unwrap_or_default());
-                    if let Ok(replies) = session.get(selector).await {
-                        while let Ok(r) = replies.recv_async().await {
-                            if let Ok(s) = r.result() {
-                                dirty |= take(&view, fleet_net::decode(s, &ctx));
-                            }
-                        }
+                if let Some(next) = next {
+                    for id in &ctx.vehicles {
+                        dirty |= ask(&session, format!("{}?epoch={next}", keys.plan(id)), &view, &ctx).await;
                     }
                 }
             },
@@ -143,6 +127,19 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     }
     server.abort();
     Ok(())
+}
+
+/// Query `selector` and apply every reply. Returns whether the view changed.
+async fn ask(session: &fleet_net::zenoh::Session, selector: String, view: &Mutex<View>, ctx: &Context) -> bool {
+    let mut changed = false;
+    if let Ok(replies) = session.get(selector).await {
+        while let Ok(r) = replies.recv_async().await {
+            if let Ok(s) = r.result() {
+                changed |= take(view, fleet_net::decode(s, ctx));
+            }
+        }
+    }
+    changed
 }
 
 /// Apply one decoded message; a message that does not decode is counted, never fatal.

@@ -128,10 +128,6 @@ impl View {
         Self { mission: mission.into(), grid, geo, lease_s, vehicles, model: None, fields: None, status: None, plans: BTreeMap::new(), mse: vec![], truth, refused: 0, plans_taken: 0 }
     }
 
-    pub fn grid(&self) -> Grid {
-        self.grid
-    }
-
     /// Take one decoded message. Returns whether the view changed.
     pub fn apply(&mut self, body: Body) -> bool {
         match body {

@@ -85,6 +85,16 @@ impl TruthSource {
         }
     }
 
+    /// A dataset's `(frames, rows, cols)` from its file's header (`None` for a preset, or a
+    /// file that cannot be read here).
+    pub fn file_shape(&self) -> Option<Vec<usize>> {
+        match self {
+            Self::Preset(_) => None,
+            Self::Dataset(path) => crate::npy::read_shape(path).ok(),
+            Self::NetCdf { path, variable } => super::dataset::netcdf_shape(path, variable),
+        }
+    }
+
     /// The field at full resolution: the simulator at `grid` `[rows, cols]` for `frames`
     /// frames (seeded), or the dataset as it is.
     pub fn full(&self, grid: [usize; 2], frames: usize, seed: u64, progress: impl FnMut(usize)) -> Result<FieldSeries, TruthError> {
