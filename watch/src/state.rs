@@ -30,7 +30,8 @@ pub struct VehicleView {
     pub battery: Option<f64>,
     pub step: Option<u64>,
     /// `up` (its Zenoh liveliness token is present), `lost` (the token went: no word within
-    /// the link lease), or `unseen` (never heard of).
+    /// the link lease), `left` (the token went after the server said the mission finished:
+    /// the vehicle is done, not lost), or `unseen` (never heard of).
     pub link: &'static str,
     /// Seconds since the watch started at which it was lost.
     pub lost_since_s: Option<f64>,
@@ -225,7 +226,12 @@ impl View {
     /// within the link lease, or it left) at `now_s`. Returns whether the view changed.
     pub fn liveliness(&mut self, id: &str, alive: bool, now_s: f64) -> bool {
         let Some(v) = self.vehicles.get_mut(id) else { return false };
-        let (link, since) = if alive { ("up", None) } else { ("lost", Some(now_s)) };
+        let finished = self.status.as_ref().is_some_and(|s| s.finished);
+        let (link, since) = match (alive, finished) {
+            (true, _) => ("up", None),
+            (false, true) => ("left", None),
+            (false, false) => ("lost", Some(now_s)),
+        };
         if v.link == link {
             return false;
         }
@@ -309,6 +315,23 @@ mod tests {
         assert!(!v.liveliness("intruder", true, 3.0));
         assert!(v.liveliness("boat-1", true, 4.0));
         assert_eq!((boat(&v).link, boat(&v).lost_since_s), ("up", None));
+        // Once the server says the mission finished, a vehicle that goes has left, not been lost.
+        let status = ServerStatus {
+            version: 7,
+            next_epoch: 7,
+            finished: true,
+            batches: 0,
+            duplicates: 0,
+            rejected: Default::default(),
+            alive: vec![],
+            waiting_for: vec![],
+            pending_epochs: 0,
+            latency_p50_ms: 0.0,
+            latency_p99_ms: 0.0,
+        };
+        assert!(v.apply(Body::Status(status)));
+        assert!(v.liveliness("boat-1", false, 5.0));
+        assert_eq!((boat(&v).link, boat(&v).lost_since_s), ("left", None));
     }
 
     #[test]
