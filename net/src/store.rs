@@ -5,8 +5,10 @@
 //! **Integrity.** redb checks its own commit slots, not the values it holds, and a damaged
 //! file can make it panic. So every value is sealed with a CRC-32 over what it is (table, key
 //! and bytes), checked on every read; and a file is checked whole before it is opened for
-//! writing, on a copy, so a damaged file is refused with one error naming it and what is
-//! wrong, and is never changed by the refusal (opening a file for writing may repair it).
+//! writing, on a copy and in a child process (a damaged page size can make redb ask for
+//! terabytes, and the failed allocation aborts whoever asked). A damaged file is refused with
+//! one error naming it and what is wrong, and is never changed by the refusal (opening a file
+//! for writing may repair it).
 
 use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition, TableHandle};
 use std::path::{Path, PathBuf};
@@ -288,7 +290,7 @@ fn verify_copy(path: &Path) -> Result<()> {
     std::fs::copy(path, &copy).map_err(|source| StoreError::Io { path: path.into(), source })?;
     // Closing it too: redb writes its allocator state when a database is dropped, and a
     // damaged one can panic there.
-    let checked = contained(|| open_checked(&copy, true).map(drop)).unwrap_or_else(|panic| Err(damaged(&copy, format!("the store could not close it ({panic})"))));
+    let checked = in_child(&copy, || contained(|| open_checked(&copy, true).map(drop)).unwrap_or_else(|panic| Err(damaged(&copy, format!("the store could not close it ({panic})")))));
     let _ = std::fs::remove_file(&copy);
     // Errors name the file the operator gave, not the copy.
     checked.map_err(|e| match e {
@@ -297,6 +299,109 @@ fn verify_copy(path: &Path) -> Result<()> {
         StoreError::Failed { what, .. } => StoreError::Failed { path: path.into(), what },
         other => other,
     })
+}
+
+/// How long a check may take before it is given up (a store of a few hundred MB reads in
+/// seconds; this only bounds a check that cannot finish).
+const CHECK_LIMIT: std::time::Duration = std::time::Duration::from_secs(300);
+
+/// Run `check` in a forked child and return its result. redb allocates a page as large as the
+/// page number on disk says (up to 8 TiB) before it checks anything, and a failed allocation
+/// aborts the process, past any `catch_unwind`: one damaged byte would take the node down.
+/// In a child, that abort is only a refusal. The child runs nothing but the check and leaves
+/// by `_exit` (no destructors, no flushing of the parent's buffers).
+fn in_child(path: &Path, check: impl FnOnce() -> Result<()>) -> Result<()> {
+    use std::io::{Read, Write};
+    use std::os::fd::FromRawFd;
+    let failed = |what: String| StoreError::Failed { path: path.into(), what };
+    let mut fds = [0; 2];
+    // SAFETY: `fds` has room for the two descriptors pipe writes.
+    if unsafe { libc::pipe2(fds.as_mut_ptr(), libc::O_CLOEXEC) } != 0 {
+        return Err(failed(format!("cannot check it: pipe: {}", std::io::Error::last_os_error())));
+    }
+    // SAFETY: the child only runs `check` (file I/O and allocation) and `_exit`s.
+    let pid = unsafe { libc::fork() };
+    if pid < 0 {
+        let e = std::io::Error::last_os_error();
+        // SAFETY: both descriptors are ours and open.
+        unsafe { (libc::close(fds[0]), libc::close(fds[1])) };
+        return Err(failed(format!("cannot check it: fork: {e}")));
+    }
+    if pid == 0 {
+        // The child's stderr is silenced: its abort message would read as the node's own.
+        // SAFETY: plain descriptor calls on a path literal.
+        unsafe {
+            let null = libc::open(c"/dev/null".as_ptr(), libc::O_WRONLY);
+            if null >= 0 {
+                libc::dup2(null, 2);
+            }
+        }
+        // SAFETY: the write end, ours alone in this process.
+        let mut out = unsafe { std::fs::File::from_raw_fd(fds[1]) };
+        let _ = out.write_all(&encode_outcome(&check()));
+        // SAFETY: ends the child without running anything of the parent's.
+        unsafe { libc::_exit(0) }
+    }
+    // SAFETY: the write end is the child's now; the read end is ours alone.
+    unsafe { libc::close(fds[1]) };
+    // SAFETY: the read end, ours alone; closed when `answer` drops.
+    let mut answer = unsafe { std::fs::File::from_raw_fd(fds[0]) };
+    let start = std::time::Instant::now();
+    let mut status = 0;
+    loop {
+        // SAFETY: `pid` is our child; `status` is written by waitpid.
+        match unsafe { libc::waitpid(pid, &mut status, libc::WNOHANG) } {
+            0 if start.elapsed() < CHECK_LIMIT => std::thread::sleep(std::time::Duration::from_millis(5)),
+            0 => {
+                // SAFETY: our child, which has not been reaped.
+                unsafe { (libc::kill(pid, libc::SIGKILL), libc::waitpid(pid, &mut status, 0)) };
+                return Err(failed(format!("checking it did not finish within {} s", CHECK_LIMIT.as_secs())));
+            }
+            r if r < 0 && std::io::Error::last_os_error().kind() == std::io::ErrorKind::Interrupted => {}
+            r if r < 0 => return Err(failed(format!("cannot check it: waitpid: {}", std::io::Error::last_os_error()))),
+            _ => break,
+        }
+    }
+    if libc::WIFSIGNALED(status) {
+        let sig = libc::WTERMSIG(status);
+        let why = if sig == libc::SIGABRT { " (a damaged page asked for more memory than the machine has)" } else { "" };
+        return Err(damaged(path, format!("reading it ended the check with signal {sig}{why}")));
+    }
+    // The answer is short (see `encode_outcome`), so it sat in the pipe while the child ended.
+    let mut reply = vec![];
+    answer.read_to_end(&mut reply).map_err(|e| failed(format!("cannot check it: {e}")))?;
+    decode_outcome(path, &reply).ok_or_else(|| failed(format!("the check of it ended without an answer (exit status {status})")))?
+}
+
+/// A check's outcome as the child sends it: empty for sound, else a tag and the message.
+fn encode_outcome(r: &Result<()>) -> Vec<u8> {
+    let (tag, what) = match r {
+        Ok(()) => return b"ok".to_vec(),
+        Err(StoreError::Damaged { what, .. }) => (b'D', what.clone()),
+        Err(StoreError::Empty { .. }) => (b'E', String::new()),
+        Err(StoreError::InUse { .. }) => (b'U', String::new()),
+        Err(StoreError::Io { source, .. }) => (b'I', source.to_string()),
+        Err(StoreError::Failed { what, .. }) => (b'F', what.clone()),
+    };
+    // Well under a pipe's buffer, so the child never waits for its parent to read.
+    let mut out = vec![tag];
+    out.extend_from_slice(what.as_bytes());
+    out.truncate(4096);
+    out
+}
+
+fn decode_outcome(path: &Path, reply: &[u8]) -> Option<Result<()>> {
+    let path = path.to_path_buf();
+    let what = String::from_utf8_lossy(reply.get(1..)?).into_owned();
+    Some(Err(match reply.first()? {
+        _ if reply == b"ok" => return Some(Ok(())),
+        b'D' => StoreError::Damaged { path, what },
+        b'E' => StoreError::Empty { path },
+        b'U' => StoreError::InUse { path },
+        b'I' => StoreError::Io { path, source: std::io::Error::other(what) },
+        b'F' => StoreError::Failed { path, what },
+        _ => return None,
+    }))
 }
 
 #[cfg(test)]
@@ -326,6 +431,43 @@ mod tests {
         let err = Store::open(&p).err().expect("refused");
         assert!(err.is_bad_file() && err.to_string().contains("`messages` table is missing"), "{err}");
         assert_eq!(std::fs::read(&p).unwrap(), bytes, "the refusal changed the file");
+    }
+
+    #[test]
+    fn a_page_size_claiming_terabytes_is_refused_not_an_abort() {
+        // Found by the fuzz test: redb allocates a page as large as its page number says
+        // (up to 8 TiB) before it checks anything, and a failed allocation aborts the
+        // process, past any catch_unwind. The table definitions name each table's root
+        // page, so raise the size bits of every byte near the name `messages` in turn.
+        let dir = scratch("page-order");
+        let p = dir.join("s.redb");
+        let mut s = Store::open(&p).unwrap();
+        s.commit(&[(("boat-1", 0), b"abc"), (("av-1", 3), b"defg")], &[("state", b"x")]).unwrap();
+        let want = (s.messages().unwrap(), s.meta_with_prefix("").unwrap());
+        drop(s);
+        let good = std::fs::read(&p).unwrap();
+        let at = good.windows(8).position(|w| w == b"messages").expect("the table name is in the file");
+        let (mut refused, mut opened) = (0, 0);
+        for i in at.saturating_sub(64)..(at + 96).min(good.len()) {
+            let mut bytes = good.clone();
+            bytes[i] = 0xE0 | (bytes[i] & 0x07);
+            if bytes == good {
+                continue;
+            }
+            std::fs::write(&p, &bytes).unwrap();
+            match Store::open(&p) {
+                Ok(s) => {
+                    assert_eq!((s.messages().unwrap(), s.meta_with_prefix("").unwrap()), want, "byte {i}: opened with different data");
+                    opened += 1;
+                }
+                Err(e) => {
+                    assert!(e.is_bad_file(), "byte {i}: {e}");
+                    assert_eq!(std::fs::read(&p).unwrap(), bytes, "byte {i}: the refusal changed the file");
+                    refused += 1;
+                }
+            }
+        }
+        assert!(refused > 0, "no damage was refused ({opened} opened)");
     }
 
     #[test]
