@@ -6,16 +6,20 @@ cd "$(dirname "$0")/.."
 # Python peers used by cross-check tests (PyDMD, odmd, pysensors, numpy/scipy) and the
 # Python Zenoh client that reads the fleet's model (eclipse-zenoh, the same 1.10 line as the
 # Rust side, and cbor2).
-if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pymavlink" 2>/dev/null; then
-  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors eclipse-zenoh cbor2 pymavlink)"
+# xarray reads the NetCDF a run writes.
+if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pymavlink, xarray" 2>/dev/null; then
+  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors eclipse-zenoh cbor2 pymavlink xarray)"
   python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore \
-    numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2 pymavlink==2.4.50
+    numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2 pymavlink==2.4.50 xarray
 fi
-# Debian's chromium for the live view's browser test.
-if ! command -v chromium >/dev/null; then
-  echo "== installing chromium (the live view's browser test)"
+# Debian's chromium for the live view's browser test, gdal-bin for the GeoTIFF test.
+missing=()
+command -v chromium >/dev/null || missing+=(chromium)
+command -v gdalinfo >/dev/null || missing+=(gdal-bin)
+if [ ${#missing[@]} -gt 0 ]; then
+  echo "== installing ${missing[*]} (the live view's browser test, the GeoTIFF test)"
   export DEBIAN_FRONTEND=noninteractive
-  apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null
+  apt-get update -q >/dev/null && apt-get install -y -q "${missing[@]}" >/dev/null
 fi
 echo "== house style (rustfmt.toml; clippy with warnings as errors)"
 cargo fmt --all --check

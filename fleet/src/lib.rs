@@ -12,5 +12,6 @@ pub use fleet_math::{configure_linalg_threads, dmd, fusion, grid, kalman, npy, p
 pub use fleet_mission::{exit, protocol};
 
 pub mod experiment;
+pub mod export;
 pub mod mission;
 pub mod plot;

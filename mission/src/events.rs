@@ -92,6 +92,28 @@ pub struct ServerSummary {
     /// Times each vehicle's liveliness token appeared (1: never lost).
     pub link_ups: BTreeMap<String, u64>,
     pub wall_s: f64,
+    /// Seconds of the field's own time between steps (the time axis of `estimate.npy`).
+    #[serde(default)]
+    pub dt: f64,
+}
+
+/// The plans the server published, as `plans.json` keeps them (the boats' and aerials' places,
+/// without the cells: what a ground station needs to draw or fly them).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PublishedPlans {
+    /// Epochs each plan looks ahead.
+    pub horizon: u64,
+    pub plans: Vec<PlanPlaces>,
+}
+
+/// One vehicle's plan as published at `epoch`: where it senses at each sampling step.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PlanPlaces {
+    pub vehicle: String,
+    pub kind: crate::protocol::VehicleKind,
+    pub epoch: u64,
+    /// `(epoch, step, [x, y] grid metres, radius in cells)`; a radius of 0 senses nothing.
+    pub targets: Vec<(u64, u64, [f64; 2], f64)>,
 }
 
 #[cfg(test)]

@@ -19,6 +19,7 @@ pub mod roster;
 pub mod schedule;
 pub mod security;
 pub mod server;
+pub mod site;
 pub mod team;
 pub mod vehicle;
 

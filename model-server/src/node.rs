@@ -5,7 +5,7 @@
 use crate::Args;
 use anyhow::Context as _;
 use fleet_mission::config::MissionConfig;
-use fleet_mission::events::{Percentiles, ServerEvent, ServerSummary};
+use fleet_mission::events::{Percentiles, PlanPlaces, PublishedPlans, ServerEvent, ServerSummary};
 use fleet_mission::exit::bad_input;
 use fleet_mission::process::FieldSeries;
 use fleet_mission::protocol::{self, keys::Keys, Body, Context, ServerStatus};
@@ -362,6 +362,7 @@ impl Server {
             eigenvalues,
             link_ups: self.link_ups.clone(),
             wall_s: self.started.elapsed().as_secs_f64(),
+            dt: self.truth.dt,
         }
     }
 }
@@ -519,7 +520,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             done_at = Some(Instant::now());
             let summary = s.summary();
             if let Some(dir) = &args.out {
-                write_outputs(dir, &summary, &s.core)?;
+                write_outputs(dir, &summary, &s.core, s.mission.pace.horizon)?;
             }
             info!(epochs = summary.epochs, batches = summary.counters.batches, p99_ms = summary.latency_ms.p99, "mission finished");
             emit(s.events, &ServerEvent::Finished { summary: Box::new(summary) });
@@ -538,11 +539,24 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn write_outputs(dir: &std::path::Path, summary: &ServerSummary, core: &ServerCore) -> anyhow::Result<()> {
+/// What a finished run leaves for export (`fleet export`): the summary, the final model, the
+/// fused estimate and its reported variance at every step (`(steps, rows, cols)` float64), and
+/// every plan published.
+fn write_outputs(dir: &std::path::Path, summary: &ServerSummary, core: &ServerCore, horizon: u64) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(summary)?)?;
     if let Some(m) = core.model_update() {
         std::fs::write(dir.join("model.cbor"), protocol::encode(&Body::Model(m)))?;
     }
+    let grid = core.assimilator().grid();
+    for (name, steps) in [("estimate.npy", &core.snapshots), ("variance.npy", &core.variances)] {
+        let data: Vec<f64> = steps.iter().flatten().copied().collect();
+        fleet_mission::npy::write(dir.join(name), &[steps.len(), grid.rows, grid.cols], &data)?;
+    }
+    let plans = (0..core.counters.epochs)
+        .flat_map(|e| core.vehicles().iter().filter_map(move |v| core.plan(&v.id, e, horizon).map(|p| (v.kind, p))))
+        .map(|(kind, p)| PlanPlaces { vehicle: p.vehicle, kind, epoch: p.epoch, targets: p.targets.into_iter().map(|t| (t.epoch, t.step, t.position, t.radius)).collect() })
+        .collect();
+    std::fs::write(dir.join("plans.json"), serde_json::to_string(&PublishedPlans { horizon, plans })?)?;
     Ok(())
 }

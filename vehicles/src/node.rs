@@ -10,6 +10,7 @@ use crate::Args;
 use fleet_mission::config::MissionConfig;
 use fleet_mission::grid::Grid;
 use fleet_mission::protocol::{self, keys::Keys, Body, Context, LinkState, Plan, Target, Telemetry};
+use fleet_mission::site::Site;
 use fleet_mission::vehicle::{BrainState, Fix, VehicleBrain};
 use fleet_mission::vehicle_rng;
 use fleet_net::outbox::{Outbox, OutboxError};
@@ -21,7 +22,6 @@ use tokio::sync::mpsc;
 use tracing::{debug, info, warn};
 use vehicles::autopilot::modes::Frame;
 use vehicles::autopilot::sim::SimSpec;
-use vehicles::autopilot::site::Site;
 use vehicles::bridge::{Bridge, BridgeSpec};
 use zenoh::sample::SampleKind;
 

@@ -5,6 +5,7 @@
 use fleet_mission::config::MavlinkConfig;
 use fleet_mission::grid::Grid;
 use fleet_mission::protocol::AutopilotLink;
+use fleet_mission::site::Site;
 use mavlink::dialects::common::*;
 use mavlink::MavHeader;
 use nalgebra::Vector3;
@@ -16,7 +17,6 @@ use std::time::{Duration, Instant};
 use vehicles::autopilot::modes::Frame;
 use vehicles::autopilot::serve;
 use vehicles::autopilot::sim::{SimAutopilot, SimSpec};
-use vehicles::autopilot::site::Site;
 use vehicles::bridge::{frame_bytes, parse_frame, Bridge, BridgeSpec};
 
 fn site() -> Site {

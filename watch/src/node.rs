@@ -57,7 +57,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let (mission, truth) = args.node.load()?;
     let (grid, _frames) = mission.workspace(&truth)?;
     let keys = Keys::new(&mission.mission)?;
-    let site = vehicles::autopilot::site::Site::new(&mission.mavlink, &grid);
+    let site = fleet_mission::site::Site::new(&mission.mavlink, &grid);
     let ne = site.global_of(&site.ned_of((grid.width_m(), grid.height_m()), 0.0));
     let geo = Geo { south_west: [mission.mavlink.origin[0], mission.mavlink.origin[1]], north_east: [ne.0, ne.1], size_m: [grid.width_m() * site.scale.x, grid.height_m() * site.scale.y] };
     let specs: Vec<_> = mission.vehicles().into_iter().map(|v| (v.id, v.kind)).collect();

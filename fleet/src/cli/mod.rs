@@ -3,6 +3,7 @@
 mod bench;
 mod dmd;
 mod experiment;
+mod export;
 mod render;
 mod secure;
 mod simulate;
@@ -32,6 +33,8 @@ enum Command {
     Experiment(experiment::Args),
     /// Run a mission: the model server and every vehicle as processes over Zenoh, with a report.
     Up(up::Args),
+    /// A finished run as NetCDF, GeoTIFF or QGroundControl plans.
+    Export(export::Args),
     /// Zenoh configs of a secured mission: passwords, mutual TLS, access control per vehicle.
     Secure(secure::Args),
 }
@@ -44,6 +47,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Render(a) => render::run(a),
         Command::Experiment(a) => experiment::run(a),
         Command::Up(a) => up::run(a),
+        Command::Export(a) => export::run(a),
         Command::Secure(a) => secure::run(a),
     }
 }

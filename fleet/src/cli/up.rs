@@ -25,7 +25,8 @@ use std::time::{Duration, Instant};
 pub struct Args {
     /// Mission file (default: the bundled mission, config/mission.toml).
     mission: Option<PathBuf>,
-    /// Directory for the truth, logs, events.jsonl, summary.json, report.md and mse.png.
+    /// Directory for the run: report.md, mse.png, estimate.nc, the truth, logs, events and the
+    /// server's outputs (replaced as a whole by the next run).
     #[arg(long, default_value = "fleet-run")]
     out: PathBuf,
     /// Give up if the mission is not finished after this many seconds.
@@ -41,7 +42,8 @@ pub struct Args {
 }
 
 /// What a run leaves in `--out` (replaced as a whole by the next run's).
-const RUN_FILES: [&str; 9] = ["state", "logs", "truth.npy", "mission.toml", "events.jsonl", "report.md", "mse.png", "summary.json", "model.cbor"];
+const RUN_FILES: [&str; 13] =
+    ["state", "logs", "truth.npy", "mission.toml", "events.jsonl", "report.md", "mse.png", "summary.json", "model.cbor", "estimate.npy", "variance.npy", "plans.json", "estimate.nc"];
 
 /// A sibling binary of this executable (the workspace builds them side by side).
 fn sibling(name: &str) -> anyhow::Result<PathBuf> {
@@ -131,8 +133,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     std::fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
     let cleanup = StagingGuard(Some(staging.clone()));
     let mission_file = |dir: &Path| args.mission.clone().unwrap_or_else(|| dir.join("mission.toml"));
-    if args.mission.is_none() {
-        std::fs::write(staging.join("mission.toml"), DEFAULT_MISSION)?;
+    // The run keeps its mission (for the record and `fleet export`); the nodes read the
+    // operator's file, whose relative paths are relative to it.
+    match &args.mission {
+        None => std::fs::write(staging.join("mission.toml"), DEFAULT_MISSION)?,
+        Some(p) => {
+            std::fs::copy(p, staging.join("mission.toml")).with_context(|| format!("copying {} into the run", p.display()))?;
+        }
     }
 
     let pb = super::progress_bar(mission.truth.frames as u64, "truth");
@@ -294,7 +301,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let command = format!("fleet up{} --out {}", args.mission.as_ref().map_or(String::new(), |p| format!(" {}", p.display())), out.display());
     let md = write_mission_report(out, &mission, &summary, &offline, truth.dt, &command, &events)?;
     println!("{md}");
-    println!("wrote {}/report.md, mse.png, events.jsonl, summary.json, model.cbor and logs/ ({:.1} s in all)", out.display(), t0.elapsed().as_secs_f64());
+    let run = fleet::export::Run::load(out)?;
+    fleet::export::netcdf::write(&run, &out.join("estimate.nc"))?;
+    println!("wrote {}/report.md, mse.png, estimate.nc, events.jsonl, summary.json, model.cbor and logs/ ({:.1} s in all)", out.display(), t0.elapsed().as_secs_f64());
     if let (Some(addr), linger) = (args.web, args.web_linger_s) {
         if linger > 0 {
             println!("the live view stays at http://{addr}/ for {linger} s (the finished run, its report); Ctrl-C ends it");

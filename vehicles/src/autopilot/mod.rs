@@ -4,4 +4,3 @@
 pub mod modes;
 pub mod serve;
 pub mod sim;
-pub mod site;

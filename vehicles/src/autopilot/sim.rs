@@ -12,7 +12,7 @@
 #![allow(deprecated)]
 
 use super::modes::{Frame, Role};
-use super::site::Site;
+use fleet_mission::site::Site;
 use mavlink::dialects::common::*;
 use mavlink::{MavHeader, Message};
 use nalgebra::Vector3;

@@ -6,6 +6,7 @@ use anyhow::Context as _;
 use clap::{Parser, ValueEnum};
 use fleet_mission::config::MissionConfig;
 use fleet_mission::grid::Grid;
+use fleet_mission::site::Site;
 use nalgebra::Vector3;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -13,7 +14,6 @@ use std::time::Duration;
 use vehicles::autopilot::modes::Frame;
 use vehicles::autopilot::serve;
 use vehicles::autopilot::sim::{SimAutopilot, SimSpec};
-use vehicles::autopilot::site::Site;
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 enum Airframe {

@@ -3,8 +3,8 @@
 //! longitude. The grid may be scaled onto a physical extent (the paper's 4.5 m x 3.0 m tank, or
 //! a field site); the flat-Earth approximation is well under a centimetre over a few kilometres.
 
-use fleet_mission::config::MavlinkConfig;
-use fleet_mission::grid::Grid;
+use crate::config::MavlinkConfig;
+use crate::grid::Grid;
 use nalgebra::{Vector2, Vector3};
 
 /// WGS-84 equatorial radius (m).

@@ -1,0 +1,57 @@
+//! `fleet export <run-dir>`: a finished run as NetCDF, GeoTIFF and QGroundControl plans.
+
+use anyhow::Result;
+use fleet::export::{self, ExportError, Run};
+use std::path::{Path, PathBuf};
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// The run directory `fleet up --out` wrote.
+    pub run_dir: PathBuf,
+    /// The estimate, its variance and the truth at every step as CF-1.8 NetCDF (xarray, Panoply).
+    #[arg(long, value_name = "FILE.nc")]
+    pub netcdf: Option<PathBuf>,
+    /// The final estimate and its variance as GeoTIFFs (WGS 84) in this directory (GDAL, QGIS).
+    #[arg(long, value_name = "DIR")]
+    pub geotiff: Option<PathBuf>,
+    /// Each boat's planned sensing places as a QGroundControl plan, one file per boat (QGC holds
+    /// one mission per vehicle): `f.plan` writes `f.boat-1.plan`, `f.boat-2.plan`, ...
+    #[arg(long, value_name = "FILE.plan")]
+    pub qgc_plan: Option<PathBuf>,
+    /// The plans published at this epoch (default: the last).
+    #[arg(long, requires = "qgc_plan")]
+    pub epoch: Option<u64>,
+}
+
+/// An export's error as the exit code wants it: the run directory's fault is bad input.
+fn classify(e: ExportError) -> anyhow::Error {
+    if e.is_bad_input() {
+        fleet::exit::bad_input(e)
+    } else {
+        e.into()
+    }
+}
+
+pub fn run(args: Args) -> Result<()> {
+    if args.netcdf.is_none() && args.geotiff.is_none() && args.qgc_plan.is_none() {
+        return Err(fleet::exit::bad_input(anyhow::anyhow!("nothing to export: give --netcdf FILE.nc, --geotiff DIR or --qgc-plan FILE.plan")));
+    }
+    let run = Run::load(&args.run_dir).map_err(classify)?;
+    if let Some(path) = &args.netcdf {
+        export::netcdf::write(&run, path).map_err(classify)?;
+        println!("wrote {} ({} steps of {} x {})", path.display(), run.estimate.steps, run.grid.rows, run.grid.cols);
+    }
+    if let Some(dir) = &args.geotiff {
+        let files = export::geotiff::write(&run, dir).map_err(classify)?;
+        println!("wrote {} (step {}, WGS 84)", list(&files), run.estimate.steps - 1);
+    }
+    if let Some(path) = &args.qgc_plan {
+        let files = export::qgc::write(&run, path, args.epoch).map_err(classify)?;
+        println!("wrote {}", list(&files));
+    }
+    Ok(())
+}
+
+fn list(files: &[PathBuf]) -> String {
+    files.iter().map(|p| Path::display(p).to_string()).collect::<Vec<_>>().join(", ")
+}

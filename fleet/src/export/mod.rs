@@ -1,0 +1,158 @@
+//! A finished run in the formats field teams open: NetCDF for xarray and Panoply
+//! ([`netcdf`]), GeoTIFF for GDAL and QGIS ([`geotiff`]), QGroundControl plans ([`qgc`]).
+//! Everything is read from the run directory `fleet up` leaves (the server's `estimate.npy`,
+//! `variance.npy`, `plans.json` and `summary.json`, the mission and the truth), so a run can
+//! be exported again later, and by the same code `fleet up` uses at its end.
+
+pub mod geotiff;
+pub mod netcdf;
+pub mod qgc;
+
+use fleet_math::grid::Grid;
+use fleet_math::npy;
+use fleet_mission::config::MissionConfig;
+use fleet_mission::events::{PublishedPlans, ServerSummary};
+use fleet_mission::site::Site;
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ExportError {
+    #[error("{}: not a finished run directory: it has no {what} (run `fleet up --out {}` first)", dir.display(), dir.display())]
+    Missing { dir: PathBuf, what: &'static str },
+    #[error("{}: {why}", path.display())]
+    Bad { path: PathBuf, why: String },
+    #[error("writing {}: {why}", path.display())]
+    Write { path: PathBuf, why: String },
+}
+
+impl ExportError {
+    /// Whether the run directory is at fault (exit 2), rather than the machine (exit 1).
+    pub fn is_bad_input(&self) -> bool {
+        !matches!(self, Self::Write { .. })
+    }
+}
+
+type Result<T> = std::result::Result<T, ExportError>;
+
+/// One `(steps, rows, cols)` field of a run, flat in that order.
+pub struct Steps {
+    pub steps: usize,
+    pub data: Vec<f64>,
+}
+
+impl Steps {
+    /// Step `k` as `rows * cols` values, row 0 the southern edge.
+    pub fn step(&self, k: usize, grid: &Grid) -> &[f64] {
+        &self.data[k * grid.len()..(k + 1) * grid.len()]
+    }
+}
+
+/// What a run directory holds, read and checked against itself.
+pub struct Run {
+    pub dir: PathBuf,
+    pub mission: MissionConfig,
+    pub summary: ServerSummary,
+    pub grid: Grid,
+    pub site: Site,
+    pub estimate: Steps,
+    pub variance: Steps,
+    /// The truth's first `steps` frames, in a mixed-reality run.
+    pub truth: Option<Steps>,
+}
+
+impl Run {
+    pub fn load(dir: &Path) -> Result<Self> {
+        let need = |name: &'static str| {
+            let p = dir.join(name);
+            if p.is_file() {
+                Ok(p)
+            } else {
+                Err(ExportError::Missing { dir: dir.into(), what: name })
+            }
+        };
+        let bad = |path: &Path, why: String| ExportError::Bad { path: path.into(), why };
+        let mission_path = need("mission.toml")?;
+        let text = std::fs::read_to_string(&mission_path).map_err(|e| bad(&mission_path, e.to_string()))?;
+        let mission = MissionConfig::from_toml(&text).map_err(|e| bad(&mission_path, e.to_string()))?;
+        let summary_path = need("summary.json")?;
+        let summary: ServerSummary =
+            std::fs::read(&summary_path).map_err(|e| e.to_string()).and_then(|b| serde_json::from_slice(&b).map_err(|e| e.to_string())).map_err(|why| bad(&summary_path, why))?;
+        let read = |name: &'static str| -> Result<(Vec<usize>, Vec<f64>)> {
+            let p = need(name)?;
+            let a = npy::read(&p).map_err(|e| bad(&p, e.to_string()))?;
+            a.check_finite(&p.display().to_string()).map_err(|e| bad(&p, e.to_string()))?;
+            Ok((a.shape, a.data))
+        };
+        let (shape, estimate) = read("estimate.npy")?;
+        let &[steps, rows, cols] = shape.as_slice() else {
+            return Err(bad(&dir.join("estimate.npy"), format!("expected shape (steps, rows, cols), found {shape:?}")));
+        };
+        let grid = Grid::new(rows, cols, 1.0).map_err(|e| bad(&dir.join("estimate.npy"), e.to_string()))?;
+        let (vshape, variance) = read("variance.npy")?;
+        if vshape != shape {
+            return Err(bad(&dir.join("variance.npy"), format!("shape {vshape:?} differs from estimate.npy's {shape:?}")));
+        }
+        if steps == 0 {
+            return Err(bad(&dir.join("estimate.npy"), "no steps: the run assimilated nothing".into()));
+        }
+        let truth = match dir.join("truth.npy").is_file() {
+            false => None,
+            true => {
+                let (tshape, data) = read("truth.npy")?;
+                if tshape.len() != 3 || tshape[1..] != shape[1..] || tshape[0] < steps {
+                    return Err(bad(&dir.join("truth.npy"), format!("shape {tshape:?} does not cover estimate.npy's {shape:?}")));
+                }
+                Some(Steps { steps, data: data[..steps * grid.len()].to_vec() })
+            }
+        };
+        let site = Site::new(&mission.mavlink, &grid);
+        Ok(Self { dir: dir.into(), mission, summary, grid, site, estimate: Steps { steps, data: estimate }, variance: Steps { steps, data: variance }, truth })
+    }
+
+    /// The plans the server published (`plans.json`).
+    pub fn plans(&self) -> Result<PublishedPlans> {
+        let p = self.dir.join("plans.json");
+        if !p.is_file() {
+            return Err(ExportError::Missing { dir: self.dir.clone(), what: "plans.json" });
+        }
+        std::fs::read(&p).map_err(|e| e.to_string()).and_then(|b| serde_json::from_slice(&b).map_err(|e| e.to_string())).map_err(|why| ExportError::Bad { path: p, why })
+    }
+
+    /// Physical metres east of the site's corner of each column's centre, and north of each
+    /// row's.
+    pub fn axes_m(&self) -> (Vec<f64>, Vec<f64>) {
+        let x = (0..self.grid.cols).map(|c| (c as f64 + 0.5) * self.grid.cell_m * self.site.scale.x).collect();
+        let y = (0..self.grid.rows).map(|r| (r as f64 + 0.5) * self.grid.cell_m * self.site.scale.y).collect();
+        (x, y)
+    }
+
+    /// Longitude of each column's centre and latitude of each row's (the flat-Earth site: a
+    /// column has one longitude, a row one latitude).
+    pub fn axes_deg(&self) -> (Vec<f64>, Vec<f64>) {
+        let g = &self.grid;
+        let lon = (0..g.cols).map(|c| self.site.global_of(&self.site.ned_of(((c as f64 + 0.5) * g.cell_m, 0.0), 0.0)).1).collect();
+        let lat = (0..g.rows).map(|r| self.site.global_of(&self.site.ned_of((0.0, (r as f64 + 0.5) * g.cell_m), 0.0)).0).collect();
+        (lon, lat)
+    }
+
+    /// `[west, south, east, north]` of the grid's outer edges, degrees.
+    pub fn bounds_deg(&self) -> [f64; 4] {
+        let (lat0, lon0, _) = self.site.global_of(&self.site.ned_of((0.0, 0.0), 0.0));
+        let (lat1, lon1, _) = self.site.global_of(&self.site.ned_of((self.grid.width_m(), self.grid.height_m()), 0.0));
+        [lon0, lat0, lon1, lat1]
+    }
+
+    /// What produced the run, for files' metadata: `(name, value)`.
+    pub fn provenance(&self) -> Vec<(&'static str, String)> {
+        let name = |v: serde_json::Value| v.as_str().map_or_else(|| v.to_string(), String::from);
+        let t = &self.mission.team;
+        vec![
+            ("mission", self.mission.mission.clone()),
+            ("seed", t.seed.to_string()),
+            ("fusion", name(serde_json::to_value(t.fusion).unwrap_or_default())),
+            ("placement", name(serde_json::to_value(t.placement).unwrap_or_default())),
+            ("model_version", self.summary.model_version.to_string()),
+            ("source", format!("hetfleet {} (fleet up)", env!("CARGO_PKG_VERSION"))),
+        ]
+    }
+}

@@ -1,0 +1,99 @@
+//! `estimate.nc`: the run's fused estimate and its variance at every step (and the truth in a
+//! mixed-reality run) as NetCDF-3 classic with CF-1.8 metadata, so `xarray.open_dataset`
+//! gives `(time, y, x)` arrays with latitude and longitude beside them. Written by `netcdf3`
+//! (pure Rust: nothing native to install).
+
+use super::{ExportError, Run};
+use netcdf3::{DataSet, FileWriter, Version};
+use std::path::Path;
+
+/// Write `run` to `path` (through a temporary beside it, so a failed export leaves no half
+/// file under the name).
+pub fn write(run: &Run, path: &Path) -> Result<(), ExportError> {
+    let failed = |why: String| ExportError::Write { path: path.into(), why };
+    let ds = define(run).map_err(|e| failed(format!("{e:?}")))?;
+    let tmp = path.with_extension("nc.partial");
+    let written = (|| -> Result<(), netcdf3::error::WriteError> {
+        let mut w = FileWriter::open(&tmp)?;
+        w.set_def(&ds, Version::Classic, 0)?;
+        let (x, y) = run.axes_m();
+        let (lon, lat) = run.axes_deg();
+        let dt = if run.summary.dt > 0.0 { run.summary.dt } else { 1.0 };
+        let time: Vec<f64> = (0..run.estimate.steps).map(|k| k as f64 * dt).collect();
+        let step: Vec<i32> = (0..run.estimate.steps).map(|k| k as i32).collect();
+        w.write_var_f64("time", &time)?;
+        w.write_var_i32("step", &step)?;
+        w.write_var_f64("x", &x)?;
+        w.write_var_f64("y", &y)?;
+        w.write_var_f64("lon", &lon)?;
+        w.write_var_f64("lat", &lat)?;
+        w.write_var_f64("estimate", &run.estimate.data)?;
+        w.write_var_f64("variance", &run.variance.data)?;
+        if let Some(t) = &run.truth {
+            w.write_var_f64("truth", &t.data)?;
+        }
+        w.close()
+    })();
+    if let Err(e) = written {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(failed(format!("{e:?}")));
+    }
+    std::fs::rename(&tmp, path).map_err(|e| failed(e.to_string()))
+}
+
+fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
+    let mut ds = DataSet::new();
+    ds.add_fixed_dim("time", run.estimate.steps)?;
+    ds.add_fixed_dim("y", run.grid.rows)?;
+    ds.add_fixed_dim("x", run.grid.cols)?;
+    let text = |ds: &mut DataSet, var: &str, attrs: &[(&str, &str)]| -> Result<(), netcdf3::InvalidDataSet> {
+        for (k, v) in attrs {
+            ds.add_var_attr_string(var, k, v)?;
+        }
+        Ok(())
+    };
+    ds.add_var_f64("time", &["time"])?;
+    text(&mut ds, "time", &[("standard_name", "time"), ("long_name", "the field's own time since the mission's first step"), ("units", "s"), ("axis", "T")])?;
+    ds.add_var_i32("step", &["time"])?;
+    text(&mut ds, "step", &[("long_name", "mission step (index of the truth frame)"), ("units", "1")])?;
+    ds.add_var_f64("x", &["x"])?;
+    text(&mut ds, "x", &[("standard_name", "projection_x_coordinate"), ("long_name", "distance east of the site's south-west corner (cell centre)"), ("units", "m"), ("axis", "X")])?;
+    ds.add_var_f64("y", &["y"])?;
+    text(&mut ds, "y", &[("standard_name", "projection_y_coordinate"), ("long_name", "distance north of the site's south-west corner (cell centre)"), ("units", "m"), ("axis", "Y")])?;
+    ds.add_var_f64("lon", &["x"])?;
+    text(&mut ds, "lon", &[("standard_name", "longitude"), ("long_name", "longitude of the cell centre (WGS 84)"), ("units", "degrees_east")])?;
+    ds.add_var_f64("lat", &["y"])?;
+    text(&mut ds, "lat", &[("standard_name", "latitude"), ("long_name", "latitude of the cell centre (WGS 84)"), ("units", "degrees_north")])?;
+    let fields: &[(&str, &str, &str)] = &[
+        ("estimate", "fused estimate of the field (posterior mean of the model server)", "1"),
+        ("variance", "reported variance of the fused estimate per cell", "1"),
+        ("truth", "the true field the vehicles sensed (mixed reality)", "1"),
+    ];
+    for (name, long, units) in fields {
+        if *name == "truth" && run.truth.is_none() {
+            continue;
+        }
+        ds.add_var_f64(name, &["time", "y", "x"])?;
+        text(
+            &mut ds,
+            name,
+            &[("long_name", long), ("units", units), ("coordinates", "lat lon"), ("comment", "units are the truth's (dimensionless for the simulated fields); variance in their square")],
+        )?;
+    }
+    ds.add_global_attr_string("Conventions", "CF-1.8")?;
+    ds.add_global_attr_string("title", format!("hetfleet fused field of mission {}", run.mission.mission))?;
+    ds.add_global_attr_string("history", format!("written by hetfleet from the run in {}", run.dir.display()))?;
+    ds.add_global_attr_string(
+        "references",
+        "Salam, T. and Hsieh, M. A.: Heterogeneous robot teams for modeling and prediction of multiscale environmental processes (the method hetfleet implements)",
+    )?;
+    for (k, v) in run.provenance() {
+        ds.add_global_attr_string(k, v)?;
+    }
+    let [w, s, e, n] = run.bounds_deg();
+    ds.add_global_attr_f64("geospatial_lon_min", vec![w])?;
+    ds.add_global_attr_f64("geospatial_lat_min", vec![s])?;
+    ds.add_global_attr_f64("geospatial_lon_max", vec![e])?;
+    ds.add_global_attr_f64("geospatial_lat_max", vec![n])?;
+    Ok(ds)
+}

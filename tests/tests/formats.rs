@@ -1,0 +1,205 @@
+//! What a run leaves, opened by the tools field teams use: xarray reads `estimate.nc`, GDAL
+//! places the GeoTIFFs on the site, QGroundControl's plan schema holds the boats' places.
+
+use hetfleet_tests::{free_port, root, run, scratch, tiny_mission};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// Off the default site and in the southern and eastern hemispheres, on a physical extent
+/// other than the grid's metres, so a swapped or unscaled axis shows.
+const ORIGIN: [f64; 3] = [-33.8568, 151.2153, 12.0];
+const SIZE_M: [f64; 2] = [450.0, 300.0];
+
+/// A finished tiny mission on that site (`fleet up`), its run directory.
+fn finished_run(dir: &Path) -> PathBuf {
+    let port = free_port();
+    let ep = vec![format!("tcp/127.0.0.1:{port}")];
+    let mission = tiny_mission(dir, &ep, &ep);
+    let text = std::fs::read_to_string(&mission).unwrap();
+    let site = format!("origin = [{}, {}, {}]\nsize_m = [{}, {}]\n", ORIGIN[0], ORIGIN[1], ORIGIN[2], SIZE_M[0], SIZE_M[1]);
+    std::fs::write(&mission, text.replace("[mavlink]\n", &format!("[mavlink]\n{site}"))).unwrap();
+    let out = dir.join("run");
+    let o = run("fleet", &["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "fleet up failed: {}", String::from_utf8_lossy(&o.stderr));
+    out
+}
+
+fn python(script: &str) -> String {
+    let o = Command::new("python3").arg("-c").arg(script).current_dir(root()).output().expect("python3");
+    assert!(o.status.success(), "python failed:\n{}\n{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+/// The site's corners as the mission defines them, computed here on their own (spherical
+/// Earth of the WGS-84 equatorial radius, flat over the site), as `[west, south, east, north]`.
+const CORNERS_PY: &str = "
+import math
+R = 6378137.0
+lat0, lon0 = ORIGIN_LAT, ORIGIN_LON
+west, south = lon0, lat0
+north = lat0 + math.degrees(SIZE_N / R)
+east = lon0 + math.degrees(SIZE_E / (R * math.cos(math.radians(lat0))))
+";
+
+fn corners_py() -> String {
+    CORNERS_PY.replace("ORIGIN_LAT", &ORIGIN[0].to_string()).replace("ORIGIN_LON", &ORIGIN[1].to_string()).replace("SIZE_N", &SIZE_M[1].to_string()).replace("SIZE_E", &SIZE_M[0].to_string())
+}
+
+#[test]
+fn xarray_gdal_and_qgc_read_what_a_run_leaves() {
+    let dir = scratch("formats");
+    let out = finished_run(&dir);
+
+    // NetCDF: xarray reads the dims, coordinates, units and the run's own values; the per-step
+    // error of `estimate` against `truth` is the MSE the server reported.
+    let nc = out.join("estimate.nc");
+    let said = python(&format!(
+        "{corners}
+import json, numpy as np, xarray as xr
+ds = xr.open_dataset({nc:?})
+run = {out:?}
+assert ds.estimate.dims == ('time', 'y', 'x'), ds.estimate.dims
+assert dict(ds.sizes) == {{'time': 40, 'y': 24, 'x': 48}}, dict(ds.sizes)
+for name in ('lat', 'lon', 'time', 'x', 'y'):
+    assert name in ds.coords, (name, list(ds.coords))
+assert ds.lat.dims == ('y',) and ds.lon.dims == ('x',)
+assert ds.lat.attrs['units'] == 'degrees_north' and ds.lon.attrs['units'] == 'degrees_east'
+assert ds.x.attrs['units'] == 'm' and ds.y.attrs['units'] == 'm' and ds.time.attrs['units'] == 's'
+assert ds.attrs['Conventions'] == 'CF-1.8' and ds.attrs['mission'] == 'tiny' and ds.attrs['seed'] == '5'
+assert ds.attrs['fusion'] and ds.attrs['placement']
+for v in ('estimate', 'variance', 'truth'):
+    assert ds[v].attrs['long_name'] and 'units' in ds[v].attrs, v
+assert np.array_equal(ds.estimate.values, np.load(run + '/estimate.npy'))
+assert np.array_equal(ds.variance.values, np.load(run + '/variance.npy'))
+assert np.array_equal(ds.truth.values, np.load(run + '/truth.npy')[:40])
+# cell centres: half a cell in from the site's edges
+dlat, dlon = (north - south) / 24, (east - west) / 48
+assert abs(ds.lat.values[0] - (south + dlat / 2)) < 1e-9 and abs(ds.lat.values[-1] - (north - dlat / 2)) < 1e-9, ds.lat.values[[0, -1]]
+assert abs(ds.lon.values[0] - (west + dlon / 2)) < 1e-9 and abs(ds.lon.values[-1] - (east - dlon / 2)) < 1e-9, ds.lon.values[[0, -1]]
+assert abs(ds.x.values[-1] - ({e} - {e} / 96)) < 1e-9 and abs(ds.y.values[-1] - ({n} - {n} / 48)) < 1e-9
+mse = json.load(open(run + '/summary.json'))['mse']
+err = ((ds.estimate - ds.truth) ** 2).mean(dim=('y', 'x')).values
+assert np.allclose(err[:len(mse)], mse, rtol=1e-12, atol=0), (err[:5], mse[:5])
+print('ok', len(mse))
+",
+        corners = corners_py(),
+        e = SIZE_M[0],
+        n = SIZE_M[1],
+    ));
+    assert!(said.starts_with("ok"), "{said}");
+
+    // GeoTIFF: GDAL finds WGS 84 and the site's corners within 1e-6 degrees; the band is the
+    // final estimate, north up.
+    let geo = dir.join("geo");
+    let o = run("fleet", &["export", out.to_str().unwrap(), "--geotiff", geo.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for name in ["estimate", "variance"] {
+        let tif = geo.join(format!("{name}.tif"));
+        let info = Command::new("gdalinfo").arg("-json").arg(&tif).output().expect("gdalinfo (Debian gdal-bin; scripts/test.sh installs it)");
+        assert!(info.status.success(), "gdalinfo: {}", String::from_utf8_lossy(&info.stderr));
+        let info_path = dir.join(format!("{name}.json"));
+        std::fs::write(&info_path, &info.stdout).unwrap();
+        let said = python(&format!(
+            "{corners}
+import json, numpy as np
+info = json.load(open({info_path:?}))
+c = info['cornerCoordinates']
+want = {{'upperLeft': [west, north], 'lowerLeft': [west, south], 'upperRight': [east, north], 'lowerRight': [east, south]}}
+for k, (lon, lat) in want.items():
+    assert abs(c[k][0] - lon) < 1e-6 and abs(c[k][1] - lat) < 1e-6, (k, c[k], (lon, lat))
+wkt = info['coordinateSystem']['wkt']
+assert 'WGS 84' in wkt and '4326' in wkt, wkt[:200]
+assert info['size'] == [48, 24] and info['bands'][0]['type'] == 'Float64', (info['size'], info['bands'][0]['type'])
+print('ok')
+",
+            corners = corners_py(),
+        ));
+        assert!(said.starts_with("ok"), "{name}: {said}");
+    }
+    // The pixels themselves, through GDAL's own reader (gdal_translate to an ASCII grid).
+    let asc = dir.join("estimate.asc");
+    let t = Command::new("gdal_translate").args(["-q", "-of", "AAIGrid"]).arg(geo.join("estimate.tif")).arg(&asc).output().expect("gdal_translate");
+    assert!(t.status.success(), "{}", String::from_utf8_lossy(&t.stderr));
+    let said = python(&format!(
+        "import numpy as np
+rows = [l.split() for l in open({asc:?}) if not l[:1].isalpha()]
+a = np.array([[float(v) for v in r] for r in rows])
+want = np.load({est:?})[-1][::-1]
+assert a.shape == want.shape and np.allclose(a, want, rtol=1e-12, atol=1e-15), (a.shape, abs(a - want).max())
+print('ok')
+",
+        est = out.join("estimate.npy"),
+    ));
+    assert!(said.starts_with("ok"), "{said}");
+
+    // QGroundControl plans: one per boat, QGC's schema fields, a waypoint at each planned
+    // sensing place of the plans published last, inside the site's fence.
+    let plan = dir.join("next.plan");
+    let o = run("fleet", &["export", out.to_str().unwrap(), "--qgc-plan", plan.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let said = python(&format!(
+        "{corners}
+import json, math
+plans = json.load(open({plans:?}))
+last = max(p['epoch'] for p in plans['plans'])
+boats = [p for p in plans['plans'] if p['epoch'] == last and p['kind'] == 'boat']
+assert len(boats) == 3, boats
+for b in boats:
+    doc = json.load(open({dir:?} + '/next.' + b['vehicle'] + '.plan'))
+    assert doc['fileType'] == 'Plan' and doc['groundStation'] == 'QGroundControl' and doc['version'] == 1
+    m = doc['mission']
+    assert m['version'] == 2 and len(m['plannedHomePosition']) == 3
+    places = [t[2] for t in b['targets'] if t[3] > 0]
+    assert len(m['items']) == len(places) > 0, (len(m['items']), places)
+    for item, (x, y) in zip(m['items'], places):
+        assert item['type'] == 'SimpleItem' and item['command'] == 16 and item['frame'] == 3
+        lat, lon = item['params'][4], item['params'][5]
+        assert abs(lat - (south + (north - south) * y / 24)) < 1e-9 and abs(lon - (west + (east - west) * x / 48)) < 1e-9, (lat, lon, x, y)
+        assert south < lat < north and west < lon < east
+    fence = doc['geoFence']['polygons'][0]
+    assert fence['inclusion'] and len(fence['polygon']) == 4
+print('ok')
+",
+        corners = corners_py(),
+        plans = out.join("plans.json"),
+        dir = dir,
+    ));
+    assert!(said.starts_with("ok"), "{said}");
+
+    // A damaged run: each damaged file is named on one line, exit 2, and nothing half written.
+    let damaged = dir.join("damaged");
+    std::fs::create_dir_all(&damaged).unwrap();
+    for f in ["mission.toml", "summary.json", "estimate.npy", "variance.npy", "truth.npy", "plans.json"] {
+        std::fs::copy(out.join(f), damaged.join(f)).unwrap();
+    }
+    let est = std::fs::read(damaged.join("estimate.npy")).unwrap();
+    std::fs::write(damaged.join("estimate.npy"), &est[..est.len() / 2]).unwrap();
+    let nc = dir.join("damaged.nc");
+    let o = run("fleet", &["export", damaged.to_str().unwrap(), "--netcdf", nc.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("estimate.npy") && err.trim().lines().count() == 1, "{err}");
+    assert!(!nc.exists() && !dir.join("damaged.nc.partial").exists());
+    std::fs::write(damaged.join("estimate.npy"), &est).unwrap();
+    std::fs::write(damaged.join("plans.json"), b"{\"horizon\": 2, \"plans\": [").unwrap();
+    let o = run("fleet", &["export", damaged.to_str().unwrap(), "--qgc-plan", dir.join("d.plan").to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("plans.json") && err.trim().lines().count() == 1, "{err}");
+}
+
+#[test]
+fn a_directory_that_is_not_a_finished_run_is_one_clear_line_and_exit_2() {
+    let dir = scratch("formats-bad");
+    let empty = dir.join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let nc = dir.join("x.nc");
+    let o = run("fleet", &["export", empty.to_str().unwrap(), "--netcdf", nc.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("not a finished run directory: it has no mission.toml") && err.trim().lines().count() == 1, "{err}");
+    assert!(!nc.exists());
+    let o = run("fleet", &["export", empty.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("nothing to export"));
+}
