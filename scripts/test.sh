@@ -6,11 +6,11 @@ cd "$(dirname "$0")/.."
 # Python peers used by cross-check tests (PyDMD, odmd, pysensors, numpy/scipy) and the
 # Python Zenoh client that reads the fleet's model (eclipse-zenoh, the same 1.10 line as the
 # Rust side, and cbor2).
-# xarray reads the NetCDF a run writes.
-if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pymavlink, xarray" 2>/dev/null; then
-  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors eclipse-zenoh cbor2 pymavlink xarray)"
+# xarray reads the NetCDF a run writes, mcap its recording.
+if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pymavlink, xarray, mcap" 2>/dev/null; then
+  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors eclipse-zenoh cbor2 pymavlink xarray mcap)"
   python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore \
-    numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2 pymavlink==2.4.50 xarray
+    numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2 pymavlink==2.4.50 xarray mcap
 fi
 # Debian's chromium for the live view's browser test, gdal-bin for the GeoTIFF test.
 missing=()

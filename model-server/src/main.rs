@@ -17,9 +17,15 @@ pub struct Args {
     /// Write one JSON event per line on stdout (for `fleet up` and scripts).
     #[arg(long)]
     pub events: bool,
-    /// Write the summary (summary.json) and the final model (model.cbor) here at the end.
+    /// Write the summary (summary.json), the final model (model.cbor), the estimate and variance
+    /// per step (estimate.npy, variance.npy) and the plans published (plans.json) here at the end.
     #[arg(long)]
     pub out: Option<std::path::PathBuf>,
+    /// Record the mission here (MCAP: the traffic the server saw and sent, with receive times,
+    /// and its core's operations, so `fleet replay` reproduces the model). An existing file
+    /// is kept: the recording goes beside it (`recording.1.mcap`, ...).
+    #[arg(long)]
+    pub record: Option<std::path::PathBuf>,
     /// Where the journal of accepted batches lives (`<state-dir>/<mission>.redb`); a restart
     /// replays it and carries on.
     #[arg(long, default_value = "server-state")]

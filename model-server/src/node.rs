@@ -5,10 +5,11 @@
 use crate::Args;
 use anyhow::Context as _;
 use fleet_mission::config::MissionConfig;
-use fleet_mission::events::{Percentiles, PlanPlaces, PublishedPlans, ServerEvent, ServerSummary};
+use fleet_mission::events::{Percentiles, ServerEvent, ServerSummary};
 use fleet_mission::exit::bad_input;
 use fleet_mission::process::FieldSeries;
 use fleet_mission::protocol::{self, keys::Keys, Body, Context, ServerStatus};
+use fleet_mission::recording::{self, CoreOp, Recorder, RecordingError};
 use fleet_mission::server::{EpochRecord, IngestError, Ingested, ServerCore};
 use fleet_net::store::{Store, StoreError};
 use fleet_net::{zenoh, Role};
@@ -40,6 +41,9 @@ struct Server {
     late: Vec<(String, u64, u64)>,
     /// Vehicles already reported as having batches the journal lost.
     lost_reported: BTreeSet<String>,
+    /// The mission's recording (`--record`): traffic and the core's operations. A recording
+    /// that cannot be written is dropped with one warning; the mission goes on.
+    recorder: std::sync::Mutex<Option<Recorder<std::io::BufWriter<std::fs::File>>>>,
 }
 
 fn emit(on: bool, e: &ServerEvent) {
@@ -51,6 +55,45 @@ fn emit(on: bool, e: &ServerEvent) {
 }
 
 impl Server {
+    /// Run `f` on the recorder, if recording; a failure ends the recording, not the server.
+    fn recording(&self, f: impl FnOnce(&mut Recorder<std::io::BufWriter<std::fs::File>>) -> Result<(), RecordingError>) {
+        let mut guard = self.recorder.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(r) = guard.as_mut() {
+            if let Err(e) = f(r) {
+                warn!("the recording stops here: {e} (the mission goes on; the file is readable up to its last flush)");
+                *guard = None;
+            }
+        }
+    }
+
+    /// Record a message as it arrived or left, now.
+    fn record(&self, topic: &str, data: &[u8]) -> Option<u32> {
+        let mut seq = None;
+        self.recording(|r| {
+            seq = Some(r.message(topic, "cbor", data, recording::now_ns())?);
+            Ok(())
+        });
+        seq
+    }
+
+    /// Record an operation of the core (before it is made: the order is the replay's).
+    fn record_op(&self, op: CoreOp) {
+        self.recording(|r| r.op(&op));
+    }
+
+    /// An event: to stdout with `--events`, and into the recording.
+    fn event(&self, e: &ServerEvent) {
+        emit(self.events, e);
+        let line = serde_json::to_vec(e).expect("events serialise");
+        self.recording(|r| r.message(recording::EVENTS_TOPIC, "json", &line, recording::now_ns()).map(drop));
+    }
+
+    /// Publish `body` on `key`, recorded.
+    async fn put(&self, session: &zenoh::Session, key: &str, body: &Body) -> anyhow::Result<()> {
+        self.record(key, &protocol::encode(body));
+        fleet_net::put(session, key, body).await
+    }
+
     /// Count a refusal the node made itself, and log it (once per reason).
     fn refuse(&mut self, reason: &str, detail: String) {
         *self.core.counters.rejected.entry(reason.into()).or_default() += 1;
@@ -118,6 +161,7 @@ impl Server {
     /// A batch arrived on `key` at `t0`.
     async fn on_batch(&mut self, session: &zenoh::Session, sample: &zenoh::sample::Sample, t0: Instant) -> anyhow::Result<()> {
         let key = sample.key_expr().as_str();
+        let arrival = self.record(key, &sample.payload().to_bytes());
         let body = match fleet_net::decode(sample, &self.ctx) {
             Ok(b) => b,
             Err(e) => {
@@ -136,13 +180,16 @@ impl Server {
             return Ok(());
         }
         let (vehicle, seq) = (batch.vehicle.clone(), batch.seq);
+        if let Some(arrival) = arrival {
+            self.record_op(CoreOp::Ingest { arrival });
+        }
         let ingested = match self.core.ingest_deferred(batch) {
             Ok(i) => i,
             // The vehicle's fault: counted by the core, logged here; its epoch cannot complete.
             Err(IngestError::Rejected { why, .. }) => {
                 self.log_refusal("invalid_batch", format!("{key}: {why}"));
                 error!(vehicle, seq, "batch refused: {why}; the vehicle re-sends the same batch, so its epoch cannot complete");
-                emit(self.events, &ServerEvent::Refused { vehicle, seq, reason: "invalid_batch".into(), detail: why });
+                self.event(&ServerEvent::Refused { vehicle, seq, reason: "invalid_batch".into(), detail: why });
                 return Ok(());
             }
             Err(e @ IngestError::Protocol(_)) => {
@@ -170,6 +217,7 @@ impl Server {
         if self.late.is_empty() {
             return Ok(());
         }
+        self.record_op(CoreOp::Settle);
         if self.core.settle()? {
             self.journal(None)?;
             let done = (0..self.core.next_epoch()).collect();
@@ -177,7 +225,7 @@ impl Server {
         }
         for (vehicle, seq, e) in std::mem::take(&mut self.late) {
             info!(vehicle, seq, epoch = e, "late batch: model re-fitted with it");
-            emit(self.events, &ServerEvent::Late { vehicle, epoch: e, version: self.core.version });
+            self.event(&ServerEvent::Late { vehicle, epoch: e, version: self.core.version });
         }
         Ok(())
     }
@@ -203,20 +251,17 @@ impl Server {
             info!(epoch = e, version = self.core.version, latency_ms = format!("{latency_ms:.1}"), mse = mse.map(|m| format!("{m:.3e}")), "epoch assimilated");
             let next = e + 1;
             let places = places_at(&self.core, next);
-            emit(
-                self.events,
-                &ServerEvent::Epoch {
-                    epoch: e,
-                    version: self.core.version,
-                    mse,
-                    latency_ms,
-                    alive: self.alive.len(),
-                    batches: self.core.counters.batches,
-                    held: self.core.held_at(next),
-                    places,
-                    missing: self.core.missing_at(e),
-                },
-            );
+            self.event(&ServerEvent::Epoch {
+                epoch: e,
+                version: self.core.version,
+                mse,
+                latency_ms,
+                alive: self.alive.len(),
+                batches: self.core.counters.batches,
+                held: self.core.held_at(next),
+                places,
+                missing: self.core.missing_at(e),
+            });
         }
         Ok(())
     }
@@ -232,6 +277,7 @@ impl Server {
         }
         let before = self.core.next_epoch();
         let t0 = Instant::now();
+        self.record_op(CoreOp::Force);
         if self.core.force()? {
             self.journal(None)?;
             warn!(epoch = before, missing = ?self.core.waiting_for(), "epoch assimilated without late vehicles; their batches will re-fit it");
@@ -259,14 +305,14 @@ impl Server {
 
     async fn publish_model(&self, session: &zenoh::Session) -> anyhow::Result<()> {
         if let Some(m) = self.core.model_update() {
-            fleet_net::put(session, &self.keys.model_latest(), &Body::Model(m)).await?;
+            self.put(session, &self.keys.model_latest(), &Body::Model(m)).await?;
         }
         Ok(())
     }
 
     async fn ack(&self, session: &zenoh::Session, vehicle: &str) -> anyhow::Result<()> {
         if let Some(a) = self.core.ack(vehicle) {
-            fleet_net::put(session, &self.keys.ack(vehicle), &Body::Ack(a)).await?;
+            self.put(session, &self.keys.ack(vehicle), &Body::Ack(a)).await?;
         }
         Ok(())
     }
@@ -286,7 +332,11 @@ impl Server {
             _ => Err(format!("ask {key}?epoch=<n> for a known vehicle")),
         };
         let sent = match reply {
-            Ok(body) => q.reply(q.key_expr().clone(), protocol::encode(&body)).encoding(fleet_net::encoding()).await,
+            Ok(body) => {
+                let bytes = protocol::encode(&body);
+                self.record(&key, &bytes);
+                q.reply(q.key_expr().clone(), bytes).encoding(fleet_net::encoding()).await
+            }
             Err(why) => q.reply_err(why.into_bytes()).await,
         };
         if let Err(e) = sent {
@@ -316,13 +366,14 @@ impl Server {
                 *self.link_ups.entry(id.clone()).or_default() += 1;
             }
             info!(vehicle = id, alive = up, "link");
-            emit(self.events, &ServerEvent::Link { vehicle: id, alive: up });
+            self.event(&ServerEvent::Link { vehicle: id, alive: up });
         }
     }
 
     /// A vehicle's telemetry: whether its autopilot lets the planner allocate it.
     fn on_telemetry(&mut self, sample: &zenoh::sample::Sample) {
         let key = sample.key_expr().as_str();
+        self.record(key, &sample.payload().to_bytes());
         let t = match fleet_net::decode(sample, &self.ctx) {
             Ok(Body::Telemetry(t)) => t,
             Ok(_) => return self.refuse("wrong_type", format!("{key}: not telemetry")),
@@ -336,14 +387,16 @@ impl Server {
             if !lacking.is_empty() && self.lost_reported.insert(t.vehicle.clone()) {
                 error!(vehicle = t.vehicle, acked, lost = ?lacking, journal = %self.journal.path().display(), "the vehicle says these batches were acknowledged, but the journal does not hold them: the journal was deleted, replaced or rolled back, and the epochs that need them cannot complete");
                 self.core.counters.lost += lacking.len() as u64;
-                emit(self.events, &ServerEvent::Lost { vehicle: t.vehicle.clone(), seqs: lacking });
+                self.event(&ServerEvent::Lost { vehicle: t.vehicle.clone(), seqs: lacking });
             }
         }
         let available = t.available();
         if self.core.set_available(&t.vehicle, available) {
+            // Recorded only when it changed something (a call that does not is a no-op).
+            self.record_op(CoreOp::Available { vehicle: t.vehicle.clone(), available });
             let mode = t.autopilot.as_ref().map_or_else(String::new, |a| format!("{} ({:?})", a.mode, a.link));
             info!(vehicle = t.vehicle, held = !available, mode, "allocation: {} from the next epoch", if available { "back in" } else { "left out" });
-            emit(self.events, &ServerEvent::Hold { vehicle: t.vehicle, held: !available, mode });
+            self.event(&ServerEvent::Hold { vehicle: t.vehicle, held: !available, mode });
         }
     }
 
@@ -378,7 +431,7 @@ const JOURNAL_RECOVERY: &str = "to go on, move the file aside (keep it for inspe
 /// The journal at `path`, checked whole, and a core restored from it (a restart after a
 /// crash); returns the journal and how many batches it held. A damaged or foreign journal is
 /// refused (bad input) and left as it is.
-fn open_journal(path: &std::path::Path, mission: &str, core: &mut ServerCore, ctx: &Context) -> anyhow::Result<(Store, u64)> {
+fn open_journal(path: &std::path::Path, mission: &str, core: &mut ServerCore, ctx: &Context) -> anyhow::Result<(Store, u64, Option<CoreOp>)> {
     let existed = path.exists();
     let journal = Store::open(path).map_err(|e| match e {
         e @ (StoreError::Damaged { .. } | StoreError::Empty { .. }) => bad_input(anyhow::anyhow!("the journal {e}; {JOURNAL_RECOVERY}")),
@@ -402,16 +455,20 @@ fn open_journal(path: &std::path::Path, mission: &str, core: &mut ServerCore, ct
             }
         }
     }
-    let mut batches = vec![];
+    let (mut batches, mut raw) = (vec![], vec![]);
     for ((vehicle, seq), bytes) in journal.messages().map_err(|e| damaged(e.to_string()))? {
         match protocol::decode(&bytes, ctx) {
-            Ok(Body::Batch(b)) if b.vehicle == vehicle && b.seq == seq => batches.push(b),
+            Ok(Body::Batch(b)) if b.vehicle == vehicle && b.seq == seq => {
+                batches.push(b);
+                raw.push(bytes);
+            }
             Ok(_) => return Err(damaged(format!("record ({vehicle}, {seq}) is not that vehicle's batch {seq}"))),
             Err(e) => return Err(damaged(format!("batch {seq} of {vehicle} does not decode: {e}"))),
         }
     }
     let records = journal.meta_with_prefix(EpochRecord::PREFIX).map_err(|e| damaged(e.to_string()))?;
     let n = core.restore(batches, &records).map_err(|e| damaged(e.to_string()))?;
+    let restore = (!raw.is_empty() || !records.is_empty()).then(|| CoreOp::Restore { batches: raw, records: records.clone() });
     let mut journal = journal;
     if !existed || n == 0 {
         journal.commit(&[], &[("fingerprint", fingerprint.as_bytes())])?;
@@ -421,7 +478,7 @@ fn open_journal(path: &std::path::Path, mission: &str, core: &mut ServerCore, ct
         (true, 0) => info!(journal = %path.display(), "journal: empty, starting the mission"),
         (true, n) => info!(journal = %path.display(), batches = n, next_epoch = core.next_epoch(), "journal: resuming"),
     }
-    Ok((journal, n))
+    Ok((journal, n, restore))
 }
 
 pub async fn run(args: Args) -> anyhow::Result<()> {
@@ -431,7 +488,19 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let mut core = ServerCore::new(&mission.team, grid, frames)?.with_boat_speed(mission.motion.boat_speed);
     let mut ctx = Context::new(grid);
     ctx.vehicles = core.vehicles().iter().map(|v| v.id.clone()).collect();
-    let (journal, restored) = open_journal(&args.state_dir.join(format!("{}.redb", mission.mission)), &mission.mission, &mut core, &ctx)?;
+    let (journal, restored, restore) = open_journal(&args.state_dir.join(format!("{}.redb", mission.mission)), &mission.mission, &mut core, &ctx)?;
+    let recorder = match &args.record {
+        Some(path) => {
+            let text = match &args.node.mission {
+                Some(p) => std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?,
+                None => fleet_mission::config::DEFAULT_MISSION.to_string(),
+            };
+            let r = Recorder::create(path, &text, &grid, frames)?;
+            info!(recording = %r.path().display(), "recording the mission");
+            Some(r)
+        }
+        None => None,
+    };
     let session = fleet_net::open(args.node.zenoh_config(Role::Server, &mission.network)?).await?;
     let batches = session.declare_subscriber(keys.all_measurements()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let plans = session.declare_queryable(keys.all_plans()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
@@ -457,7 +526,11 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         lost_reported: BTreeSet::new(),
         journal,
         mission,
+        recorder: std::sync::Mutex::new(recorder),
     };
+    if let Some(op) = restore {
+        s.record_op(op);
+    }
     // After a restart: the model and every vehicle's ack again, and the error of what is in.
     if restored > 0 {
         s.publish_model(&session).await?;
@@ -468,10 +541,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         s.evaluate(0..done);
     }
     info!(mission = s.mission.mission, epochs, vehicles = s.core.vehicles().len(), "model server up");
-    emit(
-        s.events,
-        &ServerEvent::Ready { mission: s.mission.mission.clone(), epochs, vehicles: s.core.vehicles().iter().map(|v| v.id.clone()).collect(), places: places_at(&s.core, s.core.next_epoch()) },
-    );
+    s.event(&ServerEvent::Ready { mission: s.mission.mission.clone(), epochs, vehicles: s.core.vehicles().iter().map(|v| v.id.clone()).collect(), places: places_at(&s.core, s.core.next_epoch()) });
 
     let mut stop = fleet_net::StopSignals::new()?;
     let mut tick = tokio::time::interval(Duration::from_secs(1));
@@ -509,7 +579,8 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             }
             _ = tick.tick() => {
                 s.note_session_refusals();
-                fleet_net::put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
+                s.recording(|r| r.flush());
+                s.put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
             }
             sig = stop.recv() => {
                 info!(signal = sig, "stopping: the journal holds every accepted batch, a restart resumes");
@@ -523,9 +594,9 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
                 write_outputs(dir, &summary, &s.core, s.mission.pace.horizon)?;
             }
             info!(epochs = summary.epochs, batches = summary.counters.batches, p99_ms = summary.latency_ms.p99, "mission finished");
-            emit(s.events, &ServerEvent::Finished { summary: Box::new(summary) });
+            s.event(&ServerEvent::Finished { summary: Box::new(summary) });
             // Observers see the end at once, not at the next tick (which may never come).
-            fleet_net::put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
+            s.put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
         }
         if let Some(t) = done_at {
             if args.exit_when_done && (s.alive.is_empty() || t.elapsed() > linger) {
@@ -534,29 +605,20 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     // The last word on the status key, whatever ended the loop.
-    fleet_net::put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
+    s.put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
     session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    if let Some(r) = s.recorder.into_inner().unwrap_or_else(|p| p.into_inner()) {
+        let path = r.path().to_path_buf();
+        r.finish()?;
+        info!(recording = %path.display(), "recording ended");
+    }
     Ok(())
 }
 
-/// What a finished run leaves for export (`fleet export`): the summary, the final model, the
-/// fused estimate and its reported variance at every step (`(steps, rows, cols)` float64), and
-/// every plan published.
+/// What a finished run leaves for export (`fleet export`): the summary, and the core's
+/// outputs (`fleet_mission::outputs`).
 fn write_outputs(dir: &std::path::Path, summary: &ServerSummary, core: &ServerCore, horizon: u64) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(summary)?)?;
-    if let Some(m) = core.model_update() {
-        std::fs::write(dir.join("model.cbor"), protocol::encode(&Body::Model(m)))?;
-    }
-    let grid = core.assimilator().grid();
-    for (name, steps) in [("estimate.npy", &core.snapshots), ("variance.npy", &core.variances)] {
-        let data: Vec<f64> = steps.iter().flatten().copied().collect();
-        fleet_mission::npy::write(dir.join(name), &[steps.len(), grid.rows, grid.cols], &data)?;
-    }
-    let plans = (0..core.counters.epochs)
-        .flat_map(|e| core.vehicles().iter().filter_map(move |v| core.plan(&v.id, e, horizon).map(|p| (v.kind, p))))
-        .map(|(kind, p)| PlanPlaces { vehicle: p.vehicle, kind, epoch: p.epoch, targets: p.targets.into_iter().map(|t| (t.epoch, t.step, t.position, t.radius)).collect() })
-        .collect();
-    std::fs::write(dir.join("plans.json"), serde_json::to_string(&PublishedPlans { horizon, plans })?)?;
-    Ok(())
+    fleet_mission::outputs::write(dir, core, horizon)
 }

@@ -239,7 +239,9 @@ impl NodeArgs {
         let mission = fleet_mission::config::MissionConfig::load(self.mission.as_deref())?;
         let truth = match &self.truth {
             Some(p) => {
-                let t = fleet_mission::process::dataset::load(p, 1.0).map_err(fleet_mission::exit::bad_input).with_context(|| format!("--truth {}", p.display()))?;
+                // The time between frames from the sidecar `fleet up` and `fleet simulate` write.
+                let dt = fleet_mission::process::dataset::sidecar_dt(p).unwrap_or(1.0);
+                let t = fleet_mission::process::dataset::load(p, dt).map_err(fleet_mission::exit::bad_input).with_context(|| format!("--truth {}", p.display()))?;
                 mission.check_truth(&t, p)?;
                 t
             }

@@ -1,5 +1,6 @@
 //! What a run leaves, opened by the tools field teams use: xarray reads `estimate.nc`, GDAL
-//! places the GeoTIFFs on the site, QGroundControl's plan schema holds the boats' places.
+//! places the GeoTIFFs on the site, QGroundControl's plan schema holds the boats' places, and
+//! the Python `mcap` package reads the recording.
 
 use hetfleet_tests::{free_port, root, run, scratch, tiny_mission};
 use std::path::{Path, PathBuf};
@@ -163,6 +164,34 @@ print('ok')
         corners = corners_py(),
         plans = out.join("plans.json"),
         dir = dir,
+    ));
+    assert!(said.starts_with("ok"), "{said}");
+
+    // MCAP: the Python `mcap` package reads the recording; it holds every batch the server
+    // counted (this run has no restart, so every one arrived on a measurements channel) and the
+    // core's operations, the first in step with the models published.
+    let said = python(&format!(
+        "import json
+from mcap.reader import make_reader
+summary = json.load(open({summary:?}))
+topics, ops, models = {{}}, 0, 0
+with open({rec:?}, 'rb') as f:
+    r = make_reader(f)
+    header = {{m.name: m.metadata for m in r.iter_metadata()}}
+    for schema, channel, message in r.iter_messages():
+        topics[channel.topic] = topics.get(channel.topic, 0) + 1
+        assert message.log_time > 1.7e18, message.log_time
+assert 'hetfleet' in header and int(header['hetfleet']['rows']) == 24, header.keys()
+batches = sum(n for t, n in topics.items() if t.endswith('/measurements'))
+assert batches == summary['counters']['batches'], (batches, summary['counters'])
+assert topics.get('server/core', 0) >= batches, topics
+assert sum(n for t, n in topics.items() if t.endswith('/model/latest')) == summary['model_version'], topics
+assert any(t.endswith('/telemetry') for t in topics) and any('/plan/' in t for t in topics) and any(t.endswith('/ack') for t in topics), sorted(topics)
+assert topics['server/events'] >= summary['epochs'], topics
+print('ok', batches)
+",
+        summary = out.join("summary.json"),
+        rec = out.join("recording.mcap"),
     ));
     assert!(said.starts_with("ok"), "{said}");
 

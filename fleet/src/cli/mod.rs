@@ -5,6 +5,7 @@ mod dmd;
 mod experiment;
 mod export;
 mod render;
+mod replay;
 mod secure;
 mod simulate;
 mod supervise;
@@ -35,6 +36,8 @@ enum Command {
     Up(up::Args),
     /// A finished run as NetCDF, GeoTIFF or QGroundControl plans.
     Export(export::Args),
+    /// Run the model server's core again on a mission's recording; the final model must match.
+    Replay(replay::Args),
     /// Zenoh configs of a secured mission: passwords, mutual TLS, access control per vehicle.
     Secure(secure::Args),
 }
@@ -48,6 +51,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Experiment(a) => experiment::run(a),
         Command::Up(a) => up::run(a),
         Command::Export(a) => export::run(a),
+        Command::Replay(a) => replay::run(a),
         Command::Secure(a) => secure::run(a),
     }
 }

@@ -42,8 +42,23 @@ pub struct Args {
 }
 
 /// What a run leaves in `--out` (replaced as a whole by the next run's).
-const RUN_FILES: [&str; 13] =
-    ["state", "logs", "truth.npy", "mission.toml", "events.jsonl", "report.md", "mse.png", "summary.json", "model.cbor", "estimate.npy", "variance.npy", "plans.json", "estimate.nc"];
+const RUN_FILES: [&str; 15] = [
+    "state",
+    "logs",
+    "truth.npy",
+    "truth.json",
+    "recording.mcap",
+    "mission.toml",
+    "events.jsonl",
+    "report.md",
+    "mse.png",
+    "summary.json",
+    "model.cbor",
+    "estimate.npy",
+    "variance.npy",
+    "plans.json",
+    "estimate.nc",
+];
 
 /// A sibling binary of this executable (the workspace builds them side by side).
 fn sibling(name: &str) -> anyhow::Result<PathBuf> {
@@ -146,13 +161,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let truth = mission.truth(|k| pb.set_position(k as u64))?;
     pb.finish_and_clear();
     let (grid, frames) = mission.workspace(&truth)?;
-    fleet::process::dataset::save(staging.join("truth.npy"), &truth, None)?;
+    fleet::process::dataset::save(staging.join("truth.npy"), &truth, Some(&serde_json::json!({"process": "fleet up", "mission": mission.mission, "dt": truth.dt})))?;
     println!("mission {}: {} x {} grid, {frames} steps, {} vehicles (truth made in {:.1} s)", mission.mission, grid.rows, grid.cols, mission.vehicles().len(), t0.elapsed().as_secs_f64());
 
     let stop = supervise::catch_stop_signals()?;
     let mut fleet = Supervisor::default();
     let mut server = Command::new(&server_bin);
     server.arg("--mission").arg(mission_file(&staging)).arg("--truth").arg(staging.join("truth.npy")).arg("--state-dir").arg(staging.join("state"));
+    // Moved into --out with the rest once the server is up (the open file goes with its name).
+    server.arg("--record").arg(staging.join("recording.mcap"));
     let (server_log, server_log_path) = log_file(&logs, "server")?;
     server.arg("--events").arg("--out").arg(out).arg("--exit-when-done").stdout(Stdio::piped()).stderr(server_log);
     let mut stdout = fleet.spawn("model-server", server, out.join("logs/server.log"))?;

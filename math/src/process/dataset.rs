@@ -106,6 +106,13 @@ pub fn save(path: impl AsRef<Path>, field: &FieldSeries, sidecar: Option<&serde_
     Ok(())
 }
 
+/// The time between frames a dataset's sidecar records (`"dt"`), if it has one.
+pub fn sidecar_dt(path: &Path) -> Option<f64> {
+    let text = std::fs::read_to_string(sidecar_path(path)).ok()?;
+    let v: serde_json::Value = serde_json::from_str(&text).ok()?;
+    v.get("dt")?.as_f64().filter(|dt| dt.is_finite() && *dt > 0.0)
+}
+
 /// `cloud1.npy` -> `cloud1.json`.
 pub fn sidecar_path(path: &Path) -> std::path::PathBuf {
     path.with_extension("json")

@@ -1,0 +1,69 @@
+//! A mission's recording replays to the same model: the model server's core run again on the
+//! recorded operations (`fleet replay`) gives the recorded final model bit for bit, through a
+//! killed and restarted server and boat; a recording cut short is one clear line.
+
+use fleet::mission::config::MissionConfig;
+use hetfleet_tests::*;
+
+#[test]
+fn a_recording_through_kills_replays_to_the_recorded_model_bit_for_bit() {
+    let dir = scratch("replay");
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
+    edit(&mission, "plan_timeout_ms = 20000", "plan_timeout_ms = 1500\nstep_ms = 60");
+    edit(&mission, "listen = [", "lease_ms = 1000\nlisten = [");
+    let (m, out, state) = (mission.to_str().unwrap().to_string(), dir.join("out"), dir.join("state"));
+    let record = dir.join("recording.mcap");
+    let server_args = ["--mission", &m, "--out", out.to_str().unwrap(), "--state-dir", state.to_str().unwrap(), "--exit-when-done", "--record", record.to_str().unwrap()];
+    let mut procs = Procs::default();
+    let server = start_server(&mut procs, &server_args, &dir.join("server.log"));
+    let vehicle_args = |id: &str| vec!["--mission".to_string(), m.clone(), "--id".into(), id.into(), "--state-dir".into(), state.to_str().unwrap().into()];
+    let start = |procs: &mut Procs, id: &str| start_vehicle(procs, &[], &vehicle_args(id).iter().map(String::as_str).collect::<Vec<_>>(), &dir.join(format!("{id}.log")));
+    let mut boat2 = 0;
+    for v in MissionConfig::load(Some(&mission)).unwrap().vehicles() {
+        let i = start(&mut procs, &v.id);
+        if v.id == "boat-2" {
+            boat2 = i;
+        }
+    }
+    // The server dies early and comes back from its journal: its second life records beside
+    // the first (recording.1.mcap), starting from what it restored.
+    server.epoch(1, 60);
+    procs.kill(server.index);
+    let server = start_server(&mut procs, &server_args, &dir.join("server.log"));
+    // Then a boat dies and comes back from its outbox, re-sending what was not acknowledged.
+    server.epoch(3, 60);
+    procs.kill(boat2);
+    start(&mut procs, "boat-2");
+    let summary = server.finished(120);
+    procs.wait_all(60);
+    assert!(summary.counters.restored > 0, "the server restarted from its journal");
+
+    let second = dir.join("recording.1.mcap");
+    let replayed = dir.join("replayed");
+    let o = run("fleet", &["replay", second.to_str().unwrap(), "--out", replayed.to_str().unwrap()]);
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "replay failed: {said}{}", String::from_utf8_lossy(&o.stderr));
+    assert!(said.contains("identical to the recorded one, bit for bit"), "{said}");
+    // The model the server wrote at the end is the recording's last, and the replay's.
+    assert_eq!(std::fs::read(replayed.join("model.cbor")).unwrap(), std::fs::read(out.join("model.cbor")).unwrap(), "replayed model.cbor differs from the server's");
+    for f in ["estimate.npy", "variance.npy", "plans.json"] {
+        assert_eq!(std::fs::read(replayed.join(f)).unwrap(), std::fs::read(out.join(f)).unwrap(), "replayed {f} differs from the server's");
+    }
+
+    // The first life's recording ends where the server was killed: refused in one line.
+    let o = run("fleet", &["replay", record.to_str().unwrap(), "--out", dir.join("cut").to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("recording.mcap: cut short") && err.trim().lines().count() == 1, "{err}");
+    // Any cut of a finished recording, and a file that is not one, likewise.
+    let bytes = std::fs::read(&second).unwrap();
+    for (name, b) in [("cut-a.mcap", &bytes[..bytes.len() / 3]), ("cut-b.mcap", &bytes[..bytes.len() - 9]), ("junk.mcap", &b"not a recording"[..])] {
+        let p = dir.join(name);
+        std::fs::write(&p, b).unwrap();
+        let o = run("fleet", &["replay", p.to_str().unwrap(), "--out", dir.join("cut").to_str().unwrap()]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{name}: {err}");
+        assert!(err.contains(name) && err.trim().lines().count() == 1, "{name}: {err}");
+    }
+}
