@@ -92,6 +92,8 @@ pub struct Assimilator {
     filter: Option<(ModalFilter, u64)>,
     /// How far a boat goes in one step (m; infinite offline), for `placement = "horizon"`.
     boat_speed: f64,
+    /// Cells outside the site's fence (empty: no fence): never in a disk, never an aerial place.
+    excluded: Vec<bool>,
 }
 
 /// The Assimilator's state between two epochs, without its snapshots (they are only appended
@@ -150,6 +152,9 @@ impl Assimilator {
         let rank = cfg.rank;
         let mut placement_rng = ChaCha8Rng::seed_from_u64(cfg.seed);
         let boat_positions = (0..cfg.boats).map(|_| (placement_rng.random_range(0.0..grid.width_m()), placement_rng.random_range(0.0..grid.height_m()))).collect();
+        let excluded = cfg.fence.as_ref().map_or_else(Vec::new, |f| f.excluded(&grid));
+        let formation = coverage::uniform_formation(&grid, cfg.aerials)?.positions;
+        let aerial_positions = coverage::snap_inside(&grid, &excluded, &formation).ok_or_else(|| TeamError::Config("the site's boundary leaves no cell of the grid inside it".into()))?;
         Ok(Self {
             dmd: DmdConfig { method: cfg.method, rank, debias: Default::default(), gamma: cfg.gamma, forgetting: Default::default() },
             cfg: cfg.clone(),
@@ -163,7 +168,8 @@ impl Assimilator {
             aerial_extra: 0.0,
             placement_rng,
             boat_positions,
-            aerial_positions: coverage::uniform_formation(&grid, cfg.aerials)?.positions,
+            aerial_positions,
+            excluded,
             filter: None,
             boat_speed: f64::INFINITY,
         })
@@ -382,7 +388,7 @@ impl Assimilator {
                 epochs: cfg.horizon_epochs,
             };
             let boat_var = (cfg.boat_sigma * cfg.boat_sigma).max(1e-12);
-            for c in horizon::plan(grid, &f, &fleet, cfg.radius, boat_var)? {
+            for c in horizon::plan_within(grid, &f, &fleet, cfg.radius, boat_var, &self.excluded)? {
                 let b = free[c.boat];
                 self.boat_positions[b] = grid.centre_m(c.centre);
                 boats[b] = Some((c.cells, (c.centre.row, c.centre.col)));
@@ -390,9 +396,9 @@ impl Assimilator {
         } else {
             let disks: Vec<Vec<usize>> = match (free.len(), cfg.placement) {
                 (0, _) => vec![],
-                (k, Placement::Qr) => qr::block_qr(basis.as_ref(), grid, k, cfg.radius)?.into_iter().map(|d| d.cells).collect(),
-                (k, Placement::DOptimal) => qr::block_dopt(basis.as_ref(), grid, k, cfg.radius)?.into_iter().map(|d| d.cells).collect(),
-                (k, Placement::Random) => random_disks(grid, k, cfg.radius, &mut self.placement_rng),
+                (k, Placement::Qr) => qr::block_qr_within(basis.as_ref(), grid, k, cfg.radius, &self.excluded)?.into_iter().map(|d| d.cells).collect(),
+                (k, Placement::DOptimal) => qr::block_dopt_within(basis.as_ref(), grid, k, cfg.radius, &self.excluded)?.into_iter().map(|d| d.cells).collect(),
+                (k, Placement::Random) => random_disks(grid, k, cfg.radius, &self.excluded, &mut self.placement_rng),
                 (_, Placement::Horizon) => return Err(TeamError::NotReady(Missing::Model)),
             };
             let centres: Vec<(usize, usize)> = disks
@@ -422,10 +428,13 @@ impl Assimilator {
             }
             None => coverage::temporal_density(pred, cfg.density_floor)?,
         };
+        // Outside the fence there is nothing to cover.
+        let density: Vec<f64> = density.iter().enumerate().map(|(i, &d)| if self.excluded.get(i).copied().unwrap_or(false) { 0.0 } else { d }).collect();
         let flying: Vec<usize> = (0..cfg.aerials).filter(|a| !held.contains(a)).collect();
         if !flying.is_empty() {
             let starts: Vec<(f64, f64)> = flying.iter().map(|&a| self.aerial_positions[a]).collect();
             let placed = coverage::lloyd(grid, &density, &starts, 50, 1e-3)?.positions;
+            let placed = coverage::snap_inside(grid, &self.excluded, &placed).expect("checked at construction: some cell is inside");
             for (&a, p) in flying.iter().zip(placed) {
                 self.aerial_positions[a] = p;
             }
@@ -518,8 +527,8 @@ pub fn to_mat(cols: &[Vec<f64>]) -> Mat<f64> {
 }
 
 /// `m` random non-overlapping disks (rejection sampling; fewer if the grid is full).
-fn random_disks(grid: &Grid, m: usize, radius: f64, rng: &mut ChaCha8Rng) -> Vec<Vec<usize>> {
-    let mut taken = vec![false; grid.len()];
+fn random_disks(grid: &Grid, m: usize, radius: f64, excluded: &[bool], rng: &mut ChaCha8Rng) -> Vec<Vec<usize>> {
+    let mut taken = if excluded.is_empty() { vec![false; grid.len()] } else { excluded.to_vec() };
     let mut out = vec![];
     for _ in 0..m * 200 {
         if out.len() == m {

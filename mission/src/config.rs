@@ -156,6 +156,10 @@ pub struct MavlinkConfig {
     pub arrival_timeout_ms: u64,
     /// No HEARTBEAT from the autopilot for this long: autopilot lost.
     pub heartbeat_timeout_ms: u64,
+    /// The site's boundary: a QGroundControl `.plan` (its inclusion geofence) or a GeoJSON
+    /// polygon, relative to the mission file. The planner keeps every disk and every aerial
+    /// place inside it.
+    pub boundary: Option<std::path::PathBuf>,
 }
 
 impl Default for MavlinkConfig {
@@ -174,6 +178,7 @@ impl Default for MavlinkConfig {
             acceptance_m: 0.25,
             arrival_timeout_ms: 20_000,
             heartbeat_timeout_ms: 3_000,
+            boundary: None,
         }
     }
 }
@@ -245,7 +250,13 @@ impl MissionConfig {
         match path {
             Some(p) => {
                 let text = std::fs::read_to_string(p).map_err(|source| ConfigError::Read { path: p.into(), source })?;
-                Self::from_toml(&text).map_err(in_file(p.display().to_string()))
+                let mut cfg = Self::from_toml(&text).map_err(in_file(p.display().to_string()))?;
+                if let Some(b) = &cfg.mavlink.boundary {
+                    let file = p.parent().map_or_else(|| b.clone(), |d| d.join(b));
+                    let fence = crate::fence::load(&file, cfg.mavlink.origin, cfg.mavlink.size_m).map_err(|e| ConfigError::Invalid(format!("[mavlink] boundary: {e}")));
+                    cfg.team.fence = Some(fence.map_err(in_file(p.display().to_string()))?);
+                }
+                Ok(cfg)
             }
             None => Self::from_toml(DEFAULT_MISSION).map_err(in_file("the bundled default mission".into())),
         }

@@ -14,6 +14,7 @@ pub mod assimilator;
 pub mod config;
 pub mod events;
 pub mod exit;
+pub mod fence;
 pub mod outputs;
 pub mod protocol;
 pub mod recording;

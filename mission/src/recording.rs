@@ -78,7 +78,7 @@ pub struct Recorder<W: Write + Seek> {
 impl Recorder<BufWriter<std::fs::File>> {
     /// Start a recording at `path`, or beside it (`recording.1.mcap`, ...) if `path` exists: a
     /// restarted server does not overwrite its first life's recording.
-    pub fn create(path: &Path, mission_toml: &str, grid: &Grid, frames: usize) -> Result<Self, RecordingError> {
+    pub fn create(path: &Path, mission: &MissionConfig, mission_toml: &str, grid: &Grid, frames: usize) -> Result<Self, RecordingError> {
         let mut path = path.to_path_buf();
         let stem = path.file_stem().unwrap_or_default().to_string_lossy().into_owned();
         let mut k = 0;
@@ -96,6 +96,8 @@ impl Recorder<BufWriter<std::fs::File>> {
             ("cols".into(), grid.cols.to_string()),
             ("cell_m".into(), grid.cell_m.to_string()),
             ("frames".into(), frames.to_string()),
+            // The boundary as read (the file it came from need not travel with the recording).
+            ("fence".into(), serde_json::to_string(&mission.team.fence).expect("a fence serialises")),
         ]);
         w.write_metadata(&mcap::records::Metadata { name: HEADER.into(), metadata: meta }).map_err(|e| io(&e))?;
         Ok(Self { w, path, channels: BTreeMap::new(), next: 0 })
@@ -195,7 +197,8 @@ impl Recording {
         let field = |k: &str| h.get(k).cloned().ok_or_else(|| bad(format!("its `{HEADER}` metadata has no `{k}`")));
         let num = |k: &str| -> Result<usize, RecordingError> { field(k)?.parse().map_err(|e| bad(format!("its `{HEADER}` metadata `{k}`: {e}"))) };
         let mission_toml = field("mission_toml")?;
-        let mission = MissionConfig::from_toml(&mission_toml).map_err(|e| bad(format!("its mission: {e}")))?;
+        let mut mission = MissionConfig::from_toml(&mission_toml).map_err(|e| bad(format!("its mission: {e}")))?;
+        mission.team.fence = serde_json::from_str(&field("fence")?).map_err(|e| bad(format!("its `{HEADER}` metadata `fence`: {e}")))?;
         let cell_m: f64 = field("cell_m")?.parse().map_err(|e| bad(format!("its `{HEADER}` metadata `cell_m`: {e}")))?;
         let grid = Grid::new(num("rows")?, num("cols")?, cell_m).map_err(|e| bad(format!("its workspace: {e}")))?;
         let frames = num("frames")?;

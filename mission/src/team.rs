@@ -90,6 +90,11 @@ pub struct TeamConfig {
     /// Floor of the aerials' coverage density.
     pub density_floor: f64,
     pub seed: u64,
+    /// The site's boundary (`[mavlink] boundary` of a mission, read when the mission is
+    /// loaded): no disk and no aerial place outside it. Not settable in `[team]`; serialised,
+    /// so a journal's fingerprint knows it.
+    #[serde(skip_deserializing, skip_serializing_if = "Option::is_none")]
+    pub fence: Option<crate::fence::SiteFence>,
 }
 
 impl Default for TeamConfig {
@@ -114,6 +119,7 @@ impl Default for TeamConfig {
             learn_from: LearnFrom::Posterior,
             density_floor: 0.2,
             seed: 7,
+            fence: None,
         }
     }
 }

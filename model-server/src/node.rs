@@ -495,7 +495,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
                 Some(p) => std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?,
                 None => fleet_mission::config::DEFAULT_MISSION.to_string(),
             };
-            let r = Recorder::create(path, &text, &grid, frames)?;
+            let r = Recorder::create(path, &mission, &text, &grid, frames)?;
             info!(recording = %r.path().display(), "recording the mission");
             Some(r)
         }

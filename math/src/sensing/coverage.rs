@@ -55,6 +55,27 @@ pub struct Coverage {
     pub iterations: usize,
 }
 
+/// The allowed cell centre nearest each position (`excluded` empty: positions unchanged): a
+/// Lloyd centroid of a concave site can fall outside it. `None` when every cell is excluded.
+pub fn snap_inside(grid: &Grid, excluded: &[bool], positions: &[Point]) -> Option<Vec<Point>> {
+    if excluded.is_empty() {
+        return Some(positions.to_vec());
+    }
+    let allowed: Vec<Point> = (0..grid.len()).filter(|&i| !excluded.get(i).copied().unwrap_or(false)).map(|i| grid.centre_m(grid.cell(i))).collect();
+    if allowed.is_empty() {
+        return None;
+    }
+    Some(
+        positions
+            .iter()
+            .map(|&p| match grid.cell_at(p.0, p.1).map(|c| grid.index(c)) {
+                Some(i) if !excluded[i] => p,
+                _ => *allowed.iter().min_by(|a, b| (a.0 - p.0).hypot(a.1 - p.1).total_cmp(&(b.0 - p.0).hypot(b.1 - p.1))).expect("not empty"),
+            })
+            .collect(),
+    )
+}
+
 /// Lloyd's algorithm on the cells of `grid` under `density` (one non-negative value per cell),
 /// from `start`, until no generator moves more than `tol_m` metres or `max_iter` iterations.
 /// A generator whose region carries no density stays where it is.

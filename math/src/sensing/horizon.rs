@@ -63,6 +63,12 @@ struct Candidate {
 /// The disks and their boats (at most one disk per boat; fewer when no admissible disk is
 /// left), `noise_var` the boats' noise variance, `radius` the disks' in cells.
 pub fn plan(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, noise_var: f64) -> Result<Vec<Chosen>, SensingError> {
+    plan_within(grid, f, boats, radius, noise_var, &[])
+}
+
+/// [`plan`] with the cells marked in `excluded` (one flag per cell; empty: none) never in a
+/// disk: outside the site's fence.
+pub fn plan_within(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, noise_var: f64, excluded: &[bool]) -> Result<Vec<Chosen>, SensingError> {
     let (n, q) = (f.basis.nrows(), f.basis.ncols());
     grid.check_len(n).map_err(|e| SensingError::Input(e.to_string()))?;
     if f.dynamics.nrows() != q || f.dynamics.ncols() != q || f.cov.nrows() != q || f.cov.ncols() != q || f.detail_var.len() != n {
@@ -110,7 +116,7 @@ pub fn plan(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, noise_va
         }
     }
     let mut cov = f.cov.to_owned();
-    let mut taken = vec![false; n];
+    let mut taken: Vec<bool> = super::qr::blocked(grid, excluded)?.iter().map(|&b| b > 0.0).collect();
     let mut chosen: Vec<usize> = vec![];
     let reachable = |b: &Boat, at: (f64, f64)| (b.position.0 - at.0).hypot(b.position.1 - at.1) <= b.reach_m;
     while chosen.len() < boats.len() {

@@ -232,6 +232,15 @@ impl DiskSums {
     }
 }
 
+/// Cells no disk may touch, as the 0/1 weights the overlap test sums (`excluded` empty: none).
+pub(crate) fn blocked(grid: &Grid, excluded: &[bool]) -> Result<Vec<f64>, SensingError> {
+    match excluded.len() {
+        0 => Ok(vec![0.0; grid.len()]),
+        n if n == grid.len() => Ok(excluded.iter().map(|&x| if x { 1.0 } else { 0.0 }).collect()),
+        n => Err(SensingError::Input(format!("{n} exclusion flags for {} cells", grid.len()))),
+    }
+}
+
 fn check(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Result<(), SensingError> {
     if phi.nrows() != grid.len() {
         return Err(SensingError::Input(format!("basis has {} rows, the grid {} cells", phi.nrows(), grid.len())));
@@ -266,11 +275,17 @@ fn best_candidate(grid: &Grid, taken: &DiskSums, score: impl Fn(Cell) -> f64) ->
 /// Block pivoted QR with sensing radius (Alg. 2): up to `m` non-overlapping disks of radius
 /// `radius` cells. Fewer are returned only when no non-overlapping disk is left.
 pub fn block_qr(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Result<Vec<Disk>, SensingError> {
+    block_qr_within(phi, grid, m, radius, &[])
+}
+
+/// [`block_qr`] with the cells marked in `excluded` (one flag per cell; empty: none) never in
+/// a disk: outside the site's fence.
+pub fn block_qr_within(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64, excluded: &[bool]) -> Result<Vec<Disk>, SensingError> {
     check(phi, grid, m, radius)?;
     let mut c = Coords::new(phi);
     let mut norms = c.norms();
     let original = DiskSums::new(*grid, &norms, radius);
-    let mut covered = vec![0.0; grid.len()];
+    let mut covered = blocked(grid, excluded)?;
     let mut first_total: Option<f64> = None;
     let mut out = vec![];
     for _ in 0..m {
@@ -302,12 +317,17 @@ pub fn block_qr(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Res
 /// `sum_{p in L} phi_p^T phi_p + eps I` (eps = 1e-9 of the mean diagonal, so the first pick is
 /// defined). Uses the rows of `Phi` only (r x r matrices), never `Phi Phi^T`.
 pub fn block_dopt(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Result<Vec<Disk>, SensingError> {
+    block_dopt_within(phi, grid, m, radius, &[])
+}
+
+/// [`block_dopt`] with the cells marked in `excluded` never in a disk.
+pub fn block_dopt_within(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64, excluded: &[bool]) -> Result<Vec<Disk>, SensingError> {
     check(phi, grid, m, radius)?;
     let (n, r) = (phi.nrows(), phi.ncols());
     let trace: f64 = (0..r).map(|j| phi.col(j).squared_norm_l2()).sum();
     let eps = 1e-9 * trace / r as f64;
     let mut info = Mat::<f64>::identity(r, r) * faer::Scale(eps);
-    let mut covered = vec![0.0; n];
+    let mut covered = blocked(grid, excluded)?;
     let mut out = vec![];
     let packed: Vec<(usize, usize)> = (0..r).flat_map(|a| (a..r).map(move |b| (a, b))).collect();
     for _ in 0..m {

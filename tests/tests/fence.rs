@@ -1,0 +1,96 @@
+//! The site's boundary binds the planner: with a concave fence (an L, from a QGroundControl
+//! `.plan`), every disk and every aerial place of a whole `fleet up` mission is inside it, for
+//! block QR and for horizon placement; without the fence the same missions sense in its notch.
+
+use fleet::protocol::{Body, Context};
+use fleet_mission::config::MissionConfig;
+use fleet_mission::fence::inside;
+use fleet_mission::recording::Recording;
+use fleet_mission::site::Site;
+use hetfleet_tests::*;
+use std::path::Path;
+
+/// The tiny mission's 48 m x 24 m site without its north-east quarter, metres `[east, north]`.
+const ELL: [[f64; 2]; 6] = [[0.0, 0.0], [48.0, 0.0], [48.0, 12.0], [24.0, 12.0], [24.0, 24.0], [0.0, 24.0]];
+
+/// Every plan the server handed out in the mission at `dir` (from its recording): per target,
+/// its position (grid metres) and cells.
+fn planned(run_dir: &Path) -> Vec<([f64; 2], Vec<u32>, String)> {
+    let rec = Recording::read(&run_dir.join("recording.mcap")).unwrap();
+    let mut ctx = Context::new(rec.grid);
+    ctx.vehicles = rec.mission.vehicles().into_iter().map(|v| v.id).collect();
+    rec.messages
+        .iter()
+        .filter(|m| m.topic.contains("/plan/"))
+        .flat_map(|m| match fleet::protocol::decode(&m.data, &ctx).unwrap() {
+            Body::Plan(p) => p.targets.into_iter().map(move |t| (t.position, t.cells, p.vehicle.clone())).collect::<Vec<_>>(),
+            other => panic!("a plan reply that is not a plan: {other:?}"),
+        })
+        .collect()
+}
+
+fn fleet_up(mission: &Path, out: &Path) {
+    let o = run("fleet", &["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "fleet up: {}", String::from_utf8_lossy(&o.stderr));
+}
+
+#[test]
+fn a_concave_fence_keeps_every_disk_and_aerial_place_inside_for_qr_and_horizon() {
+    let dir = scratch("fence");
+    let m = MissionConfig::load(Some(&root().join("config/mission-tiny.toml"))).unwrap();
+    let site = Site { origin: m.mavlink.origin, scale: nalgebra::Vector2::new(1.0, 1.0) };
+    let latlon: Vec<[f64; 2]> = ELL
+        .iter()
+        .map(|[e, n]| {
+            let (lat, lon, _) = site.global_of(&site.ned_of((*e, *n), 0.0));
+            [lat, lon]
+        })
+        .collect();
+    let plan = serde_json::json!({"fileType": "Plan", "version": 1, "groundStation": "QGroundControl",
+        "geoFence": {"version": 2, "circles": [], "polygons": [{"inclusion": true, "version": 1, "polygon": latlon}]}});
+    std::fs::write(dir.join("site.plan"), serde_json::to_string_pretty(&plan).unwrap()).unwrap();
+    for placement in ["qr", "horizon"] {
+        for fenced in [true, false] {
+            let ep = vec![format!("tcp/127.0.0.1:{}", free_port())];
+            let case = dir.join(format!("{placement}-{fenced}"));
+            std::fs::create_dir_all(&case).unwrap();
+            let mission = tiny_mission(&case, &ep, &ep);
+            edit(&mission, "seed = 5", &format!("seed = 5\nplacement = \"{placement}\""));
+            if fenced {
+                std::fs::copy(dir.join("site.plan"), case.join("site.plan")).unwrap();
+                edit(&mission, "[mavlink]\n", "[mavlink]\nboundary = \"site.plan\"\n");
+            }
+            let out = case.join("run");
+            fleet_up(&mission, &out);
+            let grid = Recording::read(&out.join("recording.mcap")).unwrap().grid;
+            let (mut boat_cells, mut in_notch, mut places) = (0, 0, 0);
+            for (position, cells, vehicle) in planned(&out) {
+                places += 1;
+                assert!(!fenced || inside(&ELL, position), "{placement}: {vehicle} sent to {position:?}, outside the fence");
+                for c in cells.iter().filter(|_| vehicle.starts_with("boat")) {
+                    let (x, y) = grid.centre_m(grid.cell(*c as usize));
+                    boat_cells += 1;
+                    if !inside(&ELL, [x, y]) {
+                        in_notch += 1;
+                    }
+                }
+            }
+            println!("{placement}, fenced {fenced}: {places} places, {boat_cells} disk cells, {in_notch} outside the L");
+            assert!(boat_cells > 0, "{placement}: no disk at all");
+            if fenced {
+                assert_eq!(in_notch, 0, "{placement}: disk cells outside the fence");
+            } else {
+                assert!(in_notch > 0, "{placement}: without the fence no disk touches the notch, so this test could not fail");
+            }
+        }
+    }
+    // A mission whose boundary file has no geofence is one line, exit 2, naming the file.
+    let ep = vec![format!("tcp/127.0.0.1:{}", free_port())];
+    let mission = tiny_mission(&dir, &ep, &ep);
+    std::fs::write(dir.join("nofence.plan"), r#"{"fileType": "Plan", "version": 1, "mission": {"items": []}}"#).unwrap();
+    edit(&mission, "[mavlink]\n", "[mavlink]\nboundary = \"nofence.plan\"\n");
+    let o = run("fleet", &["up", mission.to_str().unwrap(), "--out", dir.join("bad").to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("nofence.plan") && err.contains("without a geofence") && err.trim().lines().count() == 1, "{err}");
+}
