@@ -3,6 +3,7 @@
 //! experiment is tested against, and publishes models, acks, plans and its own status.
 
 mod node;
+mod replay;
 
 #[global_allocator]
 static ALLOCATOR: fleet_mission::Allocator = fleet_mission::Allocator;
@@ -35,10 +36,20 @@ pub struct Args {
     pub exit_when_done: bool,
     #[arg(long, default_value_t = 10_000)]
     pub linger_ms: u64,
+    /// Instead of serving a mission, play this recording back onto Zenoh at its recorded pace
+    /// (times --speed), for a live view to follow (`fleet replay --web` starts it).
+    #[arg(long)]
+    pub replay: Option<std::path::PathBuf>,
+    /// With --replay: the recorded pace times this factor.
+    #[arg(long, default_value_t = 1.0, requires = "replay")]
+    pub speed: f64,
 }
 
 fn main() {
     fleet_net::init_node();
     let args = Args::parse();
-    fleet_net::run_node("model-server", 2, node::run(args));
+    match args.replay.clone() {
+        Some(file) => fleet_net::run_node("model-server", 2, async move { replay::run(&args, &file, args.speed).await }),
+        None => fleet_net::run_node("model-server", 2, node::run(args)),
+    }
 }

@@ -51,6 +51,27 @@ fn a_recording_through_kills_replays_to_the_recorded_model_bit_for_bit() {
         assert_eq!(std::fs::read(replayed.join(f)).unwrap(), std::fs::read(out.join(f)).unwrap(), "replayed {f} differs from the server's");
     }
 
+    // In time, to a live view: the recording played onto Zenoh at twice its pace, and the view
+    // on it sees the vehicles up and the model advance to the recorded final version.
+    let port = free_port();
+    let mut live = std::process::Command::new(bin("fleet"))
+        .args(["replay", second.to_str().unwrap(), "--out", dir.join("live").to_str().unwrap(), "--speed", "2", "--web", &format!("127.0.0.1:{port}"), "--web-linger-s", "30"])
+        .current_dir(root())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let version = |s: &serde_json::Value| s["model"]["version"].as_u64().unwrap_or(0);
+    eventually(60, "the view has a replayed model", || web_state(port).is_some_and(|s| version(&s) >= 1));
+    let first = version(&web_state(port).unwrap());
+    eventually(60, "the view sees every vehicle up", || web_state(port).is_some_and(|s| s["vehicles"].as_array().unwrap().iter().all(|v| v["link"] == "up" || v["link"] == "left")));
+    eventually(60, "the view reaches the recorded final model", || web_state(port).is_some_and(|s| version(&s) == summary.model_version));
+    assert!(first < summary.model_version, "the view saw the model advance ({first} -> {})", summary.model_version);
+    // Ctrl-C during the linger ends it cleanly.
+    unsafe { libc::kill(live.id() as i32, libc::SIGINT) };
+    let status = live.wait().unwrap();
+    assert!(status.success() || status.code() == Some(130), "{status}");
+
     // The first life's recording ends where the server was killed: refused in one line.
     let o = run("fleet", &["replay", record.to_str().unwrap(), "--out", dir.join("cut").to_str().unwrap()]);
     let err = String::from_utf8_lossy(&o.stderr);

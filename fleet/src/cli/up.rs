@@ -61,7 +61,7 @@ const RUN_FILES: [&str; 15] = [
 ];
 
 /// A sibling binary of this executable (the workspace builds them side by side).
-fn sibling(name: &str) -> anyhow::Result<PathBuf> {
+pub(super) fn sibling(name: &str) -> anyhow::Result<PathBuf> {
     let exe = std::env::current_exe().context("locating this executable")?;
     let path = exe.with_file_name(name);
     if !path.exists() {

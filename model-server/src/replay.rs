@@ -1,0 +1,100 @@
+//! `model-server --replay <recording.mcap>`: a recorded mission played back onto Zenoh at its
+//! recorded pace (times `--speed`), as the model server would have served it, so a live view
+//! (`fleet-watch`) can follow it: every recorded message put on its key again, the model and
+//! the plans answered to queries from what was recorded by then, and each vehicle's liveliness
+//! token declared and dropped as the recorded link events say. No core runs here: `fleet
+//! replay` checks the core.
+
+use crate::Args;
+use fleet_mission::events::ServerEvent;
+use fleet_mission::exit::bad_input;
+use fleet_mission::protocol::{self, keys::Keys, Body, Context};
+use fleet_mission::recording::{Recording, CORE_TOPIC, EVENTS_TOPIC};
+use fleet_net::{zenoh, Role};
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::time::Duration;
+use tracing::{info, warn};
+
+pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
+    if !(speed.is_finite() && speed > 0.0) {
+        return Err(bad_input(anyhow::anyhow!("--speed {speed}: give a positive factor (1: the recorded pace)")));
+    }
+    let rec = Recording::read(file).map_err(|e| if e.is_bad_file() { bad_input(e) } else { e.into() })?;
+    let keys = Keys::new(&rec.mission.mission)?;
+    let mut ctx = Context::new(rec.grid);
+    ctx.vehicles = rec.mission.vehicles().into_iter().map(|v| v.id).collect();
+    let session = fleet_net::open(args.node.zenoh_config(Role::Server, &rec.mission.network)?).await?;
+    let plans = session.declare_queryable(keys.all_plans()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let models = session.declare_queryable(keys.model_latest()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let _server = session.liveliness().declare_token(keys.alive("server")).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let mut tokens = BTreeMap::new();
+    let mut model: Option<Vec<u8>> = None;
+    // Recorded plan replies by (vehicle, epoch): the latest of each answers a query for it.
+    let mut plan_replies: BTreeMap<(String, u64), Vec<u8>> = BTreeMap::new();
+    let first = rec.messages.first().map_or(0, |m| m.log_ns);
+    let start = tokio::time::Instant::now();
+    let mut stop = fleet_net::StopSignals::new()?;
+    info!(recording = %file.display(), messages = rec.messages.len(), speed, "replaying onto Zenoh");
+    for m in &rec.messages {
+        let due = start + Duration::from_nanos(((m.log_ns.saturating_sub(first)) as f64 / speed) as u64);
+        // Answer queries while waiting for the message's time.
+        loop {
+            tokio::select! {
+                _ = tokio::time::sleep_until(due) => break,
+                q = plans.recv_async() => if let Ok(q) = q { answer_plan(&keys, &plan_replies, q).await },
+                q = models.recv_async() => if let Ok(q) = q { answer(q, model.clone(), "no model yet").await },
+                sig = stop.recv() => {
+                    info!(signal = sig, "stopping the replay");
+                    return Ok(());
+                }
+            }
+        }
+        match m.topic.as_str() {
+            CORE_TOPIC => {}
+            EVENTS_TOPIC => {
+                if let Ok(ServerEvent::Link { vehicle, alive }) = serde_json::from_slice(&m.data) {
+                    if alive {
+                        let t = session.liveliness().declare_token(keys.alive(&vehicle)).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+                        tokens.insert(vehicle, t);
+                    } else {
+                        tokens.remove(&vehicle);
+                    }
+                }
+            }
+            key if keys.id_after(key, "plan").is_some() => {
+                if let Ok(Body::Plan(p)) = protocol::decode(&m.data, &ctx) {
+                    plan_replies.insert((p.vehicle, p.epoch), m.data.clone());
+                }
+            }
+            key => {
+                if key == keys.model_latest() {
+                    model = Some(m.data.clone());
+                }
+                if let Err(e) = session.put(key, m.data.clone()).encoding(fleet_net::encoding()).await {
+                    warn!("put on {key}: {e}");
+                }
+            }
+        }
+    }
+    info!("replay done");
+    session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    Ok(())
+}
+
+async fn answer_plan(keys: &Keys, replies: &BTreeMap<(String, u64), Vec<u8>>, q: zenoh::query::Query) {
+    let key = q.key_expr().as_str().to_string();
+    let (id, epoch) = (keys.id_after(&key, "plan"), q.parameters().get("epoch").and_then(|e| e.parse::<u64>().ok()));
+    let found = id.zip(epoch).and_then(|(id, e)| replies.get(&(id, e)).cloned());
+    answer(q, found, "no plan recorded for that epoch yet").await;
+}
+
+async fn answer(q: zenoh::query::Query, bytes: Option<Vec<u8>>, none: &str) {
+    let sent = match bytes {
+        Some(b) => q.reply(q.key_expr().clone(), b).encoding(fleet_net::encoding()).await,
+        None => q.reply_err(none.as_bytes().to_vec()).await,
+    };
+    if let Err(e) = sent {
+        warn!("replying to {}: {e}", q.key_expr());
+    }
+}
