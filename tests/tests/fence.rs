@@ -79,6 +79,15 @@ fn a_concave_fence_keeps_every_disk_and_aerial_place_inside_for_qr_and_horizon()
             assert!(boat_cells > 0, "{placement}: no disk at all");
             if fenced {
                 assert_eq!(in_notch, 0, "{placement}: disk cells outside the fence");
+                // The exported QGC plans carry the mission's fence, not the grid's rectangle.
+                let o = run("fleet", &["export", out.to_str().unwrap(), "--qgc-plan", case.join("next.plan").to_str().unwrap()]);
+                assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+                let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(case.join("next.boat-1.plan")).unwrap()).unwrap();
+                let fence: Vec<[f64; 2]> = serde_json::from_value(doc["geoFence"]["polygons"][0]["polygon"].clone()).unwrap();
+                assert_eq!(fence.len(), latlon.len());
+                for (a, b) in fence.iter().zip(&latlon) {
+                    assert!((a[0] - b[0]).abs() < 1e-9 && (a[1] - b[1]).abs() < 1e-9, "{a:?} vs {b:?}");
+                }
             } else {
                 assert!(in_notch > 0, "{placement}: without the fence no disk touches the notch, so this test could not fail");
             }

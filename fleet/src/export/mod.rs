@@ -58,6 +58,8 @@ pub struct Run {
     pub variance: Steps,
     /// The truth's first `steps` frames, in a mixed-reality run.
     pub truth: Option<Steps>,
+    /// The site's boundary the run was planned within (from its recording), if it had one.
+    pub fence: Option<fleet_mission::fence::SiteFence>,
 }
 
 impl Run {
@@ -106,7 +108,11 @@ impl Run {
             }
         };
         let site = Site::new(&mission.mavlink, &grid);
-        Ok(Self { dir: dir.into(), mission, summary, grid, site, estimate: Steps { steps, data: estimate }, variance: Steps { steps, data: variance }, truth })
+        // The boundary as the server read it: the file the mission names may not be beside the
+        // run's copy of it, the recording's header has it.
+        let recording = dir.join("recording.mcap");
+        let fence = if recording.is_file() { fleet_mission::recording::Recording::read(&recording).map_err(|e| bad(&recording, e.to_string()))?.mission.team.fence } else { None };
+        Ok(Self { dir: dir.into(), mission, summary, grid, site, estimate: Steps { steps, data: estimate }, variance: Steps { steps, data: variance }, truth, fence })
     }
 
     /// The plans the server published (`plans.json`).
@@ -140,6 +146,26 @@ impl Run {
         let (lat0, lon0, _) = self.site.global_of(&self.site.ned_of((0.0, 0.0), 0.0));
         let (lat1, lon1, _) = self.site.global_of(&self.site.ned_of((self.grid.width_m(), self.grid.height_m()), 0.0));
         [lon0, lat0, lon1, lat1]
+    }
+
+    /// The site's boundary as `[lat, lon]` vertices: the mission's fence, or the grid's extent.
+    pub fn boundary_deg(&self) -> Vec<[f64; 2]> {
+        match &self.fence {
+            Some(f) => {
+                let origin = Site { origin: self.site.origin, scale: nalgebra::Vector2::new(1.0, 1.0) };
+                f.polygon_m
+                    .iter()
+                    .map(|[e, n]| {
+                        let (lat, lon, _) = origin.global_of(&nalgebra::Vector3::new(*n, *e, 0.0));
+                        [lat, lon]
+                    })
+                    .collect()
+            }
+            None => {
+                let [w, s, e, n] = self.bounds_deg();
+                vec![[s, w], [s, e], [n, e], [n, w]]
+            }
+        }
     }
 
     /// What produced the run, for files' metadata: `(name, value)`.

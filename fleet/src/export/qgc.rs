@@ -1,7 +1,7 @@
 //! QGroundControl plans: each boat's planned sensing places as a `.plan` file (QGC holds one
-//! mission per vehicle), with the site's boundary as an inclusion geofence. The format is
-//! QGC's JSON plan (`fileType` "Plan", mission version 2, geofence and rally points
-//! version 2).
+//! mission per vehicle), with the site's boundary (the mission's fence, or the grid's extent)
+//! as an inclusion geofence. The format is QGC's JSON plan (`fileType` "Plan", mission
+//! version 2, geofence and rally points version 2).
 
 use super::{ExportError, Run};
 use fleet_mission::protocol::VehicleKind;
@@ -69,7 +69,7 @@ fn plan_json(run: &Run, places: &[[f64; 2]], what: &str) -> Value {
             })
         })
         .collect();
-    let [west, south, east, north] = run.bounds_deg();
+    let [west, south, _, _] = run.bounds_deg();
     json!({
         "fileType": "Plan",
         "version": 1,
@@ -87,7 +87,7 @@ fn plan_json(run: &Run, places: &[[f64; 2]], what: &str) -> Value {
         "geoFence": {
             "version": 2,
             "circles": [],
-            "polygons": [{ "inclusion": true, "version": 1, "polygon": [[south, west], [south, east], [north, east], [north, west]] }],
+            "polygons": [{ "inclusion": true, "version": 1, "polygon": run.boundary_deg() }],
         },
         "rallyPoints": { "version": 2, "points": [] },
     })
