@@ -86,8 +86,29 @@ while time.time() < watch_end:
 out["targets"] = {s: [list(t) for t in ts] for s, ts in targets.items()}
 out["approach"] = {s: [first[s], last[s], time.time() - since[s]] for s in last}
 
-# 3. Mission upload to one vehicle, then AUTO, then each item reached.
+# 3a. Home and the parameter list of the mission vehicle, as MAVProxy and QGC ask on connecting.
 sysid = args.mission_sysid
+m.mav.command_long_send(sysid, 1, mavutil.mavlink.MAV_CMD_GET_HOME_POSITION, 0, 0, 0, 0, 0, 0, 0, 0)
+home, t = None, time.time()
+while home is None and time.time() - t < 5:
+    msg = recv("HOME_POSITION", 1.0)
+    if msg is not None and msg.get_srcSystem() == sysid:
+        home = msg
+if home is None:
+    fail("no HOME_POSITION after MAV_CMD_GET_HOME_POSITION")
+out["home"] = [home.latitude, home.longitude]
+m.mav.param_request_list_send(sysid, 1)
+params, t = {}, time.time()
+while time.time() - t < 5:
+    msg = recv("PARAM_VALUE", 1.0)
+    if msg is None or msg.get_srcSystem() != sysid:
+        continue
+    params[msg.param_id] = msg.param_value
+    if len(params) == msg.param_count:
+        break
+out["params"] = params
+
+# 3. Mission upload to one vehicle, then AUTO, then each item reached.
 pos = recv("GLOBAL_POSITION_INT", 5.0)
 while pos is not None and pos.get_srcSystem() != sysid:
     pos = recv("GLOBAL_POSITION_INT", 5.0)

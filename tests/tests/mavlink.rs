@@ -59,6 +59,11 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
         assert_eq!((hb["type"].as_i64(), hb["autopilot"].as_i64()), (Some(want), Some(3)), "{}: {hb}", v.id);
     }
     // The mission: accepted after the handshake, every item reached in order.
+    // Home and the parameter download, through the gateway: the settings the simulation uses.
+    let sysid = m.sysid(mission_vehicle).unwrap() as f64;
+    assert!(gs["home"][0].as_i64().is_some_and(|lat| lat != 0), "home: {}", gs["home"]);
+    let p = &gs["params"];
+    assert_eq!((p["SYSID_THISMAV"].as_f64(), p["CRUISE_SPEED"].as_f64(), p["FENCE_ENABLE"].as_f64()), (Some(sysid), Some(m.mavlink.boat_speed_ms), Some(0.0)), "{p}");
     assert_eq!(gs["mission"]["ack"].as_i64(), Some(0));
     assert_eq!(gs["mission"]["items_sent"].as_i64(), Some(3));
     assert_eq!(gs["mission"]["reached"], serde_json::json!([0, 1, 2]));

@@ -2,5 +2,6 @@
 //! autopilot, and serving it on a MAVLink connection as an autopilot's serial or UDP port.
 
 pub mod modes;
+pub mod params;
 pub mod serve;
 pub mod sim;

@@ -12,9 +12,10 @@
 #![allow(deprecated)]
 
 use super::modes::{Frame, Role};
+use super::params;
 use fleet_mission::site::Site;
 use mavlink::dialects::common::*;
-use mavlink::{MavHeader, Message};
+use mavlink::{MavHeader, Message, MessageData};
 use nalgebra::Vector3;
 use std::f64::consts::PI;
 
@@ -177,12 +178,51 @@ impl SimAutopilot {
                     false
                 }
             }
+            // Ground stations ask for home on connecting (MAVProxy, QGC); the message follows
+            // the ack, as ArduPilot sends it.
+            MAV_CMD_GET_HOME_POSITION => return self.send_home(command),
+            MAV_CMD_REQUEST_MESSAGE if p[0] as u32 == HOME_POSITION_DATA::ID => return self.send_home(command),
             _ => {
                 self.out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA { command, result: MavResult::MAV_RESULT_UNSUPPORTED }));
                 return;
             }
         };
         self.ack(command, ok);
+    }
+
+    /// PARAM_VALUE of parameter `index` (nothing for an index it does not have).
+    fn param_value(&mut self, index: usize) {
+        if let Some((name, value)) = params::by_index(&self.spec, index) {
+            self.out.push(MavMessage::PARAM_VALUE(PARAM_VALUE_DATA {
+                param_value: value,
+                param_count: params::count(self.spec.frame) as u16,
+                param_index: index as u16,
+                param_id: name.into(),
+                param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+            }));
+        }
+    }
+
+    /// Accept `command` and send HOME_POSITION after the ack.
+    fn send_home(&mut self, command: MavCmd) {
+        self.ack(command, true);
+        let home = self.home_position();
+        self.out.push(home);
+    }
+
+    /// HOME_POSITION: where it booted, which RTL returns to.
+    fn home_position(&self) -> MavMessage {
+        let (lat, lon, alt) = self.spec.site.global_of(&self.home);
+        MavMessage::HOME_POSITION(HOME_POSITION_DATA {
+            latitude: (lat * 1e7).round() as i32,
+            longitude: (lon * 1e7).round() as i32,
+            altitude: (alt * 1e3).round() as i32,
+            x: self.home.x as f32,
+            y: self.home.y as f32,
+            z: self.home.z as f32,
+            q: [1.0, 0.0, 0.0, 0.0],
+            ..Default::default()
+        })
     }
 
     fn mission_ack(&mut self, to: (u8, u8), result: MavMissionResult) {
@@ -274,16 +314,24 @@ impl SimAutopilot {
                 self.out.push(MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current }));
             }
             MavMessage::PARAM_REQUEST_LIST(_) => {
-                // One parameter, so ground stations finish their parameter download.
-                let mut id = [0u8; 16];
-                id[..13].copy_from_slice(b"SYSID_THISMAV");
-                self.out.push(MavMessage::PARAM_VALUE(PARAM_VALUE_DATA {
-                    param_value: self.spec.sysid as f32,
-                    param_count: 1,
-                    param_index: 0,
-                    param_id: id.into(),
-                    param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
-                }));
+                for i in 0..params::count(self.spec.frame) {
+                    self.param_value(i);
+                }
+            }
+            MavMessage::PARAM_REQUEST_READ(r) => {
+                // By index, or by name when the index is -1 (the protocol's rule).
+                let index = if r.param_index >= 0 { Some(r.param_index as usize) } else { r.param_id.to_str().ok().and_then(|n| params::index_of(self.spec.frame, n)) };
+                if let Some(i) = index {
+                    self.param_value(i);
+                }
+            }
+            MavMessage::PARAM_SET(p) => {
+                // Unknown names get no answer (as ArduPilot); a refused value is answered with
+                // the one in force, so the ground station sees it did not take.
+                if let Some(i) = p.param_id.to_str().ok().and_then(|n| params::index_of(self.spec.frame, n)) {
+                    params::set(&mut self.spec, i, p.param_value);
+                    self.param_value(i);
+                }
             }
             _ => {}
         }
@@ -444,10 +492,12 @@ impl SimAutopilot {
             | MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_GPS
             | MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
             | MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_BATTERY;
+        // The geofence bit is healthy while there is no breach, whether or not a fence is
+        // enabled (ArduPilot's rule): ground stations announce "fence breach" when it is not.
         MavMessage::SYS_STATUS(SYS_STATUS_DATA {
             onboard_control_sensors_present: sensors,
             onboard_control_sensors_enabled: sensors,
-            onboard_control_sensors_health: sensors,
+            onboard_control_sensors_health: sensors | MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE,
             load: 150,
             voltage_battery: (11_000.0 + 1_600.0 * self.battery) as u16,
             current_battery: if self.armed { 800 } else { 50 },
@@ -521,6 +571,53 @@ mod tests {
 
     fn results(out: &[MavMessage]) -> Vec<MavResult> {
         out.iter().filter_map(|m| if let MavMessage::COMMAND_ACK(a) = m { Some(a.result) } else { None }).collect()
+    }
+
+    #[test]
+    fn home_parameters_and_the_fence_bit_answer_as_ardupilot_does() {
+        let mut s = sim(Frame::Boat);
+        // Home: acked, then HOME_POSITION at the boot place (the site's origin here).
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_GET_HOME_POSITION, 0.0, 0.0));
+        let out = s.take();
+        assert_eq!(results(&out), vec![MavResult::MAV_RESULT_ACCEPTED]);
+        let Some(MavMessage::HOME_POSITION(h)) = out.get(1) else { panic!("no HOME_POSITION after the ack: {out:?}") };
+        let [lat, lon, _] = s.spec.site.origin;
+        assert_eq!((h.latitude, h.longitude), ((lat * 1e7).round() as i32, (lon * 1e7).round() as i32));
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_REQUEST_MESSAGE, HOME_POSITION_DATA::ID as f32, 0.0));
+        assert!(matches!(s.take().get(1), Some(MavMessage::HOME_POSITION(_))));
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_REQUEST_MESSAGE, 33.0, 0.0));
+        assert_eq!(results(&s.take()), vec![MavResult::MAV_RESULT_UNSUPPORTED]);
+
+        // The whole list, each value what the simulation uses, counted and indexed.
+        s.handle(&GCS, &MavMessage::PARAM_REQUEST_LIST(PARAM_REQUEST_LIST_DATA { target_system: 3, target_component: 1 }));
+        let values: Vec<PARAM_VALUE_DATA> = s.take().into_iter().filter_map(|m| if let MavMessage::PARAM_VALUE(v) = m { Some(v) } else { None }).collect();
+        let named = |n: &str| values.iter().find(|v| v.param_id.to_str().unwrap() == n).unwrap_or_else(|| panic!("no {n} in {values:?}")).param_value;
+        assert_eq!(values.len(), 4);
+        assert!(values.iter().enumerate().all(|(i, v)| v.param_index as usize == i && v.param_count == 4));
+        assert_eq!((named("CRUISE_SPEED"), named("SYSID_THISMAV"), named("FENCE_ENABLE")), (2.0, 3.0, 0.0));
+        assert!((named("ATC_STR_RAT_MAX") - 90.0).abs() < 1e-4);
+        // A set takes effect in the simulation and is echoed; a bad or read-only one is not taken.
+        let set = |name: &str, v: f32| {
+            MavMessage::PARAM_SET(PARAM_SET_DATA { param_value: v, target_system: 3, target_component: 1, param_id: name.into(), param_type: MavParamType::MAV_PARAM_TYPE_REAL32 })
+        };
+        s.handle(&GCS, &set("CRUISE_SPEED", 3.5));
+        assert!(matches!(s.take().as_slice(), [MavMessage::PARAM_VALUE(v)] if v.param_value == 3.5));
+        assert_eq!(s.spec.max_speed, 3.5);
+        for (name, v, now) in [("CRUISE_SPEED", -1.0, 3.5), ("SYSID_THISMAV", 9.0, 3.0), ("FENCE_ENABLE", 1.0, 0.0)] {
+            s.handle(&GCS, &set(name, v));
+            assert!(matches!(s.take().as_slice(), [MavMessage::PARAM_VALUE(p)] if p.param_value == now), "{name}");
+        }
+        s.handle(&GCS, &set("NO_SUCH_PARAM", 1.0));
+        assert!(s.take().is_empty());
+        let read = |index: i16, name: &str| MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA { param_index: index, target_system: 3, target_component: 1, param_id: name.into() });
+        s.handle(&GCS, &read(-1, "CRUISE_SPEED"));
+        s.handle(&GCS, &read(3, ""));
+        let got: Vec<String> = s.take().into_iter().filter_map(|m| if let MavMessage::PARAM_VALUE(v) = m { Some(v.param_id.to_str().unwrap().to_string()) } else { None }).collect();
+        assert_eq!(got, ["CRUISE_SPEED", "SYSID_THISMAV"]);
+
+        // No fence breach: the geofence health bit is set.
+        let MavMessage::SYS_STATUS(st) = s.sys_status() else { panic!() };
+        assert!(st.onboard_control_sensors_health.contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE));
     }
 
     #[test]

@@ -1,0 +1,96 @@
+//! The simulated autopilot's parameters, under ArduPilot's names, so a ground station's
+//! parameter download finishes and shows (and may change) the settings the simulation really
+//! uses. Only what the simulation does is here: a parameter for a feature it lacks would be a
+//! promise it does not keep.
+
+use super::modes::Frame;
+use super::sim::SimSpec;
+
+/// One parameter: its name and how it reads from and writes to the simulation.
+struct Param {
+    name: &'static str,
+    get: fn(&SimSpec) -> f32,
+    /// `None`: read-only (a set is answered with the unchanged value, as ArduPilot does).
+    set: Option<fn(&mut SimSpec, f32) -> bool>,
+}
+
+fn positive(v: f32) -> bool {
+    v.is_finite() && v > 0.0
+}
+
+const SYSID: Param = Param { name: "SYSID_THISMAV", get: |s| s.sysid as f32, set: None };
+/// No geofence is enforced by the simulation (yet): reported off, not settable.
+const FENCE_ENABLE: Param = Param { name: "FENCE_ENABLE", get: |_| 0.0, set: None };
+
+/// A Rover's: cruise speed (m/s) and steering rate limit (deg/s).
+const BOAT: [Param; 4] = [
+    Param {
+        name: "ATC_STR_RAT_MAX",
+        get: |s| s.turn_rate.to_degrees() as f32,
+        set: Some(|s, v| {
+            positive(v) && {
+                s.turn_rate = (v as f64).to_radians();
+                true
+            }
+        }),
+    },
+    Param {
+        name: "CRUISE_SPEED",
+        get: |s| s.max_speed as f32,
+        set: Some(|s, v| {
+            positive(v) && {
+                s.max_speed = v as f64;
+                true
+            }
+        }),
+    },
+    FENCE_ENABLE,
+    SYSID,
+];
+
+/// A Copter's: waypoint speed (cm/s).
+const MULTIROTOR: [Param; 3] = [
+    FENCE_ENABLE,
+    SYSID,
+    Param {
+        name: "WPNAV_SPEED",
+        get: |s| (s.max_speed * 100.0) as f32,
+        set: Some(|s, v| {
+            positive(v) && {
+                s.max_speed = v as f64 / 100.0;
+                true
+            }
+        }),
+    },
+];
+
+fn table(frame: Frame) -> &'static [Param] {
+    match frame {
+        Frame::Boat => &BOAT,
+        Frame::Multirotor => &MULTIROTOR,
+    }
+}
+
+/// How many parameters the frame has.
+pub fn count(frame: Frame) -> usize {
+    table(frame).len()
+}
+
+/// Parameter `index`: its name and value.
+pub fn by_index(spec: &SimSpec, index: usize) -> Option<(&'static str, f32)> {
+    table(spec.frame).get(index).map(|p| (p.name, (p.get)(spec)))
+}
+
+/// A parameter's index by name.
+pub fn index_of(frame: Frame, name: &str) -> Option<usize> {
+    table(frame).iter().position(|p| p.name == name)
+}
+
+/// Set a parameter; returns whether the value was taken (out of range and read-only ones are
+/// not). Either way the caller answers with the value now in force.
+pub fn set(spec: &mut SimSpec, index: usize, value: f32) -> bool {
+    match table(spec.frame).get(index).and_then(|p| p.set) {
+        Some(f) => f(spec, value),
+        None => false,
+    }
+}
