@@ -198,7 +198,11 @@ impl Recording {
         let num = |k: &str| -> Result<usize, RecordingError> { field(k)?.parse().map_err(|e| bad(format!("its `{HEADER}` metadata `{k}`: {e}"))) };
         let mission_toml = field("mission_toml")?;
         let mut mission = MissionConfig::from_toml(&mission_toml).map_err(|e| bad(format!("its mission: {e}")))?;
-        mission.team.fence = serde_json::from_str(&field("fence")?).map_err(|e| bad(format!("its `{HEADER}` metadata `fence`: {e}")))?;
+        // Recordings made before boundaries existed have no `fence`: none.
+        mission.team.fence = match h.get("fence") {
+            Some(f) => serde_json::from_str(f).map_err(|e| bad(format!("its `{HEADER}` metadata `fence`: {e}")))?,
+            None => None,
+        };
         let cell_m: f64 = field("cell_m")?.parse().map_err(|e| bad(format!("its `{HEADER}` metadata `cell_m`: {e}")))?;
         let grid = Grid::new(num("rows")?, num("cols")?, cell_m).map_err(|e| bad(format!("its workspace: {e}")))?;
         let frames = num("frames")?;
