@@ -215,6 +215,15 @@ print('ok', batches)
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("plans.json") && err.trim().lines().count() == 1, "{err}");
+    // A damaged recording stops only what needs it (the plans' fence), not the fields.
+    std::fs::copy(out.join("plans.json"), damaged.join("plans.json")).unwrap();
+    std::fs::write(damaged.join("recording.mcap"), b"\x89MCAP0\r\ncut").unwrap();
+    let o = run("fleet", &["export", damaged.to_str().unwrap(), "--netcdf", nc.to_str().unwrap()]);
+    assert!(o.status.success() && nc.exists(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = run("fleet", &["export", damaged.to_str().unwrap(), "--qgc-plan", dir.join("d.plan").to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("recording.mcap") && err.trim().lines().count() == 1, "{err}");
 }
 
 #[test]

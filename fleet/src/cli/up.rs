@@ -318,9 +318,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let command = format!("fleet up{} --out {}", args.mission.as_ref().map_or(String::new(), |p| format!(" {}", p.display())), out.display());
     let md = write_mission_report(out, &mission, &summary, &offline, truth.dt, &command, &events)?;
     println!("{md}");
-    let run = fleet::export::Run::load(out)?;
-    fleet::export::netcdf::write(&run, &out.join("estimate.nc"))?;
-    println!("wrote {}/report.md, mse.png, estimate.nc, events.jsonl, summary.json, model.cbor and logs/ ({:.1} s in all)", out.display(), t0.elapsed().as_secs_f64());
+    // Everything else is written first: a NetCDF that cannot be written fails the run at the
+    // end, and `fleet export` can write it again from the run directory.
+    let nc = fleet::export::Run::load(out).and_then(|run| fleet::export::netcdf::write(&run, &out.join("estimate.nc")));
+    println!(
+        "wrote {}/report.md, mse.png,{} events.jsonl, summary.json, model.cbor, recording.mcap and logs/ ({:.1} s in all)",
+        out.display(),
+        if nc.is_ok() { " estimate.nc," } else { "" },
+        t0.elapsed().as_secs_f64()
+    );
+    nc.map_err(|e| anyhow::Error::new(e).context("writing estimate.nc"))?;
     if let (Some(addr), linger) = (args.web, args.web_linger_s) {
         if linger > 0 {
             println!("the live view stays at http://{addr}/ for {linger} s (the finished run, its report); Ctrl-C ends it");

@@ -58,8 +58,6 @@ pub struct Run {
     pub variance: Steps,
     /// The truth's first `steps` frames, in a mixed-reality run.
     pub truth: Option<Steps>,
-    /// The site's boundary the run was planned within (from its recording), if it had one.
-    pub fence: Option<fleet_mission::fence::SiteFence>,
 }
 
 impl Run {
@@ -108,11 +106,7 @@ impl Run {
             }
         };
         let site = Site::new(&mission.mavlink, &grid);
-        // The boundary as the server read it: the file the mission names may not be beside the
-        // run's copy of it, the recording's header has it.
-        let recording = dir.join("recording.mcap");
-        let fence = if recording.is_file() { fleet_mission::recording::Recording::read(&recording).map_err(|e| bad(&recording, e.to_string()))?.mission.team.fence } else { None };
-        Ok(Self { dir: dir.into(), mission, summary, grid, site, estimate: Steps { steps, data: estimate }, variance: Steps { steps, data: variance }, truth, fence })
+        Ok(Self { dir: dir.into(), mission, summary, grid, site, estimate: Steps { steps, data: estimate }, variance: Steps { steps, data: variance }, truth })
     }
 
     /// The plans the server published (`plans.json`).
@@ -148,9 +142,22 @@ impl Run {
         [lon0, lat0, lon1, lat1]
     }
 
+    /// The site's boundary the run was planned within, if it had one: as the server read it,
+    /// from the recording's header (the file the mission names need not be beside the run's
+    /// copy of the mission). Read only when asked: a damaged recording does not stop the
+    /// other exports.
+    pub fn fence(&self) -> Result<Option<fleet_mission::fence::SiteFence>> {
+        let recording = self.dir.join("recording.mcap");
+        if !recording.is_file() {
+            return Ok(None);
+        }
+        let rec = fleet_mission::recording::Recording::read(&recording).map_err(|e| ExportError::Bad { path: recording.clone(), why: format!("the site's boundary is read from it: {e}") })?;
+        Ok(rec.mission.team.fence)
+    }
+
     /// The site's boundary as `[lat, lon]` vertices: the mission's fence, or the grid's extent.
-    pub fn boundary_deg(&self) -> Vec<[f64; 2]> {
-        match &self.fence {
+    pub fn boundary_deg(&self) -> Result<Vec<[f64; 2]>> {
+        Ok(match self.fence()? {
             Some(f) => {
                 let origin = Site { origin: self.site.origin, scale: nalgebra::Vector2::new(1.0, 1.0) };
                 f.polygon_m
@@ -165,7 +172,7 @@ impl Run {
                 let [w, s, e, n] = self.bounds_deg();
                 vec![[s, w], [s, e], [n, e], [n, w]]
             }
-        }
+        })
     }
 
     /// What produced the run, for files' metadata: `(name, value)`.

@@ -35,10 +35,11 @@ pub fn write(run: &Run, path: &Path, epoch: Option<u64>) -> Result<Vec<PathBuf>,
     if boats.is_empty() {
         return Err(ExportError::Bad { path: run.dir.join("plans.json"), why: format!("no boat has a plan published at epoch {epoch} (epochs with plans: up to {})", last.unwrap_or(0)) });
     }
+    let fence = run.boundary_deg()?;
     let mut written = vec![];
     for plan in boats {
         let places: Vec<[f64; 2]> = plan.targets.iter().filter(|t| t.3 > 0.0).map(|t| t.2).collect();
-        let doc = plan_json(run, &places, &format!("{} at epoch {epoch}", plan.vehicle));
+        let doc = plan_json(run, &places, &fence, &format!("{} at epoch {epoch}", plan.vehicle));
         let out = path_for(path, &plan.vehicle);
         let text = serde_json::to_string_pretty(&doc).expect("JSON values serialise");
         std::fs::write(&out, text).map_err(|e| ExportError::Write { path: out.clone(), why: e.to_string() })?;
@@ -48,7 +49,7 @@ pub fn write(run: &Run, path: &Path, epoch: Option<u64>) -> Result<Vec<PathBuf>,
 }
 
 /// A QGC plan flying through `places` (grid metres), fenced to the site.
-fn plan_json(run: &Run, places: &[[f64; 2]], what: &str) -> Value {
+fn plan_json(run: &Run, places: &[[f64; 2]], fence: &[[f64; 2]], what: &str) -> Value {
     let site = &run.site;
     let alt_home = run.mission.mavlink.origin[2];
     let items: Vec<Value> = places
@@ -87,7 +88,7 @@ fn plan_json(run: &Run, places: &[[f64; 2]], what: &str) -> Value {
         "geoFence": {
             "version": 2,
             "circles": [],
-            "polygons": [{ "inclusion": true, "version": 1, "polygon": run.boundary_deg() }],
+            "polygons": [{ "inclusion": true, "version": 1, "polygon": fence }],
         },
         "rallyPoints": { "version": 2, "points": [] },
     })
