@@ -34,6 +34,15 @@ pub fn bad_input(e: impl Into<anyhow::Error>) -> anyhow::Error {
     anyhow::Error::new(BadInput(e.into()))
 }
 
+/// `e` as bad input when `bad` (the operator's file is at fault), else as it is (internal).
+pub fn bad_input_if(e: impl Into<anyhow::Error>, bad: bool) -> anyhow::Error {
+    if bad {
+        bad_input(e)
+    } else {
+        e.into()
+    }
+}
+
 /// Mark a result's error as bad input.
 pub trait InputResult<T> {
     fn input(self) -> anyhow::Result<T>;

@@ -109,13 +109,16 @@ impl<W: Write + Seek> Recorder<W> {
         &self.path
     }
 
+    fn failed(&self, e: impl std::fmt::Display) -> RecordingError {
+        RecordingError::Io { path: self.path.clone(), why: e.to_string() }
+    }
+
     /// Record `data` on `topic` at `log_ns`; returns its sequence number.
     pub fn message(&mut self, topic: &str, encoding: &str, data: &[u8], log_ns: u64) -> Result<u32, RecordingError> {
-        let io = |e: mcap::McapError| RecordingError::Io { path: self.path.clone(), why: e.to_string() };
         let channel_id = match self.channels.get(topic) {
             Some(&id) => id,
             None => {
-                let id = self.w.add_channel(0, topic, encoding, &BTreeMap::new()).map_err(io)?;
+                let id = self.w.add_channel(0, topic, encoding, &BTreeMap::new()).map_err(|e| self.failed(e))?;
                 self.channels.insert(topic.to_string(), id);
                 id
             }
@@ -123,7 +126,7 @@ impl<W: Write + Seek> Recorder<W> {
         let sequence = self.next;
         self.next += 1;
         let header = mcap::records::MessageHeader { channel_id, sequence, log_time: log_ns, publish_time: log_ns };
-        self.w.write_to_known_channel(&header, data).map_err(|e| RecordingError::Io { path: self.path.clone(), why: e.to_string() })?;
+        self.w.write_to_known_channel(&header, data).map_err(|e| self.failed(e))?;
         Ok(sequence)
     }
 
@@ -136,12 +139,12 @@ impl<W: Write + Seek> Recorder<W> {
 
     /// Make what is recorded so far durable in the file (readable if the node dies next).
     pub fn flush(&mut self) -> Result<(), RecordingError> {
-        self.w.flush().map_err(|e| RecordingError::Io { path: self.path.clone(), why: e.to_string() })
+        self.w.flush().map_err(|e| self.failed(e))
     }
 
     /// End the recording (its summary and footer).
     pub fn finish(mut self) -> Result<(), RecordingError> {
-        self.w.finish().map_err(|e| RecordingError::Io { path: self.path.clone(), why: e.to_string() })?;
+        self.w.finish().map_err(|e| self.failed(e))?;
         Ok(())
     }
 }

@@ -618,7 +618,6 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
 /// What a finished run leaves for export (`fleet export`): the summary, and the core's
 /// outputs (`fleet_mission::outputs`).
 fn write_outputs(dir: &std::path::Path, summary: &ServerSummary, core: &ServerCore, horizon: u64) -> anyhow::Result<()> {
-    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(summary)?)?;
-    fleet_mission::outputs::write(dir, core, horizon)
+    fleet_mission::outputs::write(dir, core, horizon)?;
+    std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(summary)?).with_context(|| format!("writing {}/summary.json", dir.display()))
 }

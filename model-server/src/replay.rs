@@ -20,7 +20,10 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
     if !(speed.is_finite() && speed > 0.0) {
         return Err(bad_input(anyhow::anyhow!("--speed {speed}: give a positive factor (1: the recorded pace)")));
     }
-    let rec = Recording::read(file).map_err(|e| if e.is_bad_file() { bad_input(e) } else { e.into() })?;
+    let rec = Recording::read(file).map_err(|e| {
+        let bad = e.is_bad_file();
+        fleet_mission::exit::bad_input_if(e, bad)
+    })?;
     let keys = Keys::new(&rec.mission.mission)?;
     let mut ctx = Context::new(rec.grid);
     ctx.vehicles = rec.mission.vehicles().into_iter().map(|v| v.id).collect();

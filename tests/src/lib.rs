@@ -48,6 +48,15 @@ pub fn tiny_mission(dir: &std::path::Path, listen: &[String], connect: &[String]
     path
 }
 
+/// The tiny mission paced (`step_ms` a step, so there is time to break things mid-way), with
+/// a short plan timeout and a 1 s link lease.
+pub fn paced_mission(dir: &std::path::Path, listen: &[String], connect: &[String], step_ms: u64) -> PathBuf {
+    let m = tiny_mission(dir, listen, connect);
+    edit(&m, "plan_timeout_ms = 20000", &format!("plan_timeout_ms = 1500\nstep_ms = {step_ms}"));
+    edit(&m, "listen = [", "lease_ms = 1000\nlisten = [");
+    m
+}
+
 /// Child processes killed when dropped (a failing test leaves nothing running).
 #[derive(Default)]
 pub struct Procs(pub Vec<std::process::Child>);

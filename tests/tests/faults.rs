@@ -10,14 +10,6 @@ use hetfleet_tests::*;
 use std::path::Path;
 use std::time::Duration;
 
-/// A paced tiny mission (so there is time to break things mid-way) on a fresh port.
-fn paced_mission(dir: &Path, listen: &[String], connect: &[String], step_ms: u64) -> std::path::PathBuf {
-    let m = tiny_mission(dir, listen, connect);
-    edit(&m, "plan_timeout_ms = 20000", &format!("plan_timeout_ms = 1500\nstep_ms = {step_ms}"));
-    edit(&m, "listen = [", "lease_ms = 1000\nlisten = [");
-    m
-}
-
 #[test]
 fn kill_9_of_the_server_and_of_a_boat_loses_nothing_and_counts_nothing_twice() {
     let dir = scratch("kill");

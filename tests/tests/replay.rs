@@ -9,9 +9,7 @@ use hetfleet_tests::*;
 fn a_recording_through_kills_replays_to_the_recorded_model_bit_for_bit() {
     let dir = scratch("replay");
     let ep = format!("tcp/127.0.0.1:{}", free_port());
-    let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
-    edit(&mission, "plan_timeout_ms = 20000", "plan_timeout_ms = 1500\nstep_ms = 60");
-    edit(&mission, "listen = [", "lease_ms = 1000\nlisten = [");
+    let mission = paced_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep), 60);
     let (m, out, state) = (mission.to_str().unwrap().to_string(), dir.join("out"), dir.join("state"));
     let record = dir.join("recording.mcap");
     let server_args = ["--mission", &m, "--out", out.to_str().unwrap(), "--state-dir", state.to_str().unwrap(), "--exit-when-done", "--record", record.to_str().unwrap()];

@@ -208,9 +208,7 @@ fn a_real_browser_sees_every_vehicle_and_the_model_advance_without_console_error
 fn a_vehicle_that_goes_silent_is_marked_lost_within_the_lease_and_a_public_address_needs_a_credential() {
     let dir = scratch("web-silent");
     let ep = format!("tcp/127.0.0.1:{}", free_port());
-    let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
-    edit(&mission, "plan_timeout_ms = 20000", "plan_timeout_ms = 1500\nstep_ms = 200");
-    edit(&mission, "listen = [", "lease_ms = 1000\nlisten = [");
+    let mission = paced_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep), 200);
     let m = mission.to_str().unwrap();
 
     // Bound beyond loopback without a credential: refused, exit 2, one line naming the flag.

@@ -25,11 +25,8 @@ pub struct Args {
 
 /// An export's error as the exit code wants it: the run directory's fault is bad input.
 fn classify(e: ExportError) -> anyhow::Error {
-    if e.is_bad_input() {
-        fleet::exit::bad_input(e)
-    } else {
-        e.into()
-    }
+    let bad = e.is_bad_input();
+    fleet::exit::bad_input_if(e, bad)
 }
 
 pub fn run(args: Args) -> Result<()> {

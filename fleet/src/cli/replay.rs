@@ -63,11 +63,8 @@ fn start_live(args: &Args, rec: &Recording, speed: f64) -> Result<super::supervi
 }
 
 fn classify(e: RecordingError) -> anyhow::Error {
-    if e.is_bad_file() {
-        fleet::exit::bad_input(e)
-    } else {
-        e.into()
-    }
+    let bad = e.is_bad_file();
+    fleet::exit::bad_input_if(e, bad)
 }
 
 pub fn run(args: Args) -> Result<()> {
