@@ -160,6 +160,18 @@ pub struct MavlinkConfig {
     /// polygon, relative to the mission file. The planner keeps every disk and every aerial
     /// place inside it.
     pub boundary: Option<std::path::PathBuf>,
+    /// MAVLink 2 signing of the ground-station link: the key file `fleet secure` writes
+    /// (`mavlink-signing.key`), relative to the mission file. The gateway then signs what it
+    /// sends the ground station and refuses (and counts) unsigned, wrongly signed and replayed
+    /// frames from it.
+    pub signing_key: Option<std::path::PathBuf>,
+    /// Signing of each vehicle's autopilot link: its key file, `{id}` the vehicle's id
+    /// (`fleet secure` writes `autopilot/{id}.key`), relative to the mission file. The bridge
+    /// signs what it sends the autopilot and refuses its unsigned or wrongly signed frames.
+    pub autopilot_signing_key: Option<std::path::PathBuf>,
+    /// Take unsigned frames from an autopilot that cannot sign (what is sent to it is still
+    /// signed).
+    pub accept_unsigned_telemetry: bool,
 }
 
 impl Default for MavlinkConfig {
@@ -179,11 +191,19 @@ impl Default for MavlinkConfig {
             arrival_timeout_ms: 20_000,
             heartbeat_timeout_ms: 3_000,
             boundary: None,
+            signing_key: None,
+            autopilot_signing_key: None,
+            accept_unsigned_telemetry: false,
         }
     }
 }
 
 impl MavlinkConfig {
+    /// The autopilot-link key file of vehicle `id`, if the mission signs those links.
+    pub fn autopilot_key_of(&self, id: &str) -> Option<std::path::PathBuf> {
+        self.autopilot_signing_key.as_ref().map(|p| std::path::PathBuf::from(p.to_string_lossy().replace("{id}", id)))
+    }
+
     fn check(&self) -> Result<(), ConfigError> {
         let [lat, lon, alt] = self.origin;
         if !(lat.abs() < 85.0 && lon.abs() <= 180.0 && alt.is_finite()) {
@@ -251,6 +271,12 @@ impl MissionConfig {
             Some(p) => {
                 let text = std::fs::read_to_string(p).map_err(|source| ConfigError::Read { path: p.into(), source })?;
                 let mut cfg = Self::from_toml(&text).map_err(in_file(p.display().to_string()))?;
+                // Key files are read where they are used (a node reads only its own).
+                if let Some(dir) = p.parent() {
+                    for k in [&mut cfg.mavlink.signing_key, &mut cfg.mavlink.autopilot_signing_key].into_iter().flatten() {
+                        *k = dir.join(&*k);
+                    }
+                }
                 if let Some(b) = &cfg.mavlink.boundary {
                     let file = p.parent().map_or_else(|| b.clone(), |d| d.join(b));
                     let fence = crate::fence::load(&file, cfg.mavlink.origin, cfg.mavlink.size_m).map_err(|e| ConfigError::Invalid(format!("[mavlink] boundary: {e}")));

@@ -22,6 +22,7 @@ pub mod roster;
 pub mod schedule;
 pub mod security;
 pub mod server;
+pub mod signing_key;
 pub mod site;
 pub mod team;
 pub mod vehicle;

@@ -124,3 +124,80 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
         assert!(!events[at..].iter().any(|e| matches!(e, ServerEvent::Hold { vehicle, held: false, .. } if vehicle == v)), "{v} came back");
     }
 }
+
+/// `kill -TERM` a node and wait for it (it logs its final counters on the way out).
+fn terminate(child: &mut std::process::Child) {
+    let _ = std::process::Command::new("kill").args(["-TERM", &child.id().to_string()]).status();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while child.try_wait().expect("try_wait").is_none() {
+        assert!(Instant::now() < deadline, "the node did not stop on SIGTERM");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn a_signing_ground_station_is_obeyed_and_unsigned_foreign_and_replayed_frames_are_refused_and_counted() {
+    let dir = scratch("signing");
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = paced_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep), 250);
+    let gcs_port = free_udp_port();
+    edit(&mission, "frames = 40", "frames = 200");
+    edit(&mission, r#"autopilot = "sim""#, &format!("autopilot = \"sim\"\ngcs = \"udpout:127.0.0.1:{gcs_port}\""));
+    let mp = mission.to_str().unwrap();
+
+    // `fleet secure` makes the keys: 64 hex characters, owner-only, and the passphrases.
+    let o = run("fleet", &["secure", mp, "--out", dir.join("secure").to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let m = MissionConfig::load(Some(&mission)).unwrap();
+    for f in std::iter::once(dir.join("secure/mavlink-signing.key")).chain(m.vehicles().iter().map(|v| dir.join(format!("secure/autopilot/{}.key", v.id)))) {
+        use std::os::unix::fs::PermissionsExt;
+        let text = std::fs::read_to_string(&f).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+        assert!(text.trim().len() == 64 && text.trim().bytes().all(|b| b.is_ascii_hexdigit()), "{}: {text:?}", f.display());
+        assert_eq!(std::fs::metadata(&f).unwrap().permissions().mode() & 0o777, 0o600, "{}", f.display());
+    }
+    edit(&mission, "[mavlink]", "[mavlink]\nsigning_key = \"secure/mavlink-signing.key\"\nautopilot_signing_key = \"secure/autopilot/{id}.key\"");
+
+    // A key others can read is refused with one line naming it, exit 2.
+    let loose = dir.join("loose");
+    std::fs::create_dir_all(loose.join("secure")).unwrap();
+    std::fs::copy(&mission, loose.join("mission.toml")).unwrap();
+    std::fs::write(loose.join("secure/mavlink-signing.key"), "00".repeat(32)).unwrap();
+    let o = run("gcs-gateway", &["--mission", loose.join("mission.toml").to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("mavlink-signing.key") && err.contains("chmod 600") && err.trim().lines().count() == 1, "{err}");
+
+    let st = dir.join("state");
+    let mut procs = Procs::default();
+    let _server = start_server(&mut procs, &["--mission", mp, "--state-dir", st.to_str().unwrap()], &dir.join("server.log"));
+    let gateway_log = dir.join("gateway.log");
+    procs.0.push(std::process::Command::new(bin("gcs-gateway")).args(["--mission", mp]).stderr(std::fs::File::create(&gateway_log).unwrap()).spawn().expect("gcs-gateway"));
+    let gateway = procs.0.len() - 1;
+    start_vehicles(&mut procs, &mission, st.to_str().unwrap(), &dir, &[]);
+
+    let sysid = m.sysid("boat-1").unwrap();
+    let o = std::process::Command::new("python3")
+        .arg(root().join("tests/py/signing.py"))
+        .args(["--port", &gcs_port.to_string(), "--sysid", &sysid.to_string(), "--passphrase-file", dir.join("secure/mavlink-signing.passphrase").to_str().unwrap()])
+        .output()
+        .expect("python3");
+    let said = String::from_utf8_lossy(&o.stdout).to_string();
+    assert!(o.status.success(), "ground station failed: {said}\n{}", String::from_utf8_lossy(&o.stderr));
+    let gs: serde_json::Value = serde_json::from_str(said.trim()).unwrap_or_else(|e| panic!("{e}: {said}"));
+    println!("ground station: {gs}");
+    // What the gateway sends passes pymavlink's check; a signed request is carried to the
+    // autopilot (re-signed with its own key) and answered; the rest are not.
+    assert!(gs["signed_heartbeats"].as_i64() >= Some(3), "{gs}");
+    assert!(gs["signed_acks"].as_i64() >= Some(1), "{gs}");
+    assert_eq!((gs["unsigned_acks"].as_i64(), gs["wrong_key_acks"].as_i64()), (Some(0), Some(0)), "{gs}");
+    assert_eq!(gs["replay_acks"], serde_json::json!([1, 0]), "a replayed frame was obeyed: {gs}");
+
+    // The gateway counted exactly the frames refused, by reason.
+    terminate(&mut procs.0[gateway]);
+    let log = std::fs::read_to_string(&gateway_log).unwrap();
+    let last = log.lines().rev().find(|l| l.contains("gateway stopped")).unwrap_or_else(|| panic!("no final counters in the gateway's log:\n{log}"));
+    for reason in ["unsigned", "bad_signature", "replay"] {
+        let n = gs["sent"][reason].as_i64().unwrap();
+        assert!(last.contains(&format!("\"{reason}\": {n}")), "{reason}: sent {n}, gateway says {last}");
+    }
+}

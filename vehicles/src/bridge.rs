@@ -10,10 +10,12 @@
 use crate::autopilot::modes::{Frame, Role};
 use crate::autopilot::serve;
 use crate::autopilot::sim::{SimAutopilot, SimSpec};
+use crate::link::{MavLink, Received};
+use crate::signing::{LinkSigning, LINK_AUTOPILOT, LINK_BRIDGE};
 use fleet_mission::protocol::{AutopilotLink, AutopilotStatus};
+use fleet_mission::signing_key::SigningKey;
 use mavlink::dialects::common::*;
-use mavlink::error::MessageReadError;
-use mavlink::{Connection, MavConnection, MavHeader, MavlinkVersion, Message};
+use mavlink::{MavHeader, MavlinkVersion, Message};
 use nalgebra::Vector3;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -35,6 +37,9 @@ pub struct BridgeSpec {
     pub heartbeat_timeout: Duration,
     /// Where a `sim` autopilot starts (local NED).
     pub home: Vector3<f64>,
+    /// The autopilot link's signing key (a `sim` autopilot gets it too), and whether its
+    /// unsigned frames are taken (an autopilot that cannot sign).
+    pub signing: Option<(SigningKey, bool)>,
 }
 
 /// Counters of the autopilot link (MAVLink messages).
@@ -45,6 +50,8 @@ pub struct LinkCounters {
     pub sent: u64,
     pub from_gcs: u64,
     pub refused_from_gcs: u64,
+    /// Frames from the autopilot the signing check refused.
+    pub refused_signing: u64,
 }
 
 #[derive(Debug, Default)]
@@ -63,7 +70,7 @@ struct Seen {
 pub type GcsSink = tokio::sync::mpsc::UnboundedSender<Vec<u8>>;
 
 pub struct Bridge {
-    conn: Arc<Connection<MavMessage>>,
+    conn: Arc<MavLink>,
     spec: BridgeSpec,
     seen: Arc<Mutex<Seen>>,
     stop: Arc<AtomicBool>,
@@ -100,13 +107,15 @@ impl Bridge {
         let stop = Arc::new(AtomicBool::new(false));
         let address = if address == "sim" {
             let port = free_udp_port()?;
-            serve::spawn(&format!("udpin:127.0.0.1:{port}"), SimAutopilot::new(spec.vehicle.clone(), spec.home), stop.clone())?;
+            let sim_signing = spec.signing.as_ref().map(|(k, _)| LinkSigning::new(k.clone(), LINK_AUTOPILOT, false));
+            serve::spawn(&format!("udpin:127.0.0.1:{port}"), SimAutopilot::new(spec.vehicle.clone(), spec.home), sim_signing, stop.clone())?;
             format!("udpout:127.0.0.1:{port}")
         } else {
             address.to_string()
         };
-        let conn = Arc::new(mavlink::connect::<MavMessage>(&address).map_err(|e| anyhow::anyhow!("autopilot at {address}: {e}"))?);
-        info!(autopilot = address, "MAVLink bridge up");
+        let signing = spec.signing.as_ref().map(|(k, unsigned)| LinkSigning::new(k.clone(), LINK_BRIDGE, *unsigned));
+        let conn = Arc::new(MavLink::open(&address, signing).map_err(|e| anyhow::anyhow!("autopilot at {address}: {e}"))?);
+        info!(autopilot = address, signed = conn.signed(), "MAVLink bridge up");
         let bridge = Self { conn, spec, seen: Arc::new(Mutex::new(Seen::default())), stop };
         bridge.spawn_reader(gcs)?;
         bridge.spawn_heartbeat()?;
@@ -119,7 +128,7 @@ impl Bridge {
 
     fn send(&self, msg: &MavMessage) {
         match self.conn.send(&self.own_header(), msg) {
-            Ok(_) => lock(&self.seen).counters.sent += 1,
+            Ok(()) => lock(&self.seen).counters.sent += 1,
             Err(e) => warn!("to the autopilot: {e}"),
         }
     }
@@ -130,7 +139,7 @@ impl Bridge {
         std::thread::Builder::new().name("mavlink-autopilot-rx".into()).spawn(move || {
             while !stop.load(Ordering::Relaxed) {
                 match conn.recv() {
-                    Ok((h, m)) => {
+                    Received::Frame(h, m, _) => {
                         {
                             let mut s = lock(&seen);
                             s.counters.received += 1;
@@ -165,10 +174,15 @@ impl Bridge {
                             let _ = gcs.send(frame_bytes(h, &m));
                         }
                     }
-                    Err(MessageReadError::Io(e)) if !matches!(e.kind(), std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof) => {
-                        std::thread::sleep(Duration::from_millis(20));
+                    Received::Idle => std::thread::sleep(Duration::from_millis(20)),
+                    Received::Refused(r) => {
+                        let mut s = lock(&seen);
+                        if s.counters.refused_signing == 0 {
+                            warn!(reason = r.reason(), "a frame from the autopilot failed the signing check (refused; further ones are counted in telemetry)");
+                        }
+                        s.counters.refused_signing += 1;
                     }
-                    Err(_) => lock(&seen).counters.unreadable += 1,
+                    Received::Unreadable(_) => lock(&seen).counters.unreadable += 1,
                 }
             }
         })?;
@@ -316,7 +330,7 @@ impl Bridge {
             let ours = lock(&self.seen).sysid.unwrap_or(self.spec.vehicle.sysid);
             match m.target_system_id() {
                 Some(t) if t != 0 && t != ours => Err(format!("{} for system {t}, not {ours}", m.message_name())),
-                _ => self.conn.send(&h, &m).map(|_| ()).map_err(|e| format!("to the autopilot: {e}")),
+                _ => self.conn.send(&h, &m).map_err(|e| format!("to the autopilot: {e}")),
             }
         });
         let mut s = lock(&self.seen);

@@ -7,6 +7,7 @@
 //! pymavlink's and MAVProxy's `udpin:` do) still reaches every vehicle.
 
 use crate::bridge::parse_frame;
+use crate::signing::Refused;
 use mavlink::dialects::common::MavMessage;
 use mavlink::{MavHeader, Message};
 use std::collections::BTreeMap;
@@ -18,7 +19,8 @@ use std::collections::BTreeMap;
 pub struct Router {
     by_sysid: BTreeMap<u8, String>,
     sysid_of: BTreeMap<String, u8>,
-    /// Refusals by reason (`impostor`, `unknown_vehicle`, `unreadable`, `no_such_system`).
+    /// Refusals by reason (`impostor`, `unknown_vehicle`, `unreadable`, `no_such_system`, and
+    /// with signing `unsigned`, `bad_signature`, `replay`).
     pub refused: BTreeMap<&'static str, u64>,
 }
 
@@ -32,6 +34,16 @@ impl Router {
     fn refuse<T>(&mut self, reason: &'static str, why: String) -> Result<T, Refusal> {
         *self.refused.entry(reason).or_default() += 1;
         Err(Refusal { reason, why })
+    }
+
+    /// A ground-station frame the signing check refused, counted.
+    pub fn refused_by_signing(&mut self, r: Refused) -> Refusal {
+        let why = match r {
+            Refused::Unsigned => "an unsigned frame from the ground station (signing is on: give it the mission's key)",
+            Refused::BadSignature => "a frame from the ground station signed with another key (or altered)",
+            Refused::Replay => "a signed frame from the ground station sent again (its timestamp is not newer than the last)",
+        };
+        self.refuse::<()>(r.reason(), why.into()).unwrap_err()
     }
 
     /// Refusals in all.

@@ -5,3 +5,5 @@
 pub mod autopilot;
 pub mod bridge;
 pub mod gateway;
+pub mod link;
+pub mod signing;

@@ -7,9 +7,11 @@
 //! it.
 
 use crate::Args;
+use anyhow::Context as _;
 use fleet_mission::config::MissionConfig;
 use fleet_mission::grid::Grid;
 use fleet_mission::protocol::{self, keys::Keys, Body, Context, LinkState, Plan, Target, Telemetry};
+use fleet_mission::signing_key::SigningKey;
 use fleet_mission::site::Site;
 use fleet_mission::vehicle::{BrainState, Fix, VehicleBrain};
 use fleet_mission::vehicle_rng;
@@ -360,6 +362,10 @@ fn open_bridge(args: &Args, mission: &MissionConfig, grid: &Grid, gcs: vehicles:
         acceptance_m: m.acceptance_m,
         heartbeat_timeout: Duration::from_millis(m.heartbeat_timeout_ms),
         home,
+        signing: match m.autopilot_key_of(&args.id) {
+            Some(p) => Some((SigningKey::read(&p).map_err(fleet_mission::exit::bad_input).context("[mavlink] autopilot_signing_key")?, m.accept_unsigned_telemetry)),
+            None => None,
+        },
     };
     Ok(Some(Arc::new(Bridge::connect(&address, spec, Some(gcs))?)))
 }

@@ -77,6 +77,7 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
         acceptance_m: 0.25,
         heartbeat_timeout: Duration::from_millis(400),
         home: Vector3::zeros(),
+        signing: None,
     };
     let bridge = Bridge::connect(&format!("udpout:{}", ap.local_addr().unwrap()), spec, None).unwrap();
     // The bridge's companion heartbeat tells us where it is.
@@ -151,7 +152,7 @@ fn the_simulated_autopilot_answers_through_garbage() {
     let port = UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let spec = SimSpec { frame: Frame::Multirotor, sysid: 5, site: site(), max_speed: 10.0, turn_rate: 1.0, cruise_alt: 20.0, speedup: 1.0 };
     let stop = Arc::new(AtomicBool::new(false));
-    serve::spawn(&format!("udpin:127.0.0.1:{port}"), SimAutopilot::new(spec, Vector3::zeros()), stop.clone()).unwrap();
+    serve::spawn(&format!("udpin:127.0.0.1:{port}"), SimAutopilot::new(spec, Vector3::zeros()), None, stop.clone()).unwrap();
     let gcs = UdpSocket::bind("127.0.0.1:0").unwrap();
     gcs.set_read_timeout(Some(Duration::from_millis(100))).unwrap();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(12);

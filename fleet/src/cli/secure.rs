@@ -1,11 +1,15 @@
 //! `fleet secure [mission] --out DIR [--tls CERTDIR]`: the Zenoh configs of a secured mission
 //! (see `fleet::mission::security`): `router.json5` for the model server, `<user>.json5` for
-//! each vehicle, the ground-station gateway and an observer, and `credentials.txt` (the
-//! router's password dictionary, fresh random passwords, mode 0600).
+//! each vehicle, the ground-station gateway and an observer, `credentials.txt` (the
+//! router's password dictionary, fresh random passwords, mode 0600), and the MAVLink 2 signing
+//! keys (`fleet::mission::signing_key`): `mavlink-signing.key` for the ground-station link and
+//! `autopilot/<id>.key` for each vehicle's autopilot link, each with its `.passphrase` (what
+//! MAVProxy and QGroundControl take), mode 0600.
 
 use anyhow::Context;
 use fleet::mission::config::MissionConfig;
 use fleet::mission::security::{client_config, router_config, users, Tls};
+use fleet::mission::signing_key::{write_private, SigningKey};
 use std::io::Read;
 use std::path::PathBuf;
 
@@ -31,10 +35,7 @@ fn password() -> anyhow::Result<String> {
 
 /// Written readable by the owner only: these hold passwords.
 fn private(path: &std::path::Path, text: &str) -> anyhow::Result<()> {
-    use std::os::unix::fs::PermissionsExt;
-    std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
-    std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o600))?;
-    Ok(())
+    write_private(path, text).with_context(|| format!("writing {}", path.display()))
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -55,7 +56,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     private(&dictionary, &lines)?;
     std::fs::write(out.join("router.json5"), serde_json::to_string_pretty(&router_config(&mission, &dictionary, tls.as_ref())?)?)?;
+    // MAVLink signing: one key for the ground-station link, one per vehicle's autopilot link
+    // (a vehicle that is taken holds only its own).
+    let write_key = |dir: &std::path::Path, name: &str| -> anyhow::Result<()> {
+        let (passphrase, key) = SigningKey::generate()?;
+        SigningKey::write_pair(dir, name, &passphrase, &key).with_context(|| format!("writing {}/{name}.key", dir.display()))
+    };
+    write_key(&out, "mavlink-signing")?;
+    let autopilot = out.join("autopilot");
+    std::fs::create_dir_all(&autopilot).with_context(|| format!("creating {}", autopilot.display()))?;
+    for v in mission.vehicles() {
+        write_key(&autopilot, &v.id)?;
+    }
     println!("wrote {}/router.json5, credentials.txt and one client config per user ({})", out.display(), users(&mission).join(", "));
     println!("in the mission's [network]: server_config = \"{0}/router.json5\", vehicle_config = \"{0}/{{id}}.json5\"", out.display());
+    println!("wrote MAVLink signing keys {0}/mavlink-signing.key and {0}/autopilot/<id>.key (each with its .passphrase for MAVProxy and QGroundControl)", out.display());
+    println!("in the mission's [mavlink]: signing_key = \"{0}/mavlink-signing.key\", autopilot_signing_key = \"{0}/autopilot/{{id}}.key\"", out.display());
     Ok(())
 }

@@ -1,11 +1,14 @@
 //! A simulated autopilot on a MAVLink connection (`udpin:` as SITL does, or any other the
 //! `mavlink` crate opens): its own thread ticks the physics every 10 ms and sends HEARTBEAT and
 //! SYS_STATUS at 1 Hz, GLOBAL_POSITION_INT, LOCAL_POSITION_NED (and its guided target) at
-//! 10 Hz, and replies as they come. Frames it cannot read are counted and skipped.
+//! 10 Hz, and replies as they come. Frames it cannot read are counted and skipped. With a
+//! signing key it signs everything it sends and obeys only frames signed with that key.
 
 use super::sim::SimAutopilot;
+use crate::link::{MavLink, Received};
+use crate::signing::{LinkSigning, Refused};
 use mavlink::dialects::common::MavMessage;
-use mavlink::{Connection, MavConnection, MavHeader};
+use mavlink::MavHeader;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
@@ -17,25 +20,43 @@ pub struct ServeStats {
     /// Frames that did not parse (bad CRC, unknown id, truncated).
     pub unreadable: AtomicU64,
     pub sent: AtomicU64,
+    /// Frames refused by the signing check: unsigned, wrongly signed, replayed.
+    pub unsigned: AtomicU64,
+    pub bad_signature: AtomicU64,
+    pub replay: AtomicU64,
 }
 
-/// Serve `sim` on `address` until `stop`; the reader thread ends with the process.
-pub fn spawn(address: &str, sim: SimAutopilot, stop: Arc<AtomicBool>) -> std::io::Result<Arc<ServeStats>> {
-    let conn = Arc::new(mavlink::connect::<MavMessage>(address)?);
+impl ServeStats {
+    fn refused(&self, r: Refused) -> &AtomicU64 {
+        match r {
+            Refused::Unsigned => &self.unsigned,
+            Refused::BadSignature => &self.bad_signature,
+            Refused::Replay => &self.replay,
+        }
+    }
+}
+
+/// Serve `sim` on `address` until `stop` (signed with `signing`, if given); the reader thread
+/// ends with the process.
+pub fn spawn(address: &str, sim: SimAutopilot, signing: Option<LinkSigning>, stop: Arc<AtomicBool>) -> std::io::Result<Arc<ServeStats>> {
+    let conn = Arc::new(MavLink::open(address, signing)?);
     let stats = Arc::new(ServeStats::default());
     let (tx, rx) = mpsc::channel();
     {
         let (conn, stats) = (conn.clone(), stats.clone());
         std::thread::Builder::new().name("sim-autopilot-rx".into()).spawn(move || loop {
             match conn.recv() {
-                Ok(m) => {
+                Received::Frame(h, m, _) => {
                     stats.received.fetch_add(1, Ordering::Relaxed);
-                    if tx.send(m).is_err() {
+                    if tx.send((h, m)).is_err() {
                         return;
                     }
                 }
-                Err(mavlink::error::MessageReadError::Io(e)) if e.kind() != std::io::ErrorKind::InvalidData => std::thread::sleep(Duration::from_millis(20)),
-                Err(_) => {
+                Received::Idle => std::thread::sleep(Duration::from_millis(20)),
+                Received::Refused(r) => {
+                    stats.refused(r).fetch_add(1, Ordering::Relaxed);
+                }
+                Received::Unreadable(_) => {
                     stats.unreadable.fetch_add(1, Ordering::Relaxed);
                 }
             }
@@ -46,7 +67,7 @@ pub fn spawn(address: &str, sim: SimAutopilot, stop: Arc<AtomicBool>) -> std::io
     Ok(stats)
 }
 
-fn run(conn: Arc<Connection<MavMessage>>, mut sim: SimAutopilot, rx: mpsc::Receiver<(MavHeader, MavMessage)>, stop: Arc<AtomicBool>, stats: Arc<ServeStats>) {
+fn run(conn: Arc<MavLink>, mut sim: SimAutopilot, rx: mpsc::Receiver<(MavHeader, MavMessage)>, stop: Arc<AtomicBool>, stats: Arc<ServeStats>) {
     let mut header = MavHeader { system_id: sim.spec.sysid as u32, component_id: 1, sequence: 0 };
     let mut send = |m: &MavMessage| {
         // No peer yet (udpin before the first datagram), or it went away: dropped, as on a radio.

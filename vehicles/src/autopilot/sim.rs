@@ -123,7 +123,7 @@ impl SimAutopilot {
 
     fn ack(&mut self, command: MavCmd, ok: bool) {
         let result = if ok { MavResult::MAV_RESULT_ACCEPTED } else { MavResult::MAV_RESULT_DENIED };
-        self.out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA { command, result }));
+        self.out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA { command, result, ..Default::default() }));
     }
 
     fn set_mode(&mut self, mode: u32) -> bool {
@@ -183,7 +183,7 @@ impl SimAutopilot {
             MAV_CMD_GET_HOME_POSITION => return self.send_home(command),
             MAV_CMD_REQUEST_MESSAGE if p[0] as u32 == HOME_POSITION_DATA::ID => return self.send_home(command),
             _ => {
-                self.out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA { command, result: MavResult::MAV_RESULT_UNSUPPORTED }));
+                self.out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA { command, result: MavResult::MAV_RESULT_UNSUPPORTED, ..Default::default() }));
                 return;
             }
         };
@@ -226,14 +226,14 @@ impl SimAutopilot {
     }
 
     fn mission_ack(&mut self, to: (u8, u8), result: MavMissionResult) {
-        self.out.push(MavMessage::MISSION_ACK(MISSION_ACK_DATA { target_system: to.0, target_component: to.1, mavtype: result }));
+        self.out.push(MavMessage::MISSION_ACK(MISSION_ACK_DATA { target_system: to.0, target_component: to.1, mavtype: result, ..Default::default() }));
     }
 
     fn request_item(&mut self, seq: u16) {
         if let Some(u) = &mut self.upload {
             u.asked_at = self.wall_s;
             let (target_system, target_component) = u.from;
-            self.out.push(MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq, target_system, target_component }));
+            self.out.push(MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq, target_system, target_component, ..Default::default() }));
         }
     }
 
@@ -294,7 +294,7 @@ impl SimAutopilot {
             MavMessage::MISSION_ITEM_INT(item) => self.take_item(sender, item),
             MavMessage::MISSION_REQUEST_LIST(_) => {
                 let count = self.mission.len() as u16;
-                self.out.push(MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count, target_system: sender.0, target_component: sender.1 }));
+                self.out.push(MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count, target_system: sender.0, target_component: sender.1, ..Default::default() }));
             }
             MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq, .. }) | MavMessage::MISSION_REQUEST(MISSION_REQUEST_DATA { seq, .. }) => match self.mission.get(*seq as usize) {
                 Some(item) => {
@@ -311,7 +311,7 @@ impl SimAutopilot {
             }
             MavMessage::MISSION_SET_CURRENT(s) if (s.seq as usize) < self.mission.len() => {
                 self.current = s.seq;
-                self.out.push(MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current }));
+                self.out.push(MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current, ..Default::default() }));
             }
             MavMessage::PARAM_REQUEST_LIST(_) => {
                 for i in 0..params::count(self.spec.frame) {
@@ -421,7 +421,7 @@ impl SimAutopilot {
         self.out.push(MavMessage::MISSION_ITEM_REACHED(MISSION_ITEM_REACHED_DATA { seq }));
         if (seq as usize) + 1 < self.mission.len() {
             self.current = seq + 1;
-            self.out.push(MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current }));
+            self.out.push(MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current, ..Default::default() }));
         } else {
             // End of the mission: hold there (as ArduRover does).
             self.set_mode(self.spec.frame.hold_mode());
@@ -547,7 +547,7 @@ impl SimAutopilot {
     }
 
     pub fn mission_current(&self) -> MavMessage {
-        MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current })
+        MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current, ..Default::default() })
     }
 }
 
@@ -678,7 +678,7 @@ mod tests {
     fn a_mission_uploads_with_the_handshake_runs_and_reports_each_item() {
         let mut s = sim(Frame::Boat);
         let site = s.spec.site;
-        s.handle(&GCS, &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count: 3, target_system: 3, target_component: 1 }));
+        s.handle(&GCS, &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count: 3, target_system: 3, target_component: 1, ..Default::default() }));
         let wps = [(5.0, 0.0), (5.0, 5.0), (0.0, 5.0)];
         for (seq, (n, e)) in wps.iter().enumerate() {
             let out = s.take();
@@ -708,7 +708,7 @@ mod tests {
         assert!((s.pos - Vector3::new(0.0, 5.0, 0.0)).norm() < 0.05, "{}", s.pos);
         assert_eq!(s.role(), Some(Role::Hold), "holds at the end");
         // Download gives the same items back.
-        s.handle(&GCS, &MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA { target_system: 3, target_component: 1 }));
+        s.handle(&GCS, &MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA { target_system: 3, target_component: 1, ..Default::default() }));
         assert!(matches!(&s.take()[..], [MavMessage::MISSION_COUNT(c)] if c.count == 3));
     }
 
@@ -738,7 +738,7 @@ mod tests {
     #[test]
     fn a_stalled_upload_is_asked_again_then_cancelled() {
         let mut s = sim(Frame::Boat);
-        s.handle(&GCS, &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count: 2, target_system: 3, target_component: 1 }));
+        s.handle(&GCS, &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count: 2, target_system: 3, target_component: 1, ..Default::default() }));
         s.take();
         let mut asks = 0;
         let mut cancelled = false;

@@ -2,18 +2,18 @@
 //! endpoint (see `vehicles::gateway`). Runs beside the model server; `fleet up` starts it when
 //! the mission's `[mavlink] gcs` is set.
 
+use anyhow::Context as _;
 use clap::Parser;
 use fleet_mission::config::MissionConfig;
 use fleet_mission::protocol::keys::Keys;
+use fleet_mission::signing_key::SigningKey;
 use fleet_net::Role;
-use mavlink::dialects::common::MavMessage;
-use mavlink::error::MessageReadError;
-use mavlink::MavConnection;
 use std::sync::Arc;
 use std::time::Duration;
 use tracing::{debug, info, warn};
-use vehicles::bridge::frame_bytes;
 use vehicles::gateway::{RefusalLog, Router};
+use vehicles::link::{MavLink, Received};
+use vehicles::signing::{LinkSigning, Refused, LINK_GATEWAY};
 
 #[derive(Parser, Debug)]
 #[command(name = "gcs-gateway", version, about = "hetfleet's ground-station gateway: the whole fleet on one MAVLink endpoint")]
@@ -38,7 +38,12 @@ async fn run(args: Args) -> anyhow::Result<()> {
     if address.is_empty() {
         anyhow::bail!("no ground-station endpoint: set [mavlink] gcs in the mission or give --gcs");
     }
-    let gcs = Arc::new(mavlink::connect::<MavMessage>(&address).map_err(|e| anyhow::anyhow!("ground-station endpoint {address}: {e}"))?);
+    // With a key, the ground station must sign (MAVProxy: `signing key <passphrase>`).
+    let signing = match &mission.mavlink.signing_key {
+        Some(p) => Some(LinkSigning::new(SigningKey::read(p).map_err(fleet_mission::exit::bad_input).context("[mavlink] signing_key")?, LINK_GATEWAY, false)),
+        None => None,
+    };
+    let gcs = Arc::new(MavLink::open(&address, signing).map_err(|e| anyhow::anyhow!("ground-station endpoint {address}: {e}"))?);
     let network = mission.network.for_node(fleet_mission::security::GATEWAY);
     let zenoh_config = args.node.zenoh_config(Role::Vehicle, &network)?;
     fleet_net::exit_when_refused("gcs-gateway", &zenoh_config, args.node.zenoh_file(Role::Vehicle, &network));
@@ -48,21 +53,28 @@ async fn run(args: Args) -> anyhow::Result<()> {
     // Every vehicle's system id, pinned from the mission (never learned from the streams).
     let systems: Vec<(String, u8)> = mission.vehicles().iter().map(|v| Ok((v.id.clone(), mission.sysid(&v.id)?))).collect::<anyhow::Result<_>>()?;
     let mut router = Router::new(systems);
-    info!(gcs = address, mission = mission.mission, systems = ?router.systems(), "ground-station gateway up");
+    info!(gcs = address, mission = mission.mission, systems = ?router.systems(), signed = gcs.signed(), "ground-station gateway up");
 
-    // The ground station's frames, read on a thread (the connection blocks).
-    let (tx, mut from_gcs) = tokio::sync::mpsc::unbounded_channel::<Vec<u8>>();
+    // The ground station's frames (as they came, signature and all) or why the signing check
+    // refused one, read on a thread (the connection blocks).
+    let (tx, mut from_gcs) = tokio::sync::mpsc::unbounded_channel::<Result<Vec<u8>, Refused>>();
     let reader = gcs.clone();
     std::thread::Builder::new().name("gcs-rx".into()).spawn(move || loop {
-        match reader.recv() {
-            Ok((h, m)) => {
-                if tx.send(frame_bytes(h, &m)).is_err() {
-                    return;
-                }
-            }
+        let got = match reader.recv() {
+            Received::Frame(_, _, bytes) => Ok(bytes),
+            Received::Refused(r) => Err(r),
             // Nobody listening yet on a udpout endpoint: ICMP refusals come back as errors.
-            Err(MessageReadError::Io(_)) => std::thread::sleep(Duration::from_millis(50)),
-            Err(e) => debug!("unreadable frame from the ground station: {e}"),
+            Received::Idle => {
+                std::thread::sleep(Duration::from_millis(50));
+                continue;
+            }
+            Received::Unreadable(e) => {
+                debug!("unreadable frame from the ground station: {e}");
+                continue;
+            }
+        };
+        if tx.send(got).is_err() {
+            return;
         }
     })?;
 
@@ -79,14 +91,16 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 let bytes = s.payload().to_bytes();
                 match router.from_vehicle(&vehicle, &bytes) {
                     Ok((h, m)) => {
+                        // Signed here with the ground-station key (the vehicle's own link key
+                        // never leaves the vehicle).
                         let _ = gcs.send(&h, &m);
                         down += 1;
                     }
                     Err(r) => if let Some(line) = refusals.note(&r) { warn!(vehicle, "{line}") },
                 }
             }
-            Some(bytes) = from_gcs.recv() => match router.from_gcs(&bytes) {
-                Ok(vehicles) => {
+            Some(got) = from_gcs.recv() => match got.map_err(|r| router.refused_by_signing(r)).and_then(|bytes| router.from_gcs(&bytes).map(|to| (bytes, to))) {
+                Ok((bytes, vehicles)) => {
                     for v in vehicles {
                         if let Err(e) = session.put(keys.gcs(&v), bytes.clone()).await {
                             warn!(vehicle = v, "forwarding a ground-station frame: {e}");
@@ -100,6 +114,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
             sig = stop.recv() => { info!(signal = sig, "stopping"); break }
         }
     }
+    info!(to_gcs = down, from_gcs = up, refused = ?router.refused, "gateway stopped");
     session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(())
 }

@@ -6,6 +6,7 @@ use anyhow::Context as _;
 use clap::{Parser, ValueEnum};
 use fleet_mission::config::MissionConfig;
 use fleet_mission::grid::Grid;
+use fleet_mission::signing_key::SigningKey;
 use fleet_mission::site::Site;
 use nalgebra::Vector3;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -14,6 +15,7 @@ use std::time::Duration;
 use vehicles::autopilot::modes::Frame;
 use vehicles::autopilot::serve;
 use vehicles::autopilot::sim::{SimAutopilot, SimSpec};
+use vehicles::signing::{LinkSigning, LINK_AUTOPILOT};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 enum Airframe {
@@ -42,6 +44,10 @@ struct Args {
     /// Start here (grid metres, x east and y north).
     #[arg(long, num_args = 2, default_values_t = [0.0, 0.0])]
     home: Vec<f64>,
+    /// Sign everything sent and obey only frames signed with this key (a `fleet secure` key
+    /// file: 64 hex characters, mode 0600), as ArduPilot does once signing is set up.
+    #[arg(long)]
+    signing_key: Option<std::path::PathBuf>,
 }
 
 fn main() {
@@ -60,17 +66,35 @@ async fn run(args: Args) -> anyhow::Result<()> {
     };
     let spec = SimSpec::from_config(frame, args.sysid, site, m);
     let home: Vector3<f64> = site.ned_of((args.home[0], args.home[1]), 0.0);
+    let signing = match &args.signing_key {
+        Some(p) => Some(LinkSigning::new(SigningKey::read(p).map_err(fleet_mission::exit::bad_input).context("--signing-key")?, LINK_AUTOPILOT, false)),
+        None => None,
+    };
+    let signed = signing.is_some();
     let stop = Arc::new(AtomicBool::new(false));
-    let stats = serve::spawn(&args.listen, SimAutopilot::new(spec, home), stop.clone()).with_context(|| format!("--listen {}", args.listen))?;
-    tracing::info!(listen = args.listen, sysid = args.sysid, ?frame, "simulated autopilot up");
+    let stats = serve::spawn(&args.listen, SimAutopilot::new(spec, home), signing, stop.clone()).with_context(|| format!("--listen {}", args.listen))?;
+    tracing::info!(listen = args.listen, sysid = args.sysid, ?frame, signed, "simulated autopilot up");
     let mut signals = fleet_net::StopSignals::new()?;
     let mut tick = tokio::time::interval(Duration::from_secs(10));
+    let report = || {
+        let n = |c: &std::sync::atomic::AtomicU64| c.load(Ordering::Relaxed);
+        tracing::info!(
+            received = n(&stats.received),
+            sent = n(&stats.sent),
+            unreadable = n(&stats.unreadable),
+            unsigned = n(&stats.unsigned),
+            bad_signature = n(&stats.bad_signature),
+            replay = n(&stats.replay),
+            "autopilot"
+        );
+    };
     loop {
         tokio::select! {
             _ = signals.recv() => break,
-            _ = tick.tick() => tracing::info!(received = stats.received.load(Ordering::Relaxed), sent = stats.sent.load(Ordering::Relaxed), unreadable = stats.unreadable.load(Ordering::Relaxed), "autopilot"),
+            _ = tick.tick() => report(),
         }
     }
     stop.store(true, Ordering::Relaxed);
+    report();
     Ok(())
 }
