@@ -172,7 +172,13 @@ pub struct MavlinkConfig {
     /// Take unsigned frames from an autopilot that cannot sign (what is sent to it is still
     /// signed).
     pub accept_unsigned_telemetry: bool,
+    /// What an autopilot does on a fence breach (`rtl`, `hold`, or `report`): set as its
+    /// `FENCE_ACTION` when the bridge uploads the site's fence and enables it.
+    pub fence_action: String,
 }
+
+/// What a failsafe may do (the autopilot's names: return to launch, stop, go on reporting).
+pub const FAILSAFE_ACTIONS: [&str; 4] = ["rtl", "hold", "report", "continue"];
 
 impl Default for MavlinkConfig {
     fn default() -> Self {
@@ -194,6 +200,7 @@ impl Default for MavlinkConfig {
             signing_key: None,
             autopilot_signing_key: None,
             accept_unsigned_telemetry: false,
+            fence_action: "rtl".into(),
         }
     }
 }
@@ -205,6 +212,9 @@ impl MavlinkConfig {
     }
 
     fn check(&self) -> Result<(), ConfigError> {
+        if !FAILSAFE_ACTIONS.contains(&self.fence_action.as_str()) {
+            return Err(ConfigError::Invalid(format!("[mavlink] fence_action = {:?}: one of {}", self.fence_action, FAILSAFE_ACTIONS.join(", "))));
+        }
         let [lat, lon, alt] = self.origin;
         if !(lat.abs() < 85.0 && lon.abs() <= 180.0 && alt.is_finite()) {
             return Err(ConfigError::Invalid("[mavlink] origin: latitude within +-85, longitude within +-180, finite altitude".into()));

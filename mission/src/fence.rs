@@ -54,6 +54,78 @@ pub fn inside(polygon: &[[f64; 2]], p: [f64; 2]) -> bool {
     odd
 }
 
+/// Whether segments `a`-`b` and `c`-`d` cross (touching counts).
+fn crosses(a: [f64; 2], b: [f64; 2], c: [f64; 2], d: [f64; 2]) -> bool {
+    let orient = |p: [f64; 2], q: [f64; 2], r: [f64; 2]| (q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0]);
+    let (d1, d2, d3, d4) = (orient(c, d, a), orient(c, d, b), orient(a, b, c), orient(a, b, d));
+    (d1 * d2 <= 0.0) && (d3 * d4 <= 0.0) && !(d1 == 0.0 && d2 == 0.0 && d3 == 0.0 && d4 == 0.0)
+}
+
+/// Whether the straight leg `a`-`b` stays inside the polygon (both ends inside, no edge
+/// crossed).
+pub fn leg_inside(polygon: &[[f64; 2]], a: [f64; 2], b: [f64; 2]) -> bool {
+    let n = polygon.len();
+    inside(polygon, a) && inside(polygon, b) && (0..n).all(|i| !crosses(a, b, polygon[i], polygon[(i + 1) % n]))
+}
+
+/// The shortest way from `from` to `to` that stays inside the polygon: the corners to pass
+/// (each set `inset` inside the polygon's corner) and then `to`. A straight leg when it stays
+/// inside (always, for a convex fence); straight too when either end is outside (nothing to
+/// route around) or no way is found. Dijkstra over the visibility graph of the inset corners:
+/// a fence has tens of corners, so this is microseconds.
+pub fn route(polygon: &[[f64; 2]], from: [f64; 2], to: [f64; 2], inset: f64) -> Vec<[f64; 2]> {
+    if polygon.len() < 3 || leg_inside(polygon, from, to) || !inside(polygon, from) || !inside(polygon, to) {
+        return vec![to];
+    }
+    let n = polygon.len();
+    let unit = |v: [f64; 2]| {
+        let l = v[0].hypot(v[1]).max(1e-12);
+        [v[0] / l, v[1] / l]
+    };
+    // Corners moved `inset` along their bisector, to the inside.
+    let mut nodes = vec![from, to];
+    for i in 0..n {
+        let (p, v, q) = (polygon[(i + n - 1) % n], polygon[i], polygon[(i + 1) % n]);
+        let (u, w) = (unit([p[0] - v[0], p[1] - v[1]]), unit([q[0] - v[0], q[1] - v[1]]));
+        let dir = unit([u[0] + w[0], u[1] + w[1]]);
+        let c = [v[0] + inset * dir[0], v[1] + inset * dir[1]];
+        let c = if inside(polygon, c) { c } else { [v[0] - inset * dir[0], v[1] - inset * dir[1]] };
+        if inside(polygon, c) {
+            nodes.push(c);
+        }
+    }
+    let m = nodes.len();
+    let dist = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).hypot(a[1] - b[1]);
+    let mut best = vec![f64::INFINITY; m];
+    let mut prev = vec![usize::MAX; m];
+    let mut done = vec![false; m];
+    best[0] = 0.0;
+    while let Some(u) = (0..m).filter(|&i| !done[i] && best[i].is_finite()).min_by(|&a, &b| best[a].total_cmp(&best[b])) {
+        done[u] = true;
+        if u == 1 {
+            break;
+        }
+        for v in 0..m {
+            let d = best[u] + dist(nodes[u], nodes[v]);
+            if !done[v] && d < best[v] && leg_inside(polygon, nodes[u], nodes[v]) {
+                best[v] = d;
+                prev[v] = u;
+            }
+        }
+    }
+    if !best[1].is_finite() {
+        return vec![to];
+    }
+    let mut path = vec![];
+    let mut at = 1;
+    while at != 0 {
+        path.push(nodes[at]);
+        at = prev[at];
+    }
+    path.reverse();
+    path
+}
+
 /// Read a boundary file: a QGroundControl `.plan` (its first inclusion polygon of `geoFence`)
 /// or GeoJSON (a Polygon, or the first Polygon of a Feature or FeatureCollection; its outer
 /// ring), as `[lat, lon]` vertices.
@@ -146,6 +218,28 @@ mod tests {
         // axis inside the square, three of them in the notch, so 36 - 9 cells are in.
         let ex = SiteFence { polygon_m: ell(), size_m: Some([18.0, 18.0]) }.excluded(&grid);
         assert_eq!(ex.iter().filter(|&&x| !x).count(), 27, "{ex:?}");
+    }
+
+    #[test]
+    fn a_route_round_the_notch_passes_its_corner_and_stays_inside() {
+        let l = ell();
+        // Across the notch: from the east arm's tip to the north arm's tip.
+        let (a, b) = ([9.0, 2.0], [2.0, 9.0]);
+        assert!(!leg_inside(&l, a, b), "the straight leg cuts the notch");
+        let r = route(&l, a, b, 0.5);
+        assert_eq!(r.len(), 2, "one corner: {r:?}");
+        assert!((r[0][0] - (5.0 - 0.5 / 2f64.sqrt())).abs() < 1e-9 && (r[0][1] - (5.0 - 0.5 / 2f64.sqrt())).abs() < 1e-9, "the re-entrant corner, inset: {r:?}");
+        assert_eq!(r[1], b);
+        let mut at = a;
+        for p in &r {
+            assert!(leg_inside(&l, at, *p), "{at:?} -> {p:?}");
+            at = *p;
+        }
+        // No routing needed, or nothing to route around.
+        assert_eq!(route(&l, [1.0, 1.0], [9.0, 1.0], 0.5), vec![[9.0, 1.0]]);
+        assert_eq!(route(&l, [8.0, 8.0], [1.0, 1.0], 0.5), vec![[1.0, 1.0]], "from outside: straight");
+        let square = [[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]];
+        assert_eq!(route(&square, [1.0, 1.0], [9.0, 9.0], 0.5), vec![[9.0, 9.0]]);
     }
 
     #[test]

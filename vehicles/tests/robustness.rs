@@ -73,7 +73,7 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
     let ap = UdpSocket::bind("127.0.0.1:0").unwrap();
     ap.set_read_timeout(Some(Duration::from_millis(200))).unwrap();
     let spec = BridgeSpec {
-        vehicle: SimSpec { frame: Frame::Boat, sysid: 7, site: site(), max_speed: 2.0, turn_rate: 1.0, cruise_alt: 0.0, speedup: 1.0 },
+        vehicle: SimSpec { frame: Frame::Boat, sysid: 7, site: site(), max_speed: 2.0, turn_rate: 1.0, cruise_alt: 0.0, speedup: 1.0, safety: Default::default() },
         acceptance_m: 0.25,
         heartbeat_timeout: Duration::from_millis(400),
         home: Vector3::zeros(),
@@ -150,7 +150,7 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
 #[test]
 fn the_simulated_autopilot_answers_through_garbage() {
     let port = UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-    let spec = SimSpec { frame: Frame::Multirotor, sysid: 5, site: site(), max_speed: 10.0, turn_rate: 1.0, cruise_alt: 20.0, speedup: 1.0 };
+    let spec = SimSpec { frame: Frame::Multirotor, sysid: 5, site: site(), max_speed: 10.0, turn_rate: 1.0, cruise_alt: 20.0, speedup: 1.0, safety: Default::default() };
     let stop = Arc::new(AtomicBool::new(false));
     serve::spawn(&format!("udpin:127.0.0.1:{port}"), SimAutopilot::new(spec, Vector3::zeros()), None, stop.clone()).unwrap();
     let gcs = UdpSocket::bind("127.0.0.1:0").unwrap();

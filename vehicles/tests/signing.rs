@@ -23,7 +23,16 @@ use vehicles::bridge::{frame_bytes, parse_frame, Bridge, BridgeSpec};
 use vehicles::signing::{LinkSigning, Refused};
 
 fn spec(sysid: u8) -> SimSpec {
-    SimSpec { frame: Frame::Boat, sysid, site: Site::new(&MavlinkConfig::default(), &Grid::new(24, 48, 1.0).unwrap()), max_speed: 20.0, turn_rate: 6.0, cruise_alt: 0.0, speedup: 1.0 }
+    SimSpec {
+        frame: Frame::Boat,
+        sysid,
+        site: Site::new(&MavlinkConfig::default(), &Grid::new(24, 48, 1.0).unwrap()),
+        max_speed: 20.0,
+        turn_rate: 6.0,
+        cruise_alt: 0.0,
+        speedup: 1.0,
+        safety: Default::default(),
+    }
 }
 
 /// A simulated autopilot on a loopback port, signed with `key` if given.

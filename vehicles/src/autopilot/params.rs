@@ -4,6 +4,7 @@
 //! promise it does not keep.
 
 use super::modes::Frame;
+use super::safety::Action;
 use super::sim::SimSpec;
 
 /// One parameter: its name and how it reads from and writes to the simulation.
@@ -19,11 +20,32 @@ fn positive(v: f32) -> bool {
 }
 
 const SYSID: Param = Param { name: "SYSID_THISMAV", get: |s| s.sysid as f32, set: None };
-/// No geofence is enforced by the simulation (yet): reported off, not settable.
-const FENCE_ENABLE: Param = Param { name: "FENCE_ENABLE", get: |_| 0.0, set: None };
+/// Whether the uploaded fence is enforced (0/1), and what a breach does (0 report, 1 RTL,
+/// 2 HOLD: ArduRover's numbers).
+const FENCE_ENABLE: Param = Param {
+    name: "FENCE_ENABLE",
+    get: |s| f32::from(u8::from(s.safety.fence_enable)),
+    set: Some(|s, v| {
+        (v == 0.0 || v == 1.0) && {
+            s.safety.fence_enable = v == 1.0;
+            true
+        }
+    }),
+};
+const FENCE_ACTION: Param = Param {
+    name: "FENCE_ACTION",
+    get: |s| s.safety.fence_action as u8 as f32,
+    set: Some(|s, v| match Action::from_param(v) {
+        Some(a) => {
+            s.safety.fence_action = a;
+            true
+        }
+        None => false,
+    }),
+};
 
 /// A Rover's: cruise speed (m/s) and steering rate limit (deg/s).
-const BOAT: [Param; 4] = [
+const BOAT: [Param; 5] = [
     Param {
         name: "ATC_STR_RAT_MAX",
         get: |s| s.turn_rate.to_degrees() as f32,
@@ -44,12 +66,14 @@ const BOAT: [Param; 4] = [
             }
         }),
     },
+    FENCE_ACTION,
     FENCE_ENABLE,
     SYSID,
 ];
 
 /// A Copter's: waypoint speed (cm/s).
-const MULTIROTOR: [Param; 3] = [
+const MULTIROTOR: [Param; 4] = [
+    FENCE_ACTION,
     FENCE_ENABLE,
     SYSID,
     Param {

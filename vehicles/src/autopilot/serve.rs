@@ -108,6 +108,9 @@ fn run(conn: Arc<MavLink>, mut sim: SimAutopilot, rx: mpsc::Receiver<(MavHeader,
             send(&sim.heartbeat());
             shown = shown.map(|_| (sim.mode, sim.armed));
             send(&sim.sys_status());
+            if let Some(f) = sim.fence_status() {
+                send(&f);
+            }
             send(&sim.mission_current());
         }
         std::thread::sleep(Duration::from_millis(10));

@@ -1,9 +1,11 @@
 //! A simulated autopilot that speaks MAVLink as ArduPilot does: a kinematic boat (speed and
 //! turn-rate limits, on the surface) or multirotor (speed limit, at cruise altitude), with
-//! modes, arming, guided targets (SET_POSITION_TARGET_LOCAL_NED, MAV_CMD_DO_REPOSITION) and the
-//! mission protocol (upload, download, clear, run with MISSION_CURRENT and
-//! MISSION_ITEM_REACHED). Pure: messages in, messages out, time passed in; `serve` puts it on a
-//! socket.
+//! modes, arming, guided targets (SET_POSITION_TARGET_LOCAL_NED, MAV_CMD_DO_REPOSITION), the
+//! mission protocol for missions, fences and rally points (upload, download, clear; a mission
+//! runs with MISSION_CURRENT and MISSION_ITEM_REACHED), and the geofence enforced once
+//! `FENCE_ENABLE` is set (targets outside refused, a breach triggers `FENCE_ACTION`; RTL goes
+//! to the nearest rally point). Pure: messages in, messages out, time passed in; `serve` puts
+//! it on a socket.
 //!
 //! Mission items are run from item 0 (the protocol's own numbering; ArduPilot's "item 0 is
 //! home" convention is not followed) and must be MAV_CMD_NAV_WAYPOINT in a global frame.
@@ -11,8 +13,10 @@
 // Ground stations still send SET_MODE, MISSION_REQUEST and the *_INT frame names: we take them.
 #![allow(deprecated)]
 
+use super::geofence::{Geofence, MAX_FENCE_ITEMS};
 use super::modes::{Frame, Role};
 use super::params;
+use super::safety::{Action, Safety};
 use fleet_mission::site::Site;
 use mavlink::dialects::common::*;
 use mavlink::{MavHeader, Message, MessageData};
@@ -39,6 +43,7 @@ pub struct SimSpec {
     pub cruise_alt: f64,
     /// Simulated seconds per wall second.
     pub speedup: f64,
+    pub safety: Safety,
 }
 
 impl SimSpec {
@@ -48,11 +53,13 @@ impl SimSpec {
             Frame::Boat => m.boat_speed_ms,
             Frame::Multirotor => m.multirotor_speed_ms,
         };
-        Self { frame, sysid, site, max_speed, turn_rate: m.boat_turn_rate_dps.to_radians(), cruise_alt: m.cruise_alt_m, speedup: m.sim_speedup }
+        let safety = Safety { fence_action: Action::from_name(&m.fence_action).unwrap_or(Action::Rtl), ..Safety::default() };
+        Self { frame, sysid, site, max_speed, turn_rate: m.boat_turn_rate_dps.to_radians(), cruise_alt: m.cruise_alt_m, speedup: m.sim_speedup, safety }
     }
 }
 
 struct Upload {
+    kind: MavMissionType,
     count: u16,
     items: Vec<MISSION_ITEM_INT_DATA>,
     from: (u8, u8),
@@ -74,6 +81,13 @@ pub struct SimAutopilot {
     home: Vector3<f64>,
     pub mission: Vec<MISSION_ITEM_INT_DATA>,
     pub current: u16,
+    /// The fence as uploaded, and as enforced.
+    pub fence_items: Vec<MISSION_ITEM_INT_DATA>,
+    pub fence: Geofence,
+    pub rally: Vec<MISSION_ITEM_INT_DATA>,
+    /// Outside the enforced fence now; breaches so far.
+    pub breached: bool,
+    pub breach_count: u16,
     upload: Option<Upload>,
     /// Wall seconds since boot.
     pub wall_s: f64,
@@ -101,6 +115,11 @@ impl SimAutopilot {
             home,
             mission: vec![],
             current: 0,
+            fence_items: vec![],
+            fence: Geofence::default(),
+            rally: vec![],
+            breached: false,
+            breach_count: 0,
             upload: None,
             wall_s: 0.0,
             battery: 1.0,
@@ -170,10 +189,14 @@ impl SimAutopilot {
                 let (lat, lon, alt) = global.unwrap_or((p[4] as f64, p[5] as f64, p[6] as f64));
                 if lat.is_finite() && lon.is_finite() && lat.abs() <= 90.0 && lon.abs() <= 180.0 {
                     let up = if alt.is_finite() { alt } else { self.spec.cruise_alt };
-                    let ned = self.spec.site.ned_of_global(lat, lon, self.spec.site.origin[2] + up);
-                    self.set_mode(self.spec.frame.mode(Role::Guided));
-                    self.goal = Some(self.at_altitude(ned));
-                    true
+                    let ned = self.at_altitude(self.spec.site.ned_of_global(lat, lon, self.spec.site.origin[2] + up));
+                    if self.fenced_out(&ned) {
+                        false
+                    } else {
+                        self.set_mode(self.spec.frame.mode(Role::Guided));
+                        self.goal = Some(ned);
+                        true
+                    }
                 } else {
                     false
                 }
@@ -225,16 +248,71 @@ impl SimAutopilot {
         })
     }
 
-    fn mission_ack(&mut self, to: (u8, u8), result: MavMissionResult) {
-        self.out.push(MavMessage::MISSION_ACK(MISSION_ACK_DATA { target_system: to.0, target_component: to.1, mavtype: result, ..Default::default() }));
+    fn mission_ack(&mut self, to: (u8, u8), result: MavMissionResult, mission_type: MavMissionType) {
+        self.out.push(MavMessage::MISSION_ACK(MISSION_ACK_DATA { target_system: to.0, target_component: to.1, mavtype: result, mission_type, ..Default::default() }));
     }
 
     fn request_item(&mut self, seq: u16) {
         if let Some(u) = &mut self.upload {
             u.asked_at = self.wall_s;
             let (target_system, target_component) = u.from;
-            self.out.push(MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq, target_system, target_component, ..Default::default() }));
+            self.out.push(MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq, target_system, target_component, mission_type: u.kind }));
         }
+    }
+
+    /// The stored items of a mission type (`None`: a type we do not keep).
+    fn items(&self, kind: MavMissionType) -> Option<&Vec<MISSION_ITEM_INT_DATA>> {
+        match kind {
+            MavMissionType::MAV_MISSION_TYPE_MISSION => Some(&self.mission),
+            MavMissionType::MAV_MISSION_TYPE_FENCE => Some(&self.fence_items),
+            MavMissionType::MAV_MISSION_TYPE_RALLY => Some(&self.rally),
+            _ => None,
+        }
+    }
+
+    /// Whether an uploaded item may be in a list of its type.
+    fn valid_item(kind: MavMissionType, item: &MISSION_ITEM_INT_DATA) -> Result<(), MavMissionResult> {
+        use MavCmd::*;
+        match kind {
+            MavMissionType::MAV_MISSION_TYPE_FENCE => match item.command {
+                MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION
+                | MAV_CMD_NAV_FENCE_POLYGON_VERTEX_EXCLUSION
+                | MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION
+                | MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION
+                | MAV_CMD_NAV_FENCE_RETURN_POINT => Ok(()),
+                _ => Err(MavMissionResult::MAV_MISSION_UNSUPPORTED),
+            },
+            MavMissionType::MAV_MISSION_TYPE_RALLY if item.command != MAV_CMD_NAV_RALLY_POINT => Err(MavMissionResult::MAV_MISSION_UNSUPPORTED),
+            MavMissionType::MAV_MISSION_TYPE_RALLY => Ok(()),
+            _ => Self::flyable(item),
+        }
+    }
+
+    /// Store a finished upload; a fence must describe a fence.
+    fn store(&mut self, kind: MavMissionType, items: Vec<MISSION_ITEM_INT_DATA>) -> MavMissionResult {
+        match kind {
+            MavMissionType::MAV_MISSION_TYPE_FENCE => match Geofence::from_items(&items, &self.spec.site) {
+                Ok(f) => {
+                    (self.fence, self.fence_items, self.breached) = (f, items, false);
+                }
+                Err(why) => return why,
+            },
+            MavMissionType::MAV_MISSION_TYPE_RALLY => self.rally = items,
+            _ => {
+                self.mission = items;
+                self.current = 0;
+            }
+        }
+        MavMissionResult::MAV_MISSION_ACCEPTED
+    }
+
+    /// Whether the enforced fence keeps the vehicle from a place.
+    fn fenced_out(&self, ned: &Vector3<f64>) -> bool {
+        self.spec.safety.fence_enable && !self.fence.contains(ned)
+    }
+
+    fn say(&mut self, severity: MavSeverity, text: &str) {
+        self.out.push(MavMessage::STATUSTEXT(STATUSTEXT_DATA { severity, text: text.into(), ..Default::default() }));
     }
 
     /// Whether an uploaded item is one we can fly.
@@ -277,37 +355,61 @@ impl SimAutopilot {
             MavMessage::SET_POSITION_TARGET_LOCAL_NED(t) if self.role() == Some(Role::Guided) && t.coordinate_frame == MavFrame::MAV_FRAME_LOCAL_NED => {
                 let p = Vector3::new(t.x as f64, t.y as f64, t.z as f64);
                 if p.iter().all(|v| v.is_finite()) {
-                    self.goal = Some(self.at_altitude(p));
+                    let p = self.at_altitude(p);
+                    // No ack exists for this message: refused, said, and the old goal kept.
+                    if self.fenced_out(&p) {
+                        self.say(MavSeverity::MAV_SEVERITY_WARNING, "Fence: target outside the fence, refused");
+                    } else {
+                        self.goal = Some(p);
+                    }
                 }
             }
             MavMessage::MISSION_COUNT(c) => {
-                if c.count == 0 {
-                    self.mission.clear();
-                    self.mission_ack(sender, MavMissionResult::MAV_MISSION_ACCEPTED);
-                } else if c.count > MAX_MISSION_ITEMS {
-                    self.mission_ack(sender, MavMissionResult::MAV_MISSION_NO_SPACE);
-                } else {
-                    self.upload = Some(Upload { count: c.count, items: vec![], from: sender, asked_at: self.wall_s, tries: 0 });
-                    self.request_item(0);
+                let room = match c.mission_type {
+                    MavMissionType::MAV_MISSION_TYPE_MISSION | MavMissionType::MAV_MISSION_TYPE_RALLY => Some(MAX_MISSION_ITEMS),
+                    MavMissionType::MAV_MISSION_TYPE_FENCE => Some(MAX_FENCE_ITEMS),
+                    _ => None,
+                };
+                match room {
+                    None => self.mission_ack(sender, MavMissionResult::MAV_MISSION_UNSUPPORTED, c.mission_type),
+                    Some(_) if c.count == 0 => {
+                        let r = self.store(c.mission_type, vec![]);
+                        self.mission_ack(sender, r, c.mission_type);
+                    }
+                    Some(n) if c.count > n => self.mission_ack(sender, MavMissionResult::MAV_MISSION_NO_SPACE, c.mission_type),
+                    Some(_) => {
+                        self.upload = Some(Upload { kind: c.mission_type, count: c.count, items: vec![], from: sender, asked_at: self.wall_s, tries: 0 });
+                        self.request_item(0);
+                    }
                 }
             }
             MavMessage::MISSION_ITEM_INT(item) => self.take_item(sender, item),
-            MavMessage::MISSION_REQUEST_LIST(_) => {
-                let count = self.mission.len() as u16;
-                self.out.push(MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count, target_system: sender.0, target_component: sender.1, ..Default::default() }));
-            }
-            MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq, .. }) | MavMessage::MISSION_REQUEST(MISSION_REQUEST_DATA { seq, .. }) => match self.mission.get(*seq as usize) {
-                Some(item) => {
-                    let mut item = item.clone();
-                    (item.target_system, item.target_component, item.current) = (sender.0, sender.1, u8::from(*seq == self.current));
-                    self.out.push(MavMessage::MISSION_ITEM_INT(item));
+            MavMessage::MISSION_REQUEST_LIST(r) => {
+                let mission_type = r.mission_type;
+                match self.items(mission_type).map(|v| v.len() as u16) {
+                    Some(count) => self.out.push(MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count, target_system: sender.0, target_component: sender.1, mission_type, ..Default::default() })),
+                    None => self.mission_ack(sender, MavMissionResult::MAV_MISSION_UNSUPPORTED, mission_type),
                 }
-                None => self.mission_ack(sender, MavMissionResult::MAV_MISSION_INVALID_SEQUENCE),
-            },
-            MavMessage::MISSION_CLEAR_ALL(_) => {
-                self.mission.clear();
-                self.current = 0;
-                self.mission_ack(sender, MavMissionResult::MAV_MISSION_ACCEPTED);
+            }
+            MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq, mission_type, .. }) | MavMessage::MISSION_REQUEST(MISSION_REQUEST_DATA { seq, mission_type, .. }) => {
+                match self.items(*mission_type).and_then(|v| v.get(*seq as usize)) {
+                    Some(item) => {
+                        let mut item = item.clone();
+                        let current = *mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION && *seq == self.current;
+                        (item.target_system, item.target_component, item.current, item.mission_type) = (sender.0, sender.1, u8::from(current), *mission_type);
+                        self.out.push(MavMessage::MISSION_ITEM_INT(item));
+                    }
+                    None => self.mission_ack(sender, MavMissionResult::MAV_MISSION_INVALID_SEQUENCE, *mission_type),
+                }
+            }
+            MavMessage::MISSION_CLEAR_ALL(c) => {
+                let all = c.mission_type == MavMissionType::MAV_MISSION_TYPE_ALL;
+                for kind in [MavMissionType::MAV_MISSION_TYPE_MISSION, MavMissionType::MAV_MISSION_TYPE_FENCE, MavMissionType::MAV_MISSION_TYPE_RALLY] {
+                    if all || kind == c.mission_type {
+                        self.store(kind, vec![]);
+                    }
+                }
+                self.mission_ack(sender, MavMissionResult::MAV_MISSION_ACCEPTED, c.mission_type);
             }
             MavMessage::MISSION_SET_CURRENT(s) if (s.seq as usize) < self.mission.len() => {
                 self.current = s.seq;
@@ -339,22 +441,22 @@ impl SimAutopilot {
 
     fn take_item(&mut self, sender: (u8, u8), item: &MISSION_ITEM_INT_DATA) {
         let Some(u) = &mut self.upload else { return };
-        if u.from != sender {
+        if u.from != sender || u.kind != item.mission_type {
             return;
         }
-        let next = u.items.len() as u16;
+        let (next, kind) = (u.items.len() as u16, u.kind);
         if item.seq < next {
             // A repeat: the request for the next was lost; ask again.
             self.request_item(next);
             return;
         }
         if item.seq > next {
-            self.mission_ack(sender, MavMissionResult::MAV_MISSION_INVALID_SEQUENCE);
+            self.mission_ack(sender, MavMissionResult::MAV_MISSION_INVALID_SEQUENCE, kind);
             self.upload = None;
             return;
         }
-        if let Err(why) = Self::flyable(item) {
-            self.mission_ack(sender, why);
+        if let Err(why) = Self::valid_item(kind, item) {
+            self.mission_ack(sender, why, kind);
             self.upload = None;
             return;
         }
@@ -362,9 +464,8 @@ impl SimAutopilot {
         u.tries = 0;
         if u.items.len() as u16 == u.count {
             let done = self.upload.take().expect("upload in progress");
-            self.mission = done.items;
-            self.current = 0;
-            self.mission_ack(sender, MavMissionResult::MAV_MISSION_ACCEPTED);
+            let result = self.store(kind, done.items);
+            self.mission_ack(sender, result, kind);
         } else {
             self.request_item(next + 1);
         }
@@ -375,7 +476,7 @@ impl SimAutopilot {
         match self.role()? {
             Role::Guided => self.goal,
             Role::Auto => self.mission.get(self.current as usize).map(|i| self.item_position(i)),
-            Role::Return => Some(self.at_altitude(Vector3::new(self.home.x, self.home.y, -self.spec.cruise_alt))),
+            Role::Return => Some(self.at_altitude(self.return_point())),
             Role::Hold => None,
         }
     }
@@ -397,8 +498,39 @@ impl SimAutopilot {
             if reached && self.role() == Some(Role::Auto) {
                 self.item_reached();
             }
+            self.check_fence();
         }
         self.battery = (self.battery - dt_wall * self.spec.speedup / 3600.0).max(0.0);
+    }
+
+    /// Where RTL goes: the nearest rally point, or home (at cruise altitude).
+    fn return_point(&self) -> Vector3<f64> {
+        let home = Vector3::new(self.home.x, self.home.y, -self.spec.cruise_alt);
+        self.rally
+            .iter()
+            .map(|r| {
+                let mut p = self.item_position(r);
+                p.z = -self.spec.cruise_alt;
+                p
+            })
+            .min_by(|a, b| (a - self.pos).xy().norm().total_cmp(&(b - self.pos).xy().norm()))
+            .unwrap_or(home)
+    }
+
+    /// A breach of the enforced fence triggers the fence action once; back inside, it is over.
+    fn check_fence(&mut self) {
+        let out = self.fenced_out(&self.pos);
+        if out && !self.breached {
+            self.breach_count = self.breach_count.saturating_add(1);
+            let action = self.spec.safety.fence_action;
+            match action {
+                Action::Rtl => self.set_mode(self.spec.frame.mode(Role::Return)),
+                Action::Hold => self.set_mode(self.spec.frame.hold_mode()),
+                Action::Continue => true,
+            };
+            self.say(MavSeverity::MAV_SEVERITY_CRITICAL, &format!("Fence breach: {}", ["report only", "RTL", "HOLD"][action as usize]));
+        }
+        self.breached = out;
     }
 
     fn retry_upload(&mut self) {
@@ -407,10 +539,10 @@ impl SimAutopilot {
             return;
         }
         u.tries += 1;
-        let (from, tries, next) = (u.from, u.tries, u.items.len() as u16);
+        let (from, tries, next, kind) = (u.from, u.tries, u.items.len() as u16, u.kind);
         if tries > 5 {
             self.upload = None;
-            self.mission_ack(from, MavMissionResult::MAV_MISSION_OPERATION_CANCELLED);
+            self.mission_ack(from, MavMissionResult::MAV_MISSION_OPERATION_CANCELLED, kind);
         } else {
             self.request_item(next);
         }
@@ -494,10 +626,12 @@ impl SimAutopilot {
             | MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_BATTERY;
         // The geofence bit is healthy while there is no breach, whether or not a fence is
         // enabled (ArduPilot's rule): ground stations announce "fence breach" when it is not.
+        let fence = MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE;
+        let enforced = if self.spec.safety.fence_enable { fence } else { MavSysStatusSensor::empty() };
         MavMessage::SYS_STATUS(SYS_STATUS_DATA {
-            onboard_control_sensors_present: sensors,
-            onboard_control_sensors_enabled: sensors,
-            onboard_control_sensors_health: sensors | MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE,
+            onboard_control_sensors_present: sensors | enforced,
+            onboard_control_sensors_enabled: sensors | enforced,
+            onboard_control_sensors_health: sensors | if self.breached { MavSysStatusSensor::empty() } else { fence },
             load: 150,
             voltage_battery: (11_000.0 + 1_600.0 * self.battery) as u16,
             current_battery: if self.armed { 800 } else { 50 },
@@ -546,6 +680,19 @@ impl SimAutopilot {
         out
     }
 
+    /// FENCE_STATUS (sent at 1 Hz while a fence is enforced).
+    pub fn fence_status(&self) -> Option<MavMessage> {
+        self.spec.safety.fence_enable.then(|| {
+            MavMessage::FENCE_STATUS(FENCE_STATUS_DATA {
+                breach_status: u8::from(self.breached),
+                breach_count: self.breach_count,
+                breach_type: if self.breached { FenceBreach::FENCE_BREACH_BOUNDARY } else { FenceBreach::FENCE_BREACH_NONE },
+                breach_time: (self.wall_s * 1000.0) as u32,
+                ..Default::default()
+            })
+        })
+    }
+
     pub fn mission_current(&self) -> MavMessage {
         MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current, ..Default::default() })
     }
@@ -559,7 +706,7 @@ mod tests {
 
     fn sim(frame: Frame) -> SimAutopilot {
         let site = Site::new(&MavlinkConfig::default(), &Grid::new(48, 96, 1.0).unwrap());
-        let spec = SimSpec { frame, sysid: 3, site, max_speed: 2.0, turn_rate: PI / 2.0, cruise_alt: 30.0, speedup: 1.0 };
+        let spec = SimSpec { frame, sysid: 3, site, max_speed: 2.0, turn_rate: PI / 2.0, cruise_alt: 30.0, speedup: 1.0, safety: Default::default() };
         SimAutopilot::new(spec, Vector3::zeros())
     }
 
@@ -592,8 +739,8 @@ mod tests {
         s.handle(&GCS, &MavMessage::PARAM_REQUEST_LIST(PARAM_REQUEST_LIST_DATA { target_system: 3, target_component: 1 }));
         let values: Vec<PARAM_VALUE_DATA> = s.take().into_iter().filter_map(|m| if let MavMessage::PARAM_VALUE(v) = m { Some(v) } else { None }).collect();
         let named = |n: &str| values.iter().find(|v| v.param_id.to_str().unwrap() == n).unwrap_or_else(|| panic!("no {n} in {values:?}")).param_value;
-        assert_eq!(values.len(), 4);
-        assert!(values.iter().enumerate().all(|(i, v)| v.param_index as usize == i && v.param_count == 4));
+        assert_eq!(values.len(), 5);
+        assert!(values.iter().enumerate().all(|(i, v)| v.param_index as usize == i && v.param_count == 5));
         assert_eq!((named("CRUISE_SPEED"), named("SYSID_THISMAV"), named("FENCE_ENABLE")), (2.0, 3.0, 0.0));
         assert!((named("ATC_STR_RAT_MAX") - 90.0).abs() < 1e-4);
         // A set takes effect in the simulation and is echoed; a bad or read-only one is not taken.
@@ -603,7 +750,7 @@ mod tests {
         s.handle(&GCS, &set("CRUISE_SPEED", 3.5));
         assert!(matches!(s.take().as_slice(), [MavMessage::PARAM_VALUE(v)] if v.param_value == 3.5));
         assert_eq!(s.spec.max_speed, 3.5);
-        for (name, v, now) in [("CRUISE_SPEED", -1.0, 3.5), ("SYSID_THISMAV", 9.0, 3.0), ("FENCE_ENABLE", 1.0, 0.0)] {
+        for (name, v, now) in [("CRUISE_SPEED", -1.0, 3.5), ("SYSID_THISMAV", 9.0, 3.0), ("FENCE_ENABLE", 0.5, 0.0), ("FENCE_ACTION", 7.0, 1.0)] {
             s.handle(&GCS, &set(name, v));
             assert!(matches!(s.take().as_slice(), [MavMessage::PARAM_VALUE(p)] if p.param_value == now), "{name}");
         }
@@ -611,7 +758,7 @@ mod tests {
         assert!(s.take().is_empty());
         let read = |index: i16, name: &str| MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA { param_index: index, target_system: 3, target_component: 1, param_id: name.into() });
         s.handle(&GCS, &read(-1, "CRUISE_SPEED"));
-        s.handle(&GCS, &read(3, ""));
+        s.handle(&GCS, &read(4, ""));
         let got: Vec<String> = s.take().into_iter().filter_map(|m| if let MavMessage::PARAM_VALUE(v) = m { Some(v.param_id.to_str().unwrap().to_string()) } else { None }).collect();
         assert_eq!(got, ["CRUISE_SPEED", "SYSID_THISMAV"]);
 
@@ -753,5 +900,98 @@ mod tests {
             }
         }
         assert_eq!((asks, cancelled), (5, true));
+    }
+
+    /// Upload `items` of `kind` with the handshake; the ack's result.
+    fn upload(s: &mut SimAutopilot, kind: MavMissionType, items: &[MISSION_ITEM_INT_DATA]) -> MavMissionResult {
+        s.handle(&GCS, &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count: items.len() as u16, target_system: 3, target_component: 1, mission_type: kind, ..Default::default() }));
+        for _ in 0..=items.len() {
+            for m in s.take() {
+                match m {
+                    MavMessage::MISSION_REQUEST_INT(r) => {
+                        assert_eq!(r.mission_type, kind);
+                        let item = MISSION_ITEM_INT_DATA { seq: r.seq, target_system: 3, mission_type: kind, ..items[r.seq as usize].clone() };
+                        s.handle(&GCS, &MavMessage::MISSION_ITEM_INT(item));
+                    }
+                    MavMessage::MISSION_ACK(a) => {
+                        assert_eq!(a.mission_type, kind);
+                        return a.mavtype;
+                    }
+                    _ => {}
+                }
+            }
+        }
+        panic!("no MISSION_ACK");
+    }
+
+    fn at(site: &Site, command: MavCmd, param1: f32, north: f64, east: f64) -> MISSION_ITEM_INT_DATA {
+        let (lat, lon, _) = site.global_of(&Vector3::new(north, east, 0.0));
+        MISSION_ITEM_INT_DATA { command, param1, frame: MavFrame::MAV_FRAME_GLOBAL_INT, x: (lat * 1e7).round() as i32, y: (lon * 1e7).round() as i32, ..Default::default() }
+    }
+
+    #[test]
+    fn an_enforced_fence_refuses_targets_outside_and_a_breach_returns_to_the_nearest_rally_point() {
+        let mut s = sim(Frame::Boat);
+        let site = s.spec.site;
+        // A 40 m x 40 m square fence (north, east from 0 to 40) and two rally points.
+        let corners = [(0.0, 0.0), (0.0, 40.0), (40.0, 40.0), (40.0, 0.0)];
+        let fence: Vec<_> = corners.iter().map(|&(n, e)| at(&site, MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, 4.0, n, e)).collect();
+        assert_eq!(upload(&mut s, MavMissionType::MAV_MISSION_TYPE_FENCE, &fence), MavMissionResult::MAV_MISSION_ACCEPTED);
+        let rally = [at(&site, MavCmd::MAV_CMD_NAV_RALLY_POINT, 0.0, 2.0, 2.0), at(&site, MavCmd::MAV_CMD_NAV_RALLY_POINT, 0.0, 30.0, 35.0)];
+        assert_eq!(upload(&mut s, MavMissionType::MAV_MISSION_TYPE_RALLY, &rally), MavMissionResult::MAV_MISSION_ACCEPTED);
+        // A mission item is no fence, and the mission list is not touched by either upload.
+        let wp = at(&site, MavCmd::MAV_CMD_NAV_WAYPOINT, 0.0, 0.0, 0.0);
+        assert_eq!(upload(&mut s, MavMissionType::MAV_MISSION_TYPE_FENCE, std::slice::from_ref(&wp)), MavMissionResult::MAV_MISSION_UNSUPPORTED);
+        assert!(s.mission.is_empty() && s.fence_items.len() == 4 && s.rally.len() == 2);
+        // Each list downloads by its type.
+        s.handle(&GCS, &MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA { target_system: 3, target_component: 1, mission_type: MavMissionType::MAV_MISSION_TYPE_FENCE }));
+        assert!(matches!(&s.take()[..], [MavMessage::MISSION_COUNT(c)] if c.count == 4 && c.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE));
+
+        // Not yet enforced: a target outside is taken.
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 15.0));
+        s.take();
+        let target = |n: f32, e: f32| {
+            MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA { x: n, y: e, target_system: 3, coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED, ..Default::default() })
+        };
+        s.handle(&GCS, &target(60.0, 10.0));
+        assert_eq!(s.goal.map(|g| g.x), Some(60.0));
+        // Enforced: a target outside is refused (said; the goal stays), one inside is taken,
+        // and a reposition outside is denied.
+        let set = |name: &str, v: f32| {
+            MavMessage::PARAM_SET(PARAM_SET_DATA { param_value: v, target_system: 3, target_component: 1, param_id: name.into(), param_type: MavParamType::MAV_PARAM_TYPE_REAL32 })
+        };
+        s.handle(&GCS, &set("FENCE_ENABLE", 1.0));
+        s.handle(&GCS, &target(10.0, 20.0));
+        s.handle(&GCS, &target(10.0, 50.0));
+        let out = s.take();
+        assert!(out.iter().any(|m| matches!(m, MavMessage::STATUSTEXT(t) if t.text.to_str().unwrap().contains("outside the fence"))), "{out:?}");
+        assert_eq!(s.goal.map(|g| (g.x, g.y)), Some((10.0, 20.0)));
+        let (lat, lon, _) = site.global_of(&Vector3::new(10.0, 50.0, 0.0));
+        let c = COMMAND_INT_DATA { command: MavCmd::MAV_CMD_DO_REPOSITION, x: (lat * 1e7).round() as i32, y: (lon * 1e7).round() as i32, target_system: 3, ..Default::default() };
+        s.handle(&GCS, &MavMessage::COMMAND_INT(c));
+        assert_eq!(results(&s.take()), [MavResult::MAV_RESULT_DENIED]);
+        let MavMessage::SYS_STATUS(st) = s.sys_status() else { panic!() };
+        assert!(st.onboard_control_sensors_enabled.contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE) && st.onboard_control_sensors_health.contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE));
+
+        // A mission that leaves the fence (an operator's, in AUTO): breach, RTL to the nearer
+        // rally point, said; the health bit drops while outside, and FENCE_STATUS counts it.
+        let out_wp = at(&site, MavCmd::MAV_CMD_NAV_WAYPOINT, 0.0, 30.0, 60.0);
+        assert_eq!(upload(&mut s, MavMissionType::MAV_MISSION_TYPE_MISSION, &[out_wp]), MavMissionResult::MAV_MISSION_ACCEPTED);
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 10.0));
+        let mut said = vec![];
+        let mut unhealthy = false;
+        for _ in 0..1200 {
+            s.step(0.05);
+            said.extend(s.take().into_iter().filter_map(|m| if let MavMessage::STATUSTEXT(t) = m { Some(t.text.to_str().unwrap().to_string()) } else { None }));
+            if let MavMessage::SYS_STATUS(st) = s.sys_status() {
+                unhealthy |= !st.onboard_control_sensors_health.contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE);
+            }
+        }
+        assert_eq!(s.role(), Some(Role::Return));
+        assert!(said.iter().any(|t| t.contains("Fence breach: RTL")), "{said:?}");
+        assert!(unhealthy && !s.breached, "unhealthy while outside, then back inside");
+        assert!((s.pos.xy() - Vector3::new(30.0, 35.0, 0.0).xy()).norm() < 0.05, "at the nearer rally point: {}", s.pos);
+        assert!(matches!(s.fence_status(), Some(MavMessage::FENCE_STATUS(f)) if f.breach_count == 1 && f.breach_status == 0));
     }
 }
