@@ -108,6 +108,42 @@ while time.time() - t < 5:
         break
 out["params"] = params
 
+# 3b. The site's fence and rally points as the bridge uploaded them (downloaded by type), and a
+# reposition far outside the fence refused.
+def download(kind):
+    m.mav.mission_request_list_send(sysid, 1, kind)
+    count, t = None, time.time()
+    while count is None and time.time() - t < 5:
+        msg = recv("MISSION_COUNT", 1.0)
+        if msg is not None and msg.get_srcSystem() == sysid and msg.mission_type == kind:
+            count = msg.count
+    if count is None:
+        fail(f"no MISSION_COUNT for mission type {kind}")
+    items = []
+    for seq in range(count):
+        m.mav.mission_request_int_send(sysid, 1, seq, kind)
+        it, t = None, time.time()
+        while it is None and time.time() - t < 5:
+            msg = recv("MISSION_ITEM_INT", 1.0)
+            if msg is not None and msg.get_srcSystem() == sysid and msg.mission_type == kind and msg.seq == seq:
+                it = msg
+        if it is None:
+            fail(f"no item {seq} of mission type {kind}")
+        items.append([it.command, it.param1, it.x, it.y])
+    return items
+
+
+out["fence"] = download(mavutil.mavlink.MAV_MISSION_TYPE_FENCE)
+out["rally"] = download(mavutil.mavlink.MAV_MISSION_TYPE_RALLY)
+# About 1 km north of home.
+m.mav.command_int_send(sysid, 1, mavutil.mavlink.MAV_FRAME_GLOBAL, mavutil.mavlink.MAV_CMD_DO_REPOSITION, 0, 0,
+                       -1, 0, 0, 0, home.latitude + 90000, home.longitude, 0)
+t = time.time()
+while "outside_ack" not in out and time.time() - t < 5:
+    msg = recv("COMMAND_ACK", 1.0)
+    if msg is not None and msg.get_srcSystem() == sysid and msg.command == mavutil.mavlink.MAV_CMD_DO_REPOSITION:
+        out["outside_ack"] = msg.result
+
 # 3. Mission upload to one vehicle, then AUTO, then each item reached.
 pos = recv("GLOBAL_POSITION_INT", 5.0)
 while pos is not None and pos.get_srcSystem() != sysid:

@@ -76,6 +76,15 @@ fn a_concave_fence_keeps_every_disk_and_aerial_place_inside_for_qr_and_horizon()
                 }
             }
             println!("{placement}, fenced {fenced}: {places} places, {boat_cells} disk cells, {in_notch} outside the L");
+            // Every autopilot took the fence and enforced it, and the ways between places were
+            // routed round the notch: no breach, nobody returned to launch or held.
+            for v in m.vehicles() {
+                let log = std::fs::read_to_string(out.join(format!("logs/{}.log", v.id))).unwrap();
+                assert!(log.contains("fence enabled"), "{placement}: {} did not enable the fence:\n{log}", v.id);
+                assert!(!log.contains("Fence breach"), "{placement}: {} breached the fence:\n{log}", v.id);
+            }
+            let events = std::fs::read_to_string(out.join("events.jsonl")).unwrap();
+            assert!(!events.contains("\"hold\""), "{placement}: a vehicle left the allocation");
             assert!(boat_cells > 0, "{placement}: no disk at all");
             if fenced {
                 assert_eq!(in_notch, 0, "{placement}: disk cells outside the fence");

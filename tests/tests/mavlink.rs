@@ -63,7 +63,30 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
     let sysid = m.sysid(mission_vehicle).unwrap() as f64;
     assert!(gs["home"][0].as_i64().is_some_and(|lat| lat != 0), "home: {}", gs["home"]);
     let p = &gs["params"];
-    assert_eq!((p["SYSID_THISMAV"].as_f64(), p["CRUISE_SPEED"].as_f64(), p["FENCE_ENABLE"].as_f64()), (Some(sysid), Some(m.mavlink.boat_speed_ms), Some(0.0)), "{p}");
+    assert_eq!((p["SYSID_THISMAV"].as_f64(), p["CRUISE_SPEED"].as_f64()), (Some(sysid), Some(m.mavlink.boat_speed_ms)), "{p}");
+    // The bridge uploaded the site's fence (no boundary in this mission: the grid's extent) and
+    // the fleet's launch points as rally points, and enabled the fence with the mission's action.
+    assert_eq!((p["FENCE_ENABLE"].as_f64(), p["FENCE_ACTION"].as_f64()), (Some(1.0), Some(1.0)), "{p}");
+    let (rows, cols, _) = m.model_shape().unwrap();
+    let site = fleet::mission::site::Site::new(&m.mavlink, &fleet::grid::Grid::new(rows, cols, 1.0).unwrap());
+    let corner = |x: f64, y: f64| {
+        let (lat, lon, _) = site.global_of(&site.ned_of((x, y), 0.0));
+        [(lat * 1e7).round() as i64, (lon * 1e7).round() as i64]
+    };
+    let (w, h) = (cols as f64, rows as f64);
+    let fence: Vec<[i64; 2]> = gs["fence"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|i| {
+            assert_eq!((i[0].as_i64(), i[1].as_f64()), (Some(5001), Some(4.0)), "an inclusion polygon vertex of 4: {i}");
+            [i[2].as_i64().unwrap(), i[3].as_i64().unwrap()]
+        })
+        .collect();
+    assert_eq!(fence, vec![corner(0.0, 0.0), corner(w, 0.0), corner(w, h), corner(0.0, h)], "the site's corners");
+    assert_eq!(gs["rally"].as_array().unwrap().len(), m.vehicles().len());
+    assert!(gs["rally"].as_array().unwrap().iter().all(|i| i[0].as_i64() == Some(5100)));
+    assert_eq!(gs["outside_ack"].as_i64(), Some(2), "a reposition 1 km outside the fence: MAV_RESULT_DENIED");
     assert_eq!(gs["mission"]["ack"].as_i64(), Some(0));
     assert_eq!(gs["mission"]["items_sent"].as_i64(), Some(3));
     assert_eq!(gs["mission"]["reached"], serde_json::json!([0, 1, 2]));

@@ -12,6 +12,7 @@ use crate::autopilot::serve;
 use crate::autopilot::sim::{SimAutopilot, SimSpec};
 use crate::link::{MavLink, Received};
 use crate::signing::{LinkSigning, LINK_AUTOPILOT, LINK_BRIDGE};
+use crate::upload::{self, Upload};
 use fleet_mission::protocol::{AutopilotLink, AutopilotStatus};
 use fleet_mission::signing_key::SigningKey;
 use mavlink::dialects::common::*;
@@ -24,6 +25,8 @@ use tracing::{info, warn};
 
 /// The companion computer's component id (MAV_COMP_ID_ONBOARD_COMPUTER).
 pub const COMPANION_COMPONENT: u8 = 191;
+/// Corners of a routed way are this far inside the fence (m).
+pub const ROUTE_INSET_M: f64 = 1.0;
 /// Longest MAVLink 2 frame.
 pub const MAX_FRAME: usize = 280;
 
@@ -40,6 +43,13 @@ pub struct BridgeSpec {
     /// The autopilot link's signing key (a `sim` autopilot gets it too), and whether its
     /// unsigned frames are taken (an autopilot that cannot sign).
     pub signing: Option<(SigningKey, bool)>,
+    /// The site's fence, metres `[east, north]` of the origin (the mission's boundary, or the
+    /// grid's extent): uploaded to the autopilot and enabled with `fence_action`
+    /// (`FENCE_ACTION`'s number), and the way to each target is routed round it.
+    pub fence_m: Vec<[f64; 2]>,
+    pub fence_action: f32,
+    /// Rally points (local NED), where RTL takes it: the fleet's launch points.
+    pub rally: Vec<Vector3<f64>>,
 }
 
 /// Counters of the autopilot link (MAVLink messages).
@@ -63,6 +73,13 @@ struct Seen {
     heartbeat: Option<Instant>,
     /// Arming and GUIDED are asked for once; `Some(true)` when done (or given up).
     setup: Option<bool>,
+    /// Before that, the fence and rally points go up and the fence is enabled.
+    uploads: Vec<Upload>,
+    fence_enabled: bool,
+    enable_tries: u32,
+    prepared: bool,
+    /// The leg of a routed way being driven now (local NED), when it is not the target itself.
+    leg: Option<Vector3<f64>>,
     counters: LinkCounters,
 }
 
@@ -79,6 +96,11 @@ pub struct Bridge {
 /// A free loopback UDP port (for the in-process simulated autopilot).
 fn free_udp_port() -> std::io::Result<u16> {
     Ok(std::net::UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port())
+}
+
+fn latlon(spec: &BridgeSpec, ned: Vector3<f64>) -> [f64; 2] {
+    let (lat, lon, _) = spec.vehicle.site.global_of(&ned);
+    [lat, lon]
 }
 
 /// A MAVLink 2 frame of a message.
@@ -116,7 +138,14 @@ impl Bridge {
         let signing = spec.signing.as_ref().map(|(k, unsigned)| LinkSigning::new(k.clone(), LINK_BRIDGE, *unsigned));
         let conn = Arc::new(MavLink::open(&address, signing).map_err(|e| anyhow::anyhow!("autopilot at {address}: {e}"))?);
         info!(autopilot = address, signed = conn.signed(), "MAVLink bridge up");
-        let bridge = Self { conn, spec, seen: Arc::new(Mutex::new(Seen::default())), stop };
+        let fence: Vec<[f64; 2]> = spec.fence_m.iter().map(|&[e, n]| latlon(&spec, Vector3::new(n, e, 0.0))).collect();
+        let rally: Vec<[f64; 2]> = spec.rally.iter().map(|p| latlon(&spec, *p)).collect();
+        let uploads = [(MavMissionType::MAV_MISSION_TYPE_FENCE, upload::fence_items(&fence)), (MavMissionType::MAV_MISSION_TYPE_RALLY, upload::rally_items(&rally))]
+            .into_iter()
+            .filter(|(_, items)| !items.is_empty())
+            .map(|(kind, items)| Upload::new(kind, items))
+            .collect();
+        let bridge = Self { conn, spec, seen: Arc::new(Mutex::new(Seen { uploads, ..Seen::default() })), stop };
         bridge.spawn_reader(gcs)?;
         bridge.spawn_heartbeat()?;
         Ok(bridge)
@@ -159,6 +188,30 @@ impl Bridge {
                                     s.armed = hb.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
                                     s.heartbeat = Some(Instant::now());
                                 }
+                                // The autopilot's side of our fence and rally uploads (some
+                                // autopilots still ask with the old MISSION_REQUEST).
+                                #[allow(deprecated)]
+                                MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq, mission_type, target_component, .. }) | MavMessage::MISSION_REQUEST(MISSION_REQUEST_DATA { seq, mission_type, target_component, .. })
+                                    if autopilot && *target_component == COMPANION_COMPONENT =>
+                                {
+                                    let reply = s.uploads.iter().find_map(|u| u.item(*mission_type, *seq, from.unwrap_or(0)));
+                                    if let Some(r) = reply {
+                                        let header = MavHeader { system_id: mission_sysid as u32, component_id: COMPANION_COMPONENT, sequence: 0 };
+                                        if conn.send(&header, &r).is_ok() {
+                                            s.counters.sent += 1;
+                                        }
+                                    }
+                                }
+                                MavMessage::MISSION_ACK(a) if autopilot && a.target_component == COMPANION_COMPONENT => {
+                                    for u in &mut s.uploads {
+                                        u.ack(a.mission_type, a.mavtype);
+                                    }
+                                }
+                                // What the autopilot says (a fence breach, a failsafe) goes in the log.
+                                MavMessage::STATUSTEXT(t) if autopilot && t.severity as u8 <= MavSeverity::MAV_SEVERITY_WARNING as u8 => {
+                                    warn!(sysid = h.system_id, "the autopilot says: {}", t.text.to_str().unwrap_or("(not UTF-8)"));
+                                }
+                                MavMessage::PARAM_VALUE(p) if autopilot && p.param_id.to_str().is_ok_and(|n| n == "FENCE_ENABLE") => s.fence_enabled = p.param_value == 1.0,
                                 MavMessage::LOCAL_POSITION_NED(p) if autopilot && s.sysid.is_some() => {
                                     let ned = Vector3::new(p.x as f64, p.y as f64, p.z as f64);
                                     if ned.iter().all(|v| v.is_finite()) {
@@ -217,6 +270,9 @@ impl Bridge {
                     }));
                 }
                 let Some(target) = target else { continue };
+                if !me.prepared(target, second) {
+                    continue;
+                }
                 match setup {
                     Some(true) => {}
                     _ if mode == Some(guided) && armed => {
@@ -239,6 +295,49 @@ impl Bridge {
             }
         })?;
         Ok(())
+    }
+
+    /// The fence and rally points uploaded, then the fence enabled with the mission's action,
+    /// each asked again each second; whether that is done (or given up: an autopilot without
+    /// fences is still driven, inside the fence by the planner alone).
+    fn prepared(&self, target: u8, second: bool) -> bool {
+        let mut out = vec![];
+        let done = {
+            let mut s = lock(&self.seen);
+            if s.prepared {
+                return true;
+            }
+            if let Some(u) = s.uploads.iter_mut().find(|u| !u.finished()) {
+                if second {
+                    out.extend(u.count(target));
+                }
+                false
+            } else if s.uploads.iter().any(|u| u.kind == MavMissionType::MAV_MISSION_TYPE_FENCE && u.accepted()) && !s.fence_enabled && s.enable_tries < upload::TRIES {
+                if second {
+                    s.enable_tries += 1;
+                    let set = |name: &str, v: f32| {
+                        MavMessage::PARAM_SET(PARAM_SET_DATA { param_value: v, target_system: target, target_component: 1, param_id: name.into(), param_type: MavParamType::MAV_PARAM_TYPE_REAL32 })
+                    };
+                    out = vec![set("FENCE_ACTION", self.spec.fence_action), set("FENCE_ENABLE", 1.0)];
+                }
+                false
+            } else {
+                s.prepared = true;
+                let states: Vec<String> = s.uploads.iter().map(|u| format!("{:?}: {:?}", u.kind, u.state)).collect();
+                if s.uploads.is_empty() {
+                    // No fence to upload (none given): nothing to say.
+                } else if s.fence_enabled {
+                    info!(sysid = target, uploads = ?states, "fence and rally points uploaded, fence enabled");
+                } else {
+                    warn!(sysid = target, uploads = ?states, "the autopilot did not take the fence (or enable it): the planner alone keeps it inside");
+                }
+                true
+            }
+        };
+        for m in &out {
+            self.send(m);
+        }
+        done
     }
 
     fn link_of(&self, s: &Seen) -> AutopilotLink {
@@ -301,7 +400,16 @@ impl Bridge {
         if !self.drivable() {
             return false;
         }
-        let ned = self.target_ned(grid_xy);
+        let goal = self.target_ned(grid_xy);
+        // Round a concave fence's notch: the first leg of the way inside it.
+        let ned = {
+            let mut s = lock(&self.seen);
+            let from = s.ned.map(|p| [p.y, p.x]);
+            let first = from.and_then(|f| fleet_mission::fence::route(&self.spec.fence_m, f, [goal.y, goal.x], ROUTE_INSET_M).first().copied());
+            let leg = first.map(|[e, n]| Vector3::new(n, e, goal.z)).filter(|l| (l - goal).xy().norm() > 1e-6);
+            s.leg = leg;
+            leg.unwrap_or(goal)
+        };
         // Position only: ignore velocity, acceleration, yaw and yaw rate.
         let mask = PositionTargetTypemask::from_bits_truncate(0b0000_1101_1111_1000);
         self.send(&MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA {
@@ -315,6 +423,17 @@ impl Bridge {
             ..Default::default()
         }));
         true
+    }
+
+    /// Whether the autopilot took the site's fence and enforces it.
+    pub fn fence_enabled(&self) -> bool {
+        lock(&self.seen).fence_enabled
+    }
+
+    /// Whether it has reached the corner it was routed to (time for the next leg).
+    pub fn at_corner(&self) -> bool {
+        let s = lock(&self.seen);
+        s.leg.zip(s.ned).is_some_and(|(l, n)| (n.xy() - l.xy()).norm() <= self.spec.acceptance_m.max(ROUTE_INSET_M / 2.0))
     }
 
     /// Whether the autopilot is within the acceptance distance of a grid point.

@@ -7,3 +7,4 @@ pub mod bridge;
 pub mod gateway;
 pub mod link;
 pub mod signing;
+pub mod upload;

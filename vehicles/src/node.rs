@@ -325,7 +325,8 @@ async fn drive(bridge: Option<Arc<Bridge>>, targets: Vec<Target>, grid: Grid, ti
         let mut sent: Option<Instant> = None;
         while !b.arrived(goal) && Instant::now() < deadline && b.drivable() {
             // Again every second: a guided target on a lossy radio may not arrive.
-            if sent.is_none_or(|s| s.elapsed() >= Duration::from_secs(1)) {
+            // (and at once at a corner of a way routed round the fence).
+            if sent.is_none_or(|s| s.elapsed() >= Duration::from_secs(1)) || b.at_corner() {
                 if b.goto(goal) {
                     if let Some(t) = plan_at.take() {
                         guided = Some(t.elapsed().as_secs_f64() * 1e3);
@@ -356,12 +357,28 @@ fn open_bridge(args: &Args, mission: &MissionConfig, grid: &Grid, gcs: vehicles:
     let site = Site::new(m, grid);
     // Launched from points along the south shore.
     let n = mission.vehicles().len() as f64;
-    let home = site.ned_of(((index as f64 + 0.5) * grid.width_m() / n, 0.5 * grid.cell_m), 0.0);
+    let launch = |i: usize| site.ned_of(((i as f64 + 0.5) * grid.width_m() / n, 0.5 * grid.cell_m), 0.0);
+    let home = launch(index);
+    // The fence: the mission's boundary, or the site's extent.
+    let fence_m = match &mission.team.fence {
+        Some(f) => f.polygon_m.clone(),
+        None => {
+            let corner = site.ned_of((grid.width_m(), grid.height_m()), 0.0);
+            vec![[0.0, 0.0], [corner.y, 0.0], [corner.y, corner.x], [0.0, corner.x]]
+        }
+    };
     let spec = BridgeSpec {
         vehicle: SimSpec::from_config(Frame::of(kind), mission.sysid(&args.id)?, site, m),
         acceptance_m: m.acceptance_m,
         heartbeat_timeout: Duration::from_millis(m.heartbeat_timeout_ms),
         home,
+        fence_m,
+        fence_action: match m.fence_action.as_str() {
+            "rtl" => 1.0,
+            "hold" => 2.0,
+            _ => 0.0,
+        },
+        rally: (0..mission.vehicles().len()).map(launch).collect(),
         signing: match m.autopilot_key_of(&args.id) {
             Some(p) => Some((SigningKey::read(&p).map_err(fleet_mission::exit::bad_input).context("[mavlink] autopilot_signing_key")?, m.accept_unsigned_telemetry)),
             None => None,

@@ -78,6 +78,9 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
         heartbeat_timeout: Duration::from_millis(400),
         home: Vector3::zeros(),
         signing: None,
+        fence_m: vec![],
+        fence_action: 1.0,
+        rally: vec![],
     };
     let bridge = Bridge::connect(&format!("udpout:{}", ap.local_addr().unwrap()), spec, None).unwrap();
     // The bridge's companion heartbeat tells us where it is.

@@ -107,7 +107,17 @@ fn a_signed_autopilot_obeys_only_signed_frames_and_counts_every_refusal() {
 }
 
 fn bridge_to(port: u16, key: Option<SigningKey>, accept_unsigned: bool) -> Bridge {
-    let spec = BridgeSpec { vehicle: spec(5), acceptance_m: 0.25, heartbeat_timeout: Duration::from_millis(1500), home: Vector3::zeros(), signing: key.map(|k| (k, accept_unsigned)) };
+    let spec = BridgeSpec {
+        vehicle: spec(5),
+        acceptance_m: 0.25,
+        heartbeat_timeout: Duration::from_millis(1500),
+        home: Vector3::zeros(),
+        signing: key.map(|k| (k, accept_unsigned)),
+        // The site's extent as the fence, and two rally points: uploaded over the signed link.
+        fence_m: vec![[0.0, 0.0], [48.0, 0.0], [48.0, 24.0], [0.0, 24.0]],
+        fence_action: 1.0,
+        rally: vec![Vector3::new(1.0, 1.0, 0.0), Vector3::new(1.0, 40.0, 0.0)],
+    };
     Bridge::connect(&format!("udpout:127.0.0.1:{port}"), spec, None).unwrap()
 }
 
@@ -120,6 +130,7 @@ fn a_bridge_with_the_key_drives_its_autopilot_and_one_without_gets_nothing() {
     let (port, stats) = autopilot(5, Some(&key), &stop);
     let b = bridge_to(port, Some(key.clone()), false);
     wait_for("link up and drivable", 10.0, || b.status().link == AutopilotLink::Up && b.drivable());
+    assert!(b.fence_enabled(), "the fence and rally points went up and the fence is enforced");
     assert!(b.goto((6.0, 4.0)));
     wait_for("arrived", 10.0, || b.arrived((6.0, 4.0)));
     assert_eq!((b.counters().refused_signing, stats.unsigned.load(Ordering::Relaxed), stats.bad_signature.load(Ordering::Relaxed)), (0, 0, 0));

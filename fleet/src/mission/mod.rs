@@ -3,6 +3,6 @@
 //! report `fleet up` writes.
 
 pub use fleet_mission::assimilator::*;
-pub use fleet_mission::{config, events, schedule, security, server, signing_key, team, vehicle};
+pub use fleet_mission::{config, events, schedule, security, server, signing_key, site, team, vehicle};
 
 pub mod report;
