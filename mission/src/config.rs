@@ -175,6 +175,12 @@ pub struct MavlinkConfig {
     /// What an autopilot does on a fence breach (`rtl`, `hold`, or `report`): set as its
     /// `FENCE_ACTION` when the bridge uploads the site's fence and enables it.
     pub fence_action: String,
+    /// Simulated autopilots' battery (mAh), the charge left at which the low-battery failsafe
+    /// acts, and how (`rtl`, `hold`, `continue`): their `BATT_CAPACITY`, `BATT_LOW_MAH` and
+    /// `BATT_FS_LOW_ACT`.
+    pub battery_mah: f64,
+    pub battery_low_mah: f64,
+    pub low_battery_action: String,
 }
 
 /// What a failsafe may do (the autopilot's names: return to launch, stop, go on reporting).
@@ -201,6 +207,9 @@ impl Default for MavlinkConfig {
             autopilot_signing_key: None,
             accept_unsigned_telemetry: false,
             fence_action: "rtl".into(),
+            battery_mah: 20_000.0,
+            battery_low_mah: 4_000.0,
+            low_battery_action: "rtl".into(),
         }
     }
 }
@@ -212,8 +221,13 @@ impl MavlinkConfig {
     }
 
     fn check(&self) -> Result<(), ConfigError> {
-        if !FAILSAFE_ACTIONS.contains(&self.fence_action.as_str()) {
-            return Err(ConfigError::Invalid(format!("[mavlink] fence_action = {:?}: one of {}", self.fence_action, FAILSAFE_ACTIONS.join(", "))));
+        for (field, v) in [("fence_action", &self.fence_action), ("low_battery_action", &self.low_battery_action)] {
+            if !FAILSAFE_ACTIONS.contains(&v.as_str()) {
+                return Err(ConfigError::Invalid(format!("[mavlink] {field} = {v:?}: one of {}", FAILSAFE_ACTIONS.join(", "))));
+            }
+        }
+        if !(self.battery_mah.is_finite() && self.battery_mah > 0.0 && self.battery_low_mah.is_finite() && (0.0..self.battery_mah).contains(&self.battery_low_mah)) {
+            return Err(ConfigError::Invalid(format!("[mavlink] battery_mah = {}, battery_low_mah = {}: need 0 <= low < capacity", self.battery_mah, self.battery_low_mah)));
         }
         let [lat, lon, alt] = self.origin;
         if !(lat.abs() < 85.0 && lon.abs() <= 180.0 && alt.is_finite()) {

@@ -394,7 +394,7 @@ impl Server {
         if self.core.set_available(&t.vehicle, available) {
             // Recorded only when it changed something (a call that does not is a no-op).
             self.record_op(CoreOp::Available { vehicle: t.vehicle.clone(), available });
-            let mode = t.autopilot.as_ref().map_or_else(String::new, |a| format!("{} ({:?})", a.mode, a.link));
+            let mode = t.autopilot.as_ref().map_or_else(String::new, |a| format!("{} ({:?}){}", a.mode, a.link, a.failsafe.as_ref().map_or_else(String::new, |f| format!(": {f}"))));
             info!(vehicle = t.vehicle, held = !available, mode, "allocation: {} from the next epoch", if available { "back in" } else { "left out" });
             self.event(&ServerEvent::Hold { vehicle: t.vehicle, held: !available, mode });
         }

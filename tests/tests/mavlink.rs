@@ -224,3 +224,79 @@ fn a_signing_ground_station_is_obeyed_and_unsigned_foreign_and_replayed_frames_a
         assert!(last.contains(&format!("\"{reason}\": {n}")), "{reason}: sent {n}, gateway says {last}");
     }
 }
+
+#[test]
+fn a_boat_whose_battery_runs_low_returns_to_launch_and_the_others_share_the_disks() {
+    let dir = scratch("failsafe");
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = paced_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep), 250);
+    edit(&mission, "frames = 40", "frames = 100");
+    edit(&mission, "sim_speedup = 100.0", "sim_speedup = 10.0");
+    let m = MissionConfig::load(Some(&mission)).unwrap();
+    let mp = mission.to_str().unwrap();
+    let st = dir.join("state");
+    let rec = dir.join("rec.mcap");
+    let mut procs = Procs::default();
+    let server = start_server(&mut procs, &["--mission", mp, "--state-dir", st.to_str().unwrap(), "--record", rec.to_str().unwrap()], &dir.join("server.log"));
+    // boat-1 is launched with 4,040 mAh of its 20,000, 40 mAh above the low mark (4,000): at
+    // 10x speed it draws 2.8-28 mAh a wall second, so it runs low a few seconds into the 25 s
+    // mission.
+    let low = "boat-1";
+    for v in m.vehicles() {
+        let mut args = vec!["--mission", mp, "--id", &v.id, "--state-dir", st.to_str().unwrap()];
+        if v.id == low {
+            args.extend(["--sim-battery-start-mah", "4040"]);
+        }
+        start_vehicle(&mut procs, &[], &args, &dir.join(format!("{}.log", v.id)));
+    }
+    let mut events = vec![];
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let summary = loop {
+        match server.events.recv_timeout(deadline.saturating_duration_since(Instant::now())) {
+            Ok(ServerEvent::Finished { summary }) => break summary,
+            Ok(e) => events.push(e),
+            Err(e) => panic!("the mission did not finish: {e}"),
+        }
+    };
+    // The server ends its recording on SIGTERM.
+    terminate(&mut procs.0[server.index]);
+
+    // It left the allocation, saying why, mid-mission, and stayed out; the others carried on.
+    let at = events.iter().position(|e| matches!(e, ServerEvent::Hold { vehicle, held: true, .. } if vehicle == low)).unwrap_or_else(|| panic!("{low} never left the allocation: {events:?}"));
+    let ServerEvent::Hold { mode, .. } = &events[at] else { unreachable!() };
+    assert!(mode.starts_with("RTL") && mode.contains("battery low"), "telemetry says why: {mode}");
+    let epochs: Vec<_> = events.iter().filter_map(|e| if let ServerEvent::Epoch { epoch, held, places, .. } = e { Some((*epoch, held.clone(), places.clone())) } else { None }).collect();
+    let before = events[..at].iter().filter(|e| matches!(e, ServerEvent::Epoch { .. })).count();
+    assert!(before >= 1 && before + 2 < epochs.len(), "mid-mission: held after {before} of {} epochs", epochs.len());
+    let after: Vec<_> = epochs[before..].iter().filter(|(_, _, p)| !p.is_empty()).collect();
+    assert!(after.len() >= 2);
+    for (epoch, held, places) in &after[1..] {
+        assert!(held.iter().any(|h| h == low) && !places.contains_key(low), "epoch {epoch}: {low} still allocated");
+        let boats = places.keys().filter(|v| v.starts_with("boat")).count();
+        assert_eq!(boats, m.vehicles().iter().filter(|v| v.kind == fleet::protocol::VehicleKind::Boat).count() - 1, "epoch {epoch}: the other boats take the disks: {places:?}");
+    }
+    // Every batch of every vehicle (the returning one reports each epoch, empty), nothing refused.
+    let truth = m.truth(|_| {}).unwrap();
+    assert_eq!(summary.counters.batches - summary.counters.duplicates, expected_batches(&m, truth.frames()));
+    assert_eq!(summary.counters.rejected.values().sum::<u64>(), 0, "{:?}", summary.counters.rejected);
+
+    // It went back to a launch point (the nearest rally point the bridge uploaded): its last
+    // telemetry puts it there, in RTL, with the low battery it reported.
+    let recording = fleet_mission::recording::Recording::read(&rec).unwrap();
+    let mut ctx = fleet::protocol::Context::new(recording.grid);
+    ctx.vehicles = m.vehicles().into_iter().map(|v| v.id).collect();
+    let last = recording
+        .messages
+        .iter()
+        .filter(|r| r.topic.ends_with(&format!("{low}/telemetry")))
+        .filter_map(|r| if let Ok(fleet::protocol::Body::Telemetry(t)) = fleet::protocol::decode(&r.data, &ctx) { Some(t) } else { None })
+        .next_back()
+        .expect("telemetry of the boat");
+    let n = m.vehicles().len() as f64;
+    let launch: Vec<[f64; 2]> = (0..m.vehicles().len()).map(|i| [(i as f64 + 0.5) * recording.grid.width_m() / n, 0.5 * recording.grid.cell_m]).collect();
+    let d = launch.iter().map(|l| (l[0] - last.position[0]).hypot(l[1] - last.position[1])).fold(f64::INFINITY, f64::min);
+    assert!(d < 0.5, "{low} ended {d} m from the nearest launch point: {:?}", last.position);
+    let a = last.autopilot.expect("its autopilot's status");
+    assert_eq!(a.mode, "RTL");
+    assert!(a.failsafe.as_deref().is_some_and(|f| f.contains("battery low")) && last.battery <= 0.2 && last.battery > 0.0, "{a:?}, battery {}", last.battery);
+}

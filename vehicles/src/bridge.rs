@@ -80,6 +80,11 @@ struct Seen {
     prepared: bool,
     /// The leg of a routed way being driven now (local NED), when it is not the target itself.
     leg: Option<Vector3<f64>>,
+    /// What the autopilot last said at critical level or worse (a failsafe, a fence breach),
+    /// until it is back in GUIDED; its battery (fraction) and heading (degrees from north).
+    failsafe: Option<String>,
+    battery: Option<f64>,
+    heading_deg: Option<f64>,
     counters: LinkCounters,
 }
 
@@ -184,6 +189,9 @@ impl Bridge {
                                         }
                                     }
                                     s.sysid = from;
+                                    if frame.role(hb.custom_mode) == Some(Role::Guided) {
+                                        s.failsafe = None;
+                                    }
                                     s.mode = Some(hb.custom_mode);
                                     s.armed = hb.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
                                     s.heartbeat = Some(Instant::now());
@@ -209,8 +217,14 @@ impl Bridge {
                                 }
                                 // What the autopilot says (a fence breach, a failsafe) goes in the log.
                                 MavMessage::STATUSTEXT(t) if autopilot && t.severity as u8 <= MavSeverity::MAV_SEVERITY_WARNING as u8 => {
-                                    warn!(sysid = h.system_id, "the autopilot says: {}", t.text.to_str().unwrap_or("(not UTF-8)"));
+                                    let text = t.text.to_str().unwrap_or("(not UTF-8)").to_string();
+                                    warn!(sysid = h.system_id, "the autopilot says: {text}");
+                                    if t.severity as u8 <= MavSeverity::MAV_SEVERITY_CRITICAL as u8 {
+                                        s.failsafe = Some(text);
+                                    }
                                 }
+                                MavMessage::SYS_STATUS(st) if autopilot && st.battery_remaining >= 0 => s.battery = Some((st.battery_remaining as f64 / 100.0).min(1.0)),
+                                MavMessage::GLOBAL_POSITION_INT(g) if autopilot && g.hdg != u16::MAX => s.heading_deg = Some(g.hdg as f64 / 100.0),
                                 MavMessage::PARAM_VALUE(p) if autopilot && p.param_id.to_str().is_ok_and(|n| n == "FENCE_ENABLE") => s.fence_enabled = p.param_value == 1.0,
                                 MavMessage::LOCAL_POSITION_NED(p) if autopilot && s.sysid.is_some() => {
                                     let ned = Vector3::new(p.x as f64, p.y as f64, p.z as f64);
@@ -363,7 +377,18 @@ impl Bridge {
             guided: self.guided_of(&s),
             unreadable: s.counters.unreadable,
             refused_from_gcs: s.counters.refused_from_gcs,
+            failsafe: s.failsafe.clone(),
         }
+    }
+
+    /// The autopilot's battery (fraction), if it reports one.
+    pub fn battery(&self) -> Option<f64> {
+        lock(&self.seen).battery
+    }
+
+    /// The autopilot's heading as telemetry has it (radians from +x, east, counter-clockwise).
+    pub fn heading(&self) -> Option<f64> {
+        lock(&self.seen).heading_deg.map(|d| (std::f64::consts::FRAC_PI_2 - d.to_radians()).rem_euclid(std::f64::consts::TAU))
     }
 
     /// The link state alone (polled while waiting; no allocation).

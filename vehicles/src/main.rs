@@ -29,6 +29,10 @@ pub struct Args {
     /// Default: the mission's `[mavlink] autopilot`.
     #[arg(long)]
     pub autopilot: Option<String>,
+    /// A `sim` autopilot's charge at start (mAh; default: full), as a boat launched with a
+    /// pack that was not charged: a bench test of the low-battery failsafe on one vehicle.
+    #[arg(long)]
+    pub sim_battery_start_mah: Option<f64>,
     /// Give up waiting for the final acknowledgement after this long (ms).
     #[arg(long, default_value_t = 60_000)]
     pub final_ack_ms: u64,

@@ -267,11 +267,19 @@ impl Vehicle {
         let t = Telemetry {
             vehicle: self.brain.id.clone(),
             step: self.step,
-            position: self.brain.position().map_or([0.0, 0.0], |p| [p.0, p.1]),
+            // Where the autopilot says it is (it may have gone home on a failsafe; held to the
+            // workspace, as the wire requires), else where it last sensed.
+            position: self
+                .bridge
+                .as_ref()
+                .and_then(|b| b.position())
+                .map(|(x, y)| (x.clamp(0.0, self.grid.width_m()), y.clamp(0.0, self.grid.height_m())))
+                .or(self.brain.position())
+                .map_or([0.0, 0.0], |p| [p.0, p.1]),
             autopilot: self.bridge.as_ref().map(|b| b.status()),
-            heading: 0.0,
-            // A simulated battery: linear drain over the mission.
-            battery: (1.0 - 0.5 * self.step as f64 / self.brain.schedule().frames.max(1) as f64).clamp(0.0, 1.0),
+            heading: self.bridge.as_ref().and_then(|b| b.heading()).unwrap_or(0.0),
+            // The autopilot's battery; without one, a stand-in draining linearly over the mission.
+            battery: self.bridge.as_ref().and_then(|b| b.battery()).unwrap_or_else(|| (1.0 - 0.5 * self.step as f64 / self.brain.schedule().frames.max(1) as f64).clamp(0.0, 1.0)),
             link: if self.server_alive { LinkState::Up } else { LinkState::Down },
             outbox_depth: self.outbox.depth(),
             acked: self.outbox.acked(),
@@ -367,8 +375,15 @@ fn open_bridge(args: &Args, mission: &MissionConfig, grid: &Grid, gcs: vehicles:
             vec![[0.0, 0.0], [corner.y, 0.0], [corner.y, corner.x], [0.0, corner.x]]
         }
     };
+    let mut vehicle = SimSpec::from_config(Frame::of(kind), mission.sysid(&args.id)?, site, m);
+    if let Some(mah) = args.sim_battery_start_mah {
+        if !(mah.is_finite() && (0.0..=m.battery_mah).contains(&mah)) {
+            return Err(fleet_mission::exit::bad_input(anyhow::anyhow!("--sim-battery-start-mah {mah}: must be within 0..{} (the mission's battery_mah)", m.battery_mah)));
+        }
+        vehicle.safety.battery_start_mah = Some(mah);
+    }
     let spec = BridgeSpec {
-        vehicle: SimSpec::from_config(Frame::of(kind), mission.sysid(&args.id)?, site, m),
+        vehicle,
         acceptance_m: m.acceptance_m,
         heartbeat_timeout: Duration::from_millis(m.heartbeat_timeout_ms),
         home,

@@ -143,6 +143,10 @@ pub struct AutopilotStatus {
     pub unreadable: u64,
     #[serde(default)]
     pub refused_from_gcs: u64,
+    /// Why the autopilot left the planner's mode, as it said it (a low battery, a fence
+    /// breach), until it is back in GUIDED.
+    #[serde(default)]
+    pub failsafe: Option<String>,
 }
 
 /// The highest gap-free `seq` of a vehicle the server has assimilated.
@@ -348,6 +352,10 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
             finite("telemetry", &[t.heading, t.battery])?;
             if t.autopilot.as_ref().is_some_and(|a| a.mode.len() > 32) {
                 return inv("autopilot mode name over 32 characters".into());
+            }
+            // A STATUSTEXT is at most 50 characters.
+            if t.autopilot.as_ref().and_then(|a| a.failsafe.as_ref()).is_some_and(|f| f.len() > 64) {
+                return inv("autopilot failsafe text over 64 characters".into());
             }
             if !(0.0..=1.0).contains(&t.battery) {
                 return inv(format!("battery {} outside 0..1", t.battery));

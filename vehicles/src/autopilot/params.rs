@@ -44,8 +44,41 @@ const FENCE_ACTION: Param = Param {
     }),
 };
 
+/// The battery: capacity and low mark (mAh), and the low-battery action (0 none, 1 RTL, 2 HOLD).
+const BATT_CAPACITY: Param = Param {
+    name: "BATT_CAPACITY",
+    get: |s| s.safety.battery_mah as f32,
+    set: Some(|s, v| {
+        positive(v) && {
+            s.safety.battery_mah = v as f64;
+            true
+        }
+    }),
+};
+const BATT_LOW_MAH: Param = Param {
+    name: "BATT_LOW_MAH",
+    get: |s| s.safety.battery_low_mah as f32,
+    set: Some(|s, v| {
+        (v.is_finite() && v >= 0.0) && {
+            s.safety.battery_low_mah = v as f64;
+            true
+        }
+    }),
+};
+const BATT_FS_LOW_ACT: Param = Param {
+    name: "BATT_FS_LOW_ACT",
+    get: |s| s.safety.low_battery_action as u8 as f32,
+    set: Some(|s, v| match Action::from_param(v) {
+        Some(a) => {
+            s.safety.low_battery_action = a;
+            true
+        }
+        None => false,
+    }),
+};
+
 /// A Rover's: cruise speed (m/s) and steering rate limit (deg/s).
-const BOAT: [Param; 5] = [
+const BOAT: [Param; 8] = [
     Param {
         name: "ATC_STR_RAT_MAX",
         get: |s| s.turn_rate.to_degrees() as f32,
@@ -56,6 +89,9 @@ const BOAT: [Param; 5] = [
             }
         }),
     },
+    BATT_CAPACITY,
+    BATT_FS_LOW_ACT,
+    BATT_LOW_MAH,
     Param {
         name: "CRUISE_SPEED",
         get: |s| s.max_speed as f32,
@@ -72,7 +108,10 @@ const BOAT: [Param; 5] = [
 ];
 
 /// A Copter's: waypoint speed (cm/s).
-const MULTIROTOR: [Param; 4] = [
+const MULTIROTOR: [Param; 7] = [
+    BATT_CAPACITY,
+    BATT_FS_LOW_ACT,
+    BATT_LOW_MAH,
     FENCE_ACTION,
     FENCE_ENABLE,
     SYSID,

@@ -1,5 +1,8 @@
 //! What the simulated autopilot does when something goes wrong, set as ArduPilot's parameters
-//! are (`FENCE_ENABLE`, `FENCE_ACTION`): a fence breach triggers the fence action.
+//! are (`FENCE_ENABLE`, `FENCE_ACTION`, `BATT_CAPACITY`, `BATT_LOW_MAH`, `BATT_FS_LOW_ACT`): a
+//! fence breach triggers the fence action, a battery drained below its low mark the battery
+//! failsafe's action. The battery drains with use: a draw at rest when armed, up to
+//! `MAX_DRAW_A` at full speed.
 
 /// A failsafe's action, numbered as ArduRover's `FENCE_ACTION` / `FS_ACTION`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -34,6 +37,11 @@ impl Action {
     }
 }
 
+/// Battery draw (A): disarmed, armed at rest, and at full speed.
+pub const IDLE_DRAW_A: f64 = 0.05;
+pub const ARMED_DRAW_A: f64 = 1.0;
+pub const MAX_DRAW_A: f64 = 10.0;
+
 /// The autopilot's safety settings.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Safety {
@@ -41,11 +49,19 @@ pub struct Safety {
     /// triggers `fence_action`).
     pub fence_enable: bool,
     pub fence_action: Action,
+    /// Battery capacity, and the charge left (mAh) at which `low_battery_action` is taken.
+    pub battery_mah: f64,
+    pub battery_low_mah: f64,
+    pub low_battery_action: Action,
+    /// The charge at boot (mAh; `None`: full), for a pack that was not charged.
+    pub battery_start_mah: Option<f64>,
 }
 
 impl Default for Safety {
-    /// ArduPilot's defaults: no fence enforced; RTL on a breach once it is.
+    /// ArduPilot's defaults where it has them (no fence enforced, RTL on a breach once it is,
+    /// RTL on a low battery), and a battery of 20 Ah with a low mark at 20 %: two hours at
+    /// full speed.
     fn default() -> Self {
-        Self { fence_enable: false, fence_action: Action::Rtl }
+        Self { fence_enable: false, fence_action: Action::Rtl, battery_mah: 20_000.0, battery_low_mah: 4_000.0, low_battery_action: Action::Rtl, battery_start_mah: None }
     }
 }

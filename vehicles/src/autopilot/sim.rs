@@ -16,7 +16,7 @@
 use super::geofence::{Geofence, MAX_FENCE_ITEMS};
 use super::modes::{Frame, Role};
 use super::params;
-use super::safety::{Action, Safety};
+use super::safety::{Action, Safety, ARMED_DRAW_A, IDLE_DRAW_A, MAX_DRAW_A};
 use fleet_mission::site::Site;
 use mavlink::dialects::common::*;
 use mavlink::{MavHeader, Message, MessageData};
@@ -53,7 +53,9 @@ impl SimSpec {
             Frame::Boat => m.boat_speed_ms,
             Frame::Multirotor => m.multirotor_speed_ms,
         };
-        let safety = Safety { fence_action: Action::from_name(&m.fence_action).unwrap_or(Action::Rtl), ..Safety::default() };
+        let action = |name: &str| Action::from_name(name).unwrap_or(Action::Rtl);
+        let safety =
+            Safety { fence_action: action(&m.fence_action), battery_mah: m.battery_mah, battery_low_mah: m.battery_low_mah, low_battery_action: action(&m.low_battery_action), ..Safety::default() };
         Self { frame, sysid, site, max_speed, turn_rate: m.boat_turn_rate_dps.to_radians(), cruise_alt: m.cruise_alt_m, speedup: m.sim_speedup, safety }
     }
 }
@@ -91,7 +93,11 @@ pub struct SimAutopilot {
     upload: Option<Upload>,
     /// Wall seconds since boot.
     pub wall_s: f64,
-    battery: f64,
+    /// Charge used (mAh), and the draw now (A).
+    pub consumed_mah: f64,
+    draw_a: f64,
+    /// Why a failsafe took the vehicle from its mode (latched until the mode is set again).
+    pub failsafe: Option<&'static str>,
     out: Vec<MavMessage>,
 }
 
@@ -103,6 +109,7 @@ impl SimAutopilot {
     /// Boots disarmed, in the frame's boot mode, at `home` (local NED).
     pub fn new(spec: SimSpec, home: Vector3<f64>) -> Self {
         let mode = spec.frame.boot_mode();
+        let consumed_mah = spec.safety.battery_start_mah.map_or(0.0, |c| (spec.safety.battery_mah - c).max(0.0));
         Self {
             spec,
             pos: home,
@@ -122,7 +129,9 @@ impl SimAutopilot {
             breach_count: 0,
             upload: None,
             wall_s: 0.0,
-            battery: 1.0,
+            consumed_mah,
+            draw_a: IDLE_DRAW_A,
+            failsafe: None,
             out: vec![],
         }
     }
@@ -486,6 +495,7 @@ impl SimAutopilot {
         self.wall_s += dt_wall;
         self.retry_upload();
         let mut left = dt_wall * self.spec.speedup;
+        let mut moved = 0.0;
         while left > 1e-12 {
             let dt = left.min(SUBSTEP_S);
             left -= dt;
@@ -495,12 +505,42 @@ impl SimAutopilot {
                 _ => false,
             };
             self.vel = (self.pos - before) / dt;
+            moved += (self.pos - before).norm();
             if reached && self.role() == Some(Role::Auto) {
                 self.item_reached();
             }
             self.check_fence();
         }
-        self.battery = (self.battery - dt_wall * self.spec.speedup / 3600.0).max(0.0);
+        // Draw by how fast it went, as a share of its top speed.
+        let sim_s = dt_wall * self.spec.speedup;
+        self.draw_a = match self.armed {
+            false => IDLE_DRAW_A,
+            true if sim_s > 0.0 => ARMED_DRAW_A + (MAX_DRAW_A - ARMED_DRAW_A) * (moved / sim_s / self.spec.max_speed).clamp(0.0, 1.0),
+            true => ARMED_DRAW_A,
+        };
+        self.consumed_mah += self.draw_a * sim_s / 3.6;
+        self.check_battery();
+    }
+
+    /// The charge left (mAh).
+    pub fn remaining_mah(&self) -> f64 {
+        (self.spec.safety.battery_mah - self.consumed_mah).max(0.0)
+    }
+
+    /// Below the low mark, armed: the battery failsafe's action, once.
+    fn check_battery(&mut self) {
+        if self.failsafe.is_some() || !self.armed || self.remaining_mah() > self.spec.safety.battery_low_mah {
+            return;
+        }
+        let action = self.spec.safety.low_battery_action;
+        self.failsafe = Some("battery low");
+        match action {
+            Action::Rtl => self.set_mode(self.spec.frame.mode(Role::Return)),
+            Action::Hold => self.set_mode(self.spec.frame.hold_mode()),
+            Action::Continue => true,
+        };
+        let text = format!("Failsafe: battery low ({:.0} mAh left): {}", self.remaining_mah(), ["continue", "RTL", "HOLD"][action as usize]);
+        self.say(MavSeverity::MAV_SEVERITY_CRITICAL, &text);
     }
 
     /// Where RTL goes: the nearest rally point, or home (at cruise altitude).
@@ -613,7 +653,11 @@ impl SimAutopilot {
             mavtype: self.spec.frame.mav_type(),
             autopilot: MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
             base_mode: base,
-            system_status: if self.armed { MavState::MAV_STATE_ACTIVE } else { MavState::MAV_STATE_STANDBY },
+            system_status: match (self.failsafe, self.armed) {
+                (Some(_), _) => MavState::MAV_STATE_CRITICAL,
+                (None, true) => MavState::MAV_STATE_ACTIVE,
+                (None, false) => MavState::MAV_STATE_STANDBY,
+            },
             mavlink_version: 3,
         })
     }
@@ -633,9 +677,10 @@ impl SimAutopilot {
             onboard_control_sensors_enabled: sensors | enforced,
             onboard_control_sensors_health: sensors | if self.breached { MavSysStatusSensor::empty() } else { fence },
             load: 150,
-            voltage_battery: (11_000.0 + 1_600.0 * self.battery) as u16,
-            current_battery: if self.armed { 800 } else { 50 },
-            battery_remaining: (100.0 * self.battery) as i8,
+            // A 3-cell pack: 12.6 V full, 11.0 V empty.
+            voltage_battery: (11_000.0 + 1_600.0 * self.remaining_mah() / self.spec.safety.battery_mah) as u16,
+            current_battery: (self.draw_a * 100.0).round() as i16,
+            battery_remaining: (100.0 * self.remaining_mah() / self.spec.safety.battery_mah).round() as i8,
             ..Default::default()
         })
     }
@@ -739,8 +784,9 @@ mod tests {
         s.handle(&GCS, &MavMessage::PARAM_REQUEST_LIST(PARAM_REQUEST_LIST_DATA { target_system: 3, target_component: 1 }));
         let values: Vec<PARAM_VALUE_DATA> = s.take().into_iter().filter_map(|m| if let MavMessage::PARAM_VALUE(v) = m { Some(v) } else { None }).collect();
         let named = |n: &str| values.iter().find(|v| v.param_id.to_str().unwrap() == n).unwrap_or_else(|| panic!("no {n} in {values:?}")).param_value;
-        assert_eq!(values.len(), 5);
-        assert!(values.iter().enumerate().all(|(i, v)| v.param_index as usize == i && v.param_count == 5));
+        assert_eq!(values.len(), 8);
+        assert!(values.iter().enumerate().all(|(i, v)| v.param_index as usize == i && v.param_count == 8));
+        assert!(values.windows(2).all(|w| w[0].param_id.to_str().unwrap() < w[1].param_id.to_str().unwrap()), "sorted by name, as ArduPilot lists them");
         assert_eq!((named("CRUISE_SPEED"), named("SYSID_THISMAV"), named("FENCE_ENABLE")), (2.0, 3.0, 0.0));
         assert!((named("ATC_STR_RAT_MAX") - 90.0).abs() < 1e-4);
         // A set takes effect in the simulation and is echoed; a bad or read-only one is not taken.
@@ -758,7 +804,7 @@ mod tests {
         assert!(s.take().is_empty());
         let read = |index: i16, name: &str| MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA { param_index: index, target_system: 3, target_component: 1, param_id: name.into() });
         s.handle(&GCS, &read(-1, "CRUISE_SPEED"));
-        s.handle(&GCS, &read(4, ""));
+        s.handle(&GCS, &read(7, ""));
         let got: Vec<String> = s.take().into_iter().filter_map(|m| if let MavMessage::PARAM_VALUE(v) = m { Some(v.param_id.to_str().unwrap().to_string()) } else { None }).collect();
         assert_eq!(got, ["CRUISE_SPEED", "SYSID_THISMAV"]);
 
@@ -993,5 +1039,45 @@ mod tests {
         assert!(unhealthy && !s.breached, "unhealthy while outside, then back inside");
         assert!((s.pos.xy() - Vector3::new(30.0, 35.0, 0.0).xy()).norm() < 0.05, "at the nearer rally point: {}", s.pos);
         assert!(matches!(s.fence_status(), Some(MavMessage::FENCE_STATUS(f)) if f.breach_count == 1 && f.breach_status == 0));
+    }
+
+    #[test]
+    fn the_battery_drains_with_use_and_running_low_takes_it_home_once() {
+        let mut s = sim(Frame::Boat);
+        // 100 mAh above the 4,000 mAh low mark.
+        s.spec.safety.battery_start_mah = Some(4_100.0);
+        s = SimAutopilot::new(s.spec.clone(), Vector3::new(1.0, 1.0, 0.0));
+        let battery = |s: &SimAutopilot| if let MavMessage::SYS_STATUS(st) = s.sys_status() { (st.battery_remaining, st.current_battery) } else { panic!() };
+        assert_eq!(battery(&s), (21, 5), "20.5 % left, 0.05 A disarmed");
+        // Disarmed for a simulated hour: 50 mAh at 0.05 A.
+        s.step(3600.0);
+        assert!((s.consumed_mah - (15_900.0 + 50.0)).abs() < 1e-6, "{}", s.consumed_mah);
+        assert!(s.failsafe.is_none(), "no failsafe disarmed");
+        // Armed, driving away at full speed: 10 A, so 50 mAh take 18 s.
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 15.0));
+        let target = SET_POSITION_TARGET_LOCAL_NED_DATA { x: 40.0, y: 1.0, target_system: 3, coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED, ..Default::default() };
+        s.handle(&GCS, &MavMessage::SET_POSITION_TARGET_LOCAL_NED(target));
+        s.take();
+        let mut t = 0.0;
+        while s.failsafe.is_none() && t < 60.0 {
+            s.step(0.05);
+            t += 0.05;
+        }
+        assert!((17.5..19.5).contains(&t), "ran low after {t} s");
+        assert_eq!(s.role(), Some(Role::Return));
+        let said = s.take();
+        assert!(
+            said.iter().any(|m| matches!(m, MavMessage::STATUSTEXT(x) if x.text.to_str().unwrap().starts_with("Failsafe: battery low") && x.severity == MavSeverity::MAV_SEVERITY_CRITICAL)),
+            "{said:?}"
+        );
+        assert!(matches!(s.heartbeat(), MavMessage::HEARTBEAT(h) if h.system_status == MavState::MAV_STATE_CRITICAL));
+        assert_eq!(battery(&s).0, 20);
+        // Home, at the launch point; said once.
+        for _ in 0..1000 {
+            s.step(0.05);
+        }
+        assert!((s.pos.xy() - Vector3::new(1.0, 1.0, 0.0).xy()).norm() < 0.05, "{}", s.pos);
+        assert!(!s.take().iter().any(|m| matches!(m, MavMessage::STATUSTEXT(_))));
     }
 }
