@@ -6,11 +6,12 @@ cd "$(dirname "$0")/.."
 # Python peers used by cross-check tests (PyDMD, odmd, pysensors, numpy/scipy) and the
 # Python Zenoh client that reads the fleet's model (eclipse-zenoh, the same 1.10 line as the
 # Rust side, and cbor2).
-# xarray reads the NetCDF a run writes, mcap its recording.
-if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pymavlink, xarray, mcap" 2>/dev/null; then
-  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors eclipse-zenoh cbor2 pymavlink xarray mcap)"
+# xarray reads the NetCDF a run writes, mcap its recording; MAVSDK (its native binding, v4)
+# is a second ground-station stack against the simulated autopilot.
+if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pymavlink, xarray, mcap, mavsdk.plugins.geofence" 2>/dev/null; then
+  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors eclipse-zenoh cbor2 pymavlink xarray mcap mavsdk)"
   python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore \
-    numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2 pymavlink==2.4.50 xarray mcap
+    numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2 pymavlink==2.4.50 xarray mcap mavsdk==4.1.0
 fi
 # Debian's chromium for the live view's browser test, gdal-bin for the GeoTIFF test.
 missing=()

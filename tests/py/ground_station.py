@@ -5,8 +5,8 @@ It listens where the fleet's gateway sends (udpin), and:
   2. watches each vehicle's guided target (POSITION_TARGET_LOCAL_NED) and position
      (LOCAL_POSITION_NED) and reports how far it was from its target, first and last;
   3. uploads a 3-item mission to one vehicle with the standard handshake
-     (MISSION_COUNT -> MISSION_REQUEST_INT -> MISSION_ITEM_INT ... -> MISSION_ACK), sets AUTO
-     and waits for MISSION_ITEM_REACHED 0, 1, 2;
+     (MISSION_COUNT -> MISSION_REQUEST_INT -> MISSION_ITEM_INT ... -> MISSION_ACK; item 0 is
+     home, as ArduPilot has it), sets AUTO and waits for MISSION_ITEM_REACHED 1, 2, 3;
   4. puts another vehicle on HOLD (SET_MODE) and waits for its HEARTBEAT to show it.
 Prints one JSON object with what it saw; the Rust test checks it against the server.
 """
@@ -151,8 +151,9 @@ while pos is not None and pos.get_srcSystem() != sysid:
 if pos is None:
     fail("no position from the mission vehicle")
 lat0, lon0 = pos.lat, pos.lon
-# Three points a few metres around it (1e-7 deg of latitude is about 1.1 cm).
-items = [(lat0 + 300, lon0), (lat0 + 300, lon0 + 500), (lat0, lon0 + 500)]
+# Home first (ArduPilot's item 0, not flown), then three points a few metres around it
+# (1e-7 deg of latitude is about 1.1 cm).
+items = [(lat0, lon0), (lat0 + 300, lon0), (lat0 + 300, lon0 + 500), (lat0, lon0 + 500)]
 t0 = time.time()
 m.mav.mission_count_send(sysid, 1, len(items))
 sent = 0
@@ -177,7 +178,7 @@ m.mav.command_long_send(sysid, 1, mavutil.mavlink.MAV_CMD_DO_SET_MODE, 0,
                         mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, args.auto_mode, 0, 0, 0, 0, 0)
 reached = []
 deadline = time.time() + 20
-while time.time() < deadline and len(reached) < len(items):
+while time.time() < deadline and len(reached) < len(items) - 1:
     msg = recv(["MISSION_ITEM_REACHED", "COMMAND_ACK"], 1.0)
     if msg is None or msg.get_srcSystem() != sysid:
         continue

@@ -88,8 +88,8 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
     assert!(gs["rally"].as_array().unwrap().iter().all(|i| i[0].as_i64() == Some(5100)));
     assert_eq!(gs["outside_ack"].as_i64(), Some(2), "a reposition 1 km outside the fence: MAV_RESULT_DENIED");
     assert_eq!(gs["mission"]["ack"].as_i64(), Some(0));
-    assert_eq!(gs["mission"]["items_sent"].as_i64(), Some(3));
-    assert_eq!(gs["mission"]["reached"], serde_json::json!([0, 1, 2]));
+    assert_eq!(gs["mission"]["items_sent"].as_i64(), Some(4), "home and three waypoints");
+    assert_eq!(gs["mission"]["reached"], serde_json::json!([1, 2, 3]), "run from item 1: item 0 is home");
 
     // The rest of the mission, and every event on the way.
     let mut events = vec![];
@@ -299,4 +299,43 @@ fn a_boat_whose_battery_runs_low_returns_to_launch_and_the_others_share_the_disk
     let a = last.autopilot.expect("its autopilot's status");
     assert_eq!(a.mode, "RTL");
     assert!(a.failsafe.as_deref().is_some_and(|f| f.contains("battery low")) && last.battery <= 0.2 && last.battery > 0.0, "{a:?}, battery {}", last.battery);
+}
+
+#[test]
+fn mavsdk_connects_reads_telemetry_arms_and_runs_a_mission_and_a_geofence_on_the_simulated_autopilot() {
+    let port = free_udp_port();
+    let mut procs = Procs::default();
+    let dir = scratch("mavsdk");
+    procs.0.push(
+        std::process::Command::new(bin("sim-autopilot"))
+            .args(["--listen", &format!("udpin:127.0.0.1:{port}"), "--sysid", "3"])
+            .stderr(std::fs::File::create(dir.join("sim.log")).unwrap())
+            .spawn()
+            .expect("sim-autopilot"),
+    );
+    let o = std::process::Command::new("python3").arg(root().join("tests/py/mavsdk_check.py")).arg(port.to_string()).output().expect("python3");
+    let said = String::from_utf8_lossy(&o.stdout).to_string();
+    assert!(o.status.success(), "MAVSDK failed: {said}\n{}", String::from_utf8_lossy(&o.stderr));
+    let j: serde_json::Value = serde_json::from_str(said.trim()).unwrap_or_else(|e| panic!("{e}: {said}"));
+    println!("MAVSDK saw: {j}");
+    let near = |v: &serde_json::Value, lat: f64, lon: f64, tol: f64| (v[0].as_f64().unwrap() - lat).abs() < tol && (v[1].as_f64().unwrap() - lon).abs() < tol;
+    // The bundled mission's site: the vehicle boots at its origin, which is home.
+    let m = MissionConfig::load(None).unwrap();
+    let [lat, lon, _] = m.mavlink.origin;
+    assert_eq!(j["connect"], "0", "{j}");
+    assert!(near(&j["position"], lat, lon, 1e-6) && near(&j["home"], lat, lon, 1e-6), "{j}");
+    assert_eq!((j["battery"].as_f64(), j["cruise_speed"].as_f64()), (Some(100.0), Some(m.mavlink.boat_speed_ms)), "{j}");
+    // Results are MAVSDK's enums: 1 is SUCCESS for actions, geofences and missions.
+    assert_eq!((j["arm"].as_i64(), j["armed"].as_bool()), (Some(1), Some(true)), "{j}");
+    assert_eq!(j["fence_upload"].as_i64(), Some(1), "{j}");
+    let fence = j["fence_download"][0].as_array().unwrap_or_else(|| panic!("no fence read back: {j}"));
+    assert_eq!(fence.len(), 4);
+    for (k, (dy, dx)) in [(-1e-3, -1e-3), (-1e-3, 1e-3), (1e-3, 1e-3), (1e-3, -1e-3)].iter().enumerate() {
+        let p = &j["position"];
+        assert!(near(&fence[k], p[0].as_f64().unwrap() + dy, p[1].as_f64().unwrap() + dx, 2e-7), "vertex {k}: {}", fence[k]);
+    }
+    assert_eq!((j["mission_upload"].as_i64(), j["mission_start"].as_i64()), (Some(1), Some(1)), "{j}");
+    assert_eq!((j["progress"].clone(), j["finished"].as_bool()), (serde_json::json!([3, 3]), Some(true)), "{j}");
+    let last = &j["waypoints"][2];
+    assert!(near(&j["end"], last[0].as_f64().unwrap(), last[1].as_f64().unwrap(), 2e-7), "ended at the last waypoint: {j}");
 }

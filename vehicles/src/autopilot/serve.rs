@@ -1,6 +1,6 @@
 //! A simulated autopilot on a MAVLink connection (`udpin:` as SITL does, or any other the
 //! `mavlink` crate opens): its own thread ticks the physics every 10 ms and sends HEARTBEAT and
-//! SYS_STATUS at 1 Hz, GLOBAL_POSITION_INT, LOCAL_POSITION_NED (and its guided target) at
+//! SYS_STATUS (with BATTERY_STATUS, HOME_POSITION, MISSION_CURRENT, FENCE_STATUS) at 1 Hz, GLOBAL_POSITION_INT, LOCAL_POSITION_NED (and its guided target) at
 //! 10 Hz, and replies as they come. Frames it cannot read are counted and skipped. With a
 //! signing key it signs everything it sends and obeys only frames signed with that key.
 
@@ -108,10 +108,9 @@ fn run(conn: Arc<MavLink>, mut sim: SimAutopilot, rx: mpsc::Receiver<(MavHeader,
             send(&sim.heartbeat());
             shown = shown.map(|_| (sim.mode, sim.armed));
             send(&sim.sys_status());
-            if let Some(f) = sim.fence_status() {
-                send(&f);
+            for m in sim.slow() {
+                send(&m);
             }
-            send(&sim.mission_current());
         }
         std::thread::sleep(Duration::from_millis(10));
     }

@@ -7,8 +7,10 @@
 //! to the nearest rally point). Pure: messages in, messages out, time passed in; `serve` puts
 //! it on a socket.
 //!
-//! Mission items are run from item 0 (the protocol's own numbering; ArduPilot's "item 0 is
-//! home" convention is not followed) and must be MAV_CMD_NAV_WAYPOINT in a global frame.
+//! Missions follow ArduPilot's convention: item 0 is home (taken as sent, never flown, read
+//! back as home), AUTO runs from item 1; items are MAV_CMD_NAV_WAYPOINT in a global frame, or
+//! MAV_CMD_DO_CHANGE_SPEED (done when reached in the sequence), as MAVSDK and QGroundControl
+//! send them.
 
 // Ground stations still send SET_MODE, MISSION_REQUEST and the *_INT frame names: we take them.
 #![allow(deprecated)]
@@ -60,6 +62,14 @@ impl SimSpec {
     }
 }
 
+/// How far the mission has run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Run {
+    NotStarted,
+    Started,
+    Complete,
+}
+
 struct Upload {
     kind: MavMissionType,
     count: u16,
@@ -83,6 +93,7 @@ pub struct SimAutopilot {
     home: Vector3<f64>,
     pub mission: Vec<MISSION_ITEM_INT_DATA>,
     pub current: u16,
+    mission_run: Run,
     /// The fence as uploaded, and as enforced.
     pub fence_items: Vec<MISSION_ITEM_INT_DATA>,
     pub fence: Geofence,
@@ -122,6 +133,7 @@ impl SimAutopilot {
             home,
             mission: vec![],
             current: 0,
+            mission_run: Run::NotStarted,
             fence_items: vec![],
             fence: Geofence::default(),
             rally: vec![],
@@ -157,7 +169,12 @@ impl SimAutopilot {
     fn set_mode(&mut self, mode: u32) -> bool {
         let Some(role) = self.spec.frame.role(mode) else { return false };
         if role == Role::Auto && self.mode != mode {
-            self.current = self.current.min(self.mission.len().saturating_sub(1) as u16);
+            if self.mission_run == Run::Complete {
+                // AUTO again after the end: from the start, as ArduPilot does.
+                self.current = self.first_item();
+            }
+            self.current = self.current.clamp(self.first_item(), self.mission.len().saturating_sub(1).max(self.first_item() as usize) as u16);
+            self.mission_run = Run::Started;
         }
         if role != Role::Guided {
             self.goal = None;
@@ -184,7 +201,7 @@ impl SimAutopilot {
             }
             MAV_CMD_DO_SET_MODE => self.set_mode(p[1] as u32),
             MAV_CMD_NAV_RETURN_TO_LAUNCH => self.set_mode(self.spec.frame.mode(Role::Return)),
-            MAV_CMD_MISSION_START => !self.mission.is_empty() && self.set_mode(self.spec.frame.mode(Role::Auto)),
+            MAV_CMD_MISSION_START => self.mission.len() > 1 && self.set_mode(self.spec.frame.mode(Role::Auto)),
             MAV_CMD_DO_PAUSE_CONTINUE if p[0] < 0.5 => {
                 self.mode_before_pause = Some(self.mode);
                 self.set_mode(self.spec.frame.hold_mode())
@@ -309,7 +326,8 @@ impl SimAutopilot {
             MavMissionType::MAV_MISSION_TYPE_RALLY => self.rally = items,
             _ => {
                 self.mission = items;
-                self.current = 0;
+                self.current = self.first_item();
+                self.mission_run = Run::NotStarted;
             }
         }
         MavMissionResult::MAV_MISSION_ACCEPTED
@@ -324,11 +342,20 @@ impl SimAutopilot {
         self.out.push(MavMessage::STATUSTEXT(STATUSTEXT_DATA { severity, text: text.into(), ..Default::default() }));
     }
 
-    /// Whether an uploaded item is one we can fly.
+    /// The first item AUTO runs: 1 (item 0 is home), or 0 with no mission.
+    fn first_item(&self) -> u16 {
+        u16::from(self.mission.len() > 1)
+    }
+
+    /// Whether an uploaded mission item is one we can run (item 0, home, is not run).
     fn flyable(item: &MISSION_ITEM_INT_DATA) -> Result<(), MavMissionResult> {
         use MavFrame::*;
-        if item.command != MavCmd::MAV_CMD_NAV_WAYPOINT {
-            return Err(MavMissionResult::MAV_MISSION_UNSUPPORTED);
+        match item.command {
+            _ if item.seq == 0 => return Ok(()),
+            MavCmd::MAV_CMD_DO_CHANGE_SPEED if item.param2.is_finite() => return Ok(()),
+            MavCmd::MAV_CMD_DO_CHANGE_SPEED => return Err(MavMissionResult::MAV_MISSION_INVALID_PARAM2),
+            MavCmd::MAV_CMD_NAV_WAYPOINT => {}
+            _ => return Err(MavMissionResult::MAV_MISSION_UNSUPPORTED),
         }
         if !matches!(item.frame, MAV_FRAME_GLOBAL | MAV_FRAME_GLOBAL_INT | MAV_FRAME_GLOBAL_RELATIVE_ALT | MAV_FRAME_GLOBAL_RELATIVE_ALT_INT) {
             return Err(MavMissionResult::MAV_MISSION_UNSUPPORTED_FRAME);
@@ -404,6 +431,12 @@ impl SimAutopilot {
                 match self.items(*mission_type).and_then(|v| v.get(*seq as usize)) {
                     Some(item) => {
                         let mut item = item.clone();
+                        if *mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION && *seq == 0 {
+                            // Item 0 reads back as home, as ArduPilot keeps it.
+                            let (lat, lon, alt) = self.spec.site.global_of(&self.home);
+                            (item.command, item.frame, item.x, item.y, item.z) =
+                                (MavCmd::MAV_CMD_NAV_WAYPOINT, MavFrame::MAV_FRAME_GLOBAL, (lat * 1e7).round() as i32, (lon * 1e7).round() as i32, alt as f32);
+                        }
                         let current = *mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION && *seq == self.current;
                         (item.target_system, item.target_component, item.current, item.mission_type) = (sender.0, sender.1, u8::from(current), *mission_type);
                         self.out.push(MavMessage::MISSION_ITEM_INT(item));
@@ -422,7 +455,7 @@ impl SimAutopilot {
             }
             MavMessage::MISSION_SET_CURRENT(s) if (s.seq as usize) < self.mission.len() => {
                 self.current = s.seq;
-                self.out.push(MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current, ..Default::default() }));
+                self.out.push(self.mission_current());
             }
             MavMessage::PARAM_REQUEST_LIST(_) => {
                 for i in 0..params::count(self.spec.frame) {
@@ -494,6 +527,7 @@ impl SimAutopilot {
     pub fn step(&mut self, dt_wall: f64) {
         self.wall_s += dt_wall;
         self.retry_upload();
+        self.run_do_items();
         let mut left = dt_wall * self.spec.speedup;
         let mut moved = 0.0;
         while left > 1e-12 {
@@ -588,16 +622,36 @@ impl SimAutopilot {
         }
     }
 
+    /// In AUTO, the DO items at the current place in the sequence are done at once.
+    fn run_do_items(&mut self) {
+        while self.role() == Some(Role::Auto) {
+            let Some(item) = self.mission.get(self.current as usize) else { return };
+            if item.command != MavCmd::MAV_CMD_DO_CHANGE_SPEED {
+                return;
+            }
+            if item.param2 > 0.0 {
+                self.spec.max_speed = item.param2 as f64;
+            }
+            self.advance();
+        }
+    }
+
+    /// On to the next item; after the last, hold there (as ArduRover does).
+    fn advance(&mut self) {
+        if (self.current as usize) + 1 < self.mission.len() {
+            self.current += 1;
+        } else {
+            self.mission_run = Run::Complete;
+            self.set_mode(self.spec.frame.hold_mode());
+        }
+        self.out.push(self.mission_current());
+    }
+
     fn item_reached(&mut self) {
         let seq = self.current;
         self.out.push(MavMessage::MISSION_ITEM_REACHED(MISSION_ITEM_REACHED_DATA { seq }));
-        if (seq as usize) + 1 < self.mission.len() {
-            self.current = seq + 1;
-            self.out.push(MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current, ..Default::default() }));
-        } else {
-            // End of the mission: hold there (as ArduRover does).
-            self.set_mode(self.spec.frame.hold_mode());
-        }
+        self.advance();
+        self.run_do_items();
     }
 
     /// One physics step toward `goal`; whether it is reached.
@@ -725,6 +779,32 @@ impl SimAutopilot {
         out
     }
 
+    /// The messages sent once a second besides HEARTBEAT and SYS_STATUS, as ArduPilot streams
+    /// them: BATTERY_STATUS, HOME_POSITION, MISSION_CURRENT, and FENCE_STATUS while a fence is
+    /// enforced (MAVSDK reads battery and home only from these).
+    pub fn slow(&self) -> Vec<MavMessage> {
+        let fraction = self.remaining_mah() / self.spec.safety.battery_mah;
+        let mut cells = [u16::MAX; 10];
+        cells[0] = (11_000.0 + 1_600.0 * fraction) as u16;
+        let mut out = vec![
+            MavMessage::BATTERY_STATUS(BATTERY_STATUS_DATA {
+                current_consumed: self.consumed_mah.round() as i32,
+                energy_consumed: -1,
+                temperature: i16::MAX,
+                voltages: cells,
+                current_battery: (self.draw_a * 100.0).round() as i16,
+                battery_function: MavBatteryFunction::MAV_BATTERY_FUNCTION_ALL,
+                mavtype: MavBatteryType::MAV_BATTERY_TYPE_LIPO,
+                battery_remaining: (100.0 * fraction).round() as i8,
+                ..Default::default()
+            }),
+            self.home_position(),
+            self.mission_current(),
+        ];
+        out.extend(self.fence_status());
+        out
+    }
+
     /// FENCE_STATUS (sent at 1 Hz while a fence is enforced).
     pub fn fence_status(&self) -> Option<MavMessage> {
         self.spec.safety.fence_enable.then(|| {
@@ -738,8 +818,20 @@ impl SimAutopilot {
         })
     }
 
+    /// MISSION_CURRENT with the mission's state, as MAVSDK reads progress from it: the total
+    /// leaves out home (item 0).
     pub fn mission_current(&self) -> MavMessage {
-        MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq: self.current, ..Default::default() })
+        let auto = self.role() == Some(Role::Auto);
+        let mission_state = match (self.mission.len() > 1, self.mission_run) {
+            (false, _) => MissionState::MISSION_STATE_NO_MISSION,
+            (true, Run::NotStarted) => MissionState::MISSION_STATE_NOT_STARTED,
+            (true, Run::Complete) => MissionState::MISSION_STATE_COMPLETE,
+            (true, Run::Started) if auto => MissionState::MISSION_STATE_ACTIVE,
+            (true, Run::Started) => MissionState::MISSION_STATE_PAUSED,
+        };
+        let total = if self.mission.len() > 1 { self.mission.len() as u16 - 1 } else { u16::MAX };
+        let seq = if self.mission_run == Run::Complete { self.mission.len() as u16 } else { self.current };
+        MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq, total, mission_state, mission_mode: if auto { 1 } else { 2 }, ..Default::default() })
     }
 }
 
@@ -871,11 +963,17 @@ mod tests {
     fn a_mission_uploads_with_the_handshake_runs_and_reports_each_item() {
         let mut s = sim(Frame::Boat);
         let site = s.spec.site;
-        s.handle(&GCS, &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count: 3, target_system: 3, target_component: 1, ..Default::default() }));
-        let wps = [(5.0, 0.0), (5.0, 5.0), (0.0, 5.0)];
+        s.handle(&GCS, &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count: 5, target_system: 3, target_component: 1, ..Default::default() }));
+        // Home (never flown), a waypoint, a speed change to 4 m/s, two more waypoints.
+        let wps = [(99.0, 99.0), (5.0, 0.0), (f64::NAN, 4.0), (5.0, 5.0), (0.0, 5.0)];
         for (seq, (n, e)) in wps.iter().enumerate() {
             let out = s.take();
             assert!(matches!(&out[..], [MavMessage::MISSION_REQUEST_INT(r)] if r.seq == seq as u16 && r.target_system == 255), "{out:?}");
+            if n.is_nan() {
+                let speed = MISSION_ITEM_INT_DATA { seq: seq as u16, command: MavCmd::MAV_CMD_DO_CHANGE_SPEED, param2: *e as f32, target_system: 3, ..Default::default() };
+                s.handle(&GCS, &MavMessage::MISSION_ITEM_INT(speed));
+                continue;
+            }
             let (lat, lon, _) = site.global_of(&Vector3::new(*n, *e, 0.0));
             let item = MISSION_ITEM_INT_DATA {
                 seq: seq as u16,
@@ -897,12 +995,16 @@ mod tests {
             s.step(0.05);
             reached.extend(s.take().into_iter().filter_map(|m| if let MavMessage::MISSION_ITEM_REACHED(r) = m { Some(r.seq) } else { None }));
         }
-        assert_eq!(reached, [0, 1, 2]);
+        assert_eq!(reached, [1, 3, 4], "the waypoints, from 1 (0 is home)");
         assert!((s.pos - Vector3::new(0.0, 5.0, 0.0)).norm() < 0.05, "{}", s.pos);
         assert_eq!(s.role(), Some(Role::Hold), "holds at the end");
-        // Download gives the same items back.
+        assert_eq!(s.spec.max_speed, 4.0, "the speed item was done");
+        // Download gives the same items back, home as item 0.
         s.handle(&GCS, &MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA { target_system: 3, target_component: 1, ..Default::default() }));
-        assert!(matches!(&s.take()[..], [MavMessage::MISSION_COUNT(c)] if c.count == 3));
+        assert!(matches!(&s.take()[..], [MavMessage::MISSION_COUNT(c)] if c.count == 5));
+        s.handle(&GCS, &MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq: 0, target_system: 3, target_component: 1, ..Default::default() }));
+        let [lat, lon, _] = site.origin;
+        assert!(matches!(&s.take()[..], [MavMessage::MISSION_ITEM_INT(i)] if (i.x, i.y) == ((lat * 1e7).round() as i32, (lon * 1e7).round() as i32)), "item 0 is home");
     }
 
     #[test]
@@ -1023,7 +1125,7 @@ mod tests {
         // A mission that leaves the fence (an operator's, in AUTO): breach, RTL to the nearer
         // rally point, said; the health bit drops while outside, and FENCE_STATUS counts it.
         let out_wp = at(&site, MavCmd::MAV_CMD_NAV_WAYPOINT, 0.0, 30.0, 60.0);
-        assert_eq!(upload(&mut s, MavMissionType::MAV_MISSION_TYPE_MISSION, &[out_wp]), MavMissionResult::MAV_MISSION_ACCEPTED);
+        assert_eq!(upload(&mut s, MavMissionType::MAV_MISSION_TYPE_MISSION, &[wp, out_wp]), MavMissionResult::MAV_MISSION_ACCEPTED);
         s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 10.0));
         let mut said = vec![];
         let mut unhealthy = false;
