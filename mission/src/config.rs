@@ -181,6 +181,11 @@ pub struct MavlinkConfig {
     pub battery_mah: f64,
     pub battery_low_mah: f64,
     pub low_battery_action: String,
+    /// What a vehicle does when its link to the model server is lost for `link_loss_s`
+    /// seconds: `continue` (boats keep sensing out of range, the default), `rtl` or `hold`.
+    /// Back in range, it rejoins (GUIDED again, back in the allocation).
+    pub link_loss_action: String,
+    pub link_loss_s: f64,
 }
 
 /// What a failsafe may do (the autopilot's names: return to launch, stop, go on reporting).
@@ -210,6 +215,8 @@ impl Default for MavlinkConfig {
             battery_mah: 20_000.0,
             battery_low_mah: 4_000.0,
             low_battery_action: "rtl".into(),
+            link_loss_action: "continue".into(),
+            link_loss_s: 30.0,
         }
     }
 }
@@ -221,7 +228,10 @@ impl MavlinkConfig {
     }
 
     fn check(&self) -> Result<(), ConfigError> {
-        for (field, v) in [("fence_action", &self.fence_action), ("low_battery_action", &self.low_battery_action)] {
+        if !(self.link_loss_s.is_finite() && self.link_loss_s > 0.0) {
+            return Err(ConfigError::Invalid(format!("[mavlink] link_loss_s = {}: must be > 0", self.link_loss_s)));
+        }
+        for (field, v) in [("fence_action", &self.fence_action), ("low_battery_action", &self.low_battery_action), ("link_loss_action", &self.link_loss_action)] {
             if !FAILSAFE_ACTIONS.contains(&v.as_str()) {
                 return Err(ConfigError::Invalid(format!("[mavlink] {field} = {v:?}: one of {}", FAILSAFE_ACTIONS.join(", "))));
             }

@@ -339,3 +339,47 @@ fn mavsdk_connects_reads_telemetry_arms_and_runs_a_mission_and_a_geofence_on_the
     let last = &j["waypoints"][2];
     assert!(near(&j["end"], last[0].as_f64().unwrap(), last[1].as_f64().unwrap(), 2e-7), "ended at the last waypoint: {j}");
 }
+
+#[test]
+fn vehicles_out_of_range_take_the_link_loss_failsafe_and_rejoin_when_the_server_is_back() {
+    let dir = scratch("linkloss");
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = paced_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep), 250);
+    edit(&mission, "frames = 40", "frames = 80");
+    edit(&mission, "sim_speedup = 100.0", "sim_speedup = 10.0");
+    edit(&mission, "[mavlink]", "[mavlink]\nlink_loss_action = \"rtl\"\nlink_loss_s = 1.0");
+    let m = MissionConfig::load(Some(&mission)).unwrap();
+    let (mp, out, st) = (mission.to_str().unwrap(), dir.join("out"), dir.join("state"));
+    let server_args = ["--mission", mp, "--out", out.to_str().unwrap(), "--state-dir", st.to_str().unwrap(), "--exit-when-done"];
+    let mut procs = Procs::default();
+    let server = start_server(&mut procs, &server_args, &dir.join("server.log"));
+    start_vehicles(&mut procs, &mission, st.to_str().unwrap(), &dir, &[]);
+    // The server goes away for 4 s (the link lease is 1 s, the failsafe 1 s after it).
+    server.epoch(2, 60);
+    procs.kill(server.index);
+    std::thread::sleep(Duration::from_secs(4));
+    let server = start_server(&mut procs, &server_args, &dir.join("server.log"));
+    let mut events = vec![];
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let summary = loop {
+        match server.events.recv_timeout(deadline.saturating_duration_since(Instant::now())) {
+            Ok(ServerEvent::Finished { summary }) => break summary,
+            Ok(e) => events.push(e),
+            Err(e) => panic!("the mission did not finish: {e}"),
+        }
+    };
+    procs.wait_all(60);
+    // Every vehicle took the failsafe (RTL), then rejoined when the server was back.
+    for v in m.vehicles() {
+        let log = std::fs::read_to_string(dir.join(format!("{}.log", v.id))).unwrap();
+        let lost = log.find("link to the server lost: failsafe").unwrap_or_else(|| panic!("{}: no failsafe:\n{log}", v.id));
+        let rtl = log[lost..].find("mode=\"RTL\"").unwrap_or_else(|| panic!("{}: never in RTL:\n{log}", v.id));
+        assert!(log[lost + rtl..].contains("rejoining the allocation") && log[lost + rtl..].contains("mode=\"GUIDED\""), "{}: did not rejoin:\n{log}", v.id);
+    }
+    // Nothing lost, and from some epoch on the restarted server allocates every boat again.
+    assert_eq!(summary.counters.batches - summary.counters.duplicates, expected_batches(&m, m.truth(|_| {}).unwrap().frames()));
+    assert_eq!(summary.counters.rejected.values().sum::<u64>(), 0, "{:?}", summary.counters.rejected);
+    let boats = m.vehicles().iter().filter(|v| v.kind == fleet::protocol::VehicleKind::Boat).count();
+    let all_back = events.iter().any(|e| matches!(e, ServerEvent::Epoch { places, held, .. } if held.is_empty() && places.keys().filter(|v| v.starts_with("boat")).count() == boats));
+    assert!(all_back, "no epoch after the restart with every boat allocated: {events:?}");
+}

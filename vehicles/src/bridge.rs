@@ -450,6 +450,37 @@ impl Bridge {
         true
     }
 
+    /// A failsafe of the vehicle's own (its link to the server lost): the autopilot to
+    /// `role` (Return or Hold), and `why` in telemetry until it is back in GUIDED.
+    pub fn failsafe(&self, role: Role, why: &str) -> bool {
+        let Some(target) = lock(&self.seen).sysid else { return false };
+        let frame = self.spec.vehicle.frame;
+        let mode = if role == Role::Hold { frame.hold_mode() } else { frame.mode(role) };
+        lock(&self.seen).failsafe = Some(why.to_string());
+        self.set_mode(target, mode);
+        true
+    }
+
+    /// Back from the vehicle's own failsafe: GUIDED again, so the planner drives it.
+    pub fn rejoin(&self) {
+        // (The lock is let go before sending: the send counts under the same lock.)
+        let target = lock(&self.seen).sysid;
+        if let Some(target) = target {
+            self.set_mode(target, self.spec.vehicle.frame.mode(Role::Guided));
+        }
+    }
+
+    fn set_mode(&self, target: u8, mode: u32) {
+        self.send(&MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            command: MavCmd::MAV_CMD_DO_SET_MODE,
+            param1: MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED.bits() as f32,
+            param2: mode as f32,
+            target_system: target,
+            target_component: 1,
+            ..Default::default()
+        }));
+    }
+
     /// Whether the autopilot took the site's fence and enforces it.
     pub fn fence_enabled(&self) -> bool {
         lock(&self.seen).fence_enabled

@@ -22,7 +22,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
 use tracing::{debug, info, warn};
-use vehicles::autopilot::modes::Frame;
+use vehicles::autopilot::modes::{Frame, Role as Mode};
 use vehicles::autopilot::sim::SimSpec;
 use vehicles::bridge::{Bridge, BridgeSpec};
 use zenoh::sample::SampleKind;
@@ -68,6 +68,10 @@ struct Vehicle {
     brain: VehicleBrain,
     outbox: Outbox,
     server_alive: bool,
+    /// When the link to the server went down, and whether the link-loss failsafe acted.
+    link_lost_at: Option<Instant>,
+    link_failsafe: bool,
+    mavlink: fleet_mission::config::MavlinkConfig,
     resend: Duration,
     plan_timeout: Duration,
     arrival_timeout: Duration,
@@ -127,6 +131,13 @@ impl Vehicle {
                 // Back in range: the whole backlog is due now, oldest first.
                 self.outbox.resend_all();
             }
+            self.link_lost_at = (!up).then(Instant::now);
+            if up && std::mem::take(&mut self.link_failsafe) {
+                if let Some(b) = &self.bridge {
+                    info!("link to the server back: GUIDED again, rejoining the allocation");
+                    b.rejoin();
+                }
+            }
         }
         self.server_alive = up;
     }
@@ -177,7 +188,23 @@ impl Vehicle {
 
     /// The resend tick: what is due goes out; the plan is asked for again, or, past the
     /// timeout (or with the server gone), the held plan's horizon is followed.
+    /// Out of range for longer than the mission allows: the link-loss failsafe's action.
+    fn check_link_loss(&mut self) {
+        let m = &self.mavlink;
+        let role = match m.link_loss_action.as_str() {
+            "rtl" => Mode::Return,
+            "hold" => Mode::Hold,
+            _ => return,
+        };
+        let (Some(since), Some(b)) = (self.link_lost_at, &self.bridge) else { return };
+        if !self.link_failsafe && since.elapsed().as_secs_f64() >= m.link_loss_s && b.failsafe(role, "ground link lost") {
+            warn!(after_s = m.link_loss_s, action = m.link_loss_action, "link to the server lost: failsafe");
+            self.link_failsafe = true;
+        }
+    }
+
     async fn on_tick(&mut self) -> anyhow::Result<()> {
+        self.check_link_loss();
         self.resend_due().await?;
         let now = Instant::now();
         match self.phase {
@@ -480,6 +507,9 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         brain,
         outbox,
         server_alive: false,
+        link_lost_at: None,
+        link_failsafe: false,
+        mavlink: mission.mavlink.clone(),
         resend: Duration::from_millis(pace.resend_ms),
         plan_timeout: Duration::from_millis(pace.plan_timeout_ms),
         arrival_timeout: Duration::from_millis(mission.mavlink.arrival_timeout_ms),
