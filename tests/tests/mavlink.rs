@@ -225,14 +225,22 @@ fn a_signing_ground_station_is_obeyed_and_unsigned_foreign_and_replayed_frames_a
     }
 }
 
+/// The tiny mission at 250 ms a step, `frames` long, simulated autopilots at 10x speed (so a
+/// failsafe has time to show), with `mavlink` lines added to its `[mavlink]`.
+fn slow_mission(dir: &std::path::Path, frames: usize, mavlink: &str) -> (std::path::PathBuf, MissionConfig) {
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = paced_mission(dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep), 250);
+    edit(&mission, "frames = 40", &format!("frames = {frames}"));
+    edit(&mission, "sim_speedup = 100.0", "sim_speedup = 10.0");
+    edit(&mission, "[mavlink]", &format!("[mavlink]\n{mavlink}"));
+    let m = MissionConfig::load(Some(&mission)).unwrap();
+    (mission, m)
+}
+
 #[test]
 fn a_boat_whose_battery_runs_low_returns_to_launch_and_the_others_share_the_disks() {
     let dir = scratch("failsafe");
-    let ep = format!("tcp/127.0.0.1:{}", free_port());
-    let mission = paced_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep), 250);
-    edit(&mission, "frames = 40", "frames = 100");
-    edit(&mission, "sim_speedup = 100.0", "sim_speedup = 10.0");
-    let m = MissionConfig::load(Some(&mission)).unwrap();
+    let (mission, m) = slow_mission(&dir, 100, "");
     let mp = mission.to_str().unwrap();
     let st = dir.join("state");
     let rec = dir.join("rec.mcap");
@@ -343,12 +351,7 @@ fn mavsdk_connects_reads_telemetry_arms_and_runs_a_mission_and_a_geofence_on_the
 #[test]
 fn vehicles_out_of_range_take_the_link_loss_failsafe_and_rejoin_when_the_server_is_back() {
     let dir = scratch("linkloss");
-    let ep = format!("tcp/127.0.0.1:{}", free_port());
-    let mission = paced_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep), 250);
-    edit(&mission, "frames = 40", "frames = 80");
-    edit(&mission, "sim_speedup = 100.0", "sim_speedup = 10.0");
-    edit(&mission, "[mavlink]", "[mavlink]\nlink_loss_action = \"rtl\"\nlink_loss_s = 1.0");
-    let m = MissionConfig::load(Some(&mission)).unwrap();
+    let (mission, m) = slow_mission(&dir, 80, "link_loss_action = \"rtl\"\nlink_loss_s = 1.0");
     let (mp, out, st) = (mission.to_str().unwrap(), dir.join("out"), dir.join("state"));
     let server_args = ["--mission", mp, "--out", out.to_str().unwrap(), "--state-dir", st.to_str().unwrap(), "--exit-when-done"];
     let mut procs = Procs::default();

@@ -178,7 +178,8 @@ impl View {
             Some(a) => match a.link {
                 AutopilotLink::Connecting => "connecting".into(),
                 AutopilotLink::Lost => "autopilot lost".into(),
-                AutopilotLink::Up => format!("{}{}", a.mode, if a.armed { ", armed" } else { "" }),
+                // A failsafe's reason beside the mode it caused ("RTL, armed: Failsafe: battery low ...").
+                AutopilotLink::Up => format!("{}{}{}", a.mode, if a.armed { ", armed" } else { "" }, a.failsafe.as_ref().map_or_else(String::new, |f| format!(": {f}"))),
             },
         };
         let at = [t.position[0] as f32, t.position[1] as f32];

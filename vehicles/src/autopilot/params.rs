@@ -20,6 +20,23 @@ fn positive(v: f32) -> bool {
 }
 
 const SYSID: Param = Param { name: "SYSID_THISMAV", get: |s| s.sysid as f32, set: None };
+/// A failsafe action's parameter (0 continue, 1 RTL, 2 HOLD) over a field of [`super::safety::Safety`].
+macro_rules! action_param {
+    ($name:literal, $field:ident) => {
+        Param {
+            name: $name,
+            get: |s| s.safety.$field as u8 as f32,
+            set: Some(|s, v| match Action::from_param(v) {
+                Some(a) => {
+                    s.safety.$field = a;
+                    true
+                }
+                None => false,
+            }),
+        }
+    };
+}
+
 /// Whether the uploaded fence is enforced (0/1), and what a breach does (0 report, 1 RTL,
 /// 2 HOLD: ArduRover's numbers).
 const FENCE_ENABLE: Param = Param {
@@ -32,17 +49,7 @@ const FENCE_ENABLE: Param = Param {
         }
     }),
 };
-const FENCE_ACTION: Param = Param {
-    name: "FENCE_ACTION",
-    get: |s| s.safety.fence_action as u8 as f32,
-    set: Some(|s, v| match Action::from_param(v) {
-        Some(a) => {
-            s.safety.fence_action = a;
-            true
-        }
-        None => false,
-    }),
-};
+const FENCE_ACTION: Param = action_param!("FENCE_ACTION", fence_action);
 
 /// The battery: capacity and low mark (mAh), and the low-battery action (0 none, 1 RTL, 2 HOLD).
 const BATT_CAPACITY: Param = Param {
@@ -65,17 +72,7 @@ const BATT_LOW_MAH: Param = Param {
         }
     }),
 };
-const BATT_FS_LOW_ACT: Param = Param {
-    name: "BATT_FS_LOW_ACT",
-    get: |s| s.safety.low_battery_action as u8 as f32,
-    set: Some(|s, v| match Action::from_param(v) {
-        Some(a) => {
-            s.safety.low_battery_action = a;
-            true
-        }
-        None => false,
-    }),
-};
+const BATT_FS_LOW_ACT: Param = action_param!("BATT_FS_LOW_ACT", low_battery_action);
 
 /// A Rover's: cruise speed (m/s) and steering rate limit (deg/s).
 const BOAT: [Param; 8] = [
