@@ -565,6 +565,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             unreadable = c.unreadable,
             from_gcs = c.from_gcs,
             refused_from_gcs = c.refused_from_gcs,
+            refused_signing = c.refused_signing,
             plan_to_guided_p50_ms = format!("{:.3}", p.p50),
             plan_to_guided_max_ms = format!("{:.3}", p.max),
             targets = p.count,
