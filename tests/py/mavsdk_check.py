@@ -68,6 +68,9 @@ while time.time() < deadline and not mi.is_mission_finished():
 pr = mi.mission_progress()
 out["progress"] = [pr.current, pr.total]
 out["finished"] = mi.is_mission_finished()
+# It holds at the end; read its position after the next few position messages (10 Hz), not the
+# one cached when the last item was reached (at 100x speed that one may be metres behind).
+time.sleep(0.5)
 q = t.position()
 out["end"] = [q.latitude_deg, q.longitude_deg]
 out["waypoints"] = [list(w) for w in wps]

@@ -321,13 +321,14 @@ impl Bridge {
             if s.prepared {
                 return true;
             }
+            // Each step goes out at once, and again each second while unanswered.
             if let Some(u) = s.uploads.iter_mut().find(|u| !u.finished()) {
-                if second {
+                if second || !u.started() {
                     out.extend(u.count(target));
                 }
                 false
             } else if s.uploads.iter().any(|u| u.kind == MavMissionType::MAV_MISSION_TYPE_FENCE && u.accepted()) && !s.fence_enabled && s.enable_tries < upload::TRIES {
-                if second {
+                if second || s.enable_tries == 0 {
                     s.enable_tries += 1;
                     let set = |name: &str, v: f32| {
                         MavMessage::PARAM_SET(PARAM_SET_DATA { param_value: v, target_system: target, target_component: 1, param_id: name.into(), param_type: MavParamType::MAV_PARAM_TYPE_REAL32 })

@@ -29,6 +29,11 @@ impl Upload {
         Self { kind, items, state: State::Pending, tries: 0 }
     }
 
+    /// Whether its count has been sent.
+    pub fn started(&self) -> bool {
+        self.tries > 0
+    }
+
     pub fn finished(&self) -> bool {
         self.state != State::Pending
     }
