@@ -92,15 +92,7 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
     assert_eq!(gs["mission"]["reached"], serde_json::json!([1, 2, 3]), "run from item 1: item 0 is home");
 
     // The rest of the mission, and every event on the way.
-    let mut events = vec![];
-    let deadline = Instant::now() + Duration::from_secs(120);
-    let summary = loop {
-        match server.events.recv_timeout(deadline.saturating_duration_since(Instant::now())) {
-            Ok(ServerEvent::Finished { summary }) => break summary,
-            Ok(e) => events.push(e),
-            Err(e) => panic!("the mission did not finish: {e}"),
-        }
-    };
+    let (events, summary) = until_finished(&server);
     assert_eq!(summary.counters.rejected.values().sum::<u64>(), 0, "{:?}", summary.counters.rejected);
     let truth = m.truth(|_| {}).unwrap();
     assert_eq!(summary.counters.batches - summary.counters.duplicates, expected_batches(&m, truth.frames()), "held vehicles still report every epoch");
@@ -145,6 +137,19 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
             assert!(held.iter().any(|h| h == v) && !places.contains_key(v), "{v} still allocated: held {held:?}");
         }
         assert!(!events[at..].iter().any(|e| matches!(e, ServerEvent::Hold { vehicle, held: false, .. } if vehicle == v)), "{v} came back");
+    }
+}
+
+/// Every event of the server until the mission finishes (at most 120 s), and its summary.
+fn until_finished(server: &Server) -> (Vec<ServerEvent>, Box<fleet::mission::report::ServerSummary>) {
+    let mut events = vec![];
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        match server.events.recv_timeout(deadline.saturating_duration_since(Instant::now())) {
+            Ok(ServerEvent::Finished { summary }) => return (events, summary),
+            Ok(e) => events.push(e),
+            Err(e) => panic!("the mission did not finish: {e}"),
+        }
     }
 }
 
@@ -257,15 +262,7 @@ fn a_boat_whose_battery_runs_low_returns_to_launch_and_the_others_share_the_disk
         }
         start_vehicle(&mut procs, &[], &args, &dir.join(format!("{}.log", v.id)));
     }
-    let mut events = vec![];
-    let deadline = Instant::now() + Duration::from_secs(120);
-    let summary = loop {
-        match server.events.recv_timeout(deadline.saturating_duration_since(Instant::now())) {
-            Ok(ServerEvent::Finished { summary }) => break summary,
-            Ok(e) => events.push(e),
-            Err(e) => panic!("the mission did not finish: {e}"),
-        }
-    };
+    let (events, summary) = until_finished(&server);
     // The server ends its recording on SIGTERM.
     terminate(&mut procs.0[server.index]);
 
@@ -362,15 +359,7 @@ fn vehicles_out_of_range_take_the_link_loss_failsafe_and_rejoin_when_the_server_
     procs.kill(server.index);
     std::thread::sleep(Duration::from_secs(4));
     let server = start_server(&mut procs, &server_args, &dir.join("server.log"));
-    let mut events = vec![];
-    let deadline = Instant::now() + Duration::from_secs(120);
-    let summary = loop {
-        match server.events.recv_timeout(deadline.saturating_duration_since(Instant::now())) {
-            Ok(ServerEvent::Finished { summary }) => break summary,
-            Ok(e) => events.push(e),
-            Err(e) => panic!("the mission did not finish: {e}"),
-        }
-    };
+    let (events, summary) = until_finished(&server);
     procs.wait_all(60);
     // Every vehicle took the failsafe (RTL), then rejoined when the server was back.
     for v in m.vehicles() {
