@@ -23,6 +23,7 @@ use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
 use tracing::{debug, info, warn};
 use vehicles::autopilot::modes::{Frame, Role as Mode};
+use vehicles::autopilot::safety::Action;
 use vehicles::autopilot::sim::SimSpec;
 use vehicles::bridge::{Bridge, BridgeSpec};
 use zenoh::sample::SampleKind;
@@ -415,11 +416,8 @@ fn open_bridge(args: &Args, mission: &MissionConfig, grid: &Grid, gcs: vehicles:
         heartbeat_timeout: Duration::from_millis(m.heartbeat_timeout_ms),
         home,
         fence_m,
-        fence_action: match m.fence_action.as_str() {
-            "rtl" => 1.0,
-            "hold" => 2.0,
-            _ => 0.0,
-        },
+        // (The mission file's name was checked when it was read.)
+        fence_action: Action::from_name(&m.fence_action).unwrap_or(Action::Continue) as u8 as f32,
         rally: (0..mission.vehicles().len()).map(launch).collect(),
         signing: match m.autopilot_key_of(&args.id) {
             Some(p) => Some((SigningKey::read(&p).map_err(fleet_mission::exit::bad_input).context("[mavlink] autopilot_signing_key")?, m.accept_unsigned_telemetry)),

@@ -568,13 +568,18 @@ impl SimAutopilot {
         }
         let action = self.spec.safety.low_battery_action;
         self.failsafe = Some("battery low");
+        self.act_on(action);
+        let text = format!("Failsafe: battery low ({:.0} mAh left): {}", self.remaining_mah(), ["continue", "RTL", "HOLD"][action as usize]);
+        self.say(MavSeverity::MAV_SEVERITY_CRITICAL, &text);
+    }
+
+    /// A failsafe's action: the mode it calls for (none for `Continue`).
+    fn act_on(&mut self, action: Action) {
         match action {
             Action::Rtl => self.set_mode(self.spec.frame.mode(Role::Return)),
             Action::Hold => self.set_mode(self.spec.frame.hold_mode()),
             Action::Continue => true,
         };
-        let text = format!("Failsafe: battery low ({:.0} mAh left): {}", self.remaining_mah(), ["continue", "RTL", "HOLD"][action as usize]);
-        self.say(MavSeverity::MAV_SEVERITY_CRITICAL, &text);
     }
 
     /// Where RTL goes: the nearest rally point, or home (at cruise altitude).
@@ -597,11 +602,7 @@ impl SimAutopilot {
         if out && !self.breached {
             self.breach_count = self.breach_count.saturating_add(1);
             let action = self.spec.safety.fence_action;
-            match action {
-                Action::Rtl => self.set_mode(self.spec.frame.mode(Role::Return)),
-                Action::Hold => self.set_mode(self.spec.frame.hold_mode()),
-                Action::Continue => true,
-            };
+            self.act_on(action);
             self.say(MavSeverity::MAV_SEVERITY_CRITICAL, &format!("Fence breach: {}", ["report only", "RTL", "HOLD"][action as usize]));
         }
         self.breached = out;
@@ -716,6 +717,13 @@ impl SimAutopilot {
         })
     }
 
+    /// The charge left (a fraction) and the pack's voltage (mV): a 3-cell pack, 12.6 V full,
+    /// 11.0 V empty.
+    fn battery_now(&self) -> (f64, u16) {
+        let fraction = self.remaining_mah() / self.spec.safety.battery_mah;
+        (fraction, (11_000.0 + 1_600.0 * fraction) as u16)
+    }
+
     pub fn sys_status(&self) -> MavMessage {
         let sensors = MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_3D_GYRO
             | MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_3D_ACCEL
@@ -731,10 +739,9 @@ impl SimAutopilot {
             onboard_control_sensors_enabled: sensors | enforced,
             onboard_control_sensors_health: sensors | if self.breached { MavSysStatusSensor::empty() } else { fence },
             load: 150,
-            // A 3-cell pack: 12.6 V full, 11.0 V empty.
-            voltage_battery: (11_000.0 + 1_600.0 * self.remaining_mah() / self.spec.safety.battery_mah) as u16,
+            voltage_battery: self.battery_now().1,
             current_battery: (self.draw_a * 100.0).round() as i16,
-            battery_remaining: (100.0 * self.remaining_mah() / self.spec.safety.battery_mah).round() as i8,
+            battery_remaining: (100.0 * self.battery_now().0).round() as i8,
             ..Default::default()
         })
     }
@@ -783,9 +790,9 @@ impl SimAutopilot {
     /// them: BATTERY_STATUS, HOME_POSITION, MISSION_CURRENT, and FENCE_STATUS while a fence is
     /// enforced (MAVSDK reads battery and home only from these).
     pub fn slow(&self) -> Vec<MavMessage> {
-        let fraction = self.remaining_mah() / self.spec.safety.battery_mah;
+        let (fraction, millivolts) = self.battery_now();
         let mut cells = [u16::MAX; 10];
-        cells[0] = (11_000.0 + 1_600.0 * fraction) as u16;
+        cells[0] = millivolts;
         let mut out = vec![
             MavMessage::BATTERY_STATUS(BATTERY_STATUS_DATA {
                 current_consumed: self.consumed_mah.round() as i32,
