@@ -201,8 +201,10 @@ impl AerialFrame {
     /// second difference over that spacing is `D` errs by `t (1 - t) / 2 * D` at fraction `t`
     /// (exact for a quadratic). `D^2` is measured on the lattice along rows and along columns,
     /// less the noise's share (`var_{k-1} + 4 var_k + var_{k+1}`), spread to the fine cells
-    /// bilinearly, and the two directions add. Cells beyond the last lattice row or column
-    /// (held constant by the interpolation) get 0: their error is not modelled here.
+    /// bilinearly, and the two directions add. Cells beyond the last lattice row or column are
+    /// held at its value: `k` cells beyond, that errs by `k / stride` times the field's first
+    /// difference over a stride there (exact for a linear field), measured on the last two
+    /// lattice rows or columns less the noise's share (`var_{k-1} + var_k`).
     pub fn interpolation_variance(&self) -> Result<Vec<f64>, FusionError> {
         let (rows, cols, s) = (self.lattice.rows, self.lattice.cols, self.lattice.stride);
         let at = |r: usize, c: usize| r * cols + c;
@@ -210,7 +212,12 @@ impl AerialFrame {
             let d = self.values[k0] - 2.0 * self.values[k1] + self.values[k2];
             (d * d - (self.variance[k0] + 4.0 * self.variance[k1] + self.variance[k2])).max(0.0)
         };
+        let first = |k0: usize, k1: usize| {
+            let d = self.values[k1] - self.values[k0];
+            (d * d - (self.variance[k0] + self.variance[k1])).max(0.0)
+        };
         let (mut along_rows, mut along_cols) = (vec![0.0; rows * cols], vec![0.0; rows * cols]);
+        let (mut end_rows, mut end_cols) = (vec![0.0; rows * cols], vec![0.0; rows * cols]);
         for r in 0..rows {
             for c in 0..cols {
                 if rows >= 3 {
@@ -221,21 +228,31 @@ impl AerialFrame {
                     let m = c.clamp(1, cols - 2);
                     along_cols[at(r, c)] = second(at(r, m - 1), at(r, m), at(r, m + 1));
                 }
+                if rows >= 2 {
+                    end_rows[at(r, c)] = first(at(rows - 2, c), at(rows - 1, c));
+                }
+                if cols >= 2 {
+                    end_cols[at(r, c)] = first(at(r, cols - 2), at(r, cols - 1));
+                }
             }
         }
-        let (dr, dc) = (self.lattice.upsample_bilinear(&along_rows)?, self.lattice.upsample_bilinear(&along_cols)?);
+        let up = |v: &[f64]| self.lattice.upsample_bilinear(v);
+        let (dr, dc, er, ec) = (up(&along_rows)?, up(&along_cols)?, up(&end_rows)?, up(&end_cols)?);
+        // (weight of the second difference, weight of the end's first difference)
         let weight = |i: usize, n: usize| {
-            if i / s + 1 >= n {
-                return 0.0;
+            let last = (n - 1) * s;
+            if i >= last {
+                return (0.0, ((i - last) as f64 / s as f64).powi(2));
             }
             let t = (i % s) as f64 / s as f64;
-            (t * (1.0 - t) / 2.0).powi(2)
+            ((t * (1.0 - t) / 2.0).powi(2), 0.0)
         };
         let fine = self.lattice.fine;
         Ok((0..fine.len())
             .map(|i| {
                 let cell = fine.cell(i);
-                weight(cell.row, rows) * dr[i] + weight(cell.col, cols) * dc[i]
+                let ((wr, xr), (wc, xc)) = (weight(cell.row, rows), weight(cell.col, cols));
+                wr * dr[i] + xr * er[i] + wc * dc[i] + xc * ec[i]
             })
             .collect())
     }
@@ -405,6 +422,36 @@ mod tests {
             let err2 = (up[i] - truth[i]).powi(2);
             assert!((err2.sqrt() - predicted[i].sqrt()).abs() < 1e-9, "cell {:?}: error {} predicted {}", grid.cell(i), err2.sqrt(), predicted[i].sqrt());
         }
+    }
+
+    #[test]
+    fn the_error_beyond_the_last_lattice_row_and_column_is_predicted_for_a_linear_field() {
+        // 23 x 34 cells, stride 5: rows 21-22 and columns 31-33 lie beyond the lattice and are
+        // held at its last value; for a linear field the hold errs by the slope times the
+        // distance, which the first difference over a stride predicts exactly.
+        let grid = Grid::new(23, 34, 1.0).unwrap();
+        let f = |c: crate::grid::Cell| 0.02 * c.row as f64 - 0.05 * c.col as f64;
+        let truth: Vec<f64> = (0..grid.len()).map(|i| f(grid.cell(i))).collect();
+        let lattice = grid.strided(5).unwrap();
+        let m = lattice.rows * lattice.cols;
+        let frame = AerialFrame { lattice, values: (0..m).map(|k| f(lattice.fine_cell(k))).collect(), variance: vec![0.0; m], seen: vec![true; m] };
+        let up = frame.upsample().unwrap().values;
+        let predicted = frame.interpolation_variance().unwrap();
+        let mut beyond = 0;
+        for i in 0..grid.len() {
+            let (r, c) = (grid.cell(i).row, grid.cell(i).col);
+            let err = up[i] - truth[i];
+            if r > 20 || c > 30 {
+                beyond += 1;
+                assert!(err.abs() > 1e-3, "cell {r},{c} is beyond the lattice: the hold errs there");
+            }
+            // Both directions' errors are independent in the model (variances add); in the
+            // corner beyond both, the linear field's two errors add with the same sign or not,
+            // so compare there the variance with the sum of squares of each direction's part.
+            let (er, ec) = (0.02 * r.saturating_sub(20) as f64, 0.05 * c.saturating_sub(30) as f64);
+            assert!((predicted[i] - (er * er + ec * ec)).abs() < 1e-12, "cell {r},{c}: predicted {} for errors {er}, {ec} (actual {err})", predicted[i]);
+        }
+        assert_eq!(beyond, 23 * 34 - 21 * 31);
     }
 
     fn est(v: f64, var: f64, n: usize) -> Estimate {

@@ -178,6 +178,53 @@ impl ModalFilter {
         Ok(innovations)
     }
 
+    /// How the forecast's detail variance fared against `obs` (call before [`Self::update`],
+    /// with that step's observation): the ratio of what the detail had to cover, the mean over
+    /// the observed cells of the innovation's square less the value's noise and the modal
+    /// variance there, to the detail variance forecast there. 1 when the forecast's variance is
+    /// right; `None` without cells.
+    pub fn detail_fit(&self, obs: &Observation<'_>) -> Result<Option<f64>, FilterError> {
+        if obs.cells.len() != obs.values.len() || obs.cells.len() != obs.variance.len() {
+            return Err(FilterError::Input(format!("{} cells, {} values, {} variances", obs.cells.len(), obs.values.len(), obs.variance.len())));
+        }
+        if obs.cells.is_empty() {
+            return Ok(None);
+        }
+        let (n, q) = (self.basis.nrows(), self.dim());
+        let bp = self.basis.as_ref() * self.cov.as_ref();
+        let (mut covered, mut forecast) = (0.0, 0.0);
+        for ((&c, &y), &v) in obs.cells.iter().zip(obs.values).zip(obs.variance) {
+            if c >= n || !y.is_finite() || !(v >= 0.0) {
+                return Err(FilterError::Input(format!("cell {c}: value {y} with variance {v}")));
+            }
+            let (mut modal, mut modal_var) = (0.0, 0.0);
+            for k in 0..q {
+                modal += self.basis[(c, k)] * self.mean[k];
+                modal_var += bp[(c, k)] * self.basis[(c, k)];
+            }
+            covered += (y - modal - self.detail[c]).powi(2) - v - modal_var.max(0.0);
+            forecast += self.detail_var[c];
+        }
+        Ok(Some(covered / forecast.max(1e-300)))
+    }
+
+    /// Rescale the detail's variance at `cells` by a [`Self::detail_fit`] ratio: by its square
+    /// root, clamped to `[1/2, 2]`, and never above `cap` per cell (the field's own variance).
+    /// A damped feedback (adaptive covariance inflation): the next fit is taken against the
+    /// rescaled variance, so the factor settles at 1 when the variance is right, and one step
+    /// moves it by at most 2x, so it cannot run away.
+    pub fn rescale_detail(&mut self, ratio: f64, cap: f64, cells: impl IntoIterator<Item = usize>) {
+        if !ratio.is_finite() {
+            return;
+        }
+        let factor = ratio.clamp(0.25, 4.0).sqrt();
+        for c in cells {
+            if let Some(v) = self.detail_var.get_mut(c) {
+                *v = (*v * factor).min(cap.max(1e-12)).max(1e-12);
+            }
+        }
+    }
+
     /// Estimate the detail's persistence from a source that looks at many cells every step
     /// (call before [`Self::update`], with that step's observation). Its residual against the
     /// modal forecast, `z = y - B a`, is the detail plus the forecast's error plus noise; the
@@ -472,6 +519,48 @@ mod tests {
         println!("persistent detail: mean error^2 / variance = {ratio:.4}; MSE {err:.3e} with rho, {white:.3e} as white noise");
         assert!((ratio - 1.0).abs() < 0.15, "mean error^2 / variance = {ratio}");
         assert!(err < 0.95 * white, "carrying the detail must help: {err:e} vs {white:e}");
+    }
+
+    #[test]
+    fn a_detail_variance_set_wrong_is_rescaled_until_it_fits() {
+        // Pure detail, white (rho = 0) with true variance s = 1, seen densely every step with
+        // noise 0.1; the filter starts believing s = 0.01 (100x too small) or 100 (100x too
+        // big). The fit ratio rescales the forecast's detail variance each step: the factor
+        // settles, and the variance it reports is then the true one within the estimate's
+        // noise (400 cells a step).
+        let n = 400;
+        let (b, a) = system(n);
+        let std = Normal::new(0.0, 1.0).unwrap();
+        let (s, noise) = (1.0f64, 0.1f64);
+        let cells: Vec<usize> = (0..n).collect();
+        let var = vec![noise; n];
+        for (start, seed) in [(0.01, 21), (100.0, 22)] {
+            let mut f = ModalFilter::new(b.clone(), a.clone(), vec![0.0; 3], Mat::zeros(3, 3), 0.0, start).unwrap();
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+            let mut ratios = vec![];
+            for _ in 0..40 {
+                f.predict();
+                let y: Vec<f64> = (0..n).map(|_| s.sqrt() * std.sample(&mut rng) + noise.sqrt() * std.sample(&mut rng)).collect();
+                let o = Observation { cells: &cells, values: &y, variance: &var };
+                let ratio = f.detail_fit(&o).unwrap().unwrap();
+                ratios.push(ratio);
+                f.rescale_detail(ratio, 1e6, 0..n);
+                // (The detail's own forecast variance is what is checked: no update here.)
+                f.model_error = f.detail_var[0];
+            }
+            let settled = ratios[30..].iter().sum::<f64>() / 10.0;
+            println!("start s = {start}: fit ratio {:.3} at first, {settled:.3} settled; detail variance {:.3}", ratios[0], f.detail_var[0]);
+            assert!((ratios[0] - 1.0 / start).abs() < 0.2 / start, "the first fit says how far off the start is: {}", ratios[0]);
+            assert!((settled - 1.0).abs() < 0.15, "settled fit {settled}");
+            assert!((f.detail_var[0] - s).abs() < 0.15, "detail variance {}", f.detail_var[0]);
+        }
+        // The cap holds.
+        let mut f = ModalFilter::new(b, a, vec![0.0; 3], Mat::zeros(3, 3), 0.0, 1.0).unwrap();
+        f.rescale_detail(4.0, 1.5, 0..10);
+        assert!(f.detail_var[..10].iter().all(|&v| v == 1.5) && f.detail_var[10..].iter().all(|&v| v == 1.0), "only the cells given, capped");
+        f.rescale_detail(4.0, 1.5, 0..n);
+        f.rescale_detail(f64::NAN, 1.5, 0..n);
+        assert!(f.detail_var.iter().all(|&v| v == 1.5), "a ratio that is not a number changes nothing");
     }
 
     #[test]

@@ -94,6 +94,8 @@ pub struct Assimilator {
     boat_speed: f64,
     /// Cells outside the site's fence (empty: no fence): never in a disk, never an aerial place.
     excluded: Vec<bool>,
+    /// The cells between the aerials' lattice cells (which only the boats see).
+    between_lattice: Vec<usize>,
 }
 
 /// The Assimilator's state between two epochs, without its snapshots (they are only appended
@@ -170,6 +172,7 @@ impl Assimilator {
             boat_positions,
             aerial_positions,
             excluded,
+            between_lattice: (0..grid.len()).filter(|&i| !(grid.cell(i).row.is_multiple_of(cfg.aerial_stride) && grid.cell(i).col.is_multiple_of(cfg.aerial_stride))).collect(),
             filter: None,
             boat_speed: f64::INFINITY,
         })
@@ -295,13 +298,16 @@ impl Assimilator {
 
     /// `fusion = "kalman"`: one step of the filter. The modes see the lattice cells the
     /// aerials saw this step (each with its noise at that distance) and the boats' disks (their
-    /// noise); the detail (what the modes cannot hold) then sees the residuals. The process
-    /// noise and the model error are re-estimated at boat steps from the boats' innovations
-    /// (their expected square is `h P h' + detail variance + boat noise`), smoothed, and
-    /// clamped to the field's variance: they cannot run away.
+    /// noise); the detail (what the modes cannot hold) then sees the residuals. Before the
+    /// update, the detail's forecast variance is checked against both sources' innovations
+    /// and rescaled (adaptive inflation, damped and capped). The process noise and the model
+    /// error are re-estimated at boat steps from the boats' innovations (their expected square
+    /// is `h P h' + detail variance + boat noise`), smoothed, and clamped to the field's
+    /// variance: they cannot run away.
     fn filter_step(&mut self, ahead: u64, aerial: &AerialSight, cells: &[usize], vals: &[f64]) -> Result<Estimate, TeamError> {
         let boat_var = (self.cfg.boat_sigma * self.cfg.boat_sigma).max(1e-12);
         let aerial_extra = self.aerial_extra;
+        let between_lattice = &self.between_lattice;
         let Some((f, at)) = self.filter.as_mut() else { return Err(TeamError::NotReady(Missing::Model)) };
         while *at < ahead {
             f.predict();
@@ -316,6 +322,18 @@ impl Assimilator {
         if !aerial.cells.is_empty() {
             f.learn_persistence(&lattice, 1.0)?;
         }
+        // The detail's forecast variance checked against what each source saw and rescaled
+        // before the update, never above the field's own variance: every cell by the aerials'
+        // check (every step, evenly spread: the detail's refresh and persistence are the same
+        // everywhere), then the cells between the lattice by the boats' (at boat steps): the
+        // interpolation's misfit there is seen only by them.
+        let cap = variance_of(&aerial.estimate.values);
+        if let Some(fit) = f.detail_fit(&lattice)? {
+            f.rescale_detail(fit, cap, 0..f.detail_var.len());
+        }
+        if let Some(fit) = f.detail_fit(&boats)? {
+            f.rescale_detail(fit, cap, between_lattice.iter().copied());
+        }
         f.update(&[lattice, boats])?;
         // The detail: the aerial estimate at every cell (noise, interpolation and the
         // calibrated extra), then the boats.
@@ -326,10 +344,7 @@ impl Assimilator {
         // variance there plus the boats' noise.
         if !cells.is_empty() {
             let mean_at = |v: &[f64]| cells.iter().map(|&c| v[c]).sum::<f64>() / cells.len() as f64;
-            let field_var = {
-                let m = vals.iter().sum::<f64>() / vals.len() as f64;
-                (vals.iter().map(|v| (v - m).powi(2)).sum::<f64>() / vals.len() as f64).max(1e-12)
-            };
+            let field_var = variance_of(vals).max(1e-12);
             let d2 = cells.iter().zip(vals).map(|(&c, v)| (v - prior_mean[c]).powi(2)).sum::<f64>() / cells.len() as f64;
             let (detail_part, expected) = (mean_at(&prior_detail_var).max(1e-12), mean_at(&prior_var) + boat_var);
             let modal_part = expected - boat_var - detail_part;
@@ -524,6 +539,15 @@ pub fn fit_to(model: &dyn Dmd, newest: &[f64]) -> Result<(DmdModel, Mat<f64>), T
 pub fn to_mat(cols: &[Vec<f64>]) -> Mat<f64> {
     let n = cols.first().map_or(0, |c| c.len());
     Mat::from_fn(n, cols.len(), |i, j| cols[j][i])
+}
+
+/// The variance of a set of values (0 for none).
+fn variance_of(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let m = v.iter().sum::<f64>() / v.len() as f64;
+    v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / v.len() as f64
 }
 
 /// `m` random non-overlapping disks (rejection sampling; fewer if the grid is full).
