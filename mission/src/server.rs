@@ -645,6 +645,7 @@ impl ServerCore {
             modes_re,
             modes_im,
             amplitudes: m.amplitudes.iter().map(|a| [a.re, a.im]).collect(),
+            estimate: self.snapshots.last().cloned().unwrap_or_default(),
             variance: self.variances.last().cloned().unwrap_or_else(|| vec![self.assim.prediction_variance(); n]),
             forecast_steps: self.cfg.boat_period as u64,
             forecast_variance: self.assim.forecast_variance(self.cfg.boat_period as u64),

@@ -5,6 +5,7 @@ eigenvalues against the server's summary.json. Exit 0 when every check holds.
 usage: model_latest.py <endpoint> <mission> <summary.json>
 """
 import json
+import os
 import sys
 
 import cbor2
@@ -38,6 +39,16 @@ def main():
     assert fvar.shape == var.shape and m["forecast_steps"] > 0, (fvar.shape, m["forecast_steps"])
     assert np.all(var >= 0) and np.all(fvar >= 0) and np.all(np.isfinite(fvar)), "variances finite and >= 0"
     assert m["version"] == summary["model_version"], (m["version"], summary["model_version"])
+    # The fused estimate and its variance at the model's step: the server's own arrays of that
+    # step (estimate.npy / variance.npy beside summary.json), bit for bit.
+    run = os.path.dirname(summary_path)
+    step = m["step"]
+    for key in ("estimate", "variance"):
+        kept = np.load(os.path.join(run, f"{key}.npy"))
+        sent = np.array(m[key], dtype=float)
+        assert sent.shape == (rows * cols,), (key, sent.shape)
+        assert np.array_equal(kept[step].reshape(-1), sent), f"{key} on the wire differs from the server's {key}.npy at step {step}"
+
     expected = np.array(summary["eigenvalues"], dtype=float)
     assert np.allclose(lam, expected, rtol=0, atol=1e-12), (lam, expected)
     # The forecast a client would make: Phi diag(lambda)^t alpha, finite and real-valued.

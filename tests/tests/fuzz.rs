@@ -123,6 +123,7 @@ fn wire_seeds() -> Vec<Vec<u8>> {
             variance: vec![0.01; n],
             forecast_steps: 5,
             forecast_variance: vec![0.02; n],
+            estimate: vec![0.3; n],
         }),
         Body::Plan(Plan { vehicle: "boat-1".into(), model_version: 1, epoch: 3, targets: vec![Target { epoch: 3, step: 45, position: [2.0, 2.0], radius: 1.5, cells: vec![0, 1, 5] }] }),
     ];

@@ -202,8 +202,13 @@ impl View {
         if self.model.as_ref().is_some_and(|old| old.version >= m.version) {
             return false;
         }
-        // The estimate at the model's step: Re(Phi alpha).
-        let estimate: Vec<f64> = (0..n).map(|i| (0..r).map(|k| m.modes_re[i * r + k] * m.amplitudes[k][0] - m.modes_im[i * r + k] * m.amplitudes[k][1]).sum()).collect();
+        // The fused estimate at the model's step, or (from a server that does not send it)
+        // the model's own field there, Re(Phi alpha).
+        let estimate: Vec<f64> = if m.estimate.len() == n {
+            m.estimate.clone()
+        } else {
+            (0..n).map(|i| (0..r).map(|k| m.modes_re[i * r + k] * m.amplitudes[k][0] - m.modes_im[i * r + k] * m.amplitudes[k][1]).sum()).collect()
+        };
         let truth = self.truth.as_ref().and_then(|t| t.get(m.step as usize)).cloned();
         if let Some(t) = &truth {
             let mse = estimate.iter().zip(t).map(|(e, x)| (e - x).powi(2)).sum::<f64>() / n as f64;
@@ -293,6 +298,7 @@ mod tests {
             modes_re: vec![1.0; 6],
             modes_im: vec![0.0; 6],
             amplitudes: vec![[amplitude, 0.0]],
+            estimate: vec![],
             variance: vec![0.1; 6],
             forecast_steps: 1,
             forecast_variance: vec![0.2; 6],
@@ -353,5 +359,13 @@ mod tests {
         }
         assert!(!v.apply(bad), "a model of the wrong size is refused");
         assert_eq!(v.state().refused, 1);
+        // With the fused estimate on the wire, that is what is drawn and scored (not the modes').
+        let mut fused = model(3, 3.0);
+        if let Body::Model(m) = &mut fused {
+            m.estimate = vec![1.5, 1.5, 1.5, 0.5, 0.5, 0.5];
+        }
+        assert!(v.apply(fused));
+        assert_eq!(v.fields().unwrap().estimate, vec![1.5, 1.5, 1.5, 0.5, 0.5, 0.5]);
+        assert_eq!(v.state().mse.last(), Some(&(3, 0.25)));
     }
 }

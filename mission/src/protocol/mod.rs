@@ -171,6 +171,11 @@ pub struct ModelUpdate {
     pub modes_re: Vec<f64>,
     pub modes_im: Vec<f64>,
     pub amplitudes: Vec<[f64; 2]>,
+    /// The newest fused estimate per cell (step `step`; the filter's posterior mean), which
+    /// the modes alone do not hold (they leave out the filter's detail). Empty from a server
+    /// that did not send it.
+    #[serde(default)]
+    pub estimate: Vec<f64>,
     /// Per-cell error variance the newest estimate (step `step`) reports: the fusion's
     /// posterior variance.
     pub variance: Vec<f64>,
@@ -377,6 +382,9 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
                     m.forecast_variance.len()
                 ));
             }
+            if !(m.estimate.is_empty() || m.estimate.len() == n) {
+                return inv(format!("an estimate of {} values on {n} cells", m.estimate.len()));
+            }
             if m.variance.iter().chain(&m.forecast_variance).any(|v| *v < 0.0) {
                 return inv("a variance is negative".into());
             }
@@ -387,6 +395,7 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
             finite("amplitudes", m.amplitudes.as_flattened())?;
             finite("modes_re", &m.modes_re)?;
             finite("modes_im", &m.modes_im)?;
+            finite("estimate", &m.estimate)?;
             finite("variance", &m.variance)?;
             finite("forecast_variance", &m.forecast_variance)?;
         }
@@ -455,6 +464,7 @@ mod tests {
                 modes_re: vec![0.1; 20],
                 modes_im: vec![0.0; 20],
                 amplitudes: vec![[1.0, 0.0]],
+                estimate: vec![0.5; 20],
                 variance: vec![0.01; 20],
                 forecast_steps: 5,
                 forecast_variance: vec![0.02; 20],
