@@ -29,7 +29,7 @@ def page(port, stats, stop):
 def run(mission, out, web_port=None, pages=0):
     args = ["target/release/fleet", "up", mission, "--out", out]
     if web_port:
-        args += ["--web", f"127.0.0.1:{web_port}"]
+        args += ["--web", f"127.0.0.1:{web_port}", "--web-linger-s", "0"]
     stop, stats, threads = threading.Event(), [{"bytes": 0} for _ in range(pages)], []
     p = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     for s in stats:
