@@ -406,18 +406,22 @@ impl Acc {
 mod tests {
     use super::*;
 
+    /// A noiseless frame of `f` on `grid`'s lattice of `stride`: the truth, the upsampled frame,
+    /// and the interpolation variance it predicts.
+    fn exact_frame(grid: Grid, stride: usize, f: impl Fn(crate::grid::Cell) -> f64) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let truth: Vec<f64> = (0..grid.len()).map(|i| f(grid.cell(i))).collect();
+        let lattice = grid.strided(stride).unwrap();
+        let m = lattice.rows * lattice.cols;
+        let frame = AerialFrame { lattice, values: (0..m).map(|k| f(lattice.fine_cell(k))).collect(), variance: vec![0.0; m], seen: vec![true; m] };
+        (truth, frame.upsample().unwrap().values, frame.interpolation_variance().unwrap())
+    }
+
     #[test]
     fn the_interpolation_error_of_a_quadratic_is_predicted_exactly() {
         // f = 0.01 row^2 + 0.3 col (bilinear interpolation is exact along columns): its error
         // at every cell is the formula's, to rounding; at lattice rows it is 0.
         let grid = Grid::new(21, 31, 1.0).unwrap();
-        let f = |c: crate::grid::Cell| 0.01 * (c.row * c.row) as f64 + 0.3 * c.col as f64;
-        let truth: Vec<f64> = (0..grid.len()).map(|i| f(grid.cell(i))).collect();
-        let lattice = grid.strided(5).unwrap();
-        let m = lattice.rows * lattice.cols;
-        let frame = AerialFrame { lattice, values: (0..m).map(|k| f(lattice.fine_cell(k))).collect(), variance: vec![0.0; m], seen: vec![true; m] };
-        let up = frame.upsample().unwrap().values;
-        let predicted = frame.interpolation_variance().unwrap();
+        let (truth, up, predicted) = exact_frame(grid, 5, |c| 0.01 * (c.row * c.row) as f64 + 0.3 * c.col as f64);
         for i in 0..grid.len() {
             let err2 = (up[i] - truth[i]).powi(2);
             assert!((err2.sqrt() - predicted[i].sqrt()).abs() < 1e-9, "cell {:?}: error {} predicted {}", grid.cell(i), err2.sqrt(), predicted[i].sqrt());
@@ -430,13 +434,7 @@ mod tests {
         // held at its last value; for a linear field the hold errs by the slope times the
         // distance, which the first difference over a stride predicts exactly.
         let grid = Grid::new(23, 34, 1.0).unwrap();
-        let f = |c: crate::grid::Cell| 0.02 * c.row as f64 - 0.05 * c.col as f64;
-        let truth: Vec<f64> = (0..grid.len()).map(|i| f(grid.cell(i))).collect();
-        let lattice = grid.strided(5).unwrap();
-        let m = lattice.rows * lattice.cols;
-        let frame = AerialFrame { lattice, values: (0..m).map(|k| f(lattice.fine_cell(k))).collect(), variance: vec![0.0; m], seen: vec![true; m] };
-        let up = frame.upsample().unwrap().values;
-        let predicted = frame.interpolation_variance().unwrap();
+        let (truth, up, predicted) = exact_frame(grid, 5, |c| 0.02 * c.row as f64 - 0.05 * c.col as f64);
         let mut beyond = 0;
         for i in 0..grid.len() {
             let (r, c) = (grid.cell(i).row, grid.cell(i).col);
