@@ -209,10 +209,11 @@ impl ModalFilter {
     }
 
     /// Rescale the detail's variance at `cells` by a [`Self::detail_fit`] ratio: by its square
-    /// root, clamped to `[1/2, 2]`, and never above `cap` per cell (the field's own variance).
-    /// A damped feedback (adaptive covariance inflation): the next fit is taken against the
-    /// rescaled variance, so the factor settles at 1 when the variance is right, and one step
-    /// moves it by at most 2x, so it cannot run away.
+    /// root, clamped to `[1/2, 2]`; growing, never past `cap` (the field's own variance; a
+    /// variance already above it is not raised, nor lowered to it: a flat field's cap of 0
+    /// must not zero the detail). A damped feedback (adaptive covariance inflation): the next
+    /// fit is taken against the rescaled variance, so the factor settles at 1 when the
+    /// variance is right, and one step moves it by at most 2x, so it cannot run away.
     pub fn rescale_detail(&mut self, ratio: f64, cap: f64, cells: impl IntoIterator<Item = usize>) {
         if !ratio.is_finite() {
             return;
@@ -220,7 +221,8 @@ impl ModalFilter {
         let factor = ratio.clamp(0.25, 4.0).sqrt();
         for c in cells {
             if let Some(v) = self.detail_var.get_mut(c) {
-                *v = (*v * factor).min(cap.max(1e-12)).max(1e-12);
+                let scaled = *v * factor;
+                *v = if factor > 1.0 { scaled.min(cap.max(*v)) } else { scaled }.max(1e-12);
             }
         }
     }
@@ -561,6 +563,12 @@ mod tests {
         f.rescale_detail(4.0, 1.5, 0..n);
         f.rescale_detail(f64::NAN, 1.5, 0..n);
         assert!(f.detail_var.iter().all(|&v| v == 1.5), "a ratio that is not a number changes nothing");
+        // A cap below the variance (a flat field: 0) neither raises nor lowers it; shrinking is
+        // by the factor alone.
+        f.rescale_detail(4.0, 0.0, 0..n);
+        assert!(f.detail_var.iter().all(|&v| v == 1.5), "a cap of 0 does not zero the detail");
+        f.rescale_detail(0.25, 0.0, 0..n);
+        assert!(f.detail_var.iter().all(|&v| v == 0.75), "a ratio of 1/4 halves it");
     }
 
     #[test]

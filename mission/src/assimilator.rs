@@ -323,7 +323,7 @@ impl Assimilator {
             f.learn_persistence(&lattice, 1.0)?;
         }
         // The detail's forecast variance checked against what each source saw and rescaled
-        // before the update, never above the field's own variance: every cell by the aerials'
+        // before the update, never grown past the field's own variance: every cell by the aerials'
         // check (every step, evenly spread: the detail's refresh and persistence are the same
         // everywhere), then the cells between the lattice by the boats' (at boat steps): the
         // interpolation's misfit there is seen only by them.
