@@ -157,6 +157,9 @@ impl Assimilator {
         let excluded = cfg.fence.as_ref().map_or_else(Vec::new, |f| f.excluded(&grid));
         let formation = coverage::uniform_formation(&grid, cfg.aerials)?.positions;
         let aerial_positions = coverage::snap_inside(&grid, &excluded, &formation).ok_or_else(|| TeamError::Config("the site's boundary leaves no cell of the grid inside it".into()))?;
+        let lattice = grid.strided(cfg.aerial_stride)?;
+        let mut on_lattice = vec![false; grid.len()];
+        (0..lattice.rows * lattice.cols).for_each(|k| on_lattice[grid.index(lattice.fine_cell(k))] = true);
         Ok(Self {
             dmd: DmdConfig { method: cfg.method, rank, debias: Default::default(), gamma: cfg.gamma, forgetting: Default::default() },
             cfg: cfg.clone(),
@@ -172,7 +175,7 @@ impl Assimilator {
             boat_positions,
             aerial_positions,
             excluded,
-            between_lattice: (0..grid.len()).filter(|&i| !(grid.cell(i).row.is_multiple_of(cfg.aerial_stride) && grid.cell(i).col.is_multiple_of(cfg.aerial_stride))).collect(),
+            between_lattice: (0..grid.len()).filter(|&i| !on_lattice[i]).collect(),
             filter: None,
             boat_speed: f64::INFINITY,
         })

@@ -204,11 +204,8 @@ impl View {
         }
         // The fused estimate at the model's step, or (from a server that does not send it)
         // the model's own field there, Re(Phi alpha).
-        let estimate: Vec<f64> = if m.estimate.len() == n {
-            m.estimate.clone()
-        } else {
-            (0..n).map(|i| (0..r).map(|k| m.modes_re[i * r + k] * m.amplitudes[k][0] - m.modes_im[i * r + k] * m.amplitudes[k][1]).sum()).collect()
-        };
+        let estimate: Vec<f64> =
+            if m.estimate.len() == n { m.estimate } else { (0..n).map(|i| (0..r).map(|k| m.modes_re[i * r + k] * m.amplitudes[k][0] - m.modes_im[i * r + k] * m.amplitudes[k][1]).sum()).collect() };
         let truth = self.truth.as_ref().and_then(|t| t.get(m.step as usize)).cloned();
         if let Some(t) = &truth {
             let mse = estimate.iter().zip(t).map(|(e, x)| (e - x).powi(2)).sum::<f64>() / n as f64;
