@@ -94,7 +94,8 @@ pub struct Assimilator {
     boat_speed: f64,
     /// Cells outside the site's fence (empty: no fence): never in a disk, never an aerial place.
     excluded: Vec<bool>,
-    /// The cells between the aerials' lattice cells (which only the boats see).
+    /// The aerials' lattice cells, and the cells between them (which only the boats see).
+    lattice: Vec<usize>,
     between_lattice: Vec<usize>,
 }
 
@@ -175,6 +176,7 @@ impl Assimilator {
             boat_positions,
             aerial_positions,
             excluded,
+            lattice: (0..grid.len()).filter(|&i| on_lattice[i]).collect(),
             between_lattice: (0..grid.len()).filter(|&i| !on_lattice[i]).collect(),
             filter: None,
             boat_speed: f64::INFINITY,
@@ -387,25 +389,26 @@ impl Assimilator {
         let roster = crate::roster::Roster::of(cfg);
         let free: Vec<usize> = (0..cfg.boats).filter(|&b| !held.contains(&roster.boat_index(b))).collect();
         let mut boats = vec![None; cfg.boats];
-        // The filter's forecast at the next sampling step (`placement = "horizon"`).
-        let forecast = match (cfg.placement, &self.filter) {
-            (Placement::Horizon, Some((f, at))) => Some(f.ahead((cfg.boat_period as u64).saturating_sub(*at) as usize)),
-            (Placement::Horizon, None) => return Err(TeamError::NotReady(Missing::Model)),
+        // `placement = "horizon"`: the filter's forecast at the next sampling step, and its
+        // uncertainty there and over the horizon with the aerials observing as in their last
+        // frame (each lattice value with its noise, the estimate everywhere with the
+        // interpolation's error and the calibrated extra, as `filter_step` weighs them).
+        let boat_var = (cfg.boat_sigma * cfg.boat_sigma).max(1e-12);
+        let forecast = match (cfg.placement, &self.filter, &self.held_aerial) {
+            (Placement::Horizon, Some((f, at)), Some(held)) => {
+                let to = (cfg.boat_period as u64).saturating_sub(*at).max(1) as usize;
+                let variance: Vec<f64> = self.lattice.iter().map(|&c| held.variance[c].max(1e-12)).collect();
+                let everywhere: Vec<f64> = (0..grid.len()).map(|i| (held.variance[i] + self.held_interpolation[i] + self.aerial_extra).max(1e-12)).collect();
+                let aerials = kalman::Scheduled { cells: &self.lattice, variance: &variance, everywhere: &everywhere };
+                Some((f.ahead(to), f.look_ahead(to, cfg.horizon_epochs * cfg.boat_period, &aerials, boat_var)?))
+            }
+            (Placement::Horizon, _, _) => return Err(TeamError::NotReady(Missing::Model)),
             _ => None,
         };
-        if let Some(g) = &forecast {
+        if let Some((g, ahead)) = &forecast {
             let reach = self.boat_speed * cfg.boat_period as f64;
             let fleet: Vec<horizon::Boat> = free.iter().map(|&b| horizon::Boat { position: self.boat_positions[b], reach_m: reach }).collect();
-            let f = horizon::Forecast {
-                basis: g.basis(),
-                dynamics: g.dynamics(),
-                cov: g.cov.as_ref(),
-                detail_var: &g.detail_var,
-                persistence: g.persistence,
-                period: cfg.boat_period,
-                epochs: cfg.horizon_epochs,
-            };
-            let boat_var = (cfg.boat_sigma * cfg.boat_sigma).max(1e-12);
+            let f = horizon::Forecast::of(g.basis(), ahead);
             for c in horizon::plan_within(grid, &f, &fleet, cfg.radius, boat_var, &self.excluded)? {
                 let b = free[c.boat];
                 self.boat_positions[b] = grid.centre_m(c.centre);
@@ -439,7 +442,7 @@ impl Assimilator {
         // Aerials: Lloyd under the temporal density, or (horizon) under the forecast's
         // variance, floored.
         let density = match &forecast {
-            Some(g) => {
+            Some((g, _)) => {
                 let (_, var) = g.field();
                 let top = var.iter().cloned().fold(0.0, f64::max).max(1e-300);
                 var.iter().map(|v| cfg.density_floor + (1.0 - cfg.density_floor) * v / top).collect()

@@ -1,16 +1,15 @@
 //! Placement over the horizon (`placement = "horizon"`): the boats' disks chosen by how much
-//! of the forecast's uncertainty they remove over the next `H` epochs, only where each boat can
+//! of the field's uncertainty they remove over the next `H` epochs, only where each boat can
 //! be by its sampling step, disks and boats chosen together.
 //!
-//! The forecast at the next sampling step is the filter's: modal covariance `P` (q x q, over an
-//! orthonormal basis `B`) and a detail variance `v_i` per cell. Measuring a disk `D` with noise
-//! `b` takes the modal covariance to `P (I + J P)^-1`, `J = sum_{i in D} h_i h_i^T / (v_i + b)`
-//! (the detail marginalised), and each detail variance on the disk to `v_i b / (v_i + b)`. What
-//! that removes now and at the next `H - 1` sampling steps (`p` steps apart, dynamics `A`,
-//! detail persistence `rho`) is `tr(dP M)`, `M = sum_k (A^{kp})^T A^{kp}` (the basis is
-//! orthonormal, so the field's variance is `tr` of the modal one), plus the detail's part
-//! times `sum_k rho^{2kp}`: the objective is the expected reduction of the trace of the
-//! forecast covariance summed over the horizon.
+//! The filter's look ahead ([`crate::kalman::Lookahead`]) gives, at the next sampling step with
+//! the aerials' frames until then, the modal covariance `P` (q x q, over an orthonormal basis
+//! `B`) and a detail variance `v_i` per cell, and what a value there is worth over the horizon
+//! with the aerials still observing: `tr(dP M)` for a reduction `dP` of the modal covariance,
+//! and a detail gain per cell. Measuring a disk `D` with noise `b` takes the modal covariance
+//! to `P (I + J P)^-1`, `J = sum_{i in D} h_i h_i^T / (v_i + b)` (the detail marginalised), and
+//! removes the detail gain of its cells: the objective is the expected reduction of the field's
+//! variance summed over the horizon's steps.
 //!
 //! Greedy on that objective, one disk at a time, each conditioned on the disks already chosen,
 //! among disks that do not overlap them and keep a boat for every chosen disk within reach (a
@@ -22,19 +21,24 @@ use crate::grid::{Cell, Grid};
 use faer::{Mat, MatRef};
 use pathfinding::matrix::Matrix;
 
-/// The forecast at the next sampling step, and what to plan over.
+/// The uncertainty at the next sampling step, and what a value then is worth over the horizon
+/// (the filter's [`crate::kalman::Lookahead`]).
 pub struct Forecast<'a> {
     pub basis: MatRef<'a, f64>,
-    /// One step of the modal dynamics.
-    pub dynamics: MatRef<'a, f64>,
     /// Modal covariance at the sampling step.
     pub cov: MatRef<'a, f64>,
-    /// Detail variance per cell at the sampling step, and its persistence per step.
+    /// Detail variance per cell at the sampling step.
     pub detail_var: &'a [f64],
-    pub persistence: f64,
-    /// Steps between sampling steps, and how many sampling steps to count.
-    pub period: usize,
-    pub epochs: usize,
+    /// `M`: a reduction `dP` of the modal covariance removes `tr(dP M)` over the horizon.
+    pub modal_weight: MatRef<'a, f64>,
+    /// Per cell: the detail variance a value removes over the horizon.
+    pub detail_gain: &'a [f64],
+}
+
+impl<'a> Forecast<'a> {
+    pub fn of(basis: MatRef<'a, f64>, ahead: &'a crate::kalman::Lookahead) -> Self {
+        Self { basis, cov: ahead.cov.as_ref(), detail_var: &ahead.detail_var, modal_weight: ahead.modal_weight.as_ref(), detail_gain: &ahead.detail_gain }
+    }
 }
 
 /// A boat: where it is (metres) and how far it can go before the sampling step.
@@ -71,8 +75,8 @@ pub fn plan(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, noise_va
 pub fn plan_within(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, noise_var: f64, excluded: &[bool]) -> Result<Vec<Chosen>, SensingError> {
     let (n, q) = (f.basis.nrows(), f.basis.ncols());
     grid.check_len(n).map_err(|e| SensingError::Input(e.to_string()))?;
-    if f.dynamics.nrows() != q || f.dynamics.ncols() != q || f.cov.nrows() != q || f.cov.ncols() != q || f.detail_var.len() != n {
-        return Err(SensingError::Input(format!("a forecast over {q} modes on {n} cells needs {q} x {q} dynamics and covariance and {n} detail variances")));
+    if f.modal_weight.nrows() != q || f.modal_weight.ncols() != q || f.cov.nrows() != q || f.cov.ncols() != q || f.detail_var.len() != n || f.detail_gain.len() != n {
+        return Err(SensingError::Input(format!("a forecast over {q} modes on {n} cells needs {q} x {q} weights and covariance and {n} detail variances and gains")));
     }
     if !(noise_var > 0.0 && noise_var.is_finite() && radius >= 0.0 && radius.is_finite()) {
         return Err(SensingError::Input(format!("noise variance {noise_var} and radius {radius} must be positive and finite")));
@@ -80,18 +84,10 @@ pub fn plan_within(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, n
     if let Some(b) = boats.iter().find(|b| !(b.position.0.is_finite() && b.position.1.is_finite() && b.reach_m >= 0.0)) {
         return Err(SensingError::Input(format!("boat at {:?} with reach {}", b.position, b.reach_m)));
     }
-    if f.detail_var.iter().any(|v| !(v.is_finite() && *v >= 0.0)) {
-        return Err(SensingError::Input("detail variances must be finite and >= 0".into()));
+    if f.detail_var.iter().chain(f.detail_gain).any(|v| !(v.is_finite() && *v >= 0.0)) {
+        return Err(SensingError::Input("detail variances and gains must be finite and >= 0".into()));
     }
-    // M = sum_k (A^{kp})^T A^{kp}, and the detail's weight over the same steps.
-    let step_p = (0..f.period).fold(Mat::<f64>::identity(q, q), |acc, _| f.dynamics * acc.as_ref());
-    let (mut m, mut power) = (Mat::<f64>::zeros(q, q), Mat::<f64>::identity(q, q));
-    let mut detail_weight = 0.0;
-    for k in 0..f.epochs.max(1) {
-        m += power.transpose() * power.as_ref();
-        power = step_p.as_ref() * power.as_ref();
-        detail_weight += f.persistence.powf(2.0 * (k as f64) * (f.period as f64));
-    }
+    let m = f.modal_weight.to_owned();
     // Candidate centres every half radius (every cell for small disks).
     let every = ((radius / 2.0).floor() as usize).max(1);
     let mut candidates = vec![];
@@ -109,10 +105,9 @@ pub fn plan_within(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, n
                         info[(a, b)] += h[a] * h[b] * w;
                     }
                 }
-                let v = f.detail_var[i];
-                detail_gain += v * v / (v + noise_var);
+                detail_gain += f.detail_gain[i];
             }
-            candidates.push(Candidate { at: grid.centre_m(centre), cells, centre, info, detail_gain: detail_gain * detail_weight });
+            candidates.push(Candidate { at: grid.centre_m(centre), cells, centre, info, detail_gain });
         }
     }
     let mut cov = f.cov.to_owned();
@@ -198,10 +193,10 @@ mod tests {
     fn disks_go_where_the_uncertainty_is_and_each_boat_within_reach() {
         let grid = Grid::new(10, 20, 1.0).unwrap();
         let b = left_mode(&grid);
-        let a = Mat::from_fn(1, 1, |_, _| 0.95);
+        let m = Mat::from_fn(1, 1, |_, _| 2.0);
         let p = Mat::from_fn(1, 1, |_, _| 1.0);
-        let dv = vec![1e-6; grid.len()];
-        let f = Forecast { basis: b.as_ref(), dynamics: a.as_ref(), cov: p.as_ref(), detail_var: &dv, persistence: 0.5, period: 5, epochs: 3 };
+        let (dv, gain) = (vec![1e-6; grid.len()], vec![0.0; grid.len()]);
+        let f = Forecast { basis: b.as_ref(), cov: p.as_ref(), detail_var: &dv, modal_weight: m.as_ref(), detail_gain: &gain };
         let boats = [Boat { position: (19.5, 5.5), reach_m: 100.0 }];
         let got = plan(&grid, &f, &boats, 2.0, 1e-4).unwrap();
         assert_eq!(got.len(), 1);
@@ -222,10 +217,10 @@ mod tests {
         // second disk is a different place (the first one's detail is known now).
         let grid = Grid::new(10, 20, 1.0).unwrap();
         let b = left_mode(&grid);
-        let a = Mat::from_fn(1, 1, |_, _| 0.9);
+        let m = Mat::from_fn(1, 1, |_, _| 1.8);
         let p = Mat::from_fn(1, 1, |_, _| 1e-9);
         let dv = vec![1.0; grid.len()];
-        let f = Forecast { basis: b.as_ref(), dynamics: a.as_ref(), cov: p.as_ref(), detail_var: &dv, persistence: 0.9, period: 1, epochs: 2 };
+        let f = Forecast { basis: b.as_ref(), cov: p.as_ref(), detail_var: &dv, modal_weight: m.as_ref(), detail_gain: &dv };
         let boats = [Boat { position: (0.0, 0.0), reach_m: 1e9 }, Boat { position: (20.0, 10.0), reach_m: 1e9 }];
         let got = plan(&grid, &f, &boats, 2.0, 1e-2).unwrap();
         assert_eq!(got.len(), 2);
@@ -234,12 +229,27 @@ mod tests {
     }
 
     #[test]
+    fn with_the_modes_known_a_disk_goes_where_the_aerials_leave_most_unseen() {
+        // The same detail variance everywhere at the sampling step, but the look ahead says a
+        // value in a band of columns is worth more over the horizon (what the aerials cannot
+        // see there): the disk lands in that band.
+        let grid = Grid::new(10, 20, 1.0).unwrap();
+        let b = left_mode(&grid);
+        let (m, p) = (Mat::from_fn(1, 1, |_, _| 1.0), Mat::from_fn(1, 1, |_, _| 1e-12));
+        let dv = vec![0.1; grid.len()];
+        let gain: Vec<f64> = (0..grid.len()).map(|i| if (14..17).contains(&grid.cell(i).col) { 0.3 } else { 0.05 }).collect();
+        let f = Forecast { basis: b.as_ref(), cov: p.as_ref(), detail_var: &dv, modal_weight: m.as_ref(), detail_gain: &gain };
+        let got = plan(&grid, &f, &[Boat { position: (0.0, 0.0), reach_m: 1e9 }], 1.0, 1e-2).unwrap();
+        assert!((14..17).contains(&got[0].centre.col), "the disk is at {:?}", got[0].centre);
+    }
+
+    #[test]
     fn bad_input_is_refused() {
         let grid = Grid::new(4, 4, 1.0).unwrap();
         let b = Mat::<f64>::zeros(16, 1);
         let a = Mat::<f64>::identity(1, 1);
         let dv = vec![f64::NAN; 16];
-        let f = Forecast { basis: b.as_ref(), dynamics: a.as_ref(), cov: a.as_ref(), detail_var: &dv, persistence: 0.5, period: 1, epochs: 1 };
+        let f = Forecast { basis: b.as_ref(), cov: a.as_ref(), detail_var: &dv, modal_weight: a.as_ref(), detail_gain: &dv };
         assert!(plan(&grid, &f, &[], 1.0, 1e-4).is_err());
     }
 }

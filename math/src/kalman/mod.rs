@@ -22,6 +22,9 @@
 
 use faer::{c64, Mat, MatRef};
 
+mod lookahead;
+pub use lookahead::{Lookahead, Scheduled};
+
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum FilterError {
     #[error("filter input: {0}")]
@@ -115,18 +118,11 @@ impl ModalFilter {
     /// 0 and its variance towards `s`.
     pub fn predict(&mut self) {
         let rho = self.persistence;
-        for (d, v) in self.detail.iter_mut().zip(&mut self.detail_var) {
-            *d *= rho;
-            *v = rho * rho * *v + (1.0 - rho * rho) * self.model_error;
-        }
-        let a = self.dynamics.as_ref();
+        self.detail.iter_mut().for_each(|d| *d *= rho);
+        self.detail_var = self.detail_var.iter().map(|&v| self.predicted_detail(v)).collect();
         let m = Mat::from_fn(self.dim(), 1, |i, _| self.mean[i]);
-        self.mean = (a * m).col(0).iter().copied().collect();
-        let mut p = a * self.cov.as_ref() * a.transpose();
-        for i in 0..self.dim() {
-            p[(i, i)] += self.process;
-        }
-        self.cov = symmetrised(p);
+        self.mean = (self.dynamics.as_ref() * m).col(0).iter().copied().collect();
+        self.cov = self.predicted_cov(self.cov.as_ref());
     }
 
     /// Condition on every observation of one step. Returns the innovations (observed minus
