@@ -145,6 +145,32 @@ fn draw<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, panels: &[Panel<'_>],
     Ok(())
 }
 
+/// Tick values for a log axis over `lo..hi` (> 0): 1, 2 and 5 x 10^k inside it (every
+/// mantissa 1-9 when that gives fewer than 3), and the light lines at every mantissa 1-9.
+fn log_ticks(lo: f64, hi: f64) -> (Vec<f64>, Vec<f64>) {
+    let decades = lo.log10().floor() as i32..=hi.log10().ceil() as i32;
+    let at = |mantissas: &[f64]| -> Vec<f64> { decades.clone().flat_map(|k| mantissas.iter().map(move |m| m * 10f64.powi(k))).filter(|v| *v >= lo && *v <= hi).collect() };
+    let all = at(&[1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0]);
+    let bold = at(&[1.0, 2.0, 5.0]);
+    (if bold.len() >= 3 { bold } else { all.clone() }, all)
+}
+
+/// The legend's corner: the one whose quarter of the plot (x, y already on the axis' scale)
+/// holds the fewest points.
+fn legend_corner(points: impl Iterator<Item = (f64, f64)>, (x0, x1): (f64, f64), (y0, y1): (f64, f64)) -> SeriesLabelPosition {
+    let (xm, ym) = (x0 + 0.6 * (x1 - x0), y0 + 0.5 * (y1 - y0));
+    let (xl, yl) = (x0 + 0.4 * (x1 - x0), y0 + 0.5 * (y1 - y0));
+    let mut count = [0usize; 4]; // upper right, upper left, lower right, lower left
+    for (x, y) in points {
+        count[0] += usize::from(x >= xm && y >= ym);
+        count[1] += usize::from(x <= xl && y >= ym);
+        count[2] += usize::from(x >= xm && y <= yl);
+        count[3] += usize::from(x <= xl && y <= yl);
+    }
+    let best = (0..4).min_by_key(|&i| count[i]).unwrap_or(0);
+    [SeriesLabelPosition::UpperRight, SeriesLabelPosition::UpperLeft, SeriesLabelPosition::LowerRight, SeriesLabelPosition::LowerLeft][best].clone()
+}
+
 fn format_tick(v: f64) -> String {
     if v != 0.0 && (v.abs() < 1e-2 || v.abs() >= 1e4) {
         format!("{v:.2e}")
@@ -263,6 +289,9 @@ fn bands_chart(path: impl AsRef<Path>, title: &str, x_desc: &str, y_desc: &str, 
     let root = BitMapBackend::new(path, (960, 520)).into_drawing_area();
     let e = |e: DrawingAreaErrorKind<_>| fail(e.to_string());
     root.fill(&WHITE).map_err(e)?;
+    // The legend in the corner the lines stay out of.
+    let y_at = |y: f64| if log_y { y.ln() } else { y };
+    let legend_at = legend_corner(pts().map(|(x, y)| (x, y_at(y))), (x0, x1), (y_at(y0), y_at(y1)));
     macro_rules! draw_chart {
         ($chart:expr) => {{
             let mut chart = $chart;
@@ -286,7 +315,7 @@ fn bands_chart(path: impl AsRef<Path>, title: &str, x_desc: &str, y_desc: &str, 
                     .label(s.name.clone())
                     .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
             }
-            chart.configure_series_labels().label_font((FONT, 14)).background_style(WHITE.mix(0.85)).border_style(BLACK).draw().map_err(e)?;
+            chart.configure_series_labels().position(legend_at).label_font((FONT, 14)).background_style(WHITE.mix(0.85)).border_style(BLACK).draw().map_err(e)?;
         }};
     }
     let builder = || {
@@ -295,7 +324,10 @@ fn bands_chart(path: impl AsRef<Path>, title: &str, x_desc: &str, y_desc: &str, 
         b
     };
     if log_y {
-        draw_chart!(builder().build_cartesian_2d(x0..x1, (y0 * 0.8..y1 * 1.25).log_scale()).map_err(e)?);
+        // Ticks at 1, 2, 5 x 10^k (plotters' own log ticks crowd and repeat a label near a
+        // decade).
+        let (bold, light) = log_ticks(y0 * 0.8, y1 * 1.25);
+        draw_chart!(builder().build_cartesian_2d(x0..x1, (y0 * 0.8..y1 * 1.25).log_scale().with_key_points(bold).with_light_points(light)).map_err(e)?);
     } else {
         let pad = 0.05 * (y1 - y0);
         draw_chart!(builder().build_cartesian_2d(x0..x1, (y0 - pad)..(y1 + pad)).map_err(e)?);
@@ -356,4 +388,29 @@ pub fn boxes(path: impl AsRef<Path>, title: &str, y_desc: &str, groups: &[(Strin
     }
     root.present().map_err(|er| fail(er.to_string()))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn log_ticks_are_one_two_five_inside_the_range_and_never_repeat() {
+        let (bold, light) = log_ticks(6e-5, 3.5e-3);
+        assert_eq!(bold.iter().map(|v| format_tick(*v)).collect::<Vec<_>>(), ["1.00e-4", "2.00e-4", "5.00e-4", "1.00e-3", "2.00e-3"]);
+        assert!(light.len() > bold.len() && light.iter().all(|v| (6e-5..=3.5e-3).contains(v)));
+        // Inside one decade: every mantissa.
+        let (bold, _) = log_ticks(2.5e-3, 4.5e-3);
+        assert_eq!(bold.iter().map(|v| format_tick(*v)).collect::<Vec<_>>(), ["3.00e-3", "4.00e-3"]);
+    }
+
+    #[test]
+    fn the_legend_goes_where_the_lines_are_not() {
+        // Lines along the top: the legend goes below.
+        let top = (0..50).map(|i| (i as f64, 9.0 + 0.01 * i as f64));
+        assert!(matches!(legend_corner(top, (0.0, 49.0), (0.0, 10.0)), SeriesLabelPosition::LowerRight));
+        // A line falling from the upper left to the lower right: the upper right is free.
+        let falling = (0..50).map(|i| (i as f64, 10.0 - 0.2 * i as f64));
+        assert!(matches!(legend_corner(falling, (0.0, 49.0), (0.0, 10.0)), SeriesLabelPosition::UpperRight));
+    }
 }

@@ -46,6 +46,27 @@ fn differences(events: &[ServerEvent], c: &Counters) -> String {
     format!("Why:\n\n{}\n", why.iter().map(|w| format!("- {w}")).collect::<Vec<_>>().join("\n"))
 }
 
+/// "every step", "every 5 steps".
+fn every(n: usize, unit: &str) -> String {
+    if n == 1 {
+        format!("every {unit}")
+    } else {
+        format!("every {n} {unit}s")
+    }
+}
+
+/// "1st", "2nd", "5th", "11th", "22nd".
+fn ordinal(n: usize) -> String {
+    let suffix = match (n % 10, n % 100) {
+        (_, 11..=13) => "th",
+        (1, _) => "st",
+        (2, _) => "nd",
+        (3, _) => "rd",
+        _ => "th",
+    };
+    format!("{n}{suffix}")
+}
+
 /// The report `fleet up` writes: the networked mission beside the offline loop on the same
 /// truth and seed (which it must equal), the single-kind teams, and the fleet's statistics.
 pub fn write_mission_report(
@@ -85,6 +106,20 @@ pub fn write_mission_report(
             TruthSource::NetCdf { path, variable } => format!("the variable {variable} of {}", path.display()),
         }
     )?;
+    let placement = match t.placement {
+        fleet_mission::team::Placement::Horizon => format!("horizon over {} epochs", t.horizon_epochs),
+        p => p.to_string(),
+    };
+    writeln!(
+        md,
+        "The team: aerial frames {}, of {}; boat samples {}; fusion `{}`; boats placed by `{placement}`; the model ({} DMD, learning from the `{}` estimate) refitted every boat epoch.\n",
+        every(t.aerial_period, "step"),
+        if t.aerial_stride == 1 { "every cell".to_string() } else { format!("every {} cell", ordinal(t.aerial_stride)) },
+        every(t.boat_period, "step"),
+        t.fusion,
+        t.method,
+        t.learn_from
+    )?;
     writeln!(md, "## Estimation error\n")?;
     writeln!(
         md,
@@ -106,6 +141,10 @@ pub fn write_mission_report(
         writeln!(md, "{}", differences(events, &summary.counters))?;
     }
     writeln!(md, "![MSE per step](mse.png)\n")?;
+    writeln!(
+        md,
+        "The run's files, beside this report: `estimate.nc` (the fused estimate, its variance and the truth per step, NetCDF; `fleet export` writes it again), `recording.mcap` (the Zenoh traffic the server saw and sent and its operations, MCAP: Foxglove reads it, `fleet replay` replays it), `events.jsonl`, `summary.json`, `model.cbor` and `logs/`.\n"
+    )?;
     writeln!(md, "## Fleet\n")?;
     let c = &summary.counters;
     let rejected: u64 = c.rejected.values().sum();
@@ -138,4 +177,16 @@ pub fn write_mission_report(
     )?;
     std::fs::write(dir.join("report.md"), &md)?;
     Ok(md)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rates_read_as_english() {
+        assert_eq!((every(1, "step"), every(5, "step")), ("every step".to_string(), "every 5 steps".to_string()));
+        let got: Vec<String> = [1, 2, 3, 4, 5, 11, 12, 13, 21, 22, 23, 101, 111].iter().map(|&n| ordinal(n)).collect();
+        assert_eq!(got, ["1st", "2nd", "3rd", "4th", "5th", "11th", "12th", "13th", "21st", "22nd", "23rd", "101st", "111th"]);
+    }
 }
