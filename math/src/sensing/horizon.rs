@@ -36,6 +36,7 @@ pub struct Forecast<'a> {
 }
 
 impl<'a> Forecast<'a> {
+    /// What the planner reads of a filter's look ahead, over the filter's basis.
     pub fn of(basis: MatRef<'a, f64>, ahead: &'a crate::kalman::Lookahead) -> Self {
         Self { basis, cov: ahead.cov.as_ref(), detail_var: &ahead.detail_var, modal_weight: ahead.modal_weight.as_ref(), detail_gain: &ahead.detail_gain }
     }
