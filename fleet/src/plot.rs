@@ -158,14 +158,14 @@ fn log_ticks(lo: f64, hi: f64) -> (Vec<f64>, Vec<f64>) {
 /// The legend's corner: the one whose quarter of the plot (x, y already on the axis' scale)
 /// holds the fewest points.
 fn legend_corner(points: impl Iterator<Item = (f64, f64)>, (x0, x1): (f64, f64), (y0, y1): (f64, f64)) -> SeriesLabelPosition {
-    let (xm, ym) = (x0 + 0.6 * (x1 - x0), y0 + 0.5 * (y1 - y0));
-    let (xl, yl) = (x0 + 0.4 * (x1 - x0), y0 + 0.5 * (y1 - y0));
+    // The legend is about 40% of the plot wide and half of it high.
+    let (right, left, mid) = (x0 + 0.6 * (x1 - x0), x0 + 0.4 * (x1 - x0), y0 + 0.5 * (y1 - y0));
     let mut count = [0usize; 4]; // upper right, upper left, lower right, lower left
     for (x, y) in points {
-        count[0] += usize::from(x >= xm && y >= ym);
-        count[1] += usize::from(x <= xl && y >= ym);
-        count[2] += usize::from(x >= xm && y <= yl);
-        count[3] += usize::from(x <= xl && y <= yl);
+        count[0] += usize::from(x >= right && y >= mid);
+        count[1] += usize::from(x <= left && y >= mid);
+        count[2] += usize::from(x >= right && y <= mid);
+        count[3] += usize::from(x <= left && y <= mid);
     }
     let best = (0..4).min_by_key(|&i| count[i]).unwrap_or(0);
     [SeriesLabelPosition::UpperRight, SeriesLabelPosition::UpperLeft, SeriesLabelPosition::LowerRight, SeriesLabelPosition::LowerLeft][best].clone()

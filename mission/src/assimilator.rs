@@ -343,7 +343,7 @@ impl Assimilator {
         // The detail: the aerial estimate at every cell (noise, interpolation and the
         // calibrated extra), then the boats.
         let all: Vec<usize> = (0..aerial.estimate.values.len()).collect();
-        let aerial_var: Vec<f64> = (0..all.len()).map(|i| (aerial.estimate.variance[i] + aerial.interpolation[i] + aerial_extra).max(1e-12)).collect();
+        let aerial_var = aerial_detail_variance(&aerial.estimate.variance, &aerial.interpolation, aerial_extra);
         f.update_detail(&[Observation { cells: &all, values: &aerial.estimate.values, variance: &aerial_var }, boats])?;
         // The boats' innovations against the forecast: their expected square is the forecast's
         // variance there plus the boats' noise.
@@ -398,7 +398,7 @@ impl Assimilator {
             (Placement::Horizon, Some((f, at)), Some(held)) => {
                 let to = (cfg.boat_period as u64).saturating_sub(*at).max(1) as usize;
                 let variance: Vec<f64> = self.lattice.iter().map(|&c| held.variance[c].max(1e-12)).collect();
-                let everywhere: Vec<f64> = (0..grid.len()).map(|i| (held.variance[i] + self.held_interpolation[i] + self.aerial_extra).max(1e-12)).collect();
+                let everywhere = aerial_detail_variance(&held.variance, &self.held_interpolation, self.aerial_extra);
                 let aerials = kalman::Scheduled { cells: &self.lattice, variance: &variance, everywhere: &everywhere };
                 Some((f.ahead(to), f.look_ahead(to, cfg.horizon_epochs * cfg.boat_period, &aerials, boat_var)?))
             }
@@ -548,6 +548,13 @@ pub fn to_mat(cols: &[Vec<f64>]) -> Mat<f64> {
 }
 
 /// The variance of a set of values (0 for none).
+/// The aerial estimate's error variance per cell as the filter's detail sees it: its noise,
+/// the interpolation's error and the calibrated extra (one definition for the update and for
+/// the look ahead that plans on it).
+fn aerial_detail_variance(noise: &[f64], interpolation: &[f64], extra: f64) -> Vec<f64> {
+    noise.iter().zip(interpolation).map(|(v, i)| (v + i + extra).max(1e-12)).collect()
+}
+
 fn variance_of(v: &[f64]) -> f64 {
     if v.is_empty() {
         return 0.0;
