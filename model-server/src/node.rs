@@ -549,6 +549,10 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let epoch_timeout = (s.mission.pace.epoch_timeout_ms > 0).then(|| Duration::from_millis(s.mission.pace.epoch_timeout_ms));
     let mut since = (s.core.next_epoch(), Instant::now());
     let mut done_at: Option<Instant> = None;
+    // The summary as written when the mission finished: batches may still come after it (a
+    // vehicle re-sends until it sees its ack) and are recorded, so its counters are brought up
+    // to date when the server leaves.
+    let mut finished: Option<ServerSummary> = None;
     let linger = Duration::from_millis(args.linger_ms);
     loop {
         tokio::select! {
@@ -594,6 +598,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
                 write_outputs(dir, &summary, &s.core, s.mission.pace.horizon)?;
             }
             info!(epochs = summary.epochs, batches = summary.counters.batches, p99_ms = summary.latency_ms.p99, "mission finished");
+            finished = Some(summary.clone());
             s.event(&ServerEvent::Finished { summary: Box::new(summary) });
             // Observers see the end at once, not at the next tick (which may never come).
             s.put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
@@ -602,6 +607,12 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             if args.exit_when_done && (s.alive.is_empty() || t.elapsed() > linger) {
                 break;
             }
+        }
+    }
+    if let (Some(mut summary), Some(dir)) = (finished, &args.out) {
+        if summary.counters != s.core.counters {
+            summary.counters = s.core.counters.clone();
+            std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(&summary)?).with_context(|| format!("writing {}/summary.json", dir.display()))?;
         }
     }
     // The last word on the status key, whatever ended the loop.
