@@ -425,3 +425,38 @@ fn a_late_batch_refits_from_the_newest_checkpoint_before_it_to_the_same_model() 
     assert_eq!(server.counters.refit_epochs, epochs - 12, "re-fitted from epoch 12 (the checkpoint at or before 13)");
     equals_offline(&server, all, offline);
 }
+
+/// An experiment that places the boats itself: the plans of the epoch follow, the boats'
+/// batches are checked against the new disks, and a malformed redirect is refused.
+#[test]
+fn boats_redirected_for_an_epoch_sense_the_new_disks() {
+    let (truth, grid, cfg) = plume_team();
+    let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
+    let mut brains = brains_of(&server, &cfg, grid);
+    let truth_at = |k: usize| truth.snapshots.col(k).iter().copied().collect::<Vec<f64>>();
+    let disk = grid.disk(fleet::grid::Cell::new(12, 24), cfg.radius);
+    let mut redirected = false;
+    for e in 0..server.schedule().epochs() {
+        if e > 0 && !redirected && !server.schedule().sample_steps(VehicleKind::Boat, e).is_empty() {
+            let bad = server.redirect_boats(e, vec![None; 2]).unwrap_err().to_string();
+            assert!(bad.contains("2 disks for 3 boats"), "{bad}");
+            let bad = server.redirect_boats(e, vec![Some((vec![grid.len()], (12, 24))), None, None]).unwrap_err().to_string();
+            assert!(bad.contains("leaves the 24 x 48 grid"), "{bad}");
+            assert!(server.redirect_boats(e - 1, vec![None; 3]).is_err(), "an assimilated epoch");
+            server.redirect_boats(e, vec![None, Some((disk.clone(), (12, 24))), None]).unwrap();
+            let plan = server.plan("boat-2", e, 1).unwrap();
+            assert!(plan.targets.iter().all(|t| t.cells.iter().map(|&c| c as usize).eq(disk.iter().copied())));
+            assert!(server.plan("boat-1", e, 1).unwrap().targets.iter().all(|t| t.cells.is_empty()), "a boat without a disk senses nothing");
+            redirected = true;
+        }
+        for brain in &mut brains {
+            brain.set_plan(server.plan(&brain.id, e, 1).unwrap());
+            if let Some(b) = brain.sense_epoch(e, truth_at).unwrap() {
+                server.ingest(b).unwrap();
+            }
+        }
+        assert_eq!(server.next_epoch(), e + 1, "epoch {e} assimilated with the redirected boats' batches");
+    }
+    assert!(redirected);
+    assert_eq!(server.counters.rejected.values().sum::<u64>(), 0);
+}

@@ -74,3 +74,58 @@ fn same_seed_same_numbers() {
     let b = serde_json::to_string(&run(&cfg, &truth, |_, _| {}).unwrap()).unwrap();
     assert_eq!(a, b);
 }
+
+/// The oracle's disk choice on a known error map: two hot spots, the hotter first, the third
+/// disk where what is left is largest, none overlapping and none on excluded cells.
+#[test]
+fn the_oracle_puts_disks_where_the_error_is() {
+    use fleet::experiment::team::where_the_error_is;
+    use fleet::grid::{Cell, Grid};
+    let grid = Grid::new(20, 40, 1.0).unwrap();
+    let mut err2 = vec![0.001; grid.len()];
+    err2[grid.index(Cell::new(5, 30))] = 7.0;
+    err2[grid.index(Cell::new(14, 8))] = 4.0;
+    err2[grid.index(Cell::new(15, 8))] = 4.0; // the second spot, hotter than the first summed over a disk
+    err2[grid.index(Cell::new(2, 2))] = 1.0;
+    let mut excluded = vec![false; grid.len()];
+    let disks = where_the_error_is(&grid, &err2, 3, 2.0, &excluded);
+    let centres: Vec<(usize, usize)> = disks.iter().map(|d| d.1).collect();
+    assert!(disks[0].0.contains(&grid.index(Cell::new(14, 8))) && disks[0].0.contains(&grid.index(Cell::new(15, 8))), "the disk with most error first: {centres:?}");
+    assert!(disks[1].0.contains(&grid.index(Cell::new(5, 30))), "{centres:?}");
+    assert!(disks[2].0.contains(&grid.index(Cell::new(2, 2))), "{centres:?}");
+    let mut seen = std::collections::BTreeSet::new();
+    assert!(disks.iter().flat_map(|d| &d.0).all(|c| seen.insert(*c)), "disks overlap");
+    // Fenced off, the hottest spot is not taken; and no more disks than fit.
+    for r in 0..20 {
+        for c in 20..40 {
+            excluded[grid.index(Cell::new(r, c))] = true;
+        }
+    }
+    let fenced = where_the_error_is(&grid, &err2, 3, 2.0, &excluded);
+    assert!(fenced.iter().flat_map(|d| &d.0).all(|&c| !excluded[c]));
+    assert!(!fenced.iter().any(|d| d.0.contains(&grid.index(Cell::new(5, 30)))));
+    assert_eq!(where_the_error_is(&Grid::new(3, 3, 1.0).unwrap(), &[1.0; 9], 4, 5.0, &[]).len(), 1, "one disk covers the grid");
+}
+
+/// The oracle (boats sent where a copy of the fleet, boats idle, is furthest from the truth)
+/// beats QR on the tiny cloud, paired over 10 seeds: if its disks were not where the boats
+/// went (or not where the error is) it would be no better than QR.
+#[test]
+fn boats_sent_where_the_error_is_beat_qr() {
+    use fleet::experiment::stats::{Interval, Verdict};
+    use fleet::experiment::team::run_oracle;
+    let truth = tiny_cloud();
+    let (mut qr, mut oracle) = (vec![], vec![]);
+    for seed in 1..=10 {
+        let cfg = TeamConfig { seed, ..tiny_config() };
+        let q = run(&cfg, &truth, |_, _| {}).unwrap();
+        let o = run_oracle(&cfg, &truth).unwrap();
+        assert_eq!(o.scored_from, q.scored_from);
+        assert_ne!(o.disks, q.disks, "seed {seed}: the oracle's disks are QR's");
+        qr.push(q.mean_heterogeneous);
+        oracle.push(o.mean_heterogeneous);
+    }
+    let d = Interval::paired(&oracle, &qr);
+    println!("oracle - QR, 10 seeds [95%]: {d:?}");
+    assert_eq!(Verdict::of(&d), Verdict::Better);
+}

@@ -99,6 +99,33 @@ pub struct Assimilator {
     between_lattice: Vec<usize>,
 }
 
+impl Clone for Assimilator {
+    /// An independent copy (the model is cloned through [`Dmd::boxed`]): an offline experiment
+    /// can try an epoch on the copy and keep the original.
+    fn clone(&self) -> Self {
+        Self {
+            cfg: self.cfg.clone(),
+            grid: self.grid,
+            dmd: self.dmd,
+            model: self.model.as_ref().map(|m| m.boxed()),
+            snapshots: self.snapshots.clone(),
+            fitted: self.fitted.clone(),
+            held_aerial: self.held_aerial.clone(),
+            held_interpolation: self.held_interpolation.clone(),
+            pred_var: self.pred_var,
+            aerial_extra: self.aerial_extra,
+            placement_rng: self.placement_rng.clone(),
+            boat_positions: self.boat_positions.clone(),
+            aerial_positions: self.aerial_positions.clone(),
+            filter: self.filter.clone(),
+            boat_speed: self.boat_speed,
+            excluded: self.excluded.clone(),
+            lattice: self.lattice.clone(),
+            between_lattice: self.between_lattice.clone(),
+        }
+    }
+}
+
 /// The Assimilator's state between two epochs, without its snapshots (they are only appended
 /// to: a checkpoint keeps how many there were) nor the fitted model (recomputed from the model
 /// and the newest snapshot, bit for bit).
@@ -113,6 +140,23 @@ pub struct AssimilatorCheckpoint {
     boat_positions: Vec<(f64, f64)>,
     aerial_positions: Vec<(f64, f64)>,
     filter: Option<(ModalFilter, u64)>,
+}
+
+impl Clone for AssimilatorCheckpoint {
+    fn clone(&self) -> Self {
+        Self {
+            model: self.model.as_ref().map(|m| m.boxed()),
+            snapshots: self.snapshots,
+            held_aerial: self.held_aerial.clone(),
+            held_interpolation: self.held_interpolation.clone(),
+            pred_var: self.pred_var,
+            aerial_extra: self.aerial_extra,
+            placement_rng: self.placement_rng.clone(),
+            boat_positions: self.boat_positions.clone(),
+            aerial_positions: self.aerial_positions.clone(),
+            filter: self.filter.clone(),
+        }
+    }
 }
 
 impl Assimilator {
@@ -187,6 +231,13 @@ impl Assimilator {
     /// they can reach by their sampling step.
     pub fn set_boat_speed(&mut self, speed: f64) {
         self.boat_speed = speed;
+    }
+
+    /// Where boat `slot` will be (an experiment that places the boats itself says so).
+    pub fn set_boat_position(&mut self, slot: usize, position: (f64, f64)) {
+        if let Some(p) = self.boat_positions.get_mut(slot) {
+            *p = position;
+        }
     }
 
     pub fn boat_speed(&self) -> f64 {

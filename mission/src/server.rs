@@ -108,6 +108,7 @@ pub struct Counters {
     pub sessions_refused: u64,
 }
 
+#[derive(Clone)]
 pub struct ServerCore {
     cfg: TeamConfig,
     schedule: Schedule,
@@ -552,6 +553,32 @@ impl ServerCore {
             return Some(Allocation { boats: vec![None; self.cfg.boats], aerials: self.assim.aerial_positions().to_vec(), held: BTreeSet::new() });
         }
         self.plans.get(&e).cloned()
+    }
+
+    /// Send the boats somewhere else in epoch `e` (planned, not yet assimilated): `boats[slot]`
+    /// is a disk's cells and centre `(row, col)`, or `None` for a boat that stays and senses
+    /// nothing. The vehicles' plans for `e` follow. For offline experiments that place the
+    /// boats themselves (the oracle of `fleet experiment`): a re-fit from an earlier epoch
+    /// (a late batch) re-plans `e` and forgets this.
+    pub fn redirect_boats(&mut self, e: u64, boats: Vec<Option<crate::assimilator::BoatDisk>>) -> Result<(), TeamError> {
+        let grid = *self.assim.grid();
+        if boats.len() != self.cfg.boats {
+            return Err(TeamError::Config(format!("redirect_boats: {} disks for {} boats", boats.len(), self.cfg.boats)));
+        }
+        if let Some((_, (r, c))) = boats.iter().flatten().find(|(cells, (r, c))| cells.iter().any(|&i| i >= grid.len()) || !grid.contains(crate::grid::Cell::new(*r, *c))) {
+            return Err(TeamError::Config(format!("redirect_boats: the disk at ({r}, {c}) leaves the {} x {} grid", grid.rows, grid.cols)));
+        }
+        if e < self.epoch || e == 0 {
+            return Err(TeamError::Config(format!("redirect_boats: epoch {e} is not planned and open (next to assimilate: {})", self.epoch)));
+        }
+        let plan = self.plans.get_mut(&e).ok_or_else(|| TeamError::Config(format!("redirect_boats: epoch {e} has no plan yet")))?;
+        for (slot, b) in boats.iter().enumerate() {
+            if let Some((_, (r, c))) = b {
+                self.assim.set_boat_position(slot, grid.centre_m(crate::grid::Cell::new(*r, *c)));
+            }
+        }
+        plan.boats = boats;
+        Ok(())
     }
 
     /// The plan of one vehicle from epoch `e` on: where to be and what to sense at each of

@@ -36,6 +36,7 @@ pub struct Fix {
     pub arrived: bool,
 }
 
+#[derive(Clone)]
 pub struct VehicleBrain {
     pub id: String,
     pub kind: VehicleKind,

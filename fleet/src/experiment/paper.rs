@@ -61,6 +61,11 @@ pub struct ExperimentConfig {
     /// `heterogeneous-<placement>` and compared with both.
     #[serde(default)]
     pub extra_placements: Vec<Placement>,
+    /// Also run the oracle, a diagnostic that knows the truth: the boats' disks go where the
+    /// estimate's error is (see [`team::run_oracle`]). Reported as `heterogeneous-oracle` and
+    /// compared with QR, random and the extra placements: how much placement could buy.
+    #[serde(default)]
+    pub oracle: bool,
     /// Simulator grid `[rows, cols]` and frames.
     pub truth_grid: [usize; 2],
     pub frames: usize,
@@ -298,6 +303,7 @@ pub const HETEROGENEOUS: &str = "heterogeneous";
 pub const AERIAL_ONLY: &str = "aerial-only";
 pub const BOAT_ONLY: &str = "boat-only";
 pub const RANDOM: &str = "heterogeneous-random";
+pub const ORACLE: &str = "heterogeneous-oracle";
 
 /// Every team of one row and seed: the QR run (all three teams), the random-placement run, and
 /// each extra fusion scheme's run.
@@ -330,6 +336,12 @@ fn run_seed(cfg: &ExperimentConfig, r: &Row, truth: &FieldSeries, seed: u64) -> 
         mse.insert(name.clone(), other.mean_heterogeneous);
         calibration.insert(name.clone(), other.mean_calibration);
         steps.push(TeamSteps::fused(&name, &other));
+    }
+    if cfg.oracle {
+        let other = team::run_oracle(&cfg.team_for_seed(r, Placement::Qr, seed), truth)?;
+        mse.insert(ORACLE.into(), other.mean_heterogeneous);
+        calibration.insert(ORACLE.into(), other.mean_calibration);
+        steps.push(TeamSteps::fused(ORACLE, &other));
     }
     let result = SeedResult { seed, mse, heterogeneous_from_step0: qr.heterogeneous_from_step0, aerial_only_from_step0: qr.aerial_only_from_step0, calibration };
     Ok((result, qr, steps))
@@ -413,6 +425,13 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
             let name = format!("{HETEROGENEOUS}-{placement}");
             comparisons.push(compare(&name, HETEROGENEOUS));
             comparisons.push(compare(&name, RANDOM));
+        }
+        if cfg.oracle {
+            comparisons.push(compare(ORACLE, HETEROGENEOUS));
+            comparisons.push(compare(ORACLE, RANDOM));
+            for placement in &cfg.extra_placements {
+                comparisons.push(compare(ORACLE, &format!("{HETEROGENEOUS}-{placement}")));
+            }
         }
         let calibration = seed_results[0].calibration.keys().map(|t| (t.clone(), Interval::of(&seed_results.iter().map(|s| s.calibration[t]).collect::<Vec<_>>()))).collect();
         let at_most_best_single = at_most_best_single(&per_step, figure.scored_from);
@@ -573,7 +592,17 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
          The truth is one simulated cloud per preset (seed {}), as the paper has one dataset per cloud.\n",
         res.config.seed
     )?;
-    let extra: Vec<String> = res.config.extra_fusions.iter().map(|f| f.to_string()).chain(res.config.extra_placements.iter().map(|p| p.to_string())).map(|x| format!("{HETEROGENEOUS}-{x}")).collect();
+    let mut extra: Vec<String> =
+        res.config.extra_fusions.iter().map(|f| f.to_string()).chain(res.config.extra_placements.iter().map(|p| p.to_string())).map(|x| format!("{HETEROGENEOUS}-{x}")).collect();
+    if res.config.oracle {
+        extra.push(ORACLE.into());
+        writeln!(
+            md,
+            "`{ORACLE}` is a diagnostic, not a placement a fleet can use: it knows the truth. At each boat epoch a copy of the fleet senses the epoch with the boats idle, \
+             and the disks go, greedily and without overlap, where that copy's estimate at the sampling step is furthest from the truth (most squared error over the disk). \
+             Its difference from QR bounds what putting the disks where the error is could buy on that row.\n"
+        )?;
+    }
     write!(md, "| cloud | AV time | MV time | AV space | MV space | noise | model grid | scored from | heterogeneous (QR) | aerial-only | boat-only | heterogeneous (random) |")?;
     for x in &extra {
         write!(md, " {x} |")?;

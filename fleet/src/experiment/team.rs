@@ -21,8 +21,9 @@ use crate::mission;
 use crate::mission::server::ServerCore;
 pub use crate::mission::team::{Placement, TeamConfig, TeamError};
 use crate::mission::vehicle::VehicleBrain;
+use crate::mission::BoatDisk;
 use crate::process::FieldSeries;
-use crate::protocol::{Sample, VehicleKind};
+use crate::protocol::{MeasurementBatch, Sample, VehicleKind};
 use crate::sensing::gappy;
 use faer::Mat;
 use serde::Serialize;
@@ -86,7 +87,90 @@ fn column(m: &Mat<f64>, k: usize) -> Vec<f64> {
 /// fleet does (so the networked run equals this one by construction). Only the baselines are
 /// added here: the aerial-only team reads the server's aerial estimate of each step, the
 /// boat-only team builds its own model from the boats' samples.
-pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize, usize)) -> Result<TeamOutcome, TeamError> {
+pub fn run(cfg: &TeamConfig, truth: &FieldSeries, progress: impl FnMut(usize, usize)) -> Result<TeamOutcome, TeamError> {
+    run_placing(cfg, truth, false, progress)
+}
+
+/// [`run`] with the boats placed by an oracle that knows the truth (a diagnostic, not a
+/// placement a fleet can use): at each boat epoch a copy of the fleet senses the epoch with
+/// the boats idle, and the disks go where that copy's estimate at the boats' sampling steps is
+/// furthest from the truth ([`where_the_error_is`]). It bounds what putting the disks where the
+/// error is can buy over the configured placement, on the same truth and noise.
+pub fn run_oracle(cfg: &TeamConfig, truth: &FieldSeries) -> Result<TeamOutcome, TeamError> {
+    run_placing(cfg, truth, true, |_, _| {})
+}
+
+/// Every vehicle senses epoch `e` under the server's plan; their batches.
+fn sense(server: &ServerCore, brains: &mut [VehicleBrain], e: u64, truth_at: &impl Fn(usize) -> Vec<f64>) -> Result<Vec<MeasurementBatch>, TeamError> {
+    let mut batches = vec![];
+    for brain in brains {
+        let plan = server.plan(&brain.id, e, 1).ok_or_else(|| TeamError::Config(format!("no plan of {} for epoch {e}", brain.id)))?;
+        brain.set_plan(plan);
+        batches.extend(brain.sense_epoch(e, truth_at)?);
+    }
+    Ok(batches)
+}
+
+/// The server assimilates epoch `e` from `batches` (every batch of it).
+fn assimilate(server: &mut ServerCore, batches: Vec<MeasurementBatch>, e: u64) -> Result<(), TeamError> {
+    for b in batches {
+        server.ingest(b).map_err(|err| match err {
+            crate::mission::server::IngestError::Model(m) => m,
+            other => TeamError::Config(other.to_string()),
+        })?;
+    }
+    if server.next_epoch() != e + 1 {
+        return Err(TeamError::Config(format!("epoch {e} was not assimilated with every batch in")));
+    }
+    Ok(())
+}
+
+/// The oracle's disks for boat epoch `e`: a copy of the server and the vehicles (the same
+/// random streams, so the same aerial noise) runs the epoch with the boats idle; the squared
+/// error of its estimate, summed over the boats' sampling steps, is what the disks should
+/// cover.
+fn oracle_disks(server: &ServerCore, brains: &[VehicleBrain], e: u64, truth_at: &impl Fn(usize) -> Vec<f64>, cfg: &TeamConfig) -> Result<Vec<Option<BoatDisk>>, TeamError> {
+    let grid = *server.assimilator().grid();
+    let mut probe = server.clone();
+    probe.redirect_boats(e, vec![None; cfg.boats])?;
+    let mut copies = brains.to_vec();
+    let batches = sense(&probe, &mut copies, e, truth_at)?;
+    assimilate(&mut probe, batches, e)?;
+    let mut err2 = vec![0.0; grid.len()];
+    for k in probe.schedule().sample_steps(VehicleKind::Boat, e) {
+        for ((s, x), t) in err2.iter_mut().zip(&probe.snapshots[k]).zip(truth_at(k)) {
+            *s += (x - t).powi(2);
+        }
+    }
+    let excluded = cfg.fence.as_ref().map_or_else(|| vec![false; grid.len()], |f| f.excluded(&grid));
+    Ok(where_the_error_is(&grid, &err2, cfg.boats, cfg.radius, &excluded).into_iter().map(Some).chain(std::iter::repeat(None)).take(cfg.boats).collect())
+}
+
+/// Up to `m` disks of `radius`, not overlapping and outside `excluded`, chosen greedily by the
+/// most `err2` summed over the disk: the disk with the most first, then the most among those
+/// that do not touch it, and so on. Each is `(cells, centre)`.
+pub fn where_the_error_is(grid: &Grid, err2: &[f64], m: usize, radius: f64, excluded: &[bool]) -> Vec<BoatDisk> {
+    let mut taken = excluded.to_vec();
+    taken.resize(grid.len(), false);
+    let disks: Vec<(Vec<usize>, f64)> = (0..grid.len())
+        .map(|i| grid.disk(grid.cell(i), radius))
+        .map(|d| {
+            let sum = d.iter().map(|&c| err2[c]).sum();
+            (d, sum)
+        })
+        .collect();
+    let mut out = vec![];
+    while out.len() < m {
+        let best = disks.iter().enumerate().filter(|(_, (d, _))| !d.is_empty() && d.iter().all(|&c| !taken[c])).max_by(|a, b| a.1 .1.total_cmp(&b.1 .1).then(b.0.cmp(&a.0)));
+        let Some((i, (d, _))) = best else { break };
+        d.iter().for_each(|&c| taken[c] = true);
+        let centre = grid.cell(i);
+        out.push((d.clone(), (centre.row, centre.col)));
+    }
+    out
+}
+
+fn run_placing(cfg: &TeamConfig, truth: &FieldSeries, oracle: bool, mut progress: impl FnMut(usize, usize)) -> Result<TeamOutcome, TeamError> {
     let grid = Grid::new(truth.rows, truth.cols, 1.0)?;
     let frames = truth.frames();
     let mut server = ServerCore::new(cfg, grid, frames)?;
@@ -136,23 +220,14 @@ pub fn run(cfg: &TeamConfig, truth: &FieldSeries, mut progress: impl FnMut(usize
 
     for e in 0..server.schedule().epochs() {
         let steps = server.steps_of(e);
+        if oracle && e > 0 && !server.schedule().sample_steps(VehicleKind::Boat, e).is_empty() {
+            let disks = oracle_disks(&server, &brains, e, &truth_at, cfg)?;
+            server.redirect_boats(e, disks)?;
+        }
         let allocation = server.allocation(e).ok_or_else(|| TeamError::Config(format!("no allocation for epoch {e}")))?;
-        let mut batches = vec![];
-        for brain in &mut brains {
-            let plan = server.plan(&brain.id, e, 1).ok_or_else(|| TeamError::Config(format!("no plan of {} for epoch {e}", brain.id)))?;
-            brain.set_plan(plan);
-            batches.extend(brain.sense_epoch(e, truth_at)?);
-        }
+        let batches = sense(&server, &mut brains, e, &truth_at)?;
         let boat_samples: Vec<Sample> = batches.iter().filter(|b| b.kind == VehicleKind::Boat).flat_map(|b| b.samples.iter().cloned()).collect();
-        for b in batches {
-            server.ingest(b).map_err(|err| match err {
-                crate::mission::server::IngestError::Model(m) => m,
-                other => TeamError::Config(other.to_string()),
-            })?;
-        }
-        if server.next_epoch() != e + 1 {
-            return Err(TeamError::Config(format!("epoch {e} was not assimilated with every batch in")));
-        }
+        assimilate(&mut server, batches, e)?;
         for k in steps.clone() {
             let x = truth_at(k);
             out.heterogeneous.push(mse(&server.snapshots[k], &x));
