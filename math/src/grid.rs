@@ -109,6 +109,21 @@ impl Grid {
         Ok(())
     }
 
+    /// `|grad x|^2` at every cell, per cell (not per metre): central differences inside,
+    /// one-sided at the borders (exact for a linear field everywhere).
+    pub fn squared_gradient(&self, field: &[f64]) -> Result<Vec<f64>, GridError> {
+        self.check_len(field.len())?;
+        let slope = |lo: usize, hi: usize, at: &dyn Fn(usize) -> f64| if hi > lo { (at(hi) - at(lo)) / (hi - lo) as f64 } else { 0.0 };
+        Ok((0..self.len())
+            .map(|i| {
+                let Cell { row, col } = self.cell(i);
+                let along = slope(col.saturating_sub(1), (col + 1).min(self.cols - 1), &|c| field[row * self.cols + c]);
+                let across = slope(row.saturating_sub(1), (row + 1).min(self.rows - 1), &|r| field[r * self.cols + col]);
+                along * along + across * across
+            })
+            .collect())
+    }
+
     /// Flat indices of the cells whose centres lie within `radius` cells of `centre`'s centre
     /// (paper eq. sensing-region), clipped at the borders, in increasing index order.
     pub fn disk(&self, centre: Cell, radius: f64) -> Vec<usize> {
@@ -301,6 +316,16 @@ pub fn area_average(values: &[f64], rows: usize, cols: usize, to_rows: usize, to
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn squared_gradient_is_exact_on_a_linear_field() {
+        let g = super::Grid::new(4, 6, 1.0).unwrap();
+        let x: Vec<f64> = (0..g.len()).map(|i| 2.0 * g.cell(i).col as f64 - 0.5 * g.cell(i).row as f64 + 3.0).collect();
+        assert!(g.squared_gradient(&x).unwrap().iter().all(|v| (v - 4.25).abs() < 1e-12));
+        assert!(g.squared_gradient(&x[1..]).is_err());
+        let one_row = super::Grid::new(1, 3, 1.0).unwrap();
+        assert_eq!(one_row.squared_gradient(&[0.0, 1.0, 4.0]).unwrap(), vec![1.0, 4.0, 9.0], "one-sided at the ends, no slope across a single row");
+    }
+
     use super::*;
 
     #[test]

@@ -84,6 +84,10 @@ pub struct Assimilator {
     held_interpolation: Vec<f64>,
     pred_var: f64,
     aerial_extra: f64,
+    /// `fusion = "kalman"`: the variance (cells^2 per axis) of a displacement of the field's
+    /// features the filter does not model, read from the boats' innovations
+    /// ([`kalman::displacement_variance`]); horizon placement counts what a value removes of it.
+    displacement: f64,
     placement_rng: ChaCha8Rng,
     boat_positions: Vec<(f64, f64)>,
     aerial_positions: Vec<(f64, f64)>,
@@ -114,6 +118,7 @@ impl Clone for Assimilator {
             held_interpolation: self.held_interpolation.clone(),
             pred_var: self.pred_var,
             aerial_extra: self.aerial_extra,
+            displacement: self.displacement,
             placement_rng: self.placement_rng.clone(),
             boat_positions: self.boat_positions.clone(),
             aerial_positions: self.aerial_positions.clone(),
@@ -136,6 +141,7 @@ pub struct AssimilatorCheckpoint {
     held_interpolation: Vec<f64>,
     pred_var: f64,
     aerial_extra: f64,
+    displacement: f64,
     placement_rng: ChaCha8Rng,
     boat_positions: Vec<(f64, f64)>,
     aerial_positions: Vec<(f64, f64)>,
@@ -151,6 +157,7 @@ impl Clone for AssimilatorCheckpoint {
             held_interpolation: self.held_interpolation.clone(),
             pred_var: self.pred_var,
             aerial_extra: self.aerial_extra,
+            displacement: self.displacement,
             placement_rng: self.placement_rng.clone(),
             boat_positions: self.boat_positions.clone(),
             aerial_positions: self.aerial_positions.clone(),
@@ -169,6 +176,7 @@ impl Assimilator {
             held_interpolation: self.held_interpolation.clone(),
             pred_var: self.pred_var,
             aerial_extra: self.aerial_extra,
+            displacement: self.displacement,
             placement_rng: self.placement_rng.clone(),
             boat_positions: self.boat_positions.clone(),
             aerial_positions: self.aerial_positions.clone(),
@@ -182,7 +190,7 @@ impl Assimilator {
         self.snapshots.truncate(c.snapshots);
         self.held_aerial = c.held_aerial.clone();
         self.held_interpolation = c.held_interpolation.clone();
-        (self.pred_var, self.aerial_extra) = (c.pred_var, c.aerial_extra);
+        (self.pred_var, self.aerial_extra, self.displacement) = (c.pred_var, c.aerial_extra, c.displacement);
         self.placement_rng = c.placement_rng.clone();
         self.boat_positions = c.boat_positions.clone();
         self.aerial_positions = c.aerial_positions.clone();
@@ -216,6 +224,7 @@ impl Assimilator {
             held_interpolation: vec![0.0; grid.len()],
             pred_var: 1.0,
             aerial_extra: 0.0,
+            displacement: 0.0,
             placement_rng,
             boat_positions,
             aerial_positions,
@@ -364,6 +373,8 @@ impl Assimilator {
         let boat_var = (self.cfg.boat_sigma * self.cfg.boat_sigma).max(1e-12);
         let aerial_extra = self.aerial_extra;
         let between_lattice = &self.between_lattice;
+        let grid = self.grid;
+        let displacement = &mut self.displacement;
         let Some((f, at)) = self.filter.as_mut() else { return Err(TeamError::NotReady(Missing::Model)) };
         while *at < ahead {
             f.predict();
@@ -408,6 +419,17 @@ impl Assimilator {
             f.model_error = (0.7 * f.model_error + 0.3 * s_hat).clamp(1e-12, field_var);
             let nis = (d2 / expected).clamp(0.25, 4.0);
             f.process = (f.process * nis.sqrt()).clamp(1e-12, field_var);
+            // The displacement the filter does not model, from the same innovations against
+            // the forecast's squared gradient; smoothed as the model error is, and never more
+            // than the grid's own extent (it cannot run away).
+            let grad2 = grid.squared_gradient(&prior_mean)?;
+            let innovation2: Vec<f64> = cells.iter().zip(vals).map(|(&c, v)| (v - prior_mean[c]).powi(2)).collect();
+            let expected: Vec<f64> = cells.iter().map(|&c| prior_var[c] + boat_var).collect();
+            let at: Vec<f64> = cells.iter().map(|&c| grad2[c]).collect();
+            if let Some(s2) = kalman::displacement_variance(&innovation2, &expected, &at) {
+                let extent = (grid.rows * grid.rows + grid.cols * grid.cols) as f64;
+                *displacement = (0.7 * *displacement + 0.3 * s2).min(extent);
+            }
         }
         let (values, variance) = f.field();
         Ok(Estimate { values, variance })
@@ -451,15 +473,20 @@ impl Assimilator {
                 let variance: Vec<f64> = self.lattice.iter().map(|&c| held.variance[c].max(1e-12)).collect();
                 let everywhere = aerial_detail_variance(&held.variance, &self.held_interpolation, self.aerial_extra);
                 let aerials = kalman::Scheduled { cells: &self.lattice, variance: &variance, everywhere: &everywhere };
-                Some((f.ahead(to), f.look_ahead(to, cfg.horizon_epochs * cfg.boat_period, &aerials, boat_var)?))
+                let g = f.ahead(to);
+                let (mean, var) = g.field();
+                Some((g, f.look_ahead(to, cfg.horizon_epochs * cfg.boat_period, &aerials, boat_var)?, mean, var))
             }
             (Placement::Horizon, _, _) => return Err(TeamError::NotReady(Missing::Model)),
             _ => None,
         };
-        if let Some((g, ahead)) = &forecast {
+        if let Some((g, ahead, mean, _)) = &forecast {
             let reach = self.boat_speed * cfg.boat_period as f64;
             let fleet: Vec<horizon::Boat> = free.iter().map(|&b| horizon::Boat { position: self.boat_positions[b], reach_m: reach }).collect();
-            let f = horizon::Forecast::of(g.basis(), ahead);
+            // What the filter does not model at the sampling step: the forecast's features
+            // displaced, of variance s2 |grad x|^2 per cell.
+            let unmodelled: Vec<f64> = grid.squared_gradient(mean)?.iter().map(|g2| self.displacement * g2).collect();
+            let f = horizon::Forecast::of(g.basis(), ahead).with_unmodelled(&unmodelled);
             for c in horizon::plan_within(grid, &f, &fleet, cfg.radius, boat_var, &self.excluded)? {
                 let b = free[c.boat];
                 self.boat_positions[b] = grid.centre_m(c.centre);
@@ -493,8 +520,7 @@ impl Assimilator {
         // Aerials: Lloyd under the temporal density, or (horizon) under the forecast's
         // variance, floored.
         let density = match &forecast {
-            Some((g, _)) => {
-                let (_, var) = g.field();
+            Some((_, _, _, var)) => {
                 let top = var.iter().cloned().fold(0.0, f64::max).max(1e-300);
                 var.iter().map(|v| cfg.density_floor + (1.0 - cfg.density_floor) * v / top).collect()
             }

@@ -47,6 +47,10 @@ pub struct Lookahead {
     /// Per cell: the detail variance one value with the boats' noise at the sampling step
     /// removes, summed over the horizon's steps.
     pub detail_gain: Vec<f64>,
+    /// Per cell: the weight the detail's update gives a value with the boats' noise at the
+    /// sampling step, after the aerials' update there (`v / (v + noise)`): the share of an
+    /// error the filter does not model that the value corrects.
+    pub value_weight: Vec<f64>,
 }
 
 impl ModalFilter {
@@ -74,7 +78,7 @@ impl ModalFilter {
         let (mut p, mut d) = (self.cov.clone(), self.detail_var.clone());
         let mut at_sampling: Option<(Mat<f64>, Vec<f64>)> = None;
         let (mut phi, mut m) = (Mat::<f64>::identity(q, q), Mat::<f64>::identity(q, q));
-        let (mut with_value, mut gain) = (vec![], vec![0.0; n]);
+        let (mut with_value, mut gain, mut weight) = (vec![], vec![0.0; n], vec![]);
         for t in 1..to_sampling + steps {
             let predicted = self.predicted_cov(p.as_ref());
             d.iter_mut().for_each(|v| *v = self.predicted_detail(*v));
@@ -90,6 +94,7 @@ impl ModalFilter {
             }
             seen(&mut d, aerials.everywhere);
             if t == to_sampling {
+                weight = d.iter().map(|v| v / (v + sample_var)).collect();
                 with_value = d.iter().map(|v| v * sample_var / (v + sample_var)).collect();
             } else if t > to_sampling {
                 phi = faer::linalg::solvers::Solve::solve(&lu, a) * phi.as_ref();
@@ -104,7 +109,7 @@ impl ModalFilter {
         let (cov, detail_var) = at_sampling.expect("the loop passes the sampling step");
         super::check_finite("the covariance ahead", cov.col_iter().flat_map(|c| c.iter().copied().collect::<Vec<_>>()).chain(m.col_iter().flat_map(|c| c.iter().copied().collect::<Vec<_>>())))
             .map_err(|_| FilterError::Numerical("the covariance ahead lost finiteness".into()))?;
-        Ok(Lookahead { cov, detail_var, modal_weight: m, detail_gain: gain })
+        Ok(Lookahead { cov, detail_var, modal_weight: m, detail_gain: gain, value_weight: weight })
     }
 
     /// `A P A^T + q I`.
@@ -191,6 +196,7 @@ mod tests {
             let want: f64 = (0..steps).map(|t| 0.64f64.powi(t as i32) * v * v / (v + b)).sum();
             assert!((g - want).abs() < 1e-12 * want, "cell {c}: {g} against {want}");
             assert!((got.detail_var[c] - v).abs() < 1e-15);
+            assert!((got.value_weight[c] - v / (v + b)).abs() < 1e-15);
         }
     }
 
@@ -252,6 +258,11 @@ mod tests {
                     }
                 }
                 prior_detail.iter().zip(&got.detail_var).for_each(|(x, y)| assert!((x - y).abs() < 1e-15));
+            }
+            if t == 0 {
+                // The value's weight: the share of the detail's variance it removes there.
+                let k = 1.0 - with.detail_var[cell] / without.detail_var[cell];
+                assert!((got.value_weight[cell] - k).abs() < 1e-12, "weight {} against the filter's {k}", got.value_weight[cell]);
             }
             detail_removed += without.detail_var[cell] - with.detail_var[cell];
             modal_removed += modal_var(&without) - modal_var(&with_faint);

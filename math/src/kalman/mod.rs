@@ -22,7 +22,9 @@
 
 use faer::{c64, Mat, MatRef};
 
+mod displacement;
 mod lookahead;
+pub use displacement::displacement_variance;
 pub use lookahead::{Lookahead, Scheduled};
 
 #[derive(Debug, thiserror::Error, PartialEq)]

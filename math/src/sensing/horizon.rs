@@ -33,12 +33,41 @@ pub struct Forecast<'a> {
     pub modal_weight: MatRef<'a, f64>,
     /// Per cell: the detail variance a value removes over the horizon.
     pub detail_gain: &'a [f64],
+    /// Per cell: the weight the filter gives a value at the sampling step.
+    pub value_weight: &'a [f64],
+    /// Per cell: the variance of the error the filter does not model at the sampling step
+    /// (a displacement of the field's features: [`crate::kalman::displacement_variance`]);
+    /// empty: none.
+    pub unmodelled: &'a [f64],
 }
 
 impl<'a> Forecast<'a> {
     /// What the planner reads of a filter's look ahead, over the filter's basis.
     pub fn of(basis: MatRef<'a, f64>, ahead: &'a crate::kalman::Lookahead) -> Self {
-        Self { basis, cov: ahead.cov.as_ref(), detail_var: &ahead.detail_var, modal_weight: ahead.modal_weight.as_ref(), detail_gain: &ahead.detail_gain }
+        Self {
+            basis,
+            cov: ahead.cov.as_ref(),
+            detail_var: &ahead.detail_var,
+            modal_weight: ahead.modal_weight.as_ref(),
+            detail_gain: &ahead.detail_gain,
+            value_weight: &ahead.value_weight,
+            unmodelled: &[],
+        }
+    }
+
+    /// The same with an error the filter does not model, of variance `unmodelled` per cell.
+    pub fn with_unmodelled(self, unmodelled: &'a [f64]) -> Self {
+        Self { unmodelled, ..self }
+    }
+
+    /// What a value at cell `i` removes of the unmodelled error at the sampling step: an error
+    /// `u` the filter corrects with weight `k` leaves `(1 - k) u`, so `(2k - k^2) u` of its
+    /// variance goes (the value's own noise is already in the detail gain).
+    fn unmodelled_gain(&self, i: usize) -> f64 {
+        self.unmodelled.get(i).map_or(0.0, |u| {
+            let k = self.value_weight[i];
+            (2.0 * k - k * k) * u
+        })
     }
 }
 
@@ -76,8 +105,14 @@ pub fn plan(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, noise_va
 pub fn plan_within(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, noise_var: f64, excluded: &[bool]) -> Result<Vec<Chosen>, SensingError> {
     let (n, q) = (f.basis.nrows(), f.basis.ncols());
     grid.check_len(n).map_err(|e| SensingError::Input(e.to_string()))?;
-    if f.modal_weight.nrows() != q || f.modal_weight.ncols() != q || f.cov.nrows() != q || f.cov.ncols() != q || f.detail_var.len() != n || f.detail_gain.len() != n {
-        return Err(SensingError::Input(format!("a forecast over {q} modes on {n} cells needs {q} x {q} weights and covariance and {n} detail variances and gains")));
+    if f.modal_weight.nrows() != q || f.modal_weight.ncols() != q || f.cov.nrows() != q || f.cov.ncols() != q || f.detail_var.len() != n || f.detail_gain.len() != n || f.value_weight.len() != n {
+        return Err(SensingError::Input(format!("a forecast over {q} modes on {n} cells needs {q} x {q} weights and covariance and {n} detail variances, gains and value weights")));
+    }
+    if !(f.unmodelled.is_empty() || f.unmodelled.len() == n) {
+        return Err(SensingError::Input(format!("{} unmodelled variances on {n} cells", f.unmodelled.len())));
+    }
+    if f.value_weight.iter().any(|k| !(0.0..=1.0).contains(k)) {
+        return Err(SensingError::Input("value weights must be in [0, 1]".into()));
     }
     if !(noise_var > 0.0 && noise_var.is_finite() && radius >= 0.0 && radius.is_finite()) {
         return Err(SensingError::Input(format!("noise variance {noise_var} and radius {radius} must be positive and finite")));
@@ -85,8 +120,8 @@ pub fn plan_within(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, n
     if let Some(b) = boats.iter().find(|b| !(b.position.0.is_finite() && b.position.1.is_finite() && b.reach_m >= 0.0)) {
         return Err(SensingError::Input(format!("boat at {:?} with reach {}", b.position, b.reach_m)));
     }
-    if f.detail_var.iter().chain(f.detail_gain).any(|v| !(v.is_finite() && *v >= 0.0)) {
-        return Err(SensingError::Input("detail variances and gains must be finite and >= 0".into()));
+    if f.detail_var.iter().chain(f.detail_gain).chain(f.unmodelled).any(|v| !(v.is_finite() && *v >= 0.0)) {
+        return Err(SensingError::Input("detail and unmodelled variances and gains must be finite and >= 0".into()));
     }
     let m = f.modal_weight.to_owned();
     // Candidate centres every half radius (every cell for small disks).
@@ -106,7 +141,7 @@ pub fn plan_within(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, n
                         info[(a, b)] += h[a] * h[b] * w;
                     }
                 }
-                detail_gain += f.detail_gain[i];
+                detail_gain += f.detail_gain[i] + f.unmodelled_gain(i);
             }
             candidates.push(Candidate { at: grid.centre_m(centre), cells, centre, info, detail_gain });
         }
@@ -197,7 +232,8 @@ mod tests {
         let m = Mat::from_fn(1, 1, |_, _| 2.0);
         let p = Mat::from_fn(1, 1, |_, _| 1.0);
         let (dv, gain) = (vec![1e-6; grid.len()], vec![0.0; grid.len()]);
-        let f = Forecast { basis: b.as_ref(), cov: p.as_ref(), detail_var: &dv, modal_weight: m.as_ref(), detail_gain: &gain };
+        let weight = vec![0.5; grid.len()];
+        let f = Forecast { basis: b.as_ref(), cov: p.as_ref(), detail_var: &dv, modal_weight: m.as_ref(), detail_gain: &gain, value_weight: &weight, unmodelled: &[] };
         let boats = [Boat { position: (19.5, 5.5), reach_m: 100.0 }];
         let got = plan(&grid, &f, &boats, 2.0, 1e-4).unwrap();
         assert_eq!(got.len(), 1);
@@ -221,7 +257,8 @@ mod tests {
         let m = Mat::from_fn(1, 1, |_, _| 1.8);
         let p = Mat::from_fn(1, 1, |_, _| 1e-9);
         let dv = vec![1.0; grid.len()];
-        let f = Forecast { basis: b.as_ref(), cov: p.as_ref(), detail_var: &dv, modal_weight: m.as_ref(), detail_gain: &dv };
+        let weight = vec![0.5; grid.len()];
+        let f = Forecast { basis: b.as_ref(), cov: p.as_ref(), detail_var: &dv, modal_weight: m.as_ref(), detail_gain: &dv, value_weight: &weight, unmodelled: &[] };
         let boats = [Boat { position: (0.0, 0.0), reach_m: 1e9 }, Boat { position: (20.0, 10.0), reach_m: 1e9 }];
         let got = plan(&grid, &f, &boats, 2.0, 1e-2).unwrap();
         assert_eq!(got.len(), 2);
@@ -238,10 +275,33 @@ mod tests {
         let b = left_mode(&grid);
         let (m, p) = (Mat::from_fn(1, 1, |_, _| 1.0), Mat::from_fn(1, 1, |_, _| 1e-12));
         let dv = vec![0.1; grid.len()];
+        let weight = vec![0.5; grid.len()];
         let gain: Vec<f64> = (0..grid.len()).map(|i| if (14..17).contains(&grid.cell(i).col) { 0.3 } else { 0.05 }).collect();
-        let f = Forecast { basis: b.as_ref(), cov: p.as_ref(), detail_var: &dv, modal_weight: m.as_ref(), detail_gain: &gain };
+        let f = Forecast { basis: b.as_ref(), cov: p.as_ref(), detail_var: &dv, modal_weight: m.as_ref(), detail_gain: &gain, value_weight: &weight, unmodelled: &[] };
         let got = plan(&grid, &f, &[Boat { position: (0.0, 0.0), reach_m: 1e9 }], 1.0, 1e-2).unwrap();
         assert!((14..17).contains(&got[0].centre.col), "the disk is at {:?}", got[0].centre);
+    }
+
+    #[test]
+    fn a_disk_goes_to_the_front_the_filter_does_not_model() {
+        // The filter's own numbers are the same everywhere; an error it does not model (a
+        // displacement, steep cells) lies along one column band: the disk lands there, and
+        // counts `(2k - k^2) u` of it (with k = 1, all of it; with k = 0, none: the filter
+        // would not take the value, so nothing to gain and the placement falls back).
+        let grid = Grid::new(10, 20, 1.0).unwrap();
+        let b = left_mode(&grid);
+        let (m, p) = (Mat::from_fn(1, 1, |_, _| 1.0), Mat::from_fn(1, 1, |_, _| 1e-12));
+        let (dv, gain) = (vec![0.1; grid.len()], vec![0.05; grid.len()]);
+        let front: Vec<f64> = (0..grid.len()).map(|i| if (3..6).contains(&grid.cell(i).col) { 0.4 } else { 0.0 }).collect();
+        let weight = vec![0.5; grid.len()];
+        let f = Forecast { basis: b.as_ref(), cov: p.as_ref(), detail_var: &dv, modal_weight: m.as_ref(), detail_gain: &gain, value_weight: &weight, unmodelled: &[] }.with_unmodelled(&front);
+        let got = plan(&grid, &f, &[Boat { position: (19.0, 9.0), reach_m: 1e9 }], 1.0, 1e-2).unwrap();
+        assert!((3..6).contains(&got[0].centre.col), "the disk is at {:?}", got[0].centre);
+        let at = grid.index(Cell::new(5, 4));
+        assert!((f.unmodelled_gain(at) - 0.75 * 0.4).abs() < 1e-15);
+        let deaf = vec![0.0; grid.len()];
+        assert_eq!(Forecast { value_weight: &deaf, ..f }.unmodelled_gain(at), 0.0);
+        assert!(plan(&grid, &f.with_unmodelled(&front[1..]), &[], 1.0, 1e-2).is_err(), "one unmodelled variance per cell");
     }
 
     #[test]
@@ -250,7 +310,7 @@ mod tests {
         let b = Mat::<f64>::zeros(16, 1);
         let a = Mat::<f64>::identity(1, 1);
         let dv = vec![f64::NAN; 16];
-        let f = Forecast { basis: b.as_ref(), cov: a.as_ref(), detail_var: &dv, modal_weight: a.as_ref(), detail_gain: &dv };
+        let f = Forecast { basis: b.as_ref(), cov: a.as_ref(), detail_var: &dv, modal_weight: a.as_ref(), detail_gain: &dv, value_weight: &[0.5; 16], unmodelled: &[] };
         assert!(plan(&grid, &f, &[], 1.0, 1e-4).is_err());
     }
 }
