@@ -38,7 +38,8 @@ fn tiny_experiment_writes_a_deterministic_report() {
     let row = &res["rows"][1];
     let from = row["scored_from"].as_u64().unwrap() as usize;
     let seed = row["seeds"][0]["seed"].as_u64().unwrap().to_string();
-    for team in ["heterogeneous", "aerial-only", "boat-only", "heterogeneous-random", "heterogeneous-horizon"] {
+    assert!(report.contains("`heterogeneous-oracle` is a diagnostic") && report.contains("heterogeneous-oracle - heterogeneous |"), "the oracle is in the report and explained");
+    for team in ["heterogeneous", "aerial-only", "boat-only", "heterogeneous-random", "heterogeneous-horizon", "heterogeneous-oracle"] {
         let v: Vec<(usize, f64)> = rows.iter().filter(|r| r[0] == "2" && r[1] == "Cloud10" && r[2] == seed && r[3] == team).map(|r| (r[4].parse().unwrap(), r[5].parse().unwrap())).collect();
         assert!(v.iter().all(|(k, _)| team != "boat-only" || *k >= from), "no boat-only line before its first data");
         let scored: Vec<f64> = v.iter().filter(|(k, _)| *k >= from).map(|(_, e)| *e).collect();
