@@ -155,22 +155,6 @@ fn log_ticks(lo: f64, hi: f64) -> (Vec<f64>, Vec<f64>) {
     (if bold.len() >= 3 { bold } else { all.clone() }, all)
 }
 
-/// The legend's corner: the one whose quarter of the plot (x, y already on the axis' scale)
-/// holds the fewest points.
-fn legend_corner(points: impl Iterator<Item = (f64, f64)>, (x0, x1): (f64, f64), (y0, y1): (f64, f64)) -> SeriesLabelPosition {
-    // The legend is about 40% of the plot wide and half of it high.
-    let (right, left, mid) = (x0 + 0.6 * (x1 - x0), x0 + 0.4 * (x1 - x0), y0 + 0.5 * (y1 - y0));
-    let mut count = [0usize; 4]; // upper right, upper left, lower right, lower left
-    for (x, y) in points {
-        count[0] += usize::from(x >= right && y >= mid);
-        count[1] += usize::from(x <= left && y >= mid);
-        count[2] += usize::from(x >= right && y <= mid);
-        count[3] += usize::from(x <= left && y <= mid);
-    }
-    let best = (0..4).min_by_key(|&i| count[i]).unwrap_or(0);
-    [SeriesLabelPosition::UpperRight, SeriesLabelPosition::UpperLeft, SeriesLabelPosition::LowerRight, SeriesLabelPosition::LowerLeft][best].clone()
-}
-
 fn format_tick(v: f64) -> String {
     if v != 0.0 && (v.abs() < 1e-2 || v.abs() >= 1e4) {
         format!("{v:.2e}")
@@ -274,24 +258,50 @@ pub fn bands(path: impl AsRef<Path>, title: &str, x_desc: &str, y_desc: &str, ba
     bands_chart(path, title, x_desc, y_desc, bands, log_y, true)
 }
 
+/// The chart's size in pixels: the plot, and the strip right of it that holds the legend
+/// (never over a line or a band, however many teams).
+const CHART: (u32, u32) = (960, 520);
+const LEGEND_W: u32 = 250;
+
 fn bands_chart(path: impl AsRef<Path>, title: &str, x_desc: &str, y_desc: &str, bands: &[Band], log_y: bool, shade: bool) -> Result<(), PlotError> {
     need_font()?;
     let path = path.as_ref();
     let fail = chart_fail(path);
+    let root = BitMapBackend::new(path, (CHART.0 + LEGEND_W, CHART.1)).into_drawing_area();
+    draw_bands(&root, title, x_desc, y_desc, bands, log_y, shade).map_err(|m| match m {
+        BandsError::Input(m) => PlotError::Input(m),
+        BandsError::Draw(m) => fail(m),
+    })?;
+    root.present().map_err(|er| fail(er.to_string()))?;
+    Ok(())
+}
+
+enum BandsError {
+    Input(String),
+    Draw(String),
+}
+
+/// [`bands`] on any drawing area `CHART.0 + LEGEND_W` wide: the plot on the left, the legend
+/// in the strip on the right.
+#[allow(clippy::too_many_arguments)]
+fn draw_bands<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, title: &str, x_desc: &str, y_desc: &str, bands: &[Band], log_y: bool, shade: bool) -> Result<(), BandsError> {
     let ok = |v: f64| v.is_finite() && (!log_y || v > 0.0);
     let pts = || bands.iter().flat_map(|s| s.points.iter()).flat_map(|p| [(p.0, p.1), (p.0, p.2), (p.0, p.3)]).filter(|p| p.0.is_finite() && ok(p.1));
     let (x0, x1) = pts().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.0), b.max(p.0)));
     let (y0, y1) = pts().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.1), b.max(p.1)));
     if !(x0.is_finite() && y0.is_finite()) {
-        return Err(PlotError::Input(format!("{title}: no finite points")));
+        return Err(BandsError::Input(format!("{title}: no finite points")));
     }
     let (x1, y1) = (if x1 > x0 { x1 } else { x0 + 1.0 }, if y1 > y0 { y1 } else { y0 + y0.abs().max(1e-12) });
-    let root = BitMapBackend::new(path, (960, 520)).into_drawing_area();
-    let e = |e: DrawingAreaErrorKind<_>| fail(e.to_string());
+    let e = |e: DrawingAreaErrorKind<DB::ErrorType>| BandsError::Draw(e.to_string());
     root.fill(&WHITE).map_err(e)?;
-    // The legend in the corner the lines stay out of.
-    let y_at = |y: f64| if log_y { y.ln() } else { y };
-    let legend_at = legend_corner(pts().map(|(x, y)| (x, y_at(y))), (x0, x1), (y_at(y0), y_at(y1)));
+    let (plot, legend) = root.split_horizontally(CHART.0);
+    // The legend: one line and name per team, top down, beside the plot.
+    for (i, s) in bands.iter().enumerate() {
+        let y = 56 + 24 * i as i32;
+        legend.draw(&PathElement::new(vec![(6, y), (32, y)], palette(i).stroke_width(3))).map_err(e)?;
+        legend.draw(&Text::new(s.name.clone(), (40, y - 8), (FONT, 14).into_font().color(&BLACK))).map_err(e)?;
+    }
     macro_rules! draw_chart {
         ($chart:expr) => {{
             let mut chart = $chart;
@@ -309,17 +319,12 @@ fn bands_chart(path: impl AsRef<Path>, title: &str, x_desc: &str, y_desc: &str, 
                     poly.extend(p.iter().rev().map(|q| (q.0, q.2.max(floor).min(y1 * 1.25))));
                     chart.draw_series(std::iter::once(Polygon::new(poly, c.mix(0.18).filled()))).map_err(e)?;
                 }
-                chart
-                    .draw_series(LineSeries::new(p.iter().map(|q| (q.0, q.1)), c.stroke_width(2)))
-                    .map_err(e)?
-                    .label(s.name.clone())
-                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+                chart.draw_series(LineSeries::new(p.iter().map(|q| (q.0, q.1)), c.stroke_width(2))).map_err(e)?;
             }
-            chart.configure_series_labels().position(legend_at).label_font((FONT, 14)).background_style(WHITE.mix(0.85)).border_style(BLACK).draw().map_err(e)?;
         }};
     }
     let builder = || {
-        let mut b = ChartBuilder::on(&root);
+        let mut b = ChartBuilder::on(&plot);
         b.caption(title, (FONT, 20)).margin(12).x_label_area_size(40).y_label_area_size(80);
         b
     };
@@ -332,7 +337,6 @@ fn bands_chart(path: impl AsRef<Path>, title: &str, x_desc: &str, y_desc: &str, 
         let pad = 0.05 * (y1 - y0);
         draw_chart!(builder().build_cartesian_2d(x0..x1, (y0 - pad)..(y1 + pad)).map_err(e)?);
     }
-    root.present().map_err(|er| fail(er.to_string()))?;
     Ok(())
 }
 
@@ -405,12 +409,28 @@ mod tests {
     }
 
     #[test]
-    fn the_legend_goes_where_the_lines_are_not() {
-        // Lines along the top: the legend goes below.
-        let top = (0..50).map(|i| (i as f64, 9.0 + 0.01 * i as f64));
-        assert!(matches!(legend_corner(top, (0.0, 49.0), (0.0, 10.0)), SeriesLabelPosition::LowerRight));
-        // A line falling from the upper left to the lower right: the upper right is free.
-        let falling = (0..50).map(|i| (i as f64, 10.0 - 0.2 * i as f64));
-        assert!(matches!(legend_corner(falling, (0.0, 49.0), (0.0, 10.0)), SeriesLabelPosition::UpperRight));
+    fn the_legend_is_beside_the_plot_with_every_team() {
+        assert!(font_ready(), "charts need a font: install fonts-dejavu-core (scripts/test.sh does)");
+        // Lines all over the plot, as many as a report draws: every team's colour appears in
+        // the legend strip, which no line reaches.
+        let (w, h) = (CHART.0 + LEGEND_W, CHART.1);
+        let mut buf = vec![0u8; (w * h * 3) as usize];
+        let bands: Vec<Band> = (0..8).map(|i| Band { name: format!("team {i}"), points: (0..50).map(|k| (k as f64, 1.0 + ((k + 7 * i) % 13) as f64, 0.5, 15.0)).collect() }).collect();
+        {
+            let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+            assert!(draw_bands(&root, "t", "x", "y", &bands, false, true).is_ok());
+            root.present().unwrap();
+        }
+        let at = |x: u32, y: u32| {
+            let i = ((y * w + x) * 3) as usize;
+            RGBColor(buf[i], buf[i + 1], buf[i + 2])
+        };
+        for i in 0..8 {
+            let c = palette(i);
+            assert!((CHART.0..w).any(|x| (0..h).any(|y| at(x, y) == c)), "team {i}'s colour is not in the legend strip");
+        }
+        // The strip's left edge is clear of the plot: nothing but white and the legend's own
+        // marks there (the lines end inside the plot area).
+        assert!((0..h).all(|y| at(CHART.0, y) == WHITE), "the plot spills into the legend strip");
     }
 }
