@@ -71,7 +71,9 @@ pub struct AerialSight {
 }
 
 /// The model server's state: the model, the snapshots it was built from, and the calibrated
-/// error of each source.
+/// error of each source. A clone is independent (an offline experiment can try an epoch on
+/// it and keep the original).
+#[derive(Clone)]
 pub struct Assimilator {
     cfg: TeamConfig,
     grid: Grid,
@@ -103,37 +105,10 @@ pub struct Assimilator {
     between_lattice: Vec<usize>,
 }
 
-impl Clone for Assimilator {
-    /// An independent copy (the model is cloned through [`Dmd::boxed`]): an offline experiment
-    /// can try an epoch on the copy and keep the original.
-    fn clone(&self) -> Self {
-        Self {
-            cfg: self.cfg.clone(),
-            grid: self.grid,
-            dmd: self.dmd,
-            model: self.model.as_ref().map(|m| m.boxed()),
-            snapshots: self.snapshots.clone(),
-            fitted: self.fitted.clone(),
-            held_aerial: self.held_aerial.clone(),
-            held_interpolation: self.held_interpolation.clone(),
-            pred_var: self.pred_var,
-            aerial_extra: self.aerial_extra,
-            displacement: self.displacement,
-            placement_rng: self.placement_rng.clone(),
-            boat_positions: self.boat_positions.clone(),
-            aerial_positions: self.aerial_positions.clone(),
-            filter: self.filter.clone(),
-            boat_speed: self.boat_speed,
-            excluded: self.excluded.clone(),
-            lattice: self.lattice.clone(),
-            between_lattice: self.between_lattice.clone(),
-        }
-    }
-}
-
 /// The Assimilator's state between two epochs, without its snapshots (they are only appended
 /// to: a checkpoint keeps how many there were) nor the fitted model (recomputed from the model
 /// and the newest snapshot, bit for bit).
+#[derive(Clone)]
 pub struct AssimilatorCheckpoint {
     model: Option<Box<dyn Dmd>>,
     snapshots: usize,
@@ -148,29 +123,11 @@ pub struct AssimilatorCheckpoint {
     filter: Option<(ModalFilter, u64)>,
 }
 
-impl Clone for AssimilatorCheckpoint {
-    fn clone(&self) -> Self {
-        Self {
-            model: self.model.as_ref().map(|m| m.boxed()),
-            snapshots: self.snapshots,
-            held_aerial: self.held_aerial.clone(),
-            held_interpolation: self.held_interpolation.clone(),
-            pred_var: self.pred_var,
-            aerial_extra: self.aerial_extra,
-            displacement: self.displacement,
-            placement_rng: self.placement_rng.clone(),
-            boat_positions: self.boat_positions.clone(),
-            aerial_positions: self.aerial_positions.clone(),
-            filter: self.filter.clone(),
-        }
-    }
-}
-
 impl Assimilator {
     /// Its state now, to come back to with [`Self::rewind`].
     pub fn checkpoint(&self) -> AssimilatorCheckpoint {
         AssimilatorCheckpoint {
-            model: self.model.as_ref().map(|m| m.boxed()),
+            model: self.model.clone(),
             snapshots: self.snapshots.len(),
             held_aerial: self.held_aerial.clone(),
             held_interpolation: self.held_interpolation.clone(),
@@ -186,7 +143,7 @@ impl Assimilator {
 
     /// Back to a checkpoint taken earlier on this same Assimilator.
     pub fn rewind(&mut self, c: &AssimilatorCheckpoint) -> Result<(), TeamError> {
-        self.model = c.model.as_ref().map(|m| m.boxed());
+        self.model = c.model.clone();
         self.snapshots.truncate(c.snapshots);
         self.held_aerial = c.held_aerial.clone();
         self.held_interpolation = c.held_interpolation.clone();

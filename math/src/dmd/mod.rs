@@ -147,6 +147,13 @@ pub trait Dmd: Send + Sync {
     fn boxed(&self) -> Box<dyn Dmd>;
 }
 
+/// A boxed model copies through [`Dmd::boxed`], so what holds one can derive `Clone`.
+impl Clone for Box<dyn Dmd> {
+    fn clone(&self) -> Self {
+        self.boxed()
+    }
+}
+
 /// Split a snapshot sequence (columns, in time order) into the pairs `X = Z[:, :-1]`,
 /// `Y = Z[:, 1:]`.
 pub fn pairs_of(z: MatRef<'_, f64>) -> (MatRef<'_, f64>, MatRef<'_, f64>) {
