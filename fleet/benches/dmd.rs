@@ -12,7 +12,13 @@ fn batch_4608x100_r10(c: &mut Criterion) {
     let times: Vec<f64> = (0..101).map(|k| 20.0 * k as f64 / 199.0).collect();
     let field = smooth_sphere_field(&times, 0.01, 42);
     let (x, y) = pairs_of(field.snapshots.as_ref());
-    let cfg = DmdConfig { method: Method::Batch, rank: RankPolicy::Fixed(10), debias: Debias::None, gamma: 1.0, forgetting: Default::default() };
+    let cfg = DmdConfig {
+        method: Method::Batch,
+        rank: RankPolicy::Fixed(10),
+        debias: Debias::None,
+        gamma: 1.0,
+        forgetting: Default::default(),
+    };
     c.bench_function("batch DMD 4608x100 r10 fit+eig+modes+amplitudes", |b| {
         b.iter(|| {
             let m = cfg.init(x, y).unwrap();

@@ -2,7 +2,10 @@
 //! and against the peer libraries' reference outputs in `reference/` (PyDMD, odmd, numpy).
 
 use faer::{c64, Mat, MatRef};
-use fleet::dmd::{pairs_of, Debias, Dmd, DmdConfig, DmdError, Forgetting, ForgettingDirections, ForgettingUnit, GeneralDmd, LongTermDmd, Method, RankPolicy};
+use fleet::dmd::{
+    pairs_of, Debias, Dmd, DmdConfig, DmdError, Forgetting, ForgettingDirections, ForgettingUnit, GeneralDmd,
+    LongTermDmd, Method, RankPolicy,
+};
 use fleet::dmd::{BatchDmd, Modes};
 use fleet::experiment::run_online;
 use rand::SeedableRng;
@@ -15,10 +18,19 @@ fn reference_dir() -> PathBuf {
 }
 
 /// odmd's forgetting (per pair, every direction), which the peer references use.
-const ODMD: Forgetting = Forgetting { unit: ForgettingUnit::Pair, directions: ForgettingDirections::All };
+const ODMD: Forgetting = Forgetting {
+    unit: ForgettingUnit::Pair,
+    directions: ForgettingDirections::All,
+};
 
 fn cfg(method: Method, rank: RankPolicy) -> DmdConfig {
-    DmdConfig { method, rank, debias: Debias::None, gamma: 1.0, forgetting: ODMD }
+    DmdConfig {
+        method,
+        rank,
+        debias: Debias::None,
+        gamma: 1.0,
+        forgetting: ODMD,
+    }
 }
 
 fn randn(rows: usize, cols: usize, seed: u64) -> Mat<f64> {
@@ -57,7 +69,11 @@ fn known_system() -> (Mat<f64>, Vec<c64>) {
 
 /// Largest distance from an eigenvalue in `a` to its nearest in `b`, both ways (Hausdorff).
 fn spectrum_distance(a: &[c64], b: &[c64]) -> f64 {
-    let one = |a: &[c64], b: &[c64]| a.iter().map(|x| b.iter().map(|y| (x - y).norm()).fold(f64::INFINITY, f64::min)).fold(0.0, f64::max);
+    let one = |a: &[c64], b: &[c64]| {
+        a.iter()
+            .map(|x| b.iter().map(|y| (x - y).norm()).fold(f64::INFINITY, f64::min))
+            .fold(0.0, f64::max)
+    };
     one(a, b).max(one(b, a))
 }
 
@@ -72,7 +88,9 @@ fn a_known_linear_system_is_recovered_by_all_three_methods() {
     let x = randn(6, 40, 11);
     let y = &a * &x;
     for method in [Method::Batch, Method::General, Method::LongTerm] {
-        let mut m = cfg(method, RankPolicy::Full).init(x.subcols(0, 10), y.subcols(0, 10)).unwrap();
+        let mut m = cfg(method, RankPolicy::Full)
+            .init(x.subcols(0, 10), y.subcols(0, 10))
+            .unwrap();
         for (start, w) in [(10, 1), (11, 7), (18, 3), (21, 19)] {
             m.update(x.subcols(start, w), y.subcols(start, w)).unwrap();
         }
@@ -108,7 +126,11 @@ fn exact_modes_reconstruct_and_forecast_a_noise_free_trajectory() {
     let model = m.decompose().unwrap().model(&x0, 0.1).unwrap();
     for t in [0usize, 5, 19, 25, 29] {
         let p = model.predict(t as f64);
-        let err = p.iter().zip(z.col(t).iter()).map(|(u, v)| (u - v).abs()).fold(0.0, f64::max);
+        let err = p
+            .iter()
+            .zip(z.col(t).iter())
+            .map(|(u, v)| (u - v).abs())
+            .fold(0.0, f64::max);
         let scale = z.col(t).iter().map(|v| v.abs()).fold(0.0, f64::max);
         assert!(err < 1e-9 * scale.max(1.0), "step {t}: error {err:e}");
     }
@@ -129,7 +151,11 @@ fn reference() -> serde_json::Value {
 }
 
 fn ref_eigs(v: &serde_json::Value) -> Vec<c64> {
-    v.as_array().unwrap().iter().map(|p| c64::new(p[0].as_f64().unwrap(), p[1].as_f64().unwrap())).collect()
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|p| c64::new(p[0].as_f64().unwrap(), p[1].as_f64().unwrap()))
+        .collect()
 }
 
 /// Match the eigenvalues one to one (the assignment of least total distance, Kuhn-Munkres, so
@@ -140,9 +166,18 @@ fn matched_relative(ours: &[c64], reference: &[c64]) -> f64 {
     let scale = reference.iter().map(|r| r.norm()).fold(1e-300, f64::max);
     // Integer weights (pathfinding's Kuhn-Munkres needs an ordered type): 1e-15 of the scale.
     let w = |a: &c64, b: &c64| ((a - b).norm() / scale * 1e15).round() as i64;
-    let weights = pathfinding::matrix::Matrix::from_rows(reference.iter().map(|r| ours.iter().map(|o| w(o, r)).collect::<Vec<_>>())).unwrap();
+    let weights = pathfinding::matrix::Matrix::from_rows(
+        reference
+            .iter()
+            .map(|r| ours.iter().map(|o| w(o, r)).collect::<Vec<_>>()),
+    )
+    .unwrap();
     let (_, assignment) = pathfinding::kuhn_munkres::kuhn_munkres_min(&weights);
-    reference.iter().zip(assignment).map(|(r, j)| (ours[j] - r).norm() / r.norm().max(1e-3)).fold(0.0, f64::max)
+    reference
+        .iter()
+        .zip(assignment)
+        .map(|(r, j)| (ours[j] - r).norm() / r.norm().max(1e-3))
+        .fold(0.0, f64::max)
 }
 
 #[test]
@@ -152,7 +187,12 @@ fn one_to_one_matching_does_not_let_two_eigenvalues_share_one() {
     let ours = [c64::new(1.0, 0.0), c64::new(3.0, 0.0)];
     let reference = [c64::new(1.0, 0.0), c64::new(1.0 + 1e-9, 0.0)];
     assert!(matched_relative(&ours, &reference) > 1.0);
-    assert!(matched_relative(&[c64::new(3.0, 0.0), c64::new(1.0, 0.0)], &[c64::new(1.0, 0.0), c64::new(3.0, 0.0)]) < 1e-15);
+    assert!(
+        matched_relative(
+            &[c64::new(3.0, 0.0), c64::new(1.0, 0.0)],
+            &[c64::new(1.0, 0.0), c64::new(3.0, 0.0)]
+        ) < 1e-15
+    );
 }
 
 /// Case 1 of Table 1 as the peers ran it: init on 100 pairs, then batches of 10.
@@ -178,7 +218,10 @@ fn batch_matches_the_pydmd_numpy_reference() {
     let r = reference();
     let z = load_case1();
     let (x, y) = pairs_of(z.as_ref());
-    for (key, rank) in [("batch_svd", RankPolicy::Full), ("batch_svd_r10", RankPolicy::Fixed(10))] {
+    for (key, rank) in [
+        ("batch_svd", RankPolicy::Full),
+        ("batch_svd_r10", RankPolicy::Fixed(10)),
+    ] {
         let b = BatchDmd::fit(x, y, rank, Debias::None).unwrap();
         let rel = matched_relative(&eigenvalues(&b), &ref_eigs(&r[key]));
         println!("MEASURED {key}: {rel:e}");
@@ -204,7 +247,10 @@ fn general_matches_the_reference_at_full_and_truncated_rank() {
 fn long_term_matches_odmd_and_the_reference_with_and_without_forgetting() {
     let r = reference();
     for (key, gamma) in [("longterm_g1", 1.0), ("longterm_g0.95", 0.95)] {
-        let c = DmdConfig { gamma, ..cfg(Method::LongTerm, RankPolicy::Full) };
+        let c = DmdConfig {
+            gamma,
+            ..cfg(Method::LongTerm, RankPolicy::Full)
+        };
         let m = online_case1(c);
         let rel = matched_relative(&eigenvalues(m.as_ref()), &ref_eigs(&r[key]["eigs"]));
         println!("MEASURED {key}: {rel:e}");
@@ -220,8 +266,15 @@ fn long_term_matches_odmd_and_the_reference_with_and_without_forgetting() {
         }
         let a = lt.operator();
         let fro = a.norm_l2();
-        let worst = (0..3).flat_map(|i| (0..3).map(move |j| (i, j))).map(|(i, j)| (a[(i, j)] - r[key]["A_00_22"][i][j].as_f64().unwrap()).abs()).fold(0.0, f64::max);
-        println!("MEASURED {key} A: fro {:e}, entries {:e}", (fro - r[key]["A_fro"].as_f64().unwrap()).abs() / fro, worst / fro);
+        let worst = (0..3)
+            .flat_map(|i| (0..3).map(move |j| (i, j)))
+            .map(|(i, j)| (a[(i, j)] - r[key]["A_00_22"][i][j].as_f64().unwrap()).abs())
+            .fold(0.0, f64::max);
+        println!(
+            "MEASURED {key} A: fro {:e}, entries {:e}",
+            (fro - r[key]["A_fro"].as_f64().unwrap()).abs() / fro,
+            worst / fro
+        );
         assert!((fro - r[key]["A_fro"].as_f64().unwrap()).abs() < OPERATOR_TOL * fro);
         for i in 0..3 {
             for j in 0..3 {
@@ -291,7 +344,14 @@ fn forgetting_tracks_a_system_whose_dynamics_switch() {
     let truth2: Vec<c64> = (0..6).map(|i| c64::new(0.6 - 0.1 * i as f64, 0.0)).collect();
     let run = |gamma: f64| {
         // Per pair, as this test was written (0.9 per pair: the past fades by 0.9^20 per batch).
-        let c = DmdConfig { gamma, forgetting: Forgetting { unit: ForgettingUnit::Pair, directions: ForgettingDirections::Excited }, ..cfg(Method::LongTerm, RankPolicy::Full) };
+        let c = DmdConfig {
+            gamma,
+            forgetting: Forgetting {
+                unit: ForgettingUnit::Pair,
+                directions: ForgettingDirections::Excited,
+            },
+            ..cfg(Method::LongTerm, RankPolicy::Full)
+        };
         let mut m = c.init(x.subcols(0, 20), y.subcols(0, 20)).unwrap();
         let mut col = 20;
         while col < 400 {
@@ -303,8 +363,14 @@ fn forgetting_tracks_a_system_whose_dynamics_switch() {
     };
     let err_forget = run(0.9);
     let err_keep = run(1.0);
-    assert!(err_forget < 0.01, "gamma 0.9 should track the new dynamics: spectrum off by {err_forget}");
-    assert!(err_keep > 0.1, "gamma 1 averages both regimes: spectrum off by {err_keep}");
+    assert!(
+        err_forget < 0.01,
+        "gamma 0.9 should track the new dynamics: spectrum off by {err_forget}"
+    );
+    assert!(
+        err_keep > 0.1,
+        "gamma 1 averages both regimes: spectrum off by {err_keep}"
+    );
 }
 
 #[test]
@@ -334,21 +400,38 @@ fn general_stays_orthogonal_over_thousands_of_single_updates() {
     // The protection ran (an unprotected run drifts to ~3.5e-13, past the 1e-13 trigger, so a
     // run without it would also pass the bound above: the count is what shows it works).
     let n_reorth = g.reorthogonalisations();
-    println!("MEASURED re-orthonormalisations: {n_reorth} in {} checks, final error {e:e}", 2980 / 16);
+    println!(
+        "MEASURED re-orthonormalisations: {n_reorth} in {} checks, final error {e:e}",
+        2980 / 16
+    );
     assert!(n_reorth > 0, "the re-orthonormalisation never ran");
     // And the model is still the data's. With 12 components and rank 10 the truncation is
     // path dependent (measured 2.9e-3 from batch DMD at rank 10); on a field of exactly 10
     // components plus the same noise, the 2,980 protected updates must land where one batch fit
     // of the same pairs does, to well inside the modes' spacing (0.01 rad).
-    let z10 = Mat::from_fn(n, steps, |i, t| z[(i, t)] - (10..12).map(|k| basis[(i, k)] * ((k as f64 + 1.0) * t as f64 * 0.01).sin() / (k as f64 + 1.0)).sum::<f64>());
+    let z10 = Mat::from_fn(n, steps, |i, t| {
+        z[(i, t)]
+            - (10..12)
+                .map(|k| basis[(i, k)] * ((k as f64 + 1.0) * t as f64 * 0.01).sin() / (k as f64 + 1.0))
+                .sum::<f64>()
+    });
     let (x10, y10) = pairs_of(z10.as_ref());
-    let mut g10 = GeneralDmd::init(x10.subcols(0, 20), y10.subcols(0, 20), RankPolicy::Fixed(10), Debias::None).unwrap();
+    let mut g10 = GeneralDmd::init(
+        x10.subcols(0, 20),
+        y10.subcols(0, 20),
+        RankPolicy::Fixed(10),
+        Debias::None,
+    )
+    .unwrap();
     for j in 20..3000 {
         g10.update(x10.subcols(j, 1), y10.subcols(j, 1)).unwrap();
     }
     let b = BatchDmd::fit(x10, y10, RankPolicy::Fixed(10), Debias::None).unwrap();
     let rel = matched_relative(&eigenvalues(&g10), &eigenvalues(&b));
-    println!("MEASURED exact rank 10, general after 2980 single updates vs batch: {rel:e} (re-orthonormalised {} times)", g10.reorthogonalisations());
+    println!(
+        "MEASURED exact rank 10, general after 2980 single updates vs batch: {rel:e} (re-orthonormalised {} times)",
+        g10.reorthogonalisations()
+    );
     assert!(rel < 1e-4, "general {rel:e} from batch DMD at the same rank");
 }
 
@@ -366,26 +449,49 @@ fn long_term_refuses_a_start_without_full_row_rank() {
     // Enough columns but rank 3.
     let low = &randn(100, 3, 1) * &randn(3, 150, 2);
     let (x, y) = (low.subcols(0, 149), low.subcols(1, 149));
-    assert!(matches!(LongTermDmd::init(x, y, 1.0), Err(DmdError::NotFullRowRank { rank: 3, .. })));
-    assert!(matches!(LongTermDmd::init(z.subcols(0, 200), z.subcols(1, 200), 1.5), Err(DmdError::Gamma(_))));
+    assert!(matches!(
+        LongTermDmd::init(x, y, 1.0),
+        Err(DmdError::NotFullRowRank { rank: 3, .. })
+    ));
+    assert!(matches!(
+        LongTermDmd::init(z.subcols(0, 200), z.subcols(1, 200), 1.5),
+        Err(DmdError::Gamma(_))
+    ));
 }
 
 #[test]
 fn bad_input_is_rejected_not_panicked_on() {
     let z = load_case1();
-    let mut g = cfg(Method::General, RankPolicy::Full).init(z.subcols(0, 50), z.subcols(1, 50)).unwrap();
+    let mut g = cfg(Method::General, RankPolicy::Full)
+        .init(z.subcols(0, 50), z.subcols(1, 50))
+        .unwrap();
     let mut bad = z.subcols(50, 5).to_owned();
     bad[(3, 2)] = f64::NAN;
-    assert!(matches!(g.update(bad.as_ref(), z.subcols(51, 5)), Err(DmdError::NonFinite { row: 3, col: 2 })));
-    assert!(matches!(g.update(z.subcols(50, 5), z.subcols(51, 4)), Err(DmdError::Shape(_))));
+    assert!(matches!(
+        g.update(bad.as_ref(), z.subcols(51, 5)),
+        Err(DmdError::NonFinite { row: 3, col: 2 })
+    ));
+    assert!(matches!(
+        g.update(z.subcols(50, 5), z.subcols(51, 4)),
+        Err(DmdError::Shape(_))
+    ));
     let short: MatRef<f64> = z.submatrix(0, 50, 99, 5);
     assert!(matches!(g.update(short, short), Err(DmdError::Shape(_))));
     // The model is unchanged by the rejected updates.
     assert_eq!(g.pairs(), 50);
-    let lt = DmdConfig { debias: Debias::Fb, ..cfg(Method::LongTerm, RankPolicy::Full) };
-    assert!(matches!(lt.init(z.subcols(0, 200), z.subcols(1, 200)), Err(DmdError::Unsupported(_))));
+    let lt = DmdConfig {
+        debias: Debias::Fb,
+        ..cfg(Method::LongTerm, RankPolicy::Full)
+    };
+    assert!(matches!(
+        lt.init(z.subcols(0, 200), z.subcols(1, 200)),
+        Err(DmdError::Unsupported(_))
+    ));
     let zero = Mat::<f64>::zeros(10, 20);
-    assert!(matches!(cfg(Method::Batch, RankPolicy::Full).init(zero.as_ref(), zero.as_ref()), Err(DmdError::ZeroRank)));
+    assert!(matches!(
+        cfg(Method::Batch, RankPolicy::Full).init(zero.as_ref(), zero.as_ref()),
+        Err(DmdError::ZeroRank)
+    ));
 }
 
 #[test]
@@ -393,7 +499,9 @@ fn an_exactly_low_rank_field_gets_its_rank() {
     let low = &randn(80, 4, 31) * &randn(4, 60, 32);
     let (x, y) = pairs_of(low.as_ref());
     for method in [Method::Batch, Method::General] {
-        let mut m = cfg(method, RankPolicy::Full).init(x.subcols(0, 20), y.subcols(0, 20)).unwrap();
+        let mut m = cfg(method, RankPolicy::Full)
+            .init(x.subcols(0, 20), y.subcols(0, 20))
+            .unwrap();
         m.update(x.subcols(20, 39), y.subcols(20, 39)).unwrap();
         assert_eq!(m.rank(), 4, "{method}");
     }
@@ -437,7 +545,13 @@ fn long_term_starts_from_an_ill_conditioned_full_rank_x() {
     let (n, m) = (20, 40);
     let u = randn(n, n, 3).qr().compute_thin_Q();
     let v = randn(m, n, 4).qr().compute_thin_Q();
-    let s = Mat::from_fn(n, n, |i, j| if i == j { 10f64.powf(-12.0 * i as f64 / (n - 1) as f64) } else { 0.0 });
+    let s = Mat::from_fn(n, n, |i, j| {
+        if i == j {
+            10f64.powf(-12.0 * i as f64 / (n - 1) as f64)
+        } else {
+            0.0
+        }
+    });
     let x = &u * &s * v.transpose();
     let a_true = randn(n, n, 5) * faer::Scale(0.1);
     let y = &a_true * &x;
@@ -465,7 +579,14 @@ fn left_half_plane_system() -> (Mat<f64>, Vec<c64>) {
     d[(3, 3)] = 0.7;
     d[(4, 4)] = 0.5;
     d[(5, 5)] = 0.3;
-    let eigs = vec![c64::new(-0.9, 0.0), c64::new(c, s), c64::new(c, -s), c64::new(0.7, 0.0), c64::new(0.5, 0.0), c64::new(0.3, 0.0)];
+    let eigs = vec![
+        c64::new(-0.9, 0.0),
+        c64::new(c, s),
+        c64::new(c, -s),
+        c64::new(0.7, 0.0),
+        c64::new(0.5, 0.0),
+        c64::new(0.3, 0.0),
+    ];
     let p = randn(6, 6, 13) + Mat::<f64>::identity(6, 6) * faer::Scale(3.0);
     use faer::linalg::solvers::DenseSolveCore;
     let pinv = p.partial_piv_lu().inverse();
@@ -483,7 +604,10 @@ fn forward_backward_keeps_the_sign_of_eigenvalues_in_the_left_half_plane() {
     // (The principal root returned +0.9 for -0.9 and +0.577+0.792i for -0.577+0.792i.)
     let rel = matched_relative(&got, &truth);
     assert!(rel < 1e-9, "forward-backward eigenvalues {got:?} vs {truth:?}: {rel:e}");
-    assert!(got.iter().any(|l| (l - c64::new(-0.9, 0.0)).norm() < 1e-9), "the period-2 mode keeps its sign");
+    assert!(
+        got.iter().any(|l| (l - c64::new(-0.9, 0.0)).norm() < 1e-9),
+        "the period-2 mode keeps its sign"
+    );
     // With noise, still on the right side of the plane.
     let noise = Normal::new(0.0, 1e-3).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(2);
@@ -538,18 +662,35 @@ fn directional_forgetting_stays_bounded_on_data_that_excites_few_directions() {
     let Rank5Stream { a_true, u5, x0, y0, z } = rank5_stream(updates);
     for gamma in [0.95, 0.99] {
         for unit in [ForgettingUnit::Pair, ForgettingUnit::Batch] {
-            let f = Forgetting { unit, directions: ForgettingDirections::Excited };
+            let f = Forgetting {
+                unit,
+                directions: ForgettingDirections::Excited,
+            };
             let mut m = LongTermDmd::init_with(x0.as_ref(), y0.as_ref(), gamma, f).unwrap();
             let s0 = m.s().norm_max();
             for k in 0..updates {
                 // Pairs within the stream (never across a renormalisation).
-                let (x, y) = if (k + 1) % 25 == 0 { continue } else { (z.subcols(k, 1), z.subcols(k + 1, 1)) };
-                m.update(x, y).unwrap_or_else(|e| panic!("gamma {gamma} {unit:?}: update {k}: {e}"));
+                let (x, y) = if (k + 1) % 25 == 0 {
+                    continue;
+                } else {
+                    (z.subcols(k, 1), z.subcols(k + 1, 1))
+                };
+                m.update(x, y)
+                    .unwrap_or_else(|e| panic!("gamma {gamma} {unit:?}: update {k}: {e}"));
             }
             let (s_max, err) = (m.s().norm_max(), excited_error(m.operator(), &a_true, &u5));
-            println!("MEASURED gamma {gamma} {unit:?} excited: max|S| {s_max:.3e} (start {s0:.3e}), operator on the excited subspace {err:.2e}");
-            assert!(s_max.is_finite() && s_max <= s0 * (1.0 + 1e-9), "S grew: {s_max:e} from {s0:e}");
-            assert!(err < 1e-8, "gamma {gamma} {unit:?}: the operator on the excited subspace is off by {err:e}");
+            println!(
+                "MEASURED gamma {gamma} {unit:?} excited: max|S| {s_max:.3e} (start {s0:.3e}), operator on the \
+                excited subspace {err:.2e}"
+            );
+            assert!(
+                s_max.is_finite() && s_max <= s0 * (1.0 + 1e-9),
+                "S grew: {s_max:e} from {s0:e}"
+            );
+            assert!(
+                err < 1e-8,
+                "gamma {gamma} {unit:?}: the operator on the excited subspace is off by {err:e}"
+            );
         }
     }
 }
@@ -570,7 +711,10 @@ fn forgetting_every_direction_blows_up_there_and_says_so() {
             failed = Some((k, e));
             break;
         }
-        assert!(m.s().norm_max().is_finite(), "S went non-finite at update {k} without an error");
+        assert!(
+            m.s().norm_max().is_finite(),
+            "S went non-finite at update {k} without an error"
+        );
     }
     let (k, e) = failed.expect("every-direction forgetting at 0.95 cannot stay bounded for 2,000 updates here");
     println!("MEASURED odmd's forgetting at 0.95 stopped at update {k}: {e}");

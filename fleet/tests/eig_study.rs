@@ -18,10 +18,20 @@ fn median_error(v: &Variant) -> f64 {
 
 #[test]
 fn debiasing_halves_the_eigenvalue_error_at_noise_variance_0_01() {
-    let exact = median_error(&Variant::new("batch", Method::Batch, RankPolicy::Full, Debias::None, 1.0));
+    let exact = median_error(&Variant::new(
+        "batch",
+        Method::Batch,
+        RankPolicy::Full,
+        Debias::None,
+        1.0,
+    ));
     // The paper's regime: a clear damping bias, of the size the peers measured (-1.25).
     assert!(exact > 0.15 && exact < 0.4, "exact DMD error {exact}");
-    for (label, method, debias) in [("batch tls", Method::Batch, Debias::Tls), ("batch fb", Method::Batch, Debias::Fb), ("general tls", Method::General, Debias::Tls)] {
+    for (label, method, debias) in [
+        ("batch tls", Method::Batch, Debias::Tls),
+        ("batch fb", Method::Batch, Debias::Fb),
+        ("general tls", Method::General, Debias::Tls),
+    ] {
         let e = median_error(&Variant::new(label, method, RankPolicy::Optimal, debias, 1.0));
         assert!(e <= 0.5 * exact, "{label}: median error {e} vs exact {exact}");
     }

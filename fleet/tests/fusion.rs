@@ -39,20 +39,48 @@ fn trial(seed: u64) -> Trial {
     let (g, phi) = setup();
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let coef: Vec<f64> = (0..4).map(|_| rng.random_range(-20.0..20.0)).collect();
-    let truth: Vec<f64> = (0..g.len()).map(|i| (0..4).map(|j| phi[(i, j)] * coef[j]).sum()).collect();
+    let truth: Vec<f64> = (0..g.len())
+        .map(|i| (0..4).map(|j| phi[(i, j)] * coef[j]).sum())
+        .collect();
 
     // Two aerials at the quarter points; noise 0.2 at the aerial growing by 0.01 per metre.
     let aerials = [(24.25, 24.5), (72.75, 24.5)];
-    let frame = AerialFrame::sense(&g, &truth, 8, &aerials, AerialNoise { sigma0: 0.2, growth_per_m: 0.01 }, &mut rng).unwrap();
+    let frame = AerialFrame::sense(
+        &g,
+        &truth,
+        8,
+        &aerials,
+        AerialNoise {
+            sigma0: 0.2,
+            growth_per_m: 0.01,
+        },
+        &mut rng,
+    )
+    .unwrap();
     let aerial = frame.upsample().unwrap();
 
     // Three boats, radius 3, noise variance 0.25.
     let noise_var: f64 = 0.25;
-    let cells: Vec<usize> = [Cell::new(10, 15), Cell::new(30, 50), Cell::new(40, 85)].iter().flat_map(|&c| g.disk(c, 3.0)).collect();
-    let values: Vec<f64> = cells.iter().map(|&c| truth[c] + noise_var.sqrt() * <StandardNormal as Distribution<f64>>::sample(&StandardNormal, &mut rng)).collect();
+    let cells: Vec<usize> = [Cell::new(10, 15), Cell::new(30, 50), Cell::new(40, 85)]
+        .iter()
+        .flat_map(|&c| g.disk(c, 3.0))
+        .collect();
+    let values: Vec<f64> = cells
+        .iter()
+        .map(|&c| {
+            truth[c] + noise_var.sqrt() * <StandardNormal as Distribution<f64>>::sample(&StandardNormal, &mut rng)
+        })
+        .collect();
     let gappy = reconstruct(phi.as_ref(), &cells, &values, noise_var).unwrap();
-    let hifi = Estimate { values: gappy.field, variance: gappy.variance };
-    let measured = Some(Measured { cells: &cells, values: &values, noise_var });
+    let hifi = Estimate {
+        values: gappy.field,
+        variance: gappy.variance,
+    };
+    let measured = Some(Measured {
+        cells: &cells,
+        values: &values,
+        noise_var,
+    });
 
     let inv = fuse(Scheme::InverseVariance, g.len(), &[&aerial, &hifi], measured).unwrap();
     let paper = fuse(Scheme::Paper, g.len(), &[&aerial, &hifi], measured).unwrap();
@@ -68,10 +96,24 @@ fn trial(seed: u64) -> Trial {
 #[test]
 fn inverse_variance_fusion_beats_either_source_alone() {
     let t = trial(11);
-    println!("fused MSE: aerial {:.4}, boats {:.4}, paper {:.4}, inverse-variance {:.4}", t.aerial, t.hifi, t.paper, t.inverse);
-    assert!(t.inverse < t.aerial && t.inverse < t.hifi, "inverse-variance {} vs aerial {} and boats {}", t.inverse, t.aerial, t.hifi);
+    println!(
+        "fused MSE: aerial {:.4}, boats {:.4}, paper {:.4}, inverse-variance {:.4}",
+        t.aerial, t.hifi, t.paper, t.inverse
+    );
+    assert!(
+        t.inverse < t.aerial && t.inverse < t.hifi,
+        "inverse-variance {} vs aerial {} and boats {}",
+        t.inverse,
+        t.aerial,
+        t.hifi
+    );
     // ... and the paper's unweighted mean, which ignores how good each source is here.
-    assert!(t.inverse <= t.paper, "inverse-variance {} vs paper {}", t.inverse, t.paper);
+    assert!(
+        t.inverse <= t.paper,
+        "inverse-variance {} vs paper {}",
+        t.inverse,
+        t.paper
+    );
 }
 
 #[test]
@@ -93,14 +135,24 @@ fn upsampled_variance_is_exact_for_independent_noise() {
     // Monte Carlo of the upsampled noise at a few cells against sum w^2 var.
     let (g, _) = setup();
     let truth = vec![0.0; g.len()];
-    let noise = AerialNoise { sigma0: 0.5, growth_per_m: 0.0 };
+    let noise = AerialNoise {
+        sigma0: 0.5,
+        growth_per_m: 0.0,
+    };
     let mut rng = ChaCha8Rng::seed_from_u64(5);
-    let probe = [g.index(Cell::new(3, 5)), g.index(Cell::new(20, 44)), g.index(Cell::new(48, 96))];
+    let probe = [
+        g.index(Cell::new(3, 5)),
+        g.index(Cell::new(20, 44)),
+        g.index(Cell::new(48, 96)),
+    ];
     let mut sq = [0.0; 3];
     let trials = 4000;
     let mut reported = vec![];
     for _ in 0..trials {
-        let up = AerialFrame::sense(&g, &truth, 8, &[(48.5, 24.5)], noise, &mut rng).unwrap().upsample().unwrap();
+        let up = AerialFrame::sense(&g, &truth, 8, &[(48.5, 24.5)], noise, &mut rng)
+            .unwrap()
+            .upsample()
+            .unwrap();
         for (s, &p) in sq.iter_mut().zip(&probe) {
             *s += up.values[p].powi(2) / trials as f64;
         }

@@ -5,7 +5,16 @@ use fleet::process::plasma::{PlasmaCloud, PlasmaParams};
 
 /// A quiet base: no diffusion, no sponge, tight solves, lab frame.
 fn base(nx: usize, ny: usize, lx: f64) -> PlasmaParams {
-    PlasmaParams { nx, ny, lx, diffusion: 0.0, sponge: 0.0, tol: 1e-12, u_frame: [0.0, 0.0], ..PlasmaParams::default() }
+    PlasmaParams {
+        nx,
+        ny,
+        lx,
+        diffusion: 0.0,
+        sponge: 0.0,
+        tol: 1e-12,
+        u_frame: [0.0, 0.0],
+        ..PlasmaParams::default()
+    }
 }
 
 fn cell_xy(p: &PlasmaParams, k: usize) -> (f64, f64) {
@@ -20,18 +29,37 @@ fn conservation_and_bounds() {
     // the velocity field is discretely divergence-free, so mass changes only by rounding:
     // ~1e-16 per step over ~2e3 cells -> 1e-13 relative is a wide margin. Bounds: FCT keeps
     // each cell within its neighbours' old values; 1e-12 allows for rounding only.
-    let p = PlasmaParams { nx: 96, ny: 24, sponge: 0.0, tol: 1e-8, ..PlasmaParams::default() };
+    let p = PlasmaParams {
+        nx: 96,
+        ny: 24,
+        sponge: 0.0,
+        tol: 1e-8,
+        ..PlasmaParams::default()
+    };
     let mut sim = PlasmaCloud::new(p).unwrap();
     let mass0: f64 = sim.density.iter().sum();
-    let (lo, hi) = sim.density.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+    let (lo, hi) = sim
+        .density
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
     for _ in 0..60 {
         let dt = sim.stable_dt();
         sim.step(dt).unwrap();
-        let (l, h) = sim.density.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
-        assert!(l >= lo - 1e-12 && h <= hi + 1e-12, "bounds [{l}, {h}] left [{lo}, {hi}]");
+        let (l, h) = sim
+            .density
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+        assert!(
+            l >= lo - 1e-12 && h <= hi + 1e-12,
+            "bounds [{l}, {h}] left [{lo}, {hi}]"
+        );
     }
     let mass: f64 = sim.density.iter().sum();
-    assert!(((mass - mass0) / mass0).abs() < 1e-13, "mass drift {}", (mass - mass0) / mass0);
+    assert!(
+        ((mass - mass0) / mass0).abs() < 1e-13,
+        "mass drift {}",
+        (mass - mass0) / mass0
+    );
     assert!(sim.time > 1.0, "the run should have moved the cloud (t = {})", sim.time);
 }
 
@@ -55,7 +83,10 @@ fn slab_growth_rate(m: usize, nx: usize, ny: usize) -> f64 {
         let (mut re, mut im) = (0.0, 0.0);
         for j in 0..p.ny {
             let y = (j as f64 + 0.5) * p.h();
-            let integral: f64 = (0..p.nx).filter(|&i| ((i as f64 + 0.5) * p.h()) < 8.0).map(|i| sim.density[j * p.nx + i] * p.h()).sum();
+            let integral: f64 = (0..p.nx)
+                .filter(|&i| ((i as f64 + 0.5) * p.h()) < 8.0)
+                .map(|i| sim.density[j * p.nx + i] * p.h())
+                .sum();
             re += integral * (k * y).cos();
             im += integral * (k * y).sin();
         }
@@ -73,7 +104,10 @@ fn slab_growth_rate(m: usize, nx: usize, ny: usize) -> f64 {
         }
     }
     let n = pts.len() as f64;
-    let (mt, ml) = (pts.iter().map(|p| p.0).sum::<f64>() / n, pts.iter().map(|p| p.1).sum::<f64>() / n);
+    let (mt, ml) = (
+        pts.iter().map(|p| p.0).sum::<f64>() / n,
+        pts.iter().map(|p| p.1).sum::<f64>() / n,
+    );
     pts.iter().map(|p| (p.0 - mt) * (p.1 - ml)).sum::<f64>() / pts.iter().map(|p| (p.0 - mt).powi(2)).sum::<f64>()
 }
 
@@ -87,10 +121,16 @@ fn linear_growth_rate_of_a_perturbed_slab() {
     let g1 = slab_growth_rate(1, 192, 48);
     let g2 = slab_growth_rate(2, 192, 48);
     let g2_fine = slab_growth_rate(2, 384, 96);
-    println!("slab growth rates: m=1 {g1:.4} (exact 0.7206), m=2 {g2:.4} at 192 x 48 and {g2_fine:.4} at 384 x 96 (exact 1.1521)");
+    println!(
+        "slab growth rates: m=1 {g1:.4} (exact 0.7206), m=2 {g2:.4} at 192 x 48 and {g2_fine:.4} at 384 x 96 \
+        (exact 1.1521)"
+    );
     assert!((g1 / 0.7206 - 1.0).abs() < 0.02, "m=1 rate {g1}");
     assert!((g2 / 1.1521 - 1.0).abs() < 0.04, "m=2 rate {g2}");
-    assert!((g2_fine - 1.1521).abs() < (g2 - 1.1521).abs(), "refining did not help: {g2} -> {g2_fine}");
+    assert!(
+        (g2_fine - 1.1521).abs() < (g2 - 1.1521).abs(),
+        "refining did not help: {g2} -> {g2_fine}"
+    );
     // Below the sharp-interface upper bounds (0.94, 1.89).
     assert!(g1 < 0.94 && g2 < 1.89);
 }
@@ -144,7 +184,11 @@ fn steady_shear_matches_the_exact_velocity() {
         let x = cell_xy(&p, c).0;
         let exact = -1.0 / (sigma(x) * mean_inv);
         worst = worst.max((sim.velocity.v[c] - exact).abs() / exact.abs());
-        assert!(sim.velocity.u[c].abs() < 1e-10, "no x drift expected, got {}", sim.velocity.u[c]);
+        assert!(
+            sim.velocity.u[c].abs() < 1e-10,
+            "no x drift expected, got {}",
+            sim.velocity.u[c]
+        );
     }
     println!("steady shear: max relative error {worst:.2e}");
     assert!(worst < 1e-3, "{worst}");
@@ -154,7 +198,13 @@ fn steady_shear_matches_the_exact_velocity() {
 fn mirror_symmetry_is_kept() {
     // No noise, cloud centred in y, even Ny, solves to 1e-12: the mirror image in y is also a
     // solution, so the two halves may differ only by rounding (1e-11 up to t = 3).
-    let p = PlasmaParams { nx: 192, ny: 48, eps: 0.0, tol: 1e-12, ..PlasmaParams::default() };
+    let p = PlasmaParams {
+        nx: 192,
+        ny: 48,
+        eps: 0.0,
+        tol: 1e-12,
+        ..PlasmaParams::default()
+    };
     let mut sim = PlasmaCloud::new(p.clone()).unwrap();
     sim.advance_to(3.0).unwrap();
     let mut worst: f64 = 0.0;
@@ -170,11 +220,26 @@ fn mirror_symmetry_is_kept() {
 #[test]
 fn bad_parameters_are_errors_not_panics() {
     for p in [
-        PlasmaParams { nx: 2, ..PlasmaParams::default() },
-        PlasmaParams { n_b: 0.0, ..PlasmaParams::default() },
-        PlasmaParams { n_b: f64::NAN, ..PlasmaParams::default() },
-        PlasmaParams { out_dt: -1.0, ..PlasmaParams::default() },
-        PlasmaParams { cfl: 2.0, ..PlasmaParams::default() },
+        PlasmaParams {
+            nx: 2,
+            ..PlasmaParams::default()
+        },
+        PlasmaParams {
+            n_b: 0.0,
+            ..PlasmaParams::default()
+        },
+        PlasmaParams {
+            n_b: f64::NAN,
+            ..PlasmaParams::default()
+        },
+        PlasmaParams {
+            out_dt: -1.0,
+            ..PlasmaParams::default()
+        },
+        PlasmaParams {
+            cfl: 2.0,
+            ..PlasmaParams::default()
+        },
     ] {
         assert!(PlasmaCloud::new(p).is_err());
     }

@@ -24,8 +24,10 @@ fn pod_basis() -> Mat<f64> {
 
 #[test]
 fn point_qr_selects_exactly_the_pysensors_pivots() {
-    let refj: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(reference_dir().join("qr_reference.json")).unwrap()).unwrap();
-    let want: Vec<usize> = serde_json::from_value(refj["cases"]["pod_r20"]["pysensors_QR_pivots_first_20"].clone()).unwrap();
+    let refj: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(reference_dir().join("qr_reference.json")).unwrap()).unwrap();
+    let want: Vec<usize> =
+        serde_json::from_value(refj["cases"]["pod_r20"]["pysensors_QR_pivots_first_20"].clone()).unwrap();
     let rdiag: Vec<f64> = serde_json::from_value(refj["cases"]["pod_r20"]["abs_R_diag"].clone()).unwrap();
     let (got, r) = point_qr(pod_basis().as_ref(), 20);
     assert_eq!(got, want);
@@ -58,7 +60,9 @@ fn an_exactly_low_rank_field_is_reconstructed_from_qr_chosen_disks() {
     assert_eq!(disks.len(), 3);
     assert_disks_valid(&grid, &disks, 2.0);
     let a = [1.0, -2.0, 0.5, 3.0, -0.7, 1.1];
-    let x: Vec<f64> = (0..grid.len()).map(|i| (0..6).map(|j| phi[(i, j)] * a[j]).sum()).collect();
+    let x: Vec<f64> = (0..grid.len())
+        .map(|i| (0..6).map(|j| phi[(i, j)] * a[j]).sum())
+        .collect();
     let cells: Vec<usize> = disks.iter().flat_map(|d| d.cells.iter().copied()).collect();
     let vals: Vec<f64> = cells.iter().map(|&p| x[p]).collect();
     let est = reconstruct(phi.as_ref(), &cells, &vals, 0.0).unwrap();
@@ -79,17 +83,29 @@ fn gappy_refuses_cells_that_cannot_determine_the_modes() {
     let phi = smooth_basis(&grid, 6, 2);
     // Five cells for six modes.
     let e = reconstruct(phi.as_ref(), &[0, 1, 2, 3, 4], &[1.0; 5], 0.1).unwrap_err();
-    assert!(matches!(e, SensingError::Underdetermined { rows: 5, modes: 6, .. }), "{e}");
+    assert!(
+        matches!(e, SensingError::Underdetermined { rows: 5, modes: 6, .. }),
+        "{e}"
+    );
     // The same cell measured ten times is still one row of information.
     let e = reconstruct(phi.as_ref(), &[7; 10], &[1.0; 10], 0.1).unwrap_err();
     assert!(matches!(e, SensingError::Underdetermined { rows: 1, .. }), "{e}");
-    assert!(matches!(reconstruct(phi.as_ref(), &[0, 1000], &[1.0, 2.0], 0.1), Err(SensingError::Input(_))));
-    assert!(matches!(reconstruct(phi.as_ref(), &[0, 1], &[1.0, f64::NAN], 0.1), Err(SensingError::Input(_))));
+    assert!(matches!(
+        reconstruct(phi.as_ref(), &[0, 1000], &[1.0, 2.0], 0.1),
+        Err(SensingError::Input(_))
+    ));
+    assert!(matches!(
+        reconstruct(phi.as_ref(), &[0, 1], &[1.0, f64::NAN], 0.1),
+        Err(SensingError::Input(_))
+    ));
     // Variance: measured cells of an orthonormal basis with all cells measured is sigma^2 * leverage.
     let all: Vec<usize> = (0..100).collect();
     let est = reconstruct(phi.as_ref(), &all, &vec![0.0; 100], 0.25).unwrap();
     let total: f64 = est.variance.iter().sum();
-    assert!((total - 0.25 * 6.0).abs() < 1e-10, "sum of variances {total} (trace of the hat matrix is r)");
+    assert!(
+        (total - 0.25 * 6.0).abs() < 1e-10,
+        "sum of variances {total} (trace of the hat matrix is r)"
+    );
 }
 
 /// Random non-overlapping disks (the placement QR must beat).
@@ -124,19 +140,41 @@ fn qr_vs_random(out: f64, noise: f64) -> (f64, f64) {
     let full = pod_basis();
     let phi = full.subcols(0, 10).to_owned();
     let (m, radius) = (3, 3.0);
-    let qr_cells: Vec<usize> = block_qr(phi.as_ref(), &grid, m, radius).unwrap().iter().flat_map(|d| d.cells.clone()).collect();
+    let qr_cells: Vec<usize> = block_qr(phi.as_ref(), &grid, m, radius)
+        .unwrap()
+        .iter()
+        .flat_map(|d| d.cells.clone())
+        .collect();
     let mut rng = ChaCha8Rng::seed_from_u64(2024);
     let (mut e_qr, mut e_rand) = (vec![], vec![]);
     for _ in 0..100 {
         let x: Vec<f64> = {
-            let a: Vec<f64> = (0..20).map(|j| <StandardNormal as Distribution<f64>>::sample(&StandardNormal, &mut rng) * if j < 10 { 1.0 } else { out }).collect();
-            (0..grid.len()).map(|i| (0..20).map(|j| full[(i, j)] * a[j]).sum()).collect()
+            let a: Vec<f64> = (0..20)
+                .map(|j| {
+                    <StandardNormal as Distribution<f64>>::sample(&StandardNormal, &mut rng)
+                        * if j < 10 { 1.0 } else { out }
+                })
+                .collect();
+            (0..grid.len())
+                .map(|i| (0..20).map(|j| full[(i, j)] * a[j]).sum())
+                .collect()
         };
         let norm = x.iter().map(|v| v * v).sum::<f64>().sqrt();
         let rel = |cells: &[usize], rng: &mut ChaCha8Rng| -> f64 {
-            let vals: Vec<f64> = cells.iter().map(|&p| x[p] + noise * <StandardNormal as Distribution<f64>>::sample(&StandardNormal, rng)).collect();
+            let vals: Vec<f64> = cells
+                .iter()
+                .map(|&p| x[p] + noise * <StandardNormal as Distribution<f64>>::sample(&StandardNormal, rng))
+                .collect();
             match reconstruct(phi.as_ref(), cells, &vals, noise * noise) {
-                Ok(est) => est.field.iter().zip(&x).map(|(u, v)| (u - v) * (u - v)).sum::<f64>().sqrt() / norm,
+                Ok(est) => {
+                    est.field
+                        .iter()
+                        .zip(&x)
+                        .map(|(u, v)| (u - v) * (u - v))
+                        .sum::<f64>()
+                        .sqrt()
+                        / norm
+                }
                 Err(_) => 1.0, // cannot reconstruct: as bad as knowing nothing
             }
         };
@@ -167,7 +205,12 @@ fn qr_disks_beat_random_disks_on_seeded_fields() {
 
 #[test]
 fn disks_never_overlap_and_stay_in_the_grid() {
-    for (rows, cols, r, m, radius, seed) in [(20, 30, 5, 6, 2.0, 1), (13, 17, 4, 8, 1.5, 2), (30, 30, 8, 5, 4.0, 3), (8, 8, 3, 20, 1.0, 4)] {
+    for (rows, cols, r, m, radius, seed) in [
+        (20, 30, 5, 6, 2.0, 1),
+        (13, 17, 4, 8, 1.5, 2),
+        (30, 30, 8, 5, 4.0, 3),
+        (8, 8, 3, 20, 1.0, 4),
+    ] {
         let grid = Grid::new(rows, cols, 1.0).unwrap();
         let phi = smooth_basis(&grid, r, seed);
         let a = block_qr(phi.as_ref(), &grid, m, radius).unwrap();
@@ -187,7 +230,10 @@ fn disks_never_overlap_and_stay_in_the_grid() {
 
 /// Every valid disk centre on `grid` (disks not touching `taken`), in cell order.
 fn free_centres(grid: &Grid, radius: f64, taken: &[bool]) -> Vec<Cell> {
-    (0..grid.len()).map(|i| grid.cell(i)).filter(|&c| grid.disk(c, radius).iter().all(|&p| !taken[p])).collect()
+    (0..grid.len())
+        .map(|i| grid.cell(i))
+        .filter(|&c| grid.disk(c, radius).iter().all(|&p| !taken[p]))
+        .collect()
 }
 
 fn random_basis(n: usize, r: usize, seed: u64) -> Mat<f64> {
@@ -205,7 +251,10 @@ fn block_qr_by_definition(phi: &Mat<f64>, grid: &Grid, m: usize, radius: f64) ->
     for _ in 0..m {
         let norms: Vec<f64> = (0..grid.len()).map(|p| g.col(p).norm_l2()).collect();
         let weight = |c: Cell| grid.disk(c, radius).iter().map(|&p| norms[p]).sum::<f64>();
-        let best = free_centres(grid, radius, &taken).into_iter().max_by(|a, b| weight(*a).total_cmp(&weight(*b))).unwrap();
+        let best = free_centres(grid, radius, &taken)
+            .into_iter()
+            .max_by(|a, b| weight(*a).total_cmp(&weight(*b)))
+            .unwrap();
         let cells = grid.disk(best, radius);
         let block = Mat::from_fn(grid.len(), cells.len(), |i, j| g[(i, cells[j])]);
         let svd = block.thin_svd().unwrap();
@@ -223,7 +272,16 @@ fn dopt_by_definition(phi: &Mat<f64>, grid: &Grid, m: usize, radius: f64) -> Vec
     let r = phi.ncols();
     let trace: f64 = (0..r).map(|j| phi.col(j).squared_norm_l2()).sum();
     let mut info = Mat::<f64>::identity(r, r) * faer::Scale(1e-9 * trace / r as f64);
-    let logdet = |a: &Mat<f64>| a.llt(faer::Side::Lower).unwrap().L().diagonal().column_vector().iter().map(|d| 2.0 * d.ln()).sum::<f64>();
+    let logdet = |a: &Mat<f64>| {
+        a.llt(faer::Side::Lower)
+            .unwrap()
+            .L()
+            .diagonal()
+            .column_vector()
+            .iter()
+            .map(|d| 2.0 * d.ln())
+            .sum::<f64>()
+    };
     let mut taken = vec![false; grid.len()];
     let mut out = vec![];
     for _ in 0..m {
@@ -235,7 +293,10 @@ fn dopt_by_definition(phi: &Mat<f64>, grid: &Grid, m: usize, radius: f64) -> Vec
             }
             a
         };
-        let best = free_centres(grid, radius, &taken).into_iter().max_by(|a, b| logdet(&with(*a)).total_cmp(&logdet(&with(*b)))).unwrap();
+        let best = free_centres(grid, radius, &taken)
+            .into_iter()
+            .max_by(|a, b| logdet(&with(*a)).total_cmp(&logdet(&with(*b))))
+            .unwrap();
         info = with(best);
         grid.disk(best, radius).iter().for_each(|&p| taken[p] = true);
         out.push(best);
@@ -248,9 +309,21 @@ fn block_qr_and_d_optimal_pick_what_their_definitions_pick_on_a_tiny_grid() {
     let grid = Grid::new(7, 9, 1.0).unwrap();
     for seed in 0..20 {
         let phi = random_basis(grid.len(), 4, seed);
-        let fast: Vec<Cell> = block_qr(phi.as_ref(), &grid, 3, 1.0).unwrap().iter().map(|d| d.centre).collect();
-        assert_eq!(fast, block_qr_by_definition(&phi, &grid, 3, 1.0), "block QR, basis {seed}");
-        let fast: Vec<Cell> = block_dopt(phi.as_ref(), &grid, 3, 1.0).unwrap().iter().map(|d| d.centre).collect();
+        let fast: Vec<Cell> = block_qr(phi.as_ref(), &grid, 3, 1.0)
+            .unwrap()
+            .iter()
+            .map(|d| d.centre)
+            .collect();
+        assert_eq!(
+            fast,
+            block_qr_by_definition(&phi, &grid, 3, 1.0),
+            "block QR, basis {seed}"
+        );
+        let fast: Vec<Cell> = block_dopt(phi.as_ref(), &grid, 3, 1.0)
+            .unwrap()
+            .iter()
+            .map(|d| d.centre)
+            .collect();
         assert_eq!(fast, dopt_by_definition(&phi, &grid, 3, 1.0), "D-optimal, basis {seed}");
     }
 }
@@ -272,10 +345,17 @@ fn real_basis_of_a_conjugate_pair_and_a_real_mode_is_three_orthonormal_direction
     let gram = q.transpose() * &q;
     for i in 0..3 {
         for j in 0..3 {
-            assert!((gram[(i, j)] - if i == j { 1.0 } else { 0.0 }).abs() < 1e-12, "orthonormal");
+            assert!(
+                (gram[(i, j)] - if i == j { 1.0 } else { 0.0 }).abs() < 1e-12,
+                "orthonormal"
+            );
         }
     }
     // It spans exactly b's columns: projecting them on q leaves nothing.
     let resid = &b - &q * (q.transpose() * &b);
-    assert!(resid.norm_l2() < 1e-10 * b.norm_l2(), "spans the modes' real span: residual {:e}", resid.norm_l2());
+    assert!(
+        resid.norm_l2() < 1e-10 * b.norm_l2(),
+        "spans the modes' real span: residual {:e}",
+        resid.norm_l2()
+    );
 }

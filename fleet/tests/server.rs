@@ -20,17 +20,37 @@ fn brains_of(server: &ServerCore, cfg: &TeamConfig, grid: Grid) -> Vec<VehicleBr
         .map(|(v, spec)| {
             let noise = match spec.kind {
                 VehicleKind::Aerial => server.assimilator().aerial_noise(),
-                VehicleKind::Boat => Noise { sigma0: cfg.boat_sigma, growth_per_m: 0.0 },
+                VehicleKind::Boat => Noise {
+                    sigma0: cfg.boat_sigma,
+                    growth_per_m: 0.0,
+                },
             };
-            VehicleBrain::new(&spec.id, spec.kind, grid, *server.schedule(), noise, vehicle_rng(cfg.seed, v), 1e3)
+            VehicleBrain::new(
+                &spec.id,
+                spec.kind,
+                grid,
+                *server.schedule(),
+                noise,
+                vehicle_rng(cfg.seed, v),
+                1e3,
+            )
         })
         .collect()
 }
 
 /// A moving plume on a 24 x 48 grid and a team of 2 aerials and 3 boats.
 fn plume_team() -> (fleet::process::FieldSeries, Grid, TeamConfig) {
-    let cfg =
-        TeamConfig { aerials: 2, boats: 3, radius: 3.0, rank: fleet::dmd::RankPolicy::Fixed(6), init_steps: 10, aerial_stride: 3, aerial_sigma0: 0.05, boat_sigma: 0.05, ..TeamConfig::default() };
+    let cfg = TeamConfig {
+        aerials: 2,
+        boats: 3,
+        radius: 3.0,
+        rank: fleet::dmd::RankPolicy::Fixed(6),
+        init_steps: 10,
+        aerial_stride: 3,
+        aerial_sigma0: 0.05,
+        boat_sigma: 0.05,
+        ..TeamConfig::default()
+    };
     (plume_field(24, 48, 42, 0.0, 5), Grid::new(24, 48, 1.0).unwrap(), cfg)
 }
 
@@ -67,12 +87,24 @@ fn shuffled_and_repeated_batches_give_the_offline_result() {
         e += 1;
     }
     assert_eq!(assimilated as u64, server.counters.epochs);
-    assert_eq!(server.counters.batches - server.counters.duplicates, sent.len() as u64, "each batch assimilated once");
+    assert_eq!(
+        server.counters.batches - server.counters.duplicates,
+        sent.len() as u64,
+        "each batch assimilated once"
+    );
     // Step for step, the server's fused snapshots are the offline experiment's.
-    let mse: Vec<f64> = server.snapshots.iter().enumerate().map(|(k, s)| s.iter().zip(x(k)).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / s.len() as f64).collect();
+    let mse: Vec<f64> = server
+        .snapshots
+        .iter()
+        .enumerate()
+        .map(|(k, s)| s.iter().zip(x(k)).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / s.len() as f64)
+        .collect();
     assert_eq!(mse, offline.heterogeneous);
     assert_eq!(server.ack("av-1").unwrap().seq, e - 1);
-    assert!(brains.iter().all(|b| b.off_target == 0), "every vehicle reached its targets");
+    assert!(
+        brains.iter().all(|b| b.off_target == 0),
+        "every vehicle reached its targets"
+    );
     // What model/latest carries decodes and validates on a receiver with the same grid.
     let update = server.model_update().unwrap();
     assert_eq!(update.eigenvalues.len(), offline.rank);
@@ -88,9 +120,14 @@ fn shuffled_and_repeated_batches_give_the_offline_result() {
 #[test]
 fn horizon_placement_keeps_each_boat_within_reach_and_the_model_carries_its_variance() {
     let (truth, grid, cfg) = plume_team();
-    let cfg = TeamConfig { placement: team::Placement::Horizon, ..cfg };
+    let cfg = TeamConfig {
+        placement: team::Placement::Horizon,
+        ..cfg
+    };
     let speed = 1.0; // metres per step; 1 m cells
-    let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap().with_boat_speed(speed);
+    let mut server = ServerCore::new(&cfg, grid, truth.frames())
+        .unwrap()
+        .with_boat_speed(speed);
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
     let mut brains = brains_of(&server, &cfg, grid);
     let reach = speed * cfg.boat_period as f64;
@@ -109,7 +146,11 @@ fn horizon_placement_keeps_each_boat_within_reach_and_the_model_carries_its_vari
                 if let Some((_, (r, c))) = disk {
                     let at = grid.centre_m(fleet::grid::Cell::new(*r, *c));
                     let d = (at.0 - before[b].0).hypot(at.1 - before[b].1);
-                    assert!(d <= reach + 1e-9, "epoch {}: boat {b} planned {d} m away, reach {reach} m", e + 1);
+                    assert!(
+                        d <= reach + 1e-9,
+                        "epoch {}: boat {b} planned {d} m away, reach {reach} m",
+                        e + 1
+                    );
                     checked += 1;
                 }
             }
@@ -120,27 +161,60 @@ fn horizon_placement_keeps_each_boat_within_reach_and_the_model_carries_its_vari
     assert!(checked >= 3 * 4, "horizon plans checked: {checked}");
     let m = server.model_update().unwrap();
     assert_eq!((m.variance.len(), m.forecast_variance.len()), (grid.len(), grid.len()));
-    assert!(m.variance.iter().chain(&m.forecast_variance).all(|v| v.is_finite() && *v > 0.0));
+    assert!(m
+        .variance
+        .iter()
+        .chain(&m.forecast_variance)
+        .all(|v| v.is_finite() && *v > 0.0));
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
-    assert!(mean(&m.forecast_variance) >= mean(&m.variance), "forecast {} < posterior {}", mean(&m.forecast_variance), mean(&m.variance));
+    assert!(
+        mean(&m.forecast_variance) >= mean(&m.variance),
+        "forecast {} < posterior {}",
+        mean(&m.forecast_variance),
+        mean(&m.variance)
+    );
 }
 
 #[test]
 fn bad_batches_are_rejected_and_counted() {
     let grid = Grid::new(24, 48, 1.0).unwrap();
-    let cfg = TeamConfig { aerials: 1, boats: 1, radius: 3.0, rank: fleet::dmd::RankPolicy::Fixed(4), init_steps: 5, ..TeamConfig::default() };
+    let cfg = TeamConfig {
+        aerials: 1,
+        boats: 1,
+        radius: 3.0,
+        rank: fleet::dmd::RankPolicy::Fixed(4),
+        init_steps: 5,
+        ..TeamConfig::default()
+    };
     let mut server = ServerCore::new(&cfg, grid, 20).unwrap();
     let b = |id: &str, kind, seq, steps: Vec<u64>| MeasurementBatch {
         vehicle: id.into(),
         kind,
         seq,
-        noise: Noise { sigma0: 0.1, growth_per_m: 0.0 },
-        samples: steps.into_iter().map(|s| fleet::protocol::Sample { step: s, position: [1.0, 1.0], cells: vec![0], values: vec![0.5] }).collect(),
+        noise: Noise {
+            sigma0: 0.1,
+            growth_per_m: 0.0,
+        },
+        samples: steps
+            .into_iter()
+            .map(|s| fleet::protocol::Sample {
+                step: s,
+                position: [1.0, 1.0],
+                cells: vec![0],
+                values: vec![0.5],
+            })
+            .collect(),
     };
     assert!(server.ingest(b("boat-9", VehicleKind::Boat, 0, vec![9])).is_err());
     assert!(server.ingest(b("av-1", VehicleKind::Boat, 0, vec![9])).is_err());
-    assert!(server.ingest(b("av-1", VehicleKind::Aerial, 0, vec![0, 1])).is_err(), "missing steps");
-    assert!(server.ingest(b("av-1", VehicleKind::Aerial, 99, vec![0])).is_err(), "past the end");
+    assert!(
+        server.ingest(b("av-1", VehicleKind::Aerial, 0, vec![0, 1])).is_err(),
+        "missing steps"
+    );
+    assert!(
+        server.ingest(b("av-1", VehicleKind::Aerial, 99, vec![0])).is_err(),
+        "past the end"
+    );
     assert_eq!(server.counters.rejected.values().sum::<u64>(), 4);
     assert_eq!(server.next_epoch(), 0);
 }
@@ -149,10 +223,26 @@ fn bad_batches_are_rejected_and_counted() {
 fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
     let truth = plume_field(24, 48, 42, 0.0, 5);
     let grid = Grid::new(24, 48, 1.0).unwrap();
-    let cfg = TeamConfig { aerials: 1, boats: 2, radius: 3.0, rank: fleet::dmd::RankPolicy::Fixed(6), init_steps: 10, aerial_stride: 3, ..TeamConfig::default() };
+    let cfg = TeamConfig {
+        aerials: 1,
+        boats: 2,
+        radius: 3.0,
+        rank: fleet::dmd::RankPolicy::Fixed(6),
+        init_steps: 10,
+        aerial_stride: 3,
+        ..TeamConfig::default()
+    };
     let server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
-    let mut av = VehicleBrain::new("av-1", VehicleKind::Aerial, grid, *server.schedule(), server.assimilator().aerial_noise(), vehicle_rng(cfg.seed, 0), 1e3);
+    let mut av = VehicleBrain::new(
+        "av-1",
+        VehicleKind::Aerial,
+        grid,
+        *server.schedule(),
+        server.assimilator().aerial_noise(),
+        vehicle_rng(cfg.seed, 0),
+        1e3,
+    );
     // Without a plan there is nothing to follow.
     assert!(av.sense_epoch(0, x).is_err());
     // Epoch 0's plan with a horizon of 3 epochs: the aerial senses epochs 0, 1 and 2 without
@@ -162,21 +252,47 @@ fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
         assert!(av.covers(e));
         let b = av.sense_epoch(e, x).unwrap().unwrap();
         assert_eq!(b.seq, e);
-        assert_eq!(b.samples.iter().map(|s| s.step as usize).collect::<Vec<_>>(), server.schedule().sample_steps(VehicleKind::Aerial, e));
+        assert_eq!(
+            b.samples.iter().map(|s| s.step as usize).collect::<Vec<_>>(),
+            server.schedule().sample_steps(VehicleKind::Aerial, e)
+        );
     }
     assert!(!av.covers(3));
     // A vehicle restarted from a committed state draws exactly what it would have drawn.
-    let mut again = VehicleBrain::new("av-1", VehicleKind::Aerial, grid, *server.schedule(), server.assimilator().aerial_noise(), vehicle_rng(cfg.seed, 0), 1e3);
-    let mut first = VehicleBrain::new("av-1", VehicleKind::Aerial, grid, *server.schedule(), server.assimilator().aerial_noise(), vehicle_rng(cfg.seed, 0), 1e3);
+    let mut again = VehicleBrain::new(
+        "av-1",
+        VehicleKind::Aerial,
+        grid,
+        *server.schedule(),
+        server.assimilator().aerial_noise(),
+        vehicle_rng(cfg.seed, 0),
+        1e3,
+    );
+    let mut first = VehicleBrain::new(
+        "av-1",
+        VehicleKind::Aerial,
+        grid,
+        *server.schedule(),
+        server.assimilator().aerial_noise(),
+        vehicle_rng(cfg.seed, 0),
+        1e3,
+    );
     first.set_plan(server.plan("av-1", 0, 3).unwrap());
     first.sense_epoch(0, x).unwrap();
     again.restore(first.state(1));
     assert_eq!(again.sense_epoch(1, x).unwrap(), first.sense_epoch(1, x).unwrap());
     assert!(av.sense_epoch(3, x).is_err());
     // A stale plan never replaces a newer one.
-    let newer = fleet::protocol::Plan { model_version: 5, ..server.plan("av-1", 0, 3).unwrap() };
+    let newer = fleet::protocol::Plan {
+        model_version: 5,
+        ..server.plan("av-1", 0, 3).unwrap()
+    };
     av.set_plan(newer.clone());
-    av.set_plan(fleet::protocol::Plan { model_version: 4, targets: vec![], ..newer.clone() });
+    av.set_plan(fleet::protocol::Plan {
+        model_version: 4,
+        targets: vec![],
+        ..newer.clone()
+    });
     assert_eq!(av.plan(), Some(&newer));
 }
 
@@ -188,7 +304,10 @@ fn a_boat_away_for_epochs_2_to_4() -> (ServerCore, Vec<MeasurementBatch>, Vec<Me
 }
 
 /// [`a_boat_away_for_epochs_2_to_4`] for any mission length and outage.
-fn a_boat_away(frames: usize, away: std::ops::RangeInclusive<u64>) -> (ServerCore, Vec<MeasurementBatch>, Vec<MeasurementBatch>, ServerCore) {
+fn a_boat_away(
+    frames: usize,
+    away: std::ops::RangeInclusive<u64>,
+) -> (ServerCore, Vec<MeasurementBatch>, Vec<MeasurementBatch>, ServerCore) {
     let (_, grid, cfg) = plume_team();
     let truth = plume_field(24, 48, frames, 0.0, 5);
     let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
@@ -203,7 +322,9 @@ fn a_boat_away(frames: usize, away: std::ops::RangeInclusive<u64>) -> (ServerCor
             if !away {
                 brain.set_plan(server.plan(&brain.id, e, 4).expect("plan"));
             }
-            let Some(b) = brain.sense_epoch(e, x).unwrap() else { continue };
+            let Some(b) = brain.sense_epoch(e, x).unwrap() else {
+                continue;
+            };
             all.push(b.clone());
             if away {
                 held.push(b);
@@ -214,7 +335,11 @@ fn a_boat_away(frames: usize, away: std::ops::RangeInclusive<u64>) -> (ServerCor
         if away.contains(&e) {
             assert!(server.waiting_for().contains(&"boat-2".to_string()));
             assert!(server.force().unwrap(), "epoch {e} assimilated without boat-2");
-            assert_eq!(server.ack("boat-2").unwrap().seq, away.start() - 2, "boat-2's ack stops before its gap");
+            assert_eq!(
+                server.ack("boat-2").unwrap().seq,
+                away.start() - 2,
+                "boat-2's ack stops before its gap"
+            );
         }
     }
     assert!(!server.finished(), "not finished while boat-2's batches are out");
@@ -229,7 +354,12 @@ fn a_boat_away(frames: usize, away: std::ops::RangeInclusive<u64>) -> (ServerCor
 fn equals_offline(server: &ServerCore, mut all: Vec<MeasurementBatch>, mut offline: ServerCore) {
     let last = server.schedule().last_seq(VehicleKind::Boat).unwrap();
     assert_eq!(server.ack("boat-2").unwrap().seq, last);
-    all.sort_by_key(|b| (fleet::mission::schedule::Schedule::epoch_of(b.kind, b.seq), b.vehicle.clone()));
+    all.sort_by_key(|b| {
+        (
+            fleet::mission::schedule::Schedule::epoch_of(b.kind, b.seq),
+            b.vehicle.clone(),
+        )
+    });
     for b in all {
         offline.ingest(b).unwrap();
     }
@@ -259,7 +389,11 @@ fn a_backlog_taken_as_a_burst_is_refitted_once_to_the_same_model() {
         assert!(matches!(server.ingest_deferred(b).unwrap(), Ingested::Refitted(_)));
     }
     assert!(!server.finished(), "not finished before the re-fit");
-    assert_eq!((server.version, server.counters.refits), (version, 0), "nothing re-fitted yet");
+    assert_eq!(
+        (server.version, server.counters.refits),
+        (version, 0),
+        "nothing re-fitted yet"
+    );
     assert!(server.settle().unwrap());
     assert!(!server.settle().unwrap(), "a second settle has nothing to do");
     assert!(server.finished());
@@ -288,15 +422,31 @@ fn vehicles_on_hold_are_left_out_and_their_empty_batches_accepted() {
         }
         e += 1;
     }
-    assert_eq!(server.counters.rejected.values().sum::<u64>(), 0, "held vehicles' empty batches are accepted");
+    assert_eq!(
+        server.counters.rejected.values().sum::<u64>(),
+        0,
+        "held vehicles' empty batches are accepted"
+    );
     for e in 2..server.next_epoch() {
         let Some(alloc) = server.allocation(e) else { continue };
         assert_eq!(server.held_at(e), ["av-2", "boat-2"]);
-        assert!(alloc.boats[1].is_none() && alloc.boats[0].is_some() && alloc.boats[2].is_some(), "the other boats get the disks");
+        assert!(
+            alloc.boats[1].is_none() && alloc.boats[0].is_some() && alloc.boats[2].is_some(),
+            "the other boats get the disks"
+        );
         let p = server.plan("av-1", e, 1).unwrap();
         let lattice = grid.strided(3).unwrap();
-        assert_eq!(p.targets[0].cells.len(), lattice.rows * lattice.cols, "the other aerial covers the whole lattice");
-        assert!(server.plan("av-2", e, 1).unwrap().targets.iter().all(|t| t.cells.is_empty()));
+        assert_eq!(
+            p.targets[0].cells.len(),
+            lattice.rows * lattice.cols,
+            "the other aerial covers the whole lattice"
+        );
+        assert!(server
+            .plan("av-2", e, 1)
+            .unwrap()
+            .targets
+            .iter()
+            .all(|t| t.cells.is_empty()));
     }
 }
 
@@ -310,7 +460,10 @@ struct Journal {
 
 impl Journal {
     fn ingest(&mut self, server: &mut ServerCore, b: MeasurementBatch) {
-        if matches!(server.ingest(b.clone()).unwrap(), Ingested::Buffered | Ingested::Assimilated(_) | Ingested::Refitted(_)) {
+        if matches!(
+            server.ingest(b.clone()).unwrap(),
+            Ingested::Buffered | Ingested::Assimilated(_) | Ingested::Refitted(_)
+        ) {
             self.batches.push(b);
         }
         self.take(server);
@@ -354,15 +507,28 @@ fn a_mission_with_holds(kills: &[u64]) -> ServerCore {
         }
         if kills.contains(&e) {
             let fresh = journal.restart(&cfg, grid, truth.frames());
-            assert_eq!((fresh.next_epoch(), fresh.held(), fresh.version), (server.next_epoch(), server.held(), server.version), "restarted after epoch {e}");
+            assert_eq!(
+                (fresh.next_epoch(), fresh.held(), fresh.version),
+                (server.next_epoch(), server.held(), server.version),
+                "restarted after epoch {e}"
+            );
             for v in server.vehicles() {
-                assert_eq!(fresh.plan(&v.id, e + 1, 2), server.plan(&v.id, e + 1, 2), "{}'s plan after the restart", v.id);
+                assert_eq!(
+                    fresh.plan(&v.id, e + 1, 2),
+                    server.plan(&v.id, e + 1, 2),
+                    "{}'s plan after the restart",
+                    v.id
+                );
             }
             server = fresh;
         }
         e += 1;
     }
-    assert_eq!(server.counters.rejected.values().sum::<u64>(), 0, "held vehicles' empty batches are accepted, before and after a restart");
+    assert_eq!(
+        server.counters.rejected.values().sum::<u64>(),
+        0,
+        "held vehicles' empty batches are accepted, before and after a restart"
+    );
     server
 }
 
@@ -372,7 +538,10 @@ fn a_server_that_held_vehicles_restarts_from_its_journal_to_the_same_model() {
     let restarted = a_mission_with_holds(&[1, 2, 4]);
     assert_eq!(restarted.snapshots, uninterrupted.snapshots);
     let (a, b) = (restarted.model_update().unwrap(), uninterrupted.model_update().unwrap());
-    assert_eq!((a.eigenvalues, a.modes_re, a.amplitudes), (b.eigenvalues, b.modes_re, b.amplitudes));
+    assert_eq!(
+        (a.eigenvalues, a.modes_re, a.amplitudes),
+        (b.eigenvalues, b.modes_re, b.amplitudes)
+    );
     for e in 2..uninterrupted.next_epoch() {
         assert_eq!(restarted.held_at(e), uninterrupted.held_at(e), "epoch {e}'s holds");
     }
@@ -383,10 +552,17 @@ fn a_server_restarted_after_forcing_epochs_reaches_the_same_epoch_and_takes_the_
     let (truth, grid, cfg) = plume_team();
     let (mut server, held, all, offline) = a_boat_away_for_epochs_2_to_4();
     // The journal of that run: every batch but boat-2's backlog, and the forced epochs.
-    let mut journal = Journal { batches: all.iter().filter(|b| !held.contains(b)).cloned().collect(), ..Journal::default() };
+    let mut journal = Journal {
+        batches: all.iter().filter(|b| !held.contains(b)).cloned().collect(),
+        ..Journal::default()
+    };
     journal.take(&mut server);
     let mut fresh = journal.restart(&cfg, grid, truth.frames());
-    assert_eq!(fresh.next_epoch(), server.next_epoch(), "the forced epochs are assimilated again without boat-2");
+    assert_eq!(
+        fresh.next_epoch(),
+        server.next_epoch(),
+        "the forced epochs are assimilated again without boat-2"
+    );
     assert_eq!(fresh.snapshots, server.snapshots);
     assert_eq!(fresh.counters.forced, 3);
     for b in held {
@@ -400,14 +576,29 @@ fn a_server_restarted_after_forcing_epochs_reaches_the_same_epoch_and_takes_the_
 fn an_empty_batch_is_a_vehicle_that_sensed_nothing_except_an_aerial_the_first_model_needs() {
     let (_, grid, cfg) = plume_team();
     let mut server = ServerCore::new(&cfg, grid, 42).unwrap();
-    let empty = |id: &str, kind, seq| MeasurementBatch { vehicle: id.into(), kind, seq, noise: Noise { sigma0: 0.05, growth_per_m: 0.0 }, samples: vec![] };
+    let empty = |id: &str, kind, seq| MeasurementBatch {
+        vehicle: id.into(),
+        kind,
+        seq,
+        noise: Noise {
+            sigma0: 0.05,
+            growth_per_m: 0.0,
+        },
+        samples: vec![],
+    };
     // Epoch 0 builds the first model from the whole lattice: an aerial given cells must send them.
     assert!(server.ingest(empty("av-1", VehicleKind::Aerial, 0)).is_err());
     assert_eq!(server.counters.rejected["invalid_batch"], 1, "counted once");
     // Later, an empty batch is accepted whatever the server's plan said (a vehicle following
     // an older plan's horizon, a boat that lost its autopilot): it waits for its epoch.
-    assert_eq!(server.ingest(empty("boat-1", VehicleKind::Boat, 2)).unwrap(), Ingested::Buffered);
-    assert_eq!(server.ingest(empty("av-2", VehicleKind::Aerial, 3)).unwrap(), Ingested::Buffered);
+    assert_eq!(
+        server.ingest(empty("boat-1", VehicleKind::Boat, 2)).unwrap(),
+        Ingested::Buffered
+    );
+    assert_eq!(
+        server.ingest(empty("av-2", VehicleKind::Aerial, 3)).unwrap(),
+        Ingested::Buffered
+    );
 }
 
 #[test]
@@ -422,7 +613,11 @@ fn a_late_batch_refits_from_the_newest_checkpoint_before_it_to_the_same_model() 
     assert!(server.settle().unwrap());
     assert!(server.finished());
     assert_eq!(server.counters.refits, 1);
-    assert_eq!(server.counters.refit_epochs, epochs - 12, "re-fitted from epoch 12 (the checkpoint at or before 13)");
+    assert_eq!(
+        server.counters.refit_epochs,
+        epochs - 12,
+        "re-fitted from epoch 12 (the checkpoint at or before 13)"
+    );
     equals_offline(&server, all, offline);
 }
 
@@ -440,13 +635,32 @@ fn boats_redirected_for_an_epoch_sense_the_new_disks() {
         if e > 0 && !redirected && !server.schedule().sample_steps(VehicleKind::Boat, e).is_empty() {
             let bad = server.redirect_boats(e, vec![None; 2]).unwrap_err().to_string();
             assert!(bad.contains("2 disks for 3 boats"), "{bad}");
-            let bad = server.redirect_boats(e, vec![Some((vec![grid.len()], (12, 24))), None, None]).unwrap_err().to_string();
+            let bad = server
+                .redirect_boats(e, vec![Some((vec![grid.len()], (12, 24))), None, None])
+                .unwrap_err()
+                .to_string();
             assert!(bad.contains("leaves the 24 x 48 grid"), "{bad}");
-            assert!(server.redirect_boats(e - 1, vec![None; 3]).is_err(), "an assimilated epoch");
-            server.redirect_boats(e, vec![None, Some((disk.clone(), (12, 24))), None]).unwrap();
+            assert!(
+                server.redirect_boats(e - 1, vec![None; 3]).is_err(),
+                "an assimilated epoch"
+            );
+            server
+                .redirect_boats(e, vec![None, Some((disk.clone(), (12, 24))), None])
+                .unwrap();
             let plan = server.plan("boat-2", e, 1).unwrap();
-            assert!(plan.targets.iter().all(|t| t.cells.iter().map(|&c| c as usize).eq(disk.iter().copied())));
-            assert!(server.plan("boat-1", e, 1).unwrap().targets.iter().all(|t| t.cells.is_empty()), "a boat without a disk senses nothing");
+            assert!(plan
+                .targets
+                .iter()
+                .all(|t| t.cells.iter().map(|&c| c as usize).eq(disk.iter().copied())));
+            assert!(
+                server
+                    .plan("boat-1", e, 1)
+                    .unwrap()
+                    .targets
+                    .iter()
+                    .all(|t| t.cells.is_empty()),
+                "a boat without a disk senses nothing"
+            );
             redirected = true;
         }
         for brain in &mut brains {
@@ -455,7 +669,11 @@ fn boats_redirected_for_an_epoch_sense_the_new_disks() {
                 server.ingest(b).unwrap();
             }
         }
-        assert_eq!(server.next_epoch(), e + 1, "epoch {e} assimilated with the redirected boats' batches");
+        assert_eq!(
+            server.next_epoch(),
+            e + 1,
+            "epoch {e} assimilated with the redirected boats' batches"
+        );
     }
     assert!(redirected);
     assert_eq!(server.counters.rejected.values().sum::<u64>(), 0);

@@ -45,19 +45,45 @@ fn over_ten_seeds_the_heterogeneous_team_beats_both_single_kind_teams() {
     for fusion in [Scheme::InverseVariance, Scheme::Kalman] {
         let (mut het, mut aerial, mut boat, mut random) = (vec![], vec![], vec![], vec![]);
         for seed in 1..=10 {
-            let cfg = TeamConfig { seed, fusion, ..tiny_config() };
+            let cfg = TeamConfig {
+                seed,
+                fusion,
+                ..tiny_config()
+            };
             let qr = run(&cfg, &truth, |_, _| {}).unwrap();
-            let rnd = run(&TeamConfig { placement: Placement::Random, ..cfg.clone() }, &truth, |_, _| {}).unwrap();
+            let rnd = run(
+                &TeamConfig {
+                    placement: Placement::Random,
+                    ..cfg.clone()
+                },
+                &truth,
+                |_, _| {},
+            )
+            .unwrap();
             assert_eq!(qr.heterogeneous.len(), 60);
-            assert_eq!(qr.scored_from, 14, "scored from the boats' first sample (step 10 + 5 - 1)");
-            assert!(qr.boat_only[..14].iter().all(Option::is_none) && qr.boat_only[14..].iter().all(Option::is_some), "the boat-only team has no estimate before its first sample");
+            assert_eq!(
+                qr.scored_from, 14,
+                "scored from the boats' first sample (step 10 + 5 - 1)"
+            );
+            assert!(
+                qr.boat_only[..14].iter().all(Option::is_none) && qr.boat_only[14..].iter().all(Option::is_some),
+                "the boat-only team has no estimate before its first sample"
+            );
             het.push(qr.mean_heterogeneous);
             aerial.push(qr.mean_aerial_only);
             boat.push(qr.mean_boat_only);
             random.push(rnd.mean_heterogeneous);
         }
-        let (a, b, q) = (Interval::paired(&het, &aerial), Interval::paired(&het, &boat), Interval::paired(&het, &random));
-        println!("{fusion}, 10 seeds, paired differences [95%]: heterogeneous - aerial-only {a:?}; heterogeneous - boat-only {b:?}; QR - random {q:?} ({})", Verdict::of(&q).words());
+        let (a, b, q) = (
+            Interval::paired(&het, &aerial),
+            Interval::paired(&het, &boat),
+            Interval::paired(&het, &random),
+        );
+        println!(
+            "{fusion}, 10 seeds, paired differences [95%]: heterogeneous - aerial-only {a:?}; heterogeneous - \
+            boat-only {b:?}; QR - random {q:?} ({})",
+            Verdict::of(&q).words()
+        );
         assert_eq!(Verdict::of(&a), Verdict::Better, "{fusion}: against aerial-only");
         assert_eq!(Verdict::of(&b), Verdict::Better, "{fusion}: against boat-only");
         if fusion == Scheme::InverseVariance {
@@ -90,11 +116,17 @@ fn the_oracle_puts_disks_where_the_error_is() {
     let mut excluded = vec![false; grid.len()];
     let disks = where_the_error_is(&grid, &err2, 3, 2.0, &excluded);
     let centres: Vec<(usize, usize)> = disks.iter().map(|d| d.1).collect();
-    assert!(disks[0].0.contains(&grid.index(Cell::new(14, 8))) && disks[0].0.contains(&grid.index(Cell::new(15, 8))), "the disk with most error first: {centres:?}");
+    assert!(
+        disks[0].0.contains(&grid.index(Cell::new(14, 8))) && disks[0].0.contains(&grid.index(Cell::new(15, 8))),
+        "the disk with most error first: {centres:?}"
+    );
     assert!(disks[1].0.contains(&grid.index(Cell::new(5, 30))), "{centres:?}");
     assert!(disks[2].0.contains(&grid.index(Cell::new(2, 2))), "{centres:?}");
     let mut seen = std::collections::BTreeSet::new();
-    assert!(disks.iter().flat_map(|d| &d.0).all(|c| seen.insert(*c)), "disks overlap");
+    assert!(
+        disks.iter().flat_map(|d| &d.0).all(|c| seen.insert(*c)),
+        "disks overlap"
+    );
     // Fenced off, the hottest spot is not taken; and no more disks than fit.
     for r in 0..20 {
         for c in 20..40 {
@@ -104,7 +136,11 @@ fn the_oracle_puts_disks_where_the_error_is() {
     let fenced = where_the_error_is(&grid, &err2, 3, 2.0, &excluded);
     assert!(fenced.iter().flat_map(|d| &d.0).all(|&c| !excluded[c]));
     assert!(!fenced.iter().any(|d| d.0.contains(&grid.index(Cell::new(5, 30)))));
-    assert_eq!(where_the_error_is(&Grid::new(3, 3, 1.0).unwrap(), &[1.0; 9], 4, 5.0, &[]).len(), 1, "one disk covers the grid");
+    assert_eq!(
+        where_the_error_is(&Grid::new(3, 3, 1.0).unwrap(), &[1.0; 9], 4, 5.0, &[]).len(),
+        1,
+        "one disk covers the grid"
+    );
 }
 
 /// The oracle (boats sent where a copy of the fleet, boats idle, is furthest from the truth)

@@ -42,13 +42,20 @@ impl Estimate {
     /// Check lengths, finiteness, and non-negative variances.
     pub fn validate(&self, n: usize) -> Result<(), FusionError> {
         if self.values.len() != n || self.variance.len() != n {
-            return Err(FusionError::Input(format!("estimate has {} values and {} variances for {n} cells", self.values.len(), self.variance.len())));
+            return Err(FusionError::Input(format!(
+                "estimate has {} values and {} variances for {n} cells",
+                self.values.len(),
+                self.variance.len()
+            )));
         }
         if let Some(i) = self.values.iter().position(|v| !v.is_finite()) {
             return Err(FusionError::Input(format!("estimate value at cell {i} is not finite")));
         }
         if let Some(i) = self.variance.iter().position(|v| !(v.is_finite() && *v >= 0.0)) {
-            return Err(FusionError::Input(format!("estimate variance at cell {i} is {}", self.variance[i])));
+            return Err(FusionError::Input(format!(
+                "estimate variance at cell {i} is {}",
+                self.variance[i]
+            )));
         }
         Ok(())
     }
@@ -84,8 +91,11 @@ pub struct Sample {
 }
 
 fn check_noise(noise: &AerialNoise) -> Result<(), FusionError> {
-    if !(noise.sigma0.is_finite() && noise.sigma0 >= 0.0 && noise.growth_per_m.is_finite() && noise.growth_per_m >= 0.0) {
-        return Err(FusionError::Input(format!("sensor noise must be finite and >= 0, got {noise:?}")));
+    if !(noise.sigma0.is_finite() && noise.sigma0 >= 0.0 && noise.growth_per_m.is_finite() && noise.growth_per_m >= 0.0)
+    {
+        return Err(FusionError::Input(format!(
+            "sensor noise must be finite and >= 0, got {noise:?}"
+        )));
     }
     Ok(())
 }
@@ -111,13 +121,28 @@ pub fn aerial_region(grid: &Grid, stride: usize, aerials: &[(f64, f64)], me: usi
 /// What a sensor at `pos` (metres) measures of `truth` at `cells` at one step: each value with
 /// noise of std `sigma0 + growth * distance`, one normal draw per cell in the order given.
 /// Aerials (growth > 0) and boats (growth 0) are the same sensor model with other numbers.
-pub fn sense_cells<R: Rng + ?Sized>(grid: &Grid, truth: &[f64], step: u64, pos: (f64, f64), cells: &[usize], noise: AerialNoise, rng: &mut R) -> Result<Sample, FusionError> {
+pub fn sense_cells<R: Rng + ?Sized>(
+    grid: &Grid,
+    truth: &[f64],
+    step: u64,
+    pos: (f64, f64),
+    cells: &[usize],
+    noise: AerialNoise,
+    rng: &mut R,
+) -> Result<Sample, FusionError> {
     check_noise(&noise)?;
     if truth.len() != grid.len() {
-        return Err(FusionError::Input(format!("truth of {} values on a {}-cell grid", truth.len(), grid.len())));
+        return Err(FusionError::Input(format!(
+            "truth of {} values on a {}-cell grid",
+            truth.len(),
+            grid.len()
+        )));
     }
     if let Some(c) = cells.iter().find(|&&c| c >= grid.len()) {
-        return Err(FusionError::Input(format!("cell {c} outside the {}-cell grid", grid.len())));
+        return Err(FusionError::Input(format!(
+            "cell {c} outside the {}-cell grid",
+            grid.len()
+        )));
     }
     let values = cells
         .iter()
@@ -127,13 +152,27 @@ pub fn sense_cells<R: Rng + ?Sized>(grid: &Grid, truth: &[f64], step: u64, pos: 
             truth[c] + noise.std_at((pos.0 - x).hypot(pos.1 - y)) * z
         })
         .collect();
-    Ok(Sample { step, position: [pos.0, pos.1], cells: cells.iter().map(|&c| c as u32).collect(), values })
+    Ok(Sample {
+        step,
+        position: [pos.0, pos.1],
+        cells: cells.iter().map(|&c| c as u32).collect(),
+        values,
+    })
 }
 
 /// What aerial `me` sees of `truth` at one step: its region ([`aerial_region`]) sensed from
 /// where it is ([`sense_cells`]).
 #[allow(clippy::too_many_arguments)]
-pub fn sense_aerial<R: Rng + ?Sized>(grid: &Grid, truth: &[f64], step: u64, stride: usize, aerials: &[(f64, f64)], me: usize, noise: AerialNoise, rng: &mut R) -> Result<Sample, FusionError> {
+pub fn sense_aerial<R: Rng + ?Sized>(
+    grid: &Grid,
+    truth: &[f64],
+    step: u64,
+    stride: usize,
+    aerials: &[(f64, f64)],
+    me: usize,
+    noise: AerialNoise,
+    rng: &mut R,
+) -> Result<Sample, FusionError> {
     let region = aerial_region(grid, stride, aerials, me)?;
     sense_cells(grid, truth, step, aerials[me], &region, noise, rng)
 }
@@ -164,11 +203,20 @@ pub struct AerialFrame {
 impl AerialFrame {
     /// Simulate every aerial's sample of `truth` (see [`sense_aerial`]) from one random stream
     /// and assemble the frame.
-    pub fn sense<R: Rng + ?Sized>(grid: &Grid, truth: &[f64], stride: usize, aerials: &[(f64, f64)], noise: AerialNoise, rng: &mut R) -> Result<Self, FusionError> {
+    pub fn sense<R: Rng + ?Sized>(
+        grid: &Grid,
+        truth: &[f64],
+        stride: usize,
+        aerials: &[(f64, f64)],
+        noise: AerialNoise,
+        rng: &mut R,
+    ) -> Result<Self, FusionError> {
         if aerials.is_empty() {
             return Err(FusionError::Input("an aerial frame needs at least one aerial".into()));
         }
-        let samples = (0..aerials.len()).map(|me| sense_aerial(grid, truth, 0, stride, aerials, me, noise, rng)).collect::<Result<Vec<_>, _>>()?;
+        let samples = (0..aerials.len())
+            .map(|me| sense_aerial(grid, truth, 0, stride, aerials, me, noise, rng))
+            .collect::<Result<Vec<_>, _>>()?;
         Self::assemble(grid, stride, &samples, noise)
     }
 
@@ -178,14 +226,24 @@ impl AerialFrame {
         check_noise(&noise)?;
         let lattice = grid.strided(stride)?;
         let m = lattice.rows * lattice.cols;
-        let mut frame = Self { lattice, values: vec![0.0; m], variance: vec![0.0; m], seen: vec![false; m] };
+        let mut frame = Self {
+            lattice,
+            values: vec![0.0; m],
+            variance: vec![0.0; m],
+            seen: vec![false; m],
+        };
         for s in samples {
             for (&c, &v) in s.cells.iter().zip(&s.values) {
                 if c as usize >= grid.len() {
-                    return Err(FusionError::Input(format!("aerial cell {c} outside the {}-cell grid", grid.len())));
+                    return Err(FusionError::Input(format!(
+                        "aerial cell {c} outside the {}-cell grid",
+                        grid.len()
+                    )));
                 }
                 let cell = grid.cell(c as usize);
-                let k = lattice.coarse_index(cell).ok_or_else(|| FusionError::Input(format!("aerial cell {c} is not on the stride-{stride} lattice")))?;
+                let k = lattice.coarse_index(cell).ok_or_else(|| {
+                    FusionError::Input(format!("aerial cell {c} is not on the stride-{stride} lattice"))
+                })?;
                 let (x, y) = grid.centre_m(cell);
                 let sd = noise.std_at((s.position[0] - x).hypot(s.position[1] - y));
                 frame.values[k] = v;
@@ -259,7 +317,10 @@ impl AerialFrame {
 
     /// Bilinear upsampling to the fine grid, with the propagated variance.
     pub fn upsample(&self) -> Result<Estimate, FusionError> {
-        Ok(Estimate { values: self.lattice.upsample_bilinear(&self.values)?, variance: self.lattice.upsample_variance(&self.variance)? })
+        Ok(Estimate {
+            values: self.lattice.upsample_bilinear(&self.values)?,
+            variance: self.lattice.upsample_variance(&self.variance)?,
+        })
     }
 }
 
@@ -291,7 +352,9 @@ impl FromStr for Scheme {
             "paper" => Ok(Self::Paper),
             "inverse-variance" => Ok(Self::InverseVariance),
             "kalman" => Ok(Self::Kalman),
-            _ => Err(format!("unknown fusion scheme {s:?} (paper | inverse-variance | kalman)")),
+            _ => Err(format!(
+                "unknown fusion scheme {s:?} (paper | inverse-variance | kalman)"
+            )),
         }
     }
 }
@@ -309,7 +372,12 @@ impl fmt::Display for Scheme {
 /// Fuse the available estimates (any of them may be absent; at least one estimate or
 /// measurement is needed) into one snapshot with its per-cell variance. Sources are assumed
 /// independent. A zero-variance source is exact and wins its cell under `inverse-variance`.
-pub fn fuse(scheme: Scheme, n: usize, estimates: &[&Estimate], measured: Option<Measured<'_>>) -> Result<Estimate, FusionError> {
+pub fn fuse(
+    scheme: Scheme,
+    n: usize,
+    estimates: &[&Estimate],
+    measured: Option<Measured<'_>>,
+) -> Result<Estimate, FusionError> {
     for e in estimates {
         e.validate(n)?;
     }
@@ -317,9 +385,14 @@ pub fn fuse(scheme: Scheme, n: usize, estimates: &[&Estimate], measured: Option<
         check_measured(m, n)?;
     }
     if estimates.is_empty() && measured.is_none_or(|m| m.cells.len() < n) {
-        return Err(FusionError::Input("nothing to fuse: no estimate covers the grid".into()));
+        return Err(FusionError::Input(
+            "nothing to fuse: no estimate covers the grid".into(),
+        ));
     }
-    let mut out = Estimate { values: vec![0.0; n], variance: vec![0.0; n] };
+    let mut out = Estimate {
+        values: vec![0.0; n],
+        variance: vec![0.0; n],
+    };
     match scheme {
         Scheme::Paper => {
             let k = estimates.len() as f64;
@@ -359,16 +432,25 @@ pub fn fuse(scheme: Scheme, n: usize, estimates: &[&Estimate], measured: Option<
 
 fn check_measured(m: &Measured<'_>, n: usize) -> Result<(), FusionError> {
     if m.cells.len() != m.values.len() {
-        return Err(FusionError::Input(format!("{} measured cells but {} values", m.cells.len(), m.values.len())));
+        return Err(FusionError::Input(format!(
+            "{} measured cells but {} values",
+            m.cells.len(),
+            m.values.len()
+        )));
     }
     if let Some(c) = m.cells.iter().find(|&&c| c >= n) {
-        return Err(FusionError::Input(format!("measured cell {c} outside the {n}-cell grid")));
+        return Err(FusionError::Input(format!(
+            "measured cell {c} outside the {n}-cell grid"
+        )));
     }
     if let Some(v) = m.values.iter().find(|v| !v.is_finite()) {
         return Err(FusionError::Input(format!("non-finite measurement {v}")));
     }
     if !(m.noise_var.is_finite() && m.noise_var >= 0.0) {
-        return Err(FusionError::Input(format!("boat noise variance must be finite and >= 0, got {}", m.noise_var)));
+        return Err(FusionError::Input(format!(
+            "boat noise variance must be finite and >= 0, got {}",
+            m.noise_var
+        )));
     }
     Ok(())
 }
@@ -412,8 +494,17 @@ mod tests {
         let truth: Vec<f64> = (0..grid.len()).map(|i| f(grid.cell(i))).collect();
         let lattice = grid.strided(stride).unwrap();
         let m = lattice.rows * lattice.cols;
-        let frame = AerialFrame { lattice, values: (0..m).map(|k| f(lattice.fine_cell(k))).collect(), variance: vec![0.0; m], seen: vec![true; m] };
-        (truth, frame.upsample().unwrap().values, frame.interpolation_variance().unwrap())
+        let frame = AerialFrame {
+            lattice,
+            values: (0..m).map(|k| f(lattice.fine_cell(k))).collect(),
+            variance: vec![0.0; m],
+            seen: vec![true; m],
+        };
+        (
+            truth,
+            frame.upsample().unwrap().values,
+            frame.interpolation_variance().unwrap(),
+        )
     }
 
     #[test]
@@ -424,7 +515,13 @@ mod tests {
         let (truth, up, predicted) = exact_frame(grid, 5, |c| 0.01 * (c.row * c.row) as f64 + 0.3 * c.col as f64);
         for i in 0..grid.len() {
             let err2 = (up[i] - truth[i]).powi(2);
-            assert!((err2.sqrt() - predicted[i].sqrt()).abs() < 1e-9, "cell {:?}: error {} predicted {}", grid.cell(i), err2.sqrt(), predicted[i].sqrt());
+            assert!(
+                (err2.sqrt() - predicted[i].sqrt()).abs() < 1e-9,
+                "cell {:?}: error {} predicted {}",
+                grid.cell(i),
+                err2.sqrt(),
+                predicted[i].sqrt()
+            );
         }
     }
 
@@ -441,19 +538,29 @@ mod tests {
             let err = up[i] - truth[i];
             if r > 20 || c > 30 {
                 beyond += 1;
-                assert!(err.abs() > 1e-3, "cell {r},{c} is beyond the lattice: the hold errs there");
+                assert!(
+                    err.abs() > 1e-3,
+                    "cell {r},{c} is beyond the lattice: the hold errs there"
+                );
             }
             // Both directions' errors are independent in the model (variances add); in the
             // corner beyond both, the linear field's two errors add with the same sign or not,
             // so compare there the variance with the sum of squares of each direction's part.
             let (er, ec) = (0.02 * r.saturating_sub(20) as f64, 0.05 * c.saturating_sub(30) as f64);
-            assert!((predicted[i] - (er * er + ec * ec)).abs() < 1e-12, "cell {r},{c}: predicted {} for errors {er}, {ec} (actual {err})", predicted[i]);
+            assert!(
+                (predicted[i] - (er * er + ec * ec)).abs() < 1e-12,
+                "cell {r},{c}: predicted {} for errors {er}, {ec} (actual {err})",
+                predicted[i]
+            );
         }
         assert_eq!(beyond, 23 * 34 - 21 * 31);
     }
 
     fn est(v: f64, var: f64, n: usize) -> Estimate {
-        Estimate { values: vec![v; n], variance: vec![var; n] }
+        Estimate {
+            values: vec![v; n],
+            variance: vec![var; n],
+        }
     }
 
     #[test]
@@ -467,7 +574,11 @@ mod tests {
     #[test]
     fn paper_scheme_is_the_mean_with_measurements_overriding() {
         let (a, b) = (est(1.0, 1.0, 3), est(4.0, 0.5, 3));
-        let m = Measured { cells: &[2], values: &[7.0], noise_var: 0.1 };
+        let m = Measured {
+            cells: &[2],
+            values: &[7.0],
+            noise_var: 0.1,
+        };
         let f = fuse(Scheme::Paper, 3, &[&a, &b], Some(m)).unwrap();
         assert_eq!(f.values, vec![2.5, 2.5, 7.0]);
         assert!((f.variance[0] - 0.375).abs() < 1e-12 && f.variance[2] == 0.1);
@@ -490,9 +601,16 @@ mod tests {
         assert!(fuse(Scheme::Paper, 3, &[&nan], None).is_err());
         let neg = est(1.0, -1.0, 3);
         assert!(fuse(Scheme::InverseVariance, 3, &[&neg], None).is_err());
-        let m = Measured { cells: &[5], values: &[1.0], noise_var: 0.1 };
+        let m = Measured {
+            cells: &[5],
+            values: &[1.0],
+            noise_var: 0.1,
+        };
         assert!(fuse(Scheme::Paper, 3, &[&a], Some(m)).is_err());
         assert!("bogus".parse::<Scheme>().is_err());
-        assert_eq!("inverse-variance".parse::<Scheme>().unwrap().to_string(), "inverse-variance");
+        assert_eq!(
+            "inverse-variance".parse::<Scheme>().unwrap().to_string(),
+            "inverse-variance"
+        );
     }
 }

@@ -27,7 +27,12 @@ pub enum GridError {
     #[error("cell size must be finite and positive (got {0} m)")]
     CellSize(f64),
     #[error("field has {got} values but the {rows} x {cols} grid has {expected} cells")]
-    Length { got: usize, expected: usize, rows: usize, cols: usize },
+    Length {
+        got: usize,
+        expected: usize,
+        rows: usize,
+        cols: usize,
+    },
     #[error("stride must be at least 1")]
     Stride,
     #[error("grids cover different extents ({a_w} x {a_h} m vs {b_w} x {b_h} m)")]
@@ -104,7 +109,12 @@ impl Grid {
     /// Check that a field has one value per cell.
     pub fn check_len(&self, n: usize) -> Result<(), GridError> {
         if n != self.len() {
-            return Err(GridError::Length { got: n, expected: self.len(), rows: self.rows, cols: self.cols });
+            return Err(GridError::Length {
+                got: n,
+                expected: self.len(),
+                rows: self.rows,
+                cols: self.cols,
+            });
         }
         Ok(())
     }
@@ -113,12 +123,22 @@ impl Grid {
     /// one-sided at the borders (exact for a linear field everywhere).
     pub fn squared_gradient(&self, field: &[f64]) -> Result<Vec<f64>, GridError> {
         self.check_len(field.len())?;
-        let slope = |lo: usize, hi: usize, at: &dyn Fn(usize) -> f64| if hi > lo { (at(hi) - at(lo)) / (hi - lo) as f64 } else { 0.0 };
+        let slope = |lo: usize, hi: usize, at: &dyn Fn(usize) -> f64| {
+            if hi > lo {
+                (at(hi) - at(lo)) / (hi - lo) as f64
+            } else {
+                0.0
+            }
+        };
         Ok((0..self.len())
             .map(|i| {
                 let Cell { row, col } = self.cell(i);
-                let along = slope(col.saturating_sub(1), (col + 1).min(self.cols - 1), &|c| field[row * self.cols + c]);
-                let across = slope(row.saturating_sub(1), (row + 1).min(self.rows - 1), &|r| field[r * self.cols + col]);
+                let along = slope(col.saturating_sub(1), (col + 1).min(self.cols - 1), &|c| {
+                    field[row * self.cols + c]
+                });
+                let across = slope(row.saturating_sub(1), (row + 1).min(self.rows - 1), &|r| {
+                    field[r * self.cols + col]
+                });
                 along * along + across * across
             })
             .collect())
@@ -153,7 +173,9 @@ impl Grid {
     pub fn stride_downsample(&self, field: &[f64], stride: usize) -> Result<(StridedGrid, Vec<f64>), GridError> {
         self.check_len(field.len())?;
         let lattice = self.strided(stride)?;
-        let out = (0..lattice.rows * lattice.cols).map(|k| field[self.index(lattice.fine_cell(k))]).collect();
+        let out = (0..lattice.rows * lattice.cols)
+            .map(|k| field[self.index(lattice.fine_cell(k))])
+            .collect();
         Ok((lattice, out))
     }
 
@@ -162,7 +184,12 @@ impl Grid {
         if stride == 0 {
             return Err(GridError::Stride);
         }
-        Ok(StridedGrid { fine: *self, stride, rows: self.rows.div_ceil(stride), cols: self.cols.div_ceil(stride) })
+        Ok(StridedGrid {
+            fine: *self,
+            stride,
+            rows: self.rows.div_ceil(stride),
+            cols: self.cols.div_ceil(stride),
+        })
     }
 
     /// Bilinear interpolation of `values`, given at the centres of the cells of `coarse`, onto
@@ -173,7 +200,12 @@ impl Grid {
         coarse.check_len(values.len())?;
         let tol = 1e-9 * (self.width_m() + self.height_m());
         if (coarse.width_m() - self.width_m()).abs() > tol || (coarse.height_m() - self.height_m()).abs() > tol {
-            return Err(GridError::Extent { a_w: coarse.width_m(), a_h: coarse.height_m(), b_w: self.width_m(), b_h: self.height_m() });
+            return Err(GridError::Extent {
+                a_w: coarse.width_m(),
+                a_h: coarse.height_m(),
+                b_w: self.width_m(),
+                b_h: self.height_m(),
+            });
         }
         // Fractional coarse coordinate of every fine row / column centre (separable).
         let axis = |n_fine: usize, n_coarse: usize| -> Vec<(usize, usize, f64)> {
@@ -186,7 +218,13 @@ impl Grid {
                 })
                 .collect()
         };
-        Ok(bilinear(&axis(self.rows, coarse.rows), &axis(self.cols, coarse.cols), coarse.cols, values, false))
+        Ok(bilinear(
+            &axis(self.rows, coarse.rows),
+            &axis(self.cols, coarse.cols),
+            coarse.cols,
+            values,
+            false,
+        ))
     }
 }
 
@@ -223,17 +261,26 @@ impl StridedGrid {
 
     /// The fine cell a coarse cell sits on.
     pub fn fine_cell(&self, coarse_index: usize) -> Cell {
-        Cell::new((coarse_index / self.cols) * self.stride, (coarse_index % self.cols) * self.stride)
+        Cell::new(
+            (coarse_index / self.cols) * self.stride,
+            (coarse_index % self.cols) * self.stride,
+        )
     }
 
     /// The coarse index of a fine cell, if the lattice has a node on it.
     pub fn coarse_index(&self, cell: Cell) -> Option<usize> {
-        (cell.row.is_multiple_of(self.stride) && cell.col.is_multiple_of(self.stride)).then(|| (cell.row / self.stride) * self.cols + cell.col / self.stride)
+        (cell.row.is_multiple_of(self.stride) && cell.col.is_multiple_of(self.stride))
+            .then(|| (cell.row / self.stride) * self.cols + cell.col / self.stride)
     }
 
     fn check_coarse_len(&self, n: usize) -> Result<(), GridError> {
         if n != self.rows * self.cols {
-            return Err(GridError::Length { got: n, expected: self.rows * self.cols, rows: self.rows, cols: self.cols });
+            return Err(GridError::Length {
+                got: n,
+                expected: self.rows * self.cols,
+                rows: self.rows,
+                cols: self.cols,
+            });
         }
         Ok(())
     }
@@ -257,7 +304,13 @@ impl StridedGrid {
 /// Separable bilinear interpolation given, per output row and column, the two coarse neighbours
 /// and the weight of the second. With `squared`, the weights are squared (variance propagation
 /// for independent errors; at a clamped border the duplicated neighbour has weight 0).
-fn bilinear(rows: &[(usize, usize, f64)], cols: &[(usize, usize, f64)], coarse_cols: usize, v: &[f64], squared: bool) -> Vec<f64> {
+fn bilinear(
+    rows: &[(usize, usize, f64)],
+    cols: &[(usize, usize, f64)],
+    coarse_cols: usize,
+    v: &[f64],
+    squared: bool,
+) -> Vec<f64> {
     let mut out = Vec::with_capacity(rows.len() * cols.len());
     let w = |a: f64| if squared { a * a } else { a };
     for &(r0, r1, fr) in rows {
@@ -274,12 +327,26 @@ fn bilinear(rows: &[(usize, usize, f64)], cols: &[(usize, usize, f64)], coarse_c
 /// the same extent (the plasma specification's downsampling: 2x2 blocks from 96 x 384 to
 /// 48 x 192, fractional blocks to 10 x 39). Separable: each coarse cell averages the fine cells
 /// it overlaps, weighted by the overlapped fraction.
-pub fn area_average(values: &[f64], rows: usize, cols: usize, to_rows: usize, to_cols: usize) -> Result<Vec<f64>, GridError> {
+pub fn area_average(
+    values: &[f64],
+    rows: usize,
+    cols: usize,
+    to_rows: usize,
+    to_cols: usize,
+) -> Result<Vec<f64>, GridError> {
     if rows == 0 || cols == 0 || to_rows == 0 || to_cols == 0 {
-        return Err(GridError::Empty { rows: to_rows.min(rows), cols: to_cols.min(cols) });
+        return Err(GridError::Empty {
+            rows: to_rows.min(rows),
+            cols: to_cols.min(cols),
+        });
     }
     if values.len() != rows * cols {
-        return Err(GridError::Length { got: values.len(), expected: rows * cols, rows, cols });
+        return Err(GridError::Length {
+            got: values.len(),
+            expected: rows * cols,
+            rows,
+            cols,
+        });
     }
     // Per coarse index: (fine index, weight) with weights summing to 1.
     let axis = |n: usize, m: usize| -> Vec<Vec<(usize, f64)>> {
@@ -319,11 +386,17 @@ mod tests {
     #[test]
     fn squared_gradient_is_exact_on_a_linear_field() {
         let g = super::Grid::new(4, 6, 1.0).unwrap();
-        let x: Vec<f64> = (0..g.len()).map(|i| 2.0 * g.cell(i).col as f64 - 0.5 * g.cell(i).row as f64 + 3.0).collect();
+        let x: Vec<f64> = (0..g.len())
+            .map(|i| 2.0 * g.cell(i).col as f64 - 0.5 * g.cell(i).row as f64 + 3.0)
+            .collect();
         assert!(g.squared_gradient(&x).unwrap().iter().all(|v| (v - 4.25).abs() < 1e-12));
         assert!(g.squared_gradient(&x[1..]).is_err());
         let one_row = super::Grid::new(1, 3, 1.0).unwrap();
-        assert_eq!(one_row.squared_gradient(&[0.0, 1.0, 4.0]).unwrap(), vec![1.0, 4.0, 9.0], "one-sided at the ends, no slope across a single row");
+        assert_eq!(
+            one_row.squared_gradient(&[0.0, 1.0, 4.0]).unwrap(),
+            vec![1.0, 4.0, 9.0],
+            "one-sided at the ends, no slope across a single row"
+        );
     }
 
     use super::*;

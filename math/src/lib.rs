@@ -27,7 +27,11 @@ pub use mimalloc::MiMalloc as Allocator;
 /// 400 x 1000, 4608 x 100) 1.3-1.5x *slower* than sequential, and the fleet's nodes run
 /// several processes at once anyway. Call once at start-up.
 pub fn configure_linalg_threads() -> usize {
-    let n = std::env::var("HETFLEET_LINALG_THREADS").ok().and_then(|v| v.parse::<usize>().ok()).unwrap_or(1).max(1);
+    let n = std::env::var("HETFLEET_LINALG_THREADS")
+        .ok()
+        .and_then(|v| v.parse::<usize>().ok())
+        .unwrap_or(1)
+        .max(1);
     faer::set_global_parallelism(if n == 1 { faer::Par::Seq } else { faer::Par::rayon(n) });
     n
 }

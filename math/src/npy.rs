@@ -15,7 +15,11 @@ pub enum NpyError {
     #[error("{path}: expected float64 or float32 data, found dtype {dtype}")]
     DType { path: String, dtype: String },
     #[error("{path}: expected {expected}, found shape {shape:?}")]
-    Shape { path: String, expected: String, shape: Vec<u64> },
+    Shape {
+        path: String,
+        expected: String,
+        shape: Vec<u64>,
+    },
     #[error("{path}: {why}")]
     Header { path: String, why: String },
     #[error("{path}: value {index} is not finite ({value})")]
@@ -33,7 +37,11 @@ impl Array {
     /// Check that every value is finite.
     pub fn check_finite(&self, path: &str) -> Result<(), NpyError> {
         match self.data.iter().position(|v| !v.is_finite()) {
-            Some(index) => Err(NpyError::NonFinite { path: path.into(), index, value: self.data[index] }),
+            Some(index) => Err(NpyError::NonFinite {
+                path: path.into(),
+                index,
+                value: self.data[index],
+            }),
             None => Ok(()),
         }
     }
@@ -45,7 +53,10 @@ pub const MAX_VALUES: usize = 1 << 30;
 /// The shape in a `.npy` file's header (the data is not read).
 pub fn read_shape(path: impl AsRef<Path>) -> Result<Vec<usize>, NpyError> {
     let p = path.as_ref().display().to_string();
-    let io = |source| NpyError::Io { path: p.clone(), source };
+    let io = |source| NpyError::Io {
+        path: p.clone(),
+        source,
+    };
     let f = std::io::BufReader::new(File::open(path.as_ref()).map_err(io)?);
     let npy = npyz::NpyFile::new(f).map_err(io)?;
     Ok(npy.shape().iter().map(|&s| s as usize).collect())
@@ -53,31 +64,60 @@ pub fn read_shape(path: impl AsRef<Path>) -> Result<Vec<usize>, NpyError> {
 
 pub fn read(path: impl AsRef<Path>) -> Result<Array, NpyError> {
     let p = path.as_ref().display().to_string();
-    let bytes = std::fs::read(path.as_ref()).map_err(|source| NpyError::Io { path: p.clone(), source })?;
+    let bytes = std::fs::read(path.as_ref()).map_err(|source| NpyError::Io {
+        path: p.clone(),
+        source,
+    })?;
     from_bytes(&bytes, &p)
 }
 
 /// Parse a whole `.npy` file held in memory (`name` is for messages). The header's shape is
 /// checked against the bytes that follow before anything is allocated from it.
 pub fn from_bytes(bytes: &[u8], name: &str) -> Result<Array, NpyError> {
-    let io = |source| NpyError::Io { path: name.into(), source };
+    let io = |source| NpyError::Io {
+        path: name.into(),
+        source,
+    };
     let npy = npyz::NpyFile::new(bytes).map_err(io)?;
     let dtype = npy.dtype();
     let width = match &dtype {
         npyz::DType::Plain(ts) if ts.to_string() == "<f8" => 8,
         npyz::DType::Plain(ts) if ts.to_string() == "<f4" => 4,
-        npyz::DType::Plain(ts) => return Err(NpyError::DType { path: name.into(), dtype: ts.to_string() }),
-        _ => return Err(NpyError::DType { path: name.into(), dtype: "a structured or array dtype".into() }),
+        npyz::DType::Plain(ts) => {
+            return Err(NpyError::DType {
+                path: name.into(),
+                dtype: ts.to_string(),
+            })
+        }
+        _ => {
+            return Err(NpyError::DType {
+                path: name.into(),
+                dtype: "a structured or array dtype".into(),
+            })
+        }
     };
     let header = |why: String| NpyError::Header { path: name.into(), why };
-    let total = npy.shape().iter().try_fold(1usize, |acc, &s| acc.checked_mul(usize::try_from(s).ok()?));
+    let total = npy
+        .shape()
+        .iter()
+        .try_fold(1usize, |acc, &s| acc.checked_mul(usize::try_from(s).ok()?));
     let total = match total {
         Some(t) if t <= MAX_VALUES && t.saturating_mul(width) <= bytes.len() => t,
-        _ => return Err(header(format!("the header's shape {:?} does not fit the file's {} bytes", npy.shape(), bytes.len()))),
+        _ => {
+            return Err(header(format!(
+                "the header's shape {:?} does not fit the file's {} bytes",
+                npy.shape(),
+                bytes.len()
+            )))
+        }
     };
     let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
     let order = npy.order();
-    let raw: Vec<f64> = if width == 8 { npy.into_vec().map_err(io)? } else { npy.into_vec::<f32>().map_err(io)?.into_iter().map(f64::from).collect() };
+    let raw: Vec<f64> = if width == 8 {
+        npy.into_vec().map_err(io)?
+    } else {
+        npy.into_vec::<f32>().map_err(io)?.into_iter().map(f64::from).collect()
+    };
     if raw.len() != total {
         return Err(header(format!("{} values for shape {shape:?}", raw.len())));
     }
@@ -116,12 +156,24 @@ pub fn write(path: impl AsRef<Path>, shape: &[usize], data: &[f64]) -> Result<()
     let p = path.as_ref().display().to_string();
     let expected: usize = shape.iter().product();
     if expected != data.len() {
-        return Err(NpyError::Shape { path: p, expected: format!("{expected} values"), shape: shape.iter().map(|&s| s as u64).collect() });
+        return Err(NpyError::Shape {
+            path: p,
+            expected: format!("{expected} values"),
+            shape: shape.iter().map(|&s| s as u64).collect(),
+        });
     }
-    let io = |source| NpyError::Io { path: p.clone(), source };
+    let io = |source| NpyError::Io {
+        path: p.clone(),
+        source,
+    };
     let file = File::create(path.as_ref()).map_err(io)?;
     let shape64: Vec<u64> = shape.iter().map(|&s| s as u64).collect();
-    let mut w = npyz::WriteOptions::new().default_dtype().shape(&shape64).writer(BufWriter::new(file)).begin_nd().map_err(io)?;
+    let mut w = npyz::WriteOptions::new()
+        .default_dtype()
+        .shape(&shape64)
+        .writer(BufWriter::new(file))
+        .begin_nd()
+        .map_err(io)?;
     w.extend(data.iter().copied()).map_err(io)?;
     w.finish().map_err(io)
 }
@@ -131,12 +183,24 @@ pub fn write_complex(path: impl AsRef<Path>, shape: &[usize], data: &[num_comple
     let p = path.as_ref().display().to_string();
     let expected: usize = shape.iter().product();
     if expected != data.len() {
-        return Err(NpyError::Shape { path: p, expected: format!("{expected} values"), shape: shape.iter().map(|&s| s as u64).collect() });
+        return Err(NpyError::Shape {
+            path: p,
+            expected: format!("{expected} values"),
+            shape: shape.iter().map(|&s| s as u64).collect(),
+        });
     }
-    let io = |source| NpyError::Io { path: p.clone(), source };
+    let io = |source| NpyError::Io {
+        path: p.clone(),
+        source,
+    };
     let file = File::create(path.as_ref()).map_err(io)?;
     let shape64: Vec<u64> = shape.iter().map(|&s| s as u64).collect();
-    let mut w = npyz::WriteOptions::new().default_dtype().shape(&shape64).writer(BufWriter::new(file)).begin_nd().map_err(io)?;
+    let mut w = npyz::WriteOptions::new()
+        .default_dtype()
+        .shape(&shape64)
+        .writer(BufWriter::new(file))
+        .begin_nd()
+        .map_err(io)?;
     w.extend(data.iter().copied()).map_err(io)?;
     w.finish().map_err(io)
 }
@@ -159,8 +223,14 @@ mod tests {
         assert!(matches!(read(dir.join("missing.npy")), Err(NpyError::Io { .. })));
         std::fs::write(dir.join("junk.npy"), b"not an npy file at all").unwrap();
         assert!(read(dir.join("junk.npy")).is_err());
-        let nan = Array { shape: vec![2], data: vec![1.0, f64::NAN] };
-        assert!(matches!(nan.check_finite("x"), Err(NpyError::NonFinite { index: 1, .. })));
+        let nan = Array {
+            shape: vec![2],
+            data: vec![1.0, f64::NAN],
+        };
+        assert!(matches!(
+            nan.check_finite("x"),
+            Err(NpyError::NonFinite { index: 1, .. })
+        ));
     }
 
     #[test]

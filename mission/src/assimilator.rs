@@ -29,8 +29,27 @@ pub fn vehicle_rng(seed: u64, vehicle: usize) -> ChaCha8Rng {
 pub use crate::fusion::{aerial_region, sense_aerial, sense_cells};
 
 /// What a boat measures at one step: every cell of its disk, with noise `sigma`.
-pub fn sense_boat(grid: &Grid, truth: &[f64], step: u64, position: (f64, f64), cells: &[usize], sigma: f64, rng: &mut ChaCha8Rng) -> Result<Sample, crate::fusion::FusionError> {
-    sense_cells(grid, truth, step, position, cells, crate::protocol::Noise { sigma0: sigma, growth_per_m: 0.0 }, rng)
+pub fn sense_boat(
+    grid: &Grid,
+    truth: &[f64],
+    step: u64,
+    position: (f64, f64),
+    cells: &[usize],
+    sigma: f64,
+    rng: &mut ChaCha8Rng,
+) -> Result<Sample, crate::fusion::FusionError> {
+    sense_cells(
+        grid,
+        truth,
+        step,
+        position,
+        cells,
+        crate::protocol::Noise {
+            sigma0: sigma,
+            growth_per_m: 0.0,
+        },
+        rng,
+    )
 }
 
 /// A boat's disk: the cells it covers and its centre `(row, col)`.
@@ -52,7 +71,10 @@ pub struct Allocation {
 impl Allocation {
     /// The aerials that take part, and their positions.
     pub fn active_aerials(&self) -> (Vec<usize>, Vec<(f64, f64)>) {
-        (0..self.aerials.len()).filter(|a| !self.held.contains(a)).map(|a| (a, self.aerials[a])).unzip()
+        (0..self.aerials.len())
+            .filter(|a| !self.held.contains(a))
+            .map(|a| (a, self.aerials[a]))
+            .unzip()
     }
 }
 
@@ -163,15 +185,29 @@ impl Assimilator {
         cfg.validate(&grid, frames)?;
         let rank = cfg.rank;
         let mut placement_rng = ChaCha8Rng::seed_from_u64(cfg.seed);
-        let boat_positions = (0..cfg.boats).map(|_| (placement_rng.random_range(0.0..grid.width_m()), placement_rng.random_range(0.0..grid.height_m()))).collect();
+        let boat_positions = (0..cfg.boats)
+            .map(|_| {
+                (
+                    placement_rng.random_range(0.0..grid.width_m()),
+                    placement_rng.random_range(0.0..grid.height_m()),
+                )
+            })
+            .collect();
         let excluded = cfg.fence.as_ref().map_or_else(Vec::new, |f| f.excluded(&grid));
         let formation = coverage::uniform_formation(&grid, cfg.aerials)?.positions;
-        let aerial_positions = coverage::snap_inside(&grid, &excluded, &formation).ok_or_else(|| TeamError::Config("the site's boundary leaves no cell of the grid inside it".into()))?;
+        let aerial_positions = coverage::snap_inside(&grid, &excluded, &formation)
+            .ok_or_else(|| TeamError::Config("the site's boundary leaves no cell of the grid inside it".into()))?;
         let lattice = grid.strided(cfg.aerial_stride)?;
         let mut on_lattice = vec![false; grid.len()];
         (0..lattice.rows * lattice.cols).for_each(|k| on_lattice[grid.index(lattice.fine_cell(k))] = true);
         Ok(Self {
-            dmd: DmdConfig { method: cfg.method, rank, debias: Default::default(), gamma: cfg.gamma, forgetting: Default::default() },
+            dmd: DmdConfig {
+                method: cfg.method,
+                rank,
+                debias: Default::default(),
+                gamma: cfg.gamma,
+                forgetting: Default::default(),
+            },
             cfg: cfg.clone(),
             grid,
             model: None,
@@ -229,7 +265,10 @@ impl Assimilator {
     }
 
     pub fn aerial_noise(&self) -> AerialNoise {
-        AerialNoise { sigma0: self.cfg.aerial_sigma0, growth_per_m: self.cfg.aerial_growth_per_cell }
+        AerialNoise {
+            sigma0: self.cfg.aerial_sigma0,
+            growth_per_m: self.cfg.aerial_growth_per_cell,
+        }
     }
 
     /// The aerials' current positions (what they should fly to).
@@ -251,17 +290,32 @@ impl Assimilator {
     /// with its variance. A step without aerial samples holds the previous estimate.
     pub fn aerial_estimate(&mut self, samples: &[Sample]) -> Result<AerialSight, TeamError> {
         if samples.is_empty() {
-            let estimate = self.held_aerial.clone().ok_or(TeamError::NotReady(Missing::AerialData))?;
-            return Ok(AerialSight { estimate, interpolation: self.held_interpolation.clone(), cells: vec![], values: vec![], variance: vec![] });
+            let estimate = self
+                .held_aerial
+                .clone()
+                .ok_or(TeamError::NotReady(Missing::AerialData))?;
+            return Ok(AerialSight {
+                estimate,
+                interpolation: self.held_interpolation.clone(),
+                cells: vec![],
+                values: vec![],
+                variance: vec![],
+            });
         }
         let mut frame = AerialFrame::assemble(&self.grid, self.cfg.aerial_stride, samples, self.aerial_noise())?;
         let seen: Vec<usize> = (0..frame.seen.len()).filter(|&k| frame.seen[k]).collect();
-        let cells = seen.iter().map(|&k| self.grid.index(frame.lattice.fine_cell(k))).collect();
+        let cells = seen
+            .iter()
+            .map(|&k| self.grid.index(frame.lattice.fine_cell(k)))
+            .collect();
         let values = seen.iter().map(|&k| frame.values[k]).collect();
         let variance = seen.iter().map(|&k| frame.variance[k].max(1e-12)).collect();
         if frame.seen.iter().any(|s| !s) {
             // A lattice cell nobody saw this step: take the held estimate there.
-            let held = self.held_aerial.as_ref().ok_or(TeamError::NotReady(Missing::EarlierFrame))?;
+            let held = self
+                .held_aerial
+                .as_ref()
+                .ok_or(TeamError::NotReady(Missing::EarlierFrame))?;
             for k in (0..frame.seen.len()).filter(|&k| !frame.seen[k]) {
                 let i = self.grid.index(frame.lattice.fine_cell(k));
                 frame.values[k] = held.values[i];
@@ -272,7 +326,13 @@ impl Assimilator {
         let interpolation = frame.interpolation_variance()?;
         self.held_aerial = Some(estimate.clone());
         self.held_interpolation = interpolation.clone();
-        Ok(AerialSight { estimate, interpolation, cells, values, variance })
+        Ok(AerialSight {
+            estimate,
+            interpolation,
+            cells,
+            values,
+            variance,
+        })
     }
 
     /// The first model, from the initialisation's aerial estimates (one per step).
@@ -283,7 +343,11 @@ impl Assimilator {
         let z = to_mat(&estimates);
         let m = estimates.len() - 1;
         self.model = Some(self.dmd.init(z.subcols(0, m), z.subcols(1, m))?);
-        self.pred_var = self.held_aerial.as_ref().map_or(1.0, |a| a.variance.iter().sum::<f64>() / self.grid.len() as f64).max(1e-12);
+        self.pred_var = self
+            .held_aerial
+            .as_ref()
+            .map_or(1.0, |a| a.variance.iter().sum::<f64>() / self.grid.len() as f64)
+            .max(1e-12);
         self.snapshots = estimates;
         self.refit()?;
         self.move_filter()
@@ -306,13 +370,18 @@ impl Assimilator {
             }
             None => {
                 let newest = self.snapshots.last().expect("snapshots after init");
-                let mean: Vec<f64> = (0..basis.ncols()).map(|j| basis.col(j).iter().zip(newest).map(|(b, x)| b * x).sum()).collect();
+                let mean: Vec<f64> = (0..basis.ncols())
+                    .map(|j| basis.col(j).iter().zip(newest).map(|(b, x)| b * x).sum())
+                    .collect();
                 // The start: the modal state as uncertain as the prediction is per cell; the
                 // process noise a hundredth of it per step and the model error the
                 // prediction's variance, both re-estimated from the boats' innovations.
                 let q = basis.ncols();
                 let cov = Mat::from_fn(q, q, |i, j| if i == j { self.pred_var } else { 0.0 });
-                self.filter = Some((ModalFilter::new(basis.clone(), dynamics, mean, cov, 0.01 * self.pred_var, self.pred_var)?, 0));
+                self.filter = Some((
+                    ModalFilter::new(basis.clone(), dynamics, mean, cov, 0.01 * self.pred_var, self.pred_var)?,
+                    0,
+                ));
             }
         }
         Ok(())
@@ -326,13 +395,21 @@ impl Assimilator {
     /// error are re-estimated at boat steps from the boats' innovations (their expected square
     /// is `h P h' + detail variance + boat noise`), smoothed, and clamped to the field's
     /// variance: they cannot run away.
-    fn filter_step(&mut self, ahead: u64, aerial: &AerialSight, cells: &[usize], vals: &[f64]) -> Result<Estimate, TeamError> {
+    fn filter_step(
+        &mut self,
+        ahead: u64,
+        aerial: &AerialSight,
+        cells: &[usize],
+        vals: &[f64],
+    ) -> Result<Estimate, TeamError> {
         let boat_var = (self.cfg.boat_sigma * self.cfg.boat_sigma).max(1e-12);
         let aerial_extra = self.aerial_extra;
         let between_lattice = &self.between_lattice;
         let grid = self.grid;
         let displacement = &mut self.displacement;
-        let Some((f, at)) = self.filter.as_mut() else { return Err(TeamError::NotReady(Missing::Model)) };
+        let Some((f, at)) = self.filter.as_mut() else {
+            return Err(TeamError::NotReady(Missing::Model));
+        };
         while *at < ahead {
             f.predict();
             *at += 1;
@@ -341,8 +418,16 @@ impl Assimilator {
         // Boat innovations against the forecast, for the noise estimates.
         let (prior_mean, prior_var) = f.field();
         let prior_detail_var = f.detail_var.clone();
-        let boats = Observation { cells, values: vals, variance: &boat_vars };
-        let lattice = Observation { cells: &aerial.cells, values: &aerial.values, variance: &aerial.variance };
+        let boats = Observation {
+            cells,
+            values: vals,
+            variance: &boat_vars,
+        };
+        let lattice = Observation {
+            cells: &aerial.cells,
+            values: &aerial.values,
+            variance: &aerial.variance,
+        };
         if !aerial.cells.is_empty() {
             f.learn_persistence(&lattice, 1.0)?;
         }
@@ -363,13 +448,25 @@ impl Assimilator {
         // calibrated extra), then the boats.
         let all: Vec<usize> = (0..aerial.estimate.values.len()).collect();
         let aerial_var = aerial_detail_variance(&aerial.estimate.variance, &aerial.interpolation, aerial_extra);
-        f.update_detail(&[Observation { cells: &all, values: &aerial.estimate.values, variance: &aerial_var }, boats])?;
+        f.update_detail(&[
+            Observation {
+                cells: &all,
+                values: &aerial.estimate.values,
+                variance: &aerial_var,
+            },
+            boats,
+        ])?;
         // The boats' innovations against the forecast: their expected square is the forecast's
         // variance there plus the boats' noise.
         if !cells.is_empty() {
             let mean_at = |v: &[f64]| cells.iter().map(|&c| v[c]).sum::<f64>() / cells.len() as f64;
             let field_var = variance_of(vals).max(1e-12);
-            let d2 = cells.iter().zip(vals).map(|(&c, v)| (v - prior_mean[c]).powi(2)).sum::<f64>() / cells.len() as f64;
+            let d2 = cells
+                .iter()
+                .zip(vals)
+                .map(|(&c, v)| (v - prior_mean[c]).powi(2))
+                .sum::<f64>()
+                / cells.len() as f64;
             let (detail_part, expected) = (mean_at(&prior_detail_var).max(1e-12), mean_at(&prior_var) + boat_var);
             let modal_part = expected - boat_var - detail_part;
             let s_hat = (f.model_error * (d2 - modal_part - boat_var) / detail_part).clamp(0.0, field_var);
@@ -380,7 +477,11 @@ impl Assimilator {
             // the forecast's squared gradient; smoothed as the model error is, and never more
             // than the grid's own extent (it cannot run away).
             let grad2 = grid.squared_gradient(&prior_mean)?;
-            let innovation2: Vec<f64> = cells.iter().zip(vals).map(|(&c, v)| (v - prior_mean[c]).powi(2)).collect();
+            let innovation2: Vec<f64> = cells
+                .iter()
+                .zip(vals)
+                .map(|(&c, v)| (v - prior_mean[c]).powi(2))
+                .collect();
             let expected: Vec<f64> = cells.iter().map(|&c| prior_var[c] + boat_var).collect();
             let at: Vec<f64> = cells.iter().map(|&c| grad2[c]).collect();
             if let Some(s2) = kalman::displacement_variance(&innovation2, &expected, &at) {
@@ -417,7 +518,9 @@ impl Assimilator {
         let (pred, basis) = self.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
         let (cfg, grid) = (&self.cfg, &self.grid);
         let roster = crate::roster::Roster::of(cfg);
-        let free: Vec<usize> = (0..cfg.boats).filter(|&b| !held.contains(&roster.boat_index(b))).collect();
+        let free: Vec<usize> = (0..cfg.boats)
+            .filter(|&b| !held.contains(&roster.boat_index(b)))
+            .collect();
         let mut boats = vec![None; cfg.boats];
         // `placement = "horizon"`: the filter's forecast at the next sampling step, and its
         // uncertainty there and over the horizon with the aerials observing as in their last
@@ -429,20 +532,39 @@ impl Assimilator {
                 let to = (cfg.boat_period as u64).saturating_sub(*at).max(1) as usize;
                 let variance: Vec<f64> = self.lattice.iter().map(|&c| held.variance[c].max(1e-12)).collect();
                 let everywhere = aerial_detail_variance(&held.variance, &self.held_interpolation, self.aerial_extra);
-                let aerials = kalman::Scheduled { cells: &self.lattice, variance: &variance, everywhere: &everywhere };
+                let aerials = kalman::Scheduled {
+                    cells: &self.lattice,
+                    variance: &variance,
+                    everywhere: &everywhere,
+                };
                 let g = f.ahead(to);
                 let (mean, var) = g.field();
-                Some((g, f.look_ahead(to, cfg.horizon_epochs * cfg.boat_period, &aerials, boat_var)?, mean, var))
+                Some((
+                    g,
+                    f.look_ahead(to, cfg.horizon_epochs * cfg.boat_period, &aerials, boat_var)?,
+                    mean,
+                    var,
+                ))
             }
             (Placement::Horizon, _, _) => return Err(TeamError::NotReady(Missing::Model)),
             _ => None,
         };
         if let Some((g, ahead, mean, _)) = &forecast {
             let reach = self.boat_speed * cfg.boat_period as f64;
-            let fleet: Vec<horizon::Boat> = free.iter().map(|&b| horizon::Boat { position: self.boat_positions[b], reach_m: reach }).collect();
+            let fleet: Vec<horizon::Boat> = free
+                .iter()
+                .map(|&b| horizon::Boat {
+                    position: self.boat_positions[b],
+                    reach_m: reach,
+                })
+                .collect();
             // What the filter does not model at the sampling step: the forecast's features
             // displaced, of variance s2 |grad x|^2 per cell.
-            let unmodelled: Vec<f64> = grid.squared_gradient(mean)?.iter().map(|g2| self.displacement * g2).collect();
+            let unmodelled: Vec<f64> = grid
+                .squared_gradient(mean)?
+                .iter()
+                .map(|g2| self.displacement * g2)
+                .collect();
             let f = horizon::Forecast::of(g.basis(), ahead).with_unmodelled(&unmodelled);
             for c in horizon::plan_within(grid, &f, &fleet, cfg.radius, boat_var, &self.excluded)? {
                 let b = free[c.boat];
@@ -452,21 +574,36 @@ impl Assimilator {
         } else {
             let disks: Vec<Vec<usize>> = match (free.len(), cfg.placement) {
                 (0, _) => vec![],
-                (k, Placement::Qr) => qr::block_qr_within(basis.as_ref(), grid, k, cfg.radius, &self.excluded)?.into_iter().map(|d| d.cells).collect(),
-                (k, Placement::DOptimal) => qr::block_dopt_within(basis.as_ref(), grid, k, cfg.radius, &self.excluded)?.into_iter().map(|d| d.cells).collect(),
+                (k, Placement::Qr) => qr::block_qr_within(basis.as_ref(), grid, k, cfg.radius, &self.excluded)?
+                    .into_iter()
+                    .map(|d| d.cells)
+                    .collect(),
+                (k, Placement::DOptimal) => qr::block_dopt_within(basis.as_ref(), grid, k, cfg.radius, &self.excluded)?
+                    .into_iter()
+                    .map(|d| d.cells)
+                    .collect(),
                 (k, Placement::Random) => random_disks(grid, k, cfg.radius, &self.excluded, &mut self.placement_rng),
                 (_, Placement::Horizon) => return Err(TeamError::NotReady(Missing::Model)),
             };
             let centres: Vec<(usize, usize)> = disks
                 .iter()
                 .map(|d| {
-                    let (r, c) = d.iter().fold((0.0, 0.0), |(r, c), &i| (r + grid.cell(i).row as f64, c + grid.cell(i).col as f64));
-                    ((r / d.len() as f64).round() as usize, (c / d.len() as f64).round() as usize)
+                    let (r, c) = d.iter().fold((0.0, 0.0), |(r, c), &i| {
+                        (r + grid.cell(i).row as f64, c + grid.cell(i).col as f64)
+                    });
+                    (
+                        (r / d.len() as f64).round() as usize,
+                        (c / d.len() as f64).round() as usize,
+                    )
                 })
                 .collect();
             let targets: Vec<(f64, f64)> = centres.iter().map(|&(r, c)| grid.centre_m(Cell::new(r, c))).collect();
             let starts: Vec<(f64, f64)> = free.iter().map(|&b| self.boat_positions[b]).collect();
-            let (assignment, _) = if free.is_empty() { (vec![], 0.0) } else { assign(&starts, &targets, 1.0)? };
+            let (assignment, _) = if free.is_empty() {
+                (vec![], 0.0)
+            } else {
+                assign(&starts, &targets, 1.0)?
+            };
             for (&b, a) in free.iter().zip(&assignment) {
                 if let Some(t) = a {
                     boats[b] = Some((disks[*t].clone(), centres[*t]));
@@ -479,22 +616,39 @@ impl Assimilator {
         let density = match &forecast {
             Some((_, _, _, var)) => {
                 let top = var.iter().cloned().fold(0.0, f64::max).max(1e-300);
-                var.iter().map(|v| cfg.density_floor + (1.0 - cfg.density_floor) * v / top).collect()
+                var.iter()
+                    .map(|v| cfg.density_floor + (1.0 - cfg.density_floor) * v / top)
+                    .collect()
             }
             None => coverage::temporal_density(pred, cfg.density_floor)?,
         };
         // Outside the fence there is nothing to cover.
-        let density: Vec<f64> = density.iter().enumerate().map(|(i, &d)| if self.excluded.get(i).copied().unwrap_or(false) { 0.0 } else { d }).collect();
+        let density: Vec<f64> = density
+            .iter()
+            .enumerate()
+            .map(|(i, &d)| {
+                if self.excluded.get(i).copied().unwrap_or(false) {
+                    0.0
+                } else {
+                    d
+                }
+            })
+            .collect();
         let flying: Vec<usize> = (0..cfg.aerials).filter(|a| !held.contains(a)).collect();
         if !flying.is_empty() {
             let starts: Vec<(f64, f64)> = flying.iter().map(|&a| self.aerial_positions[a]).collect();
             let placed = coverage::lloyd(grid, &density, &starts, 50, 1e-3)?.positions;
-            let placed = coverage::snap_inside(grid, &self.excluded, &placed).expect("checked at construction: some cell is inside");
+            let placed = coverage::snap_inside(grid, &self.excluded, &placed)
+                .expect("checked at construction: some cell is inside");
             for (&a, p) in flying.iter().zip(placed) {
                 self.aerial_positions[a] = p;
             }
         }
-        Ok(Allocation { boats, aerials: self.aerial_positions.clone(), held: held.clone() })
+        Ok(Allocation {
+            boats,
+            aerials: self.aerial_positions.clone(),
+            held: held.clone(),
+        })
     }
 
     /// Fuse one step `ahead` steps after the model's newest snapshot: the aerial estimate with
@@ -522,7 +676,14 @@ impl Assimilator {
             };
             // (The Kalman filter models the interpolation's error itself: the extra is what
             // is left beyond it.)
-            let modelled = |c: usize| aerial.variance[c] + if self.cfg.fusion == crate::fusion::Scheme::Kalman { sight.interpolation[c] } else { 0.0 };
+            let modelled = |c: usize| {
+                aerial.variance[c]
+                    + if self.cfg.fusion == crate::fusion::Scheme::Kalman {
+                        sight.interpolation[c]
+                    } else {
+                        0.0
+                    }
+            };
             let noise_part = cells.iter().map(|&c| modelled(c)).sum::<f64>() / cells.len() as f64;
             self.aerial_extra = (innovation(&aerial.values) - noise_part).max(0.0);
             self.pred_var = innovation(&predicted);
@@ -531,22 +692,40 @@ impl Assimilator {
                     // Truncation error: the fit's residual at the measured cells, inflated for
                     // the degrees of freedom the fit used.
                     let dof = (cells.len() as f64 - basis.ncols() as f64).max(1.0);
-                    let resid = cells.iter().zip(&vals).map(|(&c, v)| (g.field[c] - v).powi(2)).sum::<f64>() / dof;
+                    let resid = cells
+                        .iter()
+                        .zip(&vals)
+                        .map(|(&c, v)| (g.field[c] - v).powi(2))
+                        .sum::<f64>()
+                        / dof;
                     let extra = (resid - boat_var).max(0.0);
-                    Estimate { values: g.field, variance: g.variance.iter().map(|v| v + extra).collect() }
+                    Estimate {
+                        values: g.field,
+                        variance: g.variance.iter().map(|v| v + extra).collect(),
+                    }
                 }
                 // Too few independent cells for the modes: keep the prediction.
-                Err(crate::sensing::SensingError::Underdetermined { .. }) => Estimate { values: predicted, variance: vec![self.pred_var; n] },
+                Err(crate::sensing::SensingError::Underdetermined { .. }) => Estimate {
+                    values: predicted,
+                    variance: vec![self.pred_var; n],
+                },
                 Err(e) => return Err(e.into()),
             }
         } else {
-            Estimate { values: predicted, variance: vec![self.pred_var; n] }
+            Estimate {
+                values: predicted,
+                variance: vec![self.pred_var; n],
+            }
         };
         if self.cfg.fusion == crate::fusion::Scheme::Kalman {
             return self.filter_step(ahead, sight, &cells, &vals);
         }
         aerial.variance.iter_mut().for_each(|v| *v += self.aerial_extra);
-        let measured = (!cells.is_empty()).then_some(Measured { cells: &cells, values: &vals, noise_var: boat_var });
+        let measured = (!cells.is_empty()).then_some(Measured {
+            cells: &cells,
+            values: &vals,
+            noise_var: boat_var,
+        });
         Ok(fuse(self.cfg.fusion, n, &[&aerial, &hifi], measured)?)
     }
 
@@ -560,7 +739,10 @@ impl Assimilator {
         chain.extend(epoch.iter().cloned());
         let z = to_mat(&chain);
         let m = chain.len() - 1;
-        self.model.as_mut().ok_or(TeamError::NotReady(Missing::Model))?.update(z.subcols(0, m), z.subcols(1, m))?;
+        self.model
+            .as_mut()
+            .ok_or(TeamError::NotReady(Missing::Model))?
+            .update(z.subcols(0, m), z.subcols(1, m))?;
         self.snapshots.extend(epoch);
         self.refit()?;
         self.move_filter()
@@ -586,7 +768,11 @@ pub fn to_mat(cols: &[Vec<f64>]) -> Mat<f64> {
 /// the interpolation's error and the calibrated extra (one definition for the update and for
 /// the look ahead that plans on it).
 fn aerial_detail_variance(noise: &[f64], interpolation: &[f64], extra: f64) -> Vec<f64> {
-    noise.iter().zip(interpolation).map(|(v, i)| (v + i + extra).max(1e-12)).collect()
+    noise
+        .iter()
+        .zip(interpolation)
+        .map(|(v, i)| (v + i + extra).max(1e-12))
+        .collect()
 }
 
 fn variance_of(v: &[f64]) -> f64 {
@@ -599,7 +785,11 @@ fn variance_of(v: &[f64]) -> f64 {
 
 /// `m` random non-overlapping disks (rejection sampling; fewer if the grid is full).
 fn random_disks(grid: &Grid, m: usize, radius: f64, excluded: &[bool], rng: &mut ChaCha8Rng) -> Vec<Vec<usize>> {
-    let mut taken = if excluded.is_empty() { vec![false; grid.len()] } else { excluded.to_vec() };
+    let mut taken = if excluded.is_empty() {
+        vec![false; grid.len()]
+    } else {
+        excluded.to_vec()
+    };
     let mut out = vec![];
     for _ in 0..m * 200 {
         if out.len() == m {
@@ -625,7 +815,15 @@ mod tests {
     fn arrival_order_does_not_change_the_estimates() {
         let truth = plume_field(24, 48, 30, 0.0, 1);
         let grid = Grid::new(24, 48, 1.0).unwrap();
-        let cfg = TeamConfig { aerials: 3, boats: 4, radius: 3.0, rank: crate::dmd::RankPolicy::Fixed(6), init_steps: 10, aerial_stride: 3, ..TeamConfig::default() };
+        let cfg = TeamConfig {
+            aerials: 3,
+            boats: 4,
+            radius: 3.0,
+            rank: crate::dmd::RankPolicy::Fixed(6),
+            init_steps: 10,
+            aerial_stride: 3,
+            ..TeamConfig::default()
+        };
         let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
         let run = |shuffle: bool| -> (Vec<f64>, Vec<f64>) {
             let mut server = Assimilator::new(&cfg, grid, 30).unwrap();
@@ -634,7 +832,11 @@ mod tests {
             let mut init = vec![];
             for k in 0..10 {
                 let pos = server.aerial_positions().to_vec();
-                let mut s: Vec<Sample> = (0..3).map(|a| sense_aerial(&grid, &x(k), k as u64, 3, &pos, a, server.aerial_noise(), &mut rngs[a]).unwrap()).collect();
+                let mut s: Vec<Sample> = (0..3)
+                    .map(|a| {
+                        sense_aerial(&grid, &x(k), k as u64, 3, &pos, a, server.aerial_noise(), &mut rngs[a]).unwrap()
+                    })
+                    .collect();
                 if shuffle {
                     s.shuffle(&mut order);
                 }
@@ -642,8 +844,15 @@ mod tests {
             }
             server.initialise(init).unwrap();
             let plan = server.allocate().unwrap();
-            let mut boats: Vec<Sample> =
-                plan.boats.iter().enumerate().filter_map(|(b, d)| d.as_ref().map(|(c, _)| sense_boat(&grid, &x(10), 10, (0.0, 0.0), c, 0.01, &mut rngs[3 + b]).unwrap())).collect();
+            let mut boats: Vec<Sample> = plan
+                .boats
+                .iter()
+                .enumerate()
+                .filter_map(|(b, d)| {
+                    d.as_ref()
+                        .map(|(c, _)| sense_boat(&grid, &x(10), 10, (0.0, 0.0), c, 0.01, &mut rngs[3 + b]).unwrap())
+                })
+                .collect();
             if shuffle {
                 boats.shuffle(&mut order);
             }
@@ -662,7 +871,10 @@ mod tests {
         let grid = Grid::new(12, 24, 1.0).unwrap();
         let truth = vec![1.0; grid.len()];
         let aerials = [(6.0, 6.0), (18.0, 6.0)];
-        let noise = AerialNoise { sigma0: 0.0, growth_per_m: 0.0 };
+        let noise = AerialNoise {
+            sigma0: 0.0,
+            growth_per_m: 0.0,
+        };
         let mut rng = vehicle_rng(1, 0);
         let a = sense_aerial(&grid, &truth, 0, 3, &aerials, 0, noise, &mut rng).unwrap();
         let b = sense_aerial(&grid, &truth, 0, 3, &aerials, 1, noise, &mut rng).unwrap();

@@ -20,7 +20,10 @@ pub enum ConfigError {
     #[error("{0}")]
     Invalid(String),
     #[error("{}: {source}", path.display())]
-    Read { path: std::path::PathBuf, source: std::io::Error },
+    Read {
+        path: std::path::PathBuf,
+        source: std::io::Error,
+    },
     #[error("{file}: {source}")]
     InFile { file: String, source: Box<ConfigError> },
     #[error("[team] {0}")]
@@ -75,14 +78,22 @@ impl Network {
     /// This network as node `id` sees it: `{id}` in the vehicle config's path replaced.
     pub fn for_node(&self, id: &str) -> Self {
         let mut n = self.clone();
-        n.vehicle_config = n.vehicle_config.map(|p| std::path::PathBuf::from(p.to_string_lossy().replace("{id}", id)));
+        n.vehicle_config = n
+            .vehicle_config
+            .map(|p| std::path::PathBuf::from(p.to_string_lossy().replace("{id}", id)));
         n
     }
 }
 
 impl Default for Network {
     fn default() -> Self {
-        Self { listen: vec!["tcp/127.0.0.1:7447".into()], connect: vec!["tcp/127.0.0.1:7447".into()], server_config: None, vehicle_config: None, lease_ms: None }
+        Self {
+            listen: vec!["tcp/127.0.0.1:7447".into()],
+            connect: vec!["tcp/127.0.0.1:7447".into()],
+            server_config: None,
+            vehicle_config: None,
+            lease_ms: None,
+        }
     }
 }
 
@@ -106,7 +117,13 @@ pub struct Pace {
 
 impl Default for Pace {
     fn default() -> Self {
-        Self { step_ms: 0, plan_timeout_ms: 30_000, resend_ms: 1_000, horizon: 3, epoch_timeout_ms: 0 }
+        Self {
+            step_ms: 0,
+            plan_timeout_ms: 30_000,
+            resend_ms: 1_000,
+            horizon: 3,
+            epoch_timeout_ms: 0,
+        }
     }
 }
 
@@ -120,7 +137,10 @@ pub struct Motion {
 
 impl Default for Motion {
     fn default() -> Self {
-        Self { aerial_speed: 200.0, boat_speed: 40.0 }
+        Self {
+            aerial_speed: 200.0,
+            boat_speed: 40.0,
+        }
     }
 }
 
@@ -224,36 +244,67 @@ impl Default for MavlinkConfig {
 impl MavlinkConfig {
     /// The autopilot-link key file of vehicle `id`, if the mission signs those links.
     pub fn autopilot_key_of(&self, id: &str) -> Option<std::path::PathBuf> {
-        self.autopilot_signing_key.as_ref().map(|p| std::path::PathBuf::from(p.to_string_lossy().replace("{id}", id)))
+        self.autopilot_signing_key
+            .as_ref()
+            .map(|p| std::path::PathBuf::from(p.to_string_lossy().replace("{id}", id)))
     }
 
     fn check(&self) -> Result<(), ConfigError> {
         if !(self.link_loss_s.is_finite() && self.link_loss_s > 0.0) {
-            return Err(ConfigError::Invalid(format!("[mavlink] link_loss_s = {}: must be > 0", self.link_loss_s)));
+            return Err(ConfigError::Invalid(format!(
+                "[mavlink] link_loss_s = {}: must be > 0",
+                self.link_loss_s
+            )));
         }
-        for (field, v) in [("fence_action", &self.fence_action), ("low_battery_action", &self.low_battery_action), ("link_loss_action", &self.link_loss_action)] {
+        for (field, v) in [
+            ("fence_action", &self.fence_action),
+            ("low_battery_action", &self.low_battery_action),
+            ("link_loss_action", &self.link_loss_action),
+        ] {
             if !FAILSAFE_ACTIONS.contains(&v.as_str()) {
-                return Err(ConfigError::Invalid(format!("[mavlink] {field} = {v:?}: one of {}", FAILSAFE_ACTIONS.join(", "))));
+                return Err(ConfigError::Invalid(format!(
+                    "[mavlink] {field} = {v:?}: one of {}",
+                    FAILSAFE_ACTIONS.join(", ")
+                )));
             }
         }
-        if !(self.battery_mah.is_finite() && self.battery_mah > 0.0 && self.battery_low_mah.is_finite() && (0.0..self.battery_mah).contains(&self.battery_low_mah)) {
-            return Err(ConfigError::Invalid(format!("[mavlink] battery_mah = {}, battery_low_mah = {}: need 0 <= low < capacity", self.battery_mah, self.battery_low_mah)));
+        if !(self.battery_mah.is_finite()
+            && self.battery_mah > 0.0
+            && self.battery_low_mah.is_finite()
+            && (0.0..self.battery_mah).contains(&self.battery_low_mah))
+        {
+            return Err(ConfigError::Invalid(format!(
+                "[mavlink] battery_mah = {}, battery_low_mah = {}: need 0 <= low < capacity",
+                self.battery_mah, self.battery_low_mah
+            )));
         }
         let [lat, lon, alt] = self.origin;
         if !(lat.abs() < 85.0 && lon.abs() <= 180.0 && alt.is_finite()) {
-            return Err(ConfigError::Invalid("[mavlink] origin: latitude within +-85, longitude within +-180, finite altitude".into()));
+            return Err(ConfigError::Invalid(
+                "[mavlink] origin: latitude within +-85, longitude within +-180, finite altitude".into(),
+            ));
         }
         if let Some([e, n]) = self.size_m {
             if !(e > 0.0 && n > 0.0 && e.is_finite() && n.is_finite()) {
                 return Err(ConfigError::Invalid("[mavlink] size_m: two positive extents".into()));
             }
         }
-        let positive = [self.sim_speedup, self.boat_speed_ms, self.boat_turn_rate_dps, self.multirotor_speed_ms, self.acceptance_m];
+        let positive = [
+            self.sim_speedup,
+            self.boat_speed_ms,
+            self.boat_turn_rate_dps,
+            self.multirotor_speed_ms,
+            self.acceptance_m,
+        ];
         if !positive.iter().all(|v| *v > 0.0 && v.is_finite()) || !(self.cruise_alt_m >= 0.0) {
-            return Err(ConfigError::Invalid("[mavlink]: speeds, speed-up, turn rate and acceptance must be > 0, cruise_alt_m >= 0".into()));
+            return Err(ConfigError::Invalid(
+                "[mavlink]: speeds, speed-up, turn rate and acceptance must be > 0, cruise_alt_m >= 0".into(),
+            ));
         }
         if self.heartbeat_timeout_ms == 0 {
-            return Err(ConfigError::Invalid("[mavlink] heartbeat_timeout_ms must be > 0".into()));
+            return Err(ConfigError::Invalid(
+                "[mavlink] heartbeat_timeout_ms must be > 0".into(),
+            ));
         }
         Ok(())
     }
@@ -283,10 +334,14 @@ impl MissionConfig {
         let cfg: Self = toml::from_str(text).map_err(|e| ConfigError::Invalid(crate::exit::toml_error(text, &e)))?;
         keys::check_id("mission", &cfg.mission).map_err(|e| ConfigError::Invalid(e.to_string()))?;
         if cfg.truth.frames < 10 || cfg.truth.average == 0 {
-            return Err(ConfigError::Invalid("[truth]: need at least 10 frames and average >= 1".into()));
+            return Err(ConfigError::Invalid(
+                "[truth]: need at least 10 frames and average >= 1".into(),
+            ));
         }
         if cfg.network.listen.is_empty() && cfg.network.connect.is_empty() {
-            return Err(ConfigError::Invalid("[network]: give listen or connect endpoints".into()));
+            return Err(ConfigError::Invalid(
+                "[network]: give listen or connect endpoints".into(),
+            ));
         }
         if !(cfg.motion.aerial_speed > 0.0 && cfg.motion.boat_speed > 0.0) {
             return Err(ConfigError::Invalid("[motion]: speeds must be > 0".into()));
@@ -300,20 +355,29 @@ impl MissionConfig {
 
     /// The mission file at `path`, or the bundled default.
     pub fn load(path: Option<&Path>) -> Result<Self, ConfigError> {
-        let in_file = |file: String| move |e| ConfigError::InFile { file, source: Box::new(e) };
+        let in_file = |file: String| {
+            move |e| ConfigError::InFile {
+                file,
+                source: Box::new(e),
+            }
+        };
         match path {
             Some(p) => {
                 let text = std::fs::read_to_string(p).map_err(|source| ConfigError::Read { path: p.into(), source })?;
                 let mut cfg = Self::from_toml(&text).map_err(in_file(p.display().to_string()))?;
                 // Key files are read where they are used (a node reads only its own).
                 if let Some(dir) = p.parent() {
-                    for k in [&mut cfg.mavlink.signing_key, &mut cfg.mavlink.autopilot_signing_key].into_iter().flatten() {
+                    for k in [&mut cfg.mavlink.signing_key, &mut cfg.mavlink.autopilot_signing_key]
+                        .into_iter()
+                        .flatten()
+                    {
                         *k = dir.join(&*k);
                     }
                 }
                 if let Some(b) = &cfg.mavlink.boundary {
                     let file = p.parent().map_or_else(|| b.clone(), |d| d.join(b));
-                    let fence = crate::fence::load(&file, cfg.mavlink.origin, cfg.mavlink.size_m).map_err(|e| ConfigError::Invalid(format!("[mavlink] boundary: {e}")));
+                    let fence = crate::fence::load(&file, cfg.mavlink.origin, cfg.mavlink.size_m)
+                        .map_err(|e| ConfigError::Invalid(format!("[mavlink] boundary: {e}")));
                     cfg.team.fence = Some(fence.map_err(in_file(p.display().to_string()))?);
                 }
                 Ok(cfg)
@@ -324,14 +388,18 @@ impl MissionConfig {
 
     /// The truth on the model grid (runs the simulator: seconds to minutes).
     pub fn truth(&self, progress: impl FnMut(usize)) -> Result<FieldSeries, TruthError> {
-        let full = self.truth.source.full(self.truth.grid, self.truth.frames, self.team.seed, progress)?;
+        let full = self
+            .truth
+            .source
+            .full(self.truth.grid, self.truth.frames, self.team.seed, progress)?;
         averaged_by(&full, self.truth.average)
     }
 
     /// Check a truth field against the mission, then the workspace grid and length it gives.
     /// Bad input: a truth that does not fit the team (see [`TeamConfig::validate`]).
     pub fn workspace(&self, truth: &FieldSeries) -> Result<(Grid, usize), ConfigError> {
-        let grid = Grid::new(truth.rows, truth.cols, 1.0).map_err(|e| ConfigError::Invalid(format!("the truth's grid: {e}")))?;
+        let grid = Grid::new(truth.rows, truth.cols, 1.0)
+            .map_err(|e| ConfigError::Invalid(format!("the truth's grid: {e}")))?;
         self.team.validate(&grid, truth.frames()).map_err(ConfigError::Team)?;
         Ok((grid, truth.frames()))
     }
@@ -355,10 +423,14 @@ impl MissionConfig {
 
     /// Check a truth given to a node (`--truth`) against [`Self::model_shape`].
     pub fn check_truth(&self, truth: &FieldSeries, path: &Path) -> Result<(), ConfigError> {
-        let Some((rows, cols, frames)) = self.model_shape() else { return Ok(()) };
+        let Some((rows, cols, frames)) = self.model_shape() else {
+            return Ok(());
+        };
         if (truth.rows, truth.cols, truth.frames()) != (rows, cols, frames) {
             return Err(ConfigError::Invalid(format!(
-                "--truth {} is {} x {} cells for {} steps, but mission {:?} senses {rows} x {cols} cells for {frames} steps: give the truth `fleet up` or the server made for this mission (every node must sense the same field)",
+                "--truth {} is {} x {} cells for {} steps, but mission {:?} senses {rows} x {cols} cells for {frames} \
+                    steps: give the truth `fleet up` or the server made for this mission (every node must sense the \
+                    same field)",
                 path.display(),
                 truth.rows,
                 truth.cols,
@@ -384,21 +456,38 @@ impl MissionConfig {
     /// A vehicle's index (its random stream) and kind.
     pub fn vehicle(&self, id: &str) -> Result<(usize, VehicleKind), ConfigError> {
         let roster = self.roster();
-        roster.get(id).map(|v| (v.index, v.kind)).ok_or_else(|| ConfigError::Invalid(format!("--id {id}: no such vehicle in mission {:?} (it has {})", self.mission, roster.ids().join(", "))))
+        roster.get(id).map(|v| (v.index, v.kind)).ok_or_else(|| {
+            ConfigError::Invalid(format!(
+                "--id {id}: no such vehicle in mission {:?} (it has {})",
+                self.mission,
+                roster.ids().join(", ")
+            ))
+        })
     }
 
     /// A vehicle's sensor noise.
     pub fn noise(&self, kind: VehicleKind) -> Noise {
         match kind {
-            VehicleKind::Aerial => Noise { sigma0: self.team.aerial_sigma0, growth_per_m: self.team.aerial_growth_per_cell },
-            VehicleKind::Boat => Noise { sigma0: self.team.boat_sigma, growth_per_m: 0.0 },
+            VehicleKind::Aerial => Noise {
+                sigma0: self.team.aerial_sigma0,
+                growth_per_m: self.team.aerial_growth_per_cell,
+            },
+            VehicleKind::Boat => Noise {
+                sigma0: self.team.boat_sigma,
+                growth_per_m: 0.0,
+            },
         }
     }
 
     /// A vehicle's MAVLink system id: its place in the mission, from 1.
     pub fn sysid(&self, id: &str) -> Result<u8, ConfigError> {
         let (i, _) = self.vehicle(id)?;
-        u8::try_from(i + 1).ok().filter(|s| *s < 255).ok_or_else(|| ConfigError::Invalid(format!("{id}: MAVLink has system ids 1-254 only (the mission has {} vehicles)", self.roster().len())))
+        u8::try_from(i + 1).ok().filter(|s| *s < 255).ok_or_else(|| {
+            ConfigError::Invalid(format!(
+                "{id}: MAVLink has system ids 1-254 only (the mission has {} vehicles)",
+                self.roster().len()
+            ))
+        })
     }
 
     pub fn speed(&self, kind: VehicleKind) -> f64 {
@@ -418,26 +507,63 @@ mod tests {
         let m = MissionConfig::load(None).unwrap();
         assert_eq!(m.vehicles().len(), m.team.aerials + m.team.boats);
         assert!(MissionConfig::from_toml("mission = \"a/b\"\n[truth]\npreset = \"cloud1\"\n").is_err());
-        assert!(MissionConfig::from_toml("mission = \"m\"\n[truth]\n").unwrap_err().to_string().contains("[truth]"));
+        assert!(MissionConfig::from_toml("mission = \"m\"\n[truth]\n")
+            .unwrap_err()
+            .to_string()
+            .contains("[truth]"));
     }
 
     /// The names configurations ask for, and the choices that cannot go together.
     #[test]
     fn team_choices_parse_by_name_and_horizon_needs_the_filter() {
         use crate::team::{LearnFrom, Placement, TeamConfig};
-        let t: TeamConfig = toml::from_str("placement = \"horizon\"\nfusion = \"kalman\"\nlearn_from = \"aerial\"\nhorizon_epochs = 2\n").unwrap();
-        assert_eq!((t.placement, t.learn_from, t.horizon_epochs), (Placement::Horizon, LearnFrom::Aerial, 2));
+        let t: TeamConfig = toml::from_str(
+            "placement = \"horizon\"\nfusion = \"kalman\"\nlearn_from = \"aerial\"\nhorizon_epochs = 2\n",
+        )
+        .unwrap();
+        assert_eq!(
+            (t.placement, t.learn_from, t.horizon_epochs),
+            (Placement::Horizon, LearnFrom::Aerial, 2)
+        );
         t.check_choices().unwrap();
         assert_eq!(TeamConfig::default().learn_from, LearnFrom::Posterior);
-        let e = TeamConfig { fusion: crate::fusion::Scheme::InverseVariance, ..t.clone() }.check_choices().unwrap_err().to_string();
+        let e = TeamConfig {
+            fusion: crate::fusion::Scheme::InverseVariance,
+            ..t.clone()
+        }
+        .check_choices()
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("needs fusion = \"kalman\""), "{e}");
-        assert!(TeamConfig { horizon_epochs: 0, ..t.clone() }.check_choices().is_err());
+        assert!(TeamConfig {
+            horizon_epochs: 0,
+            ..t.clone()
+        }
+        .check_choices()
+        .is_err());
         // Further ahead than the run lasts: refused with the run's length (100 frames, 20
         // initial steps, epochs of 5: 16 epochs).
         let grid = crate::grid::Grid::new(48, 96, 1.0).unwrap();
-        TeamConfig { horizon_epochs: 16, ..t.clone() }.validate(&grid, 100).unwrap();
-        TeamConfig { horizon_epochs: 17, placement: Placement::Qr, ..t.clone() }.validate(&grid, 100).unwrap();
-        let e = TeamConfig { horizon_epochs: 1_000_000_000_000, ..t }.validate(&grid, 100).unwrap_err().to_string();
+        TeamConfig {
+            horizon_epochs: 16,
+            ..t.clone()
+        }
+        .validate(&grid, 100)
+        .unwrap();
+        TeamConfig {
+            horizon_epochs: 17,
+            placement: Placement::Qr,
+            ..t.clone()
+        }
+        .validate(&grid, 100)
+        .unwrap();
+        let e = TeamConfig {
+            horizon_epochs: 1_000_000_000_000,
+            ..t
+        }
+        .validate(&grid, 100)
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("beyond the run's 16 boat epochs"), "{e}");
         assert!(toml::from_str::<TeamConfig>("learn_from = \"forecast\"\n").is_err());
     }

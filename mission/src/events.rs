@@ -46,7 +46,12 @@ pub enum ServerEvent {
     Hold { vehicle: String, held: bool, mode: String },
     /// A batch of a mission vehicle was refused: its epoch cannot complete with it (the
     /// vehicle re-sends the same batch), so a mission waiting for it will not finish.
-    Refused { vehicle: String, seq: u64, reason: String, detail: String },
+    Refused {
+        vehicle: String,
+        seq: u64,
+        reason: String,
+        detail: String,
+    },
     /// A vehicle says the server acknowledged batches the journal does not hold (a journal
     /// deleted, replaced or rolled back): they are lost, and the epochs that need them wait.
     Lost { vehicle: String, seqs: Vec<u64> },
@@ -68,8 +73,19 @@ impl Percentiles {
     pub fn of(values: &[f64]) -> Self {
         let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
         v.sort_by(f64::total_cmp);
-        let at = |q: f64| if v.is_empty() { 0.0 } else { v[((q * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1] };
-        Self { count: v.len(), p50: at(0.5), p99: at(0.99), max: v.last().copied().unwrap_or(0.0) }
+        let at = |q: f64| {
+            if v.is_empty() {
+                0.0
+            } else {
+                v[((q * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1]
+            }
+        };
+        Self {
+            count: v.len(),
+            p50: at(0.5),
+            p99: at(0.99),
+            max: v.last().copied().unwrap_or(0.0),
+        }
     }
 }
 
@@ -131,7 +147,10 @@ mod tests {
 
     #[test]
     fn events_are_one_json_object_each() {
-        let e = ServerEvent::Link { vehicle: "boat-1".into(), alive: true };
+        let e = ServerEvent::Link {
+            vehicle: "boat-1".into(),
+            alive: true,
+        };
         let line = serde_json::to_string(&e).unwrap();
         assert_eq!(line, r#"{"event":"link","vehicle":"boat-1","alive":true}"#);
         assert_eq!(serde_json::from_str::<ServerEvent>(&line).unwrap(), e);

@@ -59,8 +59,13 @@ pub fn code_of(e: &anyhow::Error) -> i32 {
     use crate::process::dataset::DatasetError;
     // A dataset that cannot be used as it is (unreadable, wrong shape, not finite, no such
     // variable) is the user's input wherever it was read; failing to write one is not.
-    let bad_dataset = |c: &(dyn std::error::Error + 'static)| c.downcast_ref::<DatasetError>().is_some_and(|d| !matches!(d, DatasetError::Io { .. }));
-    if e.chain().any(|c| c.is::<BadInput>() || c.is::<crate::config::ConfigError>() || bad_dataset(c)) {
+    let bad_dataset = |c: &(dyn std::error::Error + 'static)| {
+        c.downcast_ref::<DatasetError>()
+            .is_some_and(|d| !matches!(d, DatasetError::Io { .. }))
+    };
+    if e.chain()
+        .any(|c| c.is::<BadInput>() || c.is::<crate::config::ConfigError>() || bad_dataset(c))
+    {
         BAD_INPUT
     } else {
         INTERNAL
@@ -99,10 +104,21 @@ pub fn toml_error(text: &str, e: &toml::de::Error) -> String {
     let line_start = text[..start].rfind('\n').map_or(0, |i| i + 1);
     let col = text[line_start..start].chars().count() + 1;
     let line = text[line_start..].lines().next().unwrap_or("");
-    let table = text[..line_start].lines().rev().map(str::trim).find(|l| l.starts_with('[')).map(|l| format!("{} ", l.split('#').next().unwrap_or(l).trim()));
-    let key = line.split_once('=').map(|(k, _)| k.trim()).filter(|k| !k.is_empty() && !k.starts_with('['));
+    let table = text[..line_start]
+        .lines()
+        .rev()
+        .map(str::trim)
+        .find(|l| l.starts_with('['))
+        .map(|l| format!("{} ", l.split('#').next().unwrap_or(l).trim()));
+    let key = line
+        .split_once('=')
+        .map(|(k, _)| k.trim())
+        .filter(|k| !k.is_empty() && !k.starts_with('['));
     match key {
-        Some(k) => format!("{reason} (at {}{k}, line {line_no} column {col})", table.unwrap_or_default()),
+        Some(k) => format!(
+            "{reason} (at {}{k}, line {line_no} column {col})",
+            table.unwrap_or_default()
+        ),
         None => format!("{reason} (line {line_no} column {col})"),
     }
 }

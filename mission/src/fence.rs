@@ -27,7 +27,9 @@ pub struct SiteFence {
 impl SiteFence {
     /// Which cells of `grid` lie outside (by their centres).
     pub fn excluded(&self, grid: &Grid) -> Vec<bool> {
-        let (sx, sy) = self.size_m.map_or((1.0, 1.0), |[e, n]| (e / grid.width_m(), n / grid.height_m()));
+        let (sx, sy) = self
+            .size_m
+            .map_or((1.0, 1.0), |[e, n]| (e / grid.width_m(), n / grid.height_m()));
         (0..grid.len())
             .map(|i| {
                 let (x, y) = grid.centre_m(grid.cell(i));
@@ -89,7 +91,11 @@ pub fn route(polygon: &[[f64; 2]], from: [f64; 2], to: [f64; 2], inset: f64) -> 
         let (u, w) = (unit([p[0] - v[0], p[1] - v[1]]), unit([q[0] - v[0], q[1] - v[1]]));
         let dir = unit([u[0] + w[0], u[1] + w[1]]);
         let c = [v[0] + inset * dir[0], v[1] + inset * dir[1]];
-        let c = if inside(polygon, c) { c } else { [v[0] - inset * dir[0], v[1] - inset * dir[1]] };
+        let c = if inside(polygon, c) {
+            c
+        } else {
+            [v[0] - inset * dir[0], v[1] - inset * dir[1]]
+        };
         if inside(polygon, c) {
             nodes.push(c);
         }
@@ -100,7 +106,10 @@ pub fn route(polygon: &[[f64; 2]], from: [f64; 2], to: [f64; 2], inset: f64) -> 
     let mut prev = vec![usize::MAX; m];
     let mut done = vec![false; m];
     best[0] = 0.0;
-    while let Some(u) = (0..m).filter(|&i| !done[i] && best[i].is_finite()).min_by(|&a, &b| best[a].total_cmp(&best[b])) {
+    while let Some(u) = (0..m)
+        .filter(|&i| !done[i] && best[i].is_finite())
+        .min_by(|&a, &b| best[a].total_cmp(&best[b]))
+    {
         done[u] = true;
         if u == 1 {
             break;
@@ -130,23 +139,45 @@ pub fn route(polygon: &[[f64; 2]], from: [f64; 2], to: [f64; 2], inset: f64) -> 
 /// or GeoJSON (a Polygon, or the first Polygon of a Feature or FeatureCollection; its outer
 /// ring), as `[lat, lon]` vertices.
 pub fn read_latlon(path: &Path) -> Result<Vec<[f64; 2]>, FenceError> {
-    let bad = |why: String| FenceError::Bad { path: path.display().to_string(), why };
+    let bad = |why: String| FenceError::Bad {
+        path: path.display().to_string(),
+        why,
+    };
     let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
     let doc: serde_json::Value = serde_json::from_str(&text).map_err(|e| bad(format!("not JSON ({e})")))?;
     let vertices: Vec<[f64; 2]> = if doc.get("fileType").and_then(|t| t.as_str()) == Some("Plan") {
-        let polygons = doc.pointer("/geoFence/polygons").and_then(|p| p.as_array()).ok_or_else(|| bad("a QGroundControl plan without a geofence (no geoFence.polygons)".into()))?;
-        let fence =
-            polygons.iter().find(|p| p.get("inclusion").and_then(|i| i.as_bool()).unwrap_or(true)).ok_or_else(|| bad("a QGroundControl plan whose geofence has no inclusion polygon".into()))?;
-        let points = fence.get("polygon").and_then(|p| p.as_array()).ok_or_else(|| bad("its geofence polygon has no `polygon` list".into()))?;
-        points.iter().map(|v| pair(v).ok_or_else(|| bad(format!("geofence vertex {v} is not [lat, lon]")))).collect::<Result<_, _>>()?
+        let polygons = doc
+            .pointer("/geoFence/polygons")
+            .and_then(|p| p.as_array())
+            .ok_or_else(|| bad("a QGroundControl plan without a geofence (no geoFence.polygons)".into()))?;
+        let fence = polygons
+            .iter()
+            .find(|p| p.get("inclusion").and_then(|i| i.as_bool()).unwrap_or(true))
+            .ok_or_else(|| bad("a QGroundControl plan whose geofence has no inclusion polygon".into()))?;
+        let points = fence
+            .get("polygon")
+            .and_then(|p| p.as_array())
+            .ok_or_else(|| bad("its geofence polygon has no `polygon` list".into()))?;
+        points
+            .iter()
+            .map(|v| pair(v).ok_or_else(|| bad(format!("geofence vertex {v} is not [lat, lon]"))))
+            .collect::<Result<_, _>>()?
     } else {
         let geometry = match doc.get("type").and_then(|t| t.as_str()) {
             Some("Polygon") => Some(&doc),
             Some("Feature") => doc.get("geometry"),
-            Some("FeatureCollection") => {
-                doc.get("features").and_then(|f| f.as_array()).and_then(|f| f.iter().filter_map(|x| x.get("geometry")).find(|g| g.get("type").and_then(|t| t.as_str()) == Some("Polygon")))
+            Some("FeatureCollection") => doc.get("features").and_then(|f| f.as_array()).and_then(|f| {
+                f.iter()
+                    .filter_map(|x| x.get("geometry"))
+                    .find(|g| g.get("type").and_then(|t| t.as_str()) == Some("Polygon"))
+            }),
+            _ => {
+                return Err(bad(
+                    "neither a QGroundControl plan (fileType \"Plan\") nor GeoJSON (type Polygon, Feature \
+                or FeatureCollection)"
+                        .into(),
+                ))
             }
-            _ => return Err(bad("neither a QGroundControl plan (fileType \"Plan\") nor GeoJSON (type Polygon, Feature or FeatureCollection)".into())),
         };
         let ring = geometry
             .filter(|g| g.get("type").and_then(|t| t.as_str()) == Some("Polygon"))
@@ -154,14 +185,23 @@ pub fn read_latlon(path: &Path) -> Result<Vec<[f64; 2]>, FenceError> {
             .and_then(|r| r.as_array())
             .ok_or_else(|| bad("no GeoJSON Polygon with an outer ring in it".into()))?;
         // GeoJSON is [lon, lat].
-        ring.iter().map(|v| pair(v).map(|[lon, lat]| [lat, lon]).ok_or_else(|| bad(format!("GeoJSON position {v} is not [lon, lat]")))).collect::<Result<_, _>>()?
+        ring.iter()
+            .map(|v| {
+                pair(v)
+                    .map(|[lon, lat]| [lat, lon])
+                    .ok_or_else(|| bad(format!("GeoJSON position {v} is not [lon, lat]")))
+            })
+            .collect::<Result<_, _>>()?
     };
     let mut v = vertices;
     if v.len() > 1 && v.first() == v.last() {
         v.pop();
     }
     if v.len() < 3 {
-        return Err(bad(format!("a boundary needs at least 3 distinct vertices, found {}", v.len())));
+        return Err(bad(format!(
+            "a boundary needs at least 3 distinct vertices, found {}",
+            v.len()
+        )));
     }
     if let Some(p) = v.iter().find(|[lat, lon]| !(lat.abs() <= 90.0 && lon.abs() <= 180.0)) {
         return Err(bad(format!("vertex {p:?} is not a latitude and longitude")));
@@ -176,7 +216,10 @@ fn pair(v: &serde_json::Value) -> Option<[f64; 2]> {
 
 /// A boundary file as the planner's fence for a site at `origin` of extent `size_m`.
 pub fn load(path: &Path, origin: [f64; 3], size_m: Option<[f64; 2]>) -> Result<SiteFence, FenceError> {
-    let site = Site { origin, scale: nalgebra::Vector2::new(1.0, 1.0) };
+    let site = Site {
+        origin,
+        scale: nalgebra::Vector2::new(1.0, 1.0),
+    };
     let polygon_m: Vec<[f64; 2]> = read_latlon(path)?
         .into_iter()
         .map(|[lat, lon]| {
@@ -191,7 +234,10 @@ pub fn load(path: &Path, origin: [f64; 3], size_m: Option<[f64; 2]>) -> Result<S
         })
         .sum();
     if area2.abs() < 1e-6 {
-        return Err(FenceError::Bad { path: path.display().to_string(), why: "the boundary encloses no area".into() });
+        return Err(FenceError::Bad {
+            path: path.display().to_string(),
+            why: "the boundary encloses no area".into(),
+        });
     }
     Ok(SiteFence { polygon_m, size_m })
 }
@@ -202,7 +248,14 @@ mod tests {
 
     /// An L: the square [0, 10]^2 without its north-east quarter.
     fn ell() -> Vec<[f64; 2]> {
-        vec![[0.0, 0.0], [10.0, 0.0], [10.0, 5.0], [5.0, 5.0], [5.0, 10.0], [0.0, 10.0]]
+        vec![
+            [0.0, 0.0],
+            [10.0, 0.0],
+            [10.0, 5.0],
+            [5.0, 5.0],
+            [5.0, 10.0],
+            [0.0, 10.0],
+        ]
     }
 
     #[test]
@@ -211,12 +264,20 @@ mod tests {
         assert!(inside(&l, [2.0, 2.0]) && inside(&l, [8.0, 2.0]) && inside(&l, [2.0, 8.0]));
         assert!(!inside(&l, [8.0, 8.0]) && !inside(&l, [11.0, 2.0]) && !inside(&l, [-1.0, 5.0]));
         let grid = Grid::new(10, 10, 1.0).unwrap();
-        let ex = SiteFence { polygon_m: l, size_m: None }.excluded(&grid);
+        let ex = SiteFence {
+            polygon_m: l,
+            size_m: None,
+        }
+        .excluded(&grid);
         assert_eq!(ex.iter().filter(|&&x| x).count(), 25, "the notch is 5 x 5 cells");
         assert!(ex[grid.index(crate::grid::Cell::new(9, 9))] && !ex[grid.index(crate::grid::Cell::new(9, 0))]);
         // On a site scaled to 18 m x 18 m, cell centres are 1.8 m apart from 0.9 m: six per
         // axis inside the square, three of them in the notch, so 36 - 9 cells are in.
-        let ex = SiteFence { polygon_m: ell(), size_m: Some([18.0, 18.0]) }.excluded(&grid);
+        let ex = SiteFence {
+            polygon_m: ell(),
+            size_m: Some([18.0, 18.0]),
+        }
+        .excluded(&grid);
         assert_eq!(ex.iter().filter(|&&x| !x).count(), 27, "{ex:?}");
     }
 
@@ -228,7 +289,10 @@ mod tests {
         assert!(!leg_inside(&l, a, b), "the straight leg cuts the notch");
         let r = route(&l, a, b, 0.5);
         assert_eq!(r.len(), 2, "one corner: {r:?}");
-        assert!((r[0][0] - (5.0 - 0.5 / 2f64.sqrt())).abs() < 1e-9 && (r[0][1] - (5.0 - 0.5 / 2f64.sqrt())).abs() < 1e-9, "the re-entrant corner, inset: {r:?}");
+        assert!(
+            (r[0][0] - (5.0 - 0.5 / 2f64.sqrt())).abs() < 1e-9 && (r[0][1] - (5.0 - 0.5 / 2f64.sqrt())).abs() < 1e-9,
+            "the re-entrant corner, inset: {r:?}"
+        );
         assert_eq!(r[1], b);
         let mut at = a;
         for p in &r {
@@ -237,7 +301,11 @@ mod tests {
         }
         // No routing needed, or nothing to route around.
         assert_eq!(route(&l, [1.0, 1.0], [9.0, 1.0], 0.5), vec![[9.0, 1.0]]);
-        assert_eq!(route(&l, [8.0, 8.0], [1.0, 1.0], 0.5), vec![[1.0, 1.0]], "from outside: straight");
+        assert_eq!(
+            route(&l, [8.0, 8.0], [1.0, 1.0], 0.5),
+            vec![[1.0, 1.0]],
+            "from outside: straight"
+        );
         let square = [[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]];
         assert_eq!(route(&square, [1.0, 1.0], [9.0, 9.0], 0.5), vec![[9.0, 9.0]]);
     }
@@ -248,14 +316,32 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let plan = dir.join("f.plan");
         std::fs::write(&plan, r#"{"fileType": "Plan", "geoFence": {"polygons": [{"inclusion": true, "polygon": [[55.0, 12.0], [55.0, 12.1], [55.1, 12.1]]}], "version": 2}}"#).unwrap();
-        assert_eq!(read_latlon(&plan).unwrap(), vec![[55.0, 12.0], [55.0, 12.1], [55.1, 12.1]]);
+        assert_eq!(
+            read_latlon(&plan).unwrap(),
+            vec![[55.0, 12.0], [55.0, 12.1], [55.1, 12.1]]
+        );
         let gj = dir.join("f.geojson");
         std::fs::write(&gj, r#"{"type": "Feature", "geometry": {"type": "Polygon", "coordinates": [[[12.0, 55.0], [12.1, 55.0], [12.1, 55.1], [12.0, 55.0]]]}}"#).unwrap();
-        assert_eq!(read_latlon(&gj).unwrap(), vec![[55.0, 12.0], [55.0, 12.1], [55.1, 12.1]]);
+        assert_eq!(
+            read_latlon(&gj).unwrap(),
+            vec![[55.0, 12.0], [55.0, 12.1], [55.1, 12.1]]
+        );
         for (name, text, says) in [
-            ("none.plan", r#"{"fileType": "Plan", "mission": {}}"#, "without a geofence"),
-            ("excl.plan", r#"{"fileType": "Plan", "geoFence": {"polygons": [{"inclusion": false, "polygon": [[55.0, 12.0], [55.0, 12.1], [55.1, 12.1]]}]}}"#, "no inclusion polygon"),
-            ("two.geojson", r#"{"type": "Polygon", "coordinates": [[[12.0, 55.0], [12.1, 55.0]]]}"#, "at least 3"),
+            (
+                "none.plan",
+                r#"{"fileType": "Plan", "mission": {}}"#,
+                "without a geofence",
+            ),
+            (
+                "excl.plan",
+                r#"{"fileType": "Plan", "geoFence": {"polygons": [{"inclusion": false, "polygon": [[55.0, 12.0], [55.0, 12.1], [55.1, 12.1]]}]}}"#,
+                "no inclusion polygon",
+            ),
+            (
+                "two.geojson",
+                r#"{"type": "Polygon", "coordinates": [[[12.0, 55.0], [12.1, 55.0]]]}"#,
+                "at least 3",
+            ),
             ("cut.plan", r#"{"fileType": "Plan", "geoF"#, "not JSON"),
             ("other.json", r#"{"type": "Point", "coordinates": [1, 2]}"#, "neither"),
         ] {

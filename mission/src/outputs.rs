@@ -12,7 +12,8 @@ use std::path::Path;
 pub fn write(dir: &Path, core: &ServerCore, horizon: u64) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     if let Some(m) = core.model_update() {
-        std::fs::write(dir.join("model.cbor"), protocol::encode(&Body::Model(m))).with_context(|| format!("writing {}/model.cbor", dir.display()))?;
+        std::fs::write(dir.join("model.cbor"), protocol::encode(&Body::Model(m)))
+            .with_context(|| format!("writing {}/model.cbor", dir.display()))?;
     }
     let grid = core.assimilator().grid();
     for (name, steps) in [("estimate.npy", &core.snapshots), ("variance.npy", &core.variances)] {
@@ -20,9 +21,26 @@ pub fn write(dir: &Path, core: &ServerCore, horizon: u64) -> anyhow::Result<()> 
         crate::npy::write(dir.join(name), &[steps.len(), grid.rows, grid.cols], &data)?;
     }
     let plans = (0..core.counters.epochs)
-        .flat_map(|e| core.vehicles().iter().filter_map(move |v| core.plan(&v.id, e, horizon).map(|p| (v.kind, p))))
-        .map(|(kind, p)| PlanPlaces { vehicle: p.vehicle, kind, epoch: p.epoch, targets: p.targets.into_iter().map(|t| (t.epoch, t.step, t.position, t.radius)).collect() })
+        .flat_map(|e| {
+            core.vehicles()
+                .iter()
+                .filter_map(move |v| core.plan(&v.id, e, horizon).map(|p| (v.kind, p)))
+        })
+        .map(|(kind, p)| PlanPlaces {
+            vehicle: p.vehicle,
+            kind,
+            epoch: p.epoch,
+            targets: p
+                .targets
+                .into_iter()
+                .map(|t| (t.epoch, t.step, t.position, t.radius))
+                .collect(),
+        })
         .collect();
-    std::fs::write(dir.join("plans.json"), serde_json::to_string(&PublishedPlans { horizon, plans })?).with_context(|| format!("writing {}/plans.json", dir.display()))?;
+    std::fs::write(
+        dir.join("plans.json"),
+        serde_json::to_string(&PublishedPlans { horizon, plans })?,
+    )
+    .with_context(|| format!("writing {}/plans.json", dir.display()))?;
     Ok(())
 }

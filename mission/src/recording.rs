@@ -31,7 +31,10 @@ pub const HEADER: &str = "hetfleet";
 #[serde(rename_all = "kebab-case")]
 pub enum CoreOp {
     /// The node started from its journal: these batches (encoded) and epoch records.
-    Restore { batches: Vec<Vec<u8>>, records: Vec<(String, Vec<u8>)> },
+    Restore {
+        batches: Vec<Vec<u8>>,
+        records: Vec<(String, Vec<u8>)>,
+    },
     /// The batch recorded as message `arrival` (its sequence number) went to
     /// `ServerCore::ingest_deferred`.
     Ingest { arrival: u32 },
@@ -52,7 +55,12 @@ pub enum RecordingError {
     Bad { path: PathBuf, why: String },
     /// Applying the recorded operations failed: the recording does not fit this build's core.
     #[error("{}: replaying operation {index} ({op}): {why}", path.display())]
-    Replay { path: PathBuf, index: usize, op: String, why: String },
+    Replay {
+        path: PathBuf,
+        index: usize,
+        op: String,
+        why: String,
+    },
 }
 
 impl RecordingError {
@@ -63,7 +71,9 @@ impl RecordingError {
 
 /// Nanoseconds since the Unix epoch (MCAP's log time).
 pub fn now_ns() -> u64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
 }
 
 /// Writes a recording as the node goes. Records go straight to the file (no chunks), so a
@@ -78,7 +88,13 @@ pub struct Recorder<W: Write + Seek> {
 impl Recorder<BufWriter<std::fs::File>> {
     /// Start a recording at `path`, or beside it (`recording.1.mcap`, ...) if `path` exists: a
     /// restarted server does not overwrite its first life's recording.
-    pub fn create(path: &Path, mission: &MissionConfig, mission_toml: &str, grid: &Grid, frames: usize) -> Result<Self, RecordingError> {
+    pub fn create(
+        path: &Path,
+        mission: &MissionConfig,
+        mission_toml: &str,
+        grid: &Grid,
+        frames: usize,
+    ) -> Result<Self, RecordingError> {
         let mut path = path.to_path_buf();
         let stem = path.file_stem().unwrap_or_default().to_string_lossy().into_owned();
         let mut k = 0;
@@ -86,9 +102,16 @@ impl Recorder<BufWriter<std::fs::File>> {
             k += 1;
             path = path.with_file_name(format!("{stem}.{k}.mcap"));
         }
-        let io = |e: &dyn std::fmt::Display| RecordingError::Io { path: path.clone(), why: e.to_string() };
+        let io = |e: &dyn std::fmt::Display| RecordingError::Io {
+            path: path.clone(),
+            why: e.to_string(),
+        };
         let file = std::fs::File::create(&path).map_err(|e| io(&e))?;
-        let opts = mcap::WriteOptions::new().compression(None).use_chunks(false).profile("hetfleet").library(concat!("hetfleet-", env!("CARGO_PKG_VERSION")));
+        let opts = mcap::WriteOptions::new()
+            .compression(None)
+            .use_chunks(false)
+            .profile("hetfleet")
+            .library(concat!("hetfleet-", env!("CARGO_PKG_VERSION")));
         let mut w = opts.create(BufWriter::new(file)).map_err(|e| io(&e))?;
         let meta = BTreeMap::from([
             ("mission_toml".to_string(), mission_toml.to_string()),
@@ -97,10 +120,22 @@ impl Recorder<BufWriter<std::fs::File>> {
             ("cell_m".into(), grid.cell_m.to_string()),
             ("frames".into(), frames.to_string()),
             // The boundary as read (the file it came from need not travel with the recording).
-            ("fence".into(), serde_json::to_string(&mission.team.fence).expect("a fence serialises")),
+            (
+                "fence".into(),
+                serde_json::to_string(&mission.team.fence).expect("a fence serialises"),
+            ),
         ]);
-        w.write_metadata(&mcap::records::Metadata { name: HEADER.into(), metadata: meta }).map_err(|e| io(&e))?;
-        Ok(Self { w, path, channels: BTreeMap::new(), next: 0 })
+        w.write_metadata(&mcap::records::Metadata {
+            name: HEADER.into(),
+            metadata: meta,
+        })
+        .map_err(|e| io(&e))?;
+        Ok(Self {
+            w,
+            path,
+            channels: BTreeMap::new(),
+            next: 0,
+        })
     }
 }
 
@@ -110,7 +145,10 @@ impl<W: Write + Seek> Recorder<W> {
     }
 
     fn failed(&self, e: impl std::fmt::Display) -> RecordingError {
-        RecordingError::Io { path: self.path.clone(), why: e.to_string() }
+        RecordingError::Io {
+            path: self.path.clone(),
+            why: e.to_string(),
+        }
     }
 
     /// Record `data` on `topic` at `log_ns`; returns its sequence number.
@@ -118,15 +156,25 @@ impl<W: Write + Seek> Recorder<W> {
         let channel_id = match self.channels.get(topic) {
             Some(&id) => id,
             None => {
-                let id = self.w.add_channel(0, topic, encoding, &BTreeMap::new()).map_err(|e| self.failed(e))?;
+                let id = self
+                    .w
+                    .add_channel(0, topic, encoding, &BTreeMap::new())
+                    .map_err(|e| self.failed(e))?;
                 self.channels.insert(topic.to_string(), id);
                 id
             }
         };
         let sequence = self.next;
         self.next += 1;
-        let header = mcap::records::MessageHeader { channel_id, sequence, log_time: log_ns, publish_time: log_ns };
-        self.w.write_to_known_channel(&header, data).map_err(|e| self.failed(e))?;
+        let header = mcap::records::MessageHeader {
+            channel_id,
+            sequence,
+            log_time: log_ns,
+            publish_time: log_ns,
+        };
+        self.w
+            .write_to_known_channel(&header, data)
+            .map_err(|e| self.failed(e))?;
         Ok(sequence)
     }
 
@@ -172,33 +220,62 @@ impl Recording {
     /// is refused.
     pub fn read(path: &Path) -> Result<Self, RecordingError> {
         let bad = |why: String| RecordingError::Bad { path: path.into(), why };
-        let bytes = std::fs::read(path).map_err(|e| RecordingError::Io { path: path.into(), why: e.to_string() })?;
+        let bytes = std::fs::read(path).map_err(|e| RecordingError::Io {
+            path: path.into(),
+            why: e.to_string(),
+        })?;
         let mut header = None;
         let mut topics: BTreeMap<u16, String> = BTreeMap::new();
         let mut messages = vec![];
         let mut footer = false;
         let reader = mcap::read::LinearReader::new(&bytes).map_err(|e| bad(format!("not an MCAP recording ({e})")))?;
         for record in reader {
-            let record = record.map_err(|e| bad(format!("cut short or damaged after {} messages ({e}): the recording did not end (was the server killed?)", messages.len())))?;
+            let record = record.map_err(|e| {
+                bad(format!(
+                    "cut short or damaged after {} messages ({e}): the recording did not end (was the server killed?)",
+                    messages.len()
+                ))
+            })?;
             match record {
                 mcap::records::Record::Metadata(m) if m.name == HEADER => header = Some(m.metadata),
                 mcap::records::Record::Channel(c) => {
                     topics.insert(c.id, c.topic);
                 }
                 mcap::records::Record::Message { header, data } => {
-                    let topic = topics.get(&header.channel_id).cloned().ok_or_else(|| bad(format!("message {} names channel {} before it is defined", header.sequence, header.channel_id)))?;
-                    messages.push(Recorded { topic, sequence: header.sequence, log_ns: header.log_time, data: data.into_owned() });
+                    let topic = topics.get(&header.channel_id).cloned().ok_or_else(|| {
+                        bad(format!(
+                            "message {} names channel {} before it is defined",
+                            header.sequence, header.channel_id
+                        ))
+                    })?;
+                    messages.push(Recorded {
+                        topic,
+                        sequence: header.sequence,
+                        log_ns: header.log_time,
+                        data: data.into_owned(),
+                    });
                 }
                 mcap::records::Record::Footer(_) => footer = true,
                 _ => {}
             }
         }
         if !footer {
-            return Err(bad(format!("cut short after {} messages: the recording did not end (was the server killed?)", messages.len())));
+            return Err(bad(format!(
+                "cut short after {} messages: the recording did not end (was the server killed?)",
+                messages.len()
+            )));
         }
         let h = header.ok_or_else(|| bad(format!("no `{HEADER}` metadata: not a hetfleet recording")))?;
-        let field = |k: &str| h.get(k).cloned().ok_or_else(|| bad(format!("its `{HEADER}` metadata has no `{k}`")));
-        let num = |k: &str| -> Result<usize, RecordingError> { field(k)?.parse().map_err(|e| bad(format!("its `{HEADER}` metadata `{k}`: {e}"))) };
+        let field = |k: &str| {
+            h.get(k)
+                .cloned()
+                .ok_or_else(|| bad(format!("its `{HEADER}` metadata has no `{k}`")))
+        };
+        let num = |k: &str| -> Result<usize, RecordingError> {
+            field(k)?
+                .parse()
+                .map_err(|e| bad(format!("its `{HEADER}` metadata `{k}`: {e}")))
+        };
         let mission_toml = field("mission_toml")?;
         let mut mission = MissionConfig::from_toml(&mission_toml).map_err(|e| bad(format!("its mission: {e}")))?;
         // Recordings made before boundaries existed have no `fence`: none.
@@ -206,10 +283,18 @@ impl Recording {
             Some(f) => serde_json::from_str(f).map_err(|e| bad(format!("its `{HEADER}` metadata `fence`: {e}")))?,
             None => None,
         };
-        let cell_m: f64 = field("cell_m")?.parse().map_err(|e| bad(format!("its `{HEADER}` metadata `cell_m`: {e}")))?;
+        let cell_m: f64 = field("cell_m")?
+            .parse()
+            .map_err(|e| bad(format!("its `{HEADER}` metadata `cell_m`: {e}")))?;
         let grid = Grid::new(num("rows")?, num("cols")?, cell_m).map_err(|e| bad(format!("its workspace: {e}")))?;
         let frames = num("frames")?;
-        Ok(Self { mission, mission_toml, grid, frames, messages })
+        Ok(Self {
+            mission,
+            mission_toml,
+            grid,
+            frames,
+            messages,
+        })
     }
 
     /// The messages on topics ending in `suffix`.
@@ -226,7 +311,10 @@ impl Recording {
     /// sees each operation's log time (for pacing) before it is applied.
     pub fn replay(&self, path: &Path, mut each: impl FnMut(u64, &CoreOp)) -> Result<ServerCore, RecordingError> {
         let mut core = ServerCore::new(&self.mission.team, self.grid, self.frames)
-            .map_err(|e| RecordingError::Bad { path: path.into(), why: format!("its mission makes no core: {e}") })?
+            .map_err(|e| RecordingError::Bad {
+                path: path.into(),
+                why: format!("its mission makes no core: {e}"),
+            })?
             .with_boat_speed(self.mission.motion.boat_speed);
         let mut ctx = Context::new(self.grid);
         ctx.vehicles = core.vehicles().iter().map(|v| v.id.clone()).collect();
@@ -239,20 +327,36 @@ impl Recording {
             }
         };
         for (index, m) in self.messages.iter().filter(|m| m.topic == CORE_TOPIC).enumerate() {
-            let op: CoreOp = ciborium::from_reader(&m.data[..]).map_err(|e| RecordingError::Bad { path: path.into(), why: format!("operation {index} does not decode: {e}") })?;
-            let fail = |why: String| RecordingError::Replay { path: path.into(), index, op: format!("{op:?}").chars().take(60).collect(), why };
+            let op: CoreOp = ciborium::from_reader(&m.data[..]).map_err(|e| RecordingError::Bad {
+                path: path.into(),
+                why: format!("operation {index} does not decode: {e}"),
+            })?;
+            let fail = |why: String| RecordingError::Replay {
+                path: path.into(),
+                index,
+                op: format!("{op:?}").chars().take(60).collect(),
+                why,
+            };
             each(m.log_ns, &op);
             match &op {
                 CoreOp::Restore { batches, records } => {
-                    let batches = batches.iter().map(|b| decode(b)).collect::<Result<Vec<_>, _>>().map_err(&fail)?;
+                    let batches = batches
+                        .iter()
+                        .map(|b| decode(b))
+                        .collect::<Result<Vec<_>, _>>()
+                        .map_err(&fail)?;
                     core.restore(batches, records).map_err(|e| fail(e.to_string()))?;
                 }
                 CoreOp::Ingest { arrival } => {
-                    let raw = by_seq.get(arrival).ok_or_else(|| fail(format!("message {arrival} is not in the recording")))?;
+                    let raw = by_seq
+                        .get(arrival)
+                        .ok_or_else(|| fail(format!("message {arrival} is not in the recording")))?;
                     let batch = decode(&raw.data).map_err(&fail)?;
                     // Refusals are part of what happened: the core counts them as it did live.
                     match core.ingest_deferred(batch) {
-                        Ok(_) | Err(crate::server::IngestError::Rejected { .. }) | Err(crate::server::IngestError::Protocol(_)) => {}
+                        Ok(_)
+                        | Err(crate::server::IngestError::Rejected { .. })
+                        | Err(crate::server::IngestError::Protocol(_)) => {}
                         Err(e) => return Err(fail(e.to_string())),
                     }
                 }

@@ -64,10 +64,22 @@ pub struct Roster {
 
 impl Roster {
     pub fn of(cfg: &TeamConfig) -> Self {
-        let spec = |index, kind, slot, prefix: &str| VehicleSpec { id: format!("{prefix}-{}", slot + 1), kind, index, slot };
-        let vehicles: Vec<VehicleSpec> = (0..cfg.aerials).map(|s| spec(s, VehicleKind::Aerial, s, "av")).chain((0..cfg.boats).map(|s| spec(cfg.aerials + s, VehicleKind::Boat, s, "boat"))).collect();
+        let spec = |index, kind, slot, prefix: &str| VehicleSpec {
+            id: format!("{prefix}-{}", slot + 1),
+            kind,
+            index,
+            slot,
+        };
+        let vehicles: Vec<VehicleSpec> = (0..cfg.aerials)
+            .map(|s| spec(s, VehicleKind::Aerial, s, "av"))
+            .chain((0..cfg.boats).map(|s| spec(cfg.aerials + s, VehicleKind::Boat, s, "boat")))
+            .collect();
         let by_id = vehicles.iter().map(|v| (v.id.clone(), v.index)).collect();
-        Self { vehicles, by_id, aerials: cfg.aerials }
+        Self {
+            vehicles,
+            by_id,
+            aerials: cfg.aerials,
+        }
     }
 
     pub fn all(&self) -> &[VehicleSpec] {
@@ -106,7 +118,10 @@ impl Roster {
 
     /// The boat slot of roster index `index` (`None` for an aerial or past the end).
     pub fn boat_slot(&self, index: usize) -> Option<usize> {
-        self.vehicles.get(index).filter(|v| v.kind == VehicleKind::Boat).map(|v| v.slot)
+        self.vehicles
+            .get(index)
+            .filter(|v| v.kind == VehicleKind::Boat)
+            .map(|v| v.slot)
     }
 }
 
@@ -116,13 +131,20 @@ mod tests {
 
     #[test]
     fn ids_indices_and_slots_agree() {
-        let r = Roster::of(&TeamConfig { aerials: 2, boats: 3, ..Default::default() });
+        let r = Roster::of(&TeamConfig {
+            aerials: 2,
+            boats: 3,
+            ..Default::default()
+        });
         assert_eq!(r.ids(), ["av-1", "av-2", "boat-1", "boat-2", "boat-3"]);
         for (i, v) in r.all().iter().enumerate() {
             assert_eq!(r.index_of(&v.id), Some(i));
             assert_eq!(r.get(&v.id), Some(v));
         }
-        assert_eq!(r.get("boat-2").map(|v| (v.index, v.slot, v.kind)), Some((3, 1, VehicleKind::Boat)));
+        assert_eq!(
+            r.get("boat-2").map(|v| (v.index, v.slot, v.kind)),
+            Some((3, 1, VehicleKind::Boat))
+        );
         assert_eq!(r.boat_slot(3), Some(1));
         assert_eq!(r.boat_slot(1), None, "an aerial has no boat slot");
         assert_eq!(r.boat_slot(5), None);

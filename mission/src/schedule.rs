@@ -20,7 +20,12 @@ pub struct Schedule {
 
 impl Schedule {
     pub fn new(cfg: &TeamConfig, frames: usize) -> Self {
-        Self { init: cfg.init_steps, boat_period: cfg.boat_period.max(1), aerial_period: cfg.aerial_period.max(1), frames }
+        Self {
+            init: cfg.init_steps,
+            boat_period: cfg.boat_period.max(1),
+            aerial_period: cfg.aerial_period.max(1),
+            frames,
+        }
     }
 
     /// Steps of epoch `e` (empty past the end of the mission).
@@ -28,7 +33,9 @@ impl Schedule {
         if e == 0 {
             return 0..self.init.min(self.frames);
         }
-        let a = self.init.saturating_add((e as usize - 1).saturating_mul(self.boat_period));
+        let a = self
+            .init
+            .saturating_add((e as usize - 1).saturating_mul(self.boat_period));
         a.min(self.frames)..a.saturating_add(self.boat_period).min(self.frames)
     }
 
@@ -84,13 +91,22 @@ mod tests {
 
     #[test]
     fn epochs_cover_every_step_once() {
-        let s = Schedule { init: 10, boat_period: 5, aerial_period: 2, frames: 32 };
+        let s = Schedule {
+            init: 10,
+            boat_period: 5,
+            aerial_period: 2,
+            frames: 32,
+        };
         assert_eq!(s.epochs(), 6);
         let all: Vec<usize> = (0..s.epochs()).flat_map(|e| s.steps_of(e)).collect();
         assert_eq!(all, (0..32).collect::<Vec<_>>());
         assert!(s.steps_of(6).is_empty());
         assert_eq!(s.sample_steps(VehicleKind::Boat, 1), vec![14]);
-        assert_eq!(s.sample_steps(VehicleKind::Boat, 5), Vec::<usize>::new(), "last epoch 30..32 is short");
+        assert_eq!(
+            s.sample_steps(VehicleKind::Boat, 5),
+            Vec::<usize>::new(),
+            "last epoch 30..32 is short"
+        );
         assert_eq!(s.sample_steps(VehicleKind::Aerial, 5), vec![30]);
         assert_eq!(s.last_seq(VehicleKind::Boat), Some(3));
         assert_eq!(s.last_seq(VehicleKind::Aerial), Some(5));

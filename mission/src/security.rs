@@ -50,7 +50,14 @@ pub fn access_control(mission: &MissionConfig, tls: bool) -> Result<Value, Proto
     };
     // Every authenticated node learns where subscribers and queryables are (declarations only,
     // no data), so its puts and queries are routed at all.
-    let declarations = |user: &str| rule(&format!("{user}/declarations"), "egress", &["declare_subscriber", "declare_queryable"], &[k.everything()]);
+    let declarations = |user: &str| {
+        rule(
+            &format!("{user}/declarations"),
+            "egress",
+            &["declare_subscriber", "declare_queryable"],
+            &[k.everything()],
+        )
+    };
     let server = k.alive("server");
     for v in mission.vehicles() {
         let id = v.id.as_str();
@@ -58,14 +65,29 @@ pub fn access_control(mission: &MissionConfig, tls: bool) -> Result<Value, Proto
         add(
             id,
             vec![
-                rule(&format!("{id}/put"), "ingress", &["put"], &[k.measurements(id), k.telemetry(id), k.mavlink(id)]),
+                rule(
+                    &format!("{id}/put"),
+                    "ingress",
+                    &["put"],
+                    &[k.measurements(id), k.telemetry(id), k.mavlink(id)],
+                ),
                 rule(&format!("{id}/subscribe"), "ingress", &["declare_subscriber"], &inbound),
                 rule(&format!("{id}/receive"), "egress", &["put"], &inbound),
                 rule(&format!("{id}/ask-plan"), "ingress", &["query"], &[k.plan(id)]),
                 rule(&format!("{id}/get-plan"), "egress", &["reply"], &[k.plan(id)]),
                 rule(&format!("{id}/token"), "ingress", &["liveliness_token"], &[k.alive(id)]),
-                rule(&format!("{id}/watch-server"), "ingress", &["declare_liveliness_subscriber", "liveliness_query"], std::slice::from_ref(&server)),
-                rule(&format!("{id}/server-alive"), "egress", &["liveliness_token", "reply"], std::slice::from_ref(&server)),
+                rule(
+                    &format!("{id}/watch-server"),
+                    "ingress",
+                    &["declare_liveliness_subscriber", "liveliness_query"],
+                    std::slice::from_ref(&server),
+                ),
+                rule(
+                    &format!("{id}/server-alive"),
+                    "egress",
+                    &["liveliness_token", "reply"],
+                    std::slice::from_ref(&server),
+                ),
                 declarations(id),
             ],
         );
@@ -73,10 +95,20 @@ pub fn access_control(mission: &MissionConfig, tls: bool) -> Result<Value, Proto
     add(
         GATEWAY,
         vec![
-            rule("gcs-gateway/subscribe", "ingress", &["declare_subscriber"], &[k.all_mavlink()]),
+            rule(
+                "gcs-gateway/subscribe",
+                "ingress",
+                &["declare_subscriber"],
+                &[k.all_mavlink()],
+            ),
             rule("gcs-gateway/receive", "egress", &["put"], &[k.all_mavlink()]),
             rule("gcs-gateway/put", "ingress", &["put"], &[k.all_gcs()]),
-            rule("gcs-gateway/token", "ingress", &["liveliness_token"], &[k.alive(GATEWAY)]),
+            rule(
+                "gcs-gateway/token",
+                "ingress",
+                &["liveliness_token"],
+                &[k.alive(GATEWAY)],
+            ),
             declarations(GATEWAY),
         ],
     );
@@ -86,16 +118,38 @@ pub fn access_control(mission: &MissionConfig, tls: bool) -> Result<Value, Proto
     add(
         OBSERVER,
         vec![
-            rule("observer/ask-model", "ingress", &["query"], &[k.model_latest(), k.all_plans()]),
-            rule("observer/get-model", "egress", &["reply"], &[k.model_latest(), k.all_plans()]),
+            rule(
+                "observer/ask-model",
+                "ingress",
+                &["query"],
+                &[k.model_latest(), k.all_plans()],
+            ),
+            rule(
+                "observer/get-model",
+                "egress",
+                &["reply"],
+                &[k.model_latest(), k.all_plans()],
+            ),
             rule("observer/subscribe", "ingress", &["declare_subscriber"], &seen),
             rule("observer/receive", "egress", &["put"], &seen),
-            rule("observer/watch-links", "ingress", &["declare_liveliness_subscriber", "liveliness_query"], &[k.all_alive()]),
-            rule("observer/links", "egress", &["liveliness_token", "reply"], &[k.all_alive()]),
+            rule(
+                "observer/watch-links",
+                "ingress",
+                &["declare_liveliness_subscriber", "liveliness_query"],
+                &[k.all_alive()],
+            ),
+            rule(
+                "observer/links",
+                "egress",
+                &["liveliness_token", "reply"],
+                &[k.all_alive()],
+            ),
             declarations(OBSERVER),
         ],
     );
-    Ok(json!({ "enabled": true, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies }))
+    Ok(
+        json!({ "enabled": true, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies }),
+    )
 }
 
 /// Every user of the mission: the vehicles, the gateway and the observer.
@@ -107,11 +161,17 @@ pub fn users(mission: &MissionConfig) -> Vec<String> {
 
 /// Endpoints with `tcp/` turned into `tls/` when TLS is on.
 fn endpoints(list: &[String], tls: bool) -> Vec<String> {
-    list.iter().map(|e| if tls { e.replacen("tcp/", "tls/", 1) } else { e.clone() }).collect()
+    list.iter()
+        .map(|e| if tls { e.replacen("tcp/", "tls/", 1) } else { e.clone() })
+        .collect()
 }
 
 /// The router's (model server's) config: listen, the password dictionary, TLS, access control.
-pub fn router_config(mission: &MissionConfig, dictionary: &std::path::Path, tls: Option<&Tls>) -> Result<Value, ProtocolError> {
+pub fn router_config(
+    mission: &MissionConfig,
+    dictionary: &std::path::Path,
+    tls: Option<&Tls>,
+) -> Result<Value, ProtocolError> {
     let mut c = json!({
         "mode": "router",
         "listen": { "endpoints": endpoints(&mission.network.listen, tls.is_some()) },
@@ -157,17 +217,28 @@ mod tests {
     fn each_vehicle_may_put_only_under_its_own_key() {
         let m = MissionConfig::load(None).unwrap();
         let acl = access_control(&m, false).unwrap();
-        let puts: Vec<&Value> = acl["rules"].as_array().unwrap().iter().filter(|r| r["id"] == "boat-1/put").collect();
+        let puts: Vec<&Value> = acl["rules"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|r| r["id"] == "boat-1/put")
+            .collect();
         assert_eq!(puts.len(), 1);
         for key in puts[0]["key_exprs"].as_array().unwrap() {
-            assert!(key.as_str().unwrap().starts_with("fleet/default/vehicle/boat-1/"), "{key}");
+            assert!(
+                key.as_str().unwrap().starts_with("fleet/default/vehicle/boat-1/"),
+                "{key}"
+            );
         }
         // Nobody but the router puts models, plans or acks: no ingress put rule names them.
         for r in acl["rules"].as_array().unwrap() {
             if r["flows"][0] == "ingress" && r["messages"].as_array().unwrap().contains(&json!("put")) {
                 for key in r["key_exprs"].as_array().unwrap() {
                     let k = key.as_str().unwrap();
-                    assert!(!k.contains("/model/") && !k.contains("/plan/") && !k.ends_with("/ack"), "{k}");
+                    assert!(
+                        !k.contains("/model/") && !k.contains("/plan/") && !k.ends_with("/ack"),
+                        "{k}"
+                    );
                 }
             }
         }

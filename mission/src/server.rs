@@ -210,7 +210,9 @@ impl ServerCore {
     /// Vehicles whose batch for the next epoch, or for an epoch assimilated without it, has
     /// not come in.
     pub fn waiting_for(&self) -> Vec<String> {
-        let mut ids: Vec<usize> = (0..=self.epoch).flat_map(|e| self.missing(e).collect::<Vec<_>>()).collect();
+        let mut ids: Vec<usize> = (0..=self.epoch)
+            .flat_map(|e| self.missing(e).collect::<Vec<_>>())
+            .collect();
         ids.sort_unstable();
         ids.dedup();
         ids.into_iter().map(|i| self.vehicles.at(i).id.clone()).collect()
@@ -312,7 +314,9 @@ impl ServerCore {
     /// Whether the planner may allocate a vehicle (from its telemetry); takes effect at the next
     /// allocation. Returns whether it changed.
     pub fn set_available(&mut self, vehicle: &str, available: bool) -> bool {
-        let Some(index) = self.vehicles.index_of(vehicle) else { return false };
+        let Some(index) = self.vehicles.index_of(vehicle) else {
+            return false;
+        };
         if available {
             self.held.remove(&index)
         } else {
@@ -327,12 +331,17 @@ impl ServerCore {
 
     /// Vehicles left out of epoch `e`'s allocation.
     pub fn held_at(&self, e: u64) -> Vec<String> {
-        self.holds.get(&e).map_or_else(Vec::new, |h| h.iter().map(|&i| self.vehicles.at(i).id.clone()).collect())
+        self.holds.get(&e).map_or_else(Vec::new, |h| {
+            h.iter().map(|&i| self.vehicles.at(i).id.clone()).collect()
+        })
     }
 
     fn reject(&mut self, vehicle: &str, why: String) -> IngestError {
         *self.counters.rejected.entry("invalid_batch".into()).or_default() += 1;
-        IngestError::Rejected { vehicle: vehicle.into(), why }
+        IngestError::Rejected {
+            vehicle: vehicle.into(),
+            why,
+        }
     }
 
     /// Take one batch (already decoded and validated against the grid).
@@ -385,7 +394,11 @@ impl ServerCore {
         } else {
             self.assimilate_complete()?;
         }
-        Ok(if self.epoch == before { Ingested::Buffered } else { Ingested::Assimilated((before..self.epoch).collect()) })
+        Ok(if self.epoch == before {
+            Ingested::Buffered
+        } else {
+            Ingested::Assimilated((before..self.epoch).collect())
+        })
     }
 
     /// Where a batch belongs (its vehicle's index and its epoch), `None` for a duplicate, or
@@ -399,20 +412,32 @@ impl ServerCore {
     fn check(&self, batch: &MeasurementBatch) -> Result<Option<(usize, u64)>, BatchFault> {
         let index = self.vehicles.index_of(&batch.vehicle).ok_or(BatchFault::Unknown)?;
         if self.vehicles.at(index).kind != batch.kind {
-            return Err(BatchFault::Invalid(format!("declared {:?}, registered {:?}", batch.kind, self.vehicles.at(index).kind)));
+            return Err(BatchFault::Invalid(format!(
+                "declared {:?}, registered {:?}",
+                batch.kind,
+                self.vehicles.at(index).kind
+            )));
         }
         let e = Schedule::epoch_of(batch.kind, batch.seq);
         if self.received.get(&e).is_some_and(|m| m.contains_key(&index)) {
             return Ok(None);
         }
         if self.steps_of(e).is_empty() {
-            return Err(BatchFault::Invalid(format!("seq {} is past the end of the mission", batch.seq)));
+            return Err(BatchFault::Invalid(format!(
+                "seq {} is past the end of the mission",
+                batch.seq
+            )));
         }
         let want = self.schedule.sample_steps(batch.kind, e);
         let got: Vec<usize> = batch.samples.iter().map(|s| s.step as usize).collect();
-        let idle_allowed = e > 0 || self.plan(&batch.vehicle, 0, 1).is_some_and(|p| p.targets.iter().all(|t| t.cells.is_empty()));
+        let idle_allowed = e > 0
+            || self
+                .plan(&batch.vehicle, 0, 1)
+                .is_some_and(|p| p.targets.iter().all(|t| t.cells.is_empty()));
         if got != want && !(got.is_empty() && idle_allowed) {
-            return Err(BatchFault::Invalid(format!("epoch {e} wants samples at steps {want:?}, got {got:?}")));
+            return Err(BatchFault::Invalid(format!(
+                "epoch {e} wants samples at steps {want:?}, got {got:?}"
+            )));
         }
         Ok(Some((index, e)))
     }
@@ -424,9 +449,18 @@ impl ServerCore {
         std::mem::take(&mut self.unjournalled)
             .into_iter()
             .map(|e| {
-                let held = self.holds.get(&e).map_or_else(Vec::new, |h| h.iter().map(|&i| self.vehicles.at(i).id.clone()).collect());
+                let held = self.holds.get(&e).map_or_else(Vec::new, |h| {
+                    h.iter().map(|&i| self.vehicles.at(i).id.clone()).collect()
+                });
                 let mut bytes = vec![];
-                ciborium::into_writer(&EpochRecord { held, forced: self.forced.contains(&e) }, &mut bytes).expect("a record serialises");
+                ciborium::into_writer(
+                    &EpochRecord {
+                        held,
+                        forced: self.forced.contains(&e),
+                    },
+                    &mut bytes,
+                )
+                .expect("a record serialises");
                 (EpochRecord::key(e), bytes)
             })
             .collect()
@@ -436,14 +470,27 @@ impl ServerCore {
     /// its epoch records. Every epoch that was complete or forced is assimilated again, in step
     /// order, with the holds it was allocated under; the held set goes on as the newest
     /// epoch's. Returns how many batches.
-    pub fn restore(&mut self, batches: Vec<MeasurementBatch>, records: &[(String, Vec<u8>)]) -> Result<u64, RestoreError> {
+    pub fn restore(
+        &mut self,
+        batches: Vec<MeasurementBatch>,
+        records: &[(String, Vec<u8>)],
+    ) -> Result<u64, RestoreError> {
         for (key, bytes) in records {
             let bad = |why: String| RestoreError::Record { key: key.clone(), why };
-            let e: u64 = key.strip_prefix(EpochRecord::PREFIX).and_then(|n| n.parse().ok()).ok_or_else(|| bad("not an epoch record".into()))?;
+            let e: u64 = key
+                .strip_prefix(EpochRecord::PREFIX)
+                .and_then(|n| n.parse().ok())
+                .ok_or_else(|| bad("not an epoch record".into()))?;
             let r: EpochRecord = ciborium::from_reader(&bytes[..]).map_err(|err| bad(err.to_string()))?;
             let mut held = BTreeSet::new();
             for id in r.held {
-                let i = self.vehicles.index_of(&id).ok_or_else(|| RestoreError::UnknownVehicle { key: key.clone(), vehicle: id.clone() })?;
+                let i = self
+                    .vehicles
+                    .index_of(&id)
+                    .ok_or_else(|| RestoreError::UnknownVehicle {
+                        key: key.clone(),
+                        vehicle: id.clone(),
+                    })?;
                 held.insert(i);
             }
             self.holds.insert(e, held);
@@ -454,7 +501,11 @@ impl ServerCore {
         let n = batches.len() as u64;
         for b in batches {
             let (vehicle, seq) = (b.vehicle.clone(), b.seq);
-            let why = |why: String| RestoreError::Batch { vehicle: vehicle.clone(), seq, why };
+            let why = |why: String| RestoreError::Batch {
+                vehicle: vehicle.clone(),
+                seq,
+                why,
+            };
             match self.check(&b) {
                 Ok(Some((index, e))) => {
                     self.received.entry(e).or_default().insert(index, b);
@@ -466,7 +517,9 @@ impl ServerCore {
         }
         self.counters.batches += n;
         self.counters.restored = n;
-        while self.epoch_complete(self.epoch) || (self.epoch > 0 && self.forced.contains(&self.epoch) && !self.steps_of(self.epoch).is_empty()) {
+        while self.epoch_complete(self.epoch)
+            || (self.epoch > 0 && self.forced.contains(&self.epoch) && !self.steps_of(self.epoch).is_empty())
+        {
             if !self.epoch_complete(self.epoch) {
                 self.counters.forced += 1;
             }
@@ -492,7 +545,11 @@ impl ServerCore {
 
     /// Samples of every vehicle of a kind at step `k`, in vehicle order.
     fn samples_at(batches: &BTreeMap<usize, MeasurementBatch>, kind: VehicleKind, k: usize) -> Vec<Sample> {
-        batches.values().filter(|b| b.kind == kind).flat_map(|b| b.samples.iter().filter(|s| s.step as usize == k).cloned()).collect()
+        batches
+            .values()
+            .filter(|b| b.kind == kind)
+            .flat_map(|b| b.samples.iter().filter(|s| s.step as usize == k).cloned())
+            .collect()
     }
 
     fn assimilate_epoch(&mut self, e: u64) -> Result<(), TeamError> {
@@ -507,7 +564,9 @@ impl ServerCore {
         if e == 0 {
             let mut init = vec![];
             for k in steps {
-                let est = self.assim.aerial_estimate(&Self::samples_at(&batches, VehicleKind::Aerial, k))?;
+                let est = self
+                    .assim
+                    .aerial_estimate(&Self::samples_at(&batches, VehicleKind::Aerial, k))?;
                 self.aerial_estimates.push(est.estimate.values.clone());
                 self.variances.push(est.estimate.variance);
                 init.push(est.estimate.values);
@@ -518,7 +577,9 @@ impl ServerCore {
             let k0 = steps.start;
             let (mut epoch, mut learn) = (vec![], vec![]);
             for k in steps {
-                let aerial = self.assim.aerial_estimate(&Self::samples_at(&batches, VehicleKind::Aerial, k))?;
+                let aerial = self
+                    .assim
+                    .aerial_estimate(&Self::samples_at(&batches, VehicleKind::Aerial, k))?;
                 self.aerial_estimates.push(aerial.estimate.values.clone());
                 let boats = Self::samples_at(&batches, VehicleKind::Boat, k);
                 let fused = self.assim.fuse_step((k + 1 - k0) as u64, &aerial, &boats)?;
@@ -550,7 +611,11 @@ impl ServerCore {
     /// is the uniform formation.
     pub fn allocation(&self, e: u64) -> Option<Allocation> {
         if e == 0 {
-            return Some(Allocation { boats: vec![None; self.cfg.boats], aerials: self.assim.aerial_positions().to_vec(), held: BTreeSet::new() });
+            return Some(Allocation {
+                boats: vec![None; self.cfg.boats],
+                aerials: self.assim.aerial_positions().to_vec(),
+                held: BTreeSet::new(),
+            });
         }
         self.plans.get(&e).cloned()
     }
@@ -560,21 +625,41 @@ impl ServerCore {
     /// nothing. The vehicles' plans for `e` follow. For offline experiments that place the
     /// boats themselves (the oracle of `fleet experiment`): a re-fit from an earlier epoch
     /// (a late batch) re-plans `e` and forgets this.
-    pub fn redirect_boats(&mut self, e: u64, boats: Vec<Option<crate::assimilator::BoatDisk>>) -> Result<(), TeamError> {
+    pub fn redirect_boats(
+        &mut self,
+        e: u64,
+        boats: Vec<Option<crate::assimilator::BoatDisk>>,
+    ) -> Result<(), TeamError> {
         let grid = *self.assim.grid();
         if boats.len() != self.cfg.boats {
-            return Err(TeamError::Config(format!("redirect_boats: {} disks for {} boats", boats.len(), self.cfg.boats)));
+            return Err(TeamError::Config(format!(
+                "redirect_boats: {} disks for {} boats",
+                boats.len(),
+                self.cfg.boats
+            )));
         }
-        if let Some((_, (r, c))) = boats.iter().flatten().find(|(cells, (r, c))| cells.iter().any(|&i| i >= grid.len()) || !grid.contains(crate::grid::Cell::new(*r, *c))) {
-            return Err(TeamError::Config(format!("redirect_boats: the disk at ({r}, {c}) leaves the {} x {} grid", grid.rows, grid.cols)));
+        if let Some((_, (r, c))) = boats.iter().flatten().find(|(cells, (r, c))| {
+            cells.iter().any(|&i| i >= grid.len()) || !grid.contains(crate::grid::Cell::new(*r, *c))
+        }) {
+            return Err(TeamError::Config(format!(
+                "redirect_boats: the disk at ({r}, {c}) leaves the {} x {} grid",
+                grid.rows, grid.cols
+            )));
         }
         if e < self.epoch || e == 0 {
-            return Err(TeamError::Config(format!("redirect_boats: epoch {e} is not planned and open (next to assimilate: {})", self.epoch)));
+            return Err(TeamError::Config(format!(
+                "redirect_boats: epoch {e} is not planned and open (next to assimilate: {})",
+                self.epoch
+            )));
         }
-        let plan = self.plans.get_mut(&e).ok_or_else(|| TeamError::Config(format!("redirect_boats: epoch {e} has no plan yet")))?;
+        let plan = self
+            .plans
+            .get_mut(&e)
+            .ok_or_else(|| TeamError::Config(format!("redirect_boats: epoch {e} has no plan yet")))?;
         for (slot, b) in boats.iter().enumerate() {
             if let Some((_, (r, c))) = b {
-                self.assim.set_boat_position(slot, grid.centre_m(crate::grid::Cell::new(*r, *c)));
+                self.assim
+                    .set_boat_position(slot, grid.centre_m(crate::grid::Cell::new(*r, *c)));
             }
         }
         plan.boats = boats;
@@ -600,23 +685,40 @@ impl ServerCore {
                 (alloc.aerials[index], 0.0, region)
             }
             VehicleKind::Boat => match &alloc.boats[slot] {
-                Some((cells, (r, c))) => (grid.centre_m(crate::grid::Cell::new(*r, *c)), self.cfg.radius, cells.clone()),
+                Some((cells, (r, c))) => (
+                    grid.centre_m(crate::grid::Cell::new(*r, *c)),
+                    self.cfg.radius,
+                    cells.clone(),
+                ),
                 None => (self.assim.boat_positions()[slot], 0.0, vec![]),
             },
         };
         let cells: Vec<u32> = cells.into_iter().map(|c| c as u32).collect();
         let targets = (e..e.saturating_add(horizon.max(1)))
             .flat_map(|ep| self.schedule.sample_steps(kind, ep).into_iter().map(move |k| (ep, k)))
-            .map(|(ep, k)| Target { epoch: ep, step: k as u64, position: [position.0, position.1], radius, cells: cells.clone() })
+            .map(|(ep, k)| Target {
+                epoch: ep,
+                step: k as u64,
+                position: [position.0, position.1],
+                radius,
+                cells: cells.clone(),
+            })
             .collect();
-        Some(Plan { vehicle: vehicle.into(), model_version: self.version, epoch: e, targets })
+        Some(Plan {
+            vehicle: vehicle.into(),
+            model_version: self.version,
+            epoch: e,
+            targets,
+        })
     }
 
     /// The seqs `0..=through` of `vehicle` this server does not hold (empty for an unknown
     /// vehicle). A vehicle has dropped every batch the server acknowledged, so after a restart
     /// any of them missing means the journal lost data.
     pub fn lacks_through(&self, vehicle: &str, through: u64) -> Vec<u64> {
-        let Some(index) = self.vehicles.index_of(vehicle) else { return vec![] };
+        let Some(index) = self.vehicles.index_of(vehicle) else {
+            return vec![];
+        };
         let kind = self.vehicles.at(index).kind;
         (0..self.schedule.epochs())
             .filter_map(|e| self.schedule.seq_of(kind, e).map(|s| (e, s)))
@@ -630,7 +732,13 @@ impl ServerCore {
     /// length. A journal written under another one is refused, not replayed.
     pub fn fingerprint(&self) -> String {
         let g = self.assim.grid();
-        format!("{} grid {}x{} frames {}", serde_json::to_string(&self.cfg).expect("the team serialises"), g.rows, g.cols, self.schedule.frames)
+        format!(
+            "{} grid {}x{} frames {}",
+            serde_json::to_string(&self.cfg).expect("the team serialises"),
+            g.rows,
+            g.cols,
+            self.schedule.frames
+        )
     }
 
     /// The ack of a vehicle: the highest seq up to which all of its batches are in the model
@@ -640,13 +748,18 @@ impl ServerCore {
         let kind = self.vehicles.at(index).kind;
         let mut seq = None;
         for e in 0..self.epoch {
-            let Some(s) = self.schedule.seq_of(kind, e) else { continue };
+            let Some(s) = self.schedule.seq_of(kind, e) else {
+                continue;
+            };
             if !self.received.get(&e).is_some_and(|m| m.contains_key(&index)) {
                 break;
             }
             seq = Some(s);
         }
-        Some(Ack { vehicle: vehicle.into(), seq: seq? })
+        Some(Ack {
+            vehicle: vehicle.into(),
+            seq: seq?,
+        })
     }
 
     /// The model as published on `model/latest` (`None` before the first fit), with the
@@ -673,7 +786,11 @@ impl ServerCore {
             modes_im,
             amplitudes: m.amplitudes.iter().map(|a| [a.re, a.im]).collect(),
             estimate: self.snapshots.last().cloned().unwrap_or_default(),
-            variance: self.variances.last().cloned().unwrap_or_else(|| vec![self.assim.prediction_variance(); n]),
+            variance: self
+                .variances
+                .last()
+                .cloned()
+                .unwrap_or_else(|| vec![self.assim.prediction_variance(); n]),
             forecast_steps: self.cfg.boat_period as u64,
             forecast_variance: self.assim.forecast_variance(self.cfg.boat_period as u64),
         })

@@ -43,7 +43,11 @@ impl SigningKey {
     pub fn from_hex(text: &str) -> Result<Self, String> {
         let t = text.trim();
         if t.len() != 64 || !t.bytes().all(|b| b.is_ascii_hexdigit()) {
-            return Err(format!("a signing key is 64 hex characters (32 bytes); this file has {} characters{}", t.chars().count(), if t.is_ascii() { "" } else { ", not all ASCII" }));
+            return Err(format!(
+                "a signing key is 64 hex characters (32 bytes); this file has {} characters{}",
+                t.chars().count(),
+                if t.is_ascii() { "" } else { ", not all ASCII" }
+            ));
         }
         let mut k = [0u8; 32];
         for (i, b) in k.iter_mut().enumerate() {
@@ -56,18 +60,33 @@ impl SigningKey {
     /// it can command the vehicles.
     pub fn read(path: &Path) -> Result<Self, KeyError> {
         use std::os::unix::fs::PermissionsExt;
-        let read = |source| KeyError::Read { path: path.into(), source };
+        let read = |source| KeyError::Read {
+            path: path.into(),
+            source,
+        };
         let file = std::fs::File::open(path).map_err(read)?;
         let meta = file.metadata().map_err(read)?;
         if !meta.is_file() {
-            return Err(KeyError::Bad { path: path.into(), why: "not a regular file".into() });
+            return Err(KeyError::Bad {
+                path: path.into(),
+                why: "not a regular file".into(),
+            });
         }
         if meta.permissions().mode() & 0o077 != 0 {
-            return Err(KeyError::Bad { path: path.into(), why: format!("readable by others (mode {:o}); chmod 600 it", meta.permissions().mode() & 0o777) });
+            return Err(KeyError::Bad {
+                path: path.into(),
+                why: format!(
+                    "readable by others (mode {:o}); chmod 600 it",
+                    meta.permissions().mode() & 0o777
+                ),
+            });
         }
         let mut text = String::new();
         // A key file is 65 bytes; more is not a key (and is not read whole).
-        file.take(4096).read_to_string(&mut text).map_err(|e| KeyError::Bad { path: path.into(), why: format!("not text: {e}") })?;
+        file.take(4096).read_to_string(&mut text).map_err(|e| KeyError::Bad {
+            path: path.into(),
+            why: format!("not text: {e}"),
+        })?;
         Self::from_hex(&text).map_err(|why| KeyError::Bad { path: path.into(), why })
     }
 
@@ -93,7 +112,12 @@ pub fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
     use std::io::Write;
     use std::os::unix::fs::OpenOptionsExt;
     use std::os::unix::fs::PermissionsExt;
-    let mut f = std::fs::OpenOptions::new().write(true).create(true).truncate(true).mode(0o600).open(path)?;
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create(true)
+        .truncate(true)
+        .mode(0o600)
+        .open(path)?;
     // An existing file keeps its mode on open: set it.
     f.set_permissions(std::fs::Permissions::from_mode(0o600))?;
     f.write_all(text.as_bytes())
@@ -107,8 +131,14 @@ mod tests {
     fn the_key_is_the_sha256_of_the_passphrase_as_mavproxy_makes_it() {
         // Python: hashlib.sha256(b"hetfleet").hexdigest()
         let k = SigningKey::from_passphrase("hetfleet");
-        assert_eq!(k.to_hex(), "df51dd7ee631e34f4d5b65a5639c2d44b6d2bd2a98838a8eaece5dbafb605d51");
-        assert_eq!(SigningKey::from_hex(&format!("  {}\n", k.to_hex().to_uppercase())).unwrap(), k);
+        assert_eq!(
+            k.to_hex(),
+            "df51dd7ee631e34f4d5b65a5639c2d44b6d2bd2a98838a8eaece5dbafb605d51"
+        );
+        assert_eq!(
+            SigningKey::from_hex(&format!("  {}\n", k.to_hex().to_uppercase())).unwrap(),
+            k
+        );
     }
 
     #[test]
@@ -125,20 +155,40 @@ mod tests {
             assert_eq!(std::fs::metadata(f).unwrap().permissions().mode() & 0o777, 0o600);
         }
         assert_eq!(SigningKey::read(&file).unwrap(), key);
-        assert_eq!(SigningKey::from_passphrase(std::fs::read_to_string(dir.join("mavlink-signing.passphrase")).unwrap().trim()), key);
-        assert!(!format!("{key:?}").contains(&key.to_hex()[..8]), "the secret is never printed");
+        assert_eq!(
+            SigningKey::from_passphrase(
+                std::fs::read_to_string(dir.join("mavlink-signing.passphrase"))
+                    .unwrap()
+                    .trim()
+            ),
+            key
+        );
+        assert!(
+            !format!("{key:?}").contains(&key.to_hex()[..8]),
+            "the secret is never printed"
+        );
 
         std::fs::set_permissions(&file, std::fs::Permissions::from_mode(0o644)).unwrap();
         let e = SigningKey::read(&file).unwrap_err().to_string();
         assert!(e.contains("mavlink-signing.key") && e.contains("chmod 600"), "{e}");
-        for (text, why) in [("abc", "64 hex"), (&"zz".repeat(32), "64 hex"), (&"é".repeat(64), "not all ASCII")] {
+        for (text, why) in [
+            ("abc", "64 hex"),
+            (&"zz".repeat(32), "64 hex"),
+            (&"é".repeat(64), "not all ASCII"),
+        ] {
             SigningKey::write_pair(&dir, "mavlink-signing", "x", &key).unwrap();
             std::fs::write(&file, text).unwrap();
             let e = SigningKey::read(&file).unwrap_err().to_string();
             assert!(e.contains("mavlink-signing.key") && e.contains(why), "{text}: {e}");
         }
-        assert!(SigningKey::read(&dir.join("nope.key")).unwrap_err().to_string().contains("nope.key"));
-        assert!(SigningKey::read(&dir).unwrap_err().to_string().contains("not a regular file"));
+        assert!(SigningKey::read(&dir.join("nope.key"))
+            .unwrap_err()
+            .to_string()
+            .contains("nope.key"));
+        assert!(SigningKey::read(&dir)
+            .unwrap_err()
+            .to_string()
+            .contains("not a regular file"));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -21,8 +21,13 @@ pub struct Site {
 impl Site {
     pub fn new(cfg: &MavlinkConfig, grid: &Grid) -> Self {
         let (w, h) = (grid.width_m(), grid.height_m());
-        let scale = cfg.size_m.map_or(Vector2::new(1.0, 1.0), |[e, n]| Vector2::new(e / w, n / h));
-        Self { origin: cfg.origin, scale }
+        let scale = cfg
+            .size_m
+            .map_or(Vector2::new(1.0, 1.0), |[e, n]| Vector2::new(e / w, n / h));
+        Self {
+            origin: cfg.origin,
+            scale,
+        }
     }
 
     /// A grid point at height `up` (m above the origin) in local NED.
@@ -64,7 +69,10 @@ mod tests {
     #[test]
     fn the_tank_maps_its_corners_and_round_trips() {
         let grid = Grid::new(48, 96, 1.0).unwrap();
-        let cfg = MavlinkConfig { size_m: Some([4.5, 3.0]), ..Default::default() };
+        let cfg = MavlinkConfig {
+            size_m: Some([4.5, 3.0]),
+            ..Default::default()
+        };
         let site = Site::new(&cfg, &grid);
         let far = site.ned_of((96.0, 48.0), 0.0);
         assert!((far.x - 3.0).abs() < 1e-12 && (far.y - 4.5).abs() < 1e-12, "{far}");

@@ -147,7 +147,11 @@ impl TeamConfig {
     /// The choices that must go together, whatever the grid.
     pub fn check_choices(&self) -> Result<(), TeamError> {
         if self.placement == Placement::Horizon && self.fusion != Scheme::Kalman {
-            return Err(TeamError::Config(format!("placement = \"horizon\" plans on the Kalman filter's forecast covariance: it needs fusion = \"kalman\", not \"{}\"", self.fusion)));
+            return Err(TeamError::Config(format!(
+                "placement = \"horizon\" plans on the Kalman filter's forecast \
+                covariance: it needs fusion = \"kalman\", not \"{}\"",
+                self.fusion
+            )));
         }
         if self.horizon_epochs == 0 {
             return Err(TeamError::Config("horizon_epochs must be at least 1".into()));
@@ -164,14 +168,25 @@ impl TeamConfig {
             return bad("periods and stride must be at least 1".into());
         }
         if self.init_steps < 3 || self.init_steps + self.boat_period > frames {
-            return bad(format!("init_steps {} must be >= 3 and leave at least one epoch of {} steps in {frames} frames", self.init_steps, self.boat_period));
+            return bad(format!(
+                "init_steps {} must be >= 3 and leave at least one epoch of {} steps in {frames} frames",
+                self.init_steps, self.boat_period
+            ));
         }
         // Planning further ahead than the run lasts costs time and changes nothing.
         let epochs = (frames - self.init_steps) / self.boat_period;
         if self.placement == Placement::Horizon && self.horizon_epochs > epochs {
-            return bad(format!("horizon_epochs {} is beyond the run's {epochs} boat epochs", self.horizon_epochs));
+            return bad(format!(
+                "horizon_epochs {} is beyond the run's {epochs} boat epochs",
+                self.horizon_epochs
+            ));
         }
-        let nonneg = [self.aerial_sigma0, self.aerial_growth_per_cell, self.boat_sigma, self.density_floor];
+        let nonneg = [
+            self.aerial_sigma0,
+            self.aerial_growth_per_cell,
+            self.boat_sigma,
+            self.density_floor,
+        ];
         if nonneg.iter().any(|v| !(v.is_finite() && *v >= 0.0)) || !(self.radius.is_finite() && self.radius >= 0.0) {
             return bad("noise, radius and density floor must be finite and >= 0".into());
         }
@@ -183,10 +198,18 @@ impl TeamConfig {
             return bad("empty grid".into());
         }
         if self.method == Method::LongTerm {
-            return bad("method = \"long-term\": its operator has every one of the grid's N modes, so the boats' gappy fit is underdetermined and every disk scores the same (block QR sees Phi Phi^T = I); a team or mission uses \"general\" (default) or \"batch\", which keep the rank".into());
+            return bad(
+                "method = \"long-term\": its operator has every one of the grid's N modes, so the boats' gappy \
+                fit is underdetermined and every disk scores the same (block QR sees Phi Phi^T = I); a team or \
+                mission uses \"general\" (default) or \"batch\", which keep the rank"
+                    .into(),
+            );
         }
         if self.method != Method::LongTerm && self.gamma != 1.0 {
-            return bad(format!("gamma = {}: the forgetting factor applies to method = \"long-term\" only ({:?} keeps every snapshot)", self.gamma, self.method));
+            return bad(format!(
+                "gamma = {}: the forgetting factor applies to method = \"long-term\" only ({:?} keeps every snapshot)",
+                self.gamma, self.method
+            ));
         }
         if !(self.gamma > 0.0 && self.gamma <= 1.0) {
             return bad(format!("gamma = {}: must be in (0, 1]", self.gamma));
@@ -194,7 +217,8 @@ impl TeamConfig {
         let lattice = grid.strided(self.aerial_stride)?;
         if self.aerials > lattice.rows * lattice.cols {
             return bad(format!(
-                "aerials = {}: the aerial lattice has only {} cells ({} x {} grid, aerial_stride {}), so some aerial would see nothing; use at most {} aerials or a smaller aerial_stride",
+                "aerials = {}: the aerial lattice has only {} cells ({} x {} grid, aerial_stride {}), so some aerial \
+                    would see nothing; use at most {} aerials or a smaller aerial_stride",
                 self.aerials,
                 lattice.rows * lattice.cols,
                 grid.rows,
@@ -205,8 +229,15 @@ impl TeamConfig {
         }
         if !disk_fits(grid, self.boats, self.radius) {
             return bad(match largest_radius(grid, self.boats) {
-                Some(r) => format!("radius = {}: {} boats' disks of that radius do not fit side by side on the {} x {} grid; at most radius {r}", self.radius, self.boats, grid.rows, grid.cols),
-                None => format!("boats = {}: more boats than cells on the {} x {} grid", self.boats, grid.rows, grid.cols),
+                Some(r) => format!(
+                    "radius = {}: {} boats' disks of that radius do not fit side by side on the {} x \
+                    {} grid; at most radius {r}",
+                    self.radius, self.boats, grid.rows, grid.cols
+                ),
+                None => format!(
+                    "boats = {}: more boats than cells on the {} x {} grid",
+                    self.boats, grid.rows, grid.cols
+                ),
             });
         }
         Ok(())
@@ -231,7 +262,9 @@ pub enum Missing {
 /// The largest sensing radius (cells) at which `boats` disks fit side by side on `grid`: a
 /// disk inside the grid, and the disks' cells together no more than the grid's.
 fn largest_radius(grid: &Grid, boats: usize) -> Option<usize> {
-    (0..grid.rows.min(grid.cols)).take_while(|&r| disk_fits(grid, boats, r as f64)).last()
+    (0..grid.rows.min(grid.cols))
+        .take_while(|&r| disk_fits(grid, boats, r as f64))
+        .last()
 }
 
 fn disk_fits(grid: &Grid, boats: usize, radius: f64) -> bool {

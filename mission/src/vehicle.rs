@@ -54,8 +54,28 @@ pub struct VehicleBrain {
 }
 
 impl VehicleBrain {
-    pub fn new(id: &str, kind: VehicleKind, grid: Grid, schedule: Schedule, noise: AerialNoise, rng: ChaCha8Rng, speed: f64) -> Self {
-        Self { id: id.into(), kind, grid, schedule, noise, rng, speed, plan: None, position: None, last_step: None, off_target: 0 }
+    pub fn new(
+        id: &str,
+        kind: VehicleKind,
+        grid: Grid,
+        schedule: Schedule,
+        noise: AerialNoise,
+        rng: ChaCha8Rng,
+        speed: f64,
+    ) -> Self {
+        Self {
+            id: id.into(),
+            kind,
+            grid,
+            schedule,
+            noise,
+            rng,
+            speed,
+            plan: None,
+            position: None,
+            last_step: None,
+            off_target: 0,
+        }
     }
 
     pub fn schedule(&self) -> &Schedule {
@@ -74,18 +94,29 @@ impl VehicleBrain {
     /// The state to commit once everything before `next_epoch` is sensed.
     pub fn state(&self, next_epoch: u64) -> BrainState {
         let w = self.rng.get_word_pos();
-        BrainState { next_epoch, rng_word_pos: [(w >> 64) as u64, w as u64], plan: self.plan.clone(), position: self.position, last_step: self.last_step, off_target: self.off_target }
+        BrainState {
+            next_epoch,
+            rng_word_pos: [(w >> 64) as u64, w as u64],
+            plan: self.plan.clone(),
+            position: self.position,
+            last_step: self.last_step,
+            off_target: self.off_target,
+        }
     }
 
     /// Carry on from a committed state.
     pub fn restore(&mut self, s: BrainState) {
-        self.rng.set_word_pos(((s.rng_word_pos[0] as u128) << 64) | s.rng_word_pos[1] as u128);
+        self.rng
+            .set_word_pos(((s.rng_word_pos[0] as u128) << 64) | s.rng_word_pos[1] as u128);
         (self.plan, self.position, self.last_step, self.off_target) = (s.plan, s.position, s.last_step, s.off_target);
     }
 
     /// Take a plan unless it is older than the one held.
     pub fn set_plan(&mut self, plan: Plan) {
-        let newer = self.plan.as_ref().is_none_or(|p| (plan.epoch, plan.model_version) >= (p.epoch, p.model_version));
+        let newer = self
+            .plan
+            .as_ref()
+            .is_none_or(|p| (plan.epoch, plan.model_version) >= (p.epoch, p.model_version));
         if plan.vehicle == self.id && newer {
             self.plan = Some(plan);
         }
@@ -93,7 +124,9 @@ impl VehicleBrain {
 
     /// Whether the held plan covers epoch `e` (the vehicle can sense it without the server).
     pub fn covers(&self, e: u64) -> bool {
-        self.plan.as_ref().is_some_and(|p| p.epoch <= e && p.targets.iter().any(|t| t.epoch == e))
+        self.plan
+            .as_ref()
+            .is_some_and(|p| p.epoch <= e && p.targets.iter().any(|t| t.epoch == e))
     }
 
     /// Move toward `target` for the steps since the last sample.
@@ -120,7 +153,11 @@ impl VehicleBrain {
 
     /// Sense epoch `e` under the held plan: its batch (`None`: this vehicle sends none for
     /// `e`). `truth_at(k)` is the field at step `k` (mixed reality: a dataset or simulator).
-    pub fn sense_epoch(&mut self, e: u64, truth_at: impl Fn(usize) -> Vec<f64>) -> Result<Option<MeasurementBatch>, FusionError> {
+    pub fn sense_epoch(
+        &mut self,
+        e: u64,
+        truth_at: impl Fn(usize) -> Vec<f64>,
+    ) -> Result<Option<MeasurementBatch>, FusionError> {
         self.sense_epoch_at(e, truth_at, &std::collections::BTreeMap::new())
     }
 
@@ -128,15 +165,25 @@ impl VehicleBrain {
     pub fn targets_of(&self, e: u64) -> Vec<Target> {
         let steps = self.schedule.sample_steps(self.kind, e);
         match &self.plan {
-            Some(p) => steps.iter().filter_map(|&k| p.targets.iter().find(|t| t.step as usize == k).cloned()).collect(),
+            Some(p) => steps
+                .iter()
+                .filter_map(|&k| p.targets.iter().find(|t| t.step as usize == k).cloned())
+                .collect(),
             None => vec![],
         }
     }
 
     /// [`Self::sense_epoch`] with the positions an autopilot reported, by step; steps without a
     /// fix use the vehicle's own kinematics.
-    pub fn sense_epoch_at(&mut self, e: u64, truth_at: impl Fn(usize) -> Vec<f64>, fixes: &std::collections::BTreeMap<u64, Fix>) -> Result<Option<MeasurementBatch>, FusionError> {
-        let Some(seq) = self.schedule.seq_of(self.kind, e) else { return Ok(None) };
+    pub fn sense_epoch_at(
+        &mut self,
+        e: u64,
+        truth_at: impl Fn(usize) -> Vec<f64>,
+        fixes: &std::collections::BTreeMap<u64, Fix>,
+    ) -> Result<Option<MeasurementBatch>, FusionError> {
+        let Some(seq) = self.schedule.seq_of(self.kind, e) else {
+            return Ok(None);
+        };
         let steps = self.schedule.sample_steps(self.kind, e);
         let targets = self.targets_of(e);
         if targets.len() != steps.len() {
@@ -151,7 +198,11 @@ impl VehicleBrain {
             }
             let pos = match fixes.get(&t.step) {
                 Some(f) => {
-                    let pos = if f.arrived { (t.position[0], t.position[1]) } else { f.position };
+                    let pos = if f.arrived {
+                        (t.position[0], t.position[1])
+                    } else {
+                        f.position
+                    };
                     (self.position, self.last_step) = (Some(pos), Some(t.step as usize));
                     pos
                 }
@@ -160,7 +211,10 @@ impl VehicleBrain {
             let arrived = pos == (t.position[0], t.position[1]);
             let cells: Vec<usize> = match (self.kind, arrived) {
                 (VehicleKind::Boat, false) => {
-                    let here = self.grid.cell_at(pos.0, pos.1).ok_or_else(|| FusionError::Input(format!("{}: position {pos:?} off the grid", self.id)))?;
+                    let here = self
+                        .grid
+                        .cell_at(pos.0, pos.1)
+                        .ok_or_else(|| FusionError::Input(format!("{}: position {pos:?} off the grid", self.id)))?;
                     self.grid.disk(here, t.radius)
                 }
                 _ => t.cells.iter().map(|&c| c as usize).collect(),
@@ -168,8 +222,22 @@ impl VehicleBrain {
             if !arrived {
                 self.off_target += 1;
             }
-            samples.push(sense_cells(&self.grid, &truth_at(t.step as usize), t.step, pos, &cells, self.noise, &mut self.rng)?);
+            samples.push(sense_cells(
+                &self.grid,
+                &truth_at(t.step as usize),
+                t.step,
+                pos,
+                &cells,
+                self.noise,
+                &mut self.rng,
+            )?);
         }
-        Ok(Some(MeasurementBatch { vehicle: self.id.clone(), kind: self.kind, seq, noise: self.noise, samples }))
+        Ok(Some(MeasurementBatch {
+            vehicle: self.id.clone(),
+            kind: self.kind,
+            seq,
+            noise: self.noise,
+            samples,
+        }))
     }
 }

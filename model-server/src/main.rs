@@ -11,7 +11,11 @@ static ALLOCATOR: fleet_mission::Allocator = fleet_mission::Allocator;
 use clap::Parser;
 
 #[derive(Parser, Debug)]
-#[command(name = "model-server", version, about = "hetfleet's model server: assimilates measurement batches over Zenoh and publishes models and plans")]
+#[command(
+    name = "model-server",
+    version,
+    about = "hetfleet's model server: assimilates measurement batches over Zenoh and publishes models and plans"
+)]
 pub struct Args {
     #[command(flatten)]
     pub node: fleet_net::NodeArgs,
@@ -49,7 +53,11 @@ fn main() {
     fleet_net::init_node();
     let args = Args::parse();
     match args.replay.clone() {
-        Some(file) => fleet_net::run_node("model-server", 2, async move { replay::run(&args, &file, args.speed).await }),
+        Some(file) => fleet_net::run_node(
+            "model-server",
+            2,
+            async move { replay::run(&args, &file, args.speed).await },
+        ),
         None => fleet_net::run_node("model-server", 2, node::run(args)),
     }
 }

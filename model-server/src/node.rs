@@ -56,7 +56,10 @@ fn emit(on: bool, e: &ServerEvent) {
 
 impl Server {
     /// Run `f` on the recorder, if recording; a failure ends the recording, not the server.
-    fn recording(&self, f: impl FnOnce(&mut Recorder<std::io::BufWriter<std::fs::File>>) -> Result<(), RecordingError>) {
+    fn recording(
+        &self,
+        f: impl FnOnce(&mut Recorder<std::io::BufWriter<std::fs::File>>) -> Result<(), RecordingError>,
+    ) {
         let mut guard = self.recorder.lock().unwrap_or_else(|p| p.into_inner());
         if let Some(r) = guard.as_mut() {
             if let Err(e) = f(r) {
@@ -85,7 +88,10 @@ impl Server {
     fn event(&self, e: &ServerEvent) {
         emit(self.events, e);
         let line = serde_json::to_vec(e).expect("events serialise");
-        self.recording(|r| r.message(recording::EVENTS_TOPIC, "json", &line, recording::now_ns()).map(drop));
+        self.recording(|r| {
+            r.message(recording::EVENTS_TOPIC, "json", &line, recording::now_ns())
+                .map(drop)
+        });
     }
 
     /// Publish `body` on `key`, recorded.
@@ -116,7 +122,8 @@ impl Server {
             if self.logged.insert(what.to_string()) {
                 warn!(
                     sessions_refused = self.core.counters.sessions_refused,
-                    "refused a Zenoh session: {what} (Zenoh does not give its host the user's name; the client's own log says which; further refusals of this kind are only counted)"
+                    "refused a Zenoh session: {what} (Zenoh does not give its host the user's name; the client's own \
+                        log says which; further refusals of this kind are only counted)"
                 );
             }
         }
@@ -125,7 +132,10 @@ impl Server {
     /// Log a refusal (already counted, by the node or the core): the first of each reason.
     fn log_refusal(&mut self, reason: &str, detail: String) {
         if self.logged.insert(reason.to_string()) {
-            warn!(reason, "refused a message: {detail} (further refusals of this kind are only counted)");
+            warn!(
+                reason,
+                "refused a message: {detail} (further refusals of this kind are only counted)"
+            );
         }
     }
 
@@ -159,7 +169,12 @@ impl Server {
     }
 
     /// A batch arrived on `key` at `t0`.
-    async fn on_batch(&mut self, session: &zenoh::Session, sample: &zenoh::sample::Sample, t0: Instant) -> anyhow::Result<()> {
+    async fn on_batch(
+        &mut self,
+        session: &zenoh::Session,
+        sample: &zenoh::sample::Sample,
+        t0: Instant,
+    ) -> anyhow::Result<()> {
         let key = sample.key_expr().as_str();
         let arrival = self.record(key, &sample.payload().to_bytes());
         let body = match fleet_net::decode(sample, &self.ctx) {
@@ -188,8 +203,16 @@ impl Server {
             // The vehicle's fault: counted by the core, logged here; its epoch cannot complete.
             Err(IngestError::Rejected { why, .. }) => {
                 self.log_refusal("invalid_batch", format!("{key}: {why}"));
-                error!(vehicle, seq, "batch refused: {why}; the vehicle re-sends the same batch, so its epoch cannot complete");
-                self.event(&ServerEvent::Refused { vehicle, seq, reason: "invalid_batch".into(), detail: why });
+                error!(
+                    vehicle,
+                    seq, "batch refused: {why}; the vehicle re-sends the same batch, so its epoch cannot complete"
+                );
+                self.event(&ServerEvent::Refused {
+                    vehicle,
+                    seq,
+                    reason: "invalid_batch".into(),
+                    detail: why,
+                });
                 return Ok(());
             }
             Err(e @ IngestError::Protocol(_)) => {
@@ -198,9 +221,14 @@ impl Server {
             }
             // The server's own failure (the model's numerics): as everywhere else, it ends the
             // server (exit 1); the journal is intact.
-            Err(IngestError::Model(e)) => return Err(anyhow::Error::new(e).context(format!("assimilating batch {seq} of {vehicle}"))),
+            Err(IngestError::Model(e)) => {
+                return Err(anyhow::Error::new(e).context(format!("assimilating batch {seq} of {vehicle}")))
+            }
         };
-        if matches!(ingested, Ingested::Buffered | Ingested::Assimilated(_) | Ingested::Refitted(_)) {
+        if matches!(
+            ingested,
+            Ingested::Buffered | Ingested::Assimilated(_) | Ingested::Refitted(_)
+        ) {
             self.journal(Some(((vehicle.as_str(), seq), &sample.payload().to_bytes())))?;
         }
         match ingested {
@@ -225,14 +253,24 @@ impl Server {
         }
         for (vehicle, seq, e) in std::mem::take(&mut self.late) {
             info!(vehicle, seq, epoch = e, "late batch: model re-fitted with it");
-            self.event(&ServerEvent::Late { vehicle, epoch: e, version: self.core.version });
+            self.event(&ServerEvent::Late {
+                vehicle,
+                epoch: e,
+                version: self.core.version,
+            });
         }
         Ok(())
     }
 
     /// A new model: publish it and every ack, then account for `epochs` (latency, error,
     /// events). After a re-fit every epoch's error is computed again.
-    async fn model_changed(&mut self, session: &zenoh::Session, epochs: Vec<u64>, t0: Instant, refit: bool) -> anyhow::Result<()> {
+    async fn model_changed(
+        &mut self,
+        session: &zenoh::Session,
+        epochs: Vec<u64>,
+        t0: Instant,
+        refit: bool,
+    ) -> anyhow::Result<()> {
         self.publish_model(session).await?;
         let latency_ms = t0.elapsed().as_secs_f64() * 1e3;
         for v in self.core.vehicles().to_vec() {
@@ -248,7 +286,13 @@ impl Server {
                 continue;
             }
             self.latencies.push(latency_ms);
-            info!(epoch = e, version = self.core.version, latency_ms = format!("{latency_ms:.1}"), mse = mse.map(|m| format!("{m:.3e}")), "epoch assimilated");
+            info!(
+                epoch = e,
+                version = self.core.version,
+                latency_ms = format!("{latency_ms:.1}"),
+                mse = mse.map(|m| format!("{m:.3e}")),
+                "epoch assimilated"
+            );
             let next = e + 1;
             let places = places_at(&self.core, next);
             self.event(&ServerEvent::Epoch {
@@ -267,7 +311,12 @@ impl Server {
     }
 
     /// The next epoch has waited `timeout` for a late vehicle: assimilate it without.
-    async fn force_if_due(&mut self, session: &zenoh::Session, since: &mut (u64, Instant), timeout: Option<Duration>) -> anyhow::Result<()> {
+    async fn force_if_due(
+        &mut self,
+        session: &zenoh::Session,
+        since: &mut (u64, Instant),
+        timeout: Option<Duration>,
+    ) -> anyhow::Result<()> {
         if since.0 != self.core.next_epoch() {
             *since = (self.core.next_epoch(), Instant::now());
         }
@@ -280,7 +329,8 @@ impl Server {
         self.record_op(CoreOp::Force);
         if self.core.force()? {
             self.journal(None)?;
-            warn!(epoch = before, missing = ?self.core.waiting_for(), "epoch assimilated without late vehicles; their batches will re-fit it");
+            warn!(epoch = before, missing = ?self.core.waiting_for(), "epoch assimilated without late vehicles; their \
+                batches will re-fit it");
             let done = (before..self.core.next_epoch()).collect();
             self.model_changed(session, done, t0, false).await?;
         }
@@ -294,7 +344,12 @@ impl Server {
         for k in steps.clone() {
             let est = self.core.snapshots.get(k)?;
             let n = est.len() as f64;
-            let e = est.iter().zip(self.truth.snapshots.col(k).iter()).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / n;
+            let e = est
+                .iter()
+                .zip(self.truth.snapshots.col(k).iter())
+                .map(|(a, b)| (a - b).powi(2))
+                .sum::<f64>()
+                / n;
             if self.mse.len() == k {
                 self.mse.push(e);
             }
@@ -326,7 +381,10 @@ impl Server {
         let reply = match (id, epoch) {
             (Some(id), Some(e)) => match self.core.plan(&id, e, self.mission.pace.horizon) {
                 Some(plan) => Ok(Body::Plan(plan)),
-                None if self.core.vehicles().iter().any(|v| v.id == id) => Err(format!("no plan for epoch {e} yet (model at epoch {})", self.core.next_epoch())),
+                None if self.core.vehicles().iter().any(|v| v.id == id) => Err(format!(
+                    "no plan for epoch {e} yet (model at epoch {})",
+                    self.core.next_epoch()
+                )),
                 None => Err(format!("unknown vehicle {id:?}")),
             },
             _ => Err(format!("ask {key}?epoch=<n> for a known vehicle")),
@@ -335,7 +393,9 @@ impl Server {
             Ok(body) => {
                 let bytes = protocol::encode(&body);
                 self.record(&key, &bytes);
-                q.reply(q.key_expr().clone(), bytes).encoding(fleet_net::encoding()).await
+                q.reply(q.key_expr().clone(), bytes)
+                    .encoding(fleet_net::encoding())
+                    .await
             }
             Err(why) => q.reply_err(why.into_bytes()).await,
         };
@@ -346,7 +406,11 @@ impl Server {
 
     async fn on_model_query(&self, q: zenoh::query::Query) {
         let sent = match self.core.model_update() {
-            Some(m) => q.reply(q.key_expr().clone(), protocol::encode(&Body::Model(m))).encoding(fleet_net::encoding()).await,
+            Some(m) => {
+                q.reply(q.key_expr().clone(), protocol::encode(&Body::Model(m)))
+                    .encoding(fleet_net::encoding())
+                    .await
+            }
             None => q.reply_err("no model yet".as_bytes().to_vec()).await,
         };
         if let Err(e) = sent {
@@ -355,12 +419,18 @@ impl Server {
     }
 
     fn on_liveliness(&mut self, key: &str, kind: SampleKind) {
-        let Some(id) = self.keys.id_after(key, "alive") else { return };
+        let Some(id) = self.keys.id_after(key, "alive") else {
+            return;
+        };
         if !self.core.vehicles().iter().any(|v| v.id == id) {
             return;
         }
         let up = kind == SampleKind::Put;
-        let changed = if up { self.alive.insert(id.clone()) } else { self.alive.remove(&id) };
+        let changed = if up {
+            self.alive.insert(id.clone())
+        } else {
+            self.alive.remove(&id)
+        };
         if changed {
             if up {
                 *self.link_ups.entry(id.clone()).or_default() += 1;
@@ -385,18 +455,43 @@ impl Server {
         if let Some(acked) = t.acked {
             let lacking = self.core.lacks_through(&t.vehicle, acked);
             if !lacking.is_empty() && self.lost_reported.insert(t.vehicle.clone()) {
-                error!(vehicle = t.vehicle, acked, lost = ?lacking, journal = %self.journal.path().display(), "the vehicle says these batches were acknowledged, but the journal does not hold them: the journal was deleted, replaced or rolled back, and the epochs that need them cannot complete");
+                error!(vehicle = t.vehicle, acked, lost = ?lacking, journal = %self.journal.path().display(), "the \
+                    vehicle says these batches were acknowledged, but the journal does not hold them: the journal was \
+                    deleted, replaced or rolled back, and the epochs that need them cannot complete");
                 self.core.counters.lost += lacking.len() as u64;
-                self.event(&ServerEvent::Lost { vehicle: t.vehicle.clone(), seqs: lacking });
+                self.event(&ServerEvent::Lost {
+                    vehicle: t.vehicle.clone(),
+                    seqs: lacking,
+                });
             }
         }
         let available = t.available();
         if self.core.set_available(&t.vehicle, available) {
             // Recorded only when it changed something (a call that does not is a no-op).
-            self.record_op(CoreOp::Available { vehicle: t.vehicle.clone(), available });
-            let mode = t.autopilot.as_ref().map_or_else(String::new, |a| format!("{} ({:?}){}", a.mode, a.link, a.failsafe.as_ref().map_or_else(String::new, |f| format!(": {f}"))));
-            info!(vehicle = t.vehicle, held = !available, mode, "allocation: {} from the next epoch", if available { "back in" } else { "left out" });
-            self.event(&ServerEvent::Hold { vehicle: t.vehicle, held: !available, mode });
+            self.record_op(CoreOp::Available {
+                vehicle: t.vehicle.clone(),
+                available,
+            });
+            let mode = t.autopilot.as_ref().map_or_else(String::new, |a| {
+                format!(
+                    "{} ({:?}){}",
+                    a.mode,
+                    a.link,
+                    a.failsafe.as_ref().map_or_else(String::new, |f| format!(": {f}"))
+                )
+            });
+            info!(
+                vehicle = t.vehicle,
+                held = !available,
+                mode,
+                "allocation: {} from the next epoch",
+                if available { "back in" } else { "left out" }
+            );
+            self.event(&ServerEvent::Hold {
+                vehicle: t.vehicle,
+                held: !available,
+                mode,
+            });
         }
     }
 
@@ -422,28 +517,52 @@ impl Server {
 
 /// Where epoch `e`'s allocation sends each vehicle that senses.
 fn places_at(core: &ServerCore, e: u64) -> BTreeMap<String, [f64; 2]> {
-    core.vehicles().iter().filter_map(|v| core.plan(&v.id, e, 1).and_then(|p| p.targets.into_iter().find(|t| !t.cells.is_empty())).map(|t| (v.id.clone(), t.position))).collect()
+    core.vehicles()
+        .iter()
+        .filter_map(|v| {
+            core.plan(&v.id, e, 1)
+                .and_then(|p| p.targets.into_iter().find(|t| !t.cells.is_empty()))
+                .map(|t| (v.id.clone(), t.position))
+        })
+        .collect()
 }
 
 /// What to do about a state file the server cannot use, said after the error.
-const JOURNAL_RECOVERY: &str = "to go on, move the file aside (keep it for inspection) and start the server again: it starts a new journal, and the vehicles re-send every batch still in their outboxes (batches they had already had acknowledged are lost with the old journal, and the server says which)";
+const JOURNAL_RECOVERY: &str = "to go on, move the file aside (keep it for inspection) and start the server again: it \
+    starts a new journal, and the vehicles re-send every batch still in their outboxes (batches they had already had \
+    acknowledged are lost with the old journal, and the server says which)";
 
 /// The journal at `path`, checked whole, and a core restored from it (a restart after a
 /// crash); returns the journal and how many batches it held. A damaged or foreign journal is
 /// refused (bad input) and left as it is.
-fn open_journal(path: &std::path::Path, mission: &str, core: &mut ServerCore, ctx: &Context) -> anyhow::Result<(Store, u64, Option<CoreOp>)> {
+fn open_journal(
+    path: &std::path::Path,
+    mission: &str,
+    core: &mut ServerCore,
+    ctx: &Context,
+) -> anyhow::Result<(Store, u64, Option<CoreOp>)> {
     let existed = path.exists();
     let journal = Store::open(path).map_err(|e| match e {
-        e @ (StoreError::Damaged { .. } | StoreError::Empty { .. }) => bad_input(anyhow::anyhow!("the journal {e}; {JOURNAL_RECOVERY}")),
-        e @ StoreError::InUse { .. } => bad_input(anyhow::anyhow!("the journal {e}: is another model server running with this --state-dir?")),
+        e @ (StoreError::Damaged { .. } | StoreError::Empty { .. }) => {
+            bad_input(anyhow::anyhow!("the journal {e}; {JOURNAL_RECOVERY}"))
+        }
+        e @ StoreError::InUse { .. } => bad_input(anyhow::anyhow!(
+            "the journal {e}: is another model server running with this --state-dir?"
+        )),
         e => anyhow::Error::new(e).context("opening the journal"),
     })?;
-    let damaged = |what: String| bad_input(anyhow::anyhow!("the journal {} is damaged: {what} (the file was left as it is); {JOURNAL_RECOVERY}", path.display()));
+    let damaged = |what: String| {
+        bad_input(anyhow::anyhow!(
+            "the journal {} is damaged: {what} (the file was left as it is); {JOURNAL_RECOVERY}",
+            path.display()
+        ))
+    };
     let fingerprint = core.fingerprint();
     match journal.meta("fingerprint").map_err(|e| damaged(e.to_string()))? {
         Some(f) if f != fingerprint.as_bytes() => {
             return Err(bad_input(anyhow::anyhow!(
-                "the journal {} was written for another configuration of mission {mission:?} (team, grid or length differ): give this configuration its own --state-dir, or move the journal aside",
+                "the journal {} was written for another configuration of mission {mission:?} (team, grid or length \
+                    differ): give this configuration its own --state-dir, or move the journal aside",
                 path.display()
             )))
         }
@@ -462,13 +581,22 @@ fn open_journal(path: &std::path::Path, mission: &str, core: &mut ServerCore, ct
                 batches.push(b);
                 raw.push(bytes);
             }
-            Ok(_) => return Err(damaged(format!("record ({vehicle}, {seq}) is not that vehicle's batch {seq}"))),
+            Ok(_) => {
+                return Err(damaged(format!(
+                    "record ({vehicle}, {seq}) is not that vehicle's batch {seq}"
+                )))
+            }
             Err(e) => return Err(damaged(format!("batch {seq} of {vehicle} does not decode: {e}"))),
         }
     }
-    let records = journal.meta_with_prefix(EpochRecord::PREFIX).map_err(|e| damaged(e.to_string()))?;
+    let records = journal
+        .meta_with_prefix(EpochRecord::PREFIX)
+        .map_err(|e| damaged(e.to_string()))?;
     let n = core.restore(batches, &records).map_err(|e| damaged(e.to_string()))?;
-    let restore = (!raw.is_empty() || !records.is_empty()).then(|| CoreOp::Restore { batches: raw, records: records.clone() });
+    let restore = (!raw.is_empty() || !records.is_empty()).then(|| CoreOp::Restore {
+        batches: raw,
+        records: records.clone(),
+    });
     let mut journal = journal;
     if !existed || n == 0 {
         journal.commit(&[], &[("fingerprint", fingerprint.as_bytes())])?;
@@ -488,7 +616,12 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let mut core = ServerCore::new(&mission.team, grid, frames)?.with_boat_speed(mission.motion.boat_speed);
     let mut ctx = Context::new(grid);
     ctx.vehicles = core.vehicles().iter().map(|v| v.id.clone()).collect();
-    let (journal, restored, restore) = open_journal(&args.state_dir.join(format!("{}.redb", mission.mission)), &mission.mission, &mut core, &ctx)?;
+    let (journal, restored, restore) = open_journal(
+        &args.state_dir.join(format!("{}.redb", mission.mission)),
+        &mission.mission,
+        &mut core,
+        &ctx,
+    )?;
     let recorder = match &args.record {
         Some(path) => {
             let text = match &args.node.mission {
@@ -502,12 +635,33 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         None => None,
     };
     let session = fleet_net::open(args.node.zenoh_config(Role::Server, &mission.network)?).await?;
-    let batches = session.declare_subscriber(keys.all_measurements()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-    let plans = session.declare_queryable(keys.all_plans()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-    let models = session.declare_queryable(keys.model_latest()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-    let telemetry = session.declare_subscriber(keys.telemetry("*")).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-    let links = session.liveliness().declare_subscriber(keys.all_alive()).history(true).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-    let _token = session.liveliness().declare_token(keys.alive("server")).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let batches = session
+        .declare_subscriber(keys.all_measurements())
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let plans = session
+        .declare_queryable(keys.all_plans())
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let models = session
+        .declare_queryable(keys.model_latest())
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let telemetry = session
+        .declare_subscriber(keys.telemetry("*"))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let links = session
+        .liveliness()
+        .declare_subscriber(keys.all_alive())
+        .history(true)
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let _token = session
+        .liveliness()
+        .declare_token(keys.alive("server"))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
 
     let epochs = core.schedule().epochs();
     let mut s = Server {
@@ -540,13 +694,24 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         let done = s.core.schedule().steps_of(s.core.next_epoch()).start;
         s.evaluate(0..done);
     }
-    info!(mission = s.mission.mission, epochs, vehicles = s.core.vehicles().len(), "model server up");
-    s.event(&ServerEvent::Ready { mission: s.mission.mission.clone(), epochs, vehicles: s.core.vehicles().iter().map(|v| v.id.clone()).collect(), places: places_at(&s.core, s.core.next_epoch()) });
+    info!(
+        mission = s.mission.mission,
+        epochs,
+        vehicles = s.core.vehicles().len(),
+        "model server up"
+    );
+    s.event(&ServerEvent::Ready {
+        mission: s.mission.mission.clone(),
+        epochs,
+        vehicles: s.core.vehicles().iter().map(|v| v.id.clone()).collect(),
+        places: places_at(&s.core, s.core.next_epoch()),
+    });
 
     let mut stop = fleet_net::StopSignals::new()?;
     let mut tick = tokio::time::interval(Duration::from_secs(1));
     let mut check = tokio::time::interval(Duration::from_millis(50));
-    let epoch_timeout = (s.mission.pace.epoch_timeout_ms > 0).then(|| Duration::from_millis(s.mission.pace.epoch_timeout_ms));
+    let epoch_timeout =
+        (s.mission.pace.epoch_timeout_ms > 0).then(|| Duration::from_millis(s.mission.pace.epoch_timeout_ms));
     let mut since = (s.core.next_epoch(), Instant::now());
     let mut done_at: Option<Instant> = None;
     // The summary as written when the mission finished: batches may still come after it (a
@@ -597,11 +762,19 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             if let Some(dir) = &args.out {
                 write_outputs(dir, &summary, &s.core, s.mission.pace.horizon)?;
             }
-            info!(epochs = summary.epochs, batches = summary.counters.batches, p99_ms = summary.latency_ms.p99, "mission finished");
+            info!(
+                epochs = summary.epochs,
+                batches = summary.counters.batches,
+                p99_ms = summary.latency_ms.p99,
+                "mission finished"
+            );
             finished = Some(summary.clone());
-            s.event(&ServerEvent::Finished { summary: Box::new(summary) });
+            s.event(&ServerEvent::Finished {
+                summary: Box::new(summary),
+            });
             // Observers see the end at once, not at the next tick (which may never come).
-            s.put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
+            s.put(&session, &s.keys.server_status(), &Body::Status(s.status()))
+                .await?;
         }
         if let Some(t) = done_at {
             if args.exit_when_done && (s.alive.is_empty() || t.elapsed() > linger) {
@@ -612,11 +785,13 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     if let (Some(mut summary), Some(dir)) = (finished, &args.out) {
         if summary.counters != s.core.counters {
             summary.counters = s.core.counters.clone();
-            std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(&summary)?).with_context(|| format!("writing {}/summary.json", dir.display()))?;
+            std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(&summary)?)
+                .with_context(|| format!("writing {}/summary.json", dir.display()))?;
         }
     }
     // The last word on the status key, whatever ended the loop.
-    s.put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
+    s.put(&session, &s.keys.server_status(), &Body::Status(s.status()))
+        .await?;
     session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
     if let Some(r) = s.recorder.into_inner().unwrap_or_else(|p| p.into_inner()) {
         let path = r.path().to_path_buf();
@@ -628,7 +803,13 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
 
 /// What a finished run leaves for export (`fleet export`): the summary, and the core's
 /// outputs (`fleet_mission::outputs`).
-fn write_outputs(dir: &std::path::Path, summary: &ServerSummary, core: &ServerCore, horizon: u64) -> anyhow::Result<()> {
+fn write_outputs(
+    dir: &std::path::Path,
+    summary: &ServerSummary,
+    core: &ServerCore,
+    horizon: u64,
+) -> anyhow::Result<()> {
     fleet_mission::outputs::write(dir, core, horizon)?;
-    std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(summary)?).with_context(|| format!("writing {}/summary.json", dir.display()))
+    std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(summary)?)
+        .with_context(|| format!("writing {}/summary.json", dir.display()))
 }

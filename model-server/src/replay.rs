@@ -18,7 +18,9 @@ use tracing::{info, warn};
 
 pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
     if !(speed.is_finite() && speed > 0.0) {
-        return Err(bad_input(anyhow::anyhow!("--speed {speed}: give a positive factor (1: the recorded pace)")));
+        return Err(bad_input(anyhow::anyhow!(
+            "--speed {speed}: give a positive factor (1: the recorded pace)"
+        )));
     }
     let rec = Recording::read(file).map_err(|e| {
         let bad = e.is_bad_file();
@@ -28,9 +30,19 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
     let mut ctx = Context::new(rec.grid);
     ctx.vehicles = rec.mission.vehicles().into_iter().map(|v| v.id).collect();
     let session = fleet_net::open(args.node.zenoh_config(Role::Server, &rec.mission.network)?).await?;
-    let plans = session.declare_queryable(keys.all_plans()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-    let models = session.declare_queryable(keys.model_latest()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-    let _server = session.liveliness().declare_token(keys.alive("server")).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let plans = session
+        .declare_queryable(keys.all_plans())
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let models = session
+        .declare_queryable(keys.model_latest())
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let _server = session
+        .liveliness()
+        .declare_token(keys.alive("server"))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
     let mut tokens = BTreeMap::new();
     let mut model: Option<Vec<u8>> = None;
     // Recorded plan replies by (vehicle, epoch): the latest of each answers a query for it.
@@ -58,7 +70,11 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
             EVENTS_TOPIC => {
                 if let Ok(ServerEvent::Link { vehicle, alive }) = serde_json::from_slice(&m.data) {
                     if alive {
-                        let t = session.liveliness().declare_token(keys.alive(&vehicle)).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+                        let t = session
+                            .liveliness()
+                            .declare_token(keys.alive(&vehicle))
+                            .await
+                            .map_err(|e| anyhow::anyhow!("{e}"))?;
                         tokens.insert(vehicle, t);
                     } else {
                         tokens.remove(&vehicle);
@@ -87,7 +103,10 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
 
 async fn answer_plan(keys: &Keys, replies: &BTreeMap<(String, u64), Vec<u8>>, q: zenoh::query::Query) {
     let key = q.key_expr().as_str().to_string();
-    let (id, epoch) = (keys.id_after(&key, "plan"), q.parameters().get("epoch").and_then(|e| e.parse::<u64>().ok()));
+    let (id, epoch) = (
+        keys.id_after(&key, "plan"),
+        q.parameters().get("epoch").and_then(|e| e.parse::<u64>().ok()),
+    );
     let found = id.zip(epoch).and_then(|(id, e)| replies.get(&(id, e)).cloned());
     answer(q, found, "no plan recorded for that epoch yet").await;
 }

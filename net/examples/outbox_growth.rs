@@ -28,20 +28,41 @@ struct Args {
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let journal = Store::open(&args.journal)?;
-    let boats: Vec<Vec<u8>> = journal.messages()?.into_iter().filter(|((v, _), _)| v.starts_with("boat")).map(|(_, b)| b).collect();
+    let boats: Vec<Vec<u8>> = journal
+        .messages()?
+        .into_iter()
+        .filter(|((v, _), _)| v.starts_with("boat"))
+        .map(|(_, b)| b)
+        .collect();
     anyhow::ensure!(!boats.is_empty(), "no boat batches in {}", args.journal.display());
     let mean = boats.iter().map(Vec::len).sum::<usize>() / boats.len();
-    let batch = boats.iter().min_by_key(|b| b.len().abs_diff(mean)).expect("not empty").clone();
+    let batch = boats
+        .iter()
+        .min_by_key(|b| b.len().abs_diff(mean))
+        .expect("not empty")
+        .clone();
     let state = Store::open(&args.outbox)?.meta("state")?.unwrap_or_default();
     let n = (args.hours * 3600.0 / args.epoch_s).round() as u64;
-    println!("boat batch {} bytes (mean of {}), state {} bytes; {n} batches in {} h at one per {} s", batch.len(), boats.len(), state.len(), args.hours, args.epoch_s);
+    println!(
+        "boat batch {} bytes (mean of {}), state {} bytes; {n} batches in {} h at one per {} s",
+        batch.len(),
+        boats.len(),
+        state.len(),
+        args.hours,
+        args.epoch_s
+    );
     let dir = std::env::temp_dir().join(format!("outbox-growth-{}", std::process::id()));
     let mut store = Store::open(&dir.join("boat.redb"))?;
     for seq in 1..=n {
         store.commit(&[(("boat-1", seq), &batch)], &[("state", &state)])?;
         if seq == n || seq % (n / 4).max(1) == 0 {
             let file = std::fs::metadata(store.path())?.len();
-            println!("{seq:>6} batches held: file {:>10} bytes ({:.0} bytes per batch; payload {} bytes)", file, file as f64 / seq as f64, store.size().0);
+            println!(
+                "{seq:>6} batches held: file {:>10} bytes ({:.0} bytes per batch; payload {} bytes)",
+                file,
+                file as f64 / seq as f64,
+                store.size().0
+            );
         }
     }
     std::fs::remove_dir_all(&dir)?;

@@ -48,10 +48,14 @@ pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -
         Role::Vehicle => net.vehicle_config.clone(),
     });
     let mut cfg = match &file {
-        Some(p) => zenoh::Config::from_file(p).map_err(|e| fleet_mission::exit::bad_input(anyhow::anyhow!("the Zenoh config {}: {e}", p.display())))?,
+        Some(p) => zenoh::Config::from_file(p)
+            .map_err(|e| fleet_mission::exit::bad_input(anyhow::anyhow!("the Zenoh config {}: {e}", p.display())))?,
         None => zenoh::Config::default(),
     };
-    let set = |cfg: &mut zenoh::Config, key: &str, value: &str| cfg.insert_json5(key, value).map_err(|e| anyhow::anyhow!("Zenoh config {key} = {value}: {e}"));
+    let set = |cfg: &mut zenoh::Config, key: &str, value: &str| {
+        cfg.insert_json5(key, value)
+            .map_err(|e| anyhow::anyhow!("Zenoh config {key} = {value}: {e}"))
+    };
     // No multicast scouting: a fleet finds its router by its endpoints, and a shared network
     // must not see our nodes join its peers.
     set(&mut cfg, "scouting/multicast/enabled", "false")?;
@@ -64,8 +68,16 @@ pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -
         (!in_file && !mission.is_empty()).then(|| json_list(mission))
     };
     let (mode, listen, connect) = match role {
-        Role::Server => ("\"router\"", pick(&cfg, "listen/endpoints", &cli.listen, &net.listen), pick(&cfg, "connect/endpoints", &cli.connect, &[])),
-        Role::Vehicle => ("\"client\"", None, pick(&cfg, "connect/endpoints", &cli.connect, &net.connect)),
+        Role::Server => (
+            "\"router\"",
+            pick(&cfg, "listen/endpoints", &cli.listen, &net.listen),
+            pick(&cfg, "connect/endpoints", &cli.connect, &[]),
+        ),
+        Role::Vehicle => (
+            "\"client\"",
+            None,
+            pick(&cfg, "connect/endpoints", &cli.connect, &net.connect),
+        ),
     };
     set(&mut cfg, "mode", mode)?;
     if let Some(l) = listen {
@@ -83,7 +95,11 @@ pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -
         // Back on the link within a second of the radio returning (Zenoh's default backs off
         // to 4 s between attempts), unless a config file says otherwise.
         if file.is_none() {
-            set(&mut cfg, "connect/retry", "{ period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2 }")?;
+            set(
+                &mut cfg,
+                "connect/retry",
+                "{ period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2 }",
+            )?;
         }
     }
     Ok(cfg)
@@ -91,7 +107,9 @@ pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -
 
 /// Open a session.
 pub async fn open(cfg: zenoh::Config) -> anyhow::Result<Session> {
-    zenoh::open(cfg).await.map_err(|e| anyhow::anyhow!("opening the Zenoh session: {e}"))
+    zenoh::open(cfg)
+        .await
+        .map_err(|e| anyhow::anyhow!("opening the Zenoh session: {e}"))
 }
 
 /// The protocol's encoding, as Zenoh carries it.
@@ -101,14 +119,21 @@ pub fn encoding() -> Encoding {
 
 /// Put one message on `key`.
 pub async fn put(session: &Session, key: &str, body: &Body) -> anyhow::Result<()> {
-    session.put(key, protocol::encode(body)).encoding(encoding()).await.map_err(|e| anyhow::anyhow!("put on {key}: {e}"))
+    session
+        .put(key, protocol::encode(body))
+        .encoding(encoding())
+        .await
+        .map_err(|e| anyhow::anyhow!("put on {key}: {e}"))
 }
 
 /// Decode and validate a received sample (refusing oversized payloads before copying them).
 pub fn decode(sample: &Sample, ctx: &Context) -> Result<Body, ProtocolError> {
     let payload = sample.payload();
     if payload.len() > ctx.max_payload {
-        return Err(ProtocolError::TooLarge { size: payload.len(), limit: ctx.max_payload });
+        return Err(ProtocolError::TooLarge {
+            size: payload.len(),
+            limit: ctx.max_payload,
+        });
     }
     protocol::decode(&payload.to_bytes(), ctx)
 }
@@ -121,11 +146,18 @@ pub fn init_node() {
     use tracing_subscriber::util::SubscriberInitExt as _;
     use tracing_subscriber::Layer as _;
     fleet_mission::configure_linalg_threads();
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
     // Colour only on a terminal: a log file gets plain text.
     let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
-    let fmt = tracing_subscriber::fmt::layer().with_ansi(ansi).with_writer(std::io::stderr).with_filter(filter);
-    let watch = SessionWatch.with_filter(tracing_subscriber::filter::Targets::new().with_target("zenoh_transport::unicast::establishment", tracing::Level::DEBUG));
+    let fmt = tracing_subscriber::fmt::layer()
+        .with_ansi(ansi)
+        .with_writer(std::io::stderr)
+        .with_filter(filter);
+    let watch = SessionWatch.with_filter(
+        tracing_subscriber::filter::Targets::new()
+            .with_target("zenoh_transport::unicast::establishment", tracing::Level::DEBUG),
+    );
     let _ = tracing_subscriber::registry().with(fmt).with(watch).try_init();
 }
 
@@ -172,9 +204,14 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for SessionWatch {
             SessionRefusal::InvalidPassword
         } else if m.0.contains("UsrPwd extension - Recv OpenSyn. Invalid user") {
             SessionRefusal::UnknownUser
-        } else if m.0.contains("UsrPwd extension - Recv OpenSyn. Expected extension") || m.0.contains("UsrPwd extension - Recv InitSyn. Expected extension") {
+        } else if m.0.contains("UsrPwd extension - Recv OpenSyn. Expected extension")
+            || m.0.contains("UsrPwd extension - Recv InitSyn. Expected extension")
+        {
             SessionRefusal::NoCredentials
-        } else if m.0.contains("Received a close message (reason") && m.0.contains("in response to an OpenSyn") && !m.0.contains("MAX_LINKS") {
+        } else if m.0.contains("Received a close message (reason")
+            && m.0.contains("in response to an OpenSyn")
+            && !m.0.contains("MAX_LINKS")
+        {
             SessionRefusal::RefusedByRouter
         } else {
             return;
@@ -198,15 +235,28 @@ pub fn mark_connected() {
 /// when a link breaks mid-way, which a retry gets past).
 pub fn exit_when_refused(node: &'static str, cfg: &zenoh::Config, file: Option<std::path::PathBuf>) {
     use std::sync::atomic::Ordering;
-    let user = cfg.get_json("transport/auth/usrpwd/user").ok().map(|u| u.trim_matches('"').to_string()).filter(|u| !u.is_empty() && u != "null");
+    let user = cfg
+        .get_json("transport/auth/usrpwd/user")
+        .ok()
+        .map(|u| u.trim_matches('"').to_string())
+        .filter(|u| !u.is_empty() && u != "null");
     let Some(user) = user else { return };
     tokio::spawn(async move {
         loop {
             tokio::time::sleep(std::time::Duration::from_millis(200)).await;
-            let refused = session_refusals().iter().filter(|r| **r == SessionRefusal::RefusedByRouter).count() as u32;
+            let refused = session_refusals()
+                .iter()
+                .filter(|r| **r == SessionRefusal::RefusedByRouter)
+                .count() as u32;
             if REFUSED_SINCE_CONNECTED.fetch_add(refused, Ordering::Relaxed) + refused >= 3 {
-                let from = file.as_ref().map_or_else(String::new, |f| format!(" of {}", f.display()));
-                let e = fleet_mission::exit::bad_input(anyhow::anyhow!("the router refused this node's session 3 times after it sent its credentials (user {user:?}{from}): a wrong password, a user it does not know, or a certificate it does not accept; fix the credentials and start it again"));
+                let from = file
+                    .as_ref()
+                    .map_or_else(String::new, |f| format!(" of {}", f.display()));
+                let e = fleet_mission::exit::bad_input(anyhow::anyhow!(
+                    "the router refused this node's session 3 \
+                    times after it sent its credentials (user {user:?}{from}): a wrong password, a user it does not \
+                    know, or a certificate it does not accept; fix the credentials and start it again"
+                ));
                 fleet_mission::exit::fail(node, &e);
             }
         }
@@ -235,13 +285,20 @@ pub struct NodeArgs {
 
 impl NodeArgs {
     /// The mission and its truth on the model grid.
-    pub fn load(&self) -> anyhow::Result<(fleet_mission::config::MissionConfig, fleet_mission::process::FieldSeries)> {
+    pub fn load(
+        &self,
+    ) -> anyhow::Result<(
+        fleet_mission::config::MissionConfig,
+        fleet_mission::process::FieldSeries,
+    )> {
         let mission = fleet_mission::config::MissionConfig::load(self.mission.as_deref())?;
         let truth = match &self.truth {
             Some(p) => {
                 // The time between frames from the sidecar `fleet up` and `fleet simulate` write.
                 let dt = fleet_mission::process::dataset::sidecar_dt(p).unwrap_or(1.0);
-                let t = fleet_mission::process::dataset::load(p, dt).map_err(fleet_mission::exit::bad_input).with_context(|| format!("--truth {}", p.display()))?;
+                let t = fleet_mission::process::dataset::load(p, dt)
+                    .map_err(fleet_mission::exit::bad_input)
+                    .with_context(|| format!("--truth {}", p.display()))?;
                 mission.check_truth(&t, p)?;
                 t
             }
@@ -251,7 +308,10 @@ impl NodeArgs {
     }
 
     pub fn endpoints(&self) -> Endpoints {
-        Endpoints { listen: self.listen.clone(), connect: self.connect.clone() }
+        Endpoints {
+            listen: self.listen.clone(),
+            connect: self.connect.clone(),
+        }
     }
 
     /// This node's Zenoh configuration.
@@ -279,7 +339,11 @@ pub struct StopSignals {
 impl StopSignals {
     pub fn new() -> anyhow::Result<Self> {
         use tokio::signal::unix::{signal, SignalKind};
-        Ok(Self { term: signal(SignalKind::terminate())?, int: signal(SignalKind::interrupt())?, hup: signal(SignalKind::hangup())? })
+        Ok(Self {
+            term: signal(SignalKind::terminate())?,
+            int: signal(SignalKind::interrupt())?,
+            hup: signal(SignalKind::hangup())?,
+        })
     }
 
     /// The next stop signal's name.
@@ -296,7 +360,11 @@ impl StopSignals {
 /// one) after [`init_node`]; an error is one line on stderr and the exit status of
 /// [`fleet_mission::exit`] (2 bad input, 1 internal).
 pub fn run_node<F: std::future::Future<Output = anyhow::Result<()>>>(name: &str, workers: usize, main: F) {
-    let rt = match tokio::runtime::Builder::new_multi_thread().worker_threads(workers).enable_all().build() {
+    let rt = match tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(workers)
+        .enable_all()
+        .build()
+    {
         Ok(rt) => rt,
         Err(e) => fleet_mission::exit::fail(name, &anyhow::Error::new(e).context("starting the runtime")),
     };
@@ -313,25 +381,50 @@ mod tests {
     use super::*;
 
     fn root() -> std::path::PathBuf {
-        std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
+        std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .parent()
+            .unwrap()
+            .to_path_buf()
     }
 
     #[test]
     fn bundled_zenoh_configs_load_and_endpoints_take_precedence() {
         let net = Network::default();
-        for f in ["router", "client", "peer", "secure-example/router", "secure-example/boat-1"] {
-            zenoh::Config::from_file(root().join(format!("config/zenoh/{f}.json5"))).unwrap_or_else(|e| panic!("{f}.json5: {e}"));
+        for f in [
+            "router",
+            "client",
+            "peer",
+            "secure-example/router",
+            "secure-example/boat-1",
+        ] {
+            zenoh::Config::from_file(root().join(format!("config/zenoh/{f}.json5")))
+                .unwrap_or_else(|e| panic!("{f}.json5: {e}"));
         }
         let client = root().join("config/zenoh/client.json5");
         // The file's endpoints beat the mission's; the command line's beat both.
         let c = config(Role::Vehicle, &net, Some(&client), &Endpoints::default()).unwrap();
         assert!(c.get_json("connect/endpoints").unwrap().contains("192.0.2.10"));
         assert!(c.get_json("mode").unwrap().contains("client"));
-        let c = config(Role::Vehicle, &net, Some(&client), &Endpoints { listen: vec![], connect: vec!["tcp/10.0.0.1:7000".into()] }).unwrap();
+        let c = config(
+            Role::Vehicle,
+            &net,
+            Some(&client),
+            &Endpoints {
+                listen: vec![],
+                connect: vec!["tcp/10.0.0.1:7000".into()],
+            },
+        )
+        .unwrap();
         assert!(c.get_json("connect/endpoints").unwrap().contains("10.0.0.1"));
         let c = config(Role::Server, &net, None, &Endpoints::default()).unwrap();
         assert!(c.get_json("listen/endpoints").unwrap().contains("127.0.0.1:7447"));
         assert!(c.get_json("mode").unwrap().contains("router"));
-        assert!(config(Role::Server, &net, Some(Path::new("/nonexistent.json5")), &Endpoints::default()).is_err());
+        assert!(config(
+            Role::Server,
+            &net,
+            Some(Path::new("/nonexistent.json5")),
+            &Endpoints::default()
+        )
+        .is_err());
     }
 }

@@ -50,9 +50,25 @@ impl Outbox {
     /// Open (or create) the outbox of vehicle `id` at `path`, bounded to `limit` bytes of batches.
     pub fn open(path: &Path, id: &str, limit: u64) -> Result<Self, OutboxError> {
         let store = Store::open(path)?;
-        let acked = store.meta(ACKED)?.and_then(|b| String::from_utf8(b).ok()).and_then(|s| s.parse().ok());
-        let held = store.messages()?.into_iter().filter(|((v, _), _)| v == id).map(|((_, seq), _)| seq).collect();
-        Ok(Self { store, id: id.into(), acked, held, sent: BTreeMap::new(), limit, warned: false })
+        let acked = store
+            .meta(ACKED)?
+            .and_then(|b| String::from_utf8(b).ok())
+            .and_then(|s| s.parse().ok());
+        let held = store
+            .messages()?
+            .into_iter()
+            .filter(|((v, _), _)| v == id)
+            .map(|((_, seq), _)| seq)
+            .collect();
+        Ok(Self {
+            store,
+            id: id.into(),
+            acked,
+            held,
+            sent: BTreeMap::new(),
+            limit,
+            warned: false,
+        })
     }
 
     pub fn path(&self) -> &Path {
@@ -61,16 +77,25 @@ impl Outbox {
 
     /// The vehicle state committed with the newest batch (none before the first).
     pub fn state<T: DeserializeOwned>(&self) -> Result<Option<T>, OutboxError> {
-        let Some(b) = self.store.meta(STATE)? else { return Ok(None) };
-        ciborium::from_reader(&b[..]).map(Some).map_err(|e| OutboxError::State { path: self.path().display().to_string(), why: e.to_string() })
+        let Some(b) = self.store.meta(STATE)? else {
+            return Ok(None);
+        };
+        ciborium::from_reader(&b[..]).map(Some).map_err(|e| OutboxError::State {
+            path: self.path().display().to_string(),
+            why: e.to_string(),
+        })
     }
 
     /// Commit batch `seq` and the state after it, in one transaction. Returns true the first
     /// time the outbox passes 80% of its bound (so the caller can warn once).
     pub fn commit<T: Serialize>(&mut self, seq: u64, bytes: &[u8], state: &T) -> Result<bool, OutboxError> {
         let mut st = vec![];
-        ciborium::into_writer(state, &mut st).map_err(|e| OutboxError::State { path: self.path().display().to_string(), why: e.to_string() })?;
-        self.store.commit(&[((self.id.as_str(), seq), bytes)], &[(STATE, &st)])?;
+        ciborium::into_writer(state, &mut st).map_err(|e| OutboxError::State {
+            path: self.path().display().to_string(),
+            why: e.to_string(),
+        })?;
+        self.store
+            .commit(&[((self.id.as_str(), seq), bytes)], &[(STATE, &st)])?;
         self.held.insert(seq);
         let nearly_full = self.store.size().0 * 5 >= self.limit * 4;
         let first = nearly_full && !self.warned;
@@ -83,7 +108,8 @@ impl Outbox {
         if self.covers(seq) {
             return Ok(false);
         }
-        self.store.remove_through(&self.id, seq, &[(ACKED, seq.to_string().as_bytes())])?;
+        self.store
+            .remove_through(&self.id, seq, &[(ACKED, seq.to_string().as_bytes())])?;
         self.acked = Some(seq);
         self.held.retain(|&s| s > seq);
         self.sent.retain(|&s, _| s > seq);
@@ -120,11 +146,26 @@ impl Outbox {
     /// The batches due at `now` (never sent since the start, or last sent `resend` ago or
     /// more), oldest first, marked as sent at `now`.
     pub fn due(&mut self, now: Instant, resend: Duration) -> Result<Vec<(u64, Vec<u8>)>, OutboxError> {
-        let due: BTreeSet<u64> = self.held.iter().copied().filter(|s| self.sent.get(s).is_none_or(|&t| now.saturating_duration_since(t) >= resend)).collect();
+        let due: BTreeSet<u64> = self
+            .held
+            .iter()
+            .copied()
+            .filter(|s| {
+                self.sent
+                    .get(s)
+                    .is_none_or(|&t| now.saturating_duration_since(t) >= resend)
+            })
+            .collect();
         if due.is_empty() {
             return Ok(vec![]);
         }
-        let out: Vec<(u64, Vec<u8>)> = self.store.messages()?.into_iter().filter(|((v, s), _)| v == &self.id && due.contains(s)).map(|((_, s), b)| (s, b)).collect();
+        let out: Vec<(u64, Vec<u8>)> = self
+            .store
+            .messages()?
+            .into_iter()
+            .filter(|((v, s), _)| v == &self.id && due.contains(s))
+            .map(|((_, s), b)| (s, b))
+            .collect();
         for (s, _) in &out {
             self.sent.insert(*s, now);
         }
@@ -199,7 +240,11 @@ mod tests {
         assert_eq!(o.due(t0 + every, every).unwrap().len(), 1);
         assert!(o.due(t0 + every, every).unwrap().is_empty(), "marked as sent by due()");
         o.resend_all();
-        assert_eq!(o.due(t0 + every, every).unwrap().len(), 1, "link back: everything at once");
+        assert_eq!(
+            o.due(t0 + every, every).unwrap().len(),
+            1,
+            "link back: everything at once"
+        );
     }
 
     #[test]
@@ -217,7 +262,10 @@ mod tests {
         let mut o = Outbox::open(&p, "boat-1", 1 << 20).unwrap();
         assert_eq!(o.acked(), Some(2));
         assert_eq!(o.held().collect::<Vec<_>>(), [3, 4]);
-        assert_eq!(o.state::<(String, u64)>().unwrap(), Some(("state after".to_string(), 4)));
+        assert_eq!(
+            o.state::<(String, u64)>().unwrap(),
+            Some(("state after".to_string(), 4))
+        );
         // Nothing was sent by this process yet: both go at once.
         assert_eq!(o.due(Instant::now(), Duration::from_secs(3600)).unwrap().len(), 2);
     }
@@ -230,6 +278,9 @@ mod tests {
         o.commit(1, b"x", &"not a number").unwrap();
         let e = o.state::<u64>().unwrap_err();
         assert!(e.is_bad_file(), "{e}");
-        assert!(e.to_string().contains("boat-1.redb") && e.to_string().contains("unreadable"), "{e}");
+        assert!(
+            e.to_string().contains("boat-1.redb") && e.to_string().contains("unreadable"),
+            "{e}"
+        );
     }
 }

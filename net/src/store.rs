@@ -28,7 +28,8 @@ pub enum StoreError {
     /// The file cannot be trusted: a record fails its checksum, or the store itself is broken.
     #[error("{} is damaged: {what} (the file was left as it is)", path.display())]
     Damaged { path: PathBuf, what: String },
-    #[error("{} is empty (0 bytes): it was created but never written, or cut off (the file was left as it is)", path.display())]
+    #[error("{} is empty (0 bytes): it was created but never written, or cut off (the file was left as it \
+        is)", path.display())]
     Empty { path: PathBuf },
     #[error("{} is in use by another process: one node per state file", path.display())]
     InUse { path: PathBuf },
@@ -95,7 +96,12 @@ fn contained<T>(f: impl FnOnce() -> T) -> std::result::Result<T, String> {
     std::panic::set_hook(Box::new(|_| {}));
     let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
     std::panic::set_hook(hook);
-    r.map_err(|p| p.downcast_ref::<&str>().map(|s| s.to_string()).or_else(|| p.downcast_ref::<String>().cloned()).unwrap_or_else(|| "the store panicked".into()))
+    r.map_err(|p| {
+        p.downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| p.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "the store panicked".into())
+    })
 }
 
 pub struct Store {
@@ -110,20 +116,31 @@ impl Store {
     /// Open (or create) the store at `path`, after checking every record of an existing file
     /// (on a copy: a damaged file is refused and left as it is).
     pub fn open(path: &Path) -> Result<Self> {
-        let io = |source| StoreError::Io { path: path.to_path_buf(), source };
+        let io = |source| StoreError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
         match std::fs::metadata(path) {
             Ok(m) if m.len() == 0 => return Err(StoreError::Empty { path: path.into() }),
             Ok(_) => verify_copy(path)?,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
                 if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-                    std::fs::create_dir_all(dir).map_err(|source| StoreError::Io { path: dir.into(), source })?;
+                    std::fs::create_dir_all(dir).map_err(|source| StoreError::Io {
+                        path: dir.into(),
+                        source,
+                    })?;
                 }
             }
             Err(e) => return Err(io(e)),
         }
         let existing = path.exists();
         let (db, bytes, count) = open_checked(path, existing)?;
-        Ok(Self { db, path: path.to_path_buf(), bytes, count })
+        Ok(Self {
+            db,
+            path: path.to_path_buf(),
+            bytes,
+            count,
+        })
     }
 
     pub fn path(&self) -> &Path {
@@ -136,7 +153,10 @@ impl Store {
     }
 
     fn failed(&self, e: &dyn std::fmt::Display) -> StoreError {
-        StoreError::Failed { path: self.path.clone(), what: e.to_string() }
+        StoreError::Failed {
+            path: self.path.clone(),
+            what: e.to_string(),
+        }
     }
 
     /// One durable transaction: these messages (replacing any under the same key) and these
@@ -148,7 +168,10 @@ impl Store {
         {
             let mut t = tx.open_table(MESSAGES).map_err(|e| self.failed(&e))?;
             for ((vehicle, seq), v) in messages {
-                match t.insert((*vehicle, *seq), seal(b'M', &message_key(vehicle, *seq), v).as_slice()).map_err(|e| self.failed(&e))? {
+                match t
+                    .insert((*vehicle, *seq), seal(b'M', &message_key(vehicle, *seq), v).as_slice())
+                    .map_err(|e| self.failed(&e))?
+                {
                     Some(old) => bytes -= (old.value().len() - HEADER) as u64,
                     None => count += 1,
                 }
@@ -156,7 +179,8 @@ impl Store {
             }
             let mut m = tx.open_table(META).map_err(|e| self.failed(&e))?;
             for (k, v) in meta {
-                m.insert(*k, seal(b'T', k.as_bytes(), v).as_slice()).map_err(|e| self.failed(&e))?;
+                m.insert(*k, seal(b'T', k.as_bytes(), v).as_slice())
+                    .map_err(|e| self.failed(&e))?;
             }
         }
         tx.commit().map_err(|e| self.failed(&e))?;
@@ -171,7 +195,9 @@ impl Store {
         let (mut bytes, mut count, mut removed) = (self.bytes, self.count, 0);
         {
             let mut t = tx.open_table(MESSAGES).map_err(|e| self.failed(&e))?;
-            let gone = t.extract_from_if((vehicle, 0)..=(vehicle, seq), |_, _| true).map_err(|e| self.failed(&e))?;
+            let gone = t
+                .extract_from_if((vehicle, 0)..=(vehicle, seq), |_, _| true)
+                .map_err(|e| self.failed(&e))?;
             for item in gone {
                 let (_, v) = item.map_err(|e| self.failed(&e))?;
                 bytes -= v.value().len().saturating_sub(HEADER) as u64;
@@ -180,7 +206,8 @@ impl Store {
             }
             let mut m = tx.open_table(META).map_err(|e| self.failed(&e))?;
             for (k, v) in meta {
-                m.insert(*k, seal(b'T', k.as_bytes(), v).as_slice()).map_err(|e| self.failed(&e))?;
+                m.insert(*k, seal(b'T', k.as_bytes(), v).as_slice())
+                    .map_err(|e| self.failed(&e))?;
             }
         }
         tx.commit().map_err(|e| self.failed(&e))?;
@@ -197,9 +224,13 @@ impl Store {
     pub fn meta(&self, key: &str) -> Result<Option<Vec<u8>>> {
         let tx = self.db.begin_read().map_err(|e| self.failed(&e))?;
         let t = tx.open_table(META).map_err(|e| self.failed(&e))?;
-        let Some(v) = t.get(key).map_err(|e| self.failed(&e))? else { return Ok(None) };
+        let Some(v) = t.get(key).map_err(|e| self.failed(&e))? else {
+            return Ok(None);
+        };
         let sealed = v.value();
-        unseal(b'T', key.as_bytes(), sealed).map(|p| Some(p.to_vec())).map_err(|what| damaged(&self.path, format!("metadata {key:?} {what}")))
+        unseal(b'T', key.as_bytes(), sealed)
+            .map(|p| Some(p.to_vec()))
+            .map_err(|what| damaged(&self.path, format!("metadata {key:?} {what}")))
     }
 
     /// Every metadata value whose key starts with `prefix`, in key order, each checked.
@@ -209,7 +240,10 @@ impl Store {
 }
 
 fn damaged(path: &Path, what: String) -> StoreError {
-    StoreError::Damaged { path: path.into(), what }
+    StoreError::Damaged {
+        path: path.into(),
+        what,
+    }
 }
 
 fn read_messages(db: &impl ReadableDatabase, path: &Path) -> Result<Vec<Record>> {
@@ -220,7 +254,8 @@ fn read_messages(db: &impl ReadableDatabase, path: &Path) -> Result<Vec<Record>>
     for item in t.iter().map_err(|e| bad(&e))? {
         let (k, v) = item.map_err(|e| bad(&e))?;
         let (id, seq) = k.value();
-        let payload = unseal(b'M', &message_key(id, seq), v.value()).map_err(|what| damaged(path, format!("record ({id}, {seq}) {what}")))?;
+        let payload = unseal(b'M', &message_key(id, seq), v.value())
+            .map_err(|what| damaged(path, format!("record ({id}, {seq}) {what}")))?;
         out.push(((id.to_string(), seq), payload.to_vec()));
     }
     Ok(out)
@@ -237,7 +272,8 @@ fn read_meta(db: &impl ReadableDatabase, path: &Path, prefix: &str) -> Result<Ve
         if !key.starts_with(prefix) {
             break;
         }
-        let payload = unseal(b'T', key.as_bytes(), v.value()).map_err(|what| damaged(path, format!("metadata {key:?} {what}")))?;
+        let payload = unseal(b'T', key.as_bytes(), v.value())
+            .map_err(|what| damaged(path, format!("metadata {key:?} {what}")))?;
         out.push((key.to_string(), payload.to_vec()));
     }
     Ok(out)
@@ -252,22 +288,42 @@ fn open_checked(path: &Path, existing: bool) -> Result<(Database, u64, u64)> {
         let db = Database::create(path).map_err(|e| match e {
             redb::DatabaseError::DatabaseAlreadyOpen => StoreError::InUse { path: path.into() },
             // redb reports some damage as I/O errors of these kinds.
-            redb::DatabaseError::Storage(redb::StorageError::Io(source)) if matches!(source.kind(), std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof) => {
+            redb::DatabaseError::Storage(redb::StorageError::Io(source))
+                if matches!(
+                    source.kind(),
+                    std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof
+                ) =>
+            {
                 damaged(path, source.to_string())
             }
-            redb::DatabaseError::Storage(redb::StorageError::Io(source)) => StoreError::Io { path: path.into(), source },
+            redb::DatabaseError::Storage(redb::StorageError::Io(source)) => StoreError::Io {
+                path: path.into(),
+                source,
+            },
             other => damaged(path, other.to_string()),
         })?;
         let bad = |e: &dyn std::fmt::Display| damaged(path, e.to_string());
         if existing {
-            let tables: Vec<String> = db.begin_read().map_err(|e| bad(&e))?.list_tables().map_err(|e| bad(&e))?.map(|t| t.name().to_string()).collect();
+            let tables: Vec<String> = db
+                .begin_read()
+                .map_err(|e| bad(&e))?
+                .list_tables()
+                .map_err(|e| bad(&e))?
+                .map(|t| t.name().to_string())
+                .collect();
             for want in [MESSAGES.name(), META.name()] {
                 if !tables.iter().any(|t| t == want) {
-                    return Err(damaged(path, format!("its `{want}` table is missing (tables: {tables:?})")));
+                    return Err(damaged(
+                        path,
+                        format!("its `{want}` table is missing (tables: {tables:?})"),
+                    ));
                 }
             }
             if let Some(other) = tables.iter().find(|t| *t != MESSAGES.name() && *t != META.name()) {
-                return Err(damaged(path, format!("it has a table this store never writes, `{other}`")));
+                return Err(damaged(
+                    path,
+                    format!("it has a table this store never writes, `{other}`"),
+                ));
             }
         }
         let tx = db.begin_write().map_err(|e| bad(&e))?;
@@ -285,18 +341,33 @@ fn open_checked(path: &Path, existing: bool) -> Result<(Database, u64, u64)> {
 /// Check an existing file whole, on a copy beside it (removed after), so the file itself is
 /// opened for writing only once it is known to be sound.
 fn verify_copy(path: &Path) -> Result<()> {
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
     let copy = path.with_file_name(format!(".{name}.check-{}", std::process::id()));
-    std::fs::copy(path, &copy).map_err(|source| StoreError::Io { path: path.into(), source })?;
+    std::fs::copy(path, &copy).map_err(|source| StoreError::Io {
+        path: path.into(),
+        source,
+    })?;
     // Closing it too: redb writes its allocator state when a database is dropped, and a
     // damaged one can panic there.
-    let checked = in_child(&copy, || contained(|| open_checked(&copy, true).map(drop)).unwrap_or_else(|panic| Err(damaged(&copy, format!("the store could not close it ({panic})")))));
+    let checked = in_child(&copy, || {
+        contained(|| open_checked(&copy, true).map(drop))
+            .unwrap_or_else(|panic| Err(damaged(&copy, format!("the store could not close it ({panic})"))))
+    });
     let _ = std::fs::remove_file(&copy);
     // Errors name the file the operator gave, not the copy.
     checked.map_err(|e| match e {
         StoreError::Damaged { what, .. } => damaged(path, what),
-        StoreError::Io { source, .. } => StoreError::Io { path: path.into(), source },
-        StoreError::Failed { what, .. } => StoreError::Failed { path: path.into(), what },
+        StoreError::Io { source, .. } => StoreError::Io {
+            path: path.into(),
+            source,
+        },
+        StoreError::Failed { what, .. } => StoreError::Failed {
+            path: path.into(),
+            what,
+        },
         other => other,
     })
 }
@@ -313,11 +384,17 @@ const CHECK_LIMIT: std::time::Duration = std::time::Duration::from_secs(300);
 fn in_child(path: &Path, check: impl FnOnce() -> Result<()>) -> Result<()> {
     use std::io::{Read, Write};
     use std::os::fd::FromRawFd;
-    let failed = |what: String| StoreError::Failed { path: path.into(), what };
+    let failed = |what: String| StoreError::Failed {
+        path: path.into(),
+        what,
+    };
     let mut fds = [0; 2];
     // SAFETY: `fds` has room for the two descriptors pipe writes.
     if unsafe { libc::pipe2(fds.as_mut_ptr(), libc::O_CLOEXEC) } != 0 {
-        return Err(failed(format!("cannot check it: pipe: {}", std::io::Error::last_os_error())));
+        return Err(failed(format!(
+            "cannot check it: pipe: {}",
+            std::io::Error::last_os_error()
+        )));
     }
     // SAFETY: the child only runs `check` (file I/O and allocation) and `_exit`s.
     let pid = unsafe { libc::fork() };
@@ -355,22 +432,43 @@ fn in_child(path: &Path, check: impl FnOnce() -> Result<()>) -> Result<()> {
             0 => {
                 // SAFETY: our child, which has not been reaped.
                 unsafe { (libc::kill(pid, libc::SIGKILL), libc::waitpid(pid, &mut status, 0)) };
-                return Err(failed(format!("checking it did not finish within {} s", CHECK_LIMIT.as_secs())));
+                return Err(failed(format!(
+                    "checking it did not finish within {} s",
+                    CHECK_LIMIT.as_secs()
+                )));
             }
             r if r < 0 && std::io::Error::last_os_error().kind() == std::io::ErrorKind::Interrupted => {}
-            r if r < 0 => return Err(failed(format!("cannot check it: waitpid: {}", std::io::Error::last_os_error()))),
+            r if r < 0 => {
+                return Err(failed(format!(
+                    "cannot check it: waitpid: {}",
+                    std::io::Error::last_os_error()
+                )))
+            }
             _ => break,
         }
     }
     if libc::WIFSIGNALED(status) {
         let sig = libc::WTERMSIG(status);
-        let why = if sig == libc::SIGABRT { " (a damaged page asked for more memory than the machine has)" } else { "" };
-        return Err(damaged(path, format!("reading it ended the check with signal {sig}{why}")));
+        let why = if sig == libc::SIGABRT {
+            " (a damaged page asked for more memory than the machine has)"
+        } else {
+            ""
+        };
+        return Err(damaged(
+            path,
+            format!("reading it ended the check with signal {sig}{why}"),
+        ));
     }
     // The answer is short (see `encode_outcome`), so it sat in the pipe while the child ended.
     let mut reply = vec![];
-    answer.read_to_end(&mut reply).map_err(|e| failed(format!("cannot check it: {e}")))?;
-    decode_outcome(path, &reply).ok_or_else(|| failed(format!("the check of it ended without an answer (exit status {status})")))?
+    answer
+        .read_to_end(&mut reply)
+        .map_err(|e| failed(format!("cannot check it: {e}")))?;
+    decode_outcome(path, &reply).ok_or_else(|| {
+        failed(format!(
+            "the check of it ended without an answer (exit status {status})"
+        ))
+    })?
 }
 
 /// A check's outcome as the child sends it: empty for sound, else a tag and the message.
@@ -398,7 +496,10 @@ fn decode_outcome(path: &Path, reply: &[u8]) -> Option<Result<()>> {
         b'D' => StoreError::Damaged { path, what },
         b'E' => StoreError::Empty { path },
         b'U' => StoreError::InUse { path },
-        b'I' => StoreError::Io { path, source: std::io::Error::other(what) },
+        b'I' => StoreError::Io {
+            path,
+            source: std::io::Error::other(what),
+        },
         b'F' => StoreError::Failed { path, what },
         _ => return None,
     }))
@@ -425,11 +526,17 @@ mod tests {
         s.commit(&[(("boat-1", 0), b"abc")], &[]).unwrap();
         drop(s);
         let mut bytes = std::fs::read(&p).unwrap();
-        let at = bytes.windows(8).position(|w| w == b"messages").expect("the table name is in the file");
+        let at = bytes
+            .windows(8)
+            .position(|w| w == b"messages")
+            .expect("the table name is in the file");
         bytes[at] ^= 0x20;
         std::fs::write(&p, &bytes).unwrap();
         let err = Store::open(&p).err().expect("refused");
-        assert!(err.is_bad_file() && err.to_string().contains("`messages` table is missing"), "{err}");
+        assert!(
+            err.is_bad_file() && err.to_string().contains("`messages` table is missing"),
+            "{err}"
+        );
         assert_eq!(std::fs::read(&p).unwrap(), bytes, "the refusal changed the file");
     }
 
@@ -442,11 +549,15 @@ mod tests {
         let dir = scratch("page-order");
         let p = dir.join("s.redb");
         let mut s = Store::open(&p).unwrap();
-        s.commit(&[(("boat-1", 0), b"abc"), (("av-1", 3), b"defg")], &[("state", b"x")]).unwrap();
+        s.commit(&[(("boat-1", 0), b"abc"), (("av-1", 3), b"defg")], &[("state", b"x")])
+            .unwrap();
         let want = (s.messages().unwrap(), s.meta_with_prefix("").unwrap());
         drop(s);
         let good = std::fs::read(&p).unwrap();
-        let at = good.windows(8).position(|w| w == b"messages").expect("the table name is in the file");
+        let at = good
+            .windows(8)
+            .position(|w| w == b"messages")
+            .expect("the table name is in the file");
         let (mut refused, mut opened) = (0, 0);
         for i in at.saturating_sub(64)..(at + 96).min(good.len()) {
             let mut bytes = good.clone();
@@ -457,12 +568,20 @@ mod tests {
             std::fs::write(&p, &bytes).unwrap();
             match Store::open(&p) {
                 Ok(s) => {
-                    assert_eq!((s.messages().unwrap(), s.meta_with_prefix("").unwrap()), want, "byte {i}: opened with different data");
+                    assert_eq!(
+                        (s.messages().unwrap(), s.meta_with_prefix("").unwrap()),
+                        want,
+                        "byte {i}: opened with different data"
+                    );
                     opened += 1;
                 }
                 Err(e) => {
                     assert!(e.is_bad_file(), "byte {i}: {e}");
-                    assert_eq!(std::fs::read(&p).unwrap(), bytes, "byte {i}: the refusal changed the file");
+                    assert_eq!(
+                        std::fs::read(&p).unwrap(),
+                        bytes,
+                        "byte {i}: the refusal changed the file"
+                    );
                     refused += 1;
                 }
             }
@@ -476,7 +595,11 @@ mod tests {
         let path = dir.join("s.redb");
         {
             let mut s = Store::open(&path).unwrap();
-            s.commit(&[(("boat-1", 0), b"aa"), (("boat-1", 1), b"bbb"), (("av-1", 0), b"c")], &[("state", b"x")]).unwrap();
+            s.commit(
+                &[(("boat-1", 0), b"aa"), (("boat-1", 1), b"bbb"), (("av-1", 0), b"c")],
+                &[("state", b"x")],
+            )
+            .unwrap();
             s.commit(&[(("boat-1", 1), b"BBBB")], &[]).unwrap();
             assert_eq!(s.size(), (7, 3));
             assert_eq!(s.remove_through("boat-1", 0, &[("acked", b"0")]).unwrap(), 1);
@@ -484,13 +607,22 @@ mod tests {
         let s = Store::open(&path).unwrap();
         assert_eq!(s.size(), (5, 2));
         let m = s.messages().unwrap();
-        assert_eq!(m, vec![(("av-1".to_string(), 0), b"c".to_vec()), (("boat-1".to_string(), 1), b"BBBB".to_vec())]);
+        assert_eq!(
+            m,
+            vec![
+                (("av-1".to_string(), 0), b"c".to_vec()),
+                (("boat-1".to_string(), 1), b"BBBB".to_vec())
+            ]
+        );
         assert_eq!(s.meta("state").unwrap().as_deref(), Some(&b"x"[..]));
         assert_eq!(s.meta("acked").unwrap().as_deref(), Some(&b"0"[..]));
         assert_eq!(s.meta("nothing").unwrap(), None);
         drop(s);
         // No copy left behind by the check.
-        let left: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
+        let left: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
         assert_eq!(left, vec![std::ffi::OsString::from("s.redb")]);
         let _ = std::fs::remove_dir_all(&dir);
     }

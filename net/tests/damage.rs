@@ -26,9 +26,14 @@ fn realistic(path: &Path) -> Contents {
         for v in ["av-1", "boat-1", "boat-2"] {
             let n = rng.random_range(500..4000);
             let bytes: Vec<u8> = (0..n).map(|_| rng.random()).collect();
-            s.commit(&[((v, seq), &bytes)], &[("state", format!("{v} after {seq}").as_bytes())]).unwrap();
+            s.commit(
+                &[((v, seq), &bytes)],
+                &[("state", format!("{v} after {seq}").as_bytes())],
+            )
+            .unwrap();
         }
-        s.commit(&[], &[(&format!("epoch/{seq:010}"), &[seq as u8; 40])]).unwrap();
+        s.commit(&[], &[(&format!("epoch/{seq:010}"), &[seq as u8; 40])])
+            .unwrap();
     }
     s.remove_through("av-1", 4, &[("acked", b"4")]).unwrap();
     (s.messages().unwrap(), s.meta_with_prefix("").unwrap())
@@ -52,8 +57,15 @@ fn check(path: &Path, original: &Contents, what: &str) -> &'static str {
         Err(e) => {
             assert!(e.is_bad_file(), "{what}: not reported as a bad file: {e}");
             let msg = e.to_string();
-            assert!(msg.contains(&path.display().to_string()) && !msg.contains('\n'), "{what}: the error names the file on one line: {msg}");
-            assert_eq!(std::fs::read(path).unwrap(), before, "{what}: the refusal changed the file");
+            assert!(
+                msg.contains(&path.display().to_string()) && !msg.contains('\n'),
+                "{what}: the error names the file on one line: {msg}"
+            );
+            assert_eq!(
+                std::fs::read(path).unwrap(),
+                before,
+                "{what}: the refusal changed the file"
+            );
             "refused"
         }
     }
@@ -71,7 +83,16 @@ fn damaged_stores_are_refused_or_read_back_unchanged_never_altered() {
     for k in 0..=12 {
         let len = if k == 12 { bytes.len() / 3 } else { bytes.len() * k / 12 };
         std::fs::write(&case, &bytes[..len]).unwrap();
-        *outcomes.entry(("truncated", check(&case, &original, &format!("truncated to {len} of {} bytes", bytes.len())))).or_default() += 1;
+        *outcomes
+            .entry((
+                "truncated",
+                check(
+                    &case,
+                    &original,
+                    &format!("truncated to {len} of {} bytes", bytes.len()),
+                ),
+            ))
+            .or_default() += 1;
     }
     // Bits flipped at random, 1 to 8 at a time.
     let mut rng = ChaCha8Rng::seed_from_u64(5);
@@ -82,16 +103,25 @@ fn damaged_stores_are_refused_or_read_back_unchanged_never_altered() {
             b[at] ^= 1 << rng.random_range(0..8);
         }
         std::fs::write(&case, &b).unwrap();
-        *outcomes.entry(("bit flips", check(&case, &original, &format!("flip trial {trial}")))).or_default() += 1;
+        *outcomes
+            .entry(("bit flips", check(&case, &original, &format!("flip trial {trial}"))))
+            .or_default() += 1;
     }
     // Flips inside the records' bytes are always caught by their checksums.
     let payload = &original.0[7].1;
-    let at = bytes.windows(64).position(|w| w == &payload[100..164]).expect("a record's bytes are in the file");
+    let at = bytes
+        .windows(64)
+        .position(|w| w == &payload[100..164])
+        .expect("a record's bytes are in the file");
     for bit in 0..8 {
         let mut b = bytes.clone();
         b[at + 10] ^= 1 << bit;
         std::fs::write(&case, &b).unwrap();
-        assert_eq!(check(&case, &original, "a flip in a record"), "refused", "a flipped measurement must never replay");
+        assert_eq!(
+            check(&case, &original, "a flip in a record"),
+            "refused",
+            "a flipped measurement must never replay"
+        );
     }
     println!("damaged stores: {outcomes:?}");
     assert!(outcomes.get(&("bit flips", "refused")).copied().unwrap_or(0) > 0);
@@ -104,7 +134,10 @@ fn an_empty_file_is_refused_and_a_missing_one_is_new() {
     let path = dir.join("journal.redb");
     std::fs::write(&path, b"").unwrap();
     let e = Store::open(&path).err().expect("refused");
-    assert!(matches!(e, StoreError::Empty { .. }) && e.to_string().contains("0 bytes"), "{e}");
+    assert!(
+        matches!(e, StoreError::Empty { .. }) && e.to_string().contains("0 bytes"),
+        "{e}"
+    );
     std::fs::remove_file(&path).unwrap();
     let s = Store::open(&path).unwrap();
     assert_eq!(s.size(), (0, 0));

@@ -7,7 +7,10 @@ pub mod lossy_link;
 
 /// The workspace root.
 pub fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().expect("tests/ has a parent").to_path_buf()
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("tests/ has a parent")
+        .to_path_buf()
 }
 
 /// Path of a workspace binary built in the same profile as this test (`cargo test --release`
@@ -22,7 +25,16 @@ pub fn bin(name: &str) -> PathBuf {
 /// Run a workspace binary with arguments, from the workspace root.
 pub fn run(name: &str, args: &[&str]) -> Output {
     let path = bin(name);
-    Command::new(&path).args(args).current_dir(root()).output().unwrap_or_else(|e| panic!("cannot start {}: {e} (build it with `cargo build --release --workspace`)", path.display()))
+    Command::new(&path)
+        .args(args)
+        .current_dir(root())
+        .output()
+        .unwrap_or_else(|e| {
+            panic!(
+                "cannot start {}: {e} (build it with `cargo build --release --workspace`)",
+                path.display()
+            )
+        })
 }
 
 /// A scratch directory for one test (removed and made afresh).
@@ -35,14 +47,30 @@ pub fn scratch(name: &str) -> PathBuf {
 
 /// A TCP port nobody listens on now.
 pub fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).expect("a free port").port()
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a free port")
+        .port()
 }
 
 /// `config/mission-tiny.toml` with its endpoints replaced, written into `dir`.
 pub fn tiny_mission(dir: &std::path::Path, listen: &[String], connect: &[String]) -> PathBuf {
     let text = std::fs::read_to_string(root().join("config/mission-tiny.toml")).expect("the tiny mission");
-    let list = |v: &[String]| format!("[{}]", v.iter().map(|e| format!("{e:?}")).collect::<Vec<_>>().join(", "));
-    let text = text.replace(r#"listen = ["tcp/127.0.0.1:7461"]"#, &format!("listen = {}", list(listen))).replace(r#"connect = ["tcp/127.0.0.1:7461"]"#, &format!("connect = {}", list(connect)));
+    let list = |v: &[String]| {
+        format!(
+            "[{}]",
+            v.iter().map(|e| format!("{e:?}")).collect::<Vec<_>>().join(", ")
+        )
+    };
+    let text = text
+        .replace(
+            r#"listen = ["tcp/127.0.0.1:7461"]"#,
+            &format!("listen = {}", list(listen)),
+        )
+        .replace(
+            r#"connect = ["tcp/127.0.0.1:7461"]"#,
+            &format!("connect = {}", list(connect)),
+        );
     let path = dir.join("mission.toml");
     std::fs::write(&path, text).expect("writing the mission");
     path
@@ -52,7 +80,11 @@ pub fn tiny_mission(dir: &std::path::Path, listen: &[String], connect: &[String]
 /// a short plan timeout and a 1 s link lease.
 pub fn paced_mission(dir: &std::path::Path, listen: &[String], connect: &[String], step_ms: u64) -> PathBuf {
     let m = tiny_mission(dir, listen, connect);
-    edit(&m, "plan_timeout_ms = 20000", &format!("plan_timeout_ms = 1500\nstep_ms = {step_ms}"));
+    edit(
+        &m,
+        "plan_timeout_ms = 20000",
+        &format!("plan_timeout_ms = 1500\nstep_ms = {step_ms}"),
+    );
     edit(&m, "listen = [", "lease_ms = 1000\nlisten = [");
     m
 }
@@ -86,7 +118,13 @@ pub fn start_server(procs: &mut Procs, args: &[&str], log: &std::path::Path) -> 
         .arg("--events")
         .current_dir(root())
         .stdout(std::process::Stdio::piped())
-        .stderr(std::fs::OpenOptions::new().create(true).append(true).open(log).expect("server log"))
+        .stderr(
+            std::fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(log)
+                .expect("server log"),
+        )
         .spawn()
         .expect("starting model-server (build with `cargo build --release --workspace`)");
     let out = child.stdout.take().expect("piped");
@@ -101,7 +139,10 @@ pub fn start_server(procs: &mut Procs, args: &[&str], log: &std::path::Path) -> 
             }
         }
     });
-    Server { events: rx, index: procs.0.len() - 1 }
+    Server {
+        events: rx,
+        index: procs.0.len() - 1,
+    }
 }
 
 impl Server {
@@ -109,7 +150,10 @@ impl Server {
     pub fn next_epoch(&self, timeout: std::time::Duration) -> bool {
         let deadline = std::time::Instant::now() + timeout;
         loop {
-            match self.events.recv_timeout(deadline.saturating_duration_since(std::time::Instant::now())) {
+            match self
+                .events
+                .recv_timeout(deadline.saturating_duration_since(std::time::Instant::now()))
+            {
                 Ok(fleet::mission::report::ServerEvent::Epoch { .. }) => return true,
                 Ok(_) => {}
                 Err(_) => return false,
@@ -155,8 +199,17 @@ pub fn start_vehicle(procs: &mut Procs, prefix: &[&str], args: &[&str], log: &st
         }
         None => Command::new(bin("vehicle")),
     };
-    let log = std::fs::OpenOptions::new().create(true).append(true).open(log).expect("vehicle log");
-    let child = cmd.args(args).current_dir(root()).stderr(log).spawn().expect("starting a vehicle");
+    let log = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(log)
+        .expect("vehicle log");
+    let child = cmd
+        .args(args)
+        .current_dir(root())
+        .stderr(log)
+        .spawn()
+        .expect("starting a vehicle");
     procs.0.push(child);
     procs.0.len() - 1
 }
@@ -198,18 +251,28 @@ pub fn edit(path: &std::path::Path, from: &str, to: &str) {
 /// The number of batches a mission's vehicles send (one per epoch each takes part in).
 pub fn expected_batches(m: &fleet::mission::config::MissionConfig, frames: usize) -> u64 {
     let s = m.schedule(frames);
-    m.vehicles().iter().map(|v| (0..s.epochs()).filter(|&e| s.seq_of(v.kind, e).is_some()).count() as u64).sum()
+    m.vehicles()
+        .iter()
+        .map(|v| (0..s.epochs()).filter(|&e| s.seq_of(v.kind, e).is_some()).count() as u64)
+        .sum()
 }
 
 /// Whether this process may make network namespaces (root with iproute2).
 pub fn is_root_with_ip() -> bool {
-    let root = std::process::Command::new("id").arg("-u").output().map(|o| String::from_utf8_lossy(&o.stdout).trim() == "0").unwrap_or(false);
+    let root = std::process::Command::new("id")
+        .arg("-u")
+        .output()
+        .map(|o| String::from_utf8_lossy(&o.stdout).trim() == "0")
+        .unwrap_or(false);
     root && std::process::Command::new("ip").arg("-V").output().is_ok()
 }
 
 /// Run a command, panicking with its output if it fails.
 pub fn sh(args: &[&str]) {
-    let o = std::process::Command::new(args[0]).args(&args[1..]).output().unwrap_or_else(|e| panic!("{args:?}: {e}"));
+    let o = std::process::Command::new(args[0])
+        .args(&args[1..])
+        .output()
+        .unwrap_or_else(|e| panic!("{args:?}: {e}"));
     assert!(o.status.success(), "{args:?}: {}", String::from_utf8_lossy(&o.stderr));
 }
 
@@ -224,14 +287,29 @@ pub struct Host {
 impl Host {
     pub fn new(tag: u32) -> Self {
         let x = (std::process::id() + tag) % 200 + 20;
-        let h = Host { ns: format!("hft{x}"), here: format!("10.78.{x}.1"), there: format!("10.78.{x}.2") };
+        let h = Host {
+            ns: format!("hft{x}"),
+            here: format!("10.78.{x}.1"),
+            there: format!("10.78.{x}.2"),
+        };
         let (va, vb) = (h.veth(), format!("{}b", h.ns));
         sh(&["ip", "netns", "add", &h.ns]);
         sh(&["ip", "link", "add", &va, "type", "veth", "peer", "name", &vb]);
         sh(&["ip", "link", "set", &vb, "netns", &h.ns]);
         sh(&["ip", "addr", "add", &format!("{}/24", h.here), "dev", &va]);
         sh(&["ip", "link", "set", &va, "up"]);
-        sh(&["ip", "netns", "exec", &h.ns, "ip", "addr", "add", &format!("{}/24", h.there), "dev", &vb]);
+        sh(&[
+            "ip",
+            "netns",
+            "exec",
+            &h.ns,
+            "ip",
+            "addr",
+            "add",
+            &format!("{}/24", h.there),
+            "dev",
+            &vb,
+        ]);
         sh(&["ip", "netns", "exec", &h.ns, "ip", "link", "set", &vb, "up"]);
         sh(&["ip", "netns", "exec", &h.ns, "ip", "link", "set", "lo", "up"]);
         h
@@ -245,20 +323,47 @@ impl Host {
 
 impl Drop for Host {
     fn drop(&mut self) {
-        let _ = std::process::Command::new("ip").args(["netns", "del", &self.ns]).output();
-        let _ = std::process::Command::new("ip").args(["link", "del", &self.veth()]).output();
+        let _ = std::process::Command::new("ip")
+            .args(["netns", "del", &self.ns])
+            .output();
+        let _ = std::process::Command::new("ip")
+            .args(["link", "del", &self.veth()])
+            .output();
     }
 }
 
 /// Start every vehicle of `mission` with its outbox under `state` and its log in `dir`; the
 /// vehicle `away` (if any) runs on another host (`ip netns exec <ns>`) and connects to
 /// `endpoint` there. `away` lists such vehicles as (id, namespace, endpoint).
-pub fn start_vehicles(procs: &mut Procs, mission: &std::path::Path, state: &str, dir: &std::path::Path, away: &[(&str, &str, &str)]) {
+pub fn start_vehicles(
+    procs: &mut Procs,
+    mission: &std::path::Path,
+    state: &str,
+    dir: &std::path::Path,
+    away: &[(&str, &str, &str)],
+) {
     let m = mission.to_str().expect("utf-8 path");
-    for v in fleet::mission::config::MissionConfig::load(Some(mission)).expect("mission").vehicles() {
+    for v in fleet::mission::config::MissionConfig::load(Some(mission))
+        .expect("mission")
+        .vehicles()
+    {
         let log = dir.join(format!("{}.log", v.id));
         match away.iter().find(|(id, _, _)| *id == v.id) {
-            Some((_, ns, endpoint)) => start_vehicle(procs, &["ip", "netns", "exec", ns], &["--mission", m, "--id", &v.id, "--connect", endpoint, "--state-dir", state], &log),
+            Some((_, ns, endpoint)) => start_vehicle(
+                procs,
+                &["ip", "netns", "exec", ns],
+                &[
+                    "--mission",
+                    m,
+                    "--id",
+                    &v.id,
+                    "--connect",
+                    endpoint,
+                    "--state-dir",
+                    state,
+                ],
+                &log,
+            ),
             None => start_vehicle(procs, &[], &["--mission", m, "--id", &v.id, "--state-dir", state], &log),
         };
     }
@@ -282,22 +387,44 @@ pub fn check_exactly_once_and_same_model(mission: &std::path::Path, state: &std:
             other => panic!("not a batch: {other:?}"),
         })
         .collect();
-    assert_eq!(batches.len() as u64, expected_batches(&m, frames), "every batch in the journal exactly once");
+    assert_eq!(
+        batches.len() as u64,
+        expected_batches(&m, frames),
+        "every batch in the journal exactly once"
+    );
     let order = |id: &str| ctx.vehicles.iter().position(|v| v == id).unwrap();
-    batches.sort_by_key(|b| (fleet::mission::schedule::Schedule::epoch_of(b.kind, b.seq), order(&b.vehicle)));
-    let mut core = fleet::mission::server::ServerCore::new(&m.team, grid, frames).unwrap().with_boat_speed(m.motion.boat_speed);
+    batches.sort_by_key(|b| {
+        (
+            fleet::mission::schedule::Schedule::epoch_of(b.kind, b.seq),
+            order(&b.vehicle),
+        )
+    });
+    let mut core = fleet::mission::server::ServerCore::new(&m.team, grid, frames)
+        .unwrap()
+        .with_boat_speed(m.motion.boat_speed);
     for b in batches {
         core.ingest(b).unwrap();
     }
     assert!(core.finished());
     let offline = core.model_update().unwrap();
-    let fleet::protocol::Body::Model(served) = fleet::protocol::decode(&std::fs::read(out.join("model.cbor")).unwrap(), &ctx).unwrap() else { panic!("model.cbor") };
+    let fleet::protocol::Body::Model(served) =
+        fleet::protocol::decode(&std::fs::read(out.join("model.cbor")).unwrap(), &ctx).unwrap()
+    else {
+        panic!("model.cbor")
+    };
     let close = |what: &str, a: &[f64], b: &[f64]| {
         let scale = b.iter().fold(0.0f64, |m, x| m.max(x.abs()));
         let diff = a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs()));
-        assert!(a.len() == b.len() && diff <= 1e-9 * scale, "{what}: differs by {diff:e} (scale {scale:e})");
+        assert!(
+            a.len() == b.len() && diff <= 1e-9 * scale,
+            "{what}: differs by {diff:e} (scale {scale:e})"
+        );
     };
-    close("eigenvalues", served.eigenvalues.as_flattened(), offline.eigenvalues.as_flattened());
+    close(
+        "eigenvalues",
+        served.eigenvalues.as_flattened(),
+        offline.eigenvalues.as_flattened(),
+    );
     // Each mode times its amplitude: an eigenvector is only defined up to a complex factor
     // (rounding 1e-19 apart can pick another phase), the model it makes is not.
     let scaled = |u: &fleet::protocol::ModelUpdate| -> Vec<f64> {
@@ -319,7 +446,12 @@ pub struct GroundStation {
 
 impl GroundStation {
     pub fn listen(port: u16) -> Self {
-        Self { conn: Box::new(mavlink::connect::<mavlink::dialects::common::MavMessage>(&format!("udpin:127.0.0.1:{port}")).expect("a ground-station socket")) }
+        Self {
+            conn: Box::new(
+                mavlink::connect::<mavlink::dialects::common::MavMessage>(&format!("udpin:127.0.0.1:{port}"))
+                    .expect("a ground-station socket"),
+            ),
+        }
     }
 
     /// The next frame (blocks until the gateway sends one).
@@ -345,9 +477,22 @@ impl GroundStation {
                 }
             }
         }
-        let m = MavMessage::SET_MODE(SET_MODE_DATA { target_system: sysid, custom_mode, ..Default::default() });
+        let m = MavMessage::SET_MODE(SET_MODE_DATA {
+            target_system: sysid,
+            custom_mode,
+            ..Default::default()
+        });
         for _ in 0..3 {
-            self.conn.send(&mavlink::MavHeader { system_id: 255, component_id: 190, sequence: 0 }, &m).expect("sending SET_MODE");
+            self.conn
+                .send(
+                    &mavlink::MavHeader {
+                        system_id: 255,
+                        component_id: 190,
+                        sequence: 0,
+                    },
+                    &m,
+                )
+                .expect("sending SET_MODE");
             std::thread::sleep(std::time::Duration::from_millis(50));
         }
     }
@@ -360,13 +505,18 @@ pub fn pids_with(needle: &str) -> Vec<u32> {
         .expect("/proc")
         .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
         .filter(|&pid| pid != me)
-        .filter(|pid| std::fs::read(format!("/proc/{pid}/cmdline")).is_ok_and(|c| String::from_utf8_lossy(&c).replace('\0', " ").contains(needle)))
+        .filter(|pid| {
+            std::fs::read(format!("/proc/{pid}/cmdline"))
+                .is_ok_and(|c| String::from_utf8_lossy(&c).replace('\0', " ").contains(needle))
+        })
         .collect()
 }
 
 /// A process's command line, arguments separated by spaces.
 pub fn cmdline(pid: u32) -> String {
-    std::fs::read(format!("/proc/{pid}/cmdline")).map(|c| String::from_utf8_lossy(&c).replace('\0', " ")).unwrap_or_default()
+    std::fs::read(format!("/proc/{pid}/cmdline"))
+        .map(|c| String::from_utf8_lossy(&c).replace('\0', " "))
+        .unwrap_or_default()
 }
 
 /// Wait for `what` to hold, polling (panics after `secs`).
@@ -380,7 +530,12 @@ pub fn eventually(secs: u64, what: &str, mut f: impl FnMut() -> bool) {
 
 impl Server {
     /// Wait for the first event `pick` accepts (panics after `secs`).
-    pub fn wait_for<T>(&self, secs: u64, what: &str, mut pick: impl FnMut(&fleet::mission::report::ServerEvent) -> Option<T>) -> T {
+    pub fn wait_for<T>(
+        &self,
+        secs: u64,
+        what: &str,
+        mut pick: impl FnMut(&fleet::mission::report::ServerEvent) -> Option<T>,
+    ) -> T {
         let deadline = std::time::Instant::now() + std::time::Duration::from_secs(secs);
         loop {
             let left = deadline.saturating_duration_since(std::time::Instant::now());
@@ -406,7 +561,11 @@ pub fn http(port: u16, method: &str, path: &str) -> Option<(u16, String)> {
     s.read_to_end(&mut bytes).ok()?;
     let text = String::from_utf8_lossy(&bytes);
     let status = text.split_whitespace().nth(1)?.parse().ok()?;
-    Some((status, text.split_once("\r\n\r\n").map_or(String::new(), |(_, b)| b.to_string())))
+    Some((
+        status,
+        text.split_once("\r\n\r\n")
+            .map_or(String::new(), |(_, b)| b.to_string()),
+    ))
 }
 
 /// The live view's `/api/state`, once it answers.

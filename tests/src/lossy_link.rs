@@ -61,7 +61,11 @@ impl LossyHost {
         super::sh(&["ip", "addr", "add", &format!("{here}/24"), "dev", &near_name]);
         super::sh(&["ip", "link", "set", &near_name, "up"]);
         let far_addr = format!("{there}/24");
-        for cmd in [["addr", "add", &far_addr, "dev", &far_name].as_slice(), &["link", "set", &far_name, "up"], &["link", "set", "lo", "up"]] {
+        for cmd in [
+            ["addr", "add", &far_addr, "dev", &far_name].as_slice(),
+            &["link", "set", &far_name, "up"],
+            &["link", "set", "lo", "up"],
+        ] {
             super::sh(&[["ip", "-n", ns.as_str()].as_slice(), cmd].concat());
         }
         let (stop, counts) = (Arc::new(AtomicBool::new(false)), Arc::new(LinkCounts::default()));
@@ -69,17 +73,31 @@ impl LossyHost {
             .into_iter()
             .map(|(from, to, dir)| {
                 let (stop, counts) = (stop.clone(), counts.clone());
-                let how = Degradation { seed: how.seed * 2 + dir, ..how };
+                let how = Degradation {
+                    seed: how.seed * 2 + dir,
+                    ..how
+                };
                 std::thread::spawn(move || relay(&from, &to, how, &stop, &counts))
             })
             .collect();
-        Ok(LossyHost { ns, here, there, counts, stop, relays })
+        Ok(LossyHost {
+            ns,
+            here,
+            there,
+            counts,
+            stop,
+            relays,
+        })
     }
 
     /// (passed, dropped, overtaken) so far.
     pub fn totals(&self) -> (u64, u64, u64) {
         let c = &self.counts;
-        (c.passed.load(Ordering::Relaxed), c.dropped.load(Ordering::Relaxed), c.overtaken.load(Ordering::Relaxed))
+        (
+            c.passed.load(Ordering::Relaxed),
+            c.dropped.load(Ordering::Relaxed),
+            c.overtaken.load(Ordering::Relaxed),
+        )
     }
 }
 
@@ -90,7 +108,9 @@ impl Drop for LossyHost {
             let _ = r.join();
         }
         // The devices went with their files (the relays held the last references).
-        let _ = std::process::Command::new("ip").args(["netns", "del", &self.ns]).output();
+        let _ = std::process::Command::new("ip")
+            .args(["netns", "del", &self.ns])
+            .output();
     }
 }
 
@@ -107,7 +127,10 @@ fn open_tun(name: &str) -> io::Result<OwnedFd> {
     // SAFETY: ifreq is plain old data; all-zero is a valid value.
     let mut ifr: libc::ifreq = unsafe { std::mem::zeroed() };
     if name.len() >= ifr.ifr_name.len() {
-        return Err(io::Error::new(io::ErrorKind::InvalidInput, format!("interface name {name:?} too long")));
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            format!("interface name {name:?} too long"),
+        ));
     }
     for (d, s) in ifr.ifr_name.iter_mut().zip(name.bytes()) {
         *d = s as libc::c_char;
@@ -177,8 +200,15 @@ fn relay(from: &OwnedFd, to: &OwnedFd, how: Degradation, stop: &AtomicBool, coun
             // SAFETY: write(2) of an owned buffer to a descriptor we hold.
             unsafe { libc::write(to.as_raw_fd(), p.bytes.as_ptr().cast(), p.bytes.len()) };
         }
-        let wait = queue.peek().map_or(Duration::from_millis(50), |p| p.due.saturating_duration_since(now)).min(Duration::from_millis(50));
-        let mut pfd = libc::pollfd { fd: from.as_raw_fd(), events: libc::POLLIN, revents: 0 };
+        let wait = queue
+            .peek()
+            .map_or(Duration::from_millis(50), |p| p.due.saturating_duration_since(now))
+            .min(Duration::from_millis(50));
+        let mut pfd = libc::pollfd {
+            fd: from.as_raw_fd(),
+            events: libc::POLLIN,
+            revents: 0,
+        };
         // SAFETY: poll(2) on one pollfd that lives on this stack frame.
         let ready = unsafe { libc::poll(&mut pfd, 1, wait.as_millis().max(1) as libc::c_int) };
         if ready <= 0 || pfd.revents & libc::POLLIN == 0 {
@@ -195,7 +225,11 @@ fn relay(from: &OwnedFd, to: &OwnedFd, how: Degradation, stop: &AtomicBool, coun
         }
         counts.passed.fetch_add(1, Ordering::Relaxed);
         let delay = how.delay_ms + rng.random_range(0..=how.jitter_ms);
-        queue.push(Delayed { due: Instant::now() + Duration::from_millis(delay), order: read_order, bytes: buf[..n as usize].to_vec() });
+        queue.push(Delayed {
+            due: Instant::now() + Duration::from_millis(delay),
+            order: read_order,
+            bytes: buf[..n as usize].to_vec(),
+        });
         read_order += 1;
     }
 }

@@ -8,26 +8,57 @@ fn tiny_experiment_writes_a_deterministic_report() {
     let base = std::env::temp_dir().join(format!("hetfleet-exp-{}", std::process::id()));
     let (a, b) = (base.join("a"), base.join("b"));
     for dir in [&a, &b] {
-        let out = run("fleet", &["experiment", "config/experiment-tiny.toml", "--out", dir.to_str().unwrap()]);
+        let out = run(
+            "fleet",
+            &[
+                "experiment",
+                "config/experiment-tiny.toml",
+                "--out",
+                dir.to_str().unwrap(),
+            ],
+        );
         assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     }
     let ja = std::fs::read(a.join("results.json")).unwrap();
-    assert_eq!(ja, std::fs::read(b.join("results.json")).unwrap(), "same seed, different numbers");
+    assert_eq!(
+        ja,
+        std::fs::read(b.join("results.json")).unwrap(),
+        "same seed, different numbers"
+    );
     let report = std::fs::read_to_string(a.join("report.md")).unwrap();
     assert!(report.contains("## Table 2"), "{report}");
-    for fig in ["fig10-cloud2.png", "fig10-cloud10.png", "fig11.png", "fig11-uncertainty.png"] {
+    for fig in [
+        "fig10-cloud2.png",
+        "fig10-cloud10.png",
+        "fig11.png",
+        "fig11-uncertainty.png",
+    ] {
         assert!(report.contains(fig), "{fig} not in the report");
         assert_eq!(&std::fs::read(a.join(fig)).unwrap()[..4], b"\x89PNG", "{fig}");
     }
-    assert_eq!(std::fs::read(a.join("per_step.csv")).unwrap(), std::fs::read(b.join("per_step.csv")).unwrap());
+    assert_eq!(
+        std::fs::read(a.join("per_step.csv")).unwrap(),
+        std::fs::read(b.join("per_step.csv")).unwrap()
+    );
     // The verdicts on the most complex cloud of the run (cloud10, noise 0.15), read from the
     // paired intervals over the 3 seeds of the tiny file.
     let res: serde_json::Value = serde_json::from_slice(&ja).unwrap();
     let v = &res["verdict"];
     assert_eq!(v["preset"], "Cloud10");
-    for key in ["heterogeneous_vs_aerial_only", "heterogeneous_vs_boat_only", "qr_vs_random"] {
-        assert!(["better", "worse", "not-distinguishable"].contains(&v[key].as_str().unwrap()), "{key}: {}", v[key]);
-        assert!(report.contains(&format!("**{}**", v[key].as_str().unwrap().replace('-', " "))), "the report states the {key} verdict");
+    for key in [
+        "heterogeneous_vs_aerial_only",
+        "heterogeneous_vs_boat_only",
+        "qr_vs_random",
+    ] {
+        assert!(
+            ["better", "worse", "not-distinguishable"].contains(&v[key].as_str().unwrap()),
+            "{key}: {}",
+            v[key]
+        );
+        assert!(
+            report.contains(&format!("**{}**", v[key].as_str().unwrap().replace('-', " "))),
+            "the report states the {key} verdict"
+        );
     }
     // per_step.csv recomputes the table: the mean of one team's scored steps for one seed is
     // the number in results.json.
@@ -38,14 +69,35 @@ fn tiny_experiment_writes_a_deterministic_report() {
     let row = &res["rows"][1];
     let from = row["scored_from"].as_u64().unwrap() as usize;
     let seed = row["seeds"][0]["seed"].as_u64().unwrap().to_string();
-    assert!(report.contains("`heterogeneous-oracle` is a diagnostic") && report.contains("heterogeneous-oracle - heterogeneous |"), "the oracle is in the report and explained");
-    for team in ["heterogeneous", "aerial-only", "boat-only", "heterogeneous-random", "heterogeneous-horizon", "heterogeneous-oracle"] {
-        let v: Vec<(usize, f64)> = rows.iter().filter(|r| r[0] == "2" && r[1] == "Cloud10" && r[2] == seed && r[3] == team).map(|r| (r[4].parse().unwrap(), r[5].parse().unwrap())).collect();
-        assert!(v.iter().all(|(k, _)| team != "boat-only" || *k >= from), "no boat-only line before its first data");
+    assert!(
+        report.contains("`heterogeneous-oracle` is a diagnostic")
+            && report.contains("heterogeneous-oracle - heterogeneous |"),
+        "the oracle is in the report and explained"
+    );
+    for team in [
+        "heterogeneous",
+        "aerial-only",
+        "boat-only",
+        "heterogeneous-random",
+        "heterogeneous-horizon",
+        "heterogeneous-oracle",
+    ] {
+        let v: Vec<(usize, f64)> = rows
+            .iter()
+            .filter(|r| r[0] == "2" && r[1] == "Cloud10" && r[2] == seed && r[3] == team)
+            .map(|r| (r[4].parse().unwrap(), r[5].parse().unwrap()))
+            .collect();
+        assert!(
+            v.iter().all(|(k, _)| team != "boat-only" || *k >= from),
+            "no boat-only line before its first data"
+        );
         let scored: Vec<f64> = v.iter().filter(|(k, _)| *k >= from).map(|(_, e)| *e).collect();
         let mean = scored.iter().sum::<f64>() / scored.len() as f64;
         let want = row["seeds"][0]["mse"][team].as_f64().unwrap();
-        assert!((mean - want).abs() <= 1e-12 * want, "{team}: per_step.csv gives {mean}, results.json {want}");
+        assert!(
+            (mean - want).abs() <= 1e-12 * want,
+            "{team}: per_step.csv gives {mean}, results.json {want}"
+        );
     }
 }
 
@@ -54,19 +106,47 @@ fn a_bad_experiment_file_is_a_clear_error() {
     let dir = std::env::temp_dir().join(format!("hetfleet-exp-bad-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let bad = dir.join("bad.toml");
-    std::fs::write(&bad, "seed = 1\ntruth_grid = [48, 192]\nframes = 60\nradius = 8.0\n[[row]]\npreset = \"cloud9\"\nav_time = 1\nmv_time = 5\nav_space = 6\nmv_space = 2\nnoise = 0.1\n").unwrap();
-    let out = run("fleet", &["experiment", bad.to_str().unwrap(), "--out", dir.join("r").to_str().unwrap()]);
+    std::fs::write(
+        &bad,
+        "seed = 1\ntruth_grid = [48, 192]\nframes = 60\nradius = 8.0\n[[row]]\npreset = \
+        \"cloud9\"\nav_time = 1\nmv_time = 5\nav_space = 6\nmv_space = 2\nnoise = 0.1\n",
+    )
+    .unwrap();
+    let out = run(
+        "fleet",
+        &[
+            "experiment",
+            bad.to_str().unwrap(),
+            "--out",
+            dir.join("r").to_str().unwrap(),
+        ],
+    );
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && !stderr.contains("panicked"));
     assert!(stderr.contains("cloud9") || stderr.contains("preset"), "{stderr}");
     // Horizon placement plans on the filter's forecast: with another fusion it is refused,
     // by name, before anything runs.
     let tiny = std::fs::read_to_string(hetfleet_tests::root().join("config/experiment-tiny.toml")).unwrap();
-    std::fs::write(&bad, tiny.replace("rank = \"8\"", "rank = \"8\"\nfusion = \"inverse-variance\"")).unwrap();
-    let out = run("fleet", &["experiment", bad.to_str().unwrap(), "--out", dir.join("r").to_str().unwrap()]);
+    std::fs::write(
+        &bad,
+        tiny.replace("rank = \"8\"", "rank = \"8\"\nfusion = \"inverse-variance\""),
+    )
+    .unwrap();
+    let out = run(
+        "fleet",
+        &[
+            "experiment",
+            bad.to_str().unwrap(),
+            "--out",
+            dir.join("r").to_str().unwrap(),
+        ],
+    );
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{stderr}");
-    assert!(stderr.contains("extra_placements: horizon") && stderr.contains("kalman"), "{stderr}");
+    assert!(
+        stderr.contains("extra_placements: horizon") && stderr.contains("kalman"),
+        "{stderr}"
+    );
 }
 
 #[test]
@@ -74,23 +154,42 @@ fn a_dataset_can_be_the_truth() {
     let dir = std::env::temp_dir().join(format!("hetfleet-exp-ds-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let npy = dir.join("plume.npy");
-    let out = run("fleet", &["simulate", "plume", "--grid", "48x96", "--frames", "40", "--out", npy.to_str().unwrap()]);
+    let out = run(
+        "fleet",
+        &[
+            "simulate",
+            "plume",
+            "--grid",
+            "48x96",
+            "--frames",
+            "40",
+            "--out",
+            npy.to_str().unwrap(),
+        ],
+    );
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let toml = dir.join("ds.toml");
     std::fs::write(
         &toml,
         format!(
-            "seed = 3\ntruth_grid = [48, 96]\nframes = 40\nradius = 6.0\n[team]\nboats = 3\ninit_steps = 10\nrank = \"6\"\n\
+            "seed = 3\ntruth_grid = [48, 96]\nframes = 40\nradius = 6.0\n[team]\nboats = 3\ninit_steps = 10\nrank = \
+                \"6\"\n\
              [[row]]\ndataset = {:?}\nav_time = 1\nmv_time = 5\nav_space = 6\nmv_space = 2\nnoise = 0.05\n",
             npy.to_str().unwrap()
         ),
     )
     .unwrap();
     let rep = dir.join("rep");
-    let out = run("fleet", &["experiment", toml.to_str().unwrap(), "--out", rep.to_str().unwrap()]);
+    let out = run(
+        "fleet",
+        &["experiment", toml.to_str().unwrap(), "--out", rep.to_str().unwrap()],
+    );
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let report = std::fs::read_to_string(rep.join("report.md")).unwrap();
-    assert!(report.contains("| plume | 1 | 5 | 6 | 2 | 0.05 | 24 x 48 |"), "{report}");
+    assert!(
+        report.contains("| plume | 1 | 5 | 6 | 2 | 0.05 | 24 x 48 |"),
+        "{report}"
+    );
     assert!(rep.join("fig10-plume.png").exists());
 }
 
@@ -99,46 +198,93 @@ fn a_netcdf_variable_can_be_the_truth_and_gives_the_same_results_as_the_npy() {
     let dir = std::env::temp_dir().join(format!("hetfleet-exp-nc-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let npy = dir.join("plume.npy");
-    let out = run("fleet", &["simulate", "plume", "--grid", "48x96", "--frames", "40", "--out", npy.to_str().unwrap()]);
+    let out = run(
+        "fleet",
+        &[
+            "simulate",
+            "plume",
+            "--grid",
+            "48x96",
+            "--frames",
+            "40",
+            "--out",
+            npy.to_str().unwrap(),
+        ],
+    );
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     // The same field as NetCDF-3, written by the tool people use (scipy's netcdf_file), with a
     // second variable beside it.
     let nc = dir.join("plume.nc");
     let py = format!(
         "import numpy as np\nfrom scipy.io import netcdf_file\na = np.load({:?})\nf = netcdf_file({:?}, 'w')\n\
-         f.createDimension('time', a.shape[0]); f.createDimension('y', a.shape[1]); f.createDimension('x', a.shape[2])\n\
+         f.createDimension('time', a.shape[0]); f.createDimension('y', a.shape[1]); f.createDimension('x', \
+         a.shape[2])\n\
          v = f.createVariable('density', 'd', ('time', 'y', 'x')); v[:] = a; v.units = '1'\n\
          w = f.createVariable('depth', 'f', ('y', 'x')); w[:] = 0\nf.close()\n",
         npy.to_str().unwrap(),
         nc.to_str().unwrap()
     );
-    let o = std::process::Command::new("python3").args(["-c", &py]).output().expect("python3");
+    let o = std::process::Command::new("python3")
+        .args(["-c", &py])
+        .output()
+        .expect("python3");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let experiment = |name: &str, truth: &str| {
         let toml = dir.join(format!("{name}.toml"));
         std::fs::write(
             &toml,
             format!(
-                "seed = 3\nseeds = [1, 2]\ntruth_grid = [48, 96]\nframes = 40\nradius = 6.0\n[team]\nboats = 3\ninit_steps = 10\nrank = \"6\"\n\
+                "seed = 3\nseeds = [1, 2]\ntruth_grid = [48, 96]\nframes = 40\nradius = 6.0\n[team]\nboats = \
+                    3\ninit_steps = 10\nrank = \"6\"\n\
                  [[row]]\n{truth}\nav_time = 1\nmv_time = 5\nav_space = 6\nmv_space = 2\nnoise = 0.05\n"
             ),
         )
         .unwrap();
         let rep = dir.join(name);
-        let out = run("fleet", &["experiment", toml.to_str().unwrap(), "--out", rep.to_str().unwrap()]);
+        let out = run(
+            "fleet",
+            &["experiment", toml.to_str().unwrap(), "--out", rep.to_str().unwrap()],
+        );
         (out, rep)
     };
     let (a, rep_npy) = experiment("npy", &format!("dataset = {:?}", npy.to_str().unwrap()));
-    let (b, rep_nc) = experiment("nc", &format!("dataset = {:?}\nvariable = \"density\"", nc.to_str().unwrap()));
-    assert!(a.status.success() && b.status.success(), "{}{}", String::from_utf8_lossy(&a.stderr), String::from_utf8_lossy(&b.stderr));
-    let mse = |rep: &std::path::Path| std::fs::read_to_string(rep.join("per_step.csv")).unwrap().lines().map(|l| l.split(',').nth(5).unwrap_or("").to_string()).collect::<Vec<_>>();
-    assert_eq!(mse(&rep_npy), mse(&rep_nc), "the same field, the same results, step by step");
+    let (b, rep_nc) = experiment(
+        "nc",
+        &format!("dataset = {:?}\nvariable = \"density\"", nc.to_str().unwrap()),
+    );
+    assert!(
+        a.status.success() && b.status.success(),
+        "{}{}",
+        String::from_utf8_lossy(&a.stderr),
+        String::from_utf8_lossy(&b.stderr)
+    );
+    let mse = |rep: &std::path::Path| {
+        std::fs::read_to_string(rep.join("per_step.csv"))
+            .unwrap()
+            .lines()
+            .map(|l| l.split(',').nth(5).unwrap_or("").to_string())
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(
+        mse(&rep_npy),
+        mse(&rep_nc),
+        "the same field, the same results, step by step"
+    );
     // Bad NetCDF truths: exit 2 with one line naming what is wrong.
     for (truth, says) in [
         (format!("dataset = {:?}", nc.to_str().unwrap()), "`variable`"),
-        (format!("dataset = {:?}\nvariable = \"salinity\"", nc.to_str().unwrap()), "no variable \"salinity\" (it has: "),
-        (format!("dataset = {:?}\nvariable = \"depth\"", nc.to_str().unwrap()), "expected shape (frames, rows, cols)"),
-        (format!("dataset = {:?}\nvariable = \"density\"", npy.to_str().unwrap()), "`variable`"),
+        (
+            format!("dataset = {:?}\nvariable = \"salinity\"", nc.to_str().unwrap()),
+            "no variable \"salinity\" (it has: ",
+        ),
+        (
+            format!("dataset = {:?}\nvariable = \"depth\"", nc.to_str().unwrap()),
+            "expected shape (frames, rows, cols)",
+        ),
+        (
+            format!("dataset = {:?}\nvariable = \"density\"", npy.to_str().unwrap()),
+            "`variable`",
+        ),
     ] {
         let (o, _) = experiment("bad", &truth);
         let err = String::from_utf8_lossy(&o.stderr);
@@ -148,7 +294,10 @@ fn a_netcdf_variable_can_be_the_truth_and_gives_the_same_results_as_the_npy() {
     let cut = dir.join("cut.nc");
     let bytes = std::fs::read(&nc).unwrap();
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
-    let (o, _) = experiment("cut", &format!("dataset = {:?}\nvariable = \"density\"", cut.to_str().unwrap()));
+    let (o, _) = experiment(
+        "cut",
+        &format!("dataset = {:?}\nvariable = \"density\"", cut.to_str().unwrap()),
+    );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("cut.nc: not a readable NetCDF-3 file"), "{err}");

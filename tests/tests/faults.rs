@@ -15,15 +15,41 @@ fn kill_9_of_the_server_and_of_a_boat_loses_nothing_and_counts_nothing_twice() {
     let dir = scratch("kill");
     let ep = format!("tcp/127.0.0.1:{}", free_port());
     let mission = paced_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep), 60);
-    let (m, out, state) = (mission.to_str().unwrap().to_string(), dir.join("out"), dir.join("state"));
-    let server_args = ["--mission", &m, "--out", out.to_str().unwrap(), "--state-dir", state.to_str().unwrap(), "--exit-when-done"];
+    let (m, out, state) = (
+        mission.to_str().unwrap().to_string(),
+        dir.join("out"),
+        dir.join("state"),
+    );
+    let server_args = [
+        "--mission",
+        &m,
+        "--out",
+        out.to_str().unwrap(),
+        "--state-dir",
+        state.to_str().unwrap(),
+        "--exit-when-done",
+    ];
     let mut procs = Procs::default();
     let server = start_server(&mut procs, &server_args, &dir.join("server.log"));
-    let vehicle_args = |id: &str| vec!["--mission".to_string(), m.clone(), "--id".into(), id.into(), "--state-dir".into(), state.to_str().unwrap().into()];
+    let vehicle_args = |id: &str| {
+        vec![
+            "--mission".to_string(),
+            m.clone(),
+            "--id".into(),
+            id.into(),
+            "--state-dir".into(),
+            state.to_str().unwrap().into(),
+        ]
+    };
     let mut boat2 = 0;
     for v in MissionConfig::load(Some(&mission)).unwrap().vehicles() {
         let args = vehicle_args(&v.id);
-        let i = start_vehicle(&mut procs, &[], &args.iter().map(String::as_str).collect::<Vec<_>>(), &dir.join(format!("{}.log", v.id)));
+        let i = start_vehicle(
+            &mut procs,
+            &[],
+            &args.iter().map(String::as_str).collect::<Vec<_>>(),
+            &dir.join(format!("{}.log", v.id)),
+        );
         if v.id == "boat-2" {
             boat2 = i;
         }
@@ -32,27 +58,58 @@ fn kill_9_of_the_server_and_of_a_boat_loses_nothing_and_counts_nothing_twice() {
     server.epoch(1, 60);
     procs.kill(boat2);
     let args = vehicle_args("boat-2");
-    start_vehicle(&mut procs, &[], &args.iter().map(String::as_str).collect::<Vec<_>>(), &dir.join("boat-2.log"));
+    start_vehicle(
+        &mut procs,
+        &[],
+        &args.iter().map(String::as_str).collect::<Vec<_>>(),
+        &dir.join("boat-2.log"),
+    );
     // The server dies mid-mission and comes back from its journal.
     server.epoch(3, 60);
     procs.kill(server.index);
     let server = start_server(&mut procs, &server_args, &dir.join("server.log"));
     let summary = server.finished(120);
     procs.wait_all(60);
-    assert!(summary.counters.restored >= 4 * 3, "the restarted server replayed its journal ({})", summary.counters.restored);
-    assert_eq!(summary.counters.batches - summary.counters.duplicates, expected_batches(&MissionConfig::load(Some(&mission)).unwrap(), 40));
+    assert!(
+        summary.counters.restored >= 4 * 3,
+        "the restarted server replayed its journal ({})",
+        summary.counters.restored
+    );
+    assert_eq!(
+        summary.counters.batches - summary.counters.duplicates,
+        expected_batches(&MissionConfig::load(Some(&mission)).unwrap(), 40)
+    );
     check_exactly_once_and_same_model(&mission, &state, &out);
-    println!("kill -9: restored {} batches, {} duplicates re-sent and dropped", summary.counters.restored, summary.counters.duplicates);
+    println!(
+        "kill -9: restored {} batches, {} duplicates re-sent and dropped",
+        summary.counters.restored, summary.counters.duplicates
+    );
 }
 
 /// Start the server (until the mission is done) and every vehicle, those in `away` (id,
 /// namespace, endpoint) on their hosts. Returns the processes, the server, and its out and
 /// state directories under `dir`.
-fn start_mission(dir: &Path, mission: &Path, away: &[(&str, &str, &str)]) -> (Procs, Server, std::path::PathBuf, std::path::PathBuf) {
+fn start_mission(
+    dir: &Path,
+    mission: &Path,
+    away: &[(&str, &str, &str)],
+) -> (Procs, Server, std::path::PathBuf, std::path::PathBuf) {
     let (out, state) = (dir.join("out"), dir.join("state"));
     let (m, st) = (mission.to_str().unwrap(), state.to_str().unwrap());
     let mut procs = Procs::default();
-    let server = start_server(&mut procs, &["--mission", m, "--out", out.to_str().unwrap(), "--state-dir", st, "--exit-when-done"], &dir.join("server.log"));
+    let server = start_server(
+        &mut procs,
+        &[
+            "--mission",
+            m,
+            "--out",
+            out.to_str().unwrap(),
+            "--state-dir",
+            st,
+            "--exit-when-done",
+        ],
+        &dir.join("server.log"),
+    );
     start_vehicles(&mut procs, mission, st, dir, away);
     (procs, server, out, state)
 }
@@ -65,7 +122,12 @@ fn outage_schedule(epochs: u64, seed: u64, longest_first: bool) -> Vec<(u64, u64
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let (mut at, mut down, mut out) = (rng.random_range(1..4u64), 0, vec![]);
     loop {
-        let len = if longest_first && out.is_empty() { 10 } else { rng.random_range(1..=10u64) }.min(epochs / 2 - down);
+        let len = if longest_first && out.is_empty() {
+            10
+        } else {
+            rng.random_range(1..=10u64)
+        }
+        .min(epochs / 2 - down);
         if len == 0 || at + len + 2 > epochs {
             return out;
         }
@@ -98,7 +160,12 @@ fn boats_whose_links_drop_on_random_schedules_lose_nothing() {
     edit(&mission, "resend_ms", "epoch_timeout_ms = 400\nhorizon = 16\nresend_ms");
     let epochs = MissionConfig::load(Some(&mission)).unwrap().schedule(60).epochs();
     let plans: Vec<Vec<(u64, u64)>> = (0..3).map(|i| outage_schedule(epochs, 11 + i, i == 2)).collect();
-    let away: Vec<(&str, &str, &str)> = boats.iter().zip(&hosts).zip(&remote).map(|((b, h), e)| (b.as_str(), h.ns.as_str(), e.as_str())).collect();
+    let away: Vec<(&str, &str, &str)> = boats
+        .iter()
+        .zip(&hosts)
+        .zip(&remote)
+        .map(|((b, h), e)| (b.as_str(), h.ns.as_str(), e.as_str()))
+        .collect();
     let (mut procs, server, out, state) = start_mission(&dir, &mission, &away);
 
     // Drive the links from the server's epochs; note when each came back and which of that
@@ -112,9 +179,15 @@ fn boats_whose_links_drop_on_random_schedules_lose_nothing() {
     let deadline = Instant::now() + Duration::from_secs(240);
     let summary = loop {
         assert!(Instant::now() < deadline, "the mission did not finish in 240 s");
-        let Ok(event) = server.events.recv_timeout(Duration::from_millis(100)) else { continue };
+        let Ok(event) = server.events.recv_timeout(Duration::from_millis(100)) else {
+            continue;
+        };
         match event {
-            ServerEvent::Epoch { epoch, missing: without, .. } => {
+            ServerEvent::Epoch {
+                epoch,
+                missing: without,
+                ..
+            } => {
                 for (b, id) in boats.iter().enumerate() {
                     if without.contains(id) {
                         missing[b].insert(epoch);
@@ -125,7 +198,13 @@ fn boats_whose_links_drop_on_random_schedules_lose_nothing() {
                             let size = std::fs::metadata(state.join(format!("{id}.redb"))).map_or(0, |f| f.len());
                             outbox_bytes[b] = outbox_bytes[b].max(size);
                         }
-                        sh(&["ip", "link", "set", &hosts[b].veth(), if out_now { "down" } else { "up" }]);
+                        sh(&[
+                            "ip",
+                            "link",
+                            "set",
+                            &hosts[b].veth(),
+                            if out_now { "down" } else { "up" },
+                        ]);
                         down[b] = out_now;
                         if out_now {
                             downs.push((b, Instant::now()));
@@ -148,7 +227,11 @@ fn boats_whose_links_drop_on_random_schedules_lose_nothing() {
     };
     procs.wait_all(60);
     check_exactly_once_and_same_model(&mission, &state, &out);
-    assert!(summary.counters.forced >= 1 && summary.counters.refits >= 1, "the outages made the server go on without the boats and re-fit: {:?}", summary.counters);
+    assert!(
+        summary.counters.forced >= 1 && summary.counters.refits >= 1,
+        "the outages made the server go on without the boats and re-fit: {:?}",
+        summary.counters
+    );
     // From a link coming back to the model holding all of that boat's backlog, for links that
     // stayed up that long (one up for a single epoch may go down again before Zenoh is back).
     let backlog_ms: Vec<f64> = ups
@@ -158,15 +241,34 @@ fn boats_whose_links_drop_on_random_schedules_lose_nothing() {
             let (_, _, at) = late.iter().find(|(lb, e, at)| lb == b && *e == last && at >= t)?;
             let ms = at.duration_since(*t).as_secs_f64() * 1e3;
             let stayed = !downs.iter().any(|(db, dt)| db == b && dt > t && dt < at);
-            println!("  boat-{} back owing epochs {owed:?}: all in the model after {ms:.0} ms{}", b + 1, if stayed { "" } else { " (down again before: not counted)" });
+            println!(
+                "  boat-{} back owing epochs {owed:?}: all in the model after {ms:.0} ms{}",
+                b + 1,
+                if stayed {
+                    ""
+                } else {
+                    " (down again before: not counted)"
+                }
+            );
             stayed.then_some(ms)
         })
         .collect();
     let p = fleet::mission::report::Percentiles::of(&backlog_ms);
     let longest = plans.iter().flatten().map(|(s, e)| e - s).max().unwrap_or(0);
-    let fraction: Vec<String> = plans.iter().map(|p| format!("{:.0}%", 100.0 * p.iter().map(|(s, e)| e - s).sum::<u64>() as f64 / epochs as f64)).collect();
+    let fraction: Vec<String> = plans
+        .iter()
+        .map(|p| {
+            format!(
+                "{:.0}%",
+                100.0 * p.iter().map(|(s, e)| e - s).sum::<u64>() as f64 / epochs as f64
+            )
+        })
+        .collect();
     println!(
-        "link outages: 3 boats, {} outages on seeded schedules, longest {longest} epochs, disconnected {} of {epochs} epochs; {} epochs assimilated without a vehicle, {} re-fits; link up to the model holding the boat's backlog p50 {:.0} ms p99 {:.0} ms (n = {}); outbox files at most {:?} bytes; {:.1} s mission, {} duplicates",
+        "link outages: 3 boats, {} outages on seeded schedules, longest {longest} epochs, disconnected {} of {epochs} \
+            epochs; {} epochs assimilated without a vehicle, {} re-fits; link up to the model holding the boat's \
+            backlog p50 {:.0} ms p99 {:.0} ms (n = {}); outbox files at most {:?} bytes; {:.1} s mission, {} \
+            duplicates",
         ups.len(),
         fraction.join(" / "),
         summary.counters.forced,
@@ -195,22 +297,52 @@ fn thirty_percent_loss_with_reordering_on_every_link() {
     let dir = scratch("lossy");
     let port = free_port();
     let local = format!("tcp/127.0.0.1:{port}");
-    let ids: Vec<String> = MissionConfig::load(Some(&root().join("config/mission-tiny.toml"))).unwrap().vehicles().into_iter().map(|v| v.id).collect();
-    let hosts: Vec<LossyHost> =
-        (0..ids.len()).map(|i| LossyHost::new(10 + i as u32, Degradation { loss: 0.3, delay_ms: 2, jitter_ms: 20, seed: 7 + i as u64 }).expect("a TUN link (needs /dev/net/tun)")).collect();
+    let ids: Vec<String> = MissionConfig::load(Some(&root().join("config/mission-tiny.toml")))
+        .unwrap()
+        .vehicles()
+        .into_iter()
+        .map(|v| v.id)
+        .collect();
+    let hosts: Vec<LossyHost> = (0..ids.len())
+        .map(|i| {
+            LossyHost::new(
+                10 + i as u32,
+                Degradation {
+                    loss: 0.3,
+                    delay_ms: 2,
+                    jitter_ms: 20,
+                    seed: 7 + i as u64,
+                },
+            )
+            .expect("a TUN link (needs /dev/net/tun)")
+        })
+        .collect();
     let remote: Vec<String> = hosts.iter().map(|h| format!("tcp/{}:{port}", h.here)).collect();
     let mission = tiny_mission(&dir, &[vec![local.clone()], remote.clone()].concat(), &[local]);
-    let away: Vec<(&str, &str, &str)> = ids.iter().zip(&hosts).zip(&remote).map(|((id, h), e)| (id.as_str(), h.ns.as_str(), e.as_str())).collect();
+    let away: Vec<(&str, &str, &str)> = ids
+        .iter()
+        .zip(&hosts)
+        .zip(&remote)
+        .map(|((id, h), e)| (id.as_str(), h.ns.as_str(), e.as_str()))
+        .collect();
     let (mut procs, server, out, state) = start_mission(&dir, &mission, &away);
     let summary = server.finished(600);
     procs.wait_all(120);
     check_exactly_once_and_same_model(&mission, &state, &out);
-    let (passed, dropped, overtaken) = hosts.iter().map(LossyHost::totals).fold((0, 0, 0), |a, t| (a.0 + t.0, a.1 + t.1, a.2 + t.2));
+    let (passed, dropped, overtaken) = hosts
+        .iter()
+        .map(LossyHost::totals)
+        .fold((0, 0, 0), |a, t| (a.0 + t.0, a.1 + t.1, a.2 + t.2));
     let lost = dropped as f64 / (passed + dropped) as f64;
-    assert!((0.25..0.35).contains(&lost), "the links dropped {dropped} of {} packets", passed + dropped);
+    assert!(
+        (0.25..0.35).contains(&lost),
+        "the links dropped {dropped} of {} packets",
+        passed + dropped
+    );
     assert!(overtaken > 0, "no packet was reordered");
     println!(
-        "30% loss on {} links: {dropped} of {} packets dropped ({:.1}%), {overtaken} reordered; mission in {:.1} s, last batch to model p50 {:.1} ms p99 {:.1} ms; {} duplicates re-sent and dropped",
+        "30% loss on {} links: {dropped} of {} packets dropped ({:.1}%), {overtaken} reordered; mission in {:.1} s, \
+            last batch to model p50 {:.1} ms p99 {:.1} ms; {} duplicates re-sent and dropped",
         hosts.len(),
         passed + dropped,
         100.0 * lost,

@@ -11,7 +11,14 @@ use hetfleet_tests::*;
 use std::path::Path;
 
 /// The tiny mission's 48 m x 24 m site without its north-east quarter, metres `[east, north]`.
-const ELL: [[f64; 2]; 6] = [[0.0, 0.0], [48.0, 0.0], [48.0, 12.0], [24.0, 12.0], [24.0, 24.0], [0.0, 24.0]];
+const ELL: [[f64; 2]; 6] = [
+    [0.0, 0.0],
+    [48.0, 0.0],
+    [48.0, 12.0],
+    [24.0, 12.0],
+    [24.0, 24.0],
+    [0.0, 24.0],
+];
 
 /// Every plan the server handed out in the mission at `dir` (from its recording): per target,
 /// its position (grid metres) and cells.
@@ -23,14 +30,21 @@ fn planned(run_dir: &Path) -> Vec<([f64; 2], Vec<u32>, String)> {
         .iter()
         .filter(|m| m.topic.contains("/plan/"))
         .flat_map(|m| match fleet::protocol::decode(&m.data, &ctx).unwrap() {
-            Body::Plan(p) => p.targets.into_iter().map(move |t| (t.position, t.cells, p.vehicle.clone())).collect::<Vec<_>>(),
+            Body::Plan(p) => p
+                .targets
+                .into_iter()
+                .map(move |t| (t.position, t.cells, p.vehicle.clone()))
+                .collect::<Vec<_>>(),
             other => panic!("a plan reply that is not a plan: {other:?}"),
         })
         .collect()
 }
 
 fn fleet_up(mission: &Path, out: &Path) {
-    let o = run("fleet", &["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let o = run(
+        "fleet",
+        &["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()],
+    );
     assert!(o.status.success(), "fleet up: {}", String::from_utf8_lossy(&o.stderr));
 }
 
@@ -38,7 +52,10 @@ fn fleet_up(mission: &Path, out: &Path) {
 fn a_concave_fence_keeps_every_disk_and_aerial_place_inside_for_qr_and_horizon() {
     let dir = scratch("fence");
     let m = MissionConfig::load(Some(&root().join("config/mission-tiny.toml"))).unwrap();
-    let site = Site { origin: m.mavlink.origin, scale: nalgebra::Vector2::new(1.0, 1.0) };
+    let site = Site {
+        origin: m.mavlink.origin,
+        scale: nalgebra::Vector2::new(1.0, 1.0),
+    };
     let latlon: Vec<[f64; 2]> = ELL
         .iter()
         .map(|[e, n]| {
@@ -66,7 +83,10 @@ fn a_concave_fence_keeps_every_disk_and_aerial_place_inside_for_qr_and_horizon()
             let (mut boat_cells, mut in_notch, mut places) = (0, 0, 0);
             for (position, cells, vehicle) in planned(&out) {
                 places += 1;
-                assert!(!fenced || inside(&ELL, position), "{placement}: {vehicle} sent to {position:?}, outside the fence");
+                assert!(
+                    !fenced || inside(&ELL, position),
+                    "{placement}: {vehicle} sent to {position:?}, outside the fence"
+                );
                 for c in cells.iter().filter(|_| vehicle.starts_with("boat")) {
                     let (x, y) = grid.centre_m(grid.cell(*c as usize));
                     boat_cells += 1;
@@ -75,40 +95,84 @@ fn a_concave_fence_keeps_every_disk_and_aerial_place_inside_for_qr_and_horizon()
                     }
                 }
             }
-            println!("{placement}, fenced {fenced}: {places} places, {boat_cells} disk cells, {in_notch} outside the L");
+            println!(
+                "{placement}, fenced {fenced}: {places} places, {boat_cells} disk cells, {in_notch} outside the L"
+            );
             // Every autopilot took the fence and enforced it, and the ways between places were
             // routed round the notch: no breach, nobody returned to launch or held.
             for v in m.vehicles() {
                 let log = std::fs::read_to_string(out.join(format!("logs/{}.log", v.id))).unwrap();
-                assert!(log.contains("fence enabled"), "{placement}: {} did not enable the fence:\n{log}", v.id);
-                assert!(!log.contains("Fence breach"), "{placement}: {} breached the fence:\n{log}", v.id);
+                assert!(
+                    log.contains("fence enabled"),
+                    "{placement}: {} did not enable the fence:\n{log}",
+                    v.id
+                );
+                assert!(
+                    !log.contains("Fence breach"),
+                    "{placement}: {} breached the fence:\n{log}",
+                    v.id
+                );
             }
             let events = std::fs::read_to_string(out.join("events.jsonl")).unwrap();
-            assert!(!events.contains("\"hold\""), "{placement}: a vehicle left the allocation");
+            assert!(
+                !events.contains("\"hold\""),
+                "{placement}: a vehicle left the allocation"
+            );
             assert!(boat_cells > 0, "{placement}: no disk at all");
             if fenced {
                 assert_eq!(in_notch, 0, "{placement}: disk cells outside the fence");
                 // The exported QGC plans carry the mission's fence, not the grid's rectangle.
-                let o = run("fleet", &["export", out.to_str().unwrap(), "--qgc-plan", case.join("next.plan").to_str().unwrap()]);
+                let o = run(
+                    "fleet",
+                    &[
+                        "export",
+                        out.to_str().unwrap(),
+                        "--qgc-plan",
+                        case.join("next.plan").to_str().unwrap(),
+                    ],
+                );
                 assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-                let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(case.join("next.boat-1.plan")).unwrap()).unwrap();
-                let fence: Vec<[f64; 2]> = serde_json::from_value(doc["geoFence"]["polygons"][0]["polygon"].clone()).unwrap();
+                let doc: serde_json::Value =
+                    serde_json::from_slice(&std::fs::read(case.join("next.boat-1.plan")).unwrap()).unwrap();
+                let fence: Vec<[f64; 2]> =
+                    serde_json::from_value(doc["geoFence"]["polygons"][0]["polygon"].clone()).unwrap();
                 assert_eq!(fence.len(), latlon.len());
                 for (a, b) in fence.iter().zip(&latlon) {
-                    assert!((a[0] - b[0]).abs() < 1e-9 && (a[1] - b[1]).abs() < 1e-9, "{a:?} vs {b:?}");
+                    assert!(
+                        (a[0] - b[0]).abs() < 1e-9 && (a[1] - b[1]).abs() < 1e-9,
+                        "{a:?} vs {b:?}"
+                    );
                 }
             } else {
-                assert!(in_notch > 0, "{placement}: without the fence no disk touches the notch, so this test could not fail");
+                assert!(
+                    in_notch > 0,
+                    "{placement}: without the fence no disk touches the notch, so this test could not fail"
+                );
             }
         }
     }
     // A mission whose boundary file has no geofence is one line, exit 2, naming the file.
     let ep = vec![format!("tcp/127.0.0.1:{}", free_port())];
     let mission = tiny_mission(&dir, &ep, &ep);
-    std::fs::write(dir.join("nofence.plan"), r#"{"fileType": "Plan", "version": 1, "mission": {"items": []}}"#).unwrap();
+    std::fs::write(
+        dir.join("nofence.plan"),
+        r#"{"fileType": "Plan", "version": 1, "mission": {"items": []}}"#,
+    )
+    .unwrap();
     edit(&mission, "[mavlink]\n", "[mavlink]\nboundary = \"nofence.plan\"\n");
-    let o = run("fleet", &["up", mission.to_str().unwrap(), "--out", dir.join("bad").to_str().unwrap()]);
+    let o = run(
+        "fleet",
+        &[
+            "up",
+            mission.to_str().unwrap(),
+            "--out",
+            dir.join("bad").to_str().unwrap(),
+        ],
+    );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
-    assert!(err.contains("nofence.plan") && err.contains("without a geofence") && err.trim().lines().count() == 1, "{err}");
+    assert!(
+        err.contains("nofence.plan") && err.contains("without a geofence") && err.trim().lines().count() == 1,
+        "{err}"
+    );
 }

@@ -15,7 +15,11 @@ fn check_against_offline(mission: &Path, summary: &ServerSummary) {
     let offline = team::run(&m.team, &truth, |_, _| {}).unwrap();
     let c = &summary.counters;
     assert_eq!(c.rejected.values().sum::<u64>(), 0, "{:?}", c.rejected);
-    assert_eq!(c.batches - c.duplicates, expected_batches(&m, truth.frames()), "each batch assimilated once");
+    assert_eq!(
+        c.batches - c.duplicates,
+        expected_batches(&m, truth.frames()),
+        "each batch assimilated once"
+    );
     assert_eq!(summary.epochs, m.schedule(truth.frames()).epochs());
     assert_eq!(summary.mse.len(), offline.heterogeneous.len());
     for (k, (a, b)) in summary.mse.iter().zip(&offline.heterogeneous).enumerate() {
@@ -30,14 +34,27 @@ fn fleet_up_runs_a_mission_that_equals_the_offline_loop() {
     let ep = format!("tcp/127.0.0.1:{}", free_port());
     let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
     let out = dir.join("run");
-    let o = run("fleet", &["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()]);
-    assert!(o.status.success(), "fleet up failed: {}\n{}", String::from_utf8_lossy(&o.stderr), String::from_utf8_lossy(&o.stdout));
-    let summary: ServerSummary = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let o = run(
+        "fleet",
+        &["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()],
+    );
+    assert!(
+        o.status.success(),
+        "fleet up failed: {}\n{}",
+        String::from_utf8_lossy(&o.stderr),
+        String::from_utf8_lossy(&o.stdout)
+    );
+    let summary: ServerSummary =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     check_against_offline(&mission, &summary);
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(report.contains("Network equals offline: **yes"), "{report}");
     assert!(out.join("mse.png").exists() && out.join("model.cbor").exists());
-    assert_eq!(summary.link_ups.len(), summary.vehicles.len(), "every vehicle was seen alive");
+    assert_eq!(
+        summary.link_ups.len(),
+        summary.vehicles.len(),
+        "every vehicle was seen alive"
+    );
 }
 
 #[test]
@@ -50,11 +67,24 @@ fn a_python_eclipse_zenoh_client_decodes_model_latest() {
     let mut procs = Procs::default();
     let state = dir.join("state");
     let st = state.to_str().unwrap();
-    let server = start_server(&mut procs, &["--mission", m, "--out", out.to_str().unwrap(), "--state-dir", st], &dir.join("server.log"));
+    let server = start_server(
+        &mut procs,
+        &["--mission", m, "--out", out.to_str().unwrap(), "--state-dir", st],
+        &dir.join("server.log"),
+    );
     start_vehicles(&mut procs, &mission, st, &dir, &[]);
     server.finished(120);
-    let o = std::process::Command::new("python3").arg(root().join("tests/py/model_latest.py")).args([&ep, "tiny", out.join("summary.json").to_str().unwrap()]).output().expect("python3");
-    assert!(o.status.success(), "the Python client failed (scripts/test.sh installs eclipse-zenoh and cbor2):\n{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    let o = std::process::Command::new("python3")
+        .arg(root().join("tests/py/model_latest.py"))
+        .args([&ep, "tiny", out.join("summary.json").to_str().unwrap()])
+        .output()
+        .expect("python3");
+    assert!(
+        o.status.success(),
+        "the Python client failed (scripts/test.sh installs eclipse-zenoh and cbor2):\n{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
     println!("{}", String::from_utf8_lossy(&o.stdout));
 }
 
@@ -76,10 +106,17 @@ fn a_vehicle_on_another_host_reaches_the_server_through_its_router() {
     let mut procs = Procs::default();
     let st = dir.join("state");
     let st = st.to_str().unwrap();
-    let server = start_server(&mut procs, &["--mission", m, "--state-dir", st], &dir.join("server.log"));
+    let server = start_server(
+        &mut procs,
+        &["--mission", m, "--state-dir", st],
+        &dir.join("server.log"),
+    );
     start_vehicles(&mut procs, &mission, st, &dir, &[("boat-1", &host.ns, &remote)]);
     let summary = server.finished(120);
-    assert!(summary.link_ups.contains_key("boat-1"), "boat-1's liveliness crossed the link");
+    assert!(
+        summary.link_ups.contains_key("boat-1"),
+        "boat-1's liveliness crossed the link"
+    );
     // Its own namespace cannot reach this host's loopback: the data came over the veth.
     check_against_offline(&mission, &summary);
 }

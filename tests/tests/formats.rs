@@ -17,17 +17,37 @@ fn finished_run(dir: &Path) -> PathBuf {
     let ep = vec![format!("tcp/127.0.0.1:{port}")];
     let mission = tiny_mission(dir, &ep, &ep);
     let text = std::fs::read_to_string(&mission).unwrap();
-    let site = format!("origin = [{}, {}, {}]\nsize_m = [{}, {}]\n", ORIGIN[0], ORIGIN[1], ORIGIN[2], SIZE_M[0], SIZE_M[1]);
+    let site = format!(
+        "origin = [{}, {}, {}]\nsize_m = [{}, {}]\n",
+        ORIGIN[0], ORIGIN[1], ORIGIN[2], SIZE_M[0], SIZE_M[1]
+    );
     std::fs::write(&mission, text.replace("[mavlink]\n", &format!("[mavlink]\n{site}"))).unwrap();
     let out = dir.join("run");
-    let o = run("fleet", &["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()]);
-    assert!(o.status.success(), "fleet up failed: {}", String::from_utf8_lossy(&o.stderr));
+    let o = run(
+        "fleet",
+        &["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()],
+    );
+    assert!(
+        o.status.success(),
+        "fleet up failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     out
 }
 
 fn python(script: &str) -> String {
-    let o = Command::new("python3").arg("-c").arg(script).current_dir(root()).output().expect("python3");
-    assert!(o.status.success(), "python failed:\n{}\n{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    let o = Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .current_dir(root())
+        .output()
+        .expect("python3");
+    assert!(
+        o.status.success(),
+        "python failed:\n{}\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
     String::from_utf8_lossy(&o.stdout).into_owned()
 }
 
@@ -43,7 +63,11 @@ east = lon0 + math.degrees(SIZE_E / (R * math.cos(math.radians(lat0))))
 ";
 
 fn corners_py() -> String {
-    CORNERS_PY.replace("ORIGIN_LAT", &ORIGIN[0].to_string()).replace("ORIGIN_LON", &ORIGIN[1].to_string()).replace("SIZE_N", &SIZE_M[1].to_string()).replace("SIZE_E", &SIZE_M[0].to_string())
+    CORNERS_PY
+        .replace("ORIGIN_LAT", &ORIGIN[0].to_string())
+        .replace("ORIGIN_LON", &ORIGIN[1].to_string())
+        .replace("SIZE_N", &SIZE_M[1].to_string())
+        .replace("SIZE_E", &SIZE_M[0].to_string())
 }
 
 #[test]
@@ -92,12 +116,23 @@ print('ok', len(mse))
     // GeoTIFF: GDAL finds WGS 84 and the site's corners within 1e-6 degrees; the band is the
     // final estimate, north up.
     let geo = dir.join("geo");
-    let o = run("fleet", &["export", out.to_str().unwrap(), "--geotiff", geo.to_str().unwrap()]);
+    let o = run(
+        "fleet",
+        &["export", out.to_str().unwrap(), "--geotiff", geo.to_str().unwrap()],
+    );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     for name in ["estimate", "variance"] {
         let tif = geo.join(format!("{name}.tif"));
-        let info = Command::new("gdalinfo").arg("-json").arg(&tif).output().expect("gdalinfo (Debian gdal-bin; scripts/test.sh installs it)");
-        assert!(info.status.success(), "gdalinfo: {}", String::from_utf8_lossy(&info.stderr));
+        let info = Command::new("gdalinfo")
+            .arg("-json")
+            .arg(&tif)
+            .output()
+            .expect("gdalinfo (Debian gdal-bin; scripts/test.sh installs it)");
+        assert!(
+            info.status.success(),
+            "gdalinfo: {}",
+            String::from_utf8_lossy(&info.stderr)
+        );
         let info_path = dir.join(format!("{name}.json"));
         std::fs::write(&info_path, &info.stdout).unwrap();
         let said = python(&format!(
@@ -119,7 +154,12 @@ print('ok')
     }
     // The pixels themselves, through GDAL's own reader (gdal_translate to an ASCII grid).
     let asc = dir.join("estimate.asc");
-    let t = Command::new("gdal_translate").args(["-q", "-of", "AAIGrid"]).arg(geo.join("estimate.tif")).arg(&asc).output().expect("gdal_translate");
+    let t = Command::new("gdal_translate")
+        .args(["-q", "-of", "AAIGrid"])
+        .arg(geo.join("estimate.tif"))
+        .arg(&asc)
+        .output()
+        .expect("gdal_translate");
     assert!(t.status.success(), "{}", String::from_utf8_lossy(&t.stderr));
     let said = python(&format!(
         "import numpy as np
@@ -136,7 +176,10 @@ print('ok')
     // QGroundControl plans: one per boat, QGC's schema fields, a waypoint at each planned
     // sensing place of the plans published last, inside the site's fence.
     let plan = dir.join("next.plan");
-    let o = run("fleet", &["export", out.to_str().unwrap(), "--qgc-plan", plan.to_str().unwrap()]);
+    let o = run(
+        "fleet",
+        &["export", out.to_str().unwrap(), "--qgc-plan", plan.to_str().unwrap()],
+    );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let said = python(&format!(
         "{corners}
@@ -198,32 +241,68 @@ print('ok', batches)
     // A damaged run: each damaged file is named on one line, exit 2, and nothing half written.
     let damaged = dir.join("damaged");
     std::fs::create_dir_all(&damaged).unwrap();
-    for f in ["mission.toml", "summary.json", "estimate.npy", "variance.npy", "truth.npy", "plans.json"] {
+    for f in [
+        "mission.toml",
+        "summary.json",
+        "estimate.npy",
+        "variance.npy",
+        "truth.npy",
+        "plans.json",
+    ] {
         std::fs::copy(out.join(f), damaged.join(f)).unwrap();
     }
     let est = std::fs::read(damaged.join("estimate.npy")).unwrap();
     std::fs::write(damaged.join("estimate.npy"), &est[..est.len() / 2]).unwrap();
     let nc = dir.join("damaged.nc");
-    let o = run("fleet", &["export", damaged.to_str().unwrap(), "--netcdf", nc.to_str().unwrap()]);
+    let o = run(
+        "fleet",
+        &["export", damaged.to_str().unwrap(), "--netcdf", nc.to_str().unwrap()],
+    );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("estimate.npy") && err.trim().lines().count() == 1, "{err}");
     assert!(!nc.exists() && !dir.join("damaged.nc.partial").exists());
     std::fs::write(damaged.join("estimate.npy"), &est).unwrap();
     std::fs::write(damaged.join("plans.json"), b"{\"horizon\": 2, \"plans\": [").unwrap();
-    let o = run("fleet", &["export", damaged.to_str().unwrap(), "--qgc-plan", dir.join("d.plan").to_str().unwrap()]);
+    let o = run(
+        "fleet",
+        &[
+            "export",
+            damaged.to_str().unwrap(),
+            "--qgc-plan",
+            dir.join("d.plan").to_str().unwrap(),
+        ],
+    );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("plans.json") && err.trim().lines().count() == 1, "{err}");
     // A damaged recording stops only what needs it (the plans' fence), not the fields.
     std::fs::copy(out.join("plans.json"), damaged.join("plans.json")).unwrap();
     std::fs::write(damaged.join("recording.mcap"), b"\x89MCAP0\r\ncut").unwrap();
-    let o = run("fleet", &["export", damaged.to_str().unwrap(), "--netcdf", nc.to_str().unwrap()]);
-    assert!(o.status.success() && nc.exists(), "{}", String::from_utf8_lossy(&o.stderr));
-    let o = run("fleet", &["export", damaged.to_str().unwrap(), "--qgc-plan", dir.join("d.plan").to_str().unwrap()]);
+    let o = run(
+        "fleet",
+        &["export", damaged.to_str().unwrap(), "--netcdf", nc.to_str().unwrap()],
+    );
+    assert!(
+        o.status.success() && nc.exists(),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let o = run(
+        "fleet",
+        &[
+            "export",
+            damaged.to_str().unwrap(),
+            "--qgc-plan",
+            dir.join("d.plan").to_str().unwrap(),
+        ],
+    );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
-    assert!(err.contains("recording.mcap") && err.trim().lines().count() == 1, "{err}");
+    assert!(
+        err.contains("recording.mcap") && err.trim().lines().count() == 1,
+        "{err}"
+    );
 }
 
 #[test]
@@ -232,10 +311,16 @@ fn a_directory_that_is_not_a_finished_run_is_one_clear_line_and_exit_2() {
     let empty = dir.join("empty");
     std::fs::create_dir_all(&empty).unwrap();
     let nc = dir.join("x.nc");
-    let o = run("fleet", &["export", empty.to_str().unwrap(), "--netcdf", nc.to_str().unwrap()]);
+    let o = run(
+        "fleet",
+        &["export", empty.to_str().unwrap(), "--netcdf", nc.to_str().unwrap()],
+    );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
-    assert!(err.contains("not a finished run directory: it has no mission.toml") && err.trim().lines().count() == 1, "{err}");
+    assert!(
+        err.contains("not a finished run directory: it has no mission.toml") && err.trim().lines().count() == 1,
+        "{err}"
+    );
     assert!(!nc.exists());
     let o = run("fleet", &["export", empty.to_str().unwrap()]);
     assert_eq!(o.status.code(), Some(2));

@@ -54,7 +54,12 @@ fn mutate(base: &[u8], edits: &[Edit], cut: Option<usize>, random: &[u8]) -> Vec
 }
 
 fn malformed() -> impl Strategy<Value = (usize, Vec<Edit>, Option<usize>, Vec<u8>)> {
-    (any::<usize>(), prop::collection::vec((any::<usize>(), any::<u8>(), any::<u8>()), 1..8), prop::option::of(any::<usize>()), prop::collection::vec(any::<u8>(), 0..200))
+    (
+        any::<usize>(),
+        prop::collection::vec((any::<usize>(), any::<u8>(), any::<u8>()), 1..8),
+        prop::option::of(any::<usize>()),
+        prop::collection::vec(any::<u8>(), 0..200),
+    )
 }
 
 /// Run `check` on `CASES` mutations of the `seeds`.
@@ -63,7 +68,11 @@ fn fuzz(name: &str, seeds: &[Vec<u8>], check: impl Fn(&[u8]) -> Result<(), TestC
 }
 
 fn fuzz_n(name: &str, seeds: &[Vec<u8>], cases: u32, check: impl Fn(&[u8]) -> Result<(), TestCaseError>) {
-    let mut runner = TestRunner::new(Config { cases, failure_persistence: None, ..Config::default() });
+    let mut runner = TestRunner::new(Config {
+        cases,
+        failure_persistence: None,
+        ..Config::default()
+    });
     runner
         .run(&malformed(), |(which, edits, cut, random)| {
             INPUTS.fetch_add(1, Ordering::Relaxed);
@@ -86,8 +95,16 @@ fn wire_seeds() -> Vec<Vec<u8>> {
             vehicle: "boat-1".into(),
             kind: VehicleKind::Boat,
             seq: 3,
-            noise: Noise { sigma0: 0.1, growth_per_m: 0.0 },
-            samples: vec![Sample { step: 10, position: [1.5, 2.5], cells: vec![0, 7, 19], values: vec![0.3, 0.4, 0.5] }],
+            noise: Noise {
+                sigma0: 0.1,
+                growth_per_m: 0.0,
+            },
+            samples: vec![Sample {
+                step: 10,
+                position: [1.5, 2.5],
+                cells: vec![0, 7, 19],
+                values: vec![0.3, 0.4, 0.5],
+            }],
         }),
         Body::Telemetry(Telemetry {
             vehicle: "av-1".into(),
@@ -109,7 +126,10 @@ fn wire_seeds() -> Vec<Vec<u8>> {
             }),
             acked: Some(4),
         }),
-        Body::Ack(Ack { vehicle: "boat-1".into(), seq: 9 }),
+        Body::Ack(Ack {
+            vehicle: "boat-1".into(),
+            seq: 9,
+        }),
         Body::Model(ModelUpdate {
             version: 1,
             epoch: 2,
@@ -125,7 +145,18 @@ fn wire_seeds() -> Vec<Vec<u8>> {
             forecast_variance: vec![0.02; n],
             estimate: vec![0.3; n],
         }),
-        Body::Plan(Plan { vehicle: "boat-1".into(), model_version: 1, epoch: 3, targets: vec![Target { epoch: 3, step: 45, position: [2.0, 2.0], radius: 1.5, cells: vec![0, 1, 5] }] }),
+        Body::Plan(Plan {
+            vehicle: "boat-1".into(),
+            model_version: 1,
+            epoch: 3,
+            targets: vec![Target {
+                epoch: 3,
+                step: 45,
+                position: [2.0, 2.0],
+                radius: 1.5,
+                cells: vec![0, 1, 5],
+            }],
+        }),
     ];
     bodies.iter().map(encode).collect()
 }
@@ -140,23 +171,49 @@ fn malformed_inputs_never_panic_a_decoder() {
                 Body::Batch(b) => {
                     prop_assert!(c.vehicles.contains(&b.vehicle));
                     for s in &b.samples {
-                        prop_assert!(s.cells.iter().all(|&k| (k as usize) < c.grid.len()) && s.values.iter().all(|v| v.is_finite()));
+                        prop_assert!(
+                            s.cells.iter().all(|&k| (k as usize) < c.grid.len())
+                                && s.values.iter().all(|v| v.is_finite())
+                        );
                     }
                 }
                 Body::Telemetry(t) => prop_assert!((0.0..=1.0).contains(&t.battery)),
                 _ => {}
             }
-            prop_assert_eq!(decode(&encode(&body), &c).ok(), Some(body), "accepted input re-encodes to itself");
+            prop_assert_eq!(
+                decode(&encode(&body), &c).ok(),
+                Some(body),
+                "accepted input re-encodes to itself"
+            );
         }
         Ok(())
     });
 
-    let h = MavHeader { system_id: 3, component_id: 1, sequence: 7 };
+    let h = MavHeader {
+        system_id: 3,
+        component_id: 1,
+        sequence: 7,
+    };
     let frames: Vec<Vec<u8>> = [
         MavMessage::HEARTBEAT(HEARTBEAT_DATA::default()),
-        MavMessage::COMMAND_LONG(COMMAND_LONG_DATA { command: MavCmd::MAV_CMD_DO_SET_MODE, param2: 4.0, target_system: 3, ..Default::default() }),
-        MavMessage::MISSION_ITEM_INT(MISSION_ITEM_INT_DATA { seq: 1, x: 556_761_000, y: 125_683_000, command: MavCmd::MAV_CMD_NAV_WAYPOINT, ..Default::default() }),
-        MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA { x: 1.0, y: 2.0, ..Default::default() }),
+        MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            command: MavCmd::MAV_CMD_DO_SET_MODE,
+            param2: 4.0,
+            target_system: 3,
+            ..Default::default()
+        }),
+        MavMessage::MISSION_ITEM_INT(MISSION_ITEM_INT_DATA {
+            seq: 1,
+            x: 556_761_000,
+            y: 125_683_000,
+            command: MavCmd::MAV_CMD_NAV_WAYPOINT,
+            ..Default::default()
+        }),
+        MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+            x: 1.0,
+            y: 2.0,
+            ..Default::default()
+        }),
     ]
     .iter()
     .map(|m| frame_bytes(h, m))
@@ -169,7 +226,14 @@ fn malformed_inputs_never_panic_a_decoder() {
         Ok(())
     });
 
-    let missions: Vec<Vec<u8>> = ["config/mission.toml", "config/mission-tiny.toml", "config/mission-60.toml"].iter().map(|p| std::fs::read(hetfleet_tests::root().join(p)).unwrap()).collect();
+    let missions: Vec<Vec<u8>> = [
+        "config/mission.toml",
+        "config/mission-tiny.toml",
+        "config/mission-60.toml",
+    ]
+    .iter()
+    .map(|p| std::fs::read(hetfleet_tests::root().join(p)).unwrap())
+    .collect();
     fuzz("mission files", &missions, |bytes| {
         if let Ok(m) = MissionConfig::from_toml(&String::from_utf8_lossy(bytes)) {
             prop_assert!(m.truth.frames >= 10 && m.pace.horizon >= 1 && m.mavlink.sim_speedup > 0.0);
@@ -196,12 +260,22 @@ fn malformed_inputs_never_panic_a_decoder() {
     // read as a node does, so fewer of them. Accepted means read back exactly as written.
     let dir = hetfleet_tests::scratch("fuzz-store");
     let mut stores = vec![];
-    for (k, (vehicles, meta)) in [(&["av-1", "boat-1"][..], "epoch/0000000001"), (&["boat-1"][..], "state")].into_iter().enumerate() {
+    for (k, (vehicles, meta)) in [
+        (&["av-1", "boat-1"][..], "epoch/0000000001"),
+        (&["boat-1"][..], "state"),
+    ]
+    .into_iter()
+    .enumerate()
+    {
         let p = dir.join(format!("seed-{k}.redb"));
         let mut s = fleet_net::store::Store::open(&p).unwrap();
         for seq in 0..6u64 {
             for v in vehicles {
-                s.commit(&[((v, seq), &wire_seeds()[0])], &[(meta, format!("{v} {seq}").as_bytes())]).unwrap();
+                s.commit(
+                    &[((v, seq), &wire_seeds()[0])],
+                    &[(meta, format!("{v} {seq}").as_bytes())],
+                )
+                .unwrap();
             }
         }
         s.remove_through(vehicles[0], 1, &[]).unwrap();
@@ -215,16 +289,26 @@ fn malformed_inputs_never_panic_a_decoder() {
         std::fs::write(&case, bytes).unwrap();
         let read = fleet_net::store::Store::open(&case).and_then(|s| Ok((s.messages()?, s.meta_with_prefix("")?)));
         match read {
-            Ok(contents) => prop_assert!(stores.iter().any(|(_, c)| *c == contents), "a damaged store opened with different data"),
+            Ok(contents) => prop_assert!(
+                stores.iter().any(|(_, c)| *c == contents),
+                "a damaged store opened with different data"
+            ),
             Err(e) => {
                 prop_assert!(e.is_bad_file(), "{}", e);
-                prop_assert_eq!(std::fs::read(&case).unwrap(), bytes.to_vec(), "the refusal changed the file");
+                prop_assert_eq!(
+                    std::fs::read(&case).unwrap(),
+                    bytes.to_vec(),
+                    "the refusal changed the file"
+                );
             }
         }
         Ok(())
     });
 
     let n = INPUTS.load(Ordering::Relaxed);
-    println!("fuzzed {n} generated malformed inputs across 5 decoders (wire protocol, MAVLink, mission TOML, .npy, journal/outbox files): 0 panics");
+    println!(
+        "fuzzed {n} generated malformed inputs across 5 decoders (wire protocol, MAVLink, mission TOML, .npy, \
+        journal/outbox files): 0 panics"
+    );
     assert!(n >= 100_000, "only {n} inputs");
 }

@@ -9,7 +9,10 @@ use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 fn free_udp_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0").and_then(|s| s.local_addr()).expect("a free UDP port").port()
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .and_then(|s| s.local_addr())
+        .expect("a free UDP port")
+        .port()
 }
 
 #[test]
@@ -21,7 +24,11 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
     // Slow enough for a ground station to act between epochs: 250 ms a step, 60 steps.
     edit(&mission, "resend_ms = 500", "resend_ms = 500\nstep_ms = 250");
     edit(&mission, "frames = 40", "frames = 60");
-    edit(&mission, r#"autopilot = "sim""#, &format!("autopilot = \"sim\"\ngcs = \"udpout:127.0.0.1:{gcs_port}\""));
+    edit(
+        &mission,
+        r#"autopilot = "sim""#,
+        &format!("autopilot = \"sim\"\ngcs = \"udpout:127.0.0.1:{gcs_port}\""),
+    );
     // A boat at 20 m/s, so the ground station sees it on its way.
     edit(&mission, "sim_speedup = 100.0", "sim_speedup = 10.0");
     let m = MissionConfig::load(Some(&mission)).unwrap();
@@ -31,42 +38,94 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
 
     let mut procs = Procs::default();
     let vehicles: Vec<String> = m.vehicles().iter().map(|v| v.id.clone()).collect();
-    let spec: Vec<String> = m.vehicles().iter().map(|v| format!("{}:{}", m.sysid(&v.id).unwrap(), if v.kind == fleet::protocol::VehicleKind::Boat { 11 } else { 2 })).collect();
+    let spec: Vec<String> = m
+        .vehicles()
+        .iter()
+        .map(|v| {
+            format!(
+                "{}:{}",
+                m.sysid(&v.id).unwrap(),
+                if v.kind == fleet::protocol::VehicleKind::Boat {
+                    11
+                } else {
+                    2
+                }
+            )
+        })
+        .collect();
     let (mission_vehicle, hold_vehicle) = ("boat-1", "boat-2");
     let python = std::process::Command::new("python3")
         .arg(root().join("tests/py/ground_station.py"))
         .args(["--port", &gcs_port.to_string(), "--vehicles", &spec.join(",")])
-        .args(["--mission-sysid", &m.sysid(mission_vehicle).unwrap().to_string(), "--hold-sysid", &m.sysid(hold_vehicle).unwrap().to_string()])
+        .args([
+            "--mission-sysid",
+            &m.sysid(mission_vehicle).unwrap().to_string(),
+            "--hold-sysid",
+            &m.sysid(hold_vehicle).unwrap().to_string(),
+        ])
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
         .expect("python3");
-    let server = start_server(&mut procs, &["--mission", mp, "--state-dir", st], &dir.join("server.log"));
-    let gateway = std::process::Command::new(bin("gcs-gateway")).args(["--mission", mp]).stderr(std::fs::File::create(dir.join("gateway.log")).unwrap()).spawn().expect("gcs-gateway");
+    let server = start_server(
+        &mut procs,
+        &["--mission", mp, "--state-dir", st],
+        &dir.join("server.log"),
+    );
+    let gateway = std::process::Command::new(bin("gcs-gateway"))
+        .args(["--mission", mp])
+        .stderr(std::fs::File::create(dir.join("gateway.log")).unwrap())
+        .spawn()
+        .expect("gcs-gateway");
     procs.0.push(gateway);
     start_vehicles(&mut procs, &mission, st, &dir, &[]);
 
     let o = python.wait_with_output().expect("the ground station ran");
     let said = String::from_utf8_lossy(&o.stdout).to_string();
-    assert!(o.status.success(), "ground station failed: {said}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "ground station failed: {said}\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     let gs: serde_json::Value = serde_json::from_str(said.trim()).unwrap_or_else(|e| panic!("{e}: {said}"));
     println!("ground station saw: {gs}");
 
     // Every vehicle, by its system id, as its type, from an ArduPilot-style autopilot.
     for v in m.vehicles() {
         let hb = &gs["heartbeats"][m.sysid(&v.id).unwrap().to_string()];
-        let want = if v.kind == fleet::protocol::VehicleKind::Boat { 11 } else { 2 };
-        assert_eq!((hb["type"].as_i64(), hb["autopilot"].as_i64()), (Some(want), Some(3)), "{}: {hb}", v.id);
+        let want = if v.kind == fleet::protocol::VehicleKind::Boat {
+            11
+        } else {
+            2
+        };
+        assert_eq!(
+            (hb["type"].as_i64(), hb["autopilot"].as_i64()),
+            (Some(want), Some(3)),
+            "{}: {hb}",
+            v.id
+        );
     }
     // The mission: accepted after the handshake, every item reached in order.
     // Home and the parameter download, through the gateway: the settings the simulation uses.
     let sysid = m.sysid(mission_vehicle).unwrap() as f64;
-    assert!(gs["home"][0].as_i64().is_some_and(|lat| lat != 0), "home: {}", gs["home"]);
+    assert!(
+        gs["home"][0].as_i64().is_some_and(|lat| lat != 0),
+        "home: {}",
+        gs["home"]
+    );
     let p = &gs["params"];
-    assert_eq!((p["SYSID_THISMAV"].as_f64(), p["CRUISE_SPEED"].as_f64()), (Some(sysid), Some(m.mavlink.boat_speed_ms)), "{p}");
+    assert_eq!(
+        (p["SYSID_THISMAV"].as_f64(), p["CRUISE_SPEED"].as_f64()),
+        (Some(sysid), Some(m.mavlink.boat_speed_ms)),
+        "{p}"
+    );
     // The bridge uploaded the site's fence (no boundary in this mission: the grid's extent) and
     // the fleet's launch points as rally points, and enabled the fence with the mission's action.
-    assert_eq!((p["FENCE_ENABLE"].as_f64(), p["FENCE_ACTION"].as_f64()), (Some(1.0), Some(1.0)), "{p}");
+    assert_eq!(
+        (p["FENCE_ENABLE"].as_f64(), p["FENCE_ACTION"].as_f64()),
+        (Some(1.0), Some(1.0)),
+        "{p}"
+    );
     let (rows, cols, _) = m.model_shape().unwrap();
     let site = fleet::mission::site::Site::new(&m.mavlink, &fleet::grid::Grid::new(rows, cols, 1.0).unwrap());
     let corner = |x: f64, y: f64| {
@@ -79,23 +138,56 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
         .unwrap()
         .iter()
         .map(|i| {
-            assert_eq!((i[0].as_i64(), i[1].as_f64()), (Some(5001), Some(4.0)), "an inclusion polygon vertex of 4: {i}");
+            assert_eq!(
+                (i[0].as_i64(), i[1].as_f64()),
+                (Some(5001), Some(4.0)),
+                "an inclusion polygon vertex of 4: {i}"
+            );
             [i[2].as_i64().unwrap(), i[3].as_i64().unwrap()]
         })
         .collect();
-    assert_eq!(fence, vec![corner(0.0, 0.0), corner(w, 0.0), corner(w, h), corner(0.0, h)], "the site's corners");
+    assert_eq!(
+        fence,
+        vec![corner(0.0, 0.0), corner(w, 0.0), corner(w, h), corner(0.0, h)],
+        "the site's corners"
+    );
     assert_eq!(gs["rally"].as_array().unwrap().len(), m.vehicles().len());
-    assert!(gs["rally"].as_array().unwrap().iter().all(|i| i[0].as_i64() == Some(5100)));
-    assert_eq!(gs["outside_ack"].as_i64(), Some(2), "a reposition 1 km outside the fence: MAV_RESULT_DENIED");
+    assert!(gs["rally"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .all(|i| i[0].as_i64() == Some(5100)));
+    assert_eq!(
+        gs["outside_ack"].as_i64(),
+        Some(2),
+        "a reposition 1 km outside the fence: MAV_RESULT_DENIED"
+    );
     assert_eq!(gs["mission"]["ack"].as_i64(), Some(0));
-    assert_eq!(gs["mission"]["items_sent"].as_i64(), Some(4), "home and three waypoints");
-    assert_eq!(gs["mission"]["reached"], serde_json::json!([1, 2, 3]), "run from item 1: item 0 is home");
+    assert_eq!(
+        gs["mission"]["items_sent"].as_i64(),
+        Some(4),
+        "home and three waypoints"
+    );
+    assert_eq!(
+        gs["mission"]["reached"],
+        serde_json::json!([1, 2, 3]),
+        "run from item 1: item 0 is home"
+    );
 
     // The rest of the mission, and every event on the way.
     let (events, summary) = until_finished(&server);
-    assert_eq!(summary.counters.rejected.values().sum::<u64>(), 0, "{:?}", summary.counters.rejected);
+    assert_eq!(
+        summary.counters.rejected.values().sum::<u64>(),
+        0,
+        "{:?}",
+        summary.counters.rejected
+    );
     let truth = m.truth(|_| {}).unwrap();
-    assert_eq!(summary.counters.batches - summary.counters.duplicates, expected_batches(&m, truth.frames()), "held vehicles still report every epoch");
+    assert_eq!(
+        summary.counters.batches - summary.counters.duplicates,
+        expected_batches(&m, truth.frames()),
+        "held vehicles still report every epoch"
+    );
 
     // Guided targets seen by the ground station are places the server allocated, and each
     // vehicle closed on its newest one.
@@ -109,11 +201,19 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
     }
     for v in &vehicles {
         let sysid = m.sysid(v).unwrap().to_string();
-        let Some(targets) = gs["targets"][&sysid].as_array() else { continue };
+        let Some(targets) = gs["targets"][&sysid].as_array() else {
+            continue;
+        };
         for t in targets {
             // Local NED (north, east) is grid (x east, y north) on the default 1 m site.
             let (n, e) = (t[0].as_f64().unwrap(), t[1].as_f64().unwrap());
-            assert!(places[v].iter().any(|p| (p[0] - e).abs() < 1e-3 && (p[1] - n).abs() < 1e-3), "{v}: target ({e}, {n}) is no allocated place {:?}", places[v]);
+            assert!(
+                places[v]
+                    .iter()
+                    .any(|p| (p[0] - e).abs() < 1e-3 && (p[1] - n).abs() < 1e-3),
+                "{v}: target ({e}, {n}) is no allocated place {:?}",
+                places[v]
+            );
         }
     }
     // Never away from the target it drives to, and some seen covering metres toward it.
@@ -121,22 +221,46 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
     let mut closed = 0.0f64;
     for (sysid, a) in approach {
         let (first, last) = (a[0].as_f64().unwrap(), a[1].as_f64().unwrap());
-        assert!(last <= first + 1e-3, "system {sysid}: from {first} m to {last} m of its target");
+        assert!(
+            last <= first + 1e-3,
+            "system {sysid}: from {first} m to {last} m of its target"
+        );
         closed = closed.max(first - last);
     }
     assert!(closed > 2.0, "no vehicle seen driving toward its place: {approach:?}");
 
     // The held vehicle and the one on its mission left the allocation, and stayed out.
     for v in [mission_vehicle, hold_vehicle] {
-        let at = events.iter().position(|e| matches!(e, ServerEvent::Hold { vehicle, held: true, .. } if vehicle == v)).unwrap_or_else(|| panic!("no hold of {v}: {events:?}"));
+        let at = events
+            .iter()
+            .position(|e| matches!(e, ServerEvent::Hold { vehicle, held: true, .. } if vehicle == v))
+            .unwrap_or_else(|| panic!("no hold of {v}: {events:?}"));
         // (The last epoch has no next allocation: no places.)
-        let later: Vec<_> = events[at..].iter().filter_map(|e| if let ServerEvent::Epoch { held, places, .. } = e { Some((held, places)) } else { None }).filter(|(_, p)| !p.is_empty()).collect();
+        let later: Vec<_> = events[at..]
+            .iter()
+            .filter_map(|e| {
+                if let ServerEvent::Epoch { held, places, .. } = e {
+                    Some((held, places))
+                } else {
+                    None
+                }
+            })
+            .filter(|(_, p)| !p.is_empty())
+            .collect();
         assert!(later.len() >= 2, "{v}: too few epochs after the hold");
         // The allocation made when the hold came in may predate it; from the next on, out.
         for (held, places) in &later[1..] {
-            assert!(held.iter().any(|h| h == v) && !places.contains_key(v), "{v} still allocated: held {held:?}");
+            assert!(
+                held.iter().any(|h| h == v) && !places.contains_key(v),
+                "{v} still allocated: held {held:?}"
+            );
         }
-        assert!(!events[at..].iter().any(|e| matches!(e, ServerEvent::Hold { vehicle, held: false, .. } if vehicle == v)), "{v} came back");
+        assert!(
+            !events[at..]
+                .iter()
+                .any(|e| matches!(e, ServerEvent::Hold { vehicle, held: false, .. } if vehicle == v)),
+            "{v} came back"
+        );
     }
 }
 
@@ -145,7 +269,10 @@ fn until_finished(server: &Server) -> (Vec<ServerEvent>, Box<fleet::mission::rep
     let mut events = vec![];
     let deadline = Instant::now() + Duration::from_secs(120);
     loop {
-        match server.events.recv_timeout(deadline.saturating_duration_since(Instant::now())) {
+        match server
+            .events
+            .recv_timeout(deadline.saturating_duration_since(Instant::now()))
+        {
             Ok(ServerEvent::Finished { summary }) => return (events, summary),
             Ok(e) => events.push(e),
             Err(e) => panic!("the mission did not finish: {e}"),
@@ -155,7 +282,9 @@ fn until_finished(server: &Server) -> (Vec<ServerEvent>, Box<fleet::mission::rep
 
 /// `kill -TERM` a node and wait for it (it logs its final counters on the way out).
 fn terminate(child: &mut std::process::Child) {
-    let _ = std::process::Command::new("kill").args(["-TERM", &child.id().to_string()]).status();
+    let _ = std::process::Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status();
     let deadline = Instant::now() + Duration::from_secs(10);
     while child.try_wait().expect("try_wait").is_none() {
         assert!(Instant::now() < deadline, "the node did not stop on SIGTERM");
@@ -170,63 +299,127 @@ fn a_signing_ground_station_is_obeyed_and_unsigned_foreign_and_replayed_frames_a
     let mission = paced_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep), 250);
     let gcs_port = free_udp_port();
     edit(&mission, "frames = 40", "frames = 200");
-    edit(&mission, r#"autopilot = "sim""#, &format!("autopilot = \"sim\"\ngcs = \"udpout:127.0.0.1:{gcs_port}\""));
+    edit(
+        &mission,
+        r#"autopilot = "sim""#,
+        &format!("autopilot = \"sim\"\ngcs = \"udpout:127.0.0.1:{gcs_port}\""),
+    );
     let mp = mission.to_str().unwrap();
 
     // `fleet secure` makes the keys: 64 hex characters, owner-only, and the passphrases.
     let o = run("fleet", &["secure", mp, "--out", dir.join("secure").to_str().unwrap()]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let m = MissionConfig::load(Some(&mission)).unwrap();
-    for f in std::iter::once(dir.join("secure/mavlink-signing.key")).chain(m.vehicles().iter().map(|v| dir.join(format!("secure/autopilot/{}.key", v.id)))) {
+    for f in std::iter::once(dir.join("secure/mavlink-signing.key")).chain(
+        m.vehicles()
+            .iter()
+            .map(|v| dir.join(format!("secure/autopilot/{}.key", v.id))),
+    ) {
         use std::os::unix::fs::PermissionsExt;
         let text = std::fs::read_to_string(&f).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
-        assert!(text.trim().len() == 64 && text.trim().bytes().all(|b| b.is_ascii_hexdigit()), "{}: {text:?}", f.display());
-        assert_eq!(std::fs::metadata(&f).unwrap().permissions().mode() & 0o777, 0o600, "{}", f.display());
+        assert!(
+            text.trim().len() == 64 && text.trim().bytes().all(|b| b.is_ascii_hexdigit()),
+            "{}: {text:?}",
+            f.display()
+        );
+        assert_eq!(
+            std::fs::metadata(&f).unwrap().permissions().mode() & 0o777,
+            0o600,
+            "{}",
+            f.display()
+        );
     }
-    edit(&mission, "[mavlink]", "[mavlink]\nsigning_key = \"secure/mavlink-signing.key\"\nautopilot_signing_key = \"secure/autopilot/{id}.key\"");
+    edit(
+        &mission,
+        "[mavlink]",
+        "[mavlink]\nsigning_key = \"secure/mavlink-signing.key\"\nautopilot_signing_key = \
+        \"secure/autopilot/{id}.key\"",
+    );
 
     // A key others can read is refused with one line naming it, exit 2.
     let loose = dir.join("loose");
     std::fs::create_dir_all(loose.join("secure")).unwrap();
     std::fs::copy(&mission, loose.join("mission.toml")).unwrap();
     std::fs::write(loose.join("secure/mavlink-signing.key"), "00".repeat(32)).unwrap();
-    let o = run("gcs-gateway", &["--mission", loose.join("mission.toml").to_str().unwrap()]);
+    let o = run(
+        "gcs-gateway",
+        &["--mission", loose.join("mission.toml").to_str().unwrap()],
+    );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
-    assert!(err.contains("mavlink-signing.key") && err.contains("chmod 600") && err.trim().lines().count() == 1, "{err}");
+    assert!(
+        err.contains("mavlink-signing.key") && err.contains("chmod 600") && err.trim().lines().count() == 1,
+        "{err}"
+    );
 
     let st = dir.join("state");
     let mut procs = Procs::default();
-    let _server = start_server(&mut procs, &["--mission", mp, "--state-dir", st.to_str().unwrap()], &dir.join("server.log"));
+    let _server = start_server(
+        &mut procs,
+        &["--mission", mp, "--state-dir", st.to_str().unwrap()],
+        &dir.join("server.log"),
+    );
     let gateway_log = dir.join("gateway.log");
-    procs.0.push(std::process::Command::new(bin("gcs-gateway")).args(["--mission", mp]).stderr(std::fs::File::create(&gateway_log).unwrap()).spawn().expect("gcs-gateway"));
+    procs.0.push(
+        std::process::Command::new(bin("gcs-gateway"))
+            .args(["--mission", mp])
+            .stderr(std::fs::File::create(&gateway_log).unwrap())
+            .spawn()
+            .expect("gcs-gateway"),
+    );
     let gateway = procs.0.len() - 1;
     start_vehicles(&mut procs, &mission, st.to_str().unwrap(), &dir, &[]);
 
     let sysid = m.sysid("boat-1").unwrap();
     let o = std::process::Command::new("python3")
         .arg(root().join("tests/py/signing.py"))
-        .args(["--port", &gcs_port.to_string(), "--sysid", &sysid.to_string(), "--passphrase-file", dir.join("secure/mavlink-signing.passphrase").to_str().unwrap()])
+        .args([
+            "--port",
+            &gcs_port.to_string(),
+            "--sysid",
+            &sysid.to_string(),
+            "--passphrase-file",
+            dir.join("secure/mavlink-signing.passphrase").to_str().unwrap(),
+        ])
         .output()
         .expect("python3");
     let said = String::from_utf8_lossy(&o.stdout).to_string();
-    assert!(o.status.success(), "ground station failed: {said}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "ground station failed: {said}\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     let gs: serde_json::Value = serde_json::from_str(said.trim()).unwrap_or_else(|e| panic!("{e}: {said}"));
     println!("ground station: {gs}");
     // What the gateway sends passes pymavlink's check; a signed request is carried to the
     // autopilot (re-signed with its own key) and answered; the rest are not.
     assert!(gs["signed_heartbeats"].as_i64() >= Some(3), "{gs}");
     assert!(gs["signed_acks"].as_i64() >= Some(1), "{gs}");
-    assert_eq!((gs["unsigned_acks"].as_i64(), gs["wrong_key_acks"].as_i64()), (Some(0), Some(0)), "{gs}");
-    assert_eq!(gs["replay_acks"], serde_json::json!([1, 0]), "a replayed frame was obeyed: {gs}");
+    assert_eq!(
+        (gs["unsigned_acks"].as_i64(), gs["wrong_key_acks"].as_i64()),
+        (Some(0), Some(0)),
+        "{gs}"
+    );
+    assert_eq!(
+        gs["replay_acks"],
+        serde_json::json!([1, 0]),
+        "a replayed frame was obeyed: {gs}"
+    );
 
     // The gateway counted exactly the frames refused, by reason.
     terminate(&mut procs.0[gateway]);
     let log = std::fs::read_to_string(&gateway_log).unwrap();
-    let last = log.lines().rev().find(|l| l.contains("gateway stopped")).unwrap_or_else(|| panic!("no final counters in the gateway's log:\n{log}"));
+    let last = log
+        .lines()
+        .rev()
+        .find(|l| l.contains("gateway stopped"))
+        .unwrap_or_else(|| panic!("no final counters in the gateway's log:\n{log}"));
     for reason in ["unsigned", "bad_signature", "replay"] {
         let n = gs["sent"][reason].as_i64().unwrap();
-        assert!(last.contains(&format!("\"{reason}\": {n}")), "{reason}: sent {n}, gateway says {last}");
+        assert!(
+            last.contains(&format!("\"{reason}\": {n}")),
+            "{reason}: sent {n}, gateway says {last}"
+        );
     }
 }
 
@@ -250,7 +443,18 @@ fn a_boat_whose_battery_runs_low_returns_to_launch_and_the_others_share_the_disk
     let st = dir.join("state");
     let rec = dir.join("rec.mcap");
     let mut procs = Procs::default();
-    let server = start_server(&mut procs, &["--mission", mp, "--state-dir", st.to_str().unwrap(), "--record", rec.to_str().unwrap()], &dir.join("server.log"));
+    let server = start_server(
+        &mut procs,
+        &[
+            "--mission",
+            mp,
+            "--state-dir",
+            st.to_str().unwrap(),
+            "--record",
+            rec.to_str().unwrap(),
+        ],
+        &dir.join("server.log"),
+    );
     // boat-1 is launched with 4,040 mAh of its 20,000, 40 mAh above the low mark (4,000): at
     // 10x speed it draws 2.8-28 mAh a wall second, so it runs low a few seconds into the 25 s
     // mission.
@@ -267,23 +471,69 @@ fn a_boat_whose_battery_runs_low_returns_to_launch_and_the_others_share_the_disk
     terminate(&mut procs.0[server.index]);
 
     // It left the allocation, saying why, mid-mission, and stayed out; the others carried on.
-    let at = events.iter().position(|e| matches!(e, ServerEvent::Hold { vehicle, held: true, .. } if vehicle == low)).unwrap_or_else(|| panic!("{low} never left the allocation: {events:?}"));
-    let ServerEvent::Hold { mode, .. } = &events[at] else { unreachable!() };
-    assert!(mode.starts_with("RTL") && mode.contains("battery low"), "telemetry says why: {mode}");
-    let epochs: Vec<_> = events.iter().filter_map(|e| if let ServerEvent::Epoch { epoch, held, places, .. } = e { Some((*epoch, held.clone(), places.clone())) } else { None }).collect();
-    let before = events[..at].iter().filter(|e| matches!(e, ServerEvent::Epoch { .. })).count();
-    assert!(before >= 1 && before + 2 < epochs.len(), "mid-mission: held after {before} of {} epochs", epochs.len());
+    let at = events
+        .iter()
+        .position(|e| matches!(e, ServerEvent::Hold { vehicle, held: true, .. } if vehicle == low))
+        .unwrap_or_else(|| panic!("{low} never left the allocation: {events:?}"));
+    let ServerEvent::Hold { mode, .. } = &events[at] else {
+        unreachable!()
+    };
+    assert!(
+        mode.starts_with("RTL") && mode.contains("battery low"),
+        "telemetry says why: {mode}"
+    );
+    let epochs: Vec<_> = events
+        .iter()
+        .filter_map(|e| {
+            if let ServerEvent::Epoch {
+                epoch, held, places, ..
+            } = e
+            {
+                Some((*epoch, held.clone(), places.clone()))
+            } else {
+                None
+            }
+        })
+        .collect();
+    let before = events[..at]
+        .iter()
+        .filter(|e| matches!(e, ServerEvent::Epoch { .. }))
+        .count();
+    assert!(
+        before >= 1 && before + 2 < epochs.len(),
+        "mid-mission: held after {before} of {} epochs",
+        epochs.len()
+    );
     let after: Vec<_> = epochs[before..].iter().filter(|(_, _, p)| !p.is_empty()).collect();
     assert!(after.len() >= 2);
     for (epoch, held, places) in &after[1..] {
-        assert!(held.iter().any(|h| h == low) && !places.contains_key(low), "epoch {epoch}: {low} still allocated");
+        assert!(
+            held.iter().any(|h| h == low) && !places.contains_key(low),
+            "epoch {epoch}: {low} still allocated"
+        );
         let boats = places.keys().filter(|v| v.starts_with("boat")).count();
-        assert_eq!(boats, m.vehicles().iter().filter(|v| v.kind == fleet::protocol::VehicleKind::Boat).count() - 1, "epoch {epoch}: the other boats take the disks: {places:?}");
+        assert_eq!(
+            boats,
+            m.vehicles()
+                .iter()
+                .filter(|v| v.kind == fleet::protocol::VehicleKind::Boat)
+                .count()
+                - 1,
+            "epoch {epoch}: the other boats take the disks: {places:?}"
+        );
     }
     // Every batch of every vehicle (the returning one reports each epoch, empty), nothing refused.
     let truth = m.truth(|_| {}).unwrap();
-    assert_eq!(summary.counters.batches - summary.counters.duplicates, expected_batches(&m, truth.frames()));
-    assert_eq!(summary.counters.rejected.values().sum::<u64>(), 0, "{:?}", summary.counters.rejected);
+    assert_eq!(
+        summary.counters.batches - summary.counters.duplicates,
+        expected_batches(&m, truth.frames())
+    );
+    assert_eq!(
+        summary.counters.rejected.values().sum::<u64>(),
+        0,
+        "{:?}",
+        summary.counters.rejected
+    );
 
     // It went back to a launch point (the nearest rally point the bridge uploaded): its last
     // telemetry puts it there, in RTL, with the low battery it reported.
@@ -294,16 +544,40 @@ fn a_boat_whose_battery_runs_low_returns_to_launch_and_the_others_share_the_disk
         .messages
         .iter()
         .filter(|r| r.topic.ends_with(&format!("{low}/telemetry")))
-        .filter_map(|r| if let Ok(fleet::protocol::Body::Telemetry(t)) = fleet::protocol::decode(&r.data, &ctx) { Some(t) } else { None })
+        .filter_map(|r| {
+            if let Ok(fleet::protocol::Body::Telemetry(t)) = fleet::protocol::decode(&r.data, &ctx) {
+                Some(t)
+            } else {
+                None
+            }
+        })
         .next_back()
         .expect("telemetry of the boat");
     let n = m.vehicles().len() as f64;
-    let launch: Vec<[f64; 2]> = (0..m.vehicles().len()).map(|i| [(i as f64 + 0.5) * recording.grid.width_m() / n, 0.5 * recording.grid.cell_m]).collect();
-    let d = launch.iter().map(|l| (l[0] - last.position[0]).hypot(l[1] - last.position[1])).fold(f64::INFINITY, f64::min);
-    assert!(d < 0.5, "{low} ended {d} m from the nearest launch point: {:?}", last.position);
+    let launch: Vec<[f64; 2]> = (0..m.vehicles().len())
+        .map(|i| {
+            [
+                (i as f64 + 0.5) * recording.grid.width_m() / n,
+                0.5 * recording.grid.cell_m,
+            ]
+        })
+        .collect();
+    let d = launch
+        .iter()
+        .map(|l| (l[0] - last.position[0]).hypot(l[1] - last.position[1]))
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        d < 0.5,
+        "{low} ended {d} m from the nearest launch point: {:?}",
+        last.position
+    );
     let a = last.autopilot.expect("its autopilot's status");
     assert_eq!(a.mode, "RTL");
-    assert!(a.failsafe.as_deref().is_some_and(|f| f.contains("battery low")) && last.battery <= 0.2 && last.battery > 0.0, "{a:?}, battery {}", last.battery);
+    assert!(
+        a.failsafe.as_deref().is_some_and(|f| f.contains("battery low")) && last.battery <= 0.2 && last.battery > 0.0,
+        "{a:?}, battery {}",
+        last.battery
+    );
 }
 
 #[test]
@@ -318,31 +592,73 @@ fn mavsdk_connects_reads_telemetry_arms_and_runs_a_mission_and_a_geofence_on_the
             .spawn()
             .expect("sim-autopilot"),
     );
-    let o = std::process::Command::new("python3").arg(root().join("tests/py/mavsdk_check.py")).arg(port.to_string()).output().expect("python3");
+    let o = std::process::Command::new("python3")
+        .arg(root().join("tests/py/mavsdk_check.py"))
+        .arg(port.to_string())
+        .output()
+        .expect("python3");
     let said = String::from_utf8_lossy(&o.stdout).to_string();
-    assert!(o.status.success(), "MAVSDK failed: {said}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "MAVSDK failed: {said}\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     let j: serde_json::Value = serde_json::from_str(said.trim()).unwrap_or_else(|e| panic!("{e}: {said}"));
     println!("MAVSDK saw: {j}");
-    let near = |v: &serde_json::Value, lat: f64, lon: f64, tol: f64| (v[0].as_f64().unwrap() - lat).abs() < tol && (v[1].as_f64().unwrap() - lon).abs() < tol;
+    let near = |v: &serde_json::Value, lat: f64, lon: f64, tol: f64| {
+        (v[0].as_f64().unwrap() - lat).abs() < tol && (v[1].as_f64().unwrap() - lon).abs() < tol
+    };
     // The bundled mission's site: the vehicle boots at its origin, which is home.
     let m = MissionConfig::load(None).unwrap();
     let [lat, lon, _] = m.mavlink.origin;
     assert_eq!(j["connect"], "0", "{j}");
-    assert!(near(&j["position"], lat, lon, 1e-6) && near(&j["home"], lat, lon, 1e-6), "{j}");
-    assert_eq!((j["battery"].as_f64(), j["cruise_speed"].as_f64()), (Some(100.0), Some(m.mavlink.boat_speed_ms)), "{j}");
+    assert!(
+        near(&j["position"], lat, lon, 1e-6) && near(&j["home"], lat, lon, 1e-6),
+        "{j}"
+    );
+    assert_eq!(
+        (j["battery"].as_f64(), j["cruise_speed"].as_f64()),
+        (Some(100.0), Some(m.mavlink.boat_speed_ms)),
+        "{j}"
+    );
     // Results are MAVSDK's enums: 1 is SUCCESS for actions, geofences and missions.
     assert_eq!((j["arm"].as_i64(), j["armed"].as_bool()), (Some(1), Some(true)), "{j}");
     assert_eq!(j["fence_upload"].as_i64(), Some(1), "{j}");
-    let fence = j["fence_download"][0].as_array().unwrap_or_else(|| panic!("no fence read back: {j}"));
+    let fence = j["fence_download"][0]
+        .as_array()
+        .unwrap_or_else(|| panic!("no fence read back: {j}"));
     assert_eq!(fence.len(), 4);
-    for (k, (dy, dx)) in [(-1e-3, -1e-3), (-1e-3, 1e-3), (1e-3, 1e-3), (1e-3, -1e-3)].iter().enumerate() {
+    for (k, (dy, dx)) in [(-1e-3, -1e-3), (-1e-3, 1e-3), (1e-3, 1e-3), (1e-3, -1e-3)]
+        .iter()
+        .enumerate()
+    {
         let p = &j["position"];
-        assert!(near(&fence[k], p[0].as_f64().unwrap() + dy, p[1].as_f64().unwrap() + dx, 2e-7), "vertex {k}: {}", fence[k]);
+        assert!(
+            near(
+                &fence[k],
+                p[0].as_f64().unwrap() + dy,
+                p[1].as_f64().unwrap() + dx,
+                2e-7
+            ),
+            "vertex {k}: {}",
+            fence[k]
+        );
     }
-    assert_eq!((j["mission_upload"].as_i64(), j["mission_start"].as_i64()), (Some(1), Some(1)), "{j}");
-    assert_eq!((j["progress"].clone(), j["finished"].as_bool()), (serde_json::json!([3, 3]), Some(true)), "{j}");
+    assert_eq!(
+        (j["mission_upload"].as_i64(), j["mission_start"].as_i64()),
+        (Some(1), Some(1)),
+        "{j}"
+    );
+    assert_eq!(
+        (j["progress"].clone(), j["finished"].as_bool()),
+        (serde_json::json!([3, 3]), Some(true)),
+        "{j}"
+    );
     let last = &j["waypoints"][2];
-    assert!(near(&j["end"], last[0].as_f64().unwrap(), last[1].as_f64().unwrap(), 2e-7), "ended at the last waypoint: {j}");
+    assert!(
+        near(&j["end"], last[0].as_f64().unwrap(), last[1].as_f64().unwrap(), 2e-7),
+        "ended at the last waypoint: {j}"
+    );
 }
 
 #[test]
@@ -350,7 +666,15 @@ fn vehicles_out_of_range_take_the_link_loss_failsafe_and_rejoin_when_the_server_
     let dir = scratch("linkloss");
     let (mission, m) = slow_mission(&dir, 80, "link_loss_action = \"rtl\"\nlink_loss_s = 1.0");
     let (mp, out, st) = (mission.to_str().unwrap(), dir.join("out"), dir.join("state"));
-    let server_args = ["--mission", mp, "--out", out.to_str().unwrap(), "--state-dir", st.to_str().unwrap(), "--exit-when-done"];
+    let server_args = [
+        "--mission",
+        mp,
+        "--out",
+        out.to_str().unwrap(),
+        "--state-dir",
+        st.to_str().unwrap(),
+        "--exit-when-done",
+    ];
     let mut procs = Procs::default();
     let server = start_server(&mut procs, &server_args, &dir.join("server.log"));
     start_vehicles(&mut procs, &mission, st.to_str().unwrap(), &dir, &[]);
@@ -364,14 +688,37 @@ fn vehicles_out_of_range_take_the_link_loss_failsafe_and_rejoin_when_the_server_
     // Every vehicle took the failsafe (RTL), then rejoined when the server was back.
     for v in m.vehicles() {
         let log = std::fs::read_to_string(dir.join(format!("{}.log", v.id))).unwrap();
-        let lost = log.find("link to the server lost: failsafe").unwrap_or_else(|| panic!("{}: no failsafe:\n{log}", v.id));
-        let rtl = log[lost..].find("mode=\"RTL\"").unwrap_or_else(|| panic!("{}: never in RTL:\n{log}", v.id));
-        assert!(log[lost + rtl..].contains("rejoining the allocation") && log[lost + rtl..].contains("mode=\"GUIDED\""), "{}: did not rejoin:\n{log}", v.id);
+        let lost = log
+            .find("link to the server lost: failsafe")
+            .unwrap_or_else(|| panic!("{}: no failsafe:\n{log}", v.id));
+        let rtl = log[lost..]
+            .find("mode=\"RTL\"")
+            .unwrap_or_else(|| panic!("{}: never in RTL:\n{log}", v.id));
+        assert!(
+            log[lost + rtl..].contains("rejoining the allocation") && log[lost + rtl..].contains("mode=\"GUIDED\""),
+            "{}: did not rejoin:\n{log}",
+            v.id
+        );
     }
     // Nothing lost, and from some epoch on the restarted server allocates every boat again.
-    assert_eq!(summary.counters.batches - summary.counters.duplicates, expected_batches(&m, m.truth(|_| {}).unwrap().frames()));
-    assert_eq!(summary.counters.rejected.values().sum::<u64>(), 0, "{:?}", summary.counters.rejected);
-    let boats = m.vehicles().iter().filter(|v| v.kind == fleet::protocol::VehicleKind::Boat).count();
+    assert_eq!(
+        summary.counters.batches - summary.counters.duplicates,
+        expected_batches(&m, m.truth(|_| {}).unwrap().frames())
+    );
+    assert_eq!(
+        summary.counters.rejected.values().sum::<u64>(),
+        0,
+        "{:?}",
+        summary.counters.rejected
+    );
+    let boats = m
+        .vehicles()
+        .iter()
+        .filter(|v| v.kind == fleet::protocol::VehicleKind::Boat)
+        .count();
     let all_back = events.iter().any(|e| matches!(e, ServerEvent::Epoch { places, held, .. } if held.is_empty() && places.keys().filter(|v| v.starts_with("boat")).count() == boats));
-    assert!(all_back, "no epoch after the restart with every boat allocated: {events:?}");
+    assert!(
+        all_back,
+        "no epoch after the restart with every boat allocated: {events:?}"
+    );
 }

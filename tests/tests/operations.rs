@@ -11,7 +11,10 @@ use std::process::{Command, Stdio};
 use std::time::Duration;
 
 fn free_udp_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0").and_then(|s| s.local_addr()).expect("a free UDP port").port()
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .and_then(|s| s.local_addr())
+        .expect("a free UDP port")
+        .port()
 }
 
 /// ArduRover's HOLD mode number.
@@ -25,7 +28,11 @@ fn slow_mission(dir: &Path, gcs_port: u16) -> (PathBuf, String) {
     edit(&m, "plan_timeout_ms = 20000", "plan_timeout_ms = 1500\nstep_ms = 150");
     edit(&m, "frames = 40", "frames = 80");
     edit(&m, "listen = [", "lease_ms = 1000\nlisten = [");
-    edit(&m, r#"autopilot = "sim""#, &format!("autopilot = \"sim\"\ngcs = \"udpout:127.0.0.1:{gcs_port}\"\nheartbeat_timeout_ms = 1500"));
+    edit(
+        &m,
+        r#"autopilot = "sim""#,
+        &format!("autopilot = \"sim\"\ngcs = \"udpout:127.0.0.1:{gcs_port}\"\nheartbeat_timeout_ms = 1500"),
+    );
     (m, ep)
 }
 
@@ -35,19 +42,49 @@ fn a_server_that_held_vehicles_restarts_after_kill_9_and_the_mission_completes()
     let gcs_port = free_udp_port();
     let (mission, _) = slow_mission(&dir, gcs_port);
     let m = MissionConfig::load(Some(&mission)).unwrap();
-    let (mp, out, state) = (mission.to_str().unwrap().to_string(), dir.join("out"), dir.join("state"));
+    let (mp, out, state) = (
+        mission.to_str().unwrap().to_string(),
+        dir.join("out"),
+        dir.join("state"),
+    );
     let st = state.to_str().unwrap().to_string();
-    let server_args = ["--mission", &mp, "--out", out.to_str().unwrap(), "--state-dir", &st, "--exit-when-done"];
+    let server_args = [
+        "--mission",
+        &mp,
+        "--out",
+        out.to_str().unwrap(),
+        "--state-dir",
+        &st,
+        "--exit-when-done",
+    ];
     let mut procs = Procs::default();
     let server = start_server(&mut procs, &server_args, &dir.join("server.log"));
     let gs = GroundStation::listen(gcs_port);
-    procs.0.push(Command::new(bin("gcs-gateway")).args(["--mission", &mp]).stderr(std::fs::File::create(dir.join("gateway.log")).unwrap()).spawn().unwrap());
+    procs.0.push(
+        Command::new(bin("gcs-gateway"))
+            .args(["--mission", &mp])
+            .stderr(std::fs::File::create(dir.join("gateway.log")).unwrap())
+            .spawn()
+            .unwrap(),
+    );
     // boat-3 drives an autopilot of its own process, so the test can make it go silent.
     let ap_port = free_udp_port();
     let autopilot = procs.0.len();
     procs.0.push(
         Command::new(bin("sim-autopilot"))
-            .args(["--mission", &mp, "--frame", "boat", "--sysid", &m.sysid("boat-3").unwrap().to_string(), "--listen", &format!("udpin:127.0.0.1:{ap_port}"), "--grid", "24", "48"])
+            .args([
+                "--mission",
+                &mp,
+                "--frame",
+                "boat",
+                "--sysid",
+                &m.sysid("boat-3").unwrap().to_string(),
+                "--listen",
+                &format!("udpin:127.0.0.1:{ap_port}"),
+                "--grid",
+                "24",
+                "48",
+            ])
             .stderr(std::fs::File::create(dir.join("autopilot.log")).unwrap())
             .spawn()
             .unwrap(),
@@ -60,7 +97,11 @@ fn a_server_that_held_vehicles_restarts_after_kill_9_and_the_mission_completes()
         }
         start_vehicle(&mut procs, &[], &args, &dir.join(format!("{}.log", v.id)));
     }
-    let held = |who: &'static str| move |e: &ServerEvent| matches!(e, ServerEvent::Hold { vehicle, held: true, .. } if vehicle == who).then_some(());
+    let held = |who: &'static str| {
+        move |e: &ServerEvent| {
+            matches!(e, ServerEvent::Hold { vehicle, held: true, .. } if vehicle == who).then_some(())
+        }
+    };
     let epoch_at_least = |n: u64| {
         move |e: &ServerEvent| match e {
             ServerEvent::Epoch { epoch, .. } if *epoch >= n => Some(*epoch),
@@ -84,17 +125,30 @@ fn a_server_that_held_vehicles_restarts_after_kill_9_and_the_mission_completes()
     procs.kill(server.index);
     let server = start_server(&mut procs, &server_args, &dir.join("server.log"));
     let summary = server.finished(120);
-    assert_eq!(summary.counters.rejected.values().sum::<u64>(), 0, "every batch accepted, before and after the restarts: {:?}", summary.counters.rejected);
+    assert_eq!(
+        summary.counters.rejected.values().sum::<u64>(),
+        0,
+        "every batch accepted, before and after the restarts: {:?}",
+        summary.counters.rejected
+    );
     assert!(summary.counters.restored > 0);
     let log = std::fs::read_to_string(dir.join("server.log")).unwrap();
-    assert_eq!(log.matches("journal: resuming").count(), 2, "both restarts resumed: {log}");
+    assert_eq!(
+        log.matches("journal: resuming").count(),
+        2,
+        "both restarts resumed: {log}"
+    );
     // Every batch once in the journal, and the served model is the model of those batches.
     check_exactly_once_and_same_model(&mission, &state, &out);
 }
 
 /// Run a node until it exits (or `secs` pass: then it is killed and `None` returned).
 fn exit_of(mut cmd: Command, secs: u64) -> Option<(i32, String)> {
-    let mut child = cmd.stdout(Stdio::null()).stderr(Stdio::piped()).spawn().expect("a node");
+    let mut child = cmd
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("a node");
     let deadline = std::time::Instant::now() + Duration::from_secs(secs);
     loop {
         if let Some(status) = child.try_wait().unwrap() {
@@ -115,7 +169,12 @@ fn exit_of(mut cmd: Command, secs: u64) -> Option<(i32, String)> {
 /// Every place `needle` occurs: redb writes copy-on-write, so a file may also hold stale
 /// copies of a record in freed pages, and only damage to the live one must be refused.
 fn find_all(bytes: &[u8], needle: &[u8]) -> Vec<usize> {
-    let at: Vec<usize> = bytes.windows(needle.len()).enumerate().filter(|(_, w)| *w == needle).map(|(i, _)| i).collect();
+    let at: Vec<usize> = bytes
+        .windows(needle.len())
+        .enumerate()
+        .filter(|(_, w)| *w == needle)
+        .map(|(i, _)| i)
+        .collect();
     assert!(!at.is_empty(), "present");
     at
 }
@@ -127,13 +186,21 @@ fn damaged_journals_and_outboxes_are_refused_by_the_nodes_and_left_as_they_are()
     let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
     // A finished run's journal, and a vehicle's outbox holding unacknowledged batches.
     let run_dir = dir.join("run");
-    let o = run("fleet", &["up", mission.to_str().unwrap(), "--out", run_dir.to_str().unwrap()]);
+    let o = run(
+        "fleet",
+        &["up", mission.to_str().unwrap(), "--out", run_dir.to_str().unwrap()],
+    );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let journal = std::fs::read(run_dir.join("state/tiny.redb")).unwrap();
     let outbox = {
         let mut s = fleet_net::store::Store::open(&dir.join("made/boat-1.redb")).unwrap();
         let j = fleet_net::store::Store::open(&run_dir.join("state/tiny.redb")).unwrap();
-        let batches: Vec<_> = j.messages().unwrap().into_iter().filter(|((v, _), _)| v == "boat-1").collect();
+        let batches: Vec<_> = j
+            .messages()
+            .unwrap()
+            .into_iter()
+            .filter(|((v, _), _)| v == "boat-1")
+            .collect();
         for ((v, seq), b) in &batches {
             s.commit(&[((v, *seq), b)], &[]).unwrap();
         }
@@ -155,10 +222,18 @@ fn damaged_journals_and_outboxes_are_refused_by_the_nodes_and_left_as_they_are()
     let truth = run_dir.join("truth.npy");
     let m = mission.to_str().unwrap();
     let cases: Vec<(&str, &str, Vec<u8>)> = vec![
-        ("model-server", "journal truncated to a third", journal[..journal.len() / 3].to_vec()),
+        (
+            "model-server",
+            "journal truncated to a third",
+            journal[..journal.len() / 3].to_vec(),
+        ),
         ("model-server", "a measurement's bit flipped", flip(&journal)),
         ("model-server", "0 bytes", vec![]),
-        ("vehicle", "outbox truncated to a third", outbox[..outbox.len() / 3].to_vec()),
+        (
+            "vehicle",
+            "outbox truncated to a third",
+            outbox[..outbox.len() / 3].to_vec(),
+        ),
         ("vehicle", "a batch's bit flipped", flip(&outbox)),
     ];
     for (node, what, bytes) in cases {
@@ -167,7 +242,14 @@ fn damaged_journals_and_outboxes_are_refused_by_the_nodes_and_left_as_they_are()
         let file = state.join(if node == "vehicle" { "boat-1.redb" } else { "tiny.redb" });
         std::fs::write(&file, &bytes).unwrap();
         let mut cmd = Command::new(bin(node));
-        cmd.args(["--mission", m, "--truth", truth.to_str().unwrap(), "--state-dir", state.to_str().unwrap()]);
+        cmd.args([
+            "--mission",
+            m,
+            "--truth",
+            truth.to_str().unwrap(),
+            "--state-dir",
+            state.to_str().unwrap(),
+        ]);
         if node == "vehicle" {
             cmd.args(["--id", "boat-1"]);
         }
@@ -176,11 +258,25 @@ fn damaged_journals_and_outboxes_are_refused_by_the_nodes_and_left_as_they_are()
         println!("{what}: exit {code}: {}", lines.last().unwrap_or(&""));
         assert_eq!(code, 2, "{what}: bad input is exit 2: {err}");
         assert_eq!(lines.len(), 1, "{what}: one line: {err}");
-        assert!(lines[0].starts_with(&format!("{node}: ")) && lines[0].contains(&file.display().to_string()), "{what}: names the file: {err}");
-        assert!(lines[0].contains("move the file aside"), "{what}: says how to recover: {err}");
+        assert!(
+            lines[0].starts_with(&format!("{node}: ")) && lines[0].contains(&file.display().to_string()),
+            "{what}: names the file: {err}"
+        );
+        assert!(
+            lines[0].contains("move the file aside"),
+            "{what}: says how to recover: {err}"
+        );
         assert!(!err.contains("panicked"), "{what}: {err}");
-        assert_eq!(std::fs::read(&file).unwrap(), bytes, "{what}: the refusal changed the file");
-        assert_eq!(std::fs::read_dir(&state).unwrap().count(), 1, "{what}: nothing left beside it");
+        assert_eq!(
+            std::fs::read(&file).unwrap(),
+            bytes,
+            "{what}: the refusal changed the file"
+        );
+        assert_eq!(
+            std::fs::read_dir(&state).unwrap().count(),
+            1,
+            "{what}: nothing left beside it"
+        );
     }
 }
 
@@ -192,25 +288,53 @@ fn the_gateway_pins_system_ids_from_the_mission_whatever_arrives_first() {
     let gcs_port = free_udp_port();
     let ep = format!("tcp/127.0.0.1:{}", free_port());
     let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
-    edit(&mission, r#"autopilot = "sim""#, &format!("autopilot = \"sim\"\ngcs = \"udpout:127.0.0.1:{gcs_port}\""));
+    edit(
+        &mission,
+        r#"autopilot = "sim""#,
+        &format!("autopilot = \"sim\"\ngcs = \"udpout:127.0.0.1:{gcs_port}\""),
+    );
     let m = MissionConfig::load(Some(&mission)).unwrap();
     let mp = mission.to_str().unwrap();
     let mut procs = Procs::default();
     let st = dir.join("state");
-    let _server = start_server(&mut procs, &["--mission", mp, "--state-dir", st.to_str().unwrap()], &dir.join("server.log"));
-    procs.0.push(Command::new(bin("gcs-gateway")).args(["--mission", mp]).stderr(std::fs::File::create(dir.join("gateway.log")).unwrap()).spawn().unwrap());
+    let _server = start_server(
+        &mut procs,
+        &["--mission", mp, "--state-dir", st.to_str().unwrap()],
+        &dir.join("server.log"),
+    );
+    procs.0.push(
+        Command::new(bin("gcs-gateway"))
+            .args(["--mission", mp])
+            .stderr(std::fs::File::create(dir.join("gateway.log")).unwrap())
+            .spawn()
+            .unwrap(),
+    );
     let gs = GroundStation::listen(gcs_port);
     let (boat1, boat2) = (m.sysid("boat-1").unwrap(), m.sysid("boat-2").unwrap());
     let keys = fleet::protocol::keys::Keys::new("tiny").unwrap();
     let rt = tokio::runtime::Runtime::new().unwrap();
     let session = rt.block_on(async {
-        let cfg = fleet_net::config(fleet_net::Role::Vehicle, &m.network, None, &fleet_net::Endpoints::default()).unwrap();
+        let cfg = fleet_net::config(
+            fleet_net::Role::Vehicle,
+            &m.network,
+            None,
+            &fleet_net::Endpoints::default(),
+        )
+        .unwrap();
         fleet_net::open(cfg).await.unwrap()
     });
     let hb = |sysid: u8, mode: u32| {
         vehicles::bridge::frame_bytes(
-            mavlink::MavHeader { system_id: sysid as u32, component_id: 1, sequence: 0 },
-            &MavMessage::HEARTBEAT(HEARTBEAT_DATA { custom_mode: mode, mavtype: MavType::MAV_TYPE_SURFACE_BOAT, ..Default::default() }),
+            mavlink::MavHeader {
+                system_id: sysid as u32,
+                component_id: 1,
+                sequence: 0,
+            },
+            &MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                custom_mode: mode,
+                mavtype: MavType::MAV_TYPE_SURFACE_BOAT,
+                ..Default::default()
+            }),
         )
     };
     let put = |key: String, bytes: Vec<u8>| rt.block_on(async { session.put(&key, bytes).await.unwrap() });
@@ -243,7 +367,10 @@ fn the_gateway_pins_system_ids_from_the_mission_whatever_arrives_first() {
         gs.set_mode(boat2, HOLD);
         stop.store(true, std::sync::atomic::Ordering::Relaxed);
     });
-    assert!(seen.contains(&(boat2 as u32, 15)), "the real boat-2 reaches the ground station: {seen:?}");
+    assert!(
+        seen.contains(&(boat2 as u32, 15)),
+        "the real boat-2 reaches the ground station: {seen:?}"
+    );
     assert!(!seen.contains(&(boat2 as u32, 99)), "boat-1's claim never does");
     // The HOLD went to boat-2, not to the impostor.
     let got = rt.block_on(async { tokio::time::timeout(Duration::from_secs(5), to2.recv_async()).await });
@@ -258,13 +385,19 @@ fn the_gateway_pins_system_ids_from_the_mission_whatever_arrives_first() {
     drop(procs);
     let log = std::fs::read_to_string(dir.join("gateway.log")).unwrap();
     let lines = log.lines().filter(|l| l.contains("impostor")).count();
-    assert!((1..=3).contains(&lines), "impostor frames logged once, then counted ({lines} lines): {log}");
+    assert!(
+        (1..=3).contains(&lines),
+        "impostor frames logged once, then counted ({lines} lines): {log}"
+    );
 }
 
 /// `fleet up` as a child, its output not a terminal.
 fn fleet_up(mission: &Path, out: &Path) -> Command {
     let mut c = Command::new(bin("fleet"));
-    c.args(["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()]).current_dir(root()).stdout(Stdio::piped()).stderr(Stdio::piped());
+    c.args(["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .current_dir(root())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
     c
 }
 
@@ -283,37 +416,74 @@ fn fleet_up_without_a_terminal_keeps_every_notice_and_the_report_says_why_it_dif
     std::thread::spawn(move || {
         let rt = tokio::runtime::Runtime::new().unwrap();
         rt.block_on(async move {
-            let cfg = fleet_net::config(fleet_net::Role::Vehicle, &net, None, &fleet_net::Endpoints { listen: vec![], connect: vec![ep] }).unwrap();
+            let cfg = fleet_net::config(
+                fleet_net::Role::Vehicle,
+                &net,
+                None,
+                &fleet_net::Endpoints {
+                    listen: vec![],
+                    connect: vec![ep],
+                },
+            )
+            .unwrap();
             let session = fleet_net::open(cfg).await.unwrap();
             let sub = session.declare_subscriber("fleet/tiny/server/status").await.unwrap();
             while let Ok(s) = sub.recv_async().await {
-                if let Ok(fleet::protocol::Body::Status(st)) = fleet::protocol::decode(&s.payload().to_bytes(), &fleet::protocol::Context::new(fleet::grid::Grid::new(24, 48, 1.0).unwrap())) {
+                if let Ok(fleet::protocol::Body::Status(st)) = fleet::protocol::decode(
+                    &s.payload().to_bytes(),
+                    &fleet::protocol::Context::new(fleet::grid::Grid::new(24, 48, 1.0).unwrap()),
+                ) {
                     seen.lock().unwrap().push(st);
                 }
             }
         });
     });
     let gs = GroundStation::listen(gcs_port);
-    eventually(60, "the mission under way", || std::fs::read_to_string(out.join("events.jsonl")).is_ok_and(|t| t.contains(r#""epoch":2"#)));
+    eventually(60, "the mission under way", || {
+        std::fs::read_to_string(out.join("events.jsonl")).is_ok_and(|t| t.contains(r#""epoch":2"#))
+    });
     gs.set_mode(m.sysid("boat-2").unwrap(), HOLD);
     let o = child.wait_with_output().unwrap();
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&o.stderr));
-    assert!(stdout.contains("boat-2: left out of the allocation (HOLD"), "the notice is printed without a terminal: {stdout}");
+    assert!(
+        stdout.contains("boat-2: left out of the allocation (HOLD"),
+        "the notice is printed without a terminal: {stdout}"
+    );
     let notices = std::fs::read_to_string(out.join("logs/fleet-up.log")).unwrap();
-    assert!(notices.contains("boat-2: left out of the allocation"), "and kept in the log: {notices}");
+    assert!(
+        notices.contains("boat-2: left out of the allocation"),
+        "and kept in the log: {notices}"
+    );
     let events = std::fs::read_to_string(out.join("events.jsonl")).unwrap();
     assert!(events.lines().all(|l| serde_json::from_str::<ServerEvent>(l).is_ok()));
-    assert!(events.contains(r#""event":"hold","vehicle":"boat-2","held":true"#) && events.lines().any(|l| l.contains(r#""event":"finished""#)), "{events}");
+    assert!(
+        events.contains(r#""event":"hold","vehicle":"boat-2","held":true"#)
+            && events.lines().any(|l| l.contains(r#""event":"finished""#)),
+        "{events}"
+    );
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
-    assert!(report.contains("Network equals offline: **no**") && report.contains("boat-2 was left out of the allocation (mode HOLD once)"), "the report says why: {report}");
+    assert!(
+        report.contains("Network equals offline: **no**")
+            && report.contains("boat-2 was left out of the allocation (mode HOLD once)"),
+        "the report says why: {report}"
+    );
     for log in std::fs::read_dir(out.join("logs")).unwrap() {
         let path = log.unwrap().path();
-        assert!(!std::fs::read(&path).unwrap().contains(&0x1b), "{}: no colour escapes in a log file", path.display());
+        assert!(
+            !std::fs::read(&path).unwrap().contains(&0x1b),
+            "{}: no colour escapes in a log file",
+            path.display()
+        );
     }
-    eventually(10, "the finished status", || statuses.lock().unwrap().iter().any(|s| s.finished));
+    eventually(10, "the finished status", || {
+        statuses.lock().unwrap().iter().any(|s| s.finished)
+    });
     let last = statuses.lock().unwrap().last().cloned().unwrap();
-    assert!(last.finished, "the last status an observer sees says finished: {last:?}");
+    assert!(
+        last.finished,
+        "the last status an observer sees says finished: {last:?}"
+    );
 }
 
 /// The endpoint's port is free again (nothing holds it).
@@ -329,19 +499,39 @@ fn fleet_up_owns_its_nodes_a_signal_stops_them_all() {
         let (mission, ep) = slow_mission(&dir, gcs_port);
         let out = dir.join("run");
         // In a session of its own, as a service manager or nohup would start it.
-        let mut child = Command::new("setsid").arg(bin("fleet")).args(["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()]).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
-        eventually(60, "the mission under way", || std::fs::read_to_string(out.join("events.jsonl")).is_ok_and(|t| t.contains(r#""epoch":1"#)));
+        let mut child = Command::new("setsid")
+            .arg(bin("fleet"))
+            .args(["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()])
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        eventually(60, "the mission under way", || {
+            std::fs::read_to_string(out.join("events.jsonl")).is_ok_and(|t| t.contains(r#""epoch":1"#))
+        });
         let needle = dir.to_str().unwrap().to_string();
-        assert!(pids_with(&needle).len() >= 8, "fleet up, the server, the gateway and five vehicles run");
+        assert!(
+            pids_with(&needle).len() >= 8,
+            "fleet up, the server, the gateway and five vehicles run"
+        );
         // SAFETY: a signal to our own child.
         unsafe { libc::kill(child.id() as i32, sig) };
         let status = child.wait().unwrap();
-        eventually(15, &format!("{name}: every node gone"), || pids_with(&needle).is_empty());
+        eventually(15, &format!("{name}: every node gone"), || {
+            pids_with(&needle).is_empty()
+        });
         assert!(port_free(&ep), "{name}: the server's port is free again");
-        assert!(std::net::UdpSocket::bind(("127.0.0.1", gcs_port)).is_ok(), "{name}: nothing holds the ground stations' port");
+        assert!(
+            std::net::UdpSocket::bind(("127.0.0.1", gcs_port)).is_ok(),
+            "{name}: nothing holds the ground stations' port"
+        );
         use std::os::unix::process::ExitStatusExt;
         if sig == libc::SIGTERM {
-            assert_eq!(status.code(), Some(128 + libc::SIGTERM), "stopped by a signal: 128 + its number");
+            assert_eq!(
+                status.code(),
+                Some(128 + libc::SIGTERM),
+                "stopped by a signal: 128 + its number"
+            );
         } else {
             assert_eq!(status.signal(), Some(libc::SIGKILL));
         }
@@ -362,21 +552,40 @@ fn a_failed_start_leaves_the_previous_run_and_a_dead_node_is_reported_in_its_own
     let o = fleet_up(&mission, &out).output().unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
-    assert!(err.trim().lines().count() == 1 && err.contains(&format!("listen {ep}")) && err.to_lowercase().contains("in use"), "one line naming the endpoint: {err}");
-    assert_eq!(std::fs::read_to_string(out.join("report.md")).unwrap(), "the previous run");
-    assert_eq!(std::fs::read_to_string(out.join("state/tiny.redb")).unwrap(), "the previous journal");
+    assert!(
+        err.trim().lines().count() == 1
+            && err.contains(&format!("listen {ep}"))
+            && err.to_lowercase().contains("in use"),
+        "one line naming the endpoint: {err}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(out.join("report.md")).unwrap(),
+        "the previous run"
+    );
+    assert_eq!(
+        std::fs::read_to_string(out.join("state/tiny.redb")).unwrap(),
+        "the previous journal"
+    );
     drop(holder);
     // A node killed mid-mission: `up` stops and says which, and what it last said.
     let child = fleet_up(&mission, &out).spawn().unwrap();
-    eventually(60, "the mission under way", || std::fs::read_to_string(out.join("events.jsonl")).is_ok_and(|t| t.contains(r#""epoch":1"#)));
-    let boat: Vec<u32> = pids_with(dir.to_str().unwrap()).into_iter().filter(|p| cmdline(*p).contains("--id boat-2")).collect();
+    eventually(60, "the mission under way", || {
+        std::fs::read_to_string(out.join("events.jsonl")).is_ok_and(|t| t.contains(r#""epoch":1"#))
+    });
+    let boat: Vec<u32> = pids_with(dir.to_str().unwrap())
+        .into_iter()
+        .filter(|p| cmdline(*p).contains("--id boat-2"))
+        .collect();
     assert_eq!(boat.len(), 1, "one boat-2");
     // SAFETY: a signal to a node this test started.
     unsafe { libc::kill(boat[0] as i32, libc::SIGKILL) };
     let o = child.wait_with_output().unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
-    assert!(err.contains("boat-2 exited (killed by signal 9)") && err.contains("it said:"), "{err}");
+    assert!(
+        err.contains("boat-2 exited (killed by signal 9)") && err.contains("it said:"),
+        "{err}"
+    );
     eventually(15, "every node gone", || pids_with(dir.to_str().unwrap()).is_empty());
 }
 
@@ -388,28 +597,64 @@ fn a_batch_that_decodes_but_is_invalid_is_counted_once_in_the_status() {
     let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
     let m = MissionConfig::load(Some(&mission)).unwrap();
     let mut procs = Procs::default();
-    let server = start_server(&mut procs, &["--mission", mission.to_str().unwrap(), "--state-dir", dir.join("state").to_str().unwrap()], &dir.join("server.log"));
-    server.wait_for(30, "the server up", |e| matches!(e, ServerEvent::Ready { .. }).then_some(()));
+    let server = start_server(
+        &mut procs,
+        &[
+            "--mission",
+            mission.to_str().unwrap(),
+            "--state-dir",
+            dir.join("state").to_str().unwrap(),
+        ],
+        &dir.join("server.log"),
+    );
+    server.wait_for(30, "the server up", |e| {
+        matches!(e, ServerEvent::Ready { .. }).then_some(())
+    });
     let rt = tokio::runtime::Runtime::new().unwrap();
     let keys = fleet::protocol::keys::Keys::new("tiny").unwrap();
     let status = rt.block_on(async {
-        let cfg = fleet_net::config(fleet_net::Role::Vehicle, &m.network, None, &fleet_net::Endpoints::default()).unwrap();
+        let cfg = fleet_net::config(
+            fleet_net::Role::Vehicle,
+            &m.network,
+            None,
+            &fleet_net::Endpoints::default(),
+        )
+        .unwrap();
         let session = fleet_net::open(cfg).await.unwrap();
         let statuses = session.declare_subscriber(keys.server_status()).await.unwrap();
         let batch = |kind, steps: Vec<u64>| MeasurementBatch {
             vehicle: "boat-1".into(),
             kind,
             seq: 0,
-            noise: Noise { sigma0: 0.05, growth_per_m: 0.0 },
-            samples: steps.into_iter().map(|s| Sample { step: s, position: [1.0, 1.0], cells: vec![0], values: vec![0.5] }).collect(),
+            noise: Noise {
+                sigma0: 0.05,
+                growth_per_m: 0.0,
+            },
+            samples: steps
+                .into_iter()
+                .map(|s| Sample {
+                    step: s,
+                    position: [1.0, 1.0],
+                    cells: vec![0],
+                    values: vec![0.5],
+                })
+                .collect(),
         };
         // Wrong kind (boat-1 declares itself an aerial), then wrong steps: two invalid batches.
-        for b in [batch(VehicleKind::Aerial, vec![0]), batch(VehicleKind::Boat, vec![3, 4])] {
-            fleet_net::put(&session, &keys.measurements("boat-1"), &Body::Batch(b)).await.unwrap();
+        for b in [
+            batch(VehicleKind::Aerial, vec![0]),
+            batch(VehicleKind::Boat, vec![3, 4]),
+        ] {
+            fleet_net::put(&session, &keys.measurements("boat-1"), &Body::Batch(b))
+                .await
+                .unwrap();
         }
         let ctx = fleet::protocol::Context::new(fleet::grid::Grid::new(24, 48, 1.0).unwrap());
         loop {
-            let s = tokio::time::timeout(Duration::from_secs(10), statuses.recv_async()).await.expect("a status").unwrap();
+            let s = tokio::time::timeout(Duration::from_secs(10), statuses.recv_async())
+                .await
+                .expect("a status")
+                .unwrap();
             if let Ok(Body::Status(st)) = fleet_net::decode(&s, &ctx) {
                 if st.batches >= 2 {
                     break st;
@@ -417,8 +662,15 @@ fn a_batch_that_decodes_but_is_invalid_is_counted_once_in_the_status() {
             }
         }
     });
-    assert_eq!(status.rejected, std::collections::BTreeMap::from([("invalid_batch".to_string(), 2)]), "each invalid batch counted exactly once");
+    assert_eq!(
+        status.rejected,
+        std::collections::BTreeMap::from([("invalid_batch".to_string(), 2)]),
+        "each invalid batch counted exactly once"
+    );
     assert_eq!(status.batches, 2);
     let log = std::fs::read_to_string(dir.join("server.log")).unwrap();
-    assert!(log.contains("declared Aerial, registered Boat"), "the refusal is logged with its reason: {log}");
+    assert!(
+        log.contains("declared Aerial, registered Boat"),
+        "the refusal is logged with its reason: {log}"
+    );
 }

@@ -31,7 +31,9 @@ fn pydmd_and_fleet_agree_on_a_field_we_generate() {
     fleet::npy::write(&npy, &[t, f.rows, f.cols], &data).unwrap();
     let ours = dir.join("ours.json");
     let out = Command::new(bin("fleet"))
-        .args(["dmd", "--method", "batch", "--rank", "6", "--init", "200", "--dt", "0.01", "--out"])
+        .args([
+            "dmd", "--method", "batch", "--rank", "6", "--init", "200", "--dt", "0.01", "--out",
+        ])
         .arg(&ours)
         .arg("--input")
         .arg(&npy)
@@ -47,18 +49,31 @@ d = DMD(svd_rank=6, exact=True).fit(Z)
 e = d.eigs[np.lexsort((-d.eigs.imag, -np.round(np.abs(d.eigs), 12)))]
 print(json.dumps([[float(z.real), float(z.imag)] for z in e]))
 "#;
-    let py = Command::new("python3").arg("-c").arg(script).arg(&npy).output().expect("python3 must be installed (scripts/test.sh)");
-    assert!(py.status.success(), "PyDMD failed (run scripts/test.sh to install it): {}", String::from_utf8_lossy(&py.stderr));
+    let py = Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .arg(&npy)
+        .output()
+        .expect("python3 must be installed (scripts/test.sh)");
+    assert!(
+        py.status.success(),
+        "PyDMD failed (run scripts/test.sh to install it): {}",
+        String::from_utf8_lossy(&py.stderr)
+    );
     let theirs: Vec<[f64; 2]> = serde_json::from_slice(&py.stdout).unwrap();
     let doc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&ours).unwrap()).unwrap();
     let mine: Vec<[f64; 2]> = serde_json::from_value(doc["model"]["eigenvalues"].clone()).unwrap();
     assert_eq!(mine.len(), theirs.len());
     // One to one: the pairing (over all 720 of 6) with the smallest worst relative difference,
     // so two of PyDMD's eigenvalues never match the same one of ours.
-    let rel = |m: &[f64; 2], t: &[f64; 2]| ((m[0] - t[0]).powi(2) + (m[1] - t[1]).powi(2)).sqrt() / (t[0].powi(2) + t[1].powi(2)).sqrt().max(1e-3);
+    let rel = |m: &[f64; 2], t: &[f64; 2]| {
+        ((m[0] - t[0]).powi(2) + (m[1] - t[1]).powi(2)).sqrt() / (t[0].powi(2) + t[1].powi(2)).sqrt().max(1e-3)
+    };
     let mut best = f64::INFINITY;
     let mut order: Vec<usize> = (0..mine.len()).collect();
-    permutations(&mut order, 0, &mut |p| best = best.min(theirs.iter().zip(p).map(|(t, &j)| rel(&mine[j], t)).fold(0.0, f64::max)));
+    permutations(&mut order, 0, &mut |p| {
+        best = best.min(theirs.iter().zip(p).map(|(t, &j)| rel(&mine[j], t)).fold(0.0, f64::max))
+    });
     println!("MEASURED PyDMD vs ours, batch rank 6, one to one: {best:e}");
     // Measured 5.3e-14; two SVD and eigensolver implementations on a 6 x 6 reduced
     // operator: 1e-9 leaves 1e4 for other machines, far below a wrong eigenvalue's 1e-3.

@@ -37,29 +37,64 @@ impl Chromium {
         };
         let ((chrome_reads, we_write), (we_read, chrome_writes)) = (pipe(), pipe());
         let mut c = Command::new("chromium");
-        c.args(["--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--remote-debugging-pipe", "--window-size=1400,1500"]);
+        c.args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--hide-scrollbars",
+            "--remote-debugging-pipe",
+            "--window-size=1400,1500",
+        ]);
         c.arg(format!("--user-data-dir={}", dir.join("chromium-profile").display()));
-        c.stdin(Stdio::null()).stdout(Stdio::null()).stderr(std::fs::File::create(dir.join("chromium.log")).unwrap());
+        c.stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(dir.join("chromium.log")).unwrap());
         // SAFETY: only async-signal-safe calls between fork and exec. Copies above 10 first, so
         // neither target fd is clobbered; dup2 clears close-on-exec on 3 and 4.
         unsafe {
             c.pre_exec(move || {
-                let (r, w) = (libc::fcntl(chrome_reads, libc::F_DUPFD, 10), libc::fcntl(chrome_writes, libc::F_DUPFD, 10));
+                let (r, w) = (
+                    libc::fcntl(chrome_reads, libc::F_DUPFD, 10),
+                    libc::fcntl(chrome_writes, libc::F_DUPFD, 10),
+                );
                 if r < 0 || w < 0 || libc::dup2(r, 3) < 0 || libc::dup2(w, 4) < 0 {
                     return Err(std::io::Error::last_os_error());
                 }
                 Ok(())
             });
         }
-        let child = c.spawn().expect("chromium runs (scripts/test.sh installs Debian's chromium)");
+        let child = c
+            .spawn()
+            .expect("chromium runs (scripts/test.sh installs Debian's chromium)");
         unsafe {
             libc::close(chrome_reads);
             libc::close(chrome_writes);
         }
-        let (to, from) = unsafe { (std::fs::File::from_raw_fd(we_write), std::io::BufReader::new(std::fs::File::from_raw_fd(we_read))) };
-        let mut b = Self { child, to, from, next: 0, session: String::new(), console: vec![] };
-        let target = b.call("Target.createTarget", serde_json::json!({ "url": "about:blank" }))["targetId"].as_str().unwrap().to_string();
-        b.session = b.call("Target.attachToTarget", serde_json::json!({ "targetId": target, "flatten": true }))["sessionId"].as_str().unwrap().to_string();
+        let (to, from) = unsafe {
+            (
+                std::fs::File::from_raw_fd(we_write),
+                std::io::BufReader::new(std::fs::File::from_raw_fd(we_read)),
+            )
+        };
+        let mut b = Self {
+            child,
+            to,
+            from,
+            next: 0,
+            session: String::new(),
+            console: vec![],
+        };
+        let target = b.call("Target.createTarget", serde_json::json!({ "url": "about:blank" }))["targetId"]
+            .as_str()
+            .unwrap()
+            .to_string();
+        b.session = b.call(
+            "Target.attachToTarget",
+            serde_json::json!({ "targetId": target, "flatten": true }),
+        )["sessionId"]
+            .as_str()
+            .unwrap()
+            .to_string();
         for domain in ["Runtime.enable", "Log.enable", "Page.enable"] {
             b.call(domain, serde_json::json!({}));
         }
@@ -85,8 +120,12 @@ impl Chromium {
             buf.pop();
             let m: serde_json::Value = serde_json::from_slice(&buf).expect("chromium speaks JSON");
             match m["method"].as_str() {
-                Some("Runtime.consoleAPICalled") => self.console.push(format!("console.{}: {}", m["params"]["type"], m["params"]["args"])),
-                Some("Runtime.exceptionThrown") => self.console.push(format!("exception: {}", m["params"]["exceptionDetails"])),
+                Some("Runtime.consoleAPICalled") => self
+                    .console
+                    .push(format!("console.{}: {}", m["params"]["type"], m["params"]["args"])),
+                Some("Runtime.exceptionThrown") => self
+                    .console
+                    .push(format!("exception: {}", m["params"]["exceptionDetails"])),
                 Some("Log.entryAdded") => self.console.push(format!("log: {}", m["params"]["entry"])),
                 _ => {}
             }
@@ -99,12 +138,19 @@ impl Chromium {
 
     /// A JavaScript expression's value in the page.
     fn eval(&mut self, js: &str) -> serde_json::Value {
-        self.call("Runtime.evaluate", serde_json::json!({ "expression": js, "returnByValue": true }))["result"]["value"].clone()
+        self.call(
+            "Runtime.evaluate",
+            serde_json::json!({ "expression": js, "returnByValue": true }),
+        )["result"]["value"]
+            .clone()
     }
 
     fn screenshot(&mut self, path: &Path) {
         use base64::Engine as _;
-        let png = self.call("Page.captureScreenshot", serde_json::json!({ "format": "png" }))["data"].as_str().unwrap().to_string();
+        let png = self.call("Page.captureScreenshot", serde_json::json!({ "format": "png" }))["data"]
+            .as_str()
+            .unwrap()
+            .to_string();
         std::fs::write(path, base64::engine::general_purpose::STANDARD.decode(png).unwrap()).unwrap();
     }
 }
@@ -121,11 +167,24 @@ fn a_real_browser_sees_every_vehicle_and_the_model_advance_without_console_error
     let dir = scratch("web");
     let ep = format!("tcp/127.0.0.1:{}", free_port());
     let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
-    edit(&mission, "plan_timeout_ms = 20000", "plan_timeout_ms = 1500\nstep_ms = 800");
+    edit(
+        &mission,
+        "plan_timeout_ms = 20000",
+        "plan_timeout_ms = 1500\nstep_ms = 800",
+    );
     let port = free_port();
     let mut procs = Procs::default();
     let up = Command::new(bin("fleet"))
-        .args(["up", mission.to_str().unwrap(), "--out", dir.join("run").to_str().unwrap(), "--web", &format!("127.0.0.1:{port}"), "--web-linger-s", "0"])
+        .args([
+            "up",
+            mission.to_str().unwrap(),
+            "--out",
+            dir.join("run").to_str().unwrap(),
+            "--web",
+            &format!("127.0.0.1:{port}"),
+            "--web-linger-s",
+            "0",
+        ])
         .current_dir(root())
         .stdout(std::fs::File::create(dir.join("up.log")).unwrap())
         .stderr(std::fs::File::create(dir.join("up.err")).unwrap())
@@ -133,11 +192,18 @@ fn a_real_browser_sees_every_vehicle_and_the_model_advance_without_console_error
         .expect("fleet up");
     procs.0.push(up);
     let url = format!("http://127.0.0.1:{port}/");
-    eventually(60, "the view has a model", || web_state(port).is_some_and(|s| version(&s) >= 1));
+    eventually(60, "the view has a model", || {
+        web_state(port).is_some_and(|s| version(&s) >= 1)
+    });
 
     // The JSON endpoint the page uses, as documented in the README.
     let s = web_state(port).unwrap();
-    let ids: Vec<String> = MissionConfig::load(Some(&mission)).unwrap().vehicles().into_iter().map(|v| v.id).collect();
+    let ids: Vec<String> = MissionConfig::load(Some(&mission))
+        .unwrap()
+        .vehicles()
+        .into_iter()
+        .map(|v| v.id)
+        .collect();
     let vehicles = s["vehicles"].as_array().unwrap();
     assert_eq!(vehicles.len(), ids.len());
     for v in vehicles {
@@ -162,26 +228,54 @@ fn a_real_browser_sees_every_vehicle_and_the_model_advance_without_console_error
     // The browser: every vehicle listed, the model version advancing on the page (pushed,
     // not reloaded), nothing on the console, and a screenshot.
     let mut page = Chromium::open(&url, &dir);
-    let shown = |p: &mut Chromium| p.eval("Number(document.getElementById('version').textContent) || 0").as_u64().unwrap_or(0);
+    let shown = |p: &mut Chromium| {
+        p.eval("Number(document.getElementById('version').textContent) || 0")
+            .as_u64()
+            .unwrap_or(0)
+    };
     eventually(30, "the page shows a model", || shown(&mut page) >= 1);
     let v1 = shown(&mut page);
     let listed = page.eval("[...document.querySelectorAll('#vehicles tr')].map(r => r.dataset.id)");
     for id in &ids {
-        assert!(listed.as_array().unwrap().iter().any(|x| x == id), "the page lists {id}: {listed}");
+        assert!(
+            listed.as_array().unwrap().iter().any(|x| x == id),
+            "the page lists {id}: {listed}"
+        );
     }
-    assert!(page.console.is_empty(), "the page logged to the console: {:#?}", page.console);
+    assert!(
+        page.console.is_empty(),
+        "the page logged to the console: {:#?}",
+        page.console
+    );
     // The view dies mid-mission: the mission goes on (fleet up ends 0 below), the page says
     // it is reconnecting, and once a view is back on the same address the same page (not
     // reloaded) is live again and follows the model.
-    let watch: Vec<u32> = pids_with(&format!("127.0.0.1:{port}")).into_iter().filter(|p| cmdline(*p).contains("fleet-watch")).collect();
+    let watch: Vec<u32> = pids_with(&format!("127.0.0.1:{port}"))
+        .into_iter()
+        .filter(|p| cmdline(*p).contains("fleet-watch"))
+        .collect();
     assert_eq!(watch.len(), 1, "one fleet-watch");
     unsafe { libc::kill(watch[0] as i32, libc::SIGKILL) };
-    let badge = |p: &mut Chromium| p.eval("document.getElementById('conn').textContent").as_str().unwrap_or("").to_string();
-    eventually(10, "the page says it is reconnecting", || badge(&mut page) == "reconnecting");
+    let badge = |p: &mut Chromium| {
+        p.eval("document.getElementById('conn').textContent")
+            .as_str()
+            .unwrap_or("")
+            .to_string()
+    };
+    eventually(10, "the page says it is reconnecting", || {
+        badge(&mut page) == "reconnecting"
+    });
     let mut view = Procs::default();
     let truth = dir.join("run/truth.npy");
     let restarted = Command::new(bin("fleet-watch"))
-        .args(["--mission", mission.to_str().unwrap(), "--truth", truth.to_str().unwrap(), "--http", &format!("127.0.0.1:{port}")])
+        .args([
+            "--mission",
+            mission.to_str().unwrap(),
+            "--truth",
+            truth.to_str().unwrap(),
+            "--http",
+            &format!("127.0.0.1:{port}"),
+        ])
         .stderr(std::fs::File::create(dir.join("watch-restarted.log")).unwrap())
         .spawn()
         .unwrap();
@@ -192,12 +286,24 @@ fn a_real_browser_sees_every_vehicle_and_the_model_advance_without_console_error
     let shot = dir.join("live-view.png");
     page.screenshot(&shot);
     let png = std::fs::read(&shot).expect("a screenshot");
-    assert!(png.starts_with(b"\x89PNG") && png.len() > 10_000, "a real screenshot ({} bytes)", png.len());
+    assert!(
+        png.starts_with(b"\x89PNG") && png.len() > 10_000,
+        "a real screenshot ({} bytes)",
+        png.len()
+    );
     // After the kill, only the browser's own notes that the event stream broke and could
     // not reconnect until the view was back.
-    let unexpected: Vec<_> = page.console.iter().filter(|l| !(l.starts_with("log: ") && l.contains("\"source\":\"network\"") && l.contains("/api/events"))).collect();
+    let unexpected: Vec<_> = page
+        .console
+        .iter()
+        .filter(|l| !(l.starts_with("log: ") && l.contains("\"source\":\"network\"") && l.contains("/api/events")))
+        .collect();
     assert!(unexpected.is_empty(), "the page logged to the console: {unexpected:#?}");
-    println!("browser saw model v{v1}, the view killed and back, then v{v2}; {} vehicles; screenshot {}", ids.len(), shot.display());
+    println!(
+        "browser saw model v{v1}, the view killed and back, then v{v2}; {} vehicles; screenshot {}",
+        ids.len(),
+        shot.display()
+    );
     drop(page);
     drop(view);
 
@@ -212,36 +318,80 @@ fn a_vehicle_that_goes_silent_is_marked_lost_within_the_lease_and_a_public_addre
     let m = mission.to_str().unwrap();
 
     // Bound beyond loopback without a credential: refused, exit 2, one line naming the flag.
-    let out = Command::new(bin("fleet-watch")).args(["--mission", m, "--http", "0.0.0.0:1"]).output().unwrap();
+    let out = Command::new(bin("fleet-watch"))
+        .args(["--mission", m, "--http", "0.0.0.0:1"])
+        .output()
+        .unwrap();
     assert_eq!(out.status.code(), Some(2), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(String::from_utf8_lossy(&out.stderr).contains("--credential"));
 
     let (out_dir, state_dir) = (dir.join("out"), dir.join("state"));
     let mut procs = Procs::default();
-    let server = start_server(&mut procs, &["--mission", m, "--out", out_dir.to_str().unwrap(), "--state-dir", state_dir.to_str().unwrap(), "--exit-when-done"], &dir.join("server.log"));
+    let server = start_server(
+        &mut procs,
+        &[
+            "--mission",
+            m,
+            "--out",
+            out_dir.to_str().unwrap(),
+            "--state-dir",
+            state_dir.to_str().unwrap(),
+            "--exit-when-done",
+        ],
+        &dir.join("server.log"),
+    );
     let port = free_port();
-    let watch = Command::new(bin("fleet-watch")).args(["--mission", m, "--http", &format!("127.0.0.1:{port}")]).stderr(std::fs::File::create(dir.join("watch.log")).unwrap()).spawn().unwrap();
+    let watch = Command::new(bin("fleet-watch"))
+        .args(["--mission", m, "--http", &format!("127.0.0.1:{port}")])
+        .stderr(std::fs::File::create(dir.join("watch.log")).unwrap())
+        .spawn()
+        .unwrap();
     procs.0.push(watch);
     let mut boat2 = 0;
     for v in MissionConfig::load(Some(&mission)).unwrap().vehicles() {
-        let args = ["--mission", m, "--id", &v.id, "--state-dir", state_dir.to_str().unwrap()];
+        let args = [
+            "--mission",
+            m,
+            "--id",
+            &v.id,
+            "--state-dir",
+            state_dir.to_str().unwrap(),
+        ];
         let i = start_vehicle(&mut procs, &[], &args, &dir.join(format!("{}.log", v.id)));
         if v.id == "boat-2" {
             boat2 = i;
         }
     }
-    let link = |s: &serde_json::Value, id: &str| s["vehicles"].as_array().unwrap().iter().find(|v| v["id"] == id).map(|v| v["link"].as_str().unwrap_or("").to_string()).unwrap();
-    eventually(60, "boat-2's link is up", || web_state(port).is_some_and(|s| link(&s, "boat-2") == "up"));
+    let link = |s: &serde_json::Value, id: &str| {
+        s["vehicles"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|v| v["id"] == id)
+            .map(|v| v["link"].as_str().unwrap_or("").to_string())
+            .unwrap()
+    };
+    eventually(60, "boat-2's link is up", || {
+        web_state(port).is_some_and(|s| link(&s, "boat-2") == "up")
+    });
     server.epoch(1, 60);
     procs.kill(boat2);
     let killed = std::time::Instant::now();
-    eventually(10, "boat-2 marked lost", || web_state(port).is_some_and(|s| link(&s, "boat-2") == "lost"));
+    eventually(10, "boat-2 marked lost", || {
+        web_state(port).is_some_and(|s| link(&s, "boat-2") == "lost")
+    });
     let after = killed.elapsed().as_secs_f64();
     // Its liveliness token goes when the link does (at once for a closed socket, within the
     // 1 s lease for a silent one); the view pushes every 0.25 s.
     assert!(after < 1.5, "marked lost {after:.2} s after it died");
     let s = web_state(port).unwrap();
-    assert!(s["vehicles"].as_array().unwrap().iter().find(|v| v["id"] == "boat-2").unwrap()["lost_since_s"].is_f64());
+    assert!(s["vehicles"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|v| v["id"] == "boat-2")
+        .unwrap()["lost_since_s"]
+        .is_f64());
     assert_eq!(link(&s, "boat-1"), "up", "the others are not");
     println!("boat-2 marked lost {after:.2} s after kill -9 (lease 1 s)");
 }

@@ -121,7 +121,9 @@ pub fn parse_frame(bytes: &[u8]) -> Result<(MavHeader, MavMessage), String> {
     if bytes.len() > MAX_FRAME {
         return Err(format!("{} bytes: longer than a MAVLink frame", bytes.len()));
     }
-    mavlink::MavlinkReader::new(bytes).read_any_message::<MavMessage>().map_err(|e| format!("not a MAVLink frame: {e}"))
+    mavlink::MavlinkReader::new(bytes)
+        .read_any_message::<MavMessage>()
+        .map_err(|e| format!("not a MAVLink frame: {e}"))
 }
 
 fn lock(seen: &Mutex<Seen>) -> std::sync::MutexGuard<'_, Seen> {
@@ -134,30 +136,61 @@ impl Bridge {
         let stop = Arc::new(AtomicBool::new(false));
         let address = if address == "sim" {
             let port = free_udp_port()?;
-            let sim_signing = spec.signing.as_ref().map(|(k, _)| LinkSigning::new(k.clone(), LINK_AUTOPILOT, false));
-            serve::spawn(&format!("udpin:127.0.0.1:{port}"), SimAutopilot::new(spec.vehicle.clone(), spec.home), sim_signing, stop.clone())?;
+            let sim_signing = spec
+                .signing
+                .as_ref()
+                .map(|(k, _)| LinkSigning::new(k.clone(), LINK_AUTOPILOT, false));
+            serve::spawn(
+                &format!("udpin:127.0.0.1:{port}"),
+                SimAutopilot::new(spec.vehicle.clone(), spec.home),
+                sim_signing,
+                stop.clone(),
+            )?;
             format!("udpout:127.0.0.1:{port}")
         } else {
             address.to_string()
         };
-        let signing = spec.signing.as_ref().map(|(k, unsigned)| LinkSigning::new(k.clone(), LINK_BRIDGE, *unsigned));
-        let conn = Arc::new(MavLink::open(&address, signing).map_err(|e| anyhow::anyhow!("autopilot at {address}: {e}"))?);
+        let signing = spec
+            .signing
+            .as_ref()
+            .map(|(k, unsigned)| LinkSigning::new(k.clone(), LINK_BRIDGE, *unsigned));
+        let conn =
+            Arc::new(MavLink::open(&address, signing).map_err(|e| anyhow::anyhow!("autopilot at {address}: {e}"))?);
         info!(autopilot = address, signed = conn.signed(), "MAVLink bridge up");
-        let fence: Vec<[f64; 2]> = spec.fence_m.iter().map(|&[e, n]| latlon(&spec, Vector3::new(n, e, 0.0))).collect();
-        let rally: Vec<[f64; 2]> = spec.rally.iter().map(|p| latlon(&spec, *p)).collect();
-        let uploads = [(MavMissionType::MAV_MISSION_TYPE_FENCE, upload::fence_items(&fence)), (MavMissionType::MAV_MISSION_TYPE_RALLY, upload::rally_items(&rally))]
-            .into_iter()
-            .filter(|(_, items)| !items.is_empty())
-            .map(|(kind, items)| Upload::new(kind, items))
+        let fence: Vec<[f64; 2]> = spec
+            .fence_m
+            .iter()
+            .map(|&[e, n]| latlon(&spec, Vector3::new(n, e, 0.0)))
             .collect();
-        let bridge = Self { conn, spec, seen: Arc::new(Mutex::new(Seen { uploads, ..Seen::default() })), stop };
+        let rally: Vec<[f64; 2]> = spec.rally.iter().map(|p| latlon(&spec, *p)).collect();
+        let uploads = [
+            (MavMissionType::MAV_MISSION_TYPE_FENCE, upload::fence_items(&fence)),
+            (MavMissionType::MAV_MISSION_TYPE_RALLY, upload::rally_items(&rally)),
+        ]
+        .into_iter()
+        .filter(|(_, items)| !items.is_empty())
+        .map(|(kind, items)| Upload::new(kind, items))
+        .collect();
+        let bridge = Self {
+            conn,
+            spec,
+            seen: Arc::new(Mutex::new(Seen {
+                uploads,
+                ..Seen::default()
+            })),
+            stop,
+        };
         bridge.spawn_reader(gcs)?;
         bridge.spawn_heartbeat()?;
         Ok(bridge)
     }
 
     fn own_header(&self) -> MavHeader {
-        MavHeader { system_id: self.spec.vehicle.sysid as u32, component_id: COMPANION_COMPONENT, sequence: 0 }
+        MavHeader {
+            system_id: self.spec.vehicle.sysid as u32,
+            component_id: COMPANION_COMPONENT,
+            sequence: 0,
+        }
     }
 
     fn send(&self, msg: &MavMessage) {
@@ -168,7 +201,12 @@ impl Bridge {
     }
 
     fn spawn_reader(&self, gcs: Option<GcsSink>) -> std::io::Result<()> {
-        let (conn, seen, frame, stop) = (self.conn.clone(), self.seen.clone(), self.spec.vehicle.frame, self.stop.clone());
+        let (conn, seen, frame, stop) = (
+            self.conn.clone(),
+            self.seen.clone(),
+            self.spec.vehicle.frame,
+            self.stop.clone(),
+        );
         let mission_sysid = self.spec.vehicle.sysid;
         std::thread::Builder::new().name("mavlink-autopilot-rx".into()).spawn(move || {
             while !stop.load(Ordering::Relaxed) {
@@ -185,7 +223,10 @@ impl Bridge {
                                     if s.sysid.is_none() {
                                         info!(sysid = h.system_id, kind = ?hb.mavtype, mode = frame.name(hb.custom_mode), "autopilot found");
                                         if h.system_id != mission_sysid as u32 {
-                                            warn!(autopilot = h.system_id, mission = mission_sysid, "the autopilot's system id is not the one the mission gives this vehicle: the ground-station gateway accepts and routes only the mission's (set SYSID_THISMAV to it)");
+                                            warn!(autopilot = h.system_id, mission = mission_sysid, "the autopilot's \
+                                                system id is not the one the mission gives this vehicle: the \
+                                                ground-station gateway accepts and routes only the mission's (set \
+                                                SYSID_THISMAV to it)");
                                         }
                                     }
                                     s.sysid = from;
@@ -245,7 +286,8 @@ impl Bridge {
                     Received::Refused(r) => {
                         let mut s = lock(&seen);
                         if s.counters.refused_signing == 0 {
-                            warn!(reason = r.reason(), "a frame from the autopilot failed the signing check (refused; further ones are counted in telemetry)");
+                            warn!(reason = r.reason(), "a frame from the autopilot failed the signing check (refused; \
+                                further ones are counted in telemetry)");
                         }
                         s.counters.refused_signing += 1;
                     }
@@ -260,54 +302,79 @@ impl Bridge {
     /// the one-time set-up: arm and GUIDED, asked again each second until the autopilot shows
     /// both, for at most 10 s.
     fn spawn_heartbeat(&self) -> std::io::Result<()> {
-        let me = Self { conn: self.conn.clone(), spec: self.spec.clone(), seen: self.seen.clone(), stop: self.stop.clone() };
-        std::thread::Builder::new().name("mavlink-companion".into()).spawn(move || {
-            let (mut tries, mut tick) = (0, 0u64);
-            while !me.stop.load(Ordering::Relaxed) {
-                // Every 100 ms: the set-up's progress; every second: the heartbeat and asking again.
-                std::thread::sleep(Duration::from_millis(100));
-                tick += 1;
-                let (target, mode, armed, setup) = {
-                    let s = lock(&me.seen);
-                    (s.sysid, s.mode, s.armed, s.setup)
-                };
-                let guided = me.spec.vehicle.frame.mode(Role::Guided);
-                let second = tick % 10 == 1;
-                if second {
-                    me.send(&MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-                        custom_mode: 0,
-                        mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
-                        autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
-                        base_mode: MavModeFlag::empty(),
-                        system_status: MavState::MAV_STATE_ACTIVE,
-                        mavlink_version: 3,
-                    }));
-                }
-                let Some(target) = target else { continue };
-                if !me.prepared(target, second) {
-                    continue;
-                }
-                match setup {
-                    Some(true) => {}
-                    _ if mode == Some(guided) && armed => {
-                        lock(&me.seen).setup = Some(true);
-                        info!(sysid = target, "autopilot armed and in GUIDED: the planner drives it");
+        let me = Self {
+            conn: self.conn.clone(),
+            spec: self.spec.clone(),
+            seen: self.seen.clone(),
+            stop: self.stop.clone(),
+        };
+        std::thread::Builder::new()
+            .name("mavlink-companion".into())
+            .spawn(move || {
+                let (mut tries, mut tick) = (0, 0u64);
+                while !me.stop.load(Ordering::Relaxed) {
+                    // Every 100 ms: the set-up's progress; every second: the heartbeat and asking again.
+                    std::thread::sleep(Duration::from_millis(100));
+                    tick += 1;
+                    let (target, mode, armed, setup) = {
+                        let s = lock(&me.seen);
+                        (s.sysid, s.mode, s.armed, s.setup)
+                    };
+                    let guided = me.spec.vehicle.frame.mode(Role::Guided);
+                    let second = tick % 10 == 1;
+                    if second {
+                        me.send(&MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                            custom_mode: 0,
+                            mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+                            autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+                            base_mode: MavModeFlag::empty(),
+                            system_status: MavState::MAV_STATE_ACTIVE,
+                            mavlink_version: 3,
+                        }));
                     }
-                    Some(false) if !second => {}
-                    _ if tries >= 10 => {
-                        lock(&me.seen).setup = Some(true);
-                        warn!(sysid = target, mode = me.spec.vehicle.frame.name(mode.unwrap_or(0)), armed, "the autopilot did not take GUIDED and arming: left to the operator");
+                    let Some(target) = target else { continue };
+                    if !me.prepared(target, second) {
+                        continue;
                     }
-                    _ => {
-                        tries += 1;
-                        lock(&me.seen).setup = Some(false);
-                        let cmd = |command, param1, param2| MavMessage::COMMAND_LONG(COMMAND_LONG_DATA { command, param1, param2, target_system: target, target_component: 1, ..Default::default() });
-                        me.send(&cmd(MavCmd::MAV_CMD_DO_SET_MODE, MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED.bits() as f32, guided as f32));
-                        me.send(&cmd(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+                    match setup {
+                        Some(true) => {}
+                        _ if mode == Some(guided) && armed => {
+                            lock(&me.seen).setup = Some(true);
+                            info!(sysid = target, "autopilot armed and in GUIDED: the planner drives it");
+                        }
+                        Some(false) if !second => {}
+                        _ if tries >= 10 => {
+                            lock(&me.seen).setup = Some(true);
+                            warn!(
+                                sysid = target,
+                                mode = me.spec.vehicle.frame.name(mode.unwrap_or(0)),
+                                armed,
+                                "the autopilot did not take GUIDED and arming: left to the operator"
+                            );
+                        }
+                        _ => {
+                            tries += 1;
+                            lock(&me.seen).setup = Some(false);
+                            let cmd = |command, param1, param2| {
+                                MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                                    command,
+                                    param1,
+                                    param2,
+                                    target_system: target,
+                                    target_component: 1,
+                                    ..Default::default()
+                                })
+                            };
+                            me.send(&cmd(
+                                MavCmd::MAV_CMD_DO_SET_MODE,
+                                MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED.bits() as f32,
+                                guided as f32,
+                            ));
+                            me.send(&cmd(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+                        }
                     }
                 }
-            }
-        })?;
+            })?;
         Ok(())
     }
 
@@ -327,24 +394,41 @@ impl Bridge {
                     out.extend(u.count(target));
                 }
                 false
-            } else if s.uploads.iter().any(|u| u.kind == MavMissionType::MAV_MISSION_TYPE_FENCE && u.accepted()) && !s.fence_enabled && s.enable_tries < upload::TRIES {
+            } else if s
+                .uploads
+                .iter()
+                .any(|u| u.kind == MavMissionType::MAV_MISSION_TYPE_FENCE && u.accepted())
+                && !s.fence_enabled
+                && s.enable_tries < upload::TRIES
+            {
                 if second || s.enable_tries == 0 {
                     s.enable_tries += 1;
                     let set = |name: &str, v: f32| {
-                        MavMessage::PARAM_SET(PARAM_SET_DATA { param_value: v, target_system: target, target_component: 1, param_id: name.into(), param_type: MavParamType::MAV_PARAM_TYPE_REAL32 })
+                        MavMessage::PARAM_SET(PARAM_SET_DATA {
+                            param_value: v,
+                            target_system: target,
+                            target_component: 1,
+                            param_id: name.into(),
+                            param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+                        })
                     };
                     out = vec![set("FENCE_ACTION", self.spec.fence_action), set("FENCE_ENABLE", 1.0)];
                 }
                 false
             } else {
                 s.prepared = true;
-                let states: Vec<String> = s.uploads.iter().map(|u| format!("{:?}: {:?}", u.kind, u.state)).collect();
+                let states: Vec<String> = s
+                    .uploads
+                    .iter()
+                    .map(|u| format!("{:?}: {:?}", u.kind, u.state))
+                    .collect();
                 if s.uploads.is_empty() {
                     // No fence to upload (none given): nothing to say.
                 } else if s.fence_enabled {
                     info!(sysid = target, uploads = ?states, "fence and rally points uploaded, fence enabled");
                 } else {
-                    warn!(sysid = target, uploads = ?states, "the autopilot did not take the fence (or enable it): the planner alone keeps it inside");
+                    warn!(sysid = target, uploads = ?states, "the autopilot did not take the fence (or enable it): \
+                        the planner alone keeps it inside");
                 }
                 true
             }
@@ -364,7 +448,9 @@ impl Bridge {
     }
 
     fn guided_of(&self, s: &Seen) -> bool {
-        s.mode.is_some_and(|m| self.spec.vehicle.frame.role(m) == Some(Role::Guided)) && s.armed
+        s.mode
+            .is_some_and(|m| self.spec.vehicle.frame.role(m) == Some(Role::Guided))
+            && s.armed
     }
 
     /// The link as telemetry reports it.
@@ -373,7 +459,9 @@ impl Bridge {
         AutopilotStatus {
             link: self.link_of(&s),
             sysid: s.sysid.unwrap_or(0),
-            mode: s.mode.map_or_else(|| "unknown".into(), |m| self.spec.vehicle.frame.name(m)),
+            mode: s
+                .mode
+                .map_or_else(|| "unknown".into(), |m| self.spec.vehicle.frame.name(m)),
             armed: s.armed,
             guided: self.guided_of(&s),
             unreadable: s.counters.unreadable,
@@ -389,7 +477,9 @@ impl Bridge {
 
     /// The autopilot's heading as telemetry has it (radians from +x, east, counter-clockwise).
     pub fn heading(&self) -> Option<f64> {
-        lock(&self.seen).heading_deg.map(|d| (std::f64::consts::FRAC_PI_2 - d.to_radians()).rem_euclid(std::f64::consts::TAU))
+        lock(&self.seen)
+            .heading_deg
+            .map(|d| (std::f64::consts::FRAC_PI_2 - d.to_radians()).rem_euclid(std::f64::consts::TAU))
     }
 
     /// The link state alone (polled while waiting; no allocation).
@@ -422,7 +512,9 @@ impl Bridge {
 
     /// Send a guided target (a grid point); false when the autopilot is not ours to drive.
     pub fn goto(&self, grid_xy: (f64, f64)) -> bool {
-        let Some(target) = lock(&self.seen).sysid else { return false };
+        let Some(target) = lock(&self.seen).sysid else {
+            return false;
+        };
         if !self.drivable() {
             return false;
         }
@@ -431,32 +523,46 @@ impl Bridge {
         let ned = {
             let mut s = lock(&self.seen);
             let from = s.ned.map(|p| [p.y, p.x]);
-            let first = from.and_then(|f| fleet_mission::fence::route(&self.spec.fence_m, f, [goal.y, goal.x], ROUTE_INSET_M).first().copied());
-            let leg = first.map(|[e, n]| Vector3::new(n, e, goal.z)).filter(|l| (l - goal).xy().norm() > 1e-6);
+            let first = from.and_then(|f| {
+                fleet_mission::fence::route(&self.spec.fence_m, f, [goal.y, goal.x], ROUTE_INSET_M)
+                    .first()
+                    .copied()
+            });
+            let leg = first
+                .map(|[e, n]| Vector3::new(n, e, goal.z))
+                .filter(|l| (l - goal).xy().norm() > 1e-6);
             s.leg = leg;
             leg.unwrap_or(goal)
         };
         // Position only: ignore velocity, acceleration, yaw and yaw rate.
         let mask = PositionTargetTypemask::from_bits_truncate(0b0000_1101_1111_1000);
-        self.send(&MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA {
-            x: ned.x as f32,
-            y: ned.y as f32,
-            z: ned.z as f32,
-            type_mask: mask,
-            target_system: target,
-            target_component: 1,
-            coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
-            ..Default::default()
-        }));
+        self.send(&MavMessage::SET_POSITION_TARGET_LOCAL_NED(
+            SET_POSITION_TARGET_LOCAL_NED_DATA {
+                x: ned.x as f32,
+                y: ned.y as f32,
+                z: ned.z as f32,
+                type_mask: mask,
+                target_system: target,
+                target_component: 1,
+                coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+                ..Default::default()
+            },
+        ));
         true
     }
 
     /// A failsafe of the vehicle's own (its link to the server lost): the autopilot to
     /// `role` (Return or Hold), and `why` in telemetry until it is back in GUIDED.
     pub fn failsafe(&self, role: Role, why: &str) -> bool {
-        let Some(target) = lock(&self.seen).sysid else { return false };
+        let Some(target) = lock(&self.seen).sysid else {
+            return false;
+        };
         let frame = self.spec.vehicle.frame;
-        let mode = if role == Role::Hold { frame.hold_mode() } else { frame.mode(role) };
+        let mode = if role == Role::Hold {
+            frame.hold_mode()
+        } else {
+            frame.mode(role)
+        };
         lock(&self.seen).failsafe = Some(why.to_string());
         self.set_mode(target, mode);
         true
@@ -490,13 +596,17 @@ impl Bridge {
     /// Whether it has reached the corner it was routed to (time for the next leg).
     pub fn at_corner(&self) -> bool {
         let s = lock(&self.seen);
-        s.leg.zip(s.ned).is_some_and(|(l, n)| (n.xy() - l.xy()).norm() <= self.spec.acceptance_m.max(ROUTE_INSET_M / 2.0))
+        s.leg
+            .zip(s.ned)
+            .is_some_and(|(l, n)| (n.xy() - l.xy()).norm() <= self.spec.acceptance_m.max(ROUTE_INSET_M / 2.0))
     }
 
     /// Whether the autopilot is within the acceptance distance of a grid point.
     pub fn arrived(&self, grid_xy: (f64, f64)) -> bool {
         let goal = self.target_ned(grid_xy);
-        lock(&self.seen).ned.is_some_and(|n| (n.xy() - goal.xy()).norm() <= self.spec.acceptance_m)
+        lock(&self.seen)
+            .ned
+            .is_some_and(|n| (n.xy() - goal.xy()).norm() <= self.spec.acceptance_m)
     }
 
     /// A frame from a ground station: passed on when it is readable and addressed to this

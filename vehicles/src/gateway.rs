@@ -28,7 +28,11 @@ impl Router {
     /// A router for the mission's vehicles and their system ids.
     pub fn new(systems: impl IntoIterator<Item = (String, u8)>) -> Self {
         let sysid_of: BTreeMap<String, u8> = systems.into_iter().collect();
-        Self { by_sysid: sysid_of.iter().map(|(v, s)| (*s, v.clone())).collect(), sysid_of, refused: BTreeMap::new() }
+        Self {
+            by_sysid: sysid_of.iter().map(|(v, s)| (*s, v.clone())).collect(),
+            sysid_of,
+            refused: BTreeMap::new(),
+        }
     }
 
     fn refuse<T>(&mut self, reason: &'static str, why: String) -> Result<T, Refusal> {
@@ -41,7 +45,9 @@ impl Router {
         let why = match r {
             Refused::Unsigned => "an unsigned frame from the ground station (signing is on: give it the mission's key)",
             Refused::BadSignature => "a frame from the ground station signed with another key (or altered)",
-            Refused::Replay => "a signed frame from the ground station sent again (its timestamp is not newer than the last)",
+            Refused::Replay => {
+                "a signed frame from the ground station sent again (its timestamp is not newer than the last)"
+            }
         };
         self.refuse::<()>(r.reason(), why.into()).unwrap_err()
     }
@@ -62,8 +68,17 @@ impl Router {
             return self.refuse("unknown_vehicle", format!("{vehicle} is not a vehicle of the mission"));
         };
         if h.system_id != own as u32 {
-            let whose = u8::try_from(h.system_id).ok().and_then(|s| self.by_sysid.get(&s)).map_or_else(|| "no vehicle's".to_string(), |v| format!("{v}'s"));
-            return self.refuse("impostor", format!("{vehicle} sent as system {}, which is {whose} (the mission gives {vehicle} system {own})", h.system_id));
+            let whose = u8::try_from(h.system_id)
+                .ok()
+                .and_then(|s| self.by_sysid.get(&s))
+                .map_or_else(|| "no vehicle's".to_string(), |v| format!("{v}'s"));
+            return self.refuse(
+                "impostor",
+                format!(
+                    "{vehicle} sent as system {}, which is {whose} (the mission gives {vehicle} system {own})",
+                    h.system_id
+                ),
+            );
         }
         Ok((h, m))
     }
@@ -79,7 +94,10 @@ impl Router {
             None | Some(0) => Ok(self.sysid_of.keys().cloned().collect()),
             Some(t) => match self.by_sysid.get(&t) {
                 Some(v) => Ok(vec![v.clone()]),
-                None => self.refuse("no_such_system", format!("{} for system {t}, which no vehicle has", m.message_name())),
+                None => self.refuse(
+                    "no_such_system",
+                    format!("{} for system {t}, which no vehicle has", m.message_name()),
+                ),
             },
         }
     }
@@ -111,7 +129,10 @@ pub struct RefusalLog {
 
 impl RefusalLog {
     pub fn new(every: std::time::Duration) -> Self {
-        Self { every, last: BTreeMap::new() }
+        Self {
+            every,
+            last: BTreeMap::new(),
+        }
     }
 
     /// What to log for this refusal now (`None`: only counted).
@@ -124,12 +145,20 @@ impl RefusalLog {
         match self.last.get_mut(r.reason) {
             None => {
                 self.last.insert(r.reason, (now, 0));
-                Some(format!("refused ({}): {} (further refusals of this kind are counted, and logged at most every {} s)", r.reason, r.why, self.every.as_secs()))
+                Some(format!(
+                    "refused ({}): {} (further refusals of this kind are counted, and logged at most every {} s)",
+                    r.reason,
+                    r.why,
+                    self.every.as_secs()
+                ))
             }
             Some((at, skipped)) if now.duration_since(*at) >= self.every => {
                 let n = std::mem::take(skipped);
                 *at = now;
-                Some(format!("refused ({}): {} ({n} more since the last report)", r.reason, r.why))
+                Some(format!(
+                    "refused ({}): {} ({n} more since the last report)",
+                    r.reason, r.why
+                ))
             }
             Some((_, skipped)) => {
                 *skipped += 1;
@@ -146,11 +175,22 @@ mod tests {
     use mavlink::dialects::common::*;
 
     fn from(sysid: u8, m: &MavMessage) -> Vec<u8> {
-        frame_bytes(MavHeader { system_id: sysid as u32, component_id: 1, sequence: 0 }, m)
+        frame_bytes(
+            MavHeader {
+                system_id: sysid as u32,
+                component_id: 1,
+                sequence: 0,
+            },
+            m,
+        )
     }
 
     fn mission_router() -> Router {
-        Router::new([("av-1".to_string(), 1), ("boat-1".to_string(), 3), ("boat-2".to_string(), 4)])
+        Router::new([
+            ("av-1".to_string(), 1),
+            ("boat-1".to_string(), 3),
+            ("boat-2".to_string(), 4),
+        ])
     }
 
     #[test]
@@ -160,9 +200,21 @@ mod tests {
         let hb = MavMessage::HEARTBEAT(HEARTBEAT_DATA::default());
         r.from_vehicle("boat-1", &from(3, &hb)).unwrap();
         r.from_vehicle("boat-2", &from(4, &hb)).unwrap();
-        assert!(r.from_vehicle("boat-2", &from(3, &hb)).is_err(), "boat-2 may not speak as system 3");
+        assert!(
+            r.from_vehicle("boat-2", &from(3, &hb)).is_err(),
+            "boat-2 may not speak as system 3"
+        );
         assert!(r.from_vehicle("boat-9", &from(9, &hb)).is_err(), "not in the mission");
-        let mode = |t| from(255, &MavMessage::SET_MODE(SET_MODE_DATA { target_system: t, custom_mode: 4, ..Default::default() }));
+        let mode = |t| {
+            from(
+                255,
+                &MavMessage::SET_MODE(SET_MODE_DATA {
+                    target_system: t,
+                    custom_mode: 4,
+                    ..Default::default()
+                }),
+            )
+        };
         assert_eq!(r.from_gcs(&mode(4)).unwrap(), ["boat-2"]);
         assert_eq!(r.from_gcs(&from(255, &hb)).unwrap(), ["av-1", "boat-1", "boat-2"]);
         assert!(r.from_gcs(&mode(9)).is_err());
@@ -172,7 +224,15 @@ mod tests {
         assert!(r.from_gcs(&bad).is_err(), "bad CRC");
         assert!(r.from_gcs(b"\xfd\x09garbage").is_err());
         assert_eq!(r.refused_total(), 5);
-        assert_eq!((r.refused["impostor"], r.refused["unknown_vehicle"], r.refused["unreadable"], r.refused["no_such_system"]), (1, 1, 2, 1));
+        assert_eq!(
+            (
+                r.refused["impostor"],
+                r.refused["unknown_vehicle"],
+                r.refused["unreadable"],
+                r.refused["no_such_system"]
+            ),
+            (1, 1, 2, 1)
+        );
     }
 
     #[test]
@@ -180,13 +240,28 @@ mod tests {
     fn a_claim_made_before_the_real_vehicle_comes_up_takes_nothing_over() {
         // boat-1 (its own credentials, its own key) claims boat-2's system id first.
         let mut r = mission_router();
-        let hb = |mode| MavMessage::HEARTBEAT(HEARTBEAT_DATA { custom_mode: mode, ..Default::default() });
+        let hb = |mode| {
+            MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                custom_mode: mode,
+                ..Default::default()
+            })
+        };
         for _ in 0..10 {
-            assert_eq!(r.from_vehicle("boat-1", &from(4, &hb(99))).unwrap_err().reason, "impostor");
+            assert_eq!(
+                r.from_vehicle("boat-1", &from(4, &hb(99))).unwrap_err().reason,
+                "impostor"
+            );
         }
         // The real boat-2 is still itself, and an operator's HOLD for system 4 goes to it.
         assert!(r.from_vehicle("boat-2", &from(4, &hb(15))).is_ok());
-        let hold = from(255, &MavMessage::SET_MODE(SET_MODE_DATA { target_system: 4, custom_mode: 4, ..Default::default() }));
+        let hold = from(
+            255,
+            &MavMessage::SET_MODE(SET_MODE_DATA {
+                target_system: 4,
+                custom_mode: 4,
+                ..Default::default()
+            }),
+        );
         assert_eq!(r.from_gcs(&hold).unwrap(), ["boat-2"]);
         // Even before boat-2 has said anything.
         let mut r = mission_router();
@@ -199,10 +274,23 @@ mod tests {
         let every = std::time::Duration::from_secs(10);
         let mut log = RefusalLog::new(every);
         let t0 = std::time::Instant::now();
-        let r = Refusal { reason: "impostor", why: "x".into() };
+        let r = Refusal {
+            reason: "impostor",
+            why: "x".into(),
+        };
         assert!(log.note_at(&r, t0).is_some());
         assert!((0..100).all(|_| log.note_at(&r, t0 + every / 2).is_none()));
         assert!(log.note_at(&r, t0 + every).unwrap().contains("100 more"));
-        assert!(log.note_at(&Refusal { reason: "unreadable", why: "y".into() }, t0 + every).is_some(), "another reason is logged at once");
+        assert!(
+            log.note_at(
+                &Refusal {
+                    reason: "unreadable",
+                    why: "y".into()
+                },
+                t0 + every
+            )
+            .is_some(),
+            "another reason is logged at once"
+        );
     }
 }

@@ -34,7 +34,11 @@ pub struct MavLink {
 impl MavLink {
     /// Open `address` (any `mavlink` connection string).
     pub fn open(address: &str, signing: Option<LinkSigning>) -> std::io::Result<Self> {
-        Ok(Self { conn: mavlink::connect::<MavMessage>(address)?, signing, sequence: AtomicU8::new(0) })
+        Ok(Self {
+            conn: mavlink::connect::<MavMessage>(address)?,
+            signing,
+            sequence: AtomicU8::new(0),
+        })
     }
 
     pub fn signed(&self) -> bool {
@@ -45,7 +49,14 @@ impl MavLink {
     pub fn recv(&self) -> Received {
         let raw = match self.conn.recv_raw() {
             Ok(r) => r,
-            Err(MessageReadError::Io(e)) if !matches!(e.kind(), std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof) => return Received::Idle,
+            Err(MessageReadError::Io(e))
+                if !matches!(
+                    e.kind(),
+                    std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof
+                ) =>
+            {
+                return Received::Idle
+            }
             Err(e) => return Received::Unreadable(e.to_string()),
         };
         let bytes = match &raw {
@@ -68,7 +79,10 @@ impl MavLink {
         let sent = match &self.signing {
             None => self.conn.send(header, msg),
             Some(s) => {
-                let h = MavHeader { sequence: self.sequence.fetch_add(1, Ordering::Relaxed), ..*header };
+                let h = MavHeader {
+                    sequence: self.sequence.fetch_add(1, Ordering::Relaxed),
+                    ..*header
+                };
                 self.conn.send_raw(&MAVLinkMessageRaw::V2(s.frame(h, msg)))
             }
         };

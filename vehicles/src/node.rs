@@ -92,9 +92,13 @@ struct Vehicle {
 }
 
 fn outbox_error(e: OutboxError) -> anyhow::Error {
-    const RECOVERY: &str = "to go on, move the file aside (keep it for inspection) and start the vehicle again: it starts over from the first epoch, senses again what the plans say and the server keeps what it already has (batches held only in this outbox are lost)";
+    const RECOVERY: &str = "to go on, move the file aside (keep it for inspection) and start the vehicle again: it \
+        starts over from the first epoch, senses again what the plans say and the server keeps what it already has \
+        (batches held only in this outbox are lost)";
     match e {
-        OutboxError::Store(e @ fleet_net::store::StoreError::InUse { .. }) => fleet_mission::exit::bad_input(anyhow::anyhow!("the outbox {e}: is this vehicle already running?")),
+        OutboxError::Store(e @ fleet_net::store::StoreError::InUse { .. }) => {
+            fleet_mission::exit::bad_input(anyhow::anyhow!("the outbox {e}: is this vehicle already running?"))
+        }
         e if e.is_bad_file() => fleet_mission::exit::bad_input(anyhow::anyhow!("the outbox {e}; {RECOVERY}")),
         e => anyhow::Error::new(e).context("the outbox"),
     }
@@ -127,7 +131,11 @@ impl Vehicle {
             fleet_net::mark_connected();
         }
         if up != self.server_alive {
-            info!(server_alive = up, backlog = self.outbox.depth(), "link to the model server");
+            info!(
+                server_alive = up,
+                backlog = self.outbox.depth(),
+                "link to the model server"
+            );
             if up {
                 // Back in range: the whole backlog is due now, oldest first.
                 self.outbox.resend_all();
@@ -159,16 +167,26 @@ impl Vehicle {
     fn begin(&mut self, from: u64) {
         let schedule = *self.brain.schedule();
         let Some(e) = (from..schedule.epochs()).find(|&e| schedule.seq_of(self.brain.kind, e).is_some()) else {
-            self.phase = Phase::Finish { deadline: Instant::now() + Duration::from_millis(self.args.final_ack_ms) };
+            self.phase = Phase::Finish {
+                deadline: Instant::now() + Duration::from_millis(self.args.final_ack_ms),
+            };
             return self.finish_if_acknowledged();
         };
         if self.outbox.full() {
-            warn!(depth = self.outbox.depth(), "outbox full: holding until the server acknowledges");
+            warn!(
+                depth = self.outbox.depth(),
+                "outbox full: holding until the server acknowledges"
+            );
             self.phase = Phase::Full { epoch: e };
             return;
         }
         let now = Instant::now();
-        self.phase = Phase::Plan { epoch: e, deadline: now + self.plan_timeout, warned: false, next_ask: now };
+        self.phase = Phase::Plan {
+            epoch: e,
+            deadline: now + self.plan_timeout,
+            warned: false,
+            next_ask: now,
+        };
     }
 
     fn finish_if_acknowledged(&mut self) {
@@ -197,9 +215,16 @@ impl Vehicle {
             "hold" => Mode::Hold,
             _ => return,
         };
-        let (Some(since), Some(b)) = (self.link_lost_at, &self.bridge) else { return };
-        if !self.link_failsafe && since.elapsed().as_secs_f64() >= m.link_loss_s && b.failsafe(role, "ground link lost") {
-            warn!(after_s = m.link_loss_s, action = m.link_loss_action, "link to the server lost: failsafe");
+        let (Some(since), Some(b)) = (self.link_lost_at, &self.bridge) else {
+            return;
+        };
+        if !self.link_failsafe && since.elapsed().as_secs_f64() >= m.link_loss_s && b.failsafe(role, "ground link lost")
+        {
+            warn!(
+                after_s = m.link_loss_s,
+                action = m.link_loss_action,
+                "link to the server lost: failsafe"
+            );
             self.link_failsafe = true;
         }
     }
@@ -209,11 +234,20 @@ impl Vehicle {
         self.resend_due().await?;
         let now = Instant::now();
         match self.phase {
-            Phase::Plan { epoch, deadline, warned, next_ask } => {
+            Phase::Plan {
+                epoch,
+                deadline,
+                warned,
+                next_ask,
+            } => {
                 // Cut off from the server (its liveliness token gone): no use waiting out the
                 // timeout, the held horizon says where to sense, at the mission's pace.
                 if (now > deadline || !self.server_alive) && self.brain.covers(epoch) {
-                    warn!(epoch, server_alive = self.server_alive, "no plan from the server: following the held plan's horizon");
+                    warn!(
+                        epoch,
+                        server_alive = self.server_alive,
+                        "no plan from the server: following the held plan's horizon"
+                    );
                     self.sense(epoch);
                     return Ok(());
                 }
@@ -226,7 +260,12 @@ impl Vehicle {
                 } else {
                     next_ask
                 };
-                self.phase = Phase::Plan { epoch, deadline, warned: warned || now > deadline, next_ask };
+                self.phase = Phase::Plan {
+                    epoch,
+                    deadline,
+                    warned: warned || now > deadline,
+                    next_ask,
+                };
             }
             Phase::Finish { deadline } if now > deadline => {
                 let last = schedule_last(&self.brain).unwrap_or_default();
@@ -260,8 +299,17 @@ impl Vehicle {
     /// link keep being handled meanwhile); [`Self::on_driven`] senses when it reports.
     fn sense(&mut self, e: u64) {
         self.phase = Phase::Sense { epoch: e };
-        let (bridge, targets, grid, timeout, tx) = (self.bridge.clone(), self.brain.targets_of(e), self.grid, self.arrival_timeout, self.driven.clone());
-        let (plan_at, pace) = (self.plan_at.take(), Duration::from_millis(self.step_ms * self.brain.schedule().steps_of(e).len() as u64));
+        let (bridge, targets, grid, timeout, tx) = (
+            self.bridge.clone(),
+            self.brain.targets_of(e),
+            self.grid,
+            self.arrival_timeout,
+            self.driven.clone(),
+        );
+        let (plan_at, pace) = (
+            self.plan_at.take(),
+            Duration::from_millis(self.step_ms * self.brain.schedule().steps_of(e).len() as u64),
+        );
         tokio::spawn(async move {
             let (fixes, guided) = drive(bridge, targets, grid, timeout, plan_at).await;
             tokio::time::sleep(pace).await;
@@ -271,7 +319,11 @@ impl Vehicle {
 
     /// Epoch `e` driven: sense it, commit the batch (durable first, then sent: a crash in
     /// between re-sends it after the restart), send it, go on.
-    async fn on_driven(&mut self, (e, fixes, guided): Driven, truth: &fleet_mission::process::FieldSeries) -> anyhow::Result<()> {
+    async fn on_driven(
+        &mut self,
+        (e, fixes, guided): Driven,
+        truth: &fleet_mission::process::FieldSeries,
+    ) -> anyhow::Result<()> {
         self.guided_ms.extend(guided);
         self.step = self.brain.schedule().steps_of(e).end.saturating_sub(1) as u64;
         let truth_at = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
@@ -279,9 +331,18 @@ impl Vehicle {
             let bytes = protocol::encode(&Body::Batch(batch.clone()));
             let state: BrainState = self.brain.state(e + 1);
             if self.outbox.commit(batch.seq, &bytes, &state).map_err(outbox_error)? {
-                warn!(depth = self.outbox.depth(), limit = self.args.outbox_limit_mb << 20, "outbox at 80% of its bound: the vehicle will pause sensing when it is full");
+                warn!(
+                    depth = self.outbox.depth(),
+                    limit = self.args.outbox_limit_mb << 20,
+                    "outbox at 80% of its bound: the vehicle will pause sensing when it is full"
+                );
             }
-            if let Err(err) = self.session.put(self.keys.measurements(&self.brain.id), bytes).encoding(fleet_net::encoding()).await {
+            if let Err(err) = self
+                .session
+                .put(self.keys.measurements(&self.brain.id), bytes)
+                .encoding(fleet_net::encoding())
+                .await
+            {
                 warn!("sending batch {}: {err} (kept in the outbox)", batch.seq);
             }
             self.outbox.mark_sent(batch.seq, Instant::now());
@@ -307,8 +368,14 @@ impl Vehicle {
             autopilot: self.bridge.as_ref().map(|b| b.status()),
             heading: self.bridge.as_ref().and_then(|b| b.heading()).unwrap_or(0.0),
             // The autopilot's battery; without one, a stand-in draining linearly over the mission.
-            battery: self.bridge.as_ref().and_then(|b| b.battery()).unwrap_or_else(|| (1.0 - 0.5 * self.step as f64 / self.brain.schedule().frames.max(1) as f64).clamp(0.0, 1.0)),
-            link: if self.server_alive { LinkState::Up } else { LinkState::Down },
+            battery: self.bridge.as_ref().and_then(|b| b.battery()).unwrap_or_else(|| {
+                (1.0 - 0.5 * self.step as f64 / self.brain.schedule().frames.max(1) as f64).clamp(0.0, 1.0)
+            }),
+            link: if self.server_alive {
+                LinkState::Up
+            } else {
+                LinkState::Down
+            },
             outbox_depth: self.outbox.depth(),
             acked: self.outbox.acked(),
         };
@@ -348,7 +415,13 @@ async fn query_plan(session: &zenoh::Session, selector: &str, ctx: &Context, e: 
 
 /// Drive the autopilot to each place of `targets` and wait (up to the arrival timeout) until
 /// it is there; the fixes say where it was. Without an autopilot: none.
-async fn drive(bridge: Option<Arc<Bridge>>, targets: Vec<Target>, grid: Grid, timeout: Duration, mut plan_at: Option<Instant>) -> (BTreeMap<u64, Fix>, Option<f64>) {
+async fn drive(
+    bridge: Option<Arc<Bridge>>,
+    targets: Vec<Target>,
+    grid: Grid,
+    timeout: Duration,
+    mut plan_at: Option<Instant>,
+) -> (BTreeMap<u64, Fix>, Option<f64>) {
     let (mut fixes, mut guided) = (BTreeMap::new(), None);
     let Some(b) = bridge else { return (fixes, guided) };
     for t in targets.iter().filter(|t| !t.cells.is_empty()) {
@@ -376,14 +449,25 @@ async fn drive(bridge: Option<Arc<Bridge>>, targets: Vec<Target>, grid: Grid, ti
             // Sensing happens on the grid, wherever the autopilot drifted.
             let (w, h) = (grid.width_m(), grid.height_m());
             let position = (p.0.clamp(0.0, w - 1e-9), p.1.clamp(0.0, h - 1e-9));
-            fixes.insert(t.step, Fix { position, arrived: b.arrived(goal) });
+            fixes.insert(
+                t.step,
+                Fix {
+                    position,
+                    arrived: b.arrived(goal),
+                },
+            );
         }
     }
     (fixes, guided)
 }
 
 /// The MAVLink bridge, unless the autopilot is `none`; its frames go to `gcs`.
-fn open_bridge(args: &Args, mission: &MissionConfig, grid: &Grid, gcs: vehicles::bridge::GcsSink) -> anyhow::Result<Option<Arc<Bridge>>> {
+fn open_bridge(
+    args: &Args,
+    mission: &MissionConfig,
+    grid: &Grid,
+    gcs: vehicles::bridge::GcsSink,
+) -> anyhow::Result<Option<Arc<Bridge>>> {
     let m = &mission.mavlink;
     let address = args.autopilot.clone().unwrap_or_else(|| m.autopilot.clone());
     if address == "none" {
@@ -406,7 +490,10 @@ fn open_bridge(args: &Args, mission: &MissionConfig, grid: &Grid, gcs: vehicles:
     let mut vehicle = SimSpec::from_config(Frame::of(kind), mission.sysid(&args.id)?, site, m);
     if let Some(mah) = args.sim_battery_start_mah {
         if !(mah.is_finite() && (0.0..=m.battery_mah).contains(&mah)) {
-            return Err(fleet_mission::exit::bad_input(anyhow::anyhow!("--sim-battery-start-mah {mah}: must be within 0..{} (the mission's battery_mah)", m.battery_mah)));
+            return Err(fleet_mission::exit::bad_input(anyhow::anyhow!(
+                "--sim-battery-start-mah {mah}: must be within 0..{} (the mission's battery_mah)",
+                m.battery_mah
+            )));
         }
         vehicle.safety.battery_start_mah = Some(mah);
     }
@@ -420,7 +507,12 @@ fn open_bridge(args: &Args, mission: &MissionConfig, grid: &Grid, gcs: vehicles:
         fence_action: Action::from_name(&m.fence_action).unwrap_or(Action::Continue) as u8 as f32,
         rally: (0..mission.vehicles().len()).map(launch).collect(),
         signing: match m.autopilot_key_of(&args.id) {
-            Some(p) => Some((SigningKey::read(&p).map_err(fleet_mission::exit::bad_input).context("[mavlink] autopilot_signing_key")?, m.accept_unsigned_telemetry)),
+            Some(p) => Some((
+                SigningKey::read(&p)
+                    .map_err(fleet_mission::exit::bad_input)
+                    .context("[mavlink] autopilot_signing_key")?,
+                m.accept_unsigned_telemetry,
+            )),
             None => None,
         },
     };
@@ -430,7 +522,14 @@ fn open_bridge(args: &Args, mission: &MissionConfig, grid: &Grid, gcs: vehicles:
 /// The MAVLink side's tasks: the autopilot's frames out to the ground-station gateway, the
 /// gateway's frames in to the autopilot, and telemetry again whenever the autopilot's link or
 /// mode changes (so the server leaves a held vehicle out of the next allocation).
-fn spawn_mavlink_tasks(session: &zenoh::Session, keys: &Keys, id: &str, bridge: Arc<Bridge>, mut frames: tokio::sync::mpsc::UnboundedReceiver<Vec<u8>>, last: Arc<Mutex<Option<Telemetry>>>) {
+fn spawn_mavlink_tasks(
+    session: &zenoh::Session,
+    keys: &Keys,
+    id: &str,
+    bridge: Arc<Bridge>,
+    mut frames: tokio::sync::mpsc::UnboundedReceiver<Vec<u8>>,
+    last: Arc<Mutex<Option<Telemetry>>>,
+) {
     let (s, key) = (session.clone(), keys.mavlink(id));
     tokio::spawn(async move {
         while let Some(f) = frames.recv().await {
@@ -439,7 +538,9 @@ fn spawn_mavlink_tasks(session: &zenoh::Session, keys: &Keys, id: &str, bridge: 
     });
     let (s, key, b) = (session.clone(), keys.gcs(id), bridge.clone());
     tokio::spawn(async move {
-        let Ok(sub) = s.declare_subscriber(&key).await else { return warn!("cannot subscribe to {key}") };
+        let Ok(sub) = s.declare_subscriber(&key).await else {
+            return warn!("cannot subscribe to {key}");
+        };
         while let Ok(sample) = sub.recv_async().await {
             if let Err(e) = b.from_gcs(&sample.payload().to_bytes()) {
                 debug!("ground-station frame refused: {e}");
@@ -474,12 +575,25 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let (index, kind) = mission.vehicle(&args.id)?;
     let keys = Keys::new(&mission.mission)?;
     let schedule = mission.schedule(frames);
-    let brain = VehicleBrain::new(&args.id, kind, grid, schedule, mission.noise(kind), vehicle_rng(mission.team.seed, index), mission.speed(kind));
+    let brain = VehicleBrain::new(
+        &args.id,
+        kind,
+        grid,
+        schedule,
+        mission.noise(kind),
+        vehicle_rng(mission.team.seed, index),
+        mission.speed(kind),
+    );
     let mut ctx = Context::new(grid);
     ctx.vehicles = mission.vehicles().into_iter().map(|v| v.id).collect();
 
     // Local state first: a damaged outbox is refused before anything goes on the network.
-    let outbox = Outbox::open(&args.state_dir.join(format!("{}.redb", args.id)), &args.id, args.outbox_limit_mb << 20).map_err(outbox_error)?;
+    let outbox = Outbox::open(
+        &args.state_dir.join(format!("{}.redb", args.id)),
+        &args.id,
+        args.outbox_limit_mb << 20,
+    )
+    .map_err(outbox_error)?;
     let state: Option<BrainState> = outbox.state().map_err(outbox_error)?;
     let (gcs_tx, gcs_rx) = tokio::sync::mpsc::unbounded_channel();
     let bridge = open_bridge(&args, &mission, &grid, gcs_tx)?;
@@ -491,9 +605,21 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     if let Some(b) = &bridge {
         spawn_mavlink_tasks(&session, &keys, &args.id, b.clone(), gcs_rx, last_telemetry.clone());
     }
-    let _token = session.liveliness().declare_token(keys.alive(&args.id)).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-    let acks = session.declare_subscriber(keys.ack(&args.id)).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-    let links = session.liveliness().declare_subscriber(keys.alive("server")).history(true).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let _token = session
+        .liveliness()
+        .declare_token(keys.alive(&args.id))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let acks = session
+        .declare_subscriber(keys.ack(&args.id))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let links = session
+        .liveliness()
+        .declare_subscriber(keys.alive("server"))
+        .history(true)
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
     let (plans_tx, mut plans) = mpsc::unbounded_channel();
     let (driven_tx, mut driven) = mpsc::unbounded_channel();
     let pace = mission.pace.clone();
@@ -528,7 +654,12 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         Some(state) => {
             let e = state.next_epoch;
             v.brain.restore(state);
-            info!(vehicle = v.brain.id, epoch = e, unacknowledged = v.outbox.depth(), "resuming from the outbox");
+            info!(
+                vehicle = v.brain.id,
+                epoch = e,
+                unacknowledged = v.outbox.depth(),
+                "resuming from the outbox"
+            );
             e
         }
         None => 0,
@@ -570,7 +701,11 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
             "MAVLink link to the autopilot"
         );
     }
-    info!(vehicle = v.brain.id, off_target = v.brain.off_target, "mission done, every batch acknowledged");
+    info!(
+        vehicle = v.brain.id,
+        off_target = v.brain.off_target,
+        "mission done, every batch acknowledged"
+    );
     session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(())
 }

@@ -55,14 +55,22 @@ impl LinkSigning {
     /// autopilot that cannot sign), never wrongly signed or replayed ones.
     pub fn new(key: SigningKey, link_id: u8, accept_unsigned: bool) -> Self {
         let data = SigningData::from_config(SigningConfig::new(key.0, link_id, true, accept_unsigned));
-        Self { key, data, accept_unsigned }
+        Self {
+            key,
+            data,
+            accept_unsigned,
+        }
     }
 
     /// Check one received frame (whole, as it came off the link).
     pub fn check(&self, frame: &[u8]) -> Result<(), Refused> {
         let signed = frame.first() == Some(&STX_V2) && frame.get(FLAGS_AT).is_some_and(|f| f & IFLAG_SIGNED != 0);
         if !signed {
-            return if self.accept_unsigned { Ok(()) } else { Err(Refused::Unsigned) };
+            return if self.accept_unsigned {
+                Ok(())
+            } else {
+                Err(Refused::Unsigned)
+            };
         }
         // Any other incompatibility flag is one we do not know: the specification says drop.
         if frame[FLAGS_AT] & !IFLAG_SIGNED != 0 || frame.len() > MAX_FRAME_SIZE {
@@ -108,12 +116,19 @@ mod tests {
         MavMessage::HEARTBEAT(HEARTBEAT_DATA::default())
     }
 
-    const GCS: MavHeader = MavHeader { system_id: 255, component_id: 190, sequence: 7 };
+    const GCS: MavHeader = MavHeader {
+        system_id: 255,
+        component_id: 190,
+        sequence: 7,
+    };
 
     #[test]
     fn signed_frames_pass_and_unsigned_foreign_altered_and_replayed_ones_are_refused_each_by_name() {
         let key = SigningKey::from_passphrase("field");
-        let (gcs, gateway) = (LinkSigning::new(key.clone(), 0, false), LinkSigning::new(key, LINK_GATEWAY, false));
+        let (gcs, gateway) = (
+            LinkSigning::new(key.clone(), 0, false),
+            LinkSigning::new(key, LINK_GATEWAY, false),
+        );
         let f = gcs.frame(GCS, &hb());
         let bytes = f.raw_bytes().to_vec();
         // Still a readable frame, the message intact, 13 bytes of signature more.
@@ -124,15 +139,29 @@ mod tests {
         assert_eq!(gateway.check(gcs.frame(GCS, &hb()).raw_bytes()), Ok(()), "a later one");
         assert_eq!(gateway.check(&frame_bytes(GCS, &hb())), Err(Refused::Unsigned));
         let stranger = LinkSigning::new(SigningKey::from_passphrase("guess"), 0, false);
-        assert_eq!(gateway.check(stranger.frame(GCS, &hb()).raw_bytes()), Err(Refused::BadSignature));
+        assert_eq!(
+            gateway.check(stranger.frame(GCS, &hb()).raw_bytes()),
+            Err(Refused::BadSignature)
+        );
         let mut altered = gcs.frame(GCS, &hb()).raw_bytes().to_vec();
         altered[12] ^= 1;
-        assert_eq!(gateway.check(&altered), Err(Refused::BadSignature), "a payload byte changed");
-        assert_eq!(gateway.check(&bytes[..bytes.len() - 3]), Err(Refused::BadSignature), "cut short");
+        assert_eq!(
+            gateway.check(&altered),
+            Err(Refused::BadSignature),
+            "a payload byte changed"
+        );
+        assert_eq!(
+            gateway.check(&bytes[..bytes.len() - 3]),
+            Err(Refused::BadSignature),
+            "cut short"
+        );
         // An autopilot that cannot sign: unsigned taken, wrong signatures still not.
         let lenient = LinkSigning::new(SigningKey::from_passphrase("field"), LINK_BRIDGE, true);
         assert_eq!(lenient.check(&frame_bytes(GCS, &hb())), Ok(()));
-        assert_eq!(lenient.check(stranger.frame(GCS, &hb()).raw_bytes()), Err(Refused::BadSignature));
+        assert_eq!(
+            lenient.check(stranger.frame(GCS, &hb()).raw_bytes()),
+            Err(Refused::BadSignature)
+        );
     }
 
     #[test]

@@ -26,7 +26,14 @@ fn site() -> Site {
 /// Hostile datagrams: random bytes, frames with a flipped CRC byte, unknown message ids,
 /// truncations, and a MAVLink 2 start byte with a huge length.
 fn garbage(rng: &mut impl Rng, n: usize) -> Vec<Vec<u8>> {
-    let good = frame_bytes(MavHeader { system_id: 7, component_id: 1, sequence: 0 }, &MavMessage::HEARTBEAT(HEARTBEAT_DATA::default()));
+    let good = frame_bytes(
+        MavHeader {
+            system_id: 7,
+            component_id: 1,
+            sequence: 0,
+        },
+        &MavMessage::HEARTBEAT(HEARTBEAT_DATA::default()),
+    );
     (0..n)
         .map(|i| match i % 5 {
             0 => (0..rng.random_range(1..300)).map(|_| rng.random()).collect(),
@@ -73,7 +80,16 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
     let ap = UdpSocket::bind("127.0.0.1:0").unwrap();
     ap.set_read_timeout(Some(Duration::from_millis(200))).unwrap();
     let spec = BridgeSpec {
-        vehicle: SimSpec { frame: Frame::Boat, sysid: 7, site: site(), max_speed: 2.0, turn_rate: 1.0, cruise_alt: 0.0, speedup: 1.0, safety: Default::default() },
+        vehicle: SimSpec {
+            frame: Frame::Boat,
+            sysid: 7,
+            site: site(),
+            max_speed: 2.0,
+            turn_rate: 1.0,
+            cruise_alt: 0.0,
+            speedup: 1.0,
+            safety: Default::default(),
+        },
         acceptance_m: 0.25,
         heartbeat_timeout: Duration::from_millis(400),
         home: Vector3::zeros(),
@@ -93,10 +109,18 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
     for g in garbage(&mut rng, 2_000) {
         send(&g);
     }
-    assert_eq!(bridge.status().link, AutopilotLink::Connecting, "garbage is not an autopilot");
+    assert_eq!(
+        bridge.status().link,
+        AutopilotLink::Connecting,
+        "garbage is not an autopilot"
+    );
     assert!(bridge.position().is_none());
 
-    let ap_header = MavHeader { system_id: 7, component_id: 1, sequence: 0 };
+    let ap_header = MavHeader {
+        system_id: 7,
+        component_id: 1,
+        sequence: 0,
+    };
     // The autopilot's HEARTBEAT at 10 Hz in the mode set here (0: silent).
     let mode = Arc::new(std::sync::atomic::AtomicU32::new(15));
     {
@@ -113,11 +137,23 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
         });
     }
     let alive = |m| mode.store(m, std::sync::atomic::Ordering::Relaxed);
-    wait_for("link up in GUIDED", 3.0, || bridge.status().link == AutopilotLink::Up && bridge.drivable());
-    let pos = MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA { x: 3.0, y: 4.0, ..Default::default() });
+    wait_for("link up in GUIDED", 3.0, || {
+        bridge.status().link == AutopilotLink::Up && bridge.drivable()
+    });
+    let pos = MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+        x: 3.0,
+        y: 4.0,
+        ..Default::default()
+    });
     send(&frame_bytes(ap_header, &pos));
     // A non-finite position is refused, not believed.
-    send(&frame_bytes(ap_header, &MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA { x: f32::NAN, ..Default::default() })));
+    send(&frame_bytes(
+        ap_header,
+        &MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+            x: f32::NAN,
+            ..Default::default()
+        }),
+    ));
     for g in garbage(&mut rng, 500) {
         send(&g);
     }
@@ -139,8 +175,21 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
     for g in garbage(&mut rng, 500) {
         assert!(bridge.from_gcs(&g).is_err());
     }
-    let gcs = MavHeader { system_id: 255, component_id: 190, sequence: 0 };
-    let arm = |target| frame_bytes(gcs, &MavMessage::COMMAND_LONG(COMMAND_LONG_DATA { command: MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, target_system: target, ..Default::default() }));
+    let gcs = MavHeader {
+        system_id: 255,
+        component_id: 190,
+        sequence: 0,
+    };
+    let arm = |target| {
+        frame_bytes(
+            gcs,
+            &MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                command: MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+                target_system: target,
+                ..Default::default()
+            }),
+        )
+    };
     assert!(bridge.from_gcs(&arm(9)).is_err(), "not ours");
     assert!(bridge.from_gcs(&arm(7)).is_ok());
     assert!(bridge.from_gcs(&vec![0xfd; 4096]).is_err(), "oversized");
@@ -153,17 +202,44 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
 #[test]
 fn the_simulated_autopilot_answers_through_garbage() {
     let port = UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-    let spec = SimSpec { frame: Frame::Multirotor, sysid: 5, site: site(), max_speed: 10.0, turn_rate: 1.0, cruise_alt: 20.0, speedup: 1.0, safety: Default::default() };
+    let spec = SimSpec {
+        frame: Frame::Multirotor,
+        sysid: 5,
+        site: site(),
+        max_speed: 10.0,
+        turn_rate: 1.0,
+        cruise_alt: 20.0,
+        speedup: 1.0,
+        safety: Default::default(),
+    };
     let stop = Arc::new(AtomicBool::new(false));
-    serve::spawn(&format!("udpin:127.0.0.1:{port}"), SimAutopilot::new(spec, Vector3::zeros()), None, stop.clone()).unwrap();
+    serve::spawn(
+        &format!("udpin:127.0.0.1:{port}"),
+        SimAutopilot::new(spec, Vector3::zeros()),
+        None,
+        stop.clone(),
+    )
+    .unwrap();
     let gcs = UdpSocket::bind("127.0.0.1:0").unwrap();
     gcs.set_read_timeout(Some(Duration::from_millis(100))).unwrap();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(12);
     for g in garbage(&mut rng, 2_000) {
         gcs.send_to(&g, ("127.0.0.1", port)).unwrap();
     }
-    let h = MavHeader { system_id: 255, component_id: 190, sequence: 0 };
-    let arm = frame_bytes(h, &MavMessage::COMMAND_LONG(COMMAND_LONG_DATA { command: MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, param1: 1.0, target_system: 5, ..Default::default() }));
+    let h = MavHeader {
+        system_id: 255,
+        component_id: 190,
+        sequence: 0,
+    };
+    let arm = frame_bytes(
+        h,
+        &MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            command: MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+            param1: 1.0,
+            target_system: 5,
+            ..Default::default()
+        }),
+    );
     let deadline = Instant::now() + Duration::from_secs(5);
     let mut acked = false;
     while !acked && Instant::now() < deadline {

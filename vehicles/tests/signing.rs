@@ -39,7 +39,13 @@ fn spec(sysid: u8) -> SimSpec {
 fn autopilot(sysid: u8, key: Option<&SigningKey>, stop: &Arc<AtomicBool>) -> (u16, Arc<ServeStats>) {
     let port = UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let signing = key.map(|k| LinkSigning::new(k.clone(), vehicles::signing::LINK_AUTOPILOT, false));
-    let stats = serve::spawn(&format!("udpin:127.0.0.1:{port}"), SimAutopilot::new(spec(sysid), Vector3::zeros()), signing, stop.clone()).unwrap();
+    let stats = serve::spawn(
+        &format!("udpin:127.0.0.1:{port}"),
+        SimAutopilot::new(spec(sysid), Vector3::zeros()),
+        signing,
+        stop.clone(),
+    )
+    .unwrap();
     (port, stats)
 }
 
@@ -51,10 +57,19 @@ fn wait_for(what: &str, secs: f64, mut cond: impl FnMut() -> bool) {
     }
 }
 
-const GCS: MavHeader = MavHeader { system_id: 255, component_id: 190, sequence: 0 };
+const GCS: MavHeader = MavHeader {
+    system_id: 255,
+    component_id: 190,
+    sequence: 0,
+};
 
 fn arm(sysid: u8) -> MavMessage {
-    MavMessage::COMMAND_LONG(COMMAND_LONG_DATA { command: MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, param1: 1.0, target_system: sysid, ..Default::default() })
+    MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+        command: MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+        param1: 1.0,
+        target_system: sysid,
+        ..Default::default()
+    })
 }
 
 /// Send `frame` and collect what comes back for `ms` milliseconds.
@@ -85,10 +100,20 @@ fn a_signed_autopilot_obeys_only_signed_frames_and_counts_every_refusal() {
     let n = |c: &std::sync::atomic::AtomicU64| c.load(Ordering::Relaxed);
 
     // Unsigned, and signed with another key: no answer, each counted.
-    assert_eq!(acks(&exchange(&gcs, port, &frame_bytes(GCS, &arm(5)), 300)), 0, "unsigned obeyed");
+    assert_eq!(
+        acks(&exchange(&gcs, port, &frame_bytes(GCS, &arm(5)), 300)),
+        0,
+        "unsigned obeyed"
+    );
     let stranger = LinkSigning::new(SigningKey::from_passphrase("guess"), 0, false);
-    assert_eq!(acks(&exchange(&gcs, port, stranger.frame(GCS, &arm(5)).raw_bytes(), 300)), 0, "wrong key obeyed");
-    wait_for("counted", 2.0, || n(&stats.unsigned) == 1 && n(&stats.bad_signature) == 1);
+    assert_eq!(
+        acks(&exchange(&gcs, port, stranger.frame(GCS, &arm(5)).raw_bytes(), 300)),
+        0,
+        "wrong key obeyed"
+    );
+    wait_for("counted", 2.0, || {
+        n(&stats.unsigned) == 1 && n(&stats.bad_signature) == 1
+    });
 
     // Signed with the key: acked, and everything the autopilot sends is signed with it.
     let ours = LinkSigning::new(key.clone(), 0, false);
@@ -96,7 +121,10 @@ fn a_signed_autopilot_obeys_only_signed_frames_and_counts_every_refusal() {
     let back = exchange(&gcs, port, &signed, 400);
     assert_eq!(acks(&back), 1, "a signed command is obeyed");
     let check = LinkSigning::new(key, 9, false);
-    assert!(!back.is_empty() && back.iter().all(|f| check.check(f).is_ok()), "every frame it sends is signed with the key");
+    assert!(
+        !back.is_empty() && back.iter().all(|f| check.check(f).is_ok()),
+        "every frame it sends is signed with the key"
+    );
 
     // The same signed frame again (a recording played back): refused as a replay.
     assert_eq!(acks(&exchange(&gcs, port, &signed, 300)), 0, "a replay obeyed");
@@ -129,17 +157,33 @@ fn a_bridge_with_the_key_drives_its_autopilot_and_one_without_gets_nothing() {
     // The right key: armed, GUIDED, driven to a place, its position read.
     let (port, stats) = autopilot(5, Some(&key), &stop);
     let b = bridge_to(port, Some(key.clone()), false);
-    wait_for("link up and drivable", 10.0, || b.status().link == AutopilotLink::Up && b.drivable());
-    assert!(b.fence_enabled(), "the fence and rally points went up and the fence is enforced");
+    wait_for("link up and drivable", 10.0, || {
+        b.status().link == AutopilotLink::Up && b.drivable()
+    });
+    assert!(
+        b.fence_enabled(),
+        "the fence and rally points went up and the fence is enforced"
+    );
     assert!(b.goto((6.0, 4.0)));
     wait_for("arrived", 10.0, || b.arrived((6.0, 4.0)));
-    assert_eq!((b.counters().refused_signing, stats.unsigned.load(Ordering::Relaxed), stats.bad_signature.load(Ordering::Relaxed)), (0, 0, 0));
+    assert_eq!(
+        (
+            b.counters().refused_signing,
+            stats.unsigned.load(Ordering::Relaxed),
+            stats.bad_signature.load(Ordering::Relaxed)
+        ),
+        (0, 0, 0)
+    );
 
     // Another key: the autopilot refuses the bridge, the bridge refuses the autopilot.
     let (port, stats) = autopilot(5, Some(&key), &stop);
     let wrong = bridge_to(port, Some(SigningKey::from_passphrase("boat-6")), false);
     std::thread::sleep(Duration::from_millis(2500));
-    assert_eq!(wrong.status().link, AutopilotLink::Connecting, "an autopilot that signs with another key is not ours");
+    assert_eq!(
+        wrong.status().link,
+        AutopilotLink::Connecting,
+        "an autopilot that signs with another key is not ours"
+    );
     assert!(wrong.counters().refused_signing > 0 && stats.bad_signature.load(Ordering::Relaxed) > 0);
 
     // An autopilot that cannot sign: refused, unless the mission accepts unsigned telemetry
@@ -151,7 +195,9 @@ fn a_bridge_with_the_key_drives_its_autopilot_and_one_without_gets_nothing() {
     assert!(strict.counters().refused_signing > 0);
     let (port, _) = autopilot(5, None, &stop);
     let lenient = bridge_to(port, Some(key), true);
-    wait_for("unsigned telemetry taken", 10.0, || lenient.status().link == AutopilotLink::Up && lenient.drivable());
+    wait_for("unsigned telemetry taken", 10.0, || {
+        lenient.status().link == AutopilotLink::Up && lenient.drivable()
+    });
     assert_eq!(lenient.counters().refused_signing, 0);
     stop.store(true, Ordering::Relaxed);
 }

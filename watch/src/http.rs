@@ -35,7 +35,12 @@ impl Snapshot {
         let pushed = serde_json::to_string(&st).expect("the state serialises");
         let (taken, plans) = view.plans();
         let plans = (taken, serde_json::to_string(&plans).expect("the plans serialise"));
-        let fields = view.fields().map(|f| (f.version, serde_json::to_string(&FieldsWire::of(f)).expect("the fields serialise")));
+        let fields = view.fields().map(|f| {
+            (
+                f.version,
+                serde_json::to_string(&FieldsWire::of(f)).expect("the fields serialise"),
+            )
+        });
         Self { pushed, plans, fields }
     }
 }
@@ -56,8 +61,19 @@ struct FieldsWire {
 impl FieldsWire {
     fn of(f: &crate::state::Fields) -> Self {
         use base64::Engine as _;
-        let packed = |v: &[f64]| base64::engine::general_purpose::STANDARD.encode(v.iter().flat_map(|&x| (x as f32).to_le_bytes()).collect::<Vec<u8>>());
-        Self { version: f.version, step: f.step, rows: f.rows, cols: f.cols, estimate: packed(&f.estimate), variance: packed(&f.variance), truth: f.truth.as_deref().map(packed) }
+        let packed = |v: &[f64]| {
+            base64::engine::general_purpose::STANDARD
+                .encode(v.iter().flat_map(|&x| (x as f32).to_le_bytes()).collect::<Vec<u8>>())
+        };
+        Self {
+            version: f.version,
+            step: f.step,
+            rows: f.rows,
+            cols: f.cols,
+            estimate: packed(&f.estimate),
+            variance: packed(&f.variance),
+            truth: f.truth.as_deref().map(packed),
+        }
     }
 }
 
@@ -87,11 +103,21 @@ pub fn router(shared: Shared) -> Router {
 /// Read-only, and behind the credential when there is one.
 async fn guard(State(s): State<Shared>, req: axum::extract::Request, next: axum::middleware::Next) -> Response {
     if req.method() != Method::GET && req.method() != Method::HEAD {
-        return (StatusCode::METHOD_NOT_ALLOWED, [(header::ALLOW, "GET, HEAD")], "read-only\n").into_response();
+        return (
+            StatusCode::METHOD_NOT_ALLOWED,
+            [(header::ALLOW, "GET, HEAD")],
+            "read-only\n",
+        )
+            .into_response();
     }
     if let Some(c) = &s.credential {
         if !authorised(req.headers(), c) {
-            return (StatusCode::UNAUTHORIZED, [(header::WWW_AUTHENTICATE, "Basic realm=\"hetfleet\", charset=\"UTF-8\"")], "credential required\n").into_response();
+            return (
+                StatusCode::UNAUTHORIZED,
+                [(header::WWW_AUTHENTICATE, "Basic realm=\"hetfleet\", charset=\"UTF-8\"")],
+                "credential required\n",
+            )
+                .into_response();
         }
     }
     next.run(req).await
@@ -99,14 +125,34 @@ async fn guard(State(s): State<Shared>, req: axum::extract::Request, next: axum:
 
 fn authorised(headers: &HeaderMap, credential: &str) -> bool {
     use base64::Engine as _;
-    let Some(given) = headers.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Basic ")) else { return false };
-    let Ok(decoded) = base64::engine::general_purpose::STANDARD.decode(given.trim()) else { return false };
+    let Some(given) = headers
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Basic "))
+    else {
+        return false;
+    };
+    let Ok(decoded) = base64::engine::general_purpose::STANDARD.decode(given.trim()) else {
+        return false;
+    };
     // Length-independent comparison of equal-length inputs: no early exit on the first byte.
-    decoded.len() == credential.len() && decoded.iter().zip(credential.as_bytes()).fold(0u8, |acc, (a, b)| acc | (a ^ b)) == 0
+    decoded.len() == credential.len()
+        && decoded
+            .iter()
+            .zip(credential.as_bytes())
+            .fold(0u8, |acc, (a, b)| acc | (a ^ b))
+            == 0
 }
 
 async fn page() -> Response {
-    ([(header::CONTENT_TYPE, "text/html; charset=utf-8"), (header::CACHE_CONTROL, "no-cache")], PAGE).into_response()
+    (
+        [
+            (header::CONTENT_TYPE, "text/html; charset=utf-8"),
+            (header::CACHE_CONTROL, "no-cache"),
+        ],
+        PAGE,
+    )
+        .into_response()
 }
 
 async fn not_found() -> Response {
@@ -123,39 +169,57 @@ async fn state(State(s): State<Shared>) -> Response {
 async fn events(State(s): State<Shared>) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
     let mut rx = s.snapshots.clone();
     rx.mark_changed();
-    let stream = stream::unfold((rx, None::<u64>, None::<u64>), |(mut rx, mut sent_version, mut sent_plans)| async move {
-        rx.changed().await.ok()?;
-        let snap = rx.borrow_and_update().clone();
-        let mut events = vec![Ok(Event::default().event("state").data(snap.pushed.clone()))];
-        if let Some((v, json)) = &snap.fields {
-            if sent_version != Some(*v) {
-                sent_version = Some(*v);
-                events.push(Ok(Event::default().event("fields").data(json.clone())));
+    let stream = stream::unfold(
+        (rx, None::<u64>, None::<u64>),
+        |(mut rx, mut sent_version, mut sent_plans)| async move {
+            rx.changed().await.ok()?;
+            let snap = rx.borrow_and_update().clone();
+            let mut events = vec![Ok(Event::default().event("state").data(snap.pushed.clone()))];
+            if let Some((v, json)) = &snap.fields {
+                if sent_version != Some(*v) {
+                    sent_version = Some(*v);
+                    events.push(Ok(Event::default().event("fields").data(json.clone())));
+                }
             }
-        }
-        if sent_plans != Some(snap.plans.0) {
-            sent_plans = Some(snap.plans.0);
-            events.push(Ok(Event::default().event("plans").data(snap.plans.1.clone())));
-        }
-        Some((stream::iter(events), (rx, sent_version, sent_plans)))
-    });
+            if sent_plans != Some(snap.plans.0) {
+                sent_plans = Some(snap.plans.0);
+                events.push(Ok(Event::default().event("plans").data(snap.plans.1.clone())));
+            }
+            Some((stream::iter(events), (rx, sent_version, sent_plans)))
+        },
+    );
     Sse::new(futures_util::StreamExt::flatten(stream)).keep_alive(KeepAlive::default())
 }
 
 fn npy(s: &Shared, pick: fn(&crate::state::Fields) -> &[f64], name: &str) -> Response {
     let view = s.view.lock().expect("view lock");
-    let Some(f) = view.fields() else { return (StatusCode::NOT_FOUND, "no model yet\n").into_response() };
+    let Some(f) = view.fields() else {
+        return (StatusCode::NOT_FOUND, "no model yet\n").into_response();
+    };
     let bytes = npy_bytes(&[f.rows, f.cols], pick(f));
     let disposition = format!("attachment; filename=\"{name}-v{}.npy\"", f.version);
-    ([(header::CONTENT_TYPE, "application/octet-stream".to_string()), (header::CONTENT_DISPOSITION, disposition)], bytes).into_response()
+    (
+        [
+            (header::CONTENT_TYPE, "application/octet-stream".to_string()),
+            (header::CONTENT_DISPOSITION, disposition),
+        ],
+        bytes,
+    )
+        .into_response()
 }
 
 /// A float64 C-order `.npy` in memory (numpy's own format, written by `npyz`).
 pub fn npy_bytes(shape: &[usize], data: &[f64]) -> Vec<u8> {
     let shape: Vec<u64> = shape.iter().map(|&d| d as u64).collect();
     let mut out = vec![];
-    let mut w = npyz::WriteOptions::new().default_dtype().shape(&shape).writer(&mut out).begin_nd().expect("writing .npy to memory cannot fail");
-    w.extend(data.iter().copied()).expect("writing .npy to memory cannot fail");
+    let mut w = npyz::WriteOptions::new()
+        .default_dtype()
+        .shape(&shape)
+        .writer(&mut out)
+        .begin_nd()
+        .expect("writing .npy to memory cannot fail");
+    w.extend(data.iter().copied())
+        .expect("writing .npy to memory cannot fail");
     w.finish().expect("writing .npy to memory cannot fail");
     out
 }
@@ -169,7 +233,13 @@ async fn variance_npy(State(s): State<Shared>) -> Response {
 }
 
 async fn report(State(s): State<Shared>) -> Response {
-    let Some(dir) = &s.run_dir else { return (StatusCode::NOT_FOUND, "no run directory (start the watch with --run-dir)\n").into_response() };
+    let Some(dir) = &s.run_dir else {
+        return (
+            StatusCode::NOT_FOUND,
+            "no run directory (start the watch with --run-dir)\n",
+        )
+            .into_response();
+    };
     match std::fs::read_to_string(dir.join("report.md")) {
         Ok(md) => ([(header::CONTENT_TYPE, "text/markdown; charset=utf-8")], md).into_response(),
         Err(_) => (StatusCode::NOT_FOUND, "no report yet: the run has not finished\n").into_response(),

@@ -16,7 +16,11 @@ use tracing::{info, warn};
 pub const PUSH_EVERY: Duration = Duration::from_millis(250);
 
 #[derive(clap::Parser, Debug)]
-#[command(name = "fleet-watch", version, about = "hetfleet's live operations view: joins a mission over Zenoh and serves it to a browser")]
+#[command(
+    name = "fleet-watch",
+    version,
+    about = "hetfleet's live operations view: joins a mission over Zenoh and serves it to a browser"
+)]
 pub struct Args {
     #[command(flatten)]
     pub node: fleet_net::NodeArgs,
@@ -37,17 +41,27 @@ fn credential(args: &Args) -> anyhow::Result<Option<String>> {
     let c = match &args.credential {
         None => None,
         Some(c) => Some(match c.strip_prefix('@') {
-            Some(path) => std::fs::read_to_string(path).with_context(|| format!("--credential: reading {path}")).map_err(fleet_mission::exit::bad_input)?.trim().to_string(),
+            Some(path) => std::fs::read_to_string(path)
+                .with_context(|| format!("--credential: reading {path}"))
+                .map_err(fleet_mission::exit::bad_input)?
+                .trim()
+                .to_string(),
             None => c.clone(),
         }),
     };
     if let Some(c) = &c {
         if !c.contains(':') || c.starts_with(':') || c.ends_with(':') {
-            return Err(fleet_mission::exit::bad_input(anyhow::anyhow!("--credential: expected user:password")));
+            return Err(fleet_mission::exit::bad_input(anyhow::anyhow!(
+                "--credential: expected user:password"
+            )));
         }
     }
     if c.is_none() && !args.http.ip().is_loopback() {
-        return Err(fleet_mission::exit::bad_input(anyhow::anyhow!("--http {}: a non-loopback address needs --credential user:password (the page is readable by anyone who can reach it)", args.http)));
+        return Err(fleet_mission::exit::bad_input(anyhow::anyhow!(
+            "--http {}: a non-loopback address needs \
+            --credential user:password (the page is readable by anyone who can reach it)",
+            args.http
+        )));
     }
     Ok(c)
 }
@@ -59,17 +73,38 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let keys = Keys::new(&mission.mission)?;
     let site = fleet_mission::site::Site::new(&mission.mavlink, &grid);
     let ne = site.global_of(&site.ned_of((grid.width_m(), grid.height_m()), 0.0));
-    let geo = Geo { south_west: [mission.mavlink.origin[0], mission.mavlink.origin[1]], north_east: [ne.0, ne.1], size_m: [grid.width_m() * site.scale.x, grid.height_m() * site.scale.y] };
+    let geo = Geo {
+        south_west: [mission.mavlink.origin[0], mission.mavlink.origin[1]],
+        north_east: [ne.0, ne.1],
+        size_m: [grid.width_m() * site.scale.x, grid.height_m() * site.scale.y],
+    };
     let specs: Vec<_> = mission.vehicles().into_iter().map(|v| (v.id, v.kind)).collect();
     let lease_s = mission.network.lease_ms.unwrap_or(10_000) as f64 / 1000.0;
-    let truth_steps = (0..truth.frames()).map(|t| truth.snapshots.col(t).iter().copied().collect()).collect();
+    let truth_steps = (0..truth.frames())
+        .map(|t| truth.snapshots.col(t).iter().copied().collect())
+        .collect();
     let mut ctx = Context::new(grid);
     ctx.vehicles = specs.iter().map(|(id, _)| id.clone()).collect();
-    let view = Arc::new(Mutex::new(View::new(&mission.mission, grid, geo, lease_s, &specs, Some(truth_steps))));
+    let view = Arc::new(Mutex::new(View::new(
+        &mission.mission,
+        grid,
+        geo,
+        lease_s,
+        &specs,
+        Some(truth_steps),
+    )));
     let (tx, rx) = tokio::sync::watch::channel(Arc::new(Snapshot::of(&view.lock().expect("view lock"))));
 
-    let listener = tokio::net::TcpListener::bind(args.http).await.with_context(|| format!("--http {}: cannot listen there", args.http)).map_err(fleet_mission::exit::bad_input)?;
-    let app = http::router(http::Shared { view: view.clone(), snapshots: rx, credential, run_dir: args.run_dir.clone() });
+    let listener = tokio::net::TcpListener::bind(args.http)
+        .await
+        .with_context(|| format!("--http {}: cannot listen there", args.http))
+        .map_err(fleet_mission::exit::bad_input)?;
+    let app = http::router(http::Shared {
+        view: view.clone(),
+        snapshots: rx,
+        credential,
+        run_dir: args.run_dir.clone(),
+    });
     info!(url = %format!("http://{}/", listener.local_addr()?), "serving the view");
     let server = tokio::spawn(async move { axum::serve(listener, app).await });
 
@@ -85,7 +120,12 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let status = sub(keys.server_status()).await?;
     // Link state: the vehicles' liveliness tokens (Zenoh drops one when its session says
     // nothing within the link lease).
-    let links = session.liveliness().declare_subscriber(keys.all_alive()).history(true).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let links = session
+        .liveliness()
+        .declare_subscriber(keys.all_alive())
+        .history(true)
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
     let mut stop = fleet_net::StopSignals::new()?;
     let t0 = Instant::now();
     let mut tick = tokio::time::interval(PUSH_EVERY);

@@ -3,7 +3,9 @@
 //! `/api/state` is [`View::state`]; the heat maps are [`View::fields`].
 
 use fleet_mission::grid::Grid;
-use fleet_mission::protocol::{AutopilotLink, Body, LinkState, ModelUpdate, Plan, ServerStatus, Telemetry, VehicleKind};
+use fleet_mission::protocol::{
+    AutopilotLink, Body, LinkState, ModelUpdate, Plan, ServerStatus, Telemetry, VehicleKind,
+};
 use serde::Serialize;
 use std::collections::{BTreeMap, VecDeque};
 
@@ -105,7 +107,14 @@ pub struct State<'a> {
 
 impl View {
     /// A view of `vehicles` (id, kind) on `grid`; `truth` one field per step when known.
-    pub fn new(mission: &str, grid: Grid, geo: Geo, lease_s: f64, vehicles: &[(String, VehicleKind)], truth: Option<Vec<Vec<f64>>>) -> Self {
+    pub fn new(
+        mission: &str,
+        grid: Grid,
+        geo: Geo,
+        lease_s: f64,
+        vehicles: &[(String, VehicleKind)],
+        truth: Option<Vec<Vec<f64>>>,
+    ) -> Self {
         let vehicles = vehicles
             .iter()
             .map(|(id, kind)| {
@@ -126,7 +135,21 @@ impl View {
                 (id.clone(), v)
             })
             .collect();
-        Self { mission: mission.into(), grid, geo, lease_s, vehicles, model: None, fields: None, status: None, plans: BTreeMap::new(), mse: vec![], truth, refused: 0, plans_taken: 0 }
+        Self {
+            mission: mission.into(),
+            grid,
+            geo,
+            lease_s,
+            vehicles,
+            model: None,
+            fields: None,
+            status: None,
+            plans: BTreeMap::new(),
+            mse: vec![],
+            truth,
+            refused: 0,
+            plans_taken: 0,
+        }
     }
 
     /// Take one decoded message. Returns whether the view changed.
@@ -179,7 +202,12 @@ impl View {
                 AutopilotLink::Connecting => "connecting".into(),
                 AutopilotLink::Lost => "autopilot lost".into(),
                 // A failsafe's reason beside the mode it caused ("RTL, armed: Failsafe: battery low ...").
-                AutopilotLink::Up => format!("{}{}{}", a.mode, if a.armed { ", armed" } else { "" }, a.failsafe.as_ref().map_or_else(String::new, |f| format!(": {f}"))),
+                AutopilotLink::Up => format!(
+                    "{}{}{}",
+                    a.mode,
+                    if a.armed { ", armed" } else { "" },
+                    a.failsafe.as_ref().map_or_else(String::new, |f| format!(": {f}"))
+                ),
             },
         };
         let at = [t.position[0] as f32, t.position[1] as f32];
@@ -195,7 +223,12 @@ impl View {
     fn model(&mut self, m: ModelUpdate) -> bool {
         let n = self.grid.len();
         let r = m.eigenvalues.len();
-        if m.grid != self.grid || m.modes_re.len() != n * r || m.modes_im.len() != n * r || m.amplitudes.len() != r || m.variance.len() != n {
+        if m.grid != self.grid
+            || m.modes_re.len() != n * r
+            || m.modes_im.len() != n * r
+            || m.amplitudes.len() != r
+            || m.variance.len() != n
+        {
             self.refused += 1;
             return false;
         }
@@ -204,8 +237,19 @@ impl View {
         }
         // The fused estimate at the model's step, or (from a server that does not send it)
         // the model's own field there, Re(Phi alpha).
-        let estimate: Vec<f64> =
-            if m.estimate.len() == n { m.estimate } else { (0..n).map(|i| (0..r).map(|k| m.modes_re[i * r + k] * m.amplitudes[k][0] - m.modes_im[i * r + k] * m.amplitudes[k][1]).sum()).collect() };
+        let estimate: Vec<f64> = if m.estimate.len() == n {
+            m.estimate
+        } else {
+            (0..n)
+                .map(|i| {
+                    (0..r)
+                        .map(|k| {
+                            m.modes_re[i * r + k] * m.amplitudes[k][0] - m.modes_im[i * r + k] * m.amplitudes[k][1]
+                        })
+                        .sum()
+                })
+                .collect()
+        };
         let truth = self.truth.as_ref().and_then(|t| t.get(m.step as usize)).cloned();
         if let Some(t) = &truth {
             let mse = estimate.iter().zip(t).map(|(e, x)| (e - x).powi(2)).sum::<f64>() / n as f64;
@@ -220,15 +264,31 @@ impl View {
                 [modulus.ln() / m.dt, arg / m.dt]
             })
             .collect();
-        self.model = Some(ModelView { version: m.version, epoch: m.epoch, step: m.step, eigenvalues_ct, forecast_steps: m.forecast_steps });
-        self.fields = Some(Fields { version: m.version, step: m.step, rows: self.grid.rows, cols: self.grid.cols, estimate, variance: m.variance, truth });
+        self.model = Some(ModelView {
+            version: m.version,
+            epoch: m.epoch,
+            step: m.step,
+            eigenvalues_ct,
+            forecast_steps: m.forecast_steps,
+        });
+        self.fields = Some(Fields {
+            version: m.version,
+            step: m.step,
+            rows: self.grid.rows,
+            cols: self.grid.cols,
+            estimate,
+            variance: m.variance,
+            truth,
+        });
         true
     }
 
     /// A vehicle's Zenoh liveliness token appeared (`alive`) or went (its session said nothing
     /// within the link lease, or it left) at `now_s`. Returns whether the view changed.
     pub fn liveliness(&mut self, id: &str, alive: bool, now_s: f64) -> bool {
-        let Some(v) = self.vehicles.get_mut(id) else { return false };
+        let Some(v) = self.vehicles.get_mut(id) else {
+            return false;
+        };
         let finished = self.status.as_ref().is_some_and(|s| s.finished);
         let (link, since) = match (alive, finished) {
             (true, _) => ("up", None),
@@ -274,13 +334,37 @@ mod tests {
 
     fn view() -> View {
         let grid = Grid::new(2, 3, 1.0).unwrap();
-        let geo = Geo { south_west: [55.0, 12.0], north_east: [55.1, 12.1], size_m: [3.0, 2.0] };
+        let geo = Geo {
+            south_west: [55.0, 12.0],
+            north_east: [55.1, 12.1],
+            size_m: [3.0, 2.0],
+        };
         let truth = vec![vec![1.0; 6]; 4];
-        View::new("m", grid, geo, 2.0, &[("boat-1".into(), VehicleKind::Boat), ("av-1".into(), VehicleKind::Aerial)], Some(truth))
+        View::new(
+            "m",
+            grid,
+            geo,
+            2.0,
+            &[
+                ("boat-1".into(), VehicleKind::Boat),
+                ("av-1".into(), VehicleKind::Aerial),
+            ],
+            Some(truth),
+        )
     }
 
     fn tele(id: &str, x: f64) -> Body {
-        Body::Telemetry(Telemetry { vehicle: id.into(), step: 1, position: [x, 0.5], heading: 0.0, battery: 0.9, link: LinkState::Up, outbox_depth: 3, autopilot: None, acked: None })
+        Body::Telemetry(Telemetry {
+            vehicle: id.into(),
+            step: 1,
+            position: [x, 0.5],
+            heading: 0.0,
+            battery: 0.9,
+            link: LinkState::Up,
+            outbox_depth: 3,
+            autopilot: None,
+            acked: None,
+        })
     }
 
     fn model(version: u64, amplitude: f64) -> Body {
@@ -309,9 +393,19 @@ mod tests {
         assert!(v.apply(tele("boat-1", 1.5)));
         assert!(!v.apply(tele("intruder", 1.5)), "an unknown vehicle is refused");
         assert_eq!(v.state().refused, 1);
-        let boat = |v: &View| v.state().vehicles.iter().find(|x| x.id == "boat-1").map(|x| (*x).clone()).unwrap();
+        let boat = |v: &View| {
+            v.state()
+                .vehicles
+                .iter()
+                .find(|x| x.id == "boat-1")
+                .map(|x| (*x).clone())
+                .unwrap()
+        };
         let b = boat(&v);
-        assert_eq!((b.track.len(), b.link, b.radio, b.outbox_depth), (2, "unseen", Some("up"), Some(3)));
+        assert_eq!(
+            (b.track.len(), b.link, b.radio, b.outbox_depth),
+            (2, "unseen", Some("up"), Some(3))
+        );
         assert!(v.liveliness("boat-1", true, 1.5));
         assert!(!v.liveliness("boat-1", true, 1.6), "no change");
         assert!(v.liveliness("boat-1", false, 3.0));

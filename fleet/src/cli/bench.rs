@@ -72,7 +72,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             println!("| case | method | eig | median s | min s | paper s | speed-up vs paper |");
             println!("|---|---|---|---|---|---|---|");
             for r in &rows {
-                println!("| {} | {} | {} | {:.4} | {:.4} | {} | {:.0}x |", r.case, r.method, if r.with_eig { "yes" } else { "no" }, r.median_s, r.min_s, r.paper_s, r.paper_s / r.median_s);
+                println!(
+                    "| {} | {} | {} | {:.4} | {:.4} | {} | {:.0}x |",
+                    r.case,
+                    r.method,
+                    if r.with_eig { "yes" } else { "no" },
+                    r.median_s,
+                    r.min_s,
+                    r.paper_s,
+                    r.paper_s / r.median_s
+                );
             }
             serde_json::to_value(rows)?
         }
@@ -86,7 +95,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             println!("|---|---|---|---|");
             for l in &levels {
                 for v in &l.variants {
-                    println!("| {} | {} | {:.4} | {:.4} |", l.noise_var, v.label, v.median_real, v.median_abs_error);
+                    println!(
+                        "| {} | {} | {:.4} | {:.4} |",
+                        l.noise_var, v.label, v.median_real, v.median_abs_error
+                    );
                 }
             }
             serde_json::to_value(levels)?
@@ -97,11 +109,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 Some(p) => fleet::process::dataset::load(&p, 1.0)?,
                 None => {
                     eprintln!("simulating cloud1 at 96 x 384, 100 frames (not timed)...");
-                    fleet::process::plasma::PlasmaCloud::new(fleet::process::plasma::Preset::Cloud1.params())?.run(100, |_| {})?
+                    fleet::process::plasma::PlasmaCloud::new(fleet::process::plasma::Preset::Cloud1.params())?
+                        .run(100, |_| {})?
                 }
             };
             let truth = full.area_averaged(48, 96)?;
-            let cfg = TeamConfig { aerial_stride: 3, aerial_sigma0: 0.15, boat_sigma: 0.15, radius: 3.75, ..TeamConfig::default() };
+            let cfg = TeamConfig {
+                aerial_stride: 3,
+                aerial_sigma0: 0.15,
+                boat_sigma: 0.15,
+                radius: 3.75,
+                ..TeamConfig::default()
+            };
             let mut ts = vec![];
             let mut last = None;
             for _ in 0..repeats.max(1) {
@@ -112,7 +131,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let median = eig_study::median(&mut ts);
             let o = last.expect("at least one run");
             println!(
-                "one Table 2 row, {} x {} x {} steps, 2 aerials, 5 boats, general DMD rank 10: median {:.3} s over {} runs (MSE heterogeneous {:.4e})",
+                "one Table 2 row, {} x {} x {} steps, 2 aerials, 5 boats, general DMD rank 10: median {:.3} s over {} \
+                    runs (MSE heterogeneous {:.4e})",
                 truth.rows,
                 truth.cols,
                 truth.frames(),
@@ -123,12 +143,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             serde_json::json!({ "median_s": median, "runs": ts })
         }
         What::Refit { epochs, late, grid } => {
-            let (rows, cols) =
-                grid.split_once('x').and_then(|(r, c)| Some((r.parse().ok()?, c.parse().ok()?))).ok_or_else(|| fleet::exit::bad_input(anyhow::anyhow!("--grid {grid}: expected ROWSxCOLS")))?;
+            let (rows, cols) = grid
+                .split_once('x')
+                .and_then(|(r, c)| Some((r.parse().ok()?, c.parse().ok()?)))
+                .ok_or_else(|| fleet::exit::bad_input(anyhow::anyhow!("--grid {grid}: expected ROWSxCOLS")))?;
             eprintln!("driving a {epochs}-epoch mission twice (not timed)...");
             let t = fleet::experiment::refit_timing::run(rows, cols, epochs, late)?;
             println!(
-                "{} epochs at {} x {}, boat-2's last {} epochs late: re-fit from a checkpoint {:.1} ms ({} epochs again), from epoch 0 {:.1} ms ({} epochs); same model: {}",
+                "{} epochs at {} x {}, boat-2's last {} epochs late: re-fit from a checkpoint {:.1} ms ({} epochs \
+                    again), from epoch 0 {:.1} ms ({} epochs); same model: {}",
                 t.epochs,
                 t.grid[0],
                 t.grid[1],
@@ -155,13 +178,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     (Some(p), Some(ms)) => (p.as_str(), format!("{ms:.3}"), format!("{:.1}x", ms / r.median_ms)),
                     _ => ("", String::new(), String::new()),
                 };
-                println!("| {} | {:.3} | {:.3} | {peer} | {pm} | {up} |", r.what, r.median_ms, r.min_ms);
+                println!(
+                    "| {} | {:.3} | {:.3} | {peer} | {pm} | {up} |",
+                    r.what, r.median_ms, r.min_ms
+                );
             }
             serde_json::to_value(rows)?
         }
     };
     if let Some(out) = args.out {
-        std::fs::write(&out, serde_json::to_string_pretty(&json)?).with_context(|| format!("writing {}", out.display()))?;
+        std::fs::write(&out, serde_json::to_string_pretty(&json)?)
+            .with_context(|| format!("writing {}", out.display()))?;
     }
     Ok(())
 }

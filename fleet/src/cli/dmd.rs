@@ -95,10 +95,25 @@ fn load(args: &Args) -> anyhow::Result<FieldSeries> {
     Ok(match (a.shape.as_slice(), args.layout) {
         (&[t, rows, cols], _) => {
             let n = rows * cols;
-            FieldSeries { rows, cols, dt, snapshots: Mat::from_fn(n, t, |i, j| a.data[j * n + i]) }
+            FieldSeries {
+                rows,
+                cols,
+                dt,
+                snapshots: Mat::from_fn(n, t, |i, j| a.data[j * n + i]),
+            }
         }
-        (&[n, t], Layout::Columns) => FieldSeries { rows: n, cols: 1, dt, snapshots: Mat::from_fn(n, t, |i, j| a.data[i * t + j]) },
-        (&[t, n], Layout::Rows) => FieldSeries { rows: n, cols: 1, dt, snapshots: Mat::from_fn(n, t, |i, j| a.data[j * n + i]) },
+        (&[n, t], Layout::Columns) => FieldSeries {
+            rows: n,
+            cols: 1,
+            dt,
+            snapshots: Mat::from_fn(n, t, |i, j| a.data[i * t + j]),
+        },
+        (&[t, n], Layout::Rows) => FieldSeries {
+            rows: n,
+            cols: 1,
+            dt,
+            snapshots: Mat::from_fn(n, t, |i, j| a.data[j * n + i]),
+        },
         (s, _) => bail!("{p}: expected a 3-D (frames, rows, cols) or 2-D snapshot array, found shape {s:?}"),
     })
 }
@@ -121,7 +136,11 @@ fn check(args: &Args, field: &FieldSeries) -> anyhow::Result<usize> {
         bail!("--gamma {}: a forgetting factor is in (0, 1]", args.gamma);
     }
     if args.gamma != 1.0 && args.method != Method::LongTerm {
-        bail!("--gamma {}: forgetting applies to --method long-term only (the {} method keeps every snapshot)", args.gamma, args.method);
+        bail!(
+            "--gamma {}: forgetting applies to --method long-term only (the {} method keeps every snapshot)",
+            args.gamma,
+            args.method
+        );
     }
     let (n, pairs) = (field.dim(), field.frames().saturating_sub(1));
     if pairs < 2 {
@@ -142,7 +161,16 @@ fn run_checked(args: Args, mut field: FieldSeries, init: usize) -> anyhow::Resul
         field.dt = dt;
     }
     let (n, pairs) = (field.dim(), field.frames() - 1);
-    let cfg = DmdConfig { method: args.method, rank: args.rank, debias: args.debias, gamma: args.gamma, forgetting: Forgetting { unit: args.forgetting, directions: args.forgetting_directions } };
+    let cfg = DmdConfig {
+        method: args.method,
+        rank: args.rank,
+        debias: args.debias,
+        gamma: args.gamma,
+        forgetting: Forgetting {
+            unit: args.forgetting,
+            directions: args.forgetting_directions,
+        },
+    };
     let updates = (pairs - init).div_ceil(args.tau.max(1));
     let pb = super::progress_bar(updates as u64 + 1, "assimilating");
     let t0 = std::time::Instant::now();
@@ -150,7 +178,13 @@ fn run_checked(args: Args, mut field: FieldSeries, init: usize) -> anyhow::Resul
         pb.inc(1);
         Ok(())
     })
-    .map_err(|e| if e.is_input() { bad_input(e) } else { anyhow::Error::new(e) })
+    .map_err(|e| {
+        if e.is_input() {
+            bad_input(e)
+        } else {
+            anyhow::Error::new(e)
+        }
+    })
     .context("fitting the model")?;
     let fit_s = t0.elapsed().as_secs_f64();
     pb.finish_and_clear();
@@ -169,7 +203,8 @@ fn run_checked(args: Args, mut field: FieldSeries, init: usize) -> anyhow::Resul
     }
     let summary = fitted.summary();
     println!(
-        "{} DMD of {} snapshots on a {} x {} grid (N = {n}): rank {}, {} pairs assimilated in {:.1} ms ({} updates of {})",
+        "{} DMD of {} snapshots on a {} x {} grid (N = {n}): rank {}, {} pairs assimilated in {:.1} ms ({} updates of \
+            {})",
         cfg.method,
         field.frames(),
         field.rows,
@@ -180,9 +215,26 @@ fn run_checked(args: Args, mut field: FieldSeries, init: usize) -> anyhow::Resul
         updates,
         args.tau
     );
-    println!("{:>4}  {:>24}  {:>10}  {:>26}", "#", "lambda (discrete)", "|lambda|", "ln(lambda)/dt");
-    for (i, (l, c)) in summary.eigenvalues.iter().zip(&summary.continuous_eigenvalues).take(args.top).enumerate() {
-        println!("{:>4}  {:>11.6} {:>+11.6}i  {:>10.6}  {:>12.5} {:>+12.5}i", i + 1, l[0], l[1], (l[0] * l[0] + l[1] * l[1]).sqrt(), c[0], c[1]);
+    println!(
+        "{:>4}  {:>24}  {:>10}  {:>26}",
+        "#", "lambda (discrete)", "|lambda|", "ln(lambda)/dt"
+    );
+    for (i, (l, c)) in summary
+        .eigenvalues
+        .iter()
+        .zip(&summary.continuous_eigenvalues)
+        .take(args.top)
+        .enumerate()
+    {
+        println!(
+            "{:>4}  {:>11.6} {:>+11.6}i  {:>10.6}  {:>12.5} {:>+12.5}i",
+            i + 1,
+            l[0],
+            l[1],
+            (l[0] * l[0] + l[1] * l[1]).sqrt(),
+            c[0],
+            c[1]
+        );
     }
     let rel = (err2 / norm2.max(f64::MIN_POSITIVE)).sqrt();
     println!("relative reconstruction error over the record (from x(0)): {rel:.4}");
@@ -191,20 +243,32 @@ fn run_checked(args: Args, mut field: FieldSeries, init: usize) -> anyhow::Resul
         "tau": args.tau, "model": summary, "relative_reconstruction_error": rel,
     });
     if let Some(out) = &args.out {
-        std::fs::write(out, serde_json::to_string_pretty(&doc)?).with_context(|| format!("writing {}", out.display()))?;
+        std::fs::write(out, serde_json::to_string_pretty(&doc)?)
+            .with_context(|| format!("writing {}", out.display()))?;
         println!("wrote {}", out.display());
     }
     if let Some(dir) = &args.save {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
         let m = &fitted.modes.modes;
         let (rows, r) = (m.nrows(), m.ncols());
-        let modes: Vec<num_complex::Complex64> = (0..rows).flat_map(|i| (0..r).map(move |j| (i, j))).map(|(i, j)| num_complex::Complex64::new(m[(i, j)].re, m[(i, j)].im)).collect();
-        let c = |v: &[faer::c64]| v.iter().map(|z| num_complex::Complex64::new(z.re, z.im)).collect::<Vec<_>>();
+        let modes: Vec<num_complex::Complex64> = (0..rows)
+            .flat_map(|i| (0..r).map(move |j| (i, j)))
+            .map(|(i, j)| num_complex::Complex64::new(m[(i, j)].re, m[(i, j)].im))
+            .collect();
+        let c = |v: &[faer::c64]| {
+            v.iter()
+                .map(|z| num_complex::Complex64::new(z.re, z.im))
+                .collect::<Vec<_>>()
+        };
         fleet::npy::write_complex(dir.join("eigenvalues.npy"), &[r], &c(&fitted.modes.eigenvalues))?;
         fleet::npy::write_complex(dir.join("modes.npy"), &[rows, r], &modes)?;
         fleet::npy::write_complex(dir.join("amplitudes.npy"), &[r], &c(&fitted.amplitudes))?;
-        std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(&doc)?).with_context(|| format!("writing {}", dir.join("summary.json").display()))?;
-        println!("wrote {}/eigenvalues.npy, modes.npy, amplitudes.npy and summary.json", dir.display());
+        std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(&doc)?)
+            .with_context(|| format!("writing {}", dir.join("summary.json").display()))?;
+        println!(
+            "wrote {}/eigenvalues.npy, modes.npy, amplitudes.npy and summary.json",
+            dir.display()
+        );
     }
     Ok(())
 }

@@ -16,8 +16,11 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let text = std::fs::read_to_string(&args.config).map_err(|e| bad_input(anyhow::anyhow!("{}: {e}", args.config.display())))?;
-    let cfg = ExperimentConfig::from_toml(&text).map_err(bad_input).with_context(|| args.config.display().to_string())?;
+    let text = std::fs::read_to_string(&args.config)
+        .map_err(|e| bad_input(anyhow::anyhow!("{}: {e}", args.config.display())))?;
+    let cfg = ExperimentConfig::from_toml(&text)
+        .map_err(bad_input)
+        .with_context(|| args.config.display().to_string())?;
     let pb = super::progress_bar(paper::units(&cfg) as u64, "experiment");
     let t0 = std::time::Instant::now();
     let (res, truths) = paper::run(&cfg, |msg| {
@@ -26,13 +29,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     })?;
     pb.finish_and_clear();
     let secs = t0.elapsed().as_secs_f64();
-    let command = format!("fleet experiment {} --out {}", args.config.display(), args.out.display());
+    let command = format!(
+        "fleet experiment {} --out {}",
+        args.config.display(),
+        args.out.display()
+    );
     let figures = paper::write_report(&args.out, &res, &truths, &command)?;
-    std::fs::write(args.out.join("timings.json"), serde_json::to_string_pretty(&serde_json::json!({ "seconds": secs }))?)?;
+    std::fs::write(
+        args.out.join("timings.json"),
+        serde_json::to_string_pretty(&serde_json::json!({ "seconds": secs }))?,
+    )?;
     for r in &res.rows {
         let m = |t: &str| r.teams[t].mean;
         println!(
-            "{} AV {}/{} MV {}/{} noise {}: mean MSE over {} seeds from step {}: heterogeneous {:.4e} (random disks {:.4e}), aerial-only {:.4e}, boat-only {:.4e}; {}",
+            "{} AV {}/{} MV {}/{} noise {}: mean MSE over {} seeds from step {}: heterogeneous {:.4e} (random disks \
+                {:.4e}), aerial-only {:.4e}, boat-only {:.4e}; {}",
             r.row.name(),
             r.row.av_time,
             r.row.av_space,
@@ -45,9 +56,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             m(paper::RANDOM),
             m(paper::AERIAL_ONLY),
             m(paper::BOAT_ONLY),
-            r.comparisons.iter().map(|c| format!("{} vs {}: {}", c.first, c.second, c.verdict.words())).collect::<Vec<_>>().join(", ")
+            r.comparisons
+                .iter()
+                .map(|c| format!("{} vs {}: {}", c.first, c.second, c.verdict.words()))
+                .collect::<Vec<_>>()
+                .join(", ")
         );
     }
-    println!("wrote {}/report.md with {} figures ({secs:.1} s)", args.out.display(), figures.len());
+    println!(
+        "wrote {}/report.md with {} figures ({secs:.1} s)",
+        args.out.display(),
+        figures.len()
+    );
     Ok(())
 }

@@ -31,12 +31,20 @@ fn classify(e: ExportError) -> anyhow::Error {
 
 pub fn run(args: Args) -> Result<()> {
     if args.netcdf.is_none() && args.geotiff.is_none() && args.qgc_plan.is_none() {
-        return Err(fleet::exit::bad_input(anyhow::anyhow!("nothing to export: give --netcdf FILE.nc, --geotiff DIR or --qgc-plan FILE.plan")));
+        return Err(fleet::exit::bad_input(anyhow::anyhow!(
+            "nothing to export: give --netcdf FILE.nc, --geotiff DIR or --qgc-plan FILE.plan"
+        )));
     }
     let run = Run::load(&args.run_dir).map_err(classify)?;
     if let Some(path) = &args.netcdf {
         export::netcdf::write(&run, path).map_err(classify)?;
-        println!("wrote {} ({} steps of {} x {})", path.display(), run.estimate.steps, run.grid.rows, run.grid.cols);
+        println!(
+            "wrote {} ({} steps of {} x {})",
+            path.display(),
+            run.estimate.steps,
+            run.grid.rows,
+            run.grid.cols
+        );
     }
     if let Some(dir) = &args.geotiff {
         let files = export::geotiff::write(&run, dir).map_err(classify)?;
@@ -50,5 +58,9 @@ pub fn run(args: Args) -> Result<()> {
 }
 
 fn list(files: &[PathBuf]) -> String {
-    files.iter().map(|p| Path::display(p).to_string()).collect::<Vec<_>>().join(", ")
+    files
+        .iter()
+        .map(|p| Path::display(p).to_string())
+        .collect::<Vec<_>>()
+        .join(", ")
 }

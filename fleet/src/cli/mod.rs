@@ -14,7 +14,11 @@ mod up;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser, Debug)]
-#[command(name = "fleet", version, about = "hetfleet: a heterogeneous robot team models, predicts and samples a changing field")]
+#[command(
+    name = "fleet",
+    version,
+    about = "hetfleet: a heterogeneous robot team models, predicts and samples a changing field"
+)]
 pub struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -59,7 +63,11 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
 /// A progress bar on stderr that stays quiet when stderr is not a terminal.
 pub fn progress_bar(len: u64, what: &str) -> indicatif::ProgressBar {
     let pb = indicatif::ProgressBar::new(len);
-    pb.set_style(indicatif::ProgressStyle::with_template("{msg:>12} [{bar:40}] {pos}/{len} ({elapsed}, eta {eta})").expect("valid template").progress_chars("=> "));
+    pb.set_style(
+        indicatif::ProgressStyle::with_template("{msg:>12} [{bar:40}] {pos}/{len} ({elapsed}, eta {eta})")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
     pb.set_message(what.to_string());
     pb
 }

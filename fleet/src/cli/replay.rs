@@ -35,7 +35,10 @@ fn start_live(args: &Args, rec: &Recording, speed: f64) -> Result<super::supervi
     std::fs::create_dir_all(&args.out)?;
     // The view reads the mission from a file; the boundary file need not travel with the
     // recording, and the view does not plan, so it is left out.
-    let mut doc: toml::Table = rec.mission_toml.parse().map_err(|e| anyhow::anyhow!("the recording's mission: {e}"))?;
+    let mut doc: toml::Table = rec
+        .mission_toml
+        .parse()
+        .map_err(|e| anyhow::anyhow!("the recording's mission: {e}"))?;
     if let Some(m) = doc.get_mut("mavlink").and_then(|m| m.as_table_mut()) {
         m.remove("boundary");
     }
@@ -48,13 +51,28 @@ fn start_live(args: &Args, rec: &Recording, speed: f64) -> Result<super::supervi
     };
     let (l, p) = log("replay-server")?;
     let mut c = Command::new(super::up::sibling("model-server")?);
-    c.arg("--replay").arg(&args.recording).arg("--speed").arg(speed.to_string()).stdout(Stdio::null()).stderr(l);
+    c.arg("--replay")
+        .arg(&args.recording)
+        .arg("--speed")
+        .arg(speed.to_string())
+        .stdout(Stdio::null())
+        .stderr(l);
     fleet.spawn("model-server", c, p)?;
     let (l, p) = log("fleet-watch")?;
     let mut c = Command::new(super::up::sibling("fleet-watch")?);
-    c.arg("--mission").arg(&mission).arg("--http").arg(addr.to_string()).stdout(Stdio::null()).stderr(l);
+    c.arg("--mission")
+        .arg(&mission)
+        .arg("--http")
+        .arg(addr.to_string())
+        .stdout(Stdio::null())
+        .stderr(l);
     // The run's truth, when the recording is still in its run directory (the view's MSE).
-    if let Some(truth) = args.recording.parent().map(|d| d.join("truth.npy")).filter(|t| t.is_file()) {
+    if let Some(truth) = args
+        .recording
+        .parent()
+        .map(|d| d.join("truth.npy"))
+        .filter(|t| t.is_file())
+    {
         c.arg("--truth").arg(truth);
     }
     fleet.spawn("fleet-watch", c, p)?;
@@ -70,17 +88,29 @@ fn classify(e: RecordingError) -> anyhow::Error {
 pub fn run(args: Args) -> Result<()> {
     if let Some(s) = args.speed {
         if !(s.is_finite() && s > 0.0) {
-            return Err(fleet::exit::bad_input(anyhow::anyhow!("--speed {s}: give a positive factor (1: the recorded pace)")));
+            return Err(fleet::exit::bad_input(anyhow::anyhow!(
+                "--speed {s}: give a positive factor (1: the recorded pace)"
+            )));
         }
     }
     let rec = Recording::read(&args.recording).map_err(classify)?;
     if let Some(addr) = args.web {
-        std::net::TcpListener::bind(addr).map_err(|e| fleet::exit::bad_input(anyhow::anyhow!("--web {addr}: cannot serve the live view there ({e})")))?;
+        std::net::TcpListener::bind(addr).map_err(|e| {
+            fleet::exit::bad_input(anyhow::anyhow!("--web {addr}: cannot serve the live view there ({e})"))
+        })?;
     }
     let speed = args.speed.or(args.web.map(|_| 1.0));
     let stop = super::supervise::catch_stop_signals()?;
-    let mut live = if args.web.is_some() { Some(start_live(&args, &rec, speed.expect("set with --web"))?) } else { None };
-    let ops = rec.messages.iter().filter(|m| m.topic == fleet_mission::recording::CORE_TOPIC).count();
+    let mut live = if args.web.is_some() {
+        Some(start_live(&args, &rec, speed.expect("set with --web"))?)
+    } else {
+        None
+    };
+    let ops = rec
+        .messages
+        .iter()
+        .filter(|m| m.topic == fleet_mission::recording::CORE_TOPIC)
+        .count();
     let pb = super::progress_bar(ops as u64, "replay");
     let (mut first, start) = (None, Instant::now());
     let mut ingested = 0u64;
@@ -107,7 +137,10 @@ pub fn run(args: Args) -> Result<()> {
         // The view follows the played-back traffic; when that ends, the view stays a while.
         fleet.wait_nodes(Duration::from_secs(120), &["fleet-watch"])?;
         if let Some(addr) = args.web.filter(|_| args.web_linger_s > 0) {
-            println!("the replay is done; the live view stays at http://{addr}/ for {} s (Ctrl-C ends it)", args.web_linger_s);
+            println!(
+                "the replay is done; the live view stays at http://{addr}/ for {} s (Ctrl-C ends it)",
+                args.web_linger_s
+            );
             let until = Instant::now() + Duration::from_secs(args.web_linger_s);
             while Instant::now() < until && stop.received().is_none() {
                 std::thread::sleep(Duration::from_millis(100));
@@ -127,15 +160,26 @@ pub fn run(args: Args) -> Result<()> {
     );
     match (replayed, recorded) {
         (Some(a), Some(b)) if a == b => {
-            println!("final model v{}: identical to the recorded one, bit for bit ({} bytes)", core.version, a.len());
+            println!(
+                "final model v{}: identical to the recorded one, bit for bit ({} bytes)",
+                core.version,
+                a.len()
+            );
             Ok(())
         }
-        (Some(_), Some(_)) => bail!("the replayed final model (v{}) differs from the recorded one: the core is not deterministic, or the recording is not this build's", core.version),
+        (Some(_), Some(_)) => bail!(
+            "the replayed final model (v{}) differs from the recorded one: the core is not \
+            deterministic, or the recording is not this build's",
+            core.version
+        ),
         (None, None) => {
             println!("no model: the recording ends before the first epoch was assimilated");
             Ok(())
         }
-        (Some(_), None) => bail!("the recording holds no published model, but its operations make one (v{})", core.version),
+        (Some(_), None) => bail!(
+            "the recording holds no published model, but its operations make one (v{})",
+            core.version
+        ),
         (None, Some(_)) => bail!("the recording holds a published model, but its operations make none"),
     }
 }

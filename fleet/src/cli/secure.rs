@@ -43,7 +43,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let out = std::fs::canonicalize(&args.out)?;
     let tls = match &args.tls {
-        Some(d) => Some(Tls { dir: std::fs::canonicalize(d).map_err(|e| fleet::exit::bad_input(anyhow::anyhow!("--tls {}: {e}", d.display())))? }),
+        Some(d) => Some(Tls {
+            dir: std::fs::canonicalize(d)
+                .map_err(|e| fleet::exit::bad_input(anyhow::anyhow!("--tls {}: {e}", d.display())))?,
+        }),
         None => None,
     };
     let dictionary = out.join("credentials.txt");
@@ -55,12 +58,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         private(&out.join(format!("{user}.json5")), &serde_json::to_string_pretty(&cfg)?)?;
     }
     private(&dictionary, &lines)?;
-    std::fs::write(out.join("router.json5"), serde_json::to_string_pretty(&router_config(&mission, &dictionary, tls.as_ref())?)?)?;
+    std::fs::write(
+        out.join("router.json5"),
+        serde_json::to_string_pretty(&router_config(&mission, &dictionary, tls.as_ref())?)?,
+    )?;
     // MAVLink signing: one key for the ground-station link, one per vehicle's autopilot link
     // (a vehicle that is taken holds only its own).
     let write_key = |dir: &std::path::Path, name: &str| -> anyhow::Result<()> {
         let (passphrase, key) = SigningKey::generate()?;
-        SigningKey::write_pair(dir, name, &passphrase, &key).with_context(|| format!("writing {}/{name}.key", dir.display()))
+        SigningKey::write_pair(dir, name, &passphrase, &key)
+            .with_context(|| format!("writing {}/{name}.key", dir.display()))
     };
     write_key(&out, "mavlink-signing")?;
     let autopilot = out.join("autopilot");
@@ -68,9 +75,24 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for v in mission.vehicles() {
         write_key(&autopilot, &v.id)?;
     }
-    println!("wrote {}/router.json5, credentials.txt and one client config per user ({})", out.display(), users(&mission).join(", "));
-    println!("in the mission's [network]: server_config = \"{0}/router.json5\", vehicle_config = \"{0}/{{id}}.json5\"", out.display());
-    println!("wrote MAVLink signing keys {0}/mavlink-signing.key and {0}/autopilot/<id>.key (each with its .passphrase for MAVProxy and QGroundControl)", out.display());
-    println!("in the mission's [mavlink]: signing_key = \"{0}/mavlink-signing.key\", autopilot_signing_key = \"{0}/autopilot/{{id}}.key\"", out.display());
+    println!(
+        "wrote {}/router.json5, credentials.txt and one client config per user ({})",
+        out.display(),
+        users(&mission).join(", ")
+    );
+    println!(
+        "in the mission's [network]: server_config = \"{0}/router.json5\", vehicle_config = \"{0}/{{id}}.json5\"",
+        out.display()
+    );
+    println!(
+        "wrote MAVLink signing keys {0}/mavlink-signing.key and {0}/autopilot/<id>.key (each with its \
+        .passphrase for MAVProxy and QGroundControl)",
+        out.display()
+    );
+    println!(
+        "in the mission's [mavlink]: signing_key = \"{0}/mavlink-signing.key\", autopilot_signing_key = \
+        \"{0}/autopilot/{{id}}.key\"",
+        out.display()
+    );
     Ok(())
 }

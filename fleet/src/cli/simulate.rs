@@ -53,8 +53,13 @@ pub struct Args {
 }
 
 fn parse_grid(s: &str) -> anyhow::Result<(usize, usize)> {
-    let (r, c) = s.split_once(['x', 'X']).with_context(|| format!("--grid {s:?}: expected ROWSxCOLS, e.g. 96x384"))?;
-    let (r, c): (usize, usize) = (r.trim().parse().context("--grid rows")?, c.trim().parse().context("--grid cols")?);
+    let (r, c) = s
+        .split_once(['x', 'X'])
+        .with_context(|| format!("--grid {s:?}: expected ROWSxCOLS, e.g. 96x384"))?;
+    let (r, c): (usize, usize) = (
+        r.trim().parse().context("--grid rows")?,
+        c.trim().parse().context("--grid cols")?,
+    );
     if r == 0 || c == 0 {
         bail!("--grid {s:?}: rows and cols must be positive");
     }
@@ -88,7 +93,8 @@ fn simulate(args: Args) -> anyhow::Result<()> {
             if frames == 0 {
                 bail!("--frames must be at least 1");
             }
-            fleet::process::check_size(params.ny, params.nx, frames).map_err(|e| anyhow::anyhow!("--grid/--frames: {e}"))?;
+            fleet::process::check_size(params.ny, params.nx, frames)
+                .map_err(|e| anyhow::anyhow!("--grid/--frames: {e}"))?;
             let mut sim = PlasmaCloud::new(params.clone()).context("setting up the plasma cloud")?;
             let pb = super::progress_bar(frames as u64, "plasma cloud");
             let field = sim
@@ -118,7 +124,9 @@ fn simulate(args: Args) -> anyhow::Result<()> {
             (field, meta)
         }
         Process::Table1 => {
-            let case = TABLE1_CASES.get(args.case.wrapping_sub(1)).with_context(|| format!("--case must be 1-4, got {}", args.case))?;
+            let case = TABLE1_CASES
+                .get(args.case.wrapping_sub(1))
+                .with_context(|| format!("--case must be 1-4, got {}", args.case))?;
             let f = table1_field(case, Table1Profile::Cosh, args.noise, args.seed);
             let meta = json!({"process": "table1", "case": args.case, "profile": "cosh", "noise_var": args.noise, "seed": args.seed,
                 "pairs": case.pairs, "grid": [case.ny, case.nx], "dt": f.dt});
@@ -146,6 +154,13 @@ fn simulate(args: Args) -> anyhow::Result<()> {
         }
     };
     dataset::save(&args.out, &field, Some(&meta))?;
-    println!("wrote {} ({} frames of {} x {}) and {}", args.out.display(), field.frames(), field.rows, field.cols, dataset::sidecar_path(&args.out).display());
+    println!(
+        "wrote {} ({} frames of {} x {}) and {}",
+        args.out.display(),
+        field.frames(),
+        field.rows,
+        field.cols,
+        dataset::sidecar_path(&args.out).display()
+    );
     Ok(())
 }

@@ -25,7 +25,12 @@ impl Exited {
     /// node refusing its input makes `up` exit 2 too).
     pub fn into_error(self, last_line: Option<String>, consequence: &str) -> anyhow::Error {
         let why = last_line.map_or_else(|| format!("see {}", self.log.display()), |l| format!("it said: {l}"));
-        let e = anyhow::anyhow!("{} exited ({}) and {consequence}; {why} (log: {})", self.name, describe(self.status), self.log.display());
+        let e = anyhow::anyhow!(
+            "{} exited ({}) and {consequence}; {why} (log: {})",
+            self.name,
+            describe(self.status),
+            self.log.display()
+        );
         if self.status.code() == Some(fleet::exit::BAD_INPUT) {
             fleet::exit::bad_input(e)
         } else {
@@ -45,7 +50,11 @@ fn describe(s: ExitStatus) -> String {
 /// The last non-empty line of a log (a node's final error), without the log's own prefix.
 pub fn last_line(log: &Path) -> Option<String> {
     let text = std::fs::read_to_string(log).ok()?;
-    text.lines().rev().map(str::trim).find(|l| !l.is_empty()).map(str::to_string)
+    text.lines()
+        .rev()
+        .map(str::trim)
+        .find(|l| !l.is_empty())
+        .map(str::to_string)
 }
 
 #[derive(Default)]
@@ -68,7 +77,8 @@ impl Supervisor {
         unsafe {
             cmd.pre_exec(move || {
                 // Die with `fleet up`, however it ends; and if it is already gone, do not start.
-                if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM as libc::c_ulong) != 0 || libc::getppid() != parent {
+                if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM as libc::c_ulong) != 0 || libc::getppid() != parent
+                {
                     libc::_exit(1);
                 }
                 Ok(())
@@ -87,7 +97,11 @@ impl Supervisor {
         for (name, c, log) in self.children.iter_mut().filter(|(n, _, _)| !self.optional.contains(n)) {
             if let Ok(Some(status)) = c.try_wait() {
                 if !status.success() {
-                    return Some(Exited { name: name.clone(), status, log: log.clone() });
+                    return Some(Exited {
+                        name: name.clone(),
+                        status,
+                        log: log.clone(),
+                    });
                 }
             }
         }
@@ -101,7 +115,10 @@ impl Supervisor {
 
     /// An optional child that has ended (any status), taken off the list so it is told once.
     pub fn optional_exited(&mut self) -> Option<Exited> {
-        let i = self.children.iter_mut().position(|(n, c, _)| self.optional.contains(n) && matches!(c.try_wait(), Ok(Some(_))))?;
+        let i = self
+            .children
+            .iter_mut()
+            .position(|(n, c, _)| self.optional.contains(n) && matches!(c.try_wait(), Ok(Some(_))))?;
         let (name, mut c, log) = self.children.remove(i);
         let status = c.wait().ok()?;
         Some(Exited { name, status, log })
@@ -110,15 +127,26 @@ impl Supervisor {
     /// Wait until every node except `except` has exited successfully.
     pub fn wait_nodes(&mut self, within: Duration, except: &[&str]) -> anyhow::Result<()> {
         let until = Instant::now() + within;
-        for (name, c, log) in self.children.iter_mut().filter(|(n, _, _)| !except.contains(&n.as_str())) {
+        for (name, c, log) in self
+            .children
+            .iter_mut()
+            .filter(|(n, _, _)| !except.contains(&n.as_str()))
+        {
             loop {
                 match c.try_wait()? {
                     Some(s) if s.success() => break,
                     Some(s) => {
                         let why = last_line(log);
-                        return Err(Exited { name: name.clone(), status: s, log: log.clone() }.into_error(why, "the run is incomplete"));
+                        return Err(Exited {
+                            name: name.clone(),
+                            status: s,
+                            log: log.clone(),
+                        }
+                        .into_error(why, "the run is incomplete"));
                     }
-                    None if Instant::now() > until => anyhow::bail!("{name} did not exit after the mission (log: {})", log.display()),
+                    None if Instant::now() > until => {
+                        anyhow::bail!("{name} did not exit after the mission (log: {})", log.display())
+                    }
                     None => std::thread::sleep(Duration::from_millis(50)),
                 }
             }
@@ -137,7 +165,12 @@ impl Supervisor {
         // SAFETY: kill(2) on our own children's process group.
         unsafe { libc::kill(-group, libc::SIGTERM) };
         let until = Instant::now() + GRACE;
-        while Instant::now() < until && self.children.iter_mut().any(|(_, c, _)| matches!(c.try_wait(), Ok(None))) {
+        while Instant::now() < until
+            && self
+                .children
+                .iter_mut()
+                .any(|(_, c, _)| matches!(c.try_wait(), Ok(None)))
+        {
             std::thread::sleep(Duration::from_millis(20));
         }
         // SAFETY: as above; the group may be gone already (ESRCH is fine).

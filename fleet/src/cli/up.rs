@@ -65,7 +65,11 @@ pub(super) fn sibling(name: &str) -> anyhow::Result<PathBuf> {
     let exe = std::env::current_exe().context("locating this executable")?;
     let path = exe.with_file_name(name);
     if !path.exists() {
-        bail!("{} not found next to {}: build the workspace first (`cargo build --release --workspace`)", name, exe.display());
+        bail!(
+            "{} not found next to {}: build the workspace first (`cargo build --release --workspace`)",
+            name,
+            exe.display()
+        );
     }
     Ok(path)
 }
@@ -98,14 +102,29 @@ impl Notices {
 /// Refuse endpoints another process holds before anything is started or replaced.
 fn check_ports_free(mission: &MissionConfig) -> anyhow::Result<()> {
     for ep in &mission.network.listen {
-        let Some(addr) = ep.strip_prefix("tcp/").and_then(|a| a.parse::<std::net::SocketAddr>().ok()) else { continue };
+        let Some(addr) = ep
+            .strip_prefix("tcp/")
+            .and_then(|a| a.parse::<std::net::SocketAddr>().ok())
+        else {
+            continue;
+        };
         if let Err(e) = std::net::TcpListener::bind(addr) {
-            return Err(fleet::exit::bad_input(anyhow::anyhow!("[network] listen {ep}: {e} (another fleet or program is using it; stop it or change the endpoint)")));
+            return Err(fleet::exit::bad_input(anyhow::anyhow!(
+                "[network] listen {ep}: {e} (another fleet or program is using it; stop it or change the endpoint)"
+            )));
         }
     }
-    if let Some(addr) = mission.mavlink.gcs.strip_prefix("udpin:").and_then(|a| a.parse::<std::net::SocketAddr>().ok()) {
+    if let Some(addr) = mission
+        .mavlink
+        .gcs
+        .strip_prefix("udpin:")
+        .and_then(|a| a.parse::<std::net::SocketAddr>().ok())
+    {
         if let Err(e) = std::net::UdpSocket::bind(addr) {
-            return Err(fleet::exit::bad_input(anyhow::anyhow!("[mavlink] gcs {}: {e}", mission.mavlink.gcs)));
+            return Err(fleet::exit::bad_input(anyhow::anyhow!(
+                "[mavlink] gcs {}: {e}",
+                mission.mavlink.gcs
+            )));
         }
     }
     Ok(())
@@ -134,13 +153,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mission = MissionConfig::load(args.mission.as_deref())?;
     let out = &args.out;
     let (server_bin, vehicle_bin) = (sibling("model-server")?, sibling("vehicle")?);
-    let gateway_bin = if mission.mavlink.gcs.is_empty() { None } else { Some(sibling("gcs-gateway")?) };
+    let gateway_bin = if mission.mavlink.gcs.is_empty() {
+        None
+    } else {
+        Some(sibling("gcs-gateway")?)
+    };
     check_ports_free(&mission)?;
     if let Some(addr) = args.web {
-        std::net::TcpListener::bind(addr).with_context(|| format!("--web {addr}: cannot serve the live view there")).input()?;
+        std::net::TcpListener::bind(addr)
+            .with_context(|| format!("--web {addr}: cannot serve the live view there"))
+            .input()?;
     }
     let watch_bin = args.web.map(|_| sibling("fleet-watch")).transpose()?;
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display())).input()?;
+    std::fs::create_dir_all(out)
+        .with_context(|| format!("creating {}", out.display()))
+        .input()?;
     // Staged beside the previous run until the server is up.
     let staging = out.join(format!(".starting-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&staging);
@@ -153,7 +180,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     match &args.mission {
         None => std::fs::write(staging.join("mission.toml"), DEFAULT_MISSION)?,
         Some(p) => {
-            std::fs::copy(p, staging.join("mission.toml")).with_context(|| format!("copying {} into the run", p.display()))?;
+            std::fs::copy(p, staging.join("mission.toml"))
+                .with_context(|| format!("copying {} into the run", p.display()))?;
         }
     }
 
@@ -161,24 +189,48 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let truth = mission.truth(|k| pb.set_position(k as u64))?;
     pb.finish_and_clear();
     let (grid, frames) = mission.workspace(&truth)?;
-    fleet::process::dataset::save(staging.join("truth.npy"), &truth, Some(&serde_json::json!({"process": "fleet up", "mission": mission.mission, "dt": truth.dt})))?;
-    println!("mission {}: {} x {} grid, {frames} steps, {} vehicles (truth made in {:.1} s)", mission.mission, grid.rows, grid.cols, mission.vehicles().len(), t0.elapsed().as_secs_f64());
+    fleet::process::dataset::save(
+        staging.join("truth.npy"),
+        &truth,
+        Some(&serde_json::json!({"process": "fleet up", "mission": mission.mission, "dt": truth.dt})),
+    )?;
+    println!(
+        "mission {}: {} x {} grid, {frames} steps, {} vehicles (truth made in {:.1} s)",
+        mission.mission,
+        grid.rows,
+        grid.cols,
+        mission.vehicles().len(),
+        t0.elapsed().as_secs_f64()
+    );
 
     let stop = supervise::catch_stop_signals()?;
     let mut fleet = Supervisor::default();
     let mut server = Command::new(&server_bin);
-    server.arg("--mission").arg(mission_file(&staging)).arg("--truth").arg(staging.join("truth.npy")).arg("--state-dir").arg(staging.join("state"));
+    server
+        .arg("--mission")
+        .arg(mission_file(&staging))
+        .arg("--truth")
+        .arg(staging.join("truth.npy"))
+        .arg("--state-dir")
+        .arg(staging.join("state"));
     // Moved into --out with the rest once the server is up (the open file goes with its name).
     server.arg("--record").arg(staging.join("recording.mcap"));
     let (server_log, server_log_path) = log_file(&logs, "server")?;
-    server.arg("--events").arg("--out").arg(out).arg("--exit-when-done").stdout(Stdio::piped()).stderr(server_log);
+    server
+        .arg("--events")
+        .arg("--out")
+        .arg(out)
+        .arg("--exit-when-done")
+        .stdout(Stdio::piped())
+        .stderr(server_log);
     let mut stdout = fleet.spawn("model-server", server, out.join("logs/server.log"))?;
     let stdout = stdout.take().expect("piped stdout");
     let (tx, rx) = mpsc::channel();
     let mut events_file = std::fs::File::create(staging.join("events.jsonl"))?;
     std::thread::spawn(move || {
         for line in std::io::BufReader::new(stdout).lines().map_while(Result::ok) {
-            let event = serde_json::from_str::<ServerEvent>(&line).map_err(|e| format!("the server said something that is not an event ({e}): {line}"));
+            let event = serde_json::from_str::<ServerEvent>(&line)
+                .map_err(|e| format!("the server said something that is not an event ({e}): {line}"));
             if event.is_ok() {
                 let _ = writeln!(events_file, "{line}");
             }
@@ -193,7 +245,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     loop {
         if let Some(sig) = stop.received() {
             fleet.stop();
-            bail!("stopped by signal {sig} before the server was up (the previous run in {} is unchanged)", out.display());
+            bail!(
+                "stopped by signal {sig} before the server was up (the previous run in {} is unchanged)",
+                out.display()
+            );
         }
         match rx.recv_timeout(Duration::from_millis(100)) {
             Ok(Ok(ServerEvent::Ready { .. })) => break,
@@ -207,7 +262,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         if Instant::now() > ready_by {
             fleet.stop();
-            bail!("the model server was not up after 120 s (its log: {}; the previous run in {} is unchanged)", server_log_path.display(), out.display());
+            bail!(
+                "the model server was not up after 120 s (its log: {}; the previous run in {} is unchanged)",
+                server_log_path.display(),
+                out.display()
+            );
         }
     }
     commit_start(out, &staging)?;
@@ -217,14 +276,22 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let truth_path = out.join("truth.npy");
     let mission_path = mission_file(out);
     let node_args = |c: &mut Command| {
-        c.arg("--mission").arg(&mission_path).arg("--truth").arg(&truth_path).arg("--state-dir").arg(&state);
+        c.arg("--mission")
+            .arg(&mission_path)
+            .arg("--truth")
+            .arg(&truth_path)
+            .arg("--state-dir")
+            .arg(&state);
     };
     if let Some(bin) = &gateway_bin {
         let mut c = Command::new(bin);
         let (log, path) = log_file(&logs, "gcs-gateway")?;
         c.arg("--mission").arg(&mission_path).stdout(Stdio::null()).stderr(log);
         fleet.spawn("gcs-gateway", c, path)?;
-        println!("ground stations: the fleet is on {} (MAVLink 2; each vehicle its own system id)", mission.mavlink.gcs);
+        println!(
+            "ground stations: the fleet is on {} (MAVLink 2; each vehicle its own system id)",
+            mission.mavlink.gcs
+        );
     }
     for v in mission.vehicles() {
         let mut c = Command::new(&vehicle_bin);
@@ -238,7 +305,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let mut c = Command::new(watch_bin.as_ref().expect("found with --web"));
         c.arg("--mission").arg(&mission_path).arg("--truth").arg(&truth_path);
         let (log, path) = log_file(&logs, "fleet-watch")?;
-        c.arg("--http").arg(addr.to_string()).arg("--run-dir").arg(out).stdout(Stdio::null()).stderr(log);
+        c.arg("--http")
+            .arg(addr.to_string())
+            .arg("--run-dir")
+            .arg(out)
+            .stdout(Stdio::null())
+            .stderr(log);
         fleet.spawn("fleet-watch", c, path)?;
         // The mission does not depend on its view: if the view dies, it is said, not fatal.
         fleet.optional("fleet-watch");
@@ -247,7 +319,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let epochs = mission.schedule(frames).epochs();
     let pb = super::progress_bar(epochs, "epochs");
     let tty = std::io::IsTerminal::is_terminal(&std::io::stderr());
-    let mut notices = Notices { pb: pb.clone(), tty, log: std::fs::File::create(logs.join("fleet-up.log"))? };
+    let mut notices = Notices {
+        pb: pb.clone(),
+        tty,
+        log: std::fs::File::create(logs.join("fleet-up.log"))?,
+    };
     let deadline = Instant::now() + Duration::from_secs(args.timeout_s);
     let mut alive = 0usize;
     let mut events = vec![];
@@ -255,29 +331,69 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if let Some(sig) = stop.received() {
             pb.finish_and_clear();
             fleet.stop();
-            notices.say(format!("stopped by signal {sig}: every node of the fleet stopped; the run's state is in {} (nodes restarted on it resume)", state.display()));
+            notices.say(format!(
+                "stopped by signal {sig}: every node of the fleet stopped; the run's state is in {} \
+                (nodes restarted on it resume)",
+                state.display()
+            ));
             std::process::exit(128 + sig);
         }
         if Instant::now() > deadline {
-            bail!("the mission did not finish in {} s (logs in {})", args.timeout_s, logs.display());
+            bail!(
+                "the mission did not finish in {} s (logs in {})",
+                args.timeout_s,
+                logs.display()
+            );
         }
         match rx.recv_timeout(Duration::from_millis(200)) {
             Ok(Ok(e)) => {
                 match &e {
-                    ServerEvent::Epoch { epoch, version, mse, alive: a, .. } => {
+                    ServerEvent::Epoch {
+                        epoch,
+                        version,
+                        mse,
+                        alive: a,
+                        ..
+                    } => {
                         alive = *a;
                         pb.set_position(epoch + 1);
-                        pb.set_message(format!("v{version} {a} alive mse {}", mse.map_or("-".into(), |m| format!("{m:.2e}"))));
+                        pb.set_message(format!(
+                            "v{version} {a} alive mse {}",
+                            mse.map_or("-".into(), |m| format!("{m:.2e}"))
+                        ));
                     }
-                    ServerEvent::Link { alive: up, .. } => alive = if *up { alive + 1 } else { alive.saturating_sub(1) },
+                    ServerEvent::Link { alive: up, .. } => {
+                        alive = if *up { alive + 1 } else { alive.saturating_sub(1) }
+                    }
                     ServerEvent::Ready { .. } => pb.set_message("server ready"),
-                    ServerEvent::Hold { vehicle, held, mode } => notices.say(format!("{vehicle}: {} ({mode})", if *held { "left out of the allocation" } else { "back in the allocation" })),
-                    ServerEvent::Late { vehicle, epoch, version } => notices.say(format!("{vehicle}: late batch of epoch {epoch} re-fitted the model (v{version})")),
-                    ServerEvent::Refused { vehicle, seq, detail, .. } => {
+                    ServerEvent::Hold { vehicle, held, mode } => notices.say(format!(
+                        "{vehicle}: {} ({mode})",
+                        if *held {
+                            "left out of the allocation"
+                        } else {
+                            "back in the allocation"
+                        }
+                    )),
+                    ServerEvent::Late {
+                        vehicle,
+                        epoch,
+                        version,
+                    } => notices.say(format!(
+                        "{vehicle}: late batch of epoch {epoch} re-fitted the model (v{version})"
+                    )),
+                    ServerEvent::Refused {
+                        vehicle, seq, detail, ..
+                    } => {
                         notices.say(format!("{vehicle}: batch {seq} refused by the server: {detail}"));
-                        bail!("{vehicle}'s batch {seq} was refused ({detail}): its epoch cannot complete, so the mission cannot finish (logs in {})", logs.display());
+                        bail!(
+                            "{vehicle}'s batch {seq} was refused ({detail}): its epoch cannot complete, so the \
+                            mission cannot finish (logs in {})",
+                            logs.display()
+                        );
                     }
-                    ServerEvent::Lost { vehicle, seqs } => notices.say(format!("{vehicle}: batches {seqs:?} were acknowledged but are not in the journal: lost")),
+                    ServerEvent::Lost { vehicle, seqs } => notices.say(format!(
+                        "{vehicle}: batches {seqs:?} were acknowledged but are not in the journal: lost"
+                    )),
                     ServerEvent::Finished { .. } => {}
                 }
                 if let ServerEvent::Finished { summary } = e {
@@ -294,7 +410,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 let why = supervise::last_line(&logs.join("server.log"));
                 return Err(match dead {
                     Some(d) => d.into_error(why, "the mission did not finish"),
-                    None => anyhow::anyhow!("the model server closed its output before the mission finished: {}", why.unwrap_or_default()),
+                    None => anyhow::anyhow!(
+                        "the model server closed its output before the mission finished: {}",
+                        why.unwrap_or_default()
+                    ),
                 });
             }
         }
@@ -304,7 +423,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         if let Some(view) = fleet.optional_exited() {
             let why = supervise::last_line(&view.log).unwrap_or_default();
-            notices.say(format!("the live view stopped ({}): the mission goes on without it; {why} (log: {})", view.status, view.log.display()));
+            notices.say(format!(
+                "the live view stopped ({}): the mission goes on without it; {why} (log: {})",
+                view.status,
+                view.log.display()
+            ));
         }
     };
     pb.finish_and_clear();
@@ -315,14 +438,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
 
     let offline = team::run(&mission.team, &truth, |_, _| {})?;
-    let command = format!("fleet up{} --out {}", args.mission.as_ref().map_or(String::new(), |p| format!(" {}", p.display())), out.display());
+    let command = format!(
+        "fleet up{} --out {}",
+        args.mission
+            .as_ref()
+            .map_or(String::new(), |p| format!(" {}", p.display())),
+        out.display()
+    );
     let md = write_mission_report(out, &mission, &summary, &offline, truth.dt, &command, &events)?;
     println!("{md}");
     // Everything else is written first: a NetCDF that cannot be written fails the run at the
     // end, and `fleet export` can write it again from the run directory.
     let nc = fleet::export::Run::load(out).and_then(|run| fleet::export::netcdf::write(&run, &out.join("estimate.nc")));
     println!(
-        "wrote {}/report.md, mse.png,{} events.jsonl, summary.json, model.cbor, recording.mcap and logs/ ({:.1} s in all)",
+        "wrote {}/report.md, mse.png,{} events.jsonl, summary.json, model.cbor, recording.mcap and logs/ ({:.1} s in \
+            all)",
         out.display(),
         if nc.is_ok() { " estimate.nc," } else { "" },
         t0.elapsed().as_secs_f64()
@@ -330,7 +460,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     nc.map_err(|e| anyhow::Error::new(e).context("writing estimate.nc"))?;
     if let (Some(addr), linger) = (args.web, args.web_linger_s) {
         if linger > 0 {
-            println!("the live view stays at http://{addr}/ for {linger} s (the finished run, its report); Ctrl-C ends it");
+            println!(
+                "the live view stays at http://{addr}/ for {linger} s (the finished run, its report); Ctrl-C ends it"
+            );
             let until = Instant::now() + Duration::from_secs(linger);
             // The mission is done: a stop signal now just ends the view (exit 0).
             while Instant::now() < until && stop.received().is_none() {

@@ -16,7 +16,16 @@ pub struct Variant {
 
 impl Variant {
     pub fn new(label: &str, method: Method, rank: RankPolicy, debias: Debias, gamma: f64) -> Self {
-        Self { label: label.into(), config: DmdConfig { method, rank, debias, gamma, forgetting: Default::default() } }
+        Self {
+            label: label.into(),
+            config: DmdConfig {
+                method,
+                rank,
+                debias,
+                gamma,
+                forgetting: Default::default(),
+            },
+        }
     }
 }
 
@@ -94,7 +103,13 @@ pub fn median(v: &mut [f64]) -> f64 {
 
 /// Run every variant over `trials` trials at each noise variance. `progress` is called once
 /// per finished estimate.
-pub fn run(variants: &[Variant], noise_vars: &[f64], trials: usize, base_seed: u64, mut progress: impl FnMut()) -> Result<Vec<NoiseLevel>, DmdError> {
+pub fn run(
+    variants: &[Variant],
+    noise_vars: &[f64],
+    trials: usize,
+    base_seed: u64,
+    mut progress: impl FnMut(),
+) -> Result<Vec<NoiseLevel>, DmdError> {
     let mut out = vec![];
     for (li, &var) in noise_vars.iter().enumerate() {
         let mut results = vec![];
@@ -104,11 +119,22 @@ pub fn run(variants: &[Variant], noise_vars: &[f64], trials: usize, base_seed: u
                 estimates.push(estimate(v, var, trial_seed(base_seed, li, t))?);
                 progress();
             }
-            let mut err: Vec<f64> = estimates.iter().map(|e| ((e[0] - EigStudy::TRUE_EIGENVALUE).powi(2) + e[1].powi(2)).sqrt()).collect();
+            let mut err: Vec<f64> = estimates
+                .iter()
+                .map(|e| ((e[0] - EigStudy::TRUE_EIGENVALUE).powi(2) + e[1].powi(2)).sqrt())
+                .collect();
             let mut re: Vec<f64> = estimates.iter().map(|e| e[0]).collect();
-            results.push(VariantResult { label: v.label.clone(), median_abs_error: median(&mut err), median_real: median(&mut re), estimates });
+            results.push(VariantResult {
+                label: v.label.clone(),
+                median_abs_error: median(&mut err),
+                median_real: median(&mut re),
+                estimates,
+            });
         }
-        out.push(NoiseLevel { noise_var: var, variants: results });
+        out.push(NoiseLevel {
+            noise_var: var,
+            variants: results,
+        });
     }
     Ok(out)
 }

@@ -15,10 +15,18 @@ use faer::MatRef;
 /// Fit `cfg` to the first `init` pairs of the snapshot sequence `z` (columns in time order),
 /// then feed the remaining pairs in batches of `tau`, calling `after_each` with the model after
 /// the initial fit and after every update.
-pub fn run_online(cfg: &DmdConfig, z: MatRef<'_, f64>, init: usize, tau: usize, mut after_each: impl FnMut(&dyn Dmd) -> Result<(), DmdError>) -> Result<Box<dyn Dmd>, DmdError> {
+pub fn run_online(
+    cfg: &DmdConfig,
+    z: MatRef<'_, f64>,
+    init: usize,
+    tau: usize,
+    mut after_each: impl FnMut(&dyn Dmd) -> Result<(), DmdError>,
+) -> Result<Box<dyn Dmd>, DmdError> {
     let pairs = z.ncols().saturating_sub(1);
     if init == 0 || init > pairs || tau == 0 {
-        return Err(DmdError::Shape(format!("need 1 <= init <= pairs and tau >= 1 (init {init}, pairs {pairs}, tau {tau})")));
+        return Err(DmdError::Shape(format!(
+            "need 1 <= init <= pairs and tau >= 1 (init {init}, pairs {pairs}, tau {tau})"
+        )));
     }
     let mut model = cfg.init(z.subcols(0, init), z.subcols(1, init))?;
     after_each(model.as_ref())?;

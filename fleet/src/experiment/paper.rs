@@ -128,11 +128,20 @@ impl ExperimentConfig {
         if cfg.extra_fusions.contains(&cfg.team.fusion) {
             bail!("extra_fusions: {} is the team's own fusion already", cfg.team.fusion);
         }
-        if let Some(p) = cfg.extra_placements.iter().find(|p| matches!(p, Placement::Qr | Placement::Random)) {
+        if let Some(p) = cfg
+            .extra_placements
+            .iter()
+            .find(|p| matches!(p, Placement::Qr | Placement::Random))
+        {
             bail!("extra_placements: {p} runs already (every row has the QR and the random team)");
         }
         for &placement in &cfg.extra_placements {
-            TeamConfig { placement, ..cfg.team.clone() }.check_choices().with_context(|| format!("extra_placements: {placement}"))?;
+            TeamConfig {
+                placement,
+                ..cfg.team.clone()
+            }
+            .check_choices()
+            .with_context(|| format!("extra_placements: {placement}"))?;
         }
         Ok(cfg)
     }
@@ -178,7 +187,11 @@ pub struct TeamSteps {
 
 impl TeamSteps {
     fn fused(team: &str, o: &TeamOutcome) -> Self {
-        Self { team: team.into(), mse: o.heterogeneous.iter().map(|&x| Some(x)).collect(), calibration: Some(o.calibration.clone()) }
+        Self {
+            team: team.into(),
+            mse: o.heterogeneous.iter().map(|&x| Some(x)).collect(),
+            calibration: Some(o.calibration.clone()),
+        }
     }
 }
 
@@ -239,7 +252,9 @@ impl RowResult {
     /// Mean over seeds with the 95% interval at each step, by team (steps where a team has no
     /// data are left out).
     pub fn curves(&self) -> Vec<(String, Vec<(usize, Interval)>)> {
-        let Some((_, first)) = self.per_step.first() else { return vec![] };
+        let Some((_, first)) = self.per_step.first() else {
+            return vec![];
+        };
         first
             .iter()
             .enumerate()
@@ -307,7 +322,12 @@ pub const ORACLE: &str = "heterogeneous-oracle";
 
 /// Every team of one row and seed: the QR run (all three teams), the random-placement run, and
 /// each extra fusion scheme's run.
-fn run_seed(cfg: &ExperimentConfig, r: &Row, truth: &FieldSeries, seed: u64) -> Result<(SeedResult, TeamOutcome, Vec<TeamSteps>), team::TeamError> {
+fn run_seed(
+    cfg: &ExperimentConfig,
+    r: &Row,
+    truth: &FieldSeries,
+    seed: u64,
+) -> Result<(SeedResult, TeamOutcome, Vec<TeamSteps>), team::TeamError> {
     let qr = team::run(&cfg.team_for_seed(r, Placement::Qr, seed), truth, |_, _| {})?;
     let random = team::run(&cfg.team_for_seed(r, Placement::Random, seed), truth, |_, _| {})?;
     let mut mse = BTreeMap::from([
@@ -316,15 +336,33 @@ fn run_seed(cfg: &ExperimentConfig, r: &Row, truth: &FieldSeries, seed: u64) -> 
         (BOAT_ONLY.into(), qr.mean_boat_only),
         (RANDOM.into(), random.mean_heterogeneous),
     ]);
-    let mut calibration = BTreeMap::from([(HETEROGENEOUS.to_string(), qr.mean_calibration), (RANDOM.into(), random.mean_calibration)]);
+    let mut calibration = BTreeMap::from([
+        (HETEROGENEOUS.to_string(), qr.mean_calibration),
+        (RANDOM.into(), random.mean_calibration),
+    ]);
     let mut steps = vec![
         TeamSteps::fused(HETEROGENEOUS, &qr),
-        TeamSteps { team: AERIAL_ONLY.into(), mse: qr.aerial_only.iter().map(|&x| Some(x)).collect(), calibration: None },
-        TeamSteps { team: BOAT_ONLY.into(), mse: qr.boat_only.clone(), calibration: None },
+        TeamSteps {
+            team: AERIAL_ONLY.into(),
+            mse: qr.aerial_only.iter().map(|&x| Some(x)).collect(),
+            calibration: None,
+        },
+        TeamSteps {
+            team: BOAT_ONLY.into(),
+            mse: qr.boat_only.clone(),
+            calibration: None,
+        },
         TeamSteps::fused(RANDOM, &random),
     ];
     for &scheme in &cfg.extra_fusions {
-        let other = team::run(&TeamConfig { fusion: scheme, ..cfg.team_for_seed(r, Placement::Qr, seed) }, truth, |_, _| {})?;
+        let other = team::run(
+            &TeamConfig {
+                fusion: scheme,
+                ..cfg.team_for_seed(r, Placement::Qr, seed)
+            },
+            truth,
+            |_, _| {},
+        )?;
         let name = format!("{HETEROGENEOUS}-{scheme}");
         mse.insert(name.clone(), other.mean_heterogeneous);
         calibration.insert(name.clone(), other.mean_calibration);
@@ -343,14 +381,22 @@ fn run_seed(cfg: &ExperimentConfig, r: &Row, truth: &FieldSeries, seed: u64) -> 
         calibration.insert(ORACLE.into(), other.mean_calibration);
         steps.push(TeamSteps::fused(ORACLE, &other));
     }
-    let result = SeedResult { seed, mse, heterogeneous_from_step0: qr.heterogeneous_from_step0, aerial_only_from_step0: qr.aerial_only_from_step0, calibration };
+    let result = SeedResult {
+        seed,
+        mse,
+        heterogeneous_from_step0: qr.heterogeneous_from_step0,
+        aerial_only_from_step0: qr.aerial_only_from_step0,
+        calibration,
+    };
     Ok((result, qr, steps))
 }
 
 /// `f` over `jobs` on every core, results in job order (so the output does not depend on the
 /// scheduling: each job is deterministic on its own).
 fn parallel<J: Sync, T: Send>(jobs: &[J], f: impl Fn(&J) -> T + Sync) -> Vec<T> {
-    let workers = std::thread::available_parallelism().map_or(1, |n| n.get()).min(jobs.len().max(1));
+    let workers = std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .min(jobs.len().max(1));
     let next = std::sync::atomic::AtomicUsize::new(0);
     let done: std::sync::Mutex<Vec<(usize, T)>> = std::sync::Mutex::new(Vec::with_capacity(jobs.len()));
     std::thread::scope(|s| {
@@ -370,7 +416,10 @@ fn parallel<J: Sync, T: Send>(jobs: &[J], f: impl Fn(&J) -> T + Sync) -> Vec<T> 
 
 /// Run everything; `progress(message)` is called as work proceeds (for a progress bar), and
 /// `units()` tells how many calls to expect. Rows and seeds run in parallel.
-pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow::Result<(Results, BTreeMap<String, FieldSeries>)> {
+pub fn run(
+    cfg: &ExperimentConfig,
+    progress: impl FnMut(&str) + Send,
+) -> anyhow::Result<(Results, BTreeMap<String, FieldSeries>)> {
     let progress = std::sync::Mutex::new(progress);
     let say = |m: &str| (progress.lock().unwrap_or_else(|p| p.into_inner()))(m);
     // One truth per cloud, simulated once (in parallel).
@@ -381,7 +430,10 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
         }
     }
     let fulls = parallel(&names, |r| {
-        let out = r.truth.full(cfg.truth_grid, cfg.frames, cfg.seed, |_| {}).with_context(|| r.name());
+        let out = r
+            .truth
+            .full(cfg.truth_grid, cfg.frames, cfg.seed, |_| {})
+            .with_context(|| r.name());
         say(&format!("truth {}", r.name()));
         out
     });
@@ -389,13 +441,35 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
     for (r, full) in names.iter().zip(fulls) {
         cache.insert(r.name(), full?);
     }
-    let truths: Vec<FieldSeries> = cfg.rows.iter().map(|r| averaged_by(&cache[&r.name()], r.mv_space).with_context(|| r.name())).collect::<anyhow::Result<_>>()?;
+    let truths: Vec<FieldSeries> = cfg
+        .rows
+        .iter()
+        .map(|r| averaged_by(&cache[&r.name()], r.mv_space).with_context(|| r.name()))
+        .collect::<anyhow::Result<_>>()?;
     let seeds = cfg.seeds();
-    let jobs: Vec<(usize, u64)> = (0..cfg.rows.len()).flat_map(|i| seeds.iter().map(move |&s| (i, s))).collect();
+    let jobs: Vec<(usize, u64)> = (0..cfg.rows.len())
+        .flat_map(|i| seeds.iter().map(move |&s| (i, s)))
+        .collect();
     let outs = parallel(&jobs, |&(i, seed)| {
         let r = &cfg.rows[i];
-        let out = run_seed(cfg, r, &truths[i], seed).with_context(|| format!("{} {}/{} {}/{} seed {seed}", r.name(), r.av_time, r.mv_time, r.av_space, r.mv_space));
-        say(&format!("{} {}/{} {}/{} seed {seed}", r.name(), r.av_time, r.mv_time, r.av_space, r.mv_space));
+        let out = run_seed(cfg, r, &truths[i], seed).with_context(|| {
+            format!(
+                "{} {}/{} {}/{} seed {seed}",
+                r.name(),
+                r.av_time,
+                r.mv_time,
+                r.av_space,
+                r.mv_space
+            )
+        });
+        say(&format!(
+            "{} {}/{} {}/{} seed {seed}",
+            r.name(),
+            r.av_time,
+            r.mv_time,
+            r.av_space,
+            r.mv_space
+        ));
         out
     });
     let mut outs = outs.into_iter();
@@ -412,12 +486,25 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
         }
         let figure = figure.expect("at least one seed");
         let of = |team: &str| seed_results.iter().map(|s| s.mse[team]).collect::<Vec<f64>>();
-        let teams: BTreeMap<String, Interval> = seed_results[0].mse.keys().map(|t| (t.clone(), Interval::of(&of(t)))).collect();
+        let teams: BTreeMap<String, Interval> = seed_results[0]
+            .mse
+            .keys()
+            .map(|t| (t.clone(), Interval::of(&of(t))))
+            .collect();
         let compare = |a: &str, b: &str| {
             let d = Interval::paired(&of(a), &of(b));
-            Comparison { first: a.into(), second: b.into(), difference: d, verdict: StatVerdict::of(&d) }
+            Comparison {
+                first: a.into(),
+                second: b.into(),
+                difference: d,
+                verdict: StatVerdict::of(&d),
+            }
         };
-        let mut comparisons = vec![compare(HETEROGENEOUS, AERIAL_ONLY), compare(HETEROGENEOUS, BOAT_ONLY), compare(HETEROGENEOUS, RANDOM)];
+        let mut comparisons = vec![
+            compare(HETEROGENEOUS, AERIAL_ONLY),
+            compare(HETEROGENEOUS, BOAT_ONLY),
+            compare(HETEROGENEOUS, RANDOM),
+        ];
         for scheme in &cfg.extra_fusions {
             comparisons.push(compare(&format!("{HETEROGENEOUS}-{scheme}"), HETEROGENEOUS));
         }
@@ -433,7 +520,16 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
                 comparisons.push(compare(ORACLE, &format!("{HETEROGENEOUS}-{placement}")));
             }
         }
-        let calibration = seed_results[0].calibration.keys().map(|t| (t.clone(), Interval::of(&seed_results.iter().map(|s| s.calibration[t]).collect::<Vec<_>>()))).collect();
+        let calibration = seed_results[0]
+            .calibration
+            .keys()
+            .map(|t| {
+                (
+                    t.clone(),
+                    Interval::of(&seed_results.iter().map(|s| s.calibration[t]).collect::<Vec<_>>()),
+                )
+            })
+            .collect();
         let at_most_best_single = at_most_best_single(&per_step, figure.scored_from);
         let step0 = |f: fn(&SeedResult) -> f64| Interval::of(&seed_results.iter().map(f).collect::<Vec<_>>());
         rows.push(RowResult {
@@ -454,13 +550,23 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
     let progress = |m: &str| say(m);
     let mut eig = vec![];
     if cfg.eig_trials > 0 {
-        let methods = [("batch", Method::Batch), ("general", Method::General), ("long-term", Method::LongTerm)];
+        let methods = [
+            ("batch", Method::Batch),
+            ("general", Method::General),
+            ("long-term", Method::LongTerm),
+        ];
         for (level, var) in [0.01, 0.04, 0.1].into_iter().enumerate() {
             for (label, method) in methods {
                 progress(&format!("Fig. 7 {label} var {var}"));
                 let v = eig_study::Variant::new(label, method, RankPolicy::Full, Default::default(), 1.0);
-                let estimates = (0..cfg.eig_trials).map(|t| eig_study::estimate(&v, var, eig_study::trial_seed(cfg.seed, level, t))).collect::<Result<Vec<_>, _>>()?;
-                eig.push(EigBox { method: label.into(), noise_var: var, estimates });
+                let estimates = (0..cfg.eig_trials)
+                    .map(|t| eig_study::estimate(&v, var, eig_study::trial_seed(cfg.seed, level, t)))
+                    .collect::<Result<Vec<_>, _>>()?;
+                eig.push(EigBox {
+                    method: label.into(),
+                    noise_var: var,
+                    estimates,
+                });
             }
         }
     }
@@ -468,10 +574,27 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
     if !cfg.forgetting.is_empty() {
         let field = EigStudy::field(0.01, cfg.seed);
         let z = field.snapshots.as_ref();
-        let mut curves: Vec<(String, DmdConfig)> =
-            vec![("batch".into(), DmdConfig { method: Method::Batch, rank: RankPolicy::Full, debias: Default::default(), gamma: 1.0, forgetting: Default::default() })];
+        let mut curves: Vec<(String, DmdConfig)> = vec![(
+            "batch".into(),
+            DmdConfig {
+                method: Method::Batch,
+                rank: RankPolicy::Full,
+                debias: Default::default(),
+                gamma: 1.0,
+                forgetting: Default::default(),
+            },
+        )];
         for &g in &cfg.forgetting {
-            curves.push((format!("long-term gamma {g}"), DmdConfig { method: Method::LongTerm, rank: RankPolicy::Full, debias: Default::default(), gamma: g, forgetting: cfg.forgetting_unit.into() }));
+            curves.push((
+                format!("long-term gamma {g}"),
+                DmdConfig {
+                    method: Method::LongTerm,
+                    rank: RankPolicy::Full,
+                    debias: Default::default(),
+                    gamma: g,
+                    forgetting: cfg.forgetting_unit.into(),
+                },
+            ));
         }
         for (label, c) in curves {
             progress(&format!("Fig. 8 {label}"));
@@ -491,19 +614,36 @@ pub fn run(cfg: &ExperimentConfig, progress: impl FnMut(&str) + Send) -> anyhow:
             forgetting.push(ForgettingCurve { label, points });
         }
     }
-    let top = rows.iter().filter_map(|r| r.row.truth.preset()).max_by_key(|p| rank_of(*p));
+    let top = rows
+        .iter()
+        .filter_map(|r| r.row.truth.preset())
+        .max_by_key(|p| rank_of(*p));
     let first_of_top = match top {
         Some(p) => rows.iter().find(|r| r.row.truth.preset() == Some(p)),
         None => rows.first(),
     };
-    let verdict_of = |r: &RowResult, second: &str| r.comparisons.iter().find(|c| c.first == HETEROGENEOUS && c.second == second).map(|c| c.verdict);
+    let verdict_of = |r: &RowResult, second: &str| {
+        r.comparisons
+            .iter()
+            .find(|c| c.first == HETEROGENEOUS && c.second == second)
+            .map(|c| c.verdict)
+    };
     let verdict = Verdict {
         preset: first_of_top.map(|r| r.row.name()),
         heterogeneous_vs_aerial_only: first_of_top.and_then(|r| verdict_of(r, AERIAL_ONLY)),
         heterogeneous_vs_boat_only: first_of_top.and_then(|r| verdict_of(r, BOAT_ONLY)),
         qr_vs_random: first_of_top.and_then(|r| verdict_of(r, RANDOM)),
     };
-    Ok((Results { config: cfg.clone(), rows, eig_study: eig, forgetting, verdict }, cache))
+    Ok((
+        Results {
+            config: cfg.clone(),
+            rows,
+            eig_study: eig,
+            forgetting,
+            verdict,
+        },
+        cache,
+    ))
 }
 
 /// For each fused team: the fraction of steps from `from` on, pooled over seeds, where its
@@ -512,7 +652,9 @@ fn at_most_best_single(per_step: &[(u64, Vec<TeamSteps>)], from: usize) -> BTree
     let mut count: BTreeMap<String, (usize, usize)> = BTreeMap::new();
     for (_, teams) in per_step {
         let of = |name: &str| teams.iter().find(|t| t.team == name).map(|t| &t.mse);
-        let (Some(a), Some(b)) = (of(AERIAL_ONLY), of(BOAT_ONLY)) else { continue };
+        let (Some(a), Some(b)) = (of(AERIAL_ONLY), of(BOAT_ONLY)) else {
+            continue;
+        };
         for t in teams.iter().filter(|t| t.calibration.is_some()) {
             let c = count.entry(t.team.clone()).or_default();
             for k in from..t.mse.len() {
@@ -525,13 +667,28 @@ fn at_most_best_single(per_step: &[(u64, Vec<TeamSteps>)], from: usize) -> BTree
             }
         }
     }
-    count.into_iter().map(|(t, (wins, all))| (t, wins as f64 / all.max(1) as f64)).collect()
+    count
+        .into_iter()
+        .map(|(t, (wins, all))| (t, wins as f64 / all.max(1) as f64))
+        .collect()
 }
 
 /// Work units `run` reports, for a progress bar.
 pub fn units(cfg: &ExperimentConfig) -> usize {
-    let clouds = cfg.rows.iter().map(Row::name).collect::<std::collections::BTreeSet<_>>().len();
-    clouds + cfg.rows.len() * cfg.seeds().len() + if cfg.eig_trials > 0 { 9 } else { 0 } + if cfg.forgetting.is_empty() { 0 } else { cfg.forgetting.len() + 1 }
+    let clouds = cfg
+        .rows
+        .iter()
+        .map(Row::name)
+        .collect::<std::collections::BTreeSet<_>>()
+        .len();
+    clouds
+        + cfg.rows.len() * cfg.seeds().len()
+        + if cfg.eig_trials > 0 { 9 } else { 0 }
+        + if cfg.forgetting.is_empty() {
+            0
+        } else {
+            cfg.forgetting.len() + 1
+        }
 }
 
 /// `per_step.csv`: one line per row, seed, team and step where the team has data
@@ -557,17 +714,28 @@ fn write_per_step(dir: &Path, res: &Results) -> anyhow::Result<()> {
 }
 
 /// Write `results.json`, `per_step.csv`, the figures and `report.md` into `dir`.
-pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSeries>, command: &str) -> anyhow::Result<Vec<String>> {
+pub fn write_report(
+    dir: &Path,
+    res: &Results,
+    truths: &BTreeMap<String, FieldSeries>,
+    command: &str,
+) -> anyhow::Result<Vec<String>> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     std::fs::write(dir.join("results.json"), serde_json::to_string_pretty(res)?)?;
     let mut figures = vec![];
     let mut md = String::new();
     writeln!(md, "# hetfleet experiment report\n")?;
-    writeln!(md, "Made by `{command}`. Every number is in `results.json`, every per-step error in `per_step.csv` (`row,preset,seed,team,step,mse,calibration`).\n")?;
     writeln!(
         md,
-        "Truth: the plasma-cloud simulator at {} x {}, {} frames, area-averaged by the boats' space rate to the model grid. \
-         Team: {} aerials, {} boats of radius {} simulator cells, {} DMD at rank `{}`, `{}` fusion, {} initial aerial-only steps. \
+        "Made by `{command}`. Every number is in `results.json`, every per-step error in `per_step.csv` \
+        (`row,preset,seed,team,step,mse,calibration`).\n"
+    )?;
+    writeln!(
+        md,
+        "Truth: the plasma-cloud simulator at {} x {}, {} frames, area-averaged by the boats' space rate to the model \
+            grid. \
+         Team: {} aerials, {} boats of radius {} simulator cells, {} DMD at rank `{}`, `{}` fusion, {} initial \
+         aerial-only steps. \
          MSE is averaged over the grid at each step, then over the scored steps.\n",
         res.config.truth_grid[0],
         res.config.truth_grid[1],
@@ -582,28 +750,52 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
     )?;
     write_per_step(dir, res)?;
     let e3 = |v: f64| format!("{v:.3e}");
-    let cell = |i: &Interval| if i.n > 1 { format!("{} [{}, {}]", e3(i.mean), e3(i.lo), e3(i.hi)) } else { e3(i.mean) };
+    let cell = |i: &Interval| {
+        if i.n > 1 {
+            format!("{} [{}, {}]", e3(i.mean), e3(i.lo), e3(i.hi))
+        } else {
+            e3(i.mean)
+        }
+    };
     let seeds = res.config.seeds();
-    writeln!(md, "## Table 2: time-averaged MSE, mean over {} seeds [95% interval]\n", seeds.len())?;
     writeln!(
         md,
-        "Every team is scored over the same steps: from the first step where every team has data (the boat-only team's first sample, step `scored from`) to the end. \
-         No team is scored where it has no data. Seeds {seeds:?} vary the sensor noise, the vehicles' random streams and the random placement; every team of a seed sees the same truth and noise. \
+        "## Table 2: time-averaged MSE, mean over {} seeds [95% interval]\n",
+        seeds.len()
+    )?;
+    writeln!(
+        md,
+        "Every team is scored over the same steps: from the first step where every team has data (the boat-only \
+            team's first sample, step `scored from`) to the end. \
+         No team is scored where it has no data. Seeds {seeds:?} vary the sensor noise, the vehicles' random streams \
+         and the random placement; every team of a seed sees the same truth and noise. \
          The truth is one simulated cloud per preset (seed {}), as the paper has one dataset per cloud.\n",
         res.config.seed
     )?;
-    let mut extra: Vec<String> =
-        res.config.extra_fusions.iter().map(|f| f.to_string()).chain(res.config.extra_placements.iter().map(|p| p.to_string())).map(|x| format!("{HETEROGENEOUS}-{x}")).collect();
+    let mut extra: Vec<String> = res
+        .config
+        .extra_fusions
+        .iter()
+        .map(|f| f.to_string())
+        .chain(res.config.extra_placements.iter().map(|p| p.to_string()))
+        .map(|x| format!("{HETEROGENEOUS}-{x}"))
+        .collect();
     if res.config.oracle {
         extra.push(ORACLE.into());
         writeln!(
             md,
-            "`{ORACLE}` is a diagnostic, not a placement a fleet can use: it knows the truth. At each boat epoch a copy of the fleet senses the epoch with the boats idle, \
-             and the disks go, greedily and without overlap, where that copy's estimate at the sampling step is furthest from the truth (most squared error over the disk). \
+            "`{ORACLE}` is a diagnostic, not a placement a fleet can use: it knows the truth. At each boat epoch a \
+                copy of the fleet senses the epoch with the boats idle, \
+             and the disks go, greedily and without overlap, where that copy's estimate at the sampling step is \
+             furthest from the truth (most squared error over the disk). \
              Its difference from QR bounds what putting the disks where the error is could buy on that row.\n"
         )?;
     }
-    write!(md, "| cloud | AV time | MV time | AV space | MV space | noise | model grid | scored from | heterogeneous (QR) | aerial-only | boat-only | heterogeneous (random) |")?;
+    write!(
+        md,
+        "| cloud | AV time | MV time | AV space | MV space | noise | model grid | scored from | heterogeneous \
+        (QR) | aerial-only | boat-only | heterogeneous (random) |"
+    )?;
     for x in &extra {
         write!(md, " {x} |")?;
     }
@@ -611,47 +803,125 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
     writeln!(md, "|{}", "---|".repeat(13 + extra.len()))?;
     for r in &res.rows {
         let w = &r.row;
-        write!(md, "| {} | {} | {} | {} | {} | {} | {} x {} | {} |", w.name(), w.av_time, w.mv_time, w.av_space, w.mv_space, w.noise, r.model_grid[0], r.model_grid[1], r.scored_from)?;
-        for t in [HETEROGENEOUS, AERIAL_ONLY, BOAT_ONLY, RANDOM].iter().map(|t| t.to_string()).chain(extra.iter().cloned()) {
+        write!(
+            md,
+            "| {} | {} | {} | {} | {} | {} | {} x {} | {} |",
+            w.name(),
+            w.av_time,
+            w.mv_time,
+            w.av_space,
+            w.mv_space,
+            w.noise,
+            r.model_grid[0],
+            r.model_grid[1],
+            r.scored_from
+        )?;
+        for t in [HETEROGENEOUS, AERIAL_ONLY, BOAT_ONLY, RANDOM]
+            .iter()
+            .map(|t| t.to_string())
+            .chain(extra.iter().cloned())
+        {
             write!(md, " {} |", cell(&r.teams[&t]))?;
         }
         writeln!(md, " {} |", w.paper_mse.map_or("".into(), |v| format!("{v}")))?;
     }
-    writeln!(md, "\n### Paired differences (same seed, same truth and noise), mean [95% interval], and what they say\n")?;
-    let heads: Vec<String> = res.rows.first().map_or(vec![], |r| r.comparisons.iter().map(|c| format!("{} - {}", c.first, c.second)).collect());
-    writeln!(md, "| cloud | AV/MV time | AV/MV space | noise |{}", heads.iter().map(|h| format!(" {h} |")).collect::<String>())?;
+    writeln!(
+        md,
+        "\n### Paired differences (same seed, same truth and noise), mean [95% interval], and what they say\n"
+    )?;
+    let heads: Vec<String> = res.rows.first().map_or(vec![], |r| {
+        r.comparisons
+            .iter()
+            .map(|c| format!("{} - {}", c.first, c.second))
+            .collect()
+    });
+    writeln!(
+        md,
+        "| cloud | AV/MV time | AV/MV space | noise |{}",
+        heads.iter().map(|h| format!(" {h} |")).collect::<String>()
+    )?;
     writeln!(md, "|{}", "---|".repeat(4 + heads.len()))?;
     for r in &res.rows {
         let w = &r.row;
-        write!(md, "| {} | {}/{} | {}/{} | {} |", w.name(), w.av_time, w.mv_time, w.av_space, w.mv_space, w.noise)?;
+        write!(
+            md,
+            "| {} | {}/{} | {}/{} | {} |",
+            w.name(),
+            w.av_time,
+            w.mv_time,
+            w.av_space,
+            w.mv_space,
+            w.noise
+        )?;
         for c in &r.comparisons {
             write!(md, " {} **{}** |", cell(&c.difference), c.verdict.words())?;
         }
         writeln!(md)?;
     }
-    writeln!(md, "\nScored from step 0 instead (labelled: only the teams with data there):\n")?;
-    writeln!(md, "| cloud | AV/MV time | AV/MV space | noise | heterogeneous, from step 0 | aerial-only, from step 0 |\n|---|---|---|---|---|---|")?;
+    writeln!(
+        md,
+        "\nScored from step 0 instead (labelled: only the teams with data there):\n"
+    )?;
+    writeln!(
+        md,
+        "| cloud | AV/MV time | AV/MV space | noise | heterogeneous, from step 0 | aerial-only, from step 0 \
+        |\n|---|---|---|---|---|---|"
+    )?;
     for r in &res.rows {
         let w = &r.row;
-        writeln!(md, "| {} | {}/{} | {}/{} | {} | {} | {} |", w.name(), w.av_time, w.mv_time, w.av_space, w.mv_space, w.noise, cell(&r.heterogeneous_from_step0), cell(&r.aerial_only_from_step0))?;
+        writeln!(
+            md,
+            "| {} | {}/{} | {}/{} | {} | {} | {} |",
+            w.name(),
+            w.av_time,
+            w.mv_time,
+            w.av_space,
+            w.mv_space,
+            w.noise,
+            cell(&r.heterogeneous_from_step0),
+            cell(&r.aerial_only_from_step0)
+        )?;
     }
     writeln!(
         md,
         "\n### The fused teams: calibration and per-step wins\n\n\
-         Calibration: the mean over cells and scored steps of error^2 / reported variance, mean over seeds [95% interval] (1 is calibrated; above 1 the reported variance is too small). \
-         Steps won: the fraction of scored steps, pooled over seeds, where the team's MSE is at most the better single team's (aerial-only or boat-only) at that step.\n"
+         Calibration: the mean over cells and scored steps of error^2 / reported variance, mean over seeds [95% \
+         interval] (1 is calibrated; above 1 the reported variance is too small). \
+         Steps won: the fraction of scored steps, pooled over seeds, where the team's MSE is at most the better \
+         single team's (aerial-only or boat-only) at that step.\n"
     )?;
-    let fused: Vec<String> = res.rows.first().map_or(vec![], |r| r.calibration.keys().cloned().collect());
-    writeln!(md, "| cloud | AV/MV time | AV/MV space | noise |{}", fused.iter().map(|t| format!(" {t}: calibration | {t}: steps won |")).collect::<String>())?;
+    let fused: Vec<String> = res
+        .rows
+        .first()
+        .map_or(vec![], |r| r.calibration.keys().cloned().collect());
+    writeln!(
+        md,
+        "| cloud | AV/MV time | AV/MV space | noise |{}",
+        fused
+            .iter()
+            .map(|t| format!(" {t}: calibration | {t}: steps won |"))
+            .collect::<String>()
+    )?;
     writeln!(md, "|{}", "---|".repeat(4 + 2 * fused.len()))?;
     for r in &res.rows {
         let w = &r.row;
-        write!(md, "| {} | {}/{} | {}/{} | {} |", w.name(), w.av_time, w.mv_time, w.av_space, w.mv_space, w.noise)?;
+        write!(
+            md,
+            "| {} | {}/{} | {}/{} | {} |",
+            w.name(),
+            w.av_time,
+            w.mv_time,
+            w.av_space,
+            w.mv_space,
+            w.noise
+        )?;
         for t in &fused {
             write!(
                 md,
                 " {} | {:.1}% |",
-                r.calibration.get(t).map_or("".into(), |i| format!("{:.3} [{:.3}, {:.3}]", i.mean, i.lo, i.hi)),
+                r.calibration
+                    .get(t)
+                    .map_or("".into(), |i| format!("{:.3} [{:.3}, {:.3}]", i.mean, i.lo, i.hi)),
                 100.0 * r.at_most_best_single.get(t).copied().unwrap_or(0.0)
             )?;
         }
@@ -659,17 +929,27 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
     }
     let v = &res.verdict;
     writeln!(md)?;
-    if let (Some(p), Some(a), Some(b), Some(q)) = (&v.preset, v.heterogeneous_vs_aerial_only, v.heterogeneous_vs_boat_only, v.qr_vs_random) {
+    if let (Some(p), Some(a), Some(b), Some(q)) = (
+        &v.preset,
+        v.heterogeneous_vs_aerial_only,
+        v.heterogeneous_vs_boat_only,
+        v.qr_vs_random,
+    ) {
         writeln!(
             md,
-            "On the most complex cloud run ({p}, its first row), read from the paired intervals: heterogeneous against aerial-only **{}**, heterogeneous against boat-only **{}**, QR placement against random placement **{}**.\n",
+            "On the most complex cloud run ({p}, its first row), read from the paired intervals: heterogeneous \
+                against aerial-only **{}**, heterogeneous against boat-only **{}**, QR placement against random \
+                placement **{}**.\n",
             a.words(),
             b.words(),
             q.words()
         )?;
     }
     // Fig. 10: per cloud, its first row: the mean over seeds with its 95% band.
-    writeln!(md, "## Fig. 10: MSE over time, mean over seeds with the 95% interval shaded\n")?;
+    writeln!(
+        md,
+        "## Fig. 10: MSE over time, mean over seeds with the 95% interval shaded\n"
+    )?;
     let mut seen = vec![];
     for r in &res.rows {
         if seen.contains(&r.row.name()) {
@@ -683,20 +963,56 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
             .map(|(team, pts)| plot::Band {
                 name: team,
                 // Every team from the first step where all have data (the scored steps).
-                points: pts.iter().filter(|(k, _)| *k >= r.scored_from).map(|(k, i)| (*k as f64, i.mean, if i.n > 1 { i.lo } else { i.mean }, if i.n > 1 { i.hi } else { i.mean })).collect(),
+                points: pts
+                    .iter()
+                    .filter(|(k, _)| *k >= r.scored_from)
+                    .map(|(k, i)| {
+                        (
+                            *k as f64,
+                            i.mean,
+                            if i.n > 1 { i.lo } else { i.mean },
+                            if i.n > 1 { i.hi } else { i.mean },
+                        )
+                    })
+                    .collect(),
             })
             .collect();
-        plot::bands(dir.join(&name), &format!("{}: MSE at each step from step {} (all teams have data; {} seeds)", r.row.name(), r.scored_from, seeds.len()), "step", "MSE", &bands, true)?;
+        plot::bands(
+            dir.join(&name),
+            &format!(
+                "{}: MSE at each step from step {} (all teams have data; {} seeds)",
+                r.row.name(),
+                r.scored_from,
+                seeds.len()
+            ),
+            "step",
+            "MSE",
+            &bands,
+            true,
+        )?;
         writeln!(md, "![{name}]({name})\n")?;
         figures.push(name);
     }
     // Fig. 11: the most complex cloud's first row, first seed, three boat steps.
-    if let Some(r) = v.preset.as_ref().and_then(|p| res.rows.iter().find(|r| &r.row.name() == p)) {
-        writeln!(md, "## Fig. 11: truth and reconstruction ({}, seed {}), boats' disks in white\n", r.row.name(), seeds[0])?;
+    if let Some(r) = v
+        .preset
+        .as_ref()
+        .and_then(|p| res.rows.iter().find(|r| &r.row.name() == p))
+    {
+        writeln!(
+            md,
+            "## Fig. 11: truth and reconstruction ({}, seed {}), boats' disks in white\n",
+            r.row.name(),
+            seeds[0]
+        )?;
         let truth = &truths[&r.row.name()];
         let (rows, cols) = (r.model_grid[0], r.model_grid[1]);
         let steps = &r.figure.boat_steps;
-        let picks: Vec<usize> = if steps.len() >= 3 { vec![0, steps.len() / 2, steps.len() - 1] } else { (0..steps.len()).collect() };
+        let picks: Vec<usize> = if steps.len() >= 3 {
+            vec![0, steps.len() / 2, steps.len() - 1]
+        } else {
+            (0..steps.len()).collect()
+        };
         let radius = res.config.radius / r.row.mv_space as f64;
         let mut owned = vec![];
         for &i in &picks {
@@ -706,60 +1022,160 @@ pub fn write_report(dir: &Path, res: &Results, truths: &BTreeMap<String, FieldSe
         }
         let mut panels = vec![];
         for (k, i, t) in &owned {
-            let disks: Vec<(f64, f64, f64)> = r.figure.disks[*i].iter().map(|&(a, b)| (a as f64, b as f64, radius)).collect();
-            panels.push(Panel { values: t, rows, cols, title: format!("truth, step {k}"), disks: disks.clone() });
-            panels.push(Panel { values: &r.figure.snapshots[*i], rows, cols, title: format!("heterogeneous estimate, step {k}"), disks });
+            let disks: Vec<(f64, f64, f64)> = r.figure.disks[*i]
+                .iter()
+                .map(|&(a, b)| (a as f64, b as f64, radius))
+                .collect();
+            panels.push(Panel {
+                values: t,
+                rows,
+                cols,
+                title: format!("truth, step {k}"),
+                disks: disks.clone(),
+            });
+            panels.push(Panel {
+                values: &r.figure.snapshots[*i],
+                rows,
+                cols,
+                title: format!("heterogeneous estimate, step {k}"),
+                disks,
+            });
         }
         let range = plot::range_of(&panels[..panels.len().min(1)]);
         plot::png(dir.join("fig11.png"), &panels, Some(range))?;
         writeln!(md, "![fig11](fig11.png)\n")?;
         figures.push("fig11.png".into());
         // The uncertainty the estimate reports beside the error it makes, on one scale.
-        writeln!(md, "Below, at the same steps: the standard deviation the estimate reports at each cell beside its actual error (absolute value), on one colour scale.\n")?;
+        writeln!(
+            md,
+            "Below, at the same steps: the standard deviation the estimate reports at each cell beside its \
+            actual error (absolute value), on one colour scale.\n"
+        )?;
         let sd: Vec<(usize, Vec<f64>, Vec<f64>)> = owned
             .iter()
-            .map(|(k, i, t)| (*k, r.figure.snapshot_variances[*i].iter().map(|v| v.max(0.0).sqrt()).collect(), r.figure.snapshots[*i].iter().zip(t).map(|(e, x)| (e - x).abs()).collect()))
+            .map(|(k, i, t)| {
+                (
+                    *k,
+                    r.figure.snapshot_variances[*i]
+                        .iter()
+                        .map(|v| v.max(0.0).sqrt())
+                        .collect(),
+                    r.figure.snapshots[*i]
+                        .iter()
+                        .zip(t)
+                        .map(|(e, x)| (e - x).abs())
+                        .collect(),
+                )
+            })
             .collect();
         let mut panels = vec![];
         for (k, std, err) in &sd {
-            panels.push(Panel { values: std, rows, cols, title: format!("reported standard deviation, step {k}"), disks: vec![] });
-            panels.push(Panel { values: err, rows, cols, title: format!("|error|, step {k}"), disks: vec![] });
+            panels.push(Panel {
+                values: std,
+                rows,
+                cols,
+                title: format!("reported standard deviation, step {k}"),
+                disks: vec![],
+            });
+            panels.push(Panel {
+                values: err,
+                rows,
+                cols,
+                title: format!("|error|, step {k}"),
+                disks: vec![],
+            });
         }
-        plot::png(dir.join("fig11-uncertainty.png"), &panels, Some(plot::range_of(&panels)))?;
+        plot::png(
+            dir.join("fig11-uncertainty.png"),
+            &panels,
+            Some(plot::range_of(&panels)),
+        )?;
         writeln!(md, "![fig11-uncertainty](fig11-uncertainty.png)\n")?;
         figures.push("fig11-uncertainty.png".into());
     }
     if !res.eig_study.is_empty() {
-        writeln!(md, "## Fig. 7: dominant continuous-time eigenvalue (true -1 + 0i), {} trials\n", res.config.eig_trials)?;
+        writeln!(
+            md,
+            "## Fig. 7: dominant continuous-time eigenvalue (true -1 + 0i), {} trials\n",
+            res.config.eig_trials
+        )?;
         for (part, idx, reference) in [("real", 0usize, -1.0), ("imaginary", 1, 0.0)] {
-            let groups: Vec<(String, Vec<f64>)> = res.eig_study.iter().map(|b| (format!("{} {}", b.method, b.noise_var), b.estimates.iter().map(|e| e[idx]).collect())).collect();
+            let groups: Vec<(String, Vec<f64>)> = res
+                .eig_study
+                .iter()
+                .map(|b| {
+                    (
+                        format!("{} {}", b.method, b.noise_var),
+                        b.estimates.iter().map(|e| e[idx]).collect(),
+                    )
+                })
+                .collect();
             let name = format!("fig7-{part}.png");
-            plot::boxes(dir.join(&name), &format!("Dominant eigenvalue, {part} part (method, noise variance)"), part, &groups, Some(reference))?;
+            plot::boxes(
+                dir.join(&name),
+                &format!("Dominant eigenvalue, {part} part (method, noise variance)"),
+                part,
+                &groups,
+                Some(reference),
+            )?;
             writeln!(md, "![{name}]({name})\n")?;
             figures.push(name);
         }
-        writeln!(md, "| method | noise variance | median real part | median imaginary part |\n|---|---|---|---|")?;
+        writeln!(
+            md,
+            "| method | noise variance | median real part | median imaginary part |\n|---|---|---|---|"
+        )?;
         for b in &res.eig_study {
             let mut re: Vec<f64> = b.estimates.iter().map(|e| e[0]).collect();
             let mut im: Vec<f64> = b.estimates.iter().map(|e| e[1]).collect();
-            writeln!(md, "| {} | {} | {:.4} | {:.4} |", b.method, b.noise_var, eig_study::median(&mut re), eig_study::median(&mut im))?;
+            writeln!(
+                md,
+                "| {} | {} | {:.4} | {:.4} |",
+                b.method,
+                b.noise_var,
+                eig_study::median(&mut re),
+                eig_study::median(&mut im)
+            )?;
         }
         writeln!(md)?;
     }
     if !res.forgetting.is_empty() {
         let unit = match res.config.forgetting_unit {
-            crate::dmd::ForgettingUnit::Batch => "per update of 60 pairs (the paper's reading: each update multiplies the past by gamma)",
+            crate::dmd::ForgettingUnit::Batch => {
+                "per update of 60 pairs (the paper's reading: each update multiplies the past by gamma)"
+            }
             crate::dmd::ForgettingUnit::Pair => "per pair (odmd's: each pair weighs gamma^age)",
         };
-        writeln!(md, "## Fig. 8: forgetting factor (eigenvalue-study field, noise variance 0.01), gamma {unit}, along the directions each update excites\n")?;
-        let series: Vec<Series> = res.forgetting.iter().map(|c| Series { name: c.label.clone(), points: c.points.clone() }).collect();
-        plot::lines(dir.join("fig8.png"), "Dominant eigenvalue (real part) as pairs arrive; true value -1", "pairs assimilated", "Re(lambda)", &series, false)?;
+        writeln!(
+            md,
+            "## Fig. 8: forgetting factor (eigenvalue-study field, noise variance 0.01), gamma {unit}, along \
+            the directions each update excites\n"
+        )?;
+        let series: Vec<Series> = res
+            .forgetting
+            .iter()
+            .map(|c| Series {
+                name: c.label.clone(),
+                points: c.points.clone(),
+            })
+            .collect();
+        plot::lines(
+            dir.join("fig8.png"),
+            "Dominant eigenvalue (real part) as pairs arrive; true value -1",
+            "pairs assimilated",
+            "Re(lambda)",
+            &series,
+            false,
+        )?;
         writeln!(md, "![fig8](fig8.png)\n")?;
         writeln!(
             md,
-            "A forgetting factor keeps an effective memory of about `1/(1 - gamma)` updates (per batch) or pairs (per pair). \
-             With `N = 400` cells, a memory below ~400 pairs fits the operator to fewer pairs than it has unknowns per row, and its \
-             dominant eigenvalue follows the noise. Set `forgetting_unit = \"pair\"` in the experiment file for odmd's reading.\n"
+            "A forgetting factor keeps an effective memory of about `1/(1 - gamma)` updates (per batch) or pairs (per \
+                pair). \
+             With `N = 400` cells, a memory below ~400 pairs fits the operator to fewer pairs than it has unknowns \
+             per row, and its \
+             dominant eigenvalue follows the noise. Set `forgetting_unit = \"pair\"` in the experiment file for \
+                 odmd's reading.\n"
         )?;
         figures.push("fig8.png".into());
     }

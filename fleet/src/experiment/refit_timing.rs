@@ -38,7 +38,11 @@ pub fn run(rows: usize, cols: usize, epochs: usize, late: u64) -> Result<RefitTi
     let mut out = vec![];
     for checkpoints in [true, false] {
         let server = ServerCore::new(&cfg, grid, frames)?;
-        let mut server = if checkpoints { server } else { server.without_checkpoints() };
+        let mut server = if checkpoints {
+            server
+        } else {
+            server.without_checkpoints()
+        };
         let last = server.schedule().epochs();
         let away = (last - 1 - late)..(last - 1);
         let mut brains: Vec<VehicleBrain> = server
@@ -46,8 +50,23 @@ pub fn run(rows: usize, cols: usize, epochs: usize, late: u64) -> Result<RefitTi
             .iter()
             .enumerate()
             .map(|(v, s)| {
-                let noise = if s.kind == VehicleKind::Aerial { server.assimilator().aerial_noise() } else { AerialNoise { sigma0: cfg.boat_sigma, growth_per_m: 0.0 } };
-                VehicleBrain::new(&s.id, s.kind, grid, *server.schedule(), noise, vehicle_rng(cfg.seed, v), f64::MAX)
+                let noise = if s.kind == VehicleKind::Aerial {
+                    server.assimilator().aerial_noise()
+                } else {
+                    AerialNoise {
+                        sigma0: cfg.boat_sigma,
+                        growth_per_m: 0.0,
+                    }
+                };
+                VehicleBrain::new(
+                    &s.id,
+                    s.kind,
+                    grid,
+                    *server.schedule(),
+                    noise,
+                    vehicle_rng(cfg.seed, v),
+                    f64::MAX,
+                )
             })
             .collect();
         let mut backlog = vec![];
@@ -55,7 +74,11 @@ pub fn run(rows: usize, cols: usize, epochs: usize, late: u64) -> Result<RefitTi
             for brain in &mut brains {
                 let gone = brain.id == "boat-2" && away.contains(&e);
                 if !gone {
-                    brain.set_plan(server.plan(&brain.id, e, late + 1).ok_or(TeamError::NotReady(crate::mission::team::Missing::Plan { epoch: e }))?);
+                    brain.set_plan(
+                        server
+                            .plan(&brain.id, e, late + 1)
+                            .ok_or(TeamError::NotReady(crate::mission::team::Missing::Plan { epoch: e }))?,
+                    );
                 }
                 let Some(b) = brain.sense_epoch(e, x)? else { continue };
                 if gone {
@@ -69,12 +92,18 @@ pub fn run(rows: usize, cols: usize, epochs: usize, late: u64) -> Result<RefitTi
             }
         }
         for b in backlog {
-            server.ingest_deferred(b).map_err(|err| TeamError::Config(err.to_string()))?;
+            server
+                .ingest_deferred(b)
+                .map_err(|err| TeamError::Config(err.to_string()))?;
         }
         let before = server.counters.refit_epochs;
         let t0 = std::time::Instant::now();
         server.settle()?;
-        out.push((t0.elapsed().as_secs_f64(), server.counters.refit_epochs - before, server.model_update().map(|m| m.eigenvalues).unwrap_or_default()));
+        out.push((
+            t0.elapsed().as_secs_f64(),
+            server.counters.refit_epochs - before,
+            server.model_update().map(|m| m.eigenvalues).unwrap_or_default(),
+        ));
     }
     Ok(RefitTiming {
         epochs: epochs as u64,

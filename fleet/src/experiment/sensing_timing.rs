@@ -54,23 +54,34 @@ pub fn pysensors_qr_ms(basis: &Mat<f64>, repeats: usize) -> Option<f64> {
     let dir = std::env::temp_dir().join(format!("hetfleet-bench-{}", std::process::id()));
     std::fs::create_dir_all(&dir).ok()?;
     let path = dir.join("basis.npy");
-    let data: Vec<f64> = (0..basis.nrows()).flat_map(|i| (0..basis.ncols()).map(move |j| (i, j))).map(|(i, j)| basis[(i, j)]).collect();
+    let data: Vec<f64> = (0..basis.nrows())
+        .flat_map(|i| (0..basis.ncols()).map(move |j| (i, j)))
+        .map(|(i, j)| basis[(i, j)])
+        .collect();
     crate::npy::write(&path, &[basis.nrows(), basis.ncols()], &data).ok()?;
     let script = format!(
         "import time, numpy as np, pysensors as ps\n\
          b = np.load(r'{}')\n\
          ps.optimizers.QR().fit(b)\n\
          ts = []\n\
-         for _ in range({repeats}):\n    t = time.perf_counter(); ps.optimizers.QR().fit(b); ts.append(time.perf_counter() - t)\n\
+         for _ in range({repeats}):\n    t = time.perf_counter(); ps.optimizers.QR().fit(b); \
+         ts.append(time.perf_counter() - t)\n\
          print(sorted(ts)[len(ts) // 2] * 1e3)\n",
         path.display()
     );
-    let out = std::process::Command::new("python3").arg("-c").arg(script).env("OPENBLAS_NUM_THREADS", "1").output();
+    let out = std::process::Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .env("OPENBLAS_NUM_THREADS", "1")
+        .output();
     let _ = std::fs::remove_dir_all(&dir);
     match out {
         Ok(o) if o.status.success() => String::from_utf8_lossy(&o.stdout).trim().parse().ok(),
         Ok(o) => {
-            eprintln!("pysensors timing skipped: {}", String::from_utf8_lossy(&o.stderr).lines().last().unwrap_or(""));
+            eprintln!(
+                "pysensors timing skipped: {}",
+                String::from_utf8_lossy(&o.stderr).lines().last().unwrap_or("")
+            );
             None
         }
         Err(e) => {
@@ -87,7 +98,13 @@ pub fn pysensors_qr_ms(basis: &Mat<f64>, repeats: usize) -> Option<f64> {
 pub fn run(repeats: usize, peers: bool, mut progress: impl FnMut(&str)) -> Vec<Timing> {
     let mut out = vec![];
     let mut push = |what: String, (median_ms, min_ms): (f64, f64), peer: Option<(&str, f64)>| {
-        out.push(Timing { what, median_ms, min_ms, peer: peer.map(|p| p.0.to_string()), peer_median_ms: peer.map(|p| p.1) });
+        out.push(Timing {
+            what,
+            median_ms,
+            min_ms,
+            peer: peer.map(|p| p.0.to_string()),
+            peer_median_ms: peer.map(|p| p.1),
+        });
     };
     for r in [10, 20] {
         progress(&format!("point QR r{r}"));
@@ -105,12 +122,20 @@ pub fn run(repeats: usize, peers: bool, mut progress: impl FnMut(&str)) -> Vec<T
         let t = time_ms(repeats, || {
             std::hint::black_box(block_qr(phi.as_ref(), &grid, 5, radius).expect("placement"));
         });
-        push(format!("block QR {rows} x {cols}, r 10, radius {radius}, 5 boats"), t, None);
+        push(
+            format!("block QR {rows} x {cols}, r 10, radius {radius}, 5 boats"),
+            t,
+            None,
+        );
         progress(&format!("D-optimal {rows}x{cols}"));
         let t = time_ms(repeats, || {
             std::hint::black_box(block_dopt(phi.as_ref(), &grid, 5, radius).expect("placement"));
         });
-        push(format!("D-optimal blocks {rows} x {cols}, r 10, radius {radius}, 5 boats"), t, None);
+        push(
+            format!("D-optimal blocks {rows} x {cols}, r 10, radius {radius}, 5 boats"),
+            t,
+            None,
+        );
     }
     // Horizon placement (issue 19's targets: under 50 ms at 48 x 96 with 5 boats, under 1 s
     // at 192 x 384): a forecast over 10 modes, 3 epochs of 5 steps, boats spread over the grid
@@ -135,19 +160,48 @@ pub fn run(repeats: usize, peers: bool, mut progress: impl FnMut(&str)) -> Vec<T
         filter.persistence = 0.9;
         // The aerials' lattice every 4 cells, and their estimate everywhere.
         let strided = grid.strided(4).expect("a lattice");
-        let lattice: Vec<usize> = (0..strided.rows * strided.cols).map(|k| grid.index(strided.fine_cell(k))).collect();
+        let lattice: Vec<usize> = (0..strided.rows * strided.cols)
+            .map(|k| grid.index(strided.fine_cell(k)))
+            .collect();
         let (noise, everywhere) = (vec![1e-3; lattice.len()], vec![5e-3; grid.len()]);
-        let aerials = Scheduled { cells: &lattice, variance: &noise, everywhere: &everywhere };
-        let boats: Vec<Boat> = (0..5).map(|b| Boat { position: ((b as f64 + 0.5) * cols as f64 / 5.0, rows as f64 / 2.0), reach_m: cols as f64 / 4.0 }).collect();
+        let aerials = Scheduled {
+            cells: &lattice,
+            variance: &noise,
+            everywhere: &everywhere,
+        };
+        let boats: Vec<Boat> = (0..5)
+            .map(|b| Boat {
+                position: ((b as f64 + 0.5) * cols as f64 / 5.0, rows as f64 / 2.0),
+                reach_m: cols as f64 / 4.0,
+            })
+            .collect();
         // As the assimilator plans: the forecast at the sampling step, the look ahead, and the
         // unmodelled displacement's variance from the forecast's squared gradient.
         let t = time_ms(repeats, || {
             let (mean, _) = filter.ahead(5).field();
             let ahead = filter.look_ahead(5, 15, &aerials, 1e-4).expect("a look ahead");
-            let unmodelled: Vec<f64> = grid.squared_gradient(&mean).expect("one value per cell").iter().map(|g2| 0.5 * g2).collect();
-            std::hint::black_box(plan(&grid, &Forecast::of(phi.as_ref(), &ahead).with_unmodelled(&unmodelled), &boats, radius, 1e-4).expect("placement"));
+            let unmodelled: Vec<f64> = grid
+                .squared_gradient(&mean)
+                .expect("one value per cell")
+                .iter()
+                .map(|g2| 0.5 * g2)
+                .collect();
+            std::hint::black_box(
+                plan(
+                    &grid,
+                    &Forecast::of(phi.as_ref(), &ahead).with_unmodelled(&unmodelled),
+                    &boats,
+                    radius,
+                    1e-4,
+                )
+                .expect("placement"),
+            );
         });
-        push(format!("horizon placement {rows} x {cols}, r 10, radius {radius}, 5 boats, 3 epochs"), t, None);
+        push(
+            format!("horizon placement {rows} x {cols}, r 10, radius {radius}, 5 boats, 3 epochs"),
+            t,
+            None,
+        );
     }
     progress("gappy 48x96");
     let grid = Grid::new(48, 96, 1.0).expect("valid grid");
@@ -158,6 +212,10 @@ pub fn run(repeats: usize, peers: bool, mut progress: impl FnMut(&str)) -> Vec<T
     let t = time_ms(repeats, || {
         std::hint::black_box(reconstruct(phi.as_ref(), &cells, &values, 0.01).expect("reconstruction"));
     });
-    push(format!("gappy reconstruction + variance 48 x 96, r 10, {} cells", cells.len()), t, None);
+    push(
+        format!("gappy reconstruction + variance 48 x 96, r 10, {} cells", cells.len()),
+        t,
+        None,
+    );
     out
 }

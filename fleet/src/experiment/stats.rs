@@ -16,8 +16,8 @@ pub struct Interval {
 /// Cornish-Fisher expansion around the normal quantile (error below 1e-4 there).
 pub fn t975(df: usize) -> f64 {
     const TABLE: [f64; 30] = [
-        12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145, 2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052,
-        2.048, 2.045, 2.042,
+        12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145, 2.131,
+        2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045, 2.042,
     ];
     match df {
         0 => f64::INFINITY,
@@ -35,11 +35,21 @@ impl Interval {
         let n = values.len();
         let mean = values.iter().sum::<f64>() / n.max(1) as f64;
         if n < 2 {
-            return Self { mean, lo: f64::NEG_INFINITY, hi: f64::INFINITY, n };
+            return Self {
+                mean,
+                lo: f64::NEG_INFINITY,
+                hi: f64::INFINITY,
+                n,
+            };
         }
         let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
         let half = t975(n - 1) * (var / n as f64).sqrt();
-        Self { mean, lo: mean - half, hi: mean + half, n }
+        Self {
+            mean,
+            lo: mean - half,
+            hi: mean + half,
+            n,
+        }
     }
 
     /// The interval of the paired differences `a_i - b_i` (same seed, same truth and noise).
@@ -92,9 +102,18 @@ mod tests {
         assert_eq!(i.mean, 2.0);
         assert!((i.hi - 2.0 - 4.303 / 3f64.sqrt()).abs() < 1e-12);
         assert!((t975(31) - 2.0395).abs() < 1e-3 && (t975(1000) - 1.9623).abs() < 1e-3);
-        assert_eq!(Verdict::of(&Interval::paired(&[1.0, 1.1, 0.9], &[2.0, 2.2, 2.1])), Verdict::Better);
-        assert_eq!(Verdict::of(&Interval::paired(&[1.0, 2.0, 0.0], &[1.0, 1.0, 1.0])), Verdict::NotDistinguishable);
-        assert!(Interval::of(&[5.0]).lo.is_infinite(), "one seed says nothing about spread");
+        assert_eq!(
+            Verdict::of(&Interval::paired(&[1.0, 1.1, 0.9], &[2.0, 2.2, 2.1])),
+            Verdict::Better
+        );
+        assert_eq!(
+            Verdict::of(&Interval::paired(&[1.0, 2.0, 0.0], &[1.0, 1.0, 1.0])),
+            Verdict::NotDistinguishable
+        );
+        assert!(
+            Interval::of(&[5.0]).lo.is_infinite(),
+            "one seed says nothing about spread"
+        );
     }
 
     #[test]

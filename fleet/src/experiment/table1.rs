@@ -9,13 +9,29 @@ use serde::Serialize;
 use std::time::Instant;
 
 /// The paper's published seconds (Python on an i7-4770): `[batch, general, long-term]` per case.
-pub const PAPER_NO_EIG: [[f64; 3]; 4] = [[5.038, 0.557, 0.304], [1.376, 0.975, 0.646], [3.715, 1.710, 2.969], [14.77, 3.343, 1.387]];
-pub const PAPER_EIG: [[f64; 3]; 4] = [[13.59, 0.537, 0.413], [2.756, 1.950, 1.319], [37.52, 3.411, 29.61], [28.82, 4.266, 17.03]];
+pub const PAPER_NO_EIG: [[f64; 3]; 4] = [
+    [5.038, 0.557, 0.304],
+    [1.376, 0.975, 0.646],
+    [3.715, 1.710, 2.969],
+    [14.77, 3.343, 1.387],
+];
+pub const PAPER_EIG: [[f64; 3]; 4] = [
+    [13.59, 0.537, 0.413],
+    [2.756, 1.950, 1.319],
+    [37.52, 3.411, 29.61],
+    [28.82, 4.266, 17.03],
+];
 
 /// The rows we time: label, config, and which paper column it corresponds to (0 batch,
 /// 1 general, 2 long-term).
 pub fn methods() -> Vec<(&'static str, DmdConfig, usize)> {
-    let c = |method, rank| DmdConfig { method, rank, debias: Debias::None, gamma: 1.0, forgetting: Default::default() };
+    let c = |method, rank| DmdConfig {
+        method,
+        rank,
+        debias: Debias::None,
+        gamma: 1.0,
+        forgetting: Default::default(),
+    };
     vec![
         ("batch", c(Method::Batch, RankPolicy::Full), 0),
         ("general", c(Method::General, RankPolicy::Full), 1),
@@ -54,13 +70,26 @@ pub fn run(repeats: usize, mut progress: impl FnMut(&str)) -> Result<Vec<Timing>
         let z = field.snapshots.as_ref();
         for (label, cfg, col) in methods() {
             for with_eig in [false, true] {
-                progress(&format!("case {} {label}{}", ci + 1, if with_eig { " +eig" } else { "" }));
+                progress(&format!(
+                    "case {} {label}{}",
+                    ci + 1,
+                    if with_eig { " +eig" } else { "" }
+                ));
                 run_once(case, &cfg, with_eig, z)?;
-                let mut ts: Vec<f64> = (0..repeats.max(1)).map(|_| run_once(case, &cfg, with_eig, z)).collect::<Result<_, _>>()?;
+                let mut ts: Vec<f64> = (0..repeats.max(1))
+                    .map(|_| run_once(case, &cfg, with_eig, z))
+                    .collect::<Result<_, _>>()?;
                 let min_s = ts.iter().copied().fold(f64::INFINITY, f64::min);
                 let median_s = super::eig_study::median(&mut ts);
                 let paper = if with_eig { PAPER_EIG } else { PAPER_NO_EIG };
-                out.push(Timing { case: ci + 1, method: label.into(), with_eig, median_s, min_s, paper_s: paper[ci][col] });
+                out.push(Timing {
+                    case: ci + 1,
+                    method: label.into(),
+                    with_eig,
+                    median_s,
+                    min_s,
+                    paper_s: paper[ci][col],
+                });
             }
         }
     }

@@ -74,7 +74,13 @@ fn mse(a: &[f64], b: &[f64]) -> f64 {
 
 /// Mean over cells of error^2 / reported variance.
 fn calibration(estimate: &[f64], variance: &[f64], truth: &[f64]) -> f64 {
-    estimate.iter().zip(variance).zip(truth).map(|((e, v), t)| (e - t).powi(2) / v.max(1e-300)).sum::<f64>() / estimate.len().max(1) as f64
+    estimate
+        .iter()
+        .zip(variance)
+        .zip(truth)
+        .map(|((e, v), t)| (e - t).powi(2) / v.max(1e-300))
+        .sum::<f64>()
+        / estimate.len().max(1) as f64
 }
 
 fn column(m: &Mat<f64>, k: usize) -> Vec<f64> {
@@ -87,7 +93,11 @@ fn column(m: &Mat<f64>, k: usize) -> Vec<f64> {
 /// fleet does (so the networked run equals this one by construction). Only the baselines are
 /// added here: the aerial-only team reads the server's aerial estimate of each step, the
 /// boat-only team builds its own model from the boats' samples.
-pub fn run(cfg: &TeamConfig, truth: &FieldSeries, progress: impl FnMut(usize, usize)) -> Result<TeamOutcome, TeamError> {
+pub fn run(
+    cfg: &TeamConfig,
+    truth: &FieldSeries,
+    progress: impl FnMut(usize, usize),
+) -> Result<TeamOutcome, TeamError> {
     run_placing(cfg, truth, false, progress)
 }
 
@@ -101,10 +111,17 @@ pub fn run_oracle(cfg: &TeamConfig, truth: &FieldSeries) -> Result<TeamOutcome, 
 }
 
 /// Every vehicle senses epoch `e` under the server's plan; their batches.
-fn sense(server: &ServerCore, brains: &mut [VehicleBrain], e: u64, truth_at: &impl Fn(usize) -> Vec<f64>) -> Result<Vec<MeasurementBatch>, TeamError> {
+fn sense(
+    server: &ServerCore,
+    brains: &mut [VehicleBrain],
+    e: u64,
+    truth_at: &impl Fn(usize) -> Vec<f64>,
+) -> Result<Vec<MeasurementBatch>, TeamError> {
     let mut batches = vec![];
     for brain in brains {
-        let plan = server.plan(&brain.id, e, 1).ok_or_else(|| TeamError::Config(format!("no plan of {} for epoch {e}", brain.id)))?;
+        let plan = server
+            .plan(&brain.id, e, 1)
+            .ok_or_else(|| TeamError::Config(format!("no plan of {} for epoch {e}", brain.id)))?;
         brain.set_plan(plan);
         batches.extend(brain.sense_epoch(e, truth_at)?);
     }
@@ -120,7 +137,9 @@ fn assimilate(server: &mut ServerCore, batches: Vec<MeasurementBatch>, e: u64) -
         })?;
     }
     if server.next_epoch() != e + 1 {
-        return Err(TeamError::Config(format!("epoch {e} was not assimilated with every batch in")));
+        return Err(TeamError::Config(format!(
+            "epoch {e} was not assimilated with every batch in"
+        )));
     }
     Ok(())
 }
@@ -129,7 +148,13 @@ fn assimilate(server: &mut ServerCore, batches: Vec<MeasurementBatch>, e: u64) -
 /// random streams, so the same aerial noise) runs the epoch with the boats idle; the squared
 /// error of its estimate, summed over the boats' sampling steps, is what the disks should
 /// cover.
-fn oracle_disks(server: &ServerCore, brains: &[VehicleBrain], e: u64, truth_at: &impl Fn(usize) -> Vec<f64>, cfg: &TeamConfig) -> Result<Vec<Option<BoatDisk>>, TeamError> {
+fn oracle_disks(
+    server: &ServerCore,
+    brains: &[VehicleBrain],
+    e: u64,
+    truth_at: &impl Fn(usize) -> Vec<f64>,
+    cfg: &TeamConfig,
+) -> Result<Vec<Option<BoatDisk>>, TeamError> {
     let grid = *server.assimilator().grid();
     let mut probe = server.clone();
     probe.redirect_boats(e, vec![None; cfg.boats])?;
@@ -142,8 +167,16 @@ fn oracle_disks(server: &ServerCore, brains: &[VehicleBrain], e: u64, truth_at: 
             *s += (x - t).powi(2);
         }
     }
-    let excluded = cfg.fence.as_ref().map_or_else(|| vec![false; grid.len()], |f| f.excluded(&grid));
-    Ok(where_the_error_is(&grid, &err2, cfg.boats, cfg.radius, &excluded).into_iter().map(Some).chain(std::iter::repeat(None)).take(cfg.boats).collect())
+    let excluded = cfg
+        .fence
+        .as_ref()
+        .map_or_else(|| vec![false; grid.len()], |f| f.excluded(&grid));
+    Ok(where_the_error_is(&grid, &err2, cfg.boats, cfg.radius, &excluded)
+        .into_iter()
+        .map(Some)
+        .chain(std::iter::repeat(None))
+        .take(cfg.boats)
+        .collect())
 }
 
 /// Up to `m` disks of `radius`, not overlapping and outside `excluded`, chosen greedily by the
@@ -161,7 +194,11 @@ pub fn where_the_error_is(grid: &Grid, err2: &[f64], m: usize, radius: f64, excl
         .collect();
     let mut out = vec![];
     while out.len() < m {
-        let best = disks.iter().enumerate().filter(|(_, (d, _))| !d.is_empty() && d.iter().all(|&c| !taken[c])).max_by(|a, b| a.1 .1.total_cmp(&b.1 .1).then(b.0.cmp(&a.0)));
+        let best = disks
+            .iter()
+            .enumerate()
+            .filter(|(_, (d, _))| !d.is_empty() && d.iter().all(|&c| !taken[c]))
+            .max_by(|a, b| a.1 .1.total_cmp(&b.1 .1).then(b.0.cmp(&a.0)));
         let Some((i, (d, _))) = best else { break };
         d.iter().for_each(|&c| taken[c] = true);
         let centre = grid.cell(i);
@@ -170,7 +207,12 @@ pub fn where_the_error_is(grid: &Grid, err2: &[f64], m: usize, radius: f64, excl
     out
 }
 
-fn run_placing(cfg: &TeamConfig, truth: &FieldSeries, oracle: bool, mut progress: impl FnMut(usize, usize)) -> Result<TeamOutcome, TeamError> {
+fn run_placing(
+    cfg: &TeamConfig,
+    truth: &FieldSeries,
+    oracle: bool,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<TeamOutcome, TeamError> {
     let grid = Grid::new(truth.rows, truth.cols, 1.0)?;
     let frames = truth.frames();
     let mut server = ServerCore::new(cfg, grid, frames)?;
@@ -185,9 +227,20 @@ fn run_placing(cfg: &TeamConfig, truth: &FieldSeries, oracle: bool, mut progress
         .map(|(v, spec)| {
             let noise = match spec.kind {
                 VehicleKind::Aerial => server.assimilator().aerial_noise(),
-                VehicleKind::Boat => AerialNoise { sigma0: cfg.boat_sigma, growth_per_m: 0.0 },
+                VehicleKind::Boat => AerialNoise {
+                    sigma0: cfg.boat_sigma,
+                    growth_per_m: 0.0,
+                },
             };
-            VehicleBrain::new(&spec.id, spec.kind, grid, *server.schedule(), noise, mission::vehicle_rng(cfg.seed, v), f64::MAX)
+            VehicleBrain::new(
+                &spec.id,
+                spec.kind,
+                grid,
+                *server.schedule(),
+                noise,
+                mission::vehicle_rng(cfg.seed, v),
+                f64::MAX,
+            )
         })
         .collect();
 
@@ -213,7 +266,13 @@ fn run_placing(cfg: &TeamConfig, truth: &FieldSeries, oracle: bool, mut progress
     // Boat-only team: its snapshots at boat steps, its model once it has enough. It has no
     // estimate before its first sample (those steps are not scored), then its latest snapshot
     // until it has a model.
-    let boat_cfg = DmdConfig { method: Method::Batch, rank: cfg.rank, debias: Default::default(), gamma: cfg.gamma, forgetting: Default::default() };
+    let boat_cfg = DmdConfig {
+        method: Method::Batch,
+        rank: cfg.rank,
+        debias: Default::default(),
+        gamma: cfg.gamma,
+        forgetting: Default::default(),
+    };
     let mut boat_snaps: Vec<Vec<f64>> = vec![];
     let mut boat_model: Option<(DmdModel, Mat<f64>, usize)> = None; // model, basis, step of its newest snapshot
     let mut boat_guess: Option<Vec<f64>> = None;
@@ -224,14 +283,21 @@ fn run_placing(cfg: &TeamConfig, truth: &FieldSeries, oracle: bool, mut progress
             let disks = oracle_disks(&server, &brains, e, &truth_at, cfg)?;
             server.redirect_boats(e, disks)?;
         }
-        let allocation = server.allocation(e).ok_or_else(|| TeamError::Config(format!("no allocation for epoch {e}")))?;
+        let allocation = server
+            .allocation(e)
+            .ok_or_else(|| TeamError::Config(format!("no allocation for epoch {e}")))?;
         let batches = sense(&server, &mut brains, e, &truth_at)?;
-        let boat_samples: Vec<Sample> = batches.iter().filter(|b| b.kind == VehicleKind::Boat).flat_map(|b| b.samples.iter().cloned()).collect();
+        let boat_samples: Vec<Sample> = batches
+            .iter()
+            .filter(|b| b.kind == VehicleKind::Boat)
+            .flat_map(|b| b.samples.iter().cloned())
+            .collect();
         assimilate(&mut server, batches, e)?;
         for k in steps.clone() {
             let x = truth_at(k);
             out.heterogeneous.push(mse(&server.snapshots[k], &x));
-            out.calibration.push(calibration(&server.snapshots[k], &server.variances[k], &x));
+            out.calibration
+                .push(calibration(&server.snapshots[k], &server.variances[k], &x));
             out.aerial_only.push(mse(&server.aerial_estimates[k], &x));
             // Boat-only team, from the same boat samples.
             let here: Vec<&Sample> = boat_samples.iter().filter(|s| s.step as usize == k).collect();
@@ -240,7 +306,9 @@ fn run_placing(cfg: &TeamConfig, truth: &FieldSeries, oracle: bool, mut progress
             let boat_est = if !measured_cells.is_empty() {
                 let mean = measured_vals.iter().sum::<f64>() / measured_vals.len() as f64;
                 let mut est = match &boat_model {
-                    Some((_, b, _)) => gappy::reconstruct(b.as_ref(), &measured_cells, &measured_vals, boat_var).map(|g| g.field).unwrap_or_else(|_| vec![mean; n]),
+                    Some((_, b, _)) => gappy::reconstruct(b.as_ref(), &measured_cells, &measured_vals, boat_var)
+                        .map(|g| g.field)
+                        .unwrap_or_else(|_| vec![mean; n]),
                     None => vec![mean; n],
                 };
                 for (&c, &v) in measured_cells.iter().zip(&measured_vals) {
@@ -266,7 +334,8 @@ fn run_placing(cfg: &TeamConfig, truth: &FieldSeries, oracle: bool, mut progress
             out.boat_only.push(boat_est.map(|b| mse(&b, &x)));
             if e > 0 && server.schedule().sample_steps(VehicleKind::Boat, e).contains(&k) {
                 out.boat_steps.push(k);
-                out.disks.push(allocation.boats.iter().flatten().map(|(_, c)| *c).collect());
+                out.disks
+                    .push(allocation.boats.iter().flatten().map(|(_, c)| *c).collect());
                 out.aerial_positions.push(allocation.aerials.clone());
                 out.snapshots.push(server.snapshots[k].clone());
                 out.snapshot_variances.push(server.variances[k].clone());
@@ -275,10 +344,15 @@ fn run_placing(cfg: &TeamConfig, truth: &FieldSeries, oracle: bool, mut progress
         }
     }
     out.scored_from = out.boat_only.iter().position(Option::is_some).unwrap_or(frames);
-    let mean_from = |v: &[f64], from: usize| v[from.min(v.len())..].iter().sum::<f64>() / v.len().saturating_sub(from).max(1) as f64;
+    let mean_from = |v: &[f64], from: usize| {
+        v[from.min(v.len())..].iter().sum::<f64>() / v.len().saturating_sub(from).max(1) as f64
+    };
     out.mean_heterogeneous = mean_from(&out.heterogeneous, out.scored_from);
     out.mean_aerial_only = mean_from(&out.aerial_only, out.scored_from);
-    out.mean_boat_only = mean_from(&out.boat_only.iter().map(|v| v.unwrap_or(0.0)).collect::<Vec<_>>(), out.scored_from);
+    out.mean_boat_only = mean_from(
+        &out.boat_only.iter().map(|v| v.unwrap_or(0.0)).collect::<Vec<_>>(),
+        out.scored_from,
+    );
     out.mean_calibration = mean_from(&out.calibration, out.scored_from);
     out.heterogeneous_from_step0 = mean_from(&out.heterogeneous, 0);
     out.aerial_only_from_step0 = mean_from(&out.aerial_only, 0);

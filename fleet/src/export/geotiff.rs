@@ -19,7 +19,10 @@ const GEO_KEYS: [u16; 16] = [
 /// Write `estimate.tif` and `variance.tif` of the run's last step into `dir` (created if
 /// needed); returns their paths.
 pub fn write(run: &Run, dir: &Path) -> Result<Vec<PathBuf>, ExportError> {
-    std::fs::create_dir_all(dir).map_err(|e| ExportError::Write { path: dir.into(), why: e.to_string() })?;
+    std::fs::create_dir_all(dir).map_err(|e| ExportError::Write {
+        path: dir.into(),
+        why: e.to_string(),
+    })?;
     let last = run.estimate.steps - 1;
     let mut out = vec![];
     for (name, steps) in [("estimate.tif", &run.estimate), ("variance.tif", &run.variance)] {
@@ -34,7 +37,10 @@ fn write_one(run: &Run, field: &[f64], path: &Path) -> Result<(), ExportError> {
     let failed = |why: String| ExportError::Write { path: path.into(), why };
     let (rows, cols) = (run.grid.rows, run.grid.cols);
     // Row 0 of the grid is its southern edge; a TIFF's first row is the northern one.
-    let north_up: Vec<f64> = (0..rows).rev().flat_map(|r| field[r * cols..(r + 1) * cols].iter().copied()).collect();
+    let north_up: Vec<f64> = (0..rows)
+        .rev()
+        .flat_map(|r| field[r * cols..(r + 1) * cols].iter().copied())
+        .collect();
     let [west, south, east, north] = run.bounds_deg();
     let scale = [(east - west) / cols as f64, (north - south) / rows as f64, 0.0];
     let tie = [0.0, 0.0, 0.0, west, north, 0.0];
@@ -48,7 +54,13 @@ fn write_one(run: &Run, field: &[f64], path: &Path) -> Result<(), ExportError> {
         image.encoder().write_tag(Tag::GeoKeyDirectoryTag, &GEO_KEYS[..])?;
         image.encoder().write_tag(
             Tag::ImageDescription,
-            format!("hetfleet {} of mission {}, step {}", path.file_stem().unwrap_or_default().to_string_lossy(), run.mission.mission, run.estimate.steps - 1).as_str(),
+            format!(
+                "hetfleet {} of mission {}, step {}",
+                path.file_stem().unwrap_or_default().to_string_lossy(),
+                run.mission.mission,
+                run.estimate.steps - 1
+            )
+            .as_str(),
         )?;
         image.write_data(&north_up)
     })();

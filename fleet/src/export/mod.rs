@@ -67,7 +67,10 @@ impl Run {
             if p.is_file() {
                 Ok(p)
             } else {
-                Err(ExportError::Missing { dir: dir.into(), what: name })
+                Err(ExportError::Missing {
+                    dir: dir.into(),
+                    what: name,
+                })
             }
         };
         let bad = |path: &Path, why: String| ExportError::Bad { path: path.into(), why };
@@ -75,54 +78,91 @@ impl Run {
         let text = std::fs::read_to_string(&mission_path).map_err(|e| bad(&mission_path, e.to_string()))?;
         let mission = MissionConfig::from_toml(&text).map_err(|e| bad(&mission_path, e.to_string()))?;
         let summary_path = need("summary.json")?;
-        let summary: ServerSummary =
-            std::fs::read(&summary_path).map_err(|e| e.to_string()).and_then(|b| serde_json::from_slice(&b).map_err(|e| e.to_string())).map_err(|why| bad(&summary_path, why))?;
+        let summary: ServerSummary = std::fs::read(&summary_path)
+            .map_err(|e| e.to_string())
+            .and_then(|b| serde_json::from_slice(&b).map_err(|e| e.to_string()))
+            .map_err(|why| bad(&summary_path, why))?;
         let read = |name: &'static str| -> Result<(Vec<usize>, Vec<f64>)> {
             let p = need(name)?;
             let a = npy::read(&p).map_err(|e| bad(&p, e.to_string()))?;
-            a.check_finite(&p.display().to_string()).map_err(|e| bad(&p, e.to_string()))?;
+            a.check_finite(&p.display().to_string())
+                .map_err(|e| bad(&p, e.to_string()))?;
             Ok((a.shape, a.data))
         };
         let (shape, estimate) = read("estimate.npy")?;
         let &[steps, rows, cols] = shape.as_slice() else {
-            return Err(bad(&dir.join("estimate.npy"), format!("expected shape (steps, rows, cols), found {shape:?}")));
+            return Err(bad(
+                &dir.join("estimate.npy"),
+                format!("expected shape (steps, rows, cols), found {shape:?}"),
+            ));
         };
         let grid = Grid::new(rows, cols, 1.0).map_err(|e| bad(&dir.join("estimate.npy"), e.to_string()))?;
         let (vshape, variance) = read("variance.npy")?;
         if vshape != shape {
-            return Err(bad(&dir.join("variance.npy"), format!("shape {vshape:?} differs from estimate.npy's {shape:?}")));
+            return Err(bad(
+                &dir.join("variance.npy"),
+                format!("shape {vshape:?} differs from estimate.npy's {shape:?}"),
+            ));
         }
         if steps == 0 {
-            return Err(bad(&dir.join("estimate.npy"), "no steps: the run assimilated nothing".into()));
+            return Err(bad(
+                &dir.join("estimate.npy"),
+                "no steps: the run assimilated nothing".into(),
+            ));
         }
         let truth = match dir.join("truth.npy").is_file() {
             false => None,
             true => {
                 let (tshape, data) = read("truth.npy")?;
                 if tshape.len() != 3 || tshape[1..] != shape[1..] || tshape[0] < steps {
-                    return Err(bad(&dir.join("truth.npy"), format!("shape {tshape:?} does not cover estimate.npy's {shape:?}")));
+                    return Err(bad(
+                        &dir.join("truth.npy"),
+                        format!("shape {tshape:?} does not cover estimate.npy's {shape:?}"),
+                    ));
                 }
-                Some(Steps { steps, data: data[..steps * grid.len()].to_vec() })
+                Some(Steps {
+                    steps,
+                    data: data[..steps * grid.len()].to_vec(),
+                })
             }
         };
         let site = Site::new(&mission.mavlink, &grid);
-        Ok(Self { dir: dir.into(), mission, summary, grid, site, estimate: Steps { steps, data: estimate }, variance: Steps { steps, data: variance }, truth })
+        Ok(Self {
+            dir: dir.into(),
+            mission,
+            summary,
+            grid,
+            site,
+            estimate: Steps { steps, data: estimate },
+            variance: Steps { steps, data: variance },
+            truth,
+        })
     }
 
     /// The plans the server published (`plans.json`).
     pub fn plans(&self) -> Result<PublishedPlans> {
         let p = self.dir.join("plans.json");
         if !p.is_file() {
-            return Err(ExportError::Missing { dir: self.dir.clone(), what: "plans.json" });
+            return Err(ExportError::Missing {
+                dir: self.dir.clone(),
+                what: "plans.json",
+            });
         }
-        std::fs::read(&p).map_err(|e| e.to_string()).and_then(|b| serde_json::from_slice(&b).map_err(|e| e.to_string())).map_err(|why| ExportError::Bad { path: p, why })
+        std::fs::read(&p)
+            .map_err(|e| e.to_string())
+            .and_then(|b| serde_json::from_slice(&b).map_err(|e| e.to_string()))
+            .map_err(|why| ExportError::Bad { path: p, why })
     }
 
     /// Physical metres east of the site's corner of each column's centre, and north of each
     /// row's.
     pub fn axes_m(&self) -> (Vec<f64>, Vec<f64>) {
-        let x = (0..self.grid.cols).map(|c| (c as f64 + 0.5) * self.grid.cell_m * self.site.scale.x).collect();
-        let y = (0..self.grid.rows).map(|r| (r as f64 + 0.5) * self.grid.cell_m * self.site.scale.y).collect();
+        let x = (0..self.grid.cols)
+            .map(|c| (c as f64 + 0.5) * self.grid.cell_m * self.site.scale.x)
+            .collect();
+        let y = (0..self.grid.rows)
+            .map(|r| (r as f64 + 0.5) * self.grid.cell_m * self.site.scale.y)
+            .collect();
         (x, y)
     }
 
@@ -130,15 +170,29 @@ impl Run {
     /// column has one longitude, a row one latitude).
     pub fn axes_deg(&self) -> (Vec<f64>, Vec<f64>) {
         let g = &self.grid;
-        let lon = (0..g.cols).map(|c| self.site.global_of(&self.site.ned_of(((c as f64 + 0.5) * g.cell_m, 0.0), 0.0)).1).collect();
-        let lat = (0..g.rows).map(|r| self.site.global_of(&self.site.ned_of((0.0, (r as f64 + 0.5) * g.cell_m), 0.0)).0).collect();
+        let lon = (0..g.cols)
+            .map(|c| {
+                self.site
+                    .global_of(&self.site.ned_of(((c as f64 + 0.5) * g.cell_m, 0.0), 0.0))
+                    .1
+            })
+            .collect();
+        let lat = (0..g.rows)
+            .map(|r| {
+                self.site
+                    .global_of(&self.site.ned_of((0.0, (r as f64 + 0.5) * g.cell_m), 0.0))
+                    .0
+            })
+            .collect();
         (lon, lat)
     }
 
     /// `[west, south, east, north]` of the grid's outer edges, degrees.
     pub fn bounds_deg(&self) -> [f64; 4] {
         let (lat0, lon0, _) = self.site.global_of(&self.site.ned_of((0.0, 0.0), 0.0));
-        let (lat1, lon1, _) = self.site.global_of(&self.site.ned_of((self.grid.width_m(), self.grid.height_m()), 0.0));
+        let (lat1, lon1, _) = self
+            .site
+            .global_of(&self.site.ned_of((self.grid.width_m(), self.grid.height_m()), 0.0));
         [lon0, lat0, lon1, lat1]
     }
 
@@ -151,7 +205,10 @@ impl Run {
         if !recording.is_file() {
             return Ok(None);
         }
-        let rec = fleet_mission::recording::Recording::read(&recording).map_err(|e| ExportError::Bad { path: recording.clone(), why: format!("the site's boundary is read from it: {e}") })?;
+        let rec = fleet_mission::recording::Recording::read(&recording).map_err(|e| ExportError::Bad {
+            path: recording.clone(),
+            why: format!("the site's boundary is read from it: {e}"),
+        })?;
         Ok(rec.mission.team.fence)
     }
 
@@ -159,7 +216,10 @@ impl Run {
     pub fn boundary_deg(&self) -> Result<Vec<[f64; 2]>> {
         Ok(match self.fence()? {
             Some(f) => {
-                let origin = Site { origin: self.site.origin, scale: nalgebra::Vector2::new(1.0, 1.0) };
+                let origin = Site {
+                    origin: self.site.origin,
+                    scale: nalgebra::Vector2::new(1.0, 1.0),
+                };
                 f.polygon_m
                     .iter()
                     .map(|[e, n]| {

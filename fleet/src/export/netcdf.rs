@@ -53,19 +53,76 @@ fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
         Ok(())
     };
     ds.add_var_f64("time", &["time"])?;
-    text(&mut ds, "time", &[("standard_name", "time"), ("long_name", "the field's own time since the mission's first step"), ("units", "s"), ("axis", "T")])?;
+    text(
+        &mut ds,
+        "time",
+        &[
+            ("standard_name", "time"),
+            ("long_name", "the field's own time since the mission's first step"),
+            ("units", "s"),
+            ("axis", "T"),
+        ],
+    )?;
     ds.add_var_i32("step", &["time"])?;
-    text(&mut ds, "step", &[("long_name", "mission step (index of the truth frame)"), ("units", "1")])?;
+    text(
+        &mut ds,
+        "step",
+        &[("long_name", "mission step (index of the truth frame)"), ("units", "1")],
+    )?;
     ds.add_var_f64("x", &["x"])?;
-    text(&mut ds, "x", &[("standard_name", "projection_x_coordinate"), ("long_name", "distance east of the site's south-west corner (cell centre)"), ("units", "m"), ("axis", "X")])?;
+    text(
+        &mut ds,
+        "x",
+        &[
+            ("standard_name", "projection_x_coordinate"),
+            (
+                "long_name",
+                "distance east of the site's south-west corner (cell centre)",
+            ),
+            ("units", "m"),
+            ("axis", "X"),
+        ],
+    )?;
     ds.add_var_f64("y", &["y"])?;
-    text(&mut ds, "y", &[("standard_name", "projection_y_coordinate"), ("long_name", "distance north of the site's south-west corner (cell centre)"), ("units", "m"), ("axis", "Y")])?;
+    text(
+        &mut ds,
+        "y",
+        &[
+            ("standard_name", "projection_y_coordinate"),
+            (
+                "long_name",
+                "distance north of the site's south-west corner (cell centre)",
+            ),
+            ("units", "m"),
+            ("axis", "Y"),
+        ],
+    )?;
     ds.add_var_f64("lon", &["x"])?;
-    text(&mut ds, "lon", &[("standard_name", "longitude"), ("long_name", "longitude of the cell centre (WGS 84)"), ("units", "degrees_east")])?;
+    text(
+        &mut ds,
+        "lon",
+        &[
+            ("standard_name", "longitude"),
+            ("long_name", "longitude of the cell centre (WGS 84)"),
+            ("units", "degrees_east"),
+        ],
+    )?;
     ds.add_var_f64("lat", &["y"])?;
-    text(&mut ds, "lat", &[("standard_name", "latitude"), ("long_name", "latitude of the cell centre (WGS 84)"), ("units", "degrees_north")])?;
+    text(
+        &mut ds,
+        "lat",
+        &[
+            ("standard_name", "latitude"),
+            ("long_name", "latitude of the cell centre (WGS 84)"),
+            ("units", "degrees_north"),
+        ],
+    )?;
     let fields: &[(&str, &str, &str)] = &[
-        ("estimate", "fused estimate of the field (posterior mean of the model server)", "1"),
+        (
+            "estimate",
+            "fused estimate of the field (posterior mean of the model server)",
+            "1",
+        ),
         ("variance", "reported variance of the fused estimate per cell", "1"),
         ("truth", "the true field the vehicles sensed (mixed reality)", "1"),
     ];
@@ -77,15 +134,30 @@ fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
         text(
             &mut ds,
             name,
-            &[("long_name", long), ("units", units), ("coordinates", "lat lon"), ("comment", "units are the truth's (dimensionless for the simulated fields); variance in their square")],
+            &[
+                ("long_name", long),
+                ("units", units),
+                ("coordinates", "lat lon"),
+                (
+                    "comment",
+                    "units are the truth's (dimensionless for the simulated fields); variance in their square",
+                ),
+            ],
         )?;
     }
     ds.add_global_attr_string("Conventions", "CF-1.8")?;
-    ds.add_global_attr_string("title", format!("hetfleet fused field of mission {}", run.mission.mission))?;
-    ds.add_global_attr_string("history", format!("written by hetfleet from the run in {}", run.dir.display()))?;
+    ds.add_global_attr_string(
+        "title",
+        format!("hetfleet fused field of mission {}", run.mission.mission),
+    )?;
+    ds.add_global_attr_string(
+        "history",
+        format!("written by hetfleet from the run in {}", run.dir.display()),
+    )?;
     ds.add_global_attr_string(
         "references",
-        "Salam, T. and Hsieh, M. A.: Heterogeneous robot teams for modeling and prediction of multiscale environmental processes (the method hetfleet implements)",
+        "Salam, T. and Hsieh, M. A.: Heterogeneous robot teams for modeling and prediction of multiscale \
+            environmental processes (the method hetfleet implements)",
     )?;
     for (k, v) in run.provenance() {
         ds.add_global_attr_string(k, v)?;

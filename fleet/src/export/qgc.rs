@@ -29,11 +29,24 @@ pub fn write(run: &Run, path: &Path, epoch: Option<u64>) -> Result<Vec<PathBuf>,
     let published = run.plans()?;
     let last = published.plans.iter().map(|p| p.epoch).max();
     let Some(epoch) = epoch.or(last) else {
-        return Err(ExportError::Bad { path: run.dir.join("plans.json"), why: "it holds no plans".into() });
+        return Err(ExportError::Bad {
+            path: run.dir.join("plans.json"),
+            why: "it holds no plans".into(),
+        });
     };
-    let boats: Vec<_> = published.plans.iter().filter(|p| p.epoch == epoch && p.kind == VehicleKind::Boat).collect();
+    let boats: Vec<_> = published
+        .plans
+        .iter()
+        .filter(|p| p.epoch == epoch && p.kind == VehicleKind::Boat)
+        .collect();
     if boats.is_empty() {
-        return Err(ExportError::Bad { path: run.dir.join("plans.json"), why: format!("no boat has a plan published at epoch {epoch} (epochs with plans: up to {})", last.unwrap_or(0)) });
+        return Err(ExportError::Bad {
+            path: run.dir.join("plans.json"),
+            why: format!(
+                "no boat has a plan published at epoch {epoch} (epochs with plans: up to {})",
+                last.unwrap_or(0)
+            ),
+        });
     }
     let fence = run.boundary_deg()?;
     let mut written = vec![];
@@ -42,7 +55,10 @@ pub fn write(run: &Run, path: &Path, epoch: Option<u64>) -> Result<Vec<PathBuf>,
         let doc = plan_json(run, &places, &fence, &format!("{} at epoch {epoch}", plan.vehicle));
         let out = path_for(path, &plan.vehicle);
         let text = serde_json::to_string_pretty(&doc).expect("JSON values serialise");
-        std::fs::write(&out, text).map_err(|e| ExportError::Write { path: out.clone(), why: e.to_string() })?;
+        std::fs::write(&out, text).map_err(|e| ExportError::Write {
+            path: out.clone(),
+            why: e.to_string(),
+        })?;
         written.push(out);
     }
     Ok(written)

@@ -14,7 +14,11 @@ fn differences(events: &[ServerEvent], c: &Counters) -> String {
     let mut held: BTreeMap<&str, BTreeMap<String, u32>> = BTreeMap::new();
     for e in events {
         match e {
-            ServerEvent::Hold { vehicle, held: true, mode } => {
+            ServerEvent::Hold {
+                vehicle,
+                held: true,
+                mode,
+            } => {
                 let why = if mode.contains("(Lost)") {
                     "autopilot lost".to_string()
                 } else if mode.is_empty() {
@@ -25,25 +29,55 @@ fn differences(events: &[ServerEvent], c: &Counters) -> String {
                 *held.entry(vehicle).or_default().entry(why).or_default() += 1;
             }
             ServerEvent::Late { vehicle, epoch, .. } => why.push(format!(
-                "{vehicle}'s batch of epoch {epoch} came late: the epoch was assimilated without it and the model re-fitted when it came (plans made in between differ from the offline loop's)"
+                "{vehicle}'s batch of epoch {epoch} came late: the epoch was assimilated without it and the model \
+                    re-fitted when it came (plans made in between differ from the offline loop's)"
             )),
-            ServerEvent::Refused { vehicle, seq, detail, .. } => why.push(format!("{vehicle}'s batch {seq} was refused: {detail}")),
-            ServerEvent::Lost { vehicle, seqs } => why.push(format!("{vehicle}'s batches {seqs:?} were lost with the journal")),
+            ServerEvent::Refused {
+                vehicle, seq, detail, ..
+            } => why.push(format!(
+                "{vehicle}'s batch {seq} was \
+                refused: {detail}"
+            )),
+            ServerEvent::Lost { vehicle, seqs } => why.push(format!(
+                "{vehicle}'s batches {seqs:?} were lost with the \
+                journal"
+            )),
             _ => {}
         }
     }
-    let times = |n: u32| if n == 1 { "once".to_string() } else { format!("{n} times") };
+    let times = |n: u32| {
+        if n == 1 {
+            "once".to_string()
+        } else {
+            format!("{n} times")
+        }
+    };
     for (v, reasons) in held.iter().rev() {
-        let list = reasons.iter().map(|(r, n)| format!("{r} {}", times(*n))).collect::<Vec<_>>().join(", ");
-        why.insert(0, format!("{v} was left out of the allocation ({list}): the offline loop allocates every vehicle every epoch"));
+        let list = reasons
+            .iter()
+            .map(|(r, n)| format!("{r} {}", times(*n)))
+            .collect::<Vec<_>>()
+            .join(", ");
+        why.insert(
+            0,
+            format!(
+                "{v} was left out of the allocation ({list}): the offline loop allocates every vehicle every epoch"
+            ),
+        );
     }
     if c.forced > 0 && !why.iter().any(|w| w.contains("late")) {
         why.push(format!("{} epochs were assimilated without a late vehicle", c.forced));
     }
     if why.is_empty() {
-        return "Why: nothing the server reported (no hold, late batch, refusal or loss) explains it; a vehicle that sensed away from its planned place (its log counts `off_target`) would, and otherwise it is a defect to report.\n".into();
+        return "Why: nothing the server reported (no hold, late batch, refusal or loss) explains it; a vehicle that \
+            sensed away from its planned place (its log counts `off_target`) would, and otherwise it is a defect to \
+            report.\n"
+            .into();
     }
-    format!("Why:\n\n{}\n", why.iter().map(|w| format!("- {w}")).collect::<Vec<_>>().join("\n"))
+    format!(
+        "Why:\n\n{}\n",
+        why.iter().map(|w| format!("- {w}")).collect::<Vec<_>>().join("\n")
+    )
 }
 
 /// "every step", "every 5 steps".
@@ -80,28 +114,38 @@ pub fn write_mission_report(
 ) -> anyhow::Result<String> {
     use crate::plot::{self, Series};
     use std::fmt::Write as _;
-    let max_diff = summary.mse.iter().zip(&offline.heterogeneous).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+    let max_diff = summary
+        .mse
+        .iter()
+        .zip(&offline.heterogeneous)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
     // Equal up to rounding: faer's kernels may round differently in another process (memory
     // alignment picks the vector code path), so bit-for-bit is not promised.
-    let same = summary.mse.len() == offline.heterogeneous.len() && max_diff <= 1e-9 * offline.mean_heterogeneous.abs().max(f64::MIN_POSITIVE);
+    let same = summary.mse.len() == offline.heterogeneous.len()
+        && max_diff <= 1e-9 * offline.mean_heterogeneous.abs().max(f64::MIN_POSITIVE);
     // Every team over the same steps: from the first where all have data (the boats' first
     // sample), never a team without data.
     let from = offline.scored_from.min(summary.mse.len());
-    let mean_from = |v: &[f64], k: usize| v[k.min(v.len())..].iter().sum::<f64>() / v.len().saturating_sub(k).max(1) as f64;
+    let mean_from =
+        |v: &[f64], k: usize| v[k.min(v.len())..].iter().sum::<f64>() / v.len().saturating_sub(k).max(1) as f64;
     let network_mean = mean_from(&summary.mse, from);
     let t = &mission.team;
     let mut md = String::new();
     writeln!(md, "# Mission `{}`\n", summary.mission)?;
     writeln!(
         md,
-        "Command: `{command}`. The model server and {} vehicles ({} aerials, {} boats, radius {}) ran as separate processes over Zenoh; the truth is {} (mixed reality).\n",
+        "Command: `{command}`. The model server and {} vehicles ({} aerials, {} boats, radius {}) ran as separate \
+            processes over Zenoh; the truth is {} (mixed reality).\n",
         summary.vehicles.len(),
         t.aerials,
         t.boats,
         t.radius,
         match &mission.truth.source {
-            TruthSource::Preset(p) =>
-                format!("the {p:?} plasma cloud at {} x {}, {} frames, averaged by {}", mission.truth.grid[0], mission.truth.grid[1], mission.truth.frames, mission.truth.average),
+            TruthSource::Preset(p) => format!(
+                "the {p:?} plasma cloud at {} x {}, {} frames, averaged by {}",
+                mission.truth.grid[0], mission.truth.grid[1], mission.truth.frames, mission.truth.average
+            ),
             TruthSource::Dataset(d) => format!("the dataset {}", d.display()),
             TruthSource::NetCdf { path, variable } => format!("the variable {variable} of {}", path.display()),
         }
@@ -112,9 +156,14 @@ pub fn write_mission_report(
     };
     writeln!(
         md,
-        "The team: aerial frames {}, of {}; boat samples {}; fusion `{}`; boats placed by `{placement}`; the model ({} DMD, learning from the `{}` estimate) refitted every boat epoch.\n",
+        "The team: aerial frames {}, of {}; boat samples {}; fusion `{}`; boats placed by `{placement}`; the model \
+            ({} DMD, learning from the `{}` estimate) refitted every boat epoch.\n",
         every(t.aerial_period, "step"),
-        if t.aerial_stride == 1 { "every cell".to_string() } else { format!("every {} cell", ordinal(t.aerial_stride)) },
+        if t.aerial_stride == 1 {
+            "every cell".to_string()
+        } else {
+            format!("every {} cell", ordinal(t.aerial_stride))
+        },
         every(t.boat_period, "step"),
         t.fusion,
         t.method,
@@ -123,40 +172,90 @@ pub fn write_mission_report(
     writeln!(md, "## Estimation error\n")?;
     writeln!(
         md,
-        "Mean squared error over the grid, averaged over steps {from}-{} (from the first step where every team has data: the boats' first sample), and, labelled, from step 0 for the teams that have data there. \
+        "Mean squared error over the grid, averaged over steps {from}-{} (from the first step where every team has \
+            data: the boats' first sample), and, labelled, from step 0 for the teams that have data there. \
          One run of one seed: for which team is better, with 95% intervals over seeds, see `fleet experiment`.\n",
         summary.mse.len().saturating_sub(1)
     )?;
     writeln!(md, "| team | MSE, steps {from}- | MSE from step 0 |\n|---|---|---|")?;
-    writeln!(md, "| heterogeneous, over the network | {:.4e} | {:.4e} |", network_mean, mean_from(&summary.mse, 0))?;
-    writeln!(md, "| heterogeneous, offline loop (same truth and seed) | {:.4e} | {:.4e} |", offline.mean_heterogeneous, offline.heterogeneous_from_step0)?;
-    writeln!(md, "| aerials only | {:.4e} | {:.4e} |", offline.mean_aerial_only, offline.aerial_only_from_step0)?;
-    writeln!(md, "| boats only | {:.4e} | (no data before step {from}) |\n", offline.mean_boat_only)?;
+    writeln!(
+        md,
+        "| heterogeneous, over the network | {:.4e} | {:.4e} |",
+        network_mean,
+        mean_from(&summary.mse, 0)
+    )?;
+    writeln!(
+        md,
+        "| heterogeneous, offline loop (same truth and seed) | {:.4e} | {:.4e} |",
+        offline.mean_heterogeneous, offline.heterogeneous_from_step0
+    )?;
+    writeln!(
+        md,
+        "| aerials only | {:.4e} | {:.4e} |",
+        offline.mean_aerial_only, offline.aerial_only_from_step0
+    )?;
+    writeln!(
+        md,
+        "| boats only | {:.4e} | (no data before step {from}) |\n",
+        offline.mean_boat_only
+    )?;
     // Where each team is lower, step by step: the fused map against the better single team.
     let steps: Vec<usize> = (from..summary.mse.len().min(offline.aerial_only.len())).collect();
-    let wins = steps.iter().filter(|&&k| offline.boat_only[k].is_some_and(|b| summary.mse[k] <= b.min(offline.aerial_only[k]))).count();
-    writeln!(md, "At {wins} of the {} scored steps the networked heterogeneous estimate is at or below the better of the two single-kind teams.\n", steps.len())?;
-    writeln!(md, "Network equals offline: **{}** (largest per-step difference {max_diff:.1e}).\n", if same { "yes, to 1e-9 relative" } else { "no" })?;
+    let wins = steps
+        .iter()
+        .filter(|&&k| offline.boat_only[k].is_some_and(|b| summary.mse[k] <= b.min(offline.aerial_only[k])))
+        .count();
+    writeln!(
+        md,
+        "At {wins} of the {} scored steps the networked heterogeneous estimate is at or below the better of \
+        the two single-kind teams.\n",
+        steps.len()
+    )?;
+    writeln!(
+        md,
+        "Network equals offline: **{}** (largest per-step difference {max_diff:.1e}).\n",
+        if same { "yes, to 1e-9 relative" } else { "no" }
+    )?;
     if !same {
         writeln!(md, "{}", differences(events, &summary.counters))?;
     }
     writeln!(md, "![MSE per step](mse.png)\n")?;
     writeln!(
         md,
-        "The run's files, beside this report: `estimate.nc` (the fused estimate, its variance and the truth per step, NetCDF; `fleet export` writes it again), `recording.mcap` (the Zenoh traffic the server saw and sent and its operations, MCAP: Foxglove reads it, `fleet replay` replays it), `events.jsonl`, `summary.json`, `model.cbor` and `logs/`.\n"
+        "The run's files, beside this report: `estimate.nc` (the fused estimate, its variance and the truth per step, \
+            NetCDF; `fleet export` writes it again), `recording.mcap` (the Zenoh traffic the server saw and sent and \
+            its operations, MCAP: Foxglove reads it, `fleet replay` replays it), `events.jsonl`, `summary.json`, \
+            `model.cbor` and `logs/`.\n"
     )?;
     writeln!(md, "## Fleet\n")?;
     let c = &summary.counters;
     let rejected: u64 = c.rejected.values().sum();
     writeln!(md, "| | |\n|---|---|")?;
-    writeln!(md, "| epochs assimilated | {} (model version {}, rank {}) |", summary.epochs, summary.model_version, summary.rank)?;
-    writeln!(md, "| batches received | {} ({} duplicates, {rejected} refused {:?}) |", c.batches, c.duplicates, c.rejected)?;
+    writeln!(
+        md,
+        "| epochs assimilated | {} (model version {}, rank {}) |",
+        summary.epochs, summary.model_version, summary.rank
+    )?;
+    writeln!(
+        md,
+        "| batches received | {} ({} duplicates, {rejected} refused {:?}) |",
+        c.batches, c.duplicates, c.rejected
+    )?;
     writeln!(
         md,
         "| last batch of an epoch to model published | p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms ({} epochs) |",
         summary.latency_ms.p50, summary.latency_ms.p99, summary.latency_ms.max, summary.latency_ms.count
     )?;
-    writeln!(md, "| liveliness tokens seen (link ups) | {} |", summary.link_ups.iter().map(|(k, v)| format!("{k} {v}")).collect::<Vec<_>>().join(", "))?;
+    writeln!(
+        md,
+        "| liveliness tokens seen (link ups) | {} |",
+        summary
+            .link_ups
+            .iter()
+            .map(|(k, v)| format!("{k} {v}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    )?;
     writeln!(md, "| server wall time | {:.2} s |\n", summary.wall_s)?;
     writeln!(md, "## Final model: continuous-time eigenvalues ln(lambda)/dt\n")?;
     writeln!(md, "| # | growth rate | frequency (rad/s) |\n|---|---|---|")?;
@@ -165,14 +264,29 @@ pub fn write_mission_report(
         writeln!(md, "| {} | {:.4} | {:.4} |", j + 1, z.re, z.im)?;
     }
     // Every curve from the first step every team has data at.
-    let series = |name: &str, v: &[Option<f64>]| Series { name: name.into(), points: v.iter().enumerate().skip(from).filter_map(|(k, e)| e.map(|e| (k as f64, e))).collect() };
+    let series = |name: &str, v: &[Option<f64>]| Series {
+        name: name.into(),
+        points: v
+            .iter()
+            .enumerate()
+            .skip(from)
+            .filter_map(|(k, e)| e.map(|e| (k as f64, e)))
+            .collect(),
+    };
     let some = |v: &[f64]| v.iter().map(|&x| Some(x)).collect::<Vec<_>>();
     plot::lines(
         dir.join("mse.png"),
-        &format!("Mission {}: estimation error per step, from step {from} (every team has data)", summary.mission),
+        &format!(
+            "Mission {}: estimation error per step, from step {from} (every team has data)",
+            summary.mission
+        ),
         "step",
         "MSE",
-        &[series("heterogeneous (network)", &some(&summary.mse)), series("aerials only", &some(&offline.aerial_only)), series("boats only", &offline.boat_only)],
+        &[
+            series("heterogeneous (network)", &some(&summary.mse)),
+            series("aerials only", &some(&offline.aerial_only)),
+            series("boats only", &offline.boat_only),
+        ],
         true,
     )?;
     std::fs::write(dir.join("report.md"), &md)?;
@@ -185,8 +299,17 @@ mod tests {
 
     #[test]
     fn rates_read_as_english() {
-        assert_eq!((every(1, "step"), every(5, "step")), ("every step".to_string(), "every 5 steps".to_string()));
-        let got: Vec<String> = [1, 2, 3, 4, 5, 11, 12, 13, 21, 22, 23, 101, 111].iter().map(|&n| ordinal(n)).collect();
-        assert_eq!(got, ["1st", "2nd", "3rd", "4th", "5th", "11th", "12th", "13th", "21st", "22nd", "23rd", "101st", "111th"]);
+        assert_eq!(
+            (every(1, "step"), every(5, "step")),
+            ("every step".to_string(), "every 5 steps".to_string())
+        );
+        let got: Vec<String> = [1, 2, 3, 4, 5, 11, 12, 13, 21, 22, 23, 101, 111]
+            .iter()
+            .map(|&n| ordinal(n))
+            .collect();
+        assert_eq!(
+            got,
+            ["1st", "2nd", "3rd", "4th", "5th", "11th", "12th", "13th", "21st", "22nd", "23rd", "101st", "111th"]
+        );
     }
 }

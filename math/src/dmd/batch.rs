@@ -29,7 +29,12 @@ impl ProjectedFit {
     }
 
     /// Eigenvalues and modes: exact DMD, or a debiased operator on the projected data.
-    pub fn decompose(&self, debias: Debias, pairs: &SnapshotPairs, xt: Option<MatRef<'_, f64>>) -> Result<Modes, DmdError> {
+    pub fn decompose(
+        &self,
+        debias: Debias,
+        pairs: &SnapshotPairs,
+        xt: Option<MatRef<'_, f64>>,
+    ) -> Result<Modes, DmdError> {
         match debias {
             Debias::None => {
                 let (eigenvalues, v) = eig(self.atilde().as_ref())?;
@@ -55,7 +60,11 @@ impl ProjectedFit {
 }
 
 /// Exact DMD of `(X, Y)` truncated by `rank`.
-pub(crate) fn exact_fit(x: MatRef<'_, f64>, y: MatRef<'_, f64>, rank: RankPolicy) -> Result<(ProjectedFit, Mat<f64>), DmdError> {
+pub(crate) fn exact_fit(
+    x: MatRef<'_, f64>,
+    y: MatRef<'_, f64>,
+    rank: RankPolicy,
+) -> Result<(ProjectedFit, Mat<f64>), DmdError> {
     let svd = pod(x, |s| rank.select(s, x.nrows(), x.ncols()))?;
     if svd.s.is_empty() {
         return Err(DmdError::ZeroRank);
@@ -63,7 +72,14 @@ pub(crate) fn exact_fit(x: MatRef<'_, f64>, y: MatRef<'_, f64>, rank: RankPolicy
     let yws = div_cols(y * &svd.v, &svd.s);
     // U^T X = S W^T, kept for debiasing without another product with X.
     let xt = scale_rows(svd.v.transpose().to_owned(), &svd.s);
-    Ok((ProjectedFit { u: svd.u, s: svd.s, yws }, xt))
+    Ok((
+        ProjectedFit {
+            u: svd.u,
+            s: svd.s,
+            yws,
+        },
+        xt,
+    ))
 }
 
 /// Batch exact DMD: every update re-fits from all pairs.
@@ -80,7 +96,13 @@ impl BatchDmd {
     pub fn fit(x: MatRef<'_, f64>, y: MatRef<'_, f64>, rank: RankPolicy, debias: Debias) -> Result<Self, DmdError> {
         let pairs = SnapshotPairs::new(x, y)?;
         let (fit, xt) = exact_fit(x, y, rank)?;
-        Ok(Self { pairs, rank, debias, fit, xt })
+        Ok(Self {
+            pairs,
+            rank,
+            debias,
+            fit,
+            xt,
+        })
     }
 
     /// POD singular values of the current fit.

@@ -61,10 +61,15 @@ impl FromStr for Debias {
 pub fn debiased_eig(kind: Debias, xt: MatRef<'_, f64>, yt: MatRef<'_, f64>) -> Result<(Vec<c64>, Mat<c64>), DmdError> {
     let r = xt.nrows();
     if xt.ncols() < r {
-        return Err(DmdError::Unsupported(format!("debiasing needs at least as many snapshot pairs as the rank ({} < {r})", xt.ncols())));
+        return Err(DmdError::Unsupported(format!(
+            "debiasing needs at least as many snapshot pairs as the rank ({} < {r})",
+            xt.ncols()
+        )));
     }
     match kind {
-        Debias::None => Err(DmdError::Unsupported("debiased_eig called without a debias method".into())),
+        Debias::None => Err(DmdError::Unsupported(
+            "debiased_eig called without a debias method".into(),
+        )),
         Debias::Fb => {
             let af = least_squares_operator(xt, yt)?; // Y ~ A_f X
             let ab = least_squares_operator(yt, xt)?; // X ~ A_b Y
@@ -93,7 +98,11 @@ pub fn debiased_eig(kind: Debias, xt: MatRef<'_, f64>, yt: MatRef<'_, f64>) -> R
             Ok((lambda, v))
         }
         Debias::Tls => {
-            let stacked = Mat::from_fn(2 * r, xt.ncols(), |i, j| if i < r { xt[(i, j)] } else { yt[(i - r, j)] });
+            let stacked = Mat::from_fn(
+                2 * r,
+                xt.ncols(),
+                |i, j| if i < r { xt[(i, j)] } else { yt[(i - r, j)] },
+            );
             let svd = thin_svd(stacked.as_ref())?;
             let vr = svd.v.subcols(0, r);
             let xb = xt * vr;

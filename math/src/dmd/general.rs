@@ -52,7 +52,16 @@ impl GeneralDmd {
             RankPolicy::Energy(_) | RankPolicy::Optimal => RankPolicy::Fixed(s.len()),
         };
         let yw = scale_cols_by(yws, &s);
-        Ok(Self { pairs, rank: held, debias, u, s, yw, updates: 0, reorthogonalisations: 0 })
+        Ok(Self {
+            pairs,
+            rank: held,
+            debias,
+            u,
+            s,
+            yw,
+            updates: 0,
+            reorthogonalisations: 0,
+        })
     }
 
     /// Current singular values of `X`'s retained factorisation.
@@ -71,7 +80,11 @@ impl GeneralDmd {
     }
 
     fn projected(&self) -> ProjectedFit {
-        ProjectedFit { u: self.u.clone(), s: self.s.clone(), yws: div_cols(self.yw.clone(), &self.s) }
+        ProjectedFit {
+            u: self.u.clone(),
+            s: self.s.clone(),
+            yws: div_cols(self.yw.clone(), &self.s),
+        }
     }
 
     fn reorthonormalise(&mut self) -> Result<(), DmdError> {
@@ -96,7 +109,10 @@ fn new_directions(h: MatRef<'_, f64>, s0: f64, max_k: usize) -> (Mat<f64>, Mat<f
     let r = qr.thin_R();
     let scale = s0.max(if r.nrows() > 0 && tau > 0 { r[(0, 0)].abs() } else { 0.0 });
     let tol = (n.max(tau) as f64) * f64::EPSILON * scale;
-    let k = (0..r.nrows().min(tau)).take_while(|&i| r[(i, i)].abs() > tol).count().min(max_k);
+    let k = (0..r.nrows().min(tau))
+        .take_while(|&i| r[(i, i)].abs() > tol)
+        .count()
+        .min(max_k);
     let j = qr.compute_thin_Q().subcols(0, k).to_owned();
     // Undo the column permutation: column c of R belongs to column fwd[c] of H.
     let (fwd, _) = qr.P().arrays();
@@ -126,7 +142,11 @@ impl Dmd for GeneralDmd {
 
         // Directions of H that are really new (none when U already spans R^N), by a
         // rank-revealing (column-pivoted) QR: H P = J R, keeping the rows of R above rounding.
-        let (j, p) = if r < n { new_directions(h.as_ref(), self.s.first().copied().unwrap_or(0.0), n - r) } else { (Mat::zeros(n, 0), Mat::zeros(0, tau)) };
+        let (j, p) = if r < n {
+            new_directions(h.as_ref(), self.s.first().copied().unwrap_or(0.0), n - r)
+        } else {
+            (Mat::zeros(n, 0), Mat::zeros(0, tau))
+        };
         let k = j.ncols();
 
         let mut z = Mat::<f64>::zeros(r + k, r + tau);

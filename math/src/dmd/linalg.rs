@@ -40,9 +40,14 @@ pub fn pod(a: MatRef<'_, f64>, select: impl Fn(&[f64]) -> usize) -> Result<Svd, 
     let (n, m) = (a.nrows(), a.ncols());
     if n >= 4 * m && m > 0 {
         let gram = a.transpose() * a;
-        let evd = gram.self_adjoint_eigen(Side::Lower).map_err(|e| DmdError::Numerical(format!("Gram eigendecomposition did not converge: {e:?}")))?;
+        let evd = gram
+            .self_adjoint_eigen(Side::Lower)
+            .map_err(|e| DmdError::Numerical(format!("Gram eigendecomposition did not converge: {e:?}")))?;
         // Ascending eigenvalues -> descending singular values.
-        let s_all: Vec<f64> = (0..m).rev().map(|i| evd.S().column_vector()[i].max(0.0).sqrt()).collect();
+        let s_all: Vec<f64> = (0..m)
+            .rev()
+            .map(|i| evd.S().column_vector()[i].max(0.0).sqrt())
+            .collect();
         let r = select(&s_all);
         if r > 0 && s_all[r - 1] >= SNAPSHOT_METHOD_MIN_RATIO * s_all[0] {
             let v = Mat::from_fn(m, r, |i, j| evd.U()[(i, m - 1 - j)]);
@@ -51,7 +56,11 @@ pub fn pod(a: MatRef<'_, f64>, select: impl Fn(&[f64]) -> usize) -> Result<Svd, 
             let qr = u.qr();
             let rs = scale_cols_by(qr.thin_R().to_owned(), &s_all[..r]);
             let small = thin_svd(rs.as_ref())?;
-            return Ok(Svd { u: qr.compute_thin_Q() * &small.u, s: small.s, v: v * &small.v });
+            return Ok(Svd {
+                u: qr.compute_thin_Q() * &small.u,
+                s: small.s,
+                v: v * &small.v,
+            });
         }
     }
     let svd = thin_svd(a)?;
@@ -70,14 +79,22 @@ pub fn scale_cols_by(mut a: Mat<f64>, d: &[f64]) -> Mat<f64> {
 }
 
 pub fn thin_svd(a: MatRef<'_, f64>) -> Result<Svd, DmdError> {
-    let svd = a.thin_svd().map_err(|e| DmdError::Numerical(format!("SVD did not converge: {e:?}")))?;
+    let svd = a
+        .thin_svd()
+        .map_err(|e| DmdError::Numerical(format!("SVD did not converge: {e:?}")))?;
     let s = svd.S().column_vector().iter().copied().collect();
-    Ok(Svd { u: svd.U().to_owned(), s, v: svd.V().to_owned() })
+    Ok(Svd {
+        u: svd.U().to_owned(),
+        s,
+        v: svd.V().to_owned(),
+    })
 }
 
 /// Eigenvalues and right eigenvectors of a real square matrix.
 pub fn eig(a: MatRef<'_, f64>) -> Result<(Vec<c64>, Mat<c64>), DmdError> {
-    let e = a.eigen().map_err(|e| DmdError::Numerical(format!("eigendecomposition did not converge: {e:?}")))?;
+    let e = a
+        .eigen()
+        .map_err(|e| DmdError::Numerical(format!("eigendecomposition did not converge: {e:?}")))?;
     let vals = e.S().column_vector().iter().copied().collect();
     Ok((vals, e.U().to_owned()))
 }

@@ -89,7 +89,10 @@ impl std::str::FromStr for ForgettingDirections {
 
 impl From<ForgettingUnit> for Forgetting {
     fn from(unit: ForgettingUnit) -> Self {
-        Self { unit, directions: ForgettingDirections::default() }
+        Self {
+            unit,
+            directions: ForgettingDirections::default(),
+        }
     }
 }
 
@@ -108,11 +111,24 @@ impl LongTermDmd {
     /// Start from pairs `(X, Y)`; `X` (N x m) must have full row rank N. Forgetting per pair,
     /// along all directions (odmd's); see [`Self::init_with`].
     pub fn init(x: MatRef<'_, f64>, y: MatRef<'_, f64>, gamma: f64) -> Result<Self, DmdError> {
-        Self::init_with(x, y, gamma, Forgetting { unit: ForgettingUnit::Pair, directions: ForgettingDirections::All })
+        Self::init_with(
+            x,
+            y,
+            gamma,
+            Forgetting {
+                unit: ForgettingUnit::Pair,
+                directions: ForgettingDirections::All,
+            },
+        )
     }
 
     /// Start from pairs `(X, Y)` with the given forgetting (the initial pairs are one batch).
-    pub fn init_with(x: MatRef<'_, f64>, y: MatRef<'_, f64>, gamma: f64, forgetting: Forgetting) -> Result<Self, DmdError> {
+    pub fn init_with(
+        x: MatRef<'_, f64>,
+        y: MatRef<'_, f64>,
+        gamma: f64,
+        forgetting: Forgetting,
+    ) -> Result<Self, DmdError> {
         check_pairs(x, y, None)?;
         if !(gamma > 0.0 && gamma <= 1.0) {
             return Err(DmdError::Gamma(gamma));
@@ -120,13 +136,31 @@ impl LongTermDmd {
         let (n, m) = (x.nrows(), x.ncols());
         // Per pair: weight column j by sqrt(gamma)^(m-1-j), the newest pair has weight 1. Per
         // batch: the initial pairs are one batch, all weight 1.
-        let w: Vec<f64> = (0..m).map(|j| if forgetting.unit == ForgettingUnit::Pair { gamma.sqrt().powi((m - 1 - j) as i32) } else { 1.0 }).collect();
+        let w: Vec<f64> = (0..m)
+            .map(|j| {
+                if forgetting.unit == ForgettingUnit::Pair {
+                    gamma.sqrt().powi((m - 1 - j) as i32)
+                } else {
+                    1.0
+                }
+            })
+            .collect();
         let xw = Mat::from_fn(n, m, |i, j| x[(i, j)] * w[j]);
         let yw = Mat::from_fn(n, m, |i, j| y[(i, j)] * w[j]);
-        let information = |xw: &Mat<f64>| (gamma < 1.0 && forgetting.directions == ForgettingDirections::Excited).then(|| symmetrised(xw * xw.transpose()));
+        let information = |xw: &Mat<f64>| {
+            (gamma < 1.0 && forgetting.directions == ForgettingDirections::Excited)
+                .then(|| symmetrised(xw * xw.transpose()))
+        };
         if m >= n {
             if let Some((a, s)) = by_qr(xw.as_ref(), yw.as_ref()) {
-                return Ok(Self { a, s: symmetrised(s), p: information(&xw), gamma, forgetting, pairs: m });
+                return Ok(Self {
+                    a,
+                    s: symmetrised(s),
+                    p: information(&xw),
+                    gamma,
+                    forgetting,
+                    pairs: m,
+                });
             }
         }
         let svd = thin_svd(xw.as_ref())?;
@@ -138,7 +172,14 @@ impl LongTermDmd {
         let us = div_cols(svd.u.clone(), &svd.s);
         let s = &us * us.transpose();
         let a = div_cols(&yw * &svd.v, &svd.s) * svd.u.transpose();
-        Ok(Self { a, s: symmetrised(s), p: information(&xw), gamma, forgetting, pairs: m })
+        Ok(Self {
+            a,
+            s: symmetrised(s),
+            p: information(&xw),
+            gamma,
+            forgetting,
+            pairs: m,
+        })
     }
 
     /// The full operator `A` (N x N).
@@ -180,10 +221,14 @@ fn by_qr(x: MatRef<'_, f64>, y: MatRef<'_, f64>) -> Option<(Mat<f64>, Mat<f64>)>
 /// `1e-12` of the largest dropped): a batch whose columns are dependent excites fewer
 /// directions than it has columns.
 fn pseudo_inverse_spd(m: MatRef<'_, f64>) -> Result<Mat<f64>, DmdError> {
-    let e = m.self_adjoint_eigen(faer::Side::Lower).map_err(|err| DmdError::Numerical(format!("{err:?}")))?;
+    let e = m
+        .self_adjoint_eigen(faer::Side::Lower)
+        .map_err(|err| DmdError::Numerical(format!("{err:?}")))?;
     let (u, d) = (e.U(), e.S().column_vector());
     let top = (0..d.nrows()).map(|i| d[i]).fold(0.0, f64::max);
-    let inv: Vec<f64> = (0..d.nrows()).map(|i| if d[i] > 1e-12 * top { 1.0 / d[i] } else { 0.0 }).collect();
+    let inv: Vec<f64> = (0..d.nrows())
+        .map(|i| if d[i] > 1e-12 * top { 1.0 / d[i] } else { 0.0 })
+        .collect();
     let ud = Mat::from_fn(u.nrows(), u.ncols(), |i, j| u[(i, j)] * inv[j]);
     Ok(ud * u.transpose())
 }
@@ -205,7 +250,9 @@ impl Dmd for LongTermDmd {
         let per_pair = self.forgetting.unit == ForgettingUnit::Pair;
         // What the past is multiplied by, and each new pair's weight.
         let phi = if per_pair { g.powi(tau as i32) } else { g };
-        let w: Vec<f64> = (0..tau).map(|j| if per_pair { g.powi((tau - 1 - j) as i32) } else { 1.0 }).collect();
+        let w: Vec<f64> = (0..tau)
+            .map(|j| if per_pair { g.powi((tau - 1 - j) as i32) } else { 1.0 })
+            .collect();
         // Forget (A does not change: Q~ = A P~).
         let st = if g == 1.0 {
             self.s.clone()
@@ -227,7 +274,12 @@ impl Dmd for LongTermDmd {
             gm[(j, j)] += 1.0 / w[j];
         }
         let gm = symmetrised(gm);
-        let llt = gm.llt(faer::Side::Lower).map_err(|_| DmdError::Numerical("the long-term update's G = W^-1 + X^T S X is not positive definite: S has lost positive definiteness".into()))?;
+        let llt = gm.llt(faer::Side::Lower).map_err(|_| {
+            DmdError::Numerical(
+                "the long-term update's G = W^-1 + X^T S X is not positive definite: S has lost positive definiteness"
+                    .into(),
+            )
+        })?;
         let k = faer::linalg::solvers::Solve::solve(&llt, sx.transpose()); // tau x N
         let e = y_new - &self.a * x_new; // innovation
         self.a += &e * &k;
@@ -237,7 +289,11 @@ impl Dmd for LongTermDmd {
             *p = symmetrised(&*p + &xw * x_new.transpose());
         }
         if let Some(i) = (0..self.s.nrows()).find(|&i| !(self.s[(i, i)] > 0.0 && self.s[(i, i)].is_finite())) {
-            return Err(DmdError::Numerical(format!("S is no longer positive definite (S[{i},{i}] = {:e}) after {} pairs", self.s[(i, i)], self.pairs + tau)));
+            return Err(DmdError::Numerical(format!(
+                "S is no longer positive definite (S[{i},{i}] = {:e}) after {} pairs",
+                self.s[(i, i)],
+                self.pairs + tau
+            )));
         }
         self.pairs += tau;
         Ok(())

@@ -109,7 +109,13 @@ pub struct DmdConfig {
 
 impl Default for DmdConfig {
     fn default() -> Self {
-        Self { method: Method::Batch, rank: RankPolicy::Full, debias: Debias::None, gamma: 1.0, forgetting: Forgetting::default() }
+        Self {
+            method: Method::Batch,
+            rank: RankPolicy::Full,
+            debias: Debias::None,
+            gamma: 1.0,
+            forgetting: Forgetting::default(),
+        }
     }
 }
 
@@ -121,7 +127,9 @@ impl DmdConfig {
             Method::General => Box::new(GeneralDmd::init(x, y, self.rank, self.debias)?),
             Method::LongTerm => {
                 if self.debias != Debias::None {
-                    return Err(DmdError::Unsupported("the long-term method keeps no snapshots, so it cannot debias; use batch or general".into()));
+                    return Err(DmdError::Unsupported(
+                        "the long-term method keeps no snapshots, so it cannot debias; use batch or general".into(),
+                    ));
                 }
                 Box::new(LongTermDmd::init_with(x, y, self.gamma, self.forgetting)?)
             }

@@ -29,14 +29,26 @@ impl Modes {
     /// fits to its newest one to forecast forward).
     pub fn model(self, x_ref: &[f64], dt: f64) -> Result<DmdModel, DmdError> {
         if x_ref.len() != self.modes.nrows() {
-            return Err(DmdError::Shape(format!("reference snapshot has {} values, the modes {}", x_ref.len(), self.modes.nrows())));
+            return Err(DmdError::Shape(format!(
+                "reference snapshot has {} values, the modes {}",
+                x_ref.len(),
+                self.modes.nrows()
+            )));
         }
         if let Some(i) = x_ref.iter().position(|v| !v.is_finite()) {
             return Err(DmdError::NonFinite { row: i, col: 0 });
         }
         let b: Vec<c64> = x_ref.iter().map(|&v| c64::new(v, 0.0)).collect();
-        let amplitudes = if self.modes.ncols() == 0 { vec![] } else { lstsq_complex(self.modes.as_ref(), &b) };
-        Ok(DmdModel { modes: self, amplitudes, dt })
+        let amplitudes = if self.modes.ncols() == 0 {
+            vec![]
+        } else {
+            lstsq_complex(self.modes.as_ref(), &b)
+        };
+        Ok(DmdModel {
+            modes: self,
+            amplitudes,
+            dt,
+        })
     }
 
     /// Eigenvalues sorted by descending modulus, then descending imaginary part (the order of
@@ -86,11 +98,18 @@ impl DmdModel {
     pub fn summary(&self) -> ModelSummary {
         let ct = self.continuous_eigenvalues();
         let mut idx: Vec<usize> = (0..ct.len()).collect();
-        idx.sort_by(|&a, &b| self.modes.eigenvalues[b].norm().total_cmp(&self.modes.eigenvalues[a].norm()));
+        idx.sort_by(|&a, &b| {
+            self.modes.eigenvalues[b]
+                .norm()
+                .total_cmp(&self.modes.eigenvalues[a].norm())
+        });
         ModelSummary {
             rank: self.modes.eigenvalues.len(),
             dt: self.dt,
-            eigenvalues: idx.iter().map(|&i| [self.modes.eigenvalues[i].re, self.modes.eigenvalues[i].im]).collect(),
+            eigenvalues: idx
+                .iter()
+                .map(|&i| [self.modes.eigenvalues[i].re, self.modes.eigenvalues[i].im])
+                .collect(),
             continuous_eigenvalues: idx.iter().map(|&i| [ct[i].re, ct[i].im]).collect(),
             amplitude_moduli: idx.iter().map(|&i| self.amplitudes[i].norm()).collect(),
         }

@@ -126,7 +126,9 @@ impl FromStr for RankPolicy {
             t => match t.parse::<usize>() {
                 Ok(0) => Err("rank must be at least 1".into()),
                 Ok(r) => Ok(RankPolicy::Fixed(r)),
-                Err(_) => Err(format!("rank must be full, optimal, energy:<f> or an integer, got {t:?}")),
+                Err(_) => Err(format!(
+                    "rank must be full, optimal, energy:<f> or an integer, got {t:?}"
+                )),
             },
         }
     }

@@ -15,7 +15,10 @@ pub struct SnapshotPairs {
 impl SnapshotPairs {
     pub fn new(x: MatRef<'_, f64>, y: MatRef<'_, f64>) -> Result<Self, DmdError> {
         check_pairs(x, y, None)?;
-        Ok(Self { x: x.to_owned(), y: y.to_owned() })
+        Ok(Self {
+            x: x.to_owned(),
+            y: y.to_owned(),
+        })
     }
 
     pub fn push(&mut self, x: MatRef<'_, f64>, y: MatRef<'_, f64>) -> Result<(), DmdError> {
@@ -56,14 +59,23 @@ fn append_cols(dst: &mut Mat<f64>, src: MatRef<'_, f64>) {
 /// Shapes agree, there is at least one pair, and every value is finite.
 pub fn check_pairs(x: MatRef<'_, f64>, y: MatRef<'_, f64>, dim: Option<usize>) -> Result<(), DmdError> {
     if x.nrows() != y.nrows() || x.ncols() != y.ncols() {
-        return Err(DmdError::Shape(format!("X is {} x {} but Y is {} x {}; they must match", x.nrows(), x.ncols(), y.nrows(), y.ncols())));
+        return Err(DmdError::Shape(format!(
+            "X is {} x {} but Y is {} x {}; they must match",
+            x.nrows(),
+            x.ncols(),
+            y.nrows(),
+            y.ncols()
+        )));
     }
     if x.ncols() == 0 || x.nrows() == 0 {
         return Err(DmdError::Shape("no snapshot pairs given".into()));
     }
     if let Some(n) = dim {
         if x.nrows() != n {
-            return Err(DmdError::Shape(format!("new snapshots have {} rows, the model has {n}", x.nrows())));
+            return Err(DmdError::Shape(format!(
+                "new snapshots have {} rows, the model has {n}",
+                x.nrows()
+            )));
         }
     }
     for m in [x, y] {

@@ -14,7 +14,11 @@
 /// the cells (nothing to read it from) or the slices differ in length.
 pub fn displacement_variance(innovation2: &[f64], expected: &[f64], grad2: &[f64]) -> Option<f64> {
     let n = innovation2.len();
-    if n < 2 || expected.len() != n || grad2.len() != n || innovation2.iter().chain(expected).chain(grad2).any(|v| !v.is_finite()) {
+    if n < 2
+        || expected.len() != n
+        || grad2.len() != n
+        || innovation2.iter().chain(expected).chain(grad2).any(|v| !v.is_finite())
+    {
         return None;
     }
     let g_mean = grad2.iter().sum::<f64>() / n as f64;
@@ -51,8 +55,17 @@ mod tests {
         let got = displacement_variance(&innovation2, &expected, &grad2).unwrap();
         let g_mean = grad2.iter().sum::<f64>() / n as f64;
         let sgg: f64 = grad2.iter().map(|g| (g - g_mean).powi(2)).sum();
-        let se = (grad2.iter().zip(&var).map(|(g, v)| (g - g_mean).powi(2) * 2.0 * v * v).sum::<f64>()).sqrt() / sgg;
-        assert!((got - s2).abs() < 4.0 * se, "read {got}, true {s2}, standard error {se}");
+        let se = (grad2
+            .iter()
+            .zip(&var)
+            .map(|(g, v)| (g - g_mean).powi(2) * 2.0 * v * v)
+            .sum::<f64>())
+        .sqrt()
+            / sgg;
+        assert!(
+            (got - s2).abs() < 4.0 * se,
+            "read {got}, true {s2}, standard error {se}"
+        );
         // Without a displacement it reads (nearly) none, never a negative one.
         let flat: Vec<f64> = (0..n).map(|i| (expected[i] + 0.05) * z2()).collect();
         let none = displacement_variance(&flat, &expected, &grad2).unwrap();
@@ -61,10 +74,18 @@ mod tests {
 
     #[test]
     fn nothing_to_read_from() {
-        assert_eq!(displacement_variance(&[1.0, 2.0], &[0.0, 0.0], &[0.3, 0.3]), None, "the gradient does not vary");
+        assert_eq!(
+            displacement_variance(&[1.0, 2.0], &[0.0, 0.0], &[0.3, 0.3]),
+            None,
+            "the gradient does not vary"
+        );
         assert_eq!(displacement_variance(&[1.0], &[0.0], &[0.3]), None);
         assert_eq!(displacement_variance(&[1.0, 2.0], &[0.0], &[0.1, 0.3]), None);
         assert_eq!(displacement_variance(&[1.0, f64::NAN], &[0.0, 0.0], &[0.1, 0.3]), None);
-        assert_eq!(displacement_variance(&[2.0, 1.0], &[0.0, 0.0], &[0.1, 0.3]), Some(0.0), "floored");
+        assert_eq!(
+            displacement_variance(&[2.0, 1.0], &[0.0, 0.0], &[0.1, 0.3]),
+            Some(0.0),
+            "floored"
+        );
     }
 }

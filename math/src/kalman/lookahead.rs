@@ -57,22 +57,44 @@ impl ModalFilter {
     /// The uncertainty `to_sampling` (>= 1) steps ahead, the aerials observing at each step,
     /// and what a value with noise `sample_var` there removes over `steps` (>= 1) steps from
     /// the sampling step on.
-    pub fn look_ahead(&self, to_sampling: usize, steps: usize, aerials: &Scheduled<'_>, sample_var: f64) -> Result<Lookahead, FilterError> {
+    pub fn look_ahead(
+        &self,
+        to_sampling: usize,
+        steps: usize,
+        aerials: &Scheduled<'_>,
+        sample_var: f64,
+    ) -> Result<Lookahead, FilterError> {
         let (n, q) = (self.basis.nrows(), self.dim());
         if to_sampling == 0 || steps == 0 {
-            return Err(FilterError::Input(format!("looking {to_sampling} steps ahead over {steps} steps: both must be at least 1")));
+            return Err(FilterError::Input(format!(
+                "looking {to_sampling} steps ahead over {steps} steps: both must be at least 1"
+            )));
         }
         if !(sample_var > 0.0 && sample_var.is_finite()) {
             return Err(FilterError::Input(format!("sample variance {sample_var}")));
         }
-        if aerials.cells.len() != aerials.variance.len() || !(aerials.everywhere.is_empty() || aerials.everywhere.len() == n) {
-            return Err(FilterError::Input(format!("{} aerial cells with {} variances, {} variances everywhere on {n} cells", aerials.cells.len(), aerials.variance.len(), aerials.everywhere.len())));
+        if aerials.cells.len() != aerials.variance.len()
+            || !(aerials.everywhere.is_empty() || aerials.everywhere.len() == n)
+        {
+            return Err(FilterError::Input(format!(
+                "{} aerial cells with {} variances, {} variances everywhere on {n} cells",
+                aerials.cells.len(),
+                aerials.variance.len(),
+                aerials.everywhere.len()
+            )));
         }
-        if let Some((c, v)) = aerials.cells.iter().zip(aerials.variance).find(|(&c, &v)| c >= n || !(v >= 0.0 && v.is_finite())) {
+        if let Some((c, v)) = aerials
+            .cells
+            .iter()
+            .zip(aerials.variance)
+            .find(|(&c, &v)| c >= n || !(v >= 0.0 && v.is_finite()))
+        {
             return Err(FilterError::Input(format!("aerial cell {c} with variance {v}")));
         }
         if aerials.everywhere.iter().any(|v| !(*v > 0.0 && v.is_finite())) {
-            return Err(FilterError::Input("the aerial estimate's variances must be positive and finite".into()));
+            return Err(FilterError::Input(
+                "the aerial estimate's variances must be positive and finite".into(),
+            ));
         }
         let a = self.dynamics.as_ref();
         let (mut p, mut d) = (self.cov.clone(), self.detail_var.clone());
@@ -103,13 +125,26 @@ impl ModalFilter {
                 seen(&mut with_value, aerials.everywhere);
             }
             if t >= to_sampling {
-                gain.iter_mut().zip(d.iter().zip(&with_value)).for_each(|(g, (v, w))| *g += v - w);
+                gain.iter_mut()
+                    .zip(d.iter().zip(&with_value))
+                    .for_each(|(g, (v, w))| *g += v - w);
             }
         }
         let (cov, detail_var) = at_sampling.expect("the loop passes the sampling step");
-        super::check_finite("the covariance ahead", cov.col_iter().flat_map(|c| c.iter().copied().collect::<Vec<_>>()).chain(m.col_iter().flat_map(|c| c.iter().copied().collect::<Vec<_>>())))
-            .map_err(|_| FilterError::Numerical("the covariance ahead lost finiteness".into()))?;
-        Ok(Lookahead { cov, detail_var, modal_weight: m, detail_gain: gain, value_weight: weight })
+        super::check_finite(
+            "the covariance ahead",
+            cov.col_iter()
+                .flat_map(|c| c.iter().copied().collect::<Vec<_>>())
+                .chain(m.col_iter().flat_map(|c| c.iter().copied().collect::<Vec<_>>())),
+        )
+        .map_err(|_| FilterError::Numerical("the covariance ahead lost finiteness".into()))?;
+        Ok(Lookahead {
+            cov,
+            detail_var,
+            modal_weight: m,
+            detail_gain: gain,
+            value_weight: weight,
+        })
     }
 
     /// `A P A^T + q I`.
@@ -159,7 +194,9 @@ mod tests {
     /// Two modes on 30 cells, a rotation with decay, a persistent detail.
     fn filter() -> ModalFilter {
         let n = 30;
-        let raw = Mat::from_fn(n, 2, |i, j| ((i + 1) as f64 * (j + 1) as f64 * 0.41).sin() + 0.3 * j as f64);
+        let raw = Mat::from_fn(n, 2, |i, j| {
+            ((i + 1) as f64 * (j + 1) as f64 * 0.41).sin() + 0.3 * j as f64
+        });
         let b = raw.qr().compute_thin_Q();
         let (c, s) = (0.97 * 0.2f64.cos(), 0.97 * 0.2f64.sin());
         let a = Mat::from_fn(2, 2, |i, j| [[c, -s], [s, c]][i][j]);
@@ -173,7 +210,11 @@ mod tests {
     #[test]
     fn without_aerials_the_weights_are_the_dynamics_and_the_detail_decays() {
         let f = filter();
-        let none = Scheduled { cells: &[], variance: &[], everywhere: &[] };
+        let none = Scheduled {
+            cells: &[],
+            variance: &[],
+            everywhere: &[],
+        };
         let (to, steps, b) = (3, 4, 0.01);
         let got = f.look_ahead(to, steps, &none, b).unwrap();
         // M = sum_{t < steps} (A^t)^T A^t, and the covariance is the forecast's.
@@ -207,13 +248,38 @@ mod tests {
         let (field, _) = f.field();
         let modal: Vec<f64> = field.iter().zip(&f.detail).map(|(x, d)| x - d).collect();
         let values: Vec<f64> = lattice.iter().map(|&c| field[c]).collect();
-        let (cells_b, var_b): (Vec<usize>, Vec<f64>) = boat.map_or((vec![], vec![]), |(c, v)| (c.to_vec(), vec![v; c.len()]));
+        let (cells_b, var_b): (Vec<usize>, Vec<f64>) =
+            boat.map_or((vec![], vec![]), |(c, v)| (c.to_vec(), vec![v; c.len()]));
         let values_b: Vec<f64> = cells_b.iter().map(|&c| field[c]).collect();
-        f.update(&[Observation { cells: lattice, values: &values, variance: noise }, Observation { cells: &cells_b, values: &values_b, variance: &var_b }]).unwrap();
+        f.update(&[
+            Observation {
+                cells: lattice,
+                values: &values,
+                variance: noise,
+            },
+            Observation {
+                cells: &cells_b,
+                values: &values_b,
+                variance: &var_b,
+            },
+        ])
+        .unwrap();
         let all: Vec<usize> = (0..field.len()).collect();
         let at: Vec<f64> = all.iter().map(|&c| modal[c] + f.detail[c]).collect();
         let at_b: Vec<f64> = cells_b.iter().map(|&c| at[c]).collect();
-        f.update_detail(&[Observation { cells: &all, values: &at, variance: everywhere }, Observation { cells: &cells_b, values: &at_b, variance: &var_b }]).unwrap();
+        f.update_detail(&[
+            Observation {
+                cells: &all,
+                values: &at,
+                variance: everywhere,
+            },
+            Observation {
+                cells: &cells_b,
+                values: &at_b,
+                variance: &var_b,
+            },
+        ])
+        .unwrap();
     }
 
     fn total_variance(f: &ModalFilter) -> f64 {
@@ -225,8 +291,20 @@ mod tests {
         let f = filter();
         let lattice: Vec<usize> = (0..30).step_by(3).collect();
         let noise: Vec<f64> = lattice.iter().map(|&c| 0.005 + 0.001 * c as f64).collect();
-        let everywhere: Vec<f64> = (0..30).map(|c| if c % 3 == 0 { noise[c / 3] } else { 0.02 + 0.003 * (c % 7) as f64 }).collect();
-        let sched = Scheduled { cells: &lattice, variance: &noise, everywhere: &everywhere };
+        let everywhere: Vec<f64> = (0..30)
+            .map(|c| {
+                if c % 3 == 0 {
+                    noise[c / 3]
+                } else {
+                    0.02 + 0.003 * (c % 7) as f64
+                }
+            })
+            .collect();
+        let sched = Scheduled {
+            cells: &lattice,
+            variance: &noise,
+            everywhere: &everywhere,
+        };
         let (to, steps) = (4, 6);
         // The covariance at the sampling step: the filter's after `to - 1` steps and the
         // prediction and the aerials' modal update of step `to`.
@@ -248,26 +326,57 @@ mod tests {
         let (mut detail_removed, mut modal_removed) = (0.0, 0.0);
         for t in 0..steps {
             run(&mut without, &lattice, &noise, &everywhere, None);
-            run(&mut with, &lattice, &noise, &everywhere, (t == 0).then_some((&[cell][..], b)));
-            run(&mut with_faint, &lattice, &noise, &everywhere, (t == 0).then_some((&[cell][..], faint)));
+            run(
+                &mut with,
+                &lattice,
+                &noise,
+                &everywhere,
+                (t == 0).then_some((&[cell][..], b)),
+            );
+            run(
+                &mut with_faint,
+                &lattice,
+                &noise,
+                &everywhere,
+                (t == 0).then_some((&[cell][..], faint)),
+            );
             if t == 0 {
-                at.update(&[Observation { cells: &lattice, values: &lattice.iter().map(|&c| at.field().0[c]).collect::<Vec<_>>(), variance: &noise }]).unwrap();
+                at.update(&[Observation {
+                    cells: &lattice,
+                    values: &lattice.iter().map(|&c| at.field().0[c]).collect::<Vec<_>>(),
+                    variance: &noise,
+                }])
+                .unwrap();
                 for i in 0..2 {
                     for j in 0..2 {
-                        assert!((got.cov[(i, j)] - at.cov[(i, j)]).abs() < 1e-12, "the covariance at the sampling step");
+                        assert!(
+                            (got.cov[(i, j)] - at.cov[(i, j)]).abs() < 1e-12,
+                            "the covariance at the sampling step"
+                        );
                     }
                 }
-                prior_detail.iter().zip(&got.detail_var).for_each(|(x, y)| assert!((x - y).abs() < 1e-15));
+                prior_detail
+                    .iter()
+                    .zip(&got.detail_var)
+                    .for_each(|(x, y)| assert!((x - y).abs() < 1e-15));
             }
             if t == 0 {
                 // The value's weight: the share of the detail's variance it removes there.
                 let k = 1.0 - with.detail_var[cell] / without.detail_var[cell];
-                assert!((got.value_weight[cell] - k).abs() < 1e-12, "weight {} against the filter's {k}", got.value_weight[cell]);
+                assert!(
+                    (got.value_weight[cell] - k).abs() < 1e-12,
+                    "weight {} against the filter's {k}",
+                    got.value_weight[cell]
+                );
             }
             detail_removed += without.detail_var[cell] - with.detail_var[cell];
             modal_removed += modal_var(&without) - modal_var(&with_faint);
         }
-        assert!((got.detail_gain[cell] - detail_removed).abs() < 1e-12 * detail_removed, "{} against {detail_removed}", got.detail_gain[cell]);
+        assert!(
+            (got.detail_gain[cell] - detail_removed).abs() < 1e-12 * detail_removed,
+            "{} against {detail_removed}",
+            got.detail_gain[cell]
+        );
         // tr(dP M), dP what the faint value removes at the sampling step.
         let h = Mat::from_fn(2, 1, |k, _| f.basis()[(cell, k)]);
         let w = 1.0 / (faint + faint_got.detail_var[cell]);
@@ -278,19 +387,64 @@ mod tests {
             faer::linalg::solvers::Solve::solve(&s.partial_piv_lu(), faint_got.cov.as_ref())
         };
         let dp = faint_got.cov.as_ref() - post.as_ref();
-        let predicted: f64 = (0..2).map(|i| (0..2).map(|k| dp[(i, k)] * faint_got.modal_weight[(k, i)]).sum::<f64>()).sum();
-        assert!(modal_removed > 0.0 && (predicted - modal_removed).abs() < 1e-3 * modal_removed, "{predicted} against {modal_removed}");
-        assert!(total_variance(&without) < total_variance(&f.ahead(to + steps - 1)), "the aerials' frames count");
+        let predicted: f64 = (0..2)
+            .map(|i| (0..2).map(|k| dp[(i, k)] * faint_got.modal_weight[(k, i)]).sum::<f64>())
+            .sum();
+        assert!(
+            modal_removed > 0.0 && (predicted - modal_removed).abs() < 1e-3 * modal_removed,
+            "{predicted} against {modal_removed}"
+        );
+        assert!(
+            total_variance(&without) < total_variance(&f.ahead(to + steps - 1)),
+            "the aerials' frames count"
+        );
     }
 
     #[test]
     fn bad_input_is_refused() {
         let f = filter();
-        let none = Scheduled { cells: &[], variance: &[], everywhere: &[] };
+        let none = Scheduled {
+            cells: &[],
+            variance: &[],
+            everywhere: &[],
+        };
         assert!(f.look_ahead(0, 1, &none, 0.01).is_err());
         assert!(f.look_ahead(1, 1, &none, 0.0).is_err());
-        assert!(f.look_ahead(1, 1, &Scheduled { cells: &[99], variance: &[0.1], everywhere: &[] }, 0.01).is_err());
-        assert!(f.look_ahead(1, 1, &Scheduled { cells: &[], variance: &[], everywhere: &[1.0; 3] }, 0.01).is_err());
-        assert!(f.look_ahead(1, 1, &Scheduled { cells: &[1], variance: &[f64::NAN], everywhere: &[] }, 0.01).is_err());
+        assert!(f
+            .look_ahead(
+                1,
+                1,
+                &Scheduled {
+                    cells: &[99],
+                    variance: &[0.1],
+                    everywhere: &[]
+                },
+                0.01
+            )
+            .is_err());
+        assert!(f
+            .look_ahead(
+                1,
+                1,
+                &Scheduled {
+                    cells: &[],
+                    variance: &[],
+                    everywhere: &[1.0; 3]
+                },
+                0.01
+            )
+            .is_err());
+        assert!(f
+            .look_ahead(
+                1,
+                1,
+                &Scheduled {
+                    cells: &[1],
+                    variance: &[f64::NAN],
+                    everywhere: &[]
+                },
+                0.01
+            )
+            .is_err());
     }
 }

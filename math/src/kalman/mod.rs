@@ -78,15 +78,27 @@ fn check_finite(what: &str, v: impl IntoIterator<Item = f64>) -> Result<(), Filt
 impl ModalFilter {
     /// A filter over `basis` (N x q, orthonormal columns) with `dynamics` (q x q), starting at
     /// `mean` with covariance `cov`.
-    pub fn new(basis: Mat<f64>, dynamics: Mat<f64>, mean: Vec<f64>, cov: Mat<f64>, process: f64, model_error: f64) -> Result<Self, FilterError> {
+    pub fn new(
+        basis: Mat<f64>,
+        dynamics: Mat<f64>,
+        mean: Vec<f64>,
+        cov: Mat<f64>,
+        process: f64,
+        model_error: f64,
+    ) -> Result<Self, FilterError> {
         let q = basis.ncols();
         if dynamics.nrows() != q || dynamics.ncols() != q || mean.len() != q || cov.nrows() != q || cov.ncols() != q {
-            return Err(FilterError::Input(format!("a basis of {q} columns needs {q} x {q} dynamics and covariance and a mean of {q}")));
+            return Err(FilterError::Input(format!(
+                "a basis of {q} columns needs {q} x {q} dynamics and covariance and a mean of {q}"
+            )));
         }
         if !(process >= 0.0 && model_error >= 0.0) {
             return Err(FilterError::Input("noise variances must be >= 0".into()));
         }
-        check_finite("the basis", basis.col_iter().flat_map(|c| c.iter().copied().collect::<Vec<_>>()))?;
+        check_finite(
+            "the basis",
+            basis.col_iter().flat_map(|c| c.iter().copied().collect::<Vec<_>>()),
+        )?;
         check_finite("the mean", mean.iter().copied())?;
         let n = basis.nrows();
         Ok(Self {
@@ -136,7 +148,12 @@ impl ModalFilter {
         let mut innovations = vec![];
         for o in obs {
             if o.cells.len() != o.values.len() || o.cells.len() != o.variance.len() {
-                return Err(FilterError::Input(format!("{} cells, {} values, {} variances", o.cells.len(), o.values.len(), o.variance.len())));
+                return Err(FilterError::Input(format!(
+                    "{} cells, {} values, {} variances",
+                    o.cells.len(),
+                    o.values.len(),
+                    o.variance.len()
+                )));
             }
             for ((&c, &y), &v) in o.cells.iter().zip(o.values).zip(o.variance) {
                 if c >= n {
@@ -170,8 +187,14 @@ impl ModalFilter {
         for i in 0..q {
             self.mean[i] += step[(i, 0)];
         }
-        check_finite("the posterior", self.mean.iter().copied().chain(post.col_iter().flat_map(|c| c.iter().copied().collect::<Vec<_>>())))
-            .map_err(|_| FilterError::Numerical("the update lost finiteness (an ill-conditioned I + P J)".into()))?;
+        check_finite(
+            "the posterior",
+            self.mean
+                .iter()
+                .copied()
+                .chain(post.col_iter().flat_map(|c| c.iter().copied().collect::<Vec<_>>())),
+        )
+        .map_err(|_| FilterError::Numerical("the update lost finiteness (an ill-conditioned I + P J)".into()))?;
         self.cov = post;
         Ok(innovations)
     }
@@ -183,7 +206,12 @@ impl ModalFilter {
     /// right; `None` without cells.
     pub fn detail_fit(&self, obs: &Observation<'_>) -> Result<Option<f64>, FilterError> {
         if obs.cells.len() != obs.values.len() || obs.cells.len() != obs.variance.len() {
-            return Err(FilterError::Input(format!("{} cells, {} values, {} variances", obs.cells.len(), obs.values.len(), obs.variance.len())));
+            return Err(FilterError::Input(format!(
+                "{} cells, {} values, {} variances",
+                obs.cells.len(),
+                obs.values.len(),
+                obs.variance.len()
+            )));
         }
         if obs.cells.is_empty() {
             return Ok(None);
@@ -236,7 +264,12 @@ impl ModalFilter {
     pub fn learn_persistence(&mut self, obs: &Observation<'_>, memory: f64) -> Result<f64, FilterError> {
         let (n, q) = (self.basis.nrows(), self.dim());
         if obs.cells.len() != obs.values.len() || obs.cells.len() != obs.variance.len() {
-            return Err(FilterError::Input(format!("{} cells, {} values, {} variances", obs.cells.len(), obs.values.len(), obs.variance.len())));
+            return Err(FilterError::Input(format!(
+                "{} cells, {} values, {} variances",
+                obs.cells.len(),
+                obs.values.len(),
+                obs.variance.len()
+            )));
         }
         let (mut cross, mut var) = (0.0, 0.0);
         let mut residual = vec![(f64::NAN, 0.0); n];
@@ -267,7 +300,12 @@ impl ModalFilter {
         let (n, q) = (self.basis.nrows(), self.dim());
         for o in obs {
             if o.cells.len() != o.values.len() || o.cells.len() != o.variance.len() {
-                return Err(FilterError::Input(format!("{} cells, {} values, {} variances", o.cells.len(), o.values.len(), o.variance.len())));
+                return Err(FilterError::Input(format!(
+                    "{} cells, {} values, {} variances",
+                    o.cells.len(),
+                    o.values.len(),
+                    o.variance.len()
+                )));
             }
             for ((&c, &y), &a) in o.cells.iter().zip(o.values).zip(o.variance) {
                 if c >= n || !(y.is_finite() && a > 0.0 && a.is_finite()) {
@@ -302,9 +340,16 @@ impl ModalFilter {
     pub fn field(&self) -> (Vec<f64>, Vec<f64>) {
         let (n, q) = (self.basis.nrows(), self.dim());
         let m = Mat::from_fn(q, 1, |i, _| self.mean[i]);
-        let values: Vec<f64> = (self.basis.as_ref() * m.as_ref()).col(0).iter().zip(&self.detail).map(|(v, d)| v + d).collect();
+        let values: Vec<f64> = (self.basis.as_ref() * m.as_ref())
+            .col(0)
+            .iter()
+            .zip(&self.detail)
+            .map(|(v, d)| v + d)
+            .collect();
         let bp = self.basis.as_ref() * self.cov.as_ref();
-        let variance = (0..n).map(|i| (0..q).map(|k| bp[(i, k)] * self.basis[(i, k)]).sum::<f64>().max(0.0) + self.detail_var[i]).collect();
+        let variance = (0..n)
+            .map(|i| (0..q).map(|k| bp[(i, k)] * self.basis[(i, k)]).sum::<f64>().max(0.0) + self.detail_var[i])
+            .collect();
         (values, variance)
     }
 
@@ -315,7 +360,11 @@ impl ModalFilter {
     pub fn reproject(&mut self, basis: Mat<f64>, dynamics: Mat<f64>) -> Result<(), FilterError> {
         let (n, q) = (basis.nrows(), basis.ncols());
         if n != self.basis.nrows() || dynamics.nrows() != q || dynamics.ncols() != q {
-            return Err(FilterError::Input(format!("a new basis of {n} x {q} with {} x {} dynamics", dynamics.nrows(), dynamics.ncols())));
+            return Err(FilterError::Input(format!(
+                "a new basis of {n} x {q} with {} x {} dynamics",
+                dynamics.nrows(),
+                dynamics.ncols()
+            )));
         }
         let t = basis.transpose() * self.basis.as_ref(); // q x q_old
         let m = Mat::from_fn(self.dim(), 1, |i, _| self.mean[i]);
@@ -340,10 +389,16 @@ fn symmetrised(p: Mat<f64>) -> Mat<f64> {
 
 /// A DMD model's dynamics in an orthonormal real basis `B` of its modes: `B^T Phi Lambda
 /// Phi^+ B`, real part (exactly real when the modes come in conjugate pairs).
-pub fn modal_dynamics(modes: MatRef<'_, c64>, eigenvalues: &[c64], basis: MatRef<'_, f64>) -> Result<Mat<f64>, FilterError> {
+pub fn modal_dynamics(
+    modes: MatRef<'_, c64>,
+    eigenvalues: &[c64],
+    basis: MatRef<'_, f64>,
+) -> Result<Mat<f64>, FilterError> {
     let (n, r, q) = (modes.nrows(), modes.ncols(), basis.ncols());
     if basis.nrows() != n || eigenvalues.len() != r {
-        return Err(FilterError::Input("modes, eigenvalues and basis disagree in size".into()));
+        return Err(FilterError::Input(
+            "modes, eigenvalues and basis disagree in size".into(),
+        ));
     }
     let bc = Mat::from_fn(n, q, |i, j| c64::new(basis[(i, j)], 0.0));
     let gram = modes.adjoint() * modes; // r x r
@@ -353,7 +408,11 @@ pub fn modal_dynamics(modes: MatRef<'_, c64>, eigenvalues: &[c64], basis: MatRef
     let scaled = Mat::from_fn(r, q, |i, j| eigenvalues[i] * coef[(i, j)]);
     let a = bc.adjoint() * modes * scaled.as_ref(); // q x q
     let out = Mat::from_fn(q, q, |i, j| a[(i, j)].re);
-    check_finite("the modal dynamics", out.col_iter().flat_map(|c| c.iter().copied().collect::<Vec<_>>())).map_err(|_| FilterError::Numerical("the modes are linearly dependent".into()))?;
+    check_finite(
+        "the modal dynamics",
+        out.col_iter().flat_map(|c| c.iter().copied().collect::<Vec<_>>()),
+    )
+    .map_err(|_| FilterError::Numerical("the modes are linearly dependent".into()))?;
     Ok(out)
 }
 
@@ -365,7 +424,9 @@ mod tests {
 
     /// A 3-mode rotation-and-decay system on 40 cells with an orthonormal basis.
     fn system(n: usize) -> (Mat<f64>, Mat<f64>) {
-        let raw = Mat::from_fn(n, 3, |i, j| ((i + 1) as f64 * (j + 1) as f64 * 0.37).sin() + if j == 2 { 0.5 } else { 0.0 });
+        let raw = Mat::from_fn(n, 3, |i, j| {
+            ((i + 1) as f64 * (j + 1) as f64 * 0.37).sin() + if j == 2 { 0.5 } else { 0.0 }
+        });
         let qr = raw.qr();
         let b = qr.compute_thin_Q();
         let (c, s) = (0.95 * 0.3f64.cos(), 0.95 * 0.3f64.sin());
@@ -380,7 +441,13 @@ mod tests {
     }
 
     /// The textbook Kalman filter, covariance form with the m x m innovation covariance.
-    fn textbook(b: MatRef<f64>, a: MatRef<f64>, (mean, cov): (&mut Mat<f64>, &mut Mat<f64>), (q, s): (f64, f64), o: Observation<'_>) {
+    fn textbook(
+        b: MatRef<f64>,
+        a: MatRef<f64>,
+        (mean, cov): (&mut Mat<f64>, &mut Mat<f64>),
+        (q, s): (f64, f64),
+        o: Observation<'_>,
+    ) {
         let (cells, y, var) = (o.cells, o.values, o.variance);
         let k = a.nrows();
         *mean = a * mean.as_ref();
@@ -414,11 +481,32 @@ mod tests {
                 1 => (10..16).collect(),
                 _ => vec![],
             };
-            let var: Vec<f64> = cells.iter().map(|&c| if t % 3 == 0 { 0.01 + 1e-4 * c as f64 } else { 1e-4 }).collect();
-            let y: Vec<f64> = cells.iter().map(|&c| (c as f64 * 0.1 + t as f64 * 0.2).sin() + noise.sample(&mut rng) * 0.05).collect();
+            let var: Vec<f64> = cells
+                .iter()
+                .map(|&c| if t % 3 == 0 { 0.01 + 1e-4 * c as f64 } else { 1e-4 })
+                .collect();
+            let y: Vec<f64> = cells
+                .iter()
+                .map(|&c| (c as f64 * 0.1 + t as f64 * 0.2).sin() + noise.sample(&mut rng) * 0.05)
+                .collect();
             f.predict();
-            f.update(&[Observation { cells: &cells, values: &y, variance: &var }]).unwrap();
-            textbook(b.as_ref(), a.as_ref(), (&mut tm, &mut tp), (q, s), Observation { cells: &cells, values: &y, variance: &var });
+            f.update(&[Observation {
+                cells: &cells,
+                values: &y,
+                variance: &var,
+            }])
+            .unwrap();
+            textbook(
+                b.as_ref(),
+                a.as_ref(),
+                (&mut tm, &mut tp),
+                (q, s),
+                Observation {
+                    cells: &cells,
+                    values: &y,
+                    variance: &var,
+                },
+            );
             for i in 0..3 {
                 worst = worst.max((f.mean[i] - tm[(i, 0)]).abs());
                 for j in 0..3 {
@@ -446,14 +534,30 @@ mod tests {
             let mut state: Vec<f64> = (0..3).map(|_| std.sample(&mut rng)).collect();
             let mut f = ModalFilter::new(b.clone(), a.clone(), vec![0.0; 3], Mat::identity(3, 3), q, s).unwrap();
             for t in 0..8 {
-                let next: Vec<f64> = (0..3).map(|i| (0..3).map(|j| a[(i, j)] * state[j]).sum::<f64>() + q.sqrt() * std.sample(&mut rng)).collect();
+                let next: Vec<f64> = (0..3)
+                    .map(|i| (0..3).map(|j| a[(i, j)] * state[j]).sum::<f64>() + q.sqrt() * std.sample(&mut rng))
+                    .collect();
                 state = next;
-                let x: Vec<f64> = (0..n).map(|c| (0..3).map(|k| b[(c, k)] * state[k]).sum::<f64>() + s.sqrt() * std.sample(&mut rng)).collect();
-                let cells: Vec<usize> = if t % 2 == 0 { (0..n).step_by(3).collect() } else { vec![4, 5, 6] };
+                let x: Vec<f64> = (0..n)
+                    .map(|c| (0..3).map(|k| b[(c, k)] * state[k]).sum::<f64>() + s.sqrt() * std.sample(&mut rng))
+                    .collect();
+                let cells: Vec<usize> = if t % 2 == 0 {
+                    (0..n).step_by(3).collect()
+                } else {
+                    vec![4, 5, 6]
+                };
                 let var: Vec<f64> = cells.iter().map(|_| 0.02).collect();
-                let y: Vec<f64> = cells.iter().map(|&c| x[c] + 0.02f64.sqrt() * std.sample(&mut rng)).collect();
+                let y: Vec<f64> = cells
+                    .iter()
+                    .map(|&c| x[c] + 0.02f64.sqrt() * std.sample(&mut rng))
+                    .collect();
                 f.predict();
-                f.update(&[Observation { cells: &cells, values: &y, variance: &var }]).unwrap();
+                f.update(&[Observation {
+                    cells: &cells,
+                    values: &y,
+                    variance: &var,
+                }])
+                .unwrap();
                 if t == 7 {
                     let (m, v) = f.field();
                     for c in 0..n {
@@ -486,14 +590,33 @@ mod tests {
             let mut f = ModalFilter::new(b.clone(), a.clone(), vec![0.0; 3], Mat::identity(3, 3), q, s).unwrap();
             f.persistence = rho_filter;
             for t in 0..12 {
-                state = (0..3).map(|i| (0..3).map(|j| a[(i, j)] * state[j]).sum::<f64>() + q.sqrt() * std.sample(&mut rng)).collect();
-                e = e.iter().map(|x| rho * x + ((1.0 - rho * rho) * s).sqrt() * std.sample(&mut rng)).collect();
-                let x: Vec<f64> = (0..n).map(|c| (0..3).map(|k| b[(c, k)] * state[k]).sum::<f64>() + e[c]).collect();
-                let cells: Vec<usize> = if t % 2 == 0 { (0..n).step_by(3).collect() } else { (4..12).collect() };
+                state = (0..3)
+                    .map(|i| (0..3).map(|j| a[(i, j)] * state[j]).sum::<f64>() + q.sqrt() * std.sample(&mut rng))
+                    .collect();
+                e = e
+                    .iter()
+                    .map(|x| rho * x + ((1.0 - rho * rho) * s).sqrt() * std.sample(&mut rng))
+                    .collect();
+                let x: Vec<f64> = (0..n)
+                    .map(|c| (0..3).map(|k| b[(c, k)] * state[k]).sum::<f64>() + e[c])
+                    .collect();
+                let cells: Vec<usize> = if t % 2 == 0 {
+                    (0..n).step_by(3).collect()
+                } else {
+                    (4..12).collect()
+                };
                 let var: Vec<f64> = cells.iter().map(|_| if t % 2 == 0 { 0.01 } else { 1e-3 }).collect();
-                let y: Vec<f64> = cells.iter().zip(&var).map(|(&c, v)| x[c] + v.sqrt() * std.sample(&mut rng)).collect();
+                let y: Vec<f64> = cells
+                    .iter()
+                    .zip(&var)
+                    .map(|(&c, v)| x[c] + v.sqrt() * std.sample(&mut rng))
+                    .collect();
                 f.predict();
-                let o = Observation { cells: &cells, values: &y, variance: &var };
+                let o = Observation {
+                    cells: &cells,
+                    values: &y,
+                    variance: &var,
+                };
                 f.update(&[o]).unwrap();
                 f.update_detail(&[o]).unwrap();
                 if t == 11 {
@@ -516,9 +639,15 @@ mod tests {
         // The detail filter drops the cross-covariance of modes and detail, so it is not the
         // exact posterior: a 15% band on the ratio (standard error a few per cent) still fails
         // a filter that forgot the detail's persistence in its variance (ratio well off 1).
-        println!("persistent detail: mean error^2 / variance = {ratio:.4}; MSE {err:.3e} with rho, {white:.3e} as white noise");
+        println!(
+            "persistent detail: mean error^2 / variance = {ratio:.4}; MSE {err:.3e} with rho, {white:.3e} as \
+            white noise"
+        );
         assert!((ratio - 1.0).abs() < 0.15, "mean error^2 / variance = {ratio}");
-        assert!(err < 0.95 * white, "carrying the detail must help: {err:e} vs {white:e}");
+        assert!(
+            err < 0.95 * white,
+            "carrying the detail must help: {err:e} vs {white:e}"
+        );
     }
 
     #[test]
@@ -540,8 +669,14 @@ mod tests {
             let mut ratios = vec![];
             for _ in 0..40 {
                 f.predict();
-                let y: Vec<f64> = (0..n).map(|_| s.sqrt() * std.sample(&mut rng) + noise.sqrt() * std.sample(&mut rng)).collect();
-                let o = Observation { cells: &cells, values: &y, variance: &var };
+                let y: Vec<f64> = (0..n)
+                    .map(|_| s.sqrt() * std.sample(&mut rng) + noise.sqrt() * std.sample(&mut rng))
+                    .collect();
+                let o = Observation {
+                    cells: &cells,
+                    values: &y,
+                    variance: &var,
+                };
                 let ratio = f.detail_fit(&o).unwrap().unwrap();
                 ratios.push(ratio);
                 f.rescale_detail(ratio, 1e6, 0..n);
@@ -549,22 +684,42 @@ mod tests {
                 f.model_error = f.detail_var[0];
             }
             let settled = ratios[30..].iter().sum::<f64>() / 10.0;
-            println!("start s = {start}: fit ratio {:.3} at first, {settled:.3} settled; detail variance {:.3}", ratios[0], f.detail_var[0]);
-            assert!((ratios[0] - 1.0 / start).abs() < 0.2 / start, "the first fit says how far off the start is: {}", ratios[0]);
+            println!(
+                "start s = {start}: fit ratio {:.3} at first, {settled:.3} settled; detail variance {:.3}",
+                ratios[0], f.detail_var[0]
+            );
+            assert!(
+                (ratios[0] - 1.0 / start).abs() < 0.2 / start,
+                "the first fit says how far off the start is: {}",
+                ratios[0]
+            );
             assert!((settled - 1.0).abs() < 0.15, "settled fit {settled}");
-            assert!((f.detail_var[0] - s).abs() < 0.15, "detail variance {}", f.detail_var[0]);
+            assert!(
+                (f.detail_var[0] - s).abs() < 0.15,
+                "detail variance {}",
+                f.detail_var[0]
+            );
         }
         // The cap holds.
         let mut f = ModalFilter::new(b, a, vec![0.0; 3], Mat::zeros(3, 3), 0.0, 1.0).unwrap();
         f.rescale_detail(4.0, 1.5, 0..10);
-        assert!(f.detail_var[..10].iter().all(|&v| v == 1.5) && f.detail_var[10..].iter().all(|&v| v == 1.0), "only the cells given, capped");
+        assert!(
+            f.detail_var[..10].iter().all(|&v| v == 1.5) && f.detail_var[10..].iter().all(|&v| v == 1.0),
+            "only the cells given, capped"
+        );
         f.rescale_detail(4.0, 1.5, 0..n);
         f.rescale_detail(f64::NAN, 1.5, 0..n);
-        assert!(f.detail_var.iter().all(|&v| v == 1.5), "a ratio that is not a number changes nothing");
+        assert!(
+            f.detail_var.iter().all(|&v| v == 1.5),
+            "a ratio that is not a number changes nothing"
+        );
         // A cap below the variance (a flat field: 0) neither raises nor lowers it; shrinking is
         // by the factor alone.
         f.rescale_detail(4.0, 0.0, 0..n);
-        assert!(f.detail_var.iter().all(|&v| v == 1.5), "a cap of 0 does not zero the detail");
+        assert!(
+            f.detail_var.iter().all(|&v| v == 1.5),
+            "a cap of 0 does not zero the detail"
+        );
         f.rescale_detail(0.25, 0.0, 0..n);
         assert!(f.detail_var.iter().all(|&v| v == 0.75), "a ratio of 1/4 halves it");
     }
@@ -584,9 +739,21 @@ mod tests {
         let var = vec![noise; n];
         let mut got = 0.0;
         for _ in 0..50 {
-            e = e.iter().map(|x| rho * x + ((1.0 - rho * rho) * s).sqrt() * std.sample(&mut rng)).collect();
+            e = e
+                .iter()
+                .map(|x| rho * x + ((1.0 - rho * rho) * s).sqrt() * std.sample(&mut rng))
+                .collect();
             let y: Vec<f64> = e.iter().map(|x| x + noise.sqrt() * std.sample(&mut rng)).collect();
-            got = f.learn_persistence(&Observation { cells: &cells, values: &y, variance: &var }, 1.0).unwrap();
+            got = f
+                .learn_persistence(
+                    &Observation {
+                        cells: &cells,
+                        values: &y,
+                        variance: &var,
+                    },
+                    1.0,
+                )
+                .unwrap();
         }
         // 49 x 400 pairs: the estimate's standard error is under 0.01.
         assert!((got - rho).abs() < 0.03, "learned rho {got}");
@@ -596,13 +763,25 @@ mod tests {
     fn reprojection_keeps_the_field_and_its_total_variance() {
         let n = 25;
         let (b, a) = system(n);
-        let mut f = ModalFilter::new(b.clone(), a.clone(), vec![1.0, -2.0, 0.5], Mat::identity(3, 3), 1e-3, 1e-3).unwrap();
+        let mut f = ModalFilter::new(
+            b.clone(),
+            a.clone(),
+            vec![1.0, -2.0, 0.5],
+            Mat::identity(3, 3),
+            1e-3,
+            1e-3,
+        )
+        .unwrap();
         let (before, var_before) = f.field();
         // A new basis sharing only the first two directions.
         let nb = b.subcols(0, 2).to_owned();
         f.reproject(nb, a.submatrix(0, 0, 2, 2).to_owned()).unwrap();
         let (after, var_after) = f.field();
-        let worst = before.iter().zip(&after).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
+        let worst = before
+            .iter()
+            .zip(&after)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
         assert!(worst < 1e-12, "the field moved by {worst:e}");
         let (tb, ta) = (var_before.iter().sum::<f64>(), var_after.iter().sum::<f64>());
         assert!((tb - ta).abs() < 1e-12 * tb, "total variance {tb} -> {ta}");
@@ -619,7 +798,10 @@ mod tests {
         let bc = Mat::from_fn(n, 3, |i, j| c64::new(b[(i, j)], 0.0));
         let modes = bc.as_ref() * v;
         let got = modal_dynamics(modes.as_ref(), &lam, b.as_ref()).unwrap();
-        let err = (0..3).flat_map(|i| (0..3).map(move |j| (i, j))).map(|(i, j)| (got[(i, j)] - a[(i, j)]).abs()).fold(0.0, f64::max);
+        let err = (0..3)
+            .flat_map(|i| (0..3).map(move |j| (i, j)))
+            .map(|(i, j)| (got[(i, j)] - a[(i, j)]).abs())
+            .fold(0.0, f64::max);
         assert!(err < 1e-12, "{err:e}");
     }
 
@@ -627,9 +809,27 @@ mod tests {
     fn bad_observations_are_refused_not_absorbed() {
         let (b, a) = system(10);
         let mut f = ModalFilter::new(b, a, vec![0.0; 3], Mat::identity(3, 3), 0.0, 0.0).unwrap();
-        assert!(f.update(&[Observation { cells: &[11], values: &[1.0], variance: &[1.0] }]).is_err());
-        assert!(f.update(&[Observation { cells: &[1], values: &[f64::NAN], variance: &[1.0] }]).is_err());
-        assert!(f.update(&[Observation { cells: &[1], values: &[1.0], variance: &[0.0] }]).is_err());
+        assert!(f
+            .update(&[Observation {
+                cells: &[11],
+                values: &[1.0],
+                variance: &[1.0]
+            }])
+            .is_err());
+        assert!(f
+            .update(&[Observation {
+                cells: &[1],
+                values: &[f64::NAN],
+                variance: &[1.0]
+            }])
+            .is_err());
+        assert!(f
+            .update(&[Observation {
+                cells: &[1],
+                values: &[1.0],
+                variance: &[0.0]
+            }])
+            .is_err());
         assert_eq!(f.mean, vec![0.0; 3], "a refused update changes nothing");
     }
 }

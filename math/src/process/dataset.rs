@@ -15,15 +15,27 @@ pub enum DatasetError {
     #[error("{path}: expected shape (frames, rows, cols), found {shape:?}")]
     Shape { path: String, shape: Vec<usize> },
     #[error("{path}: a dataset needs at least {min} frames and a non-empty grid, found shape {shape:?}")]
-    TooSmall { path: String, shape: Vec<usize>, min: usize },
+    TooSmall {
+        path: String,
+        shape: Vec<usize>,
+        min: usize,
+    },
     #[error("writing {path}: {source}")]
     Io { path: String, source: std::io::Error },
     #[error("{path}: not a readable NetCDF-3 file ({why})")]
     NetCdf { path: String, why: String },
     #[error("{path}: no variable {variable:?} (it has: {have})")]
-    NoVariable { path: String, variable: String, have: String },
+    NoVariable {
+        path: String,
+        variable: String,
+        have: String,
+    },
     #[error("{path}: variable {variable:?} is {found}; a truth needs float or double data")]
-    NotFloat { path: String, variable: String, found: String },
+    NotFloat {
+        path: String,
+        variable: String,
+        found: String,
+    },
 }
 
 /// Load a `(frames, rows, cols)` float64 `.npy`, checked for shape and finiteness. `dt` is
@@ -33,14 +45,26 @@ pub fn load(path: impl AsRef<Path>, dt: f64) -> Result<FieldSeries, DatasetError
     let p = path.display().to_string();
     let a = npy::read(path)?;
     let &[t, rows, cols] = a.shape.as_slice() else {
-        return Err(DatasetError::Shape { path: p, shape: a.shape });
+        return Err(DatasetError::Shape {
+            path: p,
+            shape: a.shape,
+        });
     };
     if t < 1 || rows == 0 || cols == 0 {
-        return Err(DatasetError::TooSmall { path: p, shape: a.shape, min: 1 });
+        return Err(DatasetError::TooSmall {
+            path: p,
+            shape: a.shape,
+            min: 1,
+        });
     }
     a.check_finite(&p)?;
     let n = rows * cols;
-    Ok(FieldSeries { rows, cols, dt, snapshots: Mat::from_fn(n, t, |i, j| a.data[j * n + i]) })
+    Ok(FieldSeries {
+        rows,
+        cols,
+        dt,
+        snapshots: Mat::from_fn(n, t, |i, j| a.data[j * n + i]),
+    })
 }
 
 /// Load variable `variable` of a NetCDF-3 file (classic or 64-bit offset) as a field: its
@@ -50,47 +74,101 @@ pub fn load(path: impl AsRef<Path>, dt: f64) -> Result<FieldSeries, DatasetError
 pub fn load_netcdf(path: impl AsRef<Path>, variable: &str, dt: f64) -> Result<FieldSeries, DatasetError> {
     let path = path.as_ref();
     let p = path.display().to_string();
-    let unreadable = |e: netcdf3::error::ReadError| DatasetError::NetCdf { path: p.clone(), why: format!("{e:?}") };
+    let unreadable = |e: netcdf3::error::ReadError| DatasetError::NetCdf {
+        path: p.clone(),
+        why: format!("{e:?}"),
+    };
     let mut reader = netcdf3::FileReader::open(path).map_err(unreadable)?;
     let (shape, data_type) = {
         let Some(var) = reader.data_set().get_var(variable) else {
-            return Err(DatasetError::NoVariable { path: p, variable: variable.into(), have: reader.data_set().get_var_names().join(", ") });
+            return Err(DatasetError::NoVariable {
+                path: p,
+                variable: variable.into(),
+                have: reader.data_set().get_var_names().join(", "),
+            });
         };
-        (var.get_dims().iter().map(|d| d.size()).collect::<Vec<usize>>(), var.data_type())
+        (
+            var.get_dims().iter().map(|d| d.size()).collect::<Vec<usize>>(),
+            var.data_type(),
+        )
     };
     let &[t, rows, cols] = shape.as_slice() else {
-        return Err(DatasetError::Shape { path: format!("{p} ({variable})"), shape });
+        return Err(DatasetError::Shape {
+            path: format!("{p} ({variable})"),
+            shape,
+        });
     };
     if t < 1 || rows == 0 || cols == 0 {
-        return Err(DatasetError::TooSmall { path: format!("{p} ({variable})"), shape, min: 1 });
+        return Err(DatasetError::TooSmall {
+            path: format!("{p} ({variable})"),
+            shape,
+            min: 1,
+        });
     }
     // Every variable is read, not only this one: a file cut short anywhere is refused, not
     // half used.
     let mut all = reader.read_all_vars().map_err(unreadable)?;
-    let data: Vec<f64> = match all.remove(variable).ok_or_else(|| DatasetError::NetCdf { path: p.clone(), why: format!("variable {variable:?} has no data") })? {
+    let data: Vec<f64> = match all.remove(variable).ok_or_else(|| DatasetError::NetCdf {
+        path: p.clone(),
+        why: format!("variable {variable:?} has no data"),
+    })? {
         netcdf3::DataVector::F64(v) => v,
         netcdf3::DataVector::F32(v) => v.into_iter().map(f64::from).collect(),
-        _ => return Err(DatasetError::NotFloat { path: p, variable: variable.into(), found: format!("{data_type:?}") }),
+        _ => {
+            return Err(DatasetError::NotFloat {
+                path: p,
+                variable: variable.into(),
+                found: format!("{data_type:?}"),
+            })
+        }
     };
     let n = rows * cols;
     if data.len() != n * t {
-        return Err(DatasetError::NetCdf { path: p, why: format!("variable {variable:?} holds {} values for its {t} x {rows} x {cols} shape", data.len()) });
+        return Err(DatasetError::NetCdf {
+            path: p,
+            why: format!(
+                "variable {variable:?} holds {} values for its {t} x {rows} x {cols} shape",
+                data.len()
+            ),
+        });
     }
     if let Some((index, value)) = data.iter().copied().enumerate().find(|(_, v)| !v.is_finite()) {
-        return Err(NpyError::NonFinite { path: format!("{p} ({variable})"), index, value }.into());
+        return Err(NpyError::NonFinite {
+            path: format!("{p} ({variable})"),
+            index,
+            value,
+        }
+        .into());
     }
-    Ok(FieldSeries { rows, cols, dt, snapshots: Mat::from_fn(n, t, |i, j| data[j * n + i]) })
+    Ok(FieldSeries {
+        rows,
+        cols,
+        dt,
+        snapshots: Mat::from_fn(n, t, |i, j| data[j * n + i]),
+    })
 }
 
 /// The `(frames, rows, cols)` of a NetCDF variable, from the header alone.
 pub fn netcdf_shape(path: impl AsRef<Path>, variable: &str) -> Option<Vec<usize>> {
     let reader = netcdf3::FileReader::open(path).ok()?;
-    Some(reader.data_set().get_var(variable)?.get_dims().iter().map(|d| d.size()).collect())
+    Some(
+        reader
+            .data_set()
+            .get_var(variable)?
+            .get_dims()
+            .iter()
+            .map(|d| d.size())
+            .collect(),
+    )
 }
 
 /// Write a field as a `(frames, rows, cols)` float64 `.npy`, plus `sidecar` as pretty JSON at
 /// `<path>.json` when given.
-pub fn save(path: impl AsRef<Path>, field: &FieldSeries, sidecar: Option<&serde_json::Value>) -> Result<(), DatasetError> {
+pub fn save(
+    path: impl AsRef<Path>,
+    field: &FieldSeries,
+    sidecar: Option<&serde_json::Value>,
+) -> Result<(), DatasetError> {
     let path = path.as_ref();
     let (n, t) = (field.dim(), field.frames());
     let mut data = Vec::with_capacity(n * t);
@@ -101,7 +179,10 @@ pub fn save(path: impl AsRef<Path>, field: &FieldSeries, sidecar: Option<&serde_
     if let Some(meta) = sidecar {
         let side = sidecar_path(path);
         let text = serde_json::to_string_pretty(meta).expect("JSON values serialise");
-        std::fs::write(&side, text).map_err(|source| DatasetError::Io { path: side.display().to_string(), source })?;
+        std::fs::write(&side, text).map_err(|source| DatasetError::Io {
+            path: side.display().to_string(),
+            source,
+        })?;
     }
     Ok(())
 }
@@ -126,7 +207,12 @@ mod tests {
     fn round_trip_and_rejections() {
         let dir = std::env::temp_dir().join(format!("hetfleet-ds-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let f = FieldSeries { rows: 2, cols: 3, dt: 0.5, snapshots: Mat::from_fn(6, 4, |i, j| (i * 10 + j) as f64) };
+        let f = FieldSeries {
+            rows: 2,
+            cols: 3,
+            dt: 0.5,
+            snapshots: Mat::from_fn(6, 4, |i, j| (i * 10 + j) as f64),
+        };
         let p = dir.join("f.npy");
         save(&p, &f, Some(&serde_json::json!({"a": 1}))).unwrap();
         let g = load(&p, 0.5).unwrap();
@@ -134,7 +220,10 @@ mod tests {
         assert_eq!(g.snapshots, f.snapshots);
         assert!(dir.join("f.json").exists());
         npy::write(dir.join("flat.npy"), &[6, 4], &[0.0; 24]).unwrap();
-        assert!(matches!(load(dir.join("flat.npy"), 1.0), Err(DatasetError::Shape { .. })));
+        assert!(matches!(
+            load(dir.join("flat.npy"), 1.0),
+            Err(DatasetError::Shape { .. })
+        ));
         npy::write(dir.join("nan.npy"), &[1, 2, 2], &[0.0, f64::NAN, 0.0, 0.0]).unwrap();
         assert!(load(dir.join("nan.npy"), 1.0).is_err());
         assert!(load(dir.join("missing.npy"), 1.0).is_err());
@@ -170,12 +259,18 @@ mod tests {
         assert_eq!(a.snapshots, b.snapshots, "the same field as the .npy");
         assert_eq!(netcdf_shape(&nc, "density"), Some(vec![4, 2, 3]));
         let e = load_netcdf(&nc, "temperature", 1.0).unwrap_err().to_string();
-        assert!(e.contains("no variable \"temperature\"") && e.contains("density") && e.contains("f.nc"), "{e}");
+        assert!(
+            e.contains("no variable \"temperature\"") && e.contains("density") && e.contains("f.nc"),
+            "{e}"
+        );
         assert!(matches!(load_netcdf(&nc, "flat", 1.0), Err(DatasetError::Shape { .. })));
         let mut bad = data.clone();
         bad[7] = f64::NAN;
         write_nc(&dir.join("nan.nc"), "density", [4, 2, 3], &bad);
-        assert!(load_netcdf(dir.join("nan.nc"), "density", 1.0).unwrap_err().to_string().contains("not finite"));
+        assert!(load_netcdf(dir.join("nan.nc"), "density", 1.0)
+            .unwrap_err()
+            .to_string()
+            .contains("not finite"));
         // Truncated anywhere (header or data): an error naming the file, never a panic.
         let bytes = std::fs::read(&nc).unwrap();
         for cut in [0, 3, 10, 40, bytes.len() / 2, bytes.len() - 1] {

@@ -17,12 +17,21 @@ pub fn check_size(rows: usize, cols: usize, frames: usize) -> Result<(), String>
     let gib = |b: f64| b / (1u64 << 30) as f64;
     match values {
         Some(v) if v <= crate::npy::MAX_VALUES => {}
-        _ => return Err(format!("{frames} frames of {rows} x {cols} is more than the {} values a field may hold (8 GiB)", crate::npy::MAX_VALUES)),
+        _ => {
+            return Err(format!(
+                "{frames} frames of {rows} x {cols} is more than the {} values a field may hold (8 GiB)",
+                crate::npy::MAX_VALUES
+            ))
+        }
     }
     let bytes = values.unwrap_or(usize::MAX) as f64 * 8.0;
     if let Some(avail) = available_memory() {
         if bytes > avail as f64 {
-            return Err(format!("{frames} frames of {rows} x {cols} need {:.1} GiB, and this machine has {:.1} GiB available", gib(bytes), gib(avail as f64)));
+            return Err(format!(
+                "{frames} frames of {rows} x {cols} need {:.1} GiB, and this machine has {:.1} GiB available",
+                gib(bytes),
+                gib(avail as f64)
+            ));
         }
     }
     Ok(())
@@ -60,10 +69,18 @@ impl FieldSeries {
         let mut snapshots = Mat::zeros(rows * cols, self.frames());
         for k in 0..self.frames() {
             let col: Vec<f64> = self.snapshots.col(k).iter().copied().collect();
-            for (i, v) in crate::grid::area_average(&col, self.rows, self.cols, rows, cols)?.into_iter().enumerate() {
+            for (i, v) in crate::grid::area_average(&col, self.rows, self.cols, rows, cols)?
+                .into_iter()
+                .enumerate()
+            {
                 snapshots[(i, k)] = v;
             }
         }
-        Ok(FieldSeries { rows, cols, dt: self.dt, snapshots })
+        Ok(FieldSeries {
+            rows,
+            cols,
+            dt: self.dt,
+            snapshots,
+        })
     }
 }

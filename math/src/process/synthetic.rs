@@ -32,10 +32,34 @@ pub struct Table1Case {
 
 /// The four cases of Table 1: `(T, nx, ny, init, tau)`.
 pub const TABLE1_CASES: [Table1Case; 4] = [
-    Table1Case { pairs: 500, nx: 10, ny: 10, init: 100, tau: 10 },
-    Table1Case { pairs: 500, nx: 10, ny: 10, init: 100, tau: 100 },
-    Table1Case { pairs: 1000, nx: 20, ny: 20, init: 400, tau: 100 },
-    Table1Case { pairs: 2000, nx: 20, ny: 10, init: 200, tau: 100 },
+    Table1Case {
+        pairs: 500,
+        nx: 10,
+        ny: 10,
+        init: 100,
+        tau: 10,
+    },
+    Table1Case {
+        pairs: 500,
+        nx: 10,
+        ny: 10,
+        init: 100,
+        tau: 100,
+    },
+    Table1Case {
+        pairs: 1000,
+        nx: 20,
+        ny: 20,
+        init: 400,
+        tau: 100,
+    },
+    Table1Case {
+        pairs: 2000,
+        nx: 20,
+        ny: 10,
+        init: 200,
+        tau: 100,
+    },
 ];
 
 impl Table1Case {
@@ -89,10 +113,18 @@ pub fn table1_field(case: &Table1Case, profile: Table1Profile, noise_var: f64, s
             })
         })
         .collect();
-    let temporal: Vec<f64> = ts.iter().map(|&t| 1.9f64.powf(-t) * (std::f64::consts::FRAC_PI_2 * t).cos()).collect();
+    let temporal: Vec<f64> = ts
+        .iter()
+        .map(|&t| 1.9f64.powf(-t) * (std::f64::consts::FRAC_PI_2 * t).cos())
+        .collect();
     let mut z = Mat::from_fn(nx * ny, t_count, |i, j| g[i] * temporal[j]);
     add_noise(&mut z, noise_var, seed);
-    FieldSeries { rows: ny, cols: nx, dt: 6.0 / case.pairs as f64, snapshots: z }
+    FieldSeries {
+        rows: ny,
+        cols: nx,
+        dt: 6.0 / case.pairs as f64,
+        snapshots: z,
+    }
 }
 
 /// The Fig. 7 eigenvalue study's field on a 20 x 20 grid over `[-1, 1]^2`, `dt = 0.01`, 1000
@@ -128,10 +160,17 @@ impl EigStudy {
         }
         let mut z = Mat::from_fn(n * n, Self::STEPS + 1, |i, j| {
             let t = j as f64 * Self::DT;
-            g1[i] * (-t).exp() + 0.5 * (-4.0 * t).exp() * (a[i] * (2.0 * pi * t).cos() + b[i] * (2.0 * pi * t).sin()) + 0.3 * g4[i] * (-8.0 * t).exp()
+            g1[i] * (-t).exp()
+                + 0.5 * (-4.0 * t).exp() * (a[i] * (2.0 * pi * t).cos() + b[i] * (2.0 * pi * t).sin())
+                + 0.3 * g4[i] * (-8.0 * t).exp()
         });
         add_noise(&mut z, noise_var, seed);
-        FieldSeries { rows: n, cols: n, dt: Self::DT, snapshots: z }
+        FieldSeries {
+            rows: n,
+            cols: n,
+            dt: Self::DT,
+            snapshots: z,
+        }
     }
 }
 
@@ -151,7 +190,10 @@ pub fn smooth_sphere_field(times: &[f64], noise: f64, seed: u64) -> FieldSeries 
         for (a, &th) in th.iter().enumerate() {
             for (b, &ph) in ph.iter().enumerate() {
                 let (s, c) = (th.sin(), th.cos());
-                let mut f = s * s * (2.0 * (ph - 0.3 * t)).cos() + 0.7 * s.powi(3) * c * (3.0 * (ph + 0.2 * t)).sin() + 0.3 * c * (0.7 * t).cos() + 0.4 * c * c * (0.5 * t).sin();
+                let mut f = s * s * (2.0 * (ph - 0.3 * t)).cos()
+                    + 0.7 * s.powi(3) * c * (3.0 * (ph + 0.2 * t)).sin()
+                    + 0.3 * c * (0.7 * t).cos()
+                    + 0.4 * c * c * (0.5 * t).sin();
                 let d = ph - phc;
                 let dph = d.sin().atan2(d.cos());
                 f += 0.8 * (-((th - thc).powi(2) + (s * dph).powi(2)) / 0.1).exp();
@@ -162,7 +204,12 @@ pub fn smooth_sphere_field(times: &[f64], noise: f64, seed: u64) -> FieldSeries 
     if noise > 0.0 {
         add_noise(&mut z, noise * noise, seed);
     }
-    FieldSeries { rows: NLAT, cols: NLON, dt: times.get(1).map_or(1.0, |t1| t1 - times[0]), snapshots: z }
+    FieldSeries {
+        rows: NLAT,
+        cols: NLON,
+        dt: times.get(1).map_or(1.0, |t1| t1 - times[0]),
+        snapshots: z,
+    }
 }
 
 /// An orthonormal basis (N x r) of `r` smooth random functions on `grid` (products of random
@@ -174,7 +221,12 @@ pub fn smooth_basis(grid: &crate::grid::Grid, r: usize, seed: u64) -> Mat<f64> {
     let tau = std::f64::consts::TAU;
     let mut raw = Mat::zeros(grid.len(), r);
     for j in 0..r {
-        let (kx, ky, px, py): (f64, f64, f64, f64) = (rng.random_range(0.5..3.0), rng.random_range(0.5..3.0), rng.random_range(0.0..tau), rng.random_range(0.0..tau));
+        let (kx, ky, px, py): (f64, f64, f64, f64) = (
+            rng.random_range(0.5..3.0),
+            rng.random_range(0.5..3.0),
+            rng.random_range(0.0..tau),
+            rng.random_range(0.0..tau),
+        );
         for i in 0..grid.len() {
             let c = grid.cell(i);
             let (x, y) = (c.col as f64 / grid.cols as f64, c.row as f64 / grid.rows as f64);
@@ -213,5 +265,10 @@ pub fn plume_field(rows: usize, cols: usize, frames: usize, noise_var: f64, seed
         }
     }
     add_noise(&mut z, noise_var, seed);
-    FieldSeries { rows, cols, dt, snapshots: z }
+    FieldSeries {
+        rows,
+        cols,
+        dt,
+        snapshots: z,
+    }
 }

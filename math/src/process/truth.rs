@@ -8,14 +8,26 @@ use std::path::PathBuf;
 
 #[derive(Debug, thiserror::Error)]
 pub enum TruthError {
-    #[error("give exactly one of `preset` or `dataset` (in [truth] of a mission file, in each [[row]] of an experiment file)")]
+    #[error(
+        "give exactly one of `preset` or `dataset` (in [truth] of a mission file, in each [[row]] of an \
+        experiment file)"
+    )]
     Source,
-    #[error("`variable` goes with a NetCDF dataset (`dataset = \"f.nc\"`, `variable = \"density\"`), and a NetCDF dataset needs it")]
+    #[error(
+        "`variable` goes with a NetCDF dataset (`dataset = \"f.nc\"`, `variable = \"density\"`), and a NetCDF \
+        dataset needs it"
+    )]
     Variable,
     #[error("simulating {preset:?}: {source}")]
-    Simulation { preset: Preset, source: super::plasma::PlasmaError },
+    Simulation {
+        preset: Preset,
+        source: super::plasma::PlasmaError,
+    },
     #[error("loading the dataset {}: {source}", path.display())]
-    Dataset { path: PathBuf, source: super::dataset::DatasetError },
+    Dataset {
+        path: PathBuf,
+        source: super::dataset::DatasetError,
+    },
     #[error("{rows} x {cols} averaged by {factor} leaves less than 4 x 4 cells")]
     TooCoarse { rows: usize, cols: usize, factor: usize },
     #[error(transparent)]
@@ -62,9 +74,21 @@ impl TryFrom<TruthKeys> for TruthSource {
 impl From<TruthSource> for TruthKeys {
     fn from(s: TruthSource) -> Self {
         match s {
-            TruthSource::Preset(p) => Self { preset: Some(p), dataset: None, variable: None },
-            TruthSource::Dataset(d) => Self { preset: None, dataset: Some(d), variable: None },
-            TruthSource::NetCdf { path, variable } => Self { preset: None, dataset: Some(path), variable: Some(variable) },
+            TruthSource::Preset(p) => Self {
+                preset: Some(p),
+                dataset: None,
+                variable: None,
+            },
+            TruthSource::Dataset(d) => Self {
+                preset: None,
+                dataset: Some(d),
+                variable: None,
+            },
+            TruthSource::NetCdf { path, variable } => Self {
+                preset: None,
+                dataset: Some(path),
+                variable: Some(variable),
+            },
         }
     }
 }
@@ -81,7 +105,9 @@ impl TruthSource {
     pub fn name(&self) -> String {
         match self {
             Self::Preset(p) => format!("{p:?}"),
-            Self::Dataset(d) | Self::NetCdf { path: d, .. } => d.file_stem().map_or("dataset".into(), |s| s.to_string_lossy().to_string()),
+            Self::Dataset(d) | Self::NetCdf { path: d, .. } => d
+                .file_stem()
+                .map_or("dataset".into(), |s| s.to_string_lossy().to_string()),
         }
     }
 
@@ -97,18 +123,35 @@ impl TruthSource {
 
     /// The field at full resolution: the simulator at `grid` `[rows, cols]` for `frames`
     /// frames (seeded), or the dataset as it is.
-    pub fn full(&self, grid: [usize; 2], frames: usize, seed: u64, progress: impl FnMut(usize)) -> Result<FieldSeries, TruthError> {
+    pub fn full(
+        &self,
+        grid: [usize; 2],
+        frames: usize,
+        seed: u64,
+        progress: impl FnMut(usize),
+    ) -> Result<FieldSeries, TruthError> {
         match self {
             Self::Preset(preset) => {
                 let mut p = preset.params();
                 (p.ny, p.nx) = (grid[0], grid[1]);
                 p.seed = seed;
-                let sim_err = |source| TruthError::Simulation { preset: *preset, source };
+                let sim_err = |source| TruthError::Simulation {
+                    preset: *preset,
+                    source,
+                };
                 let mut sim = PlasmaCloud::new(p).map_err(sim_err)?;
                 sim.run(frames, progress).map_err(sim_err)
             }
-            Self::Dataset(path) => super::dataset::load(path, 1.0).map_err(|source| TruthError::Dataset { path: path.clone(), source }),
-            Self::NetCdf { path, variable } => super::dataset::load_netcdf(path, variable, 1.0).map_err(|source| TruthError::Dataset { path: path.clone(), source }),
+            Self::Dataset(path) => super::dataset::load(path, 1.0).map_err(|source| TruthError::Dataset {
+                path: path.clone(),
+                source,
+            }),
+            Self::NetCdf { path, variable } => {
+                super::dataset::load_netcdf(path, variable, 1.0).map_err(|source| TruthError::Dataset {
+                    path: path.clone(),
+                    source,
+                })
+            }
         }
     }
 }
@@ -117,7 +160,11 @@ impl TruthSource {
 pub fn averaged_by(full: &FieldSeries, factor: usize) -> Result<FieldSeries, TruthError> {
     let (rows, cols) = (full.rows / factor.max(1), full.cols / factor.max(1));
     if rows < 4 || cols < 4 {
-        return Err(TruthError::TooCoarse { rows: full.rows, cols: full.cols, factor });
+        return Err(TruthError::TooCoarse {
+            rows: full.rows,
+            cols: full.cols,
+            factor,
+        });
     }
     Ok(full.area_averaged(rows, cols)?)
 }

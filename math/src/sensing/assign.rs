@@ -7,11 +7,19 @@ use pathfinding::matrix::Matrix;
 
 /// For each boat, the index of its target (or `None` when there are more boats than targets),
 /// and the total travel time in seconds. Positions and targets in metres; speed in m/s.
-pub fn assign(boats: &[(f64, f64)], targets: &[(f64, f64)], speed: f64) -> Result<(Vec<Option<usize>>, f64), SensingError> {
+pub fn assign(
+    boats: &[(f64, f64)],
+    targets: &[(f64, f64)],
+    speed: f64,
+) -> Result<(Vec<Option<usize>>, f64), SensingError> {
     if !(speed.is_finite() && speed > 0.0) {
         return Err(SensingError::Input(format!("speed must be positive, got {speed}")));
     }
-    if boats.iter().chain(targets).any(|(x, y)| !(x.is_finite() && y.is_finite())) {
+    if boats
+        .iter()
+        .chain(targets)
+        .any(|(x, y)| !(x.is_finite() && y.is_finite()))
+    {
         return Err(SensingError::Input("non-finite position".into()));
     }
     if boats.is_empty() || targets.is_empty() {
@@ -20,8 +28,16 @@ pub fn assign(boats: &[(f64, f64)], targets: &[(f64, f64)], speed: f64) -> Resul
     let micros = |b: &(f64, f64), t: &(f64, f64)| (((b.0 - t.0).hypot(b.1 - t.1) / speed) * 1e6).round() as i64;
     // The solver needs rows <= columns: put the smaller side on the rows.
     let boats_are_rows = boats.len() <= targets.len();
-    let (rows, cols) = if boats_are_rows { (boats, targets) } else { (targets, boats) };
-    let weights = Matrix::from_rows(rows.iter().map(|a| cols.iter().map(|b| micros(a, b)).collect::<Vec<_>>())).map_err(|e| SensingError::Numerical(format!("{e:?}")))?;
+    let (rows, cols) = if boats_are_rows {
+        (boats, targets)
+    } else {
+        (targets, boats)
+    };
+    let weights = Matrix::from_rows(
+        rows.iter()
+            .map(|a| cols.iter().map(|b| micros(a, b)).collect::<Vec<_>>()),
+    )
+    .map_err(|e| SensingError::Numerical(format!("{e:?}")))?;
     let (total, row_to_col) = pathfinding::kuhn_munkres::kuhn_munkres_min(&weights);
     let mut out = vec![None; boats.len()];
     for (r, &c) in row_to_col.iter().enumerate() {
@@ -57,7 +73,11 @@ mod tests {
             }
             best
         }
-        let (a, b) = if boats.len() <= targets.len() { (boats, targets) } else { (targets, boats) };
+        let (a, b) = if boats.len() <= targets.len() {
+            (boats, targets)
+        } else {
+            (targets, boats)
+        };
         go(0, &mut vec![false; b.len()], a, b, &micros)
     }
 
@@ -67,7 +87,11 @@ mod tests {
         for nb in 1..=6 {
             for nt in 1..=6 {
                 for _ in 0..20 {
-                    let pts = |n: usize, rng: &mut rand_chacha::ChaCha8Rng| -> Vec<(f64, f64)> { (0..n).map(|_| (rng.random_range(0.0..500.0), rng.random_range(0.0..300.0))).collect() };
+                    let pts = |n: usize, rng: &mut rand_chacha::ChaCha8Rng| -> Vec<(f64, f64)> {
+                        (0..n)
+                            .map(|_| (rng.random_range(0.0..500.0), rng.random_range(0.0..300.0)))
+                            .collect()
+                    };
                     let (b, t) = (pts(nb, &mut rng), pts(nt, &mut rng));
                     let (a, total) = assign(&b, &t, 1.5).unwrap();
                     let best = brute(&b, &t, 1.5);

@@ -20,7 +20,9 @@ pub type Point = (f64, f64);
 /// gives the uniform density. `floor` in [0, 1].
 pub fn temporal_density(model: &DmdModel, floor: f64) -> Result<Vec<f64>, SensingError> {
     if !(0.0..=1.0).contains(&floor) {
-        return Err(SensingError::Input(format!("density floor must be in [0, 1], got {floor}")));
+        return Err(SensingError::Input(format!(
+            "density floor must be in [0, 1], got {floor}"
+        )));
     }
     let omega = model.continuous_eigenvalues();
     let phi = &model.modes.modes;
@@ -61,7 +63,10 @@ pub fn snap_inside(grid: &Grid, excluded: &[bool], positions: &[Point]) -> Optio
     if excluded.is_empty() {
         return Some(positions.to_vec());
     }
-    let allowed: Vec<Point> = (0..grid.len()).filter(|&i| !excluded.get(i).copied().unwrap_or(false)).map(|i| grid.centre_m(grid.cell(i))).collect();
+    let allowed: Vec<Point> = (0..grid.len())
+        .filter(|&i| !excluded.get(i).copied().unwrap_or(false))
+        .map(|i| grid.centre_m(grid.cell(i)))
+        .collect();
     if allowed.is_empty() {
         return None;
     }
@@ -70,7 +75,10 @@ pub fn snap_inside(grid: &Grid, excluded: &[bool], positions: &[Point]) -> Optio
             .iter()
             .map(|&p| match grid.cell_at(p.0, p.1).map(|c| grid.index(c)) {
                 Some(i) if !excluded[i] => p,
-                _ => *allowed.iter().min_by(|a, b| (a.0 - p.0).hypot(a.1 - p.1).total_cmp(&(b.0 - p.0).hypot(b.1 - p.1))).expect("not empty"),
+                _ => *allowed
+                    .iter()
+                    .min_by(|a, b| (a.0 - p.0).hypot(a.1 - p.1).total_cmp(&(b.0 - p.0).hypot(b.1 - p.1)))
+                    .expect("not empty"),
             })
             .collect(),
     )
@@ -79,10 +87,20 @@ pub fn snap_inside(grid: &Grid, excluded: &[bool], positions: &[Point]) -> Optio
 /// Lloyd's algorithm on the cells of `grid` under `density` (one non-negative value per cell),
 /// from `start`, until no generator moves more than `tol_m` metres or `max_iter` iterations.
 /// A generator whose region carries no density stays where it is.
-pub fn lloyd(grid: &Grid, density: &[f64], start: &[Point], max_iter: usize, tol_m: f64) -> Result<Coverage, SensingError> {
-    grid.check_len(density.len()).map_err(|e| SensingError::Input(e.to_string()))?;
+pub fn lloyd(
+    grid: &Grid,
+    density: &[f64],
+    start: &[Point],
+    max_iter: usize,
+    tol_m: f64,
+) -> Result<Coverage, SensingError> {
+    grid.check_len(density.len())
+        .map_err(|e| SensingError::Input(e.to_string()))?;
     if let Some(i) = density.iter().position(|d| !(d.is_finite() && *d >= 0.0)) {
-        return Err(SensingError::Input(format!("density of cell {i} is {} (must be finite and >= 0)", density[i])));
+        return Err(SensingError::Input(format!(
+            "density of cell {i} is {} (must be finite and >= 0)",
+            density[i]
+        )));
     }
     if start.is_empty() {
         return Err(SensingError::Input("coverage needs at least one vehicle".into()));
@@ -117,7 +135,12 @@ pub fn lloyd(grid: &Grid, density: &[f64], start: &[Point], max_iter: usize, tol
             break;
         }
     }
-    Ok(Coverage { positions: p, owner, cost, iterations })
+    Ok(Coverage {
+        positions: p,
+        owner,
+        cost,
+        iterations,
+    })
 }
 
 /// Assign each cell to its nearest generator (ties to the lower index) and return the cost.
@@ -168,7 +191,9 @@ mod tests {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
         for _ in 0..20 {
             let density: Vec<f64> = (0..g.len()).map(|_| rng.random_range(0.0..1.0)).collect();
-            let start: Vec<Point> = (0..4).map(|_| (rng.random_range(0.0..50.0), rng.random_range(0.0..30.0))).collect();
+            let start: Vec<Point> = (0..4)
+                .map(|_| (rng.random_range(0.0..50.0), rng.random_range(0.0..30.0)))
+                .collect();
             let c = lloyd(&g, &density, &start, 50, 0.0).unwrap();
             for w in c.cost.windows(2) {
                 assert!(w[1] <= w[0] * (1.0 + 1e-12), "cost went up: {:?}", c.cost);
@@ -200,7 +225,9 @@ mod tests {
         // are drawn right of the 1/4 and 3/4 points where the uniform density would put them;
         // the right one to near the dense strip's centroid (x = 35).
         let g = Grid::new(20, 40, 1.0).unwrap();
-        let density: Vec<f64> = (0..g.len()).map(|q| if g.cell(q).col >= 30 { 1.0 } else { 0.01 }).collect();
+        let density: Vec<f64> = (0..g.len())
+            .map(|q| if g.cell(q).col >= 30 { 1.0 } else { 0.01 })
+            .collect();
         let c = lloyd(&g, &density, &[(10.0, 10.0), (30.0, 10.0)], 500, 1e-9).unwrap();
         let mut x: Vec<f64> = c.positions.iter().map(|p| p.0).collect();
         x.sort_by(f64::total_cmp);
@@ -213,8 +240,17 @@ mod tests {
         use faer::{c64, Mat};
         // Mode 0 neutral (|lambda| = 1) everywhere; mode 1 decays, living on the left half only.
         let g = Grid::new(4, 8, 1.0).unwrap();
-        let modes = Mat::from_fn(g.len(), 2, |q, j| c64::new(if j == 0 || g.cell(q).col < 4 { 1.0 } else { 0.0 }, 0.0));
-        let model = DmdModel { modes: Modes { eigenvalues: vec![c64::new(1.0, 0.0), c64::new(0.5, 0.0)], modes }, amplitudes: vec![c64::new(1.0, 0.0), c64::new(2.0, 0.0)], dt: 0.1 };
+        let modes = Mat::from_fn(g.len(), 2, |q, j| {
+            c64::new(if j == 0 || g.cell(q).col < 4 { 1.0 } else { 0.0 }, 0.0)
+        });
+        let model = DmdModel {
+            modes: Modes {
+                eigenvalues: vec![c64::new(1.0, 0.0), c64::new(0.5, 0.0)],
+                modes,
+            },
+            amplitudes: vec![c64::new(1.0, 0.0), c64::new(2.0, 0.0)],
+            dt: 0.1,
+        };
         let d = temporal_density(&model, 0.2).unwrap();
         for (q, dq) in d.iter().enumerate() {
             let want = if g.cell(q).col < 4 { 1.0 } else { 0.2 };

@@ -18,10 +18,19 @@ pub struct GappyEstimate {
 /// Reconstruct from `values` measured at the cells `indices` of a basis `phi` (N x r, real;
 /// see [`super::real_basis`] for DMD modes), with measurement noise variance `noise_var`.
 /// Errors when the measured rows cannot determine the `r` coefficients.
-pub fn reconstruct(phi: MatRef<'_, f64>, indices: &[usize], values: &[f64], noise_var: f64) -> Result<GappyEstimate, SensingError> {
+pub fn reconstruct(
+    phi: MatRef<'_, f64>,
+    indices: &[usize],
+    values: &[f64],
+    noise_var: f64,
+) -> Result<GappyEstimate, SensingError> {
     let (n, r) = (phi.nrows(), phi.ncols());
     if indices.len() != values.len() {
-        return Err(SensingError::Input(format!("{} indices but {} values", indices.len(), values.len())));
+        return Err(SensingError::Input(format!(
+            "{} indices but {} values",
+            indices.len(),
+            values.len()
+        )));
     }
     if let Some(&i) = indices.iter().find(|&&i| i >= n) {
         return Err(SensingError::Input(format!("cell index {i} outside the {n}-cell grid")));
@@ -30,15 +39,25 @@ pub fn reconstruct(phi: MatRef<'_, f64>, indices: &[usize], values: &[f64], nois
         return Err(SensingError::Input(format!("non-finite measurement {v}")));
     }
     if !(noise_var.is_finite() && noise_var >= 0.0) {
-        return Err(SensingError::Input(format!("noise variance must be finite and >= 0, got {noise_var}")));
+        return Err(SensingError::Input(format!(
+            "noise variance must be finite and >= 0, got {noise_var}"
+        )));
     }
     let mut sorted = indices.to_vec();
     sorted.sort_unstable();
     sorted.dedup();
     let a = Mat::from_fn(indices.len(), r, |i, j| phi[(indices[i], j)]);
-    let rank = if sorted.len() < r { sorted.len() } else { column_rank(a.as_ref()) };
+    let rank = if sorted.len() < r {
+        sorted.len()
+    } else {
+        column_rank(a.as_ref())
+    };
     if rank < r {
-        return Err(SensingError::Underdetermined { rows: sorted.len(), rank, modes: r });
+        return Err(SensingError::Underdetermined {
+            rows: sorted.len(),
+            rank,
+            modes: r,
+        });
     }
     let b = Mat::from_fn(values.len(), 1, |i, _| values[i]);
     let qr = a.qr();
@@ -49,8 +68,14 @@ pub fn reconstruct(phi: MatRef<'_, f64>, indices: &[usize], values: &[f64], nois
     let rt = qr.thin_R().transpose().to_owned();
     let mut z = phi.transpose().to_owned(); // r x N
     faer::linalg::triangular_solve::solve_lower_triangular_in_place(rt.as_ref(), z.as_mut(), faer::Par::Seq);
-    let variance = (0..n).map(|i| noise_var * z.col(i).iter().map(|v| v * v).sum::<f64>()).collect();
-    Ok(GappyEstimate { field, variance, coefficients })
+    let variance = (0..n)
+        .map(|i| noise_var * z.col(i).iter().map(|v| v * v).sum::<f64>())
+        .collect();
+    Ok(GappyEstimate {
+        field,
+        variance,
+        coefficients,
+    })
 }
 
 /// Condition number above which the measured rows are said not to determine the modes: the
@@ -60,7 +85,10 @@ pub const MAX_CONDITION: f64 = 1e10;
 /// Column rank of a tall matrix: singular values above `s_0 / MAX_CONDITION`.
 fn column_rank(a: MatRef<'_, f64>) -> usize {
     match a.singular_values() {
-        Ok(s) => s.iter().filter(|&&v| s.first().is_some_and(|&s0| s0 > 0.0 && v * MAX_CONDITION > s0)).count(),
+        Ok(s) => s
+            .iter()
+            .filter(|&&v| s.first().is_some_and(|&s0| s0 > 0.0 && v * MAX_CONDITION > s0))
+            .count(),
         Err(_) => 0,
     }
 }

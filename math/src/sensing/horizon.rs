@@ -96,32 +96,73 @@ struct Candidate {
 
 /// The disks and their boats (at most one disk per boat; fewer when no admissible disk is
 /// left), `noise_var` the boats' noise variance, `radius` the disks' in cells.
-pub fn plan(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, noise_var: f64) -> Result<Vec<Chosen>, SensingError> {
+pub fn plan(
+    grid: &Grid,
+    f: &Forecast<'_>,
+    boats: &[Boat],
+    radius: f64,
+    noise_var: f64,
+) -> Result<Vec<Chosen>, SensingError> {
     plan_within(grid, f, boats, radius, noise_var, &[])
 }
 
 /// [`plan`] with the cells marked in `excluded` (one flag per cell; empty: none) never in a
 /// disk: outside the site's fence.
-pub fn plan_within(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, noise_var: f64, excluded: &[bool]) -> Result<Vec<Chosen>, SensingError> {
+pub fn plan_within(
+    grid: &Grid,
+    f: &Forecast<'_>,
+    boats: &[Boat],
+    radius: f64,
+    noise_var: f64,
+    excluded: &[bool],
+) -> Result<Vec<Chosen>, SensingError> {
     let (n, q) = (f.basis.nrows(), f.basis.ncols());
     grid.check_len(n).map_err(|e| SensingError::Input(e.to_string()))?;
-    if f.modal_weight.nrows() != q || f.modal_weight.ncols() != q || f.cov.nrows() != q || f.cov.ncols() != q || f.detail_var.len() != n || f.detail_gain.len() != n || f.value_weight.len() != n {
-        return Err(SensingError::Input(format!("a forecast over {q} modes on {n} cells needs {q} x {q} weights and covariance and {n} detail variances, gains and value weights")));
+    if f.modal_weight.nrows() != q
+        || f.modal_weight.ncols() != q
+        || f.cov.nrows() != q
+        || f.cov.ncols() != q
+        || f.detail_var.len() != n
+        || f.detail_gain.len() != n
+        || f.value_weight.len() != n
+    {
+        return Err(SensingError::Input(format!(
+            "a forecast over {q} modes on {n} cells needs {q} x {q} weights and \
+            covariance and {n} detail variances, gains and value weights"
+        )));
     }
     if !(f.unmodelled.is_empty() || f.unmodelled.len() == n) {
-        return Err(SensingError::Input(format!("{} unmodelled variances on {n} cells", f.unmodelled.len())));
+        return Err(SensingError::Input(format!(
+            "{} unmodelled variances on {n} cells",
+            f.unmodelled.len()
+        )));
     }
     if f.value_weight.iter().any(|k| !(0.0..=1.0).contains(k)) {
         return Err(SensingError::Input("value weights must be in [0, 1]".into()));
     }
     if !(noise_var > 0.0 && noise_var.is_finite() && radius >= 0.0 && radius.is_finite()) {
-        return Err(SensingError::Input(format!("noise variance {noise_var} and radius {radius} must be positive and finite")));
+        return Err(SensingError::Input(format!(
+            "noise variance {noise_var} and radius {radius} must be positive and finite"
+        )));
     }
-    if let Some(b) = boats.iter().find(|b| !(b.position.0.is_finite() && b.position.1.is_finite() && b.reach_m >= 0.0)) {
-        return Err(SensingError::Input(format!("boat at {:?} with reach {}", b.position, b.reach_m)));
+    if let Some(b) = boats
+        .iter()
+        .find(|b| !(b.position.0.is_finite() && b.position.1.is_finite() && b.reach_m >= 0.0))
+    {
+        return Err(SensingError::Input(format!(
+            "boat at {:?} with reach {}",
+            b.position, b.reach_m
+        )));
     }
-    if f.detail_var.iter().chain(f.detail_gain).chain(f.unmodelled).any(|v| !(v.is_finite() && *v >= 0.0)) {
-        return Err(SensingError::Input("detail and unmodelled variances and gains must be finite and >= 0".into()));
+    if f.detail_var
+        .iter()
+        .chain(f.detail_gain)
+        .chain(f.unmodelled)
+        .any(|v| !(v.is_finite() && *v >= 0.0))
+    {
+        return Err(SensingError::Input(
+            "detail and unmodelled variances and gains must be finite and >= 0".into(),
+        ));
     }
     let m = f.modal_weight.to_owned();
     // Candidate centres every half radius (every cell for small disks).
@@ -143,7 +184,13 @@ pub fn plan_within(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, n
                 }
                 detail_gain += f.detail_gain[i] + f.unmodelled_gain(i);
             }
-            candidates.push(Candidate { at: grid.centre_m(centre), cells, centre, info, detail_gain });
+            candidates.push(Candidate {
+                at: grid.centre_m(centre),
+                cells,
+                centre,
+                info,
+                detail_gain,
+            });
         }
     }
     let mut cov = f.cov.to_owned();
@@ -153,7 +200,10 @@ pub fn plan_within(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, n
     while chosen.len() < boats.len() {
         let mut best: Option<(f64, usize, Mat<f64>)> = None;
         for (ci, cand) in candidates.iter().enumerate() {
-            if cand.cells.is_empty() || cand.cells.iter().any(|&i| taken[i]) || !boats.iter().any(|b| reachable(b, cand.at)) {
+            if cand.cells.is_empty()
+                || cand.cells.iter().any(|&i| taken[i])
+                || !boats.iter().any(|b| reachable(b, cand.at))
+            {
                 continue;
             }
             let post = conditioned(cov.as_ref(), cand.info.as_ref())?;
@@ -171,8 +221,18 @@ pub fn plan_within(grid: &Grid, f: &Forecast<'_>, boats: &[Boat], radius: f64, n
         candidates[ci].cells.iter().for_each(|&i| taken[i] = true);
         chosen.push(ci);
     }
-    let Some(assignment) = matching(&chosen, &candidates, boats, reachable)? else { return Ok(vec![]) };
-    Ok(chosen.iter().zip(assignment).map(|(&ci, boat)| Chosen { cells: candidates[ci].cells.clone(), centre: candidates[ci].centre, boat }).collect())
+    let Some(assignment) = matching(&chosen, &candidates, boats, reachable)? else {
+        return Ok(vec![]);
+    };
+    Ok(chosen
+        .iter()
+        .zip(assignment)
+        .map(|(&ci, boat)| Chosen {
+            cells: candidates[ci].cells.clone(),
+            centre: candidates[ci].centre,
+            boat,
+        })
+        .collect())
 }
 
 /// `P (I + J P)^-1`.
@@ -184,18 +244,27 @@ fn conditioned(p: MatRef<'_, f64>, j: MatRef<'_, f64>) -> Result<Mat<f64>, Sensi
     }
     let post = faer::linalg::solvers::Solve::solve(&a.partial_piv_lu(), p);
     if post.col_iter().any(|c| c.iter().any(|v| !v.is_finite())) {
-        return Err(SensingError::Numerical("conditioning the forecast covariance lost finiteness".into()));
+        return Err(SensingError::Numerical(
+            "conditioning the forecast covariance lost finiteness".into(),
+        ));
     }
     Ok(post)
 }
 
 fn trace_product(a: &Mat<f64>, b: &Mat<f64>) -> f64 {
-    (0..a.nrows()).map(|i| (0..a.ncols()).map(|k| a[(i, k)] * b[(k, i)]).sum::<f64>()).sum()
+    (0..a.nrows())
+        .map(|i| (0..a.ncols()).map(|k| a[(i, k)] * b[(k, i)]).sum::<f64>())
+        .sum()
 }
 
 /// For the disks `chosen` (indices into `candidates`), the boat of each in a matching of least
 /// total travel with every boat within reach of its disk (`None`: no such matching).
-fn matching(chosen: &[usize], candidates: &[Candidate], boats: &[Boat], reachable: impl Fn(&Boat, (f64, f64)) -> bool) -> Result<Option<Vec<usize>>, SensingError> {
+fn matching(
+    chosen: &[usize],
+    candidates: &[Candidate],
+    boats: &[Boat],
+    reachable: impl Fn(&Boat, (f64, f64)) -> bool,
+) -> Result<Option<Vec<usize>>, SensingError> {
     if chosen.is_empty() {
         return Ok(Some(vec![]));
     }
@@ -206,7 +275,16 @@ fn matching(chosen: &[usize], candidates: &[Candidate], boats: &[Boat], reachabl
     let far = 1i64 << 50;
     let weights = Matrix::from_rows(chosen.iter().map(|&ci| {
         let at = candidates[ci].at;
-        boats.iter().map(|b| if reachable(b, at) { ((b.position.0 - at.0).hypot(b.position.1 - at.1) * 1e3).round() as i64 } else { far }).collect::<Vec<_>>()
+        boats
+            .iter()
+            .map(|b| {
+                if reachable(b, at) {
+                    ((b.position.0 - at.0).hypot(b.position.1 - at.1) * 1e3).round() as i64
+                } else {
+                    far
+                }
+            })
+            .collect::<Vec<_>>()
     }))
     .map_err(|e| SensingError::Numerical(format!("{e:?}")))?;
     let (total, row_to_col) = pathfinding::kuhn_munkres::kuhn_munkres_min(&weights);
@@ -220,7 +298,9 @@ mod tests {
     /// One mode that lives on the left half of a 10 x 20 grid: every disk on the right half
     /// removes nothing of the modal uncertainty.
     fn left_mode(grid: &Grid) -> Mat<f64> {
-        let raw: Vec<f64> = (0..grid.len()).map(|i| if grid.cell(i).col < 10 { 1.0 } else { 0.0 }).collect();
+        let raw: Vec<f64> = (0..grid.len())
+            .map(|i| if grid.cell(i).col < 10 { 1.0 } else { 0.0 })
+            .collect();
         let norm = raw.iter().map(|v| v * v).sum::<f64>().sqrt();
         Mat::from_fn(grid.len(), 1, |i, _| raw[i] / norm)
     }
@@ -233,14 +313,32 @@ mod tests {
         let p = Mat::from_fn(1, 1, |_, _| 1.0);
         let (dv, gain) = (vec![1e-6; grid.len()], vec![0.0; grid.len()]);
         let weight = vec![0.5; grid.len()];
-        let f = Forecast { basis: b.as_ref(), cov: p.as_ref(), detail_var: &dv, modal_weight: m.as_ref(), detail_gain: &gain, value_weight: &weight, unmodelled: &[] };
-        let boats = [Boat { position: (19.5, 5.5), reach_m: 100.0 }];
+        let f = Forecast {
+            basis: b.as_ref(),
+            cov: p.as_ref(),
+            detail_var: &dv,
+            modal_weight: m.as_ref(),
+            detail_gain: &gain,
+            value_weight: &weight,
+            unmodelled: &[],
+        };
+        let boats = [Boat {
+            position: (19.5, 5.5),
+            reach_m: 100.0,
+        }];
         let got = plan(&grid, &f, &boats, 2.0, 1e-4).unwrap();
         assert_eq!(got.len(), 1);
-        assert!(got[0].centre.col < 10, "the disk goes where the mode is: {:?}", got[0].centre);
+        assert!(
+            got[0].centre.col < 10,
+            "the disk goes where the mode is: {:?}",
+            got[0].centre
+        );
         // Out of reach of the left half, the boat still gets the best place it can reach
         // (nothing to gain there, but a place), never one it cannot.
-        let slow = [Boat { position: (19.5, 5.5), reach_m: 3.0 }];
+        let slow = [Boat {
+            position: (19.5, 5.5),
+            reach_m: 3.0,
+        }];
         let got = plan(&grid, &f, &slow, 2.0, 1e-4).unwrap();
         for c in &got {
             let (x, y) = grid.centre_m(c.centre);
@@ -258,8 +356,25 @@ mod tests {
         let p = Mat::from_fn(1, 1, |_, _| 1e-9);
         let dv = vec![1.0; grid.len()];
         let weight = vec![0.5; grid.len()];
-        let f = Forecast { basis: b.as_ref(), cov: p.as_ref(), detail_var: &dv, modal_weight: m.as_ref(), detail_gain: &dv, value_weight: &weight, unmodelled: &[] };
-        let boats = [Boat { position: (0.0, 0.0), reach_m: 1e9 }, Boat { position: (20.0, 10.0), reach_m: 1e9 }];
+        let f = Forecast {
+            basis: b.as_ref(),
+            cov: p.as_ref(),
+            detail_var: &dv,
+            modal_weight: m.as_ref(),
+            detail_gain: &dv,
+            value_weight: &weight,
+            unmodelled: &[],
+        };
+        let boats = [
+            Boat {
+                position: (0.0, 0.0),
+                reach_m: 1e9,
+            },
+            Boat {
+                position: (20.0, 10.0),
+                reach_m: 1e9,
+            },
+        ];
         let got = plan(&grid, &f, &boats, 2.0, 1e-2).unwrap();
         assert_eq!(got.len(), 2);
         assert!(got[0].cells.iter().all(|c| !got[1].cells.contains(c)), "disks overlap");
@@ -276,10 +391,40 @@ mod tests {
         let (m, p) = (Mat::from_fn(1, 1, |_, _| 1.0), Mat::from_fn(1, 1, |_, _| 1e-12));
         let dv = vec![0.1; grid.len()];
         let weight = vec![0.5; grid.len()];
-        let gain: Vec<f64> = (0..grid.len()).map(|i| if (14..17).contains(&grid.cell(i).col) { 0.3 } else { 0.05 }).collect();
-        let f = Forecast { basis: b.as_ref(), cov: p.as_ref(), detail_var: &dv, modal_weight: m.as_ref(), detail_gain: &gain, value_weight: &weight, unmodelled: &[] };
-        let got = plan(&grid, &f, &[Boat { position: (0.0, 0.0), reach_m: 1e9 }], 1.0, 1e-2).unwrap();
-        assert!((14..17).contains(&got[0].centre.col), "the disk is at {:?}", got[0].centre);
+        let gain: Vec<f64> = (0..grid.len())
+            .map(|i| {
+                if (14..17).contains(&grid.cell(i).col) {
+                    0.3
+                } else {
+                    0.05
+                }
+            })
+            .collect();
+        let f = Forecast {
+            basis: b.as_ref(),
+            cov: p.as_ref(),
+            detail_var: &dv,
+            modal_weight: m.as_ref(),
+            detail_gain: &gain,
+            value_weight: &weight,
+            unmodelled: &[],
+        };
+        let got = plan(
+            &grid,
+            &f,
+            &[Boat {
+                position: (0.0, 0.0),
+                reach_m: 1e9,
+            }],
+            1.0,
+            1e-2,
+        )
+        .unwrap();
+        assert!(
+            (14..17).contains(&got[0].centre.col),
+            "the disk is at {:?}",
+            got[0].centre
+        );
     }
 
     #[test]
@@ -292,16 +437,51 @@ mod tests {
         let b = left_mode(&grid);
         let (m, p) = (Mat::from_fn(1, 1, |_, _| 1.0), Mat::from_fn(1, 1, |_, _| 1e-12));
         let (dv, gain) = (vec![0.1; grid.len()], vec![0.05; grid.len()]);
-        let front: Vec<f64> = (0..grid.len()).map(|i| if (3..6).contains(&grid.cell(i).col) { 0.4 } else { 0.0 }).collect();
+        let front: Vec<f64> = (0..grid.len())
+            .map(|i| if (3..6).contains(&grid.cell(i).col) { 0.4 } else { 0.0 })
+            .collect();
         let weight = vec![0.5; grid.len()];
-        let f = Forecast { basis: b.as_ref(), cov: p.as_ref(), detail_var: &dv, modal_weight: m.as_ref(), detail_gain: &gain, value_weight: &weight, unmodelled: &[] }.with_unmodelled(&front);
-        let got = plan(&grid, &f, &[Boat { position: (19.0, 9.0), reach_m: 1e9 }], 1.0, 1e-2).unwrap();
-        assert!((3..6).contains(&got[0].centre.col), "the disk is at {:?}", got[0].centre);
+        let f = Forecast {
+            basis: b.as_ref(),
+            cov: p.as_ref(),
+            detail_var: &dv,
+            modal_weight: m.as_ref(),
+            detail_gain: &gain,
+            value_weight: &weight,
+            unmodelled: &[],
+        }
+        .with_unmodelled(&front);
+        let got = plan(
+            &grid,
+            &f,
+            &[Boat {
+                position: (19.0, 9.0),
+                reach_m: 1e9,
+            }],
+            1.0,
+            1e-2,
+        )
+        .unwrap();
+        assert!(
+            (3..6).contains(&got[0].centre.col),
+            "the disk is at {:?}",
+            got[0].centre
+        );
         let at = grid.index(Cell::new(5, 4));
         assert!((f.unmodelled_gain(at) - 0.75 * 0.4).abs() < 1e-15);
         let deaf = vec![0.0; grid.len()];
-        assert_eq!(Forecast { value_weight: &deaf, ..f }.unmodelled_gain(at), 0.0);
-        assert!(plan(&grid, &f.with_unmodelled(&front[1..]), &[], 1.0, 1e-2).is_err(), "one unmodelled variance per cell");
+        assert_eq!(
+            Forecast {
+                value_weight: &deaf,
+                ..f
+            }
+            .unmodelled_gain(at),
+            0.0
+        );
+        assert!(
+            plan(&grid, &f.with_unmodelled(&front[1..]), &[], 1.0, 1e-2).is_err(),
+            "one unmodelled variance per cell"
+        );
     }
 
     #[test]
@@ -310,7 +490,15 @@ mod tests {
         let b = Mat::<f64>::zeros(16, 1);
         let a = Mat::<f64>::identity(1, 1);
         let dv = vec![f64::NAN; 16];
-        let f = Forecast { basis: b.as_ref(), cov: a.as_ref(), detail_var: &dv, modal_weight: a.as_ref(), detail_gain: &dv, value_weight: &[0.5; 16], unmodelled: &[] };
+        let f = Forecast {
+            basis: b.as_ref(),
+            cov: a.as_ref(),
+            detail_var: &dv,
+            modal_weight: a.as_ref(),
+            detail_gain: &dv,
+            value_weight: &[0.5; 16],
+            unmodelled: &[],
+        };
         assert!(plan(&grid, &f, &[], 1.0, 1e-4).is_err());
     }
 }

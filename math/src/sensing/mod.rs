@@ -19,7 +19,10 @@ use thiserror::Error;
 
 #[derive(Debug, Error)]
 pub enum SensingError {
-    #[error("{rows} measured cells of rank {rank} cannot determine {modes} modes; measure more (or more varied) cells or lower the rank")]
+    #[error(
+        "{rows} measured cells of rank {rank} cannot determine {modes} modes; measure more (or more varied) cells \
+        or lower the rank"
+    )]
     Underdetermined { rows: usize, rank: usize, modes: usize },
     #[error("{0}")]
     Input(String),
@@ -32,7 +35,11 @@ pub enum SensingError {
 /// directions, a real mode one).
 pub fn real_basis(modes: MatRef<'_, faer::c64>) -> Result<Mat<f64>, SensingError> {
     let (n, r) = (modes.nrows(), modes.ncols());
-    let stacked = Mat::from_fn(n, 2 * r, |i, j| if j < r { modes[(i, j)].re } else { modes[(i, j - r)].im });
+    let stacked = Mat::from_fn(
+        n,
+        2 * r,
+        |i, j| if j < r { modes[(i, j)].re } else { modes[(i, j - r)].im },
+    );
     let svd = thin_svd(stacked.as_ref()).map_err(|e| SensingError::Numerical(e.to_string()))?;
     let q = crate::dmd::numerical_rank(&svd.s, n, 2 * r);
     Ok(svd.truncate(q).u)

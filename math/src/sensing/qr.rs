@@ -57,7 +57,9 @@ fn triangular_factor(phi: MatRef<'_, f64>) -> Mat<f64> {
     if let Ok(llt) = gram.llt(faer::Side::Lower) {
         let l = llt.L();
         let d: Vec<f64> = (0..l.nrows()).map(|i| l[(i, i)].abs()).collect();
-        let (lo, hi) = d.iter().fold((f64::INFINITY, 0.0f64), |(a, b), &v| (a.min(v), b.max(v)));
+        let (lo, hi) = d
+            .iter()
+            .fold((f64::INFINITY, 0.0f64), |(a, b), &v| (a.min(v), b.max(v)));
         if lo > 1e-6 * hi {
             return l.transpose().to_owned();
         }
@@ -86,7 +88,14 @@ impl Coords {
                 *s += v * v;
             }
         }
-        Self { r, n, rows, removed: vec![], n2_orig: n2.clone(), n2 }
+        Self {
+            r,
+            n,
+            rows,
+            removed: vec![],
+            n2_orig: n2.clone(),
+            n2,
+        }
     }
 
     /// Current residual norms (recomputing the ones cancellation has made unreliable).
@@ -147,7 +156,9 @@ impl Coords {
                 }
             }
         }
-        let eig = gram.self_adjoint_eigen(faer::Side::Lower).map_err(|e| SensingError::Numerical(format!("{e:?}")))?;
+        let eig = gram
+            .self_adjoint_eigen(faer::Side::Lower)
+            .map_err(|e| SensingError::Numerical(format!("{e:?}")))?;
         let s = eig.S().column_vector();
         // Eigenvalues come in ascending order.
         Ok((s[r - 1] > 0.0).then(|| eig.U().col(r - 1).iter().copied().collect()))
@@ -209,7 +220,9 @@ impl DiskSums {
         }
         let k = k.max(0.0);
         let reach = k.floor() as i64;
-        let half = (-reach..=reach).map(|dr| ((k * k + 1e-9 - (dr * dr) as f64).max(0.0)).sqrt().floor() as i64).collect();
+        let half = (-reach..=reach)
+            .map(|dr| ((k * k + 1e-9 - (dr * dr) as f64).max(0.0)).sqrt().floor() as i64)
+            .collect();
         Self { grid, prefix, half }
     }
 
@@ -237,19 +250,28 @@ pub(crate) fn blocked(grid: &Grid, excluded: &[bool]) -> Result<Vec<f64>, Sensin
     match excluded.len() {
         0 => Ok(vec![0.0; grid.len()]),
         n if n == grid.len() => Ok(excluded.iter().map(|&x| if x { 1.0 } else { 0.0 }).collect()),
-        n => Err(SensingError::Input(format!("{n} exclusion flags for {} cells", grid.len()))),
+        n => Err(SensingError::Input(format!(
+            "{n} exclusion flags for {} cells",
+            grid.len()
+        ))),
     }
 }
 
 fn check(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Result<(), SensingError> {
     if phi.nrows() != grid.len() {
-        return Err(SensingError::Input(format!("basis has {} rows, the grid {} cells", phi.nrows(), grid.len())));
+        return Err(SensingError::Input(format!(
+            "basis has {} rows, the grid {} cells",
+            phi.nrows(),
+            grid.len()
+        )));
     }
     if phi.ncols() == 0 {
         return Err(SensingError::Input("empty basis".into()));
     }
     if !(radius.is_finite() && radius >= 0.0) {
-        return Err(SensingError::Input(format!("radius must be finite and >= 0, got {radius}")));
+        return Err(SensingError::Input(format!(
+            "radius must be finite and >= 0, got {radius}"
+        )));
     }
     if m == 0 {
         return Err(SensingError::Input("at least one disk must be asked for".into()));
@@ -280,7 +302,13 @@ pub fn block_qr(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Res
 
 /// [`block_qr`] with the cells marked in `excluded` (one flag per cell; empty: none) never in
 /// a disk: outside the site's fence.
-pub fn block_qr_within(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64, excluded: &[bool]) -> Result<Vec<Disk>, SensingError> {
+pub fn block_qr_within(
+    phi: MatRef<'_, f64>,
+    grid: &Grid,
+    m: usize,
+    radius: f64,
+    excluded: &[bool],
+) -> Result<Vec<Disk>, SensingError> {
     check(phi, grid, m, radius)?;
     let mut c = Coords::new(phi);
     let mut norms = c.norms();
@@ -294,7 +322,11 @@ pub fn block_qr_within(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64,
         let sums = DiskSums::new(*grid, &norms, radius);
         let taken = DiskSums::new(*grid, &covered, radius);
         let exhausted = !(total > 1e-12 * first);
-        let pick = if exhausted { best_candidate(grid, &taken, |cell| original.disk_sum(cell)) } else { best_candidate(grid, &taken, |cell| sums.disk_sum(cell)) };
+        let pick = if exhausted {
+            best_candidate(grid, &taken, |cell| original.disk_sum(cell))
+        } else {
+            best_candidate(grid, &taken, |cell| sums.disk_sum(cell))
+        };
         let Some((centre, _)) = pick else { break };
         let cells = grid.disk(centre, radius);
         let weight: f64 = cells.iter().map(|&p| norms[p]).sum();
@@ -308,7 +340,12 @@ pub fn block_qr_within(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64,
                 norms = c.norms();
             }
         }
-        out.push(Disk { centre, cells, weight, share: if total > 0.0 { weight / total } else { 0.0 } });
+        out.push(Disk {
+            centre,
+            cells,
+            weight,
+            share: if total > 0.0 { weight / total } else { 0.0 },
+        });
     }
     Ok(out)
 }
@@ -321,7 +358,13 @@ pub fn block_dopt(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> R
 }
 
 /// [`block_dopt`] with the cells marked in `excluded` never in a disk.
-pub fn block_dopt_within(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64, excluded: &[bool]) -> Result<Vec<Disk>, SensingError> {
+pub fn block_dopt_within(
+    phi: MatRef<'_, f64>,
+    grid: &Grid,
+    m: usize,
+    radius: f64,
+    excluded: &[bool],
+) -> Result<Vec<Disk>, SensingError> {
     check(phi, grid, m, radius)?;
     let (n, r) = (phi.nrows(), phi.ncols());
     let trace: f64 = (0..r).map(|j| phi.col(j).squared_norm_l2()).sum();
@@ -332,11 +375,22 @@ pub fn block_dopt_within(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f6
     let packed: Vec<(usize, usize)> = (0..r).flat_map(|a| (a..r).map(move |b| (a, b))).collect();
     for _ in 0..m {
         // Whiten the rows by the current information: g_p = L^-1 phi_p^T.
-        let llt = info.llt(faer::Side::Lower).map_err(|e| SensingError::Numerical(format!("{e:?}")))?;
+        let llt = info
+            .llt(faer::Side::Lower)
+            .map_err(|e| SensingError::Numerical(format!("{e:?}")))?;
         let mut g = phi.transpose().to_owned();
         faer::linalg::triangular_solve::solve_lower_triangular_in_place(llt.L(), g.as_mut(), faer::Par::Seq);
         // Disk sums of every entry of g_p g_p^T.
-        let sums: Vec<DiskSums> = packed.iter().map(|&(a, b)| DiskSums::new(*grid, &(0..n).map(|p| g[(a, p)] * g[(b, p)]).collect::<Vec<_>>(), radius)).collect();
+        let sums: Vec<DiskSums> = packed
+            .iter()
+            .map(|&(a, b)| {
+                DiskSums::new(
+                    *grid,
+                    &(0..n).map(|p| g[(a, p)] * g[(b, p)]).collect::<Vec<_>>(),
+                    radius,
+                )
+            })
+            .collect();
         let taken = DiskSums::new(*grid, &covered, radius);
         let gain = |cell: Cell| -> f64 {
             let mut b = Mat::<f64>::identity(r, r);
@@ -352,7 +406,9 @@ pub fn block_dopt_within(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f6
                 Err(_) => f64::NEG_INFINITY,
             }
         };
-        let Some((centre, g_best)) = best_candidate(grid, &taken, gain) else { break };
+        let Some((centre, g_best)) = best_candidate(grid, &taken, gain) else {
+            break;
+        };
         let cells = grid.disk(centre, radius);
         for &p in &cells {
             covered[p] = 1.0;
@@ -362,7 +418,12 @@ pub fn block_dopt_within(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f6
                 }
             }
         }
-        out.push(Disk { centre, cells, weight: g_best, share: 0.0 });
+        out.push(Disk {
+            centre,
+            cells,
+            weight: g_best,
+            share: 0.0,
+        });
     }
     Ok(out)
 }

@@ -10,11 +10,15 @@ pub const MAX_ID_LEN: usize = 32;
 /// An id is 1-32 characters of `[A-Za-z0-9_-]`: nothing a Zenoh key expression would read as
 /// a separator or wildcard (`/`, `*`, `$`, `?`, `#`).
 pub fn check_id(what: &str, id: &str) -> Result<(), ProtocolError> {
-    let ok = !id.is_empty() && id.len() <= MAX_ID_LEN && id.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+    let ok = !id.is_empty()
+        && id.len() <= MAX_ID_LEN
+        && id.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
     if ok {
         Ok(())
     } else {
-        Err(ProtocolError::Invalid(format!("{what} id {id:?} must be 1-{MAX_ID_LEN} characters of A-Z a-z 0-9 _ -")))
+        Err(ProtocolError::Invalid(format!(
+            "{what} id {id:?} must be 1-{MAX_ID_LEN} characters of A-Z a-z 0-9 _ -"
+        )))
     }
 }
 
@@ -27,7 +31,9 @@ pub struct Keys {
 impl Keys {
     pub fn new(mission: &str) -> Result<Self, ProtocolError> {
         check_id("mission", mission)?;
-        Ok(Self { mission: mission.into() })
+        Ok(Self {
+            mission: mission.into(),
+        })
     }
 
     fn vehicle(&self, id: &str, leaf: &str) -> String {
@@ -129,10 +135,16 @@ mod tests {
         assert_eq!(k.plan("av-1"), "fleet/tank-1/plan/av-1");
         assert_eq!(k.mavlink("boat-3"), "fleet/tank-1/vehicle/boat-3/mavlink");
         assert_eq!(k.gcs("boat-3"), "fleet/tank-1/gcs/boat-3/mavlink");
-        assert_eq!(k.vehicle_of("fleet/tank-1/vehicle/boat-3/measurements").as_deref(), Some("boat-3"));
+        assert_eq!(
+            k.vehicle_of("fleet/tank-1/vehicle/boat-3/measurements").as_deref(),
+            Some("boat-3")
+        );
         assert_eq!(k.vehicle_of("fleet/other/vehicle/boat-3/measurements"), None);
         assert_eq!(k.id_after("fleet/tank-1/plan/av-2", "plan").as_deref(), Some("av-2"));
-        assert_eq!(k.id_after("fleet/tank-1/alive/boat-1", "alive").as_deref(), Some("boat-1"));
+        assert_eq!(
+            k.id_after("fleet/tank-1/alive/boat-1", "alive").as_deref(),
+            Some("boat-1")
+        );
         assert_eq!(k.id_after("fleet/tank-1/plan/*", "plan"), None);
         for bad in ["", "a/b", "*", "a$", "x".repeat(33).as_str(), "ü"] {
             assert!(check_id("vehicle", bad).is_err(), "{bad:?}");

@@ -252,7 +252,14 @@ struct Wire {
 /// Encode a message with the current schema version.
 pub fn encode(body: &Body) -> Vec<u8> {
     let mut out = vec![];
-    ciborium::into_writer(&Wire { v: SCHEMA_VERSION, body: body.clone() }, &mut out).expect("writing CBOR to memory cannot fail");
+    ciborium::into_writer(
+        &Wire {
+            v: SCHEMA_VERSION,
+            body: body.clone(),
+        },
+        &mut out,
+    )
+    .expect("writing CBOR to memory cannot fail");
     out
 }
 
@@ -270,14 +277,23 @@ pub struct Context {
 
 impl Context {
     pub fn new(grid: Grid) -> Self {
-        Self { grid, vehicles: vec![], max_payload: MAX_PAYLOAD, max_samples: 10_000, max_cells: grid.len() }
+        Self {
+            grid,
+            vehicles: vec![],
+            max_payload: MAX_PAYLOAD,
+            max_samples: 10_000,
+            max_cells: grid.len(),
+        }
     }
 }
 
 /// Decode and validate one payload.
 pub fn decode(bytes: &[u8], ctx: &Context) -> Result<Body, ProtocolError> {
     if bytes.len() > ctx.max_payload {
-        return Err(ProtocolError::TooLarge { size: bytes.len(), limit: ctx.max_payload });
+        return Err(ProtocolError::TooLarge {
+            size: bytes.len(),
+            limit: ctx.max_payload,
+        });
     }
     // The version first, so an incompatible sender gets the right error, not "malformed".
     #[derive(Deserialize)]
@@ -285,16 +301,21 @@ pub fn decode(bytes: &[u8], ctx: &Context) -> Result<Body, ProtocolError> {
         v: u16,
     }
     let mut cursor = std::io::Cursor::new(bytes);
-    let value: ciborium::Value = ciborium::from_reader(&mut cursor).map_err(|e| ProtocolError::Malformed(e.to_string()))?;
+    let value: ciborium::Value =
+        ciborium::from_reader(&mut cursor).map_err(|e| ProtocolError::Malformed(e.to_string()))?;
     let rest = bytes.len() - cursor.position() as usize;
     if rest > 0 {
         return Err(ProtocolError::Trailing(rest));
     }
-    let v: Version = value.deserialized().map_err(|e| ProtocolError::Malformed(format!("no schema version: {e}")))?;
+    let v: Version = value
+        .deserialized()
+        .map_err(|e| ProtocolError::Malformed(format!("no schema version: {e}")))?;
     if v.v != SCHEMA_VERSION {
         return Err(ProtocolError::Version { got: v.v });
     }
-    let wire: Wire = value.deserialized().map_err(|e| ProtocolError::Malformed(e.to_string()))?;
+    let wire: Wire = value
+        .deserialized()
+        .map_err(|e| ProtocolError::Malformed(e.to_string()))?;
     validate(&wire.body, ctx)?;
     Ok(wire.body)
 }
@@ -317,7 +338,11 @@ fn vehicle(id: &str, ctx: &Context) -> Result<(), ProtocolError> {
 fn position(p: [f64; 2], grid: &Grid) -> Result<(), ProtocolError> {
     finite("position", &p)?;
     if p[0] < 0.0 || p[1] < 0.0 || p[0] > grid.width_m() || p[1] > grid.height_m() {
-        return Err(ProtocolError::Invalid(format!("position {p:?} outside the {} x {} m workspace", grid.width_m(), grid.height_m())));
+        return Err(ProtocolError::Invalid(format!(
+            "position {p:?} outside the {} x {} m workspace",
+            grid.width_m(),
+            grid.height_m()
+        )));
     }
     Ok(())
 }
@@ -335,15 +360,27 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
             }
             // An empty batch is a vehicle reporting an epoch in which it had nothing to sense.
             if b.samples.len() > ctx.max_samples {
-                return inv(format!("a batch holds at most {} samples, got {}", ctx.max_samples, b.samples.len()));
+                return inv(format!(
+                    "a batch holds at most {} samples, got {}",
+                    ctx.max_samples,
+                    b.samples.len()
+                ));
             }
             for (k, s) in b.samples.iter().enumerate() {
                 position(s.position, &ctx.grid)?;
                 if s.cells.len() != s.values.len() {
-                    return inv(format!("sample {k}: {} cells but {} values", s.cells.len(), s.values.len()));
+                    return inv(format!(
+                        "sample {k}: {} cells but {} values",
+                        s.cells.len(),
+                        s.values.len()
+                    ));
                 }
                 if s.cells.len() > ctx.max_cells {
-                    return inv(format!("sample {k}: at most {} cells, got {}", ctx.max_cells, s.cells.len()));
+                    return inv(format!(
+                        "sample {k}: at most {} cells, got {}",
+                        ctx.max_cells,
+                        s.cells.len()
+                    ));
                 }
                 if let Some(c) = s.cells.iter().find(|&&c| c as usize >= n) {
                     return inv(format!("sample {k}: cell {c} outside the {n}-cell grid"));
@@ -359,7 +396,11 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
                 return inv("autopilot mode name over 32 characters".into());
             }
             // A STATUSTEXT is at most 50 characters.
-            if t.autopilot.as_ref().and_then(|a| a.failsafe.as_ref()).is_some_and(|f| f.len() > 64) {
+            if t.autopilot
+                .as_ref()
+                .and_then(|a| a.failsafe.as_ref())
+                .is_some_and(|f| f.len() > 64)
+            {
                 return inv("autopilot failsafe text over 64 characters".into());
             }
             if !(0.0..=1.0).contains(&t.battery) {
@@ -372,9 +413,15 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
                 return inv(format!("model grid {:?} is not ours {:?}", m.grid, ctx.grid));
             }
             let r = m.eigenvalues.len();
-            if m.modes_re.len() != n * r || m.modes_im.len() != n * r || m.amplitudes.len() != r || m.variance.len() != n || m.forecast_variance.len() != n {
+            if m.modes_re.len() != n * r
+                || m.modes_im.len() != n * r
+                || m.amplitudes.len() != r
+                || m.variance.len() != n
+                || m.forecast_variance.len() != n
+            {
                 return inv(format!(
-                    "model of rank {r} on {n} cells has {} / {} mode values, {} amplitudes, {} variances, {} forecast variances",
+                    "model of rank {r} on {n} cells has {} / {} mode values, {} amplitudes, {} variances, {} forecast \
+                        variances",
                     m.modes_re.len(),
                     m.modes_im.len(),
                     m.amplitudes.len(),
@@ -442,8 +489,16 @@ mod tests {
             vehicle: "boat-1".into(),
             kind: VehicleKind::Boat,
             seq: 3,
-            noise: Noise { sigma0: 0.1, growth_per_m: 0.0 },
-            samples: vec![Sample { step: 10, position: [1.5, 2.5], cells: vec![0, 7, 19], values: vec![0.3, 0.4, 0.5] }],
+            noise: Noise {
+                sigma0: 0.1,
+                growth_per_m: 0.0,
+            },
+            samples: vec![Sample {
+                step: 10,
+                position: [1.5, 2.5],
+                cells: vec![0, 7, 19],
+                values: vec![0.3, 0.4, 0.5],
+            }],
         })
     }
 
@@ -452,8 +507,21 @@ mod tests {
         let g = Grid::new(4, 5, 1.0).unwrap();
         let msgs = vec![
             batch(),
-            Body::Telemetry(Telemetry { vehicle: "av-1".into(), step: 2, position: [0.0, 4.0], heading: 1.0, battery: 0.5, link: LinkState::Down, outbox_depth: 7, autopilot: None, acked: Some(3) }),
-            Body::Ack(Ack { vehicle: "boat-1".into(), seq: 9 }),
+            Body::Telemetry(Telemetry {
+                vehicle: "av-1".into(),
+                step: 2,
+                position: [0.0, 4.0],
+                heading: 1.0,
+                battery: 0.5,
+                link: LinkState::Down,
+                outbox_depth: 7,
+                autopilot: None,
+                acked: Some(3),
+            }),
+            Body::Ack(Ack {
+                vehicle: "boat-1".into(),
+                seq: 9,
+            }),
             Body::Model(ModelUpdate {
                 version: 1,
                 epoch: 2,
@@ -469,7 +537,18 @@ mod tests {
                 forecast_steps: 5,
                 forecast_variance: vec![0.02; 20],
             }),
-            Body::Plan(Plan { vehicle: "boat-1".into(), model_version: 1, epoch: 3, targets: vec![Target { epoch: 3, step: 45, position: [2.0, 2.0], radius: 1.5, cells: vec![0, 1, 5] }] }),
+            Body::Plan(Plan {
+                vehicle: "boat-1".into(),
+                model_version: 1,
+                epoch: 3,
+                targets: vec![Target {
+                    epoch: 3,
+                    step: 45,
+                    position: [2.0, 2.0],
+                    radius: 1.5,
+                    cells: vec![0, 1, 5],
+                }],
+            }),
         ];
         for m in msgs {
             assert_eq!(decode(&encode(&m), &ctx()).unwrap(), m);
@@ -482,8 +561,14 @@ mod tests {
         let map = v.as_map().unwrap();
         let get = |k: &str| map.iter().find(|(a, _)| a.as_text() == Some(k)).map(|(_, b)| b.clone());
         assert_eq!(get("v").and_then(|x| x.as_integer()).map(i128::from), Some(1));
-        assert_eq!(get("type").and_then(|x| x.as_text().map(str::to_string)).as_deref(), Some("batch"));
-        assert_eq!(get("vehicle").and_then(|x| x.as_text().map(str::to_string)).as_deref(), Some("boat-1"));
+        assert_eq!(
+            get("type").and_then(|x| x.as_text().map(str::to_string)).as_deref(),
+            Some("batch")
+        );
+        assert_eq!(
+            get("vehicle").and_then(|x| x.as_text().map(str::to_string)).as_deref(),
+            Some("boat-1")
+        );
     }
 
     #[test]
@@ -508,13 +593,24 @@ mod tests {
         };
         assert_eq!(bad(&|b| b.vehicle = "boat-2".into()).reason(), "unknown_vehicle");
         assert_eq!(bad(&|b| b.vehicle = "boat/1".into()).reason(), "invalid");
-        assert!(bad(&|b| b.samples[0].values[1] = f64::NAN).to_string().contains("not finite"));
-        assert!(bad(&|b| b.samples[0].cells[2] = 20).to_string().contains("outside the 20-cell grid"));
-        assert!(bad(&|b| b.samples[0].values.pop().map(|_| ()).unwrap_or(())).to_string().contains("3 cells but 2 values"));
-        assert!(bad(&|b| b.samples[0].position = [9.0, 1.0]).to_string().contains("outside"));
+        assert!(bad(&|b| b.samples[0].values[1] = f64::NAN)
+            .to_string()
+            .contains("not finite"));
+        assert!(bad(&|b| b.samples[0].cells[2] = 20)
+            .to_string()
+            .contains("outside the 20-cell grid"));
+        assert!(bad(&|b| b.samples[0].values.pop().map(|_| ()).unwrap_or(()))
+            .to_string()
+            .contains("3 cells but 2 values"));
+        assert!(bad(&|b| b.samples[0].position = [9.0, 1.0])
+            .to_string()
+            .contains("outside"));
         let mut huge = c.clone();
         huge.max_samples = 0;
-        assert!(decode(&good, &huge).unwrap_err().to_string().contains("at most 0 samples"));
+        assert!(decode(&good, &huge)
+            .unwrap_err()
+            .to_string()
+            .contains("at most 0 samples"));
         assert!(bad(&|b| b.noise.sigma0 = -1.0).to_string().contains("noise"));
     }
 

@@ -49,7 +49,12 @@ impl Geofence {
                         return Err(MavMissionResult::MAV_MISSION_INVALID_PARAM1);
                     }
                     let vertices: Vec<[f64; 2]> = poly.iter().map(en).collect();
-                    if it.command == MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION { &mut f.inclusion } else { &mut f.exclusion }.push(vertices);
+                    if it.command == MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION {
+                        &mut f.inclusion
+                    } else {
+                        &mut f.exclusion
+                    }
+                    .push(vertices);
                     k += n as usize;
                 }
                 MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION | MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION => {
@@ -57,7 +62,12 @@ impl Geofence {
                         return Err(MavMissionResult::MAV_MISSION_INVALID_PARAM1);
                     }
                     let c = (en(it), it.param1 as f64);
-                    if it.command == MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION { &mut f.inclusion_circles } else { &mut f.exclusion_circles }.push(c);
+                    if it.command == MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION {
+                        &mut f.inclusion_circles
+                    } else {
+                        &mut f.exclusion_circles
+                    }
+                    .push(c);
                     k += 1;
                 }
                 MAV_CMD_NAV_FENCE_RETURN_POINT => k += 1,
@@ -68,14 +78,18 @@ impl Geofence {
     }
 
     pub fn is_empty(&self) -> bool {
-        self.inclusion.is_empty() && self.exclusion.is_empty() && self.inclusion_circles.is_empty() && self.exclusion_circles.is_empty()
+        self.inclusion.is_empty()
+            && self.exclusion.is_empty()
+            && self.inclusion_circles.is_empty()
+            && self.exclusion_circles.is_empty()
     }
 
     /// Whether a local NED point is inside the fence.
     pub fn contains(&self, ned: &Vector3<f64>) -> bool {
         let p = [ned.y, ned.x];
         let in_circle = |(c, r): &([f64; 2], f64)| (p[0] - c[0]).hypot(p[1] - c[1]) <= *r;
-        let included = (self.inclusion.is_empty() && self.inclusion_circles.is_empty()) || (self.inclusion.iter().all(|poly| inside(poly, p)) && self.inclusion_circles.iter().all(in_circle));
+        let included = (self.inclusion.is_empty() && self.inclusion_circles.is_empty())
+            || (self.inclusion.iter().all(|poly| inside(poly, p)) && self.inclusion_circles.iter().all(in_circle));
         included && !self.exclusion.iter().any(|poly| inside(poly, p)) && !self.exclusion_circles.iter().any(in_circle)
     }
 }
@@ -88,7 +102,13 @@ mod tests {
 
     fn item(site: &Site, command: MavCmd, param1: f32, north: f64, east: f64) -> MISSION_ITEM_INT_DATA {
         let (lat, lon, _) = site.global_of(&Vector3::new(north, east, 0.0));
-        MISSION_ITEM_INT_DATA { command, param1, x: (lat * 1e7).round() as i32, y: (lon * 1e7).round() as i32, ..Default::default() }
+        MISSION_ITEM_INT_DATA {
+            command,
+            param1,
+            x: (lat * 1e7).round() as i32,
+            y: (lon * 1e7).round() as i32,
+            ..Default::default()
+        }
     }
 
     #[test]
@@ -96,7 +116,14 @@ mod tests {
         let site = Site::new(&MavlinkConfig::default(), &Grid::new(100, 100, 1.0).unwrap());
         let v = MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION;
         // An L (east, north): [0,100]^2 without its north-east quarter; a 5 m hole at (20, 20).
-        let ell = [(0.0, 0.0), (100.0, 0.0), (100.0, 50.0), (50.0, 50.0), (50.0, 100.0), (0.0, 100.0)];
+        let ell = [
+            (0.0, 0.0),
+            (100.0, 0.0),
+            (100.0, 50.0),
+            (50.0, 50.0),
+            (50.0, 100.0),
+            (0.0, 100.0),
+        ];
         let mut items: Vec<_> = ell.iter().map(|&(e, n)| item(&site, v, 6.0, n, e)).collect();
         items.push(item(&site, MavCmd::MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION, 5.0, 20.0, 20.0));
         let f = Geofence::from_items(&items, &site).unwrap();
@@ -106,12 +133,26 @@ mod tests {
         assert!(!at(21.0, 21.0), "the hole");
         assert!(!at(-1.0, 10.0) && !at(10.0, 101.0));
         // A polygon whose count does not match its items, or a mission item, is refused.
-        assert_eq!(Geofence::from_items(&items[..4], &site), Err(MavMissionResult::MAV_MISSION_INVALID_PARAM1));
+        assert_eq!(
+            Geofence::from_items(&items[..4], &site),
+            Err(MavMissionResult::MAV_MISSION_INVALID_PARAM1)
+        );
         let mut bad = items.clone();
         bad[0].param1 = 2.0;
-        assert_eq!(Geofence::from_items(&bad, &site), Err(MavMissionResult::MAV_MISSION_INVALID_PARAM1));
+        assert_eq!(
+            Geofence::from_items(&bad, &site),
+            Err(MavMissionResult::MAV_MISSION_INVALID_PARAM1)
+        );
         bad[0] = item(&site, MavCmd::MAV_CMD_NAV_WAYPOINT, 0.0, 0.0, 0.0);
-        assert_eq!(Geofence::from_items(&bad, &site), Err(MavMissionResult::MAV_MISSION_UNSUPPORTED));
-        assert!(Geofence::from_items(&[], &site).unwrap().contains(&Vector3::new(1e6, 1e6, 0.0)), "no fence: everywhere");
+        assert_eq!(
+            Geofence::from_items(&bad, &site),
+            Err(MavMissionResult::MAV_MISSION_UNSUPPORTED)
+        );
+        assert!(
+            Geofence::from_items(&[], &site)
+                .unwrap()
+                .contains(&Vector3::new(1e6, 1e6, 0.0)),
+            "no fence: everywhere"
+        );
     }
 }

@@ -73,12 +73,19 @@ impl Frame {
     }
 
     pub fn name(self, custom_mode: u32) -> String {
-        self.table().iter().find(|m| m.0 == custom_mode).map_or_else(|| format!("MODE({custom_mode})"), |m| m.1.to_string())
+        self.table()
+            .iter()
+            .find(|m| m.0 == custom_mode)
+            .map_or_else(|| format!("MODE({custom_mode})"), |m| m.1.to_string())
     }
 
     /// The mode a role is entered by (the first of the table with it).
     pub fn mode(self, role: Role) -> u32 {
-        self.table().iter().find(|m| m.2 == role).map(|m| m.0).expect("every role has a mode")
+        self.table()
+            .iter()
+            .find(|m| m.2 == role)
+            .map(|m| m.0)
+            .expect("every role has a mode")
     }
 
     /// The mode an operator's hold (MAV_CMD_DO_PAUSE_CONTINUE 0) enters.

@@ -19,7 +19,11 @@ fn positive(v: f32) -> bool {
     v.is_finite() && v > 0.0
 }
 
-const SYSID: Param = Param { name: "SYSID_THISMAV", get: |s| s.sysid as f32, set: None };
+const SYSID: Param = Param {
+    name: "SYSID_THISMAV",
+    get: |s| s.sysid as f32,
+    set: None,
+};
 /// A failsafe action's parameter (0 continue, 1 RTL, 2 HOLD) over a field of [`super::safety::Safety`].
 macro_rules! action_param {
     ($name:literal, $field:ident) => {

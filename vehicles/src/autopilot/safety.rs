@@ -62,6 +62,13 @@ impl Default for Safety {
     /// RTL on a low battery), and a battery of 20 Ah with a low mark at 20 %: two hours at
     /// full speed.
     fn default() -> Self {
-        Self { fence_enable: false, fence_action: Action::Rtl, battery_mah: 20_000.0, battery_low_mah: 4_000.0, low_battery_action: Action::Rtl, battery_start_mah: None }
+        Self {
+            fence_enable: false,
+            fence_action: Action::Rtl,
+            battery_mah: 20_000.0,
+            battery_low_mah: 4_000.0,
+            low_battery_action: Action::Rtl,
+            battery_start_mah: None,
+        }
     }
 }

@@ -38,37 +38,56 @@ impl ServeStats {
 
 /// Serve `sim` on `address` until `stop` (signed with `signing`, if given); the reader thread
 /// ends with the process.
-pub fn spawn(address: &str, sim: SimAutopilot, signing: Option<LinkSigning>, stop: Arc<AtomicBool>) -> std::io::Result<Arc<ServeStats>> {
+pub fn spawn(
+    address: &str,
+    sim: SimAutopilot,
+    signing: Option<LinkSigning>,
+    stop: Arc<AtomicBool>,
+) -> std::io::Result<Arc<ServeStats>> {
     let conn = Arc::new(MavLink::open(address, signing)?);
     let stats = Arc::new(ServeStats::default());
     let (tx, rx) = mpsc::channel();
     {
         let (conn, stats) = (conn.clone(), stats.clone());
-        std::thread::Builder::new().name("sim-autopilot-rx".into()).spawn(move || loop {
-            match conn.recv() {
-                Received::Frame(h, m, _) => {
-                    stats.received.fetch_add(1, Ordering::Relaxed);
-                    if tx.send((h, m)).is_err() {
-                        return;
+        std::thread::Builder::new()
+            .name("sim-autopilot-rx".into())
+            .spawn(move || loop {
+                match conn.recv() {
+                    Received::Frame(h, m, _) => {
+                        stats.received.fetch_add(1, Ordering::Relaxed);
+                        if tx.send((h, m)).is_err() {
+                            return;
+                        }
+                    }
+                    Received::Idle => std::thread::sleep(Duration::from_millis(20)),
+                    Received::Refused(r) => {
+                        stats.refused(r).fetch_add(1, Ordering::Relaxed);
+                    }
+                    Received::Unreadable(_) => {
+                        stats.unreadable.fetch_add(1, Ordering::Relaxed);
                     }
                 }
-                Received::Idle => std::thread::sleep(Duration::from_millis(20)),
-                Received::Refused(r) => {
-                    stats.refused(r).fetch_add(1, Ordering::Relaxed);
-                }
-                Received::Unreadable(_) => {
-                    stats.unreadable.fetch_add(1, Ordering::Relaxed);
-                }
-            }
-        })?;
+            })?;
     }
     let st = stats.clone();
-    std::thread::Builder::new().name("sim-autopilot".into()).spawn(move || run(conn, sim, rx, stop, st))?;
+    std::thread::Builder::new()
+        .name("sim-autopilot".into())
+        .spawn(move || run(conn, sim, rx, stop, st))?;
     Ok(stats)
 }
 
-fn run(conn: Arc<MavLink>, mut sim: SimAutopilot, rx: mpsc::Receiver<(MavHeader, MavMessage)>, stop: Arc<AtomicBool>, stats: Arc<ServeStats>) {
-    let mut header = MavHeader { system_id: sim.spec.sysid as u32, component_id: 1, sequence: 0 };
+fn run(
+    conn: Arc<MavLink>,
+    mut sim: SimAutopilot,
+    rx: mpsc::Receiver<(MavHeader, MavMessage)>,
+    stop: Arc<AtomicBool>,
+    stats: Arc<ServeStats>,
+) {
+    let mut header = MavHeader {
+        system_id: sim.spec.sysid as u32,
+        component_id: 1,
+        sequence: 0,
+    };
     let mut send = |m: &MavMessage| {
         // No peer yet (udpin before the first datagram), or it went away: dropped, as on a radio.
         if conn.send(&header, m).is_ok() {

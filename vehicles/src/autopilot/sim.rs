@@ -56,9 +56,23 @@ impl SimSpec {
             Frame::Multirotor => m.multirotor_speed_ms,
         };
         let action = |name: &str| Action::from_name(name).unwrap_or(Action::Rtl);
-        let safety =
-            Safety { fence_action: action(&m.fence_action), battery_mah: m.battery_mah, battery_low_mah: m.battery_low_mah, low_battery_action: action(&m.low_battery_action), ..Safety::default() };
-        Self { frame, sysid, site, max_speed, turn_rate: m.boat_turn_rate_dps.to_radians(), cruise_alt: m.cruise_alt_m, speedup: m.sim_speedup, safety }
+        let safety = Safety {
+            fence_action: action(&m.fence_action),
+            battery_mah: m.battery_mah,
+            battery_low_mah: m.battery_low_mah,
+            low_battery_action: action(&m.low_battery_action),
+            ..Safety::default()
+        };
+        Self {
+            frame,
+            sysid,
+            site,
+            max_speed,
+            turn_rate: m.boat_turn_rate_dps.to_radians(),
+            cruise_alt: m.cruise_alt_m,
+            speedup: m.sim_speedup,
+            safety,
+        }
     }
 }
 
@@ -120,7 +134,10 @@ impl SimAutopilot {
     /// Boots disarmed, in the frame's boot mode, at `home` (local NED).
     pub fn new(spec: SimSpec, home: Vector3<f64>) -> Self {
         let mode = spec.frame.boot_mode();
-        let consumed_mah = spec.safety.battery_start_mah.map_or(0.0, |c| (spec.safety.battery_mah - c).max(0.0));
+        let consumed_mah = spec
+            .safety
+            .battery_start_mah
+            .map_or(0.0, |c| (spec.safety.battery_mah - c).max(0.0));
         Self {
             spec,
             pos: home,
@@ -162,18 +179,31 @@ impl SimAutopilot {
     }
 
     fn ack(&mut self, command: MavCmd, ok: bool) {
-        let result = if ok { MavResult::MAV_RESULT_ACCEPTED } else { MavResult::MAV_RESULT_DENIED };
-        self.out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA { command, result, ..Default::default() }));
+        let result = if ok {
+            MavResult::MAV_RESULT_ACCEPTED
+        } else {
+            MavResult::MAV_RESULT_DENIED
+        };
+        self.out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+            command,
+            result,
+            ..Default::default()
+        }));
     }
 
     fn set_mode(&mut self, mode: u32) -> bool {
-        let Some(role) = self.spec.frame.role(mode) else { return false };
+        let Some(role) = self.spec.frame.role(mode) else {
+            return false;
+        };
         if role == Role::Auto && self.mode != mode {
             if self.mission_run == Run::Complete {
                 // AUTO again after the end: from the start, as ArduPilot does.
                 self.current = self.first_item();
             }
-            self.current = self.current.clamp(self.first_item(), self.mission.len().saturating_sub(1).max(self.first_item() as usize) as u16);
+            self.current = self.current.clamp(
+                self.first_item(),
+                self.mission.len().saturating_sub(1).max(self.first_item() as usize) as u16,
+            );
             self.mission_run = Run::Started;
         }
         if role != Role::Guided {
@@ -207,7 +237,10 @@ impl SimAutopilot {
                 self.set_mode(self.spec.frame.hold_mode())
             }
             MAV_CMD_DO_PAUSE_CONTINUE => {
-                let back = self.mode_before_pause.take().unwrap_or(self.spec.frame.mode(Role::Guided));
+                let back = self
+                    .mode_before_pause
+                    .take()
+                    .unwrap_or(self.spec.frame.mode(Role::Guided));
                 self.set_mode(back)
             }
             MAV_CMD_DO_REPOSITION => {
@@ -232,7 +265,11 @@ impl SimAutopilot {
             MAV_CMD_GET_HOME_POSITION => return self.send_home(command),
             MAV_CMD_REQUEST_MESSAGE if p[0] as u32 == HOME_POSITION_DATA::ID => return self.send_home(command),
             _ => {
-                self.out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA { command, result: MavResult::MAV_RESULT_UNSUPPORTED, ..Default::default() }));
+                self.out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+                    command,
+                    result: MavResult::MAV_RESULT_UNSUPPORTED,
+                    ..Default::default()
+                }));
                 return;
             }
         };
@@ -275,14 +312,25 @@ impl SimAutopilot {
     }
 
     fn mission_ack(&mut self, to: (u8, u8), result: MavMissionResult, mission_type: MavMissionType) {
-        self.out.push(MavMessage::MISSION_ACK(MISSION_ACK_DATA { target_system: to.0, target_component: to.1, mavtype: result, mission_type, ..Default::default() }));
+        self.out.push(MavMessage::MISSION_ACK(MISSION_ACK_DATA {
+            target_system: to.0,
+            target_component: to.1,
+            mavtype: result,
+            mission_type,
+            ..Default::default()
+        }));
     }
 
     fn request_item(&mut self, seq: u16) {
         if let Some(u) = &mut self.upload {
             u.asked_at = self.wall_s;
             let (target_system, target_component) = u.from;
-            self.out.push(MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq, target_system, target_component, mission_type: u.kind }));
+            self.out.push(MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
+                seq,
+                target_system,
+                target_component,
+                mission_type: u.kind,
+            }));
         }
     }
 
@@ -308,7 +356,9 @@ impl SimAutopilot {
                 | MAV_CMD_NAV_FENCE_RETURN_POINT => Ok(()),
                 _ => Err(MavMissionResult::MAV_MISSION_UNSUPPORTED),
             },
-            MavMissionType::MAV_MISSION_TYPE_RALLY if item.command != MAV_CMD_NAV_RALLY_POINT => Err(MavMissionResult::MAV_MISSION_UNSUPPORTED),
+            MavMissionType::MAV_MISSION_TYPE_RALLY if item.command != MAV_CMD_NAV_RALLY_POINT => {
+                Err(MavMissionResult::MAV_MISSION_UNSUPPORTED)
+            }
             MavMissionType::MAV_MISSION_TYPE_RALLY => Ok(()),
             _ => Self::flyable(item),
         }
@@ -339,7 +389,11 @@ impl SimAutopilot {
     }
 
     fn say(&mut self, severity: MavSeverity, text: &str) {
-        self.out.push(MavMessage::STATUSTEXT(STATUSTEXT_DATA { severity, text: text.into(), ..Default::default() }));
+        self.out.push(MavMessage::STATUSTEXT(STATUSTEXT_DATA {
+            severity,
+            text: text.into(),
+            ..Default::default()
+        }));
     }
 
     /// The first item AUTO runs: 1 (item 0 is home), or 0 with no mission.
@@ -357,7 +411,10 @@ impl SimAutopilot {
             MavCmd::MAV_CMD_NAV_WAYPOINT => {}
             _ => return Err(MavMissionResult::MAV_MISSION_UNSUPPORTED),
         }
-        if !matches!(item.frame, MAV_FRAME_GLOBAL | MAV_FRAME_GLOBAL_INT | MAV_FRAME_GLOBAL_RELATIVE_ALT | MAV_FRAME_GLOBAL_RELATIVE_ALT_INT) {
+        if !matches!(
+            item.frame,
+            MAV_FRAME_GLOBAL | MAV_FRAME_GLOBAL_INT | MAV_FRAME_GLOBAL_RELATIVE_ALT | MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+        ) {
             return Err(MavMissionResult::MAV_MISSION_UNSUPPORTED_FRAME);
         }
         if item.x.unsigned_abs() > 900_000_000 || item.y.unsigned_abs() > 1_800_000_000 || !item.z.is_finite() {
@@ -367,9 +424,20 @@ impl SimAutopilot {
     }
 
     fn item_position(&self, item: &MISSION_ITEM_INT_DATA) -> Vector3<f64> {
-        let relative = matches!(item.frame, MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT | MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT_INT);
-        let alt = if relative { self.spec.site.origin[2] + item.z as f64 } else { item.z as f64 };
-        self.at_altitude(self.spec.site.ned_of_global(item.x as f64 * 1e-7, item.y as f64 * 1e-7, alt))
+        let relative = matches!(
+            item.frame,
+            MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT | MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+        );
+        let alt = if relative {
+            self.spec.site.origin[2] + item.z as f64
+        } else {
+            item.z as f64
+        };
+        self.at_altitude(
+            self.spec
+                .site
+                .ned_of_global(item.x as f64 * 1e-7, item.y as f64 * 1e-7, alt),
+        )
     }
 
     /// Take one message from a ground station or companion computer.
@@ -377,24 +445,39 @@ impl SimAutopilot {
         if !self.for_me(msg) {
             return;
         }
-        let Ok(sysid) = u8::try_from(from.system_id) else { return };
+        let Ok(sysid) = u8::try_from(from.system_id) else {
+            return;
+        };
         let sender = (sysid, from.component_id);
         match msg {
-            MavMessage::COMMAND_LONG(c) => self.command(c.command, [c.param1, c.param2, c.param3, c.param4, c.param5, c.param6, c.param7], None),
+            MavMessage::COMMAND_LONG(c) => self.command(
+                c.command,
+                [c.param1, c.param2, c.param3, c.param4, c.param5, c.param6, c.param7],
+                None,
+            ),
             MavMessage::COMMAND_INT(c) => {
                 let global = Some((c.x as f64 * 1e-7, c.y as f64 * 1e-7, c.z as f64));
-                self.command(c.command, [c.param1, c.param2, c.param3, c.param4, 0.0, 0.0, c.z], global)
+                self.command(
+                    c.command,
+                    [c.param1, c.param2, c.param3, c.param4, 0.0, 0.0, c.z],
+                    global,
+                )
             }
             MavMessage::SET_MODE(m) => {
                 self.set_mode(m.custom_mode);
             }
-            MavMessage::SET_POSITION_TARGET_LOCAL_NED(t) if self.role() == Some(Role::Guided) && t.coordinate_frame == MavFrame::MAV_FRAME_LOCAL_NED => {
+            MavMessage::SET_POSITION_TARGET_LOCAL_NED(t)
+                if self.role() == Some(Role::Guided) && t.coordinate_frame == MavFrame::MAV_FRAME_LOCAL_NED =>
+            {
                 let p = Vector3::new(t.x as f64, t.y as f64, t.z as f64);
                 if p.iter().all(|v| v.is_finite()) {
                     let p = self.at_altitude(p);
                     // No ack exists for this message: refused, said, and the old goal kept.
                     if self.fenced_out(&p) {
-                        self.say(MavSeverity::MAV_SEVERITY_WARNING, "Fence: target outside the fence, refused");
+                        self.say(
+                            MavSeverity::MAV_SEVERITY_WARNING,
+                            "Fence: target outside the fence, refused",
+                        );
                     } else {
                         self.goal = Some(p);
                     }
@@ -402,7 +485,9 @@ impl SimAutopilot {
             }
             MavMessage::MISSION_COUNT(c) => {
                 let room = match c.mission_type {
-                    MavMissionType::MAV_MISSION_TYPE_MISSION | MavMissionType::MAV_MISSION_TYPE_RALLY => Some(MAX_MISSION_ITEMS),
+                    MavMissionType::MAV_MISSION_TYPE_MISSION | MavMissionType::MAV_MISSION_TYPE_RALLY => {
+                        Some(MAX_MISSION_ITEMS)
+                    }
                     MavMissionType::MAV_MISSION_TYPE_FENCE => Some(MAX_FENCE_ITEMS),
                     _ => None,
                 };
@@ -412,9 +497,18 @@ impl SimAutopilot {
                         let r = self.store(c.mission_type, vec![]);
                         self.mission_ack(sender, r, c.mission_type);
                     }
-                    Some(n) if c.count > n => self.mission_ack(sender, MavMissionResult::MAV_MISSION_NO_SPACE, c.mission_type),
+                    Some(n) if c.count > n => {
+                        self.mission_ack(sender, MavMissionResult::MAV_MISSION_NO_SPACE, c.mission_type)
+                    }
                     Some(_) => {
-                        self.upload = Some(Upload { kind: c.mission_type, count: c.count, items: vec![], from: sender, asked_at: self.wall_s, tries: 0 });
+                        self.upload = Some(Upload {
+                            kind: c.mission_type,
+                            count: c.count,
+                            items: vec![],
+                            from: sender,
+                            asked_at: self.wall_s,
+                            tries: 0,
+                        });
                         self.request_item(0);
                     }
                 }
@@ -423,22 +517,39 @@ impl SimAutopilot {
             MavMessage::MISSION_REQUEST_LIST(r) => {
                 let mission_type = r.mission_type;
                 match self.items(mission_type).map(|v| v.len() as u16) {
-                    Some(count) => self.out.push(MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count, target_system: sender.0, target_component: sender.1, mission_type, ..Default::default() })),
+                    Some(count) => self.out.push(MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                        count,
+                        target_system: sender.0,
+                        target_component: sender.1,
+                        mission_type,
+                        ..Default::default()
+                    })),
                     None => self.mission_ack(sender, MavMissionResult::MAV_MISSION_UNSUPPORTED, mission_type),
                 }
             }
-            MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq, mission_type, .. }) | MavMessage::MISSION_REQUEST(MISSION_REQUEST_DATA { seq, mission_type, .. }) => {
+            MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq, mission_type, .. })
+            | MavMessage::MISSION_REQUEST(MISSION_REQUEST_DATA { seq, mission_type, .. }) => {
                 match self.items(*mission_type).and_then(|v| v.get(*seq as usize)) {
                     Some(item) => {
                         let mut item = item.clone();
                         if *mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION && *seq == 0 {
                             // Item 0 reads back as home, as ArduPilot keeps it.
                             let (lat, lon, alt) = self.spec.site.global_of(&self.home);
-                            (item.command, item.frame, item.x, item.y, item.z) =
-                                (MavCmd::MAV_CMD_NAV_WAYPOINT, MavFrame::MAV_FRAME_GLOBAL, (lat * 1e7).round() as i32, (lon * 1e7).round() as i32, alt as f32);
+                            (item.command, item.frame, item.x, item.y, item.z) = (
+                                MavCmd::MAV_CMD_NAV_WAYPOINT,
+                                MavFrame::MAV_FRAME_GLOBAL,
+                                (lat * 1e7).round() as i32,
+                                (lon * 1e7).round() as i32,
+                                alt as f32,
+                            );
                         }
                         let current = *mission_type == MavMissionType::MAV_MISSION_TYPE_MISSION && *seq == self.current;
-                        (item.target_system, item.target_component, item.current, item.mission_type) = (sender.0, sender.1, u8::from(current), *mission_type);
+                        (
+                            item.target_system,
+                            item.target_component,
+                            item.current,
+                            item.mission_type,
+                        ) = (sender.0, sender.1, u8::from(current), *mission_type);
                         self.out.push(MavMessage::MISSION_ITEM_INT(item));
                     }
                     None => self.mission_ack(sender, MavMissionResult::MAV_MISSION_INVALID_SEQUENCE, *mission_type),
@@ -446,7 +557,11 @@ impl SimAutopilot {
             }
             MavMessage::MISSION_CLEAR_ALL(c) => {
                 let all = c.mission_type == MavMissionType::MAV_MISSION_TYPE_ALL;
-                for kind in [MavMissionType::MAV_MISSION_TYPE_MISSION, MavMissionType::MAV_MISSION_TYPE_FENCE, MavMissionType::MAV_MISSION_TYPE_RALLY] {
+                for kind in [
+                    MavMissionType::MAV_MISSION_TYPE_MISSION,
+                    MavMissionType::MAV_MISSION_TYPE_FENCE,
+                    MavMissionType::MAV_MISSION_TYPE_RALLY,
+                ] {
                     if all || kind == c.mission_type {
                         self.store(kind, vec![]);
                     }
@@ -464,7 +579,14 @@ impl SimAutopilot {
             }
             MavMessage::PARAM_REQUEST_READ(r) => {
                 // By index, or by name when the index is -1 (the protocol's rule).
-                let index = if r.param_index >= 0 { Some(r.param_index as usize) } else { r.param_id.to_str().ok().and_then(|n| params::index_of(self.spec.frame, n)) };
+                let index = if r.param_index >= 0 {
+                    Some(r.param_index as usize)
+                } else {
+                    r.param_id
+                        .to_str()
+                        .ok()
+                        .and_then(|n| params::index_of(self.spec.frame, n))
+                };
                 if let Some(i) = index {
                     self.param_value(i);
                 }
@@ -472,7 +594,12 @@ impl SimAutopilot {
             MavMessage::PARAM_SET(p) => {
                 // Unknown names get no answer (as ArduPilot); a refused value is answered with
                 // the one in force, so the ground station sees it did not take.
-                if let Some(i) = p.param_id.to_str().ok().and_then(|n| params::index_of(self.spec.frame, n)) {
+                if let Some(i) = p
+                    .param_id
+                    .to_str()
+                    .ok()
+                    .and_then(|n| params::index_of(self.spec.frame, n))
+                {
                     params::set(&mut self.spec, i, p.param_value);
                     self.param_value(i);
                 }
@@ -549,7 +676,9 @@ impl SimAutopilot {
         let sim_s = dt_wall * self.spec.speedup;
         self.draw_a = match self.armed {
             false => IDLE_DRAW_A,
-            true if sim_s > 0.0 => ARMED_DRAW_A + (MAX_DRAW_A - ARMED_DRAW_A) * (moved / sim_s / self.spec.max_speed).clamp(0.0, 1.0),
+            true if sim_s > 0.0 => {
+                ARMED_DRAW_A + (MAX_DRAW_A - ARMED_DRAW_A) * (moved / sim_s / self.spec.max_speed).clamp(0.0, 1.0)
+            }
             true => ARMED_DRAW_A,
         };
         self.consumed_mah += self.draw_a * sim_s / 3.6;
@@ -569,7 +698,11 @@ impl SimAutopilot {
         let action = self.spec.safety.low_battery_action;
         self.failsafe = Some("battery low");
         self.act_on(action);
-        let text = format!("Failsafe: battery low ({:.0} mAh left): {}", self.remaining_mah(), ["continue", "RTL", "HOLD"][action as usize]);
+        let text = format!(
+            "Failsafe: battery low ({:.0} mAh left): {}",
+            self.remaining_mah(),
+            ["continue", "RTL", "HOLD"][action as usize]
+        );
         self.say(MavSeverity::MAV_SEVERITY_CRITICAL, &text);
     }
 
@@ -603,7 +736,10 @@ impl SimAutopilot {
             self.breach_count = self.breach_count.saturating_add(1);
             let action = self.spec.safety.fence_action;
             self.act_on(action);
-            self.say(MavSeverity::MAV_SEVERITY_CRITICAL, &format!("Fence breach: {}", ["report only", "RTL", "HOLD"][action as usize]));
+            self.say(
+                MavSeverity::MAV_SEVERITY_CRITICAL,
+                &format!("Fence breach: {}", ["report only", "RTL", "HOLD"][action as usize]),
+            );
         }
         self.breached = out;
     }
@@ -626,7 +762,9 @@ impl SimAutopilot {
     /// In AUTO, the DO items at the current place in the sequence are done at once.
     fn run_do_items(&mut self) {
         while self.role() == Some(Role::Auto) {
-            let Some(item) = self.mission.get(self.current as usize) else { return };
+            let Some(item) = self.mission.get(self.current as usize) else {
+                return;
+            };
             if item.command != MavCmd::MAV_CMD_DO_CHANGE_SPEED {
                 return;
             }
@@ -650,7 +788,8 @@ impl SimAutopilot {
 
     fn item_reached(&mut self) {
         let seq = self.current;
-        self.out.push(MavMessage::MISSION_ITEM_REACHED(MISSION_ITEM_REACHED_DATA { seq }));
+        self.out
+            .push(MavMessage::MISSION_ITEM_REACHED(MISSION_ITEM_REACHED_DATA { seq }));
         self.advance();
         self.run_do_items();
     }
@@ -700,7 +839,9 @@ impl SimAutopilot {
         }
         match self.role() {
             Some(Role::Guided) => base |= MavModeFlag::MAV_MODE_FLAG_GUIDED_ENABLED,
-            Some(Role::Auto) => base |= MavModeFlag::MAV_MODE_FLAG_AUTO_ENABLED | MavModeFlag::MAV_MODE_FLAG_GUIDED_ENABLED,
+            Some(Role::Auto) => {
+                base |= MavModeFlag::MAV_MODE_FLAG_AUTO_ENABLED | MavModeFlag::MAV_MODE_FLAG_GUIDED_ENABLED
+            }
             _ => {}
         }
         MavMessage::HEARTBEAT(HEARTBEAT_DATA {
@@ -733,11 +874,20 @@ impl SimAutopilot {
         // The geofence bit is healthy while there is no breach, whether or not a fence is
         // enabled (ArduPilot's rule): ground stations announce "fence breach" when it is not.
         let fence = MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE;
-        let enforced = if self.spec.safety.fence_enable { fence } else { MavSysStatusSensor::empty() };
+        let enforced = if self.spec.safety.fence_enable {
+            fence
+        } else {
+            MavSysStatusSensor::empty()
+        };
         MavMessage::SYS_STATUS(SYS_STATUS_DATA {
             onboard_control_sensors_present: sensors | enforced,
             onboard_control_sensors_enabled: sensors | enforced,
-            onboard_control_sensors_health: sensors | if self.breached { MavSysStatusSensor::empty() } else { fence },
+            onboard_control_sensors_health: sensors
+                | if self.breached {
+                    MavSysStatusSensor::empty()
+                } else {
+                    fence
+                },
             load: 150,
             voltage_battery: self.battery_now().1,
             current_battery: (self.draw_a * 100.0).round() as i16,
@@ -818,7 +968,11 @@ impl SimAutopilot {
             MavMessage::FENCE_STATUS(FENCE_STATUS_DATA {
                 breach_status: u8::from(self.breached),
                 breach_count: self.breach_count,
-                breach_type: if self.breached { FenceBreach::FENCE_BREACH_BOUNDARY } else { FenceBreach::FENCE_BREACH_NONE },
+                breach_type: if self.breached {
+                    FenceBreach::FENCE_BREACH_BOUNDARY
+                } else {
+                    FenceBreach::FENCE_BREACH_NONE
+                },
                 breach_time: (self.wall_s * 1000.0) as u32,
                 ..Default::default()
             })
@@ -836,9 +990,23 @@ impl SimAutopilot {
             (true, Run::Started) if auto => MissionState::MISSION_STATE_ACTIVE,
             (true, Run::Started) => MissionState::MISSION_STATE_PAUSED,
         };
-        let total = if self.mission.len() > 1 { self.mission.len() as u16 - 1 } else { u16::MAX };
-        let seq = if self.mission_run == Run::Complete { self.mission.len() as u16 } else { self.current };
-        MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA { seq, total, mission_state, mission_mode: if auto { 1 } else { 2 }, ..Default::default() })
+        let total = if self.mission.len() > 1 {
+            self.mission.len() as u16 - 1
+        } else {
+            u16::MAX
+        };
+        let seq = if self.mission_run == Run::Complete {
+            self.mission.len() as u16
+        } else {
+            self.current
+        };
+        MavMessage::MISSION_CURRENT(MISSION_CURRENT_DATA {
+            seq,
+            total,
+            mission_state,
+            mission_mode: if auto { 1 } else { 2 },
+            ..Default::default()
+        })
     }
 }
 
@@ -850,18 +1018,46 @@ mod tests {
 
     fn sim(frame: Frame) -> SimAutopilot {
         let site = Site::new(&MavlinkConfig::default(), &Grid::new(48, 96, 1.0).unwrap());
-        let spec = SimSpec { frame, sysid: 3, site, max_speed: 2.0, turn_rate: PI / 2.0, cruise_alt: 30.0, speedup: 1.0, safety: Default::default() };
+        let spec = SimSpec {
+            frame,
+            sysid: 3,
+            site,
+            max_speed: 2.0,
+            turn_rate: PI / 2.0,
+            cruise_alt: 30.0,
+            speedup: 1.0,
+            safety: Default::default(),
+        };
         SimAutopilot::new(spec, Vector3::zeros())
     }
 
-    const GCS: MavHeader = MavHeader { system_id: 255, component_id: 190, sequence: 0 };
+    const GCS: MavHeader = MavHeader {
+        system_id: 255,
+        component_id: 190,
+        sequence: 0,
+    };
 
     fn long(command: MavCmd, p1: f32, p2: f32) -> MavMessage {
-        MavMessage::COMMAND_LONG(COMMAND_LONG_DATA { command, param1: p1, param2: p2, target_system: 3, target_component: 1, ..Default::default() })
+        MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            command,
+            param1: p1,
+            param2: p2,
+            target_system: 3,
+            target_component: 1,
+            ..Default::default()
+        })
     }
 
     fn results(out: &[MavMessage]) -> Vec<MavResult> {
-        out.iter().filter_map(|m| if let MavMessage::COMMAND_ACK(a) = m { Some(a.result) } else { None }).collect()
+        out.iter()
+            .filter_map(|m| {
+                if let MavMessage::COMMAND_ACK(a) = m {
+                    Some(a.result)
+                } else {
+                    None
+                }
+            })
+            .collect()
     }
 
     #[test]
@@ -871,45 +1067,121 @@ mod tests {
         s.handle(&GCS, &long(MavCmd::MAV_CMD_GET_HOME_POSITION, 0.0, 0.0));
         let out = s.take();
         assert_eq!(results(&out), vec![MavResult::MAV_RESULT_ACCEPTED]);
-        let Some(MavMessage::HOME_POSITION(h)) = out.get(1) else { panic!("no HOME_POSITION after the ack: {out:?}") };
+        let Some(MavMessage::HOME_POSITION(h)) = out.get(1) else {
+            panic!("no HOME_POSITION after the ack: {out:?}")
+        };
         let [lat, lon, _] = s.spec.site.origin;
-        assert_eq!((h.latitude, h.longitude), ((lat * 1e7).round() as i32, (lon * 1e7).round() as i32));
-        s.handle(&GCS, &long(MavCmd::MAV_CMD_REQUEST_MESSAGE, HOME_POSITION_DATA::ID as f32, 0.0));
+        assert_eq!(
+            (h.latitude, h.longitude),
+            ((lat * 1e7).round() as i32, (lon * 1e7).round() as i32)
+        );
+        s.handle(
+            &GCS,
+            &long(MavCmd::MAV_CMD_REQUEST_MESSAGE, HOME_POSITION_DATA::ID as f32, 0.0),
+        );
         assert!(matches!(s.take().get(1), Some(MavMessage::HOME_POSITION(_))));
         s.handle(&GCS, &long(MavCmd::MAV_CMD_REQUEST_MESSAGE, 33.0, 0.0));
         assert_eq!(results(&s.take()), vec![MavResult::MAV_RESULT_UNSUPPORTED]);
 
         // The whole list, each value what the simulation uses, counted and indexed.
-        s.handle(&GCS, &MavMessage::PARAM_REQUEST_LIST(PARAM_REQUEST_LIST_DATA { target_system: 3, target_component: 1 }));
-        let values: Vec<PARAM_VALUE_DATA> = s.take().into_iter().filter_map(|m| if let MavMessage::PARAM_VALUE(v) = m { Some(v) } else { None }).collect();
-        let named = |n: &str| values.iter().find(|v| v.param_id.to_str().unwrap() == n).unwrap_or_else(|| panic!("no {n} in {values:?}")).param_value;
+        s.handle(
+            &GCS,
+            &MavMessage::PARAM_REQUEST_LIST(PARAM_REQUEST_LIST_DATA {
+                target_system: 3,
+                target_component: 1,
+            }),
+        );
+        let values: Vec<PARAM_VALUE_DATA> = s
+            .take()
+            .into_iter()
+            .filter_map(|m| {
+                if let MavMessage::PARAM_VALUE(v) = m {
+                    Some(v)
+                } else {
+                    None
+                }
+            })
+            .collect();
+        let named = |n: &str| {
+            values
+                .iter()
+                .find(|v| v.param_id.to_str().unwrap() == n)
+                .unwrap_or_else(|| panic!("no {n} in {values:?}"))
+                .param_value
+        };
         assert_eq!(values.len(), 8);
-        assert!(values.iter().enumerate().all(|(i, v)| v.param_index as usize == i && v.param_count == 8));
-        assert!(values.windows(2).all(|w| w[0].param_id.to_str().unwrap() < w[1].param_id.to_str().unwrap()), "sorted by name, as ArduPilot lists them");
-        assert_eq!((named("CRUISE_SPEED"), named("SYSID_THISMAV"), named("FENCE_ENABLE")), (2.0, 3.0, 0.0));
+        assert!(values
+            .iter()
+            .enumerate()
+            .all(|(i, v)| v.param_index as usize == i && v.param_count == 8));
+        assert!(
+            values
+                .windows(2)
+                .all(|w| w[0].param_id.to_str().unwrap() < w[1].param_id.to_str().unwrap()),
+            "sorted by name, as ArduPilot lists them"
+        );
+        assert_eq!(
+            (named("CRUISE_SPEED"), named("SYSID_THISMAV"), named("FENCE_ENABLE")),
+            (2.0, 3.0, 0.0)
+        );
         assert!((named("ATC_STR_RAT_MAX") - 90.0).abs() < 1e-4);
         // A set takes effect in the simulation and is echoed; a bad or read-only one is not taken.
         let set = |name: &str, v: f32| {
-            MavMessage::PARAM_SET(PARAM_SET_DATA { param_value: v, target_system: 3, target_component: 1, param_id: name.into(), param_type: MavParamType::MAV_PARAM_TYPE_REAL32 })
+            MavMessage::PARAM_SET(PARAM_SET_DATA {
+                param_value: v,
+                target_system: 3,
+                target_component: 1,
+                param_id: name.into(),
+                param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+            })
         };
         s.handle(&GCS, &set("CRUISE_SPEED", 3.5));
         assert!(matches!(s.take().as_slice(), [MavMessage::PARAM_VALUE(v)] if v.param_value == 3.5));
         assert_eq!(s.spec.max_speed, 3.5);
-        for (name, v, now) in [("CRUISE_SPEED", -1.0, 3.5), ("SYSID_THISMAV", 9.0, 3.0), ("FENCE_ENABLE", 0.5, 0.0), ("FENCE_ACTION", 7.0, 1.0)] {
+        for (name, v, now) in [
+            ("CRUISE_SPEED", -1.0, 3.5),
+            ("SYSID_THISMAV", 9.0, 3.0),
+            ("FENCE_ENABLE", 0.5, 0.0),
+            ("FENCE_ACTION", 7.0, 1.0),
+        ] {
             s.handle(&GCS, &set(name, v));
-            assert!(matches!(s.take().as_slice(), [MavMessage::PARAM_VALUE(p)] if p.param_value == now), "{name}");
+            assert!(
+                matches!(s.take().as_slice(), [MavMessage::PARAM_VALUE(p)] if p.param_value == now),
+                "{name}"
+            );
         }
         s.handle(&GCS, &set("NO_SUCH_PARAM", 1.0));
         assert!(s.take().is_empty());
-        let read = |index: i16, name: &str| MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA { param_index: index, target_system: 3, target_component: 1, param_id: name.into() });
+        let read = |index: i16, name: &str| {
+            MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA {
+                param_index: index,
+                target_system: 3,
+                target_component: 1,
+                param_id: name.into(),
+            })
+        };
         s.handle(&GCS, &read(-1, "CRUISE_SPEED"));
         s.handle(&GCS, &read(7, ""));
-        let got: Vec<String> = s.take().into_iter().filter_map(|m| if let MavMessage::PARAM_VALUE(v) = m { Some(v.param_id.to_str().unwrap().to_string()) } else { None }).collect();
+        let got: Vec<String> = s
+            .take()
+            .into_iter()
+            .filter_map(|m| {
+                if let MavMessage::PARAM_VALUE(v) = m {
+                    Some(v.param_id.to_str().unwrap().to_string())
+                } else {
+                    None
+                }
+            })
+            .collect();
         assert_eq!(got, ["CRUISE_SPEED", "SYSID_THISMAV"]);
 
         // No fence breach: the geofence health bit is set.
-        let MavMessage::SYS_STATUS(st) = s.sys_status() else { panic!() };
-        assert!(st.onboard_control_sensors_health.contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE));
+        let MavMessage::SYS_STATUS(st) = s.sys_status() else {
+            panic!()
+        };
+        assert!(st
+            .onboard_control_sensors_health
+            .contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE));
     }
 
     #[test]
@@ -920,8 +1192,14 @@ mod tests {
         assert_eq!(results(&s.take()), [MavResult::MAV_RESULT_ACCEPTED; 2]);
         // Behind it (heading north, goal south-east): it must turn first.
         let goal = Vector3::new(-6.0, 8.0, 5.0);
-        let target =
-            SET_POSITION_TARGET_LOCAL_NED_DATA { x: goal.x as f32, y: goal.y as f32, z: goal.z as f32, target_system: 3, coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED, ..Default::default() };
+        let target = SET_POSITION_TARGET_LOCAL_NED_DATA {
+            x: goal.x as f32,
+            y: goal.y as f32,
+            z: goal.z as f32,
+            target_system: 3,
+            coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+            ..Default::default()
+        };
         s.handle(&GCS, &MavMessage::SET_POSITION_TARGET_LOCAL_NED(target));
         let mut t = 0.0;
         let mut last = s.pos;
@@ -930,7 +1208,10 @@ mod tests {
             s.step(0.05);
             t += 0.05;
             assert!((s.pos - last).norm() <= 2.0 * 0.05 + 1e-9, "speed limit");
-            assert!(wrap(s.heading - last_heading).abs() <= PI / 2.0 * 0.05 + 1e-9, "turn-rate limit");
+            assert!(
+                wrap(s.heading - last_heading).abs() <= PI / 2.0 * 0.05 + 1e-9,
+                "turn-rate limit"
+            );
             assert_eq!(s.pos.z, 0.0, "a boat stays on the surface");
             (last, last_heading) = (s.pos, s.heading);
         }
@@ -944,7 +1225,12 @@ mod tests {
         s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 4.0));
         s.handle(
             &GCS,
-            &MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA { x: 10.0, target_system: 3, coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED, ..Default::default() }),
+            &MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA {
+                x: 10.0,
+                target_system: 3,
+                coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+                ..Default::default()
+            }),
         );
         s.step(1.0);
         assert_eq!(s.pos, Vector3::zeros(), "disarmed");
@@ -958,7 +1244,10 @@ mod tests {
         s.take();
         s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 99.0));
         s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_GRIPPER, 0.0, 0.0));
-        assert_eq!(results(&s.take()), [MavResult::MAV_RESULT_DENIED, MavResult::MAV_RESULT_UNSUPPORTED]);
+        assert_eq!(
+            results(&s.take()),
+            [MavResult::MAV_RESULT_DENIED, MavResult::MAV_RESULT_UNSUPPORTED]
+        );
         // Another system's command is not ours.
         let mut other = long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 0.0, 0.0);
         *other.target_system_id_mut().unwrap() = 4;
@@ -970,14 +1259,31 @@ mod tests {
     fn a_mission_uploads_with_the_handshake_runs_and_reports_each_item() {
         let mut s = sim(Frame::Boat);
         let site = s.spec.site;
-        s.handle(&GCS, &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count: 5, target_system: 3, target_component: 1, ..Default::default() }));
+        s.handle(
+            &GCS,
+            &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                count: 5,
+                target_system: 3,
+                target_component: 1,
+                ..Default::default()
+            }),
+        );
         // Home (never flown), a waypoint, a speed change to 4 m/s, two more waypoints.
         let wps = [(99.0, 99.0), (5.0, 0.0), (f64::NAN, 4.0), (5.0, 5.0), (0.0, 5.0)];
         for (seq, (n, e)) in wps.iter().enumerate() {
             let out = s.take();
-            assert!(matches!(&out[..], [MavMessage::MISSION_REQUEST_INT(r)] if r.seq == seq as u16 && r.target_system == 255), "{out:?}");
+            assert!(
+                matches!(&out[..], [MavMessage::MISSION_REQUEST_INT(r)] if r.seq == seq as u16 && r.target_system == 255),
+                "{out:?}"
+            );
             if n.is_nan() {
-                let speed = MISSION_ITEM_INT_DATA { seq: seq as u16, command: MavCmd::MAV_CMD_DO_CHANGE_SPEED, param2: *e as f32, target_system: 3, ..Default::default() };
+                let speed = MISSION_ITEM_INT_DATA {
+                    seq: seq as u16,
+                    command: MavCmd::MAV_CMD_DO_CHANGE_SPEED,
+                    param2: *e as f32,
+                    target_system: 3,
+                    ..Default::default()
+                };
                 s.handle(&GCS, &MavMessage::MISSION_ITEM_INT(speed));
                 continue;
             }
@@ -994,24 +1300,50 @@ mod tests {
             };
             s.handle(&GCS, &MavMessage::MISSION_ITEM_INT(item));
         }
-        assert!(matches!(&s.take()[..], [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_ACCEPTED));
+        assert!(
+            matches!(&s.take()[..], [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_ACCEPTED)
+        );
         s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
         s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 10.0));
         let mut reached = vec![];
         for _ in 0..2000 {
             s.step(0.05);
-            reached.extend(s.take().into_iter().filter_map(|m| if let MavMessage::MISSION_ITEM_REACHED(r) = m { Some(r.seq) } else { None }));
+            reached.extend(s.take().into_iter().filter_map(|m| {
+                if let MavMessage::MISSION_ITEM_REACHED(r) = m {
+                    Some(r.seq)
+                } else {
+                    None
+                }
+            }));
         }
         assert_eq!(reached, [1, 3, 4], "the waypoints, from 1 (0 is home)");
         assert!((s.pos - Vector3::new(0.0, 5.0, 0.0)).norm() < 0.05, "{}", s.pos);
         assert_eq!(s.role(), Some(Role::Hold), "holds at the end");
         assert_eq!(s.spec.max_speed, 4.0, "the speed item was done");
         // Download gives the same items back, home as item 0.
-        s.handle(&GCS, &MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA { target_system: 3, target_component: 1, ..Default::default() }));
+        s.handle(
+            &GCS,
+            &MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA {
+                target_system: 3,
+                target_component: 1,
+                ..Default::default()
+            }),
+        );
         assert!(matches!(&s.take()[..], [MavMessage::MISSION_COUNT(c)] if c.count == 5));
-        s.handle(&GCS, &MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { seq: 0, target_system: 3, target_component: 1, ..Default::default() }));
+        s.handle(
+            &GCS,
+            &MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
+                seq: 0,
+                target_system: 3,
+                target_component: 1,
+                ..Default::default()
+            }),
+        );
         let [lat, lon, _] = site.origin;
-        assert!(matches!(&s.take()[..], [MavMessage::MISSION_ITEM_INT(i)] if (i.x, i.y) == ((lat * 1e7).round() as i32, (lon * 1e7).round() as i32)), "item 0 is home");
+        assert!(
+            matches!(&s.take()[..], [MavMessage::MISSION_ITEM_INT(i)] if (i.x, i.y) == ((lat * 1e7).round() as i32, (lon * 1e7).round() as i32)),
+            "item 0 is home"
+        );
     }
 
     #[test]
@@ -1021,7 +1353,14 @@ mod tests {
         s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
         // DO_REPOSITION by COMMAND_INT (degrees * 1e7) to 40 m north, 30 m east, 20 m up.
         let (lat, lon, _) = site.global_of(&Vector3::new(40.0, 30.0, 0.0));
-        let c = COMMAND_INT_DATA { command: MavCmd::MAV_CMD_DO_REPOSITION, x: (lat * 1e7).round() as i32, y: (lon * 1e7).round() as i32, z: 20.0, target_system: 3, ..Default::default() };
+        let c = COMMAND_INT_DATA {
+            command: MavCmd::MAV_CMD_DO_REPOSITION,
+            x: (lat * 1e7).round() as i32,
+            y: (lon * 1e7).round() as i32,
+            z: 20.0,
+            target_system: 3,
+            ..Default::default()
+        };
         s.handle(&GCS, &MavMessage::COMMAND_INT(c));
         assert_eq!(s.role(), Some(Role::Guided));
         for _ in 0..1000 {
@@ -1033,14 +1372,26 @@ mod tests {
         for _ in 0..1000 {
             s.step(0.05);
         }
-        assert!(s.pos.xy().norm() < 0.05 && (s.pos.z + 30.0).abs() < 0.05, "home at cruise altitude: {}", s.pos);
+        assert!(
+            s.pos.xy().norm() < 0.05 && (s.pos.z + 30.0).abs() < 0.05,
+            "home at cruise altitude: {}",
+            s.pos
+        );
         assert!(results(&s.take()).iter().all(|r| *r == MavResult::MAV_RESULT_ACCEPTED));
     }
 
     #[test]
     fn a_stalled_upload_is_asked_again_then_cancelled() {
         let mut s = sim(Frame::Boat);
-        s.handle(&GCS, &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count: 2, target_system: 3, target_component: 1, ..Default::default() }));
+        s.handle(
+            &GCS,
+            &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                count: 2,
+                target_system: 3,
+                target_component: 1,
+                ..Default::default()
+            }),
+        );
         s.take();
         let mut asks = 0;
         let mut cancelled = false;
@@ -1049,7 +1400,9 @@ mod tests {
             for m in s.take() {
                 match m {
                     MavMessage::MISSION_REQUEST_INT(r) => asks += usize::from(r.seq == 0),
-                    MavMessage::MISSION_ACK(a) => cancelled = a.mavtype == MavMissionResult::MAV_MISSION_OPERATION_CANCELLED,
+                    MavMessage::MISSION_ACK(a) => {
+                        cancelled = a.mavtype == MavMissionResult::MAV_MISSION_OPERATION_CANCELLED
+                    }
                     _ => {}
                 }
             }
@@ -1059,13 +1412,27 @@ mod tests {
 
     /// Upload `items` of `kind` with the handshake; the ack's result.
     fn upload(s: &mut SimAutopilot, kind: MavMissionType, items: &[MISSION_ITEM_INT_DATA]) -> MavMissionResult {
-        s.handle(&GCS, &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA { count: items.len() as u16, target_system: 3, target_component: 1, mission_type: kind, ..Default::default() }));
+        s.handle(
+            &GCS,
+            &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                count: items.len() as u16,
+                target_system: 3,
+                target_component: 1,
+                mission_type: kind,
+                ..Default::default()
+            }),
+        );
         for _ in 0..=items.len() {
             for m in s.take() {
                 match m {
                     MavMessage::MISSION_REQUEST_INT(r) => {
                         assert_eq!(r.mission_type, kind);
-                        let item = MISSION_ITEM_INT_DATA { seq: r.seq, target_system: 3, mission_type: kind, ..items[r.seq as usize].clone() };
+                        let item = MISSION_ITEM_INT_DATA {
+                            seq: r.seq,
+                            target_system: 3,
+                            mission_type: kind,
+                            ..items[r.seq as usize].clone()
+                        };
                         s.handle(&GCS, &MavMessage::MISSION_ITEM_INT(item));
                     }
                     MavMessage::MISSION_ACK(a) => {
@@ -1081,7 +1448,14 @@ mod tests {
 
     fn at(site: &Site, command: MavCmd, param1: f32, north: f64, east: f64) -> MISSION_ITEM_INT_DATA {
         let (lat, lon, _) = site.global_of(&Vector3::new(north, east, 0.0));
-        MISSION_ITEM_INT_DATA { command, param1, frame: MavFrame::MAV_FRAME_GLOBAL_INT, x: (lat * 1e7).round() as i32, y: (lon * 1e7).round() as i32, ..Default::default() }
+        MISSION_ITEM_INT_DATA {
+            command,
+            param1,
+            frame: MavFrame::MAV_FRAME_GLOBAL_INT,
+            x: (lat * 1e7).round() as i32,
+            y: (lon * 1e7).round() as i32,
+            ..Default::default()
+        }
     }
 
     #[test]
@@ -1090,64 +1464,140 @@ mod tests {
         let site = s.spec.site;
         // A 40 m x 40 m square fence (north, east from 0 to 40) and two rally points.
         let corners = [(0.0, 0.0), (0.0, 40.0), (40.0, 40.0), (40.0, 0.0)];
-        let fence: Vec<_> = corners.iter().map(|&(n, e)| at(&site, MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, 4.0, n, e)).collect();
-        assert_eq!(upload(&mut s, MavMissionType::MAV_MISSION_TYPE_FENCE, &fence), MavMissionResult::MAV_MISSION_ACCEPTED);
-        let rally = [at(&site, MavCmd::MAV_CMD_NAV_RALLY_POINT, 0.0, 2.0, 2.0), at(&site, MavCmd::MAV_CMD_NAV_RALLY_POINT, 0.0, 30.0, 35.0)];
-        assert_eq!(upload(&mut s, MavMissionType::MAV_MISSION_TYPE_RALLY, &rally), MavMissionResult::MAV_MISSION_ACCEPTED);
+        let fence: Vec<_> = corners
+            .iter()
+            .map(|&(n, e)| at(&site, MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, 4.0, n, e))
+            .collect();
+        assert_eq!(
+            upload(&mut s, MavMissionType::MAV_MISSION_TYPE_FENCE, &fence),
+            MavMissionResult::MAV_MISSION_ACCEPTED
+        );
+        let rally = [
+            at(&site, MavCmd::MAV_CMD_NAV_RALLY_POINT, 0.0, 2.0, 2.0),
+            at(&site, MavCmd::MAV_CMD_NAV_RALLY_POINT, 0.0, 30.0, 35.0),
+        ];
+        assert_eq!(
+            upload(&mut s, MavMissionType::MAV_MISSION_TYPE_RALLY, &rally),
+            MavMissionResult::MAV_MISSION_ACCEPTED
+        );
         // A mission item is no fence, and the mission list is not touched by either upload.
         let wp = at(&site, MavCmd::MAV_CMD_NAV_WAYPOINT, 0.0, 0.0, 0.0);
-        assert_eq!(upload(&mut s, MavMissionType::MAV_MISSION_TYPE_FENCE, std::slice::from_ref(&wp)), MavMissionResult::MAV_MISSION_UNSUPPORTED);
+        assert_eq!(
+            upload(
+                &mut s,
+                MavMissionType::MAV_MISSION_TYPE_FENCE,
+                std::slice::from_ref(&wp)
+            ),
+            MavMissionResult::MAV_MISSION_UNSUPPORTED
+        );
         assert!(s.mission.is_empty() && s.fence_items.len() == 4 && s.rally.len() == 2);
         // Each list downloads by its type.
-        s.handle(&GCS, &MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA { target_system: 3, target_component: 1, mission_type: MavMissionType::MAV_MISSION_TYPE_FENCE }));
-        assert!(matches!(&s.take()[..], [MavMessage::MISSION_COUNT(c)] if c.count == 4 && c.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE));
+        s.handle(
+            &GCS,
+            &MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA {
+                target_system: 3,
+                target_component: 1,
+                mission_type: MavMissionType::MAV_MISSION_TYPE_FENCE,
+            }),
+        );
+        assert!(
+            matches!(&s.take()[..], [MavMessage::MISSION_COUNT(c)] if c.count == 4 && c.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE)
+        );
 
         // Not yet enforced: a target outside is taken.
         s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
         s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 15.0));
         s.take();
         let target = |n: f32, e: f32| {
-            MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA { x: n, y: e, target_system: 3, coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED, ..Default::default() })
+            MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA {
+                x: n,
+                y: e,
+                target_system: 3,
+                coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+                ..Default::default()
+            })
         };
         s.handle(&GCS, &target(60.0, 10.0));
         assert_eq!(s.goal.map(|g| g.x), Some(60.0));
         // Enforced: a target outside is refused (said; the goal stays), one inside is taken,
         // and a reposition outside is denied.
         let set = |name: &str, v: f32| {
-            MavMessage::PARAM_SET(PARAM_SET_DATA { param_value: v, target_system: 3, target_component: 1, param_id: name.into(), param_type: MavParamType::MAV_PARAM_TYPE_REAL32 })
+            MavMessage::PARAM_SET(PARAM_SET_DATA {
+                param_value: v,
+                target_system: 3,
+                target_component: 1,
+                param_id: name.into(),
+                param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+            })
         };
         s.handle(&GCS, &set("FENCE_ENABLE", 1.0));
         s.handle(&GCS, &target(10.0, 20.0));
         s.handle(&GCS, &target(10.0, 50.0));
         let out = s.take();
-        assert!(out.iter().any(|m| matches!(m, MavMessage::STATUSTEXT(t) if t.text.to_str().unwrap().contains("outside the fence"))), "{out:?}");
+        assert!(
+            out.iter().any(
+                |m| matches!(m, MavMessage::STATUSTEXT(t) if t.text.to_str().unwrap().contains("outside the fence"))
+            ),
+            "{out:?}"
+        );
         assert_eq!(s.goal.map(|g| (g.x, g.y)), Some((10.0, 20.0)));
         let (lat, lon, _) = site.global_of(&Vector3::new(10.0, 50.0, 0.0));
-        let c = COMMAND_INT_DATA { command: MavCmd::MAV_CMD_DO_REPOSITION, x: (lat * 1e7).round() as i32, y: (lon * 1e7).round() as i32, target_system: 3, ..Default::default() };
+        let c = COMMAND_INT_DATA {
+            command: MavCmd::MAV_CMD_DO_REPOSITION,
+            x: (lat * 1e7).round() as i32,
+            y: (lon * 1e7).round() as i32,
+            target_system: 3,
+            ..Default::default()
+        };
         s.handle(&GCS, &MavMessage::COMMAND_INT(c));
         assert_eq!(results(&s.take()), [MavResult::MAV_RESULT_DENIED]);
-        let MavMessage::SYS_STATUS(st) = s.sys_status() else { panic!() };
-        assert!(st.onboard_control_sensors_enabled.contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE) && st.onboard_control_sensors_health.contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE));
+        let MavMessage::SYS_STATUS(st) = s.sys_status() else {
+            panic!()
+        };
+        assert!(
+            st.onboard_control_sensors_enabled
+                .contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE)
+                && st
+                    .onboard_control_sensors_health
+                    .contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE)
+        );
 
         // A mission that leaves the fence (an operator's, in AUTO): breach, RTL to the nearer
         // rally point, said; the health bit drops while outside, and FENCE_STATUS counts it.
         let out_wp = at(&site, MavCmd::MAV_CMD_NAV_WAYPOINT, 0.0, 30.0, 60.0);
-        assert_eq!(upload(&mut s, MavMissionType::MAV_MISSION_TYPE_MISSION, &[wp, out_wp]), MavMissionResult::MAV_MISSION_ACCEPTED);
+        assert_eq!(
+            upload(&mut s, MavMissionType::MAV_MISSION_TYPE_MISSION, &[wp, out_wp]),
+            MavMissionResult::MAV_MISSION_ACCEPTED
+        );
         s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 10.0));
         let mut said = vec![];
         let mut unhealthy = false;
         for _ in 0..1200 {
             s.step(0.05);
-            said.extend(s.take().into_iter().filter_map(|m| if let MavMessage::STATUSTEXT(t) = m { Some(t.text.to_str().unwrap().to_string()) } else { None }));
+            said.extend(s.take().into_iter().filter_map(|m| {
+                if let MavMessage::STATUSTEXT(t) = m {
+                    Some(t.text.to_str().unwrap().to_string())
+                } else {
+                    None
+                }
+            }));
             if let MavMessage::SYS_STATUS(st) = s.sys_status() {
-                unhealthy |= !st.onboard_control_sensors_health.contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE);
+                unhealthy |= !st
+                    .onboard_control_sensors_health
+                    .contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE);
             }
         }
         assert_eq!(s.role(), Some(Role::Return));
         assert!(said.iter().any(|t| t.contains("Fence breach: RTL")), "{said:?}");
         assert!(unhealthy && !s.breached, "unhealthy while outside, then back inside");
-        assert!((s.pos.xy() - Vector3::new(30.0, 35.0, 0.0).xy()).norm() < 0.05, "at the nearer rally point: {}", s.pos);
-        assert!(matches!(s.fence_status(), Some(MavMessage::FENCE_STATUS(f)) if f.breach_count == 1 && f.breach_status == 0));
+        assert!(
+            (s.pos.xy() - Vector3::new(30.0, 35.0, 0.0).xy()).norm() < 0.05,
+            "at the nearer rally point: {}",
+            s.pos
+        );
+        assert!(
+            matches!(s.fence_status(), Some(MavMessage::FENCE_STATUS(f)) if f.breach_count == 1 && f.breach_status == 0)
+        );
     }
 
     #[test]
@@ -1156,7 +1606,13 @@ mod tests {
         // 100 mAh above the 4,000 mAh low mark.
         s.spec.safety.battery_start_mah = Some(4_100.0);
         s = SimAutopilot::new(s.spec.clone(), Vector3::new(1.0, 1.0, 0.0));
-        let battery = |s: &SimAutopilot| if let MavMessage::SYS_STATUS(st) = s.sys_status() { (st.battery_remaining, st.current_battery) } else { panic!() };
+        let battery = |s: &SimAutopilot| {
+            if let MavMessage::SYS_STATUS(st) = s.sys_status() {
+                (st.battery_remaining, st.current_battery)
+            } else {
+                panic!()
+            }
+        };
         assert_eq!(battery(&s), (21, 5), "20.5 % left, 0.05 A disarmed");
         // Disarmed for a simulated hour: 50 mAh at 0.05 A.
         s.step(3600.0);
@@ -1165,7 +1621,13 @@ mod tests {
         // Armed, driving away at full speed: 10 A, so 50 mAh take 18 s.
         s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
         s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 15.0));
-        let target = SET_POSITION_TARGET_LOCAL_NED_DATA { x: 40.0, y: 1.0, target_system: 3, coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED, ..Default::default() };
+        let target = SET_POSITION_TARGET_LOCAL_NED_DATA {
+            x: 40.0,
+            y: 1.0,
+            target_system: 3,
+            coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+            ..Default::default()
+        };
         s.handle(&GCS, &MavMessage::SET_POSITION_TARGET_LOCAL_NED(target));
         s.take();
         let mut t = 0.0;
@@ -1186,7 +1648,11 @@ mod tests {
         for _ in 0..1000 {
             s.step(0.05);
         }
-        assert!((s.pos.xy() - Vector3::new(1.0, 1.0, 0.0).xy()).norm() < 0.05, "{}", s.pos);
+        assert!(
+            (s.pos.xy() - Vector3::new(1.0, 1.0, 0.0).xy()).norm() < 0.05,
+            "{}",
+            s.pos
+        );
         assert!(!s.take().iter().any(|m| matches!(m, MavMessage::STATUSTEXT(_))));
     }
 }

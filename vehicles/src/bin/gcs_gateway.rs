@@ -16,7 +16,11 @@ use vehicles::link::{MavLink, Received};
 use vehicles::signing::{LinkSigning, Refused, LINK_GATEWAY};
 
 #[derive(Parser, Debug)]
-#[command(name = "gcs-gateway", version, about = "hetfleet's ground-station gateway: the whole fleet on one MAVLink endpoint")]
+#[command(
+    name = "gcs-gateway",
+    version,
+    about = "hetfleet's ground-station gateway: the whole fleet on one MAVLink endpoint"
+)]
 struct Args {
     #[command(flatten)]
     node: fleet_net::NodeArgs,
@@ -40,18 +44,41 @@ async fn run(args: Args) -> anyhow::Result<()> {
     }
     // With a key, the ground station must sign (MAVProxy: `signing key <passphrase>`).
     let signing = match &mission.mavlink.signing_key {
-        Some(p) => Some(LinkSigning::new(SigningKey::read(p).map_err(fleet_mission::exit::bad_input).context("[mavlink] signing_key")?, LINK_GATEWAY, false)),
+        Some(p) => Some(LinkSigning::new(
+            SigningKey::read(p)
+                .map_err(fleet_mission::exit::bad_input)
+                .context("[mavlink] signing_key")?,
+            LINK_GATEWAY,
+            false,
+        )),
         None => None,
     };
-    let gcs = Arc::new(MavLink::open(&address, signing).map_err(|e| anyhow::anyhow!("ground-station endpoint {address}: {e}"))?);
+    let gcs = Arc::new(
+        MavLink::open(&address, signing).map_err(|e| anyhow::anyhow!("ground-station endpoint {address}: {e}"))?,
+    );
     let network = mission.network.for_node(fleet_mission::security::GATEWAY);
     let zenoh_config = args.node.zenoh_config(Role::Vehicle, &network)?;
-    fleet_net::exit_when_refused("gcs-gateway", &zenoh_config, args.node.zenoh_file(Role::Vehicle, &network));
+    fleet_net::exit_when_refused(
+        "gcs-gateway",
+        &zenoh_config,
+        args.node.zenoh_file(Role::Vehicle, &network),
+    );
     let session = fleet_net::open(zenoh_config).await?;
-    let from_vehicles = session.declare_subscriber(keys.all_mavlink()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-    let _token = session.liveliness().declare_token(keys.alive("gcs-gateway")).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let from_vehicles = session
+        .declare_subscriber(keys.all_mavlink())
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let _token = session
+        .liveliness()
+        .declare_token(keys.alive("gcs-gateway"))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
     // Every vehicle's system id, pinned from the mission (never learned from the streams).
-    let systems: Vec<(String, u8)> = mission.vehicles().iter().map(|v| Ok((v.id.clone(), mission.sysid(&v.id)?))).collect::<anyhow::Result<_>>()?;
+    let systems: Vec<(String, u8)> = mission
+        .vehicles()
+        .iter()
+        .map(|v| Ok((v.id.clone(), mission.sysid(&v.id)?)))
+        .collect::<anyhow::Result<_>>()?;
     let mut router = Router::new(systems);
     info!(gcs = address, mission = mission.mission, systems = ?router.systems(), signed = gcs.signed(), "ground-station gateway up");
 

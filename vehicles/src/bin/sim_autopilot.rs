@@ -24,7 +24,11 @@ enum Airframe {
 }
 
 #[derive(Parser, Debug)]
-#[command(name = "sim-autopilot", version, about = "A simulated MAVLink autopilot (boat or multirotor)")]
+#[command(
+    name = "sim-autopilot",
+    version,
+    about = "A simulated MAVLink autopilot (boat or multirotor)"
+)]
 struct Args {
     #[arg(long, value_enum, default_value = "boat")]
     frame: Airframe,
@@ -59,7 +63,12 @@ fn main() {
 async fn run(args: Args) -> anyhow::Result<()> {
     let mission = MissionConfig::load(args.mission.as_deref())?;
     let m = &mission.mavlink;
-    let site = Site::new(m, &Grid::new(args.grid[0], args.grid[1], 1.0).map_err(fleet_mission::exit::bad_input).context("--grid")?);
+    let site = Site::new(
+        m,
+        &Grid::new(args.grid[0], args.grid[1], 1.0)
+            .map_err(fleet_mission::exit::bad_input)
+            .context("--grid")?,
+    );
     let frame = match args.frame {
         Airframe::Boat => Frame::Boat,
         Airframe::Multirotor => Frame::Multirotor,
@@ -67,13 +76,26 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let spec = SimSpec::from_config(frame, args.sysid, site, m);
     let home: Vector3<f64> = site.ned_of((args.home[0], args.home[1]), 0.0);
     let signing = match &args.signing_key {
-        Some(p) => Some(LinkSigning::new(SigningKey::read(p).map_err(fleet_mission::exit::bad_input).context("--signing-key")?, LINK_AUTOPILOT, false)),
+        Some(p) => Some(LinkSigning::new(
+            SigningKey::read(p)
+                .map_err(fleet_mission::exit::bad_input)
+                .context("--signing-key")?,
+            LINK_AUTOPILOT,
+            false,
+        )),
         None => None,
     };
     let signed = signing.is_some();
     let stop = Arc::new(AtomicBool::new(false));
-    let stats = serve::spawn(&args.listen, SimAutopilot::new(spec, home), signing, stop.clone()).with_context(|| format!("--listen {}", args.listen))?;
-    tracing::info!(listen = args.listen, sysid = args.sysid, ?frame, signed, "simulated autopilot up");
+    let stats = serve::spawn(&args.listen, SimAutopilot::new(spec, home), signing, stop.clone())
+        .with_context(|| format!("--listen {}", args.listen))?;
+    tracing::info!(
+        listen = args.listen,
+        sysid = args.sysid,
+        ?frame,
+        signed,
+        "simulated autopilot up"
+    );
     let mut signals = fleet_net::StopSignals::new()?;
     let mut tick = tokio::time::interval(Duration::from_secs(10));
     let report = || {

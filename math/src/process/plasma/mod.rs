@@ -109,8 +109,18 @@ impl Preset {
         let d = PlasmaParams::default();
         match self {
             Self::Cloud1 => d,
-            Self::Cloud2 => PlasmaParams { n_b: 1.0 / 3.0, eps: 0.01, out_dt: 0.15, ..d },
-            Self::Cloud10 => PlasmaParams { n_b: 0.2, eps: 0.1, out_dt: 0.3, ..d },
+            Self::Cloud2 => PlasmaParams {
+                n_b: 1.0 / 3.0,
+                eps: 0.01,
+                out_dt: 0.15,
+                ..d
+            },
+            Self::Cloud10 => PlasmaParams {
+                n_b: 0.2,
+                eps: 0.1,
+                out_dt: 0.3,
+                ..d
+            },
         }
     }
 }
@@ -135,7 +145,10 @@ impl PlasmaParams {
     pub fn validate(&self) -> Result<(), PlasmaError> {
         let bad = |m: String| Err(PlasmaError::Param(m));
         if self.nx < 4 || self.ny < 4 {
-            return bad(format!("grid must be at least 4 x 4 cells, got {} x {}", self.ny, self.nx));
+            return bad(format!(
+                "grid must be at least 4 x 4 cells, got {} x {}",
+                self.ny, self.nx
+            ));
         }
         if self.nx * self.ny > 50_000_000 {
             return bad(format!("grid of {} cells is too large", self.nx * self.ny));
@@ -172,7 +185,13 @@ impl PlasmaParams {
         if self.sigma_x < 0.0 || self.diffusion < 0.0 {
             return bad("sigma_x and diffusion must be >= 0".into());
         }
-        if !(self.out_dt > 0.0 && (0.0..1.0).contains(&self.sponge) && self.tol > 0.0 && self.tol < 1.0 && self.cfl > 0.0 && self.cfl <= 1.0) {
+        if !(self.out_dt > 0.0
+            && (0.0..1.0).contains(&self.sponge)
+            && self.tol > 0.0
+            && self.tol < 1.0
+            && self.cfl > 0.0
+            && self.cfl <= 1.0)
+        {
             return bad("out_dt > 0, sponge in [0, 1), tol in (0, 1) and cfl in (0, 1] are required".into());
         }
         Ok(())
@@ -261,7 +280,10 @@ impl PlasmaCloud {
         params.validate()?;
         let n = params.nx * params.ny;
         if density.len() != n {
-            return Err(PlasmaError::Param(format!("density has {} values for {n} cells", density.len())));
+            return Err(PlasmaError::Param(format!(
+                "density has {} values for {n} cells",
+                density.len()
+            )));
         }
         if let Some(k) = density.iter().position(|v| !(v.is_finite() && *v >= 0.0)) {
             return Err(PlasmaError::Param(format!("density at cell {k} is {}", density[k])));
@@ -271,7 +293,10 @@ impl PlasmaCloud {
         let mut me = Self {
             solver: PotentialSolver::new(params.nx, params.ny, h, params.tol),
             fct: Fct::new(grid, h, params.diffusion),
-            velocity: FaceVelocity { u: vec![0.0; n], v: vec![0.0; n] },
+            velocity: FaceVelocity {
+                u: vec![0.0; n],
+                v: vec![0.0; n],
+            },
             psi: vec![0.0; n],
             sigma: vec![0.0; n],
             half: vec![0.0; n],
@@ -335,7 +360,11 @@ impl PlasmaCloud {
         let h = self.params.h();
         let umax = self.velocity.u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         let vmax = self.velocity.v.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        let mut dt = if umax + vmax > 0.0 { self.params.cfl / (umax / h + vmax / h) } else { f64::INFINITY };
+        let mut dt = if umax + vmax > 0.0 {
+            self.params.cfl / (umax / h + vmax / h)
+        } else {
+            f64::INFINITY
+        };
         if self.params.diffusion > 0.0 {
             dt = dt.min(0.2 * h * h / (2.0 * self.params.diffusion));
         }
@@ -346,7 +375,8 @@ impl PlasmaCloud {
     /// Each solve is warm-started from a linear extrapolation in time of the last two
     /// potentials, which saved a third of the CG iterations (9.0 -> 6.1 per solve on cloud1).
     pub fn step(&mut self, dt: f64) -> Result<(), PlasmaError> {
-        self.fct.step(&self.density, &self.density, &self.velocity, 0.5 * dt, &mut self.half);
+        self.fct
+            .step(&self.density, &self.density, &self.velocity, 0.5 * dt, &mut self.half);
         // psi_start = psi^n; psi_old = psi^(n-1) from the previous step (when there was one).
         self.psi_start.copy_from_slice(&self.psi);
         if let Some(prev_dt) = self.prev_dt {
@@ -356,7 +386,8 @@ impl PlasmaCloud {
             }
         }
         self.update_potential(true)?;
-        self.fct.step(&self.density, &self.half, &self.velocity, dt, &mut self.next);
+        self.fct
+            .step(&self.density, &self.half, &self.velocity, dt, &mut self.next);
         std::mem::swap(&mut self.density, &mut self.next);
         self.apply_sponge(dt);
         for (x, a) in self.psi.iter_mut().zip(&self.psi_start) {
@@ -421,6 +452,11 @@ impl PlasmaCloud {
             }
             progress(k);
         }
-        Ok(FieldSeries { rows: self.params.ny, cols: self.params.nx, dt: self.params.out_dt, snapshots })
+        Ok(FieldSeries {
+            rows: self.params.ny,
+            cols: self.params.nx,
+            dt: self.params.out_dt,
+            snapshots,
+        })
     }
 }

@@ -34,8 +34,21 @@ pub struct Periodic {
 
 impl Periodic {
     pub fn new(nx: usize, ny: usize) -> Self {
-        let wrap = |n: usize, k: isize| -> Vec<usize> { (0..n).map(|i| (i as isize + k).rem_euclid(n as isize) as usize).collect() };
-        Self { nx, ny, ie: wrap(nx, 1), iw: wrap(nx, -1), iee: wrap(nx, 2), jn: wrap(ny, 1), js: wrap(ny, -1), jnn: wrap(ny, 2) }
+        let wrap = |n: usize, k: isize| -> Vec<usize> {
+            (0..n)
+                .map(|i| (i as isize + k).rem_euclid(n as isize) as usize)
+                .collect()
+        };
+        Self {
+            nx,
+            ny,
+            ie: wrap(nx, 1),
+            iw: wrap(nx, -1),
+            iee: wrap(nx, 2),
+            jn: wrap(ny, 1),
+            js: wrap(ny, -1),
+            jnn: wrap(ny, 2),
+        }
     }
 
     pub fn len(&self) -> usize {
@@ -117,8 +130,13 @@ impl PotentialSolver {
         let mut inv_lambda = vec![0.0; nk * ny];
         for k in 0..nk {
             for q in 0..ny {
-                let l = 4.0 / (h * h) * ((pi * k as f64 / nx as f64).sin().powi(2) + (pi * q as f64 / ny as f64).sin().powi(2));
-                inv_lambda[k * ny + q] = if k == 0 && q == 0 { 0.0 } else { 1.0 / (l * (nx * ny) as f64) };
+                let l = 4.0 / (h * h)
+                    * ((pi * k as f64 / nx as f64).sin().powi(2) + (pi * q as f64 / ny as f64).sin().powi(2));
+                inv_lambda[k * ny + q] = if k == 0 && q == 0 {
+                    0.0
+                } else {
+                    1.0 / (l * (nx * ny) as f64)
+                };
             }
         }
         let scratch_r = vec![Complex::default(); r2c.get_scratch_len().max(c2r.get_scratch_len())];
@@ -187,7 +205,9 @@ impl PotentialSolver {
         for j in 0..g.ny {
             let (row, rs) = (j * nx, g.js[j] * nx);
             for i in 0..nx {
-                b[row + i] = -(e0[0] * (f.east[row + i] - f.east[row + g.iw[i]]) + e0[1] * (f.north[row + i] - f.north[rs + i])) / self.h;
+                b[row + i] = -(e0[0] * (f.east[row + i] - f.east[row + g.iw[i]])
+                    + e0[1] * (f.north[row + i] - f.north[rs + i]))
+                    / self.h;
             }
         }
     }
@@ -199,7 +219,13 @@ impl PotentialSolver {
         for j in 0..ny {
             let src = if src_is_r { &self.r } else { &self.z };
             self.row_in.copy_from_slice(&src[j * nx..(j + 1) * nx]);
-            self.r2c.process_with_scratch(&mut self.row_in, &mut self.spec[j * nk..(j + 1) * nk], &mut self.scratch_r).expect("buffer sizes from the plan");
+            self.r2c
+                .process_with_scratch(
+                    &mut self.row_in,
+                    &mut self.spec[j * nk..(j + 1) * nk],
+                    &mut self.scratch_r,
+                )
+                .expect("buffer sizes from the plan");
         }
         for j in 0..ny {
             for k in 0..nk {
@@ -220,7 +246,13 @@ impl PotentialSolver {
             if nx % 2 == 0 {
                 self.spec[j * nk + nk - 1].im = 0.0;
             }
-            self.c2r.process_with_scratch(&mut self.spec[j * nk..(j + 1) * nk], &mut self.z[j * nx..(j + 1) * nx], &mut self.scratch_r).expect("buffer sizes from the plan");
+            self.c2r
+                .process_with_scratch(
+                    &mut self.spec[j * nk..(j + 1) * nk],
+                    &mut self.z[j * nx..(j + 1) * nx],
+                    &mut self.scratch_r,
+                )
+                .expect("buffer sizes from the plan");
         }
     }
 
@@ -228,7 +260,10 @@ impl PotentialSolver {
     /// cell conductivity `sigma` and the ambient field `e0`. Returns the iteration count.
     pub fn solve(&mut self, sigma: &[f64], e0: [f64; 2], psi: &mut [f64]) -> Result<usize, SolveError> {
         if let Some(cell) = sigma.iter().position(|s| !(s.is_finite() && *s > 0.0)) {
-            return Err(SolveError::Conductivity { cell, value: sigma[cell] });
+            return Err(SolveError::Conductivity {
+                cell,
+                value: sigma[cell],
+            });
         }
         let f = self.grid.faces(sigma);
         let mut b = std::mem::take(&mut self.b);
@@ -288,7 +323,10 @@ impl PotentialSolver {
         self.stats.iterations += iterations as u64;
         self.stats.max_iterations = self.stats.max_iterations.max(iterations as u64);
         if rnorm > target && bnorm > 0.0 {
-            return Err(SolveError::NoConvergence { iterations, residual: rnorm / bnorm });
+            return Err(SolveError::NoConvergence {
+                iterations,
+                residual: rnorm / bnorm,
+            });
         }
         Ok(iterations)
     }
@@ -327,7 +365,9 @@ mod tests {
         // and the answer satisfies A psi = b to the tolerance.
         let (nx, ny, h) = (48, 24, 1.0 / 8.0);
         let mut s = PotentialSolver::new(nx, ny, h, 1e-12);
-        let sigma: Vec<f64> = (0..nx * ny).map(|k| 1.0 + 0.7 * ((k % nx) as f64 * 0.3).sin() * ((k / nx) as f64 * 0.5).cos()).collect();
+        let sigma: Vec<f64> = (0..nx * ny)
+            .map(|k| 1.0 + 0.7 * ((k % nx) as f64 * 0.3).sin() * ((k / nx) as f64 * 0.5).cos())
+            .collect();
         let mut psi = vec![0.0; nx * ny];
         let it = s.solve(&sigma, [0.3, 1.0], &mut psi).unwrap();
         assert!(it > 1 && it < 60, "{it} iterations");
@@ -348,6 +388,9 @@ mod tests {
         let mut psi = vec![0.0; 64];
         let mut sigma = vec![1.0; 64];
         sigma[5] = 0.0;
-        assert_eq!(s.solve(&sigma, [0.0, 1.0], &mut psi), Err(SolveError::Conductivity { cell: 5, value: 0.0 }));
+        assert_eq!(
+            s.solve(&sigma, [0.0, 1.0], &mut psi),
+            Err(SolveError::Conductivity { cell: 5, value: 0.0 })
+        );
     }
 }

@@ -43,7 +43,16 @@ pub struct Fct {
 impl Fct {
     pub fn new(grid: Periodic, h: f64, diffusion: f64) -> Self {
         let n = grid.len();
-        Self { grid, h, diffusion, ax: vec![0.0; n], ay: vec![0.0; n], td: vec![0.0; n], rp: vec![0.0; n], rm: vec![0.0; n] }
+        Self {
+            grid,
+            h,
+            diffusion,
+            ax: vec![0.0; n],
+            ay: vec![0.0; n],
+            td: vec![0.0; n],
+            rp: vec![0.0; n],
+            rm: vec![0.0; n],
+        }
     }
 
     /// One FCT update over `dt`: low-order fluxes from `old`, high-order from `ho`, written to
@@ -118,8 +127,16 @@ impl Fct {
                 // to rounding noise is limited the same way whichever side the noise fell on.
                 let eps = ROUNDING * td[c].abs();
                 let (q_up, q_down) = (hi - td[c], td[c] - lo);
-                self.rp[c] = if p_in > 0.0 && q_up > eps { (q_up / p_in).min(1.0) } else { 0.0 };
-                self.rm[c] = if p_out > 0.0 && q_down > eps { (q_down / p_out).min(1.0) } else { 0.0 };
+                self.rp[c] = if p_in > 0.0 && q_up > eps {
+                    (q_up / p_in).min(1.0)
+                } else {
+                    0.0
+                };
+                self.rm[c] = if p_out > 0.0 && q_down > eps {
+                    (q_down / p_out).min(1.0)
+                } else {
+                    0.0
+                };
             }
         }
         // 8-9: limit every face and apply.
@@ -129,11 +146,19 @@ impl Fct {
             for i in 0..nx {
                 let (c, e, n) = (row + i, row + g.ie[i], rn + i);
                 let a = self.ax[c];
-                let cx = if a >= 0.0 { self.rp[e].min(self.rm[c]) } else { self.rp[c].min(self.rm[e]) };
+                let cx = if a >= 0.0 {
+                    self.rp[e].min(self.rm[c])
+                } else {
+                    self.rp[c].min(self.rm[e])
+                };
                 out[c] -= cx * a;
                 out[e] += cx * a;
                 let a = self.ay[c];
-                let cy = if a >= 0.0 { self.rp[n].min(self.rm[c]) } else { self.rp[c].min(self.rm[n]) };
+                let cy = if a >= 0.0 {
+                    self.rp[n].min(self.rm[c])
+                } else {
+                    self.rp[c].min(self.rm[n])
+                };
                 out[c] -= cy * a;
                 out[n] += cy * a;
             }
@@ -151,8 +176,19 @@ mod tests {
         let g = Periodic::new(nx, ny);
         let mut fct = Fct::new(g, h, 0.0);
         // A square pulse (the hardest case for overshoots), moved diagonally.
-        let mut n: Vec<f64> = (0..nx * ny).map(|k| if (10..20).contains(&(k % nx)) && (5..12).contains(&(k / nx)) { 1.0 } else { 0.2 }).collect();
-        let vel = FaceVelocity { u: vec![1.0; nx * ny], v: vec![0.5; nx * ny] };
+        let mut n: Vec<f64> = (0..nx * ny)
+            .map(|k| {
+                if (10..20).contains(&(k % nx)) && (5..12).contains(&(k / nx)) {
+                    1.0
+                } else {
+                    0.2
+                }
+            })
+            .collect();
+        let vel = FaceVelocity {
+            u: vec![1.0; nx * ny],
+            v: vec![0.5; nx * ny],
+        };
         let mass0: f64 = n.iter().sum();
         let mut out = vec![0.0; nx * ny];
         for _ in 0..100 {
