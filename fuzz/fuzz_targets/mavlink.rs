@@ -3,5 +3,5 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    let _ = vehicles::bridge::parse_frame(data);
+    let _ = vehicles::link::parse_frame(data);
 });

@@ -14,7 +14,7 @@ use mavlink::MavHeader;
 use proptest::prelude::*;
 use proptest::test_runner::{Config, TestRunner};
 use std::sync::atomic::{AtomicU64, Ordering};
-use vehicles::bridge::{frame_bytes, parse_frame};
+use vehicles::link::{frame_bytes, parse_frame};
 
 /// Inputs per decoder.
 const CASES: u32 = 30_000;

@@ -324,7 +324,7 @@ fn the_gateway_pins_system_ids_from_the_mission_whatever_arrives_first() {
         fleet_net::open(cfg).await.unwrap()
     });
     let hb = |sysid: u8, mode: u32| {
-        vehicles::bridge::frame_bytes(
+        vehicles::link::frame_bytes(
             mavlink::MavHeader {
                 system_id: sysid as u32,
                 component_id: 1,
@@ -377,7 +377,7 @@ fn the_gateway_pins_system_ids_from_the_mission_whatever_arrives_first() {
     assert!(matches!(got, Ok(Ok(_))), "the HOLD reached boat-2");
     assert!(
         to1.try_recv().ok().flatten().is_none_or(|s| {
-            let (_, msg) = vehicles::bridge::parse_frame(&s.payload().to_bytes()).unwrap();
+            let (_, msg) = vehicles::link::parse_frame(&s.payload().to_bytes()).unwrap();
             !matches!(msg, MavMessage::SET_MODE(_))
         }),
         "nothing for boat-2 went to boat-1"

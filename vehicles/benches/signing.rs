@@ -7,7 +7,7 @@ use fleet_mission::signing_key::SigningKey;
 use mavlink::dialects::common::*;
 use mavlink::MavHeader;
 use std::hint::black_box;
-use vehicles::bridge::frame_bytes;
+use vehicles::link::frame_bytes;
 use vehicles::signing::{LinkSigning, LINK_AUTOPILOT, LINK_BRIDGE};
 
 fn signing(c: &mut Criterion) {

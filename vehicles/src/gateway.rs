@@ -6,7 +6,7 @@
 //! intermittent links as the model server, and one that only answers its last sender (as
 //! pymavlink's and MAVProxy's `udpin:` do) still reaches every vehicle.
 
-use crate::bridge::parse_frame;
+use crate::link::parse_frame;
 use crate::signing::Refused;
 use mavlink::dialects::common::MavMessage;
 use mavlink::{MavHeader, Message};
@@ -171,7 +171,7 @@ impl RefusalLog {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::bridge::frame_bytes;
+    use crate::link::frame_bytes;
     use mavlink::dialects::common::*;
 
     fn from(sysid: u8, m: &MavMessage) -> Vec<u8> {

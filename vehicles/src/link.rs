@@ -1,14 +1,43 @@
-//! One MAVLink connection, signed or not: every end of ours (the bridge to an autopilot, the
-//! simulated autopilot, the ground-station gateway) reads and writes frames through this, so a
-//! link's signing is decided in one place. Frames are read raw, checked, then parsed, so a
-//! refusal says why; what is sent is signed when the link is.
+//! One MAVLink connection, signed or not, and the frame codec: every end of ours (the bridge to
+//! an autopilot, the simulated autopilot, the ground-station gateway) reads and writes frames
+//! through this, so a link's signing and what counts as a frame are decided in one place.
+//! Frames are read raw, checked, then parsed, so a refusal says why; what is sent is signed
+//! when the link is.
+//!
+//! Reading is one thread per link ([`MavLink::reader`]) that blocks on the socket and hands
+//! each read to a channel: the actor that owns the link's state (the bridge, the gateway)
+//! wakes on what arrives, never on a timer. (The `mavlink` crate's async UDP connection retries
+//! every read error inside `recv_raw`, so a garbled frame would never be seen, let alone
+//! counted; its blocking connection reports each one.)
 
-use crate::bridge::parse_frame;
 use crate::signing::{LinkSigning, Refused};
 use mavlink::dialects::common::MavMessage;
 use mavlink::error::MessageReadError;
-use mavlink::{Connection, MAVLinkMessageRaw, MavConnection, MavHeader};
+use mavlink::{Connection, MAVLinkMessageRaw, MavConnection, MavHeader, MavlinkVersion};
 use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::Arc;
+use tokio::sync::mpsc;
+
+/// Longest MAVLink 2 frame.
+pub const MAX_FRAME: usize = 280;
+
+/// A MAVLink 2 frame of a message.
+pub fn frame_bytes(header: MavHeader, msg: &MavMessage) -> Vec<u8> {
+    let mut buf = Vec::with_capacity(64);
+    // Writing to a Vec cannot fail.
+    let _ = mavlink::write_versioned_msg(&mut buf, MavlinkVersion::V2, header, msg);
+    buf
+}
+
+/// The message of one MAVLink frame (v1 or v2), checked (CRC, known id, length).
+pub fn parse_frame(bytes: &[u8]) -> Result<(MavHeader, MavMessage), String> {
+    if bytes.len() > MAX_FRAME {
+        return Err(format!("{} bytes: longer than a MAVLink frame", bytes.len()));
+    }
+    mavlink::MavlinkReader::new(bytes)
+        .read_any_message::<MavMessage>()
+        .map_err(|e| format!("not a MAVLink frame: {e}"))
+}
 
 /// What one read gave (a frame is moved once per read: its size is no cost worth a box).
 #[derive(Debug)]
@@ -20,8 +49,10 @@ pub enum Received {
     Refused(Refused),
     /// Bytes that are no frame of ours (bad CRC, unknown message, truncated).
     Unreadable(String),
-    /// Nothing to read now (no peer yet, a refused datagram): try again later.
+    /// Nothing read (a socket's read timeout, an ICMP refusal of what we sent): read again.
     Idle,
+    /// The other end closed a stream link (TCP, serial): nothing more will come.
+    Closed,
 }
 
 pub struct MavLink {
@@ -29,6 +60,9 @@ pub struct MavLink {
     signing: Option<LinkSigning>,
     /// Sequence numbers of signed frames (the crate numbers only what it serialises).
     sequence: AtomicU8,
+    /// A stream (TCP, serial), where end of file is the end of the link; on UDP it is an empty
+    /// datagram.
+    stream: bool,
 }
 
 impl MavLink {
@@ -38,6 +72,7 @@ impl MavLink {
             conn: mavlink::connect::<MavMessage>(address)?,
             signing,
             sequence: AtomicU8::new(0),
+            stream: !address.starts_with("udp"),
         })
     }
 
@@ -49,6 +84,9 @@ impl MavLink {
     pub fn recv(&self) -> Received {
         let raw = match self.conn.recv_raw() {
             Ok(r) => r,
+            Err(MessageReadError::Io(e)) if e.kind() == std::io::ErrorKind::UnexpectedEof && self.stream => {
+                return Received::Closed
+            }
             Err(MessageReadError::Io(e))
                 if !matches!(
                     e.kind(),
@@ -72,6 +110,25 @@ impl MavLink {
             Ok((h, m)) => Received::Frame(h, m, bytes),
             Err(e) => Received::Unreadable(e),
         }
+    }
+
+    /// A thread (named `name`) that blocks on the link and hands every read but [`Received::Idle`]
+    /// to the returned channel, until the link closes or the receiver is dropped (then at its
+    /// next read).
+    pub fn reader(self: &Arc<Self>, name: &str) -> std::io::Result<mpsc::UnboundedReceiver<Received>> {
+        let (tx, rx) = mpsc::unbounded_channel();
+        let link = self.clone();
+        std::thread::Builder::new().name(name.into()).spawn(move || loop {
+            let got = link.recv();
+            let closed = matches!(got, Received::Closed);
+            if !matches!(got, Received::Idle) && tx.send(got).is_err() || closed {
+                return;
+            }
+            if tx.is_closed() {
+                return;
+            }
+        })?;
+        Ok(rx)
     }
 
     /// Send a message (signed when the link is).

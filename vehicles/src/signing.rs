@@ -109,7 +109,7 @@ impl LinkSigning {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::bridge::{frame_bytes, parse_frame};
+    use crate::link::{frame_bytes, parse_frame};
     use mavlink::dialects::common::*;
 
     fn hb() -> MavMessage {

@@ -17,7 +17,8 @@ use std::time::{Duration, Instant};
 use vehicles::autopilot::modes::Frame;
 use vehicles::autopilot::serve;
 use vehicles::autopilot::sim::{SimAutopilot, SimSpec};
-use vehicles::bridge::{frame_bytes, parse_frame, Bridge, BridgeSpec};
+use vehicles::bridge::{Bridge, BridgeSpec};
+use vehicles::link::{frame_bytes, parse_frame};
 
 fn site() -> Site {
     Site::new(&MavlinkConfig::default(), &Grid::new(24, 48, 1.0).unwrap())
@@ -98,7 +99,7 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
         fence_action: 1.0,
         rally: vec![],
     };
-    let bridge = Bridge::connect(&format!("udpout:{}", ap.local_addr().unwrap()), spec, None).unwrap();
+    let mut bridge = Bridge::connect(&format!("udpout:{}", ap.local_addr().unwrap()), spec, None).unwrap();
     // The bridge's companion heartbeat tells us where it is.
     let mut buf = [0u8; 512];
     let (_, peer) = ap.recv_from(&mut buf).expect("the bridge's heartbeat");

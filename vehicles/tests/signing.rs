@@ -19,7 +19,8 @@ use std::time::{Duration, Instant};
 use vehicles::autopilot::modes::Frame;
 use vehicles::autopilot::serve::{self, ServeStats};
 use vehicles::autopilot::sim::{SimAutopilot, SimSpec};
-use vehicles::bridge::{frame_bytes, parse_frame, Bridge, BridgeSpec};
+use vehicles::bridge::{Bridge, BridgeSpec};
+use vehicles::link::{frame_bytes, parse_frame};
 use vehicles::signing::{LinkSigning, Refused};
 
 fn spec(sysid: u8) -> SimSpec {

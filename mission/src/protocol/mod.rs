@@ -118,10 +118,11 @@ impl Telemetry {
 }
 
 /// An autopilot's link to its vehicle node.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum AutopilotLink {
     /// No HEARTBEAT yet, or the node is still arming it and setting GUIDED.
+    #[default]
     Connecting,
     Up,
     /// No HEARTBEAT within the timeout.

@@ -1,7 +1,9 @@
 //! A simulated autopilot on a MAVLink connection (`udpin:` as SITL does, or any other the
-//! `mavlink` crate opens): its own thread ticks the physics every 10 ms and sends HEARTBEAT and
-//! SYS_STATUS (with BATTERY_STATUS, HOME_POSITION, MISSION_CURRENT, FENCE_STATUS) at 1 Hz, GLOBAL_POSITION_INT, LOCAL_POSITION_NED (and its guided target) at
-//! 10 Hz, and replies as they come. Frames it cannot read are counted and skipped. With a
+//! `mavlink` crate opens): its own thread ticks the physics every 10 ms (a simulator's clock,
+//! as SITL's) and sends HEARTBEAT and SYS_STATUS (with BATTERY_STATUS, HOME_POSITION,
+//! MISSION_CURRENT, FENCE_STATUS) at 1 Hz, GLOBAL_POSITION_INT, LOCAL_POSITION_NED (and its
+//! guided target) at 10 Hz, and replies as they come (the link's reader thread hands it what
+//! arrives). Frames it cannot read are counted and skipped. With a
 //! signing key it signs everything it sends and obeys only frames signed with that key.
 
 use super::sim::SimAutopilot;
@@ -10,8 +12,9 @@ use crate::signing::{LinkSigning, Refused};
 use mavlink::dialects::common::MavMessage;
 use mavlink::MavHeader;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{mpsc, Arc};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
+use tokio::sync::mpsc;
 
 /// What a served autopilot has seen.
 #[derive(Debug, Default)]
@@ -46,29 +49,7 @@ pub fn spawn(
 ) -> std::io::Result<Arc<ServeStats>> {
     let conn = Arc::new(MavLink::open(address, signing)?);
     let stats = Arc::new(ServeStats::default());
-    let (tx, rx) = mpsc::channel();
-    {
-        let (conn, stats) = (conn.clone(), stats.clone());
-        std::thread::Builder::new()
-            .name("sim-autopilot-rx".into())
-            .spawn(move || loop {
-                match conn.recv() {
-                    Received::Frame(h, m, _) => {
-                        stats.received.fetch_add(1, Ordering::Relaxed);
-                        if tx.send((h, m)).is_err() {
-                            return;
-                        }
-                    }
-                    Received::Idle => std::thread::sleep(Duration::from_millis(20)),
-                    Received::Refused(r) => {
-                        stats.refused(r).fetch_add(1, Ordering::Relaxed);
-                    }
-                    Received::Unreadable(_) => {
-                        stats.unreadable.fetch_add(1, Ordering::Relaxed);
-                    }
-                }
-            })?;
-    }
+    let rx = conn.reader("sim-autopilot-rx")?;
     let st = stats.clone();
     std::thread::Builder::new()
         .name("sim-autopilot".into())
@@ -79,7 +60,7 @@ pub fn spawn(
 fn run(
     conn: Arc<MavLink>,
     mut sim: SimAutopilot,
-    rx: mpsc::Receiver<(MavHeader, MavMessage)>,
+    mut rx: mpsc::UnboundedReceiver<Received>,
     stop: Arc<AtomicBool>,
     stats: Arc<ServeStats>,
 ) {
@@ -101,9 +82,21 @@ fn run(
     let mut shown: Option<(u32, bool)> = None;
     while !stop.load(Ordering::Relaxed) {
         let mut heard = false;
-        while let Ok((h, m)) = rx.try_recv() {
-            sim.handle(&h, &m);
-            heard = true;
+        while let Ok(r) = rx.try_recv() {
+            match r {
+                Received::Frame(h, m, _) => {
+                    stats.received.fetch_add(1, Ordering::Relaxed);
+                    sim.handle(&h, &m);
+                    heard = true;
+                }
+                Received::Refused(r) => {
+                    stats.refused(r).fetch_add(1, Ordering::Relaxed);
+                }
+                Received::Unreadable(_) => {
+                    stats.unreadable.fetch_add(1, Ordering::Relaxed);
+                }
+                Received::Idle | Received::Closed => {}
+            }
         }
         if (heard && shown.is_none()) || shown.is_some_and(|s| s != (sim.mode, sim.armed)) {
             send(&sim.heartbeat());

@@ -13,7 +13,7 @@ use std::time::Duration;
 use tracing::{debug, info, warn};
 use vehicles::gateway::{RefusalLog, Router};
 use vehicles::link::{MavLink, Received};
-use vehicles::signing::{LinkSigning, Refused, LINK_GATEWAY};
+use vehicles::signing::{LinkSigning, LINK_GATEWAY};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -82,29 +82,9 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let mut router = Router::new(systems);
     info!(gcs = address, mission = mission.mission, systems = ?router.systems(), signed = gcs.signed(), "ground-station gateway up");
 
-    // The ground station's frames (as they came, signature and all) or why the signing check
-    // refused one, read on a thread (the connection blocks).
-    let (tx, mut from_gcs) = tokio::sync::mpsc::unbounded_channel::<Result<Vec<u8>, Refused>>();
-    let reader = gcs.clone();
-    std::thread::Builder::new().name("gcs-rx".into()).spawn(move || loop {
-        let got = match reader.recv() {
-            Received::Frame(_, _, bytes) => Ok(bytes),
-            Received::Refused(r) => Err(r),
-            // Nobody listening yet on a udpout endpoint: ICMP refusals come back as errors.
-            Received::Idle => {
-                std::thread::sleep(Duration::from_millis(50));
-                continue;
-            }
-            Received::Unreadable(e) => {
-                debug!("unreadable frame from the ground station: {e}");
-                continue;
-            }
-        };
-        if tx.send(got).is_err() {
-            return;
-        }
-    })?;
-
+    // The ground station's frames (as they came, signature and all), or why the signing check
+    // refused one, from the link's reader.
+    let mut from_gcs = gcs.reader("gcs-rx")?;
     let mut refusals = RefusalLog::new(Duration::from_secs(10));
     let mut stop = fleet_net::StopSignals::new()?;
     let mut stats = tokio::time::interval(Duration::from_secs(10));
@@ -126,17 +106,28 @@ async fn run(args: Args) -> anyhow::Result<()> {
                     Err(r) => if let Some(line) = refusals.note(&r) { warn!(vehicle, "{line}") },
                 }
             }
-            Some(got) = from_gcs.recv() => match got.map_err(|r| router.refused_by_signing(r)).and_then(|bytes| router.from_gcs(&bytes).map(|to| (bytes, to))) {
-                Ok((bytes, vehicles)) => {
-                    for v in vehicles {
-                        if let Err(e) = session.put(keys.gcs(&v), bytes.clone()).await {
-                            warn!(vehicle = v, "forwarding a ground-station frame: {e}");
-                        }
+            Some(got) = from_gcs.recv() => {
+                let got = match got {
+                    Received::Frame(_, _, bytes) => Ok(bytes),
+                    Received::Refused(r) => Err(router.refused_by_signing(r)),
+                    Received::Unreadable(e) => {
+                        debug!("unreadable frame from the ground station: {e}");
+                        continue;
                     }
-                    up += 1;
+                    Received::Idle | Received::Closed => continue,
+                };
+                match got.and_then(|bytes| router.from_gcs(&bytes).map(|to| (bytes, to))) {
+                    Ok((bytes, vehicles)) => {
+                        for v in vehicles {
+                            if let Err(e) = session.put(keys.gcs(&v), bytes.clone()).await {
+                                warn!(vehicle = v, "forwarding a ground-station frame: {e}");
+                            }
+                        }
+                        up += 1;
+                    }
+                    Err(r) => if let Some(line) = refusals.note(&r) { warn!("{line}") },
                 }
-                Err(r) => if let Some(line) = refusals.note(&r) { warn!("{line}") },
-            },
+            }
             _ = stats.tick() => info!(to_gcs = down, from_gcs = up, refused = ?router.refused, "gateway"),
             sig = stop.recv() => { info!(signal = sig, "stopping"); break }
         }

@@ -6,26 +6,24 @@
 //! timer (commit the batch, send it, go on). Every batch is kept until the server's ack covers
 //! it.
 
+mod compose;
+mod drive;
+
 use crate::Args;
-use anyhow::Context as _;
+use drive::{drive, query_plan, Drive};
 use fleet_mission::config::MissionConfig;
 use fleet_mission::grid::Grid;
-use fleet_mission::protocol::{self, keys::Keys, Body, Context, LinkState, Plan, Target, Telemetry};
-use fleet_mission::signing_key::SigningKey;
-use fleet_mission::site::Site;
-use fleet_mission::vehicle::{BrainState, Fix, VehicleBrain};
+use fleet_mission::process::FieldSeries;
+use fleet_mission::protocol::{self, keys::Keys, AutopilotStatus, Body, Context, LinkState, Plan, Telemetry};
+use fleet_mission::vehicle::{BrainState, VehicleBrain};
 use fleet_mission::vehicle_rng;
 use fleet_net::outbox::{Outbox, OutboxError};
 use fleet_net::{zenoh, Role};
-use std::collections::BTreeMap;
-use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, watch};
 use tracing::{debug, info, warn};
-use vehicles::autopilot::modes::{Frame, Role as Mode};
-use vehicles::autopilot::safety::Action;
-use vehicles::autopilot::sim::SimSpec;
-use vehicles::bridge::{Bridge, BridgeSpec};
+use vehicles::autopilot::modes::Role as Mode;
+use vehicles::bridge::Bridge;
 use zenoh::sample::SampleKind;
 
 /// How often the plan is asked for while none has come (an ack asks at once).
@@ -56,9 +54,8 @@ enum Phase {
     Done,
 }
 
-/// What a drive task reports: the epoch, where the autopilot was at each sampling step, and
-/// how long after the plan the first guided target left (ms).
-type Driven = (u64, BTreeMap<u64, Fix>, Option<f64>);
+/// What a drive task reports: the epoch and its drive.
+type Driven = (u64, Drive);
 
 struct Vehicle {
     args: Args,
@@ -83,9 +80,10 @@ struct Vehicle {
     asking: bool,
     plans: mpsc::UnboundedSender<(u64, Option<Plan>)>,
     driven: mpsc::UnboundedSender<Driven>,
-    bridge: Option<Arc<Bridge>>,
-    /// The newest telemetry (the autopilot watch re-sends it when the autopilot changes).
-    last_telemetry: Arc<Mutex<Option<Telemetry>>>,
+    bridge: Option<Bridge>,
+    /// What the last telemetry said of the autopilot (link, guided, mode): a change is sent at
+    /// once, so the server leaves a held vehicle out of the next allocation.
+    shown: Option<(protocol::AutopilotLink, bool, String)>,
     /// When the epoch's plan came in, and how long after it each first guided target left (ms).
     plan_at: Option<Instant>,
     guided_ms: Vec<f64>,
@@ -113,7 +111,10 @@ impl Vehicle {
                 }
                 match self.phase {
                     // The model moved on: its plan may be there now.
-                    Phase::Plan { ref mut next_ask, .. } => *next_ask = Instant::now(),
+                    Phase::Plan { ref mut next_ask, .. } => {
+                        *next_ask = Instant::now();
+                        self.ask_if_due();
+                    }
                     Phase::Full { epoch } if !self.outbox.full() => self.begin(epoch),
                     Phase::Finish { .. } => self.finish_if_acknowledged(),
                     _ => {}
@@ -187,6 +188,19 @@ impl Vehicle {
             warned: false,
             next_ask: now,
         };
+        self.ask_if_due();
+    }
+
+    /// In the plan phase, with no query out and the next one due: ask now.
+    fn ask_if_due(&mut self) {
+        if let Phase::Plan { epoch, next_ask, .. } = &mut self.phase {
+            let now = Instant::now();
+            if !self.asking && now >= *next_ask {
+                *next_ask = now + ASK_EVERY;
+                let e = *epoch;
+                self.ask_plan(e);
+            }
+        }
     }
 
     fn finish_if_acknowledged(&mut self) {
@@ -254,18 +268,13 @@ impl Vehicle {
                 if now > deadline && !warned {
                     warn!(epoch, "no plan from the server and none held: still asking");
                 }
-                let next_ask = if !self.asking && now >= next_ask {
-                    self.ask_plan(epoch);
-                    now + ASK_EVERY
-                } else {
-                    next_ask
-                };
                 self.phase = Phase::Plan {
                     epoch,
                     deadline,
                     warned: warned || now > deadline,
                     next_ask,
                 };
+                self.ask_if_due();
             }
             Phase::Finish { deadline } if now > deadline => {
                 let last = schedule_last(&self.brain).unwrap_or_default();
@@ -291,7 +300,7 @@ impl Vehicle {
                 self.sense(e);
             }
             // Asked again at once when an ack came meanwhile.
-            _ => {}
+            _ => self.ask_if_due(),
         }
     }
 
@@ -299,8 +308,8 @@ impl Vehicle {
     /// link keep being handled meanwhile); [`Self::on_driven`] senses when it reports.
     fn sense(&mut self, e: u64) {
         self.phase = Phase::Sense { epoch: e };
-        let (bridge, targets, grid, timeout, tx) = (
-            self.bridge.clone(),
+        let (driver, targets, grid, timeout, tx) = (
+            self.bridge.as_ref().map(|b| b.driver()),
             self.brain.targets_of(e),
             self.grid,
             self.arrival_timeout,
@@ -311,19 +320,16 @@ impl Vehicle {
             Duration::from_millis(self.step_ms * self.brain.schedule().steps_of(e).len() as u64),
         );
         tokio::spawn(async move {
-            let (fixes, guided) = drive(bridge, targets, grid, timeout, plan_at).await;
+            let driven = drive(driver, targets, grid, timeout, plan_at).await;
+            // Then the epoch's steps at the mission's pace.
             tokio::time::sleep(pace).await;
-            let _ = tx.send((e, fixes, guided));
+            let _ = tx.send((e, driven));
         });
     }
 
     /// Epoch `e` driven: sense it, commit the batch (durable first, then sent: a crash in
     /// between re-sends it after the restart), send it, go on.
-    async fn on_driven(
-        &mut self,
-        (e, fixes, guided): Driven,
-        truth: &fleet_mission::process::FieldSeries,
-    ) -> anyhow::Result<()> {
+    async fn on_driven(&mut self, (e, (fixes, guided)): Driven, truth: &FieldSeries) -> anyhow::Result<()> {
         self.guided_ms.extend(guided);
         self.step = self.brain.schedule().steps_of(e).end.saturating_sub(1) as u64;
         let truth_at = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
@@ -352,7 +358,8 @@ impl Vehicle {
         Ok(())
     }
 
-    async fn telemetry(&self) {
+    async fn telemetry(&mut self) {
+        self.shown = self.bridge.as_ref().map(|b| shown_of(&b.status()));
         let t = Telemetry {
             vehicle: self.brain.id.clone(),
             step: self.step,
@@ -365,7 +372,7 @@ impl Vehicle {
                 .map(|(x, y)| (x.clamp(0.0, self.grid.width_m()), y.clamp(0.0, self.grid.height_m())))
                 .or(self.brain.position())
                 .map_or([0.0, 0.0], |p| [p.0, p.1]),
-            autopilot: self.bridge.as_ref().map(|b| b.status()),
+            autopilot: self.bridge.as_ref().map(Bridge::status),
             heading: self.bridge.as_ref().and_then(|b| b.heading()).unwrap_or(0.0),
             // The autopilot's battery; without one, a stand-in draining linearly over the mission.
             battery: self.bridge.as_ref().and_then(|b| b.battery()).unwrap_or_else(|| {
@@ -379,11 +386,15 @@ impl Vehicle {
             outbox_depth: self.outbox.depth(),
             acked: self.outbox.acked(),
         };
-        *self.last_telemetry.lock().unwrap_or_else(|p| p.into_inner()) = Some(t.clone());
         if let Err(e) = fleet_net::put(&self.session, &self.keys.telemetry(&self.brain.id), &Body::Telemetry(t)).await {
             warn!("telemetry: {e}");
         }
     }
+}
+
+/// What telemetry says of the autopilot that matters to the allocation.
+fn shown_of(s: &AutopilotStatus) -> (protocol::AutopilotLink, bool, String) {
+    (s.link, s.guided, s.mode.clone())
 }
 
 /// The last batch this vehicle sends (none: it senses nothing in this mission).
@@ -391,237 +402,164 @@ fn schedule_last(brain: &VehicleBrain) -> Option<u64> {
     brain.schedule().last_seq(brain.kind)
 }
 
-/// The plan from epoch `e`, or none yet.
-async fn query_plan(session: &zenoh::Session, selector: &str, ctx: &Context, e: u64) -> Option<Plan> {
-    let replies = match session.get(selector).timeout(Duration::from_secs(2)).await {
-        Ok(r) => r,
-        Err(err) => {
-            warn!("asking for the plan: {err}");
-            return None;
-        }
-    };
-    while let Ok(reply) = replies.recv_async().await {
-        match reply.result() {
-            Ok(sample) => match fleet_net::decode(sample, ctx) {
-                Ok(Body::Plan(p)) if p.epoch == e => return Some(p),
-                Ok(_) => warn!("a plan reply for another epoch or of another type"),
-                Err(err) => warn!("refused a plan: {err}"),
-            },
-            Err(err) => debug!("no plan yet: {}", String::from_utf8_lossy(&err.payload().to_bytes())),
+impl Vehicle {
+    /// The autopilot's status changed: telemetry at once when the link, GUIDED or the mode did.
+    async fn on_autopilot(&mut self, status: AutopilotStatus) {
+        if self.shown.as_ref() != Some(&shown_of(&status)) {
+            info!(link = ?status.link, mode = status.mode, armed = status.armed, "autopilot");
+            self.telemetry().await;
         }
     }
-    None
-}
 
-/// Drive the autopilot to each place of `targets` and wait (up to the arrival timeout) until
-/// it is there; the fixes say where it was. Without an autopilot: none.
-async fn drive(
-    bridge: Option<Arc<Bridge>>,
-    targets: Vec<Target>,
-    grid: Grid,
-    timeout: Duration,
-    mut plan_at: Option<Instant>,
-) -> (BTreeMap<u64, Fix>, Option<f64>) {
-    let (mut fixes, mut guided) = (BTreeMap::new(), None);
-    let Some(b) = bridge else { return (fixes, guided) };
-    for t in targets.iter().filter(|t| !t.cells.is_empty()) {
-        let goal = (t.position[0], t.position[1]);
-        let deadline = Instant::now() + timeout;
-        // Still being armed and set to GUIDED (the first epoch): wait for it.
-        while b.link() == protocol::AutopilotLink::Connecting && Instant::now() < deadline {
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-        let mut sent: Option<Instant> = None;
-        while !b.arrived(goal) && Instant::now() < deadline && b.drivable() {
-            // Again every second: a guided target on a lossy radio may not arrive.
-            // (and at once at a corner of a way routed round the fence).
-            if sent.is_none_or(|s| s.elapsed() >= Duration::from_secs(1)) || b.at_corner() {
-                if b.goto(goal) {
-                    if let Some(t) = plan_at.take() {
-                        guided = Some(t.elapsed().as_secs_f64() * 1e3);
-                    }
-                }
-                sent = Some(Instant::now());
-            }
-            tokio::time::sleep(Duration::from_millis(5)).await;
-        }
-        if let Some(p) = b.position() {
-            // Sensing happens on the grid, wherever the autopilot drifted.
-            let (w, h) = (grid.width_m(), grid.height_m());
-            let position = (p.0.clamp(0.0, w - 1e-9), p.1.clamp(0.0, h - 1e-9));
-            fixes.insert(
-                t.step,
-                Fix {
-                    position,
-                    arrived: b.arrived(goal),
-                },
-            );
-        }
-    }
-    (fixes, guided)
-}
-
-/// The MAVLink bridge, unless the autopilot is `none`; its frames go to `gcs`.
-fn open_bridge(
-    args: &Args,
-    mission: &MissionConfig,
-    grid: &Grid,
-    gcs: vehicles::bridge::GcsSink,
-) -> anyhow::Result<Option<Arc<Bridge>>> {
-    let m = &mission.mavlink;
-    let address = args.autopilot.clone().unwrap_or_else(|| m.autopilot.clone());
-    if address == "none" {
-        return Ok(None);
-    }
-    let (index, kind) = mission.vehicle(&args.id)?;
-    let site = Site::new(m, grid);
-    // Launched from points along the south shore.
-    let n = mission.vehicles().len() as f64;
-    let launch = |i: usize| site.ned_of(((i as f64 + 0.5) * grid.width_m() / n, 0.5 * grid.cell_m), 0.0);
-    let home = launch(index);
-    // The fence: the mission's boundary, or the site's extent.
-    let fence_m = match &mission.team.fence {
-        Some(f) => f.polygon_m.clone(),
-        None => {
-            let corner = site.ned_of((grid.width_m(), grid.height_m()), 0.0);
-            vec![[0.0, 0.0], [corner.y, 0.0], [corner.y, corner.x], [0.0, corner.x]]
-        }
-    };
-    let mut vehicle = SimSpec::from_config(Frame::of(kind), mission.sysid(&args.id)?, site, m);
-    if let Some(mah) = args.sim_battery_start_mah {
-        if !(mah.is_finite() && (0.0..=m.battery_mah).contains(&mah)) {
-            return Err(fleet_mission::exit::bad_input(anyhow::anyhow!(
-                "--sim-battery-start-mah {mah}: must be within 0..{} (the mission's battery_mah)",
-                m.battery_mah
-            )));
-        }
-        vehicle.safety.battery_start_mah = Some(mah);
-    }
-    let spec = BridgeSpec {
-        vehicle,
-        acceptance_m: m.acceptance_m,
-        heartbeat_timeout: Duration::from_millis(m.heartbeat_timeout_ms),
-        home,
-        fence_m,
-        // (The mission file's name was checked when it was read.)
-        fence_action: Action::from_name(&m.fence_action).unwrap_or(Action::Continue) as u8 as f32,
-        rally: (0..mission.vehicles().len()).map(launch).collect(),
-        signing: match m.autopilot_key_of(&args.id) {
-            Some(p) => Some((
-                SigningKey::read(&p)
-                    .map_err(fleet_mission::exit::bad_input)
-                    .context("[mavlink] autopilot_signing_key")?,
-                m.accept_unsigned_telemetry,
-            )),
-            None => None,
-        },
-    };
-    Ok(Some(Arc::new(Bridge::connect(&address, spec, Some(gcs))?)))
-}
-
-/// The MAVLink side's tasks: the autopilot's frames out to the ground-station gateway, the
-/// gateway's frames in to the autopilot, and telemetry again whenever the autopilot's link or
-/// mode changes (so the server leaves a held vehicle out of the next allocation).
-fn spawn_mavlink_tasks(
-    session: &zenoh::Session,
-    keys: &Keys,
-    id: &str,
-    bridge: Arc<Bridge>,
-    mut frames: tokio::sync::mpsc::UnboundedReceiver<Vec<u8>>,
-    last: Arc<Mutex<Option<Telemetry>>>,
-) {
-    let (s, key) = (session.clone(), keys.mavlink(id));
-    tokio::spawn(async move {
-        while let Some(f) = frames.recv().await {
-            let _ = s.put(&key, f).await;
-        }
-    });
-    let (s, key, b) = (session.clone(), keys.gcs(id), bridge.clone());
-    tokio::spawn(async move {
-        let Ok(sub) = s.declare_subscriber(&key).await else {
-            return warn!("cannot subscribe to {key}");
-        };
-        while let Ok(sample) = sub.recv_async().await {
+    /// A ground station's frame for this vehicle's autopilot.
+    fn on_gcs(&mut self, sample: &zenoh::sample::Sample) {
+        if let Some(b) = &mut self.bridge {
             if let Err(e) = b.from_gcs(&sample.payload().to_bytes()) {
                 debug!("ground-station frame refused: {e}");
             }
         }
-    });
-    let (s, key) = (session.clone(), keys.telemetry(id));
-    tokio::spawn(async move {
-        let mut shown = None;
-        loop {
-            tokio::time::sleep(Duration::from_millis(100)).await;
-            let status = bridge.status();
-            let now = (status.link, status.guided, status.mode.clone());
-            if shown.as_ref() == Some(&now) {
-                continue;
-            }
-            let base = last.lock().unwrap_or_else(|p| p.into_inner()).clone();
-            if let Some(mut t) = base {
-                info!(link = ?status.link, mode = status.mode, armed = status.armed, "autopilot");
-                t.autopilot = Some(status);
-                if fleet_net::put(&s, &key, &Body::Telemetry(t)).await.is_ok() {
-                    shown = Some(now);
-                }
-            }
-        }
-    });
+    }
+
+    /// The MAVLink link's counters, at the end.
+    fn log_link(&self) {
+        let Some(b) = &self.bridge else { return };
+        let c = b.counters();
+        let p = fleet_mission::events::Percentiles::of(&self.guided_ms);
+        info!(
+            received = c.received,
+            sent = c.sent,
+            unreadable = c.unreadable,
+            from_gcs = c.from_gcs,
+            refused_from_gcs = c.refused_from_gcs,
+            refused_signing = c.refused_signing,
+            plan_to_guided_p50_ms = format!("{:.3}", p.p50),
+            plan_to_guided_max_ms = format!("{:.3}", p.max),
+            targets = p.count,
+            "MAVLink link to the autopilot"
+        );
+    }
 }
 
-pub async fn run(args: Args) -> anyhow::Result<()> {
-    let (mission, truth) = args.node.load()?;
-    let (grid, frames) = mission.workspace(&truth)?;
+/// What the node's loop listens to: the server's acks and liveliness, the ground station's
+/// frames, the autopilot's status, and its own tasks' replies (plans, drives).
+struct Inputs {
+    acks: zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    links: zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    gcs: zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    autopilot: Option<watch::Receiver<AutopilotStatus>>,
+    plans: mpsc::UnboundedReceiver<(u64, Option<Plan>)>,
+    driven: mpsc::UnboundedReceiver<Driven>,
+}
+
+/// The autopilot's next status (never, without one; a stopped bridge is not heard again).
+async fn autopilot_changed(rx: &mut Option<watch::Receiver<AutopilotStatus>>) -> AutopilotStatus {
+    if let Some(r) = rx {
+        if r.changed().await.is_ok() {
+            return r.borrow_and_update().clone();
+        }
+    }
+    *rx = None;
+    std::future::pending().await
+}
+
+fn closed(what: &str) -> impl Fn(zenoh::Error) -> anyhow::Error + '_ {
+    move |e| anyhow::anyhow!("{what} subscriber closed: {e}")
+}
+
+impl Vehicle {
+    /// The node's one loop: every event, one at a time, until every batch is acknowledged.
+    async fn run_loop(&mut self, mut inputs: Inputs, truth: &FieldSeries) -> anyhow::Result<()> {
+        // Resends, the next plan query and the deadlines are checked at this rate; everything
+        // else wakes the loop when it happens.
+        let mut tick = tokio::time::interval(ASK_EVERY);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        while self.phase != Phase::Done {
+            tokio::select! {
+                r = inputs.acks.recv_async() => self.on_ack(&r.map_err(closed("ack"))?)?,
+                r = inputs.links.recv_async() => self.on_link(&r.map_err(closed("liveliness"))?),
+                r = inputs.gcs.recv_async() => self.on_gcs(&r.map_err(closed("ground-station"))?),
+                status = autopilot_changed(&mut inputs.autopilot) => self.on_autopilot(status).await,
+                _ = tick.tick() => self.on_tick().await?,
+                Some((e, plan)) = inputs.plans.recv() => self.on_plan(e, plan),
+                Some(d) = inputs.driven.recv() => self.on_driven(d, truth).await?,
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The brain of this vehicle, from the mission.
+fn brain_of(args: &Args, mission: &MissionConfig, grid: Grid, frames: usize) -> anyhow::Result<VehicleBrain> {
     let (index, kind) = mission.vehicle(&args.id)?;
-    let keys = Keys::new(&mission.mission)?;
-    let schedule = mission.schedule(frames);
-    let brain = VehicleBrain::new(
+    Ok(VehicleBrain::new(
         &args.id,
         kind,
         grid,
-        schedule,
+        mission.schedule(frames),
         mission.noise(kind),
         vehicle_rng(mission.team.seed, index),
         mission.speed(kind),
-    );
-    let mut ctx = Context::new(grid);
-    ctx.vehicles = mission.vehicles().into_iter().map(|v| v.id).collect();
+    ))
+}
 
-    // Local state first: a damaged outbox is refused before anything goes on the network.
-    let outbox = Outbox::open(
-        &args.state_dir.join(format!("{}.redb", args.id)),
-        &args.id,
-        args.outbox_limit_mb << 20,
-    )
-    .map_err(outbox_error)?;
-    let state: Option<BrainState> = outbox.state().map_err(outbox_error)?;
-    let (gcs_tx, gcs_rx) = tokio::sync::mpsc::unbounded_channel();
-    let bridge = open_bridge(&args, &mission, &grid, gcs_tx)?;
-    let last_telemetry = Arc::new(Mutex::new(None));
+/// The Zenoh side: the session, this vehicle's liveliness token and its subscriptions.
+async fn join(
+    args: &Args,
+    mission: &MissionConfig,
+    keys: &Keys,
+) -> anyhow::Result<(zenoh::Session, zenoh::liveliness::LivelinessToken, [SampleSub; 3])> {
     let network = mission.network.for_node(&args.id);
     let zenoh_config = args.node.zenoh_config(Role::Vehicle, &network)?;
     fleet_net::exit_when_refused("vehicle", &zenoh_config, args.node.zenoh_file(Role::Vehicle, &network));
     let session = fleet_net::open(zenoh_config).await?;
-    if let Some(b) = &bridge {
-        spawn_mavlink_tasks(&session, &keys, &args.id, b.clone(), gcs_rx, last_telemetry.clone());
-    }
-    let _token = session
+    let e = |e: zenoh::Error| anyhow::anyhow!("{e}");
+    let token = session
         .liveliness()
         .declare_token(keys.alive(&args.id))
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
-    let acks = session
-        .declare_subscriber(keys.ack(&args.id))
-        .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(e)?;
+    let acks = session.declare_subscriber(keys.ack(&args.id)).await.map_err(e)?;
+    let alive = keys.alive("server");
     let links = session
         .liveliness()
-        .declare_subscriber(keys.alive("server"))
+        .declare_subscriber(alive)
         .history(true)
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
-    let (plans_tx, mut plans) = mpsc::unbounded_channel();
-    let (driven_tx, mut driven) = mpsc::unbounded_channel();
+        .map_err(e)?;
+    let gcs = session.declare_subscriber(keys.gcs(&args.id)).await.map_err(e)?;
+    Ok((session, token, [acks, links, gcs]))
+}
+
+type SampleSub = zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>;
+
+pub async fn run(args: Args) -> anyhow::Result<()> {
+    let (mission, truth) = args.node.load()?;
+    let (grid, frames) = mission.workspace(&truth)?;
+    let keys = Keys::new(&mission.mission)?;
+    let brain = brain_of(&args, &mission, grid, frames)?;
+    let mut ctx = Context::new(grid);
+    ctx.vehicles = mission.vehicles().into_iter().map(|v| v.id).collect();
+
+    // Local state first: a damaged outbox is refused before anything goes on the network.
+    let path = args.state_dir.join(format!("{}.redb", args.id));
+    let outbox = Outbox::open(&path, &args.id, args.outbox_limit_mb << 20).map_err(outbox_error)?;
+    let state: Option<BrainState> = outbox.state().map_err(outbox_error)?;
+    let bridge = compose::open_bridge(&args, &mission, &grid)?;
+    let (session, _token, [acks, links, gcs]) = join(&args, &mission, &keys).await?;
+    let bridge = bridge.map(|(b, frames)| {
+        compose::pipe_to_gateway(&session, &keys, &args.id, frames);
+        b
+    });
+    let (plans_tx, plans) = mpsc::unbounded_channel();
+    let (driven_tx, driven) = mpsc::unbounded_channel();
+    let inputs = Inputs {
+        acks,
+        links,
+        gcs,
+        autopilot: bridge.as_ref().map(Bridge::status_changes),
+        plans,
+        driven,
+    };
     let pace = mission.pace.clone();
     let mut v = Vehicle {
         session: session.clone(),
@@ -645,62 +583,15 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         driven: driven_tx,
         args,
         bridge,
-        last_telemetry,
+        shown: None,
         plan_at: None,
         guided_ms: vec![],
     };
     v.telemetry().await;
-    let first = match state {
-        Some(state) => {
-            let e = state.next_epoch;
-            v.brain.restore(state);
-            info!(
-                vehicle = v.brain.id,
-                epoch = e,
-                unacknowledged = v.outbox.depth(),
-                "resuming from the outbox"
-            );
-            e
-        }
-        None => 0,
-    };
-    info!(vehicle = v.brain.id, ?kind, epochs = schedule.epochs(), "vehicle up");
-    v.begin(first);
-
-    let mut tick = tokio::time::interval(Duration::from_millis(20));
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    while v.phase != Phase::Done {
-        tokio::select! {
-            r = acks.recv_async() => {
-                let sample = r.map_err(|e| anyhow::anyhow!("ack subscriber closed: {e}"))?;
-                v.on_ack(&sample)?;
-            }
-            r = links.recv_async() => {
-                let sample = r.map_err(|e| anyhow::anyhow!("liveliness subscriber closed: {e}"))?;
-                v.on_link(&sample);
-            }
-            _ = tick.tick() => v.on_tick().await?,
-            Some((e, plan)) = plans.recv() => v.on_plan(e, plan),
-            Some(d) = driven.recv() => v.on_driven(d, &truth).await?,
-        }
-    }
+    v.resume(state);
+    v.run_loop(inputs, &truth).await?;
     v.telemetry().await;
-    if let Some(b) = &v.bridge {
-        let c = b.counters();
-        let p = fleet_mission::events::Percentiles::of(&v.guided_ms);
-        info!(
-            received = c.received,
-            sent = c.sent,
-            unreadable = c.unreadable,
-            from_gcs = c.from_gcs,
-            refused_from_gcs = c.refused_from_gcs,
-            refused_signing = c.refused_signing,
-            plan_to_guided_p50_ms = format!("{:.3}", p.p50),
-            plan_to_guided_max_ms = format!("{:.3}", p.max),
-            targets = p.count,
-            "MAVLink link to the autopilot"
-        );
-    }
+    v.log_link();
     info!(
         vehicle = v.brain.id,
         off_target = v.brain.off_target,
@@ -708,4 +599,28 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     );
     session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(())
+}
+
+impl Vehicle {
+    /// Start from the outbox's state (a restart) or from the first epoch.
+    fn resume(&mut self, state: Option<BrainState>) {
+        let first = match state {
+            Some(state) => {
+                let e = state.next_epoch;
+                self.brain.restore(state);
+                let unacknowledged = self.outbox.depth();
+                info!(
+                    vehicle = self.brain.id,
+                    epoch = e,
+                    unacknowledged,
+                    "resuming from the outbox"
+                );
+                e
+            }
+            None => 0,
+        };
+        let (kind, epochs) = (self.brain.kind, self.brain.schedule().epochs());
+        info!(vehicle = self.brain.id, ?kind, epochs, "vehicle up");
+        self.begin(first);
+    }
 }

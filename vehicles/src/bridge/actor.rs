@@ -1,0 +1,520 @@
+//! The bridge's actor: one task that owns everything the bridge knows about its autopilot and
+//! wakes only when something happens. Its events, merged in one `select!`:
+//!
+//! | event | what it does |
+//! |---|---|
+//! | a read from the link (its reader thread) | counts it, updates the state, answers the autopilot's side of an upload, forwards the frame to the ground-station side, advances the set-up |
+//! | a command from the node (`mpsc`) | a guided target (routed round the fence), a failsafe mode, GUIDED again, a ground station's frame |
+//! | the 1 Hz tick | the companion's HEARTBEAT; set-up steps not yet answered are asked again |
+//! | the heartbeat timeout | the autopilot is lost |
+//!
+//! After each event the state goes out on `watch` channels: the whole state (position at the
+//! autopilot's rate, for the drive), the status (link, mode, arming, failsafe: telemetry), and
+//! the counters (read, never woken on).
+
+use super::ROUTE_INSET_M;
+use super::{guided, AutopilotState, BridgeSpec, Command, GcsSink, LinkCounters, COMPANION_COMPONENT};
+use crate::autopilot::modes::Role;
+use crate::link::{frame_bytes, MavLink, Received};
+use crate::upload::{self, Upload};
+use fleet_mission::protocol::{AutopilotLink, AutopilotStatus};
+use mavlink::dialects::common::*;
+use mavlink::MavHeader;
+use nalgebra::Vector3;
+use std::sync::Arc;
+use tokio::sync::{mpsc, watch};
+use tokio::time::{Duration, Instant};
+use tracing::{info, warn};
+
+/// GUIDED and arming are asked for at most this many times (once a second), then left to the
+/// operator.
+const SETUP_TRIES: u32 = 10;
+
+/// The receiving ends of what the actor publishes.
+pub(super) struct Channels {
+    pub state: watch::Receiver<AutopilotState>,
+    pub status: watch::Receiver<AutopilotStatus>,
+    pub counters: watch::Receiver<LinkCounters>,
+}
+
+/// Where the one-time set-up is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Setup {
+    /// Not asked yet.
+    NotAsked,
+    /// GUIDED and arming asked for this many times.
+    Asked(u32),
+    /// Armed in GUIDED, or given up (left to the operator).
+    Done,
+}
+
+struct Actor {
+    conn: Arc<MavLink>,
+    spec: Arc<BridgeSpec>,
+    gcs: Option<GcsSink>,
+    state: AutopilotState,
+    counters: LinkCounters,
+    heartbeat_at: Option<Instant>,
+    setup: Setup,
+    /// Before the set-up, the fence and rally points go up and the fence is enabled.
+    uploads: Vec<Upload>,
+    enable_tries: u32,
+    prepared: bool,
+    state_tx: watch::Sender<AutopilotState>,
+    status_tx: watch::Sender<AutopilotStatus>,
+    counters_tx: watch::Sender<LinkCounters>,
+}
+
+/// Start the actor on a thread of its own (a current-thread runtime: the bridge works the
+/// same under the node's runtime, a test's, or none).
+pub(super) fn spawn(
+    conn: Arc<MavLink>,
+    spec: Arc<BridgeSpec>,
+    frames: mpsc::UnboundedReceiver<Received>,
+    commands: mpsc::UnboundedReceiver<Command>,
+    gcs: Option<GcsSink>,
+) -> std::io::Result<Channels> {
+    let (state_tx, state) = watch::channel(AutopilotState::default());
+    let (status_tx, status) = watch::channel(status_of(&spec, &AutopilotState::default(), &LinkCounters::default()));
+    let (counters_tx, counters) = watch::channel(LinkCounters::default());
+    let uploads = uploads_of(&spec);
+    let actor = Actor {
+        conn,
+        spec,
+        gcs,
+        state: AutopilotState::default(),
+        counters: LinkCounters::default(),
+        heartbeat_at: None,
+        setup: Setup::NotAsked,
+        uploads,
+        enable_tries: 0,
+        prepared: false,
+        state_tx,
+        status_tx,
+        counters_tx,
+    };
+    let runtime = tokio::runtime::Builder::new_current_thread().enable_time().build()?;
+    std::thread::Builder::new()
+        .name("mavlink-bridge".into())
+        .spawn(move || runtime.block_on(actor.run(frames, commands)))?;
+    Ok(Channels {
+        state,
+        status,
+        counters,
+    })
+}
+
+/// The fence and rally lists to upload (none when the mission gives none).
+fn uploads_of(spec: &BridgeSpec) -> Vec<Upload> {
+    let latlon = |ned: Vector3<f64>| {
+        let (lat, lon, _) = spec.vehicle.site.global_of(&ned);
+        [lat, lon]
+    };
+    let fence: Vec<[f64; 2]> = spec
+        .fence_m
+        .iter()
+        .map(|&[e, n]| latlon(Vector3::new(n, e, 0.0)))
+        .collect();
+    let rally: Vec<[f64; 2]> = spec.rally.iter().map(|p| latlon(*p)).collect();
+    [
+        (MavMissionType::MAV_MISSION_TYPE_FENCE, upload::fence_items(&fence)),
+        (MavMissionType::MAV_MISSION_TYPE_RALLY, upload::rally_items(&rally)),
+    ]
+    .into_iter()
+    .filter(|(_, items)| !items.is_empty())
+    .map(|(kind, items)| Upload::new(kind, items))
+    .collect()
+}
+
+/// The status telemetry carries (the ground station's refusals are the handle's to add).
+fn status_of(spec: &BridgeSpec, s: &AutopilotState, c: &LinkCounters) -> AutopilotStatus {
+    AutopilotStatus {
+        link: s.link,
+        sysid: s.sysid.unwrap_or(0),
+        mode: s.mode.map_or_else(|| "unknown".into(), |m| spec.vehicle.frame.name(m)),
+        armed: s.armed,
+        guided: guided(spec, s),
+        unreadable: c.unreadable,
+        refused_from_gcs: 0,
+        failsafe: s.failsafe.clone(),
+    }
+}
+
+impl Actor {
+    async fn run(
+        mut self,
+        mut frames: mpsc::UnboundedReceiver<Received>,
+        mut commands: mpsc::UnboundedReceiver<Command>,
+    ) {
+        let mut second = tokio::time::interval(Duration::from_secs(1));
+        second.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            // The autopilot is lost when its heartbeat is overdue (no timer before the first).
+            let lost_at = self
+                .heartbeat_at
+                .filter(|_| self.state.link != AutopilotLink::Lost)
+                .map(|t| t + self.spec.heartbeat_timeout);
+            tokio::select! {
+                got = frames.recv() => match got {
+                    Some(r) => self.on_read(r),
+                    None => return warn!("the autopilot link closed: the bridge stops reading it"),
+                },
+                command = commands.recv() => match command {
+                    Some(c) => self.on_command(c),
+                    // The node let go of its bridge.
+                    None => return,
+                },
+                _ = second.tick() => self.on_second(),
+                _ = sleep_until_some(lost_at) => {}
+            }
+            self.publish();
+        }
+    }
+
+    /// The state out: to the drive and to telemetry when it changed, the counters silently.
+    fn publish(&mut self) {
+        self.state.link = self.link();
+        let state = &self.state;
+        self.state_tx.send_if_modified(|s| {
+            let changed = s != state;
+            if changed {
+                *s = state.clone();
+            }
+            changed
+        });
+        let status = status_of(&self.spec, &self.state, &self.counters);
+        self.status_tx.send_if_modified(|s| {
+            // (The counters alone do not make a change worth a message.)
+            let changed = AutopilotStatus {
+                unreadable: s.unreadable,
+                ..status.clone()
+            } != *s;
+            *s = status;
+            changed
+        });
+        let counters = self.counters;
+        self.counters_tx.send_if_modified(|c| {
+            *c = counters;
+            false
+        });
+    }
+
+    fn link(&self) -> AutopilotLink {
+        match (self.heartbeat_at, self.setup) {
+            (Some(t), _) if t.elapsed() >= self.spec.heartbeat_timeout => AutopilotLink::Lost,
+            (Some(_), Setup::Done) => AutopilotLink::Up,
+            _ => AutopilotLink::Connecting,
+        }
+    }
+
+    fn own_header(&self) -> MavHeader {
+        MavHeader {
+            system_id: self.spec.vehicle.sysid as u32,
+            component_id: COMPANION_COMPONENT,
+            sequence: 0,
+        }
+    }
+
+    fn send(&mut self, msg: &MavMessage) {
+        match self.conn.send(&self.own_header(), msg) {
+            Ok(()) => self.counters.sent += 1,
+            Err(e) => warn!("to the autopilot: {e}"),
+        }
+    }
+
+    fn on_read(&mut self, r: Received) {
+        match r {
+            Received::Frame(h, m, _) => {
+                self.counters.received += 1;
+                self.on_frame(&h, &m);
+                if let Some(gcs) = &self.gcs {
+                    let _ = gcs.send(frame_bytes(h, &m));
+                }
+                self.advance(false);
+            }
+            Received::Refused(r) => {
+                if self.counters.refused_signing == 0 {
+                    warn!(
+                        reason = r.reason(),
+                        "a frame from the autopilot failed the signing check (refused; further ones are counted in \
+                         telemetry)"
+                    );
+                }
+                self.counters.refused_signing += 1;
+            }
+            Received::Unreadable(_) => self.counters.unreadable += 1,
+            Received::Idle | Received::Closed => {}
+        }
+    }
+
+    /// A frame from the autopilot (a companion's, ours or another's, is not the autopilot).
+    fn on_frame(&mut self, h: &MavHeader, m: &MavMessage) {
+        let from = u8::try_from(h.system_id).ok();
+        let sysid = self.state.sysid;
+        let autopilot = h.component_id != COMPANION_COMPONENT && from.is_some() && (sysid.is_none() || sysid == from);
+        if !autopilot {
+            return;
+        }
+        match m {
+            MavMessage::HEARTBEAT(hb) if hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID => {
+                self.on_heartbeat(h.system_id, hb);
+            }
+            // The autopilot's side of our fence and rally uploads (some autopilots still ask
+            // with the old MISSION_REQUEST).
+            #[allow(deprecated)]
+            MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
+                seq,
+                mission_type,
+                target_component,
+                ..
+            })
+            | MavMessage::MISSION_REQUEST(MISSION_REQUEST_DATA {
+                seq,
+                mission_type,
+                target_component,
+                ..
+            }) if *target_component == COMPANION_COMPONENT => {
+                let reply = self
+                    .uploads
+                    .iter()
+                    .find_map(|u| u.item(*mission_type, *seq, from.unwrap_or(0)));
+                if let Some(r) = reply {
+                    self.send(&r);
+                }
+            }
+            MavMessage::MISSION_ACK(a) if a.target_component == COMPANION_COMPONENT => {
+                self.uploads.iter_mut().for_each(|u| u.ack(a.mission_type, a.mavtype));
+            }
+            // What the autopilot says (a fence breach, a failsafe) goes in the log.
+            MavMessage::STATUSTEXT(t) if t.severity as u8 <= MavSeverity::MAV_SEVERITY_WARNING as u8 => {
+                let text = t.text.to_str().unwrap_or("(not UTF-8)").to_string();
+                warn!(sysid = h.system_id, "the autopilot says: {text}");
+                if t.severity as u8 <= MavSeverity::MAV_SEVERITY_CRITICAL as u8 {
+                    self.state.failsafe = Some(text);
+                }
+            }
+            MavMessage::SYS_STATUS(st) if st.battery_remaining >= 0 => {
+                self.state.battery = Some((st.battery_remaining as f64 / 100.0).min(1.0));
+            }
+            MavMessage::GLOBAL_POSITION_INT(g) if g.hdg != u16::MAX => {
+                self.state.heading_deg = Some(g.hdg as f64 / 100.0);
+            }
+            MavMessage::PARAM_VALUE(p) if p.param_id.to_str().is_ok_and(|n| n == "FENCE_ENABLE") => {
+                self.state.fence_enabled = p.param_value == 1.0;
+            }
+            MavMessage::LOCAL_POSITION_NED(p) if sysid.is_some() => {
+                let ned = Vector3::new(p.x as f64, p.y as f64, p.z as f64);
+                if ned.iter().all(|v| v.is_finite()) {
+                    self.state.ned = Some(ned);
+                } else {
+                    self.counters.unreadable += 1;
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn on_heartbeat(&mut self, system_id: u32, hb: &HEARTBEAT_DATA) {
+        let frame = self.spec.vehicle.frame;
+        let mission_sysid = self.spec.vehicle.sysid;
+        if self.state.sysid.is_none() {
+            info!(sysid = system_id, kind = ?hb.mavtype, mode = frame.name(hb.custom_mode), "autopilot found");
+            if system_id != mission_sysid as u32 {
+                warn!(
+                    autopilot = system_id,
+                    mission = mission_sysid,
+                    "the autopilot's system id is not the one the mission gives this vehicle: the ground-station \
+                     gateway accepts and routes only the mission's (set SYSID_THISMAV to it)"
+                );
+            }
+        }
+        let s = &mut self.state;
+        s.sysid = u8::try_from(system_id).ok();
+        if frame.role(hb.custom_mode) == Some(Role::Guided) {
+            s.failsafe = None;
+        }
+        s.mode = Some(hb.custom_mode);
+        s.armed = hb.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
+        self.heartbeat_at = Some(Instant::now());
+    }
+
+    fn on_command(&mut self, c: Command) {
+        let Some(target) = self.state.sysid else { return };
+        match c {
+            Command::Goto(goal) => self.goto(target, goal),
+            Command::Failsafe { mode, why } => {
+                self.state.failsafe = Some(why);
+                self.set_mode(target, mode);
+            }
+            Command::Rejoin => self.set_mode(target, self.spec.vehicle.frame.mode(Role::Guided)),
+            Command::Forward(h, m) => {
+                if let Err(e) = self.conn.send(&h, &m) {
+                    warn!("a ground station's frame to the autopilot: {e}");
+                }
+            }
+        }
+    }
+
+    /// A guided target; the first leg of the way round a concave fence's notch.
+    fn goto(&mut self, target: u8, goal: Vector3<f64>) {
+        let from = self.state.ned.map(|p| [p.y, p.x]);
+        let fence = &self.spec.fence_m;
+        let first = from.and_then(|f| {
+            fleet_mission::fence::route(fence, f, [goal.y, goal.x], ROUTE_INSET_M)
+                .first()
+                .copied()
+        });
+        let leg = first
+            .map(|[e, n]| Vector3::new(n, e, goal.z))
+            .filter(|l| (l - goal).xy().norm() > 1e-6);
+        self.state.leg = leg;
+        let ned = leg.unwrap_or(goal);
+        // Position only: ignore velocity, acceleration, yaw and yaw rate.
+        let mask = PositionTargetTypemask::from_bits_truncate(0b0000_1101_1111_1000);
+        self.send(&MavMessage::SET_POSITION_TARGET_LOCAL_NED(
+            SET_POSITION_TARGET_LOCAL_NED_DATA {
+                x: ned.x as f32,
+                y: ned.y as f32,
+                z: ned.z as f32,
+                type_mask: mask,
+                target_system: target,
+                target_component: 1,
+                coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+                ..Default::default()
+            },
+        ));
+    }
+
+    fn command(target: u8, command: MavCmd, param1: f32, param2: f32) -> MavMessage {
+        MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            command,
+            param1,
+            param2,
+            target_system: target,
+            target_component: 1,
+            ..Default::default()
+        })
+    }
+
+    fn set_mode(&mut self, target: u8, mode: u32) {
+        let flag = MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED.bits() as f32;
+        self.send(&Self::command(target, MavCmd::MAV_CMD_DO_SET_MODE, flag, mode as f32));
+    }
+
+    /// The companion's HEARTBEAT at 1 Hz (it also tells a `udpin:` autopilot where we are);
+    /// unanswered set-up steps are asked again.
+    fn on_second(&mut self) {
+        self.send(&MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+            custom_mode: 0,
+            mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+            autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+            base_mode: MavModeFlag::empty(),
+            system_status: MavState::MAV_STATE_ACTIVE,
+            mavlink_version: 3,
+        }));
+        self.advance(true);
+    }
+
+    /// The one-time set-up, a step further: the fence and rally points up and the fence
+    /// enabled, then GUIDED and arming, asked again each `second` until the autopilot shows
+    /// both, at most [`SETUP_TRIES`] times.
+    fn advance(&mut self, second: bool) {
+        let Some(target) = self.state.sysid else { return };
+        if !self.prepared(target, second) {
+            return;
+        }
+        let guided_mode = self.spec.vehicle.frame.mode(Role::Guided);
+        let (mode, armed) = (self.state.mode, self.state.armed);
+        self.setup = match self.setup {
+            Setup::Done => Setup::Done,
+            _ if mode == Some(guided_mode) && armed => {
+                info!(sysid = target, "autopilot armed and in GUIDED: the planner drives it");
+                Setup::Done
+            }
+            Setup::Asked(n) if !second => Setup::Asked(n),
+            Setup::Asked(n) if n >= SETUP_TRIES => {
+                let mode = self.spec.vehicle.frame.name(mode.unwrap_or(0));
+                warn!(
+                    sysid = target,
+                    mode, armed, "the autopilot did not take GUIDED and arming: left to the operator"
+                );
+                Setup::Done
+            }
+            setup => {
+                self.set_mode(target, guided_mode);
+                self.send(&Self::command(target, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+                Setup::Asked(if let Setup::Asked(n) = setup { n + 1 } else { 1 })
+            }
+        };
+    }
+
+    /// The fence and rally points uploaded, then the fence enabled with the mission's action,
+    /// each step sent at once and again each second while unanswered; whether that is done
+    /// (or given up: an autopilot without fences is still driven, inside the fence by the
+    /// planner alone).
+    fn prepared(&mut self, target: u8, second: bool) -> bool {
+        if self.prepared {
+            return true;
+        }
+        let mut out = vec![];
+        if let Some(u) = self.uploads.iter_mut().find(|u| !u.finished()) {
+            if second || !u.started() {
+                out.extend(u.count(target));
+            }
+        } else if self.fence_accepted() && !self.state.fence_enabled && self.enable_tries < upload::TRIES {
+            if second || self.enable_tries == 0 {
+                self.enable_tries += 1;
+                let set = |name: &str, v: f32| {
+                    MavMessage::PARAM_SET(PARAM_SET_DATA {
+                        param_value: v,
+                        target_system: target,
+                        target_component: 1,
+                        param_id: name.into(),
+                        param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+                    })
+                };
+                out = vec![set("FENCE_ACTION", self.spec.fence_action), set("FENCE_ENABLE", 1.0)];
+            }
+        } else {
+            self.prepared = true;
+            self.say_prepared(target);
+        }
+        for m in &out {
+            self.send(m);
+        }
+        self.prepared
+    }
+
+    fn fence_accepted(&self) -> bool {
+        self.uploads
+            .iter()
+            .any(|u| u.kind == MavMissionType::MAV_MISSION_TYPE_FENCE && u.accepted())
+    }
+
+    fn say_prepared(&self, target: u8) {
+        let states: Vec<String> = self
+            .uploads
+            .iter()
+            .map(|u| format!("{:?}: {:?}", u.kind, u.state))
+            .collect();
+        if self.uploads.is_empty() {
+            // No fence to upload (none given): nothing to say.
+        } else if self.state.fence_enabled {
+            info!(sysid = target, uploads = ?states, "fence and rally points uploaded, fence enabled");
+        } else {
+            warn!(
+                sysid = target,
+                uploads = ?states,
+                "the autopilot did not take the fence (or enable it): the planner alone keeps it inside"
+            );
+        }
+    }
+}
+
+/// Sleep until `at`, or forever without one.
+async fn sleep_until_some(at: Option<Instant>) {
+    match at {
+        Some(t) => tokio::time::sleep_until(t).await,
+        None => std::future::pending().await,
+    }
+}

@@ -1,0 +1,126 @@
+//! Where the vehicle node is put together from its parts: the autopilot (a simulated one
+//! started here, in this process, when the mission says `sim`; a real one reached by its
+//! connection string), the MAVLink bridge to it, and the pipe that carries the autopilot's
+//! frames to the ground-station gateway over Zenoh. The bridge never knows whether its
+//! autopilot is simulated.
+
+use crate::Args;
+use anyhow::Context as _;
+use fleet_mission::config::{MavlinkConfig, MissionConfig};
+use fleet_mission::grid::Grid;
+use fleet_mission::protocol::keys::Keys;
+use fleet_mission::signing_key::SigningKey;
+use fleet_mission::site::Site;
+use fleet_net::zenoh;
+use nalgebra::Vector3;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::sync::mpsc;
+use vehicles::autopilot::modes::Frame;
+use vehicles::autopilot::safety::Action;
+use vehicles::autopilot::serve;
+use vehicles::autopilot::sim::{SimAutopilot, SimSpec};
+use vehicles::bridge::{Bridge, BridgeSpec};
+use vehicles::signing::{LinkSigning, LINK_AUTOPILOT};
+
+/// The MAVLink bridge, unless the autopilot is `none`, and the autopilot's frames for the
+/// ground-station side.
+pub fn open_bridge(
+    args: &Args,
+    mission: &MissionConfig,
+    grid: &Grid,
+) -> anyhow::Result<Option<(Bridge, mpsc::UnboundedReceiver<Vec<u8>>)>> {
+    let m = &mission.mavlink;
+    let address = args.autopilot.clone().unwrap_or_else(|| m.autopilot.clone());
+    if address == "none" {
+        return Ok(None);
+    }
+    let spec = bridge_spec(args, mission, grid)?;
+    let address = if address == "sim" { start_sim(&spec)? } else { address };
+    let (gcs_tx, gcs_rx) = mpsc::unbounded_channel();
+    Ok(Some((Bridge::connect(&address, spec, Some(gcs_tx))?, gcs_rx)))
+}
+
+/// What the bridge needs to know of its vehicle and the site.
+fn bridge_spec(args: &Args, mission: &MissionConfig, grid: &Grid) -> anyhow::Result<BridgeSpec> {
+    let m = &mission.mavlink;
+    let (index, kind) = mission.vehicle(&args.id)?;
+    let site = Site::new(m, grid);
+    // Launched from points along the south shore.
+    let n = mission.vehicles().len() as f64;
+    let launch = |i: usize| site.ned_of(((i as f64 + 0.5) * grid.width_m() / n, 0.5 * grid.cell_m), 0.0);
+    let mut vehicle = SimSpec::from_config(Frame::of(kind), mission.sysid(&args.id)?, site, m);
+    if let Some(mah) = args.sim_battery_start_mah {
+        if !(mah.is_finite() && (0.0..=m.battery_mah).contains(&mah)) {
+            return Err(fleet_mission::exit::bad_input(anyhow::anyhow!(
+                "--sim-battery-start-mah {mah}: must be within 0..{} (the mission's battery_mah)",
+                m.battery_mah
+            )));
+        }
+        vehicle.safety.battery_start_mah = Some(mah);
+    }
+    Ok(BridgeSpec {
+        vehicle,
+        acceptance_m: m.acceptance_m,
+        heartbeat_timeout: Duration::from_millis(m.heartbeat_timeout_ms),
+        home: launch(index),
+        fence_m: fence_m(mission, &site, grid),
+        // (The mission file's name was checked when it was read.)
+        fence_action: Action::from_name(&m.fence_action).unwrap_or(Action::Continue) as u8 as f32,
+        rally: (0..mission.vehicles().len()).map(launch).collect(),
+        signing: autopilot_key(m, &args.id)?,
+    })
+}
+
+/// The fence: the mission's boundary, or the site's extent (metres `[east, north]`).
+fn fence_m(mission: &MissionConfig, site: &Site, grid: &Grid) -> Vec<[f64; 2]> {
+    match &mission.team.fence {
+        Some(f) => f.polygon_m.clone(),
+        None => {
+            let corner: Vector3<f64> = site.ned_of((grid.width_m(), grid.height_m()), 0.0);
+            vec![[0.0, 0.0], [corner.y, 0.0], [corner.y, corner.x], [0.0, corner.x]]
+        }
+    }
+}
+
+/// The autopilot link's key, and whether its unsigned frames are taken.
+fn autopilot_key(m: &MavlinkConfig, id: &str) -> anyhow::Result<Option<(SigningKey, bool)>> {
+    let Some(p) = m.autopilot_key_of(id) else {
+        return Ok(None);
+    };
+    let key = SigningKey::read(&p)
+        .map_err(fleet_mission::exit::bad_input)
+        .context("[mavlink] autopilot_signing_key")?;
+    Ok(Some((key, m.accept_unsigned_telemetry)))
+}
+
+/// A simulated autopilot in this process, served as SITL serves one (`udpin:` on a free
+/// loopback port, signed with the link's key when there is one); the address to reach it.
+/// It runs until the process ends.
+fn start_sim(spec: &BridgeSpec) -> anyhow::Result<String> {
+    let port = std::net::UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
+    let signing = spec
+        .signing
+        .as_ref()
+        .map(|(k, _)| LinkSigning::new(k.clone(), LINK_AUTOPILOT, false));
+    let sim = SimAutopilot::new(spec.vehicle.clone(), spec.home);
+    serve::spawn(
+        &format!("udpin:127.0.0.1:{port}"),
+        sim,
+        signing,
+        Arc::new(AtomicBool::new(false)),
+    )?;
+    Ok(format!("udpout:127.0.0.1:{port}"))
+}
+
+/// The autopilot's frames out to the ground-station gateway: a pipe of its own, so a slow
+/// link to the gateway never holds the node's loop.
+pub fn pipe_to_gateway(session: &zenoh::Session, keys: &Keys, id: &str, mut frames: mpsc::UnboundedReceiver<Vec<u8>>) {
+    let (s, key) = (session.clone(), keys.mavlink(id));
+    tokio::spawn(async move {
+        while let Some(f) = frames.recv().await {
+            let _ = s.put(&key, f).await;
+        }
+    });
+}
