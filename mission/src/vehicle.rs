@@ -11,7 +11,37 @@ use crate::fusion::{sense_cells, AerialNoise, FusionError};
 use crate::grid::Grid;
 use crate::protocol::{MeasurementBatch, Plan, Sample, Target, VehicleKind};
 use crate::schedule::Schedule;
+use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+
+/// A vehicle's own random stream: the same seed and vehicle give the same noise whichever
+/// process the vehicle runs in. Aerials are vehicles `0..aerials`, boats follow.
+pub fn vehicle_rng(seed: u64, vehicle: usize) -> ChaCha8Rng {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(1 + vehicle as u64);
+    rng
+}
+
+/// What aerial `me` sees at one step, and what any sensor sees at given cells (the sensor
+/// model lives with the fusion that inverts it).
+pub use crate::fusion::{aerial_region, sense_aerial};
+
+/// What a boat measures at one step: every cell of its disk, with noise `sigma`.
+pub fn sense_boat(
+    grid: &Grid,
+    truth: &[f64],
+    step: u64,
+    position: (f64, f64),
+    cells: &[usize],
+    sigma: f64,
+    rng: &mut ChaCha8Rng,
+) -> Result<Sample, FusionError> {
+    let noise = crate::protocol::Noise {
+        sigma0: sigma,
+        growth_per_m: 0.0,
+    };
+    sense_cells(grid, truth, step, position, cells, noise, rng)
+}
 
 /// What a vehicle must keep across a crash to carry on exactly where it was: the next epoch
 /// to sense, its random stream's position, its plan and where it is. Committed with each batch

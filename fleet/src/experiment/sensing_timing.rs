@@ -156,8 +156,9 @@ pub fn run(repeats: usize, peers: bool, mut progress: impl FnMut(&str)) -> Vec<T
             }
         });
         let p = Mat::<f64>::from_fn(q, q, |i, j| if i == j { 0.1 } else { 0.0 });
-        let mut filter = ModalFilter::new(phi.clone(), a, vec![0.0; q], p, 1e-3, 0.01).expect("a filter");
-        filter.persistence = 0.9;
+        let filter = ModalFilter::new(phi.clone(), a, vec![0.0; q], p, 1e-3, 0.01)
+            .expect("a filter")
+            .with_persistence(0.9);
         // The aerials' lattice every 4 cells, and their estimate everywhere.
         let strided = grid.strided(4).expect("a lattice");
         let lattice: Vec<usize> = (0..strided.rows * strided.cols)

@@ -48,18 +48,18 @@ pub struct Observation<'a> {
 pub struct ModalFilter {
     basis: Mat<f64>,
     dynamics: Mat<f64>,
-    pub mean: Vec<f64>,
-    pub cov: Mat<f64>,
+    mean: Vec<f64>,
+    cov: Mat<f64>,
     /// Process noise variance per modal coordinate and step.
-    pub process: f64,
+    process: f64,
     /// Model-error variance per cell (what `B` cannot represent): the stationary variance of
     /// the detail.
-    pub model_error: f64,
+    model_error: f64,
     /// How much of the detail carries over one step (0: none, white model error; < 1).
-    pub persistence: f64,
+    persistence: f64,
     /// The detail's posterior mean and variance per cell.
-    pub detail: Vec<f64>,
-    pub detail_var: Vec<f64>,
+    detail: Vec<f64>,
+    detail_var: Vec<f64>,
     /// The dense source's residuals against the modal forecast at its last step (NaN where it
     /// did not look), and the running lag-one moments of those residuals (for
     /// [`Self::learn_persistence`]).
@@ -114,6 +114,84 @@ impl ModalFilter {
             last_residual: vec![(f64::NAN, 0.0); n],
             moments: (0.0, 0.0),
         })
+    }
+
+    /// The modal state's mean and covariance.
+    pub fn mean(&self) -> &[f64] {
+        &self.mean
+    }
+
+    pub fn cov(&self) -> MatRef<'_, f64> {
+        self.cov.as_ref()
+    }
+
+    /// The process noise variance per modal coordinate and step.
+    pub fn process(&self) -> f64 {
+        self.process
+    }
+
+    /// The detail's stationary variance (the model error per cell).
+    pub fn model_error(&self) -> f64 {
+        self.model_error
+    }
+
+    /// How much of the detail carries over one step.
+    pub fn persistence(&self) -> f64 {
+        self.persistence
+    }
+
+    /// The detail's persistence set, not learned (a benchmark's or a test's filter).
+    pub fn with_persistence(mut self, rho: f64) -> Self {
+        self.persistence = rho.clamp(0.0, 0.999);
+        self
+    }
+
+    /// The detail's mean and variance per cell.
+    pub fn detail(&self) -> &[f64] {
+        &self.detail
+    }
+
+    pub fn detail_var(&self) -> &[f64] {
+        &self.detail_var
+    }
+
+    /// The forecast before an update, which innovations are measured against.
+    pub fn prior(&self) -> Prior {
+        let (mean, variance) = self.field();
+        Prior {
+            mean,
+            variance,
+            detail_var: self.detail_var.clone(),
+        }
+    }
+
+    /// Covariance matching: the model error and the process noise re-estimated from one
+    /// source's innovations against the forecast `prior` (values of noise variance `noise_var`
+    /// at `cells`). Their expected square is the modal variance + the detail's + the noise:
+    /// the model error by the ratio of the detail's part, the process noise by `sqrt(NIS)`
+    /// with NIS clamped to [1/4, 4]; both smoothed and clamped to the variance of the values
+    /// themselves, so neither can run away.
+    pub fn adapt_noise(&mut self, prior: &Prior, cells: &[usize], values: &[f64], noise_var: f64) {
+        if cells.is_empty() {
+            return;
+        }
+        let mean_at = |v: &[f64]| cells.iter().map(|&c| v[c]).sum::<f64>() / cells.len() as f64;
+        let field_var = variance_of(values).max(1e-12);
+        let d2 = cells
+            .iter()
+            .zip(values)
+            .map(|(&c, v)| (v - prior.mean[c]).powi(2))
+            .sum::<f64>()
+            / cells.len() as f64;
+        let (detail_part, expected) = (
+            mean_at(&prior.detail_var).max(1e-12),
+            mean_at(&prior.variance) + noise_var,
+        );
+        let modal_part = expected - noise_var - detail_part;
+        let s_hat = (self.model_error * (d2 - modal_part - noise_var) / detail_part).clamp(0.0, field_var);
+        self.model_error = (0.7 * self.model_error + 0.3 * s_hat).clamp(1e-12, field_var);
+        let nis = (d2 / expected).clamp(0.25, 4.0);
+        self.process = (self.process * nis.sqrt()).clamp(1e-12, field_var);
     }
 
     pub fn dim(&self) -> usize {
@@ -381,6 +459,23 @@ impl ModalFilter {
         (self.basis, self.dynamics, self.mean, self.cov) = (basis, dynamics, mean, cov);
         Ok(())
     }
+}
+
+/// The forecast's mean and variance per cell, and its detail's variance, before an update.
+#[derive(Debug, Clone)]
+pub struct Prior {
+    pub mean: Vec<f64>,
+    pub variance: Vec<f64>,
+    pub detail_var: Vec<f64>,
+}
+
+/// The variance of a set of values (0 for none).
+pub fn variance_of(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let m = v.iter().sum::<f64>() / v.len() as f64;
+    v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / v.len() as f64
 }
 
 fn symmetrised(p: Mat<f64>) -> Mat<f64> {

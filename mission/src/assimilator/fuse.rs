@@ -1,0 +1,265 @@
+//! One step's estimates: the aerials' frame assembled and upsampled, then fused with the
+//! boats' disks (the `paper` and `inverse-variance` schemes, with the boats' gappy estimate or
+//! the model's prediction) or run through the modal Kalman filter (`kalman`), which observes
+//! the aerial lattice and the disks directly.
+
+use super::{aerial_detail_variance, Assimilator};
+use crate::fusion::{fuse, AerialFrame, Estimate, Measured, Scheme};
+use crate::kalman::{self, Observation};
+use crate::protocol::Sample;
+use crate::sensing::gappy;
+use crate::team::{Missing, TeamError};
+
+/// One step of the aerials: the estimate on the fine grid (the coarse frame upsampled, for
+/// the heuristic schemes and the aerial-only team) and what they saw this step, the lattice
+/// cells with each value's own noise variance (what the Kalman filter observes: those errors
+/// are independent, the upsampled field's are not).
+#[derive(Debug, Clone)]
+pub struct AerialSight {
+    pub estimate: Estimate,
+    /// The interpolation's own error variance per fine cell (from the frame's curvature).
+    pub interpolation: Vec<f64>,
+    pub cells: Vec<usize>,
+    pub values: Vec<f64>,
+    pub variance: Vec<f64>,
+}
+
+impl Assimilator {
+    /// The aerial estimate of a step from the aerials' samples (any order): the coarse frame
+    /// reassembled, each value with its sampling aerial's noise at that distance, upsampled
+    /// with its variance. A step without aerial samples holds the previous estimate.
+    pub fn aerial_estimate(&mut self, samples: &[Sample]) -> Result<AerialSight, TeamError> {
+        let noise = self.aerial_noise();
+        let (grid, s) = (&self.setup.grid, &mut self.state);
+        if samples.is_empty() {
+            let estimate = s.held_aerial.clone().ok_or(TeamError::NotReady(Missing::AerialData))?;
+            return Ok(AerialSight {
+                estimate,
+                interpolation: s.held_interpolation.clone(),
+                cells: vec![],
+                values: vec![],
+                variance: vec![],
+            });
+        }
+        let mut frame = AerialFrame::assemble(grid, self.setup.cfg.aerial_stride, samples, noise)?;
+        let seen: Vec<usize> = (0..frame.seen.len()).filter(|&k| frame.seen[k]).collect();
+        let cells = seen.iter().map(|&k| grid.index(frame.lattice.fine_cell(k))).collect();
+        let values = seen.iter().map(|&k| frame.values[k]).collect();
+        let variance = seen.iter().map(|&k| frame.variance[k].max(1e-12)).collect();
+        if frame.seen.iter().any(|s| !s) {
+            // A lattice cell nobody saw this step: take the held estimate there.
+            let held = s
+                .held_aerial
+                .as_ref()
+                .ok_or(TeamError::NotReady(Missing::EarlierFrame))?;
+            for k in (0..frame.seen.len()).filter(|&k| !frame.seen[k]) {
+                let i = grid.index(frame.lattice.fine_cell(k));
+                frame.values[k] = held.values[i];
+                frame.variance[k] = held.variance[i];
+            }
+        }
+        let estimate = frame.upsample()?;
+        let interpolation = frame.interpolation_variance()?;
+        s.held_aerial = Some(estimate.clone());
+        s.held_interpolation = interpolation.clone();
+        Ok(AerialSight {
+            estimate,
+            interpolation,
+            cells,
+            values,
+            variance,
+        })
+    }
+
+    /// Fuse one step `ahead` steps after the model's newest snapshot: the aerial estimate with
+    /// the boats' gappy estimate (when `boats` has samples) or the model's prediction; or, with
+    /// `fusion = "kalman"`, one step of the filter. Boat steps also re-calibrate each source
+    /// against the boats' measurements.
+    pub fn fuse_step(&mut self, ahead: u64, sight: &AerialSight, boats: &[Sample]) -> Result<Estimate, TeamError> {
+        let boat_var = self.setup.cfg.boat_sigma * self.setup.cfg.boat_sigma;
+        let (pred, _) = self.state.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
+        let predicted = pred.predict(ahead as f64);
+        // A canonical order (disks do not overlap, so first cells differ): the result does not
+        // depend on the order the boats' samples arrived in.
+        let mut boats: Vec<&Sample> = boats.iter().collect();
+        boats.sort_by_key(|s| (s.cells.first().copied(), s.cells.len()));
+        let cells: Vec<usize> = boats.iter().flat_map(|s| s.cells.iter().map(|&c| c as usize)).collect();
+        let vals: Vec<f64> = boats.iter().flat_map(|s| s.values.iter().copied()).collect();
+        if !cells.is_empty() {
+            self.calibrate(sight, &predicted, &cells, &vals, boat_var);
+        }
+        if self.setup.cfg.fusion == Scheme::Kalman {
+            return self.filter_step(ahead, sight, &cells, &vals);
+        }
+        let hifi = self.boats_estimate(predicted, &cells, &vals, boat_var)?;
+        let mut aerial = sight.estimate.clone();
+        aerial.variance.iter_mut().for_each(|v| *v += self.state.aerial_extra);
+        let measured = (!cells.is_empty()).then_some(Measured {
+            cells: &cells,
+            values: &vals,
+            noise_var: boat_var,
+        });
+        Ok(fuse(
+            self.setup.cfg.fusion,
+            self.setup.grid.len(),
+            &[&aerial, &hifi],
+            measured,
+        )?)
+    }
+
+    /// The sources' errors from the boats' innovations at the measured cells, less the boats'
+    /// own noise: the aerials' error is mostly interpolation and the prediction's mostly model
+    /// error, and neither is in their noise models. (The Kalman filter models the
+    /// interpolation's error itself: the aerials' extra is what is left beyond it.)
+    fn calibrate(&mut self, sight: &AerialSight, predicted: &[f64], cells: &[usize], vals: &[f64], boat_var: f64) {
+        let innovation = |est: &[f64]| -> f64 {
+            let m = cells.iter().zip(vals).map(|(&c, v)| (est[c] - v).powi(2)).sum::<f64>() / cells.len() as f64;
+            (m - boat_var).max(1e-12)
+        };
+        let kalman = self.setup.cfg.fusion == Scheme::Kalman;
+        let modelled = |c: usize| sight.estimate.variance[c] + if kalman { sight.interpolation[c] } else { 0.0 };
+        let noise_part = cells.iter().map(|&c| modelled(c)).sum::<f64>() / cells.len() as f64;
+        self.state.aerial_extra = (innovation(&sight.estimate.values) - noise_part).max(0.0);
+        self.state.pred_var = innovation(predicted);
+    }
+
+    /// The boats' estimate of the whole field for the heuristic schemes: their gappy
+    /// reconstruction on the model's modes, or the model's prediction without boat data.
+    fn boats_estimate(
+        &self,
+        predicted: Vec<f64>,
+        cells: &[usize],
+        vals: &[f64],
+        boat_var: f64,
+    ) -> Result<Estimate, TeamError> {
+        let n = self.setup.grid.len();
+        let prediction = |values| Estimate {
+            values,
+            variance: vec![self.state.pred_var; n],
+        };
+        if cells.is_empty() {
+            return Ok(prediction(predicted));
+        }
+        let (_, basis) = self.state.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
+        match gappy::reconstruct(basis.as_ref(), cells, vals, boat_var) {
+            Ok(g) => {
+                // Truncation error: the fit's residual at the measured cells, inflated for
+                // the degrees of freedom the fit used.
+                let dof = (cells.len() as f64 - basis.ncols() as f64).max(1.0);
+                let resid = cells
+                    .iter()
+                    .zip(vals)
+                    .map(|(&c, v)| (g.field[c] - v).powi(2))
+                    .sum::<f64>()
+                    / dof;
+                let extra = (resid - boat_var).max(0.0);
+                Ok(Estimate {
+                    values: g.field,
+                    variance: g.variance.iter().map(|v| v + extra).collect(),
+                })
+            }
+            // Too few independent cells for the modes: keep the prediction.
+            Err(crate::sensing::SensingError::Underdetermined { .. }) => Ok(prediction(predicted)),
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    /// `fusion = "kalman"`: one step of the filter. The modes see the lattice cells the
+    /// aerials saw this step (each with its noise at that distance) and the boats' disks (their
+    /// noise); the detail (what the modes cannot hold) then sees the residuals. Before the
+    /// update, the detail's forecast variance is checked against both sources' innovations
+    /// and rescaled (adaptive inflation, damped and capped). At boat steps the filter's noise
+    /// levels are re-estimated from the boats' innovations ([`kalman::ModalFilter::adapt_noise`])
+    /// and so is the displacement the filter does not model.
+    fn filter_step(
+        &mut self,
+        ahead: u64,
+        aerial: &AerialSight,
+        cells: &[usize],
+        vals: &[f64],
+    ) -> Result<Estimate, TeamError> {
+        let boat_var = (self.setup.cfg.boat_sigma * self.setup.cfg.boat_sigma).max(1e-12);
+        let s = &mut self.state;
+        let Some((f, at)) = s.filter.as_mut() else {
+            return Err(TeamError::NotReady(Missing::Model));
+        };
+        while *at < ahead {
+            f.predict();
+            *at += 1;
+        }
+        let boat_vars = vec![boat_var; cells.len()];
+        // Boat innovations against the forecast, for the noise estimates.
+        let prior = f.prior();
+        let boats = Observation {
+            cells,
+            values: vals,
+            variance: &boat_vars,
+        };
+        let lattice = Observation {
+            cells: &aerial.cells,
+            values: &aerial.values,
+            variance: &aerial.variance,
+        };
+        if !aerial.cells.is_empty() {
+            f.learn_persistence(&lattice, 1.0)?;
+        }
+        // The detail's forecast variance checked against what each source saw and rescaled
+        // before the update, never grown past the field's own variance: every cell by the aerials'
+        // check (every step, evenly spread: the detail's refresh and persistence are the same
+        // everywhere), then the cells between the lattice by the boats' (at boat steps): the
+        // interpolation's misfit there is seen only by them.
+        let cap = kalman::variance_of(&aerial.estimate.values);
+        if let Some(fit) = f.detail_fit(&lattice)? {
+            f.rescale_detail(fit, cap, 0..f.detail_var().len());
+        }
+        if let Some(fit) = f.detail_fit(&boats)? {
+            f.rescale_detail(fit, cap, self.setup.between_lattice.iter().copied());
+        }
+        f.update(&[lattice, boats])?;
+        // The detail: the aerial estimate at every cell (noise, interpolation and the
+        // calibrated extra), then the boats.
+        let all: Vec<usize> = (0..aerial.estimate.values.len()).collect();
+        let aerial_var = aerial_detail_variance(&aerial.estimate.variance, &aerial.interpolation, s.aerial_extra);
+        let dense = Observation {
+            cells: &all,
+            values: &aerial.estimate.values,
+            variance: &aerial_var,
+        };
+        f.update_detail(&[dense, boats])?;
+        if !cells.is_empty() {
+            f.adapt_noise(&prior, cells, vals, boat_var);
+            let grid = self.setup.grid;
+            s.displacement = learn_displacement(s.displacement, &grid, &prior, cells, vals, boat_var)?;
+        }
+        let (values, variance) = f.field();
+        Ok(Estimate { values, variance })
+    }
+}
+
+/// The displacement the filter does not model, from the boats' innovations against the
+/// forecast's squared gradient ([`kalman::displacement_variance`]); smoothed as the model error
+/// is, and never more than the grid's own extent (it cannot run away).
+fn learn_displacement(
+    displacement: f64,
+    grid: &crate::grid::Grid,
+    prior: &kalman::Prior,
+    cells: &[usize],
+    vals: &[f64],
+    boat_var: f64,
+) -> Result<f64, TeamError> {
+    let grad2 = grid.squared_gradient(&prior.mean)?;
+    let innovation2: Vec<f64> = cells
+        .iter()
+        .zip(vals)
+        .map(|(&c, v)| (v - prior.mean[c]).powi(2))
+        .collect();
+    let expected: Vec<f64> = cells.iter().map(|&c| prior.variance[c] + boat_var).collect();
+    let at: Vec<f64> = cells.iter().map(|&c| grad2[c]).collect();
+    Ok(match kalman::displacement_variance(&innovation2, &expected, &at) {
+        Some(s2) => {
+            let extent = (grid.rows * grid.rows + grid.cols * grid.cols) as f64;
+            (0.7 * displacement + 0.3 * s2).min(extent)
+        }
+        None => displacement,
+    })
+}

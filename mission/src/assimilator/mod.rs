@@ -1,0 +1,389 @@
+//! The model server's side of the fleet's loop (DESIGN.md "The loop"): assemble each step's
+//! samples into estimates, fuse, update the model online, allocate the next sensing places.
+//! The vehicles' side (sensing the truth where they are, with their own noise and random
+//! streams) is [`crate::vehicle`]. The offline experiment drives both in one process; the
+//! Zenoh nodes run the same functions on either side of the network, so the two give the
+//! same numbers.
+//!
+//! The [`Assimilator`] is its configuration ([`Setup`]: fixed when the mission starts) and its
+//! state ([`AssimilatorState`]: a value, `Clone`); a checkpoint is a copy of the state.
+//! [`fuse`] holds the per-step estimates and the filter's step, [`placement`] the allocation.
+
+mod fuse;
+mod placement;
+
+pub use fuse::AerialSight;
+pub use placement::{Allocation, BoatDisk};
+
+use crate::dmd::{Dmd, DmdConfig, DmdModel};
+use crate::fusion::{AerialNoise, Estimate};
+use crate::grid::Grid;
+use crate::kalman::{self, ModalFilter};
+use crate::sensing::{coverage, real_basis};
+use crate::team::{Missing, TeamConfig, TeamError};
+use faer::Mat;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// What the mission fixes when it starts: the team, the grid, the DMD method, the fence's
+/// mask, the aerial lattice and how fast boats go.
+#[derive(Clone)]
+pub struct Setup {
+    cfg: TeamConfig,
+    grid: Grid,
+    dmd: DmdConfig,
+    /// Cells outside the site's fence (empty: no fence): never in a disk, never an aerial place.
+    excluded: Vec<bool>,
+    /// The aerials' lattice cells, and the cells between them (which only the boats see).
+    lattice: Vec<usize>,
+    between_lattice: Vec<usize>,
+    /// How far a boat goes in one step (m; infinite offline), for `placement = "horizon"`.
+    boat_speed: f64,
+}
+
+/// Everything the assimilator learns as the mission goes: the model, the newest snapshot, the
+/// calibrated error of each source, the filter, where the vehicles were sent. A value: a
+/// checkpoint is a copy, and a rewind puts the copy back.
+#[derive(Clone)]
+pub struct AssimilatorState {
+    model: Option<Box<dyn Dmd>>,
+    /// The newest fused snapshot (the model's forecasts count from it).
+    newest: Option<Vec<f64>>,
+    /// The model fitted to its newest snapshot, and a real basis of its modes.
+    fitted: Option<(DmdModel, Mat<f64>)>,
+    held_aerial: Option<Estimate>,
+    held_interpolation: Vec<f64>,
+    pred_var: f64,
+    aerial_extra: f64,
+    /// `fusion = "kalman"`: the variance (cells^2 per axis) of a displacement of the field's
+    /// features the filter does not model, read from the boats' innovations
+    /// ([`kalman::displacement_variance`]); horizon placement counts what a value removes of it.
+    displacement: f64,
+    placement_rng: ChaCha8Rng,
+    boat_positions: Vec<(f64, f64)>,
+    aerial_positions: Vec<(f64, f64)>,
+    /// `fusion = "kalman"`: the modal filter, and how many steps past the newest snapshot its
+    /// state is.
+    filter: Option<(ModalFilter, u64)>,
+}
+
+/// The assimilator's state between two epochs, to come back to.
+pub type AssimilatorCheckpoint = AssimilatorState;
+
+/// The model server's assimilator. A clone is independent (an offline experiment can try an
+/// epoch on it and keep the original).
+#[derive(Clone)]
+pub struct Assimilator {
+    setup: Setup,
+    state: AssimilatorState,
+}
+
+impl Assimilator {
+    pub fn new(cfg: &TeamConfig, grid: Grid, frames: usize) -> Result<Self, TeamError> {
+        cfg.validate(&grid, frames)?;
+        let mut placement_rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+        let (w, h) = (grid.width_m(), grid.height_m());
+        let boat_positions = (0..cfg.boats)
+            .map(|_| (placement_rng.random_range(0.0..w), placement_rng.random_range(0.0..h)))
+            .collect();
+        let excluded = cfg.fence.as_ref().map_or_else(Vec::new, |f| f.excluded(&grid));
+        let formation = coverage::uniform_formation(&grid, cfg.aerials)?.positions;
+        let aerial_positions = coverage::snap_inside(&grid, &excluded, &formation)
+            .ok_or_else(|| TeamError::Config("the site's boundary leaves no cell of the grid inside it".into()))?;
+        let lattice = grid.strided(cfg.aerial_stride)?;
+        let mut on_lattice = vec![false; grid.len()];
+        (0..lattice.rows * lattice.cols).for_each(|k| on_lattice[grid.index(lattice.fine_cell(k))] = true);
+        let setup = Setup {
+            dmd: DmdConfig {
+                method: cfg.method,
+                rank: cfg.rank,
+                debias: Default::default(),
+                gamma: cfg.gamma,
+                forgetting: Default::default(),
+            },
+            cfg: cfg.clone(),
+            grid,
+            excluded,
+            lattice: (0..grid.len()).filter(|&i| on_lattice[i]).collect(),
+            between_lattice: (0..grid.len()).filter(|&i| !on_lattice[i]).collect(),
+            boat_speed: f64::INFINITY,
+        };
+        let state = AssimilatorState {
+            model: None,
+            newest: None,
+            fitted: None,
+            held_aerial: None,
+            held_interpolation: vec![0.0; grid.len()],
+            pred_var: 1.0,
+            aerial_extra: 0.0,
+            displacement: 0.0,
+            placement_rng,
+            boat_positions,
+            aerial_positions,
+            filter: None,
+        };
+        Ok(Self { setup, state })
+    }
+
+    /// Its state now, to come back to with [`Self::rewind`].
+    pub fn checkpoint(&self) -> AssimilatorCheckpoint {
+        self.state.clone()
+    }
+
+    /// Back to a checkpoint taken earlier on this same Assimilator.
+    pub fn rewind(&mut self, c: &AssimilatorCheckpoint) -> Result<(), TeamError> {
+        self.state = c.clone();
+        Ok(())
+    }
+
+    /// Boats go at most `speed` metres per step: `placement = "horizon"` plans only disks
+    /// they can reach by their sampling step.
+    pub fn set_boat_speed(&mut self, speed: f64) {
+        self.setup.boat_speed = speed;
+    }
+
+    /// Where boat `slot` will be (an experiment that places the boats itself says so).
+    pub fn set_boat_position(&mut self, slot: usize, position: (f64, f64)) {
+        if let Some(p) = self.state.boat_positions.get_mut(slot) {
+            *p = position;
+        }
+    }
+
+    pub fn boat_speed(&self) -> f64 {
+        self.setup.boat_speed
+    }
+
+    /// The calibrated variance of the model's prediction (per cell).
+    pub fn prediction_variance(&self) -> f64 {
+        self.state.pred_var
+    }
+
+    /// The variance per cell of the forecast `h` steps after the newest snapshot: the Kalman
+    /// filter's, or the calibrated prediction variance for the other schemes.
+    pub fn forecast_variance(&self, h: u64) -> Vec<f64> {
+        match &self.state.filter {
+            Some((f, at)) => f.forecast(h.saturating_sub(*at) as usize).1,
+            None => vec![self.state.pred_var; self.setup.grid.len()],
+        }
+    }
+
+    pub fn grid(&self) -> &Grid {
+        &self.setup.grid
+    }
+
+    pub fn aerial_noise(&self) -> AerialNoise {
+        AerialNoise {
+            sigma0: self.setup.cfg.aerial_sigma0,
+            growth_per_m: self.setup.cfg.aerial_growth_per_cell,
+        }
+    }
+
+    /// The aerials' current positions (what they should fly to).
+    pub fn aerial_positions(&self) -> &[(f64, f64)] {
+        &self.state.aerial_positions
+    }
+
+    pub fn boat_positions(&self) -> &[(f64, f64)] {
+        &self.state.boat_positions
+    }
+
+    /// The model's rank (0 before the first fit).
+    pub fn rank(&self) -> usize {
+        self.state.model.as_ref().map_or(0, |m| m.rank())
+    }
+
+    /// The model fitted to the newest snapshot (forecasts count from it).
+    pub fn model(&self) -> Option<&DmdModel> {
+        self.state.fitted.as_ref().map(|f| &f.0)
+    }
+
+    /// The first model, from the initialisation's aerial estimates (one per step).
+    pub fn initialise(&mut self, estimates: Vec<Vec<f64>>) -> Result<(), TeamError> {
+        if estimates.len() < 3 {
+            return Err(TeamError::NotReady(Missing::Snapshots { have: estimates.len() }));
+        }
+        let z = to_mat(&estimates);
+        let m = estimates.len() - 1;
+        let s = &mut self.state;
+        s.model = Some(self.setup.dmd.init(z.subcols(0, m), z.subcols(1, m))?);
+        let n = self.setup.grid.len() as f64;
+        s.pred_var = s
+            .held_aerial
+            .as_ref()
+            .map_or(1.0, |a| a.variance.iter().sum::<f64>() / n)
+            .max(1e-12);
+        s.newest = estimates.into_iter().last();
+        self.refit()?;
+        self.move_filter()
+    }
+
+    /// Fold an epoch's fused snapshots into the model (pairs chained from the newest one) and
+    /// refit.
+    pub fn assimilate(&mut self, epoch: Vec<Vec<f64>>) -> Result<(), TeamError> {
+        if epoch.is_empty() {
+            return Ok(());
+        }
+        let s = &mut self.state;
+        let mut chain = vec![s.newest.clone().ok_or(TeamError::NotReady(Missing::Model))?];
+        chain.extend(epoch);
+        let z = to_mat(&chain);
+        let m = chain.len() - 1;
+        s.model
+            .as_mut()
+            .ok_or(TeamError::NotReady(Missing::Model))?
+            .update(z.subcols(0, m), z.subcols(1, m))?;
+        s.newest = chain.pop();
+        self.refit()?;
+        self.move_filter()
+    }
+
+    fn refit(&mut self) -> Result<(), TeamError> {
+        let s = &mut self.state;
+        let model = s.model.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
+        let newest = s.newest.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
+        s.fitted = Some(fit_to(model.as_ref(), newest)?);
+        Ok(())
+    }
+
+    /// `fusion = "kalman"`: carry the filter into the refitted model's basis and dynamics (or
+    /// start it, at the newest snapshot, with the calibrated prediction variance per cell).
+    /// Its state is then at the newest snapshot: the fused one of the last step, which is the
+    /// filter's own posterior mean.
+    fn move_filter(&mut self) -> Result<(), TeamError> {
+        if self.setup.cfg.fusion != crate::fusion::Scheme::Kalman {
+            return Ok(());
+        }
+        let s = &mut self.state;
+        let (pred, basis) = s.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
+        let dynamics = kalman::modal_dynamics(pred.modes.modes.as_ref(), &pred.modes.eigenvalues, basis.as_ref())?;
+        s.filter = Some(match s.filter.take() {
+            Some((mut f, _)) => {
+                f.reproject(basis.clone(), dynamics)?;
+                (f, 0)
+            }
+            None => {
+                let newest = s.newest.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
+                let mean: Vec<f64> = (0..basis.ncols())
+                    .map(|j| basis.col(j).iter().zip(newest).map(|(b, x)| b * x).sum())
+                    .collect();
+                // The start: the modal state as uncertain as the prediction is per cell; the
+                // process noise a hundredth of it per step and the model error the
+                // prediction's variance, both re-estimated from the boats' innovations.
+                let q = basis.ncols();
+                let cov = Mat::from_fn(q, q, |i, j| if i == j { s.pred_var } else { 0.0 });
+                let f = ModalFilter::new(basis.clone(), dynamics, mean, cov, 0.01 * s.pred_var, s.pred_var)?;
+                (f, 0)
+            }
+        });
+        Ok(())
+    }
+}
+
+/// A model fitted to its newest snapshot (forecasts count from it), and an orthonormal real
+/// basis of its modes (for gappy reconstruction and placement).
+pub fn fit_to(model: &dyn Dmd, newest: &[f64]) -> Result<(DmdModel, Mat<f64>), TeamError> {
+    let modes = model.decompose()?;
+    let basis = real_basis(modes.modes.as_ref())?;
+    Ok((modes.model(newest, 1.0)?, basis))
+}
+
+/// Columns to a matrix.
+pub fn to_mat(cols: &[Vec<f64>]) -> Mat<f64> {
+    let n = cols.first().map_or(0, |c| c.len());
+    Mat::from_fn(n, cols.len(), |i, j| cols[j][i])
+}
+
+/// The aerial estimate's error variance per cell as the filter's detail sees it: its noise,
+/// the interpolation's error and the calibrated extra (one definition for the update and for
+/// the look ahead that plans on it).
+fn aerial_detail_variance(noise: &[f64], interpolation: &[f64], extra: f64) -> Vec<f64> {
+    noise
+        .iter()
+        .zip(interpolation)
+        .map(|(v, i)| (v + i + extra).max(1e-12))
+        .collect()
+}
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fusion::AerialNoise;
+    use crate::process::synthetic::plume_field;
+    use crate::protocol::Sample;
+    use crate::vehicle::{sense_aerial, sense_boat, vehicle_rng};
+    use rand::seq::SliceRandom;
+
+    #[test]
+    fn arrival_order_does_not_change_the_estimates() {
+        let truth = plume_field(24, 48, 30, 0.0, 1);
+        let grid = Grid::new(24, 48, 1.0).unwrap();
+        let cfg = TeamConfig {
+            aerials: 3,
+            boats: 4,
+            radius: 3.0,
+            rank: crate::dmd::RankPolicy::Fixed(6),
+            init_steps: 10,
+            aerial_stride: 3,
+            ..TeamConfig::default()
+        };
+        let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+        let run = |shuffle: bool| -> (Vec<f64>, Vec<f64>) {
+            let mut server = Assimilator::new(&cfg, grid, 30).unwrap();
+            let mut rngs: Vec<ChaCha8Rng> = (0..7).map(|v| vehicle_rng(cfg.seed, v)).collect();
+            let mut order = ChaCha8Rng::seed_from_u64(99);
+            let mut init = vec![];
+            for k in 0..10 {
+                let pos = server.aerial_positions().to_vec();
+                let mut s: Vec<Sample> = (0..3)
+                    .map(|a| {
+                        sense_aerial(&grid, &x(k), k as u64, 3, &pos, a, server.aerial_noise(), &mut rngs[a]).unwrap()
+                    })
+                    .collect();
+                if shuffle {
+                    s.shuffle(&mut order);
+                }
+                init.push(server.aerial_estimate(&s).unwrap().estimate.values);
+            }
+            server.initialise(init).unwrap();
+            let plan = server.allocate().unwrap();
+            let mut boats: Vec<Sample> = plan
+                .boats
+                .iter()
+                .enumerate()
+                .filter_map(|(b, d)| {
+                    d.as_ref()
+                        .map(|(c, _)| sense_boat(&grid, &x(10), 10, (0.0, 0.0), c, 0.01, &mut rngs[3 + b]).unwrap())
+                })
+                .collect();
+            if shuffle {
+                boats.shuffle(&mut order);
+            }
+            let aerial = server.aerial_estimate(&[]).unwrap();
+            let fused = server.fuse_step(1, &aerial, &boats).unwrap();
+            server.assimilate(vec![fused.values.clone()]).unwrap();
+            (fused.values, server.model().unwrap().predict(1.0))
+        };
+        let (a, b) = (run(false), run(true));
+        assert_eq!(a.0, b.0, "fused snapshot depends on arrival order");
+        assert_eq!(a.1, b.1, "model depends on arrival order");
+    }
+
+    #[test]
+    fn each_aerial_senses_its_own_region_once() {
+        let grid = Grid::new(12, 24, 1.0).unwrap();
+        let truth = vec![1.0; grid.len()];
+        let aerials = [(6.0, 6.0), (18.0, 6.0)];
+        let noise = AerialNoise {
+            sigma0: 0.0,
+            growth_per_m: 0.0,
+        };
+        let mut rng = vehicle_rng(1, 0);
+        let a = sense_aerial(&grid, &truth, 0, 3, &aerials, 0, noise, &mut rng).unwrap();
+        let b = sense_aerial(&grid, &truth, 0, 3, &aerials, 1, noise, &mut rng).unwrap();
+        let mut all: Vec<u32> = a.cells.iter().chain(&b.cells).copied().collect();
+        all.sort();
+        all.dedup();
+        assert_eq!(all.len(), 4 * 8, "every lattice cell exactly once");
+        assert_eq!(a.cells.len(), b.cells.len());
+        assert!(a.values.iter().all(|&v| v == 1.0));
+    }
+}

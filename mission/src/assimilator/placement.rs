@@ -1,0 +1,269 @@
+//! The next epoch's places: boats' disks by the configured placement (one function per
+//! strategy: block QR or D-optimal on the model's modes, random, or the filter's look ahead
+//! over the horizon), boats assigned to disks by least total travel, and aerials by Lloyd's
+//! coverage under a density (the model's temporal modes, or the forecast's variance).
+
+use super::{aerial_detail_variance, Assimilator};
+use crate::grid::{Cell, Grid};
+use crate::kalman::{self, Lookahead, ModalFilter};
+use crate::sensing::{assign::assign, coverage, horizon, qr};
+use crate::team::{Missing, Placement, TeamError};
+use rand::RngExt;
+use rand_chacha::ChaCha8Rng;
+use std::collections::BTreeSet;
+
+/// A boat's disk: the cells it covers and its centre `(row, col)`.
+pub type BoatDisk = (Vec<usize>, (usize, usize));
+
+/// Where every vehicle should be for the next epoch.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Allocation {
+    /// Per boat (in vehicle order): the disk's cells and centre, or `None` when there are more
+    /// boats than disks.
+    pub boats: Vec<Option<BoatDisk>>,
+    /// Per aerial: its coverage position (metres).
+    pub aerials: Vec<(f64, f64)>,
+    /// Vehicles (by index: aerials, then boats) left out: on operator hold or without an
+    /// autopilot. They sense nothing; the others share the work.
+    pub held: BTreeSet<usize>,
+}
+
+impl Allocation {
+    /// The aerials that take part, and their positions.
+    pub fn active_aerials(&self) -> (Vec<usize>, Vec<(f64, f64)>) {
+        (0..self.aerials.len())
+            .filter(|a| !self.held.contains(a))
+            .map(|a| (a, self.aerials[a]))
+            .unzip()
+    }
+}
+
+/// `placement = "horizon"`: the filter at the boats' next sampling step, its look ahead over
+/// the horizon, and its forecast's mean and variance there.
+struct HorizonView {
+    at_sampling: ModalFilter,
+    ahead: Lookahead,
+    mean: Vec<f64>,
+    variance: Vec<f64>,
+}
+
+impl Assimilator {
+    /// Next epoch's places: block QR (or the configured alternative) on the model's modes,
+    /// boats assigned by least total travel, aerials by Lloyd under the temporal density.
+    pub fn allocate(&mut self) -> Result<Allocation, TeamError> {
+        self.allocate_without(&Default::default())
+    }
+
+    /// [`Self::allocate`] with some vehicles (indices: aerials, then boats) left out: the
+    /// disks go to the other boats (as many disks as boats free), Lloyd places the other
+    /// aerials, and the held keep their places.
+    pub fn allocate_without(&mut self, held: &BTreeSet<usize>) -> Result<Allocation, TeamError> {
+        if self.state.fitted.is_none() {
+            return Err(TeamError::NotReady(Missing::Model));
+        }
+        let cfg = &self.setup.cfg;
+        let roster = crate::roster::Roster::of(cfg);
+        let free: Vec<usize> = (0..cfg.boats)
+            .filter(|&b| !held.contains(&roster.boat_index(b)))
+            .collect();
+        let view = self.horizon_view()?;
+        let boats = match &view {
+            Some(v) => self.place_boats_over_the_horizon(v, &free)?,
+            None => self.place_boats_on_modes(&free)?,
+        };
+        let density = self.aerial_density(view.as_ref().map(|v| v.variance.as_slice()))?;
+        self.place_aerials(&density, held)?;
+        Ok(Allocation {
+            boats,
+            aerials: self.state.aerial_positions.clone(),
+            held: held.clone(),
+        })
+    }
+
+    /// The boats' noise variance, floored.
+    fn boat_var(&self) -> f64 {
+        (self.setup.cfg.boat_sigma * self.setup.cfg.boat_sigma).max(1e-12)
+    }
+
+    /// `placement = "horizon"`: the filter's forecast at the next sampling step, and its
+    /// uncertainty there and over the horizon with the aerials observing as in their last
+    /// frame (each lattice value with its noise, the estimate everywhere with the
+    /// interpolation's error and the calibrated extra, as the filter's step weighs them).
+    /// `None` for the other placements.
+    fn horizon_view(&self) -> Result<Option<HorizonView>, TeamError> {
+        let (cfg, s) = (&self.setup.cfg, &self.state);
+        if cfg.placement != Placement::Horizon {
+            return Ok(None);
+        }
+        let (Some((f, at)), Some(held)) = (&s.filter, &s.held_aerial) else {
+            return Err(TeamError::NotReady(Missing::Model));
+        };
+        let to = (cfg.boat_period as u64).saturating_sub(*at).max(1) as usize;
+        let variance: Vec<f64> = self
+            .setup
+            .lattice
+            .iter()
+            .map(|&c| held.variance[c].max(1e-12))
+            .collect();
+        let everywhere = aerial_detail_variance(&held.variance, &s.held_interpolation, s.aerial_extra);
+        let aerials = kalman::Scheduled {
+            cells: &self.setup.lattice,
+            variance: &variance,
+            everywhere: &everywhere,
+        };
+        let at_sampling = f.ahead(to);
+        let (mean, var) = at_sampling.field();
+        let ahead = f.look_ahead(to, cfg.horizon_epochs * cfg.boat_period, &aerials, self.boat_var())?;
+        Ok(Some(HorizonView {
+            at_sampling,
+            ahead,
+            mean,
+            variance: var,
+        }))
+    }
+
+    /// `placement = "horizon"`: the disks whose values remove the most of the forecast's
+    /// variance over the horizon, each within reach of a boat by the sampling step.
+    fn place_boats_over_the_horizon(
+        &mut self,
+        v: &HorizonView,
+        free: &[usize],
+    ) -> Result<Vec<Option<BoatDisk>>, TeamError> {
+        let (cfg, grid) = (&self.setup.cfg, &self.setup.grid);
+        let s = &mut self.state;
+        let reach = self.setup.boat_speed * cfg.boat_period as f64;
+        let fleet: Vec<horizon::Boat> = free
+            .iter()
+            .map(|&b| horizon::Boat {
+                position: s.boat_positions[b],
+                reach_m: reach,
+            })
+            .collect();
+        // What the filter does not model at the sampling step: the forecast's features
+        // displaced, of variance s2 |grad x|^2 per cell.
+        let unmodelled: Vec<f64> = grid
+            .squared_gradient(&v.mean)?
+            .iter()
+            .map(|g2| s.displacement * g2)
+            .collect();
+        let f = horizon::Forecast::of(v.at_sampling.basis(), &v.ahead).with_unmodelled(&unmodelled);
+        let mut boats = vec![None; cfg.boats];
+        let noise_var = (cfg.boat_sigma * cfg.boat_sigma).max(1e-12);
+        for c in horizon::plan_within(grid, &f, &fleet, cfg.radius, noise_var, &self.setup.excluded)? {
+            let b = free[c.boat];
+            s.boat_positions[b] = grid.centre_m(c.centre);
+            boats[b] = Some((c.cells, (c.centre.row, c.centre.col)));
+        }
+        Ok(boats)
+    }
+
+    /// Disks on the model's modes (block QR, D-optimal) or at random, the free boats assigned
+    /// to them by least total travel.
+    fn place_boats_on_modes(&mut self, free: &[usize]) -> Result<Vec<Option<BoatDisk>>, TeamError> {
+        let (cfg, grid, excluded) = (&self.setup.cfg, &self.setup.grid, &self.setup.excluded);
+        let s = &mut self.state;
+        let (_, basis) = s.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
+        let disks: Vec<Vec<usize>> = match (free.len(), cfg.placement) {
+            (0, _) => vec![],
+            (k, Placement::Qr) => qr::block_qr_within(basis.as_ref(), grid, k, cfg.radius, excluded)?
+                .into_iter()
+                .map(|d| d.cells)
+                .collect(),
+            (k, Placement::DOptimal) => qr::block_dopt_within(basis.as_ref(), grid, k, cfg.radius, excluded)?
+                .into_iter()
+                .map(|d| d.cells)
+                .collect(),
+            (k, Placement::Random) => random_disks(grid, k, cfg.radius, excluded, &mut s.placement_rng),
+            (_, Placement::Horizon) => return Err(TeamError::NotReady(Missing::Model)),
+        };
+        let centres: Vec<(usize, usize)> = disks.iter().map(|d| centre_of(grid, d)).collect();
+        let targets: Vec<(f64, f64)> = centres.iter().map(|&(r, c)| grid.centre_m(Cell::new(r, c))).collect();
+        let starts: Vec<(f64, f64)> = free.iter().map(|&b| s.boat_positions[b]).collect();
+        let (assignment, _) = if free.is_empty() {
+            (vec![], 0.0)
+        } else {
+            assign(&starts, &targets, 1.0)?
+        };
+        let mut boats = vec![None; cfg.boats];
+        for (&b, a) in free.iter().zip(&assignment) {
+            if let Some(t) = a {
+                boats[b] = Some((disks[*t].clone(), centres[*t]));
+                s.boat_positions[b] = targets[*t];
+            }
+        }
+        Ok(boats)
+    }
+
+    /// Where the aerials' coverage goes: the temporal density of the model's modes, or (with
+    /// horizon placement) the forecast's variance, floored; nothing outside the fence.
+    fn aerial_density(&self, forecast_variance: Option<&[f64]>) -> Result<Vec<f64>, TeamError> {
+        let floor = self.setup.cfg.density_floor;
+        let density = match forecast_variance {
+            Some(var) => {
+                let top = var.iter().cloned().fold(0.0, f64::max).max(1e-300);
+                var.iter().map(|v| floor + (1.0 - floor) * v / top).collect()
+            }
+            None => {
+                let (pred, _) = self.state.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
+                coverage::temporal_density(pred, floor)?
+            }
+        };
+        let outside = |i: usize| self.setup.excluded.get(i).copied().unwrap_or(false);
+        Ok(density
+            .iter()
+            .enumerate()
+            .map(|(i, &d)| if outside(i) { 0.0 } else { d })
+            .collect())
+    }
+
+    /// Lloyd's iterations place the aerials that are not held; the held keep their places.
+    fn place_aerials(&mut self, density: &[f64], held: &BTreeSet<usize>) -> Result<(), TeamError> {
+        let grid = &self.setup.grid;
+        let flying: Vec<usize> = (0..self.setup.cfg.aerials).filter(|a| !held.contains(a)).collect();
+        if flying.is_empty() {
+            return Ok(());
+        }
+        let positions = &mut self.state.aerial_positions;
+        let starts: Vec<(f64, f64)> = flying.iter().map(|&a| positions[a]).collect();
+        let placed = coverage::lloyd(grid, density, &starts, 50, 1e-3)?.positions;
+        let placed = coverage::snap_inside(grid, &self.setup.excluded, &placed)
+            .ok_or_else(|| TeamError::Config("the site's boundary leaves no cell of the grid inside it".into()))?;
+        for (&a, p) in flying.iter().zip(placed) {
+            positions[a] = p;
+        }
+        Ok(())
+    }
+}
+
+/// A disk's centre: the mean of its cells' rows and columns, rounded.
+fn centre_of(grid: &Grid, disk: &[usize]) -> (usize, usize) {
+    let (r, c) = disk.iter().fold((0.0, 0.0), |(r, c), &i| {
+        (r + grid.cell(i).row as f64, c + grid.cell(i).col as f64)
+    });
+    (
+        (r / disk.len() as f64).round() as usize,
+        (c / disk.len() as f64).round() as usize,
+    )
+}
+
+/// `m` random non-overlapping disks (rejection sampling; fewer if the grid is full).
+fn random_disks(grid: &Grid, m: usize, radius: f64, excluded: &[bool], rng: &mut ChaCha8Rng) -> Vec<Vec<usize>> {
+    let mut taken = if excluded.is_empty() {
+        vec![false; grid.len()]
+    } else {
+        excluded.to_vec()
+    };
+    let mut out = vec![];
+    for _ in 0..m * 200 {
+        if out.len() == m {
+            break;
+        }
+        let c = Cell::new(rng.random_range(0..grid.rows), rng.random_range(0..grid.cols));
+        let d = grid.disk(c, radius);
+        if d.iter().all(|&i| !taken[i]) {
+            d.iter().for_each(|&i| taken[i] = true);
+            out.push(d);
+        }
+    }
+    out
+}
