@@ -12,13 +12,56 @@ use crate::team::TeamConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-/// The bundled default mission (`fleet up` without an argument).
+/// A field out of its range (`[table] key: rule`).
+fn field(table: &'static str, key: impl Into<Option<String>>, rule: impl Into<String>) -> ConfigError {
+    ConfigError::Field {
+        table,
+        key: key.into(),
+        rule: rule.into(),
+    }
+}
+
 /// What is wrong with a mission file, or with a node's inputs against it. Every variant is the
 /// operator's to fix (exit 2), named by file or field.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
+    /// Not a mission file: its TOML (syntax, a type, an unknown key), reason first, then where.
     #[error("{0}")]
-    Invalid(String),
+    Toml(String),
+    /// A field out of its range: its table, the key (with the value given), and the rule.
+    #[error("[{table}]{}: {rule}", key.as_ref().map(|k| format!(" {k}")).unwrap_or_default())]
+    Field {
+        table: &'static str,
+        key: Option<String>,
+        rule: String,
+    },
+    /// The mission's id, which every key expression carries.
+    #[error("{0}")]
+    MissionId(crate::protocol::ProtocolError),
+    /// The site's boundary file (`[mavlink] boundary`).
+    #[error("[mavlink] boundary: {0}")]
+    Boundary(String),
+    /// A node's `--id` that is not a vehicle of the mission.
+    #[error("--id {id}: no such vehicle in mission {mission:?} (it has {known})")]
+    UnknownVehicle { id: String, mission: String, known: String },
+    /// More vehicles than MAVLink has system ids.
+    #[error("{id}: MAVLink has system ids 1-254 only (the mission has {vehicles} vehicles)")]
+    TooManyVehicles { id: String, vehicles: usize },
+    /// A truth whose grid is not a grid.
+    #[error("the truth's grid: {0}")]
+    TruthGrid(crate::grid::GridError),
+    /// A node's `--truth` of another shape than the mission senses.
+    #[error(
+        "--truth {} is {} x {} cells for {} steps, but mission {mission:?} senses {} x {} cells for {} steps: give \
+         the truth `fleet up` or the server made for this mission (every node must sense the same field)",
+        path.display(), got.0, got.1, got.2, want.0, want.1, want.2
+    )]
+    TruthShape {
+        path: std::path::PathBuf,
+        mission: String,
+        got: (usize, usize, usize),
+        want: (usize, usize, usize),
+    },
     #[error("{}: {source}", path.display())]
     Read {
         path: std::path::PathBuf,
@@ -30,6 +73,7 @@ pub enum ConfigError {
     Team(crate::team::TeamError),
 }
 
+/// The bundled default mission (`fleet up` without an argument).
 pub const DEFAULT_MISSION: &str = include_str!("../../config/mission.toml");
 
 /// The mixed-reality truth: a simulator preset or a dataset, on `grid`, averaged by
@@ -251,21 +295,20 @@ impl MavlinkConfig {
 
     fn check(&self) -> Result<(), ConfigError> {
         if !(self.link_loss_s.is_finite() && self.link_loss_s > 0.0) {
-            return Err(ConfigError::Invalid(format!(
-                "[mavlink] link_loss_s = {}: must be > 0",
-                self.link_loss_s
-            )));
+            return Err(field(
+                "mavlink",
+                format!("link_loss_s = {}", self.link_loss_s),
+                "must be > 0",
+            ));
         }
-        for (field, v) in [
+        for (key, v) in [
             ("fence_action", &self.fence_action),
             ("low_battery_action", &self.low_battery_action),
             ("link_loss_action", &self.link_loss_action),
         ] {
             if !FAILSAFE_ACTIONS.contains(&v.as_str()) {
-                return Err(ConfigError::Invalid(format!(
-                    "[mavlink] {field} = {v:?}: one of {}",
-                    FAILSAFE_ACTIONS.join(", ")
-                )));
+                let rule = format!("one of {}", FAILSAFE_ACTIONS.join(", "));
+                return Err(field("mavlink", format!("{key} = {v:?}"), rule));
             }
         }
         if !(self.battery_mah.is_finite()
@@ -273,20 +316,20 @@ impl MavlinkConfig {
             && self.battery_low_mah.is_finite()
             && (0.0..self.battery_mah).contains(&self.battery_low_mah))
         {
-            return Err(ConfigError::Invalid(format!(
-                "[mavlink] battery_mah = {}, battery_low_mah = {}: need 0 <= low < capacity",
+            let key = format!(
+                "battery_mah = {}, battery_low_mah = {}",
                 self.battery_mah, self.battery_low_mah
-            )));
+            );
+            return Err(field("mavlink", key, "need 0 <= low < capacity"));
         }
         let [lat, lon, alt] = self.origin;
         if !(lat.abs() < 85.0 && lon.abs() <= 180.0 && alt.is_finite()) {
-            return Err(ConfigError::Invalid(
-                "[mavlink] origin: latitude within +-85, longitude within +-180, finite altitude".into(),
-            ));
+            let rule = "latitude within +-85, longitude within +-180, finite altitude";
+            return Err(field("mavlink", "origin".to_string(), rule));
         }
         if let Some([e, n]) = self.size_m {
             if !(e > 0.0 && n > 0.0 && e.is_finite() && n.is_finite()) {
-                return Err(ConfigError::Invalid("[mavlink] size_m: two positive extents".into()));
+                return Err(field("mavlink", "size_m".to_string(), "two positive extents"));
             }
         }
         let positive = [
@@ -297,14 +340,11 @@ impl MavlinkConfig {
             self.acceptance_m,
         ];
         if !positive.iter().all(|v| *v > 0.0 && v.is_finite()) || !(self.cruise_alt_m >= 0.0) {
-            return Err(ConfigError::Invalid(
-                "[mavlink]: speeds, speed-up, turn rate and acceptance must be > 0, cruise_alt_m >= 0".into(),
-            ));
+            let rule = "speeds, speed-up, turn rate and acceptance must be > 0, cruise_alt_m >= 0";
+            return Err(field("mavlink", None, rule));
         }
         if self.heartbeat_timeout_ms == 0 {
-            return Err(ConfigError::Invalid(
-                "[mavlink] heartbeat_timeout_ms must be > 0".into(),
-            ));
+            return Err(field("mavlink", None, "heartbeat_timeout_ms must be > 0"));
         }
         Ok(())
     }
@@ -329,26 +369,22 @@ pub struct MissionConfig {
 }
 
 impl MissionConfig {
-    /// Parse and check a mission; every error is bad input ([`crate::exit`]), on one line.
+    /// Parse and check a mission; every error is bad input (the binaries exit 2), on one line.
     pub fn from_toml(text: &str) -> Result<Self, ConfigError> {
-        let cfg: Self = toml::from_str(text).map_err(|e| ConfigError::Invalid(crate::exit::toml_error(text, &e)))?;
-        keys::check_id("mission", &cfg.mission).map_err(|e| ConfigError::Invalid(e.to_string()))?;
+        let cfg: Self = toml::from_str(text).map_err(|e| ConfigError::Toml(toml_error(text, &e)))?;
+        keys::check_id("mission", &cfg.mission).map_err(ConfigError::MissionId)?;
         if cfg.truth.frames < 10 || cfg.truth.average == 0 {
-            return Err(ConfigError::Invalid(
-                "[truth]: need at least 10 frames and average >= 1".into(),
-            ));
+            return Err(field("truth", None, "need at least 10 frames and average >= 1"));
         }
         if cfg.network.listen.is_empty() && cfg.network.connect.is_empty() {
-            return Err(ConfigError::Invalid(
-                "[network]: give listen or connect endpoints".into(),
-            ));
+            return Err(field("network", None, "give listen or connect endpoints"));
         }
         if !(cfg.motion.aerial_speed > 0.0 && cfg.motion.boat_speed > 0.0) {
-            return Err(ConfigError::Invalid("[motion]: speeds must be > 0".into()));
+            return Err(field("motion", None, "speeds must be > 0"));
         }
         cfg.mavlink.check()?;
         if cfg.pace.horizon == 0 {
-            return Err(ConfigError::Invalid("[pace]: horizon must be >= 1".into()));
+            return Err(field("pace", None, "horizon must be >= 1"));
         }
         Ok(cfg)
     }
@@ -377,7 +413,7 @@ impl MissionConfig {
                 if let Some(b) = &cfg.mavlink.boundary {
                     let file = p.parent().map_or_else(|| b.clone(), |d| d.join(b));
                     let fence = crate::fence::load(&file, cfg.mavlink.origin, cfg.mavlink.size_m)
-                        .map_err(|e| ConfigError::Invalid(format!("[mavlink] boundary: {e}")));
+                        .map_err(|e| ConfigError::Boundary(e.to_string()));
                     cfg.team.fence = Some(fence.map_err(in_file(p.display().to_string()))?);
                 }
                 Ok(cfg)
@@ -398,8 +434,7 @@ impl MissionConfig {
     /// Check a truth field against the mission, then the workspace grid and length it gives.
     /// Bad input: a truth that does not fit the team (see [`TeamConfig::validate`]).
     pub fn workspace(&self, truth: &FieldSeries) -> Result<(Grid, usize), ConfigError> {
-        let grid = Grid::new(truth.rows, truth.cols, 1.0)
-            .map_err(|e| ConfigError::Invalid(format!("the truth's grid: {e}")))?;
+        let grid = Grid::new(truth.rows, truth.cols, 1.0).map_err(ConfigError::TruthGrid)?;
         self.team.validate(&grid, truth.frames()).map_err(ConfigError::Team)?;
         Ok((grid, truth.frames()))
     }
@@ -427,16 +462,12 @@ impl MissionConfig {
             return Ok(());
         };
         if (truth.rows, truth.cols, truth.frames()) != (rows, cols, frames) {
-            return Err(ConfigError::Invalid(format!(
-                "--truth {} is {} x {} cells for {} steps, but mission {:?} senses {rows} x {cols} cells for {frames} \
-                    steps: give the truth `fleet up` or the server made for this mission (every node must sense the \
-                    same field)",
-                path.display(),
-                truth.rows,
-                truth.cols,
-                truth.frames(),
-                self.mission
-            )));
+            return Err(ConfigError::TruthShape {
+                path: path.into(),
+                mission: self.mission.clone(),
+                got: (truth.rows, truth.cols, truth.frames()),
+                want: (rows, cols, frames),
+            });
         }
         Ok(())
     }
@@ -456,13 +487,14 @@ impl MissionConfig {
     /// A vehicle's index (its random stream) and kind.
     pub fn vehicle(&self, id: &str) -> Result<(usize, VehicleKind), ConfigError> {
         let roster = self.roster();
-        roster.get(id).map(|v| (v.index, v.kind)).ok_or_else(|| {
-            ConfigError::Invalid(format!(
-                "--id {id}: no such vehicle in mission {:?} (it has {})",
-                self.mission,
-                roster.ids().join(", ")
-            ))
-        })
+        roster
+            .get(id)
+            .map(|v| (v.index, v.kind))
+            .ok_or_else(|| ConfigError::UnknownVehicle {
+                id: id.to_string(),
+                mission: self.mission.clone(),
+                known: roster.ids().join(", "),
+            })
     }
 
     /// A vehicle's sensor noise.
@@ -482,12 +514,13 @@ impl MissionConfig {
     /// A vehicle's MAVLink system id: its place in the mission, from 1.
     pub fn sysid(&self, id: &str) -> Result<u8, ConfigError> {
         let (i, _) = self.vehicle(id)?;
-        u8::try_from(i + 1).ok().filter(|s| *s < 255).ok_or_else(|| {
-            ConfigError::Invalid(format!(
-                "{id}: MAVLink has system ids 1-254 only (the mission has {} vehicles)",
-                self.roster().len()
-            ))
-        })
+        u8::try_from(i + 1)
+            .ok()
+            .filter(|s| *s < 255)
+            .ok_or_else(|| ConfigError::TooManyVehicles {
+                id: id.to_string(),
+                vehicles: self.roster().len(),
+            })
     }
 
     pub fn speed(&self, kind: VehicleKind) -> f64 {
@@ -498,9 +531,58 @@ impl MissionConfig {
     }
 }
 
+/// A TOML error as one line, reason first: `<reason> (at [table] key, line L column C)`.
+pub fn toml_error(text: &str, e: &toml::de::Error) -> String {
+    let reason = e.message().split_whitespace().collect::<Vec<_>>().join(" ");
+    let Some(span) = e.span() else { return reason };
+    let start = span.start.min(text.len());
+    let line_no = text[..start].matches('\n').count() + 1;
+    let line_start = text[..start].rfind('\n').map_or(0, |i| i + 1);
+    let col = text[line_start..start].chars().count() + 1;
+    let line = text[line_start..].lines().next().unwrap_or("");
+    let table = text[..line_start]
+        .lines()
+        .rev()
+        .map(str::trim)
+        .find(|l| l.starts_with('['))
+        .map(|l| format!("{} ", l.split('#').next().unwrap_or(l).trim()));
+    let key = line
+        .split_once('=')
+        .map(|(k, _)| k.trim())
+        .filter(|k| !k.is_empty() && !k.starts_with('['));
+    match key {
+        Some(k) => format!(
+            "{reason} (at {}{k}, line {line_no} column {col})",
+            table.unwrap_or_default()
+        ),
+        None => format!("{reason} (line {line_no} column {col})"),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[derive(serde::Deserialize, Debug)]
+    #[allow(dead_code)]
+    struct T {
+        team: Team,
+    }
+    #[derive(serde::Deserialize, Debug)]
+    #[allow(dead_code)]
+    struct Team {
+        boats: usize,
+    }
+
+    #[test]
+    fn a_toml_error_is_one_line_reason_first_with_where() {
+        let text = "[team]\nboats = \"five\"\n";
+        let e = toml::from_str::<T>(text).unwrap_err();
+        let s = toml_error(text, &e);
+        assert!(!s.contains('\n'), "{s}");
+        assert!(s.starts_with("invalid type"), "{s}");
+        assert!(s.contains("[team] boats, line 2"), "{s}");
+    }
 
     #[test]
     fn the_default_mission_reads() {

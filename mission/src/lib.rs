@@ -1,8 +1,8 @@
 //! hetfleet's mission without the network: what the nodes say to each other ([`protocol`]),
 //! what a mission and a team are ([`config`], [`team`], the [`roster`] of its vehicles), the epoch [`schedule`] every node
 //! agrees on, the model server's core ([`server`], with the [`assimilator`] that fuses and
-//! allocates), the vehicle's brain ([`vehicle`]), the server's events ([`events`]), the
-//! secured configs ([`security`]) and the binaries' exit convention ([`exit`]). Pure and
+//! allocates), the vehicle's brain ([`vehicle`]), the server's events ([`events`]), and the
+//! secured configs ([`security`]). Pure and
 //! testable without a socket; the nodes wrap it.
 //!
 //! The mathematics it stands on is re-exported from `fleet-math` at the root (`grid`, `dmd`,
@@ -13,7 +13,6 @@ pub use fleet_math::{configure_linalg_threads, dmd, fusion, grid, kalman, npy, p
 pub mod assimilator;
 pub mod config;
 pub mod events;
-pub mod exit;
 pub mod fence;
 pub mod outputs;
 pub mod protocol;

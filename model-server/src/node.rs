@@ -4,9 +4,9 @@
 
 use crate::Args;
 use anyhow::Context as _;
+use fleet_exit::bad_input;
 use fleet_mission::config::MissionConfig;
 use fleet_mission::events::{Percentiles, ServerEvent, ServerSummary};
-use fleet_mission::exit::bad_input;
 use fleet_mission::process::FieldSeries;
 use fleet_mission::protocol::{self, keys::Keys, Body, Context, ServerStatus};
 use fleet_mission::recording::{self, CoreOp, Recorder, RecordingError};
@@ -97,7 +97,7 @@ impl Server {
     /// Publish `body` on `key`, recorded.
     async fn put(&self, session: &zenoh::Session, key: &str, body: &Body) -> anyhow::Result<()> {
         self.record(key, &protocol::encode(body));
-        fleet_net::put(session, key, body).await
+        Ok(fleet_net::put(session, key, body).await?)
     }
 
     /// Count a refusal the node made itself, and log it (once per reason).
@@ -638,30 +638,30 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let batches = session
         .declare_subscriber(keys.all_measurements())
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(fleet_net::NetError::zenoh("declaring a subscriber"))?;
     let plans = session
         .declare_queryable(keys.all_plans())
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(fleet_net::NetError::zenoh("declaring a queryable"))?;
     let models = session
         .declare_queryable(keys.model_latest())
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(fleet_net::NetError::zenoh("declaring a queryable"))?;
     let telemetry = session
         .declare_subscriber(keys.telemetry("*"))
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(fleet_net::NetError::zenoh("declaring a subscriber"))?;
     let links = session
         .liveliness()
         .declare_subscriber(keys.all_alive())
         .history(true)
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(fleet_net::NetError::zenoh("subscribing to liveliness"))?;
     let _token = session
         .liveliness()
         .declare_token(keys.alive("server"))
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(fleet_net::NetError::zenoh("declaring the liveliness token"))?;
 
     let epochs = core.schedule().epochs();
     let mut s = Server {
@@ -792,7 +792,10 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     // The last word on the status key, whatever ended the loop.
     s.put(&session, &s.keys.server_status(), &Body::Status(s.status()))
         .await?;
-    session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    session
+        .close()
+        .await
+        .map_err(fleet_net::NetError::zenoh("closing the Zenoh session"))?;
     if let Some(r) = s.recorder.into_inner().unwrap_or_else(|p| p.into_inner()) {
         let path = r.path().to_path_buf();
         r.finish()?;

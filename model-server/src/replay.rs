@@ -6,8 +6,8 @@
 //! replay` checks the core.
 
 use crate::Args;
+use fleet_exit::bad_input;
 use fleet_mission::events::ServerEvent;
-use fleet_mission::exit::bad_input;
 use fleet_mission::protocol::{self, keys::Keys, Body, Context};
 use fleet_mission::recording::{Recording, CORE_TOPIC, EVENTS_TOPIC};
 use fleet_net::{zenoh, Role};
@@ -24,7 +24,7 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
     }
     let rec = Recording::read(file).map_err(|e| {
         let bad = e.is_bad_file();
-        fleet_mission::exit::bad_input_if(e, bad)
+        fleet_exit::bad_input_if(e, bad)
     })?;
     let keys = Keys::new(&rec.mission.mission)?;
     let mut ctx = Context::new(rec.grid);
@@ -33,16 +33,16 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
     let plans = session
         .declare_queryable(keys.all_plans())
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(fleet_net::NetError::zenoh("declaring a queryable"))?;
     let models = session
         .declare_queryable(keys.model_latest())
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(fleet_net::NetError::zenoh("declaring a queryable"))?;
     let _server = session
         .liveliness()
         .declare_token(keys.alive("server"))
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(fleet_net::NetError::zenoh("declaring the liveliness token"))?;
     let mut tokens = BTreeMap::new();
     let mut model: Option<Vec<u8>> = None;
     // Recorded plan replies by (vehicle, epoch): the latest of each answers a query for it.
@@ -74,7 +74,7 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
                             .liveliness()
                             .declare_token(keys.alive(&vehicle))
                             .await
-                            .map_err(|e| anyhow::anyhow!("{e}"))?;
+                            .map_err(fleet_net::NetError::zenoh("declaring the liveliness token"))?;
                         tokens.insert(vehicle, t);
                     } else {
                         tokens.remove(&vehicle);
@@ -97,7 +97,10 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
         }
     }
     info!("replay done");
-    session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    session
+        .close()
+        .await
+        .map_err(fleet_net::NetError::zenoh("closing the Zenoh session"))?;
     Ok(())
 }
 

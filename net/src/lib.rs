@@ -4,8 +4,7 @@
 //! the protocol's encoding; the durable state ([`store`], and a vehicle's [`outbox`] over it). Nothing
 //! here knows the math; nodes stay thin.
 
-use anyhow::Context as _;
-use fleet_mission::config::Network;
+use fleet_mission::config::{ConfigError, Network};
 use fleet_mission::protocol::{self, Body, Context, ProtocolError, ENCODING};
 use std::path::Path;
 use zenoh::bytes::Encoding;
@@ -16,6 +15,56 @@ pub mod outbox;
 pub mod store;
 
 pub use zenoh;
+
+/// What can go wrong on the network side of a node. Zenoh's own errors are opaque (a boxed
+/// error without a source chain), so they are kept as their message, with what was being done.
+#[derive(Debug, thiserror::Error)]
+pub enum NetError {
+    /// A Zenoh JSON5 file that Zenoh refuses (bad input: the operator's file).
+    #[error("the Zenoh config {}", path.display())]
+    ConfigFile {
+        path: std::path::PathBuf,
+        #[source]
+        source: fleet_exit::BadInput,
+    },
+    /// A setting we derive that Zenoh refuses.
+    #[error("Zenoh config {key} = {value}: {reason}")]
+    ConfigKey { key: String, value: String, reason: String },
+    /// Something Zenoh was asked to do: open a session, declare a subscriber, a token or a
+    /// queryable, put, close.
+    #[error("{what}: {reason}")]
+    Zenoh { what: String, reason: String },
+    /// The mission file (bad input).
+    #[error("{0}")]
+    Mission(#[source] ConfigError),
+    /// A node's `--truth` (bad input).
+    #[error("--truth {}", path.display())]
+    Truth {
+        path: std::path::PathBuf,
+        #[source]
+        source: fleet_exit::BadInput,
+    },
+    /// The mission's own truth could not be made.
+    #[error("the mission's truth: {0}")]
+    MissionTruth(#[source] fleet_mission::process::truth::TruthError),
+    #[error("{what}: {source}")]
+    Io {
+        what: &'static str,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+impl NetError {
+    /// A Zenoh error, with what was being done: `.map_err(NetError::zenoh("declaring ..."))`.
+    pub fn zenoh(what: impl Into<String>) -> impl FnOnce(zenoh::Error) -> NetError {
+        let what = what.into();
+        move |e| NetError::Zenoh {
+            what,
+            reason: e.to_string(),
+        }
+    }
+}
 
 /// What a node is on the network.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -42,19 +91,24 @@ fn json_list(v: &[String]) -> String {
 /// The Zenoh configuration of a node: its role's JSON5 file (from the command line or the
 /// mission, if any), then the role's mode (the server a router, vehicles clients that retry
 /// forever) and endpoints.
-pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -> anyhow::Result<zenoh::Config> {
+pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -> Result<zenoh::Config, NetError> {
     let file = base.map(Path::to_path_buf).or_else(|| match role {
         Role::Server => net.server_config.clone(),
         Role::Vehicle => net.vehicle_config.clone(),
     });
     let mut cfg = match &file {
-        Some(p) => zenoh::Config::from_file(p)
-            .map_err(|e| fleet_mission::exit::bad_input(anyhow::anyhow!("the Zenoh config {}: {e}", p.display())))?,
+        Some(p) => zenoh::Config::from_file(p).map_err(|e| NetError::ConfigFile {
+            path: p.clone(),
+            source: fleet_exit::BadInput(anyhow::anyhow!("{e}")),
+        })?,
         None => zenoh::Config::default(),
     };
     let set = |cfg: &mut zenoh::Config, key: &str, value: &str| {
-        cfg.insert_json5(key, value)
-            .map_err(|e| anyhow::anyhow!("Zenoh config {key} = {value}: {e}"))
+        cfg.insert_json5(key, value).map_err(|e| NetError::ConfigKey {
+            key: key.into(),
+            value: value.into(),
+            reason: e.to_string(),
+        })
     };
     // No multicast scouting: a fleet finds its router by its endpoints, and a shared network
     // must not see our nodes join its peers.
@@ -106,10 +160,10 @@ pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -
 }
 
 /// Open a session.
-pub async fn open(cfg: zenoh::Config) -> anyhow::Result<Session> {
+pub async fn open(cfg: zenoh::Config) -> Result<Session, NetError> {
     zenoh::open(cfg)
         .await
-        .map_err(|e| anyhow::anyhow!("opening the Zenoh session: {e}"))
+        .map_err(NetError::zenoh("opening the Zenoh session"))
 }
 
 /// The protocol's encoding, as Zenoh carries it.
@@ -118,12 +172,12 @@ pub fn encoding() -> Encoding {
 }
 
 /// Put one message on `key`.
-pub async fn put(session: &Session, key: &str, body: &Body) -> anyhow::Result<()> {
+pub async fn put(session: &Session, key: &str, body: &Body) -> Result<(), NetError> {
     session
         .put(key, protocol::encode(body))
         .encoding(encoding())
         .await
-        .map_err(|e| anyhow::anyhow!("put on {key}: {e}"))
+        .map_err(NetError::zenoh(format!("put on {key}")))
 }
 
 /// Decode and validate a received sample (refusing oversized payloads before copying them).
@@ -252,12 +306,12 @@ pub fn exit_when_refused(node: &'static str, cfg: &zenoh::Config, file: Option<s
                 let from = file
                     .as_ref()
                     .map_or_else(String::new, |f| format!(" of {}", f.display()));
-                let e = fleet_mission::exit::bad_input(anyhow::anyhow!(
+                let e = fleet_exit::bad_input(anyhow::anyhow!(
                     "the router refused this node's session 3 \
                     times after it sent its credentials (user {user:?}{from}): a wrong password, a user it does not \
                     know, or a certificate it does not accept; fix the credentials and start it again"
                 ));
-                fleet_mission::exit::fail(node, &e);
+                fleet_exit::fail(node, &e);
             }
         }
     });
@@ -287,22 +341,26 @@ impl NodeArgs {
     /// The mission and its truth on the model grid.
     pub fn load(
         &self,
-    ) -> anyhow::Result<(
-        fleet_mission::config::MissionConfig,
-        fleet_mission::process::FieldSeries,
-    )> {
-        let mission = fleet_mission::config::MissionConfig::load(self.mission.as_deref())?;
+    ) -> Result<
+        (
+            fleet_mission::config::MissionConfig,
+            fleet_mission::process::FieldSeries,
+        ),
+        NetError,
+    > {
+        let mission = fleet_mission::config::MissionConfig::load(self.mission.as_deref()).map_err(NetError::Mission)?;
         let truth = match &self.truth {
             Some(p) => {
                 // The time between frames from the sidecar `fleet up` and `fleet simulate` write.
                 let dt = fleet_mission::process::dataset::sidecar_dt(p).unwrap_or(1.0);
-                let t = fleet_mission::process::dataset::load(p, dt)
-                    .map_err(fleet_mission::exit::bad_input)
-                    .with_context(|| format!("--truth {}", p.display()))?;
-                mission.check_truth(&t, p)?;
+                let t = fleet_mission::process::dataset::load(p, dt).map_err(|e| NetError::Truth {
+                    path: p.clone(),
+                    source: fleet_exit::BadInput(e.into()),
+                })?;
+                mission.check_truth(&t, p).map_err(NetError::Mission)?;
                 t
             }
-            None => mission.truth(|_| {})?,
+            None => mission.truth(|_| {}).map_err(NetError::MissionTruth)?,
         };
         Ok((mission, truth))
     }
@@ -315,7 +373,7 @@ impl NodeArgs {
     }
 
     /// This node's Zenoh configuration.
-    pub fn zenoh_config(&self, role: Role, net: &Network) -> anyhow::Result<zenoh::Config> {
+    pub fn zenoh_config(&self, role: Role, net: &Network) -> Result<zenoh::Config, NetError> {
         config(role, net, self.zenoh_config.as_deref(), &self.endpoints())
     }
 
@@ -337,12 +395,16 @@ pub struct StopSignals {
 }
 
 impl StopSignals {
-    pub fn new() -> anyhow::Result<Self> {
+    pub fn new() -> Result<Self, NetError> {
         use tokio::signal::unix::{signal, SignalKind};
+        let io = |source| NetError::Io {
+            what: "registering the stop signals",
+            source,
+        };
         Ok(Self {
-            term: signal(SignalKind::terminate())?,
-            int: signal(SignalKind::interrupt())?,
-            hup: signal(SignalKind::hangup())?,
+            term: signal(SignalKind::terminate()).map_err(io)?,
+            int: signal(SignalKind::interrupt()).map_err(io)?,
+            hup: signal(SignalKind::hangup()).map_err(io)?,
         })
     }
 
@@ -358,7 +420,7 @@ impl StopSignals {
 
 /// Run a node's async main on a multi-threaded runtime (Zenoh refuses the current-thread
 /// one) after [`init_node`]; an error is one line on stderr and the exit status of
-/// [`fleet_mission::exit`] (2 bad input, 1 internal).
+/// [`fleet_exit`] (2 bad input, 1 internal).
 pub fn run_node<F: std::future::Future<Output = anyhow::Result<()>>>(name: &str, workers: usize, main: F) {
     let rt = match tokio::runtime::Builder::new_multi_thread()
         .worker_threads(workers)
@@ -366,13 +428,13 @@ pub fn run_node<F: std::future::Future<Output = anyhow::Result<()>>>(name: &str,
         .build()
     {
         Ok(rt) => rt,
-        Err(e) => fleet_mission::exit::fail(name, &anyhow::Error::new(e).context("starting the runtime")),
+        Err(e) => fleet_exit::fail(name, &anyhow::Error::new(e).context("starting the runtime")),
     };
     let result = rt.block_on(main);
     // Do not wait for blocking readers (a MAVLink socket) to notice the end.
     rt.shutdown_timeout(std::time::Duration::from_millis(200));
     if let Err(e) = result {
-        fleet_mission::exit::fail(name, &e);
+        fleet_exit::fail(name, &e);
     }
 }
 

@@ -43,7 +43,7 @@ fn credential(args: &Args) -> anyhow::Result<Option<String>> {
         Some(c) => Some(match c.strip_prefix('@') {
             Some(path) => std::fs::read_to_string(path)
                 .with_context(|| format!("--credential: reading {path}"))
-                .map_err(fleet_mission::exit::bad_input)?
+                .map_err(fleet_exit::bad_input)?
                 .trim()
                 .to_string(),
             None => c.clone(),
@@ -51,13 +51,13 @@ fn credential(args: &Args) -> anyhow::Result<Option<String>> {
     };
     if let Some(c) = &c {
         if !c.contains(':') || c.starts_with(':') || c.ends_with(':') {
-            return Err(fleet_mission::exit::bad_input(anyhow::anyhow!(
+            return Err(fleet_exit::bad_input(anyhow::anyhow!(
                 "--credential: expected user:password"
             )));
         }
     }
     if c.is_none() && !args.http.ip().is_loopback() {
-        return Err(fleet_mission::exit::bad_input(anyhow::anyhow!(
+        return Err(fleet_exit::bad_input(anyhow::anyhow!(
             "--http {}: a non-loopback address needs \
             --credential user:password (the page is readable by anyone who can reach it)",
             args.http
@@ -98,7 +98,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let listener = tokio::net::TcpListener::bind(args.http)
         .await
         .with_context(|| format!("--http {}: cannot listen there", args.http))
-        .map_err(fleet_mission::exit::bad_input)?;
+        .map_err(fleet_exit::bad_input)?;
     let app = http::router(http::Shared {
         view: view.clone(),
         snapshots: rx,
@@ -113,7 +113,11 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &network)?).await?;
     let sub = |key: String| {
         let s = &session;
-        async move { s.declare_subscriber(key).await.map_err(|e| anyhow::anyhow!("{e}")) }
+        async move {
+            s.declare_subscriber(key)
+                .await
+                .map_err(fleet_net::NetError::zenoh("declaring a subscriber"))
+        }
     };
     let telemetry = sub(keys.telemetry("*")).await?;
     let models = sub(keys.model_latest()).await?;
@@ -125,7 +129,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         .declare_subscriber(keys.all_alive())
         .history(true)
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(fleet_net::NetError::zenoh("subscribing to liveliness"))?;
     let mut stop = fleet_net::StopSignals::new()?;
     let t0 = Instant::now();
     let mut tick = tokio::time::interval(PUSH_EVERY);

@@ -97,7 +97,8 @@ impl Row {
 
 impl ExperimentConfig {
     pub fn from_toml(text: &str) -> anyhow::Result<Self> {
-        let cfg: Self = toml::from_str(text).map_err(|e| anyhow::anyhow!(crate::exit::toml_error(text, &e)))?;
+        let cfg: Self =
+            toml::from_str(text).map_err(|e| anyhow::anyhow!(fleet_mission::config::toml_error(text, &e)))?;
         if cfg.rows.is_empty() {
             bail!("the experiment has no [[row]]");
         }

@@ -46,7 +46,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let signing = match &mission.mavlink.signing_key {
         Some(p) => Some(LinkSigning::new(
             SigningKey::read(p)
-                .map_err(fleet_mission::exit::bad_input)
+                .map_err(fleet_exit::bad_input)
                 .context("[mavlink] signing_key")?,
             LINK_GATEWAY,
             false,
@@ -67,12 +67,12 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let from_vehicles = session
         .declare_subscriber(keys.all_mavlink())
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(fleet_net::NetError::zenoh("declaring a subscriber"))?;
     let _token = session
         .liveliness()
         .declare_token(keys.alive("gcs-gateway"))
         .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(fleet_net::NetError::zenoh("declaring the liveliness token"))?;
     // Every vehicle's system id, pinned from the mission (never learned from the streams).
     let systems: Vec<(String, u8)> = mission
         .vehicles()
@@ -133,6 +133,9 @@ async fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     info!(to_gcs = down, from_gcs = up, refused = ?router.refused, "gateway stopped");
-    session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    session
+        .close()
+        .await
+        .map_err(fleet_net::NetError::zenoh("closing the Zenoh session"))?;
     Ok(())
 }

@@ -66,7 +66,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let site = Site::new(
         m,
         &Grid::new(args.grid[0], args.grid[1], 1.0)
-            .map_err(fleet_mission::exit::bad_input)
+            .map_err(fleet_exit::bad_input)
             .context("--grid")?,
     );
     let frame = match args.frame {
@@ -78,7 +78,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let signing = match &args.signing_key {
         Some(p) => Some(LinkSigning::new(
             SigningKey::read(p)
-                .map_err(fleet_mission::exit::bad_input)
+                .map_err(fleet_exit::bad_input)
                 .context("--signing-key")?,
             LINK_AUTOPILOT,
             false,

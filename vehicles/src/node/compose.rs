@@ -53,7 +53,7 @@ fn bridge_spec(args: &Args, mission: &MissionConfig, grid: &Grid) -> anyhow::Res
     let mut vehicle = SimSpec::from_config(Frame::of(kind), mission.sysid(&args.id)?, site, m);
     if let Some(mah) = args.sim_battery_start_mah {
         if !(mah.is_finite() && (0.0..=m.battery_mah).contains(&mah)) {
-            return Err(fleet_mission::exit::bad_input(anyhow::anyhow!(
+            return Err(fleet_exit::bad_input(anyhow::anyhow!(
                 "--sim-battery-start-mah {mah}: must be within 0..{} (the mission's battery_mah)",
                 m.battery_mah
             )));
@@ -90,7 +90,7 @@ fn autopilot_key(m: &MavlinkConfig, id: &str) -> anyhow::Result<Option<(SigningK
         return Ok(None);
     };
     let key = SigningKey::read(&p)
-        .map_err(fleet_mission::exit::bad_input)
+        .map_err(fleet_exit::bad_input)
         .context("[mavlink] autopilot_signing_key")?;
     Ok(Some((key, m.accept_unsigned_telemetry)))
 }

@@ -95,9 +95,9 @@ fn outbox_error(e: OutboxError) -> anyhow::Error {
         (batches held only in this outbox are lost)";
     match e {
         OutboxError::Store(e @ fleet_net::store::StoreError::InUse { .. }) => {
-            fleet_mission::exit::bad_input(anyhow::anyhow!("the outbox {e}: is this vehicle already running?"))
+            fleet_exit::bad_input(anyhow::anyhow!("the outbox {e}: is this vehicle already running?"))
         }
-        e if e.is_bad_file() => fleet_mission::exit::bad_input(anyhow::anyhow!("the outbox {e}; {RECOVERY}")),
+        e if e.is_bad_file() => fleet_exit::bad_input(anyhow::anyhow!("the outbox {e}; {RECOVERY}")),
         e => anyhow::Error::new(e).context("the outbox"),
     }
 }
@@ -597,7 +597,10 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         off_target = v.brain.off_target,
         "mission done, every batch acknowledged"
     );
-    session.close().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    session
+        .close()
+        .await
+        .map_err(fleet_net::NetError::zenoh("closing the Zenoh session"))?;
     Ok(())
 }
 

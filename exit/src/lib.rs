@@ -2,11 +2,11 @@
 //! argument the operator can fix), 1 internal failure (ours, or the machine's). The message
 //! is one line on stderr, `<binary>: <what>`, naming the file or field once.
 //!
-//! An error is bad input when something in its chain is a [`crate::config::ConfigError`] (a
+//! An error is bad input when something in its chain is a [`fleet_mission::config::ConfigError`] (a
 //! mission file or a node's inputs against it) or was marked with [`BadInput`] (by
 //! [`bad_input`] or [`InputResult::input`]) where the input was read; everything else is
-//! internal. This is the binaries' convention, so it speaks `anyhow` (the one module of the
-//! libraries that does: the libraries' own errors are typed).
+//! internal. This is the binaries' convention, so it speaks `anyhow` (a crate of its own, beside
+//! the libraries, whose errors are typed; every binary depends on it).
 
 use std::fmt;
 
@@ -56,7 +56,7 @@ impl<T, E: Into<anyhow::Error>> InputResult<T> for Result<T, E> {
 
 /// The exit status of an error.
 pub fn code_of(e: &anyhow::Error) -> i32 {
-    use crate::process::dataset::DatasetError;
+    use fleet_mission::process::dataset::DatasetError;
     // A dataset that cannot be used as it is (unreadable, wrong shape, not finite, no such
     // variable) is the user's input wherever it was read; failing to write one is not.
     let bad_dataset = |c: &(dyn std::error::Error + 'static)| {
@@ -64,7 +64,7 @@ pub fn code_of(e: &anyhow::Error) -> i32 {
             .is_some_and(|d| !matches!(d, DatasetError::Io { .. }))
     };
     if e.chain()
-        .any(|c| c.is::<BadInput>() || c.is::<crate::config::ConfigError>() || bad_dataset(c))
+        .any(|c| c.is::<BadInput>() || c.is::<fleet_mission::config::ConfigError>() || bad_dataset(c))
     {
         BAD_INPUT
     } else {
@@ -95,58 +95,9 @@ pub fn fail(binary: &str, e: &anyhow::Error) -> ! {
     std::process::exit(code_of(e))
 }
 
-/// A TOML error as one line, reason first: `<reason> (at [table] key, line L column C)`.
-pub fn toml_error(text: &str, e: &toml::de::Error) -> String {
-    let reason = e.message().split_whitespace().collect::<Vec<_>>().join(" ");
-    let Some(span) = e.span() else { return reason };
-    let start = span.start.min(text.len());
-    let line_no = text[..start].matches('\n').count() + 1;
-    let line_start = text[..start].rfind('\n').map_or(0, |i| i + 1);
-    let col = text[line_start..start].chars().count() + 1;
-    let line = text[line_start..].lines().next().unwrap_or("");
-    let table = text[..line_start]
-        .lines()
-        .rev()
-        .map(str::trim)
-        .find(|l| l.starts_with('['))
-        .map(|l| format!("{} ", l.split('#').next().unwrap_or(l).trim()));
-    let key = line
-        .split_once('=')
-        .map(|(k, _)| k.trim())
-        .filter(|k| !k.is_empty() && !k.starts_with('['));
-    match key {
-        Some(k) => format!(
-            "{reason} (at {}{k}, line {line_no} column {col})",
-            table.unwrap_or_default()
-        ),
-        None => format!("{reason} (line {line_no} column {col})"),
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[derive(serde::Deserialize, Debug)]
-    #[allow(dead_code)]
-    struct T {
-        team: Team,
-    }
-    #[derive(serde::Deserialize, Debug)]
-    #[allow(dead_code)]
-    struct Team {
-        boats: usize,
-    }
-
-    #[test]
-    fn a_toml_error_is_one_line_reason_first_with_where() {
-        let text = "[team]\nboats = \"five\"\n";
-        let e = toml::from_str::<T>(text).unwrap_err();
-        let s = toml_error(text, &e);
-        assert!(!s.contains('\n'), "{s}");
-        assert!(s.starts_with("invalid type"), "{s}");
-        assert!(s.contains("[team] boats, line 2"), "{s}");
-    }
 
     #[test]
     fn bad_input_is_exit_2_and_everything_else_1() {
