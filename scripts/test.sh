@@ -24,8 +24,11 @@ if [ ${#missing[@]} -gt 0 ]; then
   export DEBIAN_FRONTEND=noninteractive
   apt-get update -q >/dev/null && apt-get install -y -q "${missing[@]}" >/dev/null
 fi
-echo "== house style (rustfmt.toml; clippy with warnings as errors)"
+echo "== house style (rustfmt.toml; clippy with warnings as errors; the code's shape)"
 cargo fmt --all --check
+# No import loops in vehicles/ and mission/, no sleeping in a loop in the vehicle node and its
+# bridge, no struct's field list written twice (scripts/check_structure.py says what it checks).
+python3 scripts/check_structure.py
 echo "== building (release)"
 cargo build --release --workspace --all-targets
 cargo clippy --release --workspace --all-targets -- -D warnings

@@ -286,6 +286,11 @@ impl Default for MavlinkConfig {
 }
 
 impl MavlinkConfig {
+    /// Where the grid is on the Earth: the origin and the site's extent.
+    pub fn site(&self, grid: &Grid) -> crate::site::Site {
+        crate::site::Site::new(self.origin, self.size_m, grid)
+    }
+
     /// The autopilot-link key file of vehicle `id`, if the mission signs those links.
     pub fn autopilot_key_of(&self, id: &str) -> Option<std::path::PathBuf> {
         self.autopilot_signing_key

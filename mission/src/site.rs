@@ -3,7 +3,6 @@
 //! longitude. The grid may be scaled onto a physical extent (the paper's 4.5 m x 3.0 m tank, or
 //! a field site); the flat-Earth approximation is well under a centimetre over a few kilometres.
 
-use crate::config::MavlinkConfig;
 use crate::grid::Grid;
 use nalgebra::{Vector2, Vector3};
 
@@ -19,15 +18,10 @@ pub struct Site {
 }
 
 impl Site {
-    pub fn new(cfg: &MavlinkConfig, grid: &Grid) -> Self {
+    pub fn new(origin: [f64; 3], size_m: Option<[f64; 2]>, grid: &Grid) -> Self {
         let (w, h) = (grid.width_m(), grid.height_m());
-        let scale = cfg
-            .size_m
-            .map_or(Vector2::new(1.0, 1.0), |[e, n]| Vector2::new(e / w, n / h));
-        Self {
-            origin: cfg.origin,
-            scale,
-        }
+        let scale = size_m.map_or(Vector2::new(1.0, 1.0), |[e, n]| Vector2::new(e / w, n / h));
+        Self { origin, scale }
     }
 
     /// A grid point at height `up` (m above the origin) in local NED.
@@ -69,11 +63,8 @@ mod tests {
     #[test]
     fn the_tank_maps_its_corners_and_round_trips() {
         let grid = Grid::new(48, 96, 1.0).unwrap();
-        let cfg = MavlinkConfig {
-            size_m: Some([4.5, 3.0]),
-            ..Default::default()
-        };
-        let site = Site::new(&cfg, &grid);
+        let cfg = crate::config::MavlinkConfig::default();
+        let site = Site::new(cfg.origin, Some([4.5, 3.0]), &grid);
         let far = site.ned_of((96.0, 48.0), 0.0);
         assert!((far.x - 3.0).abs() < 1e-12 && (far.y - 4.5).abs() < 1e-12, "{far}");
         let p = (12.5, 30.25);

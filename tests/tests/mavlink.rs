@@ -127,7 +127,7 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
         "{p}"
     );
     let (rows, cols, _) = m.model_shape().unwrap();
-    let site = fleet::mission::site::Site::new(&m.mavlink, &fleet::grid::Grid::new(rows, cols, 1.0).unwrap());
+    let site = m.mavlink.site(&fleet::grid::Grid::new(rows, cols, 1.0).unwrap());
     let corner = |x: f64, y: f64| {
         let (lat, lon, _) = site.global_of(&site.ned_of((x, y), 0.0));
         [(lat * 1e7).round() as i64, (lon * 1e7).round() as i64]

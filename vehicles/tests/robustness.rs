@@ -21,7 +21,7 @@ use vehicles::bridge::{Bridge, BridgeSpec};
 use vehicles::link::{frame_bytes, parse_frame};
 
 fn site() -> Site {
-    Site::new(&MavlinkConfig::default(), &Grid::new(24, 48, 1.0).unwrap())
+    MavlinkConfig::default().site(&Grid::new(24, 48, 1.0).unwrap())
 }
 
 /// Hostile datagrams: random bytes, frames with a flipped CRC byte, unknown message ids,

@@ -8,7 +8,7 @@ use fleet_mission::config::MavlinkConfig;
 use fleet_mission::grid::Grid;
 use fleet_mission::protocol::AutopilotLink;
 use fleet_mission::signing_key::SigningKey;
-use fleet_mission::site::Site;
+
 use mavlink::dialects::common::*;
 use mavlink::MavHeader;
 use nalgebra::Vector3;
@@ -27,7 +27,7 @@ fn spec(sysid: u8) -> SimSpec {
     SimSpec {
         frame: Frame::Boat,
         sysid,
-        site: Site::new(&MavlinkConfig::default(), &Grid::new(24, 48, 1.0).unwrap()),
+        site: MavlinkConfig::default().site(&Grid::new(24, 48, 1.0).unwrap()),
         max_speed: 20.0,
         turn_rate: 6.0,
         cruise_alt: 0.0,

@@ -71,7 +71,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let (mission, truth) = args.node.load()?;
     let (grid, _frames) = mission.workspace(&truth)?;
     let keys = Keys::new(&mission.mission)?;
-    let site = fleet_mission::site::Site::new(&mission.mavlink, &grid);
+    let site = mission.mavlink.site(&grid);
     let ne = site.global_of(&site.ned_of((grid.width_m(), grid.height_m()), 0.0));
     let geo = Geo {
         south_west: [mission.mavlink.origin[0], mission.mavlink.origin[1]],

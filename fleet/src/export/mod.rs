@@ -126,7 +126,7 @@ impl Run {
                 })
             }
         };
-        let site = Site::new(&mission.mavlink, &grid);
+        let site = mission.mavlink.site(&grid);
         Ok(Self {
             dir: dir.into(),
             mission,

@@ -18,6 +18,7 @@
 
 use super::SensingError;
 use crate::grid::{Cell, Grid};
+use crate::kalman::Lookahead;
 use faer::{Mat, MatRef};
 use pathfinding::matrix::Matrix;
 
@@ -25,16 +26,9 @@ use pathfinding::matrix::Matrix;
 /// (the filter's [`crate::kalman::Lookahead`]).
 pub struct Forecast<'a> {
     pub basis: MatRef<'a, f64>,
-    /// Modal covariance at the sampling step.
-    pub cov: MatRef<'a, f64>,
-    /// Detail variance per cell at the sampling step.
-    pub detail_var: &'a [f64],
-    /// `M`: a reduction `dP` of the modal covariance removes `tr(dP M)` over the horizon.
-    pub modal_weight: MatRef<'a, f64>,
-    /// Per cell: the detail variance a value removes over the horizon.
-    pub detail_gain: &'a [f64],
-    /// Per cell: the weight the filter gives a value at the sampling step.
-    pub value_weight: &'a [f64],
+    /// The modal covariance and detail variance at the sampling step, and what a value then
+    /// removes over the horizon.
+    pub ahead: &'a Lookahead,
     /// Per cell: the variance of the error the filter does not model at the sampling step
     /// (a displacement of the field's features: [`crate::kalman::displacement_variance`]);
     /// empty: none.
@@ -43,14 +37,10 @@ pub struct Forecast<'a> {
 
 impl<'a> Forecast<'a> {
     /// What the planner reads of a filter's look ahead, over the filter's basis.
-    pub fn of(basis: MatRef<'a, f64>, ahead: &'a crate::kalman::Lookahead) -> Self {
+    pub fn of(basis: MatRef<'a, f64>, ahead: &'a Lookahead) -> Self {
         Self {
             basis,
-            cov: ahead.cov.as_ref(),
-            detail_var: &ahead.detail_var,
-            modal_weight: ahead.modal_weight.as_ref(),
-            detail_gain: &ahead.detail_gain,
-            value_weight: &ahead.value_weight,
+            ahead,
             unmodelled: &[],
         }
     }
@@ -65,7 +55,7 @@ impl<'a> Forecast<'a> {
     /// variance goes (the value's own noise is already in the detail gain).
     fn unmodelled_gain(&self, i: usize) -> f64 {
         self.unmodelled.get(i).map_or(0.0, |u| {
-            let k = self.value_weight[i];
+            let k = self.ahead.value_weight[i];
             (2.0 * k - k * k) * u
         })
     }
@@ -118,13 +108,13 @@ pub fn plan_within(
 ) -> Result<Vec<Chosen>, SensingError> {
     let (n, q) = (f.basis.nrows(), f.basis.ncols());
     grid.check_len(n).map_err(|e| SensingError::Input(e.to_string()))?;
-    if f.modal_weight.nrows() != q
-        || f.modal_weight.ncols() != q
-        || f.cov.nrows() != q
-        || f.cov.ncols() != q
-        || f.detail_var.len() != n
-        || f.detail_gain.len() != n
-        || f.value_weight.len() != n
+    if f.ahead.modal_weight.nrows() != q
+        || f.ahead.modal_weight.ncols() != q
+        || f.ahead.cov.nrows() != q
+        || f.ahead.cov.ncols() != q
+        || f.ahead.detail_var.len() != n
+        || f.ahead.detail_gain.len() != n
+        || f.ahead.value_weight.len() != n
     {
         return Err(SensingError::Input(format!(
             "a forecast over {q} modes on {n} cells needs {q} x {q} weights and \
@@ -137,7 +127,7 @@ pub fn plan_within(
             f.unmodelled.len()
         )));
     }
-    if f.value_weight.iter().any(|k| !(0.0..=1.0).contains(k)) {
+    if f.ahead.value_weight.iter().any(|k| !(0.0..=1.0).contains(k)) {
         return Err(SensingError::Input("value weights must be in [0, 1]".into()));
     }
     if !(noise_var > 0.0 && noise_var.is_finite() && radius >= 0.0 && radius.is_finite()) {
@@ -154,9 +144,10 @@ pub fn plan_within(
             b.position, b.reach_m
         )));
     }
-    if f.detail_var
+    if f.ahead
+        .detail_var
         .iter()
-        .chain(f.detail_gain)
+        .chain(&f.ahead.detail_gain)
         .chain(f.unmodelled)
         .any(|v| !(v.is_finite() && *v >= 0.0))
     {
@@ -164,7 +155,7 @@ pub fn plan_within(
             "detail and unmodelled variances and gains must be finite and >= 0".into(),
         ));
     }
-    let m = f.modal_weight.to_owned();
+    let m = f.ahead.modal_weight.clone();
     // Candidate centres every half radius (every cell for small disks).
     let every = ((radius / 2.0).floor() as usize).max(1);
     let mut candidates = vec![];
@@ -175,14 +166,14 @@ pub fn plan_within(
             let mut info = Mat::<f64>::zeros(q, q);
             let mut detail_gain = 0.0;
             for &i in &cells {
-                let w = 1.0 / (f.detail_var[i] + noise_var);
+                let w = 1.0 / (f.ahead.detail_var[i] + noise_var);
                 let h = f.basis.row(i);
                 for a in 0..q {
                     for b in 0..q {
                         info[(a, b)] += h[a] * h[b] * w;
                     }
                 }
-                detail_gain += f.detail_gain[i] + f.unmodelled_gain(i);
+                detail_gain += f.ahead.detail_gain[i] + f.unmodelled_gain(i);
             }
             candidates.push(Candidate {
                 at: grid.centre_m(centre),
@@ -193,7 +184,7 @@ pub fn plan_within(
             });
         }
     }
-    let mut cov = f.cov.to_owned();
+    let mut cov = f.ahead.cov.clone();
     let mut taken: Vec<bool> = super::qr::blocked(grid, excluded)?.iter().map(|&b| b > 0.0).collect();
     let mut chosen: Vec<usize> = vec![];
     let reachable = |b: &Boat, at: (f64, f64)| (b.position.0 - at.0).hypot(b.position.1 - at.1) <= b.reach_m;
@@ -313,15 +304,14 @@ mod tests {
         let p = Mat::from_fn(1, 1, |_, _| 1.0);
         let (dv, gain) = (vec![1e-6; grid.len()], vec![0.0; grid.len()]);
         let weight = vec![0.5; grid.len()];
-        let f = Forecast {
-            basis: b.as_ref(),
-            cov: p.as_ref(),
-            detail_var: &dv,
-            modal_weight: m.as_ref(),
-            detail_gain: &gain,
-            value_weight: &weight,
-            unmodelled: &[],
+        let ahead = Lookahead {
+            cov: p.clone(),
+            detail_var: dv.clone(),
+            modal_weight: m.clone(),
+            detail_gain: gain.clone(),
+            value_weight: weight.clone(),
         };
+        let f = Forecast::of(b.as_ref(), &ahead);
         let boats = [Boat {
             position: (19.5, 5.5),
             reach_m: 100.0,
@@ -356,15 +346,14 @@ mod tests {
         let p = Mat::from_fn(1, 1, |_, _| 1e-9);
         let dv = vec![1.0; grid.len()];
         let weight = vec![0.5; grid.len()];
-        let f = Forecast {
-            basis: b.as_ref(),
-            cov: p.as_ref(),
-            detail_var: &dv,
-            modal_weight: m.as_ref(),
-            detail_gain: &dv,
-            value_weight: &weight,
-            unmodelled: &[],
+        let ahead = Lookahead {
+            cov: p.clone(),
+            detail_var: dv.clone(),
+            modal_weight: m.clone(),
+            detail_gain: dv.clone(),
+            value_weight: weight.clone(),
         };
+        let f = Forecast::of(b.as_ref(), &ahead);
         let boats = [
             Boat {
                 position: (0.0, 0.0),
@@ -400,15 +389,14 @@ mod tests {
                 }
             })
             .collect();
-        let f = Forecast {
-            basis: b.as_ref(),
-            cov: p.as_ref(),
-            detail_var: &dv,
-            modal_weight: m.as_ref(),
-            detail_gain: &gain,
-            value_weight: &weight,
-            unmodelled: &[],
+        let ahead = Lookahead {
+            cov: p.clone(),
+            detail_var: dv.clone(),
+            modal_weight: m.clone(),
+            detail_gain: gain.clone(),
+            value_weight: weight.clone(),
         };
+        let f = Forecast::of(b.as_ref(), &ahead);
         let got = plan(
             &grid,
             &f,
@@ -441,16 +429,14 @@ mod tests {
             .map(|i| if (3..6).contains(&grid.cell(i).col) { 0.4 } else { 0.0 })
             .collect();
         let weight = vec![0.5; grid.len()];
-        let f = Forecast {
-            basis: b.as_ref(),
-            cov: p.as_ref(),
-            detail_var: &dv,
-            modal_weight: m.as_ref(),
-            detail_gain: &gain,
-            value_weight: &weight,
-            unmodelled: &[],
-        }
-        .with_unmodelled(&front);
+        let ahead = Lookahead {
+            cov: p.clone(),
+            detail_var: dv.clone(),
+            modal_weight: m.clone(),
+            detail_gain: gain.clone(),
+            value_weight: weight.clone(),
+        };
+        let f = Forecast::of(b.as_ref(), &ahead).with_unmodelled(&front);
         let got = plan(
             &grid,
             &f,
@@ -471,10 +457,14 @@ mod tests {
         assert!((f.unmodelled_gain(at) - 0.75 * 0.4).abs() < 1e-15);
         let deaf = vec![0.0; grid.len()];
         assert_eq!(
-            Forecast {
-                value_weight: &deaf,
-                ..f
-            }
+            Forecast::of(
+                f.basis,
+                &Lookahead {
+                    value_weight: deaf,
+                    ..ahead.clone()
+                }
+            )
+            .with_unmodelled(&front)
             .unmodelled_gain(at),
             0.0
         );
@@ -490,15 +480,14 @@ mod tests {
         let b = Mat::<f64>::zeros(16, 1);
         let a = Mat::<f64>::identity(1, 1);
         let dv = vec![f64::NAN; 16];
-        let f = Forecast {
-            basis: b.as_ref(),
-            cov: a.as_ref(),
-            detail_var: &dv,
-            modal_weight: a.as_ref(),
-            detail_gain: &dv,
-            value_weight: &[0.5; 16],
-            unmodelled: &[],
+        let ahead = Lookahead {
+            cov: a.clone(),
+            detail_var: dv.clone(),
+            modal_weight: a.clone(),
+            detail_gain: dv.clone(),
+            value_weight: [0.5; 16].to_vec(),
         };
+        let f = Forecast::of(b.as_ref(), &ahead);
         assert!(plan(&grid, &f, &[], 1.0, 1e-4).is_err());
     }
 }

@@ -113,7 +113,7 @@ mod tests {
 
     #[test]
     fn a_concave_inclusion_with_an_exclusion_circle_keeps_out_the_notch_and_the_hole() {
-        let site = Site::new(&MavlinkConfig::default(), &Grid::new(100, 100, 1.0).unwrap());
+        let site = MavlinkConfig::default().site(&Grid::new(100, 100, 1.0).unwrap());
         let v = MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION;
         // An L (east, north): [0,100]^2 without its north-east quarter; a 5 m hole at (20, 20).
         let ell = [

@@ -7,3 +7,4 @@ pub mod params;
 pub mod safety;
 pub mod serve;
 pub mod sim;
+pub mod spec;

@@ -5,7 +5,7 @@
 
 use super::modes::Frame;
 use super::safety::Action;
-use super::sim::SimSpec;
+use super::spec::SimSpec;
 
 /// One parameter: its name and how it reads from and writes to the simulation.
 struct Param {

@@ -7,7 +7,7 @@ use clap::{Parser, ValueEnum};
 use fleet_mission::config::MissionConfig;
 use fleet_mission::grid::Grid;
 use fleet_mission::signing_key::SigningKey;
-use fleet_mission::site::Site;
+
 use nalgebra::Vector3;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -63,12 +63,10 @@ fn main() {
 async fn run(args: Args) -> anyhow::Result<()> {
     let mission = MissionConfig::load(args.mission.as_deref())?;
     let m = &mission.mavlink;
-    let site = Site::new(
-        m,
-        &Grid::new(args.grid[0], args.grid[1], 1.0)
-            .map_err(fleet_exit::bad_input)
-            .context("--grid")?,
-    );
+    let grid = Grid::new(args.grid[0], args.grid[1], 1.0)
+        .map_err(fleet_exit::bad_input)
+        .context("--grid")?;
+    let site = m.site(&grid);
     let frame = match args.frame {
         Airframe::Boat => Frame::Boat,
         Airframe::Multirotor => Frame::Multirotor,

@@ -46,7 +46,7 @@ pub fn open_bridge(
 fn bridge_spec(args: &Args, mission: &MissionConfig, grid: &Grid) -> anyhow::Result<BridgeSpec> {
     let m = &mission.mavlink;
     let (index, kind) = mission.vehicle(&args.id)?;
-    let site = Site::new(m, grid);
+    let site = m.site(grid);
     // Launched from points along the south shore.
     let n = mission.vehicles().len() as f64;
     let launch = |i: usize| site.ned_of(((i as f64 + 0.5) * grid.width_m() / n, 0.5 * grid.cell_m), 0.0);

@@ -1,0 +1,645 @@
+//! The simulated autopilot against what ArduPilot does, message by message.
+
+use super::*;
+use fleet_mission::config::MavlinkConfig;
+use fleet_mission::grid::Grid;
+use fleet_mission::site::Site;
+
+fn sim(frame: Frame) -> SimAutopilot {
+    let site = MavlinkConfig::default().site(&Grid::new(48, 96, 1.0).unwrap());
+    let spec = SimSpec {
+        frame,
+        sysid: 3,
+        site,
+        max_speed: 2.0,
+        turn_rate: PI / 2.0,
+        cruise_alt: 30.0,
+        speedup: 1.0,
+        safety: Default::default(),
+    };
+    SimAutopilot::new(spec, Vector3::zeros())
+}
+
+const GCS: MavHeader = MavHeader {
+    system_id: 255,
+    component_id: 190,
+    sequence: 0,
+};
+
+fn long(command: MavCmd, p1: f32, p2: f32) -> MavMessage {
+    MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+        command,
+        param1: p1,
+        param2: p2,
+        target_system: 3,
+        target_component: 1,
+        ..Default::default()
+    })
+}
+
+fn results(out: &[MavMessage]) -> Vec<MavResult> {
+    out.iter()
+        .filter_map(|m| {
+            if let MavMessage::COMMAND_ACK(a) = m {
+                Some(a.result)
+            } else {
+                None
+            }
+        })
+        .collect()
+}
+
+#[test]
+fn home_parameters_and_the_fence_bit_answer_as_ardupilot_does() {
+    let mut s = sim(Frame::Boat);
+    // Home: acked, then HOME_POSITION at the boot place (the site's origin here).
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_GET_HOME_POSITION, 0.0, 0.0));
+    let out = s.take();
+    assert_eq!(results(&out), vec![MavResult::MAV_RESULT_ACCEPTED]);
+    let Some(MavMessage::HOME_POSITION(h)) = out.get(1) else {
+        panic!("no HOME_POSITION after the ack: {out:?}")
+    };
+    let [lat, lon, _] = s.spec.site.origin;
+    assert_eq!(
+        (h.latitude, h.longitude),
+        ((lat * 1e7).round() as i32, (lon * 1e7).round() as i32)
+    );
+    s.handle(
+        &GCS,
+        &long(MavCmd::MAV_CMD_REQUEST_MESSAGE, HOME_POSITION_DATA::ID as f32, 0.0),
+    );
+    assert!(matches!(s.take().get(1), Some(MavMessage::HOME_POSITION(_))));
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_REQUEST_MESSAGE, 33.0, 0.0));
+    assert_eq!(results(&s.take()), vec![MavResult::MAV_RESULT_UNSUPPORTED]);
+
+    // The whole list, each value what the simulation uses, counted and indexed.
+    s.handle(
+        &GCS,
+        &MavMessage::PARAM_REQUEST_LIST(PARAM_REQUEST_LIST_DATA {
+            target_system: 3,
+            target_component: 1,
+        }),
+    );
+    let values: Vec<PARAM_VALUE_DATA> = s
+        .take()
+        .into_iter()
+        .filter_map(|m| {
+            if let MavMessage::PARAM_VALUE(v) = m {
+                Some(v)
+            } else {
+                None
+            }
+        })
+        .collect();
+    let named = |n: &str| {
+        values
+            .iter()
+            .find(|v| v.param_id.to_str().unwrap() == n)
+            .unwrap_or_else(|| panic!("no {n} in {values:?}"))
+            .param_value
+    };
+    assert_eq!(values.len(), 8);
+    assert!(values
+        .iter()
+        .enumerate()
+        .all(|(i, v)| v.param_index as usize == i && v.param_count == 8));
+    assert!(
+        values
+            .windows(2)
+            .all(|w| w[0].param_id.to_str().unwrap() < w[1].param_id.to_str().unwrap()),
+        "sorted by name, as ArduPilot lists them"
+    );
+    assert_eq!(
+        (named("CRUISE_SPEED"), named("SYSID_THISMAV"), named("FENCE_ENABLE")),
+        (2.0, 3.0, 0.0)
+    );
+    assert!((named("ATC_STR_RAT_MAX") - 90.0).abs() < 1e-4);
+    // A set takes effect in the simulation and is echoed; a bad or read-only one is not taken.
+    let set = |name: &str, v: f32| {
+        MavMessage::PARAM_SET(PARAM_SET_DATA {
+            param_value: v,
+            target_system: 3,
+            target_component: 1,
+            param_id: name.into(),
+            param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+        })
+    };
+    s.handle(&GCS, &set("CRUISE_SPEED", 3.5));
+    assert!(matches!(s.take().as_slice(), [MavMessage::PARAM_VALUE(v)] if v.param_value == 3.5));
+    assert_eq!(s.spec.max_speed, 3.5);
+    for (name, v, now) in [
+        ("CRUISE_SPEED", -1.0, 3.5),
+        ("SYSID_THISMAV", 9.0, 3.0),
+        ("FENCE_ENABLE", 0.5, 0.0),
+        ("FENCE_ACTION", 7.0, 1.0),
+    ] {
+        s.handle(&GCS, &set(name, v));
+        assert!(
+            matches!(s.take().as_slice(), [MavMessage::PARAM_VALUE(p)] if p.param_value == now),
+            "{name}"
+        );
+    }
+    s.handle(&GCS, &set("NO_SUCH_PARAM", 1.0));
+    assert!(s.take().is_empty());
+    let read = |index: i16, name: &str| {
+        MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA {
+            param_index: index,
+            target_system: 3,
+            target_component: 1,
+            param_id: name.into(),
+        })
+    };
+    s.handle(&GCS, &read(-1, "CRUISE_SPEED"));
+    s.handle(&GCS, &read(7, ""));
+    let got: Vec<String> = s
+        .take()
+        .into_iter()
+        .filter_map(|m| {
+            if let MavMessage::PARAM_VALUE(v) = m {
+                Some(v.param_id.to_str().unwrap().to_string())
+            } else {
+                None
+            }
+        })
+        .collect();
+    assert_eq!(got, ["CRUISE_SPEED", "SYSID_THISMAV"]);
+
+    // No fence breach: the geofence health bit is set.
+    let MavMessage::SYS_STATUS(st) = s.sys_status() else {
+        panic!()
+    };
+    assert!(st
+        .onboard_control_sensors_health
+        .contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE));
+}
+
+#[test]
+fn a_boat_arms_goes_guided_and_reaches_its_target_within_its_limits() {
+    let mut s = sim(Frame::Boat);
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 15.0));
+    assert_eq!(results(&s.take()), [MavResult::MAV_RESULT_ACCEPTED; 2]);
+    // Behind it (heading north, goal south-east): it must turn first.
+    let goal = Vector3::new(-6.0, 8.0, 5.0);
+    let target = SET_POSITION_TARGET_LOCAL_NED_DATA {
+        x: goal.x as f32,
+        y: goal.y as f32,
+        z: goal.z as f32,
+        target_system: 3,
+        coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+        ..Default::default()
+    };
+    s.handle(&GCS, &MavMessage::SET_POSITION_TARGET_LOCAL_NED(target));
+    let mut t = 0.0;
+    let mut last = s.pos;
+    let mut last_heading = s.heading;
+    while s.pos.xy() != goal.xy() && t < 30.0 {
+        s.step(0.05);
+        t += 0.05;
+        assert!((s.pos - last).norm() <= 2.0 * 0.05 + 1e-9, "speed limit");
+        assert!(
+            wrap(s.heading - last_heading).abs() <= PI / 2.0 * 0.05 + 1e-9,
+            "turn-rate limit"
+        );
+        assert_eq!(s.pos.z, 0.0, "a boat stays on the surface");
+        (last, last_heading) = (s.pos, s.heading);
+    }
+    // 10 m at 2 m/s, plus the turn: more than 5 s, well under 30.
+    assert!(t > 5.0 && t < 30.0, "took {t} s");
+}
+
+#[test]
+fn an_unarmed_or_held_vehicle_does_not_move_and_unknown_commands_are_unsupported() {
+    let mut s = sim(Frame::Multirotor);
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 4.0));
+    s.handle(
+        &GCS,
+        &MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA {
+            x: 10.0,
+            target_system: 3,
+            coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+            ..Default::default()
+        }),
+    );
+    s.step(1.0);
+    assert_eq!(s.pos, Vector3::zeros(), "disarmed");
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 0.0, 0.0));
+    s.step(1.0);
+    assert_eq!(s.pos, Vector3::zeros(), "held");
+    assert_eq!(s.role(), Some(Role::Hold));
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 1.0, 0.0));
+    assert_eq!(s.role(), Some(Role::Guided));
+    s.take();
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 99.0));
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_GRIPPER, 0.0, 0.0));
+    assert_eq!(
+        results(&s.take()),
+        [MavResult::MAV_RESULT_DENIED, MavResult::MAV_RESULT_UNSUPPORTED]
+    );
+    // Another system's command is not ours.
+    let mut other = long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 0.0, 0.0);
+    *other.target_system_id_mut().unwrap() = 4;
+    s.handle(&GCS, &other);
+    assert!(s.armed && s.take().is_empty());
+}
+
+#[test]
+fn a_mission_uploads_with_the_handshake_runs_and_reports_each_item() {
+    let mut s = sim(Frame::Boat);
+    let site = s.spec.site;
+    s.handle(
+        &GCS,
+        &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+            count: 5,
+            target_system: 3,
+            target_component: 1,
+            ..Default::default()
+        }),
+    );
+    // Home (never flown), a waypoint, a speed change to 4 m/s, two more waypoints.
+    let wps = [(99.0, 99.0), (5.0, 0.0), (f64::NAN, 4.0), (5.0, 5.0), (0.0, 5.0)];
+    for (seq, (n, e)) in wps.iter().enumerate() {
+        let out = s.take();
+        assert!(
+            matches!(&out[..], [MavMessage::MISSION_REQUEST_INT(r)] if r.seq == seq as u16 && r.target_system == 255),
+            "{out:?}"
+        );
+        if n.is_nan() {
+            let speed = MISSION_ITEM_INT_DATA {
+                seq: seq as u16,
+                command: MavCmd::MAV_CMD_DO_CHANGE_SPEED,
+                param2: *e as f32,
+                target_system: 3,
+                ..Default::default()
+            };
+            s.handle(&GCS, &MavMessage::MISSION_ITEM_INT(speed));
+            continue;
+        }
+        let (lat, lon, _) = site.global_of(&Vector3::new(*n, *e, 0.0));
+        let item = MISSION_ITEM_INT_DATA {
+            seq: seq as u16,
+            command: MavCmd::MAV_CMD_NAV_WAYPOINT,
+            frame: MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            x: (lat * 1e7).round() as i32,
+            y: (lon * 1e7).round() as i32,
+            target_system: 3,
+            autocontinue: 1,
+            ..Default::default()
+        };
+        s.handle(&GCS, &MavMessage::MISSION_ITEM_INT(item));
+    }
+    assert!(
+        matches!(&s.take()[..], [MavMessage::MISSION_ACK(a)] if a.mavtype == MavMissionResult::MAV_MISSION_ACCEPTED)
+    );
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 10.0));
+    let mut reached = vec![];
+    for _ in 0..2000 {
+        s.step(0.05);
+        reached.extend(s.take().into_iter().filter_map(|m| {
+            if let MavMessage::MISSION_ITEM_REACHED(r) = m {
+                Some(r.seq)
+            } else {
+                None
+            }
+        }));
+    }
+    assert_eq!(reached, [1, 3, 4], "the waypoints, from 1 (0 is home)");
+    assert!((s.pos - Vector3::new(0.0, 5.0, 0.0)).norm() < 0.05, "{}", s.pos);
+    assert_eq!(s.role(), Some(Role::Hold), "holds at the end");
+    assert_eq!(s.spec.max_speed, 4.0, "the speed item was done");
+    // Download gives the same items back, home as item 0.
+    s.handle(
+        &GCS,
+        &MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA {
+            target_system: 3,
+            target_component: 1,
+            ..Default::default()
+        }),
+    );
+    assert!(matches!(&s.take()[..], [MavMessage::MISSION_COUNT(c)] if c.count == 5));
+    s.handle(
+        &GCS,
+        &MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
+            seq: 0,
+            target_system: 3,
+            target_component: 1,
+            ..Default::default()
+        }),
+    );
+    let [lat, lon, _] = site.origin;
+    assert!(
+        matches!(&s.take()[..], [MavMessage::MISSION_ITEM_INT(i)] if (i.x, i.y) == ((lat * 1e7).round() as i32, (lon * 1e7).round() as i32)),
+        "item 0 is home"
+    );
+}
+
+#[test]
+fn return_to_launch_brings_it_home_and_reposition_sends_it_out() {
+    let mut s = sim(Frame::Multirotor);
+    let site = s.spec.site;
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+    // DO_REPOSITION by COMMAND_INT (degrees * 1e7) to 40 m north, 30 m east, 20 m up.
+    let (lat, lon, _) = site.global_of(&Vector3::new(40.0, 30.0, 0.0));
+    let c = COMMAND_INT_DATA {
+        command: MavCmd::MAV_CMD_DO_REPOSITION,
+        x: (lat * 1e7).round() as i32,
+        y: (lon * 1e7).round() as i32,
+        z: 20.0,
+        target_system: 3,
+        ..Default::default()
+    };
+    s.handle(&GCS, &MavMessage::COMMAND_INT(c));
+    assert_eq!(s.role(), Some(Role::Guided));
+    for _ in 0..1000 {
+        s.step(0.05);
+    }
+    assert!((s.pos - Vector3::new(40.0, 30.0, -20.0)).norm() < 0.05, "{}", s.pos);
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0, 0.0));
+    assert_eq!(s.role(), Some(Role::Return));
+    for _ in 0..1000 {
+        s.step(0.05);
+    }
+    assert!(
+        s.pos.xy().norm() < 0.05 && (s.pos.z + 30.0).abs() < 0.05,
+        "home at cruise altitude: {}",
+        s.pos
+    );
+    assert!(results(&s.take()).iter().all(|r| *r == MavResult::MAV_RESULT_ACCEPTED));
+}
+
+#[test]
+fn a_stalled_upload_is_asked_again_then_cancelled() {
+    let mut s = sim(Frame::Boat);
+    s.handle(
+        &GCS,
+        &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+            count: 2,
+            target_system: 3,
+            target_component: 1,
+            ..Default::default()
+        }),
+    );
+    s.take();
+    let mut asks = 0;
+    let mut cancelled = false;
+    for _ in 0..100 {
+        s.step(0.1);
+        for m in s.take() {
+            match m {
+                MavMessage::MISSION_REQUEST_INT(r) => asks += usize::from(r.seq == 0),
+                MavMessage::MISSION_ACK(a) => {
+                    cancelled = a.mavtype == MavMissionResult::MAV_MISSION_OPERATION_CANCELLED
+                }
+                _ => {}
+            }
+        }
+    }
+    assert_eq!((asks, cancelled), (5, true));
+}
+
+/// Upload `items` of `kind` with the handshake; the ack's result.
+fn upload(s: &mut SimAutopilot, kind: MavMissionType, items: &[MISSION_ITEM_INT_DATA]) -> MavMissionResult {
+    s.handle(
+        &GCS,
+        &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+            count: items.len() as u16,
+            target_system: 3,
+            target_component: 1,
+            mission_type: kind,
+            ..Default::default()
+        }),
+    );
+    for _ in 0..=items.len() {
+        for m in s.take() {
+            match m {
+                MavMessage::MISSION_REQUEST_INT(r) => {
+                    assert_eq!(r.mission_type, kind);
+                    let item = MISSION_ITEM_INT_DATA {
+                        seq: r.seq,
+                        target_system: 3,
+                        mission_type: kind,
+                        ..items[r.seq as usize].clone()
+                    };
+                    s.handle(&GCS, &MavMessage::MISSION_ITEM_INT(item));
+                }
+                MavMessage::MISSION_ACK(a) => {
+                    assert_eq!(a.mission_type, kind);
+                    return a.mavtype;
+                }
+                _ => {}
+            }
+        }
+    }
+    panic!("no MISSION_ACK");
+}
+
+fn at(site: &Site, command: MavCmd, param1: f32, north: f64, east: f64) -> MISSION_ITEM_INT_DATA {
+    let (lat, lon, _) = site.global_of(&Vector3::new(north, east, 0.0));
+    MISSION_ITEM_INT_DATA {
+        command,
+        param1,
+        frame: MavFrame::MAV_FRAME_GLOBAL_INT,
+        x: (lat * 1e7).round() as i32,
+        y: (lon * 1e7).round() as i32,
+        ..Default::default()
+    }
+}
+
+#[test]
+fn an_enforced_fence_refuses_targets_outside_and_a_breach_returns_to_the_nearest_rally_point() {
+    let mut s = sim(Frame::Boat);
+    let site = s.spec.site;
+    // A 40 m x 40 m square fence (north, east from 0 to 40) and two rally points.
+    let corners = [(0.0, 0.0), (0.0, 40.0), (40.0, 40.0), (40.0, 0.0)];
+    let fence: Vec<_> = corners
+        .iter()
+        .map(|&(n, e)| at(&site, MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, 4.0, n, e))
+        .collect();
+    assert_eq!(
+        upload(&mut s, MavMissionType::MAV_MISSION_TYPE_FENCE, &fence),
+        MavMissionResult::MAV_MISSION_ACCEPTED
+    );
+    let rally = [
+        at(&site, MavCmd::MAV_CMD_NAV_RALLY_POINT, 0.0, 2.0, 2.0),
+        at(&site, MavCmd::MAV_CMD_NAV_RALLY_POINT, 0.0, 30.0, 35.0),
+    ];
+    assert_eq!(
+        upload(&mut s, MavMissionType::MAV_MISSION_TYPE_RALLY, &rally),
+        MavMissionResult::MAV_MISSION_ACCEPTED
+    );
+    // A mission item is no fence, and the mission list is not touched by either upload.
+    let wp = at(&site, MavCmd::MAV_CMD_NAV_WAYPOINT, 0.0, 0.0, 0.0);
+    assert_eq!(
+        upload(
+            &mut s,
+            MavMissionType::MAV_MISSION_TYPE_FENCE,
+            std::slice::from_ref(&wp)
+        ),
+        MavMissionResult::MAV_MISSION_UNSUPPORTED
+    );
+    assert!(s.mission.is_empty() && s.fence_items.len() == 4 && s.rally.len() == 2);
+    // Each list downloads by its type.
+    s.handle(
+        &GCS,
+        &MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA {
+            target_system: 3,
+            target_component: 1,
+            mission_type: MavMissionType::MAV_MISSION_TYPE_FENCE,
+        }),
+    );
+    assert!(
+        matches!(&s.take()[..], [MavMessage::MISSION_COUNT(c)] if c.count == 4 && c.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE)
+    );
+
+    // Not yet enforced: a target outside is taken.
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 15.0));
+    s.take();
+    let target = |n: f32, e: f32| {
+        MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA {
+            x: n,
+            y: e,
+            target_system: 3,
+            coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+            ..Default::default()
+        })
+    };
+    s.handle(&GCS, &target(60.0, 10.0));
+    assert_eq!(s.goal.map(|g| g.x), Some(60.0));
+    // Enforced: a target outside is refused (said; the goal stays), one inside is taken,
+    // and a reposition outside is denied.
+    let set = |name: &str, v: f32| {
+        MavMessage::PARAM_SET(PARAM_SET_DATA {
+            param_value: v,
+            target_system: 3,
+            target_component: 1,
+            param_id: name.into(),
+            param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+        })
+    };
+    s.handle(&GCS, &set("FENCE_ENABLE", 1.0));
+    s.handle(&GCS, &target(10.0, 20.0));
+    s.handle(&GCS, &target(10.0, 50.0));
+    let out = s.take();
+    assert!(
+        out.iter()
+            .any(|m| matches!(m, MavMessage::STATUSTEXT(t) if t.text.to_str().unwrap().contains("outside the fence"))),
+        "{out:?}"
+    );
+    assert_eq!(s.goal.map(|g| (g.x, g.y)), Some((10.0, 20.0)));
+    let (lat, lon, _) = site.global_of(&Vector3::new(10.0, 50.0, 0.0));
+    let c = COMMAND_INT_DATA {
+        command: MavCmd::MAV_CMD_DO_REPOSITION,
+        x: (lat * 1e7).round() as i32,
+        y: (lon * 1e7).round() as i32,
+        target_system: 3,
+        ..Default::default()
+    };
+    s.handle(&GCS, &MavMessage::COMMAND_INT(c));
+    assert_eq!(results(&s.take()), [MavResult::MAV_RESULT_DENIED]);
+    let MavMessage::SYS_STATUS(st) = s.sys_status() else {
+        panic!()
+    };
+    assert!(
+        st.onboard_control_sensors_enabled
+            .contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE)
+            && st
+                .onboard_control_sensors_health
+                .contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE)
+    );
+
+    // A mission that leaves the fence (an operator's, in AUTO): breach, RTL to the nearer
+    // rally point, said; the health bit drops while outside, and FENCE_STATUS counts it.
+    let out_wp = at(&site, MavCmd::MAV_CMD_NAV_WAYPOINT, 0.0, 30.0, 60.0);
+    assert_eq!(
+        upload(&mut s, MavMissionType::MAV_MISSION_TYPE_MISSION, &[wp, out_wp]),
+        MavMissionResult::MAV_MISSION_ACCEPTED
+    );
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 10.0));
+    let mut said = vec![];
+    let mut unhealthy = false;
+    for _ in 0..1200 {
+        s.step(0.05);
+        said.extend(s.take().into_iter().filter_map(|m| {
+            if let MavMessage::STATUSTEXT(t) = m {
+                Some(t.text.to_str().unwrap().to_string())
+            } else {
+                None
+            }
+        }));
+        if let MavMessage::SYS_STATUS(st) = s.sys_status() {
+            unhealthy |= !st
+                .onboard_control_sensors_health
+                .contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE);
+        }
+    }
+    assert_eq!(s.role(), Some(Role::Return));
+    assert!(said.iter().any(|t| t.contains("Fence breach: RTL")), "{said:?}");
+    assert!(unhealthy && !s.breached, "unhealthy while outside, then back inside");
+    assert!(
+        (s.pos.xy() - Vector3::new(30.0, 35.0, 0.0).xy()).norm() < 0.05,
+        "at the nearer rally point: {}",
+        s.pos
+    );
+    assert!(
+        matches!(s.fence_status(), Some(MavMessage::FENCE_STATUS(f)) if f.breach_count == 1 && f.breach_status == 0)
+    );
+}
+
+#[test]
+fn the_battery_drains_with_use_and_running_low_takes_it_home_once() {
+    let mut s = sim(Frame::Boat);
+    // 100 mAh above the 4,000 mAh low mark.
+    s.spec.safety.battery_start_mah = Some(4_100.0);
+    s = SimAutopilot::new(s.spec.clone(), Vector3::new(1.0, 1.0, 0.0));
+    let battery = |s: &SimAutopilot| {
+        if let MavMessage::SYS_STATUS(st) = s.sys_status() {
+            (st.battery_remaining, st.current_battery)
+        } else {
+            panic!()
+        }
+    };
+    assert_eq!(battery(&s), (21, 5), "20.5 % left, 0.05 A disarmed");
+    // Disarmed for a simulated hour: 50 mAh at 0.05 A.
+    s.step(3600.0);
+    assert!((s.consumed_mah - (15_900.0 + 50.0)).abs() < 1e-6, "{}", s.consumed_mah);
+    assert!(s.failsafe.is_none(), "no failsafe disarmed");
+    // Armed, driving away at full speed: 10 A, so 50 mAh take 18 s.
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 15.0));
+    let target = SET_POSITION_TARGET_LOCAL_NED_DATA {
+        x: 40.0,
+        y: 1.0,
+        target_system: 3,
+        coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+        ..Default::default()
+    };
+    s.handle(&GCS, &MavMessage::SET_POSITION_TARGET_LOCAL_NED(target));
+    s.take();
+    let mut t = 0.0;
+    while s.failsafe.is_none() && t < 60.0 {
+        s.step(0.05);
+        t += 0.05;
+    }
+    assert!((17.5..19.5).contains(&t), "ran low after {t} s");
+    assert_eq!(s.role(), Some(Role::Return));
+    let said = s.take();
+    assert!(
+        said.iter().any(|m| matches!(m, MavMessage::STATUSTEXT(x) if x.text.to_str().unwrap().starts_with("Failsafe: battery low") && x.severity == MavSeverity::MAV_SEVERITY_CRITICAL)),
+        "{said:?}"
+    );
+    assert!(matches!(s.heartbeat(), MavMessage::HEARTBEAT(h) if h.system_status == MavState::MAV_STATE_CRITICAL));
+    assert_eq!(battery(&s).0, 20);
+    // Home, at the launch point; said once.
+    for _ in 0..1000 {
+        s.step(0.05);
+    }
+    assert!(
+        (s.pos.xy() - Vector3::new(1.0, 1.0, 0.0).xy()).norm() < 0.05,
+        "{}",
+        s.pos
+    );
+    assert!(!s.take().iter().any(|m| matches!(m, MavMessage::STATUSTEXT(_))));
+}
