@@ -14,7 +14,8 @@ use anyhow::{bail, Context};
 use fleet::exit::InputResult;
 use fleet::experiment::team;
 use fleet::mission::config::{MissionConfig, DEFAULT_MISSION};
-use fleet::mission::report::{write_mission_report, ServerEvent};
+use fleet::mission::report::{write_mission_report, ServerEvent, ServerSummary};
+use fleet::process::FieldSeries;
 use std::io::{BufRead, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -148,35 +149,78 @@ fn commit_start(out: &Path, staging: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The binaries `up` starts, found beside this one.
+struct Binaries {
+    server: PathBuf,
+    vehicle: PathBuf,
+    gateway: Option<PathBuf>,
+    watch: Option<PathBuf>,
+}
+
+impl Binaries {
+    fn find(args: &Args, mission: &MissionConfig) -> anyhow::Result<Self> {
+        Ok(Self {
+            server: sibling("model-server")?,
+            vehicle: sibling("vehicle")?,
+            gateway: (!mission.mavlink.gcs.is_empty())
+                .then(|| sibling("gcs-gateway"))
+                .transpose()?,
+            watch: args.web.map(|_| sibling("fleet-watch")).transpose()?,
+        })
+    }
+}
+
 pub fn run(args: Args) -> anyhow::Result<()> {
     let t0 = Instant::now();
     let mission = MissionConfig::load(args.mission.as_deref())?;
-    let out = &args.out;
-    let (server_bin, vehicle_bin) = (sibling("model-server")?, sibling("vehicle")?);
-    let gateway_bin = if mission.mavlink.gcs.is_empty() {
-        None
-    } else {
-        Some(sibling("gcs-gateway")?)
-    };
+    let bins = Binaries::find(&args, &mission)?;
     check_ports_free(&mission)?;
     if let Some(addr) = args.web {
         std::net::TcpListener::bind(addr)
             .with_context(|| format!("--web {addr}: cannot serve the live view there"))
             .input()?;
     }
-    let watch_bin = args.web.map(|_| sibling("fleet-watch")).transpose()?;
+    let out = &args.out;
     std::fs::create_dir_all(out)
         .with_context(|| format!("creating {}", out.display()))
         .input()?;
     // Staged beside the previous run until the server is up.
     let staging = out.join(format!(".starting-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&staging);
+    let cleanup = StagingGuard(Some(staging.clone()));
+    keep_mission(&args, &staging)?;
+    let (truth, frames) = make_truth(&mission, &staging, t0)?;
+    let stop = supervise::catch_stop_signals()?;
+    let mut fleet = Supervisor::default();
+    let events = start_server(&args, &bins, &mut fleet, &staging)?;
+    wait_until_ready(&stop, &mut fleet, &events, &staging, out)?;
+    commit_start(out, &staging)?;
+    drop(cleanup);
+    start_nodes(&args, &bins, &mission, &mut fleet)?;
+    let (summary, events) = follow(&args, &mission, frames, &stop, &mut fleet, &events)?;
+    // Vehicles leave once their last batch is acknowledged; then the server exits.
+    fleet.wait_nodes(Duration::from_secs(60), &["gcs-gateway", "fleet-watch"])?;
+    if args.web.is_none() {
+        fleet.stop();
+    }
+    finish(&args, &mission, &truth, &summary, &events, t0)?;
+    if let Some(addr) = args.web {
+        linger(addr, args.web_linger_s, &stop);
+        fleet.stop();
+    }
+    Ok(())
+}
+
+/// Where the nodes read the mission: the operator's file (its relative paths are relative to
+/// it), or the run's copy of the bundled one.
+fn mission_file(args: &Args, dir: &Path) -> PathBuf {
+    args.mission.clone().unwrap_or_else(|| dir.join("mission.toml"))
+}
+
+/// The run keeps its mission (for the record and `fleet export`).
+fn keep_mission(args: &Args, staging: &Path) -> anyhow::Result<()> {
     let logs = staging.join("logs");
     std::fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
-    let cleanup = StagingGuard(Some(staging.clone()));
-    let mission_file = |dir: &Path| args.mission.clone().unwrap_or_else(|| dir.join("mission.toml"));
-    // The run keeps its mission (for the record and `fleet export`); the nodes read the
-    // operator's file, whose relative paths are relative to it.
     match &args.mission {
         None => std::fs::write(staging.join("mission.toml"), DEFAULT_MISSION)?,
         Some(p) => {
@@ -184,7 +228,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 .with_context(|| format!("copying {} into the run", p.display()))?;
         }
     }
+    Ok(())
+}
 
+/// The mission's truth, made once and saved for every node; its number of steps.
+fn make_truth(mission: &MissionConfig, staging: &Path, t0: Instant) -> anyhow::Result<(FieldSeries, usize)> {
     let pb = super::progress_bar(mission.truth.frames as u64, "truth");
     let truth = mission.truth(|k| pb.set_position(k as u64))?;
     pb.finish_and_clear();
@@ -202,28 +250,39 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         mission.vehicles().len(),
         t0.elapsed().as_secs_f64()
     );
+    Ok((truth, frames))
+}
 
-    let stop = supervise::catch_stop_signals()?;
-    let mut fleet = Supervisor::default();
-    let mut server = Command::new(&server_bin);
+/// What the server says on its standard output, line by line: an event, or why a line is not
+/// one.
+type Said = Result<ServerEvent, String>;
+
+/// The model server, started on the staged run; its events (also kept in `events.jsonl`).
+fn start_server(
+    args: &Args,
+    bins: &Binaries,
+    fleet: &mut Supervisor,
+    staging: &Path,
+) -> anyhow::Result<mpsc::Receiver<Said>> {
+    let mut server = Command::new(&bins.server);
     server
         .arg("--mission")
-        .arg(mission_file(&staging))
+        .arg(mission_file(args, staging))
         .arg("--truth")
         .arg(staging.join("truth.npy"))
         .arg("--state-dir")
         .arg(staging.join("state"));
     // Moved into --out with the rest once the server is up (the open file goes with its name).
     server.arg("--record").arg(staging.join("recording.mcap"));
-    let (server_log, server_log_path) = log_file(&logs, "server")?;
+    let (server_log, _) = log_file(&staging.join("logs"), "server")?;
     server
         .arg("--events")
         .arg("--out")
-        .arg(out)
+        .arg(&args.out)
         .arg("--exit-when-done")
         .stdout(Stdio::piped())
         .stderr(server_log);
-    let mut stdout = fleet.spawn("model-server", server, out.join("logs/server.log"))?;
+    let mut stdout = fleet.spawn("model-server", server, args.out.join("logs/server.log"))?;
     let stdout = stdout.take().expect("piped stdout");
     let (tx, rx) = mpsc::channel();
     let mut events_file = std::fs::File::create(staging.join("events.jsonl"))?;
@@ -239,8 +298,18 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
         }
     });
+    Ok(rx)
+}
 
-    // The start: until the server is up, a failure leaves the previous run as it was.
+/// The start: until the server is up, a failure leaves the previous run as it was.
+fn wait_until_ready(
+    stop: &supervise::StopSignals,
+    fleet: &mut Supervisor,
+    events: &mpsc::Receiver<Said>,
+    staging: &Path,
+    out: &Path,
+) -> anyhow::Result<()> {
+    let server_log_path = staging.join("logs/server.log");
     let ready_by = Instant::now() + Duration::from_secs(120);
     loop {
         if let Some(sig) = stop.received() {
@@ -250,10 +319,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 out.display()
             );
         }
-        match rx.recv_timeout(Duration::from_millis(100)) {
-            Ok(Ok(ServerEvent::Ready { .. })) => break,
-            Ok(_) | Err(mpsc::RecvTimeoutError::Timeout) => {}
-            Err(mpsc::RecvTimeoutError::Disconnected) => {}
+        if let Ok(Ok(ServerEvent::Ready { .. })) = events.recv_timeout(Duration::from_millis(100)) {
+            return Ok(());
         }
         if let Some(dead) = fleet.exited() {
             // Its log is still in the staging directory.
@@ -269,21 +336,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
         }
     }
-    commit_start(out, &staging)?;
-    drop(cleanup);
-    let logs = out.join("logs");
-    let state = out.join("state");
-    let truth_path = out.join("truth.npy");
-    let mission_path = mission_file(out);
-    let node_args = |c: &mut Command| {
-        c.arg("--mission")
-            .arg(&mission_path)
-            .arg("--truth")
-            .arg(&truth_path)
-            .arg("--state-dir")
-            .arg(&state);
-    };
-    if let Some(bin) = &gateway_bin {
+}
+
+/// The ground-station gateway, every vehicle, and the live view if asked for.
+fn start_nodes(args: &Args, bins: &Binaries, mission: &MissionConfig, fleet: &mut Supervisor) -> anyhow::Result<()> {
+    let out = &args.out;
+    let (logs, state, truth_path) = (out.join("logs"), out.join("state"), out.join("truth.npy"));
+    let mission_path = mission_file(args, out);
+    if let Some(bin) = &bins.gateway {
         let mut c = Command::new(bin);
         let (log, path) = log_file(&logs, "gcs-gateway")?;
         c.arg("--mission").arg(&mission_path).stdout(Stdio::null()).stderr(log);
@@ -294,15 +354,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
     for v in mission.vehicles() {
-        let mut c = Command::new(&vehicle_bin);
-        node_args(&mut c);
+        let mut c = Command::new(&bins.vehicle);
+        c.arg("--mission")
+            .arg(&mission_path)
+            .arg("--truth")
+            .arg(&truth_path)
+            .arg("--state-dir")
+            .arg(&state);
         let (log, path) = log_file(&logs, &v.id)?;
         c.arg("--id").arg(&v.id).stdout(Stdio::null()).stderr(log);
         fleet.spawn(&v.id, c, path)?;
     }
-
-    if let Some(addr) = args.web {
-        let mut c = Command::new(watch_bin.as_ref().expect("found with --web"));
+    if let (Some(addr), Some(bin)) = (args.web, &bins.watch) {
+        let mut c = Command::new(bin);
         c.arg("--mission").arg(&mission_path).arg("--truth").arg(&truth_path);
         let (log, path) = log_file(&logs, "fleet-watch")?;
         c.arg("--http")
@@ -316,21 +380,33 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         fleet.optional("fleet-watch");
         println!("live view: http://{addr}/");
     }
-    let epochs = mission.schedule(frames).epochs();
-    let pb = super::progress_bar(epochs, "epochs");
-    let tty = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    Ok(())
+}
+
+/// The mission as it goes, from the server's events: progress, notices, and the end (the
+/// server's summary and every event but the last), or why it cannot finish.
+fn follow(
+    args: &Args,
+    mission: &MissionConfig,
+    frames: usize,
+    stop: &supervise::StopSignals,
+    fleet: &mut Supervisor,
+    rx: &mpsc::Receiver<Said>,
+) -> anyhow::Result<(ServerSummary, Vec<ServerEvent>)> {
+    let logs = args.out.join("logs");
+    let pb = super::progress_bar(mission.schedule(frames).epochs(), "epochs");
     let mut notices = Notices {
         pb: pb.clone(),
-        tty,
+        tty: std::io::IsTerminal::is_terminal(&std::io::stderr()),
         log: std::fs::File::create(logs.join("fleet-up.log"))?,
     };
     let deadline = Instant::now() + Duration::from_secs(args.timeout_s);
-    let mut alive = 0usize;
-    let mut events = vec![];
+    let (mut alive, mut events) = (0usize, vec![]);
     let summary = loop {
         if let Some(sig) = stop.received() {
             pb.finish_and_clear();
             fleet.stop();
+            let state = args.out.join("state");
             notices.say(format!(
                 "stopped by signal {sig}: every node of the fleet stopped; the run's state is in {} \
                 (nodes restarted on it resume)",
@@ -346,98 +422,124 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
         }
         match rx.recv_timeout(Duration::from_millis(200)) {
+            Ok(Ok(ServerEvent::Finished { summary })) => break summary,
             Ok(Ok(e)) => {
-                match &e {
-                    ServerEvent::Epoch {
-                        epoch,
-                        version,
-                        mse,
-                        alive: a,
-                        ..
-                    } => {
-                        alive = *a;
-                        pb.set_position(epoch + 1);
-                        pb.set_message(format!(
-                            "v{version} {a} alive mse {}",
-                            mse.map_or("-".into(), |m| format!("{m:.2e}"))
-                        ));
-                    }
-                    ServerEvent::Link { alive: up, .. } => {
-                        alive = if *up { alive + 1 } else { alive.saturating_sub(1) }
-                    }
-                    ServerEvent::Ready { .. } => pb.set_message("server ready"),
-                    ServerEvent::Hold { vehicle, held, mode } => notices.say(format!(
-                        "{vehicle}: {} ({mode})",
-                        if *held {
-                            "left out of the allocation"
-                        } else {
-                            "back in the allocation"
-                        }
-                    )),
-                    ServerEvent::Late {
-                        vehicle,
-                        epoch,
-                        version,
-                    } => notices.say(format!(
-                        "{vehicle}: late batch of epoch {epoch} re-fitted the model (v{version})"
-                    )),
-                    ServerEvent::Refused {
-                        vehicle, seq, detail, ..
-                    } => {
-                        notices.say(format!("{vehicle}: batch {seq} refused by the server: {detail}"));
-                        bail!(
-                            "{vehicle}'s batch {seq} was refused ({detail}): its epoch cannot complete, so the \
-                            mission cannot finish (logs in {})",
-                            logs.display()
-                        );
-                    }
-                    ServerEvent::Lost { vehicle, seqs } => notices.say(format!(
-                        "{vehicle}: batches {seqs:?} were acknowledged but are not in the journal: lost"
-                    )),
-                    ServerEvent::Finished { .. } => {}
-                }
-                if let ServerEvent::Finished { summary } = e {
-                    break summary;
-                }
+                on_event(&e, &pb, &mut notices, &mut alive, &logs)?;
                 events.push(e);
             }
             Ok(Err(said)) => notices.say(said),
             Err(mpsc::RecvTimeoutError::Timeout) => {}
-            Err(mpsc::RecvTimeoutError::Disconnected) => {
-                // The server's pipe closed: it has exited; say why in its own words.
-                std::thread::sleep(Duration::from_millis(200));
-                let dead = fleet.exited();
-                let why = supervise::last_line(&logs.join("server.log"));
-                return Err(match dead {
-                    Some(d) => d.into_error(why, "the mission did not finish"),
-                    None => anyhow::anyhow!(
-                        "the model server closed its output before the mission finished: {}",
-                        why.unwrap_or_default()
-                    ),
-                });
-            }
+            Err(mpsc::RecvTimeoutError::Disconnected) => return Err(server_gone(fleet, &logs)),
         }
-        if let Some(dead) = fleet.exited() {
-            let why = supervise::last_line(&dead.log);
-            return Err(dead.into_error(why, "the mission did not finish"));
-        }
-        if let Some(view) = fleet.optional_exited() {
-            let why = supervise::last_line(&view.log).unwrap_or_default();
-            notices.say(format!(
-                "the live view stopped ({}): the mission goes on without it; {why} (log: {})",
-                view.status,
-                view.log.display()
-            ));
-        }
+        check_nodes(fleet, &mut notices)?;
     };
     pb.finish_and_clear();
-    // Vehicles leave once their last batch is acknowledged; then the server exits.
-    fleet.wait_nodes(Duration::from_secs(60), &["gcs-gateway", "fleet-watch"])?;
-    if args.web.is_none() {
-        fleet.stop();
-    }
+    Ok((*summary, events))
+}
 
-    let offline = team::run(&mission.team, &truth, |_, _| {})?;
+/// One server event, shown: progress, or a notice for the operator. A refused batch ends the
+/// mission (its epoch cannot complete).
+fn on_event(
+    e: &ServerEvent,
+    pb: &indicatif::ProgressBar,
+    notices: &mut Notices,
+    alive: &mut usize,
+    logs: &Path,
+) -> anyhow::Result<()> {
+    match e {
+        ServerEvent::Epoch {
+            epoch,
+            version,
+            mse,
+            alive: a,
+            ..
+        } => {
+            *alive = *a;
+            pb.set_position(epoch + 1);
+            pb.set_message(format!(
+                "v{version} {a} alive mse {}",
+                mse.map_or("-".into(), |m| format!("{m:.2e}"))
+            ));
+        }
+        ServerEvent::Link { alive: up, .. } => *alive = if *up { *alive + 1 } else { alive.saturating_sub(1) },
+        ServerEvent::Ready { .. } => pb.set_message("server ready"),
+        ServerEvent::Hold { vehicle, held, mode } => notices.say(format!(
+            "{vehicle}: {} ({mode})",
+            if *held {
+                "left out of the allocation"
+            } else {
+                "back in the allocation"
+            }
+        )),
+        ServerEvent::Late {
+            vehicle,
+            epoch,
+            version,
+        } => notices.say(format!(
+            "{vehicle}: late batch of epoch {epoch} re-fitted the model (v{version})"
+        )),
+        ServerEvent::Refused {
+            vehicle, seq, detail, ..
+        } => {
+            notices.say(format!("{vehicle}: batch {seq} refused by the server: {detail}"));
+            bail!(
+                "{vehicle}'s batch {seq} was refused ({detail}): its epoch cannot complete, so the \
+                mission cannot finish (logs in {})",
+                logs.display()
+            );
+        }
+        ServerEvent::Lost { vehicle, seqs } => notices.say(format!(
+            "{vehicle}: batches {seqs:?} were acknowledged but are not in the journal: lost"
+        )),
+        ServerEvent::Finished { .. } => {}
+    }
+    Ok(())
+}
+
+/// The server's pipe closed: it has exited; why, in its own words.
+fn server_gone(fleet: &mut Supervisor, logs: &Path) -> anyhow::Error {
+    // (Its exit status arrives a moment after its pipe closes.)
+    std::thread::sleep(Duration::from_millis(200));
+    let dead = fleet.exited();
+    let why = supervise::last_line(&logs.join("server.log"));
+    match dead {
+        Some(d) => d.into_error(why, "the mission did not finish"),
+        None => anyhow::anyhow!(
+            "the model server closed its output before the mission finished: {}",
+            why.unwrap_or_default()
+        ),
+    }
+}
+
+/// A node that died ends the mission; the live view's death is only said.
+fn check_nodes(fleet: &mut Supervisor, notices: &mut Notices) -> anyhow::Result<()> {
+    if let Some(dead) = fleet.exited() {
+        let why = supervise::last_line(&dead.log);
+        return Err(dead.into_error(why, "the mission did not finish"));
+    }
+    if let Some(view) = fleet.optional_exited() {
+        let why = supervise::last_line(&view.log).unwrap_or_default();
+        notices.say(format!(
+            "the live view stopped ({}): the mission goes on without it; {why} (log: {})",
+            view.status,
+            view.log.display()
+        ));
+    }
+    Ok(())
+}
+
+/// The report (the networked run beside the offline loop on the same truth and seed) and the
+/// NetCDF export.
+fn finish(
+    args: &Args,
+    mission: &MissionConfig,
+    truth: &FieldSeries,
+    summary: &ServerSummary,
+    events: &[ServerEvent],
+    t0: Instant,
+) -> anyhow::Result<()> {
+    let out = &args.out;
+    let offline = team::run(&mission.team, truth, |_, _| {})?;
     let command = format!(
         "fleet up{} --out {}",
         args.mission
@@ -445,7 +547,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .map_or(String::new(), |p| format!(" {}", p.display())),
         out.display()
     );
-    let md = write_mission_report(out, &mission, &summary, &offline, truth.dt, &command, &events)?;
+    let md = write_mission_report(out, mission, summary, &offline, truth.dt, &command, events)?;
     println!("{md}");
     // Everything else is written first: a NetCDF that cannot be written fails the run at the
     // end, and `fleet export` can write it again from the run directory.
@@ -457,21 +559,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if nc.is_ok() { " estimate.nc," } else { "" },
         t0.elapsed().as_secs_f64()
     );
-    nc.map_err(|e| anyhow::Error::new(e).context("writing estimate.nc"))?;
-    if let (Some(addr), linger) = (args.web, args.web_linger_s) {
-        if linger > 0 {
-            println!(
-                "the live view stays at http://{addr}/ for {linger} s (the finished run, its report); Ctrl-C ends it"
-            );
-            let until = Instant::now() + Duration::from_secs(linger);
-            // The mission is done: a stop signal now just ends the view (exit 0).
-            while Instant::now() < until && stop.received().is_none() {
-                std::thread::sleep(Duration::from_millis(100));
-            }
-        }
-        fleet.stop();
+    nc.map_err(|e| anyhow::Error::new(e).context("writing estimate.nc"))
+}
+
+/// With --web: the live view stays up `linger_s` seconds after the mission (a stop signal now
+/// just ends the view: exit 0).
+fn linger(addr: std::net::SocketAddr, linger_s: u64, stop: &supervise::StopSignals) {
+    if linger_s == 0 {
+        return;
     }
-    Ok(())
+    println!("the live view stays at http://{addr}/ for {linger_s} s (the finished run, its report); Ctrl-C ends it");
+    let until = Instant::now() + Duration::from_secs(linger_s);
+    while Instant::now() < until && stop.received().is_none() {
+        std::thread::sleep(Duration::from_millis(100));
+    }
 }
 
 /// Removes the staging directory however `run` ends (after a committed start it is gone).

@@ -714,65 +714,27 @@ fn write_per_step(dir: &Path, res: &Results) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Write `results.json`, `per_step.csv`, the figures and `report.md` into `dir`.
-pub fn write_report(
-    dir: &Path,
-    res: &Results,
-    truths: &BTreeMap<String, FieldSeries>,
-    command: &str,
-) -> anyhow::Result<Vec<String>> {
-    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    std::fs::write(dir.join("results.json"), serde_json::to_string_pretty(res)?)?;
-    let mut figures = vec![];
-    let mut md = String::new();
-    writeln!(md, "# hetfleet experiment report\n")?;
-    writeln!(
-        md,
-        "Made by `{command}`. Every number is in `results.json`, every per-step error in `per_step.csv` \
-        (`row,preset,seed,team,step,mse,calibration`).\n"
-    )?;
-    writeln!(
-        md,
-        "Truth: the plasma-cloud simulator at {} x {}, {} frames, area-averaged by the boats' space rate to the model \
-            grid. \
-         Team: {} aerials, {} boats of radius {} simulator cells, {} DMD at rank `{}`, `{}` fusion, {} initial \
-         aerial-only steps. \
-         MSE is averaged over the grid at each step, then over the scored steps.\n",
-        res.config.truth_grid[0],
-        res.config.truth_grid[1],
-        res.config.frames,
-        res.config.team.aerials,
-        res.config.team.boats,
-        res.config.radius,
-        res.config.team.method,
-        res.config.team.rank,
-        res.config.team.fusion,
-        res.config.team.init_steps
-    )?;
-    write_per_step(dir, res)?;
+/// What the report's sections read, and what they write: the markdown and the figures' names.
+struct Report<'a> {
+    dir: &'a Path,
+    res: &'a Results,
+    truths: &'a BTreeMap<String, FieldSeries>,
+    md: String,
+    figures: Vec<String>,
+}
+
+/// An interval as the tables show it: `mean [lo, hi]`, or the mean alone from one seed.
+fn interval_cell(i: &Interval) -> String {
     let e3 = |v: f64| format!("{v:.3e}");
-    let cell = |i: &Interval| {
-        if i.n > 1 {
-            format!("{} [{}, {}]", e3(i.mean), e3(i.lo), e3(i.hi))
-        } else {
-            e3(i.mean)
-        }
-    };
-    let seeds = res.config.seeds();
-    writeln!(
-        md,
-        "## Table 2: time-averaged MSE, mean over {} seeds [95% interval]\n",
-        seeds.len()
-    )?;
-    writeln!(
-        md,
-        "Every team is scored over the same steps: from the first step where every team has data (the boat-only \
-            team's first sample, step `scored from`) to the end. \
-         No team is scored where it has no data. Seeds {seeds:?} vary the sensor noise, the vehicles' random streams \
-         and the random placement; every team of a seed sees the same truth and noise. \
-         The truth is one simulated cloud per preset (seed {}), as the paper has one dataset per cloud.\n",
-        res.config.seed
-    )?;
+    if i.n > 1 {
+        format!("{} [{}, {}]", e3(i.mean), e3(i.lo), e3(i.hi))
+    } else {
+        e3(i.mean)
+    }
+}
+
+/// The teams beyond the paper's four: other fusions and placements, and the oracle.
+fn extra_teams(res: &Results) -> Vec<String> {
     let mut extra: Vec<String> = res
         .config
         .extra_fusions
@@ -783,403 +745,546 @@ pub fn write_report(
         .collect();
     if res.config.oracle {
         extra.push(ORACLE.into());
+    }
+    extra
+}
+
+/// Write `results.json`, `per_step.csv`, the figures and `report.md` into `dir`.
+pub fn write_report(
+    dir: &Path,
+    res: &Results,
+    truths: &BTreeMap<String, FieldSeries>,
+    command: &str,
+) -> anyhow::Result<Vec<String>> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    std::fs::write(dir.join("results.json"), serde_json::to_string_pretty(res)?)?;
+    let mut r = Report {
+        dir,
+        res,
+        truths,
+        md: String::new(),
+        figures: vec![],
+    };
+    r.intro(command)?;
+    write_per_step(dir, res)?;
+    r.table2()?;
+    r.differences()?;
+    r.fused_teams()?;
+    r.verdict()?;
+    r.fig10()?;
+    r.fig11()?;
+    r.eig_study()?;
+    r.forgetting()?;
+    std::fs::write(dir.join("report.md"), r.md)?;
+    Ok(r.figures)
+}
+
+impl Report<'_> {
+    /// The heading, what made the report, and what the truth and the team were.
+    fn intro(&mut self, command: &str) -> anyhow::Result<()> {
+        let Report { res, md, .. } = self;
+        writeln!(md, "# hetfleet experiment report\n")?;
         writeln!(
             md,
-            "`{ORACLE}` is a diagnostic, not a placement a fleet can use: it knows the truth. At each boat epoch a \
-                copy of the fleet senses the epoch with the boats idle, \
-             and the disks go, greedily and without overlap, where that copy's estimate at the sampling step is \
-             furthest from the truth (most squared error over the disk). \
-             Its difference from QR bounds what putting the disks where the error is could buy on that row.\n"
+            "Made by `{command}`. Every number is in `results.json`, every per-step error in `per_step.csv` \
+            (`row,preset,seed,team,step,mse,calibration`).\n"
         )?;
-    }
-    write!(
-        md,
-        "| cloud | AV time | MV time | AV space | MV space | noise | model grid | scored from | heterogeneous \
-        (QR) | aerial-only | boat-only | heterogeneous (random) |"
-    )?;
-    for x in &extra {
-        write!(md, " {x} |")?;
-    }
-    writeln!(md, " paper |")?;
-    writeln!(md, "|{}", "---|".repeat(13 + extra.len()))?;
-    for r in &res.rows {
-        let w = &r.row;
-        write!(
-            md,
-            "| {} | {} | {} | {} | {} | {} | {} x {} | {} |",
-            w.name(),
-            w.av_time,
-            w.mv_time,
-            w.av_space,
-            w.mv_space,
-            w.noise,
-            r.model_grid[0],
-            r.model_grid[1],
-            r.scored_from
-        )?;
-        for t in [HETEROGENEOUS, AERIAL_ONLY, BOAT_ONLY, RANDOM]
-            .iter()
-            .map(|t| t.to_string())
-            .chain(extra.iter().cloned())
-        {
-            write!(md, " {} |", cell(&r.teams[&t]))?;
-        }
-        writeln!(md, " {} |", w.paper_mse.map_or("".into(), |v| format!("{v}")))?;
-    }
-    writeln!(
-        md,
-        "\n### Paired differences (same seed, same truth and noise), mean [95% interval], and what they say\n"
-    )?;
-    let heads: Vec<String> = res.rows.first().map_or(vec![], |r| {
-        r.comparisons
-            .iter()
-            .map(|c| format!("{} - {}", c.first, c.second))
-            .collect()
-    });
-    writeln!(
-        md,
-        "| cloud | AV/MV time | AV/MV space | noise |{}",
-        heads.iter().map(|h| format!(" {h} |")).collect::<String>()
-    )?;
-    writeln!(md, "|{}", "---|".repeat(4 + heads.len()))?;
-    for r in &res.rows {
-        let w = &r.row;
-        write!(
-            md,
-            "| {} | {}/{} | {}/{} | {} |",
-            w.name(),
-            w.av_time,
-            w.mv_time,
-            w.av_space,
-            w.mv_space,
-            w.noise
-        )?;
-        for c in &r.comparisons {
-            write!(md, " {} **{}** |", cell(&c.difference), c.verdict.words())?;
-        }
-        writeln!(md)?;
-    }
-    writeln!(
-        md,
-        "\nScored from step 0 instead (labelled: only the teams with data there):\n"
-    )?;
-    writeln!(
-        md,
-        "| cloud | AV/MV time | AV/MV space | noise | heterogeneous, from step 0 | aerial-only, from step 0 \
-        |\n|---|---|---|---|---|---|"
-    )?;
-    for r in &res.rows {
-        let w = &r.row;
         writeln!(
             md,
-            "| {} | {}/{} | {}/{} | {} | {} | {} |",
-            w.name(),
-            w.av_time,
-            w.mv_time,
-            w.av_space,
-            w.mv_space,
-            w.noise,
-            cell(&r.heterogeneous_from_step0),
-            cell(&r.aerial_only_from_step0)
+            "Truth: the plasma-cloud simulator at {} x {}, {} frames, area-averaged by the boats' space rate to the model \
+                grid. \
+             Team: {} aerials, {} boats of radius {} simulator cells, {} DMD at rank `{}`, `{}` fusion, {} initial \
+             aerial-only steps. \
+             MSE is averaged over the grid at each step, then over the scored steps.\n",
+            res.config.truth_grid[0],
+            res.config.truth_grid[1],
+            res.config.frames,
+            res.config.team.aerials,
+            res.config.team.boats,
+            res.config.radius,
+            res.config.team.method,
+            res.config.team.rank,
+            res.config.team.fusion,
+            res.config.team.init_steps
         )?;
+        Ok(())
     }
-    writeln!(
-        md,
-        "\n### The fused teams: calibration and per-step wins\n\n\
-         Calibration: the mean over cells and scored steps of error^2 / reported variance, mean over seeds [95% \
-         interval] (1 is calibrated; above 1 the reported variance is too small). \
-         Steps won: the fraction of scored steps, pooled over seeds, where the team's MSE is at most the better \
-         single team's (aerial-only or boat-only) at that step.\n"
-    )?;
-    let fused: Vec<String> = res
-        .rows
-        .first()
-        .map_or(vec![], |r| r.calibration.keys().cloned().collect());
-    writeln!(
-        md,
-        "| cloud | AV/MV time | AV/MV space | noise |{}",
-        fused
-            .iter()
-            .map(|t| format!(" {t}: calibration | {t}: steps won |"))
-            .collect::<String>()
-    )?;
-    writeln!(md, "|{}", "---|".repeat(4 + 2 * fused.len()))?;
-    for r in &res.rows {
-        let w = &r.row;
-        write!(
+
+    /// Table 2: every team's time-averaged MSE per row, with the oracle explained when it ran.
+    fn table2(&mut self) -> anyhow::Result<()> {
+        let Report { res, md, .. } = self;
+        let seeds = res.config.seeds();
+        writeln!(
             md,
-            "| {} | {}/{} | {}/{} | {} |",
-            w.name(),
-            w.av_time,
-            w.mv_time,
-            w.av_space,
-            w.mv_space,
-            w.noise
+            "## Table 2: time-averaged MSE, mean over {} seeds [95% interval]\n",
+            seeds.len()
         )?;
-        for t in &fused {
-            write!(
+        writeln!(
+            md,
+            "Every team is scored over the same steps: from the first step where every team has data (the boat-only \
+                team's first sample, step `scored from`) to the end. \
+             No team is scored where it has no data. Seeds {seeds:?} vary the sensor noise, the vehicles' random streams \
+             and the random placement; every team of a seed sees the same truth and noise. \
+             The truth is one simulated cloud per preset (seed {}), as the paper has one dataset per cloud.\n",
+            res.config.seed
+        )?;
+        let extra = extra_teams(res);
+        if res.config.oracle {
+            writeln!(
                 md,
-                " {} | {:.1}% |",
-                r.calibration
-                    .get(t)
-                    .map_or("".into(), |i| format!("{:.3} [{:.3}, {:.3}]", i.mean, i.lo, i.hi)),
-                100.0 * r.at_most_best_single.get(t).copied().unwrap_or(0.0)
+                "`{ORACLE}` is a diagnostic, not a placement a fleet can use: it knows the truth. At each boat epoch a \
+                    copy of the fleet senses the epoch with the boats idle, \
+                 and the disks go, greedily and without overlap, where that copy's estimate at the sampling step is \
+                 furthest from the truth (most squared error over the disk). \
+                 Its difference from QR bounds what putting the disks where the error is could buy on that row.\n"
             )?;
         }
+        write!(
+            md,
+            "| cloud | AV time | MV time | AV space | MV space | noise | model grid | scored from | heterogeneous \
+            (QR) | aerial-only | boat-only | heterogeneous (random) |"
+        )?;
+        for x in &extra {
+            write!(md, " {x} |")?;
+        }
+        writeln!(md, " paper |")?;
+        writeln!(md, "|{}", "---|".repeat(13 + extra.len()))?;
+        for r in &res.rows {
+            let w = &r.row;
+            write!(
+                md,
+                "| {} | {} | {} | {} | {} | {} | {} x {} | {} |",
+                w.name(),
+                w.av_time,
+                w.mv_time,
+                w.av_space,
+                w.mv_space,
+                w.noise,
+                r.model_grid[0],
+                r.model_grid[1],
+                r.scored_from
+            )?;
+            for t in [HETEROGENEOUS, AERIAL_ONLY, BOAT_ONLY, RANDOM]
+                .iter()
+                .map(|t| t.to_string())
+                .chain(extra.iter().cloned())
+            {
+                write!(md, " {} |", interval_cell(&r.teams[&t]))?;
+            }
+            writeln!(md, " {} |", w.paper_mse.map_or("".into(), |v| format!("{v}")))?;
+        }
+        Ok(())
+    }
+
+    /// The paired differences per row, and the scores from step 0.
+    fn differences(&mut self) -> anyhow::Result<()> {
+        let Report { res, md, .. } = self;
+        writeln!(
+            md,
+            "\n### Paired differences (same seed, same truth and noise), mean [95% interval], and what they say\n"
+        )?;
+        let heads: Vec<String> = res.rows.first().map_or(vec![], |r| {
+            r.comparisons
+                .iter()
+                .map(|c| format!("{} - {}", c.first, c.second))
+                .collect()
+        });
+        writeln!(
+            md,
+            "| cloud | AV/MV time | AV/MV space | noise |{}",
+            heads.iter().map(|h| format!(" {h} |")).collect::<String>()
+        )?;
+        writeln!(md, "|{}", "---|".repeat(4 + heads.len()))?;
+        for r in &res.rows {
+            let w = &r.row;
+            write!(
+                md,
+                "| {} | {}/{} | {}/{} | {} |",
+                w.name(),
+                w.av_time,
+                w.mv_time,
+                w.av_space,
+                w.mv_space,
+                w.noise
+            )?;
+            for c in &r.comparisons {
+                write!(md, " {} **{}** |", interval_cell(&c.difference), c.verdict.words())?;
+            }
+            writeln!(md)?;
+        }
+        writeln!(
+            md,
+            "\nScored from step 0 instead (labelled: only the teams with data there):\n"
+        )?;
+        writeln!(
+            md,
+            "| cloud | AV/MV time | AV/MV space | noise | heterogeneous, from step 0 | aerial-only, from step 0 \
+            |\n|---|---|---|---|---|---|"
+        )?;
+        for r in &res.rows {
+            let w = &r.row;
+            writeln!(
+                md,
+                "| {} | {}/{} | {}/{} | {} | {} | {} |",
+                w.name(),
+                w.av_time,
+                w.mv_time,
+                w.av_space,
+                w.mv_space,
+                w.noise,
+                interval_cell(&r.heterogeneous_from_step0),
+                interval_cell(&r.aerial_only_from_step0)
+            )?;
+        }
+        Ok(())
+    }
+
+    /// The fused teams' calibration and the steps where they did at least as well as the better single team.
+    fn fused_teams(&mut self) -> anyhow::Result<()> {
+        let Report { res, md, .. } = self;
+        writeln!(
+            md,
+            "\n### The fused teams: calibration and per-step wins\n\n\
+             Calibration: the mean over cells and scored steps of error^2 / reported variance, mean over seeds [95% \
+             interval] (1 is calibrated; above 1 the reported variance is too small). \
+             Steps won: the fraction of scored steps, pooled over seeds, where the team's MSE is at most the better \
+             single team's (aerial-only or boat-only) at that step.\n"
+        )?;
+        let fused: Vec<String> = res
+            .rows
+            .first()
+            .map_or(vec![], |r| r.calibration.keys().cloned().collect());
+        writeln!(
+            md,
+            "| cloud | AV/MV time | AV/MV space | noise |{}",
+            fused
+                .iter()
+                .map(|t| format!(" {t}: calibration | {t}: steps won |"))
+                .collect::<String>()
+        )?;
+        writeln!(md, "|{}", "---|".repeat(4 + 2 * fused.len()))?;
+        for r in &res.rows {
+            let w = &r.row;
+            write!(
+                md,
+                "| {} | {}/{} | {}/{} | {} |",
+                w.name(),
+                w.av_time,
+                w.mv_time,
+                w.av_space,
+                w.mv_space,
+                w.noise
+            )?;
+            for t in &fused {
+                write!(
+                    md,
+                    " {} | {:.1}% |",
+                    r.calibration
+                        .get(t)
+                        .map_or("".into(), |i| format!("{:.3} [{:.3}, {:.3}]", i.mean, i.lo, i.hi)),
+                    100.0 * r.at_most_best_single.get(t).copied().unwrap_or(0.0)
+                )?;
+            }
+            writeln!(md)?;
+        }
+        Ok(())
+    }
+
+    /// What the paired intervals say on the most complex cloud.
+    fn verdict(&mut self) -> anyhow::Result<()> {
+        let Report { res, md, .. } = self;
+        let v = &res.verdict;
         writeln!(md)?;
+        if let (Some(p), Some(a), Some(b), Some(q)) = (
+            &v.preset,
+            v.heterogeneous_vs_aerial_only,
+            v.heterogeneous_vs_boat_only,
+            v.qr_vs_random,
+        ) {
+            writeln!(
+                md,
+                "On the most complex cloud run ({p}, its first row), read from the paired intervals: heterogeneous \
+                    against aerial-only **{}**, heterogeneous against boat-only **{}**, QR placement against random \
+                    placement **{}**.\n",
+                a.words(),
+                b.words(),
+                q.words()
+            )?;
+        }
+        Ok(())
     }
-    let v = &res.verdict;
-    writeln!(md)?;
-    if let (Some(p), Some(a), Some(b), Some(q)) = (
-        &v.preset,
-        v.heterogeneous_vs_aerial_only,
-        v.heterogeneous_vs_boat_only,
-        v.qr_vs_random,
-    ) {
+
+    /// Fig. 10: per cloud, its first row: the mean over seeds with its 95% band.
+    fn fig10(&mut self) -> anyhow::Result<()> {
+        let Report {
+            dir, res, md, figures, ..
+        } = self;
+        let seeds = res.config.seeds();
+
         writeln!(
             md,
-            "On the most complex cloud run ({p}, its first row), read from the paired intervals: heterogeneous \
-                against aerial-only **{}**, heterogeneous against boat-only **{}**, QR placement against random \
-                placement **{}**.\n",
-            a.words(),
-            b.words(),
-            q.words()
+            "## Fig. 10: MSE over time, mean over seeds with the 95% interval shaded\n"
         )?;
-    }
-    // Fig. 10: per cloud, its first row: the mean over seeds with its 95% band.
-    writeln!(
-        md,
-        "## Fig. 10: MSE over time, mean over seeds with the 95% interval shaded\n"
-    )?;
-    let mut seen = vec![];
-    for r in &res.rows {
-        if seen.contains(&r.row.name()) {
-            continue;
-        }
-        seen.push(r.row.name());
-        let name = format!("fig10-{}.png", r.row.name()).to_lowercase();
-        let bands: Vec<plot::Band> = r
-            .curves()
-            .into_iter()
-            .map(|(team, pts)| plot::Band {
-                name: team,
-                // Every team from the first step where all have data (the scored steps).
-                points: pts
-                    .iter()
-                    .filter(|(k, _)| *k >= r.scored_from)
-                    .map(|(k, i)| {
-                        (
-                            *k as f64,
-                            i.mean,
-                            if i.n > 1 { i.lo } else { i.mean },
-                            if i.n > 1 { i.hi } else { i.mean },
-                        )
-                    })
-                    .collect(),
-            })
-            .collect();
-        plot::bands(
-            dir.join(&name),
-            &format!(
-                "{}: MSE at each step from step {} (all teams have data; {} seeds)",
-                r.row.name(),
-                r.scored_from,
-                seeds.len()
-            ),
-            "step",
-            "MSE",
-            &bands,
-            true,
-        )?;
-        writeln!(md, "![{name}]({name})\n")?;
-        figures.push(name);
-    }
-    // Fig. 11: the most complex cloud's first row, first seed, three boat steps.
-    if let Some(r) = v
-        .preset
-        .as_ref()
-        .and_then(|p| res.rows.iter().find(|r| &r.row.name() == p))
-    {
-        writeln!(
-            md,
-            "## Fig. 11: truth and reconstruction ({}, seed {}), boats' disks in white\n",
-            r.row.name(),
-            seeds[0]
-        )?;
-        let truth = &truths[&r.row.name()];
-        let (rows, cols) = (r.model_grid[0], r.model_grid[1]);
-        let steps = &r.figure.boat_steps;
-        let picks: Vec<usize> = if steps.len() >= 3 {
-            vec![0, steps.len() / 2, steps.len() - 1]
-        } else {
-            (0..steps.len()).collect()
-        };
-        let radius = res.config.radius / r.row.mv_space as f64;
-        let mut owned = vec![];
-        for &i in &picks {
-            let k = steps[i];
-            let col: Vec<f64> = truth.snapshots.col(k).iter().copied().collect();
-            owned.push((k, i, area_average(&col, truth.rows, truth.cols, rows, cols)?));
-        }
-        let mut panels = vec![];
-        for (k, i, t) in &owned {
-            let disks: Vec<(f64, f64, f64)> = r.figure.disks[*i]
-                .iter()
-                .map(|&(a, b)| (a as f64, b as f64, radius))
-                .collect();
-            panels.push(Panel {
-                values: t,
-                rows,
-                cols,
-                title: format!("truth, step {k}"),
-                disks: disks.clone(),
-            });
-            panels.push(Panel {
-                values: &r.figure.snapshots[*i],
-                rows,
-                cols,
-                title: format!("heterogeneous estimate, step {k}"),
-                disks,
-            });
-        }
-        let range = plot::range_of(&panels[..panels.len().min(1)]);
-        plot::png(dir.join("fig11.png"), &panels, Some(range))?;
-        writeln!(md, "![fig11](fig11.png)\n")?;
-        figures.push("fig11.png".into());
-        // The uncertainty the estimate reports beside the error it makes, on one scale.
-        writeln!(
-            md,
-            "Below, at the same steps: the standard deviation the estimate reports at each cell beside its \
-            actual error (absolute value), on one colour scale.\n"
-        )?;
-        let sd: Vec<(usize, Vec<f64>, Vec<f64>)> = owned
-            .iter()
-            .map(|(k, i, t)| {
-                (
-                    *k,
-                    r.figure.snapshot_variances[*i]
+        let mut seen = vec![];
+        for r in &res.rows {
+            if seen.contains(&r.row.name()) {
+                continue;
+            }
+            seen.push(r.row.name());
+            let name = format!("fig10-{}.png", r.row.name()).to_lowercase();
+            let bands: Vec<plot::Band> = r
+                .curves()
+                .into_iter()
+                .map(|(team, pts)| plot::Band {
+                    name: team,
+                    // Every team from the first step where all have data (the scored steps).
+                    points: pts
                         .iter()
-                        .map(|v| v.max(0.0).sqrt())
+                        .filter(|(k, _)| *k >= r.scored_from)
+                        .map(|(k, i)| {
+                            (
+                                *k as f64,
+                                i.mean,
+                                if i.n > 1 { i.lo } else { i.mean },
+                                if i.n > 1 { i.hi } else { i.mean },
+                            )
+                        })
                         .collect(),
-                    r.figure.snapshots[*i]
-                        .iter()
-                        .zip(t)
-                        .map(|(e, x)| (e - x).abs())
-                        .collect(),
-                )
-            })
-            .collect();
-        let mut panels = vec![];
-        for (k, std, err) in &sd {
-            panels.push(Panel {
-                values: std,
-                rows,
-                cols,
-                title: format!("reported standard deviation, step {k}"),
-                disks: vec![],
-            });
-            panels.push(Panel {
-                values: err,
-                rows,
-                cols,
-                title: format!("|error|, step {k}"),
-                disks: vec![],
-            });
-        }
-        plot::png(
-            dir.join("fig11-uncertainty.png"),
-            &panels,
-            Some(plot::range_of(&panels)),
-        )?;
-        writeln!(md, "![fig11-uncertainty](fig11-uncertainty.png)\n")?;
-        figures.push("fig11-uncertainty.png".into());
-    }
-    if !res.eig_study.is_empty() {
-        writeln!(
-            md,
-            "## Fig. 7: dominant continuous-time eigenvalue (true -1 + 0i), {} trials\n",
-            res.config.eig_trials
-        )?;
-        for (part, idx, reference) in [("real", 0usize, -1.0), ("imaginary", 1, 0.0)] {
-            let groups: Vec<(String, Vec<f64>)> = res
-                .eig_study
-                .iter()
-                .map(|b| {
-                    (
-                        format!("{} {}", b.method, b.noise_var),
-                        b.estimates.iter().map(|e| e[idx]).collect(),
-                    )
                 })
                 .collect();
-            let name = format!("fig7-{part}.png");
-            plot::boxes(
+            plot::bands(
                 dir.join(&name),
-                &format!("Dominant eigenvalue, {part} part (method, noise variance)"),
-                part,
-                &groups,
-                Some(reference),
+                &format!(
+                    "{}: MSE at each step from step {} (all teams have data; {} seeds)",
+                    r.row.name(),
+                    r.scored_from,
+                    seeds.len()
+                ),
+                "step",
+                "MSE",
+                &bands,
+                true,
             )?;
             writeln!(md, "![{name}]({name})\n")?;
             figures.push(name);
         }
-        writeln!(
+        Ok(())
+    }
+
+    /// Fig. 11: the most complex cloud's first row, first seed, three boat steps.
+    fn fig11(&mut self) -> anyhow::Result<()> {
+        let Report {
+            dir,
+            res,
+            truths,
             md,
-            "| method | noise variance | median real part | median imaginary part |\n|---|---|---|---|"
-        )?;
-        for b in &res.eig_study {
-            let mut re: Vec<f64> = b.estimates.iter().map(|e| e[0]).collect();
-            let mut im: Vec<f64> = b.estimates.iter().map(|e| e[1]).collect();
+            figures,
+            ..
+        } = self;
+        let v = &res.verdict;
+        let seeds = res.config.seeds();
+
+        if let Some(r) = v
+            .preset
+            .as_ref()
+            .and_then(|p| res.rows.iter().find(|r| &r.row.name() == p))
+        {
             writeln!(
                 md,
-                "| {} | {} | {:.4} | {:.4} |",
-                b.method,
-                b.noise_var,
-                eig_study::median(&mut re),
-                eig_study::median(&mut im)
+                "## Fig. 11: truth and reconstruction ({}, seed {}), boats' disks in white\n",
+                r.row.name(),
+                seeds[0]
             )?;
-        }
-        writeln!(md)?;
-    }
-    if !res.forgetting.is_empty() {
-        let unit = match res.config.forgetting_unit {
-            crate::dmd::ForgettingUnit::Batch => {
-                "per update of 60 pairs (the paper's reading: each update multiplies the past by gamma)"
+            let truth = &truths[&r.row.name()];
+            let (rows, cols) = (r.model_grid[0], r.model_grid[1]);
+            let steps = &r.figure.boat_steps;
+            let picks: Vec<usize> = if steps.len() >= 3 {
+                vec![0, steps.len() / 2, steps.len() - 1]
+            } else {
+                (0..steps.len()).collect()
+            };
+            let radius = res.config.radius / r.row.mv_space as f64;
+            let mut owned = vec![];
+            for &i in &picks {
+                let k = steps[i];
+                let col: Vec<f64> = truth.snapshots.col(k).iter().copied().collect();
+                owned.push((k, i, area_average(&col, truth.rows, truth.cols, rows, cols)?));
             }
-            crate::dmd::ForgettingUnit::Pair => "per pair (odmd's: each pair weighs gamma^age)",
-        };
-        writeln!(
-            md,
-            "## Fig. 8: forgetting factor (eigenvalue-study field, noise variance 0.01), gamma {unit}, along \
-            the directions each update excites\n"
-        )?;
-        let series: Vec<Series> = res
-            .forgetting
-            .iter()
-            .map(|c| Series {
-                name: c.label.clone(),
-                points: c.points.clone(),
-            })
-            .collect();
-        plot::lines(
-            dir.join("fig8.png"),
-            "Dominant eigenvalue (real part) as pairs arrive; true value -1",
-            "pairs assimilated",
-            "Re(lambda)",
-            &series,
-            false,
-        )?;
-        writeln!(md, "![fig8](fig8.png)\n")?;
-        writeln!(
-            md,
-            "A forgetting factor keeps an effective memory of about `1/(1 - gamma)` updates (per batch) or pairs (per \
-                pair). \
-             With `N = 400` cells, a memory below ~400 pairs fits the operator to fewer pairs than it has unknowns \
-             per row, and its \
-             dominant eigenvalue follows the noise. Set `forgetting_unit = \"pair\"` in the experiment file for \
-                 odmd's reading.\n"
-        )?;
-        figures.push("fig8.png".into());
+            let mut panels = vec![];
+            for (k, i, t) in &owned {
+                let disks: Vec<(f64, f64, f64)> = r.figure.disks[*i]
+                    .iter()
+                    .map(|&(a, b)| (a as f64, b as f64, radius))
+                    .collect();
+                panels.push(Panel {
+                    values: t,
+                    rows,
+                    cols,
+                    title: format!("truth, step {k}"),
+                    disks: disks.clone(),
+                });
+                panels.push(Panel {
+                    values: &r.figure.snapshots[*i],
+                    rows,
+                    cols,
+                    title: format!("heterogeneous estimate, step {k}"),
+                    disks,
+                });
+            }
+            let range = plot::range_of(&panels[..panels.len().min(1)]);
+            plot::png(dir.join("fig11.png"), &panels, Some(range))?;
+            writeln!(md, "![fig11](fig11.png)\n")?;
+            figures.push("fig11.png".into());
+            // The uncertainty the estimate reports beside the error it makes, on one scale.
+            writeln!(
+                md,
+                "Below, at the same steps: the standard deviation the estimate reports at each cell beside its \
+                actual error (absolute value), on one colour scale.\n"
+            )?;
+            let sd: Vec<(usize, Vec<f64>, Vec<f64>)> = owned
+                .iter()
+                .map(|(k, i, t)| {
+                    (
+                        *k,
+                        r.figure.snapshot_variances[*i]
+                            .iter()
+                            .map(|v| v.max(0.0).sqrt())
+                            .collect(),
+                        r.figure.snapshots[*i]
+                            .iter()
+                            .zip(t)
+                            .map(|(e, x)| (e - x).abs())
+                            .collect(),
+                    )
+                })
+                .collect();
+            let mut panels = vec![];
+            for (k, std, err) in &sd {
+                panels.push(Panel {
+                    values: std,
+                    rows,
+                    cols,
+                    title: format!("reported standard deviation, step {k}"),
+                    disks: vec![],
+                });
+                panels.push(Panel {
+                    values: err,
+                    rows,
+                    cols,
+                    title: format!("|error|, step {k}"),
+                    disks: vec![],
+                });
+            }
+            plot::png(
+                dir.join("fig11-uncertainty.png"),
+                &panels,
+                Some(plot::range_of(&panels)),
+            )?;
+            writeln!(md, "![fig11-uncertainty](fig11-uncertainty.png)\n")?;
+            figures.push("fig11-uncertainty.png".into());
+        }
+        Ok(())
     }
-    std::fs::write(dir.join("report.md"), md)?;
-    Ok(figures)
+
+    /// Fig. 7: the eigenvalue study.
+    fn eig_study(&mut self) -> anyhow::Result<()> {
+        let Report {
+            dir, res, md, figures, ..
+        } = self;
+        if !res.eig_study.is_empty() {
+            writeln!(
+                md,
+                "## Fig. 7: dominant continuous-time eigenvalue (true -1 + 0i), {} trials\n",
+                res.config.eig_trials
+            )?;
+            for (part, idx, reference) in [("real", 0usize, -1.0), ("imaginary", 1, 0.0)] {
+                let groups: Vec<(String, Vec<f64>)> = res
+                    .eig_study
+                    .iter()
+                    .map(|b| {
+                        (
+                            format!("{} {}", b.method, b.noise_var),
+                            b.estimates.iter().map(|e| e[idx]).collect(),
+                        )
+                    })
+                    .collect();
+                let name = format!("fig7-{part}.png");
+                plot::boxes(
+                    dir.join(&name),
+                    &format!("Dominant eigenvalue, {part} part (method, noise variance)"),
+                    part,
+                    &groups,
+                    Some(reference),
+                )?;
+                writeln!(md, "![{name}]({name})\n")?;
+                figures.push(name);
+            }
+            writeln!(
+                md,
+                "| method | noise variance | median real part | median imaginary part |\n|---|---|---|---|"
+            )?;
+            for b in &res.eig_study {
+                let mut re: Vec<f64> = b.estimates.iter().map(|e| e[0]).collect();
+                let mut im: Vec<f64> = b.estimates.iter().map(|e| e[1]).collect();
+                writeln!(
+                    md,
+                    "| {} | {} | {:.4} | {:.4} |",
+                    b.method,
+                    b.noise_var,
+                    eig_study::median(&mut re),
+                    eig_study::median(&mut im)
+                )?;
+            }
+            writeln!(md)?;
+        }
+        Ok(())
+    }
+
+    /// Fig. 8: the forgetting factor.
+    fn forgetting(&mut self) -> anyhow::Result<()> {
+        let Report {
+            dir, res, md, figures, ..
+        } = self;
+        if !res.forgetting.is_empty() {
+            let unit = match res.config.forgetting_unit {
+                crate::dmd::ForgettingUnit::Batch => {
+                    "per update of 60 pairs (the paper's reading: each update multiplies the past by gamma)"
+                }
+                crate::dmd::ForgettingUnit::Pair => "per pair (odmd's: each pair weighs gamma^age)",
+            };
+            writeln!(
+                md,
+                "## Fig. 8: forgetting factor (eigenvalue-study field, noise variance 0.01), gamma {unit}, along \
+                the directions each update excites\n"
+            )?;
+            let series: Vec<Series> = res
+                .forgetting
+                .iter()
+                .map(|c| Series {
+                    name: c.label.clone(),
+                    points: c.points.clone(),
+                })
+                .collect();
+            plot::lines(
+                dir.join("fig8.png"),
+                "Dominant eigenvalue (real part) as pairs arrive; true value -1",
+                "pairs assimilated",
+                "Re(lambda)",
+                &series,
+                false,
+            )?;
+            writeln!(md, "![fig8](fig8.png)\n")?;
+            writeln!(
+                md,
+                "A forgetting factor keeps an effective memory of about `1/(1 - gamma)` updates (per batch) or pairs (per \
+                    pair). \
+                 With `N = 400` cells, a memory below ~400 pairs fits the operator to fewer pairs than it has unknowns \
+                 per row, and its \
+                 dominant eigenvalue follows the noise. Set `forgetting_unit = \"pair\"` in the experiment file for \
+                     odmd's reading.\n"
+            )?;
+            figures.push("fig8.png".into());
+        }
+        Ok(())
+    }
 }
