@@ -609,6 +609,71 @@ fn open_journal(
     Ok((journal, n, restore))
 }
 
+/// The mission's recording (`--record`), headed by the mission file as the operator wrote it.
+fn open_recorder(
+    args: &Args,
+    mission: &MissionConfig,
+    grid: &fleet_mission::grid::Grid,
+    frames: usize,
+) -> anyhow::Result<Option<Recorder<std::io::BufWriter<std::fs::File>>>> {
+    let Some(path) = &args.record else { return Ok(None) };
+    let text = match &args.node.mission {
+        Some(p) => std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?,
+        None => fleet_mission::config::DEFAULT_MISSION.to_string(),
+    };
+    let r = Recorder::create(path, mission, &text, grid, frames)?;
+    info!(recording = %r.path().display(), "recording the mission");
+    Ok(Some(r))
+}
+
+type Queries = zenoh::query::Queryable<zenoh::handlers::FifoChannelHandler<zenoh::query::Query>>;
+type Samples = zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>;
+
+/// What the server listens to on Zenoh.
+struct Inputs {
+    batches: Samples,
+    plans: Queries,
+    models: Queries,
+    telemetry: Samples,
+    links: Samples,
+    _token: zenoh::liveliness::LivelinessToken,
+}
+
+impl Inputs {
+    async fn declare(session: &zenoh::Session, keys: &Keys) -> Result<Self, fleet_net::NetError> {
+        let e = fleet_net::NetError::zenoh;
+        let links = session
+            .liveliness()
+            .declare_subscriber(keys.all_alive())
+            .history(true)
+            .await;
+        Ok(Self {
+            batches: session
+                .declare_subscriber(keys.all_measurements())
+                .await
+                .map_err(e("the batches"))?,
+            plans: session
+                .declare_queryable(keys.all_plans())
+                .await
+                .map_err(e("the plans' queryable"))?,
+            models: session
+                .declare_queryable(keys.model_latest())
+                .await
+                .map_err(e("the model's queryable"))?,
+            telemetry: session
+                .declare_subscriber(keys.telemetry("*"))
+                .await
+                .map_err(e("the telemetry"))?,
+            links: links.map_err(e("the vehicles' liveliness"))?,
+            _token: session
+                .liveliness()
+                .declare_token(keys.alive("server"))
+                .await
+                .map_err(e("the token"))?,
+        })
+    }
+}
+
 pub async fn run(args: Args) -> anyhow::Result<()> {
     let (mission, truth) = args.node.load()?;
     let (grid, frames) = mission.workspace(&truth)?;
@@ -616,54 +681,11 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let mut core = ServerCore::new(&mission.team, grid, frames)?.with_boat_speed(mission.motion.boat_speed);
     let mut ctx = Context::new(grid);
     ctx.vehicles = core.vehicles().iter().map(|v| v.id.clone()).collect();
-    let (journal, restored, restore) = open_journal(
-        &args.state_dir.join(format!("{}.redb", mission.mission)),
-        &mission.mission,
-        &mut core,
-        &ctx,
-    )?;
-    let recorder = match &args.record {
-        Some(path) => {
-            let text = match &args.node.mission {
-                Some(p) => std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?,
-                None => fleet_mission::config::DEFAULT_MISSION.to_string(),
-            };
-            let r = Recorder::create(path, &mission, &text, &grid, frames)?;
-            info!(recording = %r.path().display(), "recording the mission");
-            Some(r)
-        }
-        None => None,
-    };
+    let journal_path = args.state_dir.join(format!("{}.redb", mission.mission));
+    let (journal, restored, restore) = open_journal(&journal_path, &mission.mission, &mut core, &ctx)?;
+    let recorder = open_recorder(&args, &mission, &grid, frames)?;
     let session = fleet_net::open(args.node.zenoh_config(Role::Server, &mission.network)?).await?;
-    let batches = session
-        .declare_subscriber(keys.all_measurements())
-        .await
-        .map_err(fleet_net::NetError::zenoh("declaring a subscriber"))?;
-    let plans = session
-        .declare_queryable(keys.all_plans())
-        .await
-        .map_err(fleet_net::NetError::zenoh("declaring a queryable"))?;
-    let models = session
-        .declare_queryable(keys.model_latest())
-        .await
-        .map_err(fleet_net::NetError::zenoh("declaring a queryable"))?;
-    let telemetry = session
-        .declare_subscriber(keys.telemetry("*"))
-        .await
-        .map_err(fleet_net::NetError::zenoh("declaring a subscriber"))?;
-    let links = session
-        .liveliness()
-        .declare_subscriber(keys.all_alive())
-        .history(true)
-        .await
-        .map_err(fleet_net::NetError::zenoh("subscribing to liveliness"))?;
-    let _token = session
-        .liveliness()
-        .declare_token(keys.alive("server"))
-        .await
-        .map_err(fleet_net::NetError::zenoh("declaring the liveliness token"))?;
-
-    let epochs = core.schedule().epochs();
+    let inputs = Inputs::declare(&session, &keys).await?;
     let mut s = Server {
         keys,
         core,
@@ -682,126 +704,155 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         mission,
         recorder: std::sync::Mutex::new(recorder),
     };
-    if let Some(op) = restore {
-        s.record_op(op);
-    }
-    // After a restart: the model and every vehicle's ack again, and the error of what is in.
-    if restored > 0 {
-        s.publish_model(&session).await?;
-        for v in s.core.vehicles().to_vec() {
-            s.ack(&session, &v.id).await?;
-        }
-        let done = s.core.schedule().steps_of(s.core.next_epoch()).start;
-        s.evaluate(0..done);
-    }
-    info!(
-        mission = s.mission.mission,
-        epochs,
-        vehicles = s.core.vehicles().len(),
-        "model server up"
-    );
-    s.event(&ServerEvent::Ready {
-        mission: s.mission.mission.clone(),
-        epochs,
-        vehicles: s.core.vehicles().iter().map(|v| v.id.clone()).collect(),
-        places: places_at(&s.core, s.core.next_epoch()),
-    });
+    s.resume(&session, restored, restore).await?;
+    let finished = s.serve(&session, &inputs, &args).await?;
+    s.leave(&session, finished, &args).await
+}
 
-    let mut stop = fleet_net::StopSignals::new()?;
-    let mut tick = tokio::time::interval(Duration::from_secs(1));
-    let mut check = tokio::time::interval(Duration::from_millis(50));
-    let epoch_timeout =
-        (s.mission.pace.epoch_timeout_ms > 0).then(|| Duration::from_millis(s.mission.pace.epoch_timeout_ms));
-    let mut since = (s.core.next_epoch(), Instant::now());
-    let mut done_at: Option<Instant> = None;
-    // The summary as written when the mission finished: batches may still come after it (a
-    // vehicle re-sends until it sees its ack) and are recorded, so its counters are brought up
-    // to date when the server leaves.
-    let mut finished: Option<ServerSummary> = None;
-    let linger = Duration::from_millis(args.linger_ms);
-    loop {
-        tokio::select! {
-            r = batches.recv_async() => {
-                let sample = r.map_err(|e| anyhow::anyhow!("batch subscriber closed: {e}"))?;
-                let t0 = Instant::now();
-                s.on_batch(&session, &sample, t0).await?;
-                // A backlog comes as a burst: take what is queued already, then re-fit once.
-                while let Ok(Some(sample)) = batches.try_recv() {
-                    s.on_batch(&session, &sample, Instant::now()).await?;
+impl Server {
+    /// After a restart: the model and every vehicle's ack again, and the error of what is in;
+    /// then ready.
+    async fn resume(&mut self, session: &zenoh::Session, restored: u64, restore: Option<CoreOp>) -> anyhow::Result<()> {
+        if let Some(op) = restore {
+            self.record_op(op);
+        }
+        if restored > 0 {
+            self.publish_model(session).await?;
+            for v in self.core.vehicles().to_vec() {
+                self.ack(session, &v.id).await?;
+            }
+            let done = self.core.schedule().steps_of(self.core.next_epoch()).start;
+            self.evaluate(0..done);
+        }
+        let epochs = self.core.schedule().epochs();
+        info!(
+            mission = self.mission.mission,
+            epochs,
+            vehicles = self.core.vehicles().len(),
+            "model server up"
+        );
+        self.event(&ServerEvent::Ready {
+            mission: self.mission.mission.clone(),
+            epochs,
+            vehicles: self.core.vehicles().iter().map(|v| v.id.clone()).collect(),
+            places: places_at(&self.core, self.core.next_epoch()),
+        });
+        Ok(())
+    }
+
+    /// The server's loop, one event at a time, until a stop signal or (with
+    /// `--exit-when-done`) the mission's end; the summary as written at the end, if it came.
+    async fn serve(
+        &mut self,
+        session: &zenoh::Session,
+        inputs: &Inputs,
+        args: &Args,
+    ) -> anyhow::Result<Option<ServerSummary>> {
+        let mut stop = fleet_net::StopSignals::new()?;
+        let mut tick = tokio::time::interval(Duration::from_secs(1));
+        let mut check = tokio::time::interval(Duration::from_millis(50));
+        let pace = &self.mission.pace;
+        let epoch_timeout = (pace.epoch_timeout_ms > 0).then(|| Duration::from_millis(pace.epoch_timeout_ms));
+        let mut since = (self.core.next_epoch(), Instant::now());
+        // The summary as written when the mission finished: batches may still come after it (a
+        // vehicle re-sends until it sees its ack) and are recorded, so its counters are brought
+        // up to date when the server leaves.
+        let (mut finished, mut done_at) = (None, None::<Instant>);
+        let linger = Duration::from_millis(args.linger_ms);
+        loop {
+            tokio::select! {
+                r = inputs.batches.recv_async() => {
+                    let sample = r.map_err(|e| anyhow::anyhow!("batch subscriber closed: {e}"))?;
+                    self.on_batches(session, &inputs.batches, &sample).await?;
                 }
-                s.settle_late(&session, t0).await?;
+                r = inputs.plans.recv_async() => if let Ok(q) = r { self.on_plan_query(q).await },
+                r = inputs.models.recv_async() => if let Ok(q) = r { self.on_model_query(q).await },
+                r = inputs.telemetry.recv_async() => if let Ok(sample) = r { self.on_telemetry(&sample) },
+                r = inputs.links.recv_async() => if let Ok(sample) = r {
+                    self.on_liveliness(sample.key_expr().as_str(), sample.kind())
+                },
+                _ = check.tick() => self.force_if_due(session, &mut since, epoch_timeout).await?,
+                _ = tick.tick() => {
+                    self.note_session_refusals();
+                    self.recording(|r| r.flush());
+                    self.put(session, &self.keys.server_status(), &Body::Status(self.status())).await?;
+                }
+                sig = stop.recv() => {
+                    info!(signal = sig, "stopping: the journal holds every accepted batch, a restart resumes");
+                    break;
+                }
             }
-            r = plans.recv_async() => {
-                if let Ok(q) = r { s.on_plan_query(q).await; }
+            if self.core.finished() && done_at.is_none() {
+                done_at = Some(Instant::now());
+                finished = Some(self.on_finished(session, args).await?);
             }
-            r = models.recv_async() => {
-                if let Ok(q) = r { s.on_model_query(q).await; }
-            }
-            r = telemetry.recv_async() => {
-                if let Ok(sample) = r { s.on_telemetry(&sample); }
-            }
-            r = links.recv_async() => {
-                if let Ok(sample) = r { s.on_liveliness(sample.key_expr().as_str(), sample.kind()); }
-            }
-            _ = check.tick() => {
-                s.force_if_due(&session, &mut since, epoch_timeout).await?;
-            }
-            _ = tick.tick() => {
-                s.note_session_refusals();
-                s.recording(|r| r.flush());
-                s.put(&session, &s.keys.server_status(), &Body::Status(s.status())).await?;
-            }
-            sig = stop.recv() => {
-                info!(signal = sig, "stopping: the journal holds every accepted batch, a restart resumes");
+            if done_at.is_some_and(|t| args.exit_when_done && (self.alive.is_empty() || t.elapsed() > linger)) {
                 break;
             }
         }
-        if s.core.finished() && done_at.is_none() {
-            done_at = Some(Instant::now());
-            let summary = s.summary();
-            if let Some(dir) = &args.out {
-                write_outputs(dir, &summary, &s.core, s.mission.pace.horizon)?;
+        Ok(finished)
+    }
+
+    /// A batch, and what is queued behind it (a backlog comes as a burst: take what is queued
+    /// already, then re-fit once).
+    async fn on_batches(
+        &mut self,
+        session: &zenoh::Session,
+        batches: &Samples,
+        first: &zenoh::sample::Sample,
+    ) -> anyhow::Result<()> {
+        let t0 = Instant::now();
+        self.on_batch(session, first, t0).await?;
+        while let Ok(Some(sample)) = batches.try_recv() {
+            self.on_batch(session, &sample, Instant::now()).await?;
+        }
+        self.settle_late(session, t0).await
+    }
+
+    /// The mission's end: the outputs, the event, and the status at once (observers see the
+    /// end now, not at the next tick, which may never come).
+    async fn on_finished(&mut self, session: &zenoh::Session, args: &Args) -> anyhow::Result<ServerSummary> {
+        let summary = self.summary();
+        if let Some(dir) = &args.out {
+            write_outputs(dir, &summary, &self.core, self.mission.pace.horizon)?;
+        }
+        info!(
+            epochs = summary.epochs,
+            batches = summary.counters.batches,
+            p99_ms = summary.latency_ms.p99,
+            "mission finished"
+        );
+        self.event(&ServerEvent::Finished {
+            summary: Box::new(summary.clone()),
+        });
+        self.put(session, &self.keys.server_status(), &Body::Status(self.status()))
+            .await?;
+        Ok(summary)
+    }
+
+    /// Leaving: the summary's counters brought up to date, the last word on the status key,
+    /// the session closed and the recording finished.
+    async fn leave(self, session: &zenoh::Session, finished: Option<ServerSummary>, args: &Args) -> anyhow::Result<()> {
+        if let (Some(mut summary), Some(dir)) = (finished, &args.out) {
+            if summary.counters != self.core.counters {
+                summary.counters = self.core.counters.clone();
+                std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(&summary)?)
+                    .with_context(|| format!("writing {}/summary.json", dir.display()))?;
             }
-            info!(
-                epochs = summary.epochs,
-                batches = summary.counters.batches,
-                p99_ms = summary.latency_ms.p99,
-                "mission finished"
-            );
-            finished = Some(summary.clone());
-            s.event(&ServerEvent::Finished {
-                summary: Box::new(summary),
-            });
-            // Observers see the end at once, not at the next tick (which may never come).
-            s.put(&session, &s.keys.server_status(), &Body::Status(s.status()))
-                .await?;
         }
-        if let Some(t) = done_at {
-            if args.exit_when_done && (s.alive.is_empty() || t.elapsed() > linger) {
-                break;
-            }
+        self.put(session, &self.keys.server_status(), &Body::Status(self.status()))
+            .await?;
+        session
+            .close()
+            .await
+            .map_err(fleet_net::NetError::zenoh("closing the Zenoh session"))?;
+        if let Some(r) = self.recorder.into_inner().unwrap_or_else(|p| p.into_inner()) {
+            let path = r.path().to_path_buf();
+            r.finish()?;
+            info!(recording = %path.display(), "recording ended");
         }
+        Ok(())
     }
-    if let (Some(mut summary), Some(dir)) = (finished, &args.out) {
-        if summary.counters != s.core.counters {
-            summary.counters = s.core.counters.clone();
-            std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(&summary)?)
-                .with_context(|| format!("writing {}/summary.json", dir.display()))?;
-        }
-    }
-    // The last word on the status key, whatever ended the loop.
-    s.put(&session, &s.keys.server_status(), &Body::Status(s.status()))
-        .await?;
-    session
-        .close()
-        .await
-        .map_err(fleet_net::NetError::zenoh("closing the Zenoh session"))?;
-    if let Some(r) = s.recorder.into_inner().unwrap_or_else(|p| p.into_inner()) {
-        let path = r.path().to_path_buf();
-        r.finish()?;
-        info!(recording = %path.display(), "recording ended");
-    }
-    Ok(())
 }
 
 /// What a finished run leaves for export (`fleet export`): the summary, and the core's
