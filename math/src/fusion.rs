@@ -19,8 +19,6 @@ use crate::grid::{Grid, StridedGrid};
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
-use std::fmt;
-use std::str::FromStr;
 use thiserror::Error;
 
 #[derive(Debug, Error, PartialEq)]
@@ -333,8 +331,11 @@ pub struct Measured<'a> {
 }
 
 /// How estimates are combined.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, strum::EnumString, strum::Display, strum::VariantNames,
+)]
 #[serde(rename_all = "kebab-case")]
+#[strum(serialize_all = "kebab-case", parse_err_ty = String, parse_err_fn = scheme_name_error)]
 pub enum Scheme {
     /// Unweighted mean of the available estimates; measured cells take the measurement.
     Paper,
@@ -343,30 +344,6 @@ pub enum Scheme {
     /// A Kalman filter in the model's modal coordinates (`crate::kalman`; the assimilator runs
     /// it). As a one-step combination of estimates without a model, it is inverse-variance.
     Kalman,
-}
-
-impl FromStr for Scheme {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "paper" => Ok(Self::Paper),
-            "inverse-variance" => Ok(Self::InverseVariance),
-            "kalman" => Ok(Self::Kalman),
-            _ => Err(format!(
-                "unknown fusion scheme {s:?} (paper | inverse-variance | kalman)"
-            )),
-        }
-    }
-}
-
-impl fmt::Display for Scheme {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(match self {
-            Self::Paper => "paper",
-            Self::InverseVariance => "inverse-variance",
-            Self::Kalman => "kalman",
-        })
-    }
 }
 
 /// Fuse the available estimates (any of them may be absent; at least one estimate or
@@ -482,6 +459,15 @@ impl Acc {
             (self.wx / self.w, 1.0 / self.w)
         }
     }
+}
+
+/// A name that is not a [`Scheme`]'s.
+fn scheme_name_error(got: &str) -> String {
+    use strum::VariantNames as _;
+    format!(
+        "fusion scheme must be one of {}, got {got:?}",
+        Scheme::VARIANTS.join(", ")
+    )
 }
 
 #[cfg(test)]

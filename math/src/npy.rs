@@ -151,35 +151,13 @@ fn fortran_to_c(raw: &[f64], shape: &[usize]) -> Vec<f64> {
     out
 }
 
-/// Write a float64 array in C order.
-pub fn write(path: impl AsRef<Path>, shape: &[usize], data: &[f64]) -> Result<(), NpyError> {
-    let p = path.as_ref().display().to_string();
-    let expected: usize = shape.iter().product();
-    if expected != data.len() {
-        return Err(NpyError::Shape {
-            path: p,
-            expected: format!("{expected} values"),
-            shape: shape.iter().map(|&s| s as u64).collect(),
-        });
-    }
-    let io = |source| NpyError::Io {
-        path: p.clone(),
-        source,
-    };
-    let file = File::create(path.as_ref()).map_err(io)?;
-    let shape64: Vec<u64> = shape.iter().map(|&s| s as u64).collect();
-    let mut w = npyz::WriteOptions::new()
-        .default_dtype()
-        .shape(&shape64)
-        .writer(BufWriter::new(file))
-        .begin_nd()
-        .map_err(io)?;
-    w.extend(data.iter().copied()).map_err(io)?;
-    w.finish().map_err(io)
-}
-
-/// Write a complex128 array in C order (numpy's `<c16`: `np.load` gives `complex128`).
-pub fn write_complex(path: impl AsRef<Path>, shape: &[usize], data: &[num_complex::Complex64]) -> Result<(), NpyError> {
+/// Write an array in C order: float64 (`<f8`) or complex128 (`<c16`: `np.load` gives
+/// `complex128`), as the element type says.
+pub fn write<T: npyz::AutoSerialize + Copy>(
+    path: impl AsRef<Path>,
+    shape: &[usize],
+    data: &[T],
+) -> Result<(), NpyError> {
     let p = path.as_ref().display().to_string();
     let expected: usize = shape.iter().product();
     if expected != data.len() {

@@ -8,8 +8,11 @@ use crate::grid::Grid;
 use serde::{Deserialize, Serialize};
 
 /// Where boats go.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, strum::EnumString, strum::Display, strum::VariantNames,
+)]
 #[serde(rename_all = "kebab-case")]
+#[strum(serialize_all = "kebab-case", parse_err_ty = String, parse_err_fn = placement_name_error)]
 pub enum Placement {
     /// Block pivoted QR over the model's spatial modes (Alg. 2).
     Qr,
@@ -23,21 +26,22 @@ pub enum Placement {
     Horizon,
 }
 
-impl std::fmt::Display for Placement {
-    /// The name a configuration gives it.
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Placement::Qr => "qr",
-            Placement::DOptimal => "d-optimal",
-            Placement::Random => "random",
-            Placement::Horizon => "horizon",
-        })
-    }
-}
-
 /// What the online DMD is fed at each step after the first model.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    Serialize,
+    Deserialize,
+    strum::EnumString,
+    strum::Display,
+    strum::VariantNames,
+)]
 #[serde(rename_all = "kebab-case")]
+#[strum(serialize_all = "kebab-case", parse_err_ty = String, parse_err_fn = learnfrom_name_error)]
 pub enum LearnFrom {
     /// The fused estimate (the filter's posterior mean): every source, at every step.
     #[default]
@@ -45,15 +49,6 @@ pub enum LearnFrom {
     /// The aerials' interpolated frame alone: no forecast in it, so the model can never learn
     /// its own predictions back, but coarse and noisy.
     Aerial,
-}
-
-impl std::fmt::Display for LearnFrom {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            LearnFrom::Posterior => "posterior",
-            LearnFrom::Aerial => "aerial",
-        })
-    }
 }
 
 /// Every choice of one run.
@@ -274,4 +269,22 @@ fn disk_fits(grid: &Grid, boats: usize, radius: f64) -> bool {
     }
     let centre = crate::grid::Cell::new(grid.rows / 2, grid.cols / 2);
     boats.saturating_mul(grid.disk(centre, radius).len()) <= grid.len()
+}
+
+/// A name that is not a [`Placement`]'s.
+fn placement_name_error(got: &str) -> String {
+    use strum::VariantNames as _;
+    format!(
+        "placement must be one of {}, got {got:?}",
+        Placement::VARIANTS.join(", ")
+    )
+}
+
+/// A name that is not a [`LearnFrom`]'s.
+fn learnfrom_name_error(got: &str) -> String {
+    use strum::VariantNames as _;
+    format!(
+        "learn_from must be one of {}, got {got:?}",
+        LearnFrom::VARIANTS.join(", ")
+    )
 }

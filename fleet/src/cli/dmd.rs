@@ -260,9 +260,9 @@ fn run_checked(args: Args, mut field: FieldSeries, init: usize) -> anyhow::Resul
                 .map(|z| num_complex::Complex64::new(z.re, z.im))
                 .collect::<Vec<_>>()
         };
-        fleet::npy::write_complex(dir.join("eigenvalues.npy"), &[r], &c(&fitted.modes.eigenvalues))?;
-        fleet::npy::write_complex(dir.join("modes.npy"), &[rows, r], &modes)?;
-        fleet::npy::write_complex(dir.join("amplitudes.npy"), &[r], &c(&fitted.amplitudes))?;
+        fleet::npy::write(dir.join("eigenvalues.npy"), &[r], &c(&fitted.modes.eigenvalues))?;
+        fleet::npy::write(dir.join("modes.npy"), &[rows, r], &modes)?;
+        fleet::npy::write(dir.join("amplitudes.npy"), &[r], &c(&fitted.amplitudes))?;
         std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(&doc)?)
             .with_context(|| format!("writing {}", dir.join("summary.json").display()))?;
         println!(

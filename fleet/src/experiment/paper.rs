@@ -394,25 +394,9 @@ fn run_seed(
 
 /// `f` over `jobs` on every core, results in job order (so the output does not depend on the
 /// scheduling: each job is deterministic on its own).
-fn parallel<J: Sync, T: Send>(jobs: &[J], f: impl Fn(&J) -> T + Sync) -> Vec<T> {
-    let workers = std::thread::available_parallelism()
-        .map_or(1, |n| n.get())
-        .min(jobs.len().max(1));
-    let next = std::sync::atomic::AtomicUsize::new(0);
-    let done: std::sync::Mutex<Vec<(usize, T)>> = std::sync::Mutex::new(Vec::with_capacity(jobs.len()));
-    std::thread::scope(|s| {
-        for _ in 0..workers {
-            s.spawn(|| loop {
-                let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                let Some(job) = jobs.get(i) else { break };
-                let out = f(job);
-                done.lock().unwrap_or_else(|p| p.into_inner()).push((i, out));
-            });
-        }
-    });
-    let mut done = done.into_inner().unwrap_or_else(|p| p.into_inner());
-    done.sort_by_key(|(i, _)| *i);
-    done.into_iter().map(|(_, t)| t).collect()
+fn parallel<J: Sync, T: Send>(jobs: &[J], f: impl Fn(&J) -> T + Sync + Send) -> Vec<T> {
+    use rayon::prelude::*;
+    jobs.par_iter().map(f).collect()
 }
 
 /// Run everything; `progress(message)` is called as work proceeds (for a progress bar), and

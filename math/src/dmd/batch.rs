@@ -144,8 +144,4 @@ impl Dmd for BatchDmd {
     fn dim(&self) -> usize {
         self.pairs.dim()
     }
-
-    fn boxed(&self) -> Box<dyn Dmd> {
-        Box::new(self.clone())
-    }
 }

@@ -19,11 +19,22 @@ use super::DmdError;
 use faer::linalg::solvers::Solve;
 use faer::{c64, Mat, MatRef};
 use serde::{Deserialize, Serialize};
-use std::fmt;
-use std::str::FromStr;
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Serialize,
+    Deserialize,
+    Default,
+    strum::EnumString,
+    strum::Display,
+    strum::VariantNames,
+)]
 #[serde(rename_all = "kebab-case")]
+#[strum(serialize_all = "kebab-case", parse_err_ty = String, parse_err_fn = debias_name_error)]
 pub enum Debias {
     /// Plain exact DMD.
     #[default]
@@ -32,28 +43,6 @@ pub enum Debias {
     Fb,
     /// Total-least-squares DMD.
     Tls,
-}
-
-impl fmt::Display for Debias {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(match self {
-            Debias::None => "none",
-            Debias::Fb => "fb",
-            Debias::Tls => "tls",
-        })
-    }
-}
-
-impl FromStr for Debias {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "none" => Ok(Debias::None),
-            "fb" => Ok(Debias::Fb),
-            "tls" => Ok(Debias::Tls),
-            _ => Err(format!("debias must be none, fb or tls, got {s:?}")),
-        }
-    }
 }
 
 /// Eigenvalues and projected eigenvectors of the debiased `r x r` operator for projected data
@@ -120,4 +109,10 @@ fn least_squares_operator(a: MatRef<'_, f64>, b: MatRef<'_, f64>) -> Result<Mat<
     let svd = thin_svd(a)?;
     let bv = super::linalg::div_cols(b * &svd.v, &svd.s);
     Ok(bv * svd.u.transpose())
+}
+
+/// A name that is not a [`Debias`]'s.
+fn debias_name_error(got: &str) -> String {
+    use strum::VariantNames as _;
+    format!("debias must be one of {}, got {got:?}", Debias::VARIANTS.join(", "))
 }

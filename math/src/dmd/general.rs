@@ -192,8 +192,4 @@ impl Dmd for GeneralDmd {
     fn dim(&self) -> usize {
         self.pairs.dim()
     }
-
-    fn boxed(&self) -> Box<dyn Dmd> {
-        Box::new(self.clone())
-    }
 }

@@ -37,8 +37,21 @@ use faer::{Mat, MatRef};
 use serde::{Deserialize, Serialize};
 
 /// What a forgetting factor multiplies at each update.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Serialize,
+    Deserialize,
+    Default,
+    strum::EnumString,
+    strum::Display,
+    strum::VariantNames,
+)]
 #[serde(rename_all = "kebab-case")]
+#[strum(serialize_all = "kebab-case", parse_err_ty = String, parse_err_fn = forgettingunit_name_error)]
 pub enum ForgettingUnit {
     /// Everything before an update, once per update (the paper's reading).
     #[default]
@@ -48,8 +61,21 @@ pub enum ForgettingUnit {
 }
 
 /// Which directions of the data forgetting applies to.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Serialize,
+    Deserialize,
+    Default,
+    strum::EnumString,
+    strum::Display,
+    strum::VariantNames,
+)]
 #[serde(rename_all = "kebab-case")]
+#[strum(serialize_all = "kebab-case", parse_err_ty = String, parse_err_fn = forgettingdirections_name_error)]
 pub enum ForgettingDirections {
     /// Only those the new batch excites (bounded).
     #[default]
@@ -63,28 +89,6 @@ pub enum ForgettingDirections {
 pub struct Forgetting {
     pub unit: ForgettingUnit,
     pub directions: ForgettingDirections,
-}
-
-impl std::str::FromStr for ForgettingUnit {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "batch" => Ok(Self::Batch),
-            "pair" => Ok(Self::Pair),
-            _ => Err(format!("forgetting must be batch or pair, got {s:?}")),
-        }
-    }
-}
-
-impl std::str::FromStr for ForgettingDirections {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "excited" => Ok(Self::Excited),
-            "all" => Ok(Self::All),
-            _ => Err(format!("forgetting directions must be excited or all, got {s:?}")),
-        }
-    }
 }
 
 impl From<ForgettingUnit> for Forgetting {
@@ -315,8 +319,22 @@ impl Dmd for LongTermDmd {
     fn dim(&self) -> usize {
         self.a.nrows()
     }
+}
 
-    fn boxed(&self) -> Box<dyn Dmd> {
-        Box::new(self.clone())
-    }
+/// A name that is not a [`ForgettingUnit`]'s.
+fn forgettingunit_name_error(got: &str) -> String {
+    use strum::VariantNames as _;
+    format!(
+        "forgetting must be one of {}, got {got:?}",
+        ForgettingUnit::VARIANTS.join(", ")
+    )
+}
+
+/// A name that is not a [`ForgettingDirections`]'s.
+fn forgettingdirections_name_error(got: &str) -> String {
+    use strum::VariantNames as _;
+    format!(
+        "forgetting directions must be one of {}, got {got:?}",
+        ForgettingDirections::VARIANTS.join(", ")
+    )
 }

@@ -29,8 +29,6 @@ pub use snapshots::SnapshotPairs;
 
 use faer::MatRef;
 use serde::{Deserialize, Serialize};
-use std::fmt;
-use std::str::FromStr;
 use thiserror::Error;
 
 #[derive(Debug, Error)]
@@ -63,34 +61,16 @@ impl DmdError {
 }
 
 /// Which update scheme a model uses.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, strum::EnumString, strum::Display, strum::VariantNames,
+)]
 #[serde(rename_all = "kebab-case")]
+#[strum(serialize_all = "kebab-case", parse_err_ty = String, parse_err_fn = method_name_error)]
 pub enum Method {
     Batch,
     General,
+    #[strum(to_string = "long-term", serialize = "longterm")]
     LongTerm,
-}
-
-impl fmt::Display for Method {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(match self {
-            Method::Batch => "batch",
-            Method::General => "general",
-            Method::LongTerm => "long-term",
-        })
-    }
-}
-
-impl FromStr for Method {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "batch" => Ok(Method::Batch),
-            "general" => Ok(Method::General),
-            "long-term" | "longterm" => Ok(Method::LongTerm),
-            _ => Err(format!("method must be batch, general or long-term, got {s:?}")),
-        }
-    }
 }
 
 /// Everything needed to start a model.
@@ -138,7 +118,7 @@ impl DmdConfig {
 }
 
 /// A DMD model that assimilates snapshot pairs and yields its eigendecomposition.
-pub trait Dmd: Send + Sync {
+pub trait Dmd: dyn_clone::DynClone + Send + Sync {
     fn method(&self) -> Method;
     /// Fold in new pairs: column `j` of `y_new` is the snapshot one step after column `j` of
     /// `x_new`. Any number of columns, including one.
@@ -151,20 +131,20 @@ pub trait Dmd: Send + Sync {
     fn pairs(&self) -> usize;
     /// State dimension `N`.
     fn dim(&self) -> usize;
-    /// A copy (a server keeps copies as checkpoints, to re-fit from the middle).
-    fn boxed(&self) -> Box<dyn Dmd>;
 }
 
-/// A boxed model copies through [`Dmd::boxed`], so what holds one can derive `Clone`.
-impl Clone for Box<dyn Dmd> {
-    fn clone(&self) -> Self {
-        self.boxed()
-    }
-}
+// A boxed model is `Clone` (a server keeps copies as checkpoints, to re-fit from the middle).
+dyn_clone::clone_trait_object!(Dmd);
 
 /// Split a snapshot sequence (columns, in time order) into the pairs `X = Z[:, :-1]`,
 /// `Y = Z[:, 1:]`.
 pub fn pairs_of(z: MatRef<'_, f64>) -> (MatRef<'_, f64>, MatRef<'_, f64>) {
     let m = z.ncols().saturating_sub(1);
     (z.subcols(0, m), z.subcols(1, m))
+}
+
+/// A name that is not a [`Method`]'s.
+fn method_name_error(got: &str) -> String {
+    use strum::VariantNames as _;
+    format!("method must be one of {}, got {got:?}", Method::VARIANTS.join(", "))
 }

@@ -171,7 +171,7 @@ pub fn save(
 ) -> Result<(), DatasetError> {
     let path = path.as_ref();
     let (n, t) = (field.dim(), field.frames());
-    let mut data = Vec::with_capacity(n * t);
+    let mut data: Vec<f64> = Vec::with_capacity(n * t);
     for k in 0..t {
         data.extend(field.snapshots.col(k).iter());
     }

@@ -5,9 +5,11 @@
 //! `MAX_DRAW_A` at full speed.
 
 /// A failsafe's action, numbered as ArduRover's `FENCE_ACTION` / `FS_ACTION`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, strum::EnumString)]
+#[strum(serialize_all = "lowercase")]
 pub enum Action {
-    /// Report only, and go on.
+    /// Report only, and go on (`report` in a mission file, as ArduPilot calls it).
+    #[strum(serialize = "continue", serialize = "report")]
     Continue = 0,
     /// Return to the nearest rally point (home without one).
     Rtl = 1,
@@ -28,12 +30,7 @@ impl Action {
 
     /// From a mission file's name for it.
     pub fn from_name(s: &str) -> Option<Self> {
-        match s {
-            "continue" | "report" => Some(Self::Continue),
-            "rtl" => Some(Self::Rtl),
-            "hold" => Some(Self::Hold),
-            _ => None,
-        }
+        s.parse().ok()
     }
 }
 

@@ -81,8 +81,11 @@ impl Default for PlasmaParams {
 }
 
 /// The three named clouds (the paper's names; parameters ours, see the README).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, strum::EnumString, strum::Display, strum::VariantNames,
+)]
 #[serde(rename_all = "kebab-case")]
+#[strum(serialize_all = "kebab-case", parse_err_ty = String, parse_err_fn = preset_name_error)]
 pub enum Preset {
     /// The specification's defaults: fingers by t ~ 20-25.
     Cloud1,
@@ -90,18 +93,6 @@ pub enum Preset {
     Cloud2,
     /// The most unstable: M = 5, twice the noise, frames further apart (t to ~30).
     Cloud10,
-}
-
-impl std::str::FromStr for Preset {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "cloud1" => Ok(Self::Cloud1),
-            "cloud2" => Ok(Self::Cloud2),
-            "cloud10" => Ok(Self::Cloud10),
-            _ => Err(format!("preset must be cloud1, cloud2 or cloud10, got {s:?}")),
-        }
-    }
 }
 
 impl Preset {
@@ -459,4 +450,10 @@ impl PlasmaCloud {
             snapshots,
         })
     }
+}
+
+/// A name that is not a [`Preset`]'s.
+fn preset_name_error(got: &str) -> String {
+    use strum::VariantNames as _;
+    format!("preset must be one of {}, got {got:?}", Preset::VARIANTS.join(", "))
 }
