@@ -315,7 +315,11 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("hetfleet-fence-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let plan = dir.join("f.plan");
-        std::fs::write(&plan, r#"{"fileType": "Plan", "geoFence": {"polygons": [{"inclusion": true, "polygon": [[55.0, 12.0], [55.0, 12.1], [55.1, 12.1]]}], "version": 2}}"#).unwrap();
+        let polygon = r#"[[55.0, 12.0], [55.0, 12.1], [55.1, 12.1]]"#;
+        let text = format!(
+            r#"{{"fileType": "Plan", "geoFence": {{"polygons": [{{"inclusion": true, "polygon": {polygon}}}], "version": 2}}}}"#
+        );
+        std::fs::write(&plan, text).unwrap();
         assert_eq!(
             read_latlon(&plan).unwrap(),
             vec![[55.0, 12.0], [55.0, 12.1], [55.1, 12.1]]

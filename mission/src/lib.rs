@@ -1,9 +1,9 @@
 //! hetfleet's mission without the network: what the nodes say to each other ([`protocol`]),
-//! what a mission and a team are ([`config`], [`team`], the [`roster`] of its vehicles), the epoch [`schedule`] every node
-//! agrees on, the model server's core ([`server`], with the [`assimilator`] that fuses and
-//! allocates), the vehicle's brain ([`vehicle`]), the server's events ([`events`]), and the
-//! secured configs ([`security`]). Pure and
-//! testable without a socket; the nodes wrap it.
+//! what a mission and a team are ([`config`], [`team`], the [`roster`] of its vehicles), the
+//! epoch [`schedule`] every node agrees on, the model server's core ([`server`], with the
+//! [`assimilator`] that fuses and allocates), the vehicle's brain ([`vehicle`]), the server's
+//! events ([`events`]), and the secured configs ([`security`]). Pure and testable without a
+//! socket; the nodes wrap it.
 //!
 //! The mathematics it stands on is re-exported from `fleet-math` at the root (`grid`, `dmd`,
 //! `sensing`, `fusion`, `process`, `npy`).

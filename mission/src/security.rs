@@ -147,9 +147,10 @@ pub fn access_control(mission: &MissionConfig, tls: bool) -> Result<Value, Proto
             declarations(OBSERVER),
         ],
     );
-    Ok(
-        json!({ "enabled": true, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies }),
-    )
+    Ok(json!({
+        "enabled": true, "default_permission": "deny",
+        "rules": rules, "subjects": subjects, "policies": policies
+    }))
 }
 
 /// Every user of the mission: the vehicles, the gateway and the observer.

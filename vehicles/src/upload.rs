@@ -134,9 +134,9 @@ mod tests {
     fn an_upload_answers_each_request_then_ends_on_the_ack_or_after_its_tries() {
         let poly = [[55.0, 12.0], [55.0, 12.001], [55.001, 12.001]];
         let mut u = Upload::new(MavMissionType::MAV_MISSION_TYPE_FENCE, fence_items(&poly));
-        assert!(
-            matches!(u.count(3), Some(MavMessage::MISSION_COUNT(c)) if c.count == 3 && c.mission_type == MavMissionType::MAV_MISSION_TYPE_FENCE && c.target_system == 3)
-        );
+        let fence = MavMissionType::MAV_MISSION_TYPE_FENCE;
+        assert!(matches!(u.count(3), Some(MavMessage::MISSION_COUNT(c))
+                if c.count == 3 && c.mission_type == fence && c.target_system == 3));
         let Some(MavMessage::MISSION_ITEM_INT(i)) = u.item(MavMissionType::MAV_MISSION_TYPE_FENCE, 2, 3) else {
             panic!()
         };

@@ -88,7 +88,9 @@ fn exchange(sock: &UdpSocket, port: u16, frame: &[u8], ms: u64) -> Vec<Vec<u8>> 
 }
 
 fn acks(frames: &[Vec<u8>]) -> usize {
-    frames.iter().filter(|f| matches!(parse_frame(f), Ok((_, MavMessage::COMMAND_ACK(a))) if a.command == MavCmd::MAV_CMD_COMPONENT_ARM_DISARM)).count()
+    let arm = MavCmd::MAV_CMD_COMPONENT_ARM_DISARM;
+    let acked = |f: &&Vec<u8>| matches!(parse_frame(f), Ok((_, MavMessage::COMMAND_ACK(a))) if a.command == arm);
+    frames.iter().filter(acked).count()
 }
 
 #[test]

@@ -128,8 +128,10 @@ fn simulate(args: Args) -> anyhow::Result<()> {
                 .get(args.case.wrapping_sub(1))
                 .with_context(|| format!("--case must be 1-4, got {}", args.case))?;
             let f = table1_field(case, Table1Profile::Cosh, args.noise, args.seed);
-            let meta = json!({"process": "table1", "case": args.case, "profile": "cosh", "noise_var": args.noise, "seed": args.seed,
-                "pairs": case.pairs, "grid": [case.ny, case.nx], "dt": f.dt});
+            let meta = json!({
+                "process": "table1", "case": args.case, "profile": "cosh", "noise_var": args.noise,
+                "seed": args.seed, "pairs": case.pairs, "grid": [case.ny, case.nx], "dt": f.dt
+            });
             (f, meta)
         }
         Process::EigStudy => {
@@ -149,7 +151,10 @@ fn simulate(args: Args) -> anyhow::Result<()> {
             }
             fleet::process::check_size(rows, cols, frames).map_err(|e| anyhow::anyhow!("--grid/--frames: {e}"))?;
             let f = plume_field(rows, cols, frames, args.noise, args.seed);
-            let meta = json!({"process": "plume", "grid": [rows, cols], "frames": frames, "noise_var": args.noise, "seed": args.seed, "dt": f.dt});
+            let meta = json!({
+                "process": "plume", "grid": [rows, cols], "frames": frames, "noise_var": args.noise,
+                "seed": args.seed, "dt": f.dt
+            });
             (f, meta)
         }
     };

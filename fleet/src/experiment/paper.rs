@@ -775,8 +775,8 @@ impl Report<'_> {
         )?;
         writeln!(
             md,
-            "Truth: the plasma-cloud simulator at {} x {}, {} frames, area-averaged by the boats' space rate to the model \
-                grid. \
+            "Truth: the plasma-cloud simulator at {} x {}, {} frames, area-averaged by the boats' space rate to the \
+                model grid. \
              Team: {} aerials, {} boats of radius {} simulator cells, {} DMD at rank `{}`, `{}` fusion, {} initial \
              aerial-only steps. \
              MSE is averaged over the grid at each step, then over the scored steps.\n",
@@ -807,8 +807,8 @@ impl Report<'_> {
             md,
             "Every team is scored over the same steps: from the first step where every team has data (the boat-only \
                 team's first sample, step `scored from`) to the end. \
-             No team is scored where it has no data. Seeds {seeds:?} vary the sensor noise, the vehicles' random streams \
-             and the random placement; every team of a seed sees the same truth and noise. \
+             No team is scored where it has no data. Seeds {seeds:?} vary the sensor noise, the vehicles' random \
+             streams and the random placement; every team of a seed sees the same truth and noise. \
              The truth is one simulated cloud per preset (seed {}), as the paper has one dataset per cloud.\n",
             res.config.seed
         )?;
@@ -1260,8 +1260,8 @@ impl Report<'_> {
             writeln!(md, "![fig8](fig8.png)\n")?;
             writeln!(
                 md,
-                "A forgetting factor keeps an effective memory of about `1/(1 - gamma)` updates (per batch) or pairs (per \
-                    pair). \
+                "A forgetting factor keeps an effective memory of about `1/(1 - gamma)` updates (per batch) or pairs \
+                    (per pair). \
                  With `N = 400` cells, a memory below ~400 pairs fits the operator to fewer pairs than it has unknowns \
                  per row, and its \
                  dominant eigenvalue follows the noise. Set `forgetting_unit = \"pair\"` in the experiment file for \

@@ -48,8 +48,8 @@ pub fn pod_basis_48x96(r: usize) -> Mat<f64> {
     thin_svd(z.as_ref()).expect("svd of a finite field").truncate(r).u
 }
 
-/// pysensors' `QR().fit(basis)` (which pivots the QR of `basis.T`, N columns) median milliseconds on `basis`, or `None` when Python or
-/// pysensors is missing (the reason goes to stderr).
+/// pysensors' `QR().fit(basis)` (which pivots the QR of `basis.T`, N columns) median milliseconds
+/// on `basis`, or `None` when Python or pysensors is missing (the reason goes to stderr).
 pub fn pysensors_qr_ms(basis: &Mat<f64>, repeats: usize) -> Option<f64> {
     let dir = std::env::temp_dir().join(format!("hetfleet-bench-{}", std::process::id()));
     std::fs::create_dir_all(&dir).ok()?;

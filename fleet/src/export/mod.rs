@@ -17,7 +17,11 @@ use std::path::{Path, PathBuf};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ExportError {
-    #[error("{}: not a finished run directory: it has no {what} (run `fleet up --out {}` first)", dir.display(), dir.display())]
+    #[error(
+        "{}: not a finished run directory: it has no {what} (run `fleet up --out {}` first)",
+        dir.display(),
+        dir.display()
+    )]
     Missing { dir: PathBuf, what: &'static str },
     #[error("{}: {why}", path.display())]
     Bad { path: PathBuf, why: String },

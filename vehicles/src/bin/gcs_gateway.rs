@@ -80,7 +80,14 @@ async fn run(args: Args) -> anyhow::Result<()> {
         .map(|v| Ok((v.id.clone(), mission.sysid(&v.id)?)))
         .collect::<anyhow::Result<_>>()?;
     let mut router = Router::new(systems);
-    info!(gcs = address, mission = mission.mission, systems = ?router.systems(), signed = gcs.signed(), "ground-station gateway up");
+    let (systems, signed) = (router.systems(), gcs.signed());
+    info!(
+        gcs = address,
+        mission = mission.mission,
+        ?systems,
+        signed,
+        "ground-station gateway up"
+    );
 
     // The ground station's frames (as they came, signature and all), or why the signing check
     // refused one, from the link's reader.

@@ -3,8 +3,8 @@
 //!
 //! | event | what it does |
 //! |---|---|
-//! | a read from the link (its reader thread) | counts it, updates the state, answers the autopilot's side of an upload, forwards the frame to the ground-station side, advances the set-up |
-//! | a command from the node (`mpsc`) | a guided target (routed round the fence), a failsafe mode, GUIDED again, a ground station's frame |
+//! | a read from the link | counts it, updates the state, answers an upload, forwards it, advances the set-up |
+//! | a command from the node | a guided target (routed round the fence), a failsafe, GUIDED, a GCS frame |
 //! | the 1 Hz tick | the companion's HEARTBEAT; set-up steps not yet answered are asked again |
 //! | the heartbeat timeout | the autopilot is lost |
 //!
