@@ -100,7 +100,7 @@ fn shuffled_and_repeated_batches_give_the_offline_result() {
         .map(|(k, s)| s.iter().zip(x(k)).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / s.len() as f64)
         .collect();
     assert_eq!(mse, offline.heterogeneous);
-    assert_eq!(server.ack("av-1").unwrap().seq, e - 1);
+    assert_eq!(server.ack(&"av-1".parse().unwrap()).unwrap().seq, e - 1);
     assert!(
         brains.iter().all(|b| b.off_target == 0),
         "every vehicle reached its targets"
@@ -188,7 +188,7 @@ fn bad_batches_are_rejected_and_counted() {
     };
     let mut server = ServerCore::new(&cfg, grid, 20).unwrap();
     let b = |id: &str, kind, seq, steps: Vec<u64>| MeasurementBatch {
-        vehicle: id.into(),
+        vehicle: id.parse().unwrap(),
         kind,
         seq,
         noise: Noise {
@@ -235,7 +235,7 @@ fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
     let server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
     let mut av = VehicleBrain::new(
-        "av-1",
+        &"av-1".parse().unwrap(),
         VehicleKind::Aerial,
         grid,
         *server.schedule(),
@@ -247,7 +247,7 @@ fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
     assert!(av.sense_epoch(0, x).is_err());
     // Epoch 0's plan with a horizon of 3 epochs: the aerial senses epochs 0, 1 and 2 without
     // hearing from the server again, with gap-free seqs; epoch 3 is beyond the horizon.
-    av.set_plan(server.plan("av-1", 0, 3).unwrap());
+    av.set_plan(server.plan(&"av-1".parse().unwrap(), 0, 3).unwrap());
     for e in 0..3 {
         assert!(av.covers(e));
         let b = av.sense_epoch(e, x).unwrap().unwrap();
@@ -260,7 +260,7 @@ fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
     assert!(!av.covers(3));
     // A vehicle restarted from a committed state draws exactly what it would have drawn.
     let mut again = VehicleBrain::new(
-        "av-1",
+        &"av-1".parse().unwrap(),
         VehicleKind::Aerial,
         grid,
         *server.schedule(),
@@ -269,7 +269,7 @@ fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
         1e3,
     );
     let mut first = VehicleBrain::new(
-        "av-1",
+        &"av-1".parse().unwrap(),
         VehicleKind::Aerial,
         grid,
         *server.schedule(),
@@ -277,7 +277,7 @@ fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
         vehicle_rng(cfg.seed, 0),
         1e3,
     );
-    first.set_plan(server.plan("av-1", 0, 3).unwrap());
+    first.set_plan(server.plan(&"av-1".parse().unwrap(), 0, 3).unwrap());
     first.sense_epoch(0, x).unwrap();
     again.restore(first.state(1));
     assert_eq!(again.sense_epoch(1, x).unwrap(), first.sense_epoch(1, x).unwrap());
@@ -285,7 +285,7 @@ fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
     // A stale plan never replaces a newer one.
     let newer = fleet::protocol::Plan {
         model_version: 5,
-        ..server.plan("av-1", 0, 3).unwrap()
+        ..server.plan(&"av-1".parse().unwrap(), 0, 3).unwrap()
     };
     av.set_plan(newer.clone());
     av.set_plan(fleet::protocol::Plan {
@@ -333,10 +333,10 @@ fn a_boat_away(
             }
         }
         if away.contains(&e) {
-            assert!(server.waiting_for().contains(&"boat-2".to_string()));
+            assert!(server.waiting_for().contains(&"boat-2".parse().unwrap()));
             assert!(server.force().unwrap(), "epoch {e} assimilated without boat-2");
             assert_eq!(
-                server.ack("boat-2").unwrap().seq,
+                server.ack(&"boat-2".parse().unwrap()).unwrap().seq,
                 away.start() - 2,
                 "boat-2's ack stops before its gap"
             );
@@ -353,7 +353,7 @@ fn a_boat_away(
 /// The same batches fed in step order to a fresh server give the same model and snapshots.
 fn equals_offline(server: &ServerCore, mut all: Vec<MeasurementBatch>, mut offline: ServerCore) {
     let last = server.schedule().last_seq(VehicleKind::Boat).unwrap();
-    assert_eq!(server.ack("boat-2").unwrap().seq, last);
+    assert_eq!(server.ack(&"boat-2".parse().unwrap()).unwrap().seq, last);
     all.sort_by_key(|b| {
         (
             fleet::mission::schedule::Schedule::epoch_of(b.kind, b.seq),
@@ -411,8 +411,11 @@ fn vehicles_on_hold_are_left_out_and_their_empty_batches_accepted() {
     while !server.finished() {
         if e == 1 {
             // The operator holds one aerial and one boat: from the next allocation on, out.
-            assert!(server.set_available("av-2", false) && server.set_available("boat-2", false));
-            assert!(!server.set_available("boat-2", false), "no change");
+            assert!(
+                server.set_available(&"av-2".parse().unwrap(), false)
+                    && server.set_available(&"boat-2".parse().unwrap(), false)
+            );
+            assert!(!server.set_available(&"boat-2".parse().unwrap(), false), "no change");
         }
         for brain in &mut brains {
             brain.set_plan(server.plan(&brain.id, e, 1).unwrap());
@@ -434,7 +437,7 @@ fn vehicles_on_hold_are_left_out_and_their_empty_batches_accepted() {
             alloc.boats[1].is_none() && alloc.boats[0].is_some() && alloc.boats[2].is_some(),
             "the other boats get the disks"
         );
-        let p = server.plan("av-1", e, 1).unwrap();
+        let p = server.plan(&"av-1".parse().unwrap(), e, 1).unwrap();
         let lattice = grid.strided(3).unwrap();
         assert_eq!(
             p.targets[0].cells.len(),
@@ -442,7 +445,7 @@ fn vehicles_on_hold_are_left_out_and_their_empty_batches_accepted() {
             "the other aerial covers the whole lattice"
         );
         assert!(server
-            .plan("av-2", e, 1)
+            .plan(&"av-2".parse().unwrap(), e, 1)
             .unwrap()
             .targets
             .iter()
@@ -495,8 +498,11 @@ fn a_mission_with_holds(kills: &[u64]) -> ServerCore {
     let mut e = 0u64;
     while !server.finished() {
         match e {
-            1 => assert!(server.set_available("av-2", false) && server.set_available("boat-2", false)),
-            3 => assert!(server.set_available("boat-2", true)),
+            1 => assert!(
+                server.set_available(&"av-2".parse().unwrap(), false)
+                    && server.set_available(&"boat-2".parse().unwrap(), false)
+            ),
+            3 => assert!(server.set_available(&"boat-2".parse().unwrap(), true)),
             _ => {}
         }
         for brain in &mut brains {
@@ -577,7 +583,7 @@ fn an_empty_batch_is_a_vehicle_that_sensed_nothing_except_an_aerial_the_first_mo
     let (_, grid, cfg) = plume_team();
     let mut server = ServerCore::new(&cfg, grid, 42).unwrap();
     let empty = |id: &str, kind, seq| MeasurementBatch {
-        vehicle: id.into(),
+        vehicle: id.parse().unwrap(),
         kind,
         seq,
         noise: Noise {
@@ -647,14 +653,14 @@ fn boats_redirected_for_an_epoch_sense_the_new_disks() {
             server
                 .redirect_boats(e, vec![None, Some((disk.clone(), (12, 24))), None])
                 .unwrap();
-            let plan = server.plan("boat-2", e, 1).unwrap();
+            let plan = server.plan(&"boat-2".parse().unwrap(), e, 1).unwrap();
             assert!(plan
                 .targets
                 .iter()
                 .all(|t| t.cells.iter().map(|&c| c as usize).eq(disk.iter().copied())));
             assert!(
                 server
-                    .plan("boat-1", e, 1)
+                    .plan(&"boat-1".parse().unwrap(), e, 1)
                     .unwrap()
                     .targets
                     .iter()

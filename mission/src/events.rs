@@ -1,6 +1,7 @@
 //! What the model server tells whoever started it (`fleet up`, a test, a field operator's
 //! script): one JSON event per line on stdout as the mission goes, and a summary at the end.
 
+use crate::protocol::VehicleId;
 use crate::server::Counters;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -13,13 +14,13 @@ pub enum ServerEvent {
     Ready {
         mission: String,
         epochs: u64,
-        vehicles: Vec<String>,
+        vehicles: Vec<VehicleId>,
         /// Where the first epoch's formation sends each vehicle (grid metres).
         #[serde(default)]
-        places: std::collections::BTreeMap<String, [f64; 2]>,
+        places: std::collections::BTreeMap<VehicleId, [f64; 2]>,
     },
     /// A liveliness token appeared (`alive`) or went away.
-    Link { vehicle: String, alive: bool },
+    Link { vehicle: VehicleId, alive: bool },
     /// An epoch entered the model.
     Epoch {
         epoch: u64,
@@ -31,30 +32,38 @@ pub enum ServerEvent {
         batches: u64,
         /// Vehicles left out of the next epoch's allocation (operator hold, autopilot lost).
         #[serde(default)]
-        held: Vec<String>,
+        held: Vec<VehicleId>,
         /// Where the next epoch's allocation sends each vehicle that senses (grid metres).
         #[serde(default)]
-        places: std::collections::BTreeMap<String, [f64; 2]>,
+        places: std::collections::BTreeMap<VehicleId, [f64; 2]>,
         /// Vehicles it was assimilated without (late: their batches will re-fit it).
         #[serde(default)]
-        missing: Vec<String>,
+        missing: Vec<VehicleId>,
     },
     /// A late batch (of an epoch assimilated without it) is in the model: re-fitted and
     /// published as `version`.
-    Late { vehicle: String, epoch: u64, version: u64 },
+    Late {
+        vehicle: VehicleId,
+        epoch: u64,
+        version: u64,
+    },
     /// A vehicle left the allocation (its autopilot is on operator hold or lost) or came back.
-    Hold { vehicle: String, held: bool, mode: String },
+    Hold {
+        vehicle: VehicleId,
+        held: bool,
+        mode: String,
+    },
     /// A batch of a mission vehicle was refused: its epoch cannot complete with it (the
     /// vehicle re-sends the same batch), so a mission waiting for it will not finish.
     Refused {
-        vehicle: String,
+        vehicle: VehicleId,
         seq: u64,
         reason: String,
         detail: String,
     },
     /// A vehicle says the server acknowledged batches the journal does not hold (a journal
     /// deleted, replaced or rolled back): they are lost, and the epochs that need them wait.
-    Lost { vehicle: String, seqs: Vec<u64> },
+    Lost { vehicle: VehicleId, seqs: Vec<u64> },
     /// Every step is in the model.
     Finished { summary: Box<ServerSummary> },
 }
@@ -93,7 +102,7 @@ impl Percentiles {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ServerSummary {
     pub mission: String,
-    pub vehicles: Vec<String>,
+    pub vehicles: Vec<VehicleId>,
     pub epochs: u64,
     pub model_version: u64,
     pub rank: usize,
@@ -106,7 +115,7 @@ pub struct ServerSummary {
     /// The final model's discrete-time eigenvalues `[re, im]`.
     pub eigenvalues: Vec<[f64; 2]>,
     /// Times each vehicle's liveliness token appeared (1: never lost).
-    pub link_ups: BTreeMap<String, u64>,
+    pub link_ups: BTreeMap<VehicleId, u64>,
     pub wall_s: f64,
     /// Seconds of the field's own time between steps (the time axis of `estimate.npy`).
     #[serde(default)]
@@ -125,7 +134,7 @@ pub struct PublishedPlans {
 /// One vehicle's plan as published at `epoch`: where it senses at each sampling step.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PlanPlaces {
-    pub vehicle: String,
+    pub vehicle: crate::protocol::VehicleId,
     pub kind: crate::protocol::VehicleKind,
     pub epoch: u64,
     /// `(epoch, step, [x, y] grid metres, radius in cells)`; a radius of 0 senses nothing.
@@ -148,7 +157,7 @@ mod tests {
     #[test]
     fn events_are_one_json_object_each() {
         let e = ServerEvent::Link {
-            vehicle: "boat-1".into(),
+            vehicle: "boat-1".parse::<VehicleId>().unwrap(),
             alive: true,
         };
         let line = serde_json::to_string(&e).unwrap();

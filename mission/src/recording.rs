@@ -43,7 +43,10 @@ pub enum CoreOp {
     /// `ServerCore::force` (an epoch timed out).
     Force,
     /// `ServerCore::set_available` from a vehicle's telemetry.
-    Available { vehicle: String, available: bool },
+    Available {
+        vehicle: crate::protocol::VehicleId,
+        available: bool,
+    },
 }
 
 #[derive(Debug, thiserror::Error)]

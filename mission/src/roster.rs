@@ -3,50 +3,15 @@
 //! id) and its slot among its own kind. Every "which vehicle is this" question goes through
 //! here, so the aerials-first convention is written once.
 
-use crate::protocol::{keys::check_id, ProtocolError, VehicleKind};
+pub use crate::protocol::VehicleId;
+use crate::protocol::VehicleKind;
 use crate::team::TeamConfig;
 use std::collections::BTreeMap;
-
-/// A vehicle id from outside (a command line, a message): 1-32 characters of `A-Z a-z 0-9 _ -`,
-/// so it is safe inside a key expression and a file name.
-#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub struct VehicleId(String);
-
-impl VehicleId {
-    pub fn new(id: &str) -> Result<Self, ProtocolError> {
-        check_id("vehicle", id)?;
-        Ok(Self(id.to_string()))
-    }
-
-    pub fn as_str(&self) -> &str {
-        &self.0
-    }
-}
-
-impl std::str::FromStr for VehicleId {
-    type Err = ProtocolError;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        Self::new(s)
-    }
-}
-
-impl std::ops::Deref for VehicleId {
-    type Target = str;
-    fn deref(&self) -> &str {
-        &self.0
-    }
-}
-
-impl std::fmt::Display for VehicleId {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(&self.0)
-    }
-}
 
 /// One vehicle of the mission.
 #[derive(Debug, Clone, PartialEq)]
 pub struct VehicleSpec {
-    pub id: String,
+    pub id: VehicleId,
     pub kind: VehicleKind,
     /// Its place in the roster (aerials first).
     pub index: usize,
@@ -58,14 +23,14 @@ pub struct VehicleSpec {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Roster {
     vehicles: Vec<VehicleSpec>,
-    by_id: BTreeMap<String, usize>,
+    by_id: BTreeMap<VehicleId, usize>,
     aerials: usize,
 }
 
 impl Roster {
     pub fn of(cfg: &TeamConfig) -> Self {
         let spec = |index, kind, slot, prefix: &str| VehicleSpec {
-            id: format!("{prefix}-{}", slot + 1),
+            id: VehicleId::new(&format!("{prefix}-{}", slot + 1)).expect("av-N and boat-N are ids"),
             kind,
             index,
             slot,
@@ -107,7 +72,7 @@ impl Roster {
         &self.vehicles[index]
     }
 
-    pub fn ids(&self) -> Vec<String> {
+    pub fn ids(&self) -> Vec<VehicleId> {
         self.vehicles.iter().map(|v| v.id.clone()).collect()
     }
 

@@ -155,7 +155,7 @@ pub fn access_control(mission: &MissionConfig, tls: bool) -> Result<Value, Proto
 
 /// Every user of the mission: the vehicles, the gateway and the observer.
 pub fn users(mission: &MissionConfig) -> Vec<String> {
-    let mut u: Vec<String> = mission.vehicles().into_iter().map(|v| v.id).collect();
+    let mut u: Vec<String> = mission.vehicles().into_iter().map(|v| v.id.into()).collect();
     u.extend([GATEWAY.to_string(), OBSERVER.to_string()]);
     u
 }

@@ -8,7 +8,7 @@
 //! without a disk sends an empty batch). An epoch is complete when every batch for it is in.
 
 use crate::grid::Grid;
-use crate::protocol::{self, Ack, MeasurementBatch, ModelUpdate, Plan, Sample, Target, VehicleKind};
+use crate::protocol::{self, Ack, MeasurementBatch, ModelUpdate, Plan, Sample, Target, VehicleId, VehicleKind};
 use crate::team::{LearnFrom, TeamConfig, TeamError};
 use crate::{schedule::Schedule, Allocation, Assimilator};
 use std::collections::{BTreeMap, BTreeSet};
@@ -46,7 +46,7 @@ pub enum IngestError {
     #[error(transparent)]
     Protocol(#[from] protocol::ProtocolError),
     #[error("batch from {vehicle}: {why}")]
-    Rejected { vehicle: String, why: String },
+    Rejected { vehicle: VehicleId, why: String },
     #[error(transparent)]
     Model(#[from] TeamError),
 }
@@ -57,7 +57,7 @@ pub enum IngestError {
 /// batches, so a restarted server makes the same plans and reaches the same epoch.
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct EpochRecord {
-    pub held: Vec<String>,
+    pub held: Vec<VehicleId>,
     pub forced: bool,
 }
 
@@ -76,7 +76,7 @@ pub enum RestoreError {
     #[error("record {key:?} names {vehicle:?}, which is not in the mission")]
     UnknownVehicle { key: String, vehicle: String },
     #[error("batch {seq} of {vehicle}: {why}")]
-    Batch { vehicle: String, seq: u64, why: String },
+    Batch { vehicle: VehicleId, seq: u64, why: String },
     #[error(transparent)]
     Model(#[from] TeamError),
 }
@@ -203,13 +203,13 @@ impl ServerCore {
 
     /// Vehicles whose batch for epoch `e` has not come in (for an assimilated epoch: the ones it
     /// was assimilated without).
-    pub fn missing_at(&self, e: u64) -> Vec<String> {
+    pub fn missing_at(&self, e: u64) -> Vec<VehicleId> {
         self.missing(e).map(|i| self.vehicles.at(i).id.clone()).collect()
     }
 
     /// Vehicles whose batch for the next epoch, or for an epoch assimilated without it, has
     /// not come in.
-    pub fn waiting_for(&self) -> Vec<String> {
+    pub fn waiting_for(&self) -> Vec<VehicleId> {
         let mut ids: Vec<usize> = (0..=self.epoch)
             .flat_map(|e| self.missing(e).collect::<Vec<_>>())
             .collect();
@@ -313,7 +313,7 @@ impl ServerCore {
 
     /// Whether the planner may allocate a vehicle (from its telemetry); takes effect at the next
     /// allocation. Returns whether it changed.
-    pub fn set_available(&mut self, vehicle: &str, available: bool) -> bool {
+    pub fn set_available(&mut self, vehicle: &VehicleId, available: bool) -> bool {
         let Some(index) = self.vehicles.index_of(vehicle) else {
             return false;
         };
@@ -325,21 +325,21 @@ impl ServerCore {
     }
 
     /// Vehicles left out of the next allocation.
-    pub fn held(&self) -> Vec<String> {
+    pub fn held(&self) -> Vec<VehicleId> {
         self.held.iter().map(|&i| self.vehicles.at(i).id.clone()).collect()
     }
 
     /// Vehicles left out of epoch `e`'s allocation.
-    pub fn held_at(&self, e: u64) -> Vec<String> {
+    pub fn held_at(&self, e: u64) -> Vec<VehicleId> {
         self.holds.get(&e).map_or_else(Vec::new, |h| {
             h.iter().map(|&i| self.vehicles.at(i).id.clone()).collect()
         })
     }
 
-    fn reject(&mut self, vehicle: &str, why: String) -> IngestError {
+    fn reject(&mut self, vehicle: &VehicleId, why: String) -> IngestError {
         *self.counters.rejected.entry("invalid_batch".into()).or_default() += 1;
         IngestError::Rejected {
-            vehicle: vehicle.into(),
+            vehicle: vehicle.clone(),
             why,
         }
     }
@@ -377,7 +377,7 @@ impl ServerCore {
             }
             Err(BatchFault::Unknown) => {
                 *self.counters.rejected.entry("unknown_vehicle".into()).or_default() += 1;
-                return Err(protocol::ProtocolError::UnknownVehicle(batch.vehicle).into());
+                return Err(protocol::ProtocolError::UnknownVehicle(batch.vehicle.to_string()).into());
             }
             Err(BatchFault::Invalid(why)) => return Err(self.reject(&batch.vehicle, why)),
         };
@@ -489,7 +489,7 @@ impl ServerCore {
                     .index_of(&id)
                     .ok_or_else(|| RestoreError::UnknownVehicle {
                         key: key.clone(),
-                        vehicle: id.clone(),
+                        vehicle: id.to_string(),
                     })?;
                 held.insert(i);
             }
@@ -670,7 +670,7 @@ impl ServerCore {
     /// its sampling steps of epochs `e .. e + horizon`, all under epoch `e`'s allocation (the
     /// model's spatial modes, and so the disks, stay until the next update; a vehicle cut off
     /// from the server keeps following the later targets).
-    pub fn plan(&self, vehicle: &str, e: u64, horizon: u64) -> Option<Plan> {
+    pub fn plan(&self, vehicle: &VehicleId, e: u64, horizon: u64) -> Option<Plan> {
         let &VehicleSpec { index, kind, slot, .. } = self.vehicles.get(vehicle)?;
         let alloc = self.allocation(e)?;
         let grid = self.assim.grid();
@@ -705,7 +705,7 @@ impl ServerCore {
             })
             .collect();
         Some(Plan {
-            vehicle: vehicle.into(),
+            vehicle: vehicle.clone(),
             model_version: self.version,
             epoch: e,
             targets,
@@ -715,7 +715,7 @@ impl ServerCore {
     /// The seqs `0..=through` of `vehicle` this server does not hold (empty for an unknown
     /// vehicle). A vehicle has dropped every batch the server acknowledged, so after a restart
     /// any of them missing means the journal lost data.
-    pub fn lacks_through(&self, vehicle: &str, through: u64) -> Vec<u64> {
+    pub fn lacks_through(&self, vehicle: &VehicleId, through: u64) -> Vec<u64> {
         let Some(index) = self.vehicles.index_of(vehicle) else {
             return vec![];
         };
@@ -743,7 +743,7 @@ impl ServerCore {
 
     /// The ack of a vehicle: the highest seq up to which all of its batches are in the model
     /// (`None` before its first).
-    pub fn ack(&self, vehicle: &str) -> Option<Ack> {
+    pub fn ack(&self, vehicle: &VehicleId) -> Option<Ack> {
         let index = self.vehicles.index_of(vehicle)?;
         let kind = self.vehicles.at(index).kind;
         let mut seq = None;
@@ -757,7 +757,7 @@ impl ServerCore {
             seq = Some(s);
         }
         Some(Ack {
-            vehicle: vehicle.into(),
+            vehicle: vehicle.clone(),
             seq: seq?,
         })
     }

@@ -9,7 +9,7 @@
 
 use crate::fusion::{sense_cells, AerialNoise, FusionError};
 use crate::grid::Grid;
-use crate::protocol::{MeasurementBatch, Plan, Sample, Target, VehicleKind};
+use crate::protocol::{MeasurementBatch, Plan, Sample, Target, VehicleId, VehicleKind};
 use crate::schedule::Schedule;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -68,7 +68,7 @@ pub struct Fix {
 
 #[derive(Clone)]
 pub struct VehicleBrain {
-    pub id: String,
+    pub id: VehicleId,
     pub kind: VehicleKind,
     grid: Grid,
     schedule: Schedule,
@@ -85,7 +85,7 @@ pub struct VehicleBrain {
 
 impl VehicleBrain {
     pub fn new(
-        id: &str,
+        id: &VehicleId,
         kind: VehicleKind,
         grid: Grid,
         schedule: Schedule,
@@ -94,7 +94,7 @@ impl VehicleBrain {
         speed: f64,
     ) -> Self {
         Self {
-            id: id.into(),
+            id: id.clone(),
             kind,
             grid,
             schedule,

@@ -8,7 +8,7 @@ use fleet_exit::bad_input;
 use fleet_mission::config::MissionConfig;
 use fleet_mission::events::{Percentiles, ServerEvent, ServerSummary};
 use fleet_mission::process::FieldSeries;
-use fleet_mission::protocol::{self, keys::Keys, Body, Context, ServerStatus};
+use fleet_mission::protocol::{self, keys::Keys, Body, Context, ServerStatus, VehicleId};
 use fleet_mission::recording::{self, CoreOp, Recorder, RecordingError};
 use fleet_mission::server::{EpochRecord, IngestError, Ingested, ServerCore};
 use fleet_net::store::{Store, StoreError};
@@ -26,8 +26,8 @@ struct Server {
     ctx: Context,
     truth: FieldSeries,
     events: bool,
-    alive: BTreeSet<String>,
-    link_ups: BTreeMap<String, u64>,
+    alive: BTreeSet<VehicleId>,
+    link_ups: BTreeMap<VehicleId, u64>,
     latencies: Vec<f64>,
     mse: Vec<f64>,
     /// Every accepted batch, durably, before it is acknowledged: the model is a pure function
@@ -38,9 +38,9 @@ struct Server {
     started: Instant,
     /// Late batches (vehicle, seq, epoch) taken but not yet re-fitted: a backlog arrives as a
     /// burst, re-fitted once after it.
-    late: Vec<(String, u64, u64)>,
+    late: Vec<(VehicleId, u64, u64)>,
     /// Vehicles already reported as having batches the journal lost.
-    lost_reported: BTreeSet<String>,
+    lost_reported: BTreeSet<VehicleId>,
     /// The mission's recording (`--record`): traffic and the core's operations. A recording
     /// that cannot be written is dropped with one warning; the mission goes on.
     recorder: std::sync::Mutex<Option<Recorder<std::io::BufWriter<std::fs::File>>>>,
@@ -204,7 +204,7 @@ impl Server {
             Err(IngestError::Rejected { why, .. }) => {
                 self.log_refusal("invalid_batch", format!("{key}: {why}"));
                 error!(
-                    vehicle,
+                    %vehicle,
                     seq, "batch refused: {why}; the vehicle re-sends the same batch, so its epoch cannot complete"
                 );
                 self.event(&ServerEvent::Refused {
@@ -252,7 +252,7 @@ impl Server {
             self.model_changed(session, done, t0, true).await?;
         }
         for (vehicle, seq, e) in std::mem::take(&mut self.late) {
-            info!(vehicle, seq, epoch = e, "late batch: model re-fitted with it");
+            info!(%vehicle, seq, epoch = e, "late batch: model re-fitted with it");
             self.event(&ServerEvent::Late {
                 vehicle,
                 epoch: e,
@@ -365,7 +365,7 @@ impl Server {
         Ok(())
     }
 
-    async fn ack(&self, session: &zenoh::Session, vehicle: &str) -> anyhow::Result<()> {
+    async fn ack(&self, session: &zenoh::Session, vehicle: &VehicleId) -> anyhow::Result<()> {
         if let Some(a) = self.core.ack(vehicle) {
             self.put(session, &self.keys.ack(vehicle), &Body::Ack(a)).await?;
         }
@@ -376,7 +376,10 @@ impl Server {
     /// does not exist yet (the vehicle asks again).
     async fn on_plan_query(&mut self, q: zenoh::query::Query) {
         let key = q.key_expr().as_str().to_string();
-        let id = self.keys.id_after(&key, "plan");
+        let id = self
+            .keys
+            .id_after(&key, "plan")
+            .and_then(|id| id.parse::<VehicleId>().ok());
         let epoch = q.parameters().get("epoch").and_then(|e| e.parse::<u64>().ok());
         let reply = match (id, epoch) {
             (Some(id), Some(e)) => match self.core.plan(&id, e, self.mission.pace.horizon) {
@@ -419,7 +422,11 @@ impl Server {
     }
 
     fn on_liveliness(&mut self, key: &str, kind: SampleKind) {
-        let Some(id) = self.keys.id_after(key, "alive") else {
+        let Some(id) = self
+            .keys
+            .id_after(key, "alive")
+            .and_then(|id| id.parse::<VehicleId>().ok())
+        else {
             return;
         };
         if !self.core.vehicles().iter().any(|v| v.id == id) {
@@ -435,7 +442,7 @@ impl Server {
             if up {
                 *self.link_ups.entry(id.clone()).or_default() += 1;
             }
-            info!(vehicle = id, alive = up, "link");
+            info!(vehicle = %id, alive = up, "link");
             self.event(&ServerEvent::Link { vehicle: id, alive: up });
         }
     }
@@ -455,7 +462,7 @@ impl Server {
         if let Some(acked) = t.acked {
             let lacking = self.core.lacks_through(&t.vehicle, acked);
             if !lacking.is_empty() && self.lost_reported.insert(t.vehicle.clone()) {
-                error!(vehicle = t.vehicle, acked, lost = ?lacking, journal = %self.journal.path().display(), "the \
+                error!(vehicle = %t.vehicle, acked, lost = ?lacking, journal = %self.journal.path().display(), "the \
                     vehicle says these batches were acknowledged, but the journal does not hold them: the journal was \
                     deleted, replaced or rolled back, and the epochs that need them cannot complete");
                 self.core.counters.lost += lacking.len() as u64;
@@ -481,7 +488,7 @@ impl Server {
                 )
             });
             info!(
-                vehicle = t.vehicle,
+                vehicle = %t.vehicle,
                 held = !available,
                 mode,
                 "allocation: {} from the next epoch",
@@ -516,7 +523,7 @@ impl Server {
 }
 
 /// Where epoch `e`'s allocation sends each vehicle that senses.
-fn places_at(core: &ServerCore, e: u64) -> BTreeMap<String, [f64; 2]> {
+fn places_at(core: &ServerCore, e: u64) -> BTreeMap<VehicleId, [f64; 2]> {
     core.vehicles()
         .iter()
         .filter_map(|v| {

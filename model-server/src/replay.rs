@@ -83,7 +83,7 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
             }
             key if keys.id_after(key, "plan").is_some() => {
                 if let Ok(Body::Plan(p)) = protocol::decode(&m.data, &ctx) {
-                    plan_replies.insert((p.vehicle, p.epoch), m.data.clone());
+                    plan_replies.insert((p.vehicle.to_string(), p.epoch), m.data.clone());
                 }
             }
             key => {

@@ -189,7 +189,7 @@ fn boats_whose_links_drop_on_random_schedules_lose_nothing() {
                 ..
             } => {
                 for (b, id) in boats.iter().enumerate() {
-                    if without.contains(id) {
+                    if without.iter().any(|w| w == id) {
                         missing[b].insert(epoch);
                     }
                     let out_now = plans[b].iter().any(|&(s, e)| epoch >= s && epoch < e);
@@ -301,7 +301,7 @@ fn thirty_percent_loss_with_reordering_on_every_link() {
         .unwrap()
         .vehicles()
         .into_iter()
-        .map(|v| v.id)
+        .map(|v| v.id.into())
         .collect();
     let hosts: Vec<LossyHost> = (0..ids.len())
         .map(|i| {

@@ -33,7 +33,7 @@ fn planned(run_dir: &Path) -> Vec<([f64; 2], Vec<u32>, String)> {
             Body::Plan(p) => p
                 .targets
                 .into_iter()
-                .map(move |t| (t.position, t.cells, p.vehicle.clone()))
+                .map(move |t| (t.position, t.cells, p.vehicle.to_string()))
                 .collect::<Vec<_>>(),
             other => panic!("a plan reply that is not a plan: {other:?}"),
         })

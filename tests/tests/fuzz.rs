@@ -83,7 +83,7 @@ fn fuzz_n(name: &str, seeds: &[Vec<u8>], cases: u32, check: impl Fn(&[u8]) -> Re
 
 fn ctx() -> Context {
     let mut c = Context::new(Grid::new(6, 8, 1.0).unwrap());
-    c.vehicles = vec!["boat-1".into(), "av-1".into()];
+    c.vehicles = vec!["boat-1".parse().unwrap(), "av-1".parse().unwrap()];
     c
 }
 
@@ -92,7 +92,7 @@ fn wire_seeds() -> Vec<Vec<u8>> {
     let n = g.len();
     let bodies = [
         Body::Batch(MeasurementBatch {
-            vehicle: "boat-1".into(),
+            vehicle: "boat-1".parse().unwrap(),
             kind: VehicleKind::Boat,
             seq: 3,
             noise: Noise {
@@ -107,7 +107,7 @@ fn wire_seeds() -> Vec<Vec<u8>> {
             }],
         }),
         Body::Telemetry(Telemetry {
-            vehicle: "av-1".into(),
+            vehicle: "av-1".parse().unwrap(),
             step: 2,
             position: [0.0, 4.0],
             heading: 1.0,
@@ -127,7 +127,7 @@ fn wire_seeds() -> Vec<Vec<u8>> {
             acked: Some(4),
         }),
         Body::Ack(Ack {
-            vehicle: "boat-1".into(),
+            vehicle: "boat-1".parse().unwrap(),
             seq: 9,
         }),
         Body::Model(ModelUpdate {
@@ -146,7 +146,7 @@ fn wire_seeds() -> Vec<Vec<u8>> {
             estimate: vec![0.3; n],
         }),
         Body::Plan(Plan {
-            vehicle: "boat-1".into(),
+            vehicle: "boat-1".parse().unwrap(),
             model_version: 1,
             epoch: 3,
             targets: vec![Target {

@@ -37,7 +37,7 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
     let st = state.to_str().unwrap();
 
     let mut procs = Procs::default();
-    let vehicles: Vec<String> = m.vehicles().iter().map(|v| v.id.clone()).collect();
+    let vehicles: Vec<String> = m.vehicles().iter().map(|v| v.id.to_string()).collect();
     let spec: Vec<String> = m
         .vehicles()
         .iter()
@@ -195,7 +195,7 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
     for e in &events {
         if let ServerEvent::Epoch { places: p, .. } | ServerEvent::Ready { places: p, .. } = e {
             for (v, xy) in p {
-                places.entry(v.clone()).or_default().push(*xy);
+                places.entry(v.to_string()).or_default().push(*xy);
             }
         }
     }

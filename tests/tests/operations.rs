@@ -623,7 +623,7 @@ fn a_batch_that_decodes_but_is_invalid_is_counted_once_in_the_status() {
         let session = fleet_net::open(cfg).await.unwrap();
         let statuses = session.declare_subscriber(keys.server_status()).await.unwrap();
         let batch = |kind, steps: Vec<u64>| MeasurementBatch {
-            vehicle: "boat-1".into(),
+            vehicle: "boat-1".parse().unwrap(),
             kind,
             seq: 0,
             noise: Noise {

@@ -257,7 +257,7 @@ fn secured_fleet(tls: bool) {
             .await
             .unwrap();
         let replay = MeasurementBatch {
-            vehicle: "boat-1".into(),
+            vehicle: "boat-1".parse().unwrap(),
             kind: VehicleKind::Boat,
             seq: 0,
             noise: Noise {

@@ -202,7 +202,7 @@ fn a_real_browser_sees_every_vehicle_and_the_model_advance_without_console_error
         .unwrap()
         .vehicles()
         .into_iter()
-        .map(|v| v.id)
+        .map(|v| v.id.into())
         .collect();
     let vehicles = s["vehicles"].as_array().unwrap();
     assert_eq!(vehicles.len(), ids.len());

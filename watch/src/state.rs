@@ -3,6 +3,7 @@
 //! `/api/state` is [`View::state`]; the heat maps are [`View::fields`].
 
 use fleet_mission::grid::Grid;
+use fleet_mission::protocol::VehicleId;
 use fleet_mission::protocol::{
     AutopilotLink, Body, LinkState, ModelUpdate, Plan, ServerStatus, Telemetry, VehicleKind,
 };
@@ -74,11 +75,11 @@ pub struct View {
     grid: Grid,
     geo: Geo,
     lease_s: f64,
-    vehicles: BTreeMap<String, VehicleView>,
+    vehicles: BTreeMap<VehicleId, VehicleView>,
     model: Option<ModelView>,
     fields: Option<Fields>,
     status: Option<ServerStatus>,
-    plans: BTreeMap<String, Plan>,
+    plans: BTreeMap<VehicleId, Plan>,
     /// `(epoch, MSE of the estimate against the truth)` per model, when the truth is known.
     mse: Vec<(u64, f64)>,
     truth: Option<Vec<Vec<f64>>>,
@@ -112,14 +113,14 @@ impl View {
         grid: Grid,
         geo: Geo,
         lease_s: f64,
-        vehicles: &[(String, VehicleKind)],
+        vehicles: &[(VehicleId, VehicleKind)],
         truth: Option<Vec<Vec<f64>>>,
     ) -> Self {
         let vehicles = vehicles
             .iter()
             .map(|(id, kind)| {
                 let v = VehicleView {
-                    id: id.clone(),
+                    id: id.to_string(),
                     kind: *kind,
                     position: None,
                     heading: None,
@@ -346,8 +347,8 @@ mod tests {
             geo,
             2.0,
             &[
-                ("boat-1".into(), VehicleKind::Boat),
-                ("av-1".into(), VehicleKind::Aerial),
+                ("boat-1".parse().unwrap(), VehicleKind::Boat),
+                ("av-1".parse().unwrap(), VehicleKind::Aerial),
             ],
             Some(truth),
         )
@@ -355,7 +356,7 @@ mod tests {
 
     fn tele(id: &str, x: f64) -> Body {
         Body::Telemetry(Telemetry {
-            vehicle: id.into(),
+            vehicle: id.parse().unwrap(),
             step: 1,
             position: [x, 0.5],
             heading: 0.0,

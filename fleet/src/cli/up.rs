@@ -362,7 +362,7 @@ fn start_nodes(args: &Args, bins: &Binaries, mission: &MissionConfig, fleet: &mu
             .arg("--state-dir")
             .arg(&state);
         let (log, path) = log_file(&logs, &v.id)?;
-        c.arg("--id").arg(&v.id).stdout(Stdio::null()).stderr(log);
+        c.arg("--id").arg(v.id.as_str()).stdout(Stdio::null()).stderr(log);
         fleet.spawn(&v.id, c, path)?;
     }
     if let (Some(addr), Some(bin)) = (args.web, &bins.watch) {

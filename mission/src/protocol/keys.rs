@@ -110,8 +110,8 @@ impl Keys {
     }
 
     /// The vehicle id in a concrete key of this mission's vehicle space, if it is one.
-    pub fn vehicle_of(&self, key: &str) -> Option<String> {
-        self.id_after(key, "vehicle")
+    pub fn vehicle_of(&self, key: &str) -> Option<super::VehicleId> {
+        self.id_after(key, "vehicle")?.parse().ok()
     }
 
     /// The id in a concrete `plan/<id>` or `alive/<id>` key (`space` is `plan` or `alive`).

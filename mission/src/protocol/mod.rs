@@ -12,6 +12,9 @@
 //! it (see the README for a Python snippet).
 
 pub mod keys;
+mod vehicle_id;
+
+pub use vehicle_id::VehicleId;
 
 use crate::grid::Grid;
 use serde::{Deserialize, Serialize};
@@ -69,7 +72,7 @@ pub use crate::fusion::{Noise, Sample};
 /// A vehicle's batch of samples; `seq` is per vehicle and gap-free from 0.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MeasurementBatch {
-    pub vehicle: String,
+    pub vehicle: VehicleId,
     pub kind: VehicleKind,
     pub seq: u64,
     pub noise: Noise,
@@ -86,7 +89,7 @@ pub enum LinkState {
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Telemetry {
-    pub vehicle: String,
+    pub vehicle: VehicleId,
     pub step: u64,
     pub position: [f64; 2],
     /// Radians from +x.
@@ -153,7 +156,7 @@ pub struct AutopilotStatus {
 /// The highest gap-free `seq` of a vehicle the server has assimilated.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Ack {
-    pub vehicle: String,
+    pub vehicle: VehicleId,
     pub seq: u64,
 }
 
@@ -202,7 +205,7 @@ pub struct Target {
 /// A vehicle's allocation from `epoch` on, for the next H epochs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Plan {
-    pub vehicle: String,
+    pub vehicle: VehicleId,
     pub model_version: u64,
     pub epoch: u64,
     pub targets: Vec<Target>,
@@ -221,10 +224,10 @@ pub struct ServerStatus {
     /// Refusals by reason.
     pub rejected: std::collections::BTreeMap<String, u64>,
     /// Vehicles whose liveliness token is present.
-    pub alive: Vec<String>,
+    pub alive: Vec<VehicleId>,
     /// Vehicles whose batch for the next epoch is missing (the lag), and epochs waiting
     /// complete or in part behind it.
-    pub waiting_for: Vec<String>,
+    pub waiting_for: Vec<VehicleId>,
     pub pending_epochs: u64,
     /// From the last batch of an epoch arriving to its model being published (ms).
     pub latency_p50_ms: f64,
@@ -269,7 +272,7 @@ pub fn encode(body: &Body) -> Vec<u8> {
 pub struct Context {
     pub grid: Grid,
     /// Known vehicle ids (empty: any well-formed id).
-    pub vehicles: Vec<String>,
+    pub vehicles: Vec<VehicleId>,
     pub max_payload: usize,
     /// Most samples in one batch and most cells in one sample.
     pub max_samples: usize,
@@ -314,9 +317,11 @@ pub fn decode(bytes: &[u8], ctx: &Context) -> Result<Body, ProtocolError> {
     if v.v != SCHEMA_VERSION {
         return Err(ProtocolError::Version { got: v.v });
     }
-    let wire: Wire = value
-        .deserialized()
-        .map_err(|e| ProtocolError::Malformed(e.to_string()))?;
+    let wire: Wire = value.deserialized().map_err(|e| match e {
+        // A well-formed message whose id is not one (the id's own check, as it is read).
+        ciborium::value::Error::Custom(m) if m.starts_with(VehicleId::REFUSED) => ProtocolError::Invalid(m),
+        e => ProtocolError::Malformed(e.to_string()),
+    })?;
     validate(&wire.body, ctx)?;
     Ok(wire.body)
 }
@@ -481,13 +486,16 @@ mod tests {
 
     fn ctx() -> Context {
         let mut c = Context::new(Grid::new(4, 5, 1.0).unwrap());
-        c.vehicles = vec!["boat-1".into(), "av-1".into()];
+        c.vehicles = vec![
+            "boat-1".parse::<VehicleId>().unwrap(),
+            "av-1".parse::<VehicleId>().unwrap(),
+        ];
         c
     }
 
     fn batch() -> Body {
         Body::Batch(MeasurementBatch {
-            vehicle: "boat-1".into(),
+            vehicle: "boat-1".parse::<VehicleId>().unwrap(),
             kind: VehicleKind::Boat,
             seq: 3,
             noise: Noise {
@@ -509,7 +517,7 @@ mod tests {
         let msgs = vec![
             batch(),
             Body::Telemetry(Telemetry {
-                vehicle: "av-1".into(),
+                vehicle: "av-1".parse::<VehicleId>().unwrap(),
                 step: 2,
                 position: [0.0, 4.0],
                 heading: 1.0,
@@ -520,7 +528,7 @@ mod tests {
                 acked: Some(3),
             }),
             Body::Ack(Ack {
-                vehicle: "boat-1".into(),
+                vehicle: "boat-1".parse::<VehicleId>().unwrap(),
                 seq: 9,
             }),
             Body::Model(ModelUpdate {
@@ -539,7 +547,7 @@ mod tests {
                 forecast_variance: vec![0.02; 20],
             }),
             Body::Plan(Plan {
-                vehicle: "boat-1".into(),
+                vehicle: "boat-1".parse::<VehicleId>().unwrap(),
                 model_version: 1,
                 epoch: 3,
                 targets: vec![Target {
@@ -592,8 +600,25 @@ mod tests {
             f(&mut b);
             decode(&encode(&Body::Batch(b)), &c).unwrap_err()
         };
-        assert_eq!(bad(&|b| b.vehicle = "boat-2".into()).reason(), "unknown_vehicle");
-        assert_eq!(bad(&|b| b.vehicle = "boat/1".into()).reason(), "invalid");
+        assert_eq!(
+            bad(&|b| b.vehicle = "boat-2".parse::<VehicleId>().unwrap()).reason(),
+            "unknown_vehicle"
+        );
+        // An id that is not one cannot be built: it is written into the CBOR instead.
+        let Body::Batch(b) = batch() else { unreachable!() };
+        let mut value = ciborium::Value::serialized(&Wire {
+            v: SCHEMA_VERSION,
+            body: Body::Batch(b),
+        })
+        .unwrap();
+        if let ciborium::Value::Map(m) = &mut value {
+            m.iter_mut()
+                .filter(|(k, _)| k.as_text() == Some("vehicle"))
+                .for_each(|(_, v)| *v = ciborium::Value::Text("boat/1".into()));
+        }
+        let mut bytes = vec![];
+        ciborium::into_writer(&value, &mut bytes).unwrap();
+        assert_eq!(decode(&bytes, &c).unwrap_err().reason(), "invalid");
         assert!(bad(&|b| b.samples[0].values[1] = f64::NAN)
             .to_string()
             .contains("not finite"));

@@ -77,7 +77,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let systems: Vec<(String, u8)> = mission
         .vehicles()
         .iter()
-        .map(|v| Ok((v.id.clone(), mission.sysid(&v.id)?)))
+        .map(|v| Ok((v.id.to_string(), mission.sysid(&v.id)?)))
         .collect::<anyhow::Result<_>>()?;
     let mut router = Router::new(systems);
     let (systems, signed) = (router.systems(), gcs.signed());
@@ -110,7 +110,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
                         let _ = gcs.send(&h, &m);
                         down += 1;
                     }
-                    Err(r) => if let Some(line) = refusals.note(&r) { warn!(vehicle, "{line}") },
+                    Err(r) => if let Some(line) = refusals.note(&r) { warn!(%vehicle, "{line}") },
                 }
             }
             Some(got) = from_gcs.recv() => {

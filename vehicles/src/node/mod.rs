@@ -593,7 +593,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     v.telemetry().await;
     v.log_link();
     info!(
-        vehicle = v.brain.id,
+        vehicle = %v.brain.id,
         off_target = v.brain.off_target,
         "mission done, every batch acknowledged"
     );
@@ -613,7 +613,7 @@ impl Vehicle {
                 self.brain.restore(state);
                 let unacknowledged = self.outbox.depth();
                 info!(
-                    vehicle = self.brain.id,
+                    vehicle = %self.brain.id,
                     epoch = e,
                     unacknowledged,
                     "resuming from the outbox"
@@ -623,7 +623,7 @@ impl Vehicle {
             None => 0,
         };
         let (kind, epochs) = (self.brain.kind, self.brain.schedule().epochs());
-        info!(vehicle = self.brain.id, ?kind, epochs, "vehicle up");
+        info!(vehicle = %self.brain.id, ?kind, epochs, "vehicle up");
         self.begin(first);
     }
 }
