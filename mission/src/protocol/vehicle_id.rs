@@ -26,10 +26,14 @@ impl VehicleId {
 }
 
 impl TryFrom<String> for VehicleId {
-    type Error = ProtocolError;
-    fn try_from(s: String) -> Result<Self, ProtocolError> {
-        keys::check_id("vehicle", &s)?;
-        Ok(Self(s))
+    /// What is wrong with it, beginning [`VehicleId::REFUSED`] (serde carries it as text).
+    type Error = String;
+    fn try_from(s: String) -> Result<Self, String> {
+        match keys::check_id("vehicle", &s) {
+            Ok(()) => Ok(Self(s)),
+            Err(ProtocolError::Invalid(why)) => Err(why),
+            Err(e) => Err(e.to_string()),
+        }
     }
 }
 
