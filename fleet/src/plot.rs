@@ -372,6 +372,9 @@ enum BandsError {
 
 /// [`bands`] on any drawing area `CHART.0 + LEGEND_W` wide: the plot on the left, the legend
 /// in the strip on the right.
+///
+/// Long because it is one chart drawn in order (axes, bands, lines, legend strip), each layer over
+/// the one before.
 #[allow(clippy::too_many_arguments)]
 fn draw_bands<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
@@ -487,6 +490,9 @@ fn draw_bands<DB: DrawingBackend>(
 
 /// Box plots (quartile box, median line, whiskers to min and max, points on top) of named
 /// groups of values, with a dashed reference line at `reference` when given.
+///
+/// Long because it is one chart drawn in order (axes, boxes, whiskers, reference line, labels),
+/// each layer over the one before.
 pub fn boxes(
     path: impl AsRef<Path>,
     title: &str,

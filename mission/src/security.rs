@@ -33,6 +33,9 @@ fn rule(id: &str, flow: &str, messages: &[&str], keys: &[String]) -> Value {
 
 /// The access-control section of the router's config. Every key pattern comes from
 /// [`Keys`], the one definition of the key space (a key renamed there is renamed here).
+///
+/// Long because it is one document: the ACL as Zenoh reads it, rules, subjects and policies
+/// together.
 pub fn access_control(mission: &MissionConfig, tls: bool) -> Result<Value, ProtocolError> {
     let k = Keys::new(&mission.mission)?;
     let mut rules = vec![];

@@ -154,6 +154,7 @@ impl TeamConfig {
         Ok(())
     }
 
+    /// Long because it is one check per setting, in the order of the fields.
     pub fn validate(&self, grid: &Grid, frames: usize) -> Result<(), TeamError> {
         let bad = |m: String| Err(TeamError::Config(m));
         if self.aerials == 0 || self.boats == 0 {

@@ -16,6 +16,21 @@ use std::path::Path;
 use std::time::Duration;
 use tracing::{info, warn};
 
+type Queries = zenoh::query::Queryable<zenoh::handlers::FifoChannelHandler<zenoh::query::Query>>;
+
+/// A replay on Zenoh: what it answers queries with (the newest model, the plans by vehicle and
+/// epoch as recorded), and the liveliness tokens of the vehicles alive now.
+struct Replay {
+    keys: Keys,
+    ctx: Context,
+    session: zenoh::Session,
+    plans: Queries,
+    models: Queries,
+    tokens: BTreeMap<fleet_mission::protocol::VehicleId, zenoh::liveliness::LivelinessToken>,
+    model: Option<Vec<u8>>,
+    plan_replies: BTreeMap<(String, u64), Vec<u8>>,
+}
+
 pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
     if !(speed.is_finite() && speed > 0.0) {
         return Err(bad_input(anyhow::anyhow!(
@@ -30,78 +45,100 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
     let mut ctx = Context::new(rec.grid);
     ctx.vehicles = rec.mission.vehicles().into_iter().map(|v| v.id).collect();
     let session = fleet_net::open(args.node.zenoh_config(Role::Server, &rec.mission.network)?).await?;
+    let e = fleet_net::NetError::zenoh;
     let plans = session
         .declare_queryable(keys.all_plans())
         .await
-        .map_err(fleet_net::NetError::zenoh("declaring a queryable"))?;
+        .map_err(e("the plans' queryable"))?;
     let models = session
         .declare_queryable(keys.model_latest())
         .await
-        .map_err(fleet_net::NetError::zenoh("declaring a queryable"))?;
+        .map_err(e("the model's queryable"))?;
     let _server = session
         .liveliness()
         .declare_token(keys.alive("server"))
         .await
-        .map_err(fleet_net::NetError::zenoh("declaring the liveliness token"))?;
-    let mut tokens = BTreeMap::new();
-    let mut model: Option<Vec<u8>> = None;
-    // Recorded plan replies by (vehicle, epoch): the latest of each answers a query for it.
-    let mut plan_replies: BTreeMap<(String, u64), Vec<u8>> = BTreeMap::new();
+        .map_err(e("the token"))?;
+    let mut r = Replay {
+        keys,
+        ctx,
+        session,
+        plans,
+        models,
+        tokens: BTreeMap::new(),
+        model: None,
+        plan_replies: BTreeMap::new(),
+    };
     let first = rec.messages.first().map_or(0, |m| m.log_ns);
     let start = tokio::time::Instant::now();
     let mut stop = fleet_net::StopSignals::new()?;
     info!(recording = %file.display(), messages = rec.messages.len(), speed, "replaying onto Zenoh");
     for m in &rec.messages {
         let due = start + Duration::from_nanos(((m.log_ns.saturating_sub(first)) as f64 / speed) as u64);
-        // Answer queries while waiting for the message's time.
+        if !r.answer_until(due, &mut stop).await {
+            return Ok(());
+        }
+        r.play(m).await?;
+    }
+    info!("replay done");
+    r.session.close().await.map_err(e("closing the Zenoh session"))?;
+    Ok(())
+}
+
+impl Replay {
+    /// Answer queries while waiting for a message's time; `false` on a stop signal.
+    async fn answer_until(&self, due: tokio::time::Instant, stop: &mut fleet_net::StopSignals) -> bool {
         loop {
             tokio::select! {
-                _ = tokio::time::sleep_until(due) => break,
-                q = plans.recv_async() => if let Ok(q) = q { answer_plan(&keys, &plan_replies, q).await },
-                q = models.recv_async() => if let Ok(q) = q { answer(q, model.clone(), "no model yet").await },
+                _ = tokio::time::sleep_until(due) => return true,
+                q = self.plans.recv_async() => if let Ok(q) = q { answer_plan(&self.keys, &self.plan_replies, q).await },
+                q = self.models.recv_async() => if let Ok(q) = q { answer(q, self.model.clone(), "no model yet").await },
                 sig = stop.recv() => {
                     info!(signal = sig, "stopping the replay");
-                    return Ok(());
+                    return false;
                 }
             }
         }
+    }
+
+    /// One recorded message, played: a vehicle's link as a liveliness token, a plan kept to
+    /// answer queries with, anything else put on its key.
+    async fn play(&mut self, m: &fleet_mission::recording::Recorded) -> anyhow::Result<()> {
         match m.topic.as_str() {
             CORE_TOPIC => {}
             EVENTS_TOPIC => {
                 if let Ok(ServerEvent::Link { vehicle, alive }) = serde_json::from_slice(&m.data) {
                     if alive {
-                        let t = session
-                            .liveliness()
-                            .declare_token(keys.alive(&vehicle))
-                            .await
-                            .map_err(fleet_net::NetError::zenoh("declaring the liveliness token"))?;
-                        tokens.insert(vehicle, t);
+                        let t = self.session.liveliness().declare_token(self.keys.alive(&vehicle)).await;
+                        let t = t.map_err(fleet_net::NetError::zenoh("declaring the liveliness token"))?;
+                        self.tokens.insert(vehicle, t);
                     } else {
-                        tokens.remove(&vehicle);
+                        self.tokens.remove(&vehicle);
                     }
                 }
             }
-            key if keys.id_after(key, "plan").is_some() => {
-                if let Ok(Body::Plan(p)) = protocol::decode(&m.data, &ctx) {
-                    plan_replies.insert((p.vehicle.to_string(), p.epoch), m.data.clone());
+            key if self.keys.id_after(key, "plan").is_some() => {
+                if let Ok(Body::Plan(p)) = protocol::decode(&m.data, &self.ctx) {
+                    self.plan_replies
+                        .insert((p.vehicle.to_string(), p.epoch), m.data.clone());
                 }
             }
             key => {
-                if key == keys.model_latest() {
-                    model = Some(m.data.clone());
+                if key == self.keys.model_latest() {
+                    self.model = Some(m.data.clone());
                 }
-                if let Err(e) = session.put(key, m.data.clone()).encoding(fleet_net::encoding()).await {
+                if let Err(e) = self
+                    .session
+                    .put(key, m.data.clone())
+                    .encoding(fleet_net::encoding())
+                    .await
+                {
                     warn!("put on {key}: {e}");
                 }
             }
         }
+        Ok(())
     }
-    info!("replay done");
-    session
-        .close()
-        .await
-        .map_err(fleet_net::NetError::zenoh("closing the Zenoh session"))?;
-    Ok(())
 }
 
 async fn answer_plan(keys: &Keys, replies: &BTreeMap<(String, u64), Vec<u8>>, q: zenoh::query::Query) {

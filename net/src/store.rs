@@ -381,6 +381,9 @@ const CHECK_LIMIT: std::time::Duration = std::time::Duration::from_secs(300);
 /// aborts the process, past any `catch_unwind`: one damaged byte would take the node down.
 /// In a child, that abort is only a refusal. The child runs nothing but the check and leaves
 /// by `_exit` (no destructors, no flushing of the parent's buffers).
+///
+/// Long because the fork, the child's work and the parent's reading of its verdict must be read
+/// together to see that an abort in the child is a refusal.
 fn in_child(path: &Path, check: impl FnOnce() -> Result<()>) -> Result<()> {
     use std::io::{Read, Write};
     use std::os::fd::FromRawFd;

@@ -5,6 +5,9 @@
 use crate::http::{self, Snapshot};
 use crate::state::{Geo, View};
 use anyhow::Context as _;
+use fleet_mission::config::MissionConfig;
+use fleet_mission::grid::Grid;
+use fleet_mission::process::FieldSeries;
 use fleet_mission::protocol::{keys::Keys, Body, Context};
 use fleet_net::Role;
 use std::net::SocketAddr;
@@ -66,11 +69,9 @@ fn credential(args: &Args) -> anyhow::Result<Option<String>> {
     Ok(c)
 }
 
-pub async fn run(args: Args) -> anyhow::Result<()> {
-    let credential = credential(&args)?;
-    let (mission, truth) = args.node.load()?;
-    let (grid, _frames) = mission.workspace(&truth)?;
-    let keys = Keys::new(&mission.mission)?;
+/// The view of the mission before anything is heard: the site on the Earth, the roster, the
+/// link lease, the truth; and the context messages are checked against.
+fn view_of(mission: &MissionConfig, grid: Grid, truth: &FieldSeries) -> (View, Context) {
     let site = mission.mavlink.site(&grid);
     let ne = site.global_of(&site.ned_of((grid.width_m(), grid.height_m()), 0.0));
     let geo = Geo {
@@ -85,92 +86,142 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         .collect();
     let mut ctx = Context::new(grid);
     ctx.vehicles = specs.iter().map(|(id, _)| id.clone()).collect();
-    let view = Arc::new(Mutex::new(View::new(
-        &mission.mission,
-        grid,
-        geo,
-        lease_s,
-        &specs,
-        Some(truth_steps),
-    )));
-    let (tx, rx) = tokio::sync::watch::channel(Arc::new(Snapshot::of(&view.lock().expect("view lock"))));
+    let view = View::new(&mission.mission, grid, geo, lease_s, &specs, Some(truth_steps));
+    (view, ctx)
+}
 
+/// The pages' server, on its own task.
+async fn serve_http(
+    args: &Args,
+    view: Arc<Mutex<View>>,
+    snapshots: tokio::sync::watch::Receiver<Arc<Snapshot>>,
+    credential: Option<String>,
+) -> anyhow::Result<tokio::task::JoinHandle<std::io::Result<()>>> {
     let listener = tokio::net::TcpListener::bind(args.http)
         .await
         .with_context(|| format!("--http {}: cannot listen there", args.http))
         .map_err(fleet_exit::bad_input)?;
     let app = http::router(http::Shared {
-        view: view.clone(),
-        snapshots: rx,
+        view,
+        snapshots,
         credential,
         run_dir: args.run_dir.clone(),
     });
     info!(url = %format!("http://{}/", listener.local_addr()?), "serving the view");
-    let server = tokio::spawn(async move { axum::serve(listener, app).await });
+    Ok(tokio::spawn(async move { axum::serve(listener, app).await }))
+}
 
+type Samples = fleet_net::zenoh::pubsub::Subscriber<
+    fleet_net::zenoh::handlers::FifoChannelHandler<fleet_net::zenoh::sample::Sample>,
+>;
+
+/// What the view listens to: telemetry, models, the server's status, and the links (the
+/// vehicles' liveliness tokens: Zenoh drops one when its session says nothing within the
+/// link lease).
+struct Inputs {
+    telemetry: Samples,
+    models: Samples,
+    status: Samples,
+    links: Samples,
+}
+
+impl Inputs {
+    async fn declare(session: &fleet_net::zenoh::Session, keys: &Keys) -> Result<Self, fleet_net::NetError> {
+        let e = fleet_net::NetError::zenoh;
+        let links = session
+            .liveliness()
+            .declare_subscriber(keys.all_alive())
+            .history(true)
+            .await;
+        Ok(Self {
+            telemetry: session
+                .declare_subscriber(keys.telemetry("*"))
+                .await
+                .map_err(e("the telemetry"))?,
+            models: session
+                .declare_subscriber(keys.model_latest())
+                .await
+                .map_err(e("the models"))?,
+            status: session
+                .declare_subscriber(keys.server_status())
+                .await
+                .map_err(e("the status"))?,
+            links: links.map_err(e("the liveliness"))?,
+        })
+    }
+}
+
+pub async fn run(args: Args) -> anyhow::Result<()> {
+    let credential = credential(&args)?;
+    let (mission, truth) = args.node.load()?;
+    let (grid, _frames) = mission.workspace(&truth)?;
+    let keys = Keys::new(&mission.mission)?;
+    let (view, ctx) = view_of(&mission, grid, &truth);
+    let view = Arc::new(Mutex::new(view));
+    let (tx, rx) = tokio::sync::watch::channel(Arc::new(Snapshot::of(&view.lock().expect("view lock"))));
+    let server = serve_http(&args, view.clone(), rx, credential).await?;
     // A client like any vehicle; under the secure configs, as the observer (read-only).
     let network = mission.network.for_node(fleet_mission::security::OBSERVER);
     let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &network)?).await?;
-    let sub = |key: String| {
-        let s = &session;
-        async move {
-            s.declare_subscriber(key)
-                .await
-                .map_err(fleet_net::NetError::zenoh("declaring a subscriber"))
-        }
-    };
-    let telemetry = sub(keys.telemetry("*")).await?;
-    let models = sub(keys.model_latest()).await?;
-    let status = sub(keys.server_status()).await?;
-    // Link state: the vehicles' liveliness tokens (Zenoh drops one when its session says
-    // nothing within the link lease).
-    let links = session
-        .liveliness()
-        .declare_subscriber(keys.all_alive())
-        .history(true)
-        .await
-        .map_err(fleet_net::NetError::zenoh("subscribing to liveliness"))?;
+    let inputs = Inputs::declare(&session, &keys).await?;
+    follow(&session, &keys, &ctx, &view, &inputs, &tx).await?;
+    server.abort();
+    Ok(())
+}
+
+/// The mission as it goes, into the view; a snapshot for the pages at most every
+/// [`PUSH_EVERY`], when something changed.
+async fn follow(
+    session: &fleet_net::zenoh::Session,
+    keys: &Keys,
+    ctx: &Context,
+    view: &Mutex<View>,
+    inputs: &Inputs,
+    tx: &tokio::sync::watch::Sender<Arc<Snapshot>>,
+) -> anyhow::Result<()> {
     let mut stop = fleet_net::StopSignals::new()?;
     let t0 = Instant::now();
     let mut tick = tokio::time::interval(PUSH_EVERY);
     // A page opened mid-mission sees the current model at once: ask for it.
-    let mut dirty = ask(&session, keys.model_latest(), &view, &ctx).await;
+    let mut dirty = ask(session, keys.model_latest(), view, ctx).await;
     loop {
         tokio::select! {
-            s = telemetry.recv_async() => if let Ok(s) = s { dirty |= take(&view, fleet_net::decode(&s, &ctx)) },
-            s = status.recv_async() => if let Ok(s) = s { dirty |= take(&view, fleet_net::decode(&s, &ctx)) },
-            s = models.recv_async() => if let Ok(s) = s {
-                dirty |= take(&view, fleet_net::decode(&s, &ctx));
-                // The plans that go with the new model: from the epoch after its own (the
-                // server answers one vehicle's key at a time).
-                let next = view.lock().expect("view lock").state().model.map(|m| m.epoch + 1);
-                if let Some(next) = next {
-                    for id in &ctx.vehicles {
-                        dirty |= ask(&session, format!("{}?epoch={next}", keys.plan(id)), &view, &ctx).await;
-                    }
-                }
+            s = inputs.telemetry.recv_async() => if let Ok(s) = s { dirty |= take(view, fleet_net::decode(&s, ctx)) },
+            s = inputs.status.recv_async() => if let Ok(s) = s { dirty |= take(view, fleet_net::decode(&s, ctx)) },
+            s = inputs.models.recv_async() => if let Ok(s) = s {
+                dirty |= take(view, fleet_net::decode(&s, ctx));
+                dirty |= ask_plans(session, keys, ctx, view).await;
             },
-            s = links.recv_async() => if let Ok(s) = s {
+            s = inputs.links.recv_async() => if let Ok(s) = s {
                 if let Some(id) = keys.id_after(s.key_expr().as_str(), "alive") {
                     let alive = s.kind() == fleet_net::zenoh::sample::SampleKind::Put;
                     dirty |= view.lock().expect("view lock").liveliness(&id, alive, t0.elapsed().as_secs_f64());
                 }
             },
             _ = tick.tick() => {
-                if dirty {
-                    dirty = false;
+                if std::mem::take(&mut dirty) {
                     let snap = Snapshot::of(&view.lock().expect("view lock"));
                     tx.send_replace(Arc::new(snap));
                 }
             }
             sig = stop.recv() => {
                 info!(signal = sig, "stopping");
-                break;
+                return Ok(());
             }
         }
     }
-    server.abort();
-    Ok(())
+}
+
+/// The plans that go with a new model: from the epoch after its own (the server answers one
+/// vehicle's key at a time). Returns whether the view changed.
+async fn ask_plans(session: &fleet_net::zenoh::Session, keys: &Keys, ctx: &Context, view: &Mutex<View>) -> bool {
+    let next = view.lock().expect("view lock").state().model.map(|m| m.epoch + 1);
+    let Some(next) = next else { return false };
+    let mut changed = false;
+    for id in &ctx.vehicles {
+        changed |= ask(session, format!("{}?epoch={next}", keys.plan(id)), view, ctx).await;
+    }
+    changed
 }
 
 /// Query `selector` and apply every reply. Returns whether the view changed.

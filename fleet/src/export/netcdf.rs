@@ -41,6 +41,8 @@ pub fn write(run: &Run, path: &Path) -> Result<(), ExportError> {
     std::fs::rename(&tmp, path).map_err(|e| failed(e.to_string()))
 }
 
+/// Long because it is the file's schema: every dimension, variable and attribute in the order
+/// `ncdump -h` lists them.
 fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
     let mut ds = DataSet::new();
     ds.add_fixed_dim("time", run.estimate.steps)?;

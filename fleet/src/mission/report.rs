@@ -101,6 +101,21 @@ fn ordinal(n: usize) -> String {
     format!("{n}{suffix}")
 }
 
+/// What the mission report's sections read.
+struct MissionReport<'a> {
+    mission: &'a fleet_mission::config::MissionConfig,
+    summary: &'a ServerSummary,
+    offline: &'a crate::experiment::team::TeamOutcome,
+    /// The first step every team has data at (the boats' first sample).
+    from: usize,
+    md: String,
+}
+
+/// The mean of `v` from step `k` on.
+fn mean_from(v: &[f64], k: usize) -> f64 {
+    v[k.min(v.len())..].iter().sum::<f64>() / v.len().saturating_sub(k).max(1) as f64
+}
+
 /// The report `fleet up` writes: the networked mission beside the offline loop on the same
 /// truth and seed (which it must equal), the single-kind teams, and the fleet's statistics.
 pub fn write_mission_report(
@@ -112,185 +127,237 @@ pub fn write_mission_report(
     command: &str,
     events: &[ServerEvent],
 ) -> anyhow::Result<String> {
-    use crate::plot::{self, Series};
-    use std::fmt::Write as _;
-    let max_diff = summary
-        .mse
-        .iter()
-        .zip(&offline.heterogeneous)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f64::max);
-    // Equal up to rounding: faer's kernels may round differently in another process (memory
-    // alignment picks the vector code path), so bit-for-bit is not promised.
-    let same = summary.mse.len() == offline.heterogeneous.len()
-        && max_diff <= 1e-9 * offline.mean_heterogeneous.abs().max(f64::MIN_POSITIVE);
     // Every team over the same steps: from the first where all have data (the boats' first
     // sample), never a team without data.
     let from = offline.scored_from.min(summary.mse.len());
-    let mean_from =
-        |v: &[f64], k: usize| v[k.min(v.len())..].iter().sum::<f64>() / v.len().saturating_sub(k).max(1) as f64;
-    let network_mean = mean_from(&summary.mse, from);
-    let t = &mission.team;
-    let mut md = String::new();
-    writeln!(md, "# Mission `{}`\n", summary.mission)?;
-    writeln!(
-        md,
-        "Command: `{command}`. The model server and {} vehicles ({} aerials, {} boats, radius {}) ran as separate \
-            processes over Zenoh; the truth is {} (mixed reality).\n",
-        summary.vehicles.len(),
-        t.aerials,
-        t.boats,
-        t.radius,
-        match &mission.truth.source {
-            TruthSource::Preset(p) => format!(
-                "the {p:?} plasma cloud at {} x {}, {} frames, averaged by {}",
-                mission.truth.grid[0], mission.truth.grid[1], mission.truth.frames, mission.truth.average
-            ),
-            TruthSource::Dataset(d) => format!("the dataset {}", d.display()),
-            TruthSource::NetCdf { path, variable } => format!("the variable {variable} of {}", path.display()),
+    let mut r = MissionReport {
+        mission,
+        summary,
+        offline,
+        from,
+        md: String::new(),
+    };
+    r.intro(command)?;
+    r.error_table()?;
+    r.network_equals_offline(events)?;
+    r.fleet()?;
+    r.eigenvalues(dt)?;
+    r.mse_plot(dir)?;
+    std::fs::write(dir.join("report.md"), &r.md)?;
+    Ok(r.md)
+}
+
+impl MissionReport<'_> {
+    /// The heading: what ran, on which truth, and the team's settings.
+    fn intro(&mut self, command: &str) -> anyhow::Result<()> {
+        use std::fmt::Write as _;
+        let (mission, summary, md) = (self.mission, self.summary, &mut self.md);
+        let t = &mission.team;
+        writeln!(md, "# Mission `{}`\n", summary.mission)?;
+        writeln!(
+            md,
+            "Command: `{command}`. The model server and {} vehicles ({} aerials, {} boats, radius {}) ran as separate \
+                processes over Zenoh; the truth is {} (mixed reality).\n",
+            summary.vehicles.len(),
+            t.aerials,
+            t.boats,
+            t.radius,
+            match &mission.truth.source {
+                TruthSource::Preset(p) => format!(
+                    "the {p:?} plasma cloud at {} x {}, {} frames, averaged by {}",
+                    mission.truth.grid[0], mission.truth.grid[1], mission.truth.frames, mission.truth.average
+                ),
+                TruthSource::Dataset(d) => format!("the dataset {}", d.display()),
+                TruthSource::NetCdf { path, variable } => format!("the variable {variable} of {}", path.display()),
+            }
+        )?;
+        let placement = match t.placement {
+            fleet_mission::team::Placement::Horizon => format!("horizon over {} epochs", t.horizon_epochs),
+            p => p.to_string(),
+        };
+        writeln!(
+            md,
+            "The team: aerial frames {}, of {}; boat samples {}; fusion `{}`; boats placed by `{placement}`; the model \
+                ({} DMD, learning from the `{}` estimate) refitted every boat epoch.\n",
+            every(t.aerial_period, "step"),
+            if t.aerial_stride == 1 {
+                "every cell".to_string()
+            } else {
+                format!("every {} cell", ordinal(t.aerial_stride))
+            },
+            every(t.boat_period, "step"),
+            t.fusion,
+            t.method,
+            t.learn_from
+        )?;
+        Ok(())
+    }
+
+    /// The error of every team over the scored steps, and where the fused estimate wins.
+    fn error_table(&mut self) -> anyhow::Result<()> {
+        use std::fmt::Write as _;
+        let (summary, offline, from, md) = (self.summary, self.offline, self.from, &mut self.md);
+        let network_mean = mean_from(&summary.mse, from);
+        writeln!(md, "## Estimation error\n")?;
+        writeln!(
+            md,
+            "Mean squared error over the grid, averaged over steps {from}-{} (from the first step where every team has \
+                data: the boats' first sample), and, labelled, from step 0 for the teams that have data there. \
+             One run of one seed: for which team is better, with 95% intervals over seeds, see `fleet experiment`.\n",
+            summary.mse.len().saturating_sub(1)
+        )?;
+        writeln!(md, "| team | MSE, steps {from}- | MSE from step 0 |\n|---|---|---|")?;
+        writeln!(
+            md,
+            "| heterogeneous, over the network | {:.4e} | {:.4e} |",
+            network_mean,
+            mean_from(&summary.mse, 0)
+        )?;
+        writeln!(
+            md,
+            "| heterogeneous, offline loop (same truth and seed) | {:.4e} | {:.4e} |",
+            offline.mean_heterogeneous, offline.heterogeneous_from_step0
+        )?;
+        writeln!(
+            md,
+            "| aerials only | {:.4e} | {:.4e} |",
+            offline.mean_aerial_only, offline.aerial_only_from_step0
+        )?;
+        writeln!(
+            md,
+            "| boats only | {:.4e} | (no data before step {from}) |\n",
+            offline.mean_boat_only
+        )?;
+        // Where each team is lower, step by step: the fused map against the better single team.
+        let steps: Vec<usize> = (from..summary.mse.len().min(offline.aerial_only.len())).collect();
+        let wins = steps
+            .iter()
+            .filter(|&&k| offline.boat_only[k].is_some_and(|b| summary.mse[k] <= b.min(offline.aerial_only[k])))
+            .count();
+        writeln!(
+            md,
+            "At {wins} of the {} scored steps the networked heterogeneous estimate is at or below the better of \
+            the two single-kind teams.\n",
+            steps.len()
+        )?;
+        Ok(())
+    }
+
+    /// Whether the networked run equals the offline loop, and what differed if not.
+    fn network_equals_offline(&mut self, events: &[ServerEvent]) -> anyhow::Result<()> {
+        use std::fmt::Write as _;
+        let (summary, offline, md) = (self.summary, self.offline, &mut self.md);
+        let max_diff = summary
+            .mse
+            .iter()
+            .zip(&offline.heterogeneous)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        // Equal up to rounding: faer's kernels may round differently in another process (memory
+        // alignment picks the vector code path), so bit-for-bit is not promised.
+        let same = summary.mse.len() == offline.heterogeneous.len()
+            && max_diff <= 1e-9 * offline.mean_heterogeneous.abs().max(f64::MIN_POSITIVE);
+        writeln!(
+            md,
+            "Network equals offline: **{}** (largest per-step difference {max_diff:.1e}).\n",
+            if same { "yes, to 1e-9 relative" } else { "no" }
+        )?;
+        if !same {
+            writeln!(md, "{}", differences(events, &summary.counters))?;
         }
-    )?;
-    let placement = match t.placement {
-        fleet_mission::team::Placement::Horizon => format!("horizon over {} epochs", t.horizon_epochs),
-        p => p.to_string(),
-    };
-    writeln!(
-        md,
-        "The team: aerial frames {}, of {}; boat samples {}; fusion `{}`; boats placed by `{placement}`; the model \
-            ({} DMD, learning from the `{}` estimate) refitted every boat epoch.\n",
-        every(t.aerial_period, "step"),
-        if t.aerial_stride == 1 {
-            "every cell".to_string()
-        } else {
-            format!("every {} cell", ordinal(t.aerial_stride))
-        },
-        every(t.boat_period, "step"),
-        t.fusion,
-        t.method,
-        t.learn_from
-    )?;
-    writeln!(md, "## Estimation error\n")?;
-    writeln!(
-        md,
-        "Mean squared error over the grid, averaged over steps {from}-{} (from the first step where every team has \
-            data: the boats' first sample), and, labelled, from step 0 for the teams that have data there. \
-         One run of one seed: for which team is better, with 95% intervals over seeds, see `fleet experiment`.\n",
-        summary.mse.len().saturating_sub(1)
-    )?;
-    writeln!(md, "| team | MSE, steps {from}- | MSE from step 0 |\n|---|---|---|")?;
-    writeln!(
-        md,
-        "| heterogeneous, over the network | {:.4e} | {:.4e} |",
-        network_mean,
-        mean_from(&summary.mse, 0)
-    )?;
-    writeln!(
-        md,
-        "| heterogeneous, offline loop (same truth and seed) | {:.4e} | {:.4e} |",
-        offline.mean_heterogeneous, offline.heterogeneous_from_step0
-    )?;
-    writeln!(
-        md,
-        "| aerials only | {:.4e} | {:.4e} |",
-        offline.mean_aerial_only, offline.aerial_only_from_step0
-    )?;
-    writeln!(
-        md,
-        "| boats only | {:.4e} | (no data before step {from}) |\n",
-        offline.mean_boat_only
-    )?;
-    // Where each team is lower, step by step: the fused map against the better single team.
-    let steps: Vec<usize> = (from..summary.mse.len().min(offline.aerial_only.len())).collect();
-    let wins = steps
-        .iter()
-        .filter(|&&k| offline.boat_only[k].is_some_and(|b| summary.mse[k] <= b.min(offline.aerial_only[k])))
-        .count();
-    writeln!(
-        md,
-        "At {wins} of the {} scored steps the networked heterogeneous estimate is at or below the better of \
-        the two single-kind teams.\n",
-        steps.len()
-    )?;
-    writeln!(
-        md,
-        "Network equals offline: **{}** (largest per-step difference {max_diff:.1e}).\n",
-        if same { "yes, to 1e-9 relative" } else { "no" }
-    )?;
-    if !same {
-        writeln!(md, "{}", differences(events, &summary.counters))?;
+        writeln!(md, "![MSE per step](mse.png)\n")?;
+        writeln!(
+            md,
+            "The run's files, beside this report: `estimate.nc` (the fused estimate, its variance and the truth per step, \
+                NetCDF; `fleet export` writes it again), `recording.mcap` (the Zenoh traffic the server saw and sent and \
+                its operations, MCAP: Foxglove reads it, `fleet replay` replays it), `events.jsonl`, `summary.json`, \
+                `model.cbor` and `logs/`.\n"
+        )?;
+        Ok(())
     }
-    writeln!(md, "![MSE per step](mse.png)\n")?;
-    writeln!(
-        md,
-        "The run's files, beside this report: `estimate.nc` (the fused estimate, its variance and the truth per step, \
-            NetCDF; `fleet export` writes it again), `recording.mcap` (the Zenoh traffic the server saw and sent and \
-            its operations, MCAP: Foxglove reads it, `fleet replay` replays it), `events.jsonl`, `summary.json`, \
-            `model.cbor` and `logs/`.\n"
-    )?;
-    writeln!(md, "## Fleet\n")?;
-    let c = &summary.counters;
-    let rejected: u64 = c.rejected.values().sum();
-    writeln!(md, "| | |\n|---|---|")?;
-    writeln!(
-        md,
-        "| epochs assimilated | {} (model version {}, rank {}) |",
-        summary.epochs, summary.model_version, summary.rank
-    )?;
-    writeln!(
-        md,
-        "| batches received | {} ({} duplicates, {rejected} refused {:?}) |",
-        c.batches, c.duplicates, c.rejected
-    )?;
-    writeln!(
-        md,
-        "| last batch of an epoch to model published | p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms ({} epochs) |",
-        summary.latency_ms.p50, summary.latency_ms.p99, summary.latency_ms.max, summary.latency_ms.count
-    )?;
-    writeln!(
-        md,
-        "| liveliness tokens seen (link ups) | {} |",
-        summary
-            .link_ups
-            .iter()
-            .map(|(k, v)| format!("{k} {v}"))
-            .collect::<Vec<_>>()
-            .join(", ")
-    )?;
-    writeln!(md, "| server wall time | {:.2} s |\n", summary.wall_s)?;
-    writeln!(md, "## Final model: continuous-time eigenvalues ln(lambda)/dt\n")?;
-    writeln!(md, "| # | growth rate | frequency (rad/s) |\n|---|---|---|")?;
-    for (j, l) in summary.eigenvalues.iter().enumerate() {
-        let z = num_complex::Complex64::new(l[0], l[1]).ln() / dt;
-        writeln!(md, "| {} | {:.4} | {:.4} |", j + 1, z.re, z.im)?;
+
+    /// The fleet's counters and latencies.
+    fn fleet(&mut self) -> anyhow::Result<()> {
+        use std::fmt::Write as _;
+        let (summary, md) = (self.summary, &mut self.md);
+        writeln!(md, "## Fleet\n")?;
+        let c = &summary.counters;
+        let rejected: u64 = c.rejected.values().sum();
+        writeln!(md, "| | |\n|---|---|")?;
+        writeln!(
+            md,
+            "| epochs assimilated | {} (model version {}, rank {}) |",
+            summary.epochs, summary.model_version, summary.rank
+        )?;
+        writeln!(
+            md,
+            "| batches received | {} ({} duplicates, {rejected} refused {:?}) |",
+            c.batches, c.duplicates, c.rejected
+        )?;
+        writeln!(
+            md,
+            "| last batch of an epoch to model published | p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms ({} epochs) |",
+            summary.latency_ms.p50, summary.latency_ms.p99, summary.latency_ms.max, summary.latency_ms.count
+        )?;
+        writeln!(
+            md,
+            "| liveliness tokens seen (link ups) | {} |",
+            summary
+                .link_ups
+                .iter()
+                .map(|(k, v)| format!("{k} {v}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        )?;
+        writeln!(md, "| server wall time | {:.2} s |\n", summary.wall_s)?;
+        Ok(())
     }
-    // Every curve from the first step every team has data at.
-    let series = |name: &str, v: &[Option<f64>]| Series {
-        name: name.into(),
-        points: v
-            .iter()
-            .enumerate()
-            .skip(from)
-            .filter_map(|(k, e)| e.map(|e| (k as f64, e)))
-            .collect(),
-    };
-    let some = |v: &[f64]| v.iter().map(|&x| Some(x)).collect::<Vec<_>>();
-    plot::lines(
-        dir.join("mse.png"),
-        &format!(
-            "Mission {}: estimation error per step, from step {from} (every team has data)",
-            summary.mission
-        ),
-        "step",
-        "MSE",
-        &[
-            series("heterogeneous (network)", &some(&summary.mse)),
-            series("aerials only", &some(&offline.aerial_only)),
-            series("boats only", &offline.boat_only),
-        ],
-        true,
-    )?;
-    std::fs::write(dir.join("report.md"), &md)?;
-    Ok(md)
+
+    /// The final model's continuous-time eigenvalues.
+    fn eigenvalues(&mut self, dt: f64) -> anyhow::Result<()> {
+        use std::fmt::Write as _;
+        let (summary, md) = (self.summary, &mut self.md);
+        writeln!(md, "## Final model: continuous-time eigenvalues ln(lambda)/dt\n")?;
+        writeln!(md, "| # | growth rate | frequency (rad/s) |\n|---|---|---|")?;
+        for (j, l) in summary.eigenvalues.iter().enumerate() {
+            let z = num_complex::Complex64::new(l[0], l[1]).ln() / dt;
+            writeln!(md, "| {} | {:.4} | {:.4} |", j + 1, z.re, z.im)?;
+        }
+        Ok(())
+    }
+
+    /// `mse.png`: every team's error per step from the first step every team has data at.
+    fn mse_plot(&self, dir: &std::path::Path) -> anyhow::Result<()> {
+        use crate::plot::{self, Series};
+        let (summary, offline, from) = (self.summary, self.offline, self.from);
+        // Every curve from the first step every team has data at.
+        let series = |name: &str, v: &[Option<f64>]| Series {
+            name: name.into(),
+            points: v
+                .iter()
+                .enumerate()
+                .skip(from)
+                .filter_map(|(k, e)| e.map(|e| (k as f64, e)))
+                .collect(),
+        };
+        let some = |v: &[f64]| v.iter().map(|&x| Some(x)).collect::<Vec<_>>();
+        plot::lines(
+            dir.join("mse.png"),
+            &format!(
+                "Mission {}: estimation error per step, from step {from} (every team has data)",
+                summary.mission
+            ),
+            "step",
+            "MSE",
+            &[
+                series("heterogeneous (network)", &some(&summary.mse)),
+                series("aerials only", &some(&offline.aerial_only)),
+                series("boats only", &offline.boat_only),
+            ],
+            true,
+        )?;
+        Ok(())
+    }
 }
 
 #[cfg(test)]

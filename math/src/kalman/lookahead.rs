@@ -57,6 +57,9 @@ impl ModalFilter {
     /// The uncertainty `to_sampling` (>= 1) steps ahead, the aerials observing at each step,
     /// and what a value with noise `sample_var` there removes over `steps` (>= 1) steps from
     /// the sampling step on.
+    ///
+    /// Long because it is one recursion: the covariance's steps to the sampling step and over the
+    /// horizon, in the order the filter's own step takes them, so the two can be read side by side.
     pub fn look_ahead(
         &self,
         to_sampling: usize,

@@ -98,6 +98,9 @@ pub fn plan(
 
 /// [`plan`] with the cells marked in `excluded` (one flag per cell; empty: none) never in a
 /// disk: outside the site's fence.
+///
+/// Long because the greedy choice, its conditioning and the reach check share one candidate state
+/// that each pick updates; apart, that state would travel between functions.
 pub fn plan_within(
     grid: &Grid,
     f: &Forecast<'_>,

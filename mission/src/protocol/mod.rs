@@ -354,6 +354,8 @@ fn position(p: [f64; 2], grid: &Grid) -> Result<(), ProtocolError> {
 }
 
 /// Check a decoded message against the receiver's context.
+///
+/// Long because it is one arm per message kind, each beside the others it resembles.
 pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
     let inv = |m: String| Err(ProtocolError::Invalid(m));
     let n = ctx.grid.len();

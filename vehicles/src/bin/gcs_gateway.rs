@@ -35,14 +35,13 @@ fn main() {
     fleet_net::run_node("gcs-gateway", 1, run(args));
 }
 
-async fn run(args: Args) -> anyhow::Result<()> {
-    let mission = MissionConfig::load(args.node.mission.as_deref())?;
-    let keys = Keys::new(&mission.mission)?;
+/// The ground-station endpoint: its address, and the link (signed when the mission has a key:
+/// the ground station must sign, as MAVProxy does with `signing key <passphrase>`).
+fn open_gcs(args: &Args, mission: &MissionConfig) -> anyhow::Result<(String, Arc<MavLink>)> {
     let address = args.gcs.clone().unwrap_or_else(|| mission.mavlink.gcs.clone());
     if address.is_empty() {
         anyhow::bail!("no ground-station endpoint: set [mavlink] gcs in the mission or give --gcs");
     }
-    // With a key, the ground station must sign (MAVProxy: `signing key <passphrase>`).
     let signing = match &mission.mavlink.signing_key {
         Some(p) => Some(LinkSigning::new(
             SigningKey::read(p)
@@ -53,33 +52,49 @@ async fn run(args: Args) -> anyhow::Result<()> {
         )),
         None => None,
     };
-    let gcs = Arc::new(
-        MavLink::open(&address, signing).map_err(|e| anyhow::anyhow!("ground-station endpoint {address}: {e}"))?,
-    );
-    let network = mission.network.for_node(fleet_mission::security::GATEWAY);
-    let zenoh_config = args.node.zenoh_config(Role::Vehicle, &network)?;
-    fleet_net::exit_when_refused(
-        "gcs-gateway",
-        &zenoh_config,
-        args.node.zenoh_file(Role::Vehicle, &network),
-    );
-    let session = fleet_net::open(zenoh_config).await?;
-    let from_vehicles = session
-        .declare_subscriber(keys.all_mavlink())
-        .await
-        .map_err(fleet_net::NetError::zenoh("declaring a subscriber"))?;
-    let _token = session
-        .liveliness()
-        .declare_token(keys.alive("gcs-gateway"))
-        .await
-        .map_err(fleet_net::NetError::zenoh("declaring the liveliness token"))?;
-    // Every vehicle's system id, pinned from the mission (never learned from the streams).
+    let link =
+        MavLink::open(&address, signing).map_err(|e| anyhow::anyhow!("ground-station endpoint {address}: {e}"))?;
+    Ok((address, Arc::new(link)))
+}
+
+/// Every vehicle's system id, pinned from the mission (never learned from the streams).
+fn router_of(mission: &MissionConfig) -> anyhow::Result<Router> {
     let systems: Vec<(String, u8)> = mission
         .vehicles()
         .iter()
         .map(|v| Ok((v.id.to_string(), mission.sysid(&v.id)?)))
         .collect::<anyhow::Result<_>>()?;
-    let mut router = Router::new(systems);
+    Ok(Router::new(systems))
+}
+
+/// The gateway's state: the routes, the refusals said, and the frames carried each way.
+struct Gateway {
+    keys: Keys,
+    gcs: Arc<MavLink>,
+    session: fleet_net::zenoh::Session,
+    router: Router,
+    refusals: RefusalLog,
+    up: u64,
+    down: u64,
+}
+
+async fn run(args: Args) -> anyhow::Result<()> {
+    let mission = MissionConfig::load(args.node.mission.as_deref())?;
+    let keys = Keys::new(&mission.mission)?;
+    let (address, gcs) = open_gcs(&args, &mission)?;
+    let network = mission.network.for_node(fleet_mission::security::GATEWAY);
+    let zenoh_config = args.node.zenoh_config(Role::Vehicle, &network)?;
+    let file = args.node.zenoh_file(Role::Vehicle, &network);
+    fleet_net::exit_when_refused("gcs-gateway", &zenoh_config, file);
+    let session = fleet_net::open(zenoh_config).await?;
+    let e = fleet_net::NetError::zenoh;
+    let from_vehicles = session
+        .declare_subscriber(keys.all_mavlink())
+        .await
+        .map_err(e("the vehicles' frames"))?;
+    let token = session.liveliness().declare_token(keys.alive("gcs-gateway")).await;
+    let _token = token.map_err(e("the liveliness token"))?;
+    let router = router_of(&mission)?;
     let (systems, signed) = (router.systems(), gcs.signed());
     info!(
         gcs = address,
@@ -88,61 +103,79 @@ async fn run(args: Args) -> anyhow::Result<()> {
         signed,
         "ground-station gateway up"
     );
-
     // The ground station's frames (as they came, signature and all), or why the signing check
     // refused one, from the link's reader.
     let mut from_gcs = gcs.reader("gcs-rx")?;
-    let mut refusals = RefusalLog::new(Duration::from_secs(10));
+    let mut g = Gateway {
+        keys,
+        gcs,
+        session,
+        router,
+        refusals: RefusalLog::new(Duration::from_secs(10)),
+        up: 0,
+        down: 0,
+    };
     let mut stop = fleet_net::StopSignals::new()?;
     let mut stats = tokio::time::interval(Duration::from_secs(10));
-    let (mut up, mut down) = (0u64, 0u64);
     loop {
         tokio::select! {
-            s = from_vehicles.recv_async() => {
-                let Ok(s) = s else { break };
-                fleet_net::mark_connected();
-                let Some(vehicle) = keys.vehicle_of(s.key_expr().as_str()) else { continue };
-                let bytes = s.payload().to_bytes();
-                match router.from_vehicle(&vehicle, &bytes) {
-                    Ok((h, m)) => {
-                        // Signed here with the ground-station key (the vehicle's own link key
-                        // never leaves the vehicle).
-                        let _ = gcs.send(&h, &m);
-                        down += 1;
-                    }
-                    Err(r) => if let Some(line) = refusals.note(&r) { warn!(%vehicle, "{line}") },
-                }
-            }
-            Some(got) = from_gcs.recv() => {
-                let got = match got {
-                    Received::Frame(_, _, bytes) => Ok(bytes),
-                    Received::Refused(r) => Err(router.refused_by_signing(r)),
-                    Received::Unreadable(e) => {
-                        debug!("unreadable frame from the ground station: {e}");
-                        continue;
-                    }
-                    Received::Idle | Received::Closed => continue,
-                };
-                match got.and_then(|bytes| router.from_gcs(&bytes).map(|to| (bytes, to))) {
-                    Ok((bytes, vehicles)) => {
-                        for v in vehicles {
-                            if let Err(e) = session.put(keys.gcs(&v), bytes.clone()).await {
-                                warn!(vehicle = v, "forwarding a ground-station frame: {e}");
-                            }
-                        }
-                        up += 1;
-                    }
-                    Err(r) => if let Some(line) = refusals.note(&r) { warn!("{line}") },
-                }
-            }
-            _ = stats.tick() => info!(to_gcs = down, from_gcs = up, refused = ?router.refused, "gateway"),
+            s = from_vehicles.recv_async() => match s {
+                Ok(s) => g.from_vehicle(&s),
+                Err(_) => break,
+            },
+            Some(got) = from_gcs.recv() => g.from_gcs(got).await,
+            _ = stats.tick() => info!(to_gcs = g.down, from_gcs = g.up, refused = ?g.router.refused, "gateway"),
             sig = stop.recv() => { info!(signal = sig, "stopping"); break }
         }
     }
-    info!(to_gcs = down, from_gcs = up, refused = ?router.refused, "gateway stopped");
-    session
-        .close()
-        .await
-        .map_err(fleet_net::NetError::zenoh("closing the Zenoh session"))?;
+    info!(to_gcs = g.down, from_gcs = g.up, refused = ?g.router.refused, "gateway stopped");
+    g.session.close().await.map_err(e("closing the Zenoh session"))?;
     Ok(())
+}
+
+impl Gateway {
+    /// A vehicle's autopilot frame, to the ground station: signed here with the ground-station
+    /// key (the vehicle's own link key never leaves the vehicle).
+    fn from_vehicle(&mut self, s: &fleet_net::zenoh::sample::Sample) {
+        fleet_net::mark_connected();
+        let Some(vehicle) = self.keys.vehicle_of(s.key_expr().as_str()) else {
+            return;
+        };
+        match self.router.from_vehicle(&vehicle, &s.payload().to_bytes()) {
+            Ok((h, m)) => {
+                let _ = self.gcs.send(&h, &m);
+                self.down += 1;
+            }
+            Err(r) => {
+                if let Some(line) = self.refusals.note(&r) {
+                    warn!(%vehicle, "{line}")
+                }
+            }
+        }
+    }
+
+    /// A read from the ground station: passed to the vehicle(s) it addresses, or refused.
+    async fn from_gcs(&mut self, got: Received) {
+        let got = match got {
+            Received::Frame(_, _, bytes) => Ok(bytes),
+            Received::Refused(r) => Err(self.router.refused_by_signing(r)),
+            Received::Unreadable(e) => return debug!("unreadable frame from the ground station: {e}"),
+            Received::Idle | Received::Closed => return,
+        };
+        match got.and_then(|bytes| self.router.from_gcs(&bytes).map(|to| (bytes, to))) {
+            Ok((bytes, vehicles)) => {
+                for v in vehicles {
+                    if let Err(e) = self.session.put(self.keys.gcs(&v), bytes.clone()).await {
+                        warn!(vehicle = v, "forwarding a ground-station frame: {e}");
+                    }
+                }
+                self.up += 1;
+            }
+            Err(r) => {
+                if let Some(line) = self.refusals.note(&r) {
+                    warn!("{line}")
+                }
+            }
+        }
+    }
 }

@@ -57,6 +57,9 @@ impl Fct {
 
     /// One FCT update over `dt`: low-order fluxes from `old`, high-order from `ho`, written to
     /// `out` (which may not alias the inputs).
+    ///
+    /// Long because it is one time step of the scheme, each stage in the order of the
+    /// specification's equations (`plasma-cloud.md`).
     pub fn step(&mut self, old: &[f64], ho: &[f64], vel: &FaceVelocity, dt: f64, out: &mut [f64]) {
         let g = &self.grid;
         let (nx, ny) = (g.nx, g.ny);

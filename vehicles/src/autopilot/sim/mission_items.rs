@@ -203,6 +203,9 @@ impl SimAutopilot {
     }
 
     /// A message of the mission protocol (any other is ignored).
+    ///
+    /// Long because it is one arm per message of the mission protocol, as ArduPilot's handler has
+    /// them.
     pub(super) fn mission_message(&mut self, sender: (u8, u8), msg: &MavMessage) {
         match msg {
             MavMessage::MISSION_COUNT(c) => {
