@@ -10,6 +10,9 @@
    of another, is its encoding and is not counted), and no function that copies a struct
    field by field (`self.a = c.a.clone(); self.b = c.b.clone(); ...`).
 
+4. functions a reader can hold: no function (tests aside) of more than 80 lines unless its
+   doc comment says why, in a sentence that begins "Long because".
+
 Prints what it finds, one line each, and exits 1 if anything is found.
 usage: python3 scripts/check_structure.py [repo root]
 """
@@ -173,10 +176,44 @@ def check_field_lists(crates):
                         f"{len(shared)} fields: one field list written twice")
 
 
+# 4. Long functions.
+def check_lengths(crates, limit=80):
+    for crate in crates:
+        for f in rust_files(os.path.join(ROOT, crate, "src")):
+            if f.endswith("/tests.rs"):
+                continue
+            lines = open(f).read().split("\n")
+            test_from = next((i for i, l in enumerate(lines) if l.startswith("#[cfg(test)]")), len(lines))
+            for i, line in enumerate(lines[:test_from]):
+                m = re.match(r"\s*(?:pub(?:\([^)]*\))?\s+)?(?:async\s+)?fn\s+(\w+)", line)
+                if not m:
+                    continue
+                depth, started, end = 0, False, i
+                for j in range(i, len(lines)):
+                    depth += lines[j].count("{") - lines[j].count("}")
+                    started = started or "{" in lines[j]
+                    if not started and lines[j].rstrip().endswith(";"):
+                        break
+                    if started and depth <= 0:
+                        end = j
+                        break
+                n = end - i + 1
+                if n <= limit:
+                    continue
+                k, doc = i - 1, []
+                while k >= 0 and re.match(r"\s*(///|#\[)", lines[k]):
+                    doc.append(lines[k])
+                    k -= 1
+                if "Long because" not in " ".join(d.strip().lstrip("/ ") for d in reversed(doc)):
+                    problems.append(f"{os.path.relpath(f, ROOT)}:{i + 1}: fn {m.group(1)} is {n} lines "
+                                    f"(over {limit}; split it, or say why in its doc: \"Long because ...\")")
+
+
 check_loops("vehicles")
 check_loops("mission")
 check_sleeps(["vehicles/src/node", "vehicles/src/bridge"])
 check_field_lists(["math", "mission", "net", "vehicles", "model-server", "watch", "fleet"])
+check_lengths(["math", "mission", "exit", "net", "vehicles", "model-server", "watch", "fleet"])
 for p in problems:
     print(p)
 print(f"check_structure: {len(problems)} problem(s)")

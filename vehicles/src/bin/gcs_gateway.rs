@@ -120,10 +120,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
     loop {
         tokio::select! {
             s = from_vehicles.recv_async() => match s {
-                Ok(s) => g.from_vehicle(&s),
+                Ok(s) => g.on_vehicle_frame(&s),
                 Err(_) => break,
             },
-            Some(got) = from_gcs.recv() => g.from_gcs(got).await,
+            Some(got) = from_gcs.recv() => g.on_gcs_read(got).await,
             _ = stats.tick() => info!(to_gcs = g.down, from_gcs = g.up, refused = ?g.router.refused, "gateway"),
             sig = stop.recv() => { info!(signal = sig, "stopping"); break }
         }
@@ -136,7 +136,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
 impl Gateway {
     /// A vehicle's autopilot frame, to the ground station: signed here with the ground-station
     /// key (the vehicle's own link key never leaves the vehicle).
-    fn from_vehicle(&mut self, s: &fleet_net::zenoh::sample::Sample) {
+    fn on_vehicle_frame(&mut self, s: &fleet_net::zenoh::sample::Sample) {
         fleet_net::mark_connected();
         let Some(vehicle) = self.keys.vehicle_of(s.key_expr().as_str()) else {
             return;
@@ -155,7 +155,7 @@ impl Gateway {
     }
 
     /// A read from the ground station: passed to the vehicle(s) it addresses, or refused.
-    async fn from_gcs(&mut self, got: Received) {
+    async fn on_gcs_read(&mut self, got: Received) {
         let got = match got {
             Received::Frame(_, _, bytes) => Ok(bytes),
             Received::Refused(r) => Err(self.router.refused_by_signing(r)),
