@@ -407,7 +407,53 @@ pub fn run(
 ) -> anyhow::Result<(Results, BTreeMap<String, FieldSeries>)> {
     let progress = std::sync::Mutex::new(progress);
     let say = |m: &str| (progress.lock().unwrap_or_else(|p| p.into_inner()))(m);
-    // One truth per cloud, simulated once (in parallel).
+    let (cache, truths) = make_truths(cfg, &say)?;
+    let seeds = cfg.seeds();
+    let jobs: Vec<(usize, u64)> = (0..cfg.rows.len())
+        .flat_map(|i| seeds.iter().map(move |&s| (i, s)))
+        .collect();
+    let outs = parallel(&jobs, |&(i, seed)| {
+        let r = &cfg.rows[i];
+        let what = format!(
+            "{} {}/{} {}/{} seed {seed}",
+            r.name(),
+            r.av_time,
+            r.mv_time,
+            r.av_space,
+            r.mv_space
+        );
+        let out = run_seed(cfg, r, &truths[i], seed).with_context(|| what.clone());
+        say(&what);
+        out
+    });
+    let mut outs = outs.into_iter();
+    let mut rows = vec![];
+    for (i, r) in cfg.rows.iter().enumerate() {
+        let mine: Vec<_> = seeds.iter().map(|_| outs.next().expect("one output per job")).collect();
+        rows.push(summarise_row(cfg, r, &truths[i], &seeds, mine)?);
+    }
+    let eig_study = eigenvalue_study(cfg, &say)?;
+    let forgetting = forgetting_curves(cfg, &say)?;
+    let verdict = verdict_of(&rows);
+    let config = cfg.clone();
+    Ok((
+        Results {
+            config,
+            rows,
+            eig_study,
+            forgetting,
+            verdict,
+        },
+        cache,
+    ))
+}
+
+/// One truth per cloud, simulated once (in parallel), and each row's truth on its model grid.
+#[allow(clippy::type_complexity)]
+fn make_truths(
+    cfg: &ExperimentConfig,
+    say: &(impl Fn(&str) + Sync),
+) -> anyhow::Result<(BTreeMap<String, FieldSeries>, Vec<FieldSeries>)> {
     let mut names: Vec<&Row> = vec![];
     for r in &cfg.rows {
         if !names.iter().any(|n| n.name() == r.name()) {
@@ -431,174 +477,164 @@ pub fn run(
         .iter()
         .map(|r| averaged_by(&cache[&r.name()], r.mv_space).with_context(|| r.name()))
         .collect::<anyhow::Result<_>>()?;
-    let seeds = cfg.seeds();
-    let jobs: Vec<(usize, u64)> = (0..cfg.rows.len())
-        .flat_map(|i| seeds.iter().map(move |&s| (i, s)))
+    Ok((cache, truths))
+}
+
+/// What one seed of a row gives: its result, the figure's data, its per-step errors.
+type SeedOut = anyhow::Result<(SeedResult, TeamOutcome, Vec<TeamSteps>)>;
+
+/// A row over its seeds: each team's mean with its interval, the paired comparisons,
+/// calibration, and where the fused teams beat the better single team.
+fn summarise_row(
+    cfg: &ExperimentConfig,
+    r: &Row,
+    truth: &FieldSeries,
+    seeds: &[u64],
+    outs: Vec<SeedOut>,
+) -> anyhow::Result<RowResult> {
+    let mut seed_results = vec![];
+    let mut per_step = vec![];
+    let mut figure = None;
+    for (&seed, out) in seeds.iter().zip(outs) {
+        let (result, qr, steps) = out?;
+        seed_results.push(result);
+        per_step.push((seed, steps));
+        figure.get_or_insert(qr);
+    }
+    let figure = figure.expect("at least one seed");
+    let of = |team: &str| seed_results.iter().map(|s| s.mse[team]).collect::<Vec<f64>>();
+    let teams: BTreeMap<String, Interval> = seed_results[0]
+        .mse
+        .keys()
+        .map(|t| (t.clone(), Interval::of(&of(t))))
         .collect();
-    let outs = parallel(&jobs, |&(i, seed)| {
-        let r = &cfg.rows[i];
-        let out = run_seed(cfg, r, &truths[i], seed).with_context(|| {
-            format!(
-                "{} {}/{} {}/{} seed {seed}",
-                r.name(),
-                r.av_time,
-                r.mv_time,
-                r.av_space,
-                r.mv_space
-            )
-        });
-        say(&format!(
-            "{} {}/{} {}/{} seed {seed}",
-            r.name(),
-            r.av_time,
-            r.mv_time,
-            r.av_space,
-            r.mv_space
-        ));
-        out
-    });
-    let mut outs = outs.into_iter();
-    let mut rows = vec![];
-    for (i, r) in cfg.rows.iter().enumerate() {
-        let mut seed_results = vec![];
-        let mut per_step = vec![];
-        let mut figure = None;
-        for &seed in &seeds {
-            let (result, qr, steps) = outs.next().expect("one output per job")?;
-            seed_results.push(result);
-            per_step.push((seed, steps));
-            figure.get_or_insert(qr);
+    let compare = |a: &str, b: &str| {
+        let d = Interval::paired(&of(a), &of(b));
+        Comparison {
+            first: a.into(),
+            second: b.into(),
+            difference: d,
+            verdict: StatVerdict::of(&d),
         }
-        let figure = figure.expect("at least one seed");
-        let of = |team: &str| seed_results.iter().map(|s| s.mse[team]).collect::<Vec<f64>>();
-        let teams: BTreeMap<String, Interval> = seed_results[0]
-            .mse
-            .keys()
-            .map(|t| (t.clone(), Interval::of(&of(t))))
-            .collect();
-        let compare = |a: &str, b: &str| {
-            let d = Interval::paired(&of(a), &of(b));
-            Comparison {
-                first: a.into(),
-                second: b.into(),
-                difference: d,
-                verdict: StatVerdict::of(&d),
-            }
-        };
-        let mut comparisons = vec![
-            compare(HETEROGENEOUS, AERIAL_ONLY),
-            compare(HETEROGENEOUS, BOAT_ONLY),
-            compare(HETEROGENEOUS, RANDOM),
-        ];
-        for scheme in &cfg.extra_fusions {
-            comparisons.push(compare(&format!("{HETEROGENEOUS}-{scheme}"), HETEROGENEOUS));
-        }
+    };
+    let mut comparisons = vec![
+        compare(HETEROGENEOUS, AERIAL_ONLY),
+        compare(HETEROGENEOUS, BOAT_ONLY),
+        compare(HETEROGENEOUS, RANDOM),
+    ];
+    for scheme in &cfg.extra_fusions {
+        comparisons.push(compare(&format!("{HETEROGENEOUS}-{scheme}"), HETEROGENEOUS));
+    }
+    for placement in &cfg.extra_placements {
+        let name = format!("{HETEROGENEOUS}-{placement}");
+        comparisons.push(compare(&name, HETEROGENEOUS));
+        comparisons.push(compare(&name, RANDOM));
+    }
+    if cfg.oracle {
+        comparisons.push(compare(ORACLE, HETEROGENEOUS));
+        comparisons.push(compare(ORACLE, RANDOM));
         for placement in &cfg.extra_placements {
-            let name = format!("{HETEROGENEOUS}-{placement}");
-            comparisons.push(compare(&name, HETEROGENEOUS));
-            comparisons.push(compare(&name, RANDOM));
+            comparisons.push(compare(ORACLE, &format!("{HETEROGENEOUS}-{placement}")));
         }
-        if cfg.oracle {
-            comparisons.push(compare(ORACLE, HETEROGENEOUS));
-            comparisons.push(compare(ORACLE, RANDOM));
-            for placement in &cfg.extra_placements {
-                comparisons.push(compare(ORACLE, &format!("{HETEROGENEOUS}-{placement}")));
-            }
-        }
-        let calibration = seed_results[0]
-            .calibration
-            .keys()
-            .map(|t| {
-                (
-                    t.clone(),
-                    Interval::of(&seed_results.iter().map(|s| s.calibration[t]).collect::<Vec<_>>()),
-                )
-            })
-            .collect();
-        let at_most_best_single = at_most_best_single(&per_step, figure.scored_from);
-        let step0 = |f: fn(&SeedResult) -> f64| Interval::of(&seed_results.iter().map(f).collect::<Vec<_>>());
-        rows.push(RowResult {
-            row: r.clone(),
-            model_grid: [truths[i].rows, truths[i].cols],
-            scored_from: figure.scored_from,
-            heterogeneous_from_step0: step0(|s| s.heterogeneous_from_step0),
-            aerial_only_from_step0: step0(|s| s.aerial_only_from_step0),
-            seeds: seed_results,
-            teams,
-            comparisons,
-            calibration,
-            at_most_best_single,
-            figure,
-            per_step,
-        });
     }
-    let progress = |m: &str| say(m);
+    let calibration = seed_results[0]
+        .calibration
+        .keys()
+        .map(|t| {
+            (
+                t.clone(),
+                Interval::of(&seed_results.iter().map(|s| s.calibration[t]).collect::<Vec<_>>()),
+            )
+        })
+        .collect();
+    let at_most_best_single = at_most_best_single(&per_step, figure.scored_from);
+    let step0 = |f: fn(&SeedResult) -> f64| Interval::of(&seed_results.iter().map(f).collect::<Vec<_>>());
+    Ok(RowResult {
+        row: r.clone(),
+        model_grid: [truth.rows, truth.cols],
+        scored_from: figure.scored_from,
+        heterogeneous_from_step0: step0(|s| s.heterogeneous_from_step0),
+        aerial_only_from_step0: step0(|s| s.aerial_only_from_step0),
+        seeds: seed_results,
+        teams,
+        comparisons,
+        calibration,
+        at_most_best_single,
+        figure,
+        per_step,
+    })
+}
+
+/// Fig. 7: the dominant eigenvalue's estimates by method and noise level.
+fn eigenvalue_study(cfg: &ExperimentConfig, progress: &impl Fn(&str)) -> anyhow::Result<Vec<EigBox>> {
     let mut eig = vec![];
-    if cfg.eig_trials > 0 {
-        let methods = [
-            ("batch", Method::Batch),
-            ("general", Method::General),
-            ("long-term", Method::LongTerm),
-        ];
-        for (level, var) in [0.01, 0.04, 0.1].into_iter().enumerate() {
-            for (label, method) in methods {
-                progress(&format!("Fig. 7 {label} var {var}"));
-                let v = eig_study::Variant::new(label, method, RankPolicy::Full, Default::default(), 1.0);
-                let estimates = (0..cfg.eig_trials)
-                    .map(|t| eig_study::estimate(&v, var, eig_study::trial_seed(cfg.seed, level, t)))
-                    .collect::<Result<Vec<_>, _>>()?;
-                eig.push(EigBox {
-                    method: label.into(),
-                    noise_var: var,
-                    estimates,
-                });
-            }
+    if cfg.eig_trials == 0 {
+        return Ok(eig);
+    }
+    let methods = [
+        ("batch", Method::Batch),
+        ("general", Method::General),
+        ("long-term", Method::LongTerm),
+    ];
+    for (level, var) in [0.01, 0.04, 0.1].into_iter().enumerate() {
+        for (label, method) in methods {
+            progress(&format!("Fig. 7 {label} var {var}"));
+            let v = eig_study::Variant::new(label, method, RankPolicy::Full, Default::default(), 1.0);
+            let estimates = (0..cfg.eig_trials)
+                .map(|t| eig_study::estimate(&v, var, eig_study::trial_seed(cfg.seed, level, t)))
+                .collect::<Result<Vec<_>, _>>()?;
+            eig.push(EigBox {
+                method: label.into(),
+                noise_var: var,
+                estimates,
+            });
         }
     }
+    Ok(eig)
+}
+
+/// Fig. 8: the dominant eigenvalue as pairs arrive, batch against long-term with forgetting.
+fn forgetting_curves(cfg: &ExperimentConfig, progress: &impl Fn(&str)) -> anyhow::Result<Vec<ForgettingCurve>> {
     let mut forgetting = vec![];
-    if !cfg.forgetting.is_empty() {
-        let field = EigStudy::field(0.01, cfg.seed);
-        let z = field.snapshots.as_ref();
-        let mut curves: Vec<(String, DmdConfig)> = vec![(
-            "batch".into(),
-            DmdConfig {
-                method: Method::Batch,
-                rank: RankPolicy::Full,
-                debias: Default::default(),
-                gamma: 1.0,
-                forgetting: Default::default(),
-            },
-        )];
-        for &g in &cfg.forgetting {
-            curves.push((
-                format!("long-term gamma {g}"),
-                DmdConfig {
-                    method: Method::LongTerm,
-                    rank: RankPolicy::Full,
-                    debias: Default::default(),
-                    gamma: g,
-                    forgetting: cfg.forgetting_unit.into(),
-                },
-            ));
-        }
-        for (label, c) in curves {
-            progress(&format!("Fig. 8 {label}"));
-            let mut points = vec![];
-            run_online(&c, z, EigStudy::INIT, 60, |m| {
-                // From the first update on: the initial fit of 400 pairs on a 400-cell grid is
-                // square and fits the noise (its dominant eigenvalue is a spurious growing mode).
-                if m.pairs() == EigStudy::INIT {
-                    return Ok(());
-                }
-                let modes = m.decompose()?;
-                if let Some(l) = dominant_continuous(&modes, field.dt) {
-                    points.push((m.pairs() as f64, l.re));
-                }
-                Ok(())
-            })?;
-            forgetting.push(ForgettingCurve { label, points });
-        }
+    if cfg.forgetting.is_empty() {
+        return Ok(forgetting);
     }
+    let field = EigStudy::field(0.01, cfg.seed);
+    let z = field.snapshots.as_ref();
+    let config = |method, gamma, forgetting| DmdConfig {
+        method,
+        rank: RankPolicy::Full,
+        debias: Default::default(),
+        gamma,
+        forgetting,
+    };
+    let mut curves: Vec<(String, DmdConfig)> = vec![("batch".into(), config(Method::Batch, 1.0, Default::default()))];
+    for &g in &cfg.forgetting {
+        let c = config(Method::LongTerm, g, cfg.forgetting_unit.into());
+        curves.push((format!("long-term gamma {g}"), c));
+    }
+    for (label, c) in curves {
+        progress(&format!("Fig. 8 {label}"));
+        let mut points = vec![];
+        run_online(&c, z, EigStudy::INIT, 60, |m| {
+            // From the first update on: the initial fit of 400 pairs on a 400-cell grid is
+            // square and fits the noise (its dominant eigenvalue is a spurious growing mode).
+            if m.pairs() == EigStudy::INIT {
+                return Ok(());
+            }
+            let modes = m.decompose()?;
+            if let Some(l) = dominant_continuous(&modes, field.dt) {
+                points.push((m.pairs() as f64, l.re));
+            }
+            Ok(())
+        })?;
+        forgetting.push(ForgettingCurve { label, points });
+    }
+    Ok(forgetting)
+}
+
+/// What the paired intervals say on the most complex cloud's first row.
+fn verdict_of(rows: &[RowResult]) -> Verdict {
     let top = rows
         .iter()
         .filter_map(|r| r.row.truth.preset())
@@ -613,22 +649,12 @@ pub fn run(
             .find(|c| c.first == HETEROGENEOUS && c.second == second)
             .map(|c| c.verdict)
     };
-    let verdict = Verdict {
+    Verdict {
         preset: first_of_top.map(|r| r.row.name()),
         heterogeneous_vs_aerial_only: first_of_top.and_then(|r| verdict_of(r, AERIAL_ONLY)),
         heterogeneous_vs_boat_only: first_of_top.and_then(|r| verdict_of(r, BOAT_ONLY)),
         qr_vs_random: first_of_top.and_then(|r| verdict_of(r, RANDOM)),
-    };
-    Ok((
-        Results {
-            config: cfg.clone(),
-            rows,
-            eig_study: eig,
-            forgetting,
-            verdict,
-        },
-        cache,
-    ))
+    }
 }
 
 /// For each fused team: the fraction of steps from `from` on, pooled over seeds, where its
@@ -1057,116 +1083,119 @@ impl Report<'_> {
 
     /// Fig. 11: the most complex cloud's first row, first seed, three boat steps.
     fn fig11(&mut self) -> anyhow::Result<()> {
-        let Report {
-            dir,
-            res,
-            truths,
-            md,
-            figures,
-            ..
-        } = self;
-        let v = &res.verdict;
-        let seeds = res.config.seeds();
-
-        if let Some(r) = v
+        let res = self.res;
+        let Some(r) = res
+            .verdict
             .preset
             .as_ref()
             .and_then(|p| res.rows.iter().find(|r| &r.row.name() == p))
-        {
-            writeln!(
-                md,
-                "## Fig. 11: truth and reconstruction ({}, seed {}), boats' disks in white\n",
-                r.row.name(),
-                seeds[0]
-            )?;
-            let truth = &truths[&r.row.name()];
-            let (rows, cols) = (r.model_grid[0], r.model_grid[1]);
-            let steps = &r.figure.boat_steps;
-            let picks: Vec<usize> = if steps.len() >= 3 {
-                vec![0, steps.len() / 2, steps.len() - 1]
-            } else {
-                (0..steps.len()).collect()
-            };
-            let radius = res.config.radius / r.row.mv_space as f64;
-            let mut owned = vec![];
-            for &i in &picks {
-                let k = steps[i];
-                let col: Vec<f64> = truth.snapshots.col(k).iter().copied().collect();
-                owned.push((k, i, area_average(&col, truth.rows, truth.cols, rows, cols)?));
-            }
-            let mut panels = vec![];
-            for (k, i, t) in &owned {
-                let disks: Vec<(f64, f64, f64)> = r.figure.disks[*i]
-                    .iter()
-                    .map(|&(a, b)| (a as f64, b as f64, radius))
-                    .collect();
-                panels.push(Panel {
-                    values: t,
-                    rows,
-                    cols,
-                    title: format!("truth, step {k}"),
-                    disks: disks.clone(),
-                });
-                panels.push(Panel {
-                    values: &r.figure.snapshots[*i],
-                    rows,
-                    cols,
-                    title: format!("heterogeneous estimate, step {k}"),
-                    disks,
-                });
-            }
-            let range = plot::range_of(&panels[..panels.len().min(1)]);
-            plot::png(dir.join("fig11.png"), &panels, Some(range))?;
-            writeln!(md, "![fig11](fig11.png)\n")?;
-            figures.push("fig11.png".into());
-            // The uncertainty the estimate reports beside the error it makes, on one scale.
-            writeln!(
-                md,
-                "Below, at the same steps: the standard deviation the estimate reports at each cell beside its \
-                actual error (absolute value), on one colour scale.\n"
-            )?;
-            let sd: Vec<(usize, Vec<f64>, Vec<f64>)> = owned
-                .iter()
-                .map(|(k, i, t)| {
-                    (
-                        *k,
-                        r.figure.snapshot_variances[*i]
-                            .iter()
-                            .map(|v| v.max(0.0).sqrt())
-                            .collect(),
-                        r.figure.snapshots[*i]
-                            .iter()
-                            .zip(t)
-                            .map(|(e, x)| (e - x).abs())
-                            .collect(),
-                    )
-                })
-                .collect();
-            let mut panels = vec![];
-            for (k, std, err) in &sd {
-                panels.push(Panel {
-                    values: std,
-                    rows,
-                    cols,
-                    title: format!("reported standard deviation, step {k}"),
-                    disks: vec![],
-                });
-                panels.push(Panel {
-                    values: err,
-                    rows,
-                    cols,
-                    title: format!("|error|, step {k}"),
-                    disks: vec![],
-                });
-            }
-            plot::png(
-                dir.join("fig11-uncertainty.png"),
-                &panels,
-                Some(plot::range_of(&panels)),
-            )?;
-            writeln!(md, "![fig11-uncertainty](fig11-uncertainty.png)\n")?;
-            figures.push("fig11-uncertainty.png".into());
+        else {
+            return Ok(());
+        };
+        let seeds = res.config.seeds();
+        writeln!(
+            self.md,
+            "## Fig. 11: truth and reconstruction ({}, seed {}), boats' disks in white\n",
+            r.row.name(),
+            seeds[0]
+        )?;
+        let truth = &self.truths[&r.row.name()];
+        let (rows, cols) = (r.model_grid[0], r.model_grid[1]);
+        let steps = &r.figure.boat_steps;
+        let picks: Vec<usize> = if steps.len() >= 3 {
+            vec![0, steps.len() / 2, steps.len() - 1]
+        } else {
+            (0..steps.len()).collect()
+        };
+        let mut owned = vec![];
+        for &i in &picks {
+            let k = steps[i];
+            let col: Vec<f64> = truth.snapshots.col(k).iter().copied().collect();
+            owned.push((k, i, area_average(&col, truth.rows, truth.cols, rows, cols)?));
         }
+        self.fig11_fields(r, &owned)?;
+        self.fig11_uncertainty(r, &owned)
+    }
+
+    /// The truth beside the estimate at the picked boat steps, with the boats' disks.
+    fn fig11_fields(&mut self, r: &RowResult, owned: &[(usize, usize, Vec<f64>)]) -> anyhow::Result<()> {
+        let (rows, cols) = (r.model_grid[0], r.model_grid[1]);
+        let radius = self.res.config.radius / r.row.mv_space as f64;
+        let mut panels = vec![];
+        for (k, i, t) in owned {
+            let disks: Vec<(f64, f64, f64)> = r.figure.disks[*i]
+                .iter()
+                .map(|&(a, b)| (a as f64, b as f64, radius))
+                .collect();
+            panels.push(Panel {
+                values: t,
+                rows,
+                cols,
+                title: format!("truth, step {k}"),
+                disks: disks.clone(),
+            });
+            panels.push(Panel {
+                values: &r.figure.snapshots[*i],
+                rows,
+                cols,
+                title: format!("heterogeneous estimate, step {k}"),
+                disks,
+            });
+        }
+        let range = plot::range_of(&panels[..panels.len().min(1)]);
+        plot::png(self.dir.join("fig11.png"), &panels, Some(range))?;
+        writeln!(self.md, "![fig11](fig11.png)\n")?;
+        self.figures.push("fig11.png".into());
+        Ok(())
+    }
+
+    /// The uncertainty the estimate reports beside the error it makes, on one scale.
+    fn fig11_uncertainty(&mut self, r: &RowResult, owned: &[(usize, usize, Vec<f64>)]) -> anyhow::Result<()> {
+        let (rows, cols) = (r.model_grid[0], r.model_grid[1]);
+        writeln!(
+            self.md,
+            "Below, at the same steps: the standard deviation the estimate reports at each cell beside its \
+            actual error (absolute value), on one colour scale.\n"
+        )?;
+        let sd: Vec<(usize, Vec<f64>, Vec<f64>)> = owned
+            .iter()
+            .map(|(k, i, t)| {
+                let std = r.figure.snapshot_variances[*i]
+                    .iter()
+                    .map(|v| v.max(0.0).sqrt())
+                    .collect();
+                let err = r.figure.snapshots[*i]
+                    .iter()
+                    .zip(t)
+                    .map(|(e, x)| (e - x).abs())
+                    .collect();
+                (*k, std, err)
+            })
+            .collect();
+        let mut panels = vec![];
+        for (k, std, err) in &sd {
+            panels.push(Panel {
+                values: std,
+                rows,
+                cols,
+                title: format!("reported standard deviation, step {k}"),
+                disks: vec![],
+            });
+            panels.push(Panel {
+                values: err,
+                rows,
+                cols,
+                title: format!("|error|, step {k}"),
+                disks: vec![],
+            });
+        }
+        plot::png(
+            self.dir.join("fig11-uncertainty.png"),
+            &panels,
+            Some(plot::range_of(&panels)),
+        )?;
+        writeln!(self.md, "![fig11-uncertainty](fig11-uncertainty.png)\n")?;
+        self.figures.push("fig11-uncertainty.png".into());
         Ok(())
     }
 
