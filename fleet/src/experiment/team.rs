@@ -35,7 +35,7 @@ use serde::Serialize;
 /// (`boat_only[k]` is `None` before). The `mean_*` are over steps `scored_from..`, the first
 /// step where every team has data; `*_from_step0` (the two teams that have data there) are
 /// reported beside them, labelled.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Default, Serialize)]
 pub struct TeamOutcome {
     pub heterogeneous: Vec<f64>,
     pub aerial_only: Vec<f64>,
@@ -216,67 +216,10 @@ fn run_placing(
     let grid = Grid::new(truth.rows, truth.cols, 1.0)?;
     let frames = truth.frames();
     let mut server = ServerCore::new(cfg, grid, frames)?;
-    let n = grid.len();
-    let boat_var = cfg.boat_sigma * cfg.boat_sigma;
     let truth_at = |k: usize| column(&truth.snapshots, k);
-    // Each vehicle as the vehicle node runs it; offline they reach every place in time.
-    let mut brains: Vec<VehicleBrain> = server
-        .vehicles()
-        .iter()
-        .enumerate()
-        .map(|(v, spec)| {
-            let noise = match spec.kind {
-                VehicleKind::Aerial => server.assimilator().aerial_noise(),
-                VehicleKind::Boat => AerialNoise {
-                    sigma0: cfg.boat_sigma,
-                    growth_per_m: 0.0,
-                },
-            };
-            VehicleBrain::new(
-                &spec.id,
-                spec.kind,
-                grid,
-                *server.schedule(),
-                noise,
-                mission::vehicle_rng(cfg.seed, v),
-                f64::MAX,
-            )
-        })
-        .collect();
-
-    let mut out = TeamOutcome {
-        heterogeneous: vec![],
-        aerial_only: vec![],
-        boat_only: vec![],
-        calibration: vec![],
-        scored_from: 0,
-        mean_heterogeneous: 0.0,
-        mean_aerial_only: 0.0,
-        mean_boat_only: 0.0,
-        mean_calibration: 0.0,
-        heterogeneous_from_step0: 0.0,
-        aerial_only_from_step0: 0.0,
-        boat_steps: vec![],
-        disks: vec![],
-        aerial_positions: vec![],
-        snapshots: vec![],
-        snapshot_variances: vec![],
-        rank: 0,
-    };
-    // Boat-only team: its snapshots at boat steps, its model once it has enough. It has no
-    // estimate before its first sample (those steps are not scored), then its latest snapshot
-    // until it has a model.
-    let boat_cfg = DmdConfig {
-        method: Method::Batch,
-        rank: cfg.rank,
-        debias: Default::default(),
-        gamma: cfg.gamma,
-        forgetting: Default::default(),
-    };
-    let mut boat_snaps: Vec<Vec<f64>> = vec![];
-    let mut boat_model: Option<(DmdModel, Mat<f64>, usize)> = None; // model, basis, step of its newest snapshot
-    let mut boat_guess: Option<Vec<f64>> = None;
-
+    let mut brains = brains_of(&server, cfg, grid);
+    let mut out = TeamOutcome::default();
+    let mut boat_only = BoatOnly::new(cfg, grid.len());
     for e in 0..server.schedule().epochs() {
         let steps = server.steps_of(e);
         if oracle && e > 0 && !server.schedule().sample_steps(VehicleKind::Boat, e).is_empty() {
@@ -301,37 +244,7 @@ fn run_placing(
             out.aerial_only.push(mse(&server.aerial_estimates[k], &x));
             // Boat-only team, from the same boat samples.
             let here: Vec<&Sample> = boat_samples.iter().filter(|s| s.step as usize == k).collect();
-            let measured_cells: Vec<usize> = here.iter().flat_map(|s| s.cells.iter().map(|&c| c as usize)).collect();
-            let measured_vals: Vec<f64> = here.iter().flat_map(|s| s.values.iter().copied()).collect();
-            let boat_est = if !measured_cells.is_empty() {
-                let mean = measured_vals.iter().sum::<f64>() / measured_vals.len() as f64;
-                let mut est = match &boat_model {
-                    Some((_, b, _)) => gappy::reconstruct(b.as_ref(), &measured_cells, &measured_vals, boat_var)
-                        .map(|g| g.field)
-                        .unwrap_or_else(|_| vec![mean; n]),
-                    None => vec![mean; n],
-                };
-                for (&c, &v) in measured_cells.iter().zip(&measured_vals) {
-                    est[c] = v;
-                }
-                boat_snaps.push(est.clone());
-                if boat_snaps.len() >= 3 {
-                    let z = mission::to_mat(&boat_snaps);
-                    let m = boat_snaps.len() - 1;
-                    let bm = boat_cfg.init(z.subcols(0, m), z.subcols(1, m))?;
-                    let (p, b) = mission::fit_to(bm.as_ref(), &est)?;
-                    boat_model = Some((p, b, k));
-                }
-                boat_guess = Some(est.clone());
-                Some(est)
-            } else {
-                match &boat_model {
-                    // Its model steps are boat periods.
-                    Some((p, _, at)) => Some(p.predict((k - at) as f64 / cfg.boat_period as f64)),
-                    None => boat_guess.clone(),
-                }
-            };
-            out.boat_only.push(boat_est.map(|b| mse(&b, &x)));
+            out.boat_only.push(boat_only.step(k, &here)?.map(|b| mse(&b, &x)));
             if e > 0 && server.schedule().sample_steps(VehicleKind::Boat, e).contains(&k) {
                 out.boat_steps.push(k);
                 out.disks
@@ -343,19 +256,114 @@ fn run_placing(
             progress(k + 1, frames);
         }
     }
-    out.scored_from = out.boat_only.iter().position(Option::is_some).unwrap_or(frames);
-    let mean_from = |v: &[f64], from: usize| {
-        v[from.min(v.len())..].iter().sum::<f64>() / v.len().saturating_sub(from).max(1) as f64
-    };
-    out.mean_heterogeneous = mean_from(&out.heterogeneous, out.scored_from);
-    out.mean_aerial_only = mean_from(&out.aerial_only, out.scored_from);
-    out.mean_boat_only = mean_from(
-        &out.boat_only.iter().map(|v| v.unwrap_or(0.0)).collect::<Vec<_>>(),
-        out.scored_from,
-    );
-    out.mean_calibration = mean_from(&out.calibration, out.scored_from);
-    out.heterogeneous_from_step0 = mean_from(&out.heterogeneous, 0);
-    out.aerial_only_from_step0 = mean_from(&out.aerial_only, 0);
     out.rank = server.assimilator().rank();
+    out.score(frames);
     Ok(out)
+}
+
+/// Each vehicle as the vehicle node runs it; offline they reach every place in time.
+fn brains_of(server: &ServerCore, cfg: &TeamConfig, grid: Grid) -> Vec<VehicleBrain> {
+    server
+        .vehicles()
+        .iter()
+        .enumerate()
+        .map(|(v, spec)| {
+            let noise = match spec.kind {
+                VehicleKind::Aerial => server.assimilator().aerial_noise(),
+                VehicleKind::Boat => AerialNoise {
+                    sigma0: cfg.boat_sigma,
+                    growth_per_m: 0.0,
+                },
+            };
+            let rng = mission::vehicle_rng(cfg.seed, v);
+            VehicleBrain::new(&spec.id, spec.kind, grid, *server.schedule(), noise, rng, f64::MAX)
+        })
+        .collect()
+}
+
+/// The boat-only team: its snapshots at boat steps, its model once it has enough. It has no
+/// estimate before its first sample (those steps are not scored), then its latest snapshot
+/// until it has a model.
+struct BoatOnly {
+    cfg: DmdConfig,
+    boat_var: f64,
+    boat_period: usize,
+    n: usize,
+    snaps: Vec<Vec<f64>>,
+    /// The model, its basis, and the step of its newest snapshot.
+    model: Option<(DmdModel, Mat<f64>, usize)>,
+    guess: Option<Vec<f64>>,
+}
+
+impl BoatOnly {
+    fn new(cfg: &TeamConfig, n: usize) -> Self {
+        Self {
+            cfg: DmdConfig {
+                method: Method::Batch,
+                rank: cfg.rank,
+                debias: Default::default(),
+                gamma: cfg.gamma,
+                forgetting: Default::default(),
+            },
+            boat_var: cfg.boat_sigma * cfg.boat_sigma,
+            boat_period: cfg.boat_period,
+            n,
+            snaps: vec![],
+            model: None,
+            guess: None,
+        }
+    }
+
+    /// Its estimate at step `k` from the boats' samples there (none: its forecast or guess).
+    fn step(&mut self, k: usize, here: &[&Sample]) -> Result<Option<Vec<f64>>, TeamError> {
+        let measured_cells: Vec<usize> = here.iter().flat_map(|s| s.cells.iter().map(|&c| c as usize)).collect();
+        let measured_vals: Vec<f64> = here.iter().flat_map(|s| s.values.iter().copied()).collect();
+        if measured_cells.is_empty() {
+            return Ok(match &self.model {
+                // Its model steps are boat periods.
+                Some((p, _, at)) => Some(p.predict((k - at) as f64 / self.boat_period as f64)),
+                None => self.guess.clone(),
+            });
+        }
+        let mean = measured_vals.iter().sum::<f64>() / measured_vals.len() as f64;
+        let mut est = match &self.model {
+            Some((_, b, _)) => gappy::reconstruct(b.as_ref(), &measured_cells, &measured_vals, self.boat_var)
+                .map(|g| g.field)
+                .unwrap_or_else(|_| vec![mean; self.n]),
+            None => vec![mean; self.n],
+        };
+        for (&c, &v) in measured_cells.iter().zip(&measured_vals) {
+            est[c] = v;
+        }
+        self.snaps.push(est.clone());
+        if self.snaps.len() >= 3 {
+            let z = mission::to_mat(&self.snaps);
+            let m = self.snaps.len() - 1;
+            let bm = self.cfg.init(z.subcols(0, m), z.subcols(1, m))?;
+            let (p, b) = mission::fit_to(bm.as_ref(), &est)?;
+            self.model = Some((p, b, k));
+        }
+        self.guess = Some(est.clone());
+        Ok(Some(est))
+    }
+}
+
+impl TeamOutcome {
+    /// The means over the scored steps: from the first where every team has data (the
+    /// boat-only team's first estimate), and from step 0 for the teams that have data there.
+    fn score(&mut self, frames: usize) {
+        self.scored_from = self.boat_only.iter().position(Option::is_some).unwrap_or(frames);
+        let mean_from = |v: &[f64], from: usize| {
+            v[from.min(v.len())..].iter().sum::<f64>() / v.len().saturating_sub(from).max(1) as f64
+        };
+        self.mean_heterogeneous = mean_from(&self.heterogeneous, self.scored_from);
+        self.mean_aerial_only = mean_from(&self.aerial_only, self.scored_from);
+        self.mean_boat_only = mean_from(
+            &self.boat_only.iter().map(|v| v.unwrap_or(0.0)).collect::<Vec<_>>(),
+            self.scored_from,
+        );
+        self.mean_calibration = mean_from(&self.calibration, self.scored_from);
+        self.heterogeneous_from_step0 = mean_from(&self.heterogeneous, 0);
+        self.aerial_only_from_step0 = mean_from(&self.aerial_only, 0);
+    }
 }
