@@ -61,134 +61,149 @@ enum What {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let json = match args.what {
-        What::Table1 { repeats } => {
-            let total = table1::methods().len() * 2 * 4;
-            let pb = super::progress_bar(total as u64, "table 1");
-            let rows = table1::run(repeats, |msg| {
-                pb.set_message(msg.to_string());
-                pb.inc(1);
-            })?;
-            pb.finish_and_clear();
-            println!("| case | method | eig | median s | min s | paper s | speed-up vs paper |");
-            println!("|---|---|---|---|---|---|---|");
-            for r in &rows {
-                println!(
-                    "| {} | {} | {} | {:.4} | {:.4} | {} | {:.0}x |",
-                    r.case,
-                    r.method,
-                    if r.with_eig { "yes" } else { "no" },
-                    r.median_s,
-                    r.min_s,
-                    r.paper_s,
-                    r.paper_s / r.median_s
-                );
-            }
-            serde_json::to_value(rows)?
-        }
-        What::EigStudy { trials, seed } => {
-            let variants = eig_study::default_variants();
-            let vars = [0.01, 0.04, 0.1];
-            let pb = super::progress_bar((variants.len() * vars.len() * trials) as u64, "eig study");
-            let levels = eig_study::run(&variants, &vars, trials, seed, || pb.inc(1))?;
-            pb.finish_and_clear();
-            println!("| noise var | variant | median Re | median abs error |");
-            println!("|---|---|---|---|");
-            for l in &levels {
-                for v in &l.variants {
-                    println!(
-                        "| {} | {} | {:.4} | {:.4} |",
-                        l.noise_var, v.label, v.median_real, v.median_abs_error
-                    );
-                }
-            }
-            serde_json::to_value(levels)?
-        }
-        What::Team { repeats, truth } => {
-            use fleet::experiment::team::{self, TeamConfig};
-            let full = match truth {
-                Some(p) => fleet::process::dataset::load(&p, 1.0)?,
-                None => {
-                    eprintln!("simulating cloud1 at 96 x 384, 100 frames (not timed)...");
-                    fleet::process::plasma::PlasmaCloud::new(fleet::process::plasma::Preset::Cloud1.params())?
-                        .run(100, |_| {})?
-                }
-            };
-            let truth = full.area_averaged(48, 96)?;
-            let cfg = TeamConfig {
-                aerial_stride: 3,
-                aerial_sigma0: 0.15,
-                boat_sigma: 0.15,
-                radius: 3.75,
-                ..TeamConfig::default()
-            };
-            let mut ts = vec![];
-            let mut last = None;
-            for _ in 0..repeats.max(1) {
-                let t0 = std::time::Instant::now();
-                last = Some(team::run(&cfg, &truth, |_, _| {})?);
-                ts.push(t0.elapsed().as_secs_f64());
-            }
-            let median = eig_study::median(&mut ts);
-            let o = last.expect("at least one run");
-            println!(
-                "one Table 2 row, {} x {} x {} steps, 2 aerials, 5 boats, general DMD rank 10: median {:.3} s over {} \
-                    runs (MSE heterogeneous {:.4e})",
-                truth.rows,
-                truth.cols,
-                truth.frames(),
-                median,
-                ts.len(),
-                o.mean_heterogeneous
-            );
-            serde_json::json!({ "median_s": median, "runs": ts })
-        }
-        What::Refit { epochs, late, grid } => {
-            let (rows, cols) = grid
-                .split_once('x')
-                .and_then(|(r, c)| Some((r.parse().ok()?, c.parse().ok()?)))
-                .ok_or_else(|| fleet::exit::bad_input(anyhow::anyhow!("--grid {grid}: expected ROWSxCOLS")))?;
-            eprintln!("driving a {epochs}-epoch mission twice (not timed)...");
-            let t = fleet::experiment::refit_timing::run(rows, cols, epochs, late)?;
-            println!(
-                "{} epochs at {} x {}, boat-2's last {} epochs late: re-fit from a checkpoint {:.1} ms ({} epochs \
-                    again), from epoch 0 {:.1} ms ({} epochs); same model: {}",
-                t.epochs,
-                t.grid[0],
-                t.grid[1],
-                t.late_epochs,
-                t.with_checkpoints_s * 1e3,
-                t.with_checkpoints_epochs,
-                t.from_epoch_0_s * 1e3,
-                t.from_epoch_0_epochs,
-                t.same_model
-            );
-            serde_json::to_value(t)?
-        }
-        What::Sensing { repeats, no_peers } => {
-            let pb = super::progress_bar(10, "sensing");
-            let rows = sensing_timing::run(repeats, !no_peers, |msg| {
-                pb.set_message(msg.to_string());
-                pb.inc(1);
-            });
-            pb.finish_and_clear();
-            println!("| operation | median ms | min ms | peer | peer median ms | speed-up |");
-            println!("|---|---|---|---|---|---|");
-            for r in &rows {
-                let (peer, pm, up) = match (&r.peer, r.peer_median_ms) {
-                    (Some(p), Some(ms)) => (p.as_str(), format!("{ms:.3}"), format!("{:.1}x", ms / r.median_ms)),
-                    _ => ("", String::new(), String::new()),
-                };
-                println!(
-                    "| {} | {:.3} | {:.3} | {peer} | {pm} | {up} |",
-                    r.what, r.median_ms, r.min_ms
-                );
-            }
-            serde_json::to_value(rows)?
-        }
+        What::Table1 { repeats } => table1_bench(repeats)?,
+        What::EigStudy { trials, seed } => eig_study_bench(trials, seed)?,
+        What::Team { repeats, truth } => team_bench(repeats, truth)?,
+        What::Refit { epochs, late, grid } => refit_bench(epochs, late, &grid)?,
+        What::Sensing { repeats, no_peers } => sensing_bench(repeats, no_peers)?,
     };
     if let Some(out) = args.out {
         std::fs::write(&out, serde_json::to_string_pretty(&json)?)
             .with_context(|| format!("writing {}", out.display()))?;
     }
     Ok(())
+}
+
+/// The paper's Table 1: whole online runs with and without an eigendecomposition per update.
+fn table1_bench(repeats: usize) -> anyhow::Result<serde_json::Value> {
+    let total = table1::methods().len() * 2 * 4;
+    let pb = super::progress_bar(total as u64, "table 1");
+    let rows = table1::run(repeats, |msg| {
+        pb.set_message(msg.to_string());
+        pb.inc(1);
+    })?;
+    pb.finish_and_clear();
+    println!("| case | method | eig | median s | min s | paper s | speed-up vs paper |");
+    println!("|---|---|---|---|---|---|---|");
+    for r in &rows {
+        println!(
+            "| {} | {} | {} | {:.4} | {:.4} | {} | {:.0}x |",
+            r.case,
+            r.method,
+            if r.with_eig { "yes" } else { "no" },
+            r.median_s,
+            r.min_s,
+            r.paper_s,
+            r.paper_s / r.median_s
+        );
+    }
+    Ok(serde_json::to_value(rows)?)
+}
+
+/// The paper's Fig. 7 with the debiased variants.
+fn eig_study_bench(trials: usize, seed: u64) -> anyhow::Result<serde_json::Value> {
+    let variants = eig_study::default_variants();
+    let vars = [0.01, 0.04, 0.1];
+    let pb = super::progress_bar((variants.len() * vars.len() * trials) as u64, "eig study");
+    let levels = eig_study::run(&variants, &vars, trials, seed, || pb.inc(1))?;
+    pb.finish_and_clear();
+    println!("| noise var | variant | median Re | median abs error |");
+    println!("|---|---|---|---|");
+    for l in &levels {
+        for v in &l.variants {
+            println!(
+                "| {} | {} | {:.4} | {:.4} |",
+                l.noise_var, v.label, v.median_real, v.median_abs_error
+            );
+        }
+    }
+    Ok(serde_json::to_value(levels)?)
+}
+
+/// One Table 2 row, timed.
+fn team_bench(repeats: usize, truth: Option<PathBuf>) -> anyhow::Result<serde_json::Value> {
+    use fleet::experiment::team::{self, TeamConfig};
+    let full = match truth {
+        Some(p) => fleet::process::dataset::load(&p, 1.0)?,
+        None => {
+            eprintln!("simulating cloud1 at 96 x 384, 100 frames (not timed)...");
+            fleet::process::plasma::PlasmaCloud::new(fleet::process::plasma::Preset::Cloud1.params())?
+                .run(100, |_| {})?
+        }
+    };
+    let truth = full.area_averaged(48, 96)?;
+    let cfg = TeamConfig {
+        aerial_stride: 3,
+        aerial_sigma0: 0.15,
+        boat_sigma: 0.15,
+        radius: 3.75,
+        ..TeamConfig::default()
+    };
+    let mut ts = vec![];
+    let mut last = None;
+    for _ in 0..repeats.max(1) {
+        let t0 = std::time::Instant::now();
+        last = Some(team::run(&cfg, &truth, |_, _| {})?);
+        ts.push(t0.elapsed().as_secs_f64());
+    }
+    let median = eig_study::median(&mut ts);
+    let o = last.expect("at least one run");
+    println!(
+        "one Table 2 row, {} x {} x {} steps, 2 aerials, 5 boats, general DMD rank 10: median {:.3} s over {} \
+            runs (MSE heterogeneous {:.4e})",
+        truth.rows,
+        truth.cols,
+        truth.frames(),
+        median,
+        ts.len(),
+        o.mean_heterogeneous
+    );
+    Ok(serde_json::json!({ "median_s": median, "runs": ts }))
+}
+
+/// A late batch's re-fit from a checkpoint against one from epoch 0.
+fn refit_bench(epochs: usize, late: u64, grid: &str) -> anyhow::Result<serde_json::Value> {
+    let (rows, cols) = grid
+        .split_once('x')
+        .and_then(|(r, c)| Some((r.parse().ok()?, c.parse().ok()?)))
+        .ok_or_else(|| fleet::exit::bad_input(anyhow::anyhow!("--grid {grid}: expected ROWSxCOLS")))?;
+    eprintln!("driving a {epochs}-epoch mission twice (not timed)...");
+    let t = fleet::experiment::refit_timing::run(rows, cols, epochs, late)?;
+    println!(
+        "{} epochs at {} x {}, boat-2's last {} epochs late: re-fit from a checkpoint {:.1} ms ({} epochs \
+            again), from epoch 0 {:.1} ms ({} epochs); same model: {}",
+        t.epochs,
+        t.grid[0],
+        t.grid[1],
+        t.late_epochs,
+        t.with_checkpoints_s * 1e3,
+        t.with_checkpoints_epochs,
+        t.from_epoch_0_s * 1e3,
+        t.from_epoch_0_epochs,
+        t.same_model
+    );
+    Ok(serde_json::to_value(t)?)
+}
+
+/// Placement and gappy timings, pysensors timed on the same basis in the same run.
+fn sensing_bench(repeats: usize, no_peers: bool) -> anyhow::Result<serde_json::Value> {
+    let pb = super::progress_bar(10, "sensing");
+    let rows = sensing_timing::run(repeats, !no_peers, |msg| {
+        pb.set_message(msg.to_string());
+        pb.inc(1);
+    });
+    pb.finish_and_clear();
+    println!("| operation | median ms | min ms | peer | peer median ms | speed-up |");
+    println!("|---|---|---|---|---|---|");
+    for r in &rows {
+        let (peer, pm, up) = match (&r.peer, r.peer_median_ms) {
+            (Some(p), Some(ms)) => (p.as_str(), format!("{ms:.3}"), format!("{:.1}x", ms / r.median_ms)),
+            _ => ("", String::new(), String::new()),
+        };
+        println!(
+            "| {} | {:.3} | {:.3} | {peer} | {pm} | {up} |",
+            r.what, r.median_ms, r.min_ms
+        );
+    }
+    Ok(serde_json::to_value(rows)?)
 }

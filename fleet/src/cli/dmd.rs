@@ -156,6 +156,71 @@ fn check(args: &Args, field: &FieldSeries) -> anyhow::Result<usize> {
     Ok(init)
 }
 
+/// The relative error of the model's reconstruction of the whole record from its first
+/// snapshot (PyDMD's convention).
+fn reconstruction_error(fitted: &fleet::dmd::DmdModel, field: &FieldSeries) -> f64 {
+    let (mut err2, mut norm2) = (0.0, 0.0);
+    for t in 0..field.frames() {
+        let p = fitted.predict(t as f64);
+        for (a, b) in p.iter().zip(field.snapshots.col(t).iter()) {
+            err2 += (a - b) * (a - b);
+            norm2 += b * b;
+        }
+    }
+    (err2 / norm2.max(f64::MIN_POSITIVE)).sqrt()
+}
+
+/// The `top` eigenvalues, discrete and continuous.
+fn print_eigenvalues(summary: &fleet::dmd::ModelSummary, top: usize) {
+    println!(
+        "{:>4}  {:>24}  {:>10}  {:>26}",
+        "#", "lambda (discrete)", "|lambda|", "ln(lambda)/dt"
+    );
+    for (i, (l, c)) in summary
+        .eigenvalues
+        .iter()
+        .zip(&summary.continuous_eigenvalues)
+        .take(top)
+        .enumerate()
+    {
+        println!(
+            "{:>4}  {:>11.6} {:>+11.6}i  {:>10.6}  {:>12.5} {:>+12.5}i",
+            i + 1,
+            l[0],
+            l[1],
+            (l[0] * l[0] + l[1] * l[1]).sqrt(),
+            c[0],
+            c[1]
+        );
+    }
+}
+
+/// `--save DIR`: the eigenvalues, modes and amplitudes as complex128 `.npy`, and the summary.
+fn save_model(dir: &std::path::Path, fitted: &fleet::dmd::DmdModel, doc: &serde_json::Value) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let m = &fitted.modes.modes;
+    let (rows, r) = (m.nrows(), m.ncols());
+    let modes: Vec<num_complex::Complex64> = (0..rows)
+        .flat_map(|i| (0..r).map(move |j| (i, j)))
+        .map(|(i, j)| num_complex::Complex64::new(m[(i, j)].re, m[(i, j)].im))
+        .collect();
+    let c = |v: &[faer::c64]| {
+        v.iter()
+            .map(|z| num_complex::Complex64::new(z.re, z.im))
+            .collect::<Vec<_>>()
+    };
+    fleet::npy::write(dir.join("eigenvalues.npy"), &[r], &c(&fitted.modes.eigenvalues))?;
+    fleet::npy::write(dir.join("modes.npy"), &[rows, r], &modes)?;
+    fleet::npy::write(dir.join("amplitudes.npy"), &[r], &c(&fitted.amplitudes))?;
+    std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(&doc)?)
+        .with_context(|| format!("writing {}", dir.join("summary.json").display()))?;
+    println!(
+        "wrote {}/eigenvalues.npy, modes.npy, amplitudes.npy and summary.json",
+        dir.display()
+    );
+    Ok(())
+}
+
 fn run_checked(args: Args, mut field: FieldSeries, init: usize) -> anyhow::Result<()> {
     if let Some(dt) = args.dt {
         field.dt = dt;
@@ -193,14 +258,7 @@ fn run_checked(args: Args, mut field: FieldSeries, init: usize) -> anyhow::Resul
     // Reconstruction from the first snapshot over the whole record (PyDMD's convention).
     let x0: Vec<f64> = field.snapshots.col(0).iter().copied().collect();
     let fitted = modes.model(&x0, field.dt)?;
-    let (mut err2, mut norm2) = (0.0, 0.0);
-    for t in 0..field.frames() {
-        let p = fitted.predict(t as f64);
-        for (a, b) in p.iter().zip(field.snapshots.col(t).iter()) {
-            err2 += (a - b) * (a - b);
-            norm2 += b * b;
-        }
-    }
+    let rel = reconstruction_error(&fitted, &field);
     let summary = fitted.summary();
     println!(
         "{} DMD of {} snapshots on a {} x {} grid (N = {n}): rank {}, {} pairs assimilated in {:.1} ms ({} updates of \
@@ -215,28 +273,7 @@ fn run_checked(args: Args, mut field: FieldSeries, init: usize) -> anyhow::Resul
         updates,
         args.tau
     );
-    println!(
-        "{:>4}  {:>24}  {:>10}  {:>26}",
-        "#", "lambda (discrete)", "|lambda|", "ln(lambda)/dt"
-    );
-    for (i, (l, c)) in summary
-        .eigenvalues
-        .iter()
-        .zip(&summary.continuous_eigenvalues)
-        .take(args.top)
-        .enumerate()
-    {
-        println!(
-            "{:>4}  {:>11.6} {:>+11.6}i  {:>10.6}  {:>12.5} {:>+12.5}i",
-            i + 1,
-            l[0],
-            l[1],
-            (l[0] * l[0] + l[1] * l[1]).sqrt(),
-            c[0],
-            c[1]
-        );
-    }
-    let rel = (err2 / norm2.max(f64::MIN_POSITIVE)).sqrt();
+    print_eigenvalues(&summary, args.top);
     println!("relative reconstruction error over the record (from x(0)): {rel:.4}");
     let doc = json!({
         "config": cfg, "grid": [field.rows, field.cols], "frames": field.frames(), "init": init,
@@ -248,27 +285,7 @@ fn run_checked(args: Args, mut field: FieldSeries, init: usize) -> anyhow::Resul
         println!("wrote {}", out.display());
     }
     if let Some(dir) = &args.save {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-        let m = &fitted.modes.modes;
-        let (rows, r) = (m.nrows(), m.ncols());
-        let modes: Vec<num_complex::Complex64> = (0..rows)
-            .flat_map(|i| (0..r).map(move |j| (i, j)))
-            .map(|(i, j)| num_complex::Complex64::new(m[(i, j)].re, m[(i, j)].im))
-            .collect();
-        let c = |v: &[faer::c64]| {
-            v.iter()
-                .map(|z| num_complex::Complex64::new(z.re, z.im))
-                .collect::<Vec<_>>()
-        };
-        fleet::npy::write(dir.join("eigenvalues.npy"), &[r], &c(&fitted.modes.eigenvalues))?;
-        fleet::npy::write(dir.join("modes.npy"), &[rows, r], &modes)?;
-        fleet::npy::write(dir.join("amplitudes.npy"), &[r], &c(&fitted.amplitudes))?;
-        std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(&doc)?)
-            .with_context(|| format!("writing {}", dir.join("summary.json").display()))?;
-        println!(
-            "wrote {}/eigenvalues.npy, modes.npy, amplitudes.npy and summary.json",
-            dir.display()
-        );
+        save_model(dir, &fitted, &doc)?;
     }
     Ok(())
 }

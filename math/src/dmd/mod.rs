@@ -23,7 +23,7 @@ pub use batch::BatchDmd;
 pub use debias::Debias;
 pub use general::GeneralDmd;
 pub use longterm::{Forgetting, ForgettingDirections, ForgettingUnit, LongTermDmd};
-pub use model::{DmdModel, Modes};
+pub use model::{DmdModel, ModelSummary, Modes};
 pub use rank::{numerical_rank, RankPolicy};
 pub use snapshots::SnapshotPairs;
 
