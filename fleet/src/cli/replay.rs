@@ -137,19 +137,10 @@ pub fn run(args: Args) -> Result<()> {
         // The view follows the played-back traffic; when that ends, the view stays a while.
         fleet.wait_nodes(Duration::from_secs(120), &["fleet-watch"])?;
         if let Some(addr) = args.web.filter(|_| args.web_linger_s > 0) {
-            println!(
-                "the replay is done; the live view stays at http://{addr}/ for {} s (Ctrl-C ends it)",
-                args.web_linger_s
-            );
-            let until = Instant::now() + Duration::from_secs(args.web_linger_s);
-            while Instant::now() < until && stop.received().is_none() {
-                std::thread::sleep(Duration::from_millis(100));
-            }
+            linger(addr, args.web_linger_s, &stop);
         }
         fleet.stop();
     }
-    let replayed = core.model_update().map(|m| protocol::encode(&Body::Model(m)));
-    let recorded = rec.final_model().map(|m| m.data.clone());
     println!(
         "replayed {} operations of mission {} ({ingested} batches in, {} accepted, {} duplicates) into {}",
         ops,
@@ -158,6 +149,22 @@ pub fn run(args: Args) -> Result<()> {
         core.counters.duplicates,
         args.out.display()
     );
+    compare_models(&core, &rec)
+}
+
+/// The live view stays up `linger_s` seconds after the replay (a stop signal ends it sooner).
+fn linger(addr: std::net::SocketAddr, linger_s: u64, stop: &super::supervise::StopSignals) {
+    println!("the replay is done; the live view stays at http://{addr}/ for {linger_s} s (Ctrl-C ends it)");
+    let until = Instant::now() + Duration::from_secs(linger_s);
+    while Instant::now() < until && stop.received().is_none() {
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// The replayed final model against the recorded one: identical, bit for bit, or why not.
+fn compare_models(core: &fleet_mission::server::ServerCore, rec: &Recording) -> Result<()> {
+    let replayed = core.model_update().map(|m| protocol::encode(&Body::Model(m)));
+    let recorded = rec.final_model().map(|m| m.data.clone());
     match (replayed, recorded) {
         (Some(a), Some(b)) if a == b => {
             println!(

@@ -70,6 +70,49 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     simulate(args).input()
 }
 
+/// The plasma cloud at the preset's parameters (with `--seed`, `--grid`, `--frames`), and its
+/// sidecar: the parameters, the frames' times and the solver's statistics.
+fn plasma_cloud(args: &Args, t0: std::time::Instant) -> anyhow::Result<(FieldSeries, serde_json::Value)> {
+    let mut params = args.preset.params();
+    params.seed = args.seed;
+    if let Some(g) = &args.grid {
+        let (rows, cols) = parse_grid(g)?;
+        (params.ny, params.nx) = (rows, cols);
+    }
+    let frames = args.frames.unwrap_or(100);
+    if frames == 0 {
+        bail!("--frames must be at least 1");
+    }
+    fleet::process::check_size(params.ny, params.nx, frames).map_err(|e| anyhow::anyhow!("--grid/--frames: {e}"))?;
+    let mut sim = PlasmaCloud::new(params.clone()).context("setting up the plasma cloud")?;
+    let pb = super::progress_bar(frames as u64, "plasma cloud");
+    let field = sim
+        .run(frames, |k| {
+            pb.set_message(format!("t = {:.2}", k as f64 * params.out_dt));
+            pb.inc(1);
+        })
+        .context("simulating")?;
+    pb.finish_and_clear();
+    let stats = sim.solver_stats();
+    let secs = t0.elapsed().as_secs_f64();
+    eprintln!(
+        "{} steps, {} potential solves, {:.1} CG iterations per solve (max {}), {:.1} s",
+        sim.steps,
+        stats.solves,
+        stats.iterations as f64 / stats.solves.max(1) as f64,
+        stats.max_iterations,
+        secs
+    );
+    let meta = json!({
+        "process": "plasma-cloud", "preset": args.preset, "params": params, "frames": frames,
+        "shape": [frames, params.ny, params.nx], "ly": params.ly(), "h": params.h(),
+        "frame_times": (0..frames).map(|k| k as f64 * params.out_dt).collect::<Vec<_>>(),
+        "steps": sim.steps, "solver": stats, "seconds": secs,
+        "units": "nondimensional: length a (cloud e-folding radius), time a/V0, density N/N_peak",
+    });
+    Ok((field, meta))
+}
+
 /// Every error here is the arguments' (the simulators refuse what they cannot do).
 fn simulate(args: Args) -> anyhow::Result<()> {
     let process = match (args.process, args.process_flag) {
@@ -82,47 +125,7 @@ fn simulate(args: Args) -> anyhow::Result<()> {
     }
     let t0 = std::time::Instant::now();
     let (field, meta): (FieldSeries, serde_json::Value) = match process {
-        Process::PlasmaCloud => {
-            let mut params = args.preset.params();
-            params.seed = args.seed;
-            if let Some(g) = &args.grid {
-                let (rows, cols) = parse_grid(g)?;
-                (params.ny, params.nx) = (rows, cols);
-            }
-            let frames = args.frames.unwrap_or(100);
-            if frames == 0 {
-                bail!("--frames must be at least 1");
-            }
-            fleet::process::check_size(params.ny, params.nx, frames)
-                .map_err(|e| anyhow::anyhow!("--grid/--frames: {e}"))?;
-            let mut sim = PlasmaCloud::new(params.clone()).context("setting up the plasma cloud")?;
-            let pb = super::progress_bar(frames as u64, "plasma cloud");
-            let field = sim
-                .run(frames, |k| {
-                    pb.set_message(format!("t = {:.2}", k as f64 * params.out_dt));
-                    pb.inc(1);
-                })
-                .context("simulating")?;
-            pb.finish_and_clear();
-            let stats = sim.solver_stats();
-            let secs = t0.elapsed().as_secs_f64();
-            eprintln!(
-                "{} steps, {} potential solves, {:.1} CG iterations per solve (max {}), {:.1} s",
-                sim.steps,
-                stats.solves,
-                stats.iterations as f64 / stats.solves.max(1) as f64,
-                stats.max_iterations,
-                secs
-            );
-            let meta = json!({
-                "process": "plasma-cloud", "preset": args.preset, "params": params, "frames": frames,
-                "shape": [frames, params.ny, params.nx], "ly": params.ly(), "h": params.h(),
-                "frame_times": (0..frames).map(|k| k as f64 * params.out_dt).collect::<Vec<_>>(),
-                "steps": sim.steps, "solver": stats, "seconds": secs,
-                "units": "nondimensional: length a (cloud e-folding radius), time a/V0, density N/N_peak",
-            });
-            (field, meta)
-        }
+        Process::PlasmaCloud => plasma_cloud(&args, t0)?,
         Process::Table1 => {
             let case = TABLE1_CASES
                 .get(args.case.wrapping_sub(1))

@@ -3,13 +3,10 @@
 //! epoch 0 (the server without checkpoints). Timings for `fleet bench refit`.
 
 use super::team::{TeamConfig, TeamError};
-use crate::fusion::AerialNoise;
 use crate::grid::Grid;
 use crate::mission::server::ServerCore;
 use crate::mission::vehicle::VehicleBrain;
-use crate::mission::vehicle_rng;
 use crate::process::synthetic::plume_field;
-use crate::protocol::VehicleKind;
 use serde::Serialize;
 
 #[derive(Debug, Clone, Serialize)]
@@ -44,58 +41,8 @@ pub fn run(rows: usize, cols: usize, epochs: usize, late: u64) -> Result<RefitTi
             server.without_checkpoints()
         };
         let last = server.schedule().epochs();
-        let away = (last - 1 - late)..(last - 1);
-        let mut brains: Vec<VehicleBrain> = server
-            .vehicles()
-            .iter()
-            .enumerate()
-            .map(|(v, s)| {
-                let noise = if s.kind == VehicleKind::Aerial {
-                    server.assimilator().aerial_noise()
-                } else {
-                    AerialNoise {
-                        sigma0: cfg.boat_sigma,
-                        growth_per_m: 0.0,
-                    }
-                };
-                VehicleBrain::new(
-                    &s.id,
-                    s.kind,
-                    grid,
-                    *server.schedule(),
-                    noise,
-                    vehicle_rng(cfg.seed, v),
-                    f64::MAX,
-                )
-            })
-            .collect();
-        let mut backlog = vec![];
-        for e in 0..last {
-            for brain in &mut brains {
-                let gone = brain.id == "boat-2" && away.contains(&e);
-                if !gone {
-                    brain.set_plan(
-                        server
-                            .plan(&brain.id, e, late + 1)
-                            .ok_or(TeamError::NotReady(crate::mission::team::Missing::Plan { epoch: e }))?,
-                    );
-                }
-                let Some(b) = brain.sense_epoch(e, x)? else { continue };
-                if gone {
-                    backlog.push(b);
-                } else {
-                    server.ingest(b).map_err(|err| TeamError::Config(err.to_string()))?;
-                }
-            }
-            if away.contains(&e) {
-                server.force()?;
-            }
-        }
-        for b in backlog {
-            server
-                .ingest_deferred(b)
-                .map_err(|err| TeamError::Config(err.to_string()))?;
-        }
+        let mut brains = crate::experiment::team::brains_of(&server, &cfg, grid);
+        run_with_boat_2_away(&mut server, &mut brains, last, late, &x)?;
         let before = server.counters.refit_epochs;
         let t0 = std::time::Instant::now();
         server.settle()?;
@@ -115,4 +62,41 @@ pub fn run(rows: usize, cols: usize, epochs: usize, late: u64) -> Result<RefitTi
         from_epoch_0_epochs: out[1].1,
         same_model: out[0].2 == out[1].2,
     })
+}
+
+/// The mission to its last epoch with boat-2 away for `late` epochs before it (its epochs
+/// assimilated without it), then its backlog in: the re-fit is due.
+fn run_with_boat_2_away(
+    server: &mut ServerCore,
+    brains: &mut [VehicleBrain],
+    last: u64,
+    late: u64,
+    x: &impl Fn(usize) -> Vec<f64>,
+) -> Result<(), TeamError> {
+    let away = (last - 1 - late)..(last - 1);
+    let mut backlog = vec![];
+    for e in 0..last {
+        for brain in brains.iter_mut() {
+            let gone = brain.id == "boat-2" && away.contains(&e);
+            if !gone {
+                let plan = server.plan(&brain.id, e, late + 1);
+                brain.set_plan(plan.ok_or(TeamError::NotReady(crate::mission::team::Missing::Plan { epoch: e }))?);
+            }
+            let Some(b) = brain.sense_epoch(e, x)? else { continue };
+            if gone {
+                backlog.push(b);
+            } else {
+                server.ingest(b).map_err(|err| TeamError::Config(err.to_string()))?;
+            }
+        }
+        if away.contains(&e) {
+            server.force()?;
+        }
+    }
+    for b in backlog {
+        server
+            .ingest_deferred(b)
+            .map_err(|err| TeamError::Config(err.to_string()))?;
+    }
+    Ok(())
 }

@@ -262,7 +262,7 @@ fn run_placing(
 }
 
 /// Each vehicle as the vehicle node runs it; offline they reach every place in time.
-fn brains_of(server: &ServerCore, cfg: &TeamConfig, grid: Grid) -> Vec<VehicleBrain> {
+pub(crate) fn brains_of(server: &ServerCore, cfg: &TeamConfig, grid: Grid) -> Vec<VehicleBrain> {
     server
         .vehicles()
         .iter()
