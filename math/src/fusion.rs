@@ -77,15 +77,32 @@ impl Noise {
     }
 }
 
-/// What one vehicle measured at one step.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Sample {
-    pub step: u64,
-    /// Where the vehicle was, metres `(x, y)`.
-    pub position: [f64; 2],
-    /// Flat grid indices of the measured cells (aerials: the cells their coarse lattice sits on).
-    pub cells: Vec<u32>,
-    pub values: Vec<f64>,
+/// What a sensor read, as the fusion needs it: where the sensor was (metres `(x, y)`), and a
+/// value at each of some cells (flat grid indices). The fleet's wire type (the protocol's
+/// `Sample`) is one; the mathematics does not depend on how readings travel.
+pub trait Reading {
+    fn position(&self) -> [f64; 2];
+    fn cells(&self) -> &[u32];
+    fn values(&self) -> &[f64];
+}
+
+/// A reading drawn here (a simulated frame).
+struct Drawn {
+    position: [f64; 2],
+    cells: Vec<u32>,
+    values: Vec<f64>,
+}
+
+impl Reading for Drawn {
+    fn position(&self) -> [f64; 2] {
+        self.position
+    }
+    fn cells(&self) -> &[u32] {
+        &self.cells
+    }
+    fn values(&self) -> &[f64] {
+        &self.values
+    }
 }
 
 fn check_noise(noise: &AerialNoise) -> Result<(), FusionError> {
@@ -100,7 +117,7 @@ fn check_noise(noise: &AerialNoise) -> Result<(), FusionError> {
 
 /// The cells of the stride lattice aerial `me` covers: those nearer to it than to any other
 /// aerial (its Voronoi region), in lattice order. The server hands each aerial its region in
-/// its plan; the aerial senses exactly those cells ([`sense_cells`]).
+/// its plan; the aerial senses exactly those cells ([`draw`]).
 pub fn aerial_region(grid: &Grid, stride: usize, aerials: &[(f64, f64)], me: usize) -> Result<Vec<usize>, FusionError> {
     if me >= aerials.len() {
         return Err(FusionError::Input(format!("aerial {me} of {}", aerials.len())));
@@ -116,18 +133,17 @@ pub fn aerial_region(grid: &Grid, stride: usize, aerials: &[(f64, f64)], me: usi
         .collect())
 }
 
-/// What a sensor at `pos` (metres) measures of `truth` at `cells` at one step: each value with
-/// noise of std `sigma0 + growth * distance`, one normal draw per cell in the order given.
-/// Aerials (growth > 0) and boats (growth 0) are the same sensor model with other numbers.
-pub fn sense_cells<R: Rng + ?Sized>(
+/// What a sensor at `pos` (metres) measures of `truth` at `cells`: each value with noise of
+/// std `sigma0 + growth * distance`, one normal draw per cell in the order given. Aerials
+/// (growth > 0) and boats (growth 0) are the same sensor model with other numbers.
+pub fn draw<R: Rng + ?Sized>(
     grid: &Grid,
     truth: &[f64],
-    step: u64,
     pos: (f64, f64),
     cells: &[usize],
     noise: AerialNoise,
     rng: &mut R,
-) -> Result<Sample, FusionError> {
+) -> Result<Vec<f64>, FusionError> {
     check_noise(&noise)?;
     if truth.len() != grid.len() {
         return Err(FusionError::Input(format!(
@@ -142,37 +158,14 @@ pub fn sense_cells<R: Rng + ?Sized>(
             grid.len()
         )));
     }
-    let values = cells
+    Ok(cells
         .iter()
         .map(|&c| {
             let (x, y) = grid.centre_m(grid.cell(c));
             let z: f64 = <StandardNormal as Distribution<f64>>::sample(&StandardNormal, rng);
             truth[c] + noise.std_at((pos.0 - x).hypot(pos.1 - y)) * z
         })
-        .collect();
-    Ok(Sample {
-        step,
-        position: [pos.0, pos.1],
-        cells: cells.iter().map(|&c| c as u32).collect(),
-        values,
-    })
-}
-
-/// What aerial `me` sees of `truth` at one step: its region ([`aerial_region`]) sensed from
-/// where it is ([`sense_cells`]).
-#[allow(clippy::too_many_arguments)]
-pub fn sense_aerial<R: Rng + ?Sized>(
-    grid: &Grid,
-    truth: &[f64],
-    step: u64,
-    stride: usize,
-    aerials: &[(f64, f64)],
-    me: usize,
-    noise: AerialNoise,
-    rng: &mut R,
-) -> Result<Sample, FusionError> {
-    let region = aerial_region(grid, stride, aerials, me)?;
-    sense_cells(grid, truth, step, aerials[me], &region, noise, rng)
+        .collect())
 }
 
 /// Index of the point nearest to `(x, y)` (the lower index on ties).
@@ -199,8 +192,8 @@ pub struct AerialFrame {
 }
 
 impl AerialFrame {
-    /// Simulate every aerial's sample of `truth` (see [`sense_aerial`]) from one random stream
-    /// and assemble the frame.
+    /// Simulate every aerial's sample of `truth` (its region, [`aerial_region`], drawn from
+    /// where it is, [`draw`]) from one random stream and assemble the frame.
     pub fn sense<R: Rng + ?Sized>(
         grid: &Grid,
         truth: &[f64],
@@ -212,15 +205,28 @@ impl AerialFrame {
         if aerials.is_empty() {
             return Err(FusionError::Input("an aerial frame needs at least one aerial".into()));
         }
-        let samples = (0..aerials.len())
-            .map(|me| sense_aerial(grid, truth, 0, stride, aerials, me, noise, rng))
-            .collect::<Result<Vec<_>, _>>()?;
+        let mut samples = vec![];
+        for (me, &at) in aerials.iter().enumerate() {
+            let region = aerial_region(grid, stride, aerials, me)?;
+            let values = draw(grid, truth, at, &region, noise, rng)?;
+            let cells = region.iter().map(|&c| c as u32).collect();
+            samples.push(Drawn {
+                position: [at.0, at.1],
+                cells,
+                values,
+            });
+        }
         Self::assemble(grid, stride, &samples, noise)
     }
 
     /// The frame from the aerials' samples of one step (any order): each coarse value with its
     /// sampling aerial's noise variance at that distance.
-    pub fn assemble(grid: &Grid, stride: usize, samples: &[Sample], noise: AerialNoise) -> Result<Self, FusionError> {
+    pub fn assemble<R: Reading>(
+        grid: &Grid,
+        stride: usize,
+        samples: &[R],
+        noise: AerialNoise,
+    ) -> Result<Self, FusionError> {
         check_noise(&noise)?;
         let lattice = grid.strided(stride)?;
         let m = lattice.rows * lattice.cols;
@@ -231,7 +237,7 @@ impl AerialFrame {
             seen: vec![false; m],
         };
         for s in samples {
-            for (&c, &v) in s.cells.iter().zip(&s.values) {
+            for (&c, &v) in s.cells().iter().zip(s.values()) {
                 if c as usize >= grid.len() {
                     return Err(FusionError::Input(format!(
                         "aerial cell {c} outside the {}-cell grid",
@@ -243,7 +249,8 @@ impl AerialFrame {
                     FusionError::Input(format!("aerial cell {c} is not on the stride-{stride} lattice"))
                 })?;
                 let (x, y) = grid.centre_m(cell);
-                let sd = noise.std_at((s.position[0] - x).hypot(s.position[1] - y));
+                let [px, py] = s.position();
+                let sd = noise.std_at((px - x).hypot(py - y));
                 frame.values[k] = v;
                 frame.variance[k] = sd * sd;
                 frame.seen[k] = true;

@@ -27,5 +27,4 @@ pub mod team;
 pub mod vehicle;
 
 pub use assimilator::*;
-pub use fusion::sense_cells;
-pub use vehicle::{aerial_region, sense_aerial, sense_boat, vehicle_rng};
+pub use vehicle::{aerial_region, sense_aerial, sense_boat, sense_cells, vehicle_rng};

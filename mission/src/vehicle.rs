@@ -7,7 +7,7 @@
 //! around its own cell. With speeds that let every vehicle arrive (the default mission) the
 //! samples are exactly the offline experiment's.
 
-use crate::fusion::{sense_cells, AerialNoise, FusionError};
+use crate::fusion::{draw, AerialNoise, FusionError};
 use crate::grid::Grid;
 use crate::protocol::{MeasurementBatch, Plan, Sample, Target, VehicleId, VehicleKind};
 use crate::schedule::Schedule;
@@ -22,9 +22,44 @@ pub fn vehicle_rng(seed: u64, vehicle: usize) -> ChaCha8Rng {
     rng
 }
 
-/// What aerial `me` sees at one step, and what any sensor sees at given cells (the sensor
-/// model lives with the fusion that inverts it).
-pub use crate::fusion::{aerial_region, sense_aerial};
+/// The cells aerial `me` senses (the sensor model lives with the fusion that inverts it).
+pub use crate::fusion::aerial_region;
+
+/// What a sensor at `pos` (metres) measures of `truth` at `cells` at one `step`, with
+/// `noise` ([`draw`]), as a sample for the wire.
+pub fn sense_cells<R: rand::Rng + ?Sized>(
+    grid: &Grid,
+    truth: &[f64],
+    step: u64,
+    pos: (f64, f64),
+    cells: &[usize],
+    noise: AerialNoise,
+    rng: &mut R,
+) -> Result<Sample, FusionError> {
+    Ok(Sample {
+        step,
+        position: [pos.0, pos.1],
+        cells: cells.iter().map(|&c| c as u32).collect(),
+        values: draw(grid, truth, pos, cells, noise, rng)?,
+    })
+}
+
+/// What aerial `me` sees of `truth` at one step: its region ([`aerial_region`]) sensed from
+/// where it is ([`sense_cells`]).
+#[allow(clippy::too_many_arguments)]
+pub fn sense_aerial<R: rand::Rng + ?Sized>(
+    grid: &Grid,
+    truth: &[f64],
+    step: u64,
+    stride: usize,
+    aerials: &[(f64, f64)],
+    me: usize,
+    noise: AerialNoise,
+    rng: &mut R,
+) -> Result<Sample, FusionError> {
+    let region = aerial_region(grid, stride, aerials, me)?;
+    sense_cells(grid, truth, step, aerials[me], &region, noise, rng)
+}
 
 /// What a boat measures at one step: every cell of its disk, with noise `sigma`.
 pub fn sense_boat(

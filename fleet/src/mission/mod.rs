@@ -3,8 +3,7 @@
 //! report `fleet up` writes.
 
 pub use fleet_mission::assimilator::*;
-pub use fleet_mission::fusion::sense_cells;
-pub use fleet_mission::vehicle::{aerial_region, sense_aerial, sense_boat, vehicle_rng};
+pub use fleet_mission::vehicle::{aerial_region, sense_aerial, sense_boat, sense_cells, vehicle_rng};
 pub use fleet_mission::{config, events, schedule, security, server, signing_key, site, team, vehicle};
 
 pub mod report;

@@ -65,9 +65,32 @@ pub enum VehicleKind {
     Boat,
 }
 
-/// A sensor's noise and what one vehicle measured at one step: the sensor model's types,
-/// defined with it in `fleet-math` and carried on the wire as they are.
-pub use crate::fusion::{Noise, Sample};
+/// A sensor's noise: the sensor model's type, defined with it in `fleet-math` and carried on
+/// the wire as it is.
+pub use crate::fusion::Noise;
+
+/// What one vehicle measured at one step.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Sample {
+    pub step: u64,
+    /// Where the vehicle was, metres `(x, y)`.
+    pub position: [f64; 2],
+    /// Flat grid indices of the measured cells (aerials: the cells their coarse lattice sits on).
+    pub cells: Vec<u32>,
+    pub values: Vec<f64>,
+}
+
+impl crate::fusion::Reading for Sample {
+    fn position(&self) -> [f64; 2] {
+        self.position
+    }
+    fn cells(&self) -> &[u32] {
+        &self.cells
+    }
+    fn values(&self) -> &[f64] {
+        &self.values
+    }
+}
 
 /// A vehicle's batch of samples; `seq` is per vehicle and gap-free from 0.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
