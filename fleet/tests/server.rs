@@ -202,6 +202,7 @@ fn bad_batches_are_rejected_and_counted() {
                 position: [1.0, 1.0],
                 cells: vec![0],
                 values: vec![0.5],
+                sigma: None,
             })
             .collect(),
     };

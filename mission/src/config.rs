@@ -3,6 +3,9 @@
 //! server and each vehicle agree on the grid, the schedule and the vehicles without talking.
 
 use crate::grid::Grid;
+use crate::instrument::clock::TimeConfig;
+use crate::instrument::source::Sensors;
+use crate::instrument::{MissionClock, SensorSource};
 use crate::process::truth::{averaged_by, TruthError, TruthSource};
 use crate::process::FieldSeries;
 use crate::protocol::{keys, Noise, VehicleKind};
@@ -371,6 +374,12 @@ pub struct MissionConfig {
     pub motion: Motion,
     #[serde(default)]
     pub mavlink: MavlinkConfig,
+    /// Mission time (`[time] start`, `step_s`); without it a step is the simulator's counter.
+    #[serde(default)]
+    pub time: Option<TimeConfig>,
+    /// Where each vehicle's readings come from ([`crate::instrument`]).
+    #[serde(default)]
+    pub sensors: Sensors,
 }
 
 impl MissionConfig {
@@ -391,6 +400,12 @@ impl MissionConfig {
         if cfg.pace.horizon == 0 {
             return Err(field("pace", None, "horizon must be >= 1"));
         }
+        if let Some(t) = &cfg.time {
+            MissionClock::of(t).map_err(|(key, rule)| field("time", key.to_string(), rule))?;
+        }
+        cfg.sensors
+            .check(&cfg.roster(), cfg.time.is_some())
+            .map_err(|(key, rule)| field("sensors", key, rule))?;
         Ok(cfg)
     }
 
@@ -502,6 +517,16 @@ impl MissionConfig {
             })
     }
 
+    /// The mission's clock (`None`: no `[time]`, steps are the simulator's counter).
+    pub fn clock(&self) -> Option<MissionClock> {
+        self.time.as_ref().and_then(|t| MissionClock::of(t).ok())
+    }
+
+    /// Where vehicle `id`'s readings come from, as the mission says (checked when read).
+    pub fn sensor_of(&self, id: &str) -> SensorSource {
+        self.sensors.of(id).parse().unwrap_or(SensorSource::Sim)
+    }
+
     /// A vehicle's sensor noise.
     pub fn noise(&self, kind: VehicleKind) -> Noise {
         match kind {
@@ -587,6 +612,43 @@ mod tests {
         assert!(!s.contains('\n'), "{s}");
         assert!(s.starts_with("invalid type"), "{s}");
         assert!(s.contains("[team] boats, line 2"), "{s}");
+    }
+
+    /// The default mission with `extra` tables added.
+    fn with(extra: &str) -> Result<MissionConfig, ConfigError> {
+        MissionConfig::from_toml(&format!("{DEFAULT_MISSION}\n{extra}"))
+    }
+
+    #[test]
+    fn sensors_and_time_are_checked_against_the_mission() {
+        let time = "[time]\nstart = \"2026-11-25T09:00:00Z\"\nstep_s = 2.0\n";
+        let m = with(&format!(
+            "{time}[sensors]\nboat-2 = \"udp:0.0.0.0:15602\"\nboat-3 = \"stdin\"\n"
+        ))
+        .unwrap();
+        assert_eq!(m.sensor_of("boat-2").to_string(), "udp:0.0.0.0:15602");
+        assert_eq!(m.sensor_of("boat-3"), SensorSource::Stdin);
+        assert_eq!(m.sensor_of("av-1"), SensorSource::Sim);
+        assert_eq!(m.clock().unwrap().start, 1_795_597_200.0);
+        assert_eq!(
+            MissionConfig::load(None).unwrap().sensor_of("boat-1"),
+            SensorSource::Sim
+        );
+        let refused = |extra: &str| with(extra).unwrap_err().to_string();
+        let e = refused("[sensors]\nboat-2 = \"udp:0.0.0.0:15602\"\n");
+        assert!(e.contains("[sensors] boat-2") && e.contains("[time]"), "{e}");
+        let e = refused(&format!("{time}[sensors]\nboat-9 = \"stdin\"\n"));
+        assert!(e.contains("boat-9: not a vehicle of this mission"), "{e}");
+        let e = refused(&format!("{time}[sensors]\nav-1 = \"stdin\"\n"));
+        assert!(e.contains("[sensors] av-1") && e.contains("frames"), "{e}");
+        let e = refused(&format!("{time}[sensors]\ndefault = \"udp:nowhere\"\n"));
+        assert!(e.contains("[sensors] default") && e.contains("ADDR:PORT"), "{e}");
+        let e = refused(&format!("{time}[sensors]\nboat-1 = \"mavlink:SONDE\"\n"));
+        assert!(e.contains("not built yet"), "{e}");
+        let e = refused("[time]\nstart = \"9 o'clock\"\nstep_s = 1\n");
+        assert!(e.contains("[time] start"), "{e}");
+        let e = refused("[time]\nstart = \"2026-11-25T09:00:00Z\"\nstep_s = 1\nzone = \"CET\"\n");
+        assert!(e.contains("zone"), "{e}");
     }
 
     #[test]

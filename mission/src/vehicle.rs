@@ -41,6 +41,7 @@ pub fn sense_cells<R: rand::Rng + ?Sized>(
         position: [pos.0, pos.1],
         cells: cells.iter().map(|&c| c as u32).collect(),
         values: draw(grid, truth, pos, cells, noise, rng)?,
+        sigma: None,
     })
 }
 

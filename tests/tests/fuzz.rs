@@ -104,6 +104,7 @@ fn wire_seeds() -> Vec<Vec<u8>> {
                 position: [1.5, 2.5],
                 cells: vec![0, 7, 19],
                 values: vec![0.3, 0.4, 0.5],
+                sigma: None,
             }],
         }),
         Body::Telemetry(Telemetry {

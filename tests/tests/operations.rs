@@ -637,6 +637,7 @@ fn a_batch_that_decodes_but_is_invalid_is_counted_once_in_the_status() {
                     position: [1.0, 1.0],
                     cells: vec![0],
                     values: vec![0.5],
+                    sigma: None,
                 })
                 .collect(),
         };

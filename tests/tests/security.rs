@@ -269,6 +269,7 @@ fn secured_fleet(tls: bool) {
                 position: [1.0, 1.0],
                 cells: vec![0],
                 values: vec![9.0],
+                sigma: None,
             }],
         };
         put(

@@ -78,6 +78,11 @@ pub struct Sample {
     /// Flat grid indices of the measured cells (aerials: the cells their coarse lattice sits on).
     pub cells: Vec<u32>,
     pub values: Vec<f64>,
+    /// Each value's own noise standard deviation, when an instrument said it (readings
+    /// averaged in a cell, [`crate::instrument`]); absent, the batch's `noise` applies. Not
+    /// written when absent, so a simulated vehicle's batches are the bytes they always were.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sigma: Option<Vec<f64>>,
 }
 
 impl crate::fusion::Reading for Sample {
@@ -417,6 +422,11 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
                     return inv(format!("sample {k}: cell {c} outside the {n}-cell grid"));
                 }
                 finite(&format!("sample {k} values"), &s.values)?;
+                if let Some(sd) = &s.sigma {
+                    if sd.len() != s.values.len() || !sd.iter().all(|v| v.is_finite() && *v > 0.0) {
+                        return inv(format!("sample {k}: sigma wants one finite value > 0 per value"));
+                    }
+                }
             }
         }
         Body::Telemetry(t) => {
@@ -532,6 +542,7 @@ mod tests {
                 position: [1.5, 2.5],
                 cells: vec![0, 7, 19],
                 values: vec![0.3, 0.4, 0.5],
+                sigma: None,
             }],
         })
     }

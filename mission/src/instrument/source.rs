@@ -1,0 +1,175 @@
+//! Which instrument feeds a vehicle (`[sensors]` in the mission, `vehicle --sensor`): its
+//! name as written, parsed once.
+
+use crate::protocol::VehicleKind;
+use crate::roster::Roster;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::fmt;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::str::FromStr;
+
+/// Where a vehicle's readings come from.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SensorSource {
+    /// Mixed reality: the mission's truth sampled at the vehicle's fix (the simulator).
+    Sim,
+    /// Newline-delimited JSON readings in UDP datagrams to this address (one or more lines
+    /// per datagram).
+    Udp(SocketAddr),
+    /// Newline-delimited JSON readings on the node's standard input.
+    Stdin,
+    /// MAVLink NAMED_VALUE_FLOAT messages of this name on the vehicle's autopilot link.
+    Mavlink(String),
+    /// GeoTIFF frames appearing in this directory (aerials).
+    Geotiff(PathBuf),
+}
+
+/// The names a source may take, for error messages.
+pub const FORMS: &str = "sim, stdin, udp:ADDR:PORT, mavlink:NAME or geotiff:DIR";
+
+impl SensorSource {
+    /// Whether the source gives point readings (a boat's instrument) rather than frames.
+    pub fn is_point(&self) -> bool {
+        matches!(self, Self::Udp(_) | Self::Stdin | Self::Mavlink(_))
+    }
+}
+
+impl FromStr for SensorSource {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        let (kind, rest) = s.split_once(':').unwrap_or((s, ""));
+        match (kind, rest) {
+            ("sim", "") => Ok(Self::Sim),
+            ("stdin", "") => Ok(Self::Stdin),
+            ("udp", a) => a
+                .parse()
+                .map(Self::Udp)
+                .map_err(|_| format!("{s:?}: udp wants ADDR:PORT (udp:0.0.0.0:15602)")),
+            // NAMED_VALUE_FLOAT's name is a char[10].
+            ("mavlink", n) if !n.is_empty() && n.len() <= 10 && n.is_ascii() => Ok(Self::Mavlink(n.into())),
+            ("mavlink", _) => Err(format!(
+                "{s:?}: mavlink wants a NAMED_VALUE_FLOAT name of 1 to 10 ASCII characters"
+            )),
+            ("geotiff", d) if !d.is_empty() => Ok(Self::Geotiff(d.into())),
+            _ => Err(format!("{s:?} is not a sensor source ({FORMS})")),
+        }
+    }
+}
+
+impl fmt::Display for SensorSource {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Sim => write!(f, "sim"),
+            Self::Stdin => write!(f, "stdin"),
+            Self::Udp(a) => write!(f, "udp:{a}"),
+            Self::Mavlink(n) => write!(f, "mavlink:{n}"),
+            Self::Geotiff(d) => write!(f, "geotiff:{}", d.display()),
+        }
+    }
+}
+
+/// The mission's `[sensors]` table: `default` for every vehicle, and one entry per vehicle id
+/// that differs (`boat-2 = "udp:0.0.0.0:15602"`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Sensors {
+    #[serde(default = "sim")]
+    pub default: String,
+    #[serde(flatten)]
+    pub vehicles: BTreeMap<String, String>,
+}
+
+fn sim() -> String {
+    "sim".into()
+}
+
+impl Default for Sensors {
+    fn default() -> Self {
+        Self {
+            default: sim(),
+            vehicles: BTreeMap::new(),
+        }
+    }
+}
+
+/// The sources this version reads; the others are named by the interface but refused until
+/// they are built, rather than ignored.
+fn built(s: &SensorSource) -> bool {
+    matches!(s, SensorSource::Sim | SensorSource::Udp(_) | SensorSource::Stdin)
+}
+
+impl Sensors {
+    /// A vehicle's source as written (its own entry, else the default).
+    pub fn of(&self, id: &str) -> &str {
+        self.vehicles.get(id).map_or(&self.default, String::as_str)
+    }
+
+    /// Check the table against the mission's vehicles and whether it has a clock (`[time]`):
+    /// every entry a known vehicle, every source one its kind can use, and any source other
+    /// than `sim` only with mission time. The error is the key and the rule.
+    pub fn check(&self, roster: &Roster, timed: bool) -> Result<(), (String, String)> {
+        if let Some(id) = self.vehicles.keys().find(|id| roster.get(id).is_none()) {
+            return Err((
+                id.clone(),
+                format!("not a vehicle of this mission ({})", roster.ids().join(", ")),
+            ));
+        }
+        for v in roster.all() {
+            let key = if self.vehicles.contains_key(v.id.as_str()) {
+                v.id.to_string()
+            } else {
+                "default".into()
+            };
+            let source: SensorSource = self.of(&v.id).parse().map_err(|e| (key.clone(), e))?;
+            check_source(&source, v.kind, timed).map_err(|e| (key, format!("{source} for {}: {e}", v.id)))?;
+        }
+        Ok(())
+    }
+}
+
+/// Whether a vehicle of `kind` can read `source` in a mission with or without a clock.
+pub fn check_source(source: &SensorSource, kind: VehicleKind, timed: bool) -> Result<(), String> {
+    if !built(source) {
+        return Err("this version reads sim, stdin and udp sources; mavlink and geotiff are not built yet".into());
+    }
+    if kind == VehicleKind::Aerial && source.is_point() {
+        return Err("an aerial's readings are frames (sim or geotiff), not points".into());
+    }
+    if *source != SensorSource::Sim && !timed {
+        return Err("readings from an instrument need mission time ([time] start and step_s)".into());
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_form_parses_and_prints_back() {
+        for s in [
+            "sim",
+            "stdin",
+            "udp:0.0.0.0:15602",
+            "udp:[::1]:9",
+            "mavlink:SONDE",
+            "geotiff:/data/frames",
+        ] {
+            assert_eq!(s.parse::<SensorSource>().unwrap().to_string(), s);
+        }
+        for bad in [
+            "",
+            "sims",
+            "udp:",
+            "udp:host",
+            "udp:1.2.3.4:99999",
+            "mavlink:",
+            "mavlink:ELEVENCHARSX",
+            "file:x",
+        ] {
+            assert!(bad.parse::<SensorSource>().is_err(), "{bad}");
+        }
+    }
+}
