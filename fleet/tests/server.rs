@@ -685,3 +685,99 @@ fn boats_redirected_for_an_epoch_sense_the_new_disks() {
     assert!(redirected);
     assert_eq!(server.counters.rejected.values().sum::<u64>(), 0);
 }
+
+/// Runs the plume team through the server; `rewrite` may replace each boat batch before it is
+/// ingested. The server's snapshots at the end.
+fn run_with_boats(rewrite: impl Fn(MeasurementBatch) -> MeasurementBatch) -> Vec<Vec<f64>> {
+    let (truth, grid, cfg) = plume_team();
+    let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
+    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+    let mut brains = brains_of(&server, &cfg, grid);
+    let mut e = 0u64;
+    while !server.finished() {
+        for brain in &mut brains {
+            brain.set_plan(server.plan(&brain.id, e, 2).expect("plan of the epoch"));
+            if let Some(b) = brain.sense_epoch(e, x).unwrap() {
+                let b = if b.kind == VehicleKind::Boat { rewrite(b) } else { b };
+                server.ingest(b).unwrap();
+            }
+        }
+        e += 1;
+    }
+    server.snapshots.clone()
+}
+
+/// An instrument's readings (each value with its own sigma, [`fleet::mission::instrument`])
+/// enter where a simulated boat's do: with every sigma the mission's, the estimate is the
+/// simulated one bit for bit (the per-value noise path is the same arithmetic); with smaller
+/// sigmas the boats weigh more and the estimate differs; readings spread over the epoch's
+/// steps are accepted and assimilated at their own steps; readings at steps outside the epoch
+/// or out of order, and a simulated batch at the wrong step, are refused.
+#[test]
+fn instrument_readings_enter_at_their_own_steps_with_their_own_noise() {
+    let (_, grid, cfg) = plume_team();
+    let with_sigma = |sd: f64| {
+        move |mut b: MeasurementBatch| {
+            for s in &mut b.samples {
+                s.sigma = Some(vec![sd; s.values.len()]);
+            }
+            b
+        }
+    };
+    let simulated = run_with_boats(|b| b);
+    assert_eq!(run_with_boats(with_sigma(cfg.boat_sigma)), simulated);
+    assert_ne!(run_with_boats(with_sigma(cfg.boat_sigma / 10.0)), simulated);
+    // The disk's first half read a step before the sampling step, the rest at it.
+    let spread = run_with_boats(|b| {
+        let mut b = with_sigma(cfg.boat_sigma)(b);
+        let mut out = vec![];
+        for s in b.samples.drain(..) {
+            let half = s.values.len() / 2;
+            let part = |r: std::ops::Range<usize>, step| fleet::protocol::Sample {
+                step,
+                position: s.position,
+                cells: s.cells[r.clone()].to_vec(),
+                values: s.values[r.clone()].to_vec(),
+                sigma: s.sigma.as_ref().map(|v| v[r].to_vec()),
+            };
+            out.extend([part(0..half, s.step - 1), part(half..s.values.len(), s.step)]);
+        }
+        b.samples = out;
+        b
+    });
+    assert_eq!(spread.len(), simulated.len());
+    assert_ne!(spread, simulated);
+
+    let mut server = ServerCore::new(&cfg, grid, 50).unwrap();
+    let boat = |steps: &[u64], sigma: bool| MeasurementBatch {
+        vehicle: "boat-1".parse().unwrap(),
+        kind: VehicleKind::Boat,
+        seq: 0,
+        noise: Noise {
+            sigma0: cfg.boat_sigma,
+            growth_per_m: 0.0,
+        },
+        samples: steps
+            .iter()
+            .map(|&step| fleet::protocol::Sample {
+                step,
+                position: [1.0, 1.0],
+                cells: vec![0],
+                values: vec![0.5],
+                sigma: sigma.then(|| vec![0.01]),
+            })
+            .collect(),
+    };
+    // Boat seq 0 is epoch 1: steps 10..15 (init_steps 10, boat_period 5).
+    let steps = server.schedule().steps_of(1);
+    assert_eq!(steps, 10..15);
+    for bad in [
+        boat(&[9], true),
+        boat(&[15], true),
+        boat(&[12, 11], true),
+        boat(&[12], false),
+    ] {
+        assert!(server.ingest(bad).is_err());
+    }
+    assert!(server.ingest(boat(&[10, 12, 14], true)).is_ok());
+}

@@ -434,12 +434,25 @@ impl ServerCore {
             || self
                 .plan(&batch.vehicle, 0, 1)
                 .is_some_and(|p| p.targets.iter().all(|t| t.cells.is_empty()));
-        if got != want && !(got.is_empty() && idle_allowed) {
+        if got != want && !(got.is_empty() && idle_allowed) && !self.instrument_steps(batch, e) {
             return Err(BatchFault::Invalid(format!(
                 "epoch {e} wants samples at steps {want:?}, got {got:?}"
             )));
         }
         Ok(Some((index, e)))
+    }
+
+    /// Whether `batch` is a boat instrument's readings for epoch `e`: each sample with its own
+    /// sigma, at steps of the epoch in increasing order (a reading counts in the step of its
+    /// time, whichever step of the epoch that is; [`crate::instrument`]).
+    fn instrument_steps(&self, batch: &MeasurementBatch, e: u64) -> bool {
+        let steps = self.steps_of(e);
+        batch.kind == VehicleKind::Boat
+            && batch
+                .samples
+                .iter()
+                .all(|s| s.sigma.is_some() && steps.contains(&(s.step as usize)))
+            && batch.samples.windows(2).all(|w| w[0].step < w[1].step)
     }
 
     /// The records of the epochs whose decisions changed since the last call, as the journal's

@@ -239,6 +239,27 @@ impl VehicleBrain {
         }
     }
 
+    /// Epoch `e`'s batch of an instrument's `samples` (`None`: this vehicle sends none for
+    /// `e`), in place of [`Self::sense_epoch_at`]'s draws from a truth.
+    pub fn batch_of(&self, e: u64, samples: Vec<Sample>) -> Option<MeasurementBatch> {
+        Some(MeasurementBatch {
+            vehicle: self.id.clone(),
+            kind: self.kind,
+            seq: self.schedule.seq_of(self.kind, e)?,
+            noise: self.noise,
+            samples,
+        })
+    }
+
+    /// The first step of the first epoch this vehicle senses (its instrument's readings
+    /// before it have no batch to go in).
+    pub fn first_sensed_step(&self) -> u64 {
+        let s = &self.schedule;
+        (0..s.epochs())
+            .find(|&e| s.seq_of(self.kind, e).is_some())
+            .map_or(s.frames as u64, |e| s.steps_of(e).start as u64)
+    }
+
     /// [`Self::sense_epoch`] with the positions an autopilot reported, by step; steps without a
     /// fix use the vehicle's own kinematics.
     pub fn sense_epoch_at(

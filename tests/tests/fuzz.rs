@@ -126,6 +126,11 @@ fn wire_seeds() -> Vec<Vec<u8>> {
                 failsafe: Some("Failsafe: battery low".into()),
             }),
             acked: Some(4),
+            readings: Some(fleet::protocol::ReadingCounts {
+                received: 12,
+                accepted: 10,
+                refused: [("too_old".to_string(), 2)].into(),
+            }),
         }),
         Body::Ack(Ack {
             vehicle: "boat-1".parse().unwrap(),

@@ -6,5 +6,6 @@ pub mod autopilot;
 pub mod bridge;
 pub mod gateway;
 pub mod link;
+pub mod sensor;
 pub mod signing;
 pub mod upload;

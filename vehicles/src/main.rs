@@ -33,6 +33,11 @@ pub struct Args {
     /// pack that was not charged: a bench test of the low-battery failsafe on one vehicle.
     #[arg(long)]
     pub sim_battery_start_mah: Option<f64>,
+    /// Where this vehicle's readings come from: `sim` (the mission's truth at the vehicle's
+    /// fix), `stdin` or `udp:ADDR:PORT` (newline-delimited JSON from an instrument driver).
+    /// Default: the mission's `[sensors]`.
+    #[arg(long)]
+    pub sensor: Option<String>,
     /// Give up waiting for the final acknowledgement after this long (ms).
     #[arg(long, default_value_t = 60_000)]
     pub final_ack_ms: u64,

@@ -365,6 +365,7 @@ mod tests {
             outbox_depth: 3,
             autopilot: None,
             acked: None,
+            readings: None,
         })
     }
 

@@ -76,7 +76,6 @@ impl Assimilator {
     /// `fusion = "kalman"`, one step of the filter. Boat steps also re-calibrate each source
     /// against the boats' measurements.
     pub fn fuse_step(&mut self, ahead: u64, sight: &AerialSight, boats: &[Sample]) -> Result<Estimate, TeamError> {
-        let boat_var = self.setup.cfg.boat_sigma * self.setup.cfg.boat_sigma;
         let (pred, _) = self.state.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
         let predicted = pred.predict(ahead as f64);
         // A canonical order (disks do not overlap, so first cells differ): the result does not
@@ -85,11 +84,13 @@ impl Assimilator {
         boats.sort_by_key(|s| (s.cells.first().copied(), s.cells.len()));
         let cells: Vec<usize> = boats.iter().flat_map(|s| s.cells.iter().map(|&c| c as usize)).collect();
         let vals: Vec<f64> = boats.iter().flat_map(|s| s.values.iter().copied()).collect();
+        let vars = boat_variances(&boats, self.setup.cfg.boat_sigma);
+        let boat_var = typical(&vars, self.setup.cfg.boat_sigma * self.setup.cfg.boat_sigma);
         if !cells.is_empty() {
             self.calibrate(sight, &predicted, &cells, &vals, boat_var);
         }
         if self.setup.cfg.fusion == Scheme::Kalman {
-            return self.filter_step(ahead, sight, &cells, &vals);
+            return self.filter_step(ahead, sight, &cells, &vals, &vars);
         }
         let hifi = self.boats_estimate(predicted, &cells, &vals, boat_var)?;
         let mut aerial = sight.estimate.clone();
@@ -177,8 +178,13 @@ impl Assimilator {
         aerial: &AerialSight,
         cells: &[usize],
         vals: &[f64],
+        vars: &[f64],
     ) -> Result<Estimate, TeamError> {
-        let boat_var = (self.setup.cfg.boat_sigma * self.setup.cfg.boat_sigma).max(1e-12);
+        let boat_vars: Vec<f64> = vars.iter().map(|v| v.max(1e-12)).collect();
+        let boat_var = typical(
+            &boat_vars,
+            (self.setup.cfg.boat_sigma * self.setup.cfg.boat_sigma).max(1e-12),
+        );
         let s = &mut self.state;
         let Some((f, at)) = s.filter.as_mut() else {
             return Err(TeamError::NotReady(Missing::Model));
@@ -187,7 +193,6 @@ impl Assimilator {
             f.predict();
             *at += 1;
         }
-        let boat_vars = vec![boat_var; cells.len()];
         // Boat innovations against the forecast, for the noise estimates.
         let prior = f.prior();
         let boats = Observation {
@@ -229,7 +234,7 @@ impl Assimilator {
         if !cells.is_empty() {
             f.adapt_noise(&prior, cells, vals, boat_var);
             let grid = self.setup.grid;
-            s.displacement = learn_displacement(s.displacement, &grid, &prior, cells, vals, boat_var)?;
+            s.displacement = learn_displacement(s.displacement, &grid, &prior, cells, vals, &boat_vars)?;
         }
         let (values, variance) = f.field();
         Ok(Estimate { values, variance })
@@ -245,7 +250,7 @@ fn learn_displacement(
     prior: &kalman::Prior,
     cells: &[usize],
     vals: &[f64],
-    boat_var: f64,
+    boat_vars: &[f64],
 ) -> Result<f64, TeamError> {
     let grad2 = grid.squared_gradient(&prior.mean)?;
     let innovation2: Vec<f64> = cells
@@ -253,7 +258,11 @@ fn learn_displacement(
         .zip(vals)
         .map(|(&c, v)| (v - prior.mean[c]).powi(2))
         .collect();
-    let expected: Vec<f64> = cells.iter().map(|&c| prior.variance[c] + boat_var).collect();
+    let expected: Vec<f64> = cells
+        .iter()
+        .zip(boat_vars)
+        .map(|(&c, b)| prior.variance[c] + b)
+        .collect();
     let at: Vec<f64> = cells.iter().map(|&c| grad2[c]).collect();
     Ok(match kalman::displacement_variance(&innovation2, &expected, &at) {
         Some(s2) => {
@@ -262,4 +271,27 @@ fn learn_displacement(
         }
         None => displacement,
     })
+}
+
+/// Each boat value's noise variance: its own sigma when the instrument said it, else the
+/// mission's boat sigma.
+fn boat_variances(boats: &[&Sample], sigma: f64) -> Vec<f64> {
+    boats
+        .iter()
+        .flat_map(|s| match &s.sigma {
+            Some(sd) => sd.iter().map(|v| v * v).collect::<Vec<_>>(),
+            None => vec![sigma * sigma; s.values.len()],
+        })
+        .collect()
+}
+
+/// The one noise variance of the steps that take one (the heuristic schemes, the noise
+/// adaptation): the common value when every value has the same (exactly, so a simulated
+/// boat's numbers are the bits they were), else their mean; `none` without values.
+fn typical(vars: &[f64], none: f64) -> f64 {
+    match vars.first() {
+        None => none,
+        Some(&v) if vars.iter().all(|&w| w == v) => v,
+        Some(_) => vars.iter().sum::<f64>() / vars.len() as f64,
+    }
 }

@@ -25,4 +25,4 @@ pub use clock::MissionClock;
 pub use collect::{Collected, Tally};
 pub use placer::{Placed, Placer};
 pub use reading::{parse_line, Reading, Refusal, MAX_LINE};
-pub use source::SensorSource;
+pub use source::{check_source, SensorSource};

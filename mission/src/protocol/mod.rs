@@ -133,6 +133,18 @@ pub struct Telemetry {
     /// it): a server whose journal lacks one of them has lost data, and says so.
     #[serde(default)]
     pub acked: Option<u64>,
+    /// What the vehicle's instrument delivered (`None`: a simulated sensor).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub readings: Option<ReadingCounts>,
+}
+
+/// A vehicle's instrument readings so far: received, accepted, and refused by kind
+/// ([`crate::instrument::Refusal`]'s names).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ReadingCounts {
+    pub received: u64,
+    pub accepted: u64,
+    pub refused: std::collections::BTreeMap<String, u64>,
 }
 
 impl Telemetry {
@@ -433,6 +445,12 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
             vehicle(&t.vehicle, ctx)?;
             position(t.position, &ctx.grid)?;
             finite("telemetry", &[t.heading, t.battery])?;
+            if t.readings
+                .as_ref()
+                .is_some_and(|r| r.refused.len() > 32 || r.refused.keys().any(|k| k.len() > 32))
+            {
+                return inv("reading counts: at most 32 kinds of refusal, names of at most 32 characters".into());
+            }
             if t.autopilot.as_ref().is_some_and(|a| a.mode.len() > 32) {
                 return inv("autopilot mode name over 32 characters".into());
             }
@@ -562,6 +580,7 @@ mod tests {
                 outbox_depth: 7,
                 autopilot: None,
                 acked: Some(3),
+                readings: None,
             }),
             Body::Ack(Ack {
                 vehicle: "boat-1".parse::<VehicleId>().unwrap(),

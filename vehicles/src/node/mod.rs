@@ -8,11 +8,13 @@
 
 mod compose;
 mod drive;
+mod readings;
 
 use crate::Args;
 use drive::{drive, query_plan, Drive};
 use fleet_mission::config::MissionConfig;
 use fleet_mission::grid::Grid;
+use fleet_mission::instrument::{check_source, MissionClock, SensorSource};
 use fleet_mission::process::FieldSeries;
 use fleet_mission::protocol::{self, keys::Keys, AutopilotStatus, Body, Context, LinkState, Plan, Telemetry};
 use fleet_mission::vehicle::{BrainState, VehicleBrain};
@@ -24,6 +26,7 @@ use tokio::sync::{mpsc, watch};
 use tracing::{debug, info, warn};
 use vehicles::autopilot::modes::Role as Mode;
 use vehicles::bridge::Bridge;
+use vehicles::sensor::Line;
 use zenoh::sample::SampleKind;
 
 /// How often the plan is asked for while none has come (an ack asks at once).
@@ -87,6 +90,10 @@ struct Vehicle {
     /// When the epoch's plan came in, and how long after it each first guided target left (ms).
     plan_at: Option<Instant>,
     guided_ms: Vec<f64>,
+    /// Mission time (`[time]`): epochs close by the clock rather than `step_ms`.
+    clock: Option<MissionClock>,
+    /// The instrument this vehicle reads (`None`: the simulated sensor, from the truth).
+    instrument: Option<readings::Instrument>,
 }
 
 fn outbox_error(e: OutboxError) -> anyhow::Error {
@@ -315,16 +322,58 @@ impl Vehicle {
             self.arrival_timeout,
             self.driven.clone(),
         );
-        let (plan_at, pace) = (
+        let (plan_at, pace, closes) = (
             self.plan_at.take(),
             Duration::from_millis(self.step_ms * self.brain.schedule().steps_of(e).len() as u64),
+            self.closes(e),
         );
         tokio::spawn(async move {
             let driven = drive(driver, targets, grid, timeout, plan_at).await;
-            // Then the epoch's steps at the mission's pace.
-            tokio::time::sleep(pace).await;
+            // Then the epoch's steps: until the clock closes it, or at the mission's pace.
+            match closes {
+                Some(at) => tokio::time::sleep_until(at).await,
+                None => tokio::time::sleep(pace).await,
+            }
             let _ = tx.send((e, driven));
         });
+    }
+
+    /// With mission time, when epoch `e` closes: its last step's end (and, for an instrument,
+    /// [`readings::CLOSE_AFTER_S`] for the readings still on their way).
+    fn closes(&self, e: u64) -> Option<tokio::time::Instant> {
+        let clock = self.clock?;
+        let end = clock.time_of(self.brain.schedule().steps_of(e).end as u64)
+            + if self.instrument.is_some() {
+                readings::CLOSE_AFTER_S
+            } else {
+                0.0
+            };
+        let wait = Duration::from_secs_f64((end - MissionClock::now()).clamp(0.0, 1e9));
+        Some(tokio::time::Instant::now() + wait)
+    }
+
+    /// Epoch `e`'s batch: the instrument's readings of its steps, or what the simulated sensor
+    /// draws from the truth at the fixes.
+    fn batch_of(
+        &mut self,
+        e: u64,
+        fixes: &std::collections::BTreeMap<u64, fleet_mission::vehicle::Fix>,
+        truth: &FieldSeries,
+    ) -> anyhow::Result<Option<protocol::MeasurementBatch>> {
+        if let Some(i) = &mut self.instrument {
+            let steps = self.brain.schedule().steps_of(e);
+            let samples = i.take(steps.start as u64..steps.end as u64);
+            return Ok(self.brain.batch_of(e, samples));
+        }
+        let truth_at = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+        Ok(self.brain.sense_epoch_at(e, truth_at, fixes)?)
+    }
+
+    /// A line from the instrument.
+    fn on_line(&mut self, line: Line) {
+        if let Some(i) = &mut self.instrument {
+            i.on_line(line, MissionClock::now());
+        }
     }
 
     /// Epoch `e` driven: sense it, commit the batch (durable first, then sent: a crash in
@@ -332,8 +381,7 @@ impl Vehicle {
     async fn on_driven(&mut self, (e, (fixes, guided)): Driven, truth: &FieldSeries) -> anyhow::Result<()> {
         self.guided_ms.extend(guided);
         self.step = self.brain.schedule().steps_of(e).end.saturating_sub(1) as u64;
-        let truth_at = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
-        if let Some(batch) = self.brain.sense_epoch_at(e, truth_at, &fixes)? {
+        if let Some(batch) = self.batch_of(e, &fixes, truth)? {
             let bytes = protocol::encode(&Body::Batch(batch.clone()));
             let state: BrainState = self.brain.state(e + 1);
             if self.outbox.commit(batch.seq, &bytes, &state).map_err(outbox_error)? {
@@ -385,6 +433,7 @@ impl Vehicle {
             },
             outbox_depth: self.outbox.depth(),
             acked: self.outbox.acked(),
+            readings: self.instrument.as_ref().map(readings::Instrument::counts),
         };
         if let Err(e) = fleet_net::put(&self.session, &self.keys.telemetry(&self.brain.id), &Body::Telemetry(t)).await {
             warn!("telemetry: {e}");
@@ -449,6 +498,20 @@ struct Inputs {
     autopilot: Option<watch::Receiver<AutopilotStatus>>,
     plans: mpsc::UnboundedReceiver<(u64, Option<Plan>)>,
     driven: mpsc::UnboundedReceiver<Driven>,
+    /// The instrument's lines (none for the simulated sensor).
+    lines: Option<mpsc::Receiver<Line>>,
+}
+
+/// The instrument's next line (never, without one or once its stream has ended).
+async fn next_line(rx: &mut Option<mpsc::Receiver<Line>>) -> Line {
+    if let Some(r) = rx {
+        if let Some(line) = r.recv().await {
+            return line;
+        }
+        tracing::info!("the instrument's stream ended");
+    }
+    *rx = None;
+    std::future::pending().await
 }
 
 /// The autopilot's next status (never, without one; a stopped bridge is not heard again).
@@ -482,6 +545,7 @@ impl Vehicle {
                 _ = tick.tick() => self.on_tick().await?,
                 Some((e, plan)) = inputs.plans.recv() => self.on_plan(e, plan),
                 Some(d) = inputs.driven.recv() => self.on_driven(d, truth).await?,
+                line = next_line(&mut inputs.lines) => self.on_line(line),
             }
         }
         Ok(())
@@ -550,6 +614,9 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         compose::pipe_to_gateway(&session, &keys, &args.id, frames);
         b
     });
+    let (source, instrument) = instrument_of(&args, &mission, &brain, grid, frames)?;
+    let lines = vehicles::sensor::open(&source)
+        .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("sensor source {source}: {e}")))?;
     let (plans_tx, plans) = mpsc::unbounded_channel();
     let (driven_tx, driven) = mpsc::unbounded_channel();
     let inputs = Inputs {
@@ -559,6 +626,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         autopilot: bridge.as_ref().map(Bridge::status_changes),
         plans,
         driven,
+        lines,
     };
     let pace = mission.pace.clone();
     let mut v = Vehicle {
@@ -586,6 +654,8 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         shown: None,
         plan_at: None,
         guided_ms: vec![],
+        clock: mission.clock(),
+        instrument,
     };
     v.telemetry().await;
     v.resume(state);
@@ -602,6 +672,30 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         .await
         .map_err(fleet_net::NetError::zenoh("closing the Zenoh session"))?;
     Ok(())
+}
+
+/// This vehicle's sensor source (`--sensor`, else the mission's `[sensors]`) and, unless it
+/// is the simulated one, its instrument.
+fn instrument_of(
+    args: &Args,
+    mission: &MissionConfig,
+    brain: &VehicleBrain,
+    grid: Grid,
+    frames: usize,
+) -> anyhow::Result<(SensorSource, Option<readings::Instrument>)> {
+    let source = match &args.sensor {
+        Some(s) => s
+            .parse()
+            .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("--sensor {e}")))?,
+        None => mission.sensor_of(&args.id),
+    };
+    check_source(&source, brain.kind, mission.clock().is_some())
+        .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("sensor source {source} for {}: {e}", args.id)))?;
+    let instrument = (source != SensorSource::Sim)
+        .then(|| readings::Instrument::new(mission, grid, frames, brain.kind, brain.first_sensed_step()))
+        .flatten();
+    info!(vehicle = %args.id, %source, "sensor source");
+    Ok((source, instrument))
 }
 
 impl Vehicle {

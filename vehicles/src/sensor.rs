@@ -1,0 +1,149 @@
+//! The vehicle's instrument sources as byte streams cut into lines: a UDP socket (each datagram
+//! one or more lines) or standard input, each read by a thread of its own that blocks on it and
+//! hands lines to the node's loop over a bounded channel (a flood waits for the loop, or on UDP
+//! is dropped by the kernel's buffer, never held without bound). A line longer than
+//! [`MAX_LINE`] is not kept: the reader says how long it was and skips to the next newline.
+//! What a line means is `fleet_mission::instrument`'s business.
+
+use fleet_mission::instrument::{SensorSource, MAX_LINE};
+use std::io::Read;
+use tokio::sync::mpsc;
+
+/// Lines waiting for the node's loop, at most.
+const QUEUE: usize = 1024;
+
+/// One line from a source.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Line {
+    Text(Vec<u8>),
+    /// A line of this many bytes, longer than [`MAX_LINE`]: dropped unread.
+    Oversized(usize),
+}
+
+/// Cuts a byte stream into lines of at most [`MAX_LINE`] bytes, holding at most that much.
+#[derive(Debug, Default)]
+pub struct Splitter {
+    held: Vec<u8>,
+    /// Bytes of the current line, when it is already over the limit (its bytes are not held).
+    over: Option<usize>,
+}
+
+impl Splitter {
+    /// Feed bytes; the lines they complete (empty lines and a trailing `\r` dropped).
+    pub fn feed(&mut self, bytes: &[u8]) -> Vec<Line> {
+        let mut lines = vec![];
+        for piece in bytes.split_inclusive(|&b| b == b'\n') {
+            let (body, ends) = match piece.strip_suffix(b"\n") {
+                Some(b) => (b, true),
+                None => (piece, false),
+            };
+            match &mut self.over {
+                Some(n) => *n += body.len(),
+                None if self.held.len() + body.len() > MAX_LINE => {
+                    self.over = Some(self.held.len() + body.len());
+                    self.held.clear();
+                }
+                None => self.held.extend_from_slice(body),
+            }
+            if ends {
+                lines.extend(self.end_line());
+            }
+        }
+        lines
+    }
+
+    /// The line in progress, ended (at the end of a datagram or of the stream).
+    pub fn end_line(&mut self) -> Option<Line> {
+        if let Some(n) = self.over.take() {
+            return Some(Line::Oversized(n));
+        }
+        let mut line = std::mem::take(&mut self.held);
+        if line.last() == Some(&b'\r') {
+            line.pop();
+        }
+        (!line.iter().all(u8::is_ascii_whitespace)).then_some(Line::Text(line))
+    }
+}
+
+/// Start reading `source` (`None` for `sim`, which has no stream); the lines come on the
+/// returned channel until the stream ends.
+pub fn open(source: &SensorSource) -> std::io::Result<Option<mpsc::Receiver<Line>>> {
+    let (tx, rx) = mpsc::channel(QUEUE);
+    let name = format!("sensor {source}");
+    match source {
+        SensorSource::Udp(addr) => {
+            let socket = std::net::UdpSocket::bind(addr)?;
+            std::thread::Builder::new()
+                .name(name)
+                .spawn(move || read_udp(socket, tx))?;
+        }
+        SensorSource::Stdin => {
+            std::thread::Builder::new()
+                .name(name)
+                .spawn(move || read_stream(std::io::stdin().lock(), tx))?;
+        }
+        _ => return Ok(None),
+    }
+    Ok(Some(rx))
+}
+
+fn read_udp(socket: std::net::UdpSocket, tx: mpsc::Sender<Line>) {
+    let mut buf = vec![0u8; 65_536];
+    while let Ok(n) = socket.recv(&mut buf) {
+        let mut s = Splitter::default();
+        let lines = s.feed(&buf[..n]).into_iter().chain(s.end_line());
+        for line in lines {
+            if tx.blocking_send(line).is_err() {
+                return;
+            }
+        }
+    }
+}
+
+fn read_stream(mut input: impl Read, tx: mpsc::Sender<Line>) {
+    let (mut s, mut buf) = (Splitter::default(), vec![0u8; 8192]);
+    while let Ok(n) = input.read(&mut buf) {
+        if n == 0 {
+            break;
+        }
+        for line in s.feed(&buf[..n]) {
+            if tx.blocking_send(line).is_err() {
+                return;
+            }
+        }
+    }
+    if let Some(line) = s.end_line() {
+        let _ = tx.blocking_send(line);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_stream_is_cut_into_lines_whatever_its_chunks() {
+        let mut s = Splitter::default();
+        assert_eq!(s.feed(b"{\"a\":1}\r\n{\"b\""), vec![Line::Text(b"{\"a\":1}".to_vec())]);
+        assert_eq!(s.feed(b":2}\n\n  \n"), vec![Line::Text(b"{\"b\":2}".to_vec())]);
+        let long = vec![b'x'; MAX_LINE + 10];
+        let mut lines = s.feed(&long[..100]);
+        lines.extend(s.feed(&long[100..]));
+        lines.extend(s.feed(b"\nok\n"));
+        assert_eq!(lines, vec![Line::Oversized(MAX_LINE + 10), Line::Text(b"ok".to_vec())]);
+        assert!(s.held.is_empty(), "nothing of an oversized line is held");
+        assert_eq!(s.feed(b"tail"), vec![]);
+        assert_eq!(s.end_line(), Some(Line::Text(b"tail".to_vec())));
+    }
+
+    #[test]
+    fn a_megabyte_line_is_never_held() {
+        let mut s = Splitter::default();
+        let chunk = vec![b'{'; 65_536];
+        for _ in 0..16 {
+            assert!(s.feed(&chunk).is_empty());
+            assert!(s.held.capacity() <= 2 * MAX_LINE + 65_536);
+        }
+        assert_eq!(s.feed(b"\n"), vec![Line::Oversized(16 * 65_536)]);
+    }
+}
