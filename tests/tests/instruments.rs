@@ -1,0 +1,166 @@
+//! Readings from instruments that are not the vehicle (issue 34): a whole `fleet up` mission on
+//! the clock (`[time]`), every boat reading a UDP sensor port, fed by a separate process (the
+//! instrument emulator) that hears where each boat really is from the ground-station stream
+//! and sends what a disk-sensing instrument there reads of the truth. Hostile lines go to the
+//! same ports meanwhile. Every reading the emulator sent is in the server's batches, at its
+//! step and cell with its value, and nothing else is: the model is a function of the batches,
+//! so it is the one the good readings alone give. Each hostile line is counted by its kind in
+//! the boat's telemetry.
+
+use fleet::protocol::{Body, Context};
+use fleet_mission::recording::Recording;
+use hetfleet_tests::*;
+use std::collections::BTreeMap;
+use std::net::UdpSocket;
+use std::path::Path;
+
+/// The tiny mission on the clock (steps of 1 s from `start`), its boats on UDP ports, the
+/// ground-station stream on `gcs`.
+fn timed_mission(dir: &Path, start: f64, ports: &[u16], gcs: u16) -> std::path::PathBuf {
+    let ep = vec![format!("tcp/127.0.0.1:{}", free_port())];
+    let m = tiny_mission(dir, &ep, &ep);
+    edit(
+        &m,
+        "[mavlink]\n",
+        &format!("[mavlink]\ngcs = \"udpout:127.0.0.1:{gcs}\"\n"),
+    );
+    let start = fleet_mission::instrument::MissionClock::rfc3339(start);
+    let mut text = std::fs::read_to_string(&m).unwrap();
+    text.push_str(&format!("\n[time]\nstart = \"{start}\"\nstep_s = 1.0\n\n[sensors]\n"));
+    for (i, p) in ports.iter().enumerate() {
+        text.push_str(&format!("boat-{} = \"udp:127.0.0.1:{p}\"\n", i + 1));
+    }
+    std::fs::write(&m, text).unwrap();
+    m
+}
+
+fn udp_port() -> u16 {
+    UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+/// Lines of every refusal kind a JSON line can carry, with the kind each must be counted as.
+fn hostile(now: f64, site: &fleet_mission::site::Site) -> Vec<(String, &'static str)> {
+    let (lat, lon, _) = site.global_of(&site.ned_of((5.5, 5.5), 0.0));
+    let r = |t: f64, lat: f64, lon: f64, extra: &str| {
+        format!(r#"{{"t": {t}, "lat": {lat}, "lon": {lon}, "value": 0.5{extra}}}"#)
+    };
+    vec![
+        ("{\"t\": 1, garbage".into(), "malformed"),
+        ("\u{1}\u{2}\u{7f}binary".into(), "malformed"),
+        (r#"{"t": 1, "lat": 0, "lon": 0, "value": "high"}"#.into(), "wrong_type"),
+        (r(now, lat, lon, r#", "sigma": -1"#), "bad_sigma"),
+        (format!(r#"{{"t": {now}, "value": 0.5}}"#), "no_fix"),
+        (r(now, lat + 1.0, lon, ""), "outside_site"),
+        (r(now + 3600.0, lat, lon, ""), "from_future"),
+        (r(now - 3600.0, lat, lon, ""), "too_old"),
+        (format!("{{\"pad\": \"{}\"}}", "x".repeat(60_000)), "oversized"),
+    ]
+}
+
+#[test]
+fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used() {
+    let dir = scratch("instruments");
+    let ports = [udp_port(), udp_port(), udp_port()];
+    let gcs = udp_port();
+    let m = timed_mission(
+        &dir,
+        fleet_mission::instrument::MissionClock::now().ceil() + 12.0,
+        &ports,
+        gcs,
+    );
+    let mut procs = Procs::default();
+    let mut emulator = std::process::Command::new(bin("instrument_emulator"));
+    emulator.args([
+        "--mission",
+        m.to_str().unwrap(),
+        "--gcs-port",
+        &gcs.to_string(),
+        "--seed",
+        "3",
+    ]);
+    for (i, p) in ports.iter().enumerate() {
+        emulator.args(["--send", &format!("boat-{}=127.0.0.1:{p}", i + 1)]);
+    }
+    let log = dir.join("sent.ndjson");
+    procs
+        .0
+        .push(emulator.arg("--log").arg(&log).spawn().expect("the emulator"));
+    let out = dir.join("run");
+    let fleet = std::thread::spawn({
+        let (m, out) = (m.clone(), out.clone());
+        move || run("fleet", &["up", m.to_str().unwrap(), "--out", out.to_str().unwrap()])
+    });
+    // Hostile lines to boat-1 while the mission runs (once the first boat epoch is open).
+    let mission = fleet_mission::config::MissionConfig::load(Some(&m)).unwrap();
+    let clock = mission.clock().unwrap();
+    while fleet_mission::instrument::MissionClock::now() < clock.time_of(11) {
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let grid = fleet::grid::Grid::new(24, 48, 1.0).unwrap();
+    let lines = hostile(
+        fleet_mission::instrument::MissionClock::now(),
+        &mission.mavlink.site(&grid),
+    );
+    let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let mut want: BTreeMap<String, u64> = BTreeMap::new();
+    for (line, kind) in &lines {
+        socket
+            .send_to(format!("{line}\n").as_bytes(), ("127.0.0.1", ports[0]))
+            .unwrap();
+        *want.entry(kind.to_string()).or_default() += 1;
+    }
+    let o = fleet.join().unwrap();
+    assert!(o.status.success(), "fleet up: {}", String::from_utf8_lossy(&o.stderr));
+    procs.wait_all(30);
+
+    // What the emulator sent, by (vehicle, step, cell).
+    let sent: BTreeMap<(String, u64, u32), f64> = std::fs::read_to_string(&log)
+        .unwrap()
+        .lines()
+        .map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            let key = (
+                v["vehicle"].as_str().unwrap().to_string(),
+                v["step"].as_u64().unwrap(),
+                v["cell"].as_u64().unwrap() as u32,
+            );
+            (key, v["value"].as_f64().unwrap())
+        })
+        .collect();
+    assert!(sent.len() >= 3 * 5 * 20, "the emulator sent {} readings", sent.len());
+    let rec = Recording::read(&out.join("recording.mcap")).unwrap();
+    let mut ctx = Context::new(rec.grid);
+    ctx.vehicles = rec.mission.vehicles().into_iter().map(|v| v.id).collect();
+    let (mut received, mut last_counts) = (BTreeMap::new(), None);
+    for msg in &rec.messages {
+        match fleet::protocol::decode(&msg.data, &ctx) {
+            Ok(Body::Batch(b)) if b.kind == fleet::protocol::VehicleKind::Boat => {
+                for s in &b.samples {
+                    assert!(s.sigma.is_some(), "an instrument's sample carries its sigma");
+                    for (&c, &v) in s.cells.iter().zip(&s.values) {
+                        received.insert((b.vehicle.to_string(), s.step, c), v);
+                    }
+                }
+            }
+            Ok(Body::Telemetry(t)) if t.vehicle.as_str() == "boat-1" => last_counts = t.readings.or(last_counts),
+            _ => {}
+        }
+    }
+    assert_eq!(
+        received.keys().collect::<Vec<_>>(),
+        sent.keys().collect::<Vec<_>>(),
+        "every reading sent, and nothing else, is in the batches"
+    );
+    for (k, v) in &received {
+        assert!(
+            (v - sent[k]).abs() <= 1e-12 * v.abs().max(1.0),
+            "{k:?}: {v} != {}",
+            sent[k]
+        );
+    }
+    let counts = last_counts.expect("boat-1's telemetry carries its reading counts");
+    assert_eq!(counts.refused, want, "each hostile line counted by its kind");
+    let good = sent.keys().filter(|(id, _, _)| id == "boat-1").count() as u64;
+    assert_eq!(counts.accepted, good);
+    assert_eq!(counts.received, good + lines.len() as u64);
+}
