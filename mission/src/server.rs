@@ -442,16 +442,20 @@ impl ServerCore {
         Ok(Some((index, e)))
     }
 
-    /// Whether `batch` is a boat instrument's readings for epoch `e`: each sample with its own
-    /// sigma, at steps of the epoch in increasing order (a reading counts in the step of its
-    /// time, whichever step of the epoch that is; [`crate::instrument`]).
+    /// Whether `batch` is an instrument's readings for epoch `e`: each sample with its own
+    /// sigma, in increasing order of step; a boat's at any steps of the epoch (a reading counts
+    /// in the step of its time, [`crate::instrument`]), an aerial camera's at those of its
+    /// sampling steps it has a frame for.
     fn instrument_steps(&self, batch: &MeasurementBatch, e: u64) -> bool {
-        let steps = self.steps_of(e);
-        batch.kind == VehicleKind::Boat
-            && batch
-                .samples
-                .iter()
-                .all(|s| s.sigma.is_some() && steps.contains(&(s.step as usize)))
+        let (steps, want) = (self.steps_of(e), self.schedule.sample_steps(batch.kind, e));
+        let allowed = |k: usize| match batch.kind {
+            VehicleKind::Boat => steps.contains(&k),
+            VehicleKind::Aerial => want.contains(&k),
+        };
+        batch
+            .samples
+            .iter()
+            .all(|s| s.sigma.is_some() && allowed(s.step as usize))
             && batch.samples.windows(2).all(|w| w[0].step < w[1].step)
     }
 

@@ -251,6 +251,47 @@ impl VehicleBrain {
         })
     }
 
+    /// An aerial camera's frames of epoch `e` as its batch's samples: at each sampling step
+    /// with a frame, the cells of the step's target (its region's lattice) that the frame has a
+    /// value for, seen from where the aerial was (its fix, else the target), each with the noise
+    /// of its distance. Frames of other steps are not the schedule's and are left out.
+    pub fn seen_from_targets(
+        &self,
+        e: u64,
+        frames: Vec<Sample>,
+        fixes: &std::collections::BTreeMap<u64, Fix>,
+    ) -> Vec<Sample> {
+        let targets = self.targets_of(e);
+        frames
+            .into_iter()
+            .filter_map(|f| {
+                let t = targets.iter().find(|t| t.step == f.step && !t.cells.is_empty())?;
+                let pos = fixes.get(&t.step).map_or(t.position, |x| [x.position.0, x.position.1]);
+                let (cells, values): (Vec<u32>, Vec<f64>) = f
+                    .cells
+                    .iter()
+                    .zip(&f.values)
+                    .filter(|(c, _)| t.cells.contains(c))
+                    .map(|(&c, &v)| (c, v))
+                    .unzip();
+                let sigma = cells
+                    .iter()
+                    .map(|&c| {
+                        let (x, y) = self.grid.centre_m(self.grid.cell(c as usize));
+                        self.noise.std_at((pos[0] - x).hypot(pos[1] - y)).max(1e-12)
+                    })
+                    .collect();
+                (!cells.is_empty()).then_some(Sample {
+                    step: f.step,
+                    position: pos,
+                    cells,
+                    values,
+                    sigma: Some(sigma),
+                })
+            })
+            .collect()
+    }
+
     /// The first step of the first epoch this vehicle senses (its instrument's readings
     /// before it have no batch to go in).
     pub fn first_sensed_step(&self) -> u64 {

@@ -326,3 +326,83 @@ fn a_directory_that_is_not_a_finished_run_is_one_clear_line_and_exit_2() {
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("nothing to export"));
 }
+
+/// A camera frame GDAL wrote (`gdal_translate` from an ASCII grid, Float32, with no-data) in
+/// geographic WGS 84 and in UTM zones north and south of the equator: hetfleet reads each
+/// pixel where GDAL and PROJ (`gdaltransform`) put it. The pixel centres' WGS 84 positions
+/// come from `gdaltransform`, not from our own UTM code, so a wrong zone, hemisphere, axis or
+/// half-pixel shift shows.
+#[test]
+fn frames_gdal_writes_are_read_where_gdal_puts_them() {
+    let dir = scratch("gdal-frames");
+    // (EPSG, west, north, pixel size): Sydney's UTM zone 56 south, Copenhagen's 33 north.
+    let cases = [
+        (4326, 151.2, -33.85, 0.001),
+        (32756, 334_000.0, 6_253_000.0, 25.0),
+        (32633, 347_000.0, 6_174_000.0, 25.0),
+    ];
+    let (cols, rows) = (5usize, 4usize);
+    for (epsg, west, north, px) in cases {
+        let values: Vec<f64> = (0..rows * cols).map(|i| 10.0 + i as f64).collect();
+        let mut asc = format!(
+            "ncols {cols}\nnrows {rows}\nxllcorner {west}\nyllcorner {}\ncellsize {px}\nNODATA_value -9999\n",
+            north - rows as f64 * px
+        );
+        for r in 0..rows {
+            let row: Vec<String> = (0..cols)
+                .map(|c| {
+                    if (r, c) == (1, 2) {
+                        "-9999".into()
+                    } else {
+                        values[r * cols + c].to_string()
+                    }
+                })
+                .collect();
+            asc.push_str(&(row.join(" ") + "\n"));
+        }
+        let (a, tif) = (dir.join(format!("{epsg}.asc")), dir.join(format!("{epsg}.tif")));
+        std::fs::write(&a, asc).unwrap();
+        let o = Command::new("gdal_translate")
+            .args([
+                "-q",
+                "-of",
+                "GTiff",
+                "-ot",
+                "Float32",
+                "-a_srs",
+                &format!("EPSG:{epsg}"),
+            ])
+            .args([a.to_str().unwrap(), tif.to_str().unwrap()])
+            .output()
+            .expect("gdal_translate (Debian gdal-bin; scripts/test.sh installs it)");
+        assert!(
+            o.status.success(),
+            "gdal_translate: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        let frame = fleet_mission::instrument::raster::decode(&std::fs::read(&tif).unwrap()).unwrap();
+        // Every pixel centre, to WGS 84 by PROJ.
+        let centres: String = (0..rows * cols)
+            .map(|i| {
+                let (r, c) = (i / cols, i % cols);
+                format!("{} {}\n", west + (c as f64 + 0.5) * px, north - (r as f64 + 0.5) * px)
+            })
+            .collect();
+        let mut t = Command::new("gdaltransform")
+            .args(["-s_srs", &format!("EPSG:{epsg}"), "-t_srs", "EPSG:4326", "-output_xy"])
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .expect("gdaltransform");
+        use std::io::Write;
+        t.stdin.take().unwrap().write_all(centres.as_bytes()).unwrap();
+        let out = String::from_utf8(t.wait_with_output().unwrap().stdout).unwrap();
+        for (i, line) in out.lines().enumerate() {
+            let xy: Vec<f64> = line.split_whitespace().map(|v| v.parse().unwrap()).collect();
+            // gdaltransform to EPSG:4326 with -output_xy: longitude then latitude.
+            let got = frame.at(xy[1], xy[0]);
+            let want = (i != cols + 2).then_some(values[i]);
+            assert_eq!(got, want, "EPSG:{epsg} pixel {i}");
+        }
+    }
+}

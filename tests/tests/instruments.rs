@@ -1,11 +1,13 @@
 //! Readings from instruments that are not the vehicle (issue 34): a whole `fleet up` mission on
-//! the clock (`[time]`), every boat reading a UDP sensor port, fed by a separate process (the
-//! instrument emulator) that hears where each boat really is from the ground-station stream
-//! and sends what a disk-sensing instrument there reads of the truth. Hostile lines go to the
-//! same ports meanwhile. Every reading the emulator sent is in the server's batches, at its
-//! step and cell with its value, and nothing else is: the model is a function of the batches,
-//! so it is the one the good readings alone give. Each hostile line is counted by its kind in
-//! the boat's telemetry.
+//! the clock (`[time]`), every boat reading a UDP sensor port and every aerial a directory of
+//! GeoTIFF frames, fed by a separate process (the instrument emulator) that hears where each
+//! vehicle really is from the ground-station stream and sends what a disk-sensing instrument
+//! there reads of the truth, or writes what a camera there sees of it. Hostile lines and
+//! frames go to the same ports and directories meanwhile. Every reading the emulator sent is in
+//! the server's batches, at its step and cell with its value, every aerial value is its
+//! frame's, and nothing else is: the model is a function of the batches, so it is the one the
+//! good readings alone give. Each hostile line and frame is counted by its kind in the
+//! vehicle's telemetry.
 
 use fleet::protocol::{Body, Context};
 use fleet_mission::recording::Recording;
@@ -14,8 +16,8 @@ use std::collections::BTreeMap;
 use std::net::UdpSocket;
 use std::path::Path;
 
-/// The tiny mission on the clock (steps of 1 s from `start`), its boats on UDP ports, the
-/// ground-station stream on `gcs`.
+/// The tiny mission on the clock (steps of 1 s from `start`), its boats on UDP ports, its
+/// aerials on frame directories `<dir>/av-N`, the ground-station stream on `gcs`.
 fn timed_mission(dir: &Path, start: f64, ports: &[u16], gcs: u16) -> std::path::PathBuf {
     let ep = vec![format!("tcp/127.0.0.1:{}", free_port())];
     let m = tiny_mission(dir, &ep, &ep);
@@ -29,6 +31,11 @@ fn timed_mission(dir: &Path, start: f64, ports: &[u16], gcs: u16) -> std::path::
     text.push_str(&format!("\n[time]\nstart = \"{start}\"\nstep_s = 1.0\n\n[sensors]\n"));
     for (i, p) in ports.iter().enumerate() {
         text.push_str(&format!("boat-{} = \"udp:127.0.0.1:{p}\"\n", i + 1));
+    }
+    for id in ["av-1", "av-2"] {
+        let frames = dir.join(id);
+        std::fs::create_dir_all(&frames).unwrap();
+        text.push_str(&format!("{id} = \"geotiff:{}\"\n", frames.display()));
     }
     std::fs::write(&m, text).unwrap();
     m
@@ -81,6 +88,9 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     for (i, p) in ports.iter().enumerate() {
         emulator.args(["--send", &format!("boat-{}=127.0.0.1:{p}", i + 1)]);
     }
+    for id in ["av-1", "av-2"] {
+        emulator.args(["--frames", &format!("{id}={}", dir.join(id).display())]);
+    }
     let log = dir.join("sent.ndjson");
     procs
         .0
@@ -109,6 +119,26 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
             .unwrap();
         *want.entry(kind.to_string()).or_default() += 1;
     }
+    // And to av-1's camera directory: a file that is not a TIFF, one without a time, and
+    // a frame from an hour ago (renamed in whole, as a camera pipeline does).
+    let frames = dir.join("av-1");
+    std::fs::write(dir.join("junk"), b"not a tiff at all").unwrap();
+    std::fs::rename(dir.join("junk"), frames.join("junk.tif")).unwrap();
+    let first = std::fs::read_dir(&frames)
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .find(|p| p.to_string_lossy().contains("frame_"))
+        .expect("a frame written by the emulator");
+    let bytes = std::fs::read(&first).unwrap();
+    let frame = fleet_mission::instrument::raster::decode(&bytes).unwrap();
+    let stale = fleet_mission::instrument::MissionClock::rfc3339(frame.time.unwrap() - 3600.0).replace(['-', ':'], "");
+    let timeless = bytes_without_datetime(&bytes);
+    std::fs::write(dir.join("a"), &timeless).unwrap();
+    std::fs::rename(dir.join("a"), frames.join("no-time.tif")).unwrap();
+    std::fs::write(dir.join("b"), &timeless).unwrap();
+    std::fs::rename(dir.join("b"), frames.join(format!("old_{stale}.tif"))).unwrap();
+    let want_av1: BTreeMap<String, u64> = [("malformed".to_string(), 2), ("too_old".to_string(), 1)].into();
     let o = fleet.join().unwrap();
     assert!(o.status.success(), "fleet up: {}", String::from_utf8_lossy(&o.stderr));
     procs.wait_all(30);
@@ -131,7 +161,8 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     let rec = Recording::read(&out.join("recording.mcap")).unwrap();
     let mut ctx = Context::new(rec.grid);
     ctx.vehicles = rec.mission.vehicles().into_iter().map(|v| v.id).collect();
-    let (mut received, mut last_counts) = (BTreeMap::new(), None);
+    let (mut received, mut last_counts, mut av1_counts) = (BTreeMap::new(), None, None);
+    let mut aerial_values = 0;
     for msg in &rec.messages {
         match fleet::protocol::decode(&msg.data, &ctx) {
             Ok(Body::Batch(b)) if b.kind == fleet::protocol::VehicleKind::Boat => {
@@ -142,7 +173,24 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
                     }
                 }
             }
+            Ok(Body::Batch(b)) => {
+                for s in &b.samples {
+                    let f = frame_at(&dir.join(b.vehicle.as_str()), s.step, &mission, &rec.grid);
+                    for (&c, &v) in s.cells.iter().zip(&s.values) {
+                        // The vehicle's cell mean is (w v) / w: the value to a rounding or two.
+                        let want = f[c as usize].expect("a value where the frame has one");
+                        assert!(
+                            (v - want).abs() <= 1e-12 * want.abs().max(1.0),
+                            "{} step {}: {v}",
+                            b.vehicle,
+                            s.step
+                        );
+                        aerial_values += 1;
+                    }
+                }
+            }
             Ok(Body::Telemetry(t)) if t.vehicle.as_str() == "boat-1" => last_counts = t.readings.or(last_counts),
+            Ok(Body::Telemetry(t)) if t.vehicle.as_str() == "av-1" => av1_counts = t.readings.or(av1_counts),
             _ => {}
         }
     }
@@ -160,7 +208,35 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     }
     let counts = last_counts.expect("boat-1's telemetry carries its reading counts");
     assert_eq!(counts.refused, want, "each hostile line counted by its kind");
+    assert!(aerial_values >= 2 * 40 * 10, "aerial values checked: {aerial_values}");
+    let av1 = av1_counts.expect("av-1's telemetry carries its reading counts");
+    assert_eq!(av1.refused, want_av1, "each hostile frame counted by its kind");
     let good = sent.keys().filter(|(id, _, _)| id == "boat-1").count() as u64;
     assert_eq!(counts.accepted, good);
     assert_eq!(counts.received, good + lines.len() as u64);
+}
+
+/// The frame the emulator wrote for `step` in `dir`, on the model grid.
+fn frame_at(
+    dir: &Path,
+    step: u64,
+    mission: &fleet_mission::config::MissionConfig,
+    grid: &fleet::grid::Grid,
+) -> Vec<Option<f64>> {
+    let clock = mission.clock().unwrap();
+    let stamp = fleet_mission::instrument::MissionClock::rfc3339(clock.time_of(step)).replace(['-', ':'], "");
+    let bytes = std::fs::read(dir.join(format!("frame_{stamp}.tif"))).unwrap();
+    let f = fleet_mission::instrument::raster::decode(&bytes).unwrap();
+    f.resample(&mission.mavlink.site(grid), grid)
+}
+
+/// A TIFF with its DateTime's digits blanked (same length, no longer a date).
+fn bytes_without_datetime(bytes: &[u8]) -> Vec<u8> {
+    let mut out = bytes.to_vec();
+    let at = out
+        .windows(5)
+        .position(|w| w.starts_with(b"20") && w[4] == b':')
+        .expect("a DateTime");
+    out[at..at + 19].copy_from_slice(b"not a date at all..");
+    out
 }

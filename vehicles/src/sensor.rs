@@ -4,10 +4,38 @@
 //! is dropped by the kernel's buffer, never held without bound). A line longer than
 //! [`MAX_LINE`] is not kept: the reader says how long it was and skips to the next newline.
 //! What a line means is `fleet_mission::instrument`'s business.
+//!
+//! A `geotiff:DIR` source is a directory a camera pipeline writes frames into: a thread looks
+//! at it every [`LOOK_EVERY`] (a directory on any filesystem, NFS and SD cards included, can be
+//! listed; not every one can be watched), takes each new `.tif`/`.tiff` once its size has held
+//! still between two looks (a writer should still write elsewhere and rename it in), and
+//! resamples it onto the model grid there, so the node's loop receives a value per cell.
 
+use fleet_mission::grid::Grid;
+use fleet_mission::instrument::raster::{self, time_from_name};
 use fleet_mission::instrument::{SensorSource, MAX_LINE};
+use fleet_mission::site::Site;
+use std::collections::{BTreeMap, BTreeSet};
 use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
 use tokio::sync::mpsc;
+
+/// How often a frame directory is looked at.
+pub const LOOK_EVERY: Duration = Duration::from_millis(250);
+/// The largest frame file read (bytes).
+const MAX_FRAME_BYTES: u64 = 1 << 30;
+
+/// A frame on the model grid: its file, its time (UTC seconds), a value per cell (`None`
+/// where it has none); or why it was refused.
+pub type Frame = Result<(String, f64, Vec<Option<f64>>), (String, String)>;
+
+/// What a source delivers.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Input {
+    Line(Line),
+    Frame(Frame),
+}
 
 /// Lines waiting for the node's loop, at most.
 const QUEUE: usize = 1024;
@@ -65,12 +93,19 @@ impl Splitter {
     }
 }
 
-/// Start reading `source` (`None` for `sim`, which has no stream); the lines come on the
-/// returned channel until the stream ends.
-pub fn open(source: &SensorSource) -> std::io::Result<Option<mpsc::Receiver<Line>>> {
+/// Start reading `source` (`None` for `sim`, which has no stream); its lines or frames (on
+/// `grid`, placed by `site`) come on the returned channel until the stream ends.
+pub fn open(source: &SensorSource, site: Site, grid: Grid) -> std::io::Result<Option<mpsc::Receiver<Input>>> {
     let (tx, rx) = mpsc::channel(QUEUE);
     let name = format!("sensor {source}");
     match source {
+        SensorSource::Geotiff(dir) => {
+            std::fs::read_dir(dir)?;
+            let dir = dir.clone();
+            std::thread::Builder::new()
+                .name(name)
+                .spawn(move || watch_frames(&dir, site, grid, tx))?;
+        }
         SensorSource::Udp(addr) => {
             let socket = std::net::UdpSocket::bind(addr)?;
             std::thread::Builder::new()
@@ -87,33 +122,84 @@ pub fn open(source: &SensorSource) -> std::io::Result<Option<mpsc::Receiver<Line
     Ok(Some(rx))
 }
 
-fn read_udp(socket: std::net::UdpSocket, tx: mpsc::Sender<Line>) {
+/// Look at `dir` every [`LOOK_EVERY`] and hand on each new frame once its size holds still.
+fn watch_frames(dir: &Path, site: Site, grid: Grid, tx: mpsc::Sender<Input>) {
+    let (mut done, mut sizes): (BTreeSet<PathBuf>, BTreeMap<PathBuf, u64>) = Default::default();
+    while !tx.is_closed() {
+        let mut seen: BTreeMap<PathBuf, u64> = BTreeMap::new();
+        for entry in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+            let path = entry.path();
+            let tif = path
+                .extension()
+                .is_some_and(|e| e.eq_ignore_ascii_case("tif") || e.eq_ignore_ascii_case("tiff"));
+            if tif && !done.contains(&path) {
+                seen.insert(path, entry.metadata().map_or(u64::MAX, |m| m.len()));
+            }
+        }
+        for (path, size) in &seen {
+            if sizes.get(path) == Some(size) {
+                done.insert(path.clone());
+                if tx
+                    .blocking_send(Input::Frame(read_frame(path, *size, &site, &grid)))
+                    .is_err()
+                {
+                    return;
+                }
+            }
+        }
+        sizes = seen;
+        std::thread::sleep(LOOK_EVERY);
+    }
+}
+
+/// One frame file on the model grid, or why not.
+fn read_frame(path: &Path, size: u64, site: &Site, grid: &Grid) -> Frame {
+    let name = path.file_name().unwrap_or_default().to_string_lossy().to_string();
+    let refuse = |why: String| Err((name.clone(), why));
+    if size > MAX_FRAME_BYTES {
+        return refuse(format!("{size} bytes (at most {MAX_FRAME_BYTES})"));
+    }
+    let bytes = match std::fs::read(path) {
+        Ok(b) => b,
+        Err(e) => return refuse(e.to_string()),
+    };
+    let frame = match raster::decode(&bytes) {
+        Ok(f) => f,
+        Err(why) => return refuse(why),
+    };
+    let Some(t) = frame.time.or_else(|| time_from_name(&name)) else {
+        return refuse("no time: neither a TIFF DateTime nor a _YYYYMMDDTHHMMSSZ suffix".into());
+    };
+    Ok((name, t, frame.resample(site, grid)))
+}
+
+fn read_udp(socket: std::net::UdpSocket, tx: mpsc::Sender<Input>) {
     let mut buf = vec![0u8; 65_536];
     while let Ok(n) = socket.recv(&mut buf) {
         let mut s = Splitter::default();
         let lines = s.feed(&buf[..n]).into_iter().chain(s.end_line());
         for line in lines {
-            if tx.blocking_send(line).is_err() {
+            if tx.blocking_send(Input::Line(line)).is_err() {
                 return;
             }
         }
     }
 }
 
-fn read_stream(mut input: impl Read, tx: mpsc::Sender<Line>) {
+fn read_stream(mut input: impl Read, tx: mpsc::Sender<Input>) {
     let (mut s, mut buf) = (Splitter::default(), vec![0u8; 8192]);
     while let Ok(n) = input.read(&mut buf) {
         if n == 0 {
             break;
         }
         for line in s.feed(&buf[..n]) {
-            if tx.blocking_send(line).is_err() {
+            if tx.blocking_send(Input::Line(line)).is_err() {
                 return;
             }
         }
     }
     if let Some(line) = s.end_line() {
-        let _ = tx.blocking_send(line);
+        let _ = tx.blocking_send(Input::Line(line));
     }
 }
 

@@ -18,6 +18,7 @@
 pub mod clock;
 pub mod collect;
 pub mod placer;
+pub mod raster;
 pub mod reading;
 pub mod source;
 

@@ -34,17 +34,16 @@ pub struct Placer {
 }
 
 impl Placer {
-    /// The reading's step and cell at `now` (UTC seconds) with the oldest step still open
-    /// `oldest` (readings before it are too old: their batch has gone).
-    pub fn place(&self, r: &Reading, now: f64, oldest: u64) -> Result<Placed, (Refusal, String)> {
-        if r.t > now + FUTURE_SLACK_S {
-            let ahead = r.t - now;
+    /// The step of time `t` at `now` with the oldest open step `oldest`, or why it is refused.
+    pub fn step_at(&self, t: f64, now: f64, oldest: u64) -> Result<u64, (Refusal, String)> {
+        if t > now + FUTURE_SLACK_S {
+            let ahead = t - now;
             return Err((
                 Refusal::FromFuture,
                 format!("timed {ahead:.1} s after this machine's clock"),
             ));
         }
-        let Some(step) = self.clock.step_of(r.t) else {
+        let Some(step) = self.clock.step_of(t) else {
             return Err((Refusal::TooOld, "timed before the mission's start".into()));
         };
         if step >= self.frames {
@@ -53,6 +52,13 @@ impl Placer {
         if step < oldest {
             return Err((Refusal::TooOld, format!("step {step}: steps before {oldest} are sent")));
         }
+        Ok(step)
+    }
+
+    /// The reading's step and cell at `now` (UTC seconds) with the oldest step still open
+    /// `oldest` (readings before it are too old: their batch has gone).
+    pub fn place(&self, r: &Reading, now: f64, oldest: u64) -> Result<Placed, (Refusal, String)> {
+        let step = self.step_at(r.t, now, oldest)?;
         let ned = self.site.ned_of_global(r.lat, r.lon, self.site.origin[2]);
         let (x, y) = self.site.grid_of(&ned);
         let Some(cell) = self.grid.cell_at(x, y) else {

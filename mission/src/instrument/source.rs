@@ -97,7 +97,7 @@ impl Default for Sensors {
 /// The sources this version reads; the others are named by the interface but refused until
 /// they are built, rather than ignored.
 fn built(s: &SensorSource) -> bool {
-    matches!(s, SensorSource::Sim | SensorSource::Udp(_) | SensorSource::Stdin)
+    !matches!(s, SensorSource::Mavlink(_))
 }
 
 impl Sensors {
@@ -132,10 +132,13 @@ impl Sensors {
 /// Whether a vehicle of `kind` can read `source` in a mission with or without a clock.
 pub fn check_source(source: &SensorSource, kind: VehicleKind, timed: bool) -> Result<(), String> {
     if !built(source) {
-        return Err("this version reads sim, stdin and udp sources; mavlink and geotiff are not built yet".into());
+        return Err("this version reads sim, stdin, udp and geotiff sources; mavlink is not built yet".into());
     }
     if kind == VehicleKind::Aerial && source.is_point() {
         return Err("an aerial's readings are frames (sim or geotiff), not points".into());
+    }
+    if kind == VehicleKind::Boat && matches!(source, SensorSource::Geotiff(_)) {
+        return Err("a boat's readings are points (stdin, udp or mavlink), not frames".into());
     }
     if *source != SensorSource::Sim && !timed {
         return Err("readings from an instrument need mission time ([time] start and step_s)".into());

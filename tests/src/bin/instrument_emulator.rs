@@ -6,8 +6,14 @@
 //! boat's UDP sensor port as NDJSON readings. Every reading sent is logged, so a test can
 //! find each one in the server's batches.
 //!
-//! `instrument-emulator --mission M --gcs-port G --send boat-1=127.0.0.1:15602 ... --seed N
-//! --log sent.ndjson`; exits when the mission's last step has passed.
+//! With `--frames av-1=DIR` it is also each aerial's camera: at every aerial sampling step it
+//! writes a GeoTIFF of the whole site (WGS 84, one pixel per model cell) into the aerial's
+//! directory, the truth plus the aerial's noise at each cell's distance from where the aerial
+//! really is, timed by its TIFF DateTime, written aside and renamed in.
+//!
+//! `instrument-emulator --mission M --gcs-port G --send boat-1=127.0.0.1:15602 ...
+//! --frames av-1=DIR ... --seed N --log sent.ndjson`; exits when the mission's last step has
+//! passed.
 
 use fleet_mission::config::MissionConfig;
 use fleet_mission::instrument::MissionClock;
@@ -24,6 +30,7 @@ struct Args {
     mission: std::path::PathBuf,
     gcs_port: u16,
     send: Vec<(String, String)>,
+    frames: Vec<(String, std::path::PathBuf)>,
     seed: u64,
     log: std::path::PathBuf,
 }
@@ -33,6 +40,7 @@ fn args() -> Args {
         mission: "".into(),
         gcs_port: 0,
         send: vec![],
+        frames: vec![],
         seed: 0,
         log: "sent.ndjson".into(),
     };
@@ -49,6 +57,10 @@ fn args() -> Args {
             "--send" => {
                 let (id, addr) = v.split_once('=').expect("--send ID=ADDR:PORT");
                 a.send.push((id.into(), addr.into()));
+            }
+            "--frames" => {
+                let (id, dir) = v.split_once('=').expect("--frames ID=DIR");
+                a.frames.push((id.into(), dir.into()));
             }
             other => panic!("unknown argument {other}"),
         }
@@ -68,10 +80,16 @@ fn main() {
         .flat_map(|e| schedule.sample_steps(VehicleKind::Boat, e))
         .map(|k| k as u64)
         .collect();
+    let aerial_steps: BTreeSet<u64> = (0..schedule.epochs())
+        .flat_map(|e| schedule.sample_steps(VehicleKind::Aerial, e))
+        .map(|k| k as u64)
+        .collect();
     let sysids: BTreeMap<u8, String> = a
         .send
         .iter()
-        .map(|(id, _)| (mission.sysid(id).expect("a vehicle of the mission"), id.clone()))
+        .map(|(id, _)| id)
+        .chain(a.frames.iter().map(|(id, _)| id))
+        .map(|id| (mission.sysid(id).expect("a vehicle of the mission"), id.clone()))
         .collect();
     let fixes: Arc<Mutex<BTreeMap<String, (f64, f64)>>> = Arc::default();
     let gcs = GroundStation::listen(a.gcs_port);
@@ -101,6 +119,23 @@ fn main() {
             return;
         }
         let t = clock.time_of(k) + 0.5 * clock.step_s;
+        for (id, dir) in &a.frames {
+            let due = aerial_steps.contains(&k) && now >= t && !sent.contains(&(k, id.clone()));
+            let Some(&(lat, lon)) = fixes.lock().unwrap().get(id).filter(|_| due) else {
+                continue;
+            };
+            let at = site.grid_of(&site.ned_of_global(lat, lon, site.origin[2]));
+            let noise = mission.noise(VehicleKind::Aerial);
+            let values: Vec<f64> = (0..grid.len())
+                .map(|c| {
+                    let (x, y) = grid.centre_m(grid.cell(c));
+                    let sd = noise.std_at((at.0 - x).hypot(at.1 - y));
+                    truth.snapshots[(c, k as usize)] + sd * Normal::new(0.0, 1.0).unwrap().sample(&mut rng)
+                })
+                .collect();
+            write_frame(dir, &grid, &site, &values, t);
+            sent.insert((k, id.clone()));
+        }
         for (id, addr) in &a.send {
             let due = sampling.contains(&k) && now >= t && !sent.contains(&(k, id.clone()));
             let Some(&(lat, lon)) = fixes.lock().unwrap().get(id).filter(|_| due) else {
@@ -124,4 +159,48 @@ fn main() {
         }
         std::thread::sleep(std::time::Duration::from_millis(20));
     }
+}
+
+/// A GeoTIFF of `values` (one per model cell) over the site, one pixel per cell, timed `t`:
+/// written aside, then renamed into `dir` (as a camera pipeline should).
+fn write_frame(
+    dir: &std::path::Path,
+    grid: &fleet_mission::grid::Grid,
+    site: &fleet_mission::site::Site,
+    values: &[f64],
+    t: f64,
+) {
+    use tiff::encoder::{colortype::Gray64Float, TiffEncoder};
+    use tiff::tags::Tag;
+    let (north, west, _) = site.global_of(&site.ned_of((0.0, grid.height_m()), 0.0));
+    let (south, east, _) = site.global_of(&site.ned_of((grid.width_m(), 0.0), 0.0));
+    let scale = [
+        (east - west) / grid.cols as f64,
+        (north - south) / grid.rows as f64,
+        0.0,
+    ];
+    let north_up: Vec<f64> = (0..grid.rows)
+        .rev()
+        .flat_map(|r| values[r * grid.cols..(r + 1) * grid.cols].iter().copied())
+        .collect();
+    let stamp = MissionClock::rfc3339(t);
+    let datetime = format!("{} {}", stamp[..10].replace('-', ":"), &stamp[11..19]);
+    let tmp = dir.join(format!(".frame-{t}.partial"));
+    let file = std::io::BufWriter::new(std::fs::File::create(&tmp).expect("a frame file"));
+    let mut enc = TiffEncoder::new(file).expect("an encoder");
+    let mut image = enc
+        .new_image::<Gray64Float>(grid.cols as u32, grid.rows as u32)
+        .expect("an image");
+    image.encoder().write_tag(Tag::ModelPixelScaleTag, &scale[..]).unwrap();
+    image
+        .encoder()
+        .write_tag(Tag::ModelTiepointTag, &[0.0, 0.0, 0.0, west, north, 0.0][..])
+        .unwrap();
+    let keys: [u16; 12] = [1, 1, 0, 2, 1024, 0, 1, 2, 2048, 0, 1, 4326];
+    image.encoder().write_tag(Tag::GeoKeyDirectoryTag, &keys[..]).unwrap();
+    image.encoder().write_tag(Tag::DateTime, datetime.as_str()).unwrap();
+    image.write_data(&north_up).expect("the pixels");
+    // Named by the whole second (the `_YYYYMMDDTHHMMSSZ` form), as the DateTime says.
+    let name = format!("frame_{}Z.tif", stamp[..19].replace(['-', ':'], ""));
+    std::fs::rename(&tmp, dir.join(name)).expect("renaming the frame in");
 }

@@ -26,7 +26,7 @@ use tokio::sync::{mpsc, watch};
 use tracing::{debug, info, warn};
 use vehicles::autopilot::modes::Role as Mode;
 use vehicles::bridge::Bridge;
-use vehicles::sensor::Line;
+use vehicles::sensor::Input;
 use zenoh::sample::SampleKind;
 
 /// How often the plan is asked for while none has come (an ack asks at once).
@@ -363,16 +363,20 @@ impl Vehicle {
         if let Some(i) = &mut self.instrument {
             let steps = self.brain.schedule().steps_of(e);
             let samples = i.take(steps.start as u64..steps.end as u64);
+            let samples = match self.brain.kind {
+                protocol::VehicleKind::Boat => samples,
+                protocol::VehicleKind::Aerial => self.brain.seen_from_targets(e, samples, fixes),
+            };
             return Ok(self.brain.batch_of(e, samples));
         }
         let truth_at = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
         Ok(self.brain.sense_epoch_at(e, truth_at, fixes)?)
     }
 
-    /// A line from the instrument.
-    fn on_line(&mut self, line: Line) {
+    /// A line or frame from the instrument.
+    fn on_input(&mut self, input: Input) {
         if let Some(i) = &mut self.instrument {
-            i.on_line(line, MissionClock::now());
+            i.on_input(input, MissionClock::now());
         }
     }
 
@@ -498,12 +502,12 @@ struct Inputs {
     autopilot: Option<watch::Receiver<AutopilotStatus>>,
     plans: mpsc::UnboundedReceiver<(u64, Option<Plan>)>,
     driven: mpsc::UnboundedReceiver<Driven>,
-    /// The instrument's lines (none for the simulated sensor).
-    lines: Option<mpsc::Receiver<Line>>,
+    /// The instrument's lines or frames (none for the simulated sensor).
+    lines: Option<mpsc::Receiver<Input>>,
 }
 
-/// The instrument's next line (never, without one or once its stream has ended).
-async fn next_line(rx: &mut Option<mpsc::Receiver<Line>>) -> Line {
+/// The instrument's next line or frame (never, without one or once its stream has ended).
+async fn next_input(rx: &mut Option<mpsc::Receiver<Input>>) -> Input {
     if let Some(r) = rx {
         if let Some(line) = r.recv().await {
             return line;
@@ -545,7 +549,7 @@ impl Vehicle {
                 _ = tick.tick() => self.on_tick().await?,
                 Some((e, plan)) = inputs.plans.recv() => self.on_plan(e, plan),
                 Some(d) = inputs.driven.recv() => self.on_driven(d, truth).await?,
-                line = next_line(&mut inputs.lines) => self.on_line(line),
+                input = next_input(&mut inputs.lines) => self.on_input(input),
             }
         }
         Ok(())
@@ -615,7 +619,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         b
     });
     let (source, instrument) = instrument_of(&args, &mission, &brain, grid, frames)?;
-    let lines = vehicles::sensor::open(&source)
+    let lines = vehicles::sensor::open(&source, mission.mavlink.site(&grid), grid)
         .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("sensor source {source}: {e}")))?;
     let (plans_tx, plans) = mpsc::unbounded_channel();
     let (driven_tx, driven) = mpsc::unbounded_channel();

@@ -8,7 +8,7 @@ use fleet_mission::instrument::{parse_line, Collected, Placer, Refusal, Tally};
 use fleet_mission::protocol::{ReadingCounts, Sample, VehicleKind};
 use std::ops::Range;
 use tracing::warn;
-use vehicles::sensor::Line;
+use vehicles::sensor::{Frame, Input, Line};
 
 /// How long after an epoch's last step ends its batch waits for readings still on their way
 /// (an instrument's latency; a reading timed in the epoch and later than this is refused as
@@ -44,17 +44,17 @@ impl Instrument {
         })
     }
 
-    /// One line from the source, at `now` (UTC seconds).
-    pub fn on_line(&mut self, line: Line, now: f64) {
-        let placed = match line {
-            Line::Text(bytes) => parse_line(&bytes).and_then(|r| self.placer.place(&r, now, self.oldest)),
-            Line::Oversized(n) => Err((Refusal::Oversized, format!("a line of {n} bytes"))),
+    /// One line or frame from the source, at `now` (UTC seconds).
+    pub fn on_input(&mut self, input: Input, now: f64) {
+        let kept = match input {
+            Input::Line(Line::Text(bytes)) => parse_line(&bytes)
+                .and_then(|r| self.placer.place(&r, now, self.oldest))
+                .map(|p| self.collected.add(&p, self.sigma)),
+            Input::Line(Line::Oversized(n)) => Err((Refusal::Oversized, format!("a line of {n} bytes"))),
+            Input::Frame(frame) => self.frame(frame, now),
         };
-        match placed {
-            Ok(p) => {
-                self.collected.add(&p, self.sigma);
-                self.tally.accept();
-            }
+        match kept {
+            Ok(()) => self.tally.accept(),
             Err((kind, why)) => {
                 if self.tally.refuse(kind, now) {
                     warn!(
@@ -65,6 +65,28 @@ impl Instrument {
                 }
             }
         }
+    }
+
+    /// A frame on the grid: each cell with a value is a reading of its step at the cell's centre.
+    fn frame(&mut self, frame: Frame, now: f64) -> Result<(), (Refusal, String)> {
+        let (name, t, values) = frame.map_err(|(name, why)| (Refusal::Malformed, format!("frame {name}: {why}")))?;
+        let step = self
+            .placer
+            .step_at(t, now, self.oldest)
+            .map_err(|(kind, why)| (kind, format!("frame {name}: {why}")))?;
+        let grid = self.placer.grid;
+        for (cell, v) in values.iter().enumerate().filter_map(|(c, v)| Some((c, (*v)?))) {
+            let position = grid.centre_m(grid.cell(cell));
+            let p = fleet_mission::instrument::Placed {
+                step,
+                cell,
+                position,
+                value: v,
+                sigma: None,
+            };
+            self.collected.add(&p, self.sigma);
+        }
+        Ok(())
     }
 
     /// The samples of `steps` for the epoch's batch; later readings of those steps are too old.
