@@ -105,6 +105,17 @@ fn one() -> usize {
     1
 }
 
+/// The model grid and the mission's length, for a mission without a truth (`[field]`): the
+/// instruments' readings land on `grid` cells of 1 grid metre (`[mavlink] size_m` places them
+/// on the Earth), and the mission runs `frames` steps.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FieldSpec {
+    /// Model grid `[rows, cols]`.
+    pub grid: [usize; 2],
+    pub frames: usize,
+}
+
 /// How nodes reach each other (Zenoh endpoints; a Zenoh JSON5 file may override anything).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -363,7 +374,13 @@ impl MavlinkConfig {
 pub struct MissionConfig {
     /// The mission id: every key lives under `fleet/<mission>/`.
     pub mission: String,
-    pub truth: TruthSpec,
+    /// The mixed-reality truth: the field the simulated sensors sample and the runs are scored
+    /// against. Absent in the field (give `[field]` instead).
+    #[serde(default)]
+    pub truth: Option<TruthSpec>,
+    /// The model grid and the mission's length without a truth.
+    #[serde(default)]
+    pub field: Option<FieldSpec>,
     #[serde(default)]
     pub team: TeamConfig,
     #[serde(default)]
@@ -380,6 +397,17 @@ pub struct MissionConfig {
     /// Where each vehicle's readings come from ([`crate::instrument`]).
     #[serde(default)]
     pub sensors: Sensors,
+    /// How a run is scored beyond the truth (`[scoring] holdout`).
+    #[serde(default)]
+    pub scoring: Scoring,
+}
+
+/// `[scoring]`: the share of the boats' readings held out of the fusion to score it
+/// ([`crate::holdout`]); unset, 0.1 without a truth and none with one (the truth scores it).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scoring {
+    pub holdout: Option<f64>,
 }
 
 impl MissionConfig {
@@ -387,8 +415,32 @@ impl MissionConfig {
     pub fn from_toml(text: &str) -> Result<Self, ConfigError> {
         let cfg: Self = toml::from_str(text).map_err(|e| ConfigError::Toml(toml_error(text, &e)))?;
         keys::check_id("mission", &cfg.mission).map_err(ConfigError::MissionId)?;
-        if cfg.truth.frames < 10 || cfg.truth.average == 0 {
-            return Err(field("truth", None, "need at least 10 frames and average >= 1"));
+        match (&cfg.truth, &cfg.field) {
+            (Some(t), None) if t.frames < 10 || t.average == 0 => {
+                return Err(field("truth", None, "need at least 10 frames and average >= 1"));
+            }
+            (None, Some(f)) if f.frames < 10 || f.grid.contains(&0) => {
+                return Err(field(
+                    "field",
+                    None,
+                    "need at least 10 frames and a grid of at least one cell",
+                ));
+            }
+            (Some(_), Some(_)) => {
+                return Err(field(
+                    "field",
+                    None,
+                    "give [field] only without [truth] (a truth sets the grid)",
+                ))
+            }
+            (None, None) => {
+                return Err(field(
+                    "truth",
+                    None,
+                    "give [truth] (mixed reality) or [field] (grid and frames)",
+                ))
+            }
+            _ => {}
         }
         if cfg.network.listen.is_empty() && cfg.network.connect.is_empty() {
             return Err(field("network", None, "give listen or connect endpoints"));
@@ -400,11 +452,20 @@ impl MissionConfig {
         if cfg.pace.horizon == 0 {
             return Err(field("pace", None, "horizon must be >= 1"));
         }
+        if let Some(h) = cfg.scoring.holdout {
+            if !(0.0..0.5).contains(&h) {
+                return Err(field(
+                    "scoring",
+                    format!("holdout = {h}"),
+                    "a share from 0 to below 0.5",
+                ));
+            }
+        }
         if let Some(t) = &cfg.time {
             MissionClock::of(t).map_err(|(key, rule)| field("time", key.to_string(), rule))?;
         }
         cfg.sensors
-            .check(&cfg.roster(), cfg.time.is_some())
+            .check(&cfg.roster(), cfg.time.is_some(), cfg.truth.is_some())
             .map_err(|(key, rule)| field("sensors", key, rule))?;
         Ok(cfg)
     }
@@ -442,30 +503,44 @@ impl MissionConfig {
         }
     }
 
-    /// The truth on the model grid (runs the simulator: seconds to minutes).
-    pub fn truth(&self, progress: impl FnMut(usize)) -> Result<FieldSeries, TruthError> {
-        let full = self
-            .truth
-            .source
-            .full(self.truth.grid, self.truth.frames, self.team.seed, progress)?;
-        averaged_by(&full, self.truth.average)
+    /// The truth on the model grid (runs the simulator: seconds to minutes); `None` for a
+    /// mission without one.
+    pub fn truth(&self, progress: impl FnMut(usize)) -> Result<Option<FieldSeries>, TruthError> {
+        let Some(t) = &self.truth else { return Ok(None) };
+        let full = t.source.full(t.grid, t.frames, self.team.seed, progress)?;
+        averaged_by(&full, t.average).map(Some)
     }
 
-    /// Check a truth field against the mission, then the workspace grid and length it gives.
+    /// Steps in the mission as the file says them (a dataset's may be fewer).
+    pub fn frames_hint(&self) -> usize {
+        self.truth
+            .as_ref()
+            .map_or_else(|| self.field.as_ref().map_or(0, |f| f.frames), |t| t.frames)
+    }
+
+    /// The workspace grid and length: a truth's (checked against the team), or `[field]`'s.
     /// Bad input: a truth that does not fit the team (see [`TeamConfig::validate`]).
-    pub fn workspace(&self, truth: &FieldSeries) -> Result<(Grid, usize), ConfigError> {
-        let grid = Grid::new(truth.rows, truth.cols, 1.0).map_err(ConfigError::TruthGrid)?;
-        self.team.validate(&grid, truth.frames()).map_err(ConfigError::Team)?;
-        Ok((grid, truth.frames()))
+    pub fn workspace(&self, truth: Option<&FieldSeries>) -> Result<(Grid, usize), ConfigError> {
+        let (rows, cols, frames) = match (truth, &self.field) {
+            (Some(t), _) => (t.rows, t.cols, t.frames()),
+            (None, Some(f)) => (f.grid[0], f.grid[1], f.frames),
+            (None, None) => return Err(field("truth", None, "no truth given and no [field] to size the grid")),
+        };
+        let grid = Grid::new(rows, cols, 1.0).map_err(ConfigError::TruthGrid)?;
+        self.team.validate(&grid, frames).map_err(ConfigError::Team)?;
+        Ok((grid, frames))
     }
 
     /// The model grid `(rows, cols)` and steps the mission senses, when the mission file alone
     /// says it: a simulator preset always, a dataset when its file can be read here. Every
     /// node's truth must have this shape, or the nodes sense different cells.
     pub fn model_shape(&self) -> Option<(usize, usize, usize)> {
-        let a = self.truth.average.max(1);
-        match &self.truth.source {
-            TruthSource::Preset(_) => Some((self.truth.grid[0] / a, self.truth.grid[1] / a, self.truth.frames)),
+        let Some(t) = &self.truth else {
+            return self.field.as_ref().map(|f| (f.grid[0], f.grid[1], f.frames));
+        };
+        let a = t.average.max(1);
+        match &t.source {
+            TruthSource::Preset(_) => Some((t.grid[0] / a, t.grid[1] / a, t.frames)),
             source => {
                 let shape = source.file_shape()?;
                 match shape.as_slice() {
@@ -520,6 +595,16 @@ impl MissionConfig {
     /// The mission's clock (`None`: no `[time]`, steps are the simulator's counter).
     pub fn clock(&self) -> Option<MissionClock> {
         self.time.as_ref().and_then(|t| MissionClock::of(t).ok())
+    }
+
+    /// The share of boat readings held out to score the run ([`Scoring`]).
+    pub fn holdout_share(&self) -> f64 {
+        let default = if self.truth.is_some() {
+            0.0
+        } else {
+            crate::holdout::DEFAULT_SHARE
+        };
+        self.scoring.holdout.unwrap_or(default)
     }
 
     /// Where vehicle `id`'s readings come from, as the mission says (checked when read).

@@ -120,6 +120,10 @@ pub struct ServerSummary {
     /// Seconds of the field's own time between steps (the time axis of `estimate.npy`).
     #[serde(default)]
     pub dt: f64,
+    /// The boats' held-out readings against the estimate (`[scoring] holdout`; a run without
+    /// a truth is scored this way).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub holdout: Option<crate::holdout::HoldoutScore>,
 }
 
 /// The plans the server published, as `plans.json` keeps them (the boats' and aerials' places,

@@ -146,6 +146,10 @@ pub struct ServerCore {
     forced: BTreeSet<u64>,
     /// Epochs whose [`EpochRecord`] changed since the node last journalled them.
     unjournalled: BTreeSet<u64>,
+    /// The share of boat readings held out of the fusion to score it ([`crate::holdout`]; 0:
+    /// none), and what the estimate said of each, by step (a re-fit writes its step again).
+    holdout_share: f64,
+    held_out: BTreeMap<usize, Vec<crate::holdout::HeldOut>>,
 }
 
 impl ServerCore {
@@ -168,6 +172,8 @@ impl ServerCore {
             stale: false,
             stale_from: u64::MAX,
             checkpoints: Some(BTreeMap::new()),
+            holdout_share: 0.0,
+            held_out: BTreeMap::new(),
             forced: BTreeSet::new(),
             unjournalled: BTreeSet::new(),
         })
@@ -452,10 +458,11 @@ impl ServerCore {
             VehicleKind::Boat => steps.contains(&k),
             VehicleKind::Aerial => want.contains(&k),
         };
-        batch
-            .samples
-            .iter()
-            .all(|s| s.sigma.is_some() && allowed(s.step as usize))
+        !batch.samples.is_empty()
+            && batch
+                .samples
+                .iter()
+                .all(|s| s.sigma.is_some() && allowed(s.step as usize))
             && batch.samples.windows(2).all(|w| w[0].step < w[1].step)
     }
 
@@ -599,7 +606,20 @@ impl ServerCore {
                     .aerial_estimate(&Self::samples_at(&batches, VehicleKind::Aerial, k))?;
                 self.aerial_estimates.push(aerial.estimate.values.clone());
                 let boats = Self::samples_at(&batches, VehicleKind::Boat, k);
+                let (boats, held) = crate::holdout::split(boats, self.holdout_share, self.cfg.boat_sigma);
                 let fused = self.assim.fuse_step((k + 1 - k0) as u64, &aerial, &boats)?;
+                if self.holdout_share > 0.0 {
+                    let scored = held
+                        .into_iter()
+                        .map(|(cell, value, noise_var)| crate::holdout::HeldOut {
+                            cell,
+                            value,
+                            noise_var,
+                            predicted: fused.values[cell],
+                            variance: fused.variance[cell],
+                        });
+                    self.held_out.insert(k, scored.collect());
+                }
                 self.variances.push(fused.variance);
                 learn.push(match self.cfg.learn_from {
                     LearnFrom::Posterior => fused.values.clone(),
@@ -815,6 +835,18 @@ impl ServerCore {
 
     /// Boats go at most `speed` metres per step (the mission's `[motion]`): horizon placement
     /// plans only disks they reach in time. Set before the first epoch.
+    /// Hold `share` of the boats' readings out of the fusion and score the estimate on them
+    /// ([`crate::holdout`]): how a run without a truth is measured.
+    pub fn with_holdout(mut self, share: f64) -> Self {
+        self.holdout_share = share;
+        self
+    }
+
+    /// The hold-out's figures so far (`None`: nothing held out).
+    pub fn holdout(&self) -> Option<crate::holdout::HoldoutScore> {
+        crate::holdout::score(self.held_out.values().flatten())
+    }
+
     pub fn with_boat_speed(mut self, speed: f64) -> Self {
         self.assim.set_boat_speed(speed);
         self

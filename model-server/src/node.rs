@@ -24,7 +24,8 @@ struct Server {
     keys: Keys,
     core: ServerCore,
     ctx: Context,
-    truth: FieldSeries,
+    /// The mixed-reality truth the run is scored against (`None` in the field).
+    truth: Option<FieldSeries>,
     events: bool,
     alive: BTreeSet<VehicleId>,
     link_ups: BTreeMap<VehicleId, u64>,
@@ -338,15 +339,17 @@ impl Server {
         Ok(())
     }
 
-    /// Mean squared error of the fused snapshots of `steps` against the truth.
+    /// Mean squared error of the fused snapshots of `steps` against the truth (none without
+    /// one).
     fn evaluate(&mut self, steps: std::ops::Range<usize>) -> Option<f64> {
+        let truth = self.truth.as_ref()?;
         let mut sum = 0.0;
         for k in steps.clone() {
             let est = self.core.snapshots.get(k)?;
             let n = est.len() as f64;
             let e = est
                 .iter()
-                .zip(self.truth.snapshots.col(k).iter())
+                .zip(truth.snapshots.col(k).iter())
                 .map(|(a, b)| (a - b).powi(2))
                 .sum::<f64>()
                 / n;
@@ -517,7 +520,11 @@ impl Server {
             eigenvalues,
             link_ups: self.link_ups.clone(),
             wall_s: self.started.elapsed().as_secs_f64(),
-            dt: self.truth.dt,
+            holdout: self.core.holdout(),
+            dt: self
+                .truth
+                .as_ref()
+                .map_or_else(|| self.mission.clock().map_or(1.0, |c| c.step_s), |t| t.dt),
         }
     }
 }
@@ -683,9 +690,11 @@ impl Inputs {
 
 pub async fn run(args: Args) -> anyhow::Result<()> {
     let (mission, truth) = args.node.load()?;
-    let (grid, frames) = mission.workspace(&truth)?;
+    let (grid, frames) = mission.workspace(truth.as_ref())?;
     let keys = Keys::new(&mission.mission)?;
-    let mut core = ServerCore::new(&mission.team, grid, frames)?.with_boat_speed(mission.motion.boat_speed);
+    let mut core = ServerCore::new(&mission.team, grid, frames)?
+        .with_boat_speed(mission.motion.boat_speed)
+        .with_holdout(mission.holdout_share());
     let mut ctx = Context::new(grid);
     ctx.vehicles = core.vehicles().iter().map(|v| v.id.clone()).collect();
     let journal_path = args.state_dir.join(format!("{}.redb", mission.mission));

@@ -338,13 +338,14 @@ pub struct NodeArgs {
 }
 
 impl NodeArgs {
-    /// The mission and its truth on the model grid.
+    /// The mission and its truth on the model grid (`--truth`, else the mission's `[truth]`;
+    /// `None`: a mission in the field, without one).
     pub fn load(
         &self,
     ) -> Result<
         (
             fleet_mission::config::MissionConfig,
-            fleet_mission::process::FieldSeries,
+            Option<fleet_mission::process::FieldSeries>,
         ),
         NetError,
     > {
@@ -358,7 +359,7 @@ impl NodeArgs {
                     source: fleet_exit::BadInput(e.into()),
                 })?;
                 mission.check_truth(&t, p).map_err(NetError::Mission)?;
-                t
+                Some(t)
             }
             None => mission.truth(|_| {}).map_err(NetError::MissionTruth)?,
         };

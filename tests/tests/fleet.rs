@@ -11,7 +11,7 @@ use std::path::Path;
 /// step, to the offline loop's on the same truth and seed.
 fn check_against_offline(mission: &Path, summary: &ServerSummary) {
     let m = MissionConfig::load(Some(mission)).unwrap();
-    let truth = m.truth(|_| {}).unwrap();
+    let truth = m.truth(|_| {}).unwrap().expect("a truth");
     let offline = team::run(&m.team, &truth, |_, _| {}).unwrap();
     let c = &summary.counters;
     assert_eq!(c.rejected.values().sum::<u64>(), 0, "{:?}", c.rejected);

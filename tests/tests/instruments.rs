@@ -14,7 +14,7 @@ use fleet_mission::recording::Recording;
 use hetfleet_tests::*;
 use std::collections::BTreeMap;
 use std::net::UdpSocket;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// The tiny mission on the clock (steps of 1 s from `start`), its boats on UDP ports, its
 /// aerials on frame directories `<dir>/av-N`, the ground-station stream on `gcs`.
@@ -64,6 +64,31 @@ fn hostile(now: f64, site: &fleet_mission::site::Site) -> Vec<(String, &'static 
     ]
 }
 
+/// The instrument emulator for the mission at `m` (`--truth`: the world, when the mission has
+/// none); its process and the log of what it sent.
+fn start_emulator(dir: &Path, m: &Path, ports: &[u16], gcs: u16, truth: Option<&Path>) -> (Procs, PathBuf) {
+    let mut emulator = std::process::Command::new(bin("instrument_emulator"));
+    let (gcs, log) = (gcs.to_string(), dir.join("sent.ndjson"));
+    emulator.args(["--mission", m.to_str().unwrap(), "--gcs-port", &gcs, "--seed", "3"]);
+    emulator.arg("--log").arg(&log);
+    for (i, p) in ports.iter().enumerate() {
+        emulator.args(["--send", &format!("boat-{}=127.0.0.1:{p}", i + 1)]);
+    }
+    for id in ["av-1", "av-2"] {
+        emulator.args(["--frames", &format!("{id}={}", dir.join(id).display())]);
+    }
+    if let Some(t) = truth {
+        emulator.arg("--truth").arg(t);
+    }
+    (Procs(vec![emulator.spawn().expect("the emulator")]), log)
+}
+
+/// `fleet up` on `m` into `out`, in a thread.
+fn fleet_up(m: &Path, out: &Path) -> std::thread::JoinHandle<std::process::Output> {
+    let (m, out) = (m.to_path_buf(), out.to_path_buf());
+    std::thread::spawn(move || run("fleet", &["up", m.to_str().unwrap(), "--out", out.to_str().unwrap()]))
+}
+
 #[test]
 fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used() {
     let dir = scratch("instruments");
@@ -75,31 +100,9 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
         &ports,
         gcs,
     );
-    let mut procs = Procs::default();
-    let mut emulator = std::process::Command::new(bin("instrument_emulator"));
-    emulator.args([
-        "--mission",
-        m.to_str().unwrap(),
-        "--gcs-port",
-        &gcs.to_string(),
-        "--seed",
-        "3",
-    ]);
-    for (i, p) in ports.iter().enumerate() {
-        emulator.args(["--send", &format!("boat-{}=127.0.0.1:{p}", i + 1)]);
-    }
-    for id in ["av-1", "av-2"] {
-        emulator.args(["--frames", &format!("{id}={}", dir.join(id).display())]);
-    }
-    let log = dir.join("sent.ndjson");
-    procs
-        .0
-        .push(emulator.arg("--log").arg(&log).spawn().expect("the emulator"));
+    let (mut procs, log) = start_emulator(&dir, &m, &ports, gcs, None);
     let out = dir.join("run");
-    let fleet = std::thread::spawn({
-        let (m, out) = (m.clone(), out.clone());
-        move || run("fleet", &["up", m.to_str().unwrap(), "--out", out.to_str().unwrap()])
-    });
+    let fleet = fleet_up(&m, &out);
     // Hostile lines to boat-1 while the mission runs (once the first boat epoch is open).
     let mission = fleet_mission::config::MissionConfig::load(Some(&m)).unwrap();
     let clock = mission.clock().unwrap();
@@ -239,4 +242,86 @@ fn bytes_without_datetime(bytes: &[u8]) -> Vec<u8> {
         .expect("a DateTime");
     out[at..at + 19].copy_from_slice(b"not a date at all..");
     out
+}
+
+/// A mission without a truth (`[field]` sizes the grid): every node runs without a truth file,
+/// the world is a field the test keeps aside (given only to the emulator), and the run is
+/// scored by the boats' held-out readings. Their mean squared difference less the readings'
+/// noise estimates the estimate's true MSE at those cells without bias; it is checked against
+/// the true one (from the field kept aside) within 4 standard deviations of that estimator,
+/// `sqrt((4 mse noise + 2 noise^2) / n)` for Gaussian noise.
+#[test]
+fn a_mission_without_a_truth_runs_on_instruments_and_is_scored_by_held_out_readings() {
+    let dir = scratch("no-truth");
+    let tiny = fleet_mission::config::MissionConfig::load(Some(&root().join("config/mission-tiny.toml"))).unwrap();
+    let world = tiny.truth(|_| {}).unwrap().expect("a truth");
+    let world_path = dir.join("world.npy");
+    fleet::process::dataset::save(&world_path, &world, None).unwrap();
+    let ports = [udp_port(), udp_port(), udp_port()];
+    let gcs = udp_port();
+    let m = timed_mission(
+        &dir,
+        fleet_mission::instrument::MissionClock::now().ceil() + 12.0,
+        &ports,
+        gcs,
+    );
+    let text = std::fs::read_to_string(&m).unwrap();
+    let (a, b) = (text.find("[truth]").unwrap(), text.find("[team]").unwrap());
+    let field = format!(
+        "[field]\ngrid = [{}, {}]\nframes = {}\n\n",
+        world.rows,
+        world.cols,
+        world.frames()
+    );
+    std::fs::write(&m, format!("{}{field}{}", &text[..a], &text[b..])).unwrap();
+    let (mut procs, log) = start_emulator(&dir, &m, &ports, gcs, Some(&world_path));
+    let out = dir.join("run");
+    let o = fleet_up(&m, &out).join().unwrap();
+    assert!(o.status.success(), "fleet up: {}", String::from_utf8_lossy(&o.stderr));
+    procs.wait_all(30);
+    assert!(!out.join("truth.npy").exists(), "no truth is made or written");
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(
+        report.contains("## Held-out readings") && !report.contains("offline loop"),
+        "{report}"
+    );
+    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    assert!(
+        summary["mse"].as_array().unwrap().is_empty(),
+        "nothing is scored against a truth"
+    );
+    let h = &summary["holdout"];
+    let (n, mse, noise) = (
+        h["readings"].as_u64().unwrap(),
+        h["mse"].as_f64().unwrap(),
+        h["noise_var"].as_f64().unwrap(),
+    );
+
+    // The true error at the held-out cells, from the field kept aside.
+    let est = fleet::process::dataset::load(&out.join("estimate.npy"), 1.0).unwrap();
+    let held: Vec<(usize, usize)> = std::fs::read_to_string(&log)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .map(|v| (v["step"].as_u64().unwrap(), v["cell"].as_u64().unwrap()))
+        .filter(|&(k, c)| fleet_mission::holdout::is_held(k, c as u32, fleet_mission::holdout::DEFAULT_SHARE))
+        .map(|(k, c)| (k as usize, c as usize))
+        .collect();
+    assert_eq!(
+        held.len() as u64,
+        n,
+        "every held-out reading the emulator sent was scored"
+    );
+    assert!(n >= 20, "{n} readings held out");
+    let truth_mse = held
+        .iter()
+        .map(|&(k, c)| (est.snapshots[(c, k)] - world.snapshots[(c, k)]).powi(2))
+        .sum::<f64>()
+        / n as f64;
+    let sd = ((4.0 * truth_mse * noise + 2.0 * noise * noise) / n as f64).sqrt();
+    assert!(
+        (mse - noise - truth_mse).abs() <= 4.0 * sd,
+        "held-out {:.3e} vs true {truth_mse:.3e} (sd {sd:.1e})",
+        mse - noise
+    );
 }

@@ -182,7 +182,7 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
         "{:?}",
         summary.counters.rejected
     );
-    let truth = m.truth(|_| {}).unwrap();
+    let truth = m.truth(|_| {}).unwrap().expect("a truth");
     assert_eq!(
         summary.counters.batches - summary.counters.duplicates,
         expected_batches(&m, truth.frames()),
@@ -523,7 +523,7 @@ fn a_boat_whose_battery_runs_low_returns_to_launch_and_the_others_share_the_disk
         );
     }
     // Every batch of every vehicle (the returning one reports each epoch, empty), nothing refused.
-    let truth = m.truth(|_| {}).unwrap();
+    let truth = m.truth(|_| {}).unwrap().expect("a truth");
     assert_eq!(
         summary.counters.batches - summary.counters.duplicates,
         expected_batches(&m, truth.frames())
@@ -703,7 +703,7 @@ fn vehicles_out_of_range_take_the_link_loss_failsafe_and_rejoin_when_the_server_
     // Nothing lost, and from some epoch on the restarted server allocates every boat again.
     assert_eq!(
         summary.counters.batches - summary.counters.duplicates,
-        expected_batches(&m, m.truth(|_| {}).unwrap().frames())
+        expected_batches(&m, m.truth(|_| {}).unwrap().expect("a truth").frames())
     );
     assert_eq!(
         summary.counters.rejected.values().sum::<u64>(),

@@ -201,7 +201,7 @@ fn secured_fleet(tls: bool) {
         "{view}"
     );
     let c = &summary.counters;
-    let truth = m.truth(|_| {}).unwrap();
+    let truth = m.truth(|_| {}).unwrap().expect("a truth");
     assert_eq!(
         c.rejected.values().sum::<u64>(),
         1,

@@ -203,7 +203,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if args.web.is_none() {
         fleet.stop();
     }
-    finish(&args, &mission, &truth, &summary, &events, t0)?;
+    finish(&args, &mission, truth.as_ref(), &summary, &events, t0)?;
     if let Some(addr) = args.web {
         linger(addr, args.web_linger_s, &stop);
         fleet.stop();
@@ -231,26 +231,39 @@ fn keep_mission(args: &Args, staging: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The mission's truth, made once and saved for every node; its number of steps.
-fn make_truth(mission: &MissionConfig, staging: &Path, t0: Instant) -> anyhow::Result<(FieldSeries, usize)> {
-    let pb = super::progress_bar(mission.truth.frames as u64, "truth");
+/// The mission's truth, made once and saved for every node (none in the field: the vehicles
+/// read instruments); its number of steps.
+fn make_truth(mission: &MissionConfig, staging: &Path, t0: Instant) -> anyhow::Result<(Option<FieldSeries>, usize)> {
+    let pb = super::progress_bar(mission.frames_hint() as u64, "truth");
     let truth = mission.truth(|k| pb.set_position(k as u64))?;
     pb.finish_and_clear();
-    let (grid, frames) = mission.workspace(&truth)?;
-    fleet::process::dataset::save(
-        staging.join("truth.npy"),
-        &truth,
-        Some(&serde_json::json!({"process": "fleet up", "mission": mission.mission, "dt": truth.dt})),
-    )?;
+    let (grid, frames) = mission.workspace(truth.as_ref())?;
+    if let Some(truth) = &truth {
+        fleet::process::dataset::save(
+            staging.join("truth.npy"),
+            truth,
+            Some(&serde_json::json!({"process": "fleet up", "mission": mission.mission, "dt": truth.dt})),
+        )?;
+    }
     println!(
-        "mission {}: {} x {} grid, {frames} steps, {} vehicles (truth made in {:.1} s)",
+        "mission {}: {} x {} grid, {frames} steps, {} vehicles ({})",
         mission.mission,
         grid.rows,
         grid.cols,
         mission.vehicles().len(),
-        t0.elapsed().as_secs_f64()
+        match &truth {
+            Some(_) => format!("truth made in {:.1} s", t0.elapsed().as_secs_f64()),
+            None => "no truth: instruments only, scored by held-out readings".into(),
+        }
     );
     Ok((truth, frames))
+}
+
+/// `--truth <path>` for a node, when the run has a truth.
+fn truth_arg(c: &mut Command, path: &Path) {
+    if path.is_file() {
+        c.arg("--truth").arg(path);
+    }
 }
 
 /// What the server says on its standard output, line by line: an event, or why a line is not
@@ -265,13 +278,9 @@ fn start_server(
     staging: &Path,
 ) -> anyhow::Result<mpsc::Receiver<Said>> {
     let mut server = Command::new(&bins.server);
-    server
-        .arg("--mission")
-        .arg(mission_file(args, staging))
-        .arg("--truth")
-        .arg(staging.join("truth.npy"))
-        .arg("--state-dir")
-        .arg(staging.join("state"));
+    server.arg("--mission").arg(mission_file(args, staging));
+    truth_arg(&mut server, &staging.join("truth.npy"));
+    server.arg("--state-dir").arg(staging.join("state"));
     // Moved into --out with the rest once the server is up (the open file goes with its name).
     server.arg("--record").arg(staging.join("recording.mcap"));
     let (server_log, _) = log_file(&staging.join("logs"), "server")?;
@@ -355,19 +364,17 @@ fn start_nodes(args: &Args, bins: &Binaries, mission: &MissionConfig, fleet: &mu
     }
     for v in mission.vehicles() {
         let mut c = Command::new(&bins.vehicle);
-        c.arg("--mission")
-            .arg(&mission_path)
-            .arg("--truth")
-            .arg(&truth_path)
-            .arg("--state-dir")
-            .arg(&state);
+        c.arg("--mission").arg(&mission_path);
+        truth_arg(&mut c, &truth_path);
+        c.arg("--state-dir").arg(&state);
         let (log, path) = log_file(&logs, &v.id)?;
         c.arg("--id").arg(v.id.as_str()).stdout(Stdio::null()).stderr(log);
         fleet.spawn(&v.id, c, path)?;
     }
     if let (Some(addr), Some(bin)) = (args.web, &bins.watch) {
         let mut c = Command::new(bin);
-        c.arg("--mission").arg(&mission_path).arg("--truth").arg(&truth_path);
+        c.arg("--mission").arg(&mission_path);
+        truth_arg(&mut c, &truth_path);
         let (log, path) = log_file(&logs, "fleet-watch")?;
         c.arg("--http")
             .arg(addr.to_string())
@@ -533,13 +540,13 @@ fn check_nodes(fleet: &mut Supervisor, notices: &mut Notices) -> anyhow::Result<
 fn finish(
     args: &Args,
     mission: &MissionConfig,
-    truth: &FieldSeries,
+    truth: Option<&FieldSeries>,
     summary: &ServerSummary,
     events: &[ServerEvent],
     t0: Instant,
 ) -> anyhow::Result<()> {
     let out = &args.out;
-    let offline = team::run(&mission.team, truth, |_, _| {})?;
+    let offline = truth.map(|t| team::run(&mission.team, t, |_, _| {})).transpose()?;
     let command = format!(
         "fleet up{} --out {}",
         args.mission
@@ -547,7 +554,7 @@ fn finish(
             .map_or(String::new(), |p| format!(" {}", p.display())),
         out.display()
     );
-    let md = write_mission_report(out, mission, summary, &offline, truth.dt, &command, events)?;
+    let md = write_mission_report(out, mission, summary, offline.as_ref(), summary.dt, &command, events)?;
     println!("{md}");
     // Everything else is written first: a NetCDF that cannot be written fails the run at the
     // end, and `fleet export` can write it again from the run directory.

@@ -105,7 +105,7 @@ fn ordinal(n: usize) -> String {
 struct MissionReport<'a> {
     mission: &'a fleet_mission::config::MissionConfig,
     summary: &'a ServerSummary,
-    offline: &'a crate::experiment::team::TeamOutcome,
+    offline: Option<&'a crate::experiment::team::TeamOutcome>,
     /// The first step every team has data at (the boats' first sample).
     from: usize,
     md: String,
@@ -116,35 +116,58 @@ fn mean_from(v: &[f64], k: usize) -> f64 {
     v[k.min(v.len())..].iter().sum::<f64>() / v.len().saturating_sub(k).max(1) as f64
 }
 
-/// The report `fleet up` writes: the networked mission beside the offline loop on the same
-/// truth and seed (which it must equal), the single-kind teams, and the fleet's statistics.
+/// The report `fleet up` writes: with a truth, the networked mission beside the offline loop
+/// on the same truth and seed (which it must equal with simulated sensors), the single-kind
+/// teams; with or without one, the held-out readings' figures (when some were held out) and
+/// the fleet's statistics.
 pub fn write_mission_report(
     dir: &std::path::Path,
     mission: &fleet_mission::config::MissionConfig,
     summary: &ServerSummary,
-    offline: &crate::experiment::team::TeamOutcome,
+    offline: Option<&crate::experiment::team::TeamOutcome>,
     dt: f64,
     command: &str,
     events: &[ServerEvent],
 ) -> anyhow::Result<String> {
-    // Every team over the same steps: from the first where all have data (the boats' first
-    // sample), never a team without data.
-    let from = offline.scored_from.min(summary.mse.len());
     let mut r = MissionReport {
         mission,
         summary,
-        offline,
-        from,
+        offline: None,
+        from: 0,
         md: String::new(),
     };
     r.intro(command)?;
-    r.error_table()?;
-    r.network_equals_offline(events)?;
+    if let Some(offline) = offline {
+        // Every team over the same steps: from the first where all have data (the boats'
+        // first sample), never a team without data.
+        (r.offline, r.from) = (Some(offline), offline.scored_from.min(summary.mse.len()));
+        r.error_table(offline)?;
+        r.network_equals_offline(offline, events)?;
+        r.mse_plot(offline, dir)?;
+    }
+    r.holdout()?;
     r.fleet()?;
     r.eigenvalues(dt)?;
-    r.mse_plot(dir)?;
     std::fs::write(dir.join("report.md"), &r.md)?;
     Ok(r.md)
+}
+
+/// What the vehicles sensed: the truth (mixed reality), or instruments in the field.
+fn truth_of(mission: &fleet_mission::config::MissionConfig) -> String {
+    let Some(truth) = &mission.truth else {
+        return "there is no truth: the vehicles read their instruments ([sensors]), and the run is scored by the \
+            boats' held-out readings"
+            .into();
+    };
+    let what = match &truth.source {
+        TruthSource::Preset(p) => format!(
+            "the {p:?} plasma cloud at {} x {}, {} frames, averaged by {}",
+            truth.grid[0], truth.grid[1], truth.frames, truth.average
+        ),
+        TruthSource::Dataset(d) => format!("the dataset {}", d.display()),
+        TruthSource::NetCdf { path, variable } => format!("the variable {variable} of {}", path.display()),
+    };
+    format!("the truth is {what} (mixed reality)")
 }
 
 impl MissionReport<'_> {
@@ -157,19 +180,12 @@ impl MissionReport<'_> {
         writeln!(
             md,
             "Command: `{command}`. The model server and {} vehicles ({} aerials, {} boats, radius {}) ran as separate \
-                processes over Zenoh; the truth is {} (mixed reality).\n",
+                processes over Zenoh; {}.\n",
             summary.vehicles.len(),
             t.aerials,
             t.boats,
             t.radius,
-            match &mission.truth.source {
-                TruthSource::Preset(p) => format!(
-                    "the {p:?} plasma cloud at {} x {}, {} frames, averaged by {}",
-                    mission.truth.grid[0], mission.truth.grid[1], mission.truth.frames, mission.truth.average
-                ),
-                TruthSource::Dataset(d) => format!("the dataset {}", d.display()),
-                TruthSource::NetCdf { path, variable } => format!("the variable {variable} of {}", path.display()),
-            }
+            truth_of(mission)
         )?;
         let placement = match t.placement {
             fleet_mission::team::Placement::Horizon => format!("horizon over {} epochs", t.horizon_epochs),
@@ -194,9 +210,9 @@ impl MissionReport<'_> {
     }
 
     /// The error of every team over the scored steps, and where the fused estimate wins.
-    fn error_table(&mut self) -> anyhow::Result<()> {
+    fn error_table(&mut self, offline: &crate::experiment::team::TeamOutcome) -> anyhow::Result<()> {
         use std::fmt::Write as _;
-        let (summary, offline, from, md) = (self.summary, self.offline, self.from, &mut self.md);
+        let (summary, from, md) = (self.summary, self.from, &mut self.md);
         let network_mean = mean_from(&summary.mse, from);
         writeln!(md, "## Estimation error\n")?;
         writeln!(
@@ -244,9 +260,21 @@ impl MissionReport<'_> {
     }
 
     /// Whether the networked run equals the offline loop, and what differed if not.
-    fn network_equals_offline(&mut self, events: &[ServerEvent]) -> anyhow::Result<()> {
+    fn network_equals_offline(
+        &mut self,
+        offline: &crate::experiment::team::TeamOutcome,
+        events: &[ServerEvent],
+    ) -> anyhow::Result<()> {
         use std::fmt::Write as _;
-        let (summary, offline, md) = (self.summary, self.offline, &mut self.md);
+        let (summary, md) = (self.summary, &mut self.md);
+        let instruments: Vec<String> = self
+            .mission
+            .vehicles()
+            .iter()
+            .map(|v| (v.id.to_string(), self.mission.sensor_of(&v.id)))
+            .filter(|(_, s)| *s != fleet_mission::instrument::SensorSource::Sim)
+            .map(|(id, s)| format!("{id} ({s})"))
+            .collect();
         let max_diff = summary
             .mse
             .iter()
@@ -265,6 +293,14 @@ impl MissionReport<'_> {
         if !same {
             writeln!(md, "{}", differences(events, &summary.counters))?;
         }
+        if !instruments.is_empty() {
+            writeln!(
+                md,
+                "Read from instruments, not from the simulated sensors the offline loop draws: {}. Their noise draws \
+                    and the places they read differ from the offline loop's, so the two are not expected to be equal.\n",
+                instruments.join(", ")
+            )?;
+        }
         writeln!(md, "![MSE per step](mse.png)\n")?;
         writeln!(
             md,
@@ -272,6 +308,40 @@ impl MissionReport<'_> {
                 NetCDF; `fleet export` writes it again), `recording.mcap` (the Zenoh traffic the server saw and sent and \
                 its operations, MCAP: Foxglove reads it, `fleet replay` replays it), `events.jsonl`, `summary.json`, \
                 `model.cbor` and `logs/`.\n"
+        )?;
+        Ok(())
+    }
+
+    /// The boats' held-out readings against the estimate, when some were held out.
+    fn holdout(&mut self) -> anyhow::Result<()> {
+        use std::fmt::Write as _;
+        let Some(h) = self.summary.holdout else { return Ok(()) };
+        let share = self.mission.holdout_share();
+        writeln!(self.md, "## Held-out readings\n")?;
+        writeln!(
+            self.md,
+            "{:.0}% of the boats' readings (a fixed hash of step and cell) were held out of the fusion and predicted by \
+                the estimate of their step, which never saw them.\n",
+            share * 100.0
+        )?;
+        writeln!(self.md, "| | |\n|---|---|")?;
+        writeln!(self.md, "| readings held out | {} |", h.readings)?;
+        writeln!(self.md, "| mean squared difference | {:.4e} |", h.mse)?;
+        writeln!(self.md, "| the readings' own noise variance | {:.4e} |", h.noise_var)?;
+        writeln!(
+            self.md,
+            "| the estimate's MSE there (difference less noise) | {:.4e} |",
+            (h.mse - h.noise_var).max(0.0)
+        )?;
+        writeln!(
+            self.md,
+            "| inside the estimate's 95% interval | {:.1}% |",
+            h.coverage_95 * 100.0
+        )?;
+        writeln!(
+            self.md,
+            "| normalised squared error (1: calibrated) | {:.2} |\n",
+            h.normalised
         )?;
         Ok(())
     }
@@ -327,9 +397,9 @@ impl MissionReport<'_> {
     }
 
     /// `mse.png`: every team's error per step from the first step every team has data at.
-    fn mse_plot(&self, dir: &std::path::Path) -> anyhow::Result<()> {
+    fn mse_plot(&self, offline: &crate::experiment::team::TeamOutcome, dir: &std::path::Path) -> anyhow::Result<()> {
         use crate::plot::{self, Series};
-        let (summary, offline, from) = (self.summary, self.offline, self.from);
+        let (summary, from) = (self.summary, self.from);
         // Every curve from the first step every team has data at.
         let series = |name: &str, v: &[Option<f64>]| Series {
             name: name.into(),

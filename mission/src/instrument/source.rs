@@ -106,10 +106,11 @@ impl Sensors {
         self.vehicles.get(id).map_or(&self.default, String::as_str)
     }
 
-    /// Check the table against the mission's vehicles and whether it has a clock (`[time]`):
-    /// every entry a known vehicle, every source one its kind can use, and any source other
-    /// than `sim` only with mission time. The error is the key and the rule.
-    pub fn check(&self, roster: &Roster, timed: bool) -> Result<(), (String, String)> {
+    /// Check the table against the mission's vehicles, whether it has a clock (`[time]`) and
+    /// a truth: every entry a known vehicle, every source one its kind can use, any source other
+    /// than `sim` only with mission time, and `sim` only with a truth. The error is the key and
+    /// the rule.
+    pub fn check(&self, roster: &Roster, timed: bool, truth: bool) -> Result<(), (String, String)> {
         if let Some(id) = self.vehicles.keys().find(|id| roster.get(id).is_none()) {
             return Err((
                 id.clone(),
@@ -123,7 +124,14 @@ impl Sensors {
                 "default".into()
             };
             let source: SensorSource = self.of(&v.id).parse().map_err(|e| (key.clone(), e))?;
-            check_source(&source, v.kind, timed).map_err(|e| (key, format!("{source} for {}: {e}", v.id)))?;
+            check_source(&source, v.kind, timed).map_err(|e| (key.clone(), format!("{source} for {}: {e}", v.id)))?;
+            if source == SensorSource::Sim && !truth {
+                let rule = format!(
+                    "sim for {}: the simulated sensor samples the truth, and there is no [truth]",
+                    v.id
+                );
+                return Err((key, rule));
+            }
         }
         Ok(())
     }

@@ -12,8 +12,8 @@
 //! really is, timed by its TIFF DateTime, written aside and renamed in.
 //!
 //! `instrument-emulator --mission M --gcs-port G --send boat-1=127.0.0.1:15602 ...
-//! --frames av-1=DIR ... --seed N --log sent.ndjson`; exits when the mission's last step has
-//! passed.
+//! --frames av-1=DIR ... [--truth field.npy] --seed N --log sent.ndjson`; exits when the
+//! mission's last step has passed. `--truth` is the world when the mission has none.
 
 use fleet_mission::config::MissionConfig;
 use fleet_mission::instrument::MissionClock;
@@ -31,6 +31,7 @@ struct Args {
     gcs_port: u16,
     send: Vec<(String, String)>,
     frames: Vec<(String, std::path::PathBuf)>,
+    truth: Option<std::path::PathBuf>,
     seed: u64,
     log: std::path::PathBuf,
 }
@@ -41,6 +42,7 @@ fn args() -> Args {
         gcs_port: 0,
         send: vec![],
         frames: vec![],
+        truth: None,
         seed: 0,
         log: "sent.ndjson".into(),
     };
@@ -54,6 +56,7 @@ fn args() -> Args {
             "--gcs-port" => a.gcs_port = v.parse().expect("--gcs-port"),
             "--seed" => a.seed = v.parse().expect("--seed"),
             "--log" => a.log = v.into(),
+            "--truth" => a.truth = Some(v.into()),
             "--send" => {
                 let (id, addr) = v.split_once('=').expect("--send ID=ADDR:PORT");
                 a.send.push((id.into(), addr.into()));
@@ -71,8 +74,19 @@ fn args() -> Args {
 fn main() {
     let a = args();
     let mission = MissionConfig::load(Some(&a.mission)).expect("the mission");
-    let truth = mission.truth(|_| {}).expect("the truth");
-    let (grid, frames) = mission.workspace(&truth).expect("the workspace");
+    // The world: a truth file kept aside from the mission (a run without a truth), or the
+    // mission's own.
+    let truth = match &a.truth {
+        Some(p) => fleet_mission::process::dataset::load(p, 1.0).expect("the truth file"),
+        None => mission
+            .truth(|_| {})
+            .expect("the truth")
+            .expect("a mission with a truth"),
+    };
+    let (grid, frames) = (
+        fleet_mission::grid::Grid::new(truth.rows, truth.cols, 1.0).expect("a grid"),
+        truth.frames(),
+    );
     let clock = mission.clock().expect("a mission with [time]");
     let site = mission.mavlink.site(&grid);
     let schedule = mission.schedule(frames);

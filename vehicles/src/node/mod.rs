@@ -358,7 +358,7 @@ impl Vehicle {
         &mut self,
         e: u64,
         fixes: &std::collections::BTreeMap<u64, fleet_mission::vehicle::Fix>,
-        truth: &FieldSeries,
+        truth: Option<&FieldSeries>,
     ) -> anyhow::Result<Option<protocol::MeasurementBatch>> {
         if let Some(i) = &mut self.instrument {
             let steps = self.brain.schedule().steps_of(e);
@@ -369,6 +369,8 @@ impl Vehicle {
             };
             return Ok(self.brain.batch_of(e, samples));
         }
+        // (A simulated sensor without a truth is refused when the source is chosen.)
+        let truth = truth.ok_or_else(|| anyhow::anyhow!("{}: the simulated sensor has no truth", self.brain.id))?;
         let truth_at = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
         Ok(self.brain.sense_epoch_at(e, truth_at, fixes)?)
     }
@@ -382,7 +384,7 @@ impl Vehicle {
 
     /// Epoch `e` driven: sense it, commit the batch (durable first, then sent: a crash in
     /// between re-sends it after the restart), send it, go on.
-    async fn on_driven(&mut self, (e, (fixes, guided)): Driven, truth: &FieldSeries) -> anyhow::Result<()> {
+    async fn on_driven(&mut self, (e, (fixes, guided)): Driven, truth: Option<&FieldSeries>) -> anyhow::Result<()> {
         self.guided_ms.extend(guided);
         self.step = self.brain.schedule().steps_of(e).end.saturating_sub(1) as u64;
         if let Some(batch) = self.batch_of(e, &fixes, truth)? {
@@ -535,7 +537,7 @@ fn closed(what: &str) -> impl Fn(zenoh::Error) -> anyhow::Error + '_ {
 
 impl Vehicle {
     /// The node's one loop: every event, one at a time, until every batch is acknowledged.
-    async fn run_loop(&mut self, mut inputs: Inputs, truth: &FieldSeries) -> anyhow::Result<()> {
+    async fn run_loop(&mut self, mut inputs: Inputs, truth: Option<&FieldSeries>) -> anyhow::Result<()> {
         // Resends, the next plan query and the deadlines are checked at this rate; everything
         // else wakes the loop when it happens.
         let mut tick = tokio::time::interval(ASK_EVERY);
@@ -602,7 +604,7 @@ type SampleSub = zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<z
 
 pub async fn run(args: Args) -> anyhow::Result<()> {
     let (mission, truth) = args.node.load()?;
-    let (grid, frames) = mission.workspace(&truth)?;
+    let (grid, frames) = mission.workspace(truth.as_ref())?;
     let keys = Keys::new(&mission.mission)?;
     let brain = brain_of(&args, &mission, grid, frames)?;
     let mut ctx = Context::new(grid);
@@ -618,7 +620,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         compose::pipe_to_gateway(&session, &keys, &args.id, frames);
         b
     });
-    let (source, instrument) = instrument_of(&args, &mission, &brain, grid, frames)?;
+    let (source, instrument) = instrument_of(&args, &mission, &brain, (grid, frames), truth.is_some())?;
     let lines = vehicles::sensor::open(&source, mission.mavlink.site(&grid), grid)
         .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("sensor source {source}: {e}")))?;
     let (plans_tx, plans) = mpsc::unbounded_channel();
@@ -663,7 +665,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     };
     v.telemetry().await;
     v.resume(state);
-    v.run_loop(inputs, &truth).await?;
+    v.run_loop(inputs, truth.as_ref()).await?;
     v.telemetry().await;
     v.log_link();
     info!(
@@ -684,8 +686,8 @@ fn instrument_of(
     args: &Args,
     mission: &MissionConfig,
     brain: &VehicleBrain,
-    grid: Grid,
-    frames: usize,
+    (grid, frames): (Grid, usize),
+    has_truth: bool,
 ) -> anyhow::Result<(SensorSource, Option<readings::Instrument>)> {
     let source = match &args.sensor {
         Some(s) => s
@@ -695,6 +697,13 @@ fn instrument_of(
     };
     check_source(&source, brain.kind, mission.clock().is_some())
         .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("sensor source {source} for {}: {e}", args.id)))?;
+    if source == SensorSource::Sim && !has_truth {
+        return Err(fleet_exit::bad_input(anyhow::anyhow!(
+            "sensor source sim for {}: the simulated sensor samples a truth; the mission has no [truth] and no \
+             --truth was given",
+            args.id
+        )));
+    }
     let instrument = (source != SensorSource::Sim)
         .then(|| readings::Instrument::new(mission, grid, frames, brain.kind, brain.first_sensed_step()))
         .flatten();
