@@ -298,7 +298,7 @@ fn a_mission_without_a_truth_runs_on_instruments_and_is_scored_by_held_out_readi
     );
 
     // The true error at the held-out cells, from the field kept aside.
-    let est = fleet::process::dataset::load(&out.join("estimate.npy"), 1.0).unwrap();
+    let est = fleet::process::dataset::load(out.join("estimate.npy"), 1.0).unwrap();
     let held: Vec<(usize, usize)> = std::fs::read_to_string(&log)
         .unwrap()
         .lines()
