@@ -1,13 +1,13 @@
 //! Readings from instruments that are not the vehicle (issue 34): a whole `fleet up` mission on
-//! the clock (`[time]`), every boat reading a UDP sensor port and every aerial a directory of
-//! GeoTIFF frames, fed by a separate process (the instrument emulator) that hears where each
-//! vehicle really is from the ground-station stream and sends what a disk-sensing instrument
-//! there reads of the truth, or writes what a camera there sees of it. Hostile lines and
-//! frames go to the same ports and directories meanwhile. Every reading the emulator sent is in
-//! the server's batches, at its step and cell with its value, every aerial value is its
-//! frame's, and nothing else is: the model is a function of the batches, so it is the one the
-//! good readings alone give. Each hostile line and frame is counted by its kind in the
-//! vehicle's telemetry.
+//! the clock (`[time]`), boats reading UDP sensor ports or their standard input, aerials
+//! reading directories of GeoTIFF frames, fed by a separate process (the instrument emulator)
+//! that hears where each vehicle really is from the ground-station stream and sends what a
+//! disk-sensing instrument there reads of the truth, or writes what a camera there sees of it.
+//! Hostile lines and frames go to the same ports and directories meanwhile. Every reading the
+//! emulator sent is in the server's batches, at its step and cell with its value, every aerial
+//! value is its frame's, and nothing else is: the model is a function of the batches, so it is
+//! the one the good readings alone give. Each hostile line and frame is counted by its kind in
+//! the vehicle's telemetry.
 
 use fleet::protocol::{Body, Context};
 use fleet_mission::recording::Recording;
@@ -16,8 +16,9 @@ use std::collections::BTreeMap;
 use std::net::UdpSocket;
 use std::path::{Path, PathBuf};
 
-/// The tiny mission on the clock (steps of 1 s from `start`), its boats on UDP ports, its
-/// aerials on frame directories `<dir>/av-N`, the ground-station stream on `gcs`.
+/// The tiny mission on the clock (steps of 1 s from `start`), boat-1 and boat-2 on UDP ports,
+/// boat-3 on its standard input, the aerials on frame directories `<dir>/av-N`, the
+/// ground-station stream on `gcs`.
 fn timed_mission(dir: &Path, start: f64, ports: &[u16], gcs: u16) -> std::path::PathBuf {
     let ep = vec![format!("tcp/127.0.0.1:{}", free_port())];
     let m = tiny_mission(dir, &ep, &ep);
@@ -32,6 +33,7 @@ fn timed_mission(dir: &Path, start: f64, ports: &[u16], gcs: u16) -> std::path::
     for (i, p) in ports.iter().enumerate() {
         text.push_str(&format!("boat-{} = \"udp:127.0.0.1:{p}\"\n", i + 1));
     }
+    text.push_str("boat-3 = \"stdin\"\n");
     for id in ["av-1", "av-2"] {
         let frames = dir.join(id);
         std::fs::create_dir_all(&frames).unwrap();
@@ -65,12 +67,19 @@ fn hostile(now: f64, site: &fleet_mission::site::Site) -> Vec<(String, &'static 
 }
 
 /// The instrument emulator for the mission at `m` (`--truth`: the world, when the mission has
-/// none); its process and the log of what it sent.
-fn start_emulator(dir: &Path, m: &Path, ports: &[u16], gcs: u16, truth: Option<&Path>) -> (Procs, PathBuf) {
+/// none), boat-3's readings on its standard output; its process, the log of what it sent and
+/// that output.
+fn start_emulator(
+    dir: &Path,
+    m: &Path,
+    ports: &[u16],
+    gcs: u16,
+    truth: Option<&Path>,
+) -> (Procs, PathBuf, std::process::ChildStdout) {
     let mut emulator = std::process::Command::new(bin("instrument_emulator"));
     let (gcs, log) = (gcs.to_string(), dir.join("sent.ndjson"));
     emulator.args(["--mission", m.to_str().unwrap(), "--gcs-port", &gcs, "--seed", "3"]);
-    emulator.arg("--log").arg(&log);
+    emulator.arg("--log").arg(&log).args(["--send", "boat-3=-"]);
     for (i, p) in ports.iter().enumerate() {
         emulator.args(["--send", &format!("boat-{}=127.0.0.1:{p}", i + 1)]);
     }
@@ -80,19 +89,28 @@ fn start_emulator(dir: &Path, m: &Path, ports: &[u16], gcs: u16, truth: Option<&
     if let Some(t) = truth {
         emulator.arg("--truth").arg(t);
     }
-    (Procs(vec![emulator.spawn().expect("the emulator")]), log)
+    let mut child = emulator
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .expect("the emulator");
+    let stdout = child.stdout.take().expect("piped");
+    (Procs(vec![child]), log, stdout)
 }
 
-/// `fleet up` on `m` into `out`, in a thread.
-fn fleet_up(m: &Path, out: &Path) -> std::thread::JoinHandle<std::process::Output> {
-    let (m, out) = (m.to_path_buf(), out.to_path_buf());
-    std::thread::spawn(move || run("fleet", &["up", m.to_str().unwrap(), "--out", out.to_str().unwrap()]))
+/// `fleet up` on `m` into `out`, in a thread, its standard input (which its nodes inherit:
+/// boat-3 reads it) from `stdin`.
+fn fleet_up(m: &Path, out: &Path, stdin: std::process::ChildStdout) -> std::thread::JoinHandle<std::process::Output> {
+    let mut c = std::process::Command::new(bin("fleet"));
+    c.args(["up", m.to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .current_dir(root())
+        .stdin(stdin);
+    std::thread::spawn(move || c.output().expect("running fleet up"))
 }
 
 #[test]
 fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used() {
     let dir = scratch("instruments");
-    let ports = [udp_port(), udp_port(), udp_port()];
+    let ports = [udp_port(), udp_port()];
     let gcs = udp_port();
     let m = timed_mission(
         &dir,
@@ -100,9 +118,9 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
         &ports,
         gcs,
     );
-    let (mut procs, log) = start_emulator(&dir, &m, &ports, gcs, None);
+    let (mut procs, log, stdout) = start_emulator(&dir, &m, &ports, gcs, None);
     let out = dir.join("run");
-    let fleet = fleet_up(&m, &out);
+    let fleet = fleet_up(&m, &out, stdout);
     // Hostile lines to boat-1 while the mission runs (once the first boat epoch is open).
     let mission = fleet_mission::config::MissionConfig::load(Some(&m)).unwrap();
     let clock = mission.clock().unwrap();
@@ -257,7 +275,7 @@ fn a_mission_without_a_truth_runs_on_instruments_and_is_scored_by_held_out_readi
     let world = tiny.truth(|_| {}).unwrap().expect("a truth");
     let world_path = dir.join("world.npy");
     fleet::process::dataset::save(&world_path, &world, None).unwrap();
-    let ports = [udp_port(), udp_port(), udp_port()];
+    let ports = [udp_port(), udp_port()];
     let gcs = udp_port();
     let m = timed_mission(
         &dir,
@@ -274,9 +292,9 @@ fn a_mission_without_a_truth_runs_on_instruments_and_is_scored_by_held_out_readi
         world.frames()
     );
     std::fs::write(&m, format!("{}{field}{}", &text[..a], &text[b..])).unwrap();
-    let (mut procs, log) = start_emulator(&dir, &m, &ports, gcs, Some(&world_path));
+    let (mut procs, log, stdout) = start_emulator(&dir, &m, &ports, gcs, Some(&world_path));
     let out = dir.join("run");
-    let o = fleet_up(&m, &out).join().unwrap();
+    let o = fleet_up(&m, &out, stdout).join().unwrap();
     assert!(o.status.success(), "fleet up: {}", String::from_utf8_lossy(&o.stderr));
     procs.wait_all(30);
     assert!(!out.join("truth.npy").exists(), "no truth is made or written");

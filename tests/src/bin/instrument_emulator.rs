@@ -11,6 +11,9 @@
 //! directory, the truth plus the aerial's noise at each cell's distance from where the aerial
 //! really is, timed by its TIFF DateTime, written aside and renamed in.
 //!
+//! `--send boat-3=-` writes that boat's readings to standard output (for a vehicle reading
+//! `stdin`).
+//!
 //! `instrument-emulator --mission M --gcs-port G --send boat-1=127.0.0.1:15602 ...
 //! --frames av-1=DIR ... [--truth field.npy] --seed N --log sent.ndjson`; exits when the
 //! mission's last step has passed. `--truth` is the world when the mission has none.
@@ -168,7 +171,15 @@ fn main() {
                 let entry = serde_json::json!({"vehicle": id, "step": k, "cell": c, "value": value});
                 writeln!(log, "{entry}").expect("logging");
             }
-            socket.send_to(lines.as_bytes(), addr).expect("sending");
+            if addr == "-" {
+                // To standard output: piped into a vehicle reading `stdin`.
+                let mut out = std::io::stdout().lock();
+                out.write_all(lines.as_bytes())
+                    .and_then(|_| out.flush())
+                    .expect("writing to stdout");
+            } else {
+                socket.send_to(lines.as_bytes(), addr).expect("sending");
+            }
             sent.insert((k, id.clone()));
         }
         std::thread::sleep(std::time::Duration::from_millis(20));
