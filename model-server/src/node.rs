@@ -26,6 +26,8 @@ struct Server {
     ctx: Context,
     /// The mixed-reality truth the run is scored against (`None` in the field).
     truth: Option<FieldSeries>,
+    /// Each instrument-fed vehicle's reading counts, as its telemetry last said.
+    readings: BTreeMap<VehicleId, fleet_mission::protocol::ReadingCounts>,
     events: bool,
     alive: BTreeSet<VehicleId>,
     link_ups: BTreeMap<VehicleId, u64>,
@@ -166,6 +168,7 @@ impl Server {
             pending_epochs: self.core.pending_epochs(),
             latency_p50_ms: p.p50,
             latency_p99_ms: p.p99,
+            readings: self.readings.clone(),
         }
     }
 
@@ -475,6 +478,9 @@ impl Server {
                 });
             }
         }
+        if let Some(r) = &t.readings {
+            self.readings.insert(t.vehicle.clone(), r.clone());
+        }
         let available = t.available();
         if self.core.set_available(&t.vehicle, available) {
             // Recorded only when it changed something (a call that does not is a no-op).
@@ -707,6 +713,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         core,
         ctx,
         truth,
+        readings: BTreeMap::new(),
         events: args.events,
         alive: BTreeSet::new(),
         link_ups: BTreeMap::new(),

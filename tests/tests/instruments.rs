@@ -183,7 +183,7 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     let mut ctx = Context::new(rec.grid);
     ctx.vehicles = rec.mission.vehicles().into_iter().map(|v| v.id).collect();
     let (mut received, mut last_counts, mut av1_counts) = (BTreeMap::new(), None, None);
-    let mut aerial_values = 0;
+    let (mut aerial_values, mut status) = (0, None);
     for msg in &rec.messages {
         match fleet::protocol::decode(&msg.data, &ctx) {
             Ok(Body::Batch(b)) if b.kind == fleet::protocol::VehicleKind::Boat => {
@@ -212,6 +212,7 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
             }
             Ok(Body::Telemetry(t)) if t.vehicle.as_str() == "boat-1" => last_counts = t.readings.or(last_counts),
             Ok(Body::Telemetry(t)) if t.vehicle.as_str() == "av-1" => av1_counts = t.readings.or(av1_counts),
+            Ok(Body::Status(s)) => status = Some(s),
             _ => {}
         }
     }
@@ -229,6 +230,8 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     }
     let counts = last_counts.expect("boat-1's telemetry carries its reading counts");
     assert_eq!(counts.refused, want, "each hostile line counted by its kind");
+    let status = status.expect("the server's status");
+    assert_eq!(status.readings["boat-1"].refused, want, "and in the server's status");
     assert!(aerial_values >= 2 * 40 * 10, "aerial values checked: {aerial_values}");
     let av1 = av1_counts.expect("av-1's telemetry carries its reading counts");
     assert_eq!(av1.refused, want_av1, "each hostile frame counted by its kind");

@@ -428,6 +428,7 @@ mod tests {
             pending_epochs: 0,
             latency_p50_ms: 0.0,
             latency_p99_ms: 0.0,
+            readings: Default::default(),
         };
         assert!(v.apply(Body::Status(status)));
         assert!(v.liveliness("boat-1", false, 5.0));

@@ -272,6 +272,10 @@ pub struct ServerStatus {
     /// From the last batch of an epoch arriving to its model being published (ms).
     pub latency_p50_ms: f64,
     pub latency_p99_ms: f64,
+    /// Each instrument-fed vehicle's readings (received, accepted, refused by kind), from its
+    /// telemetry.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub readings: std::collections::BTreeMap<VehicleId, ReadingCounts>,
 }
 
 /// Every message, tagged by `type`.
@@ -507,8 +511,14 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
         }
         Body::Status(s) => {
             finite("latency", &[s.latency_p50_ms, s.latency_p99_ms])?;
-            for id in s.alive.iter().chain(&s.waiting_for) {
+            for id in s.alive.iter().chain(&s.waiting_for).chain(s.readings.keys()) {
                 keys::check_id("vehicle", id)?;
+            }
+            if s.readings
+                .values()
+                .any(|r| r.refused.len() > 32 || r.refused.keys().any(|k| k.len() > 32))
+            {
+                return inv("reading counts: at most 32 kinds of refusal, names of at most 32 characters".into());
             }
         }
         Body::Plan(p) => {
