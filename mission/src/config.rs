@@ -221,6 +221,11 @@ pub struct MavlinkConfig {
     /// The simulated autopilots run this many times faster than the wall clock (SITL's
     /// speed-up), so a 100 m leg of a 2 m/s boat does not hold a test for a minute.
     pub sim_speedup: f64,
+    /// A simulated autopilot also listens for a companion computer (an instrument's driver
+    /// sending NAMED_VALUE_FLOAT) on UDP `127.0.0.1:(this + its system id)` and routes what
+    /// comes there onto its link to the vehicle, as ArduPilot routes between its serial ports
+    /// (SITL's second port); unset: no companion link.
+    pub sim_companion_port: Option<u16>,
     /// Simulated boat: top speed (m/s) and turn-rate limit (deg/s).
     pub boat_speed_ms: f64,
     pub boat_turn_rate_dps: f64,
@@ -278,6 +283,7 @@ impl Default for MavlinkConfig {
             origin: [55.6761, 12.5683, 0.0],
             size_m: None,
             sim_speedup: 1.0,
+            sim_companion_port: None,
             boat_speed_ms: 2.0,
             boat_turn_rate_dps: 90.0,
             multirotor_speed_ms: 10.0,
@@ -465,7 +471,14 @@ impl MissionConfig {
             MissionClock::of(t).map_err(|(key, rule)| field("time", key.to_string(), rule))?;
         }
         cfg.sensors
-            .check(&cfg.roster(), cfg.time.is_some(), cfg.truth.is_some())
+            .check(
+                &cfg.roster(),
+                crate::instrument::source::Mission {
+                    timed: cfg.time.is_some(),
+                    truth: cfg.truth.is_some(),
+                    autopilot: cfg.mavlink.autopilot != "none",
+                },
+            )
             .map_err(|(key, rule)| field("sensors", key, rule))?;
         Ok(cfg)
     }
@@ -728,8 +741,16 @@ mod tests {
         assert!(e.contains("[sensors] av-1") && e.contains("frames"), "{e}");
         let e = refused(&format!("{time}[sensors]\ndefault = \"udp:nowhere\"\n"));
         assert!(e.contains("[sensors] default") && e.contains("ADDR:PORT"), "{e}");
-        let e = refused(&format!("{time}[sensors]\nboat-1 = \"mavlink:SONDE\"\n"));
-        assert!(e.contains("not built yet"), "{e}");
+        let m = with(&format!("{time}[sensors]\nboat-1 = \"mavlink:SONDE\"\n")).unwrap();
+        assert_eq!(m.sensor_of("boat-1"), SensorSource::Mavlink("SONDE".into()));
+        let no_autopilot = DEFAULT_MISSION.replace("autopilot = \"sim\"", "autopilot = \"none\"");
+        assert_ne!(no_autopilot, DEFAULT_MISSION);
+        let e = MissionConfig::from_toml(&format!(
+            "{no_autopilot}\n{time}[sensors]\nboat-1 = \"mavlink:SONDE\"\n"
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("[sensors] boat-1") && e.contains("autopilot"), "{e}");
         let e = refused("[time]\nstart = \"9 o'clock\"\nstep_s = 1\n");
         assert!(e.contains("[time] start"), "{e}");
         let e = refused("[time]\nstart = \"2026-11-25T09:00:00Z\"\nstep_s = 1\nzone = \"CET\"\n");

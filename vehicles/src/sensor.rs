@@ -35,10 +35,15 @@ pub type Frame = Result<(String, f64, Vec<Option<f64>>), (String, String)>;
 pub enum Input {
     Line(Line),
     Frame(Frame),
+    /// A reading decoded elsewhere (a MAVLink NAMED_VALUE_FLOAT, positioned and timed by the
+    /// autopilot), or why it was refused.
+    Reading(fleet_mission::instrument::named::Outcome),
+    /// This many readings found the queue full and were dropped (counted as `overflow`).
+    Lost(u64),
 }
 
 /// Lines waiting for the node's loop, at most.
-const QUEUE: usize = 1024;
+pub const QUEUE: usize = 1024;
 
 /// One line from a source.
 #[derive(Debug, Clone, PartialEq)]

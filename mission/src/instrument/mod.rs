@@ -17,6 +17,7 @@
 
 pub mod clock;
 pub mod collect;
+pub mod named;
 pub mod placer;
 pub mod raster;
 pub mod reading;
@@ -24,6 +25,7 @@ pub mod source;
 
 pub use clock::MissionClock;
 pub use collect::{Collected, Tally};
+pub use named::NamedValues;
 pub use placer::{Placed, Placer};
 pub use reading::{parse_line, Reading, Refusal, MAX_LINE};
 pub use source::{check_source, SensorSource};

@@ -57,8 +57,8 @@ impl Placer {
 
     /// The reading's step and cell at `now` (UTC seconds) with the oldest step still open
     /// `oldest` (readings before it are too old: their batch has gone).
+    /// Where comes before when: a reading off the site is `outside_site` whenever it was taken.
     pub fn place(&self, r: &Reading, now: f64, oldest: u64) -> Result<Placed, (Refusal, String)> {
-        let step = self.step_at(r.t, now, oldest)?;
         let ned = self.site.ned_of_global(r.lat, r.lon, self.site.origin[2]);
         let (x, y) = self.site.grid_of(&ned);
         let Some(cell) = self.grid.cell_at(x, y) else {
@@ -72,6 +72,7 @@ impl Placer {
                 ));
             }
         }
+        let step = self.step_at(r.t, now, oldest)?;
         Ok(Placed {
             step,
             cell: self.grid.index(cell),

@@ -61,6 +61,10 @@ pub enum Refusal {
     FromFuture,
     /// Timed before the oldest epoch still open (its batch has gone), or before the mission.
     TooOld,
+    /// A MAVLink value while the autopilot has no UTC (SYSTEM_TIME's `time_unix_usec` is 0).
+    NoTime,
+    /// Readings came faster than the node takes them and its queue was full (a flood).
+    Overflow,
 }
 
 /// Parse one line (without its newline). Fields beyond the five are ignored (drivers may add

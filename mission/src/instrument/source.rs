@@ -94,23 +94,17 @@ impl Default for Sensors {
     }
 }
 
-/// The sources this version reads; the others are named by the interface but refused until
-/// they are built, rather than ignored.
-fn built(s: &SensorSource) -> bool {
-    !matches!(s, SensorSource::Mavlink(_))
-}
-
 impl Sensors {
     /// A vehicle's source as written (its own entry, else the default).
     pub fn of(&self, id: &str) -> &str {
         self.vehicles.get(id).map_or(&self.default, String::as_str)
     }
 
-    /// Check the table against the mission's vehicles, whether it has a clock (`[time]`) and
-    /// a truth: every entry a known vehicle, every source one its kind can use, any source other
-    /// than `sim` only with mission time, and `sim` only with a truth. The error is the key and
-    /// the rule.
-    pub fn check(&self, roster: &Roster, timed: bool, truth: bool) -> Result<(), (String, String)> {
+    /// Check the table against the mission's vehicles, whether it has a clock (`[time]`), a
+    /// truth and autopilots: every entry a known vehicle, every source one its kind can use, any
+    /// source other than `sim` only with mission time, `mavlink` only with an autopilot and `sim`
+    /// only with a truth. The error is the key and the rule.
+    pub fn check(&self, roster: &Roster, m: Mission) -> Result<(), (String, String)> {
         if let Some(id) = self.vehicles.keys().find(|id| roster.get(id).is_none()) {
             return Err((
                 id.clone(),
@@ -124,8 +118,8 @@ impl Sensors {
                 "default".into()
             };
             let source: SensorSource = self.of(&v.id).parse().map_err(|e| (key.clone(), e))?;
-            check_source(&source, v.kind, timed).map_err(|e| (key.clone(), format!("{source} for {}: {e}", v.id)))?;
-            if source == SensorSource::Sim && !truth {
+            check_source(&source, v.kind, m).map_err(|e| (key.clone(), format!("{source} for {}: {e}", v.id)))?;
+            if source == SensorSource::Sim && !m.truth {
                 let rule = format!(
                     "sim for {}: the simulated sensor samples the truth, and there is no [truth]",
                     v.id
@@ -137,10 +131,23 @@ impl Sensors {
     }
 }
 
-/// Whether a vehicle of `kind` can read `source` in a mission with or without a clock.
-pub fn check_source(source: &SensorSource, kind: VehicleKind, timed: bool) -> Result<(), String> {
-    if !built(source) {
-        return Err("this version reads sim, stdin, udp and geotiff sources; mavlink is not built yet".into());
+/// What of the mission decides which sources a vehicle may read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Mission {
+    /// Mission time (`[time]`).
+    pub timed: bool,
+    /// A truth (`[truth]` or `--truth`).
+    pub truth: bool,
+    /// An autopilot link (`[mavlink] autopilot` or `--autopilot` other than `none`).
+    pub autopilot: bool,
+}
+
+/// Whether a vehicle of `kind` can read `source` in mission `m`.
+pub fn check_source(source: &SensorSource, kind: VehicleKind, m: Mission) -> Result<(), String> {
+    if matches!(source, SensorSource::Mavlink(_)) && !m.autopilot {
+        return Err(
+            "NAMED_VALUE_FLOAT comes on the autopilot's link, and the vehicle has none (autopilot = \"none\")".into(),
+        );
     }
     if kind == VehicleKind::Aerial && source.is_point() {
         return Err("an aerial's readings are frames (sim or geotiff), not points".into());
@@ -148,7 +155,7 @@ pub fn check_source(source: &SensorSource, kind: VehicleKind, timed: bool) -> Re
     if kind == VehicleKind::Boat && matches!(source, SensorSource::Geotiff(_)) {
         return Err("a boat's readings are points (stdin, udp or mavlink), not frames".into());
     }
-    if *source != SensorSource::Sim && !timed {
+    if *source != SensorSource::Sim && !m.timed {
         return Err("readings from an instrument need mission time ([time] start and step_s)".into());
     }
     Ok(())

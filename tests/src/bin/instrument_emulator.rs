@@ -14,7 +14,16 @@
 //! `--send boat-3=-` writes that boat's readings to standard output (for a vehicle reading
 //! `stdin`).
 //!
-//! `instrument-emulator --mission M --gcs-port G --send boat-1=127.0.0.1:15602 ...
+//! `--mavlink boat-2=PORT` makes it that boat's sonde on its autopilot: a companion computer on
+//! the simulated autopilot's companion link (`udpout:127.0.0.1:PORT`) that hears the autopilot's
+//! GLOBAL_POSITION_INT and SYSTEM_TIME there and, at each boat sampling step, sends one
+//! NAMED_VALUE_FLOAT `--name` (default SONDE) stamped with the autopilot's boot time of its
+//! newest fix (as a Lua script's `gcs:send_named_float` is): a point instrument, the truth at the
+//! boat's cell plus the boat noise. With `--hostile-mavlink true` it also sends, once, a NaN value
+//! (`not_finite`), a value stamped an hour after the autopilot's clock (`from_future`) and 64
+//! garbage bytes (unreadable: the autopilot drops them) on each such link.
+//!
+//! `instrument-emulator --mission M --gcs-port G --send boat-1=127.0.0.1:15602 ... --mavlink boat-2=PORT
 //! --frames av-1=DIR ... [--truth field.npy] --seed N --log sent.ndjson`; exits when the
 //! mission's last step has passed. `--truth` is the world when the mission has none.
 
@@ -34,6 +43,9 @@ struct Args {
     gcs_port: u16,
     send: Vec<(String, String)>,
     frames: Vec<(String, std::path::PathBuf)>,
+    mavlink: Vec<(String, u16)>,
+    name: String,
+    hostile_mavlink: bool,
     truth: Option<std::path::PathBuf>,
     seed: u64,
     log: std::path::PathBuf,
@@ -45,6 +57,9 @@ fn args() -> Args {
         gcs_port: 0,
         send: vec![],
         frames: vec![],
+        mavlink: vec![],
+        name: "SONDE".into(),
+        hostile_mavlink: false,
         truth: None,
         seed: 0,
         log: "sent.ndjson".into(),
@@ -63,6 +78,12 @@ fn args() -> Args {
             "--send" => {
                 let (id, addr) = v.split_once('=').expect("--send ID=ADDR:PORT");
                 a.send.push((id.into(), addr.into()));
+            }
+            "--name" => a.name = v.into(),
+            "--hostile-mavlink" => a.hostile_mavlink = v.parse().expect("--hostile-mavlink true|false"),
+            "--mavlink" => {
+                let (id, port) = v.split_once('=').expect("--mavlink ID=PORT");
+                a.mavlink.push((id.into(), port.parse().expect("--mavlink ID=PORT")));
             }
             "--frames" => {
                 let (id, dir) = v.split_once('=').expect("--frames ID=DIR");
@@ -121,6 +142,17 @@ fn main() {
             }
         }
     });
+    let port_of: BTreeMap<String, u16> = a.mavlink.iter().cloned().collect();
+    let companions: Vec<(String, Companion)> = a
+        .mavlink
+        .iter()
+        .map(|(id, port)| {
+            (
+                id.clone(),
+                Companion::connect(*port, mission.sysid(id).expect("a vehicle")),
+            )
+        })
+        .collect();
     let socket = std::net::UdpSocket::bind("127.0.0.1:0").expect("a socket");
     let mut log = std::fs::File::create(&a.log).expect("the log");
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);
@@ -151,6 +183,24 @@ fn main() {
                 })
                 .collect();
             write_frame(dir, &grid, &site, &values, t);
+            sent.insert((k, id.clone()));
+        }
+        for (id, link) in &companions {
+            let due = sampling.contains(&k) && now >= t && !sent.contains(&(k, id.clone()));
+            // The newest fix, once it is of this step (the value is stamped with its time).
+            let Some((boot_ms, lat, lon)) = link.fix_in(k, &clock).filter(|_| due) else {
+                continue;
+            };
+            let (x, y) = site.grid_of(&site.ned_of_global(lat, lon, site.origin[2]));
+            let Some(here) = grid.cell_at(x, y) else { continue };
+            let c = grid.index(here);
+            let value = (truth.snapshots[(c, k as usize)] + noise.sample(&mut rng)) as f32;
+            link.send_value(boot_ms, &a.name, value);
+            if a.hostile_mavlink && !link.hostile_sent.swap(true, std::sync::atomic::Ordering::Relaxed) {
+                link.send_hostile(boot_ms, &a.name, *port_of.get(id).expect("a companion port"));
+            }
+            let entry = serde_json::json!({"vehicle": id, "step": k, "cell": c, "value": value as f64});
+            writeln!(log, "{entry}").expect("logging");
             sent.insert((k, id.clone()));
         }
         for (id, addr) in &a.send {
@@ -228,4 +278,90 @@ fn write_frame(
     // Named by the whole second (the `_YYYYMMDDTHHMMSSZ` form), as the DateTime says.
     let name = format!("frame_{}Z.tif", stamp[..19].replace(['-', ':'], ""));
     std::fs::rename(&tmp, dir.join(name)).expect("renaming the frame in");
+}
+
+/// `(time_boot_ms, lat, lon)` of the autopilot's newest fix, and UTC seconds at its boot.
+type Heard = (Option<(u32, f64, f64)>, Option<f64>);
+
+/// A companion computer on a simulated autopilot's companion link: what it last heard of the
+/// autopilot's position and clock, and the link to send values on.
+struct Companion {
+    conn: Arc<dyn mavlink::MavConnection<MavMessage> + Send + Sync>,
+    sysid: u8,
+    heard: Arc<Mutex<Heard>>,
+    hostile_sent: std::sync::atomic::AtomicBool,
+}
+
+impl Companion {
+    /// Connect to the companion link on `port` of the autopilot of system `sysid`: a HEARTBEAT
+    /// a second (so the autopilot's `udpin` knows where we are), and a thread that listens.
+    fn connect(port: u16, sysid: u8) -> Self {
+        let conn: Arc<dyn mavlink::MavConnection<MavMessage> + Send + Sync> =
+            Arc::from(mavlink::connect::<MavMessage>(&format!("udpout:127.0.0.1:{port}")).expect("the companion link"));
+        let heard: Arc<Mutex<Heard>> = Arc::default();
+        let (rx, h) = (conn.clone(), heard.clone());
+        std::thread::spawn(move || loop {
+            match rx.recv() {
+                Ok((hd, MavMessage::GLOBAL_POSITION_INT(p))) if hd.system_id == sysid as u32 => {
+                    h.lock().unwrap().0 = Some((p.time_boot_ms, p.lat as f64 / 1e7, p.lon as f64 / 1e7));
+                }
+                Ok((hd, MavMessage::SYSTEM_TIME(t))) if hd.system_id == sysid as u32 && t.time_unix_usec > 0 => {
+                    h.lock().unwrap().1 = Some(t.time_unix_usec as f64 / 1e6 - t.time_boot_ms as f64 / 1e3);
+                }
+                _ => {}
+            }
+        });
+        let beat = conn.clone();
+        std::thread::spawn(move || loop {
+            let hb = MavMessage::HEARTBEAT(mavlink::dialects::common::HEARTBEAT_DATA {
+                mavtype: mavlink::dialects::common::MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+                autopilot: mavlink::dialects::common::MavAutopilot::MAV_AUTOPILOT_INVALID,
+                mavlink_version: 3,
+                ..Default::default()
+            });
+            let _ = beat.send(&Self::header(sysid), &hb);
+            std::thread::sleep(std::time::Duration::from_secs(1));
+        });
+        Self {
+            conn,
+            sysid,
+            heard,
+            hostile_sent: false.into(),
+        }
+    }
+
+    /// A companion computer's header on the vehicle's system.
+    fn header(sysid: u8) -> mavlink::MavHeader {
+        mavlink::MavHeader {
+            system_id: sysid as u32,
+            component_id: 191,
+            sequence: 0,
+        }
+    }
+
+    /// The newest fix, when it falls in step `k` by the autopilot's clock.
+    fn fix_in(&self, k: u64, clock: &MissionClock) -> Option<(u32, f64, f64)> {
+        let (fix, boot_utc) = *self.heard.lock().unwrap();
+        let (ms, lat, lon) = fix?;
+        (clock.step_of(boot_utc? + ms as f64 / 1e3) == Some(k)).then_some((ms, lat, lon))
+    }
+
+    /// A NaN, a value stamped an hour ahead, and garbage bytes to the companion link's `port`.
+    fn send_hostile(&self, time_boot_ms: u32, name: &str, port: u16) {
+        self.send_value(time_boot_ms, name, f32::NAN);
+        self.send_value(time_boot_ms + 3_600_000, name, 1.0);
+        let garbage: Vec<u8> = (0..64u8).map(|i| i.wrapping_mul(37) ^ 0xfd).collect();
+        let s = std::net::UdpSocket::bind("127.0.0.1:0").expect("a socket");
+        // (From another socket: the autopilot's udpin answers its last sender, which stays us.)
+        let _ = s.send_to(&garbage, ("127.0.0.1", port));
+    }
+
+    fn send_value(&self, time_boot_ms: u32, name: &str, value: f32) {
+        let m = MavMessage::NAMED_VALUE_FLOAT(mavlink::dialects::common::NAMED_VALUE_FLOAT_DATA {
+            time_boot_ms,
+            value,
+            name: name.into(),
+        });
+        self.conn.send(&Self::header(self.sysid), &m).expect("sending a value");
+    }
 }

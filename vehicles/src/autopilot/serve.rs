@@ -5,12 +5,18 @@
 //! guided target) at 10 Hz, and replies as they come (the link's reader thread hands it what
 //! arrives). Frames it cannot read are counted and skipped. With a
 //! signing key it signs everything it sends and obeys only frames signed with that key.
+//!
+//! With a companion link (as ArduPilot's second serial port, where a companion computer or an
+//! instrument's driver sits) it also sends its stream there, and routes what comes from there
+//! onto its main link unchanged (a NAMED_VALUE_FLOAT reaches the vehicle's bridge as a Lua
+//! script's would), as ArduPilot's MAVLink routing forwards a broadcast message to its other
+//! links; a frame addressed to it is obeyed too.
 
 use super::sim::SimAutopilot;
 use crate::link::{MavLink, Received};
 use crate::signing::{LinkSigning, Refused};
 use mavlink::dialects::common::MavMessage;
-use mavlink::MavHeader;
+use mavlink::{MavHeader, Message};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -47,23 +53,60 @@ pub fn spawn(
     signing: Option<LinkSigning>,
     stop: Arc<AtomicBool>,
 ) -> std::io::Result<Arc<ServeStats>> {
+    spawn_routed(address, None, sim, signing, stop)
+}
+
+/// [`spawn`], with a companion link at `companion` (unsigned) routed onto the main one.
+pub fn spawn_routed(
+    address: &str,
+    companion: Option<&str>,
+    sim: SimAutopilot,
+    signing: Option<LinkSigning>,
+    stop: Arc<AtomicBool>,
+) -> std::io::Result<Arc<ServeStats>> {
     let conn = Arc::new(MavLink::open(address, signing)?);
     let stats = Arc::new(ServeStats::default());
     let rx = conn.reader("sim-autopilot-rx")?;
+    let companion = match companion {
+        Some(a) => {
+            let c = Arc::new(MavLink::open(a, None)?);
+            let rx = c.reader("sim-companion-rx")?;
+            Some((c, rx))
+        }
+        None => None,
+    };
     let st = stats.clone();
     std::thread::Builder::new()
         .name("sim-autopilot".into())
-        .spawn(move || run(conn, sim, rx, stop, st))?;
+        .spawn(move || run(conn, companion, sim, rx, stop, st))?;
     Ok(stats)
+}
+
+/// The companion link and what it reads.
+type Companion = (Arc<MavLink>, mpsc::UnboundedReceiver<Received>);
+
+/// Route what the companion sent onto the main link (and obey what is addressed to `sim`).
+fn route_companion(companion: &mut Option<Companion>, conn: &MavLink, sim: &mut SimAutopilot) {
+    let Some((_, rx)) = companion else { return };
+    while let Ok(r) = rx.try_recv() {
+        if let Received::Frame(h, m, _) = r {
+            if m.target_system_id() == Some(sim.spec.sysid) {
+                sim.handle(&h, &m);
+            }
+            let _ = conn.send(&h, &m);
+        }
+    }
 }
 
 fn run(
     conn: Arc<MavLink>,
+    mut companion: Option<Companion>,
     mut sim: SimAutopilot,
     mut rx: mpsc::UnboundedReceiver<Received>,
     stop: Arc<AtomicBool>,
     stats: Arc<ServeStats>,
 ) {
+    let to_companion = companion.as_ref().map(|(c, _)| c.clone());
     let mut header = MavHeader {
         system_id: sim.spec.sysid as u32,
         component_id: 1,
@@ -73,6 +116,9 @@ fn run(
         // No peer yet (udpin before the first datagram), or it went away: dropped, as on a radio.
         if conn.send(&header, m).is_ok() {
             stats.sent.fetch_add(1, Ordering::Relaxed);
+        }
+        if let Some(c) = &to_companion {
+            let _ = c.send(&header, m);
         }
         header.sequence = header.sequence.wrapping_add(1);
     };
@@ -98,6 +144,7 @@ fn run(
                 Received::Idle | Received::Closed => {}
             }
         }
+        route_companion(&mut companion, &conn, &mut sim);
         if (heard && shown.is_none()) || shown.is_some_and(|s| s != (sim.mode, sim.armed)) {
             send(&sim.heartbeat());
             shown = Some((sim.mode, sim.armed));

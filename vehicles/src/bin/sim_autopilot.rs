@@ -38,6 +38,10 @@ struct Args {
     /// Where it serves (any `mavlink` connection string; SITL's habit is `udpin:`).
     #[arg(long, default_value = "udpin:127.0.0.1:14600")]
     listen: String,
+    /// A companion computer's link (an instrument's driver sending NAMED_VALUE_FLOAT; unsigned),
+    /// routed onto the main one as ArduPilot routes between its serial ports.
+    #[arg(long)]
+    companion: Option<String>,
     /// The mission whose `[mavlink]` section gives the site, speeds and speed-up (default: the
     /// bundled one); the grid is taken as the mission's model grid of 1 m cells.
     #[arg(long)]
@@ -85,8 +89,9 @@ async fn run(args: Args) -> anyhow::Result<()> {
     };
     let signed = signing.is_some();
     let stop = Arc::new(AtomicBool::new(false));
-    let stats = serve::spawn(&args.listen, SimAutopilot::new(spec, home), signing, stop.clone())
-        .with_context(|| format!("--listen {}", args.listen))?;
+    let sim = SimAutopilot::new(spec, home);
+    let stats = serve::spawn_routed(&args.listen, args.companion.as_deref(), sim, signing, stop.clone())
+        .with_context(|| format!("--listen {} / --companion", args.listen))?;
     tracing::info!(
         listen = args.listen,
         sysid = args.sysid,

@@ -4,7 +4,7 @@
 //! | event | what it does |
 //! |---|---|
 //! | a read from the link | counts it, updates the state, answers an upload, forwards it, advances the set-up |
-//! | a command from the node | a guided target (routed round the fence), a failsafe, GUIDED, a GCS frame |
+//! | a command from the node | a guided target (routed round the fence), a failsafe, GUIDED, a GCS frame, an instrument |
 //! | the 1 Hz tick | the companion's HEARTBEAT; set-up steps not yet answered are asked again |
 //! | the heartbeat timeout | the autopilot is lost |
 //!
@@ -12,6 +12,7 @@
 //! autopilot's rate, for the drive), the status (link, mode, arming, failsafe: telemetry), and
 //! the counters (read, never woken on).
 
+use super::named::NamedSource;
 use super::ROUTE_INSET_M;
 use super::{guided, AutopilotState, BridgeSpec, Command, GcsSink, LinkCounters, COMPANION_COMPONENT};
 use crate::autopilot::modes::Role;
@@ -60,6 +61,8 @@ struct Actor {
     uploads: Vec<Upload>,
     enable_tries: u32,
     prepared: bool,
+    /// The instrument on this link (`mavlink:NAME`), once the node asks for it.
+    named: Option<NamedSource>,
     state_tx: watch::Sender<AutopilotState>,
     status_tx: watch::Sender<AutopilotStatus>,
     counters_tx: watch::Sender<LinkCounters>,
@@ -89,6 +92,7 @@ pub(super) fn spawn(
         uploads,
         enable_tries: 0,
         prepared: false,
+        named: None,
         state_tx,
         status_tx,
         counters_tx,
@@ -252,6 +256,9 @@ impl Actor {
         let from = u8::try_from(h.system_id).ok();
         let sysid = self.state.sysid;
         let autopilot = h.component_id != COMPANION_COMPONENT && from.is_some() && (sysid.is_none() || sysid == from);
+        if let Some(named) = self.named.as_mut().filter(|_| sysid.is_some() && sysid == from) {
+            named.on_frame(m, autopilot);
+        }
         if !autopilot {
             return;
         }
@@ -339,8 +346,13 @@ impl Actor {
     }
 
     fn on_command(&mut self, c: Command) {
+        if let Command::Listen(source) = c {
+            self.named = Some(*source);
+            return;
+        }
         let Some(target) = self.state.sysid else { return };
         match c {
+            Command::Listen(_) => {}
             Command::Goto(goal) => self.goto(target, goal),
             Command::Failsafe { mode, why } => {
                 self.state.failsafe = Some(why);

@@ -14,6 +14,7 @@
 //! [`Bridge`] handle (and its cloneable [`Driver`]) is how the node reads and commands it.
 
 mod actor;
+mod named;
 
 use crate::autopilot::modes::{Frame, Role};
 use crate::autopilot::sim::SimSpec;
@@ -99,6 +100,8 @@ pub(crate) enum Command {
     Rejoin,
     /// A ground station's frame, checked, for the autopilot (boxed: a message is large).
     Forward(MavHeader, Box<MavMessage>),
+    /// Read the instrument whose NAMED_VALUE_FLOAT come on this link.
+    Listen(Box<named::NamedSource>),
 }
 
 /// Frames for the ground-station side.
@@ -174,6 +177,15 @@ impl Bridge {
             refused_from_gcs: self.gcs.1,
             ..*self.counters.borrow()
         }
+    }
+
+    /// The readings of the instrument that sends NAMED_VALUE_FLOAT `name` on this link (the
+    /// `mavlink:NAME` source), on a bounded queue of `capacity`.
+    pub fn named_values(&self, name: &str, capacity: usize) -> mpsc::Receiver<crate::sensor::Input> {
+        let (tx, rx) = mpsc::channel(capacity);
+        let source = named::NamedSource::new(name.to_string(), tx);
+        let _ = self.driver.commands.send(Command::Listen(Box::new(source)));
+        rx
     }
 
     /// The driving handle, for a task of its own.

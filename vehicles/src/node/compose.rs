@@ -37,7 +37,11 @@ pub fn open_bridge(
         return Ok(None);
     }
     let spec = bridge_spec(args, mission, grid)?;
-    let address = if address == "sim" { start_sim(&spec)? } else { address };
+    let address = if address == "sim" {
+        start_sim(&spec, m.sim_companion_port)?
+    } else {
+        address
+    };
     let (gcs_tx, gcs_rx) = mpsc::unbounded_channel();
     Ok(Some((Bridge::connect(&address, spec, Some(gcs_tx))?, gcs_rx)))
 }
@@ -96,21 +100,34 @@ fn autopilot_key(m: &MavlinkConfig, id: &str) -> anyhow::Result<Option<(SigningK
 }
 
 /// A simulated autopilot in this process, served as SITL serves one (`udpin:` on a free
-/// loopback port, signed with the link's key when there is one); the address to reach it.
+/// loopback port, signed with the link's key when there is one; a companion link on
+/// `companion_port` + its system id when the mission asks); the address to reach it.
 /// It runs until the process ends.
-fn start_sim(spec: &BridgeSpec) -> anyhow::Result<String> {
+fn start_sim(spec: &BridgeSpec, companion_port: Option<u16>) -> anyhow::Result<String> {
     let port = std::net::UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
     let signing = spec
         .signing
         .as_ref()
         .map(|(k, _)| LinkSigning::new(k.clone(), LINK_AUTOPILOT, false));
     let sim = SimAutopilot::new(spec.vehicle.clone(), spec.home);
-    serve::spawn(
+    let companion = companion_port
+        .map(|p| p.checked_add(spec.vehicle.sysid as u16))
+        .map(|p| p.ok_or_else(|| fleet_exit::bad_input(anyhow::anyhow!("[mavlink] sim_companion_port: too high"))))
+        .transpose()?
+        .map(|p| format!("udpin:127.0.0.1:{p}"));
+    serve::spawn_routed(
         &format!("udpin:127.0.0.1:{port}"),
+        companion.as_deref(),
         sim,
         signing,
         Arc::new(AtomicBool::new(false)),
-    )?;
+    )
+    .with_context(|| {
+        format!(
+            "the simulated autopilot's companion link {}",
+            companion.unwrap_or_default()
+        )
+    })?;
     Ok(format!("udpout:127.0.0.1:{port}"))
 }
 

@@ -621,8 +621,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         b
     });
     let (source, instrument) = instrument_of(&args, &mission, &brain, (grid, frames), truth.is_some())?;
-    let lines = vehicles::sensor::open(&source, mission.mavlink.site(&grid), grid)
-        .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("sensor source {source}: {e}")))?;
+    let lines = open_source(&source, bridge.as_ref(), &mission, grid)?;
     let (plans_tx, plans) = mpsc::unbounded_channel();
     let (driven_tx, driven) = mpsc::unbounded_channel();
     let inputs = Inputs {
@@ -680,6 +679,22 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The instrument's stream: NAMED_VALUE_FLOAT from the bridge for `mavlink:NAME`, else the
+/// source's own reader (none for the simulated sensor).
+fn open_source(
+    source: &SensorSource,
+    bridge: Option<&Bridge>,
+    mission: &MissionConfig,
+    grid: Grid,
+) -> anyhow::Result<Option<mpsc::Receiver<Input>>> {
+    match (source, bridge) {
+        // (A mavlink source without an autopilot link was refused when it was chosen.)
+        (SensorSource::Mavlink(name), Some(b)) => Ok(Some(b.named_values(name, vehicles::sensor::QUEUE))),
+        _ => vehicles::sensor::open(source, mission.mavlink.site(&grid), grid)
+            .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("sensor source {source}: {e}"))),
+    }
+}
+
 /// This vehicle's sensor source (`--sensor`, else the mission's `[sensors]`) and, unless it
 /// is the simulated one, its instrument.
 fn instrument_of(
@@ -695,7 +710,13 @@ fn instrument_of(
             .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("--sensor {e}")))?,
         None => mission.sensor_of(&args.id),
     };
-    check_source(&source, brain.kind, mission.clock().is_some())
+    let autopilot = args.autopilot.as_deref().unwrap_or(&mission.mavlink.autopilot) != "none";
+    let m = fleet_mission::instrument::source::Mission {
+        timed: mission.clock().is_some(),
+        truth: has_truth,
+        autopilot,
+    };
+    check_source(&source, brain.kind, m)
         .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("sensor source {source} for {}: {e}", args.id)))?;
     if source == SensorSource::Sim && !has_truth {
         return Err(fleet_exit::bad_input(anyhow::anyhow!(

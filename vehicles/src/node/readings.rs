@@ -52,6 +52,15 @@ impl Instrument {
                 .map(|p| self.collected.add(&p, self.sigma)),
             Input::Line(Line::Oversized(n)) => Err((Refusal::Oversized, format!("a line of {n} bytes"))),
             Input::Frame(frame) => self.frame(frame, now),
+            Input::Reading(r) => r
+                .and_then(|r| self.placer.place(&r, now, self.oldest))
+                .map(|p| self.collected.add(&p, self.sigma)),
+            Input::Lost(n) => {
+                for _ in 1..n {
+                    self.tally.refuse(Refusal::Overflow, now);
+                }
+                Err((Refusal::Overflow, format!("{n} readings found the queue full")))
+            }
         };
         match kept {
             Ok(()) => self.tally.accept(),

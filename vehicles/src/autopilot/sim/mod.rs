@@ -80,8 +80,10 @@ pub struct SimAutopilot {
     pub breached: bool,
     pub breach_count: u16,
     upload: Option<Upload>,
-    /// Wall seconds since boot.
+    /// Wall seconds since boot, and UTC seconds (since 1970) at boot: its clock, as its GPS
+    /// would give it (SYSTEM_TIME).
     pub wall_s: f64,
+    pub boot_unix_s: f64,
     /// Charge used (mAh), and the draw now (A).
     pub consumed_mah: f64,
     draw_a: f64,
@@ -122,6 +124,9 @@ impl SimAutopilot {
             breach_count: 0,
             upload: None,
             wall_s: 0.0,
+            boot_unix_s: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0.0, |d| d.as_secs_f64()),
             consumed_mah,
             draw_a: IDLE_DRAW_A,
             failsafe: None,

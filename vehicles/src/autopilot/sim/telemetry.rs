@@ -1,5 +1,5 @@
 //! What the autopilot reports: HEARTBEAT, SYS_STATUS, positions at 10 Hz, and the slow
-//! messages (battery, home, mission, fence) at 1 Hz.
+//! messages (battery, home, mission, fence, UTC) at 1 Hz.
 
 use super::*;
 
@@ -113,7 +113,8 @@ impl SimAutopilot {
     }
 
     /// The messages sent once a second besides HEARTBEAT and SYS_STATUS, as ArduPilot streams
-    /// them: BATTERY_STATUS, HOME_POSITION, MISSION_CURRENT, and FENCE_STATUS while a fence is
+    /// them: BATTERY_STATUS, HOME_POSITION, MISSION_CURRENT, SYSTEM_TIME (its GPS's UTC against
+    /// its boot clock: what times a NAMED_VALUE_FLOAT), and FENCE_STATUS while a fence is
     /// enforced (MAVSDK reads battery and home only from these).
     pub fn slow(&self) -> Vec<MavMessage> {
         let (fraction, millivolts) = self.battery_now();
@@ -133,6 +134,10 @@ impl SimAutopilot {
             }),
             self.home_position(),
             self.mission_current(),
+            MavMessage::SYSTEM_TIME(SYSTEM_TIME_DATA {
+                time_unix_usec: ((self.boot_unix_s + self.wall_s) * 1e6) as u64,
+                time_boot_ms: self.time_boot_ms(),
+            }),
         ];
         out.extend(self.fence_status());
         out
