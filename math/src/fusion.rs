@@ -118,6 +118,11 @@ fn check_noise(noise: &AerialNoise) -> Result<(), FusionError> {
 /// The cells of the stride lattice aerial `me` covers: those nearer to it than to any other
 /// aerial (its Voronoi region), in lattice order. The server hands each aerial its region in
 /// its plan; the aerial senses exactly those cells ([`draw`]).
+/// Mean over cells of the squared difference of an estimate and the truth (the paper's MSE).
+pub fn mse(estimate: &[f64], truth: &[f64]) -> f64 {
+    estimate.iter().zip(truth).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / estimate.len().max(1) as f64
+}
+
 pub fn aerial_region(grid: &Grid, stride: usize, aerials: &[(f64, f64)], me: usize) -> Result<Vec<usize>, FusionError> {
     if me >= aerials.len() {
         return Err(FusionError::Input(format!("aerial {me} of {}", aerials.len())));

@@ -16,6 +16,7 @@ pub mod events;
 pub mod fence;
 pub mod holdout;
 pub mod instrument;
+pub mod offline;
 pub mod outputs;
 pub mod protocol;
 pub mod recording;

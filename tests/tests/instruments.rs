@@ -374,11 +374,41 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     assert_eq!(counts.received, good("boat-1") + flooded);
     assert_eq!(boat2.accepted, good("boat-2"));
     assert!(good("boat-2") >= 5, "boat-2's sonde sent {} values", good("boat-2"));
+    same_model_offline(&out, &dir.join("offline"));
     eprintln!(
         "flood: {flooded} hostile lines in 30 s; peak memory boat-1 {flooded_kb} kB, boat-3 {quiet_kb} kB; boat-2's \
          sonde: {} values over MAVLink",
         good("boat-2")
     );
+}
+
+/// `fleet assimilate` on the readings the live run into `out` logged makes its model again, byte
+/// for byte (the final model, and the estimate and variance at every step).
+fn same_model_offline(out: &Path, offline: &Path) {
+    let o = run(
+        "fleet",
+        &[
+            "assimilate",
+            out.join("mission.toml").to_str().unwrap(),
+            "--readings",
+            out.join("readings.ndjson").to_str().unwrap(),
+            "--out",
+            offline.to_str().unwrap(),
+        ],
+    );
+    assert!(
+        o.status.success(),
+        "fleet assimilate: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    for f in ["model.cbor", "estimate.npy", "variance.npy", "plans.json"] {
+        let (live, again) = (
+            std::fs::read(out.join(f)).unwrap(),
+            std::fs::read(offline.join(f)).unwrap(),
+        );
+        assert!(live == again, "{f}: the offline run's differs from the live run's");
+    }
+    assert!(offline.join("estimate.nc").is_file());
 }
 
 /// The frame the emulator wrote for `step` in `dir`, on the model grid.

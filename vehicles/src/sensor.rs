@@ -12,7 +12,7 @@
 //! resamples it onto the model grid there, so the node's loop receives a value per cell.
 
 use fleet_mission::grid::Grid;
-use fleet_mission::instrument::raster::{self, time_from_name};
+use fleet_mission::instrument::raster;
 use fleet_mission::instrument::{SensorSource, MAX_LINE};
 use fleet_mission::site::Site;
 use std::collections::{BTreeMap, BTreeSet};
@@ -168,14 +168,9 @@ fn read_frame(path: &Path, size: u64, site: &Site, grid: &Grid) -> Frame {
         Ok(b) => b,
         Err(e) => return refuse(e.to_string()),
     };
-    let frame = match raster::decode(&bytes) {
-        Ok(f) => f,
-        Err(why) => return refuse(why),
-    };
-    let Some(t) = frame.time.or_else(|| time_from_name(&name)) else {
-        return refuse("no time: neither a TIFF DateTime nor a _YYYYMMDDTHHMMSSZ suffix".into());
-    };
-    Ok((name, t, frame.resample(site, grid)))
+    raster::frame_on_grid(&bytes, &name, site, grid)
+        .map(|(t, values)| (name.clone(), t, values))
+        .map_err(|why| (name, why))
 }
 
 fn read_udp(socket: std::net::UdpSocket, tx: mpsc::Sender<Input>) {

@@ -1,5 +1,6 @@
 //! Subcommands of the `fleet` binary.
 
+mod assimilate;
 mod bench;
 mod dmd;
 mod experiment;
@@ -42,6 +43,8 @@ enum Command {
     Export(export::Args),
     /// Run the model server's core again on a mission's recording; the final model must match.
     Replay(replay::Args),
+    /// A mission's logged readings assimilated after the fact: the model a live run makes of them.
+    Assimilate(assimilate::Args),
     /// Zenoh configs of a secured mission: passwords, mutual TLS, access control per vehicle.
     Secure(secure::Args),
 }
@@ -56,6 +59,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Up(a) => up::run(a),
         Command::Export(a) => export::run(a),
         Command::Replay(a) => replay::run(a),
+        Command::Assimilate(a) => assimilate::run(a),
         Command::Secure(a) => secure::run(a),
     }
 }

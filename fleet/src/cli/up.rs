@@ -43,7 +43,7 @@ pub struct Args {
 }
 
 /// What a run leaves in `--out` (replaced as a whole by the next run's).
-const RUN_FILES: [&str; 15] = [
+const RUN_FILES: [&str; 16] = [
     "state",
     "logs",
     "truth.npy",
@@ -59,6 +59,7 @@ const RUN_FILES: [&str; 15] = [
     "variance.npy",
     "plans.json",
     "estimate.nc",
+    "readings.ndjson",
 ];
 
 /// A sibling binary of this executable (the workspace builds them side by side).
@@ -554,6 +555,7 @@ fn finish(
             .map_or(String::new(), |p| format!(" {}", p.display())),
         out.display()
     );
+    gather_readings(out, mission)?;
     let md = write_mission_report(out, mission, summary, offline.as_ref(), summary.dt, &command, events)?;
     println!("{md}");
     // Everything else is written first: a NetCDF that cannot be written fails the run at the
@@ -567,6 +569,27 @@ fn finish(
         t0.elapsed().as_secs_f64()
     );
     nc.map_err(|e| anyhow::Error::new(e).context("writing estimate.nc"))
+}
+
+/// The vehicles' readings logs (`state/<id>.readings.ndjson`, instrument vehicles only) as one
+/// `readings.ndjson`, in the mission's order of vehicles (nothing when no vehicle has one).
+fn gather_readings(out: &Path, mission: &MissionConfig) -> anyhow::Result<()> {
+    let logs: Vec<PathBuf> = mission
+        .vehicles()
+        .iter()
+        .map(|v| out.join("state").join(format!("{}.readings.ndjson", v.id)))
+        .filter(|p| p.is_file())
+        .collect();
+    if logs.is_empty() {
+        return Ok(());
+    }
+    let path = out.join("readings.ndjson");
+    let mut all = std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
+    for log in logs {
+        let mut f = std::fs::File::open(&log).with_context(|| format!("reading {}", log.display()))?;
+        std::io::copy(&mut f, &mut all).with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
 }
 
 /// With --web: the live view stays up `linger_s` seconds after the mission (a stop signal now

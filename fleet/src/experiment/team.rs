@@ -26,6 +26,7 @@ use crate::process::FieldSeries;
 use crate::protocol::{MeasurementBatch, Sample, VehicleKind};
 use crate::sensing::gappy;
 use faer::Mat;
+use fleet_mission::fusion::mse;
 use serde::Serialize;
 
 /// Per-step mean squared errors of the three teams, and what the fleet did.
@@ -66,10 +67,6 @@ pub struct TeamOutcome {
     pub snapshot_variances: Vec<Vec<f64>>,
     /// Model rank after the last update.
     pub rank: usize,
-}
-
-fn mse(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / a.len().max(1) as f64
 }
 
 /// Mean over cells of error^2 / reported variance.

@@ -43,6 +43,21 @@ impl Collected {
         m.n += 1;
     }
 
+    /// A frame of `step` on `grid` (a value per cell, `None` where it has none): each value a
+    /// reading at its cell's centre with the noise `sigma`.
+    pub fn add_frame(&mut self, step: u64, grid: &crate::grid::Grid, values: &[Option<f64>], sigma: f64) {
+        for (cell, v) in values.iter().enumerate().filter_map(|(c, v)| Some((c, (*v)?))) {
+            let p = Placed {
+                step,
+                cell,
+                position: grid.centre_m(grid.cell(cell)),
+                value: v,
+                sigma: None,
+            };
+            self.add(&p, sigma);
+        }
+    }
+
     /// The samples of `steps` (one per step with readings: its cells in order, each value the
     /// mean of the readings there with its own standard deviation), forgetting everything
     /// before `steps.end`.

@@ -17,6 +17,7 @@
 
 pub mod clock;
 pub mod collect;
+pub mod log;
 pub mod named;
 pub mod placer;
 pub mod raster;
@@ -25,6 +26,7 @@ pub mod source;
 
 pub use clock::MissionClock;
 pub use collect::{Collected, Tally};
+pub use log::{Entry, Logged};
 pub use named::NamedValues;
 pub use placer::{Placed, Placer};
 pub use reading::{parse_line, Reading, Refusal, MAX_LINE};

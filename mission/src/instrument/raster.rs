@@ -140,6 +140,16 @@ fn tiff_time(s: &str) -> Option<f64> {
         .map(|t| t.as_millisecond() as f64 / 1e3)
 }
 
+/// A frame file's bytes (named `name`) as the aerial takes it: its time (its DateTime, else the
+/// `_YYYYMMDDTHHMMSSZ` in its name) and its values on `grid`, or why not.
+pub fn frame_on_grid(bytes: &[u8], name: &str, site: &Site, grid: &Grid) -> Result<(f64, Vec<Option<f64>>), String> {
+    let frame = decode(bytes)?;
+    let Some(t) = frame.time.or_else(|| time_from_name(name)) else {
+        return Err("no time: neither a TIFF DateTime nor a _YYYYMMDDTHHMMSSZ suffix".into());
+    };
+    Ok((t, frame.resample(site, grid)))
+}
+
 /// The time in a file name's `_YYYYMMDDTHHMMSSZ` suffix (before the extension).
 pub fn time_from_name(name: &str) -> Option<f64> {
     let stem = name.rsplit_once('.').map_or(name, |(s, _)| s);

@@ -2,15 +2,16 @@
 //! one is refused. A reading is refused, counted and never assimilated; nothing an instrument
 //! sends can panic the node.
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 /// The longest line taken (bytes, without the newline): a reading is under 200 bytes; a
 /// source reads at most this much of a line and refuses the rest as `oversized` without
 /// holding it.
 pub const MAX_LINE: usize = 4096;
 
-/// A reading as the instrument said it.
-#[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
+/// A reading as the instrument said it (and as a readings log keeps it: serde_json writes each
+/// number so that it reads back to the same bits).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Reading {
     /// UTC seconds since 1970.
     pub t: f64,
@@ -21,7 +22,7 @@ pub struct Reading {
     pub lon: f64,
     pub value: f64,
     /// Noise standard deviation (`None`: the mission's for the vehicle's kind).
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sigma: Option<f64>,
 }
 

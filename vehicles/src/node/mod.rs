@@ -9,6 +9,7 @@
 mod compose;
 mod drive;
 mod readings;
+mod readings_log;
 
 use crate::Args;
 use drive::{drive, query_plan, Drive};
@@ -252,6 +253,9 @@ impl Vehicle {
 
     async fn on_tick(&mut self) -> anyhow::Result<()> {
         self.check_link_loss();
+        if let Some(i) = &mut self.instrument {
+            i.sync();
+        }
         self.resend_due().await?;
         let now = Instant::now();
         match self.phase {
@@ -365,7 +369,10 @@ impl Vehicle {
             let samples = i.take(steps.start as u64..steps.end as u64);
             let samples = match self.brain.kind {
                 protocol::VehicleKind::Boat => samples,
-                protocol::VehicleKind::Aerial => self.brain.seen_from_targets(e, samples, fixes),
+                protocol::VehicleKind::Aerial => {
+                    i.log_fixes(fixes.iter().map(|(&k, f)| (k, f.position)));
+                    self.brain.seen_from_targets(e, samples, fixes)
+                }
             };
             return Ok(self.brain.batch_of(e, samples));
         }
@@ -665,6 +672,9 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     v.telemetry().await;
     v.resume(state);
     v.run_loop(inputs, truth.as_ref()).await?;
+    if let Some(i) = &mut v.instrument {
+        i.sync();
+    }
     v.telemetry().await;
     v.log_link();
     info!(
@@ -725,9 +735,20 @@ fn instrument_of(
             args.id
         )));
     }
-    let instrument = (source != SensorSource::Sim)
-        .then(|| readings::Instrument::new(mission, grid, frames, brain.kind, brain.first_sensed_step()))
-        .flatten();
+    let instrument = if source == SensorSource::Sim {
+        None
+    } else {
+        let path = args.state_dir.join(format!("{}.readings.ndjson", args.id));
+        let log = readings_log::ReadingsLog::open(&path, &args.id)
+            .map_err(|e| anyhow::anyhow!("the readings log {}: {e}", path.display()))?;
+        readings::Instrument::new(
+            mission,
+            (grid, frames),
+            brain.kind,
+            brain.first_sensed_step(),
+            Some(log),
+        )
+    };
     info!(vehicle = %args.id, %source, "sensor source");
     Ok((source, instrument))
 }
@@ -739,6 +760,10 @@ impl Vehicle {
             Some(state) => {
                 let e = state.next_epoch;
                 self.brain.restore(state);
+                let open = self.brain.schedule().steps_of(e).start as u64;
+                if let Some(i) = &mut self.instrument {
+                    i.reopen(open, MissionClock::now());
+                }
                 let unacknowledged = self.outbox.depth();
                 info!(
                     vehicle = %self.brain.id,
