@@ -124,6 +124,10 @@ pub struct ServerSummary {
     /// a truth is scored this way).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub holdout: Option<crate::holdout::HoldoutScore>,
+    /// The boats' normalised innovation squared against the forecast at each boat step: the
+    /// filter's own check of its reported variance, truth or not (`fusion = "kalman"`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub innovations: Vec<crate::holdout::StepInnovation>,
 }
 
 /// The plans the server published, as `plans.json` keeps them (the boats' and aerials' places,

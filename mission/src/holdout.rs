@@ -96,6 +96,16 @@ pub fn score<'a>(held: impl IntoIterator<Item = &'a HeldOut>) -> Option<HoldoutS
     })
 }
 
+/// One step's normalised innovation squared (mean over the boats' values fused then; 1 when
+/// the reported variance is right).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct StepInnovation {
+    pub epoch: u64,
+    pub step: u64,
+    pub nis: f64,
+    pub values: usize,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -39,6 +39,14 @@ impl Schedule {
         a.min(self.frames)..a.saturating_add(self.boat_period).min(self.frames)
     }
 
+    /// The epoch step `k` belongs to.
+    pub fn epoch_of_step(&self, k: usize) -> u64 {
+        if k < self.init {
+            return 0;
+        }
+        1 + ((k - self.init) / self.boat_period) as u64
+    }
+
     /// How many epochs the mission has.
     pub fn epochs(&self) -> u64 {
         let rest = self.frames.saturating_sub(self.init);
@@ -111,6 +119,7 @@ mod tests {
         assert_eq!(s.last_seq(VehicleKind::Boat), Some(3));
         assert_eq!(s.last_seq(VehicleKind::Aerial), Some(5));
         for e in 0..s.epochs() {
+            assert!(s.steps_of(e).all(|k| s.epoch_of_step(k) == e), "epoch {e}");
             for kind in [VehicleKind::Aerial, VehicleKind::Boat] {
                 if let Some(seq) = s.seq_of(kind, e) {
                     assert_eq!(Schedule::epoch_of(kind, seq), e);

@@ -150,6 +150,8 @@ pub struct ServerCore {
     /// none), and what the estimate said of each, by step (a re-fit writes its step again).
     holdout_share: f64,
     held_out: BTreeMap<usize, Vec<crate::holdout::HeldOut>>,
+    /// The boats' innovations against the forecast, by step (a re-fit writes its steps again).
+    innovations: BTreeMap<usize, crate::kalman::Innovation>,
 }
 
 impl ServerCore {
@@ -174,6 +176,7 @@ impl ServerCore {
             checkpoints: Some(BTreeMap::new()),
             holdout_share: 0.0,
             held_out: BTreeMap::new(),
+            innovations: BTreeMap::new(),
             forced: BTreeSet::new(),
             unjournalled: BTreeSet::new(),
         })
@@ -608,6 +611,9 @@ impl ServerCore {
                 let boats = Self::samples_at(&batches, VehicleKind::Boat, k);
                 let (boats, held) = crate::holdout::split(boats, self.holdout_share, self.cfg.boat_sigma);
                 let fused = self.assim.fuse_step((k + 1 - k0) as u64, &aerial, &boats)?;
+                if let Some(i) = self.assim.take_innovation() {
+                    self.innovations.insert(k, i);
+                }
                 if self.holdout_share > 0.0 {
                     let scored = held
                         .into_iter()
@@ -845,6 +851,20 @@ impl ServerCore {
     /// The hold-out's figures so far (`None`: nothing held out).
     pub fn holdout(&self) -> Option<crate::holdout::HoldoutScore> {
         crate::holdout::score(self.held_out.values().flatten())
+    }
+
+    /// The boats' normalised innovations against the forecast at each step that fused boat
+    /// values (epochs assimilated so far), with their epoch and step.
+    pub fn innovations(&self) -> Vec<crate::holdout::StepInnovation> {
+        self.innovations
+            .range(..self.snapshots.len())
+            .map(|(&k, i)| crate::holdout::StepInnovation {
+                epoch: self.schedule.epoch_of_step(k),
+                step: k as u64,
+                nis: i.nis,
+                values: i.values,
+            })
+            .collect()
     }
 
     pub fn with_boat_speed(mut self, speed: f64) -> Self {

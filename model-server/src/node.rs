@@ -527,6 +527,7 @@ impl Server {
             link_ups: self.link_ups.clone(),
             wall_s: self.started.elapsed().as_secs_f64(),
             holdout: self.core.holdout(),
+            innovations: self.core.innovations(),
             dt: self
                 .truth
                 .as_ref()

@@ -238,6 +238,57 @@ print('ok', batches)
     ));
     assert!(said.starts_with("ok"), "{said}");
 
+    // On mission time ([time]), the NetCDF's time axis is CF time that xarray decodes to UTC
+    // datetimes, and the GeoTIFF's DateTime is when the last step began (GDAL's
+    // TIFFTAG_DATETIME).
+    let timed = dir.join("timed");
+    std::fs::create_dir_all(&timed).unwrap();
+    for f in [
+        "summary.json",
+        "estimate.npy",
+        "variance.npy",
+        "truth.npy",
+        "plans.json",
+    ] {
+        std::fs::copy(out.join(f), timed.join(f)).unwrap();
+    }
+    let mission = std::fs::read_to_string(out.join("mission.toml")).unwrap();
+    let clock = "\n[time]\nstart = \"2026-11-25T09:00:00Z\"\nstep_s = 60.0\n";
+    std::fs::write(timed.join("mission.toml"), format!("{mission}{clock}")).unwrap();
+    let (nc, geo) = (dir.join("timed.nc"), dir.join("timed-geo"));
+    let o = run(
+        "fleet",
+        &[
+            "export",
+            timed.to_str().unwrap(),
+            "--netcdf",
+            nc.to_str().unwrap(),
+            "--geotiff",
+            geo.to_str().unwrap(),
+        ],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let info = Command::new("gdalinfo")
+        .arg("-json")
+        .arg(geo.join("estimate.tif"))
+        .output()
+        .unwrap();
+    std::fs::write(dir.join("timed-info.json"), &info.stdout).unwrap();
+    let said = python(&format!(
+        "import json, numpy as np, xarray as xr
+ds = xr.open_dataset({nc:?})
+assert np.issubdtype(ds.time.dtype, np.datetime64), ds.time.dtype
+want = np.datetime64('2026-11-25T09:00:00') + np.arange(40) * np.timedelta64(60, 's')
+assert (ds.time.values == want).all(), ds.time.values[:3]
+md = json.load(open({info:?}))['metadata']['']
+assert md['TIFFTAG_DATETIME'] == '2026:11:25 09:39:00', md
+assert '2026-11-25T09:39:00Z' in md['TIFFTAG_IMAGEDESCRIPTION'], md
+print('ok')
+",
+        info = dir.join("timed-info.json"),
+    ));
+    assert!(said.starts_with("ok"), "{said}");
+
     // A damaged run: each damaged file is named on one line, exit 2, and nothing half written.
     let damaged = dir.join("damaged");
     std::fs::create_dir_all(&damaged).unwrap();

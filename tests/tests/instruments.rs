@@ -510,7 +510,9 @@ fn the_real_site_mission_runs_without_a_truth_and_is_scored_by_held_out_readings
     assert!(!out.join("truth.npy").exists(), "no truth is made or written");
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(
-        report.contains("## Held-out readings") && !report.contains("offline loop"),
+        report.contains("## Held-out readings")
+            && report.contains("## Innovations")
+            && !report.contains("offline loop"),
         "{report}"
     );
     let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
@@ -518,6 +520,11 @@ fn the_real_site_mission_runs_without_a_truth_and_is_scored_by_held_out_readings
         summary["mse"].as_array().unwrap().is_empty(),
         "nothing is scored against a truth"
     );
+    let epochs = summary["innovations"]
+        .as_array()
+        .expect("the boats' innovations per epoch")
+        .len();
+    assert!(epochs >= 5, "{epochs} epochs with innovations");
     let h = &summary["holdout"];
     let (n, mse, noise) = (
         h["readings"].as_u64().unwrap(),

@@ -88,7 +88,7 @@ fn view_of(mission: &MissionConfig, grid: Grid, truth: Option<&FieldSeries>) -> 
     });
     let mut ctx = Context::new(grid);
     ctx.vehicles = specs.iter().map(|(id, _)| id.clone()).collect();
-    let view = View::new(&mission.mission, grid, geo, lease_s, &specs, truth_steps);
+    let view = View::new(&mission.mission, grid, geo, lease_s, &specs, truth_steps).with_clock(mission.clock());
     (view, ctx)
 }
 

@@ -54,6 +54,9 @@ pub struct ModelView {
     /// Continuous-time eigenvalues `ln(lambda) / dt`, `[re, im]`.
     pub eigenvalues_ct: Vec<[f64; 2]>,
     pub forecast_steps: u64,
+    /// When the model's step began, in UTC (RFC 3339), with mission time (`[time]`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub utc: Option<String>,
 }
 
 /// The per-cell fields behind the heat maps (row-major, the model grid).
@@ -86,6 +89,8 @@ pub struct View {
     /// Messages the watch refused (not decodable, wrong grid, unknown vehicle).
     refused: u64,
     plans_taken: u64,
+    /// Mission time, when the mission has it: steps are then spans of UTC.
+    clock: Option<fleet_mission::instrument::MissionClock>,
 }
 
 /// `/api/state`: everything but the per-cell fields.
@@ -150,7 +155,14 @@ impl View {
             truth,
             refused: 0,
             plans_taken: 0,
+            clock: None,
         }
+    }
+
+    /// Steps on the mission's clock: the model's step is shown in UTC too.
+    pub fn with_clock(mut self, clock: Option<fleet_mission::instrument::MissionClock>) -> Self {
+        self.clock = clock;
+        self
     }
 
     /// Take one decoded message. Returns whether the view changed.
@@ -271,6 +283,9 @@ impl View {
             step: m.step,
             eigenvalues_ct,
             forecast_steps: m.forecast_steps,
+            utc: self
+                .clock
+                .map(|c| fleet_mission::instrument::MissionClock::rfc3339(c.time_of(m.step))),
         });
         self.fields = Some(Fields {
             version: m.version,
@@ -461,5 +476,18 @@ mod tests {
         assert!(v.apply(fused));
         assert_eq!(v.fields().unwrap().estimate, vec![1.5, 1.5, 1.5, 0.5, 0.5, 0.5]);
         assert_eq!(v.state().mse.last(), Some(&(3, 0.25)));
+        assert_eq!(v.state().model.unwrap().utc, None, "no mission time, no UTC");
+    }
+
+    #[test]
+    fn with_mission_time_the_models_step_is_shown_in_utc() {
+        let clock = fleet_mission::instrument::MissionClock {
+            start: 1_795_597_200.0,
+            step_s: 60.0,
+        };
+        let mut v = view().with_clock(Some(clock));
+        assert!(v.apply(model(1, 3.0)));
+        // Step 2 of 1-minute steps from 2026-11-25T09:00:00Z.
+        assert_eq!(v.state().model.unwrap().utc.as_deref(), Some("2026-11-25T09:02:00Z"));
     }
 }

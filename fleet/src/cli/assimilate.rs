@@ -89,6 +89,7 @@ pub fn run(args: Args) -> Result<()> {
             .as_ref()
             .map_or_else(|| mission.clock().map_or(1.0, |c| c.step_s), |t| t.dt),
         holdout: core.holdout(),
+        innovations: core.innovations(),
     };
     let path = args.out.join("summary.json");
     std::fs::write(&path, serde_json::to_string_pretty(&summary)?)

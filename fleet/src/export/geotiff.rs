@@ -52,16 +52,17 @@ fn write_one(run: &Run, field: &[f64], path: &Path) -> Result<(), ExportError> {
         image.encoder().write_tag(Tag::ModelPixelScaleTag, &scale[..])?;
         image.encoder().write_tag(Tag::ModelTiepointTag, &tie[..])?;
         image.encoder().write_tag(Tag::GeoKeyDirectoryTag, &GEO_KEYS[..])?;
-        image.encoder().write_tag(
-            Tag::ImageDescription,
-            format!(
-                "hetfleet {} of mission {}, step {}",
-                path.file_stem().unwrap_or_default().to_string_lossy(),
-                run.mission.mission,
-                run.estimate.steps - 1
-            )
-            .as_str(),
-        )?;
+        let last = run.estimate.steps - 1;
+        let utc = run.utc_of(last);
+        let at = utc.as_ref().map_or(String::new(), |t| format!(" at {t}"));
+        let what = path.file_stem().unwrap_or_default().to_string_lossy();
+        let description = format!("hetfleet {what} of mission {}, step {last}{at}", run.mission.mission);
+        image.encoder().write_tag(Tag::ImageDescription, description.as_str())?;
+        // TIFF's DateTime ("YYYY:MM:DD HH:MM:SS", here UTC): when the step began, with mission time.
+        if let Some(t) = utc.filter(|t| t.len() >= 19 && t.as_bytes()[10] == b'T') {
+            let datetime = format!("{} {}", t[..10].replace('-', ":"), &t[11..19]);
+            image.encoder().write_tag(Tag::DateTime, datetime.as_str())?;
+        }
         image.write_data(&north_up)
     })();
     if let Err(e) = written {

@@ -65,6 +65,21 @@ pub struct Run {
 }
 
 impl Run {
+    /// Seconds a step spans: the mission's clock (`[time] step_s`), else the field's own.
+    pub fn step_s(&self) -> f64 {
+        match self.mission.clock() {
+            Some(c) => c.step_s,
+            None if self.summary.dt > 0.0 => self.summary.dt,
+            None => 1.0,
+        }
+    }
+
+    /// UTC of the start of step `k`, with mission time (RFC 3339).
+    pub fn utc_of(&self, k: usize) -> Option<String> {
+        let c = self.mission.clock()?;
+        Some(fleet_mission::instrument::MissionClock::rfc3339(c.time_of(k as u64)))
+    }
+
     pub fn load(dir: &Path) -> Result<Self> {
         let need = |name: &'static str| {
             let p = dir.join(name);

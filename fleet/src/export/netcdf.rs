@@ -18,8 +18,7 @@ pub fn write(run: &Run, path: &Path) -> Result<(), ExportError> {
         w.set_def(&ds, Version::Classic, 0)?;
         let (x, y) = run.axes_m();
         let (lon, lat) = run.axes_deg();
-        let dt = if run.summary.dt > 0.0 { run.summary.dt } else { 1.0 };
-        let time: Vec<f64> = (0..run.estimate.steps).map(|k| k as f64 * dt).collect();
+        let time: Vec<f64> = (0..run.estimate.steps).map(|k| k as f64 * run.step_s()).collect();
         let step: Vec<i32> = (0..run.estimate.steps).map(|k| k as i32).collect();
         w.write_var_f64("time", &time)?;
         w.write_var_i32("step", &step)?;
@@ -41,6 +40,12 @@ pub fn write(run: &Run, path: &Path) -> Result<(), ExportError> {
     std::fs::rename(&tmp, path).map_err(|e| failed(e.to_string()))
 }
 
+/// A CF `since` date: UTC, `YYYY-MM-DD hh:mm:ss` (CF's own form, which every reader takes).
+fn cf_epoch(t: f64) -> String {
+    let iso = fleet_mission::instrument::MissionClock::rfc3339(t);
+    iso.trim_end_matches('Z').replacen('T', " ", 1)
+}
+
 /// Long because it is the file's schema: every dimension, variable and attribute in the order
 /// `ncdump -h` lists them.
 fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
@@ -55,13 +60,23 @@ fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
         Ok(())
     };
     ds.add_var_f64("time", &["time"])?;
+    // With mission time a step is a span of UTC, and the axis is CF time (xarray decodes it to
+    // datetime64); without it, the field's own seconds since the first step.
+    let (long_name, units) = match run.mission.clock() {
+        Some(c) => (
+            "the start of the step in UTC",
+            format!("seconds since {}", cf_epoch(c.start)),
+        ),
+        None => ("the field's own time since the mission's first step", "s".to_string()),
+    };
     text(
         &mut ds,
         "time",
         &[
             ("standard_name", "time"),
-            ("long_name", "the field's own time since the mission's first step"),
-            ("units", "s"),
+            ("long_name", long_name),
+            ("units", &units),
+            ("calendar", "standard"),
             ("axis", "T"),
         ],
     )?;

@@ -146,6 +146,7 @@ pub fn write_mission_report(
         r.mse_plot(offline, dir)?;
     }
     r.holdout()?;
+    r.innovations()?;
     r.fleet()?;
     r.eigenvalues(dt)?;
     std::fs::write(dir.join("report.md"), &r.md)?;
@@ -343,6 +344,40 @@ impl MissionReport<'_> {
             "| normalised squared error (1: calibrated) | {:.2} |\n",
             h.normalised
         )?;
+        Ok(())
+    }
+
+    /// The boats' innovations against the forecast, per epoch: the filter's check of its own
+    /// reported variance, without a truth.
+    fn innovations(&mut self) -> anyhow::Result<()> {
+        use std::fmt::Write as _;
+        let steps = &self.summary.innovations;
+        if steps.is_empty() {
+            return Ok(());
+        }
+        let (n, nis): (usize, f64) = steps
+            .iter()
+            .fold((0, 0.0), |(n, s), i| (n + i.values, s + i.nis * i.values as f64));
+        writeln!(
+            self.md,
+            "## Innovations
+"
+        )?;
+        writeln!(
+            self.md,
+            "The boats' values against the forecast before they were fused, each squared and divided by what the filter \
+                expected there (its variance plus the value's noise): 1 when the reported variance is right, above 1 \
+                overconfident. Over the mission: **{:.2}** ({n} values).\n",
+            nis / n.max(1) as f64
+        )?;
+        writeln!(
+            self.md,
+            "| epoch | step | values | normalised innovation squared |\n|---|---|---|---|"
+        )?;
+        for i in steps {
+            writeln!(self.md, "| {} | {} | {} | {:.2} |", i.epoch, i.step, i.values, i.nis)?;
+        }
+        writeln!(self.md)?;
         Ok(())
     }
 

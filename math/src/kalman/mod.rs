@@ -461,6 +461,34 @@ impl ModalFilter {
     }
 }
 
+/// How far one step's values fell from the forecast, against how far the filter expected
+/// (its variance there plus the values' noise): the normalised innovation squared, mean over
+/// the values (1 when the reported variance is right; above, the filter is overconfident). Needs
+/// no truth: it is how a run in the field checks its own uncertainty.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Innovation {
+    /// Mean of `(value - forecast)^2 / (forecast variance + noise variance)`.
+    pub nis: f64,
+    /// Values it is the mean over.
+    pub values: usize,
+}
+
+impl Innovation {
+    /// The innovations of `values` at `cells` (noise variances `noise_var`) against `prior`.
+    pub fn of(prior: &Prior, cells: &[usize], values: &[f64], noise_var: &[f64]) -> Self {
+        let sum: f64 = cells
+            .iter()
+            .zip(values)
+            .zip(noise_var)
+            .map(|((&c, v), r)| (v - prior.mean[c]).powi(2) / (prior.variance[c] + r).max(1e-300))
+            .sum();
+        Self {
+            nis: sum / cells.len().max(1) as f64,
+            values: cells.len(),
+        }
+    }
+}
+
 /// The forecast's mean and variance per cell, and its detail's variance, before an update.
 #[derive(Debug, Clone)]
 pub struct Prior {
@@ -516,6 +544,38 @@ mod tests {
     use super::*;
     use rand::SeedableRng;
     use rand_distr::{Distribution, Normal};
+
+    /// Values drawn with exactly the spread the filter expects (its variance plus each value's
+    /// noise) give a normalised innovation of 1: within 4 standard errors (the ratio of a
+    /// Gaussian square to its variance has variance 2) over 20,000 values; twice the spread
+    /// gives 4.
+    #[test]
+    fn the_normalised_innovation_is_one_when_the_variance_is_right() {
+        let n = 20_000;
+        let prior = Prior {
+            mean: (0..n).map(|i| (i as f64).sin()).collect(),
+            variance: (0..n).map(|i| 0.01 + 0.001 * (i % 7) as f64).collect(),
+            detail_var: vec![0.0; n],
+        };
+        let cells: Vec<usize> = (0..n).collect();
+        let noise: Vec<f64> = (0..n).map(|i| 0.0004 * (1 + i % 3) as f64).collect();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        let z = Normal::new(0.0, 1.0).unwrap();
+        let draw = |scale: f64, rng: &mut rand_chacha::ChaCha8Rng| -> Vec<f64> {
+            (0..n)
+                .map(|c| prior.mean[c] + scale * (prior.variance[c] + noise[c]).sqrt() * z.sample(rng))
+                .collect()
+        };
+        let right = Innovation::of(&prior, &cells, &draw(1.0, &mut rng), &noise);
+        assert_eq!(right.values, n);
+        assert!((right.nis - 1.0).abs() < 4.0 * (2.0 / n as f64).sqrt(), "{}", right.nis);
+        let wide = Innovation::of(&prior, &cells, &draw(2.0, &mut rng), &noise);
+        assert!(
+            (wide.nis - 4.0).abs() < 4.0 * 4.0 * (2.0 / n as f64).sqrt(),
+            "{}",
+            wide.nis
+        );
+    }
 
     /// A 3-mode rotation-and-decay system on 40 cells with an orthonormal basis.
     fn system(n: usize) -> (Mat<f64>, Mat<f64>) {

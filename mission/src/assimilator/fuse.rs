@@ -232,6 +232,7 @@ impl Assimilator {
         };
         f.update_detail(&[dense, boats])?;
         if !cells.is_empty() {
+            s.innovation = Some(kalman::Innovation::of(&prior, cells, vals, &boat_vars));
             f.adapt_noise(&prior, cells, vals, boat_var);
             let grid = self.setup.grid;
             s.displacement = learn_displacement(s.displacement, &grid, &prior, cells, vals, &boat_vars)?;

@@ -65,6 +65,9 @@ pub struct AssimilatorState {
     /// `fusion = "kalman"`: the modal filter, and how many steps past the newest snapshot its
     /// state is.
     filter: Option<(ModalFilter, u64)>,
+    /// The boats' innovations against the forecast at the last step that had boat values
+    /// (taken by [`Assimilator::take_innovation`]).
+    innovation: Option<kalman::Innovation>,
 }
 
 /// The assimilator's state between two epochs, to come back to.
@@ -121,6 +124,7 @@ impl Assimilator {
             boat_positions,
             aerial_positions,
             filter: None,
+            innovation: None,
         };
         Ok(Self { setup, state })
     }
@@ -188,6 +192,11 @@ impl Assimilator {
     }
 
     /// The model's rank (0 before the first fit).
+    /// The boats' innovations of the last step [`Self::fuse_step`] fused boat values in, once.
+    pub fn take_innovation(&mut self) -> Option<kalman::Innovation> {
+        self.state.innovation.take()
+    }
+
     pub fn rank(&self) -> usize {
         self.state.model.as_ref().map_or(0, |m| m.rank())
     }
