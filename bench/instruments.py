@@ -4,7 +4,8 @@ usage: python3 bench/instruments.py [--seeds 10] [--step-s 1.0] [--out DIR]
 
 For each seed, the tiny mission (its `[team] seed` set, so the truth is the seed's) runs five
 times on the clock (`[time]`, steps of `--step-s`) with `fleet up`, all runs at once on their
-own ports:
+own ports (`--together` seeds at a time, so 2 cores are not overloaded: a boat whose plan
+comes late senses where its old plan said, and that confounds the arms):
   - `sim`: every vehicle senses the truth itself (the simulated sensors);
   - `udp`: boat-1 and boat-2 read UDP sensor ports and boat-3 its standard input, fed by
     `instrument_emulator` (a separate process that hears where each boat really is from the
@@ -34,10 +35,19 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 T975 = {9: 2.262, 10: 2.228, 11: 2.201, 12: 2.179, 14: 2.145, 19: 2.093, 29: 2.045}
 
 
+RESERVED = set()
+
+
 def free_port(kind=socket.SOCK_STREAM):
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A port free now and not handed out before in this run (the runs start at once: a port
+    free now may be another run's before its node binds it)."""
+    while True:
+        with socket.socket(socket.AF_INET, kind) as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        if port not in RESERVED:
+            RESERVED.add(port)
+            return port
 
 
 def mission(path, seed, start, step_s, boat_ports, frame_dirs, point=False, companion=None):
@@ -65,15 +75,21 @@ def mission(path, seed, start, step_s, boat_ports, frame_dirs, point=False, comp
 def companion_base():
     """A base port whose next 5 UDP ports are free (a simulated autopilot's companion link is the
     base plus its system id)."""
+    import random
     while True:
-        base = free_port(socket.SOCK_DGRAM)
+        # Below the kernel's ephemeral range (32768 up): no socket bound to port 0 takes it
+        # before the autopilots bind it.
+        base = random.randrange(20000, 32000)
+        if any(base + i in RESERVED for i in range(1, 6)):
+            continue
         try:
             for i in range(1, 6):
                 with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
                     s.bind(("127.0.0.1", base + i))
-            return base
         except OSError:
             continue
+        RESERVED.update(base + i for i in range(1, 6))
+        return base
 
 
 def start_run(dir_, seed, start, step_s, arm, bins):
@@ -113,23 +129,27 @@ def main():
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--step-s", type=float, default=1.0)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--together", type=int, default=2,
+                    help="seeds run at once (each its five arms): more overloads 2 cores, and late plans confound")
     a = ap.parse_args()
     out = a.out or tempfile.mkdtemp(prefix="hetfleet-instruments-")
     bins = {b: os.path.join(ROOT, "target/release", b) for b in ("fleet", "instrument_emulator")}
     arms = ("sim", "udp", "all", "sim0", "mavlink")
-    start = int(time.time()) + 30 + 3 * a.seeds
-    runs = {}
-    for seed in range(a.seeds):
-        for arm in arms:
-            d = os.path.join(out, f"seed{seed}-{arm}")
-            runs[(seed, arm)] = (d, *start_run(d, seed, start, a.step_s, arm, bins))
     mse = {}
-    for (seed, arm), (d, fleet, procs) in runs.items():
-        if fleet.wait() != 0:
-            raise SystemExit(f"fleet up failed: see {d}/up.log")
-        for p in procs:
-            p.wait()
-        mse[(seed, arm)] = json.load(open(os.path.join(d, "run", "summary.json")))["mean_mse"]
+    for wave in range(0, a.seeds, a.together):
+        seeds = range(wave, min(a.seeds, wave + a.together))
+        start = int(time.time()) + 20 + 2 * len(seeds) * len(arms)
+        runs = {}
+        for seed in seeds:
+            for arm in arms:
+                d = os.path.join(out, f"seed{seed}-{arm}")
+                runs[(seed, arm)] = (d, *start_run(d, seed, start, a.step_s, arm, bins))
+        for (seed, arm), (d, fleet, procs) in runs.items():
+            if fleet.wait() != 0:
+                raise SystemExit(f"fleet up failed: see {d}/up.log")
+            for p in procs:
+                p.wait()
+            mse[(seed, arm)] = json.load(open(os.path.join(d, "run", "summary.json")))["mean_mse"]
     result = {"seeds": a.seeds, "step_s": a.step_s, "out": out}
     for arm in arms:
         result[f"{arm}_mean_mse"] = [mse[(s, arm)] for s in range(a.seeds)]

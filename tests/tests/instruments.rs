@@ -76,17 +76,16 @@ fn udp_port() -> u16 {
 }
 
 /// A base port whose next `n` UDP ports are free now (a simulated autopilot's companion link
-/// is the base plus its system id).
+/// is the base plus its system id), below the kernel's ephemeral range (32768 up), so no socket
+/// bound to port 0 takes one before the autopilots bind them.
 fn companion_base(n: u16) -> u16 {
+    let mut candidate = 20_000 + (std::process::id() % 10_000) as u16;
     loop {
-        let base = udp_port();
-        let free = (1..=n).all(|i| {
-            base.checked_add(i)
-                .is_some_and(|p| UdpSocket::bind(("127.0.0.1", p)).is_ok())
-        });
+        let free = (1..=n).all(|i| UdpSocket::bind(("127.0.0.1", candidate + i)).is_ok());
         if free {
-            return base;
+            return candidate;
         }
+        candidate = 20_000 + (candidate - 20_000 + n + 1) % 12_000;
     }
 }
 
