@@ -77,9 +77,10 @@ fn udp_port() -> u16 {
 
 /// A base port whose next `n` UDP ports are free now (a simulated autopilot's companion link
 /// is the base plus its system id), below the kernel's ephemeral range (32768 up), so no socket
-/// bound to port 0 takes one before the autopilots bind them.
-fn companion_base(n: u16) -> u16 {
-    let mut candidate = 20_000 + (std::process::id() % 10_000) as u16;
+/// bound to port 0 takes one before the autopilots bind them. Tests running at once give
+/// different `salt`s (they share the process id the search starts from).
+fn companion_base(n: u16, salt: u16) -> u16 {
+    let mut candidate = 20_000 + ((std::process::id() as u16 % 5_000) + salt) % 12_000;
     loop {
         let free = (1..=n).all(|i| UdpSocket::bind(("127.0.0.1", candidate + i)).is_ok());
         if free {
@@ -228,7 +229,7 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
         udp: vec![("boat-1", udp_port())],
         stdin: Some("boat-3"),
         mavlink: vec!["boat-2"],
-        companion_base: companion_base(5),
+        companion_base: companion_base(5, 0),
         frames: vec!["av-1", "av-2"],
     };
     let gcs = udp_port();
@@ -490,7 +491,7 @@ fn the_real_site_mission_runs_without_a_truth_and_is_scored_by_held_out_readings
         udp: vec![("boat-1", udp_port()), ("boat-3", udp_port())],
         stdin: None,
         mavlink: vec!["boat-2"],
-        companion_base: companion_base(5),
+        companion_base: companion_base(5, 6_000),
         frames: vec!["av-1", "av-2"],
     };
     let gcs = udp_port();

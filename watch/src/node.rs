@@ -164,7 +164,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let server = serve_http(&args, view.clone(), rx, credential).await?;
     // A client like any vehicle; under the secure configs, as the observer (read-only).
     let network = mission.network.for_node(fleet_mission::security::OBSERVER);
-    let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &network)?).await?;
+    let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &network, &mission.link)?).await?;
     let inputs = Inputs::declare(&session, &keys).await?;
     follow(&session, &keys, &ctx, &view, &inputs, &tx).await?;
     server.abort();
@@ -191,7 +191,11 @@ async fn follow(
             s = inputs.telemetry.recv_async() => if let Ok(s) = s { dirty |= take(view, fleet_net::decode(&s, ctx)) },
             s = inputs.status.recv_async() => if let Ok(s) = s { dirty |= take(view, fleet_net::decode(&s, ctx)) },
             s = inputs.models.recv_async() => if let Ok(s) = s {
-                dirty |= take(view, fleet_net::decode(&s, ctx));
+                // The model is shown at once; its plans follow when the server answers (a
+                // server gone away must not hold the view).
+                if take(view, fleet_net::decode(&s, ctx)) {
+                    tx.send_replace(Arc::new(Snapshot::of(&view.lock().expect("view lock"))));
+                }
                 dirty |= ask_plans(session, keys, ctx, view).await;
             },
             s = inputs.links.recv_async() => if let Ok(s) = s {
@@ -219,17 +223,21 @@ async fn follow(
 async fn ask_plans(session: &fleet_net::zenoh::Session, keys: &Keys, ctx: &Context, view: &Mutex<View>) -> bool {
     let next = view.lock().expect("view lock").state().model.map(|m| m.epoch + 1);
     let Some(next) = next else { return false };
-    let mut changed = false;
-    for id in &ctx.vehicles {
-        changed |= ask(session, format!("{}?epoch={next}", keys.plan(id)), view, ctx).await;
-    }
-    changed
+    let asks = ctx
+        .vehicles
+        .iter()
+        .map(|id| ask(session, format!("{}?epoch={next}", keys.plan(id)), view, ctx));
+    futures_util::future::join_all(asks).await.into_iter().any(|c| c)
 }
+
+/// How long the view waits for the server's answer (it is at the base, on the server's side of
+/// any radio): a server gone away costs this, not Zenoh's default 10 s a query.
+const ASK_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(2);
 
 /// Query `selector` and apply every reply. Returns whether the view changed.
 async fn ask(session: &fleet_net::zenoh::Session, selector: String, view: &Mutex<View>, ctx: &Context) -> bool {
     let mut changed = false;
-    if let Ok(replies) = session.get(selector).await {
+    if let Ok(replies) = session.get(selector).timeout(ASK_TIMEOUT).await {
         while let Ok(r) = replies.recv_async().await {
             if let Ok(s) = r.result() {
                 changed |= take(view, fleet_net::decode(s, ctx));
