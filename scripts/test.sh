@@ -14,13 +14,15 @@ if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pyma
     numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2 pymavlink==2.4.50 xarray mcap mavsdk==4.1.0
 fi
 # Debian's chromium for the live view's browser test, gdal-bin for the GeoTIFF test, DejaVu
-# for the charts' text.
+# for the charts' text, nftables and iproute2's tc for the radio test's shaped link.
 missing=()
+command -v nft >/dev/null || missing+=(nftables)
+command -v tc >/dev/null || missing+=(iproute2)
 command -v chromium >/dev/null || missing+=(chromium)
 command -v gdalinfo >/dev/null || missing+=(gdal-bin)
 [ -e /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf ] || missing+=(fonts-dejavu-core)
 if [ ${#missing[@]} -gt 0 ]; then
-  echo "== installing ${missing[*]} (the live view's browser test, the GeoTIFF test, the charts' font)"
+  echo "== installing ${missing[*]} (the live view's browser test, the GeoTIFF test, the charts' font, the radio test)"
   export DEBIAN_FRONTEND=noninteractive
   apt-get update -q >/dev/null && apt-get install -y -q "${missing[@]}" >/dev/null
 fi

@@ -185,6 +185,68 @@ impl Default for Pace {
     }
 }
 
+/// The radio between the vehicles and the base: what crosses it besides the mission's own data,
+/// and how long a question over it may take. The defaults fit a SiK-class telemetry radio
+/// (64 kbit/s on air, shared by the fleet, a few hundred ms of round trip).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Link {
+    /// The link's rate (kbit/s) and round trip (ms): a plan reply's transfer time and the
+    /// round trip bound how long a vehicle waits for an answer before it asks again.
+    pub rate_kbps: f64,
+    pub rtt_ms: u64,
+    /// Each periodic message of the autopilot's stream (position, status, battery) goes to the
+    /// ground stations at most this often (Hz); events (text, command and mission replies,
+    /// parameters) always go. The full stream stays on the vehicle.
+    pub mavlink_hz: f64,
+}
+
+impl Default for Link {
+    fn default() -> Self {
+        Self {
+            rate_kbps: 64.0,
+            rtt_ms: 300,
+            mavlink_hz: 1.0,
+        }
+    }
+}
+
+impl Link {
+    fn check(&self) -> Result<(), ConfigError> {
+        if !(self.rate_kbps.is_finite() && self.rate_kbps > 0.0) {
+            return Err(field("link", format!("rate_kbps = {}", self.rate_kbps), "must be > 0"));
+        }
+        if !(self.mavlink_hz.is_finite() && self.mavlink_hz >= 0.0) {
+            return Err(field(
+                "link",
+                format!("mavlink_hz = {}", self.mavlink_hz),
+                "must be >= 0",
+            ));
+        }
+        Ok(())
+    }
+
+    /// How long the autopilot's periodic frames wait to share one put to the gateway: one
+    /// period of the forwarded stream, at most a second (none when nothing periodic goes).
+    pub fn mavlink_linger(&self) -> std::time::Duration {
+        let period = if self.mavlink_hz > 0.0 {
+            1.0 / self.mavlink_hz
+        } else {
+            0.0
+        };
+        std::time::Duration::from_secs_f64(period.min(1.0))
+    }
+
+    /// How long a question whose answer is `bytes` long may take over the link: its round trip
+    /// and the answer's transfer at the link's rate, four times over (a lossy link resends),
+    /// and never less than 2 s.
+    pub fn answer_within(&self, bytes: usize) -> std::time::Duration {
+        let transfer_s = bytes as f64 * 8.0 / (self.rate_kbps * 1000.0);
+        let s = 4.0 * (self.rtt_ms as f64 / 1000.0 + transfer_s);
+        std::time::Duration::from_secs_f64(s.max(2.0))
+    }
+}
+
 /// Vehicle kinematics (metres per step on the model grid, 1 m cells).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -393,6 +455,9 @@ pub struct MissionConfig {
     pub network: Network,
     #[serde(default)]
     pub pace: Pace,
+    /// The radio between the vehicles and the base (`[link]`).
+    #[serde(default)]
+    pub link: Link,
     #[serde(default)]
     pub motion: Motion,
     #[serde(default)]
@@ -455,6 +520,7 @@ impl MissionConfig {
             return Err(field("motion", None, "speeds must be > 0"));
         }
         cfg.mavlink.check()?;
+        cfg.link.check()?;
         if cfg.pace.horizon == 0 {
             return Err(field("pace", None, "horizon must be >= 1"));
         }

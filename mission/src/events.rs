@@ -64,6 +64,12 @@ pub enum ServerEvent {
     /// A vehicle says the server acknowledged batches the journal does not hold (a journal
     /// deleted, replaced or rolled back): they are lost, and the epochs that need them wait.
     Lost { vehicle: VehicleId, seqs: Vec<u64> },
+    /// The next epoch has waited `waited_s` for these vehicles' batches; why each is behind.
+    Waiting {
+        epoch: u64,
+        waited_s: f64,
+        behind: BTreeMap<VehicleId, String>,
+    },
     /// Every step is in the model.
     Finished { summary: Box<ServerSummary> },
 }
@@ -128,6 +134,9 @@ pub struct ServerSummary {
     /// filter's own check of its reported variance, truth or not (`fusion = "kalman"`).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub innovations: Vec<crate::holdout::StepInnovation>,
+    /// Each vehicle's link traffic, as its last telemetry said (payload bytes by key).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub traffic: BTreeMap<VehicleId, crate::protocol::LinkTraffic>,
 }
 
 /// The plans the server published, as `plans.json` keeps them (the boats' and aerials' places,

@@ -784,13 +784,16 @@ impl ServerCore {
         )
     }
 
-    /// The ack of a vehicle: the highest seq up to which all of its batches are in the model
-    /// (`None` before its first).
+    /// The ack of a vehicle: the highest seq up to which all of its batches are here (`None`
+    /// before its first).
     pub fn ack(&self, vehicle: &VehicleId) -> Option<Ack> {
         let index = self.vehicles.index_of(vehicle)?;
         let kind = self.vehicles.at(index).kind;
         let mut seq = None;
-        for e in 0..self.epoch {
+        // Every batch taken is in the journal (the node journals before it acknowledges), so the
+        // vehicle may drop it once it is here, assimilated or not: a boat whose epoch waits for
+        // a slower one does not send its batch again and again over the radio meanwhile.
+        for e in 0..self.schedule.epochs() {
             let Some(s) = self.schedule.seq_of(kind, e) else {
                 continue;
             };

@@ -8,7 +8,7 @@ use fleet_exit::bad_input;
 use fleet_mission::config::MissionConfig;
 use fleet_mission::events::{Percentiles, ServerEvent, ServerSummary};
 use fleet_mission::process::FieldSeries;
-use fleet_mission::protocol::{self, keys::Keys, Body, Context, ServerStatus, VehicleId};
+use fleet_mission::protocol::{self, keys::Keys, AutopilotLink, Body, Context, ServerStatus, VehicleId};
 use fleet_mission::recording::{self, CoreOp, Recorder, RecordingError};
 use fleet_mission::server::{EpochRecord, IngestError, Ingested, ServerCore};
 use fleet_net::store::{Store, StoreError};
@@ -28,6 +28,14 @@ struct Server {
     truth: Option<FieldSeries>,
     /// Each instrument-fed vehicle's reading counts, as its telemetry last said.
     readings: BTreeMap<VehicleId, fleet_mission::protocol::ReadingCounts>,
+    /// Each vehicle's link traffic, as its telemetry last said.
+    traffic: BTreeMap<VehicleId, fleet_mission::protocol::LinkTraffic>,
+    /// Each vehicle's last telemetry, and when it came.
+    heard: BTreeMap<VehicleId, (Instant, fleet_mission::protocol::Telemetry)>,
+    /// Why each vehicle the next epoch waits for is behind (once it has waited a while), and
+    /// when that was last said.
+    behind: BTreeMap<VehicleId, String>,
+    said_behind: Option<Instant>,
     events: bool,
     alive: BTreeSet<VehicleId>,
     link_ups: BTreeMap<VehicleId, u64>,
@@ -44,6 +52,8 @@ struct Server {
     late: Vec<(VehicleId, u64, u64)>,
     /// Vehicles already reported as having batches the journal lost.
     lost_reported: BTreeSet<VehicleId>,
+    /// Plan queries held until their plan exists.
+    held_queries: Vec<HeldQuery>,
     /// The mission's recording (`--record`): traffic and the core's operations. A recording
     /// that cannot be written is dropped with one warning; the mission goes on.
     recorder: std::sync::Mutex<Option<Recorder<std::io::BufWriter<std::fs::File>>>>,
@@ -169,7 +179,76 @@ impl Server {
             latency_p50_ms: p.p50,
             latency_p99_ms: p.p99,
             readings: self.readings.clone(),
+            behind: self.behind.clone(),
         }
+    }
+
+    /// Once the next epoch has waited [`SAY_BEHIND_AFTER`] (and every as long after), why each
+    /// vehicle it waits for is behind: in the log, as an event, and in the status.
+    fn say_behind(&mut self, since: &(u64, Instant)) {
+        let waited = since.1.elapsed();
+        if since.0 != self.core.next_epoch() || waited < SAY_BEHIND_AFTER || self.core.finished() {
+            self.behind.clear();
+            return;
+        }
+        self.behind = self
+            .core
+            .waiting_for()
+            .into_iter()
+            .map(|v| {
+                let why = self.why_behind(&v);
+                (v, why)
+            })
+            .collect();
+        let due = self.said_behind.is_none_or(|t| t.elapsed() >= SAY_BEHIND_AFTER);
+        if due && !self.behind.is_empty() {
+            self.said_behind = Some(Instant::now());
+            let waited_s = waited.as_secs_f64();
+            for (v, why) in &self.behind {
+                warn!(epoch = since.0, waited_s = format!("{waited_s:.0}"), vehicle = %v, "behind: {why}");
+            }
+            self.event(&ServerEvent::Waiting {
+                epoch: since.0,
+                waited_s,
+                behind: self.behind.clone(),
+            });
+        }
+    }
+
+    /// Why `v`'s batch is not here, from what the server knows of it.
+    fn why_behind(&self, v: &VehicleId) -> String {
+        let Some((at, t)) = self.heard.get(v) else {
+            return "never heard from: not started, or out of range since the start".into();
+        };
+        let ago = at.elapsed().as_secs_f64();
+        if !self.alive.contains(v) {
+            return format!(
+                "out of range: its link is down (last heard {ago:.0} s ago, {} batches in its outbox then); it keeps \
+                 sensing and sends them when it is back",
+                t.outbox_depth
+            );
+        }
+        if let Some(a) = t
+            .autopilot
+            .as_ref()
+            .filter(|a| !t.available() && a.link != AutopilotLink::Connecting)
+        {
+            return format!(
+                "its autopilot is in {} ({:?}): left out of the allocation",
+                a.mode, a.link
+            );
+        }
+        if t.outbox_depth > 0 {
+            return format!(
+                "its batches are on their way: {} in its outbox, link up (a slow or lossy link: last heard {ago:.0} s \
+                 ago)",
+                t.outbox_depth
+            );
+        }
+        format!(
+            "still sensing the epoch (at step {} when last heard, {ago:.0} s ago)",
+            t.step
+        )
     }
 
     /// A batch arrived on `key` at `t0`.
@@ -238,8 +317,7 @@ impl Server {
         match ingested {
             Ingested::Assimilated(epochs) => self.model_changed(session, epochs, t0, false).await?,
             Ingested::Refitted(e) => self.late.push((vehicle, seq, e)),
-            Ingested::Duplicate => self.ack(session, &vehicle).await?,
-            Ingested::Buffered => {}
+            Ingested::Duplicate | Ingested::Buffered => self.ack(session, &vehicle).await?,
         }
         Ok(())
     }
@@ -277,6 +355,7 @@ impl Server {
     ) -> anyhow::Result<()> {
         self.publish_model(session).await?;
         let latency_ms = t0.elapsed().as_secs_f64() * 1e3;
+        self.answer_held().await;
         for v in self.core.vehicles().to_vec() {
             self.ack(session, &v.id).await?;
         }
@@ -378,39 +457,80 @@ impl Server {
         Ok(())
     }
 
-    /// `plan/<id>?epoch=<e>`: the vehicle's plan from epoch `e`, or an error reply saying it
-    /// does not exist yet (the vehicle asks again).
+    /// `plan/<id>?epoch=<e>[;wait_ms=<w>]`: the vehicle's plan from epoch `e`, or, when it does
+    /// not exist yet, the query held up to `w` ms until it does (one question an epoch over the
+    /// radio instead of one every 250 ms), else an error reply saying so (the vehicle asks again).
     async fn on_plan_query(&mut self, q: zenoh::query::Query) {
         let key = q.key_expr().as_str().to_string();
         let id = self
             .keys
             .id_after(&key, "plan")
             .and_then(|id| id.parse::<VehicleId>().ok());
-        let epoch = q.parameters().get("epoch").and_then(|e| e.parse::<u64>().ok());
-        let reply = match (id, epoch) {
-            (Some(id), Some(e)) => match self.core.plan(&id, e, self.mission.pace.horizon) {
-                Some(plan) => Ok(Body::Plan(plan)),
-                None if self.core.vehicles().iter().any(|v| v.id == id) => Err(format!(
-                    "no plan for epoch {e} yet (model at epoch {})",
-                    self.core.next_epoch()
-                )),
-                None => Err(format!("unknown vehicle {id:?}")),
-            },
-            _ => Err(format!("ask {key}?epoch=<n> for a known vehicle")),
-        };
-        let sent = match reply {
-            Ok(body) => {
-                let bytes = protocol::encode(&body);
-                self.record(&key, &bytes);
-                q.reply(q.key_expr().clone(), bytes)
-                    .encoding(fleet_net::encoding())
-                    .await
+        let number = |name: &str| q.parameters().get(name).and_then(|e| e.parse::<u64>().ok());
+        let (epoch, wait_ms) = (number("epoch"), number("wait_ms").unwrap_or(0).min(MAX_HOLD_MS));
+        let known = |id: &VehicleId| self.core.vehicles().iter().any(|v| &v.id == id);
+        match (id, epoch) {
+            (Some(id), Some(e)) if known(&id) && wait_ms > 0 && self.core.plan(&id, e, self.horizon()).is_none() => {
+                self.hold(HeldQuery {
+                    query: q,
+                    vehicle: id,
+                    epoch: e,
+                    until: Instant::now() + Duration::from_millis(wait_ms),
+                })
+                .await;
             }
-            Err(why) => q.reply_err(why.into_bytes()).await,
-        };
-        if let Err(e) = sent {
-            warn!("replying to {key}: {e}");
+            (Some(id), Some(e)) => self.answer(q, &id, e).await,
+            _ => reply(q, Err(format!("ask {key}?epoch=<n> for a known vehicle"))).await,
         }
+    }
+
+    fn horizon(&self) -> u64 {
+        self.mission.pace.horizon
+    }
+
+    /// Hold a plan query until its plan exists (at most [`HELD_PER_VEHICLE`] a vehicle: the
+    /// oldest is answered that there is none yet).
+    async fn hold(&mut self, held: HeldQuery) {
+        let mine: Vec<usize> = (0..self.held_queries.len())
+            .filter(|&i| self.held_queries[i].vehicle == held.vehicle)
+            .collect();
+        if mine.len() >= HELD_PER_VEHICLE {
+            let old = self.held_queries.remove(mine[0]);
+            self.answer(old.query, &old.vehicle, old.epoch).await;
+        }
+        self.held_queries.push(held);
+    }
+
+    /// Answer the held plan queries whose plan exists now, and those whose wait is over (or
+    /// whose mission is) that there is none yet.
+    async fn answer_held(&mut self) {
+        let now = Instant::now();
+        let (due, keep): (Vec<HeldQuery>, Vec<HeldQuery>) =
+            std::mem::take(&mut self.held_queries).into_iter().partition(|h| {
+                now >= h.until || self.core.finished() || self.core.plan(&h.vehicle, h.epoch, self.horizon()).is_some()
+            });
+        self.held_queries = keep;
+        for h in due {
+            self.answer(h.query, &h.vehicle, h.epoch).await;
+        }
+    }
+
+    /// A plan query answered now: the plan (recorded), or why there is none.
+    async fn answer(&mut self, q: zenoh::query::Query, id: &VehicleId, e: u64) {
+        let body = match self.core.plan(id, e, self.horizon()) {
+            Some(plan) => Ok(Body::Plan(plan)),
+            None if self.core.vehicles().iter().any(|v| &v.id == id) => Err(format!(
+                "no plan for epoch {e} yet (model at epoch {})",
+                self.core.next_epoch()
+            )),
+            None => Err(format!("unknown vehicle {id:?}")),
+        };
+        let bytes = body.map(|b| {
+            let bytes = protocol::encode(&b);
+            self.record(q.key_expr().as_str(), &bytes);
+            bytes
+        });
+        reply(q, bytes).await;
     }
 
     async fn on_model_query(&self, q: zenoh::query::Query) {
@@ -481,6 +601,10 @@ impl Server {
         if let Some(r) = &t.readings {
             self.readings.insert(t.vehicle.clone(), r.clone());
         }
+        if let Some(traffic) = &t.traffic {
+            self.traffic.insert(t.vehicle.clone(), traffic.clone());
+        }
+        self.heard.insert(t.vehicle.clone(), (Instant::now(), t.clone()));
         let available = t.available();
         if self.core.set_available(&t.vehicle, available) {
             // Recorded only when it changed something (a call that does not is a no-op).
@@ -528,6 +652,7 @@ impl Server {
             wall_s: self.started.elapsed().as_secs_f64(),
             holdout: self.core.holdout(),
             innovations: self.core.innovations(),
+            traffic: self.traffic.clone(),
             dt: self
                 .truth
                 .as_ref()
@@ -707,7 +832,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let journal_path = args.state_dir.join(format!("{}.redb", mission.mission));
     let (journal, restored, restore) = open_journal(&journal_path, &mission.mission, &mut core, &ctx)?;
     let recorder = open_recorder(&args, &mission, &grid, frames)?;
-    let session = fleet_net::open(args.node.zenoh_config(Role::Server, &mission.network)?).await?;
+    let session = fleet_net::open(args.node.zenoh_config(Role::Server, &mission.network, &mission.link)?).await?;
     let inputs = Inputs::declare(&session, &keys).await?;
     let mut s = Server {
         keys,
@@ -715,6 +840,10 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         ctx,
         truth,
         readings: BTreeMap::new(),
+        traffic: BTreeMap::new(),
+        heard: BTreeMap::new(),
+        behind: BTreeMap::new(),
+        said_behind: None,
         events: args.events,
         alive: BTreeSet::new(),
         link_ups: BTreeMap::new(),
@@ -726,6 +855,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         lost_reported: BTreeSet::new(),
         journal,
         mission,
+        held_queries: vec![],
         recorder: std::sync::Mutex::new(recorder),
     };
     s.resume(&session, restored, restore).await?;
@@ -797,6 +927,8 @@ impl Server {
                 },
                 _ = check.tick() => self.force_if_due(session, &mut since, epoch_timeout).await?,
                 _ = tick.tick() => {
+                    self.answer_held().await;
+                    self.say_behind(&since);
                     self.note_session_refusals();
                     self.recording(|r| r.flush());
                     self.put(session, &self.keys.server_status(), &Body::Status(self.status())).await?;
@@ -876,6 +1008,39 @@ impl Server {
             info!(recording = %path.display(), "recording ended");
         }
         Ok(())
+    }
+}
+
+/// How long the next epoch waits before the server says why its vehicles are behind (and how
+/// often it says it again).
+const SAY_BEHIND_AFTER: Duration = Duration::from_secs(10);
+
+/// The longest a plan query is held for its plan.
+const MAX_HOLD_MS: u64 = 300_000;
+/// Plan queries held at once for one vehicle.
+const HELD_PER_VEHICLE: usize = 4;
+
+/// A plan query held until its plan exists.
+struct HeldQuery {
+    query: zenoh::query::Query,
+    vehicle: VehicleId,
+    epoch: u64,
+    until: Instant,
+}
+
+/// Reply to a plan query: the plan's bytes, or why not (a reply goes with its query's priority:
+/// the vehicle asks with the plan's, [`fleet_net::Traffic::Plan`]).
+async fn reply(q: zenoh::query::Query, answer: Result<Vec<u8>, String>) {
+    let sent = match answer {
+        Ok(bytes) => {
+            q.reply(q.key_expr().clone(), bytes)
+                .encoding(fleet_net::encoding())
+                .await
+        }
+        Err(why) => q.reply_err(why.into_bytes()).await,
+    };
+    if let Err(e) = sent {
+        warn!("replying to {}: {e}", q.key_expr());
     }
 }
 

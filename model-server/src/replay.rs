@@ -44,7 +44,11 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
     let keys = Keys::new(&rec.mission.mission)?;
     let mut ctx = Context::new(rec.grid);
     ctx.vehicles = rec.mission.vehicles().into_iter().map(|v| v.id).collect();
-    let session = fleet_net::open(args.node.zenoh_config(Role::Server, &rec.mission.network)?).await?;
+    let session = fleet_net::open(
+        args.node
+            .zenoh_config(Role::Server, &rec.mission.network, &rec.mission.link)?,
+    )
+    .await?;
     let e = fleet_net::NetError::zenoh;
     let plans = session
         .declare_queryable(keys.all_plans())

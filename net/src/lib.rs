@@ -4,7 +4,7 @@
 //! the protocol's encoding; the durable state ([`store`], and a vehicle's [`outbox`] over it). Nothing
 //! here knows the math; nodes stay thin.
 
-use fleet_mission::config::{ConfigError, Network};
+use fleet_mission::config::{ConfigError, Link, Network};
 use fleet_mission::protocol::{self, Body, Context, ProtocolError, ENCODING};
 use std::path::Path;
 use zenoh::bytes::Encoding;
@@ -12,6 +12,7 @@ use zenoh::sample::Sample;
 use zenoh::Session;
 
 pub mod outbox;
+pub mod rto;
 pub mod store;
 
 pub use zenoh;
@@ -88,10 +89,44 @@ fn json_list(v: &[String]) -> String {
     serde_json::to_string(v).expect("a list of strings serialises")
 }
 
+/// Transport settings for links that may be radios (unless a JSON5 file says otherwise), from
+/// the mission's `[link]`. A TCP socket's own send buffer is first in, first out and, by
+/// Linux's default, holds tens of seconds of a 64 kbit/s radio: what Zenoh wrote into it waits
+/// there whatever its priority (an ack behind a minute of ground-station MAVLink, a keep-alive
+/// behind both), and a session whose keep-alives wait longer than its lease is declared lost.
+/// So the send buffer holds about a second of the link (between 4 and 16 kB asked; Linux
+/// doubles it; on loopback or a LAN, round trips of a millisecond, it still carries megabytes a
+/// second) and the queue stays in Zenoh's own queues, where priorities order it and droppable
+/// messages are dropped; and the lease is at least four times what that buffer takes to drain
+/// (Zenoh's 10 s at 64 kbit/s, 27 s at 9.6), so a slow link is slow, not down. A blocking
+/// message (a batch) may wait a minute for room before the session is closed, rather than
+/// Zenoh's 5 s: on a radio a backlog takes that long to drain, and closing the session would
+/// only start it over.
+fn radio_transport(link: &Link) -> [(&'static str, String); 3] {
+    let bytes_per_s = link.rate_kbps * 1000.0 / 8.0;
+    let sndbuf = bytes_per_s.clamp(4096.0, 16384.0);
+    let drain_s = 2.0 * sndbuf / bytes_per_s;
+    let lease_ms = (4.0 * drain_s * 1000.0).max(10_000.0);
+    [
+        ("transport/link/tcp/so_sndbuf", format!("{}", sndbuf as u64)),
+        ("transport/link/tx/lease", format!("{}", lease_ms.ceil() as u64)),
+        (
+            "transport/link/tx/queue/congestion_control/block/wait_before_close",
+            "60000000".into(),
+        ),
+    ]
+}
+
 /// The Zenoh configuration of a node: its role's JSON5 file (from the command line or the
 /// mission, if any), then the role's mode (the server a router, vehicles clients that retry
 /// forever) and endpoints.
-pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -> Result<zenoh::Config, NetError> {
+pub fn config(
+    role: Role,
+    net: &Network,
+    link: &Link,
+    base: Option<&Path>,
+    cli: &Endpoints,
+) -> Result<zenoh::Config, NetError> {
     let file = base.map(Path::to_path_buf).or_else(|| match role {
         Role::Server => net.server_config.clone(),
         Role::Vehicle => net.vehicle_config.clone(),
@@ -140,6 +175,11 @@ pub fn config(role: Role, net: &Network, base: Option<&Path>, cli: &Endpoints) -
     if let Some(c) = connect {
         set(&mut cfg, "connect/endpoints", &c)?;
     }
+    if file.is_none() {
+        for (key, value) in radio_transport(link) {
+            set(&mut cfg, key, &value)?;
+        }
+    }
     if let Some(lease) = net.lease_ms {
         set(&mut cfg, "transport/link/tx/lease", &lease.to_string())?;
     }
@@ -171,13 +211,76 @@ pub fn encoding() -> Encoding {
     Encoding::from(ENCODING)
 }
 
-/// Put one message on `key`.
+/// What a message is to the link it crosses: how urgent, and whether Zenoh may drop it when
+/// the link is congested. On a thin radio the mission's own data (batches, their acks, plans)
+/// goes first and is never dropped; what is only a view (telemetry, the server's status, the
+/// ground stations' MAVLink) goes after it and is dropped rather than queued behind it.
+/// Liveliness is Zenoh's own control traffic, above all of these.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Traffic {
+    /// A measurement batch (also kept in the outbox until acknowledged).
+    Batch,
+    /// An acknowledgement of batches.
+    Ack,
+    /// A plan query and its reply.
+    Plan,
+    /// The model update, for observers at the base.
+    Model,
+    /// A vehicle's telemetry, the server's status.
+    Telemetry,
+    /// MAVLink frames between an autopilot and the ground stations.
+    Mavlink,
+}
+
+impl Traffic {
+    pub fn priority(self) -> zenoh::qos::Priority {
+        use zenoh::qos::Priority;
+        match self {
+            Self::Plan => Priority::InteractiveHigh,
+            Self::Ack | Self::Batch => Priority::DataHigh,
+            Self::Model => Priority::Data,
+            Self::Telemetry => Priority::DataLow,
+            Self::Mavlink => Priority::Background,
+        }
+    }
+
+    pub fn congestion(self) -> zenoh::qos::CongestionControl {
+        use zenoh::qos::CongestionControl;
+        match self {
+            Self::Plan | Self::Ack | Self::Batch | Self::Model => CongestionControl::Block,
+            Self::Telemetry | Self::Mavlink => CongestionControl::Drop,
+        }
+    }
+
+    /// The class of a protocol message.
+    pub fn of(body: &Body) -> Self {
+        match body {
+            Body::Batch(_) => Self::Batch,
+            Body::Ack(_) => Self::Ack,
+            Body::Plan(_) => Self::Plan,
+            Body::Model(_) => Self::Model,
+            _ => Self::Telemetry,
+        }
+    }
+}
+
+/// Put one message on `key`, with its class's priority and congestion control.
 pub async fn put(session: &Session, key: &str, body: &Body) -> Result<(), NetError> {
-    session
-        .put(key, protocol::encode(body))
-        .encoding(encoding())
-        .await
-        .map_err(NetError::zenoh(format!("put on {key}")))
+    put_bytes(session, key, protocol::encode(body), Traffic::of(body)).await
+}
+
+/// Put encoded bytes on `key` as `traffic`.
+pub async fn put_bytes(session: &Session, key: &str, bytes: Vec<u8>, traffic: Traffic) -> Result<(), NetError> {
+    let put = session
+        .put(key, bytes)
+        .priority(traffic.priority())
+        .congestion_control(traffic.congestion());
+    let put = if traffic == Traffic::Mavlink {
+        put
+    } else {
+        put.encoding(encoding())
+    };
+    put.await.map_err(NetError::zenoh(format!("put on {key}")))
 }
 
 /// Decode and validate a received sample (refusing oversized payloads before copying them).
@@ -374,8 +477,8 @@ impl NodeArgs {
     }
 
     /// This node's Zenoh configuration.
-    pub fn zenoh_config(&self, role: Role, net: &Network) -> Result<zenoh::Config, NetError> {
-        config(role, net, self.zenoh_config.as_deref(), &self.endpoints())
+    pub fn zenoh_config(&self, role: Role, net: &Network, link: &Link) -> Result<zenoh::Config, NetError> {
+        config(role, net, link, self.zenoh_config.as_deref(), &self.endpoints())
     }
 
     /// The Zenoh JSON5 file this node's configuration starts from, if any.
@@ -451,6 +554,32 @@ mod tests {
     }
 
     #[test]
+    fn a_slow_radio_gets_a_small_send_buffer_and_a_lease_it_can_keep() {
+        let radio = |kbps: f64| {
+            let link = Link {
+                rate_kbps: kbps,
+                ..Link::default()
+            };
+            let c = config(Role::Vehicle, &Network::default(), &link, None, &Endpoints::default()).unwrap();
+            let get = |k: &str| c.get_json(k).unwrap().trim_matches('"').parse::<u64>().unwrap();
+            (get("transport/link/tcp/so_sndbuf"), get("transport/link/tx/lease"))
+        };
+        // 64 kbit/s: 8 kB a second asked (16 kB with Linux's doubling, 2 s), Zenoh's 10 s lease.
+        assert_eq!(radio(64.0), (8000, 10_000));
+        // 9.6 kbit/s: the 4 kB floor, 6.8 s to drain the doubled buffer, four times that.
+        assert_eq!(radio(9.6), (4096, 27_307));
+        // A LAN: the 16 kB ceiling, Zenoh's lease.
+        assert_eq!(radio(100_000.0), (16384, 10_000));
+        // The mission's own lease wins.
+        let net = Network {
+            lease_ms: Some(3_000),
+            ..Network::default()
+        };
+        let c = config(Role::Server, &net, &Link::default(), None, &Endpoints::default()).unwrap();
+        assert_eq!(c.get_json("transport/link/tx/lease").unwrap(), "3000");
+    }
+
+    #[test]
     fn bundled_zenoh_configs_load_and_endpoints_take_precedence() {
         let net = Network::default();
         for f in [
@@ -465,12 +594,20 @@ mod tests {
         }
         let client = root().join("config/zenoh/client.json5");
         // The file's endpoints beat the mission's; the command line's beat both.
-        let c = config(Role::Vehicle, &net, Some(&client), &Endpoints::default()).unwrap();
+        let c = config(
+            Role::Vehicle,
+            &net,
+            &Link::default(),
+            Some(&client),
+            &Endpoints::default(),
+        )
+        .unwrap();
         assert!(c.get_json("connect/endpoints").unwrap().contains("192.0.2.10"));
         assert!(c.get_json("mode").unwrap().contains("client"));
         let c = config(
             Role::Vehicle,
             &net,
+            &Link::default(),
             Some(&client),
             &Endpoints {
                 listen: vec![],
@@ -479,12 +616,13 @@ mod tests {
         )
         .unwrap();
         assert!(c.get_json("connect/endpoints").unwrap().contains("10.0.0.1"));
-        let c = config(Role::Server, &net, None, &Endpoints::default()).unwrap();
+        let c = config(Role::Server, &net, &Link::default(), None, &Endpoints::default()).unwrap();
         assert!(c.get_json("listen/endpoints").unwrap().contains("127.0.0.1:7447"));
         assert!(c.get_json("mode").unwrap().contains("router"));
         assert!(config(
             Role::Server,
             &net,
+            &Link::default(),
             Some(Path::new("/nonexistent.json5")),
             &Endpoints::default()
         )

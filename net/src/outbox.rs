@@ -172,6 +172,15 @@ impl Outbox {
         Ok(out)
     }
 
+    /// Whether a batch that went out has waited `resend` or more at `now` (its ack is late:
+    /// the resend's wait ran out, rather than the link coming back).
+    pub fn overdue(&self, now: Instant, resend: Duration) -> bool {
+        self.held
+            .iter()
+            .filter_map(|s| self.sent.get(s))
+            .any(|&t| now.saturating_duration_since(t) >= resend)
+    }
+
     /// Batch `seq` just went out (the first send, right after its commit).
     pub fn mark_sent(&mut self, seq: u64, now: Instant) {
         self.sent.insert(seq, now);

@@ -27,7 +27,7 @@ def main():
     sample = ok[0]
     assert str(sample.encoding).startswith("application/cbor"), sample.encoding
     m = cbor2.loads(sample.payload.to_bytes())
-    assert m["v"] == 1 and m["type"] == "model", (m["v"], m["type"])
+    assert m["v"] == 2 and m["type"] == "model", (m["v"], m["type"])
     rows, cols = m["grid"]["rows"], m["grid"]["cols"]
     lam = np.array(m["eigenvalues"], dtype=float)
     r = lam.shape[0]

@@ -176,12 +176,24 @@ impl Server {
 
     /// Wait for the mission's summary (panics after `secs`).
     pub fn finished(&self, secs: u64) -> fleet::mission::report::ServerSummary {
+        self.finished_with_events(secs).0
+    }
+
+    /// The summary, and every event before it.
+    pub fn finished_with_events(
+        &self,
+        secs: u64,
+    ) -> (
+        fleet::mission::report::ServerSummary,
+        Vec<fleet::mission::report::ServerEvent>,
+    ) {
         let deadline = std::time::Instant::now() + std::time::Duration::from_secs(secs);
+        let mut seen = vec![];
         loop {
             let left = deadline.saturating_duration_since(std::time::Instant::now());
             match self.events.recv_timeout(left) {
-                Ok(fleet::mission::report::ServerEvent::Finished { summary }) => return *summary,
-                Ok(_) => {}
+                Ok(fleet::mission::report::ServerEvent::Finished { summary }) => return (*summary, seen),
+                Ok(e) => seen.push(e),
                 Err(e) => panic!("the mission did not finish in {secs} s: {e}"),
             }
         }
@@ -319,10 +331,60 @@ impl Host {
     pub fn veth(&self) -> String {
         format!("{}a", self.ns)
     }
+
+    /// The link made a radio: `kbit` kbit/s each way (1000 bit/s a kbit, as radios count) (`tc tbf`: a token bucket of one frame, a
+    /// queue of 500 ms, as a SiK radio's small buffer) and `loss_pct`% of the packets dropped
+    /// each way at random (nftables' `numgen random` on each end's ingress: this kernel has no
+    /// `netem`).
+    pub fn shape(&self, kbit: f64, loss_pct: u32) {
+        let rate = format!("{}bit", (kbit * 1000.0).round() as u64);
+        let tbf = ["root", "tbf", "rate", &rate, "burst", "1600", "latency", "500ms"];
+        let va = self.veth();
+        let vb = format!("{}b", self.ns);
+        let mut here = vec!["tc", "qdisc", "replace", "dev", &va];
+        here.extend(tbf);
+        sh(&here);
+        let mut there = vec!["ip", "netns", "exec", &self.ns, "tc", "qdisc", "replace", "dev", &vb];
+        there.extend(tbf);
+        sh(&there);
+        let loss = |prefix: &[&str], dev: &str| {
+            let table = format!("radio_{dev}");
+            let chain = format!("{{ type filter hook ingress device \"{dev}\" priority 0; }}");
+            let rule = format!("numgen random mod 100 < {loss_pct} counter drop");
+            for cmd in [
+                vec!["add", "table", "netdev", &table],
+                vec!["add", "chain", "netdev", &table, "loss", &chain],
+                vec!["add", "rule", "netdev", &table, "loss", &rule],
+            ] {
+                let mut args: Vec<&str> = prefix.to_vec();
+                args.push("nft");
+                args.extend(cmd);
+                sh(&args);
+            }
+        };
+        loss(&[], &va);
+        loss(&["ip", "netns", "exec", &self.ns], &vb);
+    }
+
+    /// Bytes this side of the link sent and received so far.
+    pub fn bytes(&self) -> (u64, u64) {
+        let read = |what: &str| -> u64 {
+            let p = format!("/sys/class/net/{}/statistics/{what}_bytes", self.veth());
+            std::fs::read_to_string(&p)
+                .unwrap_or_else(|e| panic!("{p}: {e}"))
+                .trim()
+                .parse()
+                .unwrap()
+        };
+        (read("tx"), read("rx"))
+    }
 }
 
 impl Drop for Host {
     fn drop(&mut self) {
+        let _ = std::process::Command::new("nft")
+            .args(["delete", "table", "netdev", &format!("radio_{}", self.veth())])
+            .output();
         let _ = std::process::Command::new("ip")
             .args(["netns", "del", &self.ns])
             .output();

@@ -131,6 +131,10 @@ fn wire_seeds() -> Vec<Vec<u8>> {
                 accepted: 10,
                 refused: [("too_old".to_string(), 2)].into(),
             }),
+            traffic: Some(fleet::protocol::LinkTraffic {
+                sent: [("batch".to_string(), [3, 12_000])].into(),
+                received: [("ack".to_string(), [3, 90])].into(),
+            }),
         }),
         Body::Ack(Ack {
             vehicle: "boat-1".parse().unwrap(),

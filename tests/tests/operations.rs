@@ -317,6 +317,7 @@ fn the_gateway_pins_system_ids_from_the_mission_whatever_arrives_first() {
         let cfg = fleet_net::config(
             fleet_net::Role::Vehicle,
             &m.network,
+            &m.link,
             None,
             &fleet_net::Endpoints::default(),
         )
@@ -419,6 +420,7 @@ fn fleet_up_without_a_terminal_keeps_every_notice_and_the_report_says_why_it_dif
             let cfg = fleet_net::config(
                 fleet_net::Role::Vehicle,
                 &net,
+                &fleet::mission::config::Link::default(),
                 None,
                 &fleet_net::Endpoints {
                     listen: vec![],
@@ -616,6 +618,7 @@ fn a_batch_that_decodes_but_is_invalid_is_counted_once_in_the_status() {
         let cfg = fleet_net::config(
             fleet_net::Role::Vehicle,
             &m.network,
+            &m.link,
             None,
             &fleet_net::Endpoints::default(),
         )

@@ -57,6 +57,11 @@ impl Router {
         self.refused.values().sum()
     }
 
+    /// Bytes from a vehicle's stream that are no frame (a bundle's bad tail), counted.
+    pub fn unreadable(&mut self, why: String) -> Refusal {
+        self.refuse::<()>("unreadable", why).unwrap_err()
+    }
+
     /// A frame from a vehicle's stream: it must be readable and sent as that vehicle's own
     /// system id.
     pub fn from_vehicle(&mut self, vehicle: &str, frame: &[u8]) -> Result<(MavHeader, MavMessage), Refusal> {

@@ -8,4 +8,5 @@ pub mod gateway;
 pub mod link;
 pub mod sensor;
 pub mod signing;
+pub mod throttle;
 pub mod upload;

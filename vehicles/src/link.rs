@@ -39,6 +39,38 @@ pub fn parse_frame(bytes: &[u8]) -> Result<(MavHeader, MavMessage), String> {
         .map_err(|e| format!("not a MAVLink frame: {e}"))
 }
 
+/// The frames of a bundle (frames written one after another, as a vehicle's pipe to the
+/// gateway puts them), cut by their own lengths (MAVLink 1: 8 bytes around the payload;
+/// MAVLink 2: 12, and 13 more when the signed flag is set). Each piece still goes through
+/// [`parse_frame`]; bytes that do not start a frame, or a frame cut short, end the bundle with
+/// an error after the frames before them.
+pub fn split_frames(bundle: &[u8]) -> (Vec<&[u8]>, Option<String>) {
+    let (mut frames, mut at) = (vec![], 0);
+    while at < bundle.len() {
+        let rest = &bundle[at..];
+        let len = match rest {
+            [0xFE, n, ..] => 8 + *n as usize,
+            [0xFD, n, flags, ..] => 12 + *n as usize + if flags & 0x01 != 0 { 13 } else { 0 },
+            [0xFE | 0xFD, ..] => usize::MAX,
+            _ => {
+                return (
+                    frames,
+                    Some(format!("byte {at} of {}: not the start of a frame", bundle.len())),
+                )
+            }
+        };
+        if len > rest.len() {
+            return (
+                frames,
+                Some(format!("byte {at} of {}: a frame cut short", bundle.len())),
+            );
+        }
+        frames.push(&rest[..len]);
+        at += len;
+    }
+    (frames, None)
+}
+
 /// What one read gave (a frame is moved once per read: its size is no cost worth a box).
 #[derive(Debug)]
 #[allow(clippy::large_enum_variant)]
@@ -144,5 +176,49 @@ impl MavLink {
             }
         };
         sent.map(|_| ()).map_err(|e| e.to_string())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mavlink::dialects::common::{GLOBAL_POSITION_INT_DATA, HEARTBEAT_DATA};
+
+    #[test]
+    fn a_bundle_splits_into_its_frames_and_a_bad_tail_is_named() {
+        let header = MavHeader {
+            system_id: 3,
+            component_id: 1,
+            sequence: 7,
+        };
+        let hb = frame_bytes(header, &MavMessage::HEARTBEAT(HEARTBEAT_DATA::default()));
+        let pos = frame_bytes(
+            header,
+            &MavMessage::GLOBAL_POSITION_INT(GLOBAL_POSITION_INT_DATA::default()),
+        );
+        let mut v1 = vec![];
+        let msg = MavMessage::HEARTBEAT(HEARTBEAT_DATA::default());
+        mavlink::write_versioned_msg(&mut v1, MavlinkVersion::V1, header, &msg).unwrap();
+        // A signed MAVLink 2 frame is 13 bytes longer, flagged in its incompatibility byte.
+        let mut signed = hb.clone();
+        signed[2] |= 0x01;
+        signed.extend_from_slice(&[0xAA; 13]);
+        let bundle: Vec<u8> = [&hb[..], &v1, &signed, &pos].concat();
+        let (frames, err) = split_frames(&bundle);
+        assert_eq!(err, None);
+        assert_eq!(frames, vec![&hb[..], &v1[..], &signed[..], &pos[..]]);
+        assert!(parse_frame(frames[0]).is_ok() && parse_frame(frames[1]).is_ok() && parse_frame(frames[3]).is_ok());
+        // Cut short, or garbage after good frames: the good ones, and the error.
+        let (frames, err) = split_frames(&bundle[..bundle.len() - 1]);
+        assert_eq!(frames.len(), 3);
+        assert!(err.unwrap().contains("cut short"));
+        let junk: Vec<u8> = [&hb[..], b"junk"].concat();
+        let (frames, err) = split_frames(&junk);
+        assert_eq!(frames, vec![&hb[..]]);
+        assert!(err.unwrap().contains("not the start of a frame"));
+        assert_eq!(
+            split_frames(&[0xFD]),
+            (vec![], Some("byte 0 of 1: a frame cut short".into()))
+        );
     }
 }

@@ -98,6 +98,7 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
         fence_m: vec![],
         fence_action: 1.0,
         rally: vec![],
+        mavlink_hz: f64::INFINITY,
     };
     let mut bridge = Bridge::connect(&format!("udpout:{}", ap.local_addr().unwrap()), spec, None).unwrap();
     // The bridge's companion heartbeat tells us where it is.

@@ -148,6 +148,7 @@ fn bridge_to(port: u16, key: Option<SigningKey>, accept_unsigned: bool) -> Bridg
         fence_m: vec![[0.0, 0.0], [48.0, 0.0], [48.0, 24.0], [0.0, 24.0]],
         fence_action: 1.0,
         rally: vec![Vector3::new(1.0, 1.0, 0.0), Vector3::new(1.0, 40.0, 0.0)],
+        mavlink_hz: f64::INFINITY,
     };
     Bridge::connect(&format!("udpout:127.0.0.1:{port}"), spec, None).unwrap()
 }

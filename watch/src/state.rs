@@ -381,6 +381,7 @@ mod tests {
             autopilot: None,
             acked: None,
             readings: None,
+            traffic: None,
         })
     }
 
@@ -444,6 +445,7 @@ mod tests {
             latency_p50_ms: 0.0,
             latency_p99_ms: 0.0,
             readings: Default::default(),
+            behind: Default::default(),
         };
         assert!(v.apply(Body::Status(status)));
         assert!(v.liveliness("boat-1", false, 5.0));

@@ -90,6 +90,7 @@ pub fn run(args: Args) -> Result<()> {
             .map_or_else(|| mission.clock().map_or(1.0, |c| c.step_s), |t| t.dt),
         holdout: core.holdout(),
         innovations: core.innovations(),
+        traffic: BTreeMap::new(),
     };
     let path = args.out.join("summary.json");
     std::fs::write(&path, serde_json::to_string_pretty(&summary)?)

@@ -496,6 +496,15 @@ fn on_event(
                 logs.display()
             );
         }
+        ServerEvent::Waiting {
+            epoch,
+            waited_s,
+            behind,
+        } => {
+            for (vehicle, why) in behind {
+                notices.say(format!("epoch {epoch} has waited {waited_s:.0} s for {vehicle}: {why}"));
+            }
+        }
         ServerEvent::Lost { vehicle, seqs } => notices.say(format!(
             "{vehicle}: batches {seqs:?} were acknowledged but are not in the journal: lost"
         )),

@@ -80,6 +80,15 @@ fn differences(events: &[ServerEvent], c: &Counters) -> String {
     )
 }
 
+/// "850 B", "12.3 kB".
+fn bytes_text(b: f64) -> String {
+    if b < 1000.0 {
+        format!("{b:.0} B")
+    } else {
+        format!("{:.1} kB", b / 1000.0)
+    }
+}
+
 /// "every step", "every 5 steps".
 fn every(n: usize, unit: &str) -> String {
     if n == 1 {
@@ -147,6 +156,7 @@ pub fn write_mission_report(
     }
     r.holdout()?;
     r.innovations()?;
+    r.traffic()?;
     r.fleet()?;
     r.eigenvalues(dt)?;
     std::fs::write(dir.join("report.md"), &r.md)?;
@@ -376,6 +386,46 @@ impl MissionReport<'_> {
         )?;
         for i in steps {
             writeln!(self.md, "| {} | {} | {} | {:.2} |", i.epoch, i.step, i.values, i.nis)?;
+        }
+        writeln!(self.md)?;
+        Ok(())
+    }
+
+    /// Each vehicle's link traffic per epoch it took part in, by key and direction (payload
+    /// bytes: what the radio must carry of the mission, before Zenoh's and TCP/IP's headers).
+    fn traffic(&mut self) -> anyhow::Result<()> {
+        use std::fmt::Write as _;
+        if self.summary.traffic.is_empty() {
+            return Ok(());
+        }
+        let schedule = self.mission.schedule(self.mission.frames_hint());
+        let roster = self.mission.roster();
+        writeln!(self.md, "## Link traffic\n")?;
+        writeln!(
+            self.md,
+            "Payload bytes per epoch each vehicle took part in, as its last telemetry before the end said (Zenoh's \
+                and TCP/IP's headers and keep-alives are on top; the radio test measures them on the link).\n"
+        )?;
+        writeln!(self.md, "| vehicle | out | in | total per epoch |\n|---|---|---|---|")?;
+        for (id, t) in &self.summary.traffic {
+            let Some(v) = roster.get(id) else { continue };
+            let epochs = (0..schedule.epochs())
+                .filter(|&e| schedule.seq_of(v.kind, e).is_some())
+                .count();
+            let per = |bytes: u64| bytes as f64 / epochs.max(1) as f64;
+            let side = |m: &std::collections::BTreeMap<String, [u64; 2]>| {
+                m.iter()
+                    .map(|(k, c)| format!("{k} {}", bytes_text(per(c[1]))))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            };
+            writeln!(
+                self.md,
+                "| {id} | {} | {} | {} |",
+                side(&t.sent),
+                side(&t.received),
+                bytes_text(per(t.bytes()))
+            )?;
         }
         writeln!(self.md)?;
         Ok(())

@@ -8,9 +8,10 @@
 //! node only ever sees messages it can use. Every refusal is a [`ProtocolError`] that says
 //! why; nodes count them by [`ProtocolError::reason`].
 //!
-//! A message is a CBOR map `{"v": 1, "type": "<kind>", ...fields}`; any CBOR library decodes
-//! it (see the README for a Python snippet).
+//! A message is a CBOR map `{"v": 2, "type": "<kind>", ...fields}`; any CBOR library decodes
+//! it (see the README for a Python snippet). Cells travel as runs ([`cells`]).
 
+pub mod cells;
 pub mod keys;
 mod vehicle_id;
 
@@ -20,9 +21,9 @@ use crate::grid::Grid;
 use serde::{Deserialize, Serialize};
 
 /// Schema version carried by every message; bumped on any incompatible change.
-pub const SCHEMA_VERSION: u16 = 1;
+pub const SCHEMA_VERSION: u16 = 2;
 /// Zenoh encoding set on every publication.
-pub const ENCODING: &str = "application/cbor;hetfleet-v1";
+pub const ENCODING: &str = "application/cbor;hetfleet-v2";
 /// Default size limit of one payload (a 384 x 768 model at rank 10 is ~50 MB; batches are
 /// far smaller). Receivers may lower it.
 pub const MAX_PAYLOAD: usize = 64 << 20;
@@ -75,7 +76,9 @@ pub struct Sample {
     pub step: u64,
     /// Where the vehicle was, metres `(x, y)`.
     pub position: [f64; 2],
-    /// Flat grid indices of the measured cells (aerials: the cells their coarse lattice sits on).
+    /// Flat grid indices of the measured cells (aerials: the cells their coarse lattice sits on);
+    /// on the wire as runs ([`cells`]).
+    #[serde(with = "cells")]
     pub cells: Vec<u32>,
     pub values: Vec<f64>,
     /// Each value's own noise standard deviation, when an instrument said it (readings
@@ -136,6 +139,39 @@ pub struct Telemetry {
     /// What the vehicle's instrument delivered (`None`: a simulated sensor).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub readings: Option<ReadingCounts>,
+    /// What the vehicle has sent and received over its link so far, by key.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub traffic: Option<LinkTraffic>,
+}
+
+/// A vehicle's traffic so far, by what it is (`batch`, `telemetry`, `mavlink`, `plan_query`
+/// out; `ack`, `plan`, `gcs` in): messages and payload bytes (Zenoh's own headers and
+/// keep-alives, and TCP/IP's, are on top: a capture on the link measures those).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct LinkTraffic {
+    pub sent: std::collections::BTreeMap<String, [u64; 2]>,
+    pub received: std::collections::BTreeMap<String, [u64; 2]>,
+}
+
+impl LinkTraffic {
+    pub fn send(&mut self, what: &str, bytes: usize) {
+        Self::count(&mut self.sent, what, bytes);
+    }
+
+    pub fn receive(&mut self, what: &str, bytes: usize) {
+        Self::count(&mut self.received, what, bytes);
+    }
+
+    fn count(map: &mut std::collections::BTreeMap<String, [u64; 2]>, what: &str, bytes: usize) {
+        let c = map.entry(what.to_string()).or_default();
+        c[0] += 1;
+        c[1] += bytes as u64;
+    }
+
+    /// Payload bytes both ways.
+    pub fn bytes(&self) -> u64 {
+        self.sent.values().chain(self.received.values()).map(|c| c[1]).sum()
+    }
 }
 
 /// A vehicle's instrument readings so far: received, accepted, and refused by kind
@@ -238,7 +274,8 @@ pub struct Target {
     pub position: [f64; 2],
     pub radius: f64,
     /// What to sense there: a boat's disk, an aerial's region of the coarse lattice (flat grid
-    /// indices; empty: nothing, the vehicle still reports for the epoch).
+    /// indices, on the wire as runs; empty: nothing, the vehicle still reports for the epoch).
+    #[serde(with = "cells")]
     pub cells: Vec<u32>,
 }
 
@@ -276,6 +313,10 @@ pub struct ServerStatus {
     /// telemetry.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub readings: std::collections::BTreeMap<VehicleId, ReadingCounts>,
+    /// Why each vehicle the next epoch waits for is behind, in words (from its liveliness and
+    /// its last telemetry), once the epoch has waited a while.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub behind: std::collections::BTreeMap<VehicleId, String>,
 }
 
 /// Every message, tagged by `type`.
@@ -591,6 +632,7 @@ mod tests {
                 autopilot: None,
                 acked: Some(3),
                 readings: None,
+                traffic: None,
             }),
             Body::Ack(Ack {
                 vehicle: "boat-1".parse::<VehicleId>().unwrap(),
@@ -634,7 +676,10 @@ mod tests {
         let v: ciborium::Value = ciborium::from_reader(&encode(&batch())[..]).unwrap();
         let map = v.as_map().unwrap();
         let get = |k: &str| map.iter().find(|(a, _)| a.as_text() == Some(k)).map(|(_, b)| b.clone());
-        assert_eq!(get("v").and_then(|x| x.as_integer()).map(i128::from), Some(1));
+        assert_eq!(
+            get("v").and_then(|x| x.as_integer()).map(i128::from),
+            Some(SCHEMA_VERSION as i128)
+        );
         assert_eq!(
             get("type").and_then(|x| x.as_text().map(str::to_string)).as_deref(),
             Some("batch")
@@ -657,9 +702,9 @@ mod tests {
         small.max_payload = 8;
         assert_eq!(decode(&good, &small).unwrap_err().reason(), "too_large");
         // Another schema version.
-        let mut v2 = vec![];
-        ciborium::into_writer(&Wire { v: 2, body: batch() }, &mut v2).unwrap();
-        assert_eq!(decode(&v2, &c), Err(ProtocolError::Version { got: 2 }));
+        let mut v1 = vec![];
+        ciborium::into_writer(&Wire { v: 1, body: batch() }, &mut v1).unwrap();
+        assert_eq!(decode(&v1, &c), Err(ProtocolError::Version { got: 1 }));
         let bad = |f: &dyn Fn(&mut MeasurementBatch)| {
             let Body::Batch(mut b) = batch() else { unreachable!() };
             f(&mut b);

@@ -7,7 +7,7 @@ use clap::Parser;
 use fleet_mission::config::MissionConfig;
 use fleet_mission::protocol::keys::Keys;
 use fleet_mission::signing_key::SigningKey;
-use fleet_net::Role;
+use fleet_net::{Role, Traffic};
 use std::sync::Arc;
 use std::time::Duration;
 use tracing::{debug, info, warn};
@@ -83,7 +83,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let keys = Keys::new(&mission.mission)?;
     let (address, gcs) = open_gcs(&args, &mission)?;
     let network = mission.network.for_node(fleet_mission::security::GATEWAY);
-    let zenoh_config = args.node.zenoh_config(Role::Vehicle, &network)?;
+    let zenoh_config = args.node.zenoh_config(Role::Vehicle, &network, &mission.link)?;
     let file = args.node.zenoh_file(Role::Vehicle, &network);
     fleet_net::exit_when_refused("gcs-gateway", &zenoh_config, file);
     let session = fleet_net::open(zenoh_config).await?;
@@ -120,7 +120,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     loop {
         tokio::select! {
             s = from_vehicles.recv_async() => match s {
-                Ok(s) => g.on_vehicle_frame(&s),
+                Ok(s) => g.on_vehicle_frames(&s),
                 Err(_) => break,
             },
             Some(got) = from_gcs.recv() => g.on_gcs_read(got).await,
@@ -134,21 +134,28 @@ async fn run(args: Args) -> anyhow::Result<()> {
 }
 
 impl Gateway {
-    /// A vehicle's autopilot frame, to the ground station: signed here with the ground-station
-    /// key (the vehicle's own link key never leaves the vehicle).
-    fn on_vehicle_frame(&mut self, s: &fleet_net::zenoh::sample::Sample) {
+    /// A vehicle's autopilot frames (one put carries several: see the vehicle's pipe), each to
+    /// the ground station: signed here with the ground-station key (the vehicle's own link key
+    /// never leaves the vehicle).
+    fn on_vehicle_frames(&mut self, s: &fleet_net::zenoh::sample::Sample) {
         fleet_net::mark_connected();
         let Some(vehicle) = self.keys.vehicle_of(s.key_expr().as_str()) else {
             return;
         };
-        match self.router.from_vehicle(&vehicle, &s.payload().to_bytes()) {
-            Ok((h, m)) => {
-                let _ = self.gcs.send(&h, &m);
-                self.down += 1;
-            }
-            Err(r) => {
-                if let Some(line) = self.refusals.note(&r) {
-                    warn!(%vehicle, "{line}")
+        let bytes = s.payload().to_bytes();
+        let (frames, bad_tail) = vehicles::link::split_frames(&bytes);
+        let results: Vec<_> = frames.iter().map(|f| self.router.from_vehicle(&vehicle, f)).collect();
+        let tail = bad_tail.map(|e| self.router.unreadable(format!("{vehicle}: {e}")));
+        for r in results.into_iter().chain(tail.map(Err)) {
+            match r {
+                Ok((h, m)) => {
+                    let _ = self.gcs.send(&h, &m);
+                    self.down += 1;
+                }
+                Err(r) => {
+                    if let Some(line) = self.refusals.note(&r) {
+                        warn!(%vehicle, "{line}")
+                    }
                 }
             }
         }
@@ -165,7 +172,8 @@ impl Gateway {
         match got.and_then(|bytes| self.router.from_gcs(&bytes).map(|to| (bytes, to))) {
             Ok((bytes, vehicles)) => {
                 for v in vehicles {
-                    if let Err(e) = self.session.put(self.keys.gcs(&v), bytes.clone()).await {
+                    let key = self.keys.gcs(&v);
+                    if let Err(e) = fleet_net::put_bytes(&self.session, &key, bytes.clone(), Traffic::Mavlink).await {
                         warn!(vehicle = v, "forwarding a ground-station frame: {e}");
                     }
                 }

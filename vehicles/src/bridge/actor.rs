@@ -63,6 +63,8 @@ struct Actor {
     prepared: bool,
     /// The instrument on this link (`mavlink:NAME`), once the node asks for it.
     named: Option<NamedSource>,
+    /// What of the autopilot's stream goes on to the ground stations.
+    throttle: crate::throttle::Throttle,
     state_tx: watch::Sender<AutopilotState>,
     status_tx: watch::Sender<AutopilotStatus>,
     counters_tx: watch::Sender<LinkCounters>,
@@ -81,6 +83,7 @@ pub(super) fn spawn(
     let (status_tx, status) = watch::channel(status_of(&spec, &AutopilotState::default(), &LinkCounters::default()));
     let (counters_tx, counters) = watch::channel(LinkCounters::default());
     let uploads = uploads_of(&spec);
+    let throttle = crate::throttle::Throttle::new(spec.mavlink_hz);
     let actor = Actor {
         conn,
         spec,
@@ -93,6 +96,7 @@ pub(super) fn spawn(
         enable_tries: 0,
         prepared: false,
         named: None,
+        throttle,
         state_tx,
         status_tx,
         counters_tx,
@@ -231,8 +235,16 @@ impl Actor {
             Received::Frame(h, m, _) => {
                 self.counters.received += 1;
                 self.on_frame(&h, &m);
-                if let Some(gcs) = &self.gcs {
-                    let _ = gcs.send(frame_bytes(h, &m));
+                if let Some(gcs) = self
+                    .gcs
+                    .as_ref()
+                    .filter(|_| self.throttle.pass(&m, std::time::Instant::now()))
+                {
+                    let event = crate::throttle::is_event(&m);
+                    let _ = gcs.send(super::ToGcs {
+                        frame: frame_bytes(h, &m),
+                        event,
+                    });
                 }
                 self.advance(false);
             }

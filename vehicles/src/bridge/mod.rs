@@ -55,6 +55,9 @@ pub struct BridgeSpec {
     pub fence_action: f32,
     /// Rally points (local NED), where RTL takes it: the fleet's launch points.
     pub rally: Vec<Vector3<f64>>,
+    /// Each periodic message of the autopilot's stream goes to the ground stations at most
+    /// this often (Hz; `[link] mavlink_hz`); events always go.
+    pub mavlink_hz: f64,
 }
 
 /// Counters of the autopilot link (MAVLink messages).
@@ -104,8 +107,16 @@ pub(crate) enum Command {
     Listen(Box<named::NamedSource>),
 }
 
+/// A frame for the ground-station side, and whether it is an event (a reply, a text: sent at
+/// once) rather than one of the periodic stream (which may wait to share a put with others).
+#[derive(Debug)]
+pub struct ToGcs {
+    pub frame: Vec<u8>,
+    pub event: bool,
+}
+
 /// Frames for the ground-station side.
-pub type GcsSink = mpsc::UnboundedSender<Vec<u8>>;
+pub type GcsSink = mpsc::UnboundedSender<ToGcs>;
 
 /// The bridge's handle for driving: cloneable, so the node's drive task has its own.
 #[derive(Clone)]

@@ -21,7 +21,7 @@ use vehicles::autopilot::modes::Frame;
 use vehicles::autopilot::safety::Action;
 use vehicles::autopilot::serve;
 use vehicles::autopilot::sim::{SimAutopilot, SimSpec};
-use vehicles::bridge::{Bridge, BridgeSpec};
+use vehicles::bridge::{Bridge, BridgeSpec, ToGcs};
 use vehicles::signing::{LinkSigning, LINK_AUTOPILOT};
 
 /// The MAVLink bridge, unless the autopilot is `none`, and the autopilot's frames for the
@@ -30,7 +30,7 @@ pub fn open_bridge(
     args: &Args,
     mission: &MissionConfig,
     grid: &Grid,
-) -> anyhow::Result<Option<(Bridge, mpsc::UnboundedReceiver<Vec<u8>>)>> {
+) -> anyhow::Result<Option<(Bridge, mpsc::UnboundedReceiver<ToGcs>)>> {
     let m = &mission.mavlink;
     let address = args.autopilot.clone().unwrap_or_else(|| m.autopilot.clone());
     if address == "none" {
@@ -74,6 +74,7 @@ fn bridge_spec(args: &Args, mission: &MissionConfig, grid: &Grid) -> anyhow::Res
         fence_action: Action::from_name(&m.fence_action).unwrap_or(Action::Continue) as u8 as f32,
         rally: (0..mission.vehicles().len()).map(launch).collect(),
         signing: autopilot_key(m, &args.id)?,
+        mavlink_hz: mission.link.mavlink_hz,
     })
 }
 
@@ -131,13 +132,57 @@ fn start_sim(spec: &BridgeSpec, companion_port: Option<u16>) -> anyhow::Result<S
     Ok(format!("udpout:127.0.0.1:{port}"))
 }
 
+/// Messages and bytes a task sent, counted where the node can read them.
+#[derive(Debug, Clone, Default)]
+pub struct Counted(Arc<(std::sync::atomic::AtomicU64, std::sync::atomic::AtomicU64)>);
+
+impl Counted {
+    fn add(&self, bytes: usize) {
+        use std::sync::atomic::Ordering::Relaxed;
+        self.0 .0.fetch_add(1, Relaxed);
+        self.0 .1.fetch_add(bytes as u64, Relaxed);
+    }
+
+    /// Messages and bytes so far.
+    pub fn get(&self) -> (u64, u64) {
+        use std::sync::atomic::Ordering::Relaxed;
+        (self.0 .0.load(Relaxed), self.0 .1.load(Relaxed))
+    }
+}
+
+/// The most bytes of frames one put to the gateway carries (a few of a radio's packets).
+const BUNDLE_BYTES: usize = 1024;
+
 /// The autopilot's frames out to the ground-station gateway: a pipe of its own, so a slow
-/// link to the gateway never holds the node's loop.
-pub fn pipe_to_gateway(session: &zenoh::Session, keys: &Keys, id: &str, mut frames: mpsc::UnboundedReceiver<Vec<u8>>) {
+/// link to the gateway never holds the node's loop; what it sends is counted in `sent`.
+/// Periodic frames wait up to `linger` (one period of the forwarded stream) to share a put:
+/// over a radio each put costs its own TCP/IP and Zenoh headers and an acknowledgement, more
+/// than a position report itself. An event goes at once, with what waited before it.
+pub fn pipe_to_gateway(
+    session: &zenoh::Session,
+    keys: &Keys,
+    id: &str,
+    mut frames: mpsc::UnboundedReceiver<ToGcs>,
+    linger: Duration,
+    sent: Counted,
+) {
     let (s, key) = (session.clone(), keys.mavlink(id));
     tokio::spawn(async move {
-        while let Some(f) = frames.recv().await {
-            let _ = s.put(&key, f).await;
+        while let Some(first) = frames.recv().await {
+            let deadline = tokio::time::Instant::now() + linger;
+            let mut bundle = first.frame;
+            let mut event = first.event;
+            while !event && bundle.len() < BUNDLE_BYTES {
+                match tokio::time::timeout_at(deadline, frames.recv()).await {
+                    Ok(Some(f)) => {
+                        bundle.extend_from_slice(&f.frame);
+                        event = f.event;
+                    }
+                    Ok(None) | Err(_) => break,
+                }
+            }
+            sent.add(bundle.len());
+            let _ = fleet_net::put_bytes(&s, &key, bundle, fleet_net::Traffic::Mavlink).await;
         }
     });
 }

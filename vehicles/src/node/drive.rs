@@ -14,29 +14,47 @@ use vehicles::bridge::Driver;
 
 /// A guided target on a lossy radio may not arrive: it is sent again this often.
 const RESEND_TARGET: Duration = Duration::from_secs(1);
-/// How long a plan query waits for the server's reply.
-const PLAN_QUERY_TIMEOUT: Duration = Duration::from_secs(2);
-
-/// The plan from epoch `e`, or none yet.
-pub async fn query_plan(session: &zenoh::Session, selector: &str, ctx: &Context, e: u64) -> Option<Plan> {
-    let replies = match session.get(selector).timeout(PLAN_QUERY_TIMEOUT).await {
+/// The plan from epoch `e`, or none yet, asked on `selector` and waited for up to `timeout`
+/// (the server holds the query until the plan exists, if the selector asks it to wait); and
+/// the bytes the replies carried.
+pub async fn query_plan(
+    session: &zenoh::Session,
+    selector: &str,
+    ctx: &Context,
+    e: u64,
+    timeout: Duration,
+) -> (Option<Plan>, usize) {
+    let traffic = fleet_net::Traffic::Plan;
+    let get = session
+        .get(selector)
+        .timeout(timeout)
+        .priority(traffic.priority())
+        .congestion_control(traffic.congestion());
+    let replies = match get.await {
         Ok(r) => r,
         Err(err) => {
             warn!("asking for the plan: {err}");
-            return None;
+            return (None, 0);
         }
     };
+    let mut bytes = 0;
     while let Ok(reply) = replies.recv_async().await {
         match reply.result() {
-            Ok(sample) => match fleet_net::decode(sample, ctx) {
-                Ok(Body::Plan(p)) if p.epoch == e => return Some(p),
-                Ok(_) => warn!("a plan reply for another epoch or of another type"),
-                Err(err) => warn!("refused a plan: {err}"),
-            },
-            Err(err) => debug!("no plan yet: {}", String::from_utf8_lossy(&err.payload().to_bytes())),
+            Ok(sample) => {
+                bytes += sample.payload().len();
+                match fleet_net::decode(sample, ctx) {
+                    Ok(Body::Plan(p)) if p.epoch == e => return (Some(p), bytes),
+                    Ok(_) => warn!("a plan reply for another epoch or of another type"),
+                    Err(err) => warn!("refused a plan: {err}"),
+                }
+            }
+            Err(err) => {
+                bytes += err.payload().len();
+                debug!("no plan yet: {}", String::from_utf8_lossy(&err.payload().to_bytes()));
+            }
         }
     }
-    None
+    (None, bytes)
 }
 
 /// Where the autopilot was at each sampling step, and how long after the plan the first

@@ -21,7 +21,7 @@ use fleet_mission::protocol::{self, keys::Keys, AutopilotStatus, Body, Context, 
 use fleet_mission::vehicle::{BrainState, VehicleBrain};
 use fleet_mission::vehicle_rng;
 use fleet_net::outbox::{Outbox, OutboxError};
-use fleet_net::{zenoh, Role};
+use fleet_net::{zenoh, Role, Traffic};
 use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, watch};
 use tracing::{debug, info, warn};
@@ -30,8 +30,12 @@ use vehicles::bridge::Bridge;
 use vehicles::sensor::Input;
 use zenoh::sample::SampleKind;
 
-/// How often the plan is asked for while none has come (an ack asks at once).
+/// How soon the plan is asked for again when a question came back without it (an ack asks at
+/// once). The server holds a question until the plan exists, so this paces only the retries.
 const ASK_EVERY: Duration = Duration::from_millis(250);
+/// A plan's size on the wire, about, for how long its transfer may take (a boat's three disks'
+/// cells: a few kB).
+const PLAN_BYTES: usize = 8 << 10;
 
 /// Where the vehicle is in its mission.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -74,7 +78,13 @@ struct Vehicle {
     link_lost_at: Option<Instant>,
     link_failsafe: bool,
     mavlink: fleet_mission::config::MavlinkConfig,
-    resend: Duration,
+    /// The radio to the base (`[link]`): how long an answer over it may take.
+    link: fleet_mission::config::Link,
+    /// How long an unacknowledged batch waits before it goes again, measured on the link; and
+    /// when each batch in flight first went, and whether it went again since (only a batch
+    /// sent once is timed).
+    resend: fleet_net::rto::Retransmit,
+    in_flight: std::collections::BTreeMap<u64, (Instant, bool)>,
     plan_timeout: Duration,
     arrival_timeout: Duration,
     step_ms: u64,
@@ -82,7 +92,7 @@ struct Vehicle {
     phase: Phase,
     /// A plan query is out (one at a time).
     asking: bool,
-    plans: mpsc::UnboundedSender<(u64, Option<Plan>)>,
+    plans: mpsc::UnboundedSender<(u64, (Option<Plan>, usize))>,
     driven: mpsc::UnboundedSender<Driven>,
     bridge: Option<Bridge>,
     /// What the last telemetry said of the autopilot (link, guided, mode): a change is sent at
@@ -95,6 +105,9 @@ struct Vehicle {
     clock: Option<MissionClock>,
     /// The instrument this vehicle reads (`None`: the simulated sensor, from the truth).
     instrument: Option<readings::Instrument>,
+    /// What crossed the link so far (the MAVLink pipe counts its own, in `mavlink_out`).
+    traffic: protocol::LinkTraffic,
+    mavlink_out: compose::Counted,
 }
 
 fn outbox_error(e: OutboxError) -> anyhow::Error {
@@ -111,9 +124,32 @@ fn outbox_error(e: OutboxError) -> anyhow::Error {
 }
 
 impl Vehicle {
+    /// The mission is done: the readings on disk, a last telemetry, the link's count in the
+    /// log, and the session closed (its close flushes what is still queued).
+    async fn finish(mut self) -> anyhow::Result<()> {
+        if let Some(i) = &mut self.instrument {
+            i.sync();
+        }
+        self.telemetry().await;
+        self.log_link();
+        info!(
+            vehicle = %self.brain.id,
+            off_target = self.brain.off_target,
+            "mission done, every batch acknowledged"
+        );
+        self.session
+            .clone()
+            .close()
+            .await
+            .map_err(fleet_net::NetError::zenoh("closing the Zenoh session"))?;
+        Ok(())
+    }
+
     fn on_ack(&mut self, sample: &zenoh::sample::Sample) -> anyhow::Result<()> {
+        self.traffic.receive("ack", sample.payload().len());
         match fleet_net::decode(sample, &self.ctx) {
             Ok(Body::Ack(a)) if a.vehicle == self.brain.id => {
+                self.time_ack(a.seq);
                 if let Err(e) = self.outbox.ack(a.seq) {
                     warn!("recording ack {}: {e:#}", a.seq);
                 }
@@ -134,6 +170,18 @@ impl Vehicle {
         Ok(())
     }
 
+    /// The ack covers `seq`: the batches it covers that went once are timed (the link's round
+    /// trip, for the resend's wait).
+    fn time_ack(&mut self, seq: u64) {
+        let later = self.in_flight.split_off(&(seq + 1));
+        let covered = std::mem::replace(&mut self.in_flight, later);
+        for (sent, again) in covered.into_values() {
+            if !again {
+                self.resend.sample(sent.elapsed());
+            }
+        }
+    }
+
     fn on_link(&mut self, sample: &zenoh::sample::Sample) {
         let up = sample.kind() == SampleKind::Put;
         if up {
@@ -146,8 +194,10 @@ impl Vehicle {
                 "link to the model server"
             );
             if up {
-                // Back in range: the whole backlog is due now, oldest first.
+                // Back in range: the whole backlog is due now, oldest first (and its acks are
+                // no measure of the link's round trip).
                 self.outbox.resend_all();
+                self.in_flight.values_mut().for_each(|f| f.1 = true);
             }
             self.link_lost_at = (!up).then(Instant::now);
             if up && std::mem::take(&mut self.link_failsafe) {
@@ -162,11 +212,20 @@ impl Vehicle {
 
     async fn resend_due(&mut self) -> anyhow::Result<()> {
         let key = self.keys.measurements(&self.brain.id);
-        for (seq, bytes) in self.outbox.due(Instant::now(), self.resend).map_err(outbox_error)? {
+        let (now, wait) = (Instant::now(), self.resend.timeout());
+        let timed_out = self.outbox.overdue(now, wait);
+        for (seq, bytes) in self.outbox.due(now, wait).map_err(outbox_error)? {
             debug!(seq, "sending from the outbox");
-            if let Err(e) = self.session.put(&key, bytes).encoding(fleet_net::encoding()).await {
+            if let Some((_, again)) = self.in_flight.get_mut(&seq) {
+                *again = true;
+            }
+            self.traffic.send("batch", bytes.len());
+            if let Err(e) = fleet_net::put_bytes(&self.session, &key, bytes, Traffic::Batch).await {
                 warn!("sending batch {seq}: {e}");
             }
+        }
+        if timed_out {
+            self.resend.back_off();
         }
         Ok(())
     }
@@ -217,13 +276,26 @@ impl Vehicle {
         }
     }
 
-    /// Ask the server for the plan from epoch `e`, in a task; the reply comes on `plans`.
+    /// Ask the server for the plan from epoch `e`, in a task; the reply comes on `plans`. The
+    /// server holds the question until the plan exists or the plan's deadline passes (one
+    /// question an epoch over the radio); the answer may take the link's round trip and the
+    /// plan's transfer more.
     fn ask_plan(&mut self, e: u64) {
         self.asking = true;
         let (session, ctx, tx) = (self.session.clone(), self.ctx.clone(), self.plans.clone());
-        let selector = format!("{}?epoch={e}", self.keys.plan(&self.brain.id));
+        let wait = match self.phase {
+            Phase::Plan { deadline, .. } => deadline.saturating_duration_since(Instant::now()),
+            _ => Duration::ZERO,
+        };
+        let timeout = wait + self.link.answer_within(PLAN_BYTES);
+        let selector = format!(
+            "{}?epoch={e};wait_ms={}",
+            self.keys.plan(&self.brain.id),
+            wait.as_millis()
+        );
+        self.traffic.send("plan_query", selector.len());
         tokio::spawn(async move {
-            let _ = tx.send((e, query_plan(&session, &selector, &ctx, e).await));
+            let _ = tx.send((e, query_plan(&session, &selector, &ctx, e, timeout).await));
         });
     }
 
@@ -302,8 +374,11 @@ impl Vehicle {
         Ok(())
     }
 
-    fn on_plan(&mut self, e: u64, plan: Option<Plan>) {
+    fn on_plan(&mut self, e: u64, (plan, bytes): (Option<Plan>, usize)) {
         self.asking = false;
+        if bytes > 0 {
+            self.traffic.receive("plan", bytes);
+        }
         match (self.phase, plan) {
             (Phase::Plan { epoch, .. }, Some(p)) if epoch == e => {
                 self.brain.set_plan(p);
@@ -404,15 +479,13 @@ impl Vehicle {
                     "outbox at 80% of its bound: the vehicle will pause sensing when it is full"
                 );
             }
-            if let Err(err) = self
-                .session
-                .put(self.keys.measurements(&self.brain.id), bytes)
-                .encoding(fleet_net::encoding())
-                .await
-            {
+            let key = self.keys.measurements(&self.brain.id);
+            self.traffic.send("batch", bytes.len());
+            if let Err(err) = fleet_net::put_bytes(&self.session, &key, bytes, Traffic::Batch).await {
                 warn!("sending batch {}: {err} (kept in the outbox)", batch.seq);
             }
             self.outbox.mark_sent(batch.seq, Instant::now());
+            self.in_flight.insert(batch.seq, (Instant::now(), false));
         }
         self.telemetry().await;
         self.begin(e + 1);
@@ -447,10 +520,25 @@ impl Vehicle {
             outbox_depth: self.outbox.depth(),
             acked: self.outbox.acked(),
             readings: self.instrument.as_ref().map(readings::Instrument::counts),
+            traffic: Some(self.traffic_now()),
         };
+        let bytes = protocol::encode(&Body::Telemetry(t.clone())).len();
+        self.traffic.send("telemetry", bytes);
         if let Err(e) = fleet_net::put(&self.session, &self.keys.telemetry(&self.brain.id), &Body::Telemetry(t)).await {
             warn!("telemetry: {e}");
         }
+    }
+}
+
+impl Vehicle {
+    /// The link's traffic so far, the MAVLink pipe's included.
+    fn traffic_now(&self) -> protocol::LinkTraffic {
+        let mut t = self.traffic.clone();
+        let (n, bytes) = self.mavlink_out.get();
+        if n > 0 {
+            t.sent.insert("mavlink".into(), [n, bytes]);
+        }
+        t
     }
 }
 
@@ -475,6 +563,7 @@ impl Vehicle {
 
     /// A ground station's frame for this vehicle's autopilot.
     fn on_gcs(&mut self, sample: &zenoh::sample::Sample) {
+        self.traffic.receive("gcs", sample.payload().len());
         if let Some(b) = &mut self.bridge {
             if let Err(e) = b.from_gcs(&sample.payload().to_bytes()) {
                 debug!("ground-station frame refused: {e}");
@@ -509,7 +598,7 @@ struct Inputs {
     links: zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
     gcs: zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
     autopilot: Option<watch::Receiver<AutopilotStatus>>,
-    plans: mpsc::UnboundedReceiver<(u64, Option<Plan>)>,
+    plans: mpsc::UnboundedReceiver<(u64, (Option<Plan>, usize))>,
     driven: mpsc::UnboundedReceiver<Driven>,
     /// The instrument's lines or frames (none for the simulated sensor).
     lines: Option<mpsc::Receiver<Input>>,
@@ -586,7 +675,7 @@ async fn join(
     keys: &Keys,
 ) -> anyhow::Result<(zenoh::Session, zenoh::liveliness::LivelinessToken, [SampleSub; 3])> {
     let network = mission.network.for_node(&args.id);
-    let zenoh_config = args.node.zenoh_config(Role::Vehicle, &network)?;
+    let zenoh_config = args.node.zenoh_config(Role::Vehicle, &network, &mission.link)?;
     fleet_net::exit_when_refused("vehicle", &zenoh_config, args.node.zenoh_file(Role::Vehicle, &network));
     let session = fleet_net::open(zenoh_config).await?;
     let e = |e: zenoh::Error| anyhow::anyhow!("{e}");
@@ -623,8 +712,10 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let state: Option<BrainState> = outbox.state().map_err(outbox_error)?;
     let bridge = compose::open_bridge(&args, &mission, &grid)?;
     let (session, _token, [acks, links, gcs]) = join(&args, &mission, &keys).await?;
+    let mavlink_out = compose::Counted::default();
     let bridge = bridge.map(|(b, frames)| {
-        compose::pipe_to_gateway(&session, &keys, &args.id, frames);
+        let linger = mission.link.mavlink_linger();
+        compose::pipe_to_gateway(&session, &keys, &args.id, frames, linger, mavlink_out.clone());
         b
     });
     let (source, instrument) = instrument_of(&args, &mission, &brain, (grid, frames), truth.is_some())?;
@@ -652,7 +743,9 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         link_lost_at: None,
         link_failsafe: false,
         mavlink: mission.mavlink.clone(),
-        resend: Duration::from_millis(pace.resend_ms),
+        link: mission.link.clone(),
+        resend: fleet_net::rto::Retransmit::new(Duration::from_millis(pace.resend_ms)),
+        in_flight: Default::default(),
         plan_timeout: Duration::from_millis(pace.plan_timeout_ms),
         arrival_timeout: Duration::from_millis(mission.mavlink.arrival_timeout_ms),
         step_ms: pace.step_ms,
@@ -668,25 +761,13 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         guided_ms: vec![],
         clock: mission.clock(),
         instrument,
+        traffic: protocol::LinkTraffic::default(),
+        mavlink_out,
     };
     v.telemetry().await;
     v.resume(state);
     v.run_loop(inputs, truth.as_ref()).await?;
-    if let Some(i) = &mut v.instrument {
-        i.sync();
-    }
-    v.telemetry().await;
-    v.log_link();
-    info!(
-        vehicle = %v.brain.id,
-        off_target = v.brain.off_target,
-        "mission done, every batch acknowledged"
-    );
-    session
-        .close()
-        .await
-        .map_err(fleet_net::NetError::zenoh("closing the Zenoh session"))?;
-    Ok(())
+    v.finish().await
 }
 
 /// The instrument's stream: NAMED_VALUE_FLOAT from the bridge for `mavlink:NAME`, else the
