@@ -85,9 +85,18 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
         r.play(m).await?;
     }
     info!("replay done");
+    // What was put last is still on its way (the final model to a view behind a small send
+    // buffer), and a view asks for that model's plans: a moment more of answering before the
+    // session closes and drops what it still holds.
+    let _ = r
+        .answer_until(tokio::time::Instant::now() + END_LINGER, &mut stop)
+        .await;
     r.session.close().await.map_err(e("closing the Zenoh session"))?;
     Ok(())
 }
+
+/// How long a replay keeps answering after its last message.
+const END_LINGER: Duration = Duration::from_secs(2);
 
 impl Replay {
     /// Answer queries while waiting for a message's time; `false` on a stop signal.

@@ -431,6 +431,34 @@ pub fn start_vehicles(
     }
 }
 
+/// Start the server (until the mission is done) and every vehicle, those in `away` (id,
+/// namespace, endpoint) on their hosts. Returns the processes, the server, and its out and
+/// state directories under `dir`.
+pub fn start_mission(
+    dir: &std::path::Path,
+    mission: &std::path::Path,
+    away: &[(&str, &str, &str)],
+) -> (Procs, Server, std::path::PathBuf, std::path::PathBuf) {
+    let (out, state) = (dir.join("out"), dir.join("state"));
+    let (m, st) = (mission.to_str().unwrap(), state.to_str().unwrap());
+    let mut procs = Procs::default();
+    let server = start_server(
+        &mut procs,
+        &[
+            "--mission",
+            m,
+            "--out",
+            out.to_str().unwrap(),
+            "--state-dir",
+            st,
+            "--exit-when-done",
+        ],
+        &dir.join("server.log"),
+    );
+    start_vehicles(&mut procs, mission, st, dir, away);
+    (procs, server, out, state)
+}
+
 /// The journal holds every batch of the mission once; fed to a fresh core in step order it
 /// gives the model the server published (to 1e-9 relative).
 pub fn check_exactly_once_and_same_model(mission: &std::path::Path, state: &std::path::Path, out: &std::path::Path) {

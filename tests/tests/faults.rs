@@ -7,7 +7,6 @@
 
 use fleet::mission::config::MissionConfig;
 use hetfleet_tests::*;
-use std::path::Path;
 use std::time::Duration;
 
 #[test]
@@ -84,34 +83,6 @@ fn kill_9_of_the_server_and_of_a_boat_loses_nothing_and_counts_nothing_twice() {
         "kill -9: restored {} batches, {} duplicates re-sent and dropped",
         summary.counters.restored, summary.counters.duplicates
     );
-}
-
-/// Start the server (until the mission is done) and every vehicle, those in `away` (id,
-/// namespace, endpoint) on their hosts. Returns the processes, the server, and its out and
-/// state directories under `dir`.
-fn start_mission(
-    dir: &Path,
-    mission: &Path,
-    away: &[(&str, &str, &str)],
-) -> (Procs, Server, std::path::PathBuf, std::path::PathBuf) {
-    let (out, state) = (dir.join("out"), dir.join("state"));
-    let (m, st) = (mission.to_str().unwrap(), state.to_str().unwrap());
-    let mut procs = Procs::default();
-    let server = start_server(
-        &mut procs,
-        &[
-            "--mission",
-            m,
-            "--out",
-            out.to_str().unwrap(),
-            "--state-dir",
-            st,
-            "--exit-when-done",
-        ],
-        &dir.join("server.log"),
-    );
-    start_vehicles(&mut procs, mission, st, dir, away);
-    (procs, server, out, state)
 }
 
 /// One boat's seeded outages, in server epochs: down once epoch `start` is in the model, up

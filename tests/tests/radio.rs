@@ -51,31 +51,6 @@ fn run_behind_radio(dir: &Path, mission: &Path, host: &Host, kbit: f64, loss: u3
     let port = free_port();
     let m = over_the_link(dir, mission, host, port, kbit);
     host.shape(kbit, loss);
-    let (out, state) = (dir.join("out"), dir.join("state"));
-    let (ms, st) = (m.to_str().unwrap(), state.to_str().unwrap());
-    let mut procs = Procs::default();
-    let server = start_server(
-        &mut procs,
-        &[
-            "--mission",
-            ms,
-            "--out",
-            out.to_str().unwrap(),
-            "--state-dir",
-            st,
-            "--exit-when-done",
-        ],
-        &dir.join("server.log"),
-    );
-    let gateway = std::process::Command::new(bin("gcs-gateway"))
-        .args(["--mission", ms, "--gcs", &format!("udpout:127.0.0.1:{}", free_port())])
-        .stderr(std::fs::File::create(dir.join("gateway.log")).unwrap())
-        .spawn()
-        .expect("the gateway");
-    let gateway_index = {
-        procs.0.push(gateway);
-        procs.0.len() - 1
-    };
     let config = MissionConfig::load(Some(&m)).unwrap();
     let endpoint = format!("tcp/{}:{port}", host.here);
     let boats: Vec<String> = (1..=config.team.boats).map(|i| format!("boat-{i}")).collect();
@@ -84,7 +59,19 @@ fn run_behind_radio(dir: &Path, mission: &Path, host: &Host, kbit: f64, loss: u3
         .map(|b| (b.as_str(), host.ns.as_str(), endpoint.as_str()))
         .collect();
     let (t0, before) = (Instant::now(), host.bytes());
-    start_vehicles(&mut procs, &m, st, dir, &away);
+    let (mut procs, server, out, state) = start_mission(dir, &m, &away);
+    let gateway = std::process::Command::new(bin("gcs-gateway"))
+        .args([
+            "--mission",
+            m.to_str().unwrap(),
+            "--gcs",
+            &format!("udpout:127.0.0.1:{}", free_port()),
+        ])
+        .stderr(std::fs::File::create(dir.join("gateway.log")).unwrap())
+        .spawn()
+        .expect("the gateway");
+    procs.0.push(gateway);
+    let gateway_index = procs.0.len() - 1;
     let (_, events) = server.finished_with_events(1500);
     let wall_s = t0.elapsed().as_secs_f64();
     let after = host.bytes();
