@@ -404,7 +404,9 @@ impl MissionReport<'_> {
         writeln!(
             self.md,
             "Payload bytes per epoch each vehicle took part in, as its last telemetry before the end said (Zenoh's \
-                and TCP/IP's headers and keep-alives are on top; the radio test measures them on the link).\n"
+                and TCP/IP's headers and keep-alives are on top; the radio test measures them on the link). Forwarded \
+                MAVLink goes per second of the mission, not per epoch: on a real radio, with longer epochs, it is \
+                larger per epoch than here.\n"
         )?;
         writeln!(self.md, "| vehicle | out | in | total per epoch |\n|---|---|---|---|")?;
         for (id, t) in &self.summary.traffic {
