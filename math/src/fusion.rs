@@ -118,9 +118,16 @@ fn check_noise(noise: &AerialNoise) -> Result<(), FusionError> {
 /// The cells of the stride lattice aerial `me` covers: those nearer to it than to any other
 /// aerial (its Voronoi region), in lattice order. The server hands each aerial its region in
 /// its plan; the aerial senses exactly those cells ([`draw`]).
-/// Mean over cells of the squared difference of an estimate and the truth (the paper's MSE).
+/// Mean over cells of the squared difference of an estimate and the truth (the paper's MSE),
+/// over the cells where the truth has a value: a NaN in the truth (land, cloud, no data) is
+/// not scored.
 pub fn mse(estimate: &[f64], truth: &[f64]) -> f64 {
-    estimate.iter().zip(truth).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / estimate.len().max(1) as f64
+    let (sum, n) = estimate
+        .iter()
+        .zip(truth)
+        .filter(|(_, y)| !y.is_nan())
+        .fold((0.0, 0usize), |(s, n), (x, y)| (s + (x - y).powi(2), n + 1));
+    sum / n.max(1) as f64
 }
 
 pub fn aerial_region(grid: &Grid, stride: usize, aerials: &[(f64, f64)], me: usize) -> Result<Vec<usize>, FusionError> {

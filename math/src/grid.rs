@@ -366,19 +366,34 @@ pub fn area_average(
     };
     let (wr, wc) = (axis(rows, to_rows), axis(cols, to_cols));
     // Columns first (rows x to_cols), then rows.
-    let mut tmp = vec![0.0; rows * to_cols];
-    for r in 0..rows {
-        for (k, w) in wc.iter().enumerate() {
-            tmp[r * to_cols + k] = w.iter().map(|&(c, x)| x * values[r * cols + c]).sum();
+    let separable = |values: &[f64]| {
+        let mut tmp = vec![0.0; rows * to_cols];
+        for r in 0..rows {
+            for (k, w) in wc.iter().enumerate() {
+                tmp[r * to_cols + k] = w.iter().map(|&(c, x)| x * values[r * cols + c]).sum();
+            }
         }
-    }
-    let mut out = vec![0.0; to_rows * to_cols];
-    for (k, w) in wr.iter().enumerate() {
-        for c in 0..to_cols {
-            out[k * to_cols + c] = w.iter().map(|&(r, x)| x * tmp[r * to_cols + c]).sum();
+        let mut out = vec![0.0; to_rows * to_cols];
+        for (k, w) in wr.iter().enumerate() {
+            for c in 0..to_cols {
+                out[k * to_cols + c] = w.iter().map(|&(r, x)| x * tmp[r * to_cols + c]).sum();
+            }
         }
+        out
+    };
+    if !values.iter().any(|v| v.is_nan()) {
+        return Ok(separable(values));
     }
-    Ok(out)
+    // Missing values (NaN): each coarse cell averages the values it has, weighted by their
+    // overlap and renormalised; a coarse cell with none is missing.
+    let have: Vec<f64> = values.iter().map(|v| if v.is_nan() { 0.0 } else { 1.0 }).collect();
+    let filled: Vec<f64> = values.iter().map(|v| if v.is_nan() { 0.0 } else { *v }).collect();
+    let (sum, weight) = (separable(&filled), separable(&have));
+    Ok(sum
+        .iter()
+        .zip(&weight)
+        .map(|(s, w)| if *w > 1e-12 { s / w } else { f64::NAN })
+        .collect())
 }
 
 #[cfg(test)]

@@ -16,8 +16,13 @@ pub fn write(dir: &Path, core: &ServerCore, horizon: u64) -> anyhow::Result<()> 
             .with_context(|| format!("writing {}/model.cbor", dir.display()))?;
     }
     let grid = core.assimilator().grid();
+    // Land (no data in the truth) is NaN: numpy's mark of a value that is not there.
+    let land = core.assimilator().land();
     for (name, steps) in [("estimate.npy", &core.snapshots), ("variance.npy", &core.variances)] {
-        let data: Vec<f64> = steps.iter().flatten().copied().collect();
+        let mut data: Vec<f64> = steps.iter().flatten().copied().collect();
+        for k in 0..steps.len() {
+            land.iter().for_each(|&c| data[k * grid.len() + c] = f64::NAN);
+        }
         crate::npy::write(dir.join(name), &[steps.len(), grid.rows, grid.cols], &data)?;
     }
     let plans = (0..core.counters.epochs)

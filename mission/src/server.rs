@@ -839,6 +839,7 @@ impl ServerCore {
                 .unwrap_or_else(|| vec![self.assim.prediction_variance(); n]),
             forecast_steps: self.cfg.boat_period as u64,
             forecast_variance: self.assim.forecast_variance(self.cfg.boat_period as u64),
+            land: self.assim.land().iter().map(|&c| c as u32).collect(),
         })
     }
 

@@ -90,6 +90,11 @@ pub struct TeamConfig {
     /// so a journal's fingerprint knows it.
     #[serde(skip_deserializing, skip_serializing_if = "Option::is_none")]
     pub fence: Option<crate::fence::SiteFence>,
+    /// Cells with no data in any frame of the truth (land, for an ocean field; set from the
+    /// truth where it is loaded, [`crate::process::FieldSeries::land`]): off the model grid,
+    /// like cells outside the fence, and zero in every snapshot the model learns from.
+    #[serde(skip_deserializing, skip_serializing_if = "Vec::is_empty")]
+    pub land: Vec<u32>,
 }
 
 impl Default for TeamConfig {
@@ -115,6 +120,7 @@ impl Default for TeamConfig {
             density_floor: 0.2,
             seed: 7,
             fence: None,
+            land: vec![],
         }
     }
 }
@@ -155,11 +161,41 @@ impl TeamConfig {
     }
 
     /// Long because it is one check per setting, in the order of the fields.
+    /// The team has vehicles, the grid is not empty, and the land mask fits it and leaves the model room: at least as many wet cells as
+    /// the rank asks for, and as the boats' disks take.
+    fn check_land(&self, grid: &Grid) -> Result<(), TeamError> {
+        if self.aerials == 0 || self.boats == 0 {
+            return Err(TeamError::Config(
+                "a heterogeneous team needs at least one aerial and one boat".into(),
+            ));
+        }
+        if grid.is_empty() {
+            return Err(TeamError::Config("empty grid".into()));
+        }
+        if let Some(c) = self.land.iter().find(|&&c| c as usize >= grid.len()) {
+            return Err(TeamError::Config(format!(
+                "land cell {c} is off the {}-cell grid",
+                grid.len()
+            )));
+        }
+        let wet = grid.len() - self.land.len();
+        let rank = match self.rank {
+            RankPolicy::Fixed(r) => r,
+            _ => 1,
+        };
+        if wet < rank.max(self.boats) {
+            return Err(TeamError::Config(format!(
+                "the field's mask leaves {wet} cells with data of {}, fewer than the model's rank {rank} or \
+                the {} boats",
+                grid.len(),
+                self.boats
+            )));
+        }
+        Ok(())
+    }
+
     pub fn validate(&self, grid: &Grid, frames: usize) -> Result<(), TeamError> {
         let bad = |m: String| Err(TeamError::Config(m));
-        if self.aerials == 0 || self.boats == 0 {
-            return bad("a heterogeneous team needs at least one aerial and one boat".into());
-        }
         if self.aerial_period == 0 || self.boat_period == 0 || self.aerial_stride == 0 {
             return bad("periods and stride must be at least 1".into());
         }
@@ -190,9 +226,7 @@ impl TeamConfig {
         if self.density_floor > 1.0 {
             return bad("density_floor must be in [0, 1]".into());
         }
-        if grid.is_empty() {
-            return bad("empty grid".into());
-        }
+        self.check_land(grid)?;
         if self.method == Method::LongTerm {
             return bad(
                 "method = \"long-term\": its operator has every one of the grid's N modes, so the boats' gappy \

@@ -26,7 +26,9 @@ pub fn vehicle_rng(seed: u64, vehicle: usize) -> ChaCha8Rng {
 pub use crate::fusion::aerial_region;
 
 /// What a sensor at `pos` (metres) measures of `truth` at `cells` at one `step`, with
-/// `noise` ([`draw`]), as a sample for the wire.
+/// `noise` ([`draw`]), as a sample for the wire. A cell where the truth has no value (NaN:
+/// land, cloud, no data) is not measured: a boat's disk is clipped by the coast, an aerial
+/// frame has a hole.
 pub fn sense_cells<R: rand::Rng + ?Sized>(
     grid: &Grid,
     truth: &[f64],
@@ -36,6 +38,13 @@ pub fn sense_cells<R: rand::Rng + ?Sized>(
     noise: AerialNoise,
     rng: &mut R,
 ) -> Result<Sample, FusionError> {
+    let there: Vec<usize>;
+    let cells = if cells.iter().any(|&c| truth.get(c).is_some_and(|v| v.is_nan())) {
+        there = cells.iter().copied().filter(|&c| !truth[c].is_nan()).collect();
+        &there
+    } else {
+        cells
+    };
     Ok(Sample {
         step,
         position: [pos.0, pos.1],

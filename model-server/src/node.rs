@@ -428,13 +428,8 @@ impl Server {
         let mut sum = 0.0;
         for k in steps.clone() {
             let est = self.core.snapshots.get(k)?;
-            let n = est.len() as f64;
-            let e = est
-                .iter()
-                .zip(truth.snapshots.col(k).iter())
-                .map(|(a, b)| (a - b).powi(2))
-                .sum::<f64>()
-                / n;
+            let x: Vec<f64> = truth.snapshots.col(k).iter().copied().collect();
+            let e = fleet_mission::fusion::mse(est, &x);
             if self.mse.len() == k {
                 self.mse.push(e);
             }

@@ -452,12 +452,13 @@ impl NodeArgs {
         ),
         NetError,
     > {
-        let mission = fleet_mission::config::MissionConfig::load(self.mission.as_deref()).map_err(NetError::Mission)?;
+        let mut mission =
+            fleet_mission::config::MissionConfig::load(self.mission.as_deref()).map_err(NetError::Mission)?;
         let truth = match &self.truth {
             Some(p) => {
                 // The time between frames from the sidecar `fleet up` and `fleet simulate` write.
                 let dt = fleet_mission::process::dataset::sidecar_dt(p).unwrap_or(1.0);
-                let t = fleet_mission::process::dataset::load(p, dt).map_err(|e| NetError::Truth {
+                let t = fleet_mission::process::dataset::load_truth(p, dt).map_err(|e| NetError::Truth {
                     path: p.clone(),
                     source: fleet_exit::BadInput(e.into()),
                 })?;
@@ -466,6 +467,8 @@ impl NodeArgs {
             }
             None => mission.truth(|_| {}).map_err(NetError::MissionTruth)?,
         };
+        // Where the truth has no value in any frame (land) is off every node's model grid.
+        mission.team.land = truth.as_ref().map_or_else(Vec::new, |t| t.land());
         Ok((mission, truth))
     }
 

@@ -279,7 +279,7 @@ fn a_netcdf_variable_can_be_the_truth_and_gives_the_same_results_as_the_npy() {
         ),
         (
             format!("dataset = {:?}\nvariable = \"depth\"", nc.to_str().unwrap()),
-            "expected shape (frames, rows, cols)",
+            "has dimensions (y 48, x 96); a field needs (time, y, x)",
         ),
         (
             format!("dataset = {:?}\nvariable = \"density\"", npy.to_str().unwrap()),

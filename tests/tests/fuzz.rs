@@ -153,6 +153,7 @@ fn wire_seeds() -> Vec<Vec<u8>> {
             variance: vec![0.01; n],
             forecast_steps: 5,
             forecast_variance: vec![0.02; n],
+            land: vec![],
             estimate: vec![0.3; n],
         }),
         Body::Plan(Plan {

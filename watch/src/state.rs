@@ -241,6 +241,7 @@ impl View {
             || m.modes_im.len() != n * r
             || m.amplitudes.len() != r
             || m.variance.len() != n
+            || m.land.iter().any(|&c| c as usize >= n)
         {
             self.refused += 1;
             return false;
@@ -250,7 +251,7 @@ impl View {
         }
         // The fused estimate at the model's step, or (from a server that does not send it)
         // the model's own field there, Re(Phi alpha).
-        let estimate: Vec<f64> = if m.estimate.len() == n {
+        let mut estimate: Vec<f64> = if m.estimate.len() == n {
             m.estimate
         } else {
             (0..n)
@@ -263,9 +264,14 @@ impl View {
                 })
                 .collect()
         };
+        // Land has no estimate: NaN, which the page paints as land (and the truth has none).
+        let mut variance = m.variance;
+        for &c in &m.land {
+            (estimate[c as usize], variance[c as usize]) = (f64::NAN, f64::NAN);
+        }
         let truth = self.truth.as_ref().and_then(|t| t.get(m.step as usize)).cloned();
         if let Some(t) = &truth {
-            let mse = estimate.iter().zip(t).map(|(e, x)| (e - x).powi(2)).sum::<f64>() / n as f64;
+            let mse = fleet_mission::fusion::mse(&estimate, t);
             self.mse.retain(|(e, _)| *e != m.epoch);
             self.mse.push((m.epoch, mse));
         }
@@ -293,7 +299,7 @@ impl View {
             rows: self.grid.rows,
             cols: self.grid.cols,
             estimate,
-            variance: m.variance,
+            variance,
             truth,
         });
         true
@@ -401,6 +407,7 @@ mod tests {
             variance: vec![0.1; 6],
             forecast_steps: 1,
             forecast_variance: vec![0.2; 6],
+            land: vec![],
         })
     }
 

@@ -70,14 +70,17 @@ pub struct TeamOutcome {
 }
 
 /// Mean over cells of error^2 / reported variance.
+/// Over the cells where the truth has a value.
 fn calibration(estimate: &[f64], variance: &[f64], truth: &[f64]) -> f64 {
-    estimate
+    let (sum, n) = estimate
         .iter()
         .zip(variance)
         .zip(truth)
-        .map(|((e, v), t)| (e - t).powi(2) / v.max(1e-300))
-        .sum::<f64>()
-        / estimate.len().max(1) as f64
+        .filter(|(_, t)| !t.is_nan())
+        .fold((0.0, 0usize), |(s, n), ((e, v), t)| {
+            (s + (e - t).powi(2) / v.max(1e-300), n + 1)
+        });
+    sum / n.max(1) as f64
 }
 
 fn column(m: &Mat<f64>, k: usize) -> Vec<f64> {
@@ -161,7 +164,9 @@ fn oracle_disks(
     let mut err2 = vec![0.0; grid.len()];
     for k in probe.schedule().sample_steps(VehicleKind::Boat, e) {
         for ((s, x), t) in err2.iter_mut().zip(&probe.snapshots[k]).zip(truth_at(k)) {
-            *s += (x - t).powi(2);
+            if !t.is_nan() {
+                *s += (x - t).powi(2);
+            }
         }
     }
     let excluded = cfg
@@ -212,6 +217,10 @@ fn run_placing(
 ) -> Result<TeamOutcome, TeamError> {
     let grid = Grid::new(truth.rows, truth.cols, 1.0)?;
     let frames = truth.frames();
+    let cfg = &TeamConfig {
+        land: truth.land(),
+        ..cfg.clone()
+    };
     let mut server = ServerCore::new(cfg, grid, frames)?;
     let truth_at = |k: usize| column(&truth.snapshots, k);
     let mut brains = brains_of(&server, cfg, grid);

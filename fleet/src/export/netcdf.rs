@@ -26,10 +26,10 @@ pub fn write(run: &Run, path: &Path) -> Result<(), ExportError> {
         w.write_var_f64("y", &y)?;
         w.write_var_f64("lon", &lon)?;
         w.write_var_f64("lat", &lat)?;
-        w.write_var_f64("estimate", &run.estimate.data)?;
-        w.write_var_f64("variance", &run.variance.data)?;
+        w.write_var_f64("estimate", &filled(&run.estimate.data))?;
+        w.write_var_f64("variance", &filled(&run.variance.data))?;
         if let Some(t) = &run.truth {
-            w.write_var_f64("truth", &t.data)?;
+            w.write_var_f64("truth", &filled(&t.data))?;
         }
         w.close()
     })();
@@ -38,6 +38,15 @@ pub fn write(run: &Run, path: &Path) -> Result<(), ExportError> {
         return Err(failed(format!("{e:?}")));
     }
     std::fs::rename(&tmp, path).map_err(|e| failed(e.to_string()))
+}
+
+/// NetCDF's default fill for doubles (`NC_FILL_DOUBLE`), the `_FillValue` of every field:
+/// where there is no value (land, no data), which xarray decodes to NaN and GDAL to nodata.
+const FILL: f64 = 9.969_209_968_386_869e36;
+
+/// NaN (no value) as the fill value.
+fn filled(v: &[f64]) -> Vec<f64> {
+    v.iter().map(|&x| if x.is_nan() { FILL } else { x }).collect()
 }
 
 /// A CF `since` date: UTC, `YYYY-MM-DD hh:mm:ss` (CF's own form, which every reader takes).
@@ -134,14 +143,28 @@ fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
             ("units", "degrees_north"),
         ],
     )?;
+    // The truth's units where its file says them (a NetCDF variable's `units`).
+    let unit = run.mission.truth.as_ref().and_then(|t| t.source.units());
+    let (value_units, variance_units) = match &unit {
+        Some(u) => (u.clone(), format!("({u})2")),
+        None => ("1".to_string(), "1".to_string()),
+    };
     let fields: &[(&str, &str, &str)] = &[
         (
             "estimate",
             "fused estimate of the field (posterior mean of the model server)",
-            "1",
+            &value_units,
         ),
-        ("variance", "reported variance of the fused estimate per cell", "1"),
-        ("truth", "the true field the vehicles sensed (mixed reality)", "1"),
+        (
+            "variance",
+            "reported variance of the fused estimate per cell",
+            &variance_units,
+        ),
+        (
+            "truth",
+            "the true field the vehicles sensed (mixed reality)",
+            &value_units,
+        ),
     ];
     for (name, long, units) in fields {
         if *name == "truth" && run.truth.is_none() {
@@ -161,6 +184,7 @@ fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
                 ),
             ],
         )?;
+        ds.add_var_attr_f64(name, "_FillValue", vec![FILL])?;
     }
     ds.add_global_attr_string("Conventions", "CF-1.8")?;
     ds.add_global_attr_string(

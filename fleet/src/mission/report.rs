@@ -176,7 +176,11 @@ fn truth_of(mission: &fleet_mission::config::MissionConfig) -> String {
             truth.grid[0], truth.grid[1], truth.frames, truth.average
         ),
         TruthSource::Dataset(d) => format!("the dataset {}", d.display()),
-        TruthSource::NetCdf { path, variable } => format!("the variable {variable} of {}", path.display()),
+        TruthSource::NetCdf { path, variable, select } => format!(
+            "the variable {variable} of {}{}",
+            path.display(),
+            select.iter().map(|(d, v)| format!(", {d} = {v}")).collect::<String>()
+        ),
     };
     format!("the truth is {what} (mixed reality)")
 }

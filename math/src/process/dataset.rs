@@ -30,12 +30,47 @@ pub enum DatasetError {
         variable: String,
         have: String,
     },
-    #[error("{path}: variable {variable:?} is {found}; a truth needs float or double data")]
-    NotFloat {
+    /// What the file says about the variable cannot make a field (CF attributes, dimensions,
+    /// coordinates, values missing everywhere).
+    #[error("{path} ({variable}): {why}")]
+    Cf {
         path: String,
         variable: String,
-        found: String,
+        why: String,
     },
+    #[error("{path}: {why}")]
+    Holes { path: String, why: String },
+}
+
+/// Load a truth `.npy`: as [`load`], except that a NaN is a value the truth does not have
+/// (land, cloud: numpy's way of writing a masked field), which nothing senses or scores. A
+/// field or a frame with no value at all is refused, and so is an infinity.
+pub fn load_truth(path: impl AsRef<Path>, dt: f64) -> Result<FieldSeries, DatasetError> {
+    let path = path.as_ref();
+    let p = path.display().to_string();
+    let a = npy::read(path)?;
+    if let Some(index) = a.data.iter().position(|v| v.is_infinite()) {
+        return Err(NpyError::NonFinite {
+            path: p,
+            index,
+            value: a.data[index],
+        }
+        .into());
+    }
+    let holes = a.data.iter().any(|v| v.is_nan());
+    let mut finite = a.clone();
+    finite.data.iter_mut().filter(|v| v.is_nan()).for_each(|v| *v = 0.0);
+    let mut field = from_array(finite, &p, dt)?;
+    if holes {
+        let n = field.dim();
+        for (j, v) in a.data.iter().enumerate() {
+            if v.is_nan() {
+                field.snapshots[(j % n, j / n)] = f64::NAN;
+            }
+        }
+        super::netcdf::check_holes(&field.snapshots).map_err(|why| DatasetError::Holes { path: p, why })?;
+    }
+    Ok(field)
 }
 
 /// Load a `(frames, rows, cols)` float64 `.npy`, checked for shape and finiteness. `dt` is
@@ -43,7 +78,12 @@ pub enum DatasetError {
 pub fn load(path: impl AsRef<Path>, dt: f64) -> Result<FieldSeries, DatasetError> {
     let path = path.as_ref();
     let p = path.display().to_string();
-    let a = npy::read(path)?;
+    from_array(npy::read(path)?, &p, dt)
+}
+
+/// A `(frames, rows, cols)` array as a field, checked for shape and finiteness.
+fn from_array(a: npy::Array, p: &str, dt: f64) -> Result<FieldSeries, DatasetError> {
+    let p = p.to_string();
     let &[t, rows, cols] = a.shape.as_slice() else {
         return Err(DatasetError::Shape {
             path: p,
@@ -67,99 +107,19 @@ pub fn load(path: impl AsRef<Path>, dt: f64) -> Result<FieldSeries, DatasetError
     })
 }
 
-/// Load variable `variable` of a NetCDF-3 file (classic or 64-bit offset) as a field: its
-/// dimensions must be `(frames, rows, cols)` (time first, then y, then x), its type float or
-/// double, every value finite (a fill value is refused like a NaN), and the whole file
-/// readable. `dt` as for [`load`].
-pub fn load_netcdf(path: impl AsRef<Path>, variable: &str, dt: f64) -> Result<FieldSeries, DatasetError> {
-    let path = path.as_ref();
-    let p = path.display().to_string();
-    let unreadable = |e: netcdf3::error::ReadError| DatasetError::NetCdf {
-        path: p.clone(),
-        why: format!("{e:?}"),
-    };
-    let mut reader = netcdf3::FileReader::open(path).map_err(unreadable)?;
-    let (shape, data_type) = {
-        let Some(var) = reader.data_set().get_var(variable) else {
-            return Err(DatasetError::NoVariable {
-                path: p,
-                variable: variable.into(),
-                have: reader.data_set().get_var_names().join(", "),
-            });
-        };
-        (
-            var.get_dims().iter().map(|d| d.size()).collect::<Vec<usize>>(),
-            var.data_type(),
-        )
-    };
-    let &[t, rows, cols] = shape.as_slice() else {
-        return Err(DatasetError::Shape {
-            path: format!("{p} ({variable})"),
-            shape,
-        });
-    };
-    if t < 1 || rows == 0 || cols == 0 {
-        return Err(DatasetError::TooSmall {
-            path: format!("{p} ({variable})"),
-            shape,
-            min: 1,
-        });
-    }
-    // Every variable is read, not only this one: a file cut short anywhere is refused, not
-    // half used.
-    let mut all = reader.read_all_vars().map_err(unreadable)?;
-    let data: Vec<f64> = match all.remove(variable).ok_or_else(|| DatasetError::NetCdf {
-        path: p.clone(),
-        why: format!("variable {variable:?} has no data"),
-    })? {
-        netcdf3::DataVector::F64(v) => v,
-        netcdf3::DataVector::F32(v) => v.into_iter().map(f64::from).collect(),
-        _ => {
-            return Err(DatasetError::NotFloat {
-                path: p,
-                variable: variable.into(),
-                found: format!("{data_type:?}"),
-            })
-        }
-    };
-    let n = rows * cols;
-    if data.len() != n * t {
-        return Err(DatasetError::NetCdf {
-            path: p,
-            why: format!(
-                "variable {variable:?} holds {} values for its {t} x {rows} x {cols} shape",
-                data.len()
-            ),
-        });
-    }
-    if let Some((index, value)) = data.iter().copied().enumerate().find(|(_, v)| !v.is_finite()) {
-        return Err(NpyError::NonFinite {
-            path: format!("{p} ({variable})"),
-            index,
-            value,
-        }
-        .into());
-    }
-    Ok(FieldSeries {
-        rows,
-        cols,
-        dt,
-        snapshots: Mat::from_fn(n, t, |i, j| data[j * n + i]),
-    })
+/// Load variable `variable` of a NetCDF-3 file (classic or 64-bit offset) as a field, decoded
+/// as xarray decodes it ([`super::netcdf::read`]): NaN where the file marks a value missing.
+pub fn load_netcdf(
+    path: impl AsRef<Path>,
+    variable: &str,
+    select: &super::netcdf::Select,
+) -> Result<FieldSeries, DatasetError> {
+    Ok(super::netcdf::read(path, variable, select)?.field)
 }
 
-/// The `(frames, rows, cols)` of a NetCDF variable, from the header alone.
-pub fn netcdf_shape(path: impl AsRef<Path>, variable: &str) -> Option<Vec<usize>> {
-    let reader = netcdf3::FileReader::open(path).ok()?;
-    Some(
-        reader
-            .data_set()
-            .get_var(variable)?
-            .get_dims()
-            .iter()
-            .map(|d| d.size())
-            .collect(),
-    )
+/// The `(frames, rows, cols)` of a NetCDF variable after `select`, from the header.
+pub fn netcdf_shape(path: impl AsRef<Path>, variable: &str, select: &super::netcdf::Select) -> Option<Vec<usize>> {
+    super::netcdf::shape(path, variable, select)
 }
 
 /// Write a field as a `(frames, rows, cols)` float64 `.npy`, plus `sidecar` as pretty JSON at
@@ -250,36 +210,39 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("hetfleet-nc-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let data: Vec<f64> = (0..24).map(|k| k as f64 * 0.5 - 3.0).collect();
+        let none = crate::process::netcdf::Select::new();
         let nc = dir.join("f.nc");
         write_nc(&nc, "density", [4, 2, 3], &data);
         let npy_path = dir.join("f.npy");
         npy::write(&npy_path, &[4, 2, 3], &data).unwrap();
-        let (a, b) = (load_netcdf(&nc, "density", 0.5).unwrap(), load(&npy_path, 0.5).unwrap());
+        let (a, b) = (
+            load_netcdf(&nc, "density", &none).unwrap(),
+            load(&npy_path, 0.5).unwrap(),
+        );
         assert_eq!((a.rows, a.cols, a.frames()), (2, 3, 4));
         assert_eq!(a.snapshots, b.snapshots, "the same field as the .npy");
-        assert_eq!(netcdf_shape(&nc, "density"), Some(vec![4, 2, 3]));
-        let e = load_netcdf(&nc, "temperature", 1.0).unwrap_err().to_string();
+        assert_eq!(netcdf_shape(&nc, "density", &none), Some(vec![4, 2, 3]));
+        let e = load_netcdf(&nc, "temperature", &none).unwrap_err().to_string();
         assert!(
             e.contains("no variable \"temperature\"") && e.contains("density") && e.contains("f.nc"),
             "{e}"
         );
-        assert!(matches!(load_netcdf(&nc, "flat", 1.0), Err(DatasetError::Shape { .. })));
+        assert!(matches!(load_netcdf(&nc, "flat", &none), Err(DatasetError::Cf { .. })));
         let mut bad = data.clone();
         bad[7] = f64::NAN;
         write_nc(&dir.join("nan.nc"), "density", [4, 2, 3], &bad);
-        assert!(load_netcdf(dir.join("nan.nc"), "density", 1.0)
-            .unwrap_err()
-            .to_string()
-            .contains("not finite"));
+        // A NaN is a missing value (xarray's reading too): that cell of that frame only.
+        let holed = load_netcdf(dir.join("nan.nc"), "density", &none).unwrap();
+        assert!(holed.snapshots[(1, 1)].is_nan() && holed.snapshots.col(0).iter().all(|v| v.is_finite()));
         // Truncated anywhere (header or data): an error naming the file, never a panic.
         let bytes = std::fs::read(&nc).unwrap();
         for cut in [0, 3, 10, 40, bytes.len() / 2, bytes.len() - 1] {
             let t = dir.join(format!("cut{cut}.nc"));
             std::fs::write(&t, &bytes[..cut]).unwrap();
-            let e = load_netcdf(&t, "density", 1.0).unwrap_err().to_string();
+            let e = load_netcdf(&t, "density", &none).unwrap_err().to_string();
             assert!(e.contains(&format!("cut{cut}.nc")), "{e}");
         }
-        assert!(load_netcdf(dir.join("missing.nc"), "density", 1.0).is_err());
+        assert!(load_netcdf(dir.join("missing.nc"), "density", &none).is_err());
         std::fs::remove_dir_all(&dir).ok();
     }
 }

@@ -3,6 +3,7 @@
 //! `N x T` matrix on a grid, a step `dt` apart.
 
 pub mod dataset;
+pub mod netcdf;
 pub mod plasma;
 pub mod synthetic;
 pub mod truth;
@@ -61,6 +62,15 @@ impl FieldSeries {
 
     pub fn dim(&self) -> usize {
         self.snapshots.nrows()
+    }
+
+    /// The cells with no value in any frame (NaN throughout: land in an ocean field), in order.
+    /// They are off the model grid: nothing is placed, modelled or scored there.
+    pub fn land(&self) -> Vec<u32> {
+        (0..self.dim())
+            .filter(|&i| (0..self.frames()).all(|k| self.snapshots[(i, k)].is_nan()))
+            .map(|i| i as u32)
+            .collect()
     }
 
     /// Every frame area-averaged onto a `rows x cols` raster of the same extent

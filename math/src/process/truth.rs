@@ -18,6 +18,8 @@ pub enum TruthError {
         dataset needs it"
     )]
     Variable,
+    #[error("`select` fixes dimensions of a NetCDF dataset (`select = {{ pressure = 500 }}`); it goes with one")]
+    Select,
     #[error("simulating {preset:?}: {source}")]
     Simulation {
         preset: Preset,
@@ -43,7 +45,12 @@ pub enum TruthError {
 pub enum TruthSource {
     Preset(Preset),
     Dataset(PathBuf),
-    NetCdf { path: PathBuf, variable: String },
+    NetCdf {
+        path: PathBuf,
+        variable: String,
+        /// Dimensions beyond `(time, y, x)` fixed at one value ([`super::netcdf::Select`]).
+        select: super::netcdf::Select,
+    },
 }
 
 /// The two keys as they stand in a file.
@@ -55,17 +62,24 @@ struct TruthKeys {
     dataset: Option<PathBuf>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     variable: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    select: Option<super::netcdf::Select>,
 }
 
 impl TryFrom<TruthKeys> for TruthSource {
     type Error = TruthError;
     fn try_from(k: TruthKeys) -> Result<Self, TruthError> {
-        let netcdf = |d: &PathBuf| d.extension().is_some_and(|e| e.eq_ignore_ascii_case("nc"));
-        match (k.preset, k.dataset, k.variable) {
-            (Some(p), None, None) => Ok(Self::Preset(p)),
-            (None, Some(d), None) if !netcdf(&d) => Ok(Self::Dataset(d)),
-            (None, Some(d), Some(variable)) if netcdf(&d) => Ok(Self::NetCdf { path: d, variable }),
-            (Some(_), Some(_), _) | (None, None, _) => Err(TruthError::Source),
+        let netcdf = |d: &PathBuf| is_netcdf(d);
+        match (k.preset, k.dataset, k.variable, k.select) {
+            (Some(p), None, None, None) => Ok(Self::Preset(p)),
+            (None, Some(d), None, None) if !netcdf(&d) => Ok(Self::Dataset(d)),
+            (None, Some(d), Some(variable), select) if netcdf(&d) => Ok(Self::NetCdf {
+                path: d,
+                variable,
+                select: select.unwrap_or_default(),
+            }),
+            (Some(_), Some(_), ..) | (None, None, ..) => Err(TruthError::Source),
+            (_, _, _, Some(_)) => Err(TruthError::Select),
             _ => Err(TruthError::Variable),
         }
     }
@@ -78,16 +92,19 @@ impl From<TruthSource> for TruthKeys {
                 preset: Some(p),
                 dataset: None,
                 variable: None,
+                select: None,
             },
             TruthSource::Dataset(d) => Self {
                 preset: None,
                 dataset: Some(d),
                 variable: None,
+                select: None,
             },
-            TruthSource::NetCdf { path, variable } => Self {
+            TruthSource::NetCdf { path, variable, select } => Self {
                 preset: None,
                 dataset: Some(path),
                 variable: Some(variable),
+                select: (!select.is_empty()).then_some(select),
             },
         }
     }
@@ -117,7 +134,15 @@ impl TruthSource {
         match self {
             Self::Preset(_) => None,
             Self::Dataset(path) => crate::npy::read_shape(path).ok(),
-            Self::NetCdf { path, variable } => super::dataset::netcdf_shape(path, variable),
+            Self::NetCdf { path, variable, select } => super::dataset::netcdf_shape(path, variable, select),
+        }
+    }
+
+    /// The values' units where the file says them (a NetCDF variable's `units`).
+    pub fn units(&self) -> Option<String> {
+        match self {
+            Self::NetCdf { path, variable, .. } => super::netcdf::units(path, variable),
+            Self::Preset(_) | Self::Dataset(_) => None,
         }
     }
 
@@ -142,18 +167,25 @@ impl TruthSource {
                 let mut sim = PlasmaCloud::new(p).map_err(sim_err)?;
                 sim.run(frames, progress).map_err(sim_err)
             }
-            Self::Dataset(path) => super::dataset::load(path, 1.0).map_err(|source| TruthError::Dataset {
+            Self::Dataset(path) => super::dataset::load_truth(path, 1.0).map_err(|source| TruthError::Dataset {
                 path: path.clone(),
                 source,
             }),
-            Self::NetCdf { path, variable } => {
-                super::dataset::load_netcdf(path, variable, 1.0).map_err(|source| TruthError::Dataset {
+            Self::NetCdf { path, variable, select } => {
+                super::dataset::load_netcdf(path, variable, select).map_err(|source| TruthError::Dataset {
                     path: path.clone(),
                     source,
                 })
             }
         }
     }
+}
+
+/// A NetCDF file by its name (`.nc`, `.cdf`, `.nc3`, `.netcdf`), as GDAL and xarray accept it.
+pub fn is_netcdf(path: &std::path::Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| ["nc", "cdf", "nc3", "netcdf"].iter().any(|n| e.eq_ignore_ascii_case(n)))
 }
 
 /// `full` area-averaged by `factor` in both directions (the model grid of that space rate).

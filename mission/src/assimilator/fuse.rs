@@ -22,6 +22,9 @@ pub struct AerialSight {
     pub cells: Vec<usize>,
     pub values: Vec<f64>,
     pub variance: Vec<f64>,
+    /// The fine cells the frame observes (the filter's dense observation): those interpolated
+    /// from seen lattice cells only, off land.
+    pub covered: Vec<bool>,
 }
 
 impl Assimilator {
@@ -34,6 +37,7 @@ impl Assimilator {
         if samples.is_empty() {
             let estimate = s.held_aerial.clone().ok_or(TeamError::NotReady(Missing::AerialData))?;
             return Ok(AerialSight {
+                covered: vec![false; estimate.values.len()],
                 estimate,
                 interpolation: s.held_interpolation.clone(),
                 cells: vec![],
@@ -46,20 +50,20 @@ impl Assimilator {
         let cells = seen.iter().map(|&k| grid.index(frame.lattice.fine_cell(k))).collect();
         let values = seen.iter().map(|&k| frame.values[k]).collect();
         let variance = seen.iter().map(|&k| frame.variance[k].max(1e-12)).collect();
-        if frame.seen.iter().any(|s| !s) {
-            // A lattice cell nobody saw this step: take the held estimate there.
-            let held = s
-                .held_aerial
-                .as_ref()
-                .ok_or(TeamError::NotReady(Missing::EarlierFrame))?;
-            for k in (0..frame.seen.len()).filter(|&k| !frame.seen[k]) {
-                let i = grid.index(frame.lattice.fine_cell(k));
-                frame.values[k] = held.values[i];
-                frame.variance[k] = held.variance[i];
-            }
+        if seen.is_empty() {
+            return Err(TeamError::NotReady(Missing::AerialData));
         }
+        let unseen: Vec<usize> = (0..frame.seen.len()).filter(|&k| !frame.seen[k]).collect();
+        fill_unseen(&mut frame, &unseen, s.held_aerial.as_ref(), grid);
         let estimate = frame.upsample()?;
         let interpolation = frame.interpolation_variance()?;
+        // The fine cells this frame says something of: every lattice value they are
+        // interpolated from was seen (land and cloud are not observed).
+        let mut hole = vec![0.0; frame.seen.len()];
+        unseen.iter().for_each(|&k| hole[k] = 1.0);
+        let near_hole = frame.lattice.upsample_bilinear(&hole)?;
+        let mut covered: Vec<bool> = near_hole.iter().map(|&h| h == 0.0).collect();
+        self.setup.land.iter().for_each(|&c| covered[c] = false);
         s.held_aerial = Some(estimate.clone());
         s.held_interpolation = interpolation.clone();
         Ok(AerialSight {
@@ -68,6 +72,7 @@ impl Assimilator {
             cells,
             values,
             variance,
+            covered,
         })
     }
 
@@ -90,7 +95,8 @@ impl Assimilator {
             self.calibrate(sight, &predicted, &cells, &vals, boat_var);
         }
         if self.setup.cfg.fusion == Scheme::Kalman {
-            return self.filter_step(ahead, sight, &cells, &vals, &vars);
+            let fused = self.filter_step(ahead, sight, &cells, &vals, &vars)?;
+            return Ok(self.setup.dry_estimate(fused));
         }
         let hifi = self.boats_estimate(predicted, &cells, &vals, boat_var)?;
         let mut aerial = sight.estimate.clone();
@@ -100,12 +106,13 @@ impl Assimilator {
             values: &vals,
             noise_var: boat_var,
         });
-        Ok(fuse(
+        let fused = fuse(
             self.setup.cfg.fusion,
             self.setup.grid.len(),
             &[&aerial, &hifi],
             measured,
-        )?)
+        )?;
+        Ok(self.setup.dry_estimate(fused))
     }
 
     /// The sources' errors from the boats' innovations at the measured cells, less the boats'
@@ -223,12 +230,16 @@ impl Assimilator {
         f.update(&[lattice, boats])?;
         // The detail: the aerial estimate at every cell (noise, interpolation and the
         // calibrated extra), then the boats.
-        let all: Vec<usize> = (0..aerial.estimate.values.len()).collect();
+        let seen: Vec<usize> = (0..aerial.estimate.values.len())
+            .filter(|&i| aerial.covered[i])
+            .collect();
         let aerial_var = aerial_detail_variance(&aerial.estimate.variance, &aerial.interpolation, s.aerial_extra);
+        let (values, variance): (Vec<f64>, Vec<f64>) =
+            seen.iter().map(|&i| (aerial.estimate.values[i], aerial_var[i])).unzip();
         let dense = Observation {
-            cells: &all,
-            values: &aerial.estimate.values,
-            variance: &aerial_var,
+            cells: &seen,
+            values: &values,
+            variance: &variance,
         };
         f.update_detail(&[dense, boats])?;
         if !cells.is_empty() {
@@ -239,6 +250,31 @@ impl Assimilator {
         }
         let (values, variance) = f.field();
         Ok(Estimate { values, variance })
+    }
+}
+
+/// Give the lattice cells nobody saw this step (land, cloud, an aerial that did not report) a
+/// value to interpolate from: the held estimate there, or before there is one the nearest seen
+/// lattice cell's value, as uncertain as the seen values are spread. Their fine cells are not
+/// observed ([`AerialSight::covered`]); the values only keep the interpolation near them sane.
+fn fill_unseen(frame: &mut AerialFrame, unseen: &[usize], held: Option<&Estimate>, grid: &crate::grid::Grid) {
+    let seen: Vec<usize> = (0..frame.seen.len()).filter(|&k| frame.seen[k]).collect();
+    let spread = kalman::variance_of(&seen.iter().map(|&k| frame.values[k]).collect::<Vec<_>>());
+    let lattice = frame.lattice;
+    for &k in unseen {
+        let i = grid.index(lattice.fine_cell(k));
+        (frame.values[k], frame.variance[k]) = match held {
+            Some(h) => (h.values[i], h.variance[i]),
+            None => {
+                let at = lattice.fine_cell(k);
+                let d2 = |j: usize| {
+                    let c = lattice.fine_cell(j);
+                    (c.row as i64 - at.row as i64).pow(2) + (c.col as i64 - at.col as i64).pow(2)
+                };
+                let j = seen.iter().copied().min_by_key(|&j| (d2(j), j)).unwrap_or(k);
+                (frame.values[j], frame.variance[j] + spread)
+            }
+        };
     }
 }
 

@@ -32,8 +32,12 @@ pub struct Setup {
     cfg: TeamConfig,
     grid: Grid,
     dmd: DmdConfig,
-    /// Cells outside the site's fence (empty: no fence): never in a disk, never an aerial place.
+    /// Cells outside the site's fence or on land (empty: neither): never in a disk, never an
+    /// aerial place.
     excluded: Vec<bool>,
+    /// The cells with no data (`TeamConfig::land`): zero in every snapshot the model learns
+    /// from, so they are zero rows of its snapshot matrices (the DMD of the other cells).
+    land: Vec<usize>,
     /// The aerials' lattice cells, and the cells between them (which only the boats see).
     lattice: Vec<usize>,
     between_lattice: Vec<usize>,
@@ -73,6 +77,21 @@ pub struct AssimilatorState {
 /// The assimilator's state between two epochs, to come back to.
 pub type AssimilatorCheckpoint = AssimilatorState;
 
+impl Setup {
+    /// `x` with the land cells at zero (a no-op without land).
+    fn dry(&self, mut x: Vec<f64>) -> Vec<f64> {
+        self.land.iter().for_each(|&c| x[c] = 0.0);
+        x
+    }
+
+    /// An estimate with the land cells at zero, known exactly (nothing there to estimate).
+    fn dry_estimate(&self, mut e: Estimate) -> Estimate {
+        e.values = self.dry(e.values);
+        self.land.iter().for_each(|&c| e.variance[c] = 0.0);
+        e
+    }
+}
+
 /// The model server's assimilator. A clone is independent (an offline experiment can try an
 /// epoch on it and keep the original).
 #[derive(Clone)]
@@ -89,7 +108,11 @@ impl Assimilator {
         let boat_positions = (0..cfg.boats)
             .map(|_| (placement_rng.random_range(0.0..w), placement_rng.random_range(0.0..h)))
             .collect();
-        let excluded = cfg.fence.as_ref().map_or_else(Vec::new, |f| f.excluded(&grid));
+        let mut excluded = cfg.fence.as_ref().map_or_else(Vec::new, |f| f.excluded(&grid));
+        if !cfg.land.is_empty() {
+            excluded.resize(grid.len(), false);
+            cfg.land.iter().for_each(|&c| excluded[c as usize] = true);
+        }
         let formation = coverage::uniform_formation(&grid, cfg.aerials)?.positions;
         let aerial_positions = coverage::snap_inside(&grid, &excluded, &formation)
             .ok_or_else(|| TeamError::Config("the site's boundary leaves no cell of the grid inside it".into()))?;
@@ -107,6 +130,7 @@ impl Assimilator {
             cfg: cfg.clone(),
             grid,
             excluded,
+            land: cfg.land.iter().map(|&c| c as usize).collect(),
             lattice: (0..grid.len()).filter(|&i| on_lattice[i]).collect(),
             between_lattice: (0..grid.len()).filter(|&i| !on_lattice[i]).collect(),
             boat_speed: f64::INFINITY,
@@ -171,6 +195,11 @@ impl Assimilator {
         }
     }
 
+    /// The cells off the model grid (no data in the truth: land), in order.
+    pub fn land(&self) -> &[usize] {
+        &self.setup.land
+    }
+
     pub fn grid(&self) -> &Grid {
         &self.setup.grid
     }
@@ -211,6 +240,7 @@ impl Assimilator {
         if estimates.len() < 3 {
             return Err(TeamError::NotReady(Missing::Snapshots { have: estimates.len() }));
         }
+        let estimates: Vec<Vec<f64>> = estimates.into_iter().map(|e| self.setup.dry(e)).collect();
         let z = to_mat(&estimates);
         let m = estimates.len() - 1;
         let s = &mut self.state;
@@ -234,7 +264,7 @@ impl Assimilator {
         }
         let s = &mut self.state;
         let mut chain = vec![s.newest.clone().ok_or(TeamError::NotReady(Missing::Model))?];
-        chain.extend(epoch);
+        chain.extend(epoch.into_iter().map(|e| self.setup.dry(e)));
         let z = to_mat(&chain);
         let m = chain.len() - 1;
         s.model

@@ -263,6 +263,10 @@ pub struct ModelUpdate {
     pub forecast_steps: u64,
     /// Per-cell variance of the forecast `forecast_steps` ahead.
     pub forecast_variance: Vec<f64>,
+    /// The cells off the model grid (no data in the truth: land), ascending; their values
+    /// above are zeros that stand for nothing. Absent from a server without them.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub land: Vec<u32>,
 }
 
 /// One target of a plan: a sampling step of the vehicle.
@@ -652,6 +656,7 @@ mod tests {
                 variance: vec![0.01; 20],
                 forecast_steps: 5,
                 forecast_variance: vec![0.02; 20],
+                land: vec![],
             }),
             Body::Plan(Plan {
                 vehicle: "boat-1".parse::<VehicleId>().unwrap(),

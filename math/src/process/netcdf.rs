@@ -1,0 +1,434 @@
+//! One variable of a NetCDF-3 file as a field, decoded the way xarray decodes it (CF
+//! conventions): a value equal to `_FillValue` or `missing_value` (compared in the variable's
+//! own type, as xarray casts them) or outside `valid_min`/`valid_max`/`valid_range` (as
+//! netCDF4-python masks them) is missing, never data; packed integers are unpacked with
+//! `scale_factor` and `add_offset`; `units` is carried along.
+//!
+//! Dimensions are taken the way files have them: `select` fixes a dimension (by coordinate
+//! value where the dimension has a coordinate variable, xarray's `sel`; by index where it has
+//! none, `isel`), singleton dimensions other than the first are squeezed, and what is left must
+//! be `(time, y, x)`. Rows run south to north (the grid's `y` is north): a file whose `y`
+//! coordinate decreases (latitude from the pole down, as many reanalyses are stored) is
+//! flipped, and so is a decreasing `x`. A coordinate that is not strictly monotonic is refused.
+//! The time between frames comes from the time coordinate and its CF `units`
+//! (`"hours since 1-1-1"`): their mean spacing in seconds (years of winters are 365 or 366
+//! days apart).
+//!
+//! A missing value is NaN in the field; a variable missing everywhere, or a frame with no value
+//! at all, is refused.
+
+use super::dataset::DatasetError;
+use super::FieldSeries;
+use faer::Mat;
+use netcdf3::{DataSet, DataType, DataVector, Variable};
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// Dimensions the field does not keep, each fixed at one coordinate value (or index).
+pub type Select = BTreeMap<String, f64>;
+
+/// A NetCDF variable read as a field, with what the file says about it.
+#[derive(Debug, Clone)]
+pub struct NetCdfField {
+    /// The field, NaN where the file marks a value missing.
+    pub field: FieldSeries,
+    /// The variable's `units`, if it has them.
+    pub units: Option<String>,
+    /// The `y` and `x` coordinates in the field's order (south to north, west to east).
+    pub y: Option<Vec<f64>>,
+    pub x: Option<Vec<f64>>,
+    /// How many values are missing.
+    pub missing: usize,
+}
+
+/// The `(frames, rows, cols)` of `variable` after `select` and squeezing, from the header and
+/// the selected coordinates.
+pub fn shape(path: impl AsRef<Path>, variable: &str, select: &Select) -> Option<Vec<usize>> {
+    let mut reader = netcdf3::FileReader::open(path).ok()?;
+    let named: Vec<String> = select
+        .keys()
+        .filter(|d| is_coordinate(reader.data_set(), d))
+        .cloned()
+        .collect();
+    let coords: BTreeMap<String, Vec<f64>> = named
+        .into_iter()
+        .filter_map(|d| Some((d.clone(), numbers(&reader.read_var(&d).ok()?)?)))
+        .collect();
+    let var = reader.data_set().get_var(variable)?;
+    let layout = Layout::of(var, select, &coords, &|why| why).ok()?;
+    Some(layout.kept.iter().map(|&d| layout.sizes[d]).collect())
+}
+
+/// The `units` attribute of `variable`, from the header.
+pub fn units(path: impl AsRef<Path>, variable: &str) -> Option<String> {
+    netcdf3::FileReader::open(path)
+        .ok()?
+        .data_set()
+        .get_var_attr_as_string(variable, "units")
+}
+
+/// A coordinate variable: one dimension, named as the variable.
+fn is_coordinate(ds: &DataSet, name: &str) -> bool {
+    ds.get_var(name).is_some_and(|v| v.dim_names() == [name.to_string()])
+}
+
+/// Read `variable` of the NetCDF-3 file at `path` (classic or 64-bit offset). Every variable of
+/// the file is read: a file cut short anywhere is refused, not half used.
+pub fn read(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<NetCdfField, DatasetError> {
+    let path = path.as_ref();
+    let p = path.display().to_string();
+    let cf = |why: String| DatasetError::Cf {
+        path: p.clone(),
+        variable: variable.into(),
+        why,
+    };
+    let unreadable = |e: netcdf3::error::ReadError| DatasetError::NetCdf {
+        path: p.clone(),
+        why: format!("{e:?}"),
+    };
+    let mut reader = netcdf3::FileReader::open(path).map_err(unreadable)?;
+    let mut all = reader.read_all_vars().map_err(unreadable)?;
+    let ds = reader.data_set();
+    let Some(var) = ds.get_var(variable) else {
+        return Err(DatasetError::NoVariable {
+            path: p,
+            variable: variable.into(),
+            have: ds.get_var_names().join(", "),
+        });
+    };
+    let raw = all.remove(variable).ok_or_else(|| cf("no data".into()))?;
+    let coords: BTreeMap<String, Vec<f64>> = all
+        .iter()
+        .filter(|(name, _)| is_coordinate(ds, name))
+        .filter_map(|(name, v)| Some((name.clone(), numbers(v)?)))
+        .collect();
+    let layout = Layout::of(var, select, &coords, &cf)?;
+    let coord = |d: usize| coords.get(&layout.names[d]).cloned();
+    let [t_dim, y_dim, x_dim] = [layout.kept[0], layout.kept[1], layout.kept[2]];
+    let (times, mut y, mut x) = (coord(t_dim), coord(y_dim), coord(x_dim));
+    let flip_y = orientation(&layout.names[y_dim], y.as_deref()).map_err(&cf)?;
+    let flip_x = orientation(&layout.names[x_dim], x.as_deref()).map_err(&cf)?;
+    if let (true, Some(v)) = (flip_y, y.as_mut()) {
+        v.reverse();
+    }
+    if let (true, Some(v)) = (flip_x, x.as_mut()) {
+        v.reverse();
+    }
+    let dt = time_step(ds, &layout.names[t_dim], times.as_deref()).map_err(&cf)?;
+    let decode = Decode::of(var, raw_type(&raw)).map_err(&cf)?;
+    let values = decode.values(&raw).ok_or_else(|| {
+        cf(format!(
+            "is {:?}; a field needs numbers (byte, short, int, float or double)",
+            var.data_type()
+        ))
+    })?;
+    let (t, rows, cols) = (layout.sizes[t_dim], layout.sizes[y_dim], layout.sizes[x_dim]);
+    let n = rows * cols;
+    let mut snapshots = Mat::zeros(n, t);
+    for k in 0..t {
+        for r in 0..rows {
+            for c in 0..cols {
+                let (fr, fc) = (
+                    if flip_y { rows - 1 - r } else { r },
+                    if flip_x { cols - 1 - c } else { c },
+                );
+                snapshots[(r * cols + c, k)] = values[layout.flat(&[(t_dim, k), (y_dim, fr), (x_dim, fc)])];
+            }
+        }
+    }
+    let missing = check_holes(&snapshots).map_err(&cf)?;
+    Ok(NetCdfField {
+        field: FieldSeries {
+            rows,
+            cols,
+            dt,
+            snapshots,
+        },
+        units: var.get_attr_as_string("units"),
+        y,
+        x,
+        missing,
+    })
+}
+
+/// Refuse a field missing everywhere or in a whole frame; the number of missing values.
+pub(crate) fn check_holes(snapshots: &Mat<f64>) -> Result<usize, String> {
+    let mut missing = 0;
+    for k in 0..snapshots.ncols() {
+        let here = snapshots.col(k).iter().filter(|v| v.is_nan()).count();
+        if here == snapshots.nrows() {
+            return Err(
+                if k == 0 && (1..snapshots.ncols()).all(|j| snapshots.col(j).iter().all(|v| v.is_nan())) {
+                    "every value is missing (fill value, missing_value or outside the valid range)".into()
+                } else {
+                    format!("frame {k} has no value: every cell is missing")
+                },
+            );
+        }
+        missing += here;
+    }
+    Ok(missing)
+}
+
+/// Where the variable's values sit: its dimensions, which are kept (time, y, x) and the index
+/// every other one is fixed at.
+struct Layout {
+    names: Vec<String>,
+    sizes: Vec<usize>,
+    fixed: Vec<Option<usize>>,
+    kept: Vec<usize>,
+}
+
+impl Layout {
+    /// `coords`: the values of the coordinate variables of the dimensions `select` names.
+    fn of<E>(
+        var: &Variable,
+        select: &Select,
+        coords: &BTreeMap<String, Vec<f64>>,
+        err: &dyn Fn(String) -> E,
+    ) -> Result<Self, E> {
+        let names: Vec<String> = var.dim_names();
+        let sizes: Vec<usize> = var.get_dims().iter().map(|d| d.size()).collect();
+        let listed = || {
+            names
+                .iter()
+                .zip(&sizes)
+                .map(|(n, s)| format!("{n} {s}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        let mut fixed = vec![None; names.len()];
+        for (dim, &value) in select {
+            let Some(d) = names.iter().position(|n| n == dim) else {
+                return Err(err(format!(
+                    "select names {dim:?}, which is not a dimension of it (it has: {})",
+                    listed()
+                )));
+            };
+            fixed[d] = Some(pick(dim, sizes[d], coords.get(dim), value).map_err(err)?);
+        }
+        let mut kept: Vec<usize> = (0..names.len()).filter(|&d| fixed[d].is_none()).collect();
+        // Squeeze singletons (never the first, the time axis) until three are left.
+        while kept.len() > 3 {
+            let Some(i) = kept.iter().skip(1).position(|&d| sizes[d] == 1) else {
+                break;
+            };
+            fixed[kept[i + 1]] = Some(0);
+            kept.remove(i + 1);
+        }
+        if kept.len() != 3 {
+            let free: Vec<&str> = kept.iter().skip(1).map(|&d| names[d].as_str()).collect();
+            return Err(err(format!(
+                "has dimensions ({}); a field needs (time, y, x){}",
+                listed(),
+                if kept.len() > 3 {
+                    format!(": fix the others with select = {{ {} = <value> }}", free[0])
+                } else {
+                    String::new()
+                }
+            )));
+        }
+        if sizes[kept[0]] < 1 || sizes[kept[1]] == 0 || sizes[kept[2]] == 0 {
+            return Err(err(format!("has dimensions ({}): no values", listed())));
+        }
+        Ok(Self {
+            names,
+            sizes,
+            fixed,
+            kept,
+        })
+    }
+
+    /// The flat index of a value from the kept dimensions' indices.
+    fn flat(&self, at: &[(usize, usize)]) -> usize {
+        let mut i = 0;
+        for d in 0..self.sizes.len() {
+            let k = self.fixed[d].unwrap_or_else(|| at.iter().find(|(dd, _)| *dd == d).map_or(0, |&(_, k)| k));
+            i = i * self.sizes[d] + k;
+        }
+        i
+    }
+}
+
+/// The index `value` names along `dim`: a coordinate value where the file has a coordinate
+/// variable for it (`coordinate`, its values), else an index.
+fn pick(dim: &str, size: usize, coordinate: Option<&Vec<f64>>, value: f64) -> Result<usize, String> {
+    let Some(values) = coordinate else {
+        return match value {
+            v if v >= 0.0 && v.fract() == 0.0 && (v as usize) < size => Ok(v as usize),
+            _ => Err(format!(
+                "select {dim} = {value}: {dim} has no coordinate variable, so it takes an index from 0 to {}",
+                size.saturating_sub(1)
+            )),
+        };
+    };
+    let tol = 1e-6 * value.abs().max(1.0);
+    values.iter().position(|c| (c - value).abs() <= tol).ok_or_else(|| {
+        format!(
+            "select {dim} = {value}: no such {dim} (it has: {})",
+            values.iter().map(|v| v.to_string()).collect::<Vec<_>>().join(", ")
+        )
+    })
+}
+
+/// Any numeric vector as doubles (`None` for characters).
+fn numbers(v: &DataVector) -> Option<Vec<f64>> {
+    Some(match v {
+        DataVector::I8(v) => v.iter().map(|&x| f64::from(x)).collect(),
+        DataVector::I16(v) => v.iter().map(|&x| f64::from(x)).collect(),
+        DataVector::I32(v) => v.iter().map(|&x| f64::from(x)).collect(),
+        DataVector::F32(v) => v.iter().map(|&x| f64::from(x)).collect(),
+        DataVector::F64(v) => v.clone(),
+        DataVector::U8(_) => return None,
+    })
+}
+
+fn raw_type(v: &DataVector) -> DataType {
+    match v {
+        DataVector::I8(_) => DataType::I8,
+        DataVector::U8(_) => DataType::U8,
+        DataVector::I16(_) => DataType::I16,
+        DataVector::I32(_) => DataType::I32,
+        DataVector::F32(_) => DataType::F32,
+        DataVector::F64(_) => DataType::F64,
+    }
+}
+
+/// Whether a coordinate runs backwards (and the axis is to be flipped); refused when it is not
+/// strictly monotonic (or not finite).
+fn orientation(dim: &str, values: Option<&[f64]>) -> Result<bool, String> {
+    let Some(v) = values else { return Ok(false) };
+    let up = v.windows(2).all(|w| w[1] > w[0]);
+    let down = v.windows(2).all(|w| w[1] < w[0]);
+    if !(up || down) || v.iter().any(|x| !x.is_finite()) {
+        return Err(format!("coordinate {dim:?} is not strictly monotonic ({v:?})"));
+    }
+    Ok(down && v.len() > 1)
+}
+
+/// Seconds between frames: the time coordinate's mean spacing in its CF `units` (`"<unit> since
+/// <date>"`); 1 where the file has no time coordinate or one frame. A time axis that does not
+/// increase is refused, and so are units that are not time.
+fn time_step(ds: &DataSet, dim: &str, times: Option<&[f64]>) -> Result<f64, String> {
+    let Some(t) = times.filter(|t| t.len() > 1) else {
+        return Ok(1.0);
+    };
+    if !t.windows(2).all(|w| w[1] > w[0]) || t.iter().any(|x| !x.is_finite()) {
+        return Err(format!("time coordinate {dim:?} does not increase"));
+    }
+    let units = ds.get_var_attr_as_string(dim, "units").unwrap_or_default();
+    let unit = units.split_whitespace().next().unwrap_or("").to_ascii_lowercase();
+    let seconds = match unit.as_str() {
+        _ if !units.contains(" since ") => return Ok((t[t.len() - 1] - t[0]) / (t.len() - 1) as f64),
+        "days" | "day" | "d" => 86_400.0,
+        "hours" | "hour" | "hr" | "h" => 3_600.0,
+        "minutes" | "minute" | "min" => 60.0,
+        "seconds" | "second" | "sec" | "s" => 1.0,
+        "milliseconds" | "millisecond" | "ms" => 1e-3,
+        _ => {
+            return Err(format!(
+                "time units {units:?}: expected days, hours, minutes or seconds since a date"
+            ))
+        }
+    };
+    Ok((t[t.len() - 1] - t[0]) / (t.len() - 1) as f64 * seconds)
+}
+
+/// How stored values become data: which are missing, and the unpacking.
+struct Decode {
+    missing: Vec<f64>,
+    valid: (f64, f64),
+    /// Whether the valid range is in packed units (its type is the variable's).
+    valid_packed: bool,
+    scale: f64,
+    offset: f64,
+}
+
+impl Decode {
+    fn of(var: &Variable, stored: DataType) -> Result<Self, String> {
+        let attr = |name: &str| var.get_attr(name).and_then(attr_numbers);
+        let in_type = |v: f64| cast(v, &stored);
+        let mut missing: Vec<f64> = vec![];
+        for name in ["_FillValue", "missing_value"] {
+            missing.extend(attr(name).unwrap_or_default().into_iter().map(in_type));
+        }
+        let mut valid = (f64::NEG_INFINITY, f64::INFINITY);
+        let mut typed = vec![];
+        if let Some(r) = attr("valid_range") {
+            let [lo, hi] = r[..] else {
+                return Err(format!("valid_range has {} values, not 2", r.len()));
+            };
+            valid = (lo, hi);
+            typed.push("valid_range");
+        }
+        if let Some(&[lo]) = attr("valid_min").as_deref() {
+            valid.0 = lo;
+            typed.push("valid_min");
+        }
+        if let Some(&[hi]) = attr("valid_max").as_deref() {
+            valid.1 = hi;
+            typed.push("valid_max");
+        }
+        let valid_packed = typed
+            .iter()
+            .all(|n| var.get_attr(n).is_some_and(|a| a.data_type() == stored));
+        let one = |name: &str, default: f64| -> Result<f64, String> {
+            match attr(name).as_deref() {
+                None => Ok(default),
+                Some(&[v]) if v.is_finite() => Ok(v),
+                Some(v) => Err(format!("{name} is {v:?}; CF wants one finite number")),
+            }
+        };
+        Ok(Self {
+            missing,
+            valid,
+            valid_packed,
+            scale: one("scale_factor", 1.0)?,
+            offset: one("add_offset", 0.0)?,
+        })
+    }
+
+    /// The data, NaN where missing (`None`: not numbers).
+    fn values(&self, raw: &DataVector) -> Option<Vec<f64>> {
+        let stored = numbers(raw)?;
+        Some(
+            stored
+                .into_iter()
+                .map(|s| {
+                    let v = s * self.scale + self.offset;
+                    let checked = if self.valid_packed { s } else { v };
+                    let out_of_range = checked < self.valid.0 || checked > self.valid.1;
+                    if s.is_nan() || self.missing.contains(&s) || out_of_range || !v.is_finite() {
+                        f64::NAN
+                    } else {
+                        v
+                    }
+                })
+                .collect(),
+        )
+    }
+}
+
+/// An attribute's numbers as doubles.
+fn attr_numbers(a: &netcdf3::Attribute) -> Option<Vec<f64>> {
+    let f = |v: Option<&[f32]>| v.map(|v| v.iter().map(|&x| f64::from(x)).collect());
+    let i = |v: Option<Vec<f64>>| v;
+    a.get_f64()
+        .map(|v| v.to_vec())
+        .or_else(|| f(a.get_f32()))
+        .or_else(|| i(a.get_i32().map(|v| v.iter().map(|&x| f64::from(x)).collect())))
+        .or_else(|| i(a.get_i16().map(|v| v.iter().map(|&x| f64::from(x)).collect())))
+        .or_else(|| i(a.get_i8().map(|v| v.iter().map(|&x| f64::from(x)).collect())))
+}
+
+/// `v` as the stored type holds it (xarray casts a fill value to the variable's type before
+/// comparing: 1e20 as a float is 100000002004087734272).
+fn cast(v: f64, t: &DataType) -> f64 {
+    match t {
+        DataType::F32 => f64::from(v as f32),
+        DataType::I8 => f64::from(v as i8),
+        DataType::I16 => f64::from(v as i16),
+        DataType::I32 => f64::from(v as i32),
+        DataType::U8 | DataType::F64 => v,
+    }
+}
