@@ -7,11 +7,12 @@ cd "$(dirname "$0")/.."
 # Python Zenoh client that reads the fleet's model (eclipse-zenoh, the same 1.10 line as the
 # Rust side, and cbor2).
 # xarray reads the NetCDF a run writes, mcap its recording; MAVSDK (its native binding, v4)
-# is a second ground-station stack against the simulated autopilot.
-if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pymavlink, xarray, mcap, mavsdk.plugins.geofence" 2>/dev/null; then
-  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors eclipse-zenoh cbor2 pymavlink xarray mcap mavsdk)"
+# is a second ground-station stack against the simulated autopilot. eofs ships two real NetCDF
+# files with holes (an SST anomaly with land, a 500 hPa height with a singleton level).
+if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pymavlink, xarray, mcap, mavsdk.plugins.geofence, eofs" 2>/dev/null; then
+  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors eclipse-zenoh cbor2 pymavlink xarray mcap mavsdk eofs)"
   python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore \
-    numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2 pymavlink==2.4.50 xarray mcap mavsdk==4.1.0
+    numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2 pymavlink==2.4.50 xarray mcap mavsdk==4.1.0 eofs==2.0.0
 fi
 # Debian's chromium for the live view's browser test, gdal-bin for the GeoTIFF test, DejaVu
 # for the charts' text, nftables and iproute2's tc for the radio test's shaped link.

@@ -590,6 +590,12 @@ impl MissionConfig {
         averaged_by(&full, t.average).map(Some)
     }
 
+    /// Where the truth has no value in any frame (land) is off the model grid: every node and
+    /// every replay of the mission sets it from the truth here.
+    pub fn adopt_land(&mut self, truth: Option<&FieldSeries>) {
+        self.team.land = truth.map_or_else(Vec::new, |t| t.land());
+    }
+
     /// Steps in the mission as the file says them (a dataset's may be fewer).
     pub fn frames_hint(&self) -> usize {
         self.truth

@@ -137,6 +137,13 @@ pub struct ServerSummary {
     /// Each vehicle's link traffic, as its last telemetry said (payload bytes by key).
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub traffic: BTreeMap<VehicleId, crate::protocol::LinkTraffic>,
+    /// Cells the truth has no value at in any frame (land): off the model grid, not scored.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub land_cells: usize,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// The plans the server published, as `plans.json` keeps them (the boats' and aerials' places,

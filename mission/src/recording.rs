@@ -23,6 +23,16 @@ use std::path::{Path, PathBuf};
 pub const CORE_TOPIC: &str = "server/core";
 /// The channel of the server's events (JSON, one per message).
 pub const EVENTS_TOPIC: &str = "server/events";
+/// The JSON of header entry `k` (its default where the recording is older than the entry).
+fn metadata<T: serde::de::DeserializeOwned + Default>(
+    h: &std::collections::BTreeMap<String, String>,
+    k: &str,
+) -> Result<T, String> {
+    h.get(k).map_or(Ok(T::default()), |f| {
+        serde_json::from_str(f).map_err(|e| format!("its `{HEADER}` metadata `{k}`: {e}"))
+    })
+}
+
 /// The metadata record with the mission and its workspace.
 pub const HEADER: &str = "hetfleet";
 
@@ -126,6 +136,11 @@ impl Recorder<BufWriter<std::fs::File>> {
             (
                 "fence".into(),
                 serde_json::to_string(&mission.team.fence).expect("a fence serialises"),
+            ),
+            // The land the truth left off the model grid (the truth need not travel either).
+            (
+                "land".into(),
+                serde_json::to_string(&mission.team.land).expect("cells serialise"),
             ),
         ]);
         w.write_metadata(&mcap::records::Metadata {
@@ -281,11 +296,9 @@ impl Recording {
         };
         let mission_toml = field("mission_toml")?;
         let mut mission = MissionConfig::from_toml(&mission_toml).map_err(|e| bad(format!("its mission: {e}")))?;
-        // Recordings made before boundaries existed have no `fence`: none.
-        mission.team.fence = match h.get("fence") {
-            Some(f) => serde_json::from_str(f).map_err(|e| bad(format!("its `{HEADER}` metadata `fence`: {e}")))?,
-            None => None,
-        };
+        // Recordings made before boundaries (masks) existed have no `fence` (`land`): none.
+        mission.team.fence = metadata(&h, "fence").map_err(&bad)?;
+        mission.team.land = metadata(&h, "land").map_err(&bad)?;
         let cell_m: f64 = field("cell_m")?
             .parse()
             .map_err(|e| bad(format!("its `{HEADER}` metadata `cell_m`: {e}")))?;

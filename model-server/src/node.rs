@@ -648,6 +648,7 @@ impl Server {
             holdout: self.core.holdout(),
             innovations: self.core.innovations(),
             traffic: self.traffic.clone(),
+            land_cells: self.core.assimilator().land().len(),
             dt: self
                 .truth
                 .as_ref()

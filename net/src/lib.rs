@@ -467,8 +467,7 @@ impl NodeArgs {
             }
             None => mission.truth(|_| {}).map_err(NetError::MissionTruth)?,
         };
-        // Where the truth has no value in any frame (land) is off every node's model grid.
-        mission.team.land = truth.as_ref().map_or_else(Vec::new, |t| t.land());
+        mission.adopt_land(truth.as_ref());
         Ok((mission, truth))
     }
 

@@ -33,9 +33,10 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     let t0 = std::time::Instant::now();
-    let mission = MissionConfig::load(Some(&args.mission)).map_err(fleet::exit::bad_input)?;
+    let mut mission = MissionConfig::load(Some(&args.mission)).map_err(fleet::exit::bad_input)?;
     let pb = super::progress_bar(mission.frames_hint() as u64, "truth");
     let truth = mission.truth(|k| pb.set_position(k as u64))?;
+    mission.adopt_land(truth.as_ref());
     pb.finish_and_clear();
     let (grid, frames) = mission.workspace(truth.as_ref()).map_err(fleet::exit::bad_input)?;
     if let Some(v) = mission
@@ -91,6 +92,7 @@ pub fn run(args: Args) -> Result<()> {
         holdout: core.holdout(),
         innovations: core.innovations(),
         traffic: BTreeMap::new(),
+        land_cells: core.assimilator().land().len(),
     };
     let path = args.out.join("summary.json");
     std::fs::write(&path, serde_json::to_string_pretty(&summary)?)

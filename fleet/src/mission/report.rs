@@ -232,11 +232,22 @@ impl MissionReport<'_> {
         writeln!(md, "## Estimation error\n")?;
         writeln!(
             md,
-            "Mean squared error over the grid, averaged over steps {from}-{} (from the first step where every team has \
+            "Mean squared error over the cells with a truth, averaged over steps {from}-{} (from the first step where every team has \
                 data: the boats' first sample), and, labelled, from step 0 for the teams that have data there. \
              One run of one seed: for which team is better, with 95% intervals over seeds, see `fleet experiment`.\n",
             summary.mse.len().saturating_sub(1)
         )?;
+        if summary.land_cells > 0 {
+            writeln!(
+                md,
+                "The truth has no value at {} cells in any frame (land): they are off the model grid, never in a \
+                 boat's disk, and not scored; a cell without a value in one frame (cloud) is not scored then.\n",
+                summary.land_cells
+            )?;
+        }
+        if let Some(u) = self.mission.truth.as_ref().and_then(|t| t.source.units()) {
+            writeln!(md, "Values in {u}, as the truth's file says; MSE in ({u})².\n")?;
+        }
         writeln!(md, "| team | MSE, steps {from}- | MSE from step 0 |\n|---|---|---|")?;
         writeln!(
             md,

@@ -432,3 +432,109 @@ fn cast(v: f64, t: &DataType) -> f64 {
         DataType::U8 | DataType::F64 => v,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `v(time, level, lat, lon)` of shorts with the attributes given, `lat` and `level`
+    /// coordinates; written by `netcdf3`.
+    fn write(path: &Path, data: &[i16], lat: &[f64], attrs: &[(&str, f64)]) {
+        let (t, rows, cols) = (data.len() / (lat.len() * 3), lat.len(), 3);
+        let mut ds = netcdf3::DataSet::new();
+        for (d, n) in [("time", t), ("level", 1), ("lat", rows), ("lon", cols)] {
+            ds.add_fixed_dim(d, n).unwrap();
+        }
+        ds.add_var_i16("v", &["time", "level", "lat", "lon"]).unwrap();
+        for (k, x) in attrs {
+            match *k {
+                "scale_factor" | "add_offset" => ds.add_var_attr_f32("v", k, vec![*x as f32]).unwrap(),
+                // (doubles: the `netcdf3` crate pads a lone short attribute wrongly and cannot
+                // read its own file back; a double fill value is cast to the type, as xarray does)
+                _ => ds.add_var_attr_f64("v", k, vec![*x]).unwrap(),
+            }
+        }
+        ds.add_var_attr_string("v", "units", "K").unwrap();
+        ds.add_var_f64("lat", &["lat"]).unwrap();
+        ds.add_var_f64("level", &["level"]).unwrap();
+        ds.add_var_f64("time", &["time"]).unwrap();
+        ds.add_var_attr_string("time", "units", "days since 2000-01-01")
+            .unwrap();
+        let mut w = netcdf3::FileWriter::open(path).unwrap();
+        w.set_def(&ds, netcdf3::Version::Classic, 0).unwrap();
+        w.write_var_i16("v", data).unwrap();
+        w.write_var_f64("lat", lat).unwrap();
+        w.write_var_f64("level", &[850.0]).unwrap();
+        w.write_var_f64("time", &(0..t).map(|k| 2.0 * k as f64).collect::<Vec<_>>())
+            .unwrap();
+        w.close().unwrap();
+    }
+
+    #[test]
+    fn packed_shorts_with_fill_values_decode_as_cf_says_and_bad_files_are_named() {
+        let dir = std::env::temp_dir().join(format!("hetfleet-cf-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("v.nc");
+        // 2 frames of 2 x 3; lat north to south; -999 is the fill, 30000 (15010 unpacked) above
+        // valid_max (a double: in unpacked units).
+        let data = [1, 2, 3, 4, -999, 6, 7, 8, 9, 30000, -999, 12];
+        let attrs = [
+            ("_FillValue", -999.0),
+            ("valid_max", 10000.0),
+            ("scale_factor", 0.5),
+            ("add_offset", 10.0),
+        ];
+        write(&p, &data, &[60.0, 50.0], &attrs);
+        let f = read(&p, "v", &Select::new()).unwrap();
+        assert_eq!((f.field.rows, f.field.cols, f.field.frames()), (2, 3, 2));
+        assert_eq!(f.units.as_deref(), Some("K"));
+        assert_eq!(f.y, Some(vec![50.0, 60.0]), "rows run south to north");
+        assert_eq!(f.field.dt, 2.0 * 86_400.0, "CF time: 2 days");
+        let col = |k: usize| -> Vec<f64> { f.field.snapshots.col(k).iter().copied().collect() };
+        // Frame 0: the southern row (stored second) first; value * 0.5 + 10.
+        let want0 = [12.0, f64::NAN, 13.0, 10.5, 11.0, 11.5];
+        let want1 = [f64::NAN, f64::NAN, 16.0, 13.5, 14.0, 14.5];
+        for (got, want) in [(col(0), want0), (col(1), want1)] {
+            for (g, w) in got.iter().zip(want) {
+                assert!(g == &w || (g.is_nan() && w.is_nan()), "{got:?} vs {want:?}");
+            }
+        }
+        assert_eq!(f.missing, 3);
+        // The singleton level, fixed by its coordinate or squeezed; a level not there refused.
+        let at = |v: f64| Select::from([("level".to_string(), v)]);
+        let bits = |m: &Mat<f64>| -> Vec<u64> {
+            (0..m.ncols())
+                .flat_map(|k| m.col(k).iter().map(|v| v.to_bits()).collect::<Vec<_>>())
+                .collect()
+        };
+        assert_eq!(
+            bits(&read(&p, "v", &at(850.0)).unwrap().field.snapshots),
+            bits(&f.field.snapshots)
+        );
+        let e = read(&p, "v", &at(500.0)).unwrap_err().to_string();
+        assert!(e.contains("no such level (it has: 850)") && e.contains("v.nc"), "{e}");
+        let e = read(&p, "v", &Select::from([("depth".to_string(), 0.0)]))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("not a dimension"), "{e}");
+        // Refused: a frame with no value, a variable with none, coordinates out of order.
+        let mut holed = data;
+        holed[6..].iter_mut().for_each(|v| *v = -999);
+        write(&p, &holed, &[60.0, 50.0], &attrs);
+        assert!(read(&p, "v", &Select::new())
+            .unwrap_err()
+            .to_string()
+            .contains("frame 1 has no value"));
+        write(&p, &[-999; 12], &[60.0, 50.0], &attrs);
+        assert!(read(&p, "v", &Select::new())
+            .unwrap_err()
+            .to_string()
+            .contains("every value is missing"));
+        write(&p, &data[..9], &[60.0, 50.0, 55.0], &attrs);
+        assert!(read(&p, "v", &Select::new())
+            .unwrap_err()
+            .to_string()
+            .contains("not strictly monotonic"));
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}

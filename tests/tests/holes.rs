@@ -1,0 +1,156 @@
+//! Real data files have holes (land, cloud, no data): a NetCDF file written by xarray with an
+//! island, a cloudy frame, packed shorts and a singleton level runs through `fleet experiment`
+//! and a whole `fleet up` mission, and what they write is checked against xarray's own decoding
+//! (tests/py/holes.py); the two files a Python package ships (eofs: an SST anomaly with land as
+//! `missing_value = 1e20`, a 500 hPa height with a singleton pressure level) run, and a level
+//! that is not there is refused with one line.
+
+use hetfleet_tests::{bin, eventually, free_port, root, run, scratch, web_state, Procs};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn python(args: &[&str]) -> std::process::Output {
+    Command::new("python3")
+        .args(args)
+        .current_dir(root())
+        .output()
+        .expect("python3")
+}
+
+fn holes_py(args: &[&str]) -> String {
+    let script = root().join("tests/py/holes.py");
+    let mut all = vec![script.to_str().unwrap()];
+    all.extend_from_slice(args);
+    let o = python(&all);
+    let out = String::from_utf8_lossy(&o.stdout).to_string();
+    assert!(
+        o.status.success(),
+        "holes.py {args:?}: {out}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    out
+}
+
+/// An experiment of one row on `truth` (TOML lines), 1 seed; its output and report directory.
+fn experiment(dir: &Path, name: &str, grid: [usize; 2], frames: usize, truth: &str) -> (std::process::Output, PathBuf) {
+    let toml = dir.join(format!("{name}.toml"));
+    std::fs::write(
+        &toml,
+        format!(
+            "seed = 3\ntruth_grid = [{}, {}]\nframes = {frames}\nradius = 2.0\n[team]\nboats = 3\ninit_steps = \
+             10\nrank = \"6\"\n[[row]]\n{truth}\nav_time = 1\nmv_time = 5\nav_space = 3\nmv_space = 1\nnoise = 0.05\n",
+            grid[0], grid[1]
+        ),
+    )
+    .unwrap();
+    let rep = dir.join(name);
+    let out = run(
+        "fleet",
+        &["experiment", toml.to_str().unwrap(), "--out", rep.to_str().unwrap()],
+    );
+    (out, rep)
+}
+
+/// Every number in `results.json` is one a field's values can make (a fill value of 1e20
+/// squared would be 1e40).
+fn no_fill_value_in(rep: &Path) {
+    let text = std::fs::read_to_string(rep.join("results.json")).unwrap();
+    let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    fn walk(v: &serde_json::Value, worst: &mut f64) {
+        match v {
+            serde_json::Value::Number(n) => *worst = worst.max(n.as_f64().unwrap_or(0.0).abs()),
+            serde_json::Value::Array(a) => a.iter().for_each(|x| walk(x, worst)),
+            serde_json::Value::Object(o) => o.values().for_each(|x| walk(x, worst)),
+            _ => {}
+        }
+    }
+    let mut worst = 0.0;
+    walk(&v, &mut worst);
+    assert!(worst < 1e12, "{}: a number of {worst:e} in results.json", rep.display());
+}
+
+#[test]
+fn a_file_with_land_cloud_packed_shorts_and_a_level_runs_as_xarray_reads_it() {
+    let dir = scratch("holes");
+    let nc = dir.join("island.nc");
+    holes_py(&["write", nc.to_str().unwrap()]);
+    let truth = format!(
+        "dataset = {:?}\nvariable = \"temp\"\nselect = {{ depth = 5 }}",
+        nc.to_str().unwrap()
+    );
+    let (o, rep) = experiment(&dir, "island", [24, 48], 40, &truth);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    no_fill_value_in(&rep);
+
+    // The whole fleet over it, paced so the live view can be asked mid-mission.
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = hetfleet_tests::paced_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep), 150);
+    let text = std::fs::read_to_string(&mission)
+        .unwrap()
+        .replace("preset = \"cloud2\"", &truth)
+        .replace("grid = [48, 96]\n", "")
+        .replace("average = 2", "average = 1");
+    std::fs::write(&mission, text).unwrap();
+    let port = free_port();
+    let out = dir.join("run");
+    let mut procs = Procs::default();
+    procs.0.push(
+        Command::new(bin("fleet"))
+            .args(["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()])
+            .args(["--web", &format!("127.0.0.1:{port}"), "--web-linger-s", "0"])
+            .current_dir(root())
+            .stdout(std::fs::File::create(dir.join("up.log")).unwrap())
+            .stderr(std::fs::File::create(dir.join("up.err")).unwrap())
+            .spawn()
+            .expect("fleet up"),
+    );
+    eventually(60, "the view has a model", || {
+        web_state(port).is_some_and(|s| s["model"]["version"].as_u64().unwrap_or(0) >= 1)
+    });
+    println!("{}", holes_py(&["view", nc.to_str().unwrap(), &port.to_string()]));
+    let status = procs.0[0].wait().unwrap();
+    let err = std::fs::read_to_string(dir.join("up.err")).unwrap_or_default();
+    assert!(status.success(), "fleet up: {err}");
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(
+        report.contains("(land)") && report.contains("Values in degC"),
+        "{report}"
+    );
+    // Truth as xarray decodes it, per-step MSE as numpy computes it over the cells with a
+    // truth (1e-12), no boat disk on land, estimate.npy and estimate.nc missing on land only.
+    println!("{}", holes_py(&["check", nc.to_str().unwrap(), out.to_str().unwrap()]));
+}
+
+#[test]
+fn the_files_a_python_package_ships_run_and_a_missing_level_is_refused() {
+    let o = python(&["-c", "import eofs, os; print(os.path.dirname(eofs.__file__))"]);
+    assert!(
+        o.status.success(),
+        "eofs (installed by scripts/test.sh): {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let data = PathBuf::from(String::from_utf8_lossy(&o.stdout).trim()).join("examples/example_data");
+    let dir = scratch("package-files");
+    let sst = data.join("sst_ndjfm_anom.nc");
+    let hgt = data.join("hgt_djf.nc");
+    let (o, rep) = experiment(
+        &dir,
+        "sst",
+        [18, 30],
+        50,
+        &format!("dataset = {sst:?}\nvariable = \"sst\""),
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    no_fill_value_in(&rep);
+    let z = format!("dataset = {hgt:?}\nvariable = \"z\"\nselect = {{ pressure = 500 }}");
+    let (o, rep) = experiment(&dir, "hgt", [29, 49], 65, &z);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    no_fill_value_in(&rep);
+    let (o, _) = experiment(&dir, "bad", [29, 49], 65, &z.replace("500", "850"));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.trim().lines().count() == 1 && err.contains("no such pressure (it has: 500)"),
+        "{err}"
+    );
+}
