@@ -22,8 +22,8 @@ pub struct AerialSight {
     pub cells: Vec<usize>,
     pub values: Vec<f64>,
     pub variance: Vec<f64>,
-    /// The fine cells the frame observes (the filter's dense observation): those interpolated
-    /// from seen lattice cells only, off land.
+    /// The fine cells the frame observes (the filter's dense observation): those off land (a
+    /// cell interpolated from a lattice cell nobody saw has that fill's variance).
     pub covered: Vec<bool>,
 }
 
@@ -54,15 +54,12 @@ impl Assimilator {
             return Err(TeamError::NotReady(Missing::AerialData));
         }
         let unseen: Vec<usize> = (0..frame.seen.len()).filter(|&k| !frame.seen[k]).collect();
-        fill_unseen(&mut frame, &unseen, s.held_aerial.as_ref(), grid);
+        fill_unseen(&mut frame, &unseen);
         let estimate = frame.upsample()?;
         let interpolation = frame.interpolation_variance()?;
-        // The fine cells this frame says something of: every lattice value they are
-        // interpolated from was seen (land and cloud are not observed).
-        let mut hole = vec![0.0; frame.seen.len()];
-        unseen.iter().for_each(|&k| hole[k] = 1.0);
-        let near_hole = frame.lattice.upsample_bilinear(&hole)?;
-        let mut covered: Vec<bool> = near_hole.iter().map(|&h| h == 0.0).collect();
+        // The dense observation is of the water: a cell interpolated from a filled lattice value
+        // carries that value's large variance in `estimate.variance`.
+        let mut covered = vec![true; grid.len()];
         self.setup.land.iter().for_each(|&c| covered[c] = false);
         s.held_aerial = Some(estimate.clone());
         s.held_interpolation = interpolation.clone();
@@ -254,27 +251,20 @@ impl Assimilator {
 }
 
 /// Give the lattice cells nobody saw this step (land, cloud, an aerial that did not report) a
-/// value to interpolate from: the held estimate there, or before there is one the nearest seen
-/// lattice cell's value, as uncertain as the seen values are spread. Their fine cells are not
-/// observed ([`AerialSight::covered`]); the values only keep the interpolation near them sane.
-fn fill_unseen(frame: &mut AerialFrame, unseen: &[usize], held: Option<&Estimate>, grid: &crate::grid::Grid) {
+/// value to interpolate from: the nearest seen lattice cell's value this step, as uncertain as
+/// the seen values are spread (an earlier frame's value would go stale: land is never seen).
+fn fill_unseen(frame: &mut AerialFrame, unseen: &[usize]) {
     let seen: Vec<usize> = (0..frame.seen.len()).filter(|&k| frame.seen[k]).collect();
     let spread = kalman::variance_of(&seen.iter().map(|&k| frame.values[k]).collect::<Vec<_>>());
     let lattice = frame.lattice;
     for &k in unseen {
-        let i = grid.index(lattice.fine_cell(k));
-        (frame.values[k], frame.variance[k]) = match held {
-            Some(h) => (h.values[i], h.variance[i]),
-            None => {
-                let at = lattice.fine_cell(k);
-                let d2 = |j: usize| {
-                    let c = lattice.fine_cell(j);
-                    (c.row as i64 - at.row as i64).pow(2) + (c.col as i64 - at.col as i64).pow(2)
-                };
-                let j = seen.iter().copied().min_by_key(|&j| (d2(j), j)).unwrap_or(k);
-                (frame.values[j], frame.variance[j] + spread)
-            }
+        let at = lattice.fine_cell(k);
+        let d2 = |j: usize| {
+            let c = lattice.fine_cell(j);
+            (c.row as i64 - at.row as i64).pow(2) + (c.col as i64 - at.col as i64).pow(2)
         };
+        let j = seen.iter().copied().min_by_key(|&j| (d2(j), j)).unwrap_or(k);
+        (frame.values[k], frame.variance[k]) = (frame.values[j], frame.variance[j] + spread);
     }
 }
 

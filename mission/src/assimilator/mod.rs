@@ -406,6 +406,65 @@ mod tests {
         assert_eq!(a.1, b.1, "model depends on arrival order");
     }
 
+    /// The known answer behind "land leaves the model grid": land is zero in every snapshot,
+    /// so zero rows of the snapshot matrices, and the DMD of the whole grid is the DMD of the
+    /// wet cells (the same eigenvalues, the same forecast there, exactly zero on land). An exact
+    /// rank-4 linear system (a damped rotation and two decays) on 30 wet cells of 40.
+    #[test]
+    fn land_as_zero_rows_is_the_dmd_of_the_wet_cells() {
+        use crate::dmd::{DmdConfig, Method, RankPolicy};
+        let (n, t) = (40, 25);
+        let wet: Vec<usize> = (0..n).filter(|i| i % 4 != 1).collect();
+        let f = |k: usize, s: f64| {
+            let (k, r) = (k as i32, 0.3 * k as f64);
+            0.95f64.powi(k) * (r.cos() * (0.2 * s).sin() + r.sin() * (0.2 * s).cos())
+                + 0.9f64.powi(k) * (0.05 * s).cos()
+                + 0.8f64.powi(k) * (s / 30.0).powi(2)
+        };
+        let on_wet: Vec<Vec<f64>> = (0..t)
+            .map(|k| (0..wet.len()).map(|j| f(k, j as f64)).collect())
+            .collect();
+        let on_grid: Vec<Vec<f64>> = on_wet
+            .iter()
+            .map(|c| {
+                let mut v = vec![0.0; n];
+                wet.iter().zip(c).for_each(|(&i, &x)| v[i] = x);
+                v
+            })
+            .collect();
+        for method in [Method::General, Method::Batch] {
+            let cfg = DmdConfig {
+                method,
+                rank: RankPolicy::Fixed(4),
+                debias: Default::default(),
+                gamma: 1.0,
+                forgetting: Default::default(),
+            };
+            let fit = |cols: &[Vec<f64>]| {
+                let (z, m) = (to_mat(cols), cols.len() - 1);
+                let d = cfg.init(z.subcols(0, m), z.subcols(1, m)).unwrap();
+                fit_to(d.as_ref(), cols.last().unwrap()).unwrap().0
+            };
+            let (a, b) = (fit(&on_wet), fit(&on_grid));
+            let eig = |m: &DmdModel| {
+                let mut v: Vec<[f64; 2]> = m.modes.eigenvalues.iter().map(|z| [z.re, z.im]).collect();
+                v.sort_by(|a, b| a[0].total_cmp(&b[0]).then(a[1].total_cmp(&b[1])));
+                v
+            };
+            for (x, y) in eig(&a).iter().zip(eig(&b)) {
+                assert!(
+                    (x[0] - y[0]).abs() < 1e-9 && (x[1] - y[1]).abs() < 1e-9,
+                    "{method:?}: {x:?} vs {y:?}"
+                );
+            }
+            let (pa, pb) = (a.predict(3.0), b.predict(3.0));
+            for (j, &i) in wet.iter().enumerate() {
+                assert!((pa[j] - pb[i]).abs() < 1e-9, "{method:?} forecast at cell {i}");
+            }
+            assert!((0..n).filter(|i| !wet.contains(i)).all(|i| pb[i].abs() < 1e-12));
+        }
+    }
+
     #[test]
     fn each_aerial_senses_its_own_region_once() {
         let grid = Grid::new(12, 24, 1.0).unwrap();
