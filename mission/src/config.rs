@@ -484,7 +484,8 @@ pub struct Scoring {
 impl MissionConfig {
     /// Parse and check a mission; every error is bad input (the binaries exit 2), on one line.
     pub fn from_toml(text: &str) -> Result<Self, ConfigError> {
-        let cfg: Self = toml::from_str(text).map_err(|e| ConfigError::Toml(toml_error(text, &e)))?;
+        let mut cfg: Self = toml::from_str(text).map_err(|e| ConfigError::Toml(toml_error(text, &e)))?;
+        cfg.place_by_truth(text);
         keys::check_id("mission", &cfg.mission).map_err(ConfigError::MissionId)?;
         match (&cfg.truth, &cfg.field) {
             (Some(t), None) if t.frames < 10 || t.average == 0 => {
@@ -547,6 +548,32 @@ impl MissionConfig {
             )
             .map_err(|(key, rule)| field("sensors", key, rule))?;
         Ok(cfg)
+    }
+
+    /// A NetCDF truth with latitude and longitude places the site where `[mavlink]` gives
+    /// neither `origin` nor `size_m`: the grid's corner at the file's south-west cell edge, its
+    /// extent the file's (east at the southern edge's scale, as [`crate::site::Site`] maps it).
+    fn place_by_truth(&mut self, text: &str) {
+        let given = text
+            .parse::<toml::Table>()
+            .ok()
+            .and_then(|t| t.get("mavlink").and_then(|m| m.as_table()).cloned())
+            .is_some_and(|m| m.contains_key("origin") || m.contains_key("size_m"));
+        let Some(TruthSource::NetCdf { path, variable, select }) = self.truth.as_ref().map(|t| &t.source) else {
+            return;
+        };
+        let Some([south, west, north, east]) = (!given)
+            .then(|| crate::process::netcdf::bounds(path, variable, select))
+            .flatten()
+        else {
+            return;
+        };
+        const R: f64 = crate::site::EARTH_RADIUS_M;
+        self.mavlink.origin = [south, west, 0.0];
+        self.mavlink.size_m = Some([
+            (east - west).to_radians() * R * south.to_radians().cos(),
+            (north - south).to_radians() * R,
+        ]);
     }
 
     /// The mission file at `path`, or the bundled default.

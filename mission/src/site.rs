@@ -7,7 +7,7 @@ use crate::grid::Grid;
 use nalgebra::{Vector2, Vector3};
 
 /// WGS-84 equatorial radius (m).
-const EARTH_RADIUS_M: f64 = 6_378_137.0;
+pub const EARTH_RADIUS_M: f64 = 6_378_137.0;
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Site {

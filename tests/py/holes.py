@@ -95,6 +95,11 @@ def check(path, run):
     e = nc.estimate.values
     if not (np.isnan(e[:, land]).all() and np.isfinite(e[:, ~land]).all()):
         fail("estimate.nc is not missing exactly on land")
+    # The site placed by the file's latitude and longitude (the mission gives no origin).
+    src = xr.open_dataset(path)
+    for ours, theirs in ((nc.lat.values, np.sort(src.lat.values)), (nc.lon.values, src.lon.values)):
+        if np.max(np.abs(ours - theirs)) > 1e-6:
+            fail(f"estimate.nc's cell centres {ours[:3]}... are not the file's {theirs[:3]}...")
     units = nc.estimate.attrs.get("units")
     if units != "degC":
         fail(f"estimate.nc says units {units!r}, the file degC")

@@ -59,6 +59,41 @@ pub fn shape(path: impl AsRef<Path>, variable: &str, select: &Select) -> Option<
     Some(layout.kept.iter().map(|&d| layout.sizes[d]).collect())
 }
 
+/// Where `variable` lies on the Earth, `[south, west, north, east]` (degrees, cell edges), when
+/// its `y` and `x` coordinates are latitude and longitude (CF `units` `degrees_north` and
+/// `degrees_east`, or those `standard_name`s) evenly spaced; longitude in [-180, 180).
+pub fn bounds(path: impl AsRef<Path>, variable: &str, select: &Select) -> Option<[f64; 4]> {
+    let mut reader = netcdf3::FileReader::open(path).ok()?;
+    let ds = reader.data_set();
+    let var = ds.get_var(variable)?;
+    let names = var.dim_names();
+    let is = |name: &str, units: &str, standard: &str| {
+        is_coordinate(ds, name)
+            && (ds
+                .get_var_attr_as_string(name, "units")
+                .is_some_and(|u| u.starts_with(units))
+                || ds.get_var_attr_as_string(name, "standard_name").as_deref() == Some(standard))
+    };
+    let lat = names.iter().find(|n| is(n, "degrees_n", "latitude"))?.clone();
+    let lon = names.iter().find(|n| is(n, "degrees_e", "longitude"))?.clone();
+    if select.contains_key(&lat) || select.contains_key(&lon) {
+        return None;
+    }
+    let edges = |v: Vec<f64>| -> Option<(f64, f64)> {
+        let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let step = (hi - lo) / (v.len().max(2) - 1) as f64;
+        let even = v
+            .windows(2)
+            .all(|w| ((w[1] - w[0]).abs() - step).abs() <= 1e-6 * step.max(1e-12));
+        (v.len() >= 2 && step > 0.0 && even).then_some((lo - step / 2.0, hi + step / 2.0))
+    };
+    let (south, north) = edges(numbers(&reader.read_var(&lat).ok()?)?)?;
+    let (west, east) = edges(numbers(&reader.read_var(&lon).ok()?)?)?;
+    let wrapped = (west + 180.0).rem_euclid(360.0) - 180.0;
+    Some([south, wrapped, north, wrapped + (east - west)])
+}
+
 /// The `units` attribute of `variable`, from the header.
 pub fn units(path: impl AsRef<Path>, variable: &str) -> Option<String> {
     netcdf3::FileReader::open(path)
