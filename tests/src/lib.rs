@@ -37,6 +37,18 @@ pub fn run(name: &str, args: &[&str]) -> Output {
         })
 }
 
+/// `fleet experiment` on `text` written to `<dir>/<name>.toml`; its output and report directory.
+pub fn experiment_file(dir: &std::path::Path, name: &str, text: &str) -> (Output, PathBuf) {
+    let toml = dir.join(format!("{name}.toml"));
+    std::fs::write(&toml, text).expect("writing the experiment");
+    let rep = dir.join(name);
+    let out = run(
+        "fleet",
+        &["experiment", toml.to_str().unwrap(), "--out", rep.to_str().unwrap()],
+    );
+    (out, rep)
+}
+
 /// A scratch directory for one test (removed and made afresh).
 pub fn scratch(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("hetfleet-{name}-{}", std::process::id()));

@@ -230,22 +230,12 @@ fn a_netcdf_variable_can_be_the_truth_and_gives_the_same_results_as_the_npy() {
         .expect("python3");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let experiment = |name: &str, truth: &str| {
-        let toml = dir.join(format!("{name}.toml"));
-        std::fs::write(
-            &toml,
-            format!(
-                "seed = 3\nseeds = [1, 2]\ntruth_grid = [48, 96]\nframes = 40\nradius = 6.0\n[team]\nboats = \
-                    3\ninit_steps = 10\nrank = \"6\"\n\
-                 [[row]]\n{truth}\nav_time = 1\nmv_time = 5\nav_space = 6\nmv_space = 2\nnoise = 0.05\n"
-            ),
-        )
-        .unwrap();
-        let rep = dir.join(name);
-        let out = run(
-            "fleet",
-            &["experiment", toml.to_str().unwrap(), "--out", rep.to_str().unwrap()],
+        let text = format!(
+            "seed = 3\nseeds = [1, 2]\ntruth_grid = [48, 96]\nframes = 40\nradius = 6.0\n[team]\nboats = \
+                3\ninit_steps = 10\nrank = \"6\"\n\
+             [[row]]\n{truth}\nav_time = 1\nmv_time = 5\nav_space = 6\nmv_space = 2\nnoise = 0.05\n"
         );
-        (out, rep)
+        hetfleet_tests::experiment_file(&dir, name, &text)
     };
     let (a, rep_npy) = experiment("npy", &format!("dataset = {:?}", npy.to_str().unwrap()));
     let (b, rep_nc) = experiment(

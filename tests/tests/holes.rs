@@ -5,7 +5,7 @@
 //! `missing_value = 1e20`, a 500 hPa height with a singleton pressure level) run, and a level
 //! that is not there is refused with one line.
 
-use hetfleet_tests::{bin, eventually, free_port, root, run, scratch, web_state, Procs};
+use hetfleet_tests::{bin, eventually, free_port, root, scratch, web_state, Procs};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -33,22 +33,12 @@ fn holes_py(args: &[&str]) -> String {
 
 /// An experiment of one row on `truth` (TOML lines), 1 seed; its output and report directory.
 fn experiment(dir: &Path, name: &str, grid: [usize; 2], frames: usize, truth: &str) -> (std::process::Output, PathBuf) {
-    let toml = dir.join(format!("{name}.toml"));
-    std::fs::write(
-        &toml,
-        format!(
-            "seed = 3\ntruth_grid = [{}, {}]\nframes = {frames}\nradius = 2.0\n[team]\nboats = 3\ninit_steps = \
-             10\nrank = \"6\"\n[[row]]\n{truth}\nav_time = 1\nmv_time = 5\nav_space = 3\nmv_space = 1\nnoise = 0.05\n",
-            grid[0], grid[1]
-        ),
-    )
-    .unwrap();
-    let rep = dir.join(name);
-    let out = run(
-        "fleet",
-        &["experiment", toml.to_str().unwrap(), "--out", rep.to_str().unwrap()],
+    let text = format!(
+        "seed = 3\ntruth_grid = [{}, {}]\nframes = {frames}\nradius = 2.0\n[team]\nboats = 3\ninit_steps = \
+         10\nrank = \"6\"\n[[row]]\n{truth}\nav_time = 1\nmv_time = 5\nav_space = 3\nmv_space = 1\nnoise = 0.05\n",
+        grid[0], grid[1]
     );
-    (out, rep)
+    hetfleet_tests::experiment_file(dir, name, &text)
 }
 
 /// Every number in `results.json` is one a field's values can make (a fill value of 1e20
