@@ -34,14 +34,14 @@ def field():
 
 def write(path):
     x = field()
-    lat = 45.0 + 0.01 * np.arange(ROWS)
+    lat = 45.0 + 0.0001 * np.arange(ROWS)  # cells of about 11 m: a bay a boat crosses in minutes
     ds = xr.Dataset(
         {"temp": (("time", "depth", "lat", "lon"), x[:, None, ::-1, :], {"units": "degC"})},
         coords={
             "time": ("time", np.arange(T, dtype="f8"), {"units": "hours since 2026-06-01 00:00:00"}),
             "depth": ("depth", [5.0], {"units": "m", "positive": "down"}),
             "lat": ("lat", lat[::-1], {"units": "degrees_north", "standard_name": "latitude"}),
-            "lon": ("lon", -3.0 + 0.01 * np.arange(COLS), {"units": "degrees_east"}),
+            "lon": ("lon", -3.0 + 0.0001 * np.arange(COLS), {"units": "degrees_east"}),
         },
     )
     enc = {"temp": {"dtype": "int16", "scale_factor": 0.001, "add_offset": 12.0, "_FillValue": -32767}}
