@@ -220,6 +220,7 @@ fn a_netcdf_variable_can_be_the_truth_and_gives_the_same_results_as_the_npy() {
          f.createDimension('time', a.shape[0]); f.createDimension('y', a.shape[1]); f.createDimension('x', \
          a.shape[2])\n\
          v = f.createVariable('density', 'd', ('time', 'y', 'x')); v[:] = a; v.units = '1'\n\
+         u = f.createVariable('mirror', 'd', ('time', 'y', 'x')); u[:] = a[:, ::-1, :]; u.units = 'K'\n\
          w = f.createVariable('depth', 'f', ('y', 'x')); w[:] = 0\nf.close()\n",
         npy.to_str().unwrap(),
         nc.to_str().unwrap()
@@ -259,6 +260,50 @@ fn a_netcdf_variable_can_be_the_truth_and_gives_the_same_results_as_the_npy() {
         mse(&rep_npy),
         mse(&rep_nc),
         "the same field, the same results, step by step"
+    );
+    // Two rows on one file, each with its own variable: two truths, named and described apart
+    // (the first variable read twice, silently, was a defect).
+    let (o, rep2) = experiment(
+        "two",
+        &format!(
+            "dataset = {nc:?}\nvariable = \"density\"\nav_time = 1\nmv_time = 5\nav_space = 6\nmv_space = 2\n\
+             noise = 0.05\n[[row]]\ndataset = {nc:?}\nvariable = \"mirror\""
+        ),
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let csv = std::fs::read_to_string(rep2.join("per_step.csv")).unwrap();
+    let of_row = |r: &str| -> Vec<String> {
+        csv.lines()
+            .filter(|l| l.starts_with(&format!("{r},")) && l.contains(",heterogeneous,"))
+            .map(|l| l.split(',').skip(2).collect::<Vec<_>>().join(","))
+            .collect()
+    };
+    assert!(
+        !of_row("1").is_empty() && of_row("1") != of_row("2"),
+        "two variables, two rows"
+    );
+    let report = std::fs::read_to_string(rep2.join("report.md")).unwrap();
+    assert!(
+        report.contains("| plume-density |") && report.contains("| plume-mirror |"),
+        "{report}"
+    );
+    assert!(report.contains("the variable `mirror` (K) of"), "{report}");
+    assert!(
+        !report.contains("plasma-cloud"),
+        "a dataset is not the simulator: {report}"
+    );
+    // A [team] key the experiment sets itself is refused with one line, not ignored.
+    let placed = format!(
+        "seed = 3\ntruth_grid = [48, 96]\nframes = 40\nradius = 6.0\n[team]\nplacement = \"horizon\"\n\
+         [[row]]\ndataset = {nc:?}\nvariable = \"density\"\nav_time = 1\nmv_time = 5\nav_space = 6\nmv_space = 2\n\
+         noise = 0.05\n"
+    );
+    let (o, _) = hetfleet_tests::experiment_file(&dir, "placed", &placed);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("[team] placement: an experiment sets it by") && err.contains("extra_placements"),
+        "{err}"
     );
     // Bad NetCDF truths: exit 2 with one line naming what is wrong.
     for (truth, says) in [

@@ -111,32 +111,64 @@ fn a_file_with_land_cloud_packed_shorts_and_a_level_runs_as_xarray_reads_it() {
     println!("{}", holes_py(&["check", nc.to_str().unwrap(), out.to_str().unwrap()]));
 }
 
+/// The real rows of `config/experiment-real.toml` (the two files eofs ships, copied by
+/// `scripts/real_fields.py` as the README says): over 10 seeds the fused map is never worse than
+/// the aerials' own (it was 25% and 20% worse before the filter measured its skill between the
+/// lattice, issue 37) and better than inverse-variance weighting; no fill value leaks into a
+/// number; and a level that is not there is refused with one line.
 #[test]
-fn the_files_a_python_package_ships_run_and_a_missing_level_is_refused() {
-    let o = python(&["-c", "import eofs, os; print(os.path.dirname(eofs.__file__))"]);
+fn the_files_a_python_package_ships_keep_the_claims_and_a_missing_level_is_refused() {
+    let o = python(&["scripts/real_fields.py"]);
     assert!(
         o.status.success(),
-        "eofs (installed by scripts/test.sh): {}",
+        "real_fields.py: {}",
         String::from_utf8_lossy(&o.stderr)
     );
-    let data = PathBuf::from(String::from_utf8_lossy(&o.stdout).trim()).join("examples/example_data");
     let dir = scratch("package-files");
-    let sst = data.join("sst_ndjfm_anom.nc");
-    let hgt = data.join("hgt_djf.nc");
-    let (o, rep) = experiment(
-        &dir,
-        "sst",
-        [18, 30],
-        50,
-        &format!("dataset = {sst:?}\nvariable = \"sst\""),
-    );
+    let rep = dir.join("real");
+    let o = Command::new(bin("fleet"))
+        .args([
+            "experiment",
+            "config/experiment-real.toml",
+            "--out",
+            rep.to_str().unwrap(),
+        ])
+        .current_dir(root())
+        .output()
+        .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     no_fill_value_in(&rep);
-    let z = format!("dataset = {hgt:?}\nvariable = \"z\"\nselect = {{ pressure = 500 }}");
-    let (o, rep) = experiment(&dir, "hgt", [29, 49], 65, &z);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    no_fill_value_in(&rep);
-    let (o, _) = experiment(&dir, "bad", [29, 49], 65, &z.replace("500", "850"));
+    let res: serde_json::Value = serde_json::from_slice(&std::fs::read(rep.join("results.json")).unwrap()).unwrap();
+    let rows = res["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 2);
+    for row in rows {
+        let verdict = |first: &str, second: &str| {
+            row["comparisons"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|c| c["first"] == first && c["second"] == second)
+                .map(|c| c["verdict"].as_str().unwrap().to_string())
+                .unwrap()
+        };
+        let name = row["row"]["dataset"].as_str().unwrap();
+        assert_ne!(verdict("heterogeneous", "aerial-only"), "worse", "{name}");
+        assert_eq!(
+            verdict("heterogeneous-inverse-variance", "heterogeneous"),
+            "worse",
+            "{name}"
+        );
+        assert_eq!(
+            row["reliability"]["heterogeneous"].as_array().unwrap().len(),
+            10,
+            "{name}"
+        );
+    }
+    let report = std::fs::read_to_string(rep.join("report.md")).unwrap();
+    assert!(report.contains("the variable `sst` of `") && report.contains("fig12-reliability.png"));
+    let hgt = root().join("target/real-fields/hgt_djf.nc");
+    let z = format!("dataset = {hgt:?}\nvariable = \"z\"\nselect = {{ pressure = 850 }}");
+    let (o, _) = experiment(&dir, "bad", [29, 49], 65, &z);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(

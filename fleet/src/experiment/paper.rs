@@ -88,6 +88,33 @@ pub struct ExperimentConfig {
     pub forgetting_unit: crate::dmd::ForgettingUnit,
 }
 
+/// `[team]` keys an experiment sets elsewhere, and where: a value there would be ignored.
+const SET_ELSEWHERE: [(&str, &str); 8] = [
+    ("aerial_period", "each [[row]]'s av_time"),
+    ("boat_period", "each [[row]]'s mv_time"),
+    ("aerial_stride", "each [[row]]'s av_space / mv_space"),
+    ("aerial_sigma0", "each [[row]]'s noise"),
+    ("boat_sigma", "each [[row]]'s noise"),
+    ("radius", "the top-level radius (truth cells, divided by mv_space)"),
+    (
+        "placement",
+        "the experiment: QR and random on every row, others by extra_placements",
+    ),
+    ("seed", "the top-level seeds"),
+];
+
+/// Refuse a `[team]` key the experiment sets itself, with one line saying where it is set.
+fn refuse_row_keys(text: &str) -> anyhow::Result<()> {
+    let table: toml::Table = toml::from_str(text)?;
+    let Some(team) = table.get("team").and_then(|t| t.as_table()) else {
+        return Ok(());
+    };
+    match SET_ELSEWHERE.iter().find(|(key, _)| team.contains_key(*key)) {
+        Some((key, by)) => bail!("[team] {key}: an experiment sets it by {by}; remove it from [team]"),
+        None => Ok(()),
+    }
+}
+
 impl Row {
     /// The truth's name in tables and figure files: the preset (`Cloud1`) or the file stem.
     pub fn name(&self) -> String {
@@ -102,6 +129,7 @@ impl ExperimentConfig {
         if cfg.rows.is_empty() {
             bail!("the experiment has no [[row]]");
         }
+        refuse_row_keys(text)?;
         for (i, r) in cfg.rows.iter().enumerate() {
             let r_ = format!("[[row]] {} ({})", i + 1, r.name());
             if r.av_time == 0 || r.mv_time == 0 || r.av_space == 0 || r.mv_space == 0 || r.av_space % r.mv_space != 0 {
@@ -208,6 +236,8 @@ pub struct SeedResult {
     pub aerial_only_from_step0: f64,
     /// Fused teams: calibration averaged over the scored steps.
     pub calibration: BTreeMap<String, f64>,
+    /// Fused teams: calibration by decile of reported variance ([`team::deciles`]).
+    pub reliability: BTreeMap<String, Vec<f64>>,
 }
 
 /// A paired difference of two teams' time-averaged MSE over seeds, and what it says.
@@ -237,6 +267,9 @@ pub struct RowResult {
     /// Fused teams: calibration (mean error^2 / reported variance over cells and scored
     /// steps), mean over seeds with its 95% interval.
     pub calibration: BTreeMap<String, Interval>,
+    /// Fused teams: calibration by decile of reported variance, per decile the mean over seeds
+    /// with its 95% interval.
+    pub reliability: BTreeMap<String, Vec<Interval>>,
     /// Fused teams: the fraction of scored steps, pooled over seeds, where the team's MSE is
     /// at most the better single team's (aerial-only or boat-only).
     pub at_most_best_single: BTreeMap<String, f64>,
@@ -341,6 +374,10 @@ fn run_seed(
         (HETEROGENEOUS.to_string(), qr.mean_calibration),
         (RANDOM.into(), random.mean_calibration),
     ]);
+    let mut reliability = BTreeMap::from([
+        (HETEROGENEOUS.to_string(), qr.reliability.clone()),
+        (RANDOM.into(), random.reliability.clone()),
+    ]);
     let mut steps = vec![
         TeamSteps::fused(HETEROGENEOUS, &qr),
         TeamSteps {
@@ -367,6 +404,7 @@ fn run_seed(
         let name = format!("{HETEROGENEOUS}-{scheme}");
         mse.insert(name.clone(), other.mean_heterogeneous);
         calibration.insert(name.clone(), other.mean_calibration);
+        reliability.insert(name.clone(), other.reliability.clone());
         steps.push(TeamSteps::fused(&name, &other));
     }
     for &placement in &cfg.extra_placements {
@@ -374,12 +412,14 @@ fn run_seed(
         let name = format!("{HETEROGENEOUS}-{placement}");
         mse.insert(name.clone(), other.mean_heterogeneous);
         calibration.insert(name.clone(), other.mean_calibration);
+        reliability.insert(name.clone(), other.reliability.clone());
         steps.push(TeamSteps::fused(&name, &other));
     }
     if cfg.oracle {
         let other = team::run_oracle(&cfg.team_for_seed(r, Placement::Qr, seed), truth)?;
         mse.insert(ORACLE.into(), other.mean_heterogeneous);
         calibration.insert(ORACLE.into(), other.mean_calibration);
+        reliability.insert(ORACLE.into(), other.reliability.clone());
         steps.push(TeamSteps::fused(ORACLE, &other));
     }
     let result = SeedResult {
@@ -388,6 +428,7 @@ fn run_seed(
         heterogeneous_from_step0: qr.heterogeneous_from_step0,
         aerial_only_from_step0: qr.aerial_only_from_step0,
         calibration,
+        reliability,
     };
     Ok((result, qr, steps))
 }
@@ -537,16 +578,7 @@ fn summarise_row(
             comparisons.push(compare(ORACLE, &format!("{HETEROGENEOUS}-{placement}")));
         }
     }
-    let calibration = seed_results[0]
-        .calibration
-        .keys()
-        .map(|t| {
-            (
-                t.clone(),
-                Interval::of(&seed_results.iter().map(|s| s.calibration[t]).collect::<Vec<_>>()),
-            )
-        })
-        .collect();
+    let (calibration, reliability) = calibration_over(&seed_results);
     let at_most_best_single = at_most_best_single(&per_step, figure.scored_from);
     let step0 = |f: fn(&SeedResult) -> f64| Interval::of(&seed_results.iter().map(f).collect::<Vec<_>>());
     Ok(RowResult {
@@ -559,10 +591,39 @@ fn summarise_row(
         teams,
         comparisons,
         calibration,
+        reliability,
         at_most_best_single,
         figure,
         per_step,
     })
+}
+
+/// Each fused team's calibration, and its calibration by decile: the mean over seeds with its
+/// interval (per decile).
+type Calibrations = (BTreeMap<String, Interval>, BTreeMap<String, Vec<Interval>>);
+fn calibration_over(seeds: &[SeedResult]) -> Calibrations {
+    let overall = seeds[0]
+        .calibration
+        .keys()
+        .map(|t| {
+            let of = seeds.iter().map(|s| s.calibration[t]).collect::<Vec<_>>();
+            (t.clone(), Interval::of(&of))
+        })
+        .collect();
+    let by_decile = seeds[0]
+        .reliability
+        .iter()
+        .map(|(t, first)| {
+            let at = |d: usize| {
+                seeds
+                    .iter()
+                    .filter_map(|s| s.reliability[t].get(d).copied())
+                    .collect::<Vec<_>>()
+            };
+            (t.clone(), (0..first.len()).map(|d| Interval::of(&at(d))).collect())
+        })
+        .collect();
+    (overall, by_decile)
 }
 
 /// Fig. 7: the dominant eigenvalue's estimates by method and noise level.
@@ -780,6 +841,7 @@ pub fn write_report(
     r.table2()?;
     r.differences()?;
     r.fused_teams()?;
+    r.reliability()?;
     r.verdict()?;
     r.fig10()?;
     r.fig11()?;
@@ -799,16 +861,30 @@ impl Report<'_> {
             "Made by `{command}`. Every number is in `results.json`, every per-step error in `per_step.csv` \
             (`row,preset,seed,team,step,mse,calibration`).\n"
         )?;
+        let mut truths: Vec<String> = vec![];
+        for r in &res.config.rows {
+            let t = match r.truth {
+                TruthSource::Preset(_) => format!(
+                    "{} at {} x {}, {} frames (seed {})",
+                    r.truth.describe(),
+                    res.config.truth_grid[0],
+                    res.config.truth_grid[1],
+                    res.config.frames,
+                    res.config.seed
+                ),
+                _ => r.truth.describe(),
+            };
+            if !truths.contains(&t) {
+                truths.push(t);
+            }
+        }
         writeln!(
             md,
-            "Truth: the plasma-cloud simulator at {} x {}, {} frames, area-averaged by the boats' space rate to the \
-                model grid. \
-             Team: {} aerials, {} boats of radius {} simulator cells, {} DMD at rank `{}`, `{}` fusion, {} initial \
+            "Truth: {}; area-averaged by the boats' space rate to the model grid. \
+             Team: {} aerials, {} boats of radius {} truth cells, {} DMD at rank `{}`, `{}` fusion, {} initial \
              aerial-only steps. \
              MSE is averaged over the grid at each step, then over the scored steps.\n",
-            res.config.truth_grid[0],
-            res.config.truth_grid[1],
-            res.config.frames,
+            truths.join("; "),
             res.config.team.aerials,
             res.config.team.boats,
             res.config.radius,
@@ -834,9 +910,14 @@ impl Report<'_> {
             "Every team is scored over the same steps: from the first step where every team has data (the boat-only \
                 team's first sample, step `scored from`) to the end. \
              No team is scored where it has no data. Seeds {seeds:?} vary the sensor noise, the vehicles' random \
-             streams and the random placement; every team of a seed sees the same truth and noise. \
-             The truth is one simulated cloud per preset (seed {}), as the paper has one dataset per cloud.\n",
-            res.config.seed
+             streams and the random placement; every team of a seed sees the same truth and noise.{}\n",
+            match res.config.rows.iter().any(|r| r.truth.preset().is_some()) {
+                true => format!(
+                    " A simulated truth is one cloud per preset (seed {}), as the paper has one dataset per cloud.",
+                    res.config.seed
+                ),
+                false => String::new(),
+            }
         )?;
         let extra = extra_teams(res);
         if res.config.oracle {
@@ -996,6 +1077,61 @@ impl Report<'_> {
                 )?;
             }
             writeln!(md)?;
+        }
+        Ok(())
+    }
+
+    /// Calibration by decile of reported variance (the reliability diagram): whether the
+    /// variance is right where it is small and where it is large, not only on average.
+    fn reliability(&mut self) -> anyhow::Result<()> {
+        let Report {
+            dir, res, md, figures, ..
+        } = self;
+        writeln!(
+            md,
+            "\n### Calibration by decile of reported variance\n\n\
+             Each fused team's cells and scored steps, pooled per seed, sorted by reported variance and cut into ten \
+             equal parts; per part the mean error^2 over the mean reported variance (1: the variance is the error's \
+             there), mean over seeds. The claim is 0.7-1.3 in every decile; `in band` counts the deciles that are.\n"
+        )?;
+        writeln!(
+            md,
+            "| cloud | team |{} in band |",
+            (1..=10).map(|d| format!(" d{d} |")).collect::<String>()
+        )?;
+        writeln!(md, "|{}", "---|".repeat(13))?;
+        let mut series = vec![];
+        for r in &res.rows {
+            for (team, by_decile) in &r.reliability {
+                if team == ORACLE || by_decile.is_empty() {
+                    continue;
+                }
+                let means: Vec<f64> = by_decile.iter().map(|i| i.mean).collect();
+                let in_band = means.iter().filter(|m| (0.7..=1.3).contains(*m)).count();
+                writeln!(
+                    md,
+                    "| {} | {team} |{} {in_band}/10 |",
+                    r.row.name(),
+                    means.iter().map(|m| format!(" {m:.2} |")).collect::<String>()
+                )?;
+                series.push(Series {
+                    name: format!("{} {team}", r.row.name()),
+                    points: means.iter().enumerate().map(|(d, &m)| ((d + 1) as f64, m)).collect(),
+                });
+            }
+        }
+        if !series.is_empty() {
+            let name = "fig12-reliability.png";
+            plot::lines(
+                dir.join(name),
+                "Calibration by decile of reported variance (1: calibrated; claim 0.7-1.3)",
+                "decile of reported variance (1: smallest)",
+                "mean error^2 / mean variance",
+                &series,
+                true,
+            )?;
+            writeln!(md, "\n![{name}]({name})\n")?;
+            figures.push(name.into());
         }
         Ok(())
     }

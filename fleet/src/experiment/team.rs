@@ -67,6 +67,33 @@ pub struct TeamOutcome {
     pub snapshot_variances: Vec<Vec<f64>>,
     /// Model rank after the last update.
     pub rank: usize,
+    /// The heterogeneous team's reliability by decile of reported variance over the scored
+    /// steps: per decile (smallest variance first), mean error^2 over mean reported variance
+    /// (1 when the variance is the error's there, not only on average).
+    pub reliability: Vec<f64>,
+    /// Each decile's mean reported variance (the diagram's x).
+    pub reliability_variance: Vec<f64>,
+    /// `(reported variance, error^2)` at every cell with a truth, per step (for the deciles).
+    #[serde(skip)]
+    cell_errors: Vec<Vec<(f32, f32)>>,
+}
+
+/// Deciles of reliability: pooled `(variance, error^2)` sorted by variance, cut into ten
+/// equal counts; per decile the mean variance and mean error^2 / mean variance.
+pub fn deciles(pairs: &mut [(f32, f32)]) -> (Vec<f64>, Vec<f64>) {
+    if pairs.len() < 10 {
+        return (vec![], vec![]);
+    }
+    pairs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let n = pairs.len();
+    (0..10)
+        .map(|d| {
+            let part = &pairs[d * n / 10..(d + 1) * n / 10];
+            let var = part.iter().map(|p| p.0 as f64).sum::<f64>() / part.len() as f64;
+            let err = part.iter().map(|p| p.1 as f64).sum::<f64>() / part.len() as f64;
+            (var, err / var.max(1e-300))
+        })
+        .unzip()
 }
 
 /// Mean over cells of error^2 / reported variance.
@@ -247,6 +274,14 @@ fn run_placing(
             out.heterogeneous.push(mse(&server.snapshots[k], &x));
             out.calibration
                 .push(calibration(&server.snapshots[k], &server.variances[k], &x));
+            out.cell_errors.push(
+                x.iter()
+                    .zip(&server.snapshots[k])
+                    .zip(&server.variances[k])
+                    .filter(|((t, _), _)| !t.is_nan())
+                    .map(|((t, e), v)| (*v as f32, ((e - t) * (e - t)) as f32))
+                    .collect(),
+            );
             out.aerial_only.push(mse(&server.aerial_estimates[k], &x));
             // Boat-only team, from the same boat samples.
             let here: Vec<&Sample> = boat_samples.iter().filter(|s| s.step as usize == k).collect();
@@ -370,6 +405,8 @@ impl TeamOutcome {
         );
         self.mean_calibration = mean_from(&self.calibration, self.scored_from);
         self.heterogeneous_from_step0 = mean_from(&self.heterogeneous, 0);
+        let mut pooled: Vec<(f32, f32)> = self.cell_errors.drain(..).skip(self.scored_from).flatten().collect();
+        (self.reliability_variance, self.reliability) = deciles(&mut pooled);
         self.aerial_only_from_step0 = mean_from(&self.aerial_only, 0);
     }
 }

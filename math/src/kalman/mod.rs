@@ -43,6 +43,21 @@ pub struct Observation<'a> {
     pub variance: &'a [f64],
 }
 
+impl Observation<'_> {
+    /// As many values and variances as cells.
+    pub fn check_lengths(&self) -> Result<(), FilterError> {
+        if self.cells.len() == self.values.len() && self.cells.len() == self.variance.len() {
+            return Ok(());
+        }
+        Err(FilterError::Input(format!(
+            "{} cells, {} values, {} variances",
+            self.cells.len(),
+            self.values.len(),
+            self.variance.len()
+        )))
+    }
+}
+
 /// The filter's state: modal mean and covariance, and the two noise levels.
 #[derive(Debug, Clone)]
 pub struct ModalFilter {
@@ -225,14 +240,7 @@ impl ModalFilter {
         let mut g = vec![0.0; q]; // H^T R^-1 (y - H a)
         let mut innovations = vec![];
         for o in obs {
-            if o.cells.len() != o.values.len() || o.cells.len() != o.variance.len() {
-                return Err(FilterError::Input(format!(
-                    "{} cells, {} values, {} variances",
-                    o.cells.len(),
-                    o.values.len(),
-                    o.variance.len()
-                )));
-            }
+            o.check_lengths()?;
             for ((&c, &y), &v) in o.cells.iter().zip(o.values).zip(o.variance) {
                 if c >= n {
                     return Err(FilterError::Input(format!("cell {c} outside the grid of {n}")));
@@ -283,14 +291,7 @@ impl ModalFilter {
     /// variance there, to the detail variance forecast there. 1 when the forecast's variance is
     /// right; `None` without cells.
     pub fn detail_fit(&self, obs: &Observation<'_>) -> Result<Option<f64>, FilterError> {
-        if obs.cells.len() != obs.values.len() || obs.cells.len() != obs.variance.len() {
-            return Err(FilterError::Input(format!(
-                "{} cells, {} values, {} variances",
-                obs.cells.len(),
-                obs.values.len(),
-                obs.variance.len()
-            )));
-        }
+        obs.check_lengths()?;
         if obs.cells.is_empty() {
             return Ok(None);
         }
@@ -341,14 +342,7 @@ impl ModalFilter {
     /// clamped to `[0, 0.999]` (1 would freeze the detail's variance).
     pub fn learn_persistence(&mut self, obs: &Observation<'_>, memory: f64) -> Result<f64, FilterError> {
         let (n, q) = (self.basis.nrows(), self.dim());
-        if obs.cells.len() != obs.values.len() || obs.cells.len() != obs.variance.len() {
-            return Err(FilterError::Input(format!(
-                "{} cells, {} values, {} variances",
-                obs.cells.len(),
-                obs.values.len(),
-                obs.variance.len()
-            )));
-        }
+        obs.check_lengths()?;
         let (mut cross, mut var) = (0.0, 0.0);
         let mut residual = vec![(f64::NAN, 0.0); n];
         for ((&c, &y), &v) in obs.cells.iter().zip(obs.values).zip(obs.variance) {
@@ -376,27 +370,58 @@ impl ModalFilter {
     /// posterior modal mean (call after [`Self::update`]): a scalar Kalman update per value.
     pub fn update_detail(&mut self, obs: &[Observation<'_>]) -> Result<(), FilterError> {
         let (n, q) = (self.basis.nrows(), self.dim());
+        let modal_var = self.modal_variance();
         for o in obs {
-            if o.cells.len() != o.values.len() || o.cells.len() != o.variance.len() {
-                return Err(FilterError::Input(format!(
-                    "{} cells, {} values, {} variances",
-                    o.cells.len(),
-                    o.values.len(),
-                    o.variance.len()
-                )));
-            }
+            o.check_lengths()?;
             for ((&c, &y), &a) in o.cells.iter().zip(o.values).zip(o.variance) {
                 if c >= n || !(y.is_finite() && a > 0.0 && a.is_finite()) {
                     return Err(FilterError::Input(format!("cell {c}: value {y} with variance {a}")));
                 }
                 let modal: f64 = (0..q).map(|k| self.basis[(c, k)] * self.mean[k]).sum();
                 let (d, v) = (&mut self.detail[c], &mut self.detail_var[c]);
-                let gain = *v / (*v + a);
+                // The value corrects the field at the cell, whose forecast is uncertain by the
+                // modal posterior's variance as well as the detail's: a gain on the detail's
+                // alone trusted a poorly fitted model's modes between the data.
+                let prior = modal_var[c] + *v;
+                let gain = prior / (prior + a);
                 *d += gain * (y - modal - *d);
-                *v *= a / (*v + a);
+                *v = (prior * a / (prior + a) - modal_var[c]).max(*v * a / (*v + a));
             }
         }
         Ok(())
+    }
+
+    /// Set the field at `obs.cells` to an estimate made elsewhere (with what the filter already
+    /// knew, as the between-lattice estimate is): the detail takes its difference from the
+    /// modal mean, and the variance the modal part leaves of it (floored: the reported
+    /// variance is never below the modal part's).
+    pub fn assign(&mut self, obs: &Observation<'_>) -> Result<(), FilterError> {
+        let n = self.basis.nrows();
+        obs.check_lengths()?;
+        let (modal, modal_var) = (self.modal_mean(), self.modal_variance());
+        for ((&c, &y), &a) in obs.cells.iter().zip(obs.values).zip(obs.variance) {
+            if c >= n || !(y.is_finite() && a >= 0.0 && a.is_finite()) {
+                return Err(FilterError::Input(format!("cell {c}: value {y} with variance {a}")));
+            }
+            self.detail[c] = y - modal[c];
+            self.detail_var[c] = (a - modal_var[c]).max(1e-12);
+        }
+        Ok(())
+    }
+
+    /// The modal part of the field, `B a`.
+    pub fn modal_mean(&self) -> Vec<f64> {
+        let m = Mat::from_fn(self.dim(), 1, |i, _| self.mean[i]);
+        (self.basis.as_ref() * m.as_ref()).col(0).iter().copied().collect()
+    }
+
+    /// The modal part's variance per cell, `diag(B P B^T)`.
+    pub fn modal_variance(&self) -> Vec<f64> {
+        let (n, q) = (self.basis.nrows(), self.dim());
+        let bp = self.basis.as_ref() * self.cov.as_ref();
+        (0..n)
+            .map(|i| (0..q).map(|k| bp[(i, k)] * self.basis[(i, k)]).sum::<f64>().max(0.0))
+            .collect()
     }
 
     /// The field `h` steps ahead of the filter's state (0: the posterior) with its variance per

@@ -118,13 +118,39 @@ impl TruthSource {
         }
     }
 
-    /// The truth's name in tables and figure files: the preset (`Cloud1`) or the file stem.
+    /// The truth's name in tables and figure files: the preset (`Cloud1`), the file stem, or for
+    /// a NetCDF variable the stem, the variable and what `select` fixes (`hgt_djf-z-pressure500`):
+    /// two rows on one file with different variables are two truths.
     pub fn name(&self) -> String {
+        let stem = |d: &std::path::Path| {
+            d.file_stem()
+                .map_or("dataset".into(), |s| s.to_string_lossy().to_string())
+        };
         match self {
             Self::Preset(p) => format!("{p:?}"),
-            Self::Dataset(d) | Self::NetCdf { path: d, .. } => d
-                .file_stem()
-                .map_or("dataset".into(), |s| s.to_string_lossy().to_string()),
+            Self::Dataset(d) => stem(d),
+            Self::NetCdf { path, variable, select } => std::iter::once(stem(path))
+                .chain(std::iter::once(variable.clone()))
+                .chain(select.iter().map(|(k, v)| format!("{k}{v}")))
+                .collect::<Vec<_>>()
+                .join("-"),
+        }
+    }
+
+    /// What the truth is, for a report: the simulator's preset, or the file (with the variable,
+    /// its units and what `select` fixes, for NetCDF).
+    pub fn describe(&self) -> String {
+        match self {
+            Self::Preset(p) => format!("the plasma-cloud simulator's `{}`", format!("{p:?}").to_lowercase()),
+            Self::Dataset(d) => format!("the dataset `{}`", d.display()),
+            Self::NetCdf { path, variable, select } => {
+                let units = self.units().map_or(String::new(), |u| format!(" ({u})"));
+                let fixed = match select.is_empty() {
+                    true => String::new(),
+                    false => format!(" at {select:?}"),
+                };
+                format!("the variable `{variable}`{units} of `{}`{fixed}", path.display())
+            }
         }
     }
 

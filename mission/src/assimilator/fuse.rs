@@ -3,6 +3,7 @@
 //! the model's prediction) or run through the modal Kalman filter (`kalman`), which observes
 //! the aerial lattice and the disks directly.
 
+use super::between::Sources;
 use super::{aerial_detail_variance, Assimilator};
 use crate::fusion::{fuse, AerialFrame, Estimate, Measured, Scheme};
 use crate::kalman::{self, Observation};
@@ -117,15 +118,24 @@ impl Assimilator {
     /// error, and neither is in their noise models. (The Kalman filter models the
     /// interpolation's error itself: the aerials' extra is what is left beyond it.)
     fn calibrate(&mut self, sight: &AerialSight, predicted: &[f64], cells: &[usize], vals: &[f64], boat_var: f64) {
-        let innovation = |est: &[f64]| -> f64 {
-            let m = cells.iter().zip(vals).map(|(&c, v)| (est[c] - v).powi(2)).sum::<f64>() / cells.len() as f64;
+        let innovation = |est: &[f64], cells: &[(usize, f64)]| -> f64 {
+            let m = cells.iter().map(|&(c, v)| (est[c] - v).powi(2)).sum::<f64>() / cells.len() as f64;
             (m - boat_var).max(1e-12)
         };
+        let all: Vec<(usize, f64)> = cells.iter().copied().zip(vals.iter().copied()).collect();
+        self.state.pred_var = innovation(predicted, &all);
         let kalman = self.setup.cfg.fusion == Scheme::Kalman;
+        // The filter's extra is the interpolation's misfit, so it is measured where there is one.
+        let between: Vec<(usize, f64)> = match kalman {
+            true => all.into_iter().filter(|&(c, _)| !self.setup.on_lattice[c]).collect(),
+            false => all,
+        };
+        if between.is_empty() {
+            return;
+        }
         let modelled = |c: usize| sight.estimate.variance[c] + if kalman { sight.interpolation[c] } else { 0.0 };
-        let noise_part = cells.iter().map(|&c| modelled(c)).sum::<f64>() / cells.len() as f64;
-        self.state.aerial_extra = (innovation(&sight.estimate.values) - noise_part).max(0.0);
-        self.state.pred_var = innovation(predicted);
+        let noise_part = between.iter().map(|&(c, _)| modelled(c)).sum::<f64>() / between.len() as f64;
+        self.state.aerial_extra = (innovation(&sight.estimate.values, &between) - noise_part).max(0.0);
     }
 
     /// The boats' estimate of the whole field for the heuristic schemes: their gappy
@@ -212,25 +222,20 @@ impl Assimilator {
         if !aerial.cells.is_empty() {
             f.learn_persistence(&lattice, 1.0)?;
         }
-        // The detail's forecast variance checked against what each source saw and rescaled
-        // before the update, never grown past the field's own variance: every cell by the aerials'
-        // check (every step, evenly spread: the detail's refresh and persistence are the same
-        // everywhere), then the cells between the lattice by the boats' (at boat steps): the
-        // interpolation's misfit there is seen only by them.
         let cap = kalman::variance_of(&aerial.estimate.values);
-        if let Some(fit) = f.detail_fit(&lattice)? {
-            f.rescale_detail(fit, cap, 0..f.detail_var().len());
-        }
-        if let Some(fit) = f.detail_fit(&boats)? {
-            f.rescale_detail(fit, cap, self.setup.between_lattice.iter().copied());
-        }
-        f.update(&[lattice, boats])?;
+        check_detail(f, &lattice, &boats, cap, &self.setup.between_lattice)?;
         // The detail: the aerial estimate at every cell (noise, interpolation and the
-        // calibrated extra), then the boats.
+        // calibrated extra), then the boats; between the lattice, as far as the boats have seen
+        // the filter beat the aerials there (`between`).
         let seen: Vec<usize> = (0..aerial.estimate.values.len())
             .filter(|&i| aerial.covered[i])
             .collect();
-        let aerial_var = aerial_detail_variance(&aerial.estimate.variance, &aerial.interpolation, s.aerial_extra);
+        let aerial_var = aerial_detail_variance(
+            &aerial.estimate.variance,
+            &aerial.interpolation,
+            s.aerial_extra,
+            &self.setup.on_lattice,
+        );
         let (values, variance): (Vec<f64>, Vec<f64>) =
             seen.iter().map(|&i| (aerial.estimate.values[i], aerial_var[i])).unzip();
         let dense = Observation {
@@ -238,7 +243,14 @@ impl Assimilator {
             values: &values,
             variance: &variance,
         };
-        f.update_detail(&[dense, boats])?;
+        let sources = Sources {
+            lattice,
+            boats,
+            dense,
+            aerial: &aerial.estimate.values,
+            aerial_var: &aerial_var,
+        };
+        s.between.update(f, &sources, &self.setup.on_lattice)?;
         if !cells.is_empty() {
             s.innovation = Some(kalman::Innovation::of(&prior, cells, vals, &boat_vars));
             f.adapt_noise(&prior, cells, vals, boat_var);
@@ -248,6 +260,27 @@ impl Assimilator {
         let (values, variance) = f.field();
         Ok(Estimate { values, variance })
     }
+}
+
+/// The detail's forecast variance checked against what each source saw and rescaled before
+/// the update, never grown past the field's own variance (`cap`): every cell by the aerials'
+/// check (every step, evenly spread: the detail's refresh and persistence are the same
+/// everywhere), then the cells between the lattice by the boats' (at boat steps): the
+/// interpolation's misfit there is seen only by them.
+fn check_detail(
+    f: &mut kalman::ModalFilter,
+    lattice: &Observation<'_>,
+    boats: &Observation<'_>,
+    cap: f64,
+    between: &[usize],
+) -> Result<(), TeamError> {
+    if let Some(fit) = f.detail_fit(lattice)? {
+        f.rescale_detail(fit, cap, 0..f.detail_var().len());
+    }
+    if let Some(fit) = f.detail_fit(boats)? {
+        f.rescale_detail(fit, cap, between.iter().copied());
+    }
+    Ok(())
 }
 
 /// Give the lattice cells nobody saw this step (land, cloud, an aerial that did not report) a

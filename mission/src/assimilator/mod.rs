@@ -9,6 +9,7 @@
 //! state ([`AssimilatorState`]: a value, `Clone`); a checkpoint is a copy of the state.
 //! [`fuse`] holds the per-step estimates and the filter's step, [`placement`] the allocation.
 
+mod between;
 mod fuse;
 mod placement;
 
@@ -41,6 +42,7 @@ pub struct Setup {
     /// The aerials' lattice cells, and the cells between them (which only the boats see).
     lattice: Vec<usize>,
     between_lattice: Vec<usize>,
+    on_lattice: Vec<bool>,
     /// How far a boat goes in one step (m; infinite offline), for `placement = "horizon"`.
     boat_speed: f64,
 }
@@ -59,6 +61,8 @@ pub struct AssimilatorState {
     held_interpolation: Vec<f64>,
     pred_var: f64,
     aerial_extra: f64,
+    /// `fusion = "kalman"`: what the boats showed of the filter between the lattice.
+    between: between::Between,
     /// `fusion = "kalman"`: the variance (cells^2 per axis) of a displacement of the field's
     /// features the filter does not model, read from the boats' innovations
     /// ([`kalman::displacement_variance`]); horizon placement counts what a value removes of it.
@@ -133,6 +137,7 @@ impl Assimilator {
             land: cfg.land.iter().map(|&c| c as usize).collect(),
             lattice: (0..grid.len()).filter(|&i| on_lattice[i]).collect(),
             between_lattice: (0..grid.len()).filter(|&i| !on_lattice[i]).collect(),
+            on_lattice,
             boat_speed: f64::INFINITY,
         };
         let state = AssimilatorState {
@@ -143,6 +148,7 @@ impl Assimilator {
             held_interpolation: vec![0.0; grid.len()],
             pred_var: 1.0,
             aerial_extra: 0.0,
+            between: Default::default(),
             displacement: 0.0,
             placement_rng,
             boat_positions,
@@ -333,13 +339,17 @@ pub fn to_mat(cols: &[Vec<f64>]) -> Mat<f64> {
 }
 
 /// The aerial estimate's error variance per cell as the filter's detail sees it: its noise,
-/// the interpolation's error and the calibrated extra (one definition for the update and for
-/// the look ahead that plans on it).
-fn aerial_detail_variance(noise: &[f64], interpolation: &[f64], extra: f64) -> Vec<f64> {
+/// the interpolation's error and, between the lattice, the calibrated extra (one definition for
+/// the update and for the look ahead that plans on it). A lattice cell is the aerials' own value
+/// there, with its noise and nothing else: the extra is the interpolation's misfit, which the
+/// boats measure between the lattice, and added on the lattice it made the fused map follow the
+/// aerials' own values less than the aerial-only map does.
+fn aerial_detail_variance(noise: &[f64], interpolation: &[f64], extra: f64, on_lattice: &[bool]) -> Vec<f64> {
     noise
         .iter()
         .zip(interpolation)
-        .map(|(v, i)| (v + i + extra).max(1e-12))
+        .zip(on_lattice)
+        .map(|((v, i), &lattice)| (v + i + if lattice { 0.0 } else { extra }).max(1e-12))
         .collect()
 }
 #[cfg(test)]

@@ -105,7 +105,12 @@ impl Assimilator {
             .iter()
             .map(|&c| held.variance[c].max(1e-12))
             .collect();
-        let everywhere = aerial_detail_variance(&held.variance, &s.held_interpolation, s.aerial_extra);
+        let everywhere = aerial_detail_variance(
+            &held.variance,
+            &s.held_interpolation,
+            s.aerial_extra,
+            &self.setup.on_lattice,
+        );
         let aerials = kalman::Scheduled {
             cells: &self.setup.lattice,
             variance: &variance,

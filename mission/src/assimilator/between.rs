@@ -1,0 +1,181 @@
+//! The field between the aerials' lattice: where the filter's estimate rests on its model, and
+//! whether the model has earned it.
+//!
+//! On the lattice the aerials measure the field; between it, the aerials' estimate is their
+//! interpolation and the filter's is that interpolation weighed against the model's forecast.
+//! How good the forecast is there is a property of the model on this field, not of the filter:
+//! on a smooth cloud whose fronts the model carries it beats the interpolation several times
+//! over; on a monthly anomaly whose years are independent it is worse, and its errors share the
+//! interpolation's (the model learned from earlier estimates), which no noise level in the
+//! filter can express: the filter then leaned on it and its map was worse than the aerials'.
+//! So the filter's skill there is measured where there is a truth to measure it against, the
+//! boats' cells off the lattice: the slope of the boats' residual from the aerials'
+//! interpolation on the filter's departure from it (the filter run without the boats, so they
+//! judge it independently), shrunk by its standard error and held in [0, 1], is `skill`. The
+//! estimate there is the interpolation plus `skill` times the departure: with no skill shown
+//! (and before the first boat value) the aerials' own estimate, never worse than it; with full
+//! skill the filter's. Its variance is the two sources' variances blended the same way.
+//! (Tried and not kept: the textbook update for correlated errors, with the correlation of the
+//! two errors measured at the boats: it rests on the filter's variances being right in scale,
+//! and was worse than the aerials on both real fields.)
+
+use crate::kalman::{FilterError, ModalFilter, Observation};
+
+/// What the boats have shown of the filter between the lattice (a value: part of the
+/// assimilator's state).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Between {
+    /// The filter's skill beyond the aerials' interpolation, in [0, 1] (0 until measured).
+    pub skill: f64,
+    /// Decaying sums of the regression: residual x departure, and departure^2.
+    cross: f64,
+    square: f64,
+}
+
+/// How much of the past a boat step's sums keep (as the filter's noise levels are smoothed).
+const MEMORY: f64 = 0.7;
+
+/// One step's sources as the filter sees them, and the aerials' estimate with its variance.
+pub struct Sources<'a> {
+    pub lattice: Observation<'a>,
+    pub boats: Observation<'a>,
+    /// The aerials' interpolated frame at every cell it covers.
+    pub dense: Observation<'a>,
+    pub aerial: &'a [f64],
+    pub aerial_var: &'a [f64],
+}
+
+/// The two estimates of the field, with their variances per cell.
+struct Evidence<'a> {
+    aerial: &'a [f64],
+    aerial_var: &'a [f64],
+    filtered: Vec<f64>,
+    filtered_var: Vec<f64>,
+}
+
+impl<'a> Evidence<'a> {
+    fn of(f: &ModalFilter, src: &Sources<'a>) -> Self {
+        let (filtered, filtered_var) = f.field();
+        Self {
+            aerial: src.aerial,
+            aerial_var: src.aerial_var,
+            filtered,
+            filtered_var,
+        }
+    }
+}
+
+impl Between {
+    /// The filter's update by one step's sources: the modes by the lattice and the boats, the
+    /// detail by the dense frame, then the field between the lattice blended by the skill the
+    /// boats have shown (learned first at a boat step, from the filter updated without them),
+    /// then the detail by the boats.
+    pub fn update(&mut self, f: &mut ModalFilter, src: &Sources<'_>, on_lattice: &[bool]) -> Result<(), FilterError> {
+        if !src.boats.cells.is_empty() {
+            let mut without = f.clone();
+            without.update(&[src.lattice])?;
+            without.update_detail(&[src.dense])?;
+            self.learn(
+                &Evidence::of(&without, src),
+                src.boats.cells,
+                src.boats.values,
+                on_lattice,
+            );
+        }
+        f.update(&[src.lattice, src.boats])?;
+        f.update_detail(&[src.dense])?;
+        let evidence = Evidence::of(f, src);
+        let cells: Vec<usize> = src.dense.cells.iter().copied().filter(|&c| !on_lattice[c]).collect();
+        let (values, variance): (Vec<f64>, Vec<f64>) = cells.iter().map(|&c| self.estimate(c, &evidence)).unzip();
+        f.assign(&Observation {
+            cells: &cells,
+            values: &values,
+            variance: &variance,
+        })?;
+        f.update_detail(&[src.boats])
+    }
+
+    /// Learn from the boats' values at cells off the lattice (`on_lattice[c]` false), against
+    /// evidence the boats did not enter; the regression's sums decay by [`MEMORY`] a boat step.
+    fn learn(&mut self, e: &Evidence<'_>, cells: &[usize], vals: &[f64], on_lattice: &[bool]) {
+        let at: Vec<(f64, f64)> = cells
+            .iter()
+            .zip(vals)
+            .filter(|(&c, _)| !on_lattice[c])
+            .map(|(&c, &v)| (v - e.aerial[c], e.filtered[c] - e.aerial[c]))
+            .collect();
+        if at.is_empty() {
+            return;
+        }
+        self.cross = MEMORY * self.cross + at.iter().map(|(r, d)| r * d).sum::<f64>();
+        self.square = MEMORY * self.square + at.iter().map(|(_, d)| d * d).sum::<f64>();
+        if !(self.square > 0.0) {
+            return;
+        }
+        // The slope shrunk by its standard error (`b^2 / (b^2 + se^2)`): a slope these cells
+        // cannot tell from 0 counts for little.
+        let slope = self.cross / self.square;
+        let misfit = at.iter().map(|(r, d)| (r - slope * d).powi(2)).sum::<f64>() / at.len() as f64;
+        let se2 = misfit / self.square;
+        let spread = slope * slope + se2;
+        self.skill = match spread > 0.0 {
+            true => (slope * slope * slope / spread).clamp(0.0, 1.0),
+            false => 0.0, // the boats found the aerials exact: nothing to weigh
+        };
+    }
+
+    /// The estimate between the lattice and its variance at `c`.
+    fn estimate(&self, c: usize, e: &Evidence<'_>) -> (f64, f64) {
+        let k = self.skill;
+        (
+            e.aerial[c] + k * (e.filtered[c] - e.aerial[c]),
+            k * e.filtered_var[c] + (1.0 - k) * e.aerial_var[c],
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn evidence<'a>(aerial: &'a [f64], filtered: Vec<f64>) -> Evidence<'a> {
+        let n = aerial.len();
+        Evidence {
+            aerial,
+            aerial_var: &[2.0; 64][..n],
+            filtered,
+            filtered_var: vec![1.0; n],
+        }
+    }
+
+    /// Known answers: before any boat value the estimate is the aerials' own; boats that
+    /// find the field where the filter says gives skill near 1 (the filter's estimate); boats
+    /// that find the aerials right give 0 (theirs), whatever the filter's variance claims; a
+    /// boat on the lattice is no evidence of what happens between it.
+    #[test]
+    fn the_skill_is_what_the_boats_found() {
+        let aerial: Vec<f64> = (0..64).map(|i| (i as f64 * 0.37).sin()).collect();
+        let filtered: Vec<f64> = aerial
+            .iter()
+            .enumerate()
+            .map(|(i, a)| a + (i as f64 * 1.3).cos())
+            .collect();
+        let cells: Vec<usize> = (0..64).collect();
+        let off = vec![false; 64];
+        let mut b = Between::default();
+        let e = evidence(&aerial, filtered.clone());
+        assert_eq!(b.estimate(5, &e), (aerial[5], 2.0));
+        b.learn(&e, &cells, &filtered, &off);
+        assert!(b.skill > 0.999, "{}", b.skill);
+        assert!((b.estimate(5, &e).0 - filtered[5]).abs() < 1e-2);
+        let mut b = Between::default();
+        for _ in 0..5 {
+            b.learn(&e, &cells, &aerial, &off);
+        }
+        assert_eq!(b.skill, 0.0);
+        assert_eq!(b.estimate(9, &e), (aerial[9], 2.0));
+        let mut b = Between::default();
+        b.learn(&e, &cells, &filtered, &[true; 64]);
+        assert_eq!(b, Between::default());
+    }
+}
