@@ -140,6 +140,10 @@ pub struct ServerSummary {
     /// Cells the truth has no value at in any frame (land): off the model grid, not scored.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub land_cells: usize,
+    /// The model's skill by epoch (`fusion = "kalman"`): the forecast's against the aerials'
+    /// lattice, and how far the map between the lattice follows the filter.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub skill: Vec<crate::protocol::EpochSkill>,
 }
 
 fn is_zero(n: &usize) -> bool {

@@ -152,6 +152,8 @@ pub struct ServerCore {
     held_out: BTreeMap<usize, Vec<crate::holdout::HeldOut>>,
     /// The boats' innovations against the forecast, by step (a re-fit writes its steps again).
     innovations: BTreeMap<usize, crate::kalman::Innovation>,
+    /// The model's skill by epoch (a re-fit writes its epochs again).
+    skills: BTreeMap<u64, crate::protocol::EpochSkill>,
 }
 
 impl ServerCore {
@@ -177,6 +179,7 @@ impl ServerCore {
             holdout_share: 0.0,
             held_out: BTreeMap::new(),
             innovations: BTreeMap::new(),
+            skills: BTreeMap::new(),
             forced: BTreeSet::new(),
             unjournalled: BTreeSet::new(),
         })
@@ -634,6 +637,9 @@ impl ServerCore {
                 epoch.push(fused.values);
             }
             self.snapshots.extend(epoch);
+            if let Some(skill) = self.assim.take_skill(e) {
+                self.skills.insert(e, skill);
+            }
             self.assim.assimilate(learn)?;
         }
         self.epoch = e + 1;
@@ -855,6 +861,11 @@ impl ServerCore {
     /// The hold-out's figures so far (`None`: nothing held out).
     pub fn holdout(&self) -> Option<crate::holdout::HoldoutScore> {
         crate::holdout::score(self.held_out.values().flatten())
+    }
+
+    /// The model's skill at each epoch assimilated with the filter, in epoch order.
+    pub fn skills(&self) -> Vec<crate::protocol::EpochSkill> {
+        self.skills.values().copied().collect()
     }
 
     /// The boats' normalised innovations against the forecast at each step that fused boat

@@ -180,6 +180,7 @@ impl Server {
             latency_p99_ms: p.p99,
             readings: self.readings.clone(),
             behind: self.behind.clone(),
+            skill: self.core.skills().last().copied(),
         }
     }
 
@@ -649,6 +650,7 @@ impl Server {
             innovations: self.core.innovations(),
             traffic: self.traffic.clone(),
             land_cells: self.core.assimilator().land().len(),
+            skill: self.core.skills(),
             dt: self
                 .truth
                 .as_ref()

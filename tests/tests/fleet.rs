@@ -50,6 +50,13 @@ fn fleet_up_runs_a_mission_that_equals_the_offline_loop() {
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(report.contains("Network equals offline: **yes"), "{report}");
     assert!(out.join("mse.png").exists() && out.join("model.cbor").exists());
+    // The model's skill at every epoch after the aerial-only start, in the summary and the report.
+    assert_eq!(summary.skill.len() as u64, summary.epochs - 1, "{:?}", summary.skill);
+    assert!(summary
+        .skill
+        .iter()
+        .all(|s| s.forecast.is_some_and(|f| f <= 1.0) && (0.0..=1.0).contains(&s.between)));
+    assert!(report.contains("## Forecast skill"), "{report}");
     assert_eq!(
         summary.link_ups.len(),
         summary.vehicles.len(),

@@ -486,6 +486,12 @@ fn fleet_up_without_a_terminal_keeps_every_notice_and_the_report_says_why_it_dif
         last.finished,
         "the last status an observer sees says finished: {last:?}"
     );
+    // The status says what the model was worth at the last epoch (issue 37).
+    let skill = last.skill.expect("the status carries the model's skill");
+    assert!(
+        skill.forecast.is_some_and(|f| f <= 1.0) && (0.0..=1.0).contains(&skill.between),
+        "{skill:?}"
+    );
 }
 
 /// The endpoint's port is free again (nothing holds it).

@@ -453,6 +453,7 @@ mod tests {
             latency_p99_ms: 0.0,
             readings: Default::default(),
             behind: Default::default(),
+            skill: None,
         };
         assert!(v.apply(Body::Status(status)));
         assert!(v.liveliness("boat-1", false, 5.0));

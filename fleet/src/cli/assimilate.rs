@@ -93,6 +93,7 @@ pub fn run(args: Args) -> Result<()> {
         innovations: core.innovations(),
         traffic: BTreeMap::new(),
         land_cells: core.assimilator().land().len(),
+        skill: core.skills(),
     };
     let path = args.out.join("summary.json");
     std::fs::write(&path, serde_json::to_string_pretty(&summary)?)

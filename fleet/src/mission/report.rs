@@ -156,6 +156,7 @@ pub fn write_mission_report(
     }
     r.holdout()?;
     r.innovations()?;
+    r.skill()?;
     r.traffic()?;
     r.fleet()?;
     r.eigenvalues(dt)?;
@@ -401,6 +402,32 @@ impl MissionReport<'_> {
         )?;
         for i in steps {
             writeln!(self.md, "| {} | {} | {} | {:.2} |", i.epoch, i.step, i.values, i.nis)?;
+        }
+        writeln!(self.md)?;
+        Ok(())
+    }
+
+    /// The model's skill by epoch: what the filter measured of its forecast, and how far the
+    /// map between the aerials' lattice follows it (it falls back to the aerials' own estimate
+    /// where the boats have not seen the filter beat it).
+    fn skill(&mut self) -> anyhow::Result<()> {
+        use std::fmt::Write as _;
+        let epochs = &self.summary.skill;
+        if epochs.is_empty() {
+            return Ok(());
+        }
+        writeln!(
+            self.md,
+            "## Forecast skill\n\n\
+             Forecast: the model's forecast against the aerials' lattice over the epoch, 1 - (its mean squared error \
+             there, less the aerials' noise) / (the lattice values' variance): 1 perfect, 0 no better than the field's \
+             mean, below 0 worse. Between: how far the fused map between the lattice follows the filter rather than \
+             the aerials' interpolation, as the boats have measured it (0: the aerials' own estimate, 1: the filter's).\n"
+        )?;
+        writeln!(self.md, "| epoch | forecast | between |\n|---|---|---|")?;
+        for s in epochs {
+            let forecast = s.forecast.map_or("-".into(), |f| format!("{f:.3}"));
+            writeln!(self.md, "| {} | {forecast} | {:.2} |", s.epoch, s.between)?;
         }
         writeln!(self.md)?;
         Ok(())

@@ -221,6 +221,7 @@ impl Assimilator {
         };
         if !aerial.cells.is_empty() {
             f.learn_persistence(&lattice, 1.0)?;
+            s.forecast_skill.extend(forecast_skill(&prior.mean, &lattice));
         }
         let cap = kalman::variance_of(&aerial.estimate.values);
         check_detail(f, &lattice, &boats, cap, &self.setup.between_lattice)?;
@@ -260,6 +261,22 @@ impl Assimilator {
         let (values, variance) = f.field();
         Ok(Estimate { values, variance })
     }
+}
+
+/// The forecast's skill against a dense observation: 1 - (its mean squared error at the cells,
+/// less the values' noise) / (the values' variance). `None` for a flat observation.
+fn forecast_skill(forecast: &[f64], o: &Observation<'_>) -> Option<f64> {
+    let n = o.cells.len() as f64;
+    let spread = kalman::variance_of(o.values);
+    let error = o
+        .cells
+        .iter()
+        .zip(o.values)
+        .zip(o.variance)
+        .map(|((&c, y), v)| (y - forecast[c]).powi(2) - v)
+        .sum::<f64>()
+        / n;
+    (spread > 0.0 && n > 0.0).then(|| 1.0 - error / spread)
 }
 
 /// The detail's forecast variance checked against what each source saw and rescaled before

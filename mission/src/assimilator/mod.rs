@@ -63,6 +63,9 @@ pub struct AssimilatorState {
     aerial_extra: f64,
     /// `fusion = "kalman"`: what the boats showed of the filter between the lattice.
     between: between::Between,
+    /// `fusion = "kalman"`: the forecast's skill against the lattice at each step since the
+    /// last [`Assimilator::take_skill`].
+    forecast_skill: Vec<f64>,
     /// `fusion = "kalman"`: the variance (cells^2 per axis) of a displacement of the field's
     /// features the filter does not model, read from the boats' innovations
     /// ([`kalman::displacement_variance`]); horizon placement counts what a value removes of it.
@@ -149,6 +152,7 @@ impl Assimilator {
             pred_var: 1.0,
             aerial_extra: 0.0,
             between: Default::default(),
+            forecast_skill: vec![],
             displacement: 0.0,
             placement_rng,
             boat_positions,
@@ -230,6 +234,19 @@ impl Assimilator {
     /// The boats' innovations of the last step [`Self::fuse_step`] fused boat values in, once.
     pub fn take_innovation(&mut self) -> Option<kalman::Innovation> {
         self.state.innovation.take()
+    }
+
+    /// The model's skill over the steps fused since the last call, as epoch `epoch`'s (`None`
+    /// without the filter).
+    pub fn take_skill(&mut self, epoch: u64) -> Option<crate::protocol::EpochSkill> {
+        let s = &mut self.state;
+        let steps = std::mem::take(&mut s.forecast_skill);
+        s.filter.as_ref()?;
+        Some(crate::protocol::EpochSkill {
+            epoch,
+            forecast: (!steps.is_empty()).then(|| steps.iter().sum::<f64>() / steps.len() as f64),
+            between: s.between.skill,
+        })
     }
 
     pub fn rank(&self) -> usize {

@@ -321,6 +321,22 @@ pub struct ServerStatus {
     /// its last telemetry), once the epoch has waited a while.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub behind: std::collections::BTreeMap<VehicleId, String>,
+    /// The model's skill at the last epoch assimilated (`fusion = "kalman"`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub skill: Option<EpochSkill>,
+}
+
+/// How much the model was worth in one epoch, as the filter measured it (no truth needed).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct EpochSkill {
+    pub epoch: u64,
+    /// The forecast's skill against the aerials' lattice over the epoch's steps: 1 - (its mean
+    /// squared error there, less the aerials' noise) / (the lattice values' variance). 1 is a
+    /// perfect forecast, 0 no better than the field's mean, below 0 worse (`None`: no lattice).
+    pub forecast: Option<f64>,
+    /// How far the fused map between the lattice follows the filter rather than the aerials'
+    /// interpolation, as the boats have measured (0: the aerials' own; 1: the filter's).
+    pub between: f64,
 }
 
 /// Every message, tagged by `type`.
