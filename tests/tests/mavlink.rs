@@ -115,7 +115,7 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
     );
     let p = &gs["params"];
     assert_eq!(
-        (p["SYSID_THISMAV"].as_f64(), p["CRUISE_SPEED"].as_f64()),
+        (p["MAV_SYSID"].as_f64(), p["CRUISE_SPEED"].as_f64()),
         (Some(sysid), Some(m.mavlink.boat_speed_ms)),
         "{p}"
     );

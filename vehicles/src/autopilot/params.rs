@@ -19,8 +19,11 @@ fn positive(v: f32) -> bool {
     v.is_finite() && v > 0.0
 }
 
+/// The system id, under ArduPilot 4.7's name (`MAV_SYSID`; `SYSID_THISMAV` until 4.6, migrated
+/// by `gcs_conversion_info` in each vehicle's `Parameters.cpp`): 4.7 answers no read of the old
+/// name, and neither does the simulation.
 const SYSID: Param = Param {
-    name: "SYSID_THISMAV",
+    name: "MAV_SYSID",
     get: |s| s.sysid as f32,
     set: None,
 };

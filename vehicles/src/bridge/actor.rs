@@ -343,7 +343,7 @@ impl Actor {
                     autopilot = system_id,
                     mission = mission_sysid,
                     "the autopilot's system id is not the one the mission gives this vehicle: the ground-station \
-                     gateway accepts and routes only the mission's (set SYSID_THISMAV to it)"
+                     gateway accepts and routes only the mission's (set MAV_SYSID to it; SYSID_THISMAV before ArduPilot 4.7)"
                 );
             }
         }

@@ -110,7 +110,7 @@ fn home_parameters_and_the_fence_bit_answer_as_ardupilot_does() {
         "sorted by name, as ArduPilot lists them"
     );
     assert_eq!(
-        (named("CRUISE_SPEED"), named("SYSID_THISMAV"), named("FENCE_ENABLE")),
+        (named("CRUISE_SPEED"), named("MAV_SYSID"), named("FENCE_ENABLE")),
         (2.0, 3.0, 0.0)
     );
     assert!((named("ATC_STR_RAT_MAX") - 90.0).abs() < 1e-4);
@@ -129,7 +129,7 @@ fn home_parameters_and_the_fence_bit_answer_as_ardupilot_does() {
     assert_eq!(s.spec.max_speed, 3.5);
     for (name, v, now) in [
         ("CRUISE_SPEED", -1.0, 3.5),
-        ("SYSID_THISMAV", 9.0, 3.0),
+        ("MAV_SYSID", 9.0, 3.0),
         ("FENCE_ENABLE", 0.5, 0.0),
         ("FENCE_ACTION", 7.0, 1.0),
     ] {
@@ -162,7 +162,10 @@ fn home_parameters_and_the_fence_bit_answer_as_ardupilot_does() {
             }
         })
         .collect();
-    assert_eq!(got, ["CRUISE_SPEED", "SYSID_THISMAV"]);
+    assert_eq!(got, ["CRUISE_SPEED", "MAV_SYSID"]);
+    // ArduPilot 4.7 renamed SYSID_THISMAV to MAV_SYSID and answers no read of the old name.
+    s.handle(&GCS, &read(-1, "SYSID_THISMAV"));
+    assert!(s.take().is_empty(), "the old name is not answered");
 
     // No fence breach: the geofence health bit is set.
     let MavMessage::SYS_STATUS(st) = s.sys_status() else {
