@@ -441,19 +441,11 @@ impl ModalFilter {
 
     /// The field of the current state and its variance per cell.
     pub fn field(&self) -> (Vec<f64>, Vec<f64>) {
-        let (n, q) = (self.basis.nrows(), self.dim());
-        let m = Mat::from_fn(q, 1, |i, _| self.mean[i]);
-        let values: Vec<f64> = (self.basis.as_ref() * m.as_ref())
-            .col(0)
-            .iter()
-            .zip(&self.detail)
-            .map(|(v, d)| v + d)
-            .collect();
-        let bp = self.basis.as_ref() * self.cov.as_ref();
-        let variance = (0..n)
-            .map(|i| (0..q).map(|k| bp[(i, k)] * self.basis[(i, k)]).sum::<f64>().max(0.0) + self.detail_var[i])
-            .collect();
-        (values, variance)
+        let add = |a: Vec<f64>, b: &[f64]| a.into_iter().zip(b).map(|(x, y)| x + y).collect();
+        (
+            add(self.modal_mean(), &self.detail),
+            add(self.modal_variance(), &self.detail_var),
+        )
     }
 
     /// The model changed (a refit): carry the state into the new basis and dynamics. The part

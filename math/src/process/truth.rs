@@ -129,11 +129,11 @@ impl TruthSource {
         match self {
             Self::Preset(p) => format!("{p:?}"),
             Self::Dataset(d) => stem(d),
-            Self::NetCdf { path, variable, select } => std::iter::once(stem(path))
-                .chain(std::iter::once(variable.clone()))
-                .chain(select.iter().map(|(k, v)| format!("{k}{v}")))
-                .collect::<Vec<_>>()
-                .join("-"),
+            Self::NetCdf { path, variable, select } => select
+                .iter()
+                .fold(format!("{}-{variable}", stem(path)), |name, (k, v)| {
+                    format!("{name}-{k}{v}")
+                }),
         }
     }
 
@@ -141,7 +141,7 @@ impl TruthSource {
     /// its units and what `select` fixes, for NetCDF).
     pub fn describe(&self) -> String {
         match self {
-            Self::Preset(p) => format!("the plasma-cloud simulator's `{}`", format!("{p:?}").to_lowercase()),
+            Self::Preset(p) => format!("the plasma-cloud simulator's `{p}`"),
             Self::Dataset(d) => format!("the dataset `{}`", d.display()),
             Self::NetCdf { path, variable, select } => {
                 let units = self.units().map_or(String::new(), |u| format!(" ({u})"));

@@ -224,7 +224,7 @@ impl Assimilator {
             s.forecast_skill.extend(forecast_skill(&prior.mean, &lattice));
         }
         let cap = kalman::variance_of(&aerial.estimate.values);
-        check_detail(f, &lattice, &boats, cap, &self.setup.between_lattice)?;
+        check_detail(f, &lattice, &boats, cap, &self.setup.on_lattice)?;
         // The detail: the aerial estimate at every cell (noise, interpolation and the
         // calibrated extra), then the boats; between the lattice, as far as the boats have seen
         // the filter beat the aerials there (`between`).
@@ -266,8 +266,10 @@ impl Assimilator {
 /// The forecast's skill against a dense observation: 1 - (its mean squared error at the cells,
 /// less the values' noise) / (the values' variance). `None` for a flat observation.
 fn forecast_skill(forecast: &[f64], o: &Observation<'_>) -> Option<f64> {
-    let n = o.cells.len() as f64;
     let spread = kalman::variance_of(o.values);
+    if o.cells.is_empty() || !(spread > 0.0) {
+        return None;
+    }
     let error = o
         .cells
         .iter()
@@ -275,8 +277,8 @@ fn forecast_skill(forecast: &[f64], o: &Observation<'_>) -> Option<f64> {
         .zip(o.variance)
         .map(|((&c, y), v)| (y - forecast[c]).powi(2) - v)
         .sum::<f64>()
-        / n;
-    (spread > 0.0 && n > 0.0).then(|| 1.0 - error / spread)
+        / o.cells.len() as f64;
+    Some(1.0 - error / spread)
 }
 
 /// The detail's forecast variance checked against what each source saw and rescaled before
@@ -289,13 +291,13 @@ fn check_detail(
     lattice: &Observation<'_>,
     boats: &Observation<'_>,
     cap: f64,
-    between: &[usize],
+    on_lattice: &[bool],
 ) -> Result<(), TeamError> {
     if let Some(fit) = f.detail_fit(lattice)? {
-        f.rescale_detail(fit, cap, 0..f.detail_var().len());
+        f.rescale_detail(fit, cap, 0..on_lattice.len());
     }
     if let Some(fit) = f.detail_fit(boats)? {
-        f.rescale_detail(fit, cap, between.iter().copied());
+        f.rescale_detail(fit, cap, (0..on_lattice.len()).filter(|&c| !on_lattice[c]));
     }
     Ok(())
 }

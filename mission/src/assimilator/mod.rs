@@ -39,9 +39,8 @@ pub struct Setup {
     /// The cells with no data (`TeamConfig::land`): zero in every snapshot the model learns
     /// from, so they are zero rows of its snapshot matrices (the DMD of the other cells).
     land: Vec<usize>,
-    /// The aerials' lattice cells, and the cells between them (which only the boats see).
+    /// The aerials' lattice cells, and which cells are on it (the others only the boats see).
     lattice: Vec<usize>,
-    between_lattice: Vec<usize>,
     on_lattice: Vec<bool>,
     /// How far a boat goes in one step (m; infinite offline), for `placement = "horizon"`.
     boat_speed: f64,
@@ -139,7 +138,6 @@ impl Assimilator {
             excluded,
             land: cfg.land.iter().map(|&c| c as usize).collect(),
             lattice: (0..grid.len()).filter(|&i| on_lattice[i]).collect(),
-            between_lattice: (0..grid.len()).filter(|&i| !on_lattice[i]).collect(),
             on_lattice,
             boat_speed: f64::INFINITY,
         };
