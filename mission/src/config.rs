@@ -294,8 +294,25 @@ pub struct MavlinkConfig {
     /// Simulated multirotor: top speed (m/s) and cruise altitude above the origin (m).
     pub multirotor_speed_ms: f64,
     pub cruise_alt_m: f64,
-    /// A target counts as reached within this distance (m, physical).
+    /// A target counts as reached within this distance (m, physical), or within the
+    /// autopilot's own `WP_RADIUS` (`WPNAV_RADIUS` for copters) when that is larger: the bridge
+    /// reads it, and waiting for less than the autopilot stops short of would never end.
     pub acceptance_m: f64,
+    /// The autopilots' `FENCE_MARGIN` (m; ArduPilot's default 2) and a boat's turning radius
+    /// (`TURN_RADIUS`, m; ArduRover's default 0.9): launch and rally points are set inside the
+    /// fence by their sum (ArduPilot refuses to arm within the margin, and a turn from rest
+    /// sweeps the radius), and a fence that leaves no such room is refused at load. A bridge
+    /// whose autopilot keeps a larger margin says so.
+    pub fence_margin_m: f64,
+    pub turn_radius_m: f64,
+    /// The simulated autopilots' `WP_RADIUS` / `WPNAV_RADIUS` (m; ArduPilot's default 2).
+    pub wp_radius_m: f64,
+    /// A simulated autopilot has no GPS fix, no EKF origin and no position for this long after
+    /// boot (simulated seconds), as a real one waits for satellites.
+    pub sim_gps_delay_s: f64,
+    /// How long the bridge waits for the autopilot to be ready (a GPS fix, the EKF, its pre-arm
+    /// checks) before it asks for GUIDED and arming anyway and leaves the rest to the operator.
+    pub ready_timeout_s: f64,
     /// How long a vehicle waits at a sampling step for its autopilot to reach the target
     /// before it senses from where it is.
     pub arrival_timeout_ms: u64,
@@ -351,6 +368,11 @@ impl Default for MavlinkConfig {
             multirotor_speed_ms: 10.0,
             cruise_alt_m: 30.0,
             acceptance_m: 0.25,
+            fence_margin_m: 2.0,
+            turn_radius_m: 0.9,
+            wp_radius_m: 2.0,
+            sim_gps_delay_s: 10.0,
+            ready_timeout_s: 120.0,
             arrival_timeout_ms: 20_000,
             heartbeat_timeout_ms: 3_000,
             boundary: None,
@@ -432,6 +454,22 @@ impl MavlinkConfig {
         }
         if self.heartbeat_timeout_ms == 0 {
             return Err(field("mavlink", None, "heartbeat_timeout_ms must be > 0"));
+        }
+        let lengths = [
+            ("fence_margin_m", self.fence_margin_m),
+            ("turn_radius_m", self.turn_radius_m),
+            ("wp_radius_m", self.wp_radius_m),
+            ("sim_gps_delay_s", self.sim_gps_delay_s),
+        ];
+        if let Some((key, v)) = lengths.iter().find(|(_, v)| !(v.is_finite() && *v >= 0.0)) {
+            return Err(field("mavlink", format!("{key} = {v}"), "must be finite and >= 0"));
+        }
+        if !(self.ready_timeout_s.is_finite() && self.ready_timeout_s > 0.0) {
+            return Err(field(
+                "mavlink",
+                format!("ready_timeout_s = {}", self.ready_timeout_s),
+                "must be > 0",
+            ));
         }
         Ok(())
     }

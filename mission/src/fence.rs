@@ -56,6 +56,26 @@ pub fn inside(polygon: &[[f64; 2]], p: [f64; 2]) -> bool {
     odd
 }
 
+/// How far `p` is inside the polygon: the distance to its nearest edge, negative outside.
+/// What an autopilot's `FENCE_MARGIN` is measured against.
+pub fn clearance(polygon: &[[f64; 2]], p: [f64; 2]) -> f64 {
+    let n = polygon.len();
+    let to_edge = |a: [f64; 2], b: [f64; 2]| {
+        let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+        let len2 = (dx * dx + dy * dy).max(1e-24);
+        let t = (((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / len2).clamp(0.0, 1.0);
+        (p[0] - a[0] - t * dx).hypot(p[1] - a[1] - t * dy)
+    };
+    let d = (0..n)
+        .map(|i| to_edge(polygon[i], polygon[(i + 1) % n]))
+        .fold(f64::INFINITY, f64::min);
+    if inside(polygon, p) {
+        d
+    } else {
+        -d
+    }
+}
+
 /// Whether segments `a`-`b` and `c`-`d` cross (touching counts).
 fn crosses(a: [f64; 2], b: [f64; 2], c: [f64; 2], d: [f64; 2]) -> bool {
     let orient = |p: [f64; 2], q: [f64; 2], r: [f64; 2]| (q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0]);

@@ -16,6 +16,7 @@ pub mod events;
 pub mod fence;
 pub mod holdout;
 pub mod instrument;
+pub mod launch;
 pub mod offline;
 pub mod outputs;
 pub mod protocol;

@@ -3,7 +3,8 @@
 It listens where the fleet's gateway sends (udpin), and:
   1. discovers every vehicle by HEARTBEAT (system id, MAV_TYPE, autopilot);
   2. watches each vehicle's guided target (POSITION_TARGET_LOCAL_NED) and position
-     (LOCAL_POSITION_NED) and reports how far it was from its target, first and last;
+     (LOCAL_POSITION_NED), both from its EKF origin (GPS_GLOBAL_ORIGIN, reported too), and
+     reports how far it was from its target, first and last;
   3. uploads a 3-item mission to one vehicle with the standard handshake
      (MISSION_COUNT -> MISSION_REQUEST_INT -> MISSION_ITEM_INT ... -> MISSION_ACK; item 0 is
      home, as ArduPilot has it), sets AUTO and waits for MISSION_ITEM_REACHED 1, 2, 3;
@@ -62,11 +63,14 @@ if set(out["heartbeats"]) != set(want):
 first, last, targets, since = {}, {}, {}, {}
 watch_end = time.time() + args.watch_s
 while time.time() < watch_end:
-    msg = recv(["POSITION_TARGET_LOCAL_NED", "LOCAL_POSITION_NED"], 0.5)
+    msg = recv(["POSITION_TARGET_LOCAL_NED", "LOCAL_POSITION_NED", "GPS_GLOBAL_ORIGIN"], 0.5)
     if msg is None:
         continue
     s = msg.get_srcSystem()
-    if msg.get_type() == "POSITION_TARGET_LOCAL_NED":
+    if msg.get_type() == "GPS_GLOBAL_ORIGIN":
+        # Local NED is from each autopilot's EKF origin (where it booted), not the site's corner.
+        out.setdefault("origins", {})[s] = [msg.latitude, msg.longitude]
+    elif msg.get_type() == "POSITION_TARGET_LOCAL_NED":
         t = (round(msg.x, 3), round(msg.y, 3))
         targets.setdefault(s, [])
         if t not in targets[s]:

@@ -543,21 +543,21 @@ pub fn check_exactly_once_and_same_model(mission: &std::path::Path, state: &std:
 /// A ground station on a UDP port that the gateway sends the fleet to (`gcs =
 /// "udpout:127.0.0.1:<port>"`): it reads the stream and answers the gateway.
 pub struct GroundStation {
-    conn: Box<dyn mavlink::MavConnection<mavlink::dialects::common::MavMessage> + Send + Sync>,
+    conn: Box<dyn mavlink::MavConnection<mavlink::dialects::ardupilotmega::MavMessage> + Send + Sync>,
 }
 
 impl GroundStation {
     pub fn listen(port: u16) -> Self {
         Self {
             conn: Box::new(
-                mavlink::connect::<mavlink::dialects::common::MavMessage>(&format!("udpin:127.0.0.1:{port}"))
+                mavlink::connect::<mavlink::dialects::ardupilotmega::MavMessage>(&format!("udpin:127.0.0.1:{port}"))
                     .expect("a ground-station socket"),
             ),
         }
     }
 
     /// The next frame (blocks until the gateway sends one).
-    pub fn recv(&self) -> (mavlink::MavHeader, mavlink::dialects::common::MavMessage) {
+    pub fn recv(&self) -> (mavlink::MavHeader, mavlink::dialects::ardupilotmega::MavMessage) {
         loop {
             if let Ok(f) = self.conn.recv() {
                 return f;
@@ -569,7 +569,7 @@ impl GroundStation {
     /// mode, as QGroundControl's mode menu does (SET_MODE, sent three times: UDP).
     #[allow(deprecated)]
     pub fn set_mode(&self, sysid: u8, custom_mode: u32) {
-        use mavlink::dialects::common::*;
+        use mavlink::dialects::ardupilotmega::*;
         let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
         loop {
             assert!(std::time::Instant::now() < deadline, "no HEARTBEAT from system {sysid}");

@@ -77,6 +77,14 @@ fn a_concave_fence_keeps_every_disk_and_aerial_place_inside_for_qr_and_horizon()
                 std::fs::copy(dir.join("site.plan"), case.join("site.plan")).unwrap();
                 edit(&mission, "[mavlink]\n", "[mavlink]\nboundary = \"site.plan\"\n");
             }
+            // What a real ArduPilot does (issue 38): ArduPilot's FENCE_MARGIN (2 m) and a
+            // boat's TURN_RADIUS (0.9 m) by default, a WP_RADIUS of 3 m and a GPS fix 20 s after
+            // boot; fence action RTL (the default); copters on the ground until told to take off.
+            edit(
+                &mission,
+                "[mavlink]\n",
+                "[mavlink]\nwp_radius_m = 3.0\nsim_gps_delay_s = 20.0\n",
+            );
             let out = case.join("run");
             fleet_up(&mission, &out);
             let grid = Recording::read(&out.join("recording.mcap")).unwrap().grid;
@@ -99,9 +107,26 @@ fn a_concave_fence_keeps_every_disk_and_aerial_place_inside_for_qr_and_horizon()
                 "{placement}, fenced {fenced}: {places} places, {boat_cells} disk cells, {in_notch} outside the L"
             );
             // Every autopilot took the fence and enforced it, and the ways between places were
-            // routed round the notch: no breach, nobody returned to launch or held.
+            // routed round the notch: no breach, nobody returned to launch or held. Each waited for
+            // its fix, armed at the first asking (its launch point clear of the fence's margin),
+            // and the copters took off before the planner drove them; none disarmed or was left
+            // to the operator.
             for v in m.vehicles() {
                 let log = std::fs::read_to_string(out.join(format!("logs/{}.log", v.id))).unwrap();
+                for bad in [
+                    "Arm:",
+                    "PreArm:",
+                    "left to the operator",
+                    "disarmed itself",
+                    "not ready after",
+                ] {
+                    assert!(!log.contains(bad), "{placement}: {} said {bad:?}:\n{log}", v.id);
+                }
+                assert!(
+                    log.contains("the planner drives it"),
+                    "{placement}: {} never driven:\n{log}",
+                    v.id
+                );
                 assert!(
                     log.contains("fence enabled"),
                     "{placement}: {} did not enable the fence:\n{log}",
@@ -119,6 +144,13 @@ fn a_concave_fence_keeps_every_disk_and_aerial_place_inside_for_qr_and_horizon()
                 "{placement}: a vehicle left the allocation"
             );
             assert!(boat_cells > 0, "{placement}: no disk at all");
+            // Every place reached (within the autopilot's WP_RADIUS), so every reading is the
+            // planned place's: the networked estimate is the offline loop's.
+            let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+            assert!(
+                report.contains("Network equals offline: **yes"),
+                "{placement}: {report}"
+            );
             if fenced {
                 assert_eq!(in_notch, 0, "{placement}: disk cells outside the fence");
                 // The exported QGC plans carry the mission's fence, not the grid's rectangle.
@@ -151,6 +183,34 @@ fn a_concave_fence_keeps_every_disk_and_aerial_place_inside_for_qr_and_horizon()
             }
         }
     }
+    // The launch points (the autopilots' homes and rally points) clear the margin plus the turn,
+    // and boat-3's autopilot boots 30 m and more from the grid's corner, where its EKF origin is.
+    let m = MissionConfig::load(Some(&dir.join("qr-true/mission.toml"))).unwrap();
+    let grid = fleet_mission::grid::Grid::new(24, 48, 1.0).unwrap();
+    let launch = fleet_mission::launch::launch_points(&m, &grid).unwrap();
+    assert!(launch.iter().all(|p| fleet_mission::fence::clearance(&ELL, *p) >= 2.9));
+    assert!(launch[4][0].hypot(launch[4][1]) >= 30.0, "{launch:?}");
+    // A fence with no room for the margin is refused when the mission is read: one line, exit 2.
+    edit(
+        &dir.join("qr-true/mission.toml"),
+        "[mavlink]\n",
+        "[mavlink]\nfence_margin_m = 12.0\n",
+    );
+    let o = run(
+        "fleet",
+        &[
+            "up",
+            dir.join("qr-true/mission.toml").to_str().unwrap(),
+            "--out",
+            dir.join("narrow").to_str().unwrap(),
+        ],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("fence_margin_m = 12") && err.contains("no room") && err.trim().lines().count() == 1,
+        "{err}"
+    );
     // A mission whose boundary file has no geofence is one line, exit 2, naming the file.
     let ep = vec![format!("tcp/127.0.0.1:{}", free_port())];
     let mission = tiny_mission(&dir, &ep, &ep);

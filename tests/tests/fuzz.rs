@@ -9,7 +9,7 @@
 use fleet::grid::Grid;
 use fleet::mission::config::MissionConfig;
 use fleet::protocol::*;
-use mavlink::dialects::common::*;
+use mavlink::dialects::ardupilotmega::*;
 use mavlink::MavHeader;
 use proptest::prelude::*;
 use proptest::test_runner::{Config, TestRunner};
@@ -124,6 +124,7 @@ fn wire_seeds() -> Vec<Vec<u8>> {
                 unreadable: 0,
                 refused_from_gcs: 2,
                 failsafe: Some("Failsafe: battery low".into()),
+                waiting: Some("GPS fix".into()),
             }),
             acked: Some(4),
             readings: Some(fleet::protocol::ReadingCounts {

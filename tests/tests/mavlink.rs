@@ -204,13 +204,22 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
         let Some(targets) = gs["targets"][&sysid].as_array() else {
             continue;
         };
+        // Local NED is from the autopilot's EKF origin (where it booted); on the site's 1 m grid,
+        // north and east of the grid's corner are grid y and x.
+        let origin = &gs["origins"][&sysid];
+        let site = m.mavlink.site(&fleet_mission::grid::Grid::new(24, 48, 1.0).unwrap());
+        let o = site.ned_of_global(
+            origin[0].as_f64().unwrap() * 1e-7,
+            origin[1].as_f64().unwrap() * 1e-7,
+            site.origin[2],
+        );
         for t in targets {
-            // Local NED (north, east) is grid (x east, y north) on the default 1 m site.
-            let (n, e) = (t[0].as_f64().unwrap(), t[1].as_f64().unwrap());
+            let (n, e) = (t[0].as_f64().unwrap() + o.x, t[1].as_f64().unwrap() + o.y);
             assert!(
                 places[v]
                     .iter()
-                    .any(|p| (p[0] - e).abs() < 1e-3 && (p[1] - n).abs() < 1e-3),
+                    // The origin comes in degrees x 1e7: 1.1 cm of latitude, 0.6 cm of longitude.
+                    .any(|p| (p[0] - e).abs() < 0.02 && (p[1] - n).abs() < 0.02),
                 "{v}: target ({e}, {n}) is no allocated place {:?}",
                 places[v]
             );
@@ -553,15 +562,7 @@ fn a_boat_whose_battery_runs_low_returns_to_launch_and_the_others_share_the_disk
         })
         .next_back()
         .expect("telemetry of the boat");
-    let n = m.vehicles().len() as f64;
-    let launch: Vec<[f64; 2]> = (0..m.vehicles().len())
-        .map(|i| {
-            [
-                (i as f64 + 0.5) * recording.grid.width_m() / n,
-                0.5 * recording.grid.cell_m,
-            ]
-        })
-        .collect();
+    let launch = fleet_mission::launch::launch_points(&m, &recording.grid).unwrap();
     let d = launch
         .iter()
         .map(|l| (l[0] - last.position[0]).hypot(l[1] - last.position[1]))

@@ -67,8 +67,13 @@ fn a_server_that_held_vehicles_restarts_after_kill_9_and_the_mission_completes()
             .spawn()
             .unwrap(),
     );
-    // boat-3 drives an autopilot of its own process, so the test can make it go silent.
+    // boat-3 drives an autopilot of its own process, so the test can make it go silent. It is
+    // switched on at boat-3's launch point (ArduPilot arms nowhere within FENCE_MARGIN of the
+    // fence, and the site's corner is on it).
     let ap_port = free_udp_port();
+    let grid = fleet_mission::grid::Grid::new(24, 48, 1.0).unwrap();
+    let at = fleet_mission::launch::launch_points(&m, &grid).unwrap()[m.vehicle("boat-3").unwrap().0];
+    let home = [at[0].to_string(), at[1].to_string()];
     let autopilot = procs.0.len();
     procs.0.push(
         Command::new(bin("sim-autopilot"))
@@ -84,6 +89,9 @@ fn a_server_that_held_vehicles_restarts_after_kill_9_and_the_mission_completes()
                 "--grid",
                 "24",
                 "48",
+                "--home",
+                &home[0],
+                &home[1],
             ])
             .stderr(std::fs::File::create(dir.join("autopilot.log")).unwrap())
             .spawn()
@@ -283,7 +291,7 @@ fn damaged_journals_and_outboxes_are_refused_by_the_nodes_and_left_as_they_are()
 #[test]
 #[allow(deprecated)]
 fn the_gateway_pins_system_ids_from_the_mission_whatever_arrives_first() {
-    use mavlink::dialects::common::*;
+    use mavlink::dialects::ardupilotmega::*;
     let dir = scratch("impostor");
     let gcs_port = free_udp_port();
     let ep = format!("tcp/127.0.0.1:{}", free_port());

@@ -4,7 +4,7 @@
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use fleet_mission::signing_key::SigningKey;
-use mavlink::dialects::common::*;
+use mavlink::dialects::ardupilotmega::*;
 use mavlink::MavHeader;
 use std::hint::black_box;
 use vehicles::link::frame_bytes;

@@ -8,7 +8,7 @@
 
 use crate::link::parse_frame;
 use crate::signing::Refused;
-use mavlink::dialects::common::MavMessage;
+use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::{MavHeader, Message};
 use std::collections::BTreeMap;
 
@@ -177,7 +177,7 @@ impl RefusalLog {
 mod tests {
     use super::*;
     use crate::link::frame_bytes;
-    use mavlink::dialects::common::*;
+    use mavlink::dialects::ardupilotmega::*;
 
     fn from(sysid: u8, m: &MavMessage) -> Vec<u8> {
         frame_bytes(

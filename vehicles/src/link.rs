@@ -11,7 +11,7 @@
 //! counted; its blocking connection reports each one.)
 
 use crate::signing::{LinkSigning, Refused};
-use mavlink::dialects::common::MavMessage;
+use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::error::MessageReadError;
 use mavlink::{Connection, MAVLinkMessageRaw, MavConnection, MavHeader, MavlinkVersion};
 use std::sync::atomic::{AtomicU8, Ordering};
@@ -182,7 +182,7 @@ impl MavLink {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use mavlink::dialects::common::{GLOBAL_POSITION_INT_DATA, HEARTBEAT_DATA};
+    use mavlink::dialects::ardupilotmega::{GLOBAL_POSITION_INT_DATA, HEARTBEAT_DATA};
 
     #[test]
     fn a_bundle_splits_into_its_frames_and_a_bad_tail_is_named() {

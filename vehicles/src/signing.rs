@@ -6,7 +6,7 @@
 //! a replay).
 
 use fleet_mission::signing_key::SigningKey;
-use mavlink::dialects::common::MavMessage;
+use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::{MAVLinkV2MessageRaw, MavHeader, SigningConfig, SigningData};
 
 use mavlink::consts::{v2::IFLAG_SIGNED, MAX_FRAME_SIZE};
@@ -110,7 +110,7 @@ impl LinkSigning {
 mod tests {
     use super::*;
     use crate::link::{frame_bytes, parse_frame};
-    use mavlink::dialects::common::*;
+    use mavlink::dialects::ardupilotmega::*;
 
     fn hb() -> MavMessage {
         MavMessage::HEARTBEAT(HEARTBEAT_DATA::default())

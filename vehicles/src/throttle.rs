@@ -6,7 +6,7 @@
 //! a ground station's own questions are answered in full. The whole stream stays on the vehicle
 //! (the bridge reads all of it).
 
-use mavlink::dialects::common::MavMessage;
+use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::Message;
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
@@ -75,7 +75,7 @@ pub fn is_event(m: &MavMessage) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use mavlink::dialects::common::*;
+    use mavlink::dialects::ardupilotmega::*;
 
     #[test]
     fn periodic_messages_go_at_the_rate_and_events_always() {

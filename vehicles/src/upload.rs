@@ -4,7 +4,7 @@
 //! this returns. A count with no answer is sent again, a few times, then given up (an
 //! autopilot without fences still flies).
 
-use mavlink::dialects::common::*;
+use mavlink::dialects::ardupilotmega::*;
 
 /// MISSION_COUNT is sent at most this many times.
 pub const TRIES: u32 = 5;

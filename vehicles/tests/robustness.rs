@@ -6,7 +6,7 @@ use fleet_mission::config::MavlinkConfig;
 use fleet_mission::grid::Grid;
 use fleet_mission::protocol::AutopilotLink;
 use fleet_mission::site::Site;
-use mavlink::dialects::common::*;
+use mavlink::dialects::ardupilotmega::*;
 use mavlink::MavHeader;
 use nalgebra::Vector3;
 use rand::{Rng, RngExt, SeedableRng};
@@ -88,6 +88,10 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
             max_speed: 2.0,
             turn_rate: 1.0,
             cruise_alt: 0.0,
+            turn_radius: 0.0,
+            wp_radius: 0.0,
+            gps_delay_s: 0.0,
+            disarm_delay_s: 10.0,
             speedup: 1.0,
             safety: Default::default(),
         },
@@ -99,6 +103,8 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
         fence_action: 1.0,
         rally: vec![],
         mavlink_hz: f64::INFINITY,
+        ready_timeout: Duration::from_secs(10),
+        clearance_m: 0.0,
     };
     let mut bridge = Bridge::connect(&format!("udpout:{}", ap.local_addr().unwrap()), spec, None).unwrap();
     // The bridge's companion heartbeat tells us where it is.
@@ -142,24 +148,32 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
     wait_for("link up in GUIDED", 3.0, || {
         bridge.status().link == AutopilotLink::Up && bridge.drivable()
     });
-    let pos = MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
-        x: 3.0,
-        y: 4.0,
+    // Positions on the Earth (the autopilot's local frame has its own origin).
+    let (lat, lon, _) = site().global_of(&Vector3::new(3.0, 4.0, 0.0));
+    let pos = MavMessage::GLOBAL_POSITION_INT(GLOBAL_POSITION_INT_DATA {
+        lat: (lat * 1e7).round() as i32,
+        lon: (lon * 1e7).round() as i32,
+        hdg: u16::MAX,
         ..Default::default()
     });
     send(&frame_bytes(ap_header, &pos));
-    // A non-finite position is refused, not believed.
+    // A position off the Earth is refused, not believed.
     send(&frame_bytes(
         ap_header,
-        &MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
-            x: f32::NAN,
+        &MavMessage::GLOBAL_POSITION_INT(GLOBAL_POSITION_INT_DATA {
+            lat: i32::MAX,
+            lon: 5,
             ..Default::default()
         }),
     ));
     for g in garbage(&mut rng, 500) {
         send(&g);
     }
-    wait_for("position read", 2.0, || bridge.position() == Some((4.0, 3.0)));
+    wait_for("position read", 2.0, || {
+        bridge
+            .position()
+            .is_some_and(|(x, y)| (x - 4.0).abs() < 0.01 && (y - 3.0).abs() < 0.01)
+    });
     assert!(bridge.goto((10.0, 10.0)), "a guided target goes out");
 
     // Silence: lost, not drivable, no targets sent; then it is back.
@@ -211,6 +225,10 @@ fn the_simulated_autopilot_answers_through_garbage() {
         max_speed: 10.0,
         turn_rate: 1.0,
         cruise_alt: 20.0,
+        turn_radius: 0.0,
+        wp_radius: 0.0,
+        gps_delay_s: 0.0,
+        disarm_delay_s: 10.0,
         speedup: 1.0,
         safety: Default::default(),
     };

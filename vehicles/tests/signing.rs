@@ -9,7 +9,7 @@ use fleet_mission::grid::Grid;
 use fleet_mission::protocol::AutopilotLink;
 use fleet_mission::signing_key::SigningKey;
 
-use mavlink::dialects::common::*;
+use mavlink::dialects::ardupilotmega::*;
 use mavlink::MavHeader;
 use nalgebra::Vector3;
 use std::net::UdpSocket;
@@ -31,6 +31,10 @@ fn spec(sysid: u8) -> SimSpec {
         max_speed: 20.0,
         turn_rate: 6.0,
         cruise_alt: 0.0,
+        turn_radius: 0.0,
+        wp_radius: 0.0,
+        gps_delay_s: 0.0,
+        disarm_delay_s: 10.0,
         speedup: 1.0,
         safety: Default::default(),
     }
@@ -149,6 +153,8 @@ fn bridge_to(port: u16, key: Option<SigningKey>, accept_unsigned: bool) -> Bridg
         fence_action: 1.0,
         rally: vec![Vector3::new(1.0, 1.0, 0.0), Vector3::new(1.0, 40.0, 0.0)],
         mavlink_hz: f64::INFINITY,
+        ready_timeout: Duration::from_secs(10),
+        clearance_m: 0.0,
     };
     Bridge::connect(&format!("udpout:127.0.0.1:{port}"), spec, None).unwrap()
 }

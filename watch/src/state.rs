@@ -212,7 +212,11 @@ impl View {
         v.mode = match &t.autopilot {
             None => "fleet".into(),
             Some(a) => match a.link {
-                AutopilotLink::Connecting => "connecting".into(),
+                // What it waits for before the planner drives it ("connecting: GPS fix").
+                AutopilotLink::Connecting => match &a.waiting {
+                    Some(w) => format!("connecting: {w}"),
+                    None => "connecting".into(),
+                },
                 AutopilotLink::Lost => "autopilot lost".into(),
                 // A failsafe's reason beside the mode it caused ("RTL, armed: Failsafe: battery low ...").
                 AutopilotLink::Up => format!(

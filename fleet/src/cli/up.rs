@@ -239,6 +239,10 @@ fn make_truth(mission: &MissionConfig, staging: &Path, t0: Instant) -> anyhow::R
     let truth = mission.truth(|k| pb.set_position(k as u64))?;
     pb.finish_and_clear();
     let (grid, frames) = mission.workspace(truth.as_ref())?;
+    // The autopilots' launch points must clear the fence's margin: refused here, not at the shore.
+    if mission.mavlink.autopilot != "none" {
+        fleet::mission::launch::launch_points(mission, &grid)?;
+    }
     if let Some(truth) = &truth {
         fleet::process::dataset::save(
             staging.join("truth.npy"),

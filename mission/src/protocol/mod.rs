@@ -227,6 +227,10 @@ pub struct AutopilotStatus {
     /// breach), until it is back in GUIDED.
     #[serde(default)]
     pub failsafe: Option<String>,
+    /// What it waits for before the planner drives it (a GPS fix, the EKF, pre-arm checks,
+    /// arming, a takeoff), with the autopilot's own refusal; or why it was left to the operator.
+    #[serde(default)]
+    pub waiting: Option<String>,
 }
 
 /// The highest gap-free `seq` of a vehicle the server has assimilated.

@@ -31,7 +31,7 @@ use fleet_mission::config::MissionConfig;
 use fleet_mission::instrument::MissionClock;
 use fleet_mission::protocol::VehicleKind;
 use hetfleet_tests::GroundStation;
-use mavlink::dialects::common::MavMessage;
+use mavlink::dialects::ardupilotmega::MavMessage;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use std::collections::{BTreeMap, BTreeSet};
@@ -313,9 +313,9 @@ impl Companion {
         });
         let beat = conn.clone();
         std::thread::spawn(move || loop {
-            let hb = MavMessage::HEARTBEAT(mavlink::dialects::common::HEARTBEAT_DATA {
-                mavtype: mavlink::dialects::common::MavType::MAV_TYPE_ONBOARD_CONTROLLER,
-                autopilot: mavlink::dialects::common::MavAutopilot::MAV_AUTOPILOT_INVALID,
+            let hb = MavMessage::HEARTBEAT(mavlink::dialects::ardupilotmega::HEARTBEAT_DATA {
+                mavtype: mavlink::dialects::ardupilotmega::MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+                autopilot: mavlink::dialects::ardupilotmega::MavAutopilot::MAV_AUTOPILOT_INVALID,
                 mavlink_version: 3,
                 ..Default::default()
             });
@@ -357,7 +357,7 @@ impl Companion {
     }
 
     fn send_value(&self, time_boot_ms: u32, name: &str, value: f32) {
-        let m = MavMessage::NAMED_VALUE_FLOAT(mavlink::dialects::common::NAMED_VALUE_FLOAT_DATA {
+        let m = MavMessage::NAMED_VALUE_FLOAT(mavlink::dialects::ardupilotmega::NAMED_VALUE_FLOAT_DATA {
             time_boot_ms,
             value,
             name: name.into(),

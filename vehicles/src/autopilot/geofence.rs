@@ -5,9 +5,9 @@
 //! Inside means inside every inclusion zone (any, when there are none) and outside every
 //! exclusion zone.
 
-use fleet_mission::fence::inside;
+use fleet_mission::fence::{clearance, inside};
 use fleet_mission::site::Site;
-use mavlink::dialects::common::{MavCmd, MavMissionResult, MISSION_ITEM_INT_DATA};
+use mavlink::dialects::ardupilotmega::{MavCmd, MavMissionResult, MISSION_ITEM_INT_DATA};
 use nalgebra::Vector3;
 
 /// Longest fence we take (ArduPilot's default FENCE_TOTAL allows about 80 points).
@@ -82,6 +82,20 @@ impl Geofence {
             && self.exclusion.is_empty()
             && self.inclusion_circles.is_empty()
             && self.exclusion_circles.is_empty()
+    }
+
+    /// How far inside the fence a point is (m; negative outside) and the kind of zone nearest
+    /// its edge (`Polygon` or `Circle`, as ArduPilot names them); `None` without a fence.
+    pub fn clearance(&self, ned: &Vector3<f64>) -> Option<(f64, &'static str)> {
+        let p = [ned.y, ned.x];
+        let from_centre = |c: &[f64; 2]| (p[0] - c[0]).hypot(p[1] - c[1]);
+        let polygons = (self.inclusion.iter().map(|poly| clearance(poly, p)))
+            .chain(self.exclusion.iter().map(|poly| -clearance(poly, p)))
+            .map(|d| (d, "Polygon"));
+        let circles = (self.inclusion_circles.iter().map(|(c, r)| r - from_centre(c)))
+            .chain(self.exclusion_circles.iter().map(|(c, r)| from_centre(c) - r))
+            .map(|d| (d, "Circle"));
+        polygons.chain(circles).min_by(|a, b| a.0.total_cmp(&b.0))
     }
 
     /// Whether a local NED point is inside the fence.

@@ -4,7 +4,7 @@
 //! drives the vehicle; in any other mode the operator (or its mission) does, and the vehicle
 //! is left out of the allocation.
 
-use mavlink::dialects::common::MavType;
+use mavlink::dialects::ardupilotmega::MavType;
 
 /// What a mode means to the fleet and to the simulator.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

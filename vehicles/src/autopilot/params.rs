@@ -81,8 +81,28 @@ const BATT_LOW_MAH: Param = Param {
 };
 const BATT_FS_LOW_ACT: Param = action_param!("BATT_FS_LOW_ACT", low_battery_action);
 
-/// A Rover's: cruise speed (m/s) and steering rate limit (deg/s).
-const BOAT: [Param; 8] = [
+/// A non-negative length (m) over a field of [`SimSpec`], scaled by `$per_m` units a metre.
+macro_rules! length_param {
+    ($name:literal, $($field:ident).+, $per_m:expr) => {
+        Param {
+            name: $name,
+            get: |s| (s.$($field).+ * $per_m) as f32,
+            set: Some(|s, v| {
+                (v.is_finite() && v >= 0.0) && {
+                    s.$($field).+ = v as f64 / $per_m;
+                    true
+                }
+            }),
+        }
+    };
+}
+
+/// Arming is refused within this distance inside the fence (m; `AC_Fence`'s `FENCE_MARGIN`).
+const FENCE_MARGIN: Param = length_param!("FENCE_MARGIN", safety.fence_margin, 1.0);
+
+/// A Rover's: cruise speed (m/s), steering rate limit (deg/s), turning radius and waypoint
+/// radius (m).
+const BOAT: [Param; 11] = [
     Param {
         name: "ATC_STR_RAT_MAX",
         get: |s| s.turn_rate.to_degrees() as f32,
@@ -108,17 +128,24 @@ const BOAT: [Param; 8] = [
     },
     FENCE_ACTION,
     FENCE_ENABLE,
+    FENCE_MARGIN,
     SYSID,
+    length_param!("TURN_RADIUS", turn_radius, 1.0),
+    length_param!("WP_RADIUS", wp_radius, 1.0),
 ];
 
-/// A Copter's: waypoint speed (cm/s).
-const MULTIROTOR: [Param; 7] = [
+/// A Copter's: the delay before it disarms itself on the ground (s), waypoint radius (cm) and
+/// speed (cm/s).
+const MULTIROTOR: [Param; 10] = [
     BATT_CAPACITY,
     BATT_FS_LOW_ACT,
     BATT_LOW_MAH,
+    length_param!("DISARM_DELAY", disarm_delay_s, 1.0),
     FENCE_ACTION,
     FENCE_ENABLE,
+    FENCE_MARGIN,
     SYSID,
+    length_param!("WPNAV_RADIUS", wp_radius, 100.0),
     Param {
         name: "WPNAV_SPEED",
         get: |s| (s.max_speed * 100.0) as f32,

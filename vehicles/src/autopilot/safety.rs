@@ -46,6 +46,8 @@ pub struct Safety {
     /// triggers `fence_action`).
     pub fence_enable: bool,
     pub fence_action: Action,
+    /// Arming is refused within this distance inside the fence (m; `FENCE_MARGIN`).
+    pub fence_margin: f64,
     /// Battery capacity, and the charge left (mAh) at which `low_battery_action` is taken.
     pub battery_mah: f64,
     pub battery_low_mah: f64,
@@ -62,6 +64,7 @@ impl Default for Safety {
         Self {
             fence_enable: false,
             fence_action: Action::Rtl,
+            fence_margin: 2.0,
             battery_mah: 20_000.0,
             battery_low_mah: 4_000.0,
             low_battery_action: Action::Rtl,

@@ -15,7 +15,7 @@
 use super::sim::SimAutopilot;
 use crate::link::{MavLink, Received};
 use crate::signing::{LinkSigning, Refused};
-use mavlink::dialects::common::MavMessage;
+use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::{MavHeader, Message};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;

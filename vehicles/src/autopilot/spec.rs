@@ -5,6 +5,10 @@ use super::modes::Frame;
 use super::safety::{Action, Safety};
 use fleet_mission::site::Site;
 
+/// A boat pivots (stops and turns in place) when its goal is more than this far off its bow
+/// (ArduRover's `WP_PIVOT_ANGLE`, 60 degrees by default); under it, it turns on its radius.
+pub const PIVOT_ANGLE_DEG: f64 = 60.0;
+
 #[derive(Debug, Clone)]
 pub struct SimSpec {
     pub frame: Frame,
@@ -16,6 +20,17 @@ pub struct SimSpec {
     pub turn_rate: f64,
     /// m above the origin (multirotors)
     pub cruise_alt: f64,
+    /// A boat's turning radius under way (m; ArduRover's `TURN_RADIUS`): it pivots only when the
+    /// goal is more than [`PIVOT_ANGLE_DEG`] off its bow.
+    pub turn_radius: f64,
+    /// A mission item counts as reached within this distance (m; `WP_RADIUS`, a copter's
+    /// `WPNAV_RADIUS` in cm).
+    pub wp_radius: f64,
+    /// Simulated seconds from boot to the GPS fix (no position, no EKF origin before).
+    pub gps_delay_s: f64,
+    /// A copter armed on the ground and not told to take off disarms itself after this long
+    /// (simulated seconds; ArduCopter's `DISARM_DELAY`, 10 s by default).
+    pub disarm_delay_s: f64,
     /// Simulated seconds per wall second.
     pub speedup: f64,
     pub safety: Safety,
@@ -34,6 +49,7 @@ impl SimSpec {
             battery_mah: m.battery_mah,
             battery_low_mah: m.battery_low_mah,
             low_battery_action: action(&m.low_battery_action),
+            fence_margin: m.fence_margin_m,
             ..Safety::default()
         };
         Self {
@@ -43,6 +59,10 @@ impl SimSpec {
             max_speed,
             turn_rate: m.boat_turn_rate_dps.to_radians(),
             cruise_alt: m.cruise_alt_m,
+            turn_radius: m.turn_radius_m,
+            wp_radius: m.wp_radius_m,
+            gps_delay_s: m.sim_gps_delay_s,
+            disarm_delay_s: 10.0,
             speedup: m.sim_speedup,
             safety,
         }

@@ -13,13 +13,14 @@
 //! the counters (read, never woken on).
 
 use super::named::NamedSource;
+use super::readiness::{self, is_arming_refusal};
 use super::ROUTE_INSET_M;
-use super::{guided, AutopilotState, BridgeSpec, Command, GcsSink, LinkCounters, COMPANION_COMPONENT};
+use super::{airborne, guided, AutopilotState, BridgeSpec, Command, GcsSink, LinkCounters, COMPANION_COMPONENT};
 use crate::autopilot::modes::Role;
 use crate::link::{frame_bytes, MavLink, Received};
 use crate::upload::{self, Upload};
 use fleet_mission::protocol::{AutopilotLink, AutopilotStatus};
-use mavlink::dialects::common::*;
+use mavlink::dialects::ardupilotmega::*;
 use mavlink::MavHeader;
 use nalgebra::Vector3;
 use std::sync::Arc;
@@ -27,9 +28,11 @@ use tokio::sync::{mpsc, watch};
 use tokio::time::{Duration, Instant};
 use tracing::{info, warn};
 
-/// GUIDED and arming are asked for at most this many times (once a second), then left to the
-/// operator.
+/// GUIDED and arming are asked for at most this many times (once a second) once the autopilot
+/// is ready, then left to the operator.
 const SETUP_TRIES: u32 = 10;
+/// The autopilot's settings are asked for at most this many times (once a second).
+const PARAM_TRIES: u32 = 5;
 
 /// The receiving ends of what the actor publishes.
 pub(super) struct Channels {
@@ -41,10 +44,12 @@ pub(super) struct Channels {
 /// Where the one-time set-up is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Setup {
-    /// Not asked yet.
+    /// Not asked yet (waiting for the autopilot to be ready).
     NotAsked,
     /// GUIDED and arming asked for this many times.
     Asked(u32),
+    /// A copter armed in GUIDED, told to take off, since then.
+    TakingOff(Instant),
     /// Armed in GUIDED, or given up (left to the operator).
     Done,
 }
@@ -56,7 +61,12 @@ struct Actor {
     state: AutopilotState,
     counters: LinkCounters,
     heartbeat_at: Option<Instant>,
+    /// The first HEARTBEAT: readiness is waited for from then, up to `ready_timeout`.
+    found_at: Option<Instant>,
+    param_tries: u32,
     setup: Setup,
+    /// The set-up ended with the planner driving it (so a disarm in GUIDED is set up again).
+    driven: bool,
     /// Before the set-up, the fence and rally points go up and the fence is enabled.
     uploads: Vec<Upload>,
     enable_tries: u32,
@@ -91,7 +101,10 @@ pub(super) fn spawn(
         state: AutopilotState::default(),
         counters: LinkCounters::default(),
         heartbeat_at: None,
+        found_at: None,
+        param_tries: 0,
         setup: Setup::NotAsked,
+        driven: false,
         uploads,
         enable_tries: 0,
         prepared: false,
@@ -145,6 +158,7 @@ fn status_of(spec: &BridgeSpec, s: &AutopilotState, c: &LinkCounters) -> Autopil
         unreadable: c.unreadable,
         refused_from_gcs: 0,
         failsafe: s.failsafe.clone(),
+        waiting: s.waiting.clone(),
     }
 }
 
@@ -308,28 +322,81 @@ impl Actor {
             MavMessage::STATUSTEXT(t) if t.severity as u8 <= MavSeverity::MAV_SEVERITY_WARNING as u8 => {
                 let text = t.text.to_str().unwrap_or("(not UTF-8)").to_string();
                 warn!(sysid = h.system_id, "the autopilot says: {text}");
-                if t.severity as u8 <= MavSeverity::MAV_SEVERITY_CRITICAL as u8 {
+                if is_arming_refusal(&text) {
+                    // Why it will not arm: for the operator, not a failsafe.
+                    self.state.readiness.refusal = Some(text);
+                } else if t.severity as u8 <= MavSeverity::MAV_SEVERITY_CRITICAL as u8 {
                     self.state.failsafe = Some(text);
                 }
             }
             MavMessage::SYS_STATUS(st) if st.battery_remaining >= 0 => {
                 self.state.battery = Some((st.battery_remaining as f64 / 100.0).min(1.0));
             }
-            MavMessage::GLOBAL_POSITION_INT(g) if g.hdg != u16::MAX => {
-                self.state.heading_deg = Some(g.hdg as f64 / 100.0);
-            }
-            MavMessage::PARAM_VALUE(p) if p.param_id.to_str().is_ok_and(|n| n == "FENCE_ENABLE") => {
-                self.state.fence_enabled = p.param_value == 1.0;
-            }
-            MavMessage::LOCAL_POSITION_NED(p) if sysid.is_some() => {
-                let ned = Vector3::new(p.x as f64, p.y as f64, p.z as f64);
-                if ned.iter().all(|v| v.is_finite()) {
-                    self.state.ned = Some(ned);
-                } else {
-                    self.counters.unreadable += 1;
+            MavMessage::GLOBAL_POSITION_INT(g) if sysid.is_some() => self.on_global_position(g),
+            MavMessage::PARAM_VALUE(p) => {
+                let name = p.param_id.to_str().unwrap_or_default();
+                if name == "FENCE_ENABLE" {
+                    self.state.fence_enabled = p.param_value == 1.0;
+                } else if self.state.limits.on_param(name, p.param_value) {
+                    self.on_limit(name);
                 }
             }
-            _ => {}
+            m => self.state.readiness.on_message(m),
+        }
+    }
+
+    /// Where the autopilot is, on the Earth (the frame every autopilot shares; its local NED
+    /// has its EKF's origin, wherever it booted). (0, 0) is no fix.
+    fn on_global_position(&mut self, g: &GLOBAL_POSITION_INT_DATA) {
+        if g.hdg != u16::MAX {
+            self.state.heading_deg = Some(g.hdg as f64 / 100.0);
+        }
+        if g.lat == 0 && g.lon == 0 {
+            return;
+        }
+        let site = &self.spec.vehicle.site;
+        let mut ned = site.ned_of_global(g.lat as f64 * 1e-7, g.lon as f64 * 1e-7, site.origin[2]);
+        ned.z = -(g.relative_alt as f64) / 1000.0;
+        if ned.iter().all(|v| v.is_finite()) && g.lat.abs() <= 900_000_000 && g.lon.abs() <= 1_800_000_000 {
+            self.state.ned = Some(ned);
+        } else {
+            self.counters.unreadable += 1;
+        }
+    }
+
+    /// A setting read from the autopilot: said once all are in, with what the bridge does.
+    fn on_limit(&mut self, name: &str) {
+        let l = &self.state.limits;
+        if name.contains("SYSID") {
+            if let Some((n, v)) = &l.sysid {
+                if *v != self.spec.vehicle.sysid as f64 {
+                    warn!(
+                        param = n.as_str(),
+                        value = v,
+                        mission = self.spec.vehicle.sysid,
+                        "the autopilot's system id is not the mission's"
+                    );
+                }
+            }
+            return;
+        }
+        if !l.complete(self.spec.vehicle.frame) {
+            return;
+        }
+        info!(
+            fence_margin = l.fence_margin,
+            wp_radius = l.wp_radius,
+            turn_radius = l.turn_radius,
+            "the autopilot's own settings: targets count as reached within its WP_RADIUS, routes keep its margin plus turn"
+        );
+        if l.clearance() > self.spec.clearance_m + 1e-6 {
+            warn!(
+                autopilot = l.clearance(),
+                mission = self.spec.clearance_m,
+                "the autopilot keeps more room from the fence (FENCE_MARGIN + TURN_RADIUS) than the mission's launch and \
+                 rally points have: it may refuse to arm or breach on returning; set [mavlink] fence_margin_m and \
+                 turn_radius_m to its values"
+            );
         }
     }
 
@@ -346,6 +413,10 @@ impl Actor {
                      gateway accepts and routes only the mission's (set MAV_SYSID to it; SYSID_THISMAV before ArduPilot 4.7)"
                 );
             }
+        }
+        if self.found_at.is_none() {
+            self.found_at = Some(Instant::now());
+            self.ask_for_streams(system_id as u8);
         }
         let s = &mut self.state;
         s.sysid = u8::try_from(system_id).ok();
@@ -383,8 +454,9 @@ impl Actor {
     fn goto(&mut self, target: u8, goal: Vector3<f64>) {
         let from = self.state.ned.map(|p| [p.y, p.x]);
         let fence = &self.spec.fence_m;
+        let inset = ROUTE_INSET_M.max(self.state.limits.clearance());
         let first = from.and_then(|f| {
-            fleet_mission::fence::route(fence, f, [goal.y, goal.x], ROUTE_INSET_M)
+            fleet_mission::fence::route(fence, f, [goal.y, goal.x], inset)
                 .first()
                 .copied()
         });
@@ -393,20 +465,54 @@ impl Actor {
             .filter(|l| (l - goal).xy().norm() > 1e-6);
         self.state.leg = leg;
         let ned = leg.unwrap_or(goal);
-        // Position only: ignore velocity, acceleration, yaw and yaw rate.
+        // On the Earth, altitude above home: the autopilot's local frame has its EKF's origin,
+        // which is where it booted, not the site's corner. Position only: ignore velocity,
+        // acceleration, yaw and yaw rate.
+        let (lat, lon, _) = self.spec.vehicle.site.global_of(&ned);
         let mask = PositionTargetTypemask::from_bits_truncate(0b0000_1101_1111_1000);
-        self.send(&MavMessage::SET_POSITION_TARGET_LOCAL_NED(
-            SET_POSITION_TARGET_LOCAL_NED_DATA {
-                x: ned.x as f32,
-                y: ned.y as f32,
-                z: ned.z as f32,
+        #[allow(deprecated)]
+        let frame = MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT_INT;
+        self.send(&MavMessage::SET_POSITION_TARGET_GLOBAL_INT(
+            SET_POSITION_TARGET_GLOBAL_INT_DATA {
+                lat_int: (lat * 1e7).round() as i32,
+                lon_int: (lon * 1e7).round() as i32,
+                alt: -ned.z as f32,
                 type_mask: mask,
                 target_system: target,
                 target_component: 1,
-                coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+                coordinate_frame: frame,
                 ..Default::default()
             },
         ));
+    }
+
+    /// The messages the bridge reads, at the rates it needs (an autopilot that streams them
+    /// already acks and goes on).
+    fn ask_for_streams(&mut self, target: u8) {
+        for (id, interval_us) in readiness::intervals() {
+            self.send(&Self::command(
+                target,
+                MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+                id as f32,
+                interval_us,
+            ));
+        }
+    }
+
+    /// The autopilot's settings the bridge keeps to, asked for by name until answered.
+    fn ask_for_limits(&mut self, target: u8) {
+        if self.state.limits.complete(self.spec.vehicle.frame) || self.param_tries >= PARAM_TRIES {
+            return;
+        }
+        self.param_tries += 1;
+        for name in readiness::wanted(self.spec.vehicle.frame) {
+            self.send(&MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA {
+                param_index: -1,
+                target_system: target,
+                target_component: 1,
+                param_id: (*name).into(),
+            }));
+        }
     }
 
     fn command(target: u8, command: MavCmd, param1: f32, param2: f32) -> MavMessage {
@@ -439,37 +545,112 @@ impl Actor {
         self.advance(true);
     }
 
-    /// The one-time set-up, a step further: the fence and rally points up and the fence
-    /// enabled, then GUIDED and arming, asked again each `second` until the autopilot shows
-    /// both, at most [`SETUP_TRIES`] times.
+    /// The set-up, a step further: the fence and rally points up and the fence enabled; then,
+    /// once the autopilot is ready (or `ready_timeout` has passed), GUIDED and arming, asked
+    /// again each `second` until it shows both, at most [`SETUP_TRIES`] times; a copter then
+    /// takes off to its cruise altitude. An autopilot that disarms itself in GUIDED (a copter
+    /// idle on the ground) is set up again, not left out.
     fn advance(&mut self, second: bool) {
         let Some(target) = self.state.sysid else { return };
+        if second {
+            self.ask_for_limits(target);
+        }
         if !self.prepared(target, second) {
             return;
         }
         let guided_mode = self.spec.vehicle.frame.mode(Role::Guided);
-        let (mode, armed) = (self.state.mode, self.state.armed);
+        let in_guided = self.state.mode == Some(guided_mode);
+        let armed = self.state.armed;
+        let ready = self.setup != Setup::NotAsked || self.ready_to_ask();
         self.setup = match self.setup {
-            Setup::Done => Setup::Done,
-            _ if mode == Some(guided_mode) && armed => {
-                info!(sysid = target, "autopilot armed and in GUIDED: the planner drives it");
-                Setup::Done
-            }
-            Setup::Asked(n) if !second => Setup::Asked(n),
-            Setup::Asked(n) if n >= SETUP_TRIES => {
-                let mode = self.spec.vehicle.frame.name(mode.unwrap_or(0));
+            Setup::Done if self.driven && in_guided && !armed && self.state.link != AutopilotLink::Lost => {
+                self.driven = false;
                 warn!(
                     sysid = target,
-                    mode, armed, "the autopilot did not take GUIDED and arming: left to the operator"
+                    "the autopilot disarmed itself in GUIDED: arming it again"
                 );
+                Setup::NotAsked
+            }
+            Setup::Done => Setup::Done,
+            _ if in_guided && armed && airborne(&self.spec, &self.state) => {
+                info!(sysid = target, "autopilot armed and in GUIDED: the planner drives it");
+                self.driven = true;
+                self.state.readiness.refusal = None;
+                self.state.waiting = None;
                 Setup::Done
             }
+            _ if in_guided && armed => self.take_off(target, second),
+            Setup::NotAsked if !ready => Setup::NotAsked,
+            Setup::Asked(n) if !second => Setup::Asked(n),
+            Setup::Asked(n) if n >= SETUP_TRIES => self.give_up(target),
             setup => {
                 self.set_mode(target, guided_mode);
                 self.send(&Self::command(target, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+                self.state.waiting = Some(match &self.state.readiness.refusal {
+                    Some(r) => format!("arming ({r})"),
+                    None => "GUIDED and arming".into(),
+                });
                 Setup::Asked(if let Setup::Asked(n) = setup { n + 1 } else { 1 })
             }
         };
+    }
+
+    /// Whether to ask for GUIDED and arming now: the autopilot says it is ready, or it has had
+    /// `ready_timeout` to be (then its own checks decide, and their refusal is reported).
+    fn ready_to_ask(&mut self) -> bool {
+        let waiting = self.state.readiness.waiting_for(self.state.ned.is_some());
+        let timed_out = self.found_at.is_some_and(|t| t.elapsed() >= self.spec.ready_timeout);
+        if let (Some(w), true) = (&waiting, timed_out) {
+            warn!(
+                sysid = self.state.sysid,
+                waiting = w.as_str(),
+                "the autopilot is not ready after ready_timeout_s: asking for GUIDED and arming anyway"
+            );
+        }
+        self.state.waiting.clone_from(&waiting);
+        waiting.is_none() || timed_out
+    }
+
+    /// A copter armed in GUIDED on the ground: MAV_CMD_NAV_TAKEOFF to the cruise altitude,
+    /// again each second until it climbs, up to `ready_timeout`.
+    fn take_off(&mut self, target: u8, second: bool) -> Setup {
+        let since = match self.setup {
+            Setup::TakingOff(t) => t,
+            _ => Instant::now(),
+        };
+        if since.elapsed() >= self.spec.ready_timeout {
+            return self.give_up(target);
+        }
+        let fresh = !matches!(self.setup, Setup::TakingOff(_));
+        let on_ground = self.state.ned.is_none_or(|n| -n.z < 1.0);
+        if fresh || (second && on_ground) {
+            let alt = self.spec.vehicle.cruise_alt as f32;
+            self.send(&MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                command: MavCmd::MAV_CMD_NAV_TAKEOFF,
+                param7: alt,
+                target_system: target,
+                target_component: 1,
+                ..Default::default()
+            }));
+            self.state.waiting = Some(format!("takeoff to {alt} m"));
+        }
+        Setup::TakingOff(since)
+    }
+
+    /// GUIDED, arming or the takeoff did not happen: the vehicle is the operator's, and the
+    /// autopilot's last refusal says why.
+    fn give_up(&mut self, target: u8) -> Setup {
+        let mode = self.spec.vehicle.frame.name(self.state.mode.unwrap_or(0));
+        let why = self.state.readiness.refusal.clone().unwrap_or_default();
+        warn!(
+            sysid = target,
+            mode,
+            armed = self.state.armed,
+            refusal = why.as_str(),
+            "the autopilot did not take GUIDED, arming or the takeoff: left to the operator"
+        );
+        self.state.waiting = Some(format!("the operator (not ready to drive: {mode}; {why})"));
+        Setup::Done
     }
 
     /// The fence and rally points uploaded, then the fence enabled with the mission's action,

@@ -15,6 +15,7 @@
 
 mod actor;
 mod named;
+pub mod readiness;
 
 use crate::autopilot::modes::{Frame, Role};
 use crate::autopilot::sim::SimSpec;
@@ -22,7 +23,7 @@ use crate::link::{parse_frame, MavLink};
 use crate::signing::{LinkSigning, LINK_BRIDGE};
 use fleet_mission::protocol::{AutopilotLink, AutopilotStatus};
 use fleet_mission::signing_key::SigningKey;
-use mavlink::dialects::common::MavMessage;
+use mavlink::dialects::ardupilotmega::MavMessage;
 use mavlink::{MavHeader, Message};
 use nalgebra::Vector3;
 use std::sync::Arc;
@@ -58,6 +59,12 @@ pub struct BridgeSpec {
     /// Each periodic message of the autopilot's stream goes to the ground stations at most
     /// this often (Hz; `[link] mavlink_hz`); events always go.
     pub mavlink_hz: f64,
+    /// How long to wait for the autopilot to be ready before asking for GUIDED and arming
+    /// anyway (`[mavlink] ready_timeout_s`).
+    pub ready_timeout: Duration,
+    /// How far inside the fence the mission set the launch and rally points (m): an autopilot
+    /// keeping a larger margin plus turn is warned of.
+    pub clearance_m: f64,
 }
 
 /// Counters of the autopilot link (MAVLink messages).
@@ -90,6 +97,12 @@ pub struct AutopilotState {
     pub battery: Option<f64>,
     pub heading_deg: Option<f64>,
     pub fence_enabled: bool,
+    /// What the autopilot has said of its readiness, and its own settings the bridge keeps to.
+    pub readiness: readiness::Readiness,
+    pub limits: readiness::Limits,
+    /// What it waits for before the planner may drive it (a GPS fix, the EKF, its pre-arm
+    /// checks, a takeoff), or why it was left to the operator; `None` once it is driven.
+    pub waiting: Option<String>,
 }
 
 /// What the node asks of the bridge's actor.
@@ -242,10 +255,18 @@ impl Driver {
         self.state.borrow().link
     }
 
-    /// Whether the planner may send it targets now: armed, in GUIDED, not lost.
+    /// Whether the planner may send it targets now: armed, in GUIDED, not lost (and a copter
+    /// in the air).
     pub fn drivable(&self) -> bool {
         let s = self.state.borrow();
-        guided(&self.spec, &s) && s.link != AutopilotLink::Lost
+        guided(&self.spec, &s) && s.link != AutopilotLink::Lost && airborne(&self.spec, &s)
+    }
+
+    /// A target counts as reached within the mission's acceptance, or the autopilot's own
+    /// `WP_RADIUS` when that is larger (it stops trying within it).
+    fn acceptance(&self) -> f64 {
+        let radius = self.state.borrow().limits.wp_radius.unwrap_or(0.0);
+        self.spec.acceptance_m.max(radius)
     }
 
     /// Where the autopilot says it is, in grid metres.
@@ -288,14 +309,15 @@ impl Driver {
     /// Whether the autopilot is within the acceptance distance of a grid point.
     pub fn arrived(&self, grid_xy: (f64, f64)) -> bool {
         let goal = self.target_ned(grid_xy);
-        let near = |n: Vector3<f64>| (n.xy() - goal.xy()).norm() <= self.spec.acceptance_m;
+        let acceptance = self.acceptance();
+        let near = |n: Vector3<f64>| (n.xy() - goal.xy()).norm() <= acceptance;
         self.state.borrow().ned.is_some_and(near)
     }
 
     /// Whether it has reached the corner it was routed to (time for the next leg).
     pub fn at_corner(&self) -> bool {
+        let reach = self.acceptance().max(ROUTE_INSET_M / 2.0);
         let s = self.state.borrow();
-        let reach = self.spec.acceptance_m.max(ROUTE_INSET_M / 2.0);
         s.leg.zip(s.ned).is_some_and(|(l, n)| (n.xy() - l.xy()).norm() <= reach)
     }
 
@@ -318,6 +340,14 @@ impl Driver {
     /// Back from the vehicle's own failsafe: GUIDED again, so the planner drives it.
     pub fn rejoin(&self) {
         let _ = self.commands.send(Command::Rejoin);
+    }
+}
+
+/// Whether a copter is at (nine tenths of) its cruise altitude; a boat always is.
+fn airborne(spec: &BridgeSpec, s: &AutopilotState) -> bool {
+    match spec.vehicle.frame {
+        Frame::Boat => true,
+        Frame::Multirotor => s.ned.is_some_and(|n| -n.z >= 0.9 * spec.vehicle.cruise_alt),
     }
 }
 

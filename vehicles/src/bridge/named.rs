@@ -8,7 +8,7 @@
 
 use crate::sensor::Input;
 use fleet_mission::instrument::NamedValues;
-use mavlink::dialects::common::MavMessage;
+use mavlink::dialects::ardupilotmega::MavMessage;
 use tokio::sync::mpsc;
 use tokio::sync::mpsc::error::TrySendError;
 

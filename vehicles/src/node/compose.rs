@@ -10,7 +10,6 @@ use fleet_mission::config::{MavlinkConfig, MissionConfig};
 use fleet_mission::grid::Grid;
 use fleet_mission::protocol::keys::Keys;
 use fleet_mission::signing_key::SigningKey;
-use fleet_mission::site::Site;
 use fleet_net::zenoh;
 use nalgebra::Vector3;
 use std::sync::atomic::AtomicBool;
@@ -51,9 +50,12 @@ fn bridge_spec(args: &Args, mission: &MissionConfig, grid: &Grid) -> anyhow::Res
     let m = &mission.mavlink;
     let (index, kind) = mission.vehicle(&args.id)?;
     let site = m.site(grid);
-    // Launched from points along the south shore.
-    let n = mission.vehicles().len() as f64;
-    let launch = |i: usize| site.ned_of(((i as f64 + 0.5) * grid.width_m() / n, 0.5 * grid.cell_m), 0.0);
+    // Launched from points along the south shore, inside the fence by the margin and the turn.
+    let launch: Vec<Vector3<f64>> = fleet_mission::launch::launch_points(mission, grid)
+        .map_err(fleet_exit::bad_input)?
+        .iter()
+        .map(|&[e, n]| Vector3::new(n, e, 0.0))
+        .collect();
     let mut vehicle = SimSpec::from_config(Frame::of(kind), mission.sysid(&args.id)?, site, m);
     if let Some(mah) = args.sim_battery_start_mah {
         if !(mah.is_finite() && (0.0..=m.battery_mah).contains(&mah)) {
@@ -68,25 +70,16 @@ fn bridge_spec(args: &Args, mission: &MissionConfig, grid: &Grid) -> anyhow::Res
         vehicle,
         acceptance_m: m.acceptance_m,
         heartbeat_timeout: Duration::from_millis(m.heartbeat_timeout_ms),
-        home: launch(index),
-        fence_m: fence_m(mission, &site, grid),
+        home: launch[index],
+        fence_m: fleet_mission::launch::fence_polygon_m(mission, grid),
         // (The mission file's name was checked when it was read.)
         fence_action: Action::from_name(&m.fence_action).unwrap_or(Action::Continue) as u8 as f32,
-        rally: (0..mission.vehicles().len()).map(launch).collect(),
+        rally: launch,
         signing: autopilot_key(m, &args.id)?,
         mavlink_hz: mission.link.mavlink_hz,
+        ready_timeout: Duration::from_secs_f64(m.ready_timeout_s),
+        clearance_m: fleet_mission::launch::required_clearance(mission),
     })
-}
-
-/// The fence: the mission's boundary, or the site's extent (metres `[east, north]`).
-fn fence_m(mission: &MissionConfig, site: &Site, grid: &Grid) -> Vec<[f64; 2]> {
-    match &mission.team.fence {
-        Some(f) => f.polygon_m.clone(),
-        None => {
-            let corner: Vector3<f64> = site.ned_of((grid.width_m(), grid.height_m()), 0.0);
-            vec![[0.0, 0.0], [corner.y, 0.0], [corner.y, corner.x], [0.0, corner.x]]
-        }
-    }
 }
 
 /// The autopilot link's key, and whether its unsigned frames are taken.

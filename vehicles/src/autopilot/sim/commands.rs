@@ -3,6 +3,22 @@
 
 use super::*;
 
+/// The messages this autopilot streams (what MAV_CMD_SET_MESSAGE_INTERVAL may ask for).
+const STREAMED: [u32; 12] = [
+    HEARTBEAT_DATA::ID,
+    SYS_STATUS_DATA::ID,
+    GLOBAL_POSITION_INT_DATA::ID,
+    LOCAL_POSITION_NED_DATA::ID,
+    GPS_RAW_INT_DATA::ID,
+    EKF_STATUS_REPORT_DATA::ID,
+    BATTERY_STATUS_DATA::ID,
+    HOME_POSITION_DATA::ID,
+    MISSION_CURRENT_DATA::ID,
+    SYSTEM_TIME_DATA::ID,
+    FENCE_STATUS_DATA::ID,
+    GPS_GLOBAL_ORIGIN_DATA::ID,
+];
+
 impl SimAutopilot {
     pub(super) fn ack(&mut self, command: MavCmd, ok: bool) {
         let result = if ok {
@@ -43,9 +59,23 @@ impl SimAutopilot {
         use MavCmd::*;
         let ok = match command {
             MAV_CMD_COMPONENT_ARM_DISARM => {
-                self.armed = p[0] >= 0.5;
-                true
+                let done = self.arm_disarm(p[0] >= 0.5, p[1]);
+                // A refused arming is FAILED (the checks said no), as ArduPilot answers it.
+                let result = if done {
+                    MavResult::MAV_RESULT_ACCEPTED
+                } else {
+                    MavResult::MAV_RESULT_FAILED
+                };
+                return self.out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+                    command,
+                    result,
+                    ..Default::default()
+                }));
             }
+            MAV_CMD_NAV_TAKEOFF => self.takeoff(p[6]),
+            // The bridge asks for the messages it reads at the rates it needs: taken for those
+            // this autopilot streams (at its own rates), unsupported for others.
+            MAV_CMD_SET_MESSAGE_INTERVAL => STREAMED.contains(&(p[0] as u32)),
             MAV_CMD_DO_SET_MODE => self.set_mode(p[1] as u32),
             MAV_CMD_NAV_RETURN_TO_LAUNCH => self.set_mode(self.spec.frame.mode(Role::Return)),
             MAV_CMD_MISSION_START => self.mission.len() > 1 && self.set_mode(self.spec.frame.mode(Role::Auto)),
@@ -113,16 +143,17 @@ impl SimAutopilot {
         self.out.push(home);
     }
 
-    /// HOME_POSITION: where it booted, which RTL returns to.
+    /// HOME_POSITION: where it booted, which RTL returns to; x, y, z from the EKF origin.
     pub(super) fn home_position(&self) -> MavMessage {
         let (lat, lon, alt) = self.spec.site.global_of(&self.home);
+        let local = self.home - self.ekf_origin.unwrap_or(self.home);
         MavMessage::HOME_POSITION(HOME_POSITION_DATA {
             latitude: (lat * 1e7).round() as i32,
             longitude: (lon * 1e7).round() as i32,
             altitude: (alt * 1e3).round() as i32,
-            x: self.home.x as f32,
-            y: self.home.y as f32,
-            z: self.home.z as f32,
+            x: local.x as f32,
+            y: local.y as f32,
+            z: local.z as f32,
             q: [1.0, 0.0, 0.0, 0.0],
             ..Default::default()
         })

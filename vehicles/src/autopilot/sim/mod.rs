@@ -20,15 +20,16 @@
 mod commands;
 mod mission_items;
 mod motion;
+mod readiness;
 mod telemetry;
 
 use super::geofence::{Geofence, MAX_FENCE_ITEMS};
 use super::modes::{Frame, Role};
 use super::params;
 use super::safety::{Action, ARMED_DRAW_A, IDLE_DRAW_A, MAX_DRAW_A};
-pub use super::spec::SimSpec;
+pub use super::spec::{SimSpec, PIVOT_ANGLE_DEG};
 
-use mavlink::dialects::common::*;
+use mavlink::dialects::ardupilotmega::*;
 use mavlink::{MavHeader, Message, MessageData};
 use nalgebra::Vector3;
 use std::f64::consts::PI;
@@ -84,6 +85,16 @@ pub struct SimAutopilot {
     /// would give it (SYSTEM_TIME).
     pub wall_s: f64,
     pub boot_unix_s: f64,
+    /// Simulated seconds since boot.
+    pub sim_s: f64,
+    /// The EKF's origin (the site's NED): where it was when the GPS got its fix, as ArduPilot
+    /// sets it (`libraries/AP_AHRS`); `None` before the fix. LOCAL_POSITION_NED and local
+    /// targets are relative to it, not to the site's corner.
+    pub ekf_origin: Option<Vector3<f64>>,
+    /// A multirotor on the ground (until told to take off), and for how long it has been armed
+    /// there (simulated seconds).
+    pub landed: bool,
+    armed_on_ground_s: f64,
     /// Charge used (mAh), and the draw now (A).
     pub consumed_mah: f64,
     draw_a: f64,
@@ -100,6 +111,8 @@ impl SimAutopilot {
     /// Boots disarmed, in the frame's boot mode, at `home` (local NED).
     pub fn new(spec: SimSpec, home: Vector3<f64>) -> Self {
         let mode = spec.frame.boot_mode();
+        let landed = spec.frame == Frame::Multirotor;
+        let ekf_origin = (spec.gps_delay_s <= 0.0).then_some(home);
         let consumed_mah = spec
             .safety
             .battery_start_mah
@@ -124,6 +137,11 @@ impl SimAutopilot {
             breach_count: 0,
             upload: None,
             wall_s: 0.0,
+            sim_s: 0.0,
+            // With no GPS delay, the fix is there at boot.
+            ekf_origin,
+            landed,
+            armed_on_ground_s: 0.0,
             boot_unix_s: std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
                 .map_or(0.0, |d| d.as_secs_f64()),
@@ -159,6 +177,41 @@ impl SimAutopilot {
     /// Whether the enforced fence keeps the vehicle from a place.
     pub(super) fn fenced_out(&self, ned: &Vector3<f64>) -> bool {
         self.spec.safety.fence_enable && !self.fence.contains(ned)
+    }
+
+    /// A guided target (the site's NED), unless the fence keeps it out: no ack exists for the
+    /// position-target messages, so a refusal is said and the old goal kept.
+    fn guided_target(&mut self, p: Vector3<f64>) {
+        if !p.iter().all(|v| v.is_finite()) {
+            return;
+        }
+        let p = self.at_altitude(p);
+        if self.fenced_out(&p) {
+            self.say(
+                MavSeverity::MAV_SEVERITY_WARNING,
+                "Fence: target outside the fence, refused",
+            );
+        } else {
+            self.goal = Some(p);
+        }
+    }
+
+    /// A SET_POSITION_TARGET_GLOBAL_INT's place (the site's NED): its altitude above home
+    /// (GLOBAL_RELATIVE_ALT) or above mean sea level (GLOBAL); other frames are not taken.
+    fn global_target(&self, t: &SET_POSITION_TARGET_GLOBAL_INT_DATA) -> Option<Vector3<f64>> {
+        let (lat, lon) = (t.lat_int as f64 * 1e-7, t.lon_int as f64 * 1e-7);
+        if !(lat.abs() <= 90.0 && lon.abs() <= 180.0) {
+            return None;
+        }
+        let home_alt = self.spec.site.global_of(&self.home).2;
+        let alt = match t.coordinate_frame {
+            MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT_INT | MavFrame::MAV_FRAME_GLOBAL_RELATIVE_ALT => {
+                home_alt + t.alt as f64
+            }
+            MavFrame::MAV_FRAME_GLOBAL_INT | MavFrame::MAV_FRAME_GLOBAL => t.alt as f64,
+            _ => return None,
+        };
+        Some(self.spec.site.ned_of_global(lat, lon, alt))
     }
 
     pub(super) fn say(&mut self, severity: MavSeverity, text: &str) {
@@ -198,18 +251,14 @@ impl SimAutopilot {
             MavMessage::SET_POSITION_TARGET_LOCAL_NED(t)
                 if self.role() == Some(Role::Guided) && t.coordinate_frame == MavFrame::MAV_FRAME_LOCAL_NED =>
             {
-                let p = Vector3::new(t.x as f64, t.y as f64, t.z as f64);
-                if p.iter().all(|v| v.is_finite()) {
-                    let p = self.at_altitude(p);
-                    // No ack exists for this message: refused, said, and the old goal kept.
-                    if self.fenced_out(&p) {
-                        self.say(
-                            MavSeverity::MAV_SEVERITY_WARNING,
-                            "Fence: target outside the fence, refused",
-                        );
-                    } else {
-                        self.goal = Some(p);
-                    }
+                // Relative to the EKF origin (none before the fix: nothing to be relative to).
+                if let Some(o) = self.ekf_origin {
+                    self.guided_target(o + Vector3::new(t.x as f64, t.y as f64, t.z as f64));
+                }
+            }
+            MavMessage::SET_POSITION_TARGET_GLOBAL_INT(t) if self.role() == Some(Role::Guided) => {
+                if let Some(p) = self.global_target(t) {
+                    self.guided_target(p);
                 }
             }
             MavMessage::PARAM_REQUEST_LIST(_) | MavMessage::PARAM_REQUEST_READ(_) | MavMessage::PARAM_SET(_) => {

@@ -6,6 +6,11 @@ use super::*;
 impl SimAutopilot {
     /// Where the mode sends the vehicle (`None`: stay).
     pub(super) fn destination(&self) -> Option<Vector3<f64>> {
+        // A copter on the ground stays there until told to take off (ArduCopter's GUIDED
+        // takes no position target as a takeoff).
+        if self.landed {
+            return None;
+        }
         match self.role()? {
             Role::Guided => self.goal,
             Role::Auto => self.mission.get(self.current as usize).map(|i| self.item_position(i)),
@@ -17,6 +22,9 @@ impl SimAutopilot {
     /// Advance `dt_wall` wall seconds (`dt_wall * speedup` of simulated flight).
     pub fn step(&mut self, dt_wall: f64) {
         self.wall_s += dt_wall;
+        self.sim_s += dt_wall * self.spec.speedup;
+        self.update_fix();
+        self.check_auto_disarm(dt_wall * self.spec.speedup);
         self.retry_upload();
         self.run_do_items();
         let mut left = dt_wall * self.spec.speedup;
@@ -25,8 +33,13 @@ impl SimAutopilot {
             let dt = left.min(SUBSTEP_S);
             left -= dt;
             let before = self.pos;
+            // A mission item is reached within WP_RADIUS, and the vehicle goes on to the next;
+            // the last one it drives to, and stops at.
+            let last = self.current as usize + 1 >= self.mission.len();
             let reached = match (self.armed, self.destination()) {
-                (true, Some(goal)) => self.move_toward(goal, dt),
+                (true, Some(goal)) => {
+                    self.move_toward(goal, dt) || (!last && (goal - self.pos).norm() <= self.spec.wp_radius)
+                }
                 _ => false,
             };
             self.vel = (self.pos - before) / dt;
@@ -134,8 +147,15 @@ impl SimAutopilot {
                     self.pos = goal;
                     return true;
                 }
-                // Slow while turning; pivot when the goal is behind.
-                let step = reach * left.cos().max(0.0);
+                // Pivot (stop and turn) when the goal is more than the pivot angle off the bow;
+                // under it, drive on: slowed in the turn, but never below the speed at which the
+                // turn rate sweeps the turning radius (an arc, not a pivot).
+                let step = if left.abs() > PIVOT_ANGLE_DEG.to_radians() {
+                    0.0
+                } else {
+                    let arc = (self.spec.turn_rate * self.spec.turn_radius * dt).min(reach);
+                    (reach * left.cos()).max(if dist > 2.0 * self.spec.turn_radius { arc } else { 0.0 })
+                };
                 self.pos += Vector3::new(self.heading.cos(), self.heading.sin(), 0.0) * step;
             }
         }

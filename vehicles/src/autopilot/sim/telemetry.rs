@@ -46,7 +46,16 @@ impl SimAutopilot {
             | MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_3D_ACCEL
             | MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_GPS
             | MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
-            | MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_BATTERY;
+            | MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_BATTERY
+            | MavSysStatusSensor::MAV_SYS_STATUS_PREARM_CHECK;
+        // The GPS is healthy with its fix, the pre-arm bit while the arming checks pass.
+        let mut unhealthy = MavSysStatusSensor::empty();
+        if !self.has_fix() {
+            unhealthy |= MavSysStatusSensor::MAV_SYS_STATUS_SENSOR_GPS;
+        }
+        if self.arming_refusal().is_some() {
+            unhealthy |= MavSysStatusSensor::MAV_SYS_STATUS_PREARM_CHECK;
+        }
         // The geofence bit is healthy while there is no breach, whether or not a fence is
         // enabled (ArduPilot's rule): ground stations announce "fence breach" when it is not.
         let fence = MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE;
@@ -58,7 +67,7 @@ impl SimAutopilot {
         MavMessage::SYS_STATUS(SYS_STATUS_DATA {
             onboard_control_sensors_present: sensors | enforced,
             onboard_control_sensors_enabled: sensors | enforced,
-            onboard_control_sensors_health: sensors
+            onboard_control_sensors_health: (sensors - unhealthy)
                 | if self.breached {
                     MavSysStatusSensor::empty()
                 } else {
@@ -72,9 +81,15 @@ impl SimAutopilot {
         })
     }
 
-    /// The position messages (sent at 10 Hz).
+    /// The position messages (sent at 10 Hz), once there is a fix: LOCAL_POSITION_NED from
+    /// the EKF origin, GLOBAL_POSITION_INT on the Earth.
     pub fn position(&self) -> Vec<MavMessage> {
+        let Some(origin) = self.ekf_origin else {
+            return vec![];
+        };
+        let local = self.pos - origin;
         let (lat, lon, alt) = self.spec.site.global_of(&self.pos);
+        let home_alt = self.spec.site.global_of(&self.home).2;
         let hdg = (self.heading.to_degrees().rem_euclid(360.0) * 100.0) as u16;
         let t = self.time_boot_ms();
         let mut out = vec![
@@ -83,7 +98,7 @@ impl SimAutopilot {
                 lat: (lat * 1e7).round() as i32,
                 lon: (lon * 1e7).round() as i32,
                 alt: (alt * 1000.0).round() as i32,
-                relative_alt: (-self.pos.z * 1000.0).round() as i32,
+                relative_alt: ((alt - home_alt) * 1000.0).round() as i32,
                 vx: (self.vel.x * 100.0) as i16,
                 vy: (self.vel.y * 100.0) as i16,
                 vz: (self.vel.z * 100.0) as i16,
@@ -91,15 +106,16 @@ impl SimAutopilot {
             }),
             MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
                 time_boot_ms: t,
-                x: self.pos.x as f32,
-                y: self.pos.y as f32,
-                z: self.pos.z as f32,
+                x: local.x as f32,
+                y: local.y as f32,
+                z: local.z as f32,
                 vx: self.vel.x as f32,
                 vy: self.vel.y as f32,
                 vz: self.vel.z as f32,
             }),
         ];
         if let (Some(Role::Guided), Some(g)) = (self.role(), self.goal) {
+            let g = g - origin;
             out.push(MavMessage::POSITION_TARGET_LOCAL_NED(POSITION_TARGET_LOCAL_NED_DATA {
                 time_boot_ms: t,
                 x: g.x as f32,
@@ -140,6 +156,8 @@ impl SimAutopilot {
             }),
         ];
         out.extend(self.fence_status());
+        out.extend(self.readiness_reports());
+        out.extend(self.gps_global_origin());
         out
     }
 

@@ -14,6 +14,10 @@ fn sim(frame: Frame) -> SimAutopilot {
         max_speed: 2.0,
         turn_rate: PI / 2.0,
         cruise_alt: 30.0,
+        turn_radius: 0.0,
+        wp_radius: 0.0,
+        gps_delay_s: 0.0,
+        disarm_delay_s: 10.0,
         speedup: 1.0,
         safety: Default::default(),
     };
@@ -98,11 +102,11 @@ fn home_parameters_and_the_fence_bit_answer_as_ardupilot_does() {
             .unwrap_or_else(|| panic!("no {n} in {values:?}"))
             .param_value
     };
-    assert_eq!(values.len(), 8);
+    assert_eq!(values.len(), 11);
     assert!(values
         .iter()
         .enumerate()
-        .all(|(i, v)| v.param_index as usize == i && v.param_count == 8));
+        .all(|(i, v)| v.param_index as usize == i && v.param_count == 11));
     assert!(
         values
             .windows(2)
@@ -150,7 +154,7 @@ fn home_parameters_and_the_fence_bit_answer_as_ardupilot_does() {
         })
     };
     s.handle(&GCS, &read(-1, "CRUISE_SPEED"));
-    s.handle(&GCS, &read(7, ""));
+    s.handle(&GCS, &read(8, ""));
     let got: Vec<String> = s
         .take()
         .into_iter()
@@ -343,6 +347,15 @@ fn return_to_launch_brings_it_home_and_reposition_sends_it_out() {
     let mut s = sim(Frame::Multirotor);
     let site = s.spec.site;
     s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+    s.handle(
+        &GCS,
+        &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, s.spec.frame.mode(Role::Guided) as f32),
+    );
+    let mut takeoff = long(MavCmd::MAV_CMD_NAV_TAKEOFF, 0.0, 0.0);
+    if let MavMessage::COMMAND_LONG(c) = &mut takeoff {
+        c.param7 = 10.0;
+    }
+    s.handle(&GCS, &takeoff);
     // DO_REPOSITION by COMMAND_INT (degrees * 1e7) to 40 m north, 30 m east, 20 m up.
     let (lat, lon, _) = site.global_of(&Vector3::new(40.0, 30.0, 0.0));
     let c = COMMAND_INT_DATA {
@@ -645,4 +658,92 @@ fn the_battery_drains_with_use_and_running_low_takes_it_home_once() {
         s.pos
     );
     assert!(!s.take().iter().any(|m| matches!(m, MavMessage::STATUSTEXT(_))));
+}
+
+#[test]
+fn readiness_the_ekf_origin_the_fence_margin_and_a_copters_takeoff_are_ardupilots() {
+    // A boat booted 30 m east of the site's corner with a 20 s GPS delay: no position and no
+    // arming before the fix, then its local frame is from where it booted.
+    let mut s = sim(Frame::Boat);
+    s.spec.gps_delay_s = 20.0;
+    let mut s = SimAutopilot::new(s.spec.clone(), Vector3::new(3.0, 30.0, 0.0));
+    assert!(s.position().is_empty() && s.arming_refusal().as_deref() == Some("Need Position Estimate"));
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+    assert_eq!(results(&s.take()), vec![MavResult::MAV_RESULT_FAILED]);
+    assert!(!s.armed);
+    s.step(19.0);
+    assert!(!s.has_fix());
+    s.step(1.5);
+    let Some(MavMessage::LOCAL_POSITION_NED(p)) = s.position().get(1).cloned() else {
+        panic!("no local position after the fix")
+    };
+    assert_eq!(
+        (p.x, p.y),
+        (0.0, 0.0),
+        "local NED is from the EKF origin, where it booted"
+    );
+    assert!(matches!(s.gps_global_origin(), Some(MavMessage::GPS_GLOBAL_ORIGIN(_))));
+    // Within FENCE_MARGIN of an enforced fence it will not arm; 3 m inside it will.
+    let site = s.spec.site;
+    let corner = |n: f64, e: f64| {
+        let (lat, lon, _) = site.global_of(&Vector3::new(n, e, 0.0));
+        MISSION_ITEM_INT_DATA {
+            command: MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
+            param1: 4.0,
+            x: (lat * 1e7).round() as i32,
+            y: (lon * 1e7).round() as i32,
+            ..Default::default()
+        }
+    };
+    s.fence = Geofence::from_items(
+        &[
+            corner(1.0, 0.0),
+            corner(1.0, 100.0),
+            corner(50.0, 100.0),
+            corner(50.0, 0.0),
+        ],
+        &site,
+    )
+    .unwrap();
+    s.spec.safety.fence_enable = true;
+    assert_eq!(s.arming_refusal().as_deref(), Some("Vehicle breaching Polygon fence"));
+    s.pos.x = 4.0;
+    assert_eq!(s.arming_refusal(), None);
+    s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+    assert!(s.armed);
+    // Under way beside the fence, heading 45 degrees toward it, a goal along it is reached on
+    // an arc of TURN_RADIUS: from 0.2 m inside, the arc breaches the fence.
+    s.spec.turn_radius = 0.9;
+    s.pos = Vector3::new(1.2, 10.0, 0.0);
+    s.heading = 135f64.to_radians();
+    s.set_mode(s.spec.frame.mode(Role::Guided));
+    s.goal = Some(Vector3::new(1.2, 30.0, 0.0));
+    s.step(2.0);
+    assert!(s.breach_count > 0, "the turning arc crossed the fence");
+
+    // A copter stays on the ground until told to take off, and disarms itself there.
+    let mut c = sim(Frame::Multirotor);
+    c.handle(
+        &GCS,
+        &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, c.spec.frame.mode(Role::Guided) as f32),
+    );
+    c.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+    c.goal = Some(Vector3::new(20.0, 20.0, -30.0));
+    c.step(5.0);
+    assert!(
+        c.armed && c.pos == Vector3::zeros(),
+        "no takeoff: it stays on the ground"
+    );
+    c.step(6.0);
+    assert!(!c.armed, "armed and idle on the ground past DISARM_DELAY: disarmed");
+    c.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+    let mut takeoff = long(MavCmd::MAV_CMD_NAV_TAKEOFF, 0.0, 0.0);
+    if let MavMessage::COMMAND_LONG(t) = &mut takeoff {
+        t.param7 = 30.0;
+    }
+    c.take();
+    c.handle(&GCS, &takeoff);
+    assert_eq!(results(&c.take()), vec![MavResult::MAV_RESULT_ACCEPTED]);
+    c.step(20.0);
+    assert!(c.armed && (c.pos.z + 30.0).abs() < 1e-6, "at 30 m: {}", c.pos);
 }
