@@ -348,6 +348,9 @@ pub struct MavlinkConfig {
     /// Back in range, it rejoins (GUIDED again, back in the allocation).
     pub link_loss_action: String,
     pub link_loss_s: f64,
+    /// What each autopilot does when the mission is done: `rtl` (back to its launch point; a
+    /// copter lands there, as ArduCopter's RTL does), `hold`, or `continue` (left as it is).
+    pub end_action: String,
 }
 
 /// What a failsafe may do (the autopilot's names: return to launch, stop, go on reporting).
@@ -385,6 +388,7 @@ impl Default for MavlinkConfig {
             low_battery_action: "rtl".into(),
             link_loss_action: "continue".into(),
             link_loss_s: 30.0,
+            end_action: "rtl".into(),
         }
     }
 }
@@ -414,6 +418,7 @@ impl MavlinkConfig {
             ("fence_action", &self.fence_action),
             ("low_battery_action", &self.low_battery_action),
             ("link_loss_action", &self.link_loss_action),
+            ("end_action", &self.end_action),
         ] {
             if !FAILSAFE_ACTIONS.contains(&v.as_str()) {
                 let rule = format!("one of {}", FAILSAFE_ACTIONS.join(", "));

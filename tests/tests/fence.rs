@@ -117,7 +117,7 @@ fn a_concave_fence_keeps_every_disk_and_aerial_place_inside_for_qr_and_horizon()
                     "Arm:",
                     "PreArm:",
                     "left to the operator",
-                    "disarmed itself",
+                    "disarmed in GUIDED",
                     "not ready after",
                 ] {
                     assert!(!log.contains(bad), "{placement}: {} said {bad:?}:\n{log}", v.id);
@@ -125,6 +125,12 @@ fn a_concave_fence_keeps_every_disk_and_aerial_place_inside_for_qr_and_horizon()
                 assert!(
                     log.contains("the planner drives it"),
                     "{placement}: {} never driven:\n{log}",
+                    v.id
+                );
+                // At the end each returns to its launch point (`end_action = "rtl"`).
+                assert!(
+                    log.contains("the autopilot ends it") && log.contains("mode=\"RTL\""),
+                    "{placement}: {} did not end with RTL:\n{log}",
                     v.id
                 );
                 assert!(

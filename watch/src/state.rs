@@ -219,11 +219,15 @@ impl View {
                 },
                 AutopilotLink::Lost => "autopilot lost".into(),
                 // A failsafe's reason beside the mode it caused ("RTL, armed: Failsafe: battery low ...").
+                // Left to the operator: why, as the autopilot said it.
                 AutopilotLink::Up => format!(
-                    "{}{}{}",
+                    "{}{}{}{}",
                     a.mode,
                     if a.armed { ", armed" } else { "" },
-                    a.failsafe.as_ref().map_or_else(String::new, |f| format!(": {f}"))
+                    a.failsafe.as_ref().map_or_else(String::new, |f| format!(": {f}")),
+                    a.waiting
+                        .as_ref()
+                        .map_or_else(String::new, |w| format!(" (waiting for {w})"))
                 ),
             },
         };
@@ -462,6 +466,50 @@ mod tests {
         assert!(v.apply(Body::Status(status)));
         assert!(v.liveliness("boat-1", false, 5.0));
         assert_eq!((boat(&v).link, boat(&v).lost_since_s), ("left", None));
+    }
+
+    #[test]
+    fn a_vehicle_shows_what_its_autopilot_waits_for_and_its_refusal() {
+        let mut v = view();
+        let waiting = |link, w: &str| {
+            let Body::Telemetry(mut t) = tele("boat-1", 0.5) else {
+                unreachable!()
+            };
+            t.autopilot = Some(fleet_mission::protocol::AutopilotStatus {
+                link,
+                sysid: 3,
+                mode: "MANUAL".into(),
+                armed: false,
+                guided: false,
+                unreadable: 0,
+                refused_from_gcs: 0,
+                failsafe: None,
+                waiting: Some(w.into()),
+            });
+            Body::Telemetry(t)
+        };
+        let mode = |v: &View| {
+            v.state()
+                .vehicles
+                .iter()
+                .find(|x| x.id == "boat-1")
+                .unwrap()
+                .mode
+                .clone()
+        };
+        assert!(v.apply(waiting(AutopilotLink::Connecting, "GPS fix")));
+        assert_eq!(mode(&v), "connecting: GPS fix");
+        let refused = "arming (Arm: Vehicle breaching Polygon fence)";
+        assert!(v.apply(waiting(AutopilotLink::Connecting, refused)));
+        assert_eq!(mode(&v), format!("connecting: {refused}"));
+        assert!(v.apply(waiting(
+            AutopilotLink::Up,
+            "the operator (not ready to drive: MANUAL; Arm: x)"
+        )));
+        assert_eq!(
+            mode(&v),
+            "MANUAL (waiting for the operator (not ready to drive: MANUAL; Arm: x))"
+        );
     }
 
     #[test]

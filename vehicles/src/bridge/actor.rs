@@ -567,11 +567,18 @@ impl Actor {
                 self.driven = false;
                 warn!(
                     sysid = target,
-                    "the autopilot disarmed itself in GUIDED: arming it again"
+                    "the autopilot is disarmed in GUIDED (it landed, or disarmed itself): arming it again"
                 );
                 Setup::NotAsked
             }
-            Setup::Done => Setup::Done,
+            Setup::Done => {
+                // Driven after all (the operator set it up): nothing to wait for.
+                if in_guided && armed && airborne(&self.spec, &self.state) {
+                    self.state.waiting = None;
+                    self.driven = true;
+                }
+                Setup::Done
+            }
             _ if in_guided && armed && airborne(&self.spec, &self.state) => {
                 info!(sysid = target, "autopilot armed and in GUIDED: the planner drives it");
                 self.driven = true;

@@ -137,6 +137,8 @@ impl Vehicle {
             off_target = self.brain.off_target,
             "mission done, every batch acknowledged"
         );
+        // After the last telemetry, so the server never takes the return for a hold.
+        self.end_action().await;
         self.session
             .clone()
             .close()
@@ -301,6 +303,32 @@ impl Vehicle {
 
     /// The resend tick: what is due goes out; the plan is asked for again, or, past the
     /// timeout (or with the server gone), the held plan's horizon is followed.
+    /// The mission is over: its autopilot returns (a copter lands where it returns, as
+    /// ArduCopter's RTL does) or holds, as `[mavlink] end_action` says (`continue`: left as is).
+    /// Waits (up to a second) for the autopilot to take the mode, so the command is not lost
+    /// with the node.
+    async fn end_action(&self) {
+        let role = match self.mavlink.end_action.as_str() {
+            "rtl" => Mode::Return,
+            "hold" => Mode::Hold,
+            _ => return,
+        };
+        let Some(b) = self.bridge.as_ref().filter(|b| b.drivable()) else {
+            return;
+        };
+        let mut changes = b.status_changes();
+        if b.failsafe(role, "mission done") {
+            let taken = tokio::time::timeout(Duration::from_secs(1), changes.wait_for(|s| !s.guided)).await;
+            let mode = b.status().mode;
+            info!(
+                action = self.mavlink.end_action,
+                mode,
+                taken = taken.is_ok(),
+                "mission done: the autopilot ends it"
+            );
+        }
+    }
+
     /// Out of range for longer than the mission allows: the link-loss failsafe's action.
     fn check_link_loss(&mut self) {
         let m = &self.mavlink;

@@ -14,7 +14,16 @@ impl SimAutopilot {
         match self.role()? {
             Role::Guided => self.goal,
             Role::Auto => self.mission.get(self.current as usize).map(|i| self.item_position(i)),
-            Role::Return => Some(self.at_altitude(self.return_point())),
+            Role::Return => {
+                let back = self.at_altitude(self.return_point());
+                // ArduCopter's RTL: back at altitude over the return point, then down and land
+                // (`ArduCopter/mode_rtl.cpp`); a boat stops there.
+                let over = (back - self.pos).xy().norm() < 1e-6;
+                Some(match self.spec.frame {
+                    Frame::Multirotor if over => Vector3::new(back.x, back.y, self.home.z),
+                    _ => back,
+                })
+            }
             Role::Hold => None,
         }
     }
@@ -47,6 +56,7 @@ impl SimAutopilot {
             if reached && self.role() == Some(Role::Auto) {
                 self.item_reached();
             }
+            self.check_landed();
             self.check_fence();
         }
         // Draw by how fast it went, as a share of its top speed.
@@ -60,6 +70,22 @@ impl SimAutopilot {
         };
         self.consumed_mah += self.draw_a * sim_s / 3.6;
         self.check_battery();
+    }
+
+    /// A copter returning that has come down at its return point has landed, and disarms
+    /// (ArduCopter disarms on landing at the end of RTL).
+    fn check_landed(&mut self) {
+        let down = self.pos.z >= self.home.z - 1e-9;
+        if self.spec.frame == Frame::Multirotor
+            && self.armed
+            && !self.landed
+            && down
+            && self.role() == Some(Role::Return)
+        {
+            self.landed = true;
+            self.armed = false;
+            self.say(MavSeverity::MAV_SEVERITY_INFO, "Disarming motors");
+        }
     }
 
     /// The charge left (mAh).

@@ -378,8 +378,8 @@ fn return_to_launch_brings_it_home_and_reposition_sends_it_out() {
         s.step(0.05);
     }
     assert!(
-        s.pos.xy().norm() < 0.05 && (s.pos.z + 30.0).abs() < 0.05,
-        "home at cruise altitude: {}",
+        s.pos.norm() < 0.05 && s.landed && !s.armed,
+        "back home, landed and disarmed (ArduCopter's RTL): {}",
         s.pos
     );
     assert!(results(&s.take()).iter().all(|r| *r == MavResult::MAV_RESULT_ACCEPTED));
