@@ -46,7 +46,8 @@ fn autopilot(sysid: u8, key: Option<&SigningKey>, stop: &Arc<AtomicBool>) -> (u1
     let signing = key.map(|k| LinkSigning::new(k.clone(), vehicles::signing::LINK_AUTOPILOT, false));
     let stats = serve::spawn(
         &format!("udpin:127.0.0.1:{port}"),
-        SimAutopilot::new(spec(sysid), Vector3::zeros()),
+        // Switched on 5 m inside the fence: ArduPilot arms nowhere within FENCE_MARGIN of it.
+        SimAutopilot::new(spec(sysid), Vector3::new(5.0, 10.0, 0.0)),
         signing,
         stop.clone(),
     )
