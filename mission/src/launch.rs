@@ -31,38 +31,51 @@ pub fn required_clearance(mission: &MissionConfig) -> f64 {
 }
 
 /// Each vehicle's launch point, metres `[east, north]` of the origin, in the mission's order:
-/// spread along the site's south shore, half a metre further in than the clearance needs (so
-/// rounding never puts one on the line). Refused, naming the vehicle, when one is not inside
-/// the fence by [`required_clearance`].
+/// spread along the fence's south shore, each the place nearest its share of the shore that
+/// is inside the fence by [`required_clearance`] and half a metre more (so rounding never puts
+/// one on the line), on a 200 x 200 lattice over the fence's extent; no two within a metre.
+/// Refused, naming the vehicle, when the fence has no such room left for it.
 pub fn launch_points(mission: &MissionConfig, grid: &Grid) -> Result<Vec<[f64; 2]>, ConfigError> {
     let fence = fence_polygon_m(mission, grid);
     let need = required_clearance(mission);
-    let far = mission
-        .mavlink
-        .site(grid)
-        .ned_of((grid.width_m(), grid.height_m()), 0.0);
+    let (lo, hi) = fence
+        .iter()
+        .fold(([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]), |(lo, hi), p| {
+            ([lo[0].min(p[0]), lo[1].min(p[1])], [hi[0].max(p[0]), hi[1].max(p[1])])
+        });
+    const LATTICE: usize = 200;
+    let at = |i: usize, j: usize| {
+        let f = |k: usize, a: f64, b: f64| a + (k as f64 + 0.5) / LATTICE as f64 * (b - a);
+        [f(i, lo[0], hi[0]), f(j, lo[1], hi[1])]
+    };
+    let mut room: Vec<[f64; 2]> = (0..LATTICE)
+        .flat_map(|i| (0..LATTICE).map(move |j| (i, j)))
+        .map(|(i, j)| at(i, j))
+        .filter(|p| inside(&fence, *p) && clearance(&fence, *p) >= need + 0.5)
+        .collect();
     let vehicles = mission.vehicles();
     let n = vehicles.len() as f64;
     let mut points = Vec::with_capacity(vehicles.len());
     for (i, v) in vehicles.iter().enumerate() {
-        let p = [(i as f64 + 0.5) * far.y / n, need + 0.5];
-        let room = clearance(&fence, p);
-        if !(inside(&fence, p) && room >= need) {
+        let shore = [lo[0] + (i as f64 + 0.5) / n * (hi[0] - lo[0]), lo[1]];
+        let d = |p: &[f64; 2]| (p[0] - shore[0]).hypot(p[1] - shore[1]);
+        let Some(p) = room.iter().copied().min_by(|a, b| d(a).total_cmp(&d(b))) else {
             let key = format!(
                 "fence_margin_m = {}, turn_radius_m = {}",
                 mission.mavlink.fence_margin_m, mission.mavlink.turn_radius_m
             );
             let rule = format!(
-                "the fence leaves no room for {}'s launch point at ({:.1}, {:.1}) m east, north: {:.1} m inside, \
-                 {need:.1} m needed (the autopilot's FENCE_MARGIN plus the turn)",
-                v.id, p[0], p[1], room
+                "the fence leaves no room for {}'s launch point: no place {need:.1} m inside it (the autopilot's \
+                 FENCE_MARGIN plus the turn) is left for it",
+                v.id
             );
             return Err(ConfigError::Field {
                 table: "mavlink",
                 key: Some(key),
                 rule,
             });
-        }
+        };
+        room.retain(|q| (q[0] - p[0]).hypot(q[1] - p[1]) >= 1.0);
         points.push(p);
     }
     Ok(points)
