@@ -86,17 +86,21 @@ pub const DEFAULT_MISSION: &str = include_str!("../../config/mission.toml");
 pub struct TruthSpec {
     #[serde(flatten)]
     pub source: TruthSource,
-    /// Simulator grid `[rows, cols]` (ignored for a dataset).
-    #[serde(default = "default_sim_grid")]
-    pub grid: [usize; 2],
+    /// Simulator grid `[rows, cols]` for a preset (96 x 192 unless given); a dataset's grid is
+    /// its file's, and a `grid` beside one is refused (it would be ignored).
+    #[serde(default)]
+    pub grid: Option<[usize; 2]>,
     #[serde(default = "default_frames")]
     pub frames: usize,
     #[serde(default = "one")]
     pub average: usize,
 }
 
-fn default_sim_grid() -> [usize; 2] {
-    [96, 192]
+impl TruthSpec {
+    /// The simulator's grid (a dataset ignores it).
+    pub fn sim_grid(&self) -> [usize; 2] {
+        self.grid.unwrap_or([96, 192])
+    }
 }
 fn default_frames() -> usize {
     100
@@ -534,6 +538,11 @@ impl MissionConfig {
             (Some(t), None) if t.frames < 10 || t.average == 0 => {
                 return Err(field("truth", None, "need at least 10 frames and average >= 1"));
             }
+            (Some(t), None) if t.grid.is_some() && !matches!(t.source, TruthSource::Preset(_)) => {
+                let [r, c] = t.sim_grid();
+                let rule = "the simulator's grid goes with a preset: a dataset's grid is its file's; remove it";
+                return Err(field("truth", format!("grid = [{r}, {c}]"), rule));
+            }
             (None, Some(f)) if f.frames < 10 || f.grid.contains(&0) => {
                 return Err(field(
                     "field",
@@ -656,7 +665,7 @@ impl MissionConfig {
     /// mission without one.
     pub fn truth(&self, progress: impl FnMut(usize)) -> Result<Option<FieldSeries>, TruthError> {
         let Some(t) = &self.truth else { return Ok(None) };
-        let full = t.source.full(t.grid, t.frames, self.team.seed, progress)?;
+        let full = t.source.full(t.sim_grid(), t.frames, self.team.seed, progress)?;
         averaged_by(&full, t.average).map(Some)
     }
 
@@ -695,7 +704,7 @@ impl MissionConfig {
         };
         let a = t.average.max(1);
         match &t.source {
-            TruthSource::Preset(_) => Some((t.grid[0] / a, t.grid[1] / a, t.frames)),
+            TruthSource::Preset(_) => Some((t.sim_grid()[0] / a, t.sim_grid()[1] / a, t.frames)),
             source => {
                 let shape = source.file_shape()?;
                 match shape.as_slice() {
@@ -908,6 +917,14 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("[truth]"));
+        // A simulator's grid beside a dataset would be ignored: refused, saying why.
+        let e = MissionConfig::from_toml("mission = \"m\"\n[truth]\ndataset = \"f.npy\"\ngrid = [8, 8]\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("[truth] grid = [8, 8]: the simulator's grid goes with a preset"),
+            "{e}"
+        );
     }
 
     /// The names configurations ask for, and the choices that cannot go together.

@@ -172,7 +172,7 @@ fn a_dataset_can_be_the_truth() {
     std::fs::write(
         &toml,
         format!(
-            "seed = 3\ntruth_grid = [48, 96]\nframes = 40\nradius = 6.0\n[team]\nboats = 3\ninit_steps = 10\nrank = \
+            "seed = 3\nframes = 40\nradius = 6.0\n[team]\nboats = 3\ninit_steps = 10\nrank = \
                 \"6\"\n\
              [[row]]\ndataset = {:?}\nav_time = 1\nmv_time = 5\nav_space = 6\nmv_space = 2\nnoise = 0.05\n",
             npy.to_str().unwrap()
@@ -232,7 +232,7 @@ fn a_netcdf_variable_can_be_the_truth_and_gives_the_same_results_as_the_npy() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let experiment = |name: &str, truth: &str| {
         let text = format!(
-            "seed = 3\nseeds = [1, 2]\ntruth_grid = [48, 96]\nframes = 40\nradius = 6.0\n[team]\nboats = \
+            "seed = 3\nseeds = [1, 2]\nframes = 40\nradius = 6.0\n[team]\nboats = \
                 3\ninit_steps = 10\nrank = \"6\"\n\
              [[row]]\n{truth}\nav_time = 1\nmv_time = 5\nav_space = 6\nmv_space = 2\nnoise = 0.05\n"
         );
@@ -294,7 +294,7 @@ fn a_netcdf_variable_can_be_the_truth_and_gives_the_same_results_as_the_npy() {
     );
     // A [team] key the experiment sets itself is refused with one line, not ignored.
     let placed = format!(
-        "seed = 3\ntruth_grid = [48, 96]\nframes = 40\nradius = 6.0\n[team]\nplacement = \"horizon\"\n\
+        "seed = 3\nframes = 40\nradius = 6.0\n[team]\nplacement = \"horizon\"\n\
          [[row]]\ndataset = {nc:?}\nvariable = \"density\"\nav_time = 1\nmv_time = 5\nav_space = 6\nmv_space = 2\n\
          noise = 0.05\n"
     );

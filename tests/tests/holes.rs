@@ -31,12 +31,17 @@ fn holes_py(args: &[&str]) -> String {
     out
 }
 
-/// An experiment of one row on `truth` (TOML lines), 1 seed; its output and report directory.
-fn experiment(dir: &Path, name: &str, grid: [usize; 2], frames: usize, truth: &str) -> (std::process::Output, PathBuf) {
+/// An experiment of one row on the dataset `truth` (TOML lines; no `truth_grid`: its grid is
+/// the file's), 1 seed; its output and report directory.
+fn experiment(dir: &Path, name: &str, frames: usize, truth: &str) -> (std::process::Output, PathBuf) {
+    experiment_with(dir, name, "", frames, truth)
+}
+
+/// The same, with `top` (TOML lines) at the top of the file.
+fn experiment_with(dir: &Path, name: &str, top: &str, frames: usize, truth: &str) -> (std::process::Output, PathBuf) {
     let text = format!(
-        "seed = 3\ntruth_grid = [{}, {}]\nframes = {frames}\nradius = 2.0\n[team]\nboats = 3\ninit_steps = \
-         10\nrank = \"6\"\n[[row]]\n{truth}\nav_time = 1\nmv_time = 5\nav_space = 3\nmv_space = 1\nnoise = 0.05\n",
-        grid[0], grid[1]
+        "{top}seed = 3\nframes = {frames}\nradius = 2.0\n[team]\nboats = 3\ninit_steps = \
+         10\nrank = \"6\"\n[[row]]\n{truth}\nav_time = 1\nmv_time = 5\nav_space = 3\nmv_space = 1\nnoise = 0.05\n"
     );
     hetfleet_tests::experiment_file(dir, name, &text)
 }
@@ -68,7 +73,7 @@ fn a_file_with_land_cloud_packed_shorts_and_a_level_runs_as_xarray_reads_it() {
         "dataset = {:?}\nvariable = \"temp\"\nselect = {{ depth = 5 }}",
         nc.to_str().unwrap()
     );
-    let (o, rep) = experiment(&dir, "island", [24, 48], 40, &truth);
+    let (o, rep) = experiment(&dir, "island", 40, &truth);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     no_fill_value_in(&rep);
 
@@ -168,9 +173,16 @@ fn the_files_a_python_package_ships_keep_the_claims_and_a_missing_level_is_refus
     assert!(report.contains("the variable `sst` of `") && report.contains("fig12-reliability.png"));
     let hgt = root().join("target/real-fields/hgt_djf.nc");
     let z = format!("dataset = {hgt:?}\nvariable = \"z\"\nselect = {{ pressure = 850 }}");
-    let (o, _) = experiment(&dir, "bad", [29, 49], 65, &z);
+    let (o, _) = experiment(&dir, "bad", 65, &z);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
+    // A simulator's grid on an experiment of datasets would be ignored: refused, saying why.
+    let (o, _) = experiment_with(&dir, "grid", "truth_grid = [8, 8]\n", 65, &z);
+    let grid_err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        o.status.code() == Some(2) && grid_err.contains("truth_grid") && grid_err.contains("whose grid is its file's"),
+        "{grid_err}"
+    );
     assert!(
         err.trim().lines().count() == 1 && err.contains("no such pressure (it has: 500)"),
         "{err}"

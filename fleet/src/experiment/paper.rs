@@ -66,8 +66,10 @@ pub struct ExperimentConfig {
     /// compared with QR, random and the extra placements: how much placement could buy.
     #[serde(default)]
     pub oracle: bool,
-    /// Simulator grid `[rows, cols]` and frames.
-    pub truth_grid: [usize; 2],
+    /// Simulator grid `[rows, cols]` (for the preset rows: a dataset's grid is its file's, and
+    /// an experiment of datasets only is refused one) and frames.
+    #[serde(default)]
+    pub truth_grid: Option<[usize; 2]>,
     pub frames: usize,
     /// Boats' sensing radius in simulator cells (divided by `mv_space` on the model grid).
     pub radius: f64,
@@ -123,6 +125,33 @@ impl Row {
 }
 
 impl ExperimentConfig {
+    /// `truth_grid` is the simulator's: needed when a row is a preset (at least 8 x 8), and
+    /// refused when every row is a dataset (each has its file's grid; a value would be ignored).
+    fn check_truth_grid(&self) -> anyhow::Result<()> {
+        let presets: Vec<String> = (self.rows.iter())
+            .filter(|r| matches!(r.truth, TruthSource::Preset(_)))
+            .map(Row::name)
+            .collect();
+        match (self.truth_grid, presets.is_empty()) {
+            (None, false) => bail!(
+                "truth_grid: the preset rows ({}) need the simulator's grid",
+                presets.join(", ")
+            ),
+            (Some(g), true) => bail!(
+                "truth_grid = [{}, {}]: every row's truth is a dataset, whose grid is its file's; remove it",
+                g[0],
+                g[1]
+            ),
+            (Some(g), false) if g.iter().any(|&n| n < 8) => bail!("truth_grid: need at least an 8 x 8 simulator grid"),
+            _ => Ok(()),
+        }
+    }
+
+    /// The simulator's grid (rows that are datasets ignore it).
+    pub fn sim_grid(&self) -> [usize; 2] {
+        self.truth_grid.unwrap_or([0, 0])
+    }
+
     pub fn from_toml(text: &str) -> anyhow::Result<Self> {
         let cfg: Self =
             toml::from_str(text).map_err(|e| anyhow::anyhow!(fleet_mission::config::toml_error(text, &e)))?;
@@ -138,12 +167,15 @@ impl ExperimentConfig {
             if !(r.noise.is_finite() && r.noise >= 0.0) {
                 bail!("{r_}: noise must be >= 0");
             }
-            if cfg.truth_grid[0] / r.mv_space < 4 || cfg.truth_grid[1] / r.mv_space < 4 {
-                bail!("{r_}: the model grid would be smaller than 4 x 4");
+            if let (TruthSource::Preset(_), Some(g)) = (&r.truth, cfg.truth_grid) {
+                if g[0] / r.mv_space < 4 || g[1] / r.mv_space < 4 {
+                    bail!("{r_}: the model grid would be smaller than 4 x 4");
+                }
             }
         }
-        if cfg.frames < 10 || cfg.truth_grid.iter().any(|&n| n < 8) {
-            bail!("need at least 10 frames and an 8 x 8 simulator grid");
+        cfg.check_truth_grid()?;
+        if cfg.frames < 10 {
+            bail!("need at least 10 frames");
         }
         if cfg.forgetting.iter().any(|g| !(*g > 0.0 && *g <= 1.0)) {
             bail!("forgetting factors must be in (0, 1]");
@@ -504,7 +536,7 @@ fn make_truths(
     let fulls = parallel(&names, |r| {
         let out = r
             .truth
-            .full(cfg.truth_grid, cfg.frames, cfg.seed, |_| {})
+            .full(cfg.sim_grid(), cfg.frames, cfg.seed, |_| {})
             .with_context(|| r.name());
         say(&format!("truth {}", r.name()));
         out
@@ -867,8 +899,8 @@ impl Report<'_> {
                 TruthSource::Preset(_) => format!(
                     "{} at {} x {}, {} frames (seed {})",
                     r.truth.describe(),
-                    res.config.truth_grid[0],
-                    res.config.truth_grid[1],
+                    res.config.sim_grid()[0],
+                    res.config.sim_grid()[1],
                     res.config.frames,
                     res.config.seed
                 ),

@@ -174,7 +174,10 @@ fn truth_of(mission: &fleet_mission::config::MissionConfig) -> String {
     let what = match &truth.source {
         TruthSource::Preset(p) => format!(
             "the {p:?} plasma cloud at {} x {}, {} frames, averaged by {}",
-            truth.grid[0], truth.grid[1], truth.frames, truth.average
+            truth.sim_grid()[0],
+            truth.sim_grid()[1],
+            truth.frames,
+            truth.average
         ),
         TruthSource::Dataset(d) => format!("the dataset {}", d.display()),
         TruthSource::NetCdf { path, variable, select } => format!(

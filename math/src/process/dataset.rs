@@ -245,4 +245,48 @@ mod tests {
         assert!(load_netcdf(dir.join("missing.nc"), "density", &none).is_err());
         std::fs::remove_dir_all(&dir).ok();
     }
+
+    #[test]
+    fn files_are_known_by_their_content_whatever_their_name() {
+        use crate::process::truth::{is_netcdf, is_npy, sniff, FileKind, TruthSource};
+        let dir = std::env::temp_dir().join(format!("hetfleet-kind-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let data: Vec<f64> = (0..24).map(|k| k as f64).collect();
+        // A NetCDF-3 file called `.cdf` (Ferret's) or `.dat`, an array called `.nc`.
+        let (cdf, dat, npy_nc) = (dir.join("f.cdf"), dir.join("f.dat"), dir.join("a.nc"));
+        write_nc(&cdf, "density", [4, 2, 3], &data);
+        std::fs::copy(&cdf, &dat).unwrap();
+        npy::write(&npy_nc, &[4, 2, 3], &data).unwrap();
+        assert_eq!(
+            (sniff(&cdf), sniff(&npy_nc)),
+            (Some(FileKind::NetCdf3), Some(FileKind::Npy))
+        );
+        assert!(is_netcdf(&dat) && !is_npy(&dat) && is_npy(&npy_nc) && !is_netcdf(&npy_nc));
+        let none = crate::process::netcdf::Select::new();
+        assert_eq!(load_netcdf(&dat, "density", &none).unwrap().frames(), 4);
+        let keys = |d: &std::path::Path, var: Option<&str>| {
+            let mut j = serde_json::json!({ "dataset": d });
+            if let Some(v) = var {
+                j["variable"] = v.into();
+            }
+            serde_json::from_value::<TruthSource>(j)
+        };
+        assert!(matches!(keys(&dat, Some("density")), Ok(TruthSource::NetCdf { .. })));
+        assert!(matches!(keys(&npy_nc, None), Ok(TruthSource::Dataset(_))));
+        assert!(
+            keys(&dat, None).is_err(),
+            "a NetCDF file needs its variable, whatever its name"
+        );
+        assert!(keys(&npy_nc, Some("density")).is_err(), "an array has no variables");
+        // NetCDF-4 (HDF5): one line saying what it is and how to convert it.
+        let h5 = dir.join("g.nc");
+        std::fs::write(&h5, b"\x89HDF\r\n\x1a\n\0\0\0\0").unwrap();
+        assert_eq!(sniff(&h5), Some(FileKind::NetCdf4));
+        let e = load_netcdf(&h5, "density", &none).unwrap_err().to_string();
+        assert!(
+            e.contains("g.nc") && e.contains("NetCDF-4") && e.contains("nccopy") && !e.contains('\n'),
+            "{e}"
+        );
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }

@@ -107,6 +107,19 @@ fn is_coordinate(ds: &DataSet, name: &str) -> bool {
     ds.get_var(name).is_some_and(|v| v.dim_names() == [name.to_string()])
 }
 
+/// A NetCDF-4 file (HDF5) is refused in one line saying what it is and how to convert it.
+fn refuse_netcdf4(path: &Path) -> Result<(), DatasetError> {
+    if super::truth::sniff(path) != Some(super::truth::FileKind::NetCdf4) {
+        return Ok(());
+    }
+    Err(DatasetError::NetCdf {
+        path: path.display().to_string(),
+        why: "it is NetCDF-4 (HDF5), and only NetCDF-3 is read: convert it with `nccopy -k classic IN OUT` (or \
+              xarray's `open_dataset(IN).to_netcdf(OUT, format=\"NETCDF3_64BIT\")`)"
+            .into(),
+    })
+}
+
 /// Read `variable` of the NetCDF-3 file at `path` (classic or 64-bit offset). Every variable of
 /// the file is read: a file cut short anywhere is refused, not half used.
 pub fn read(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<NetCdfField, DatasetError> {
@@ -121,6 +134,7 @@ pub fn read(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<N
         path: p.clone(),
         why: format!("{e:?}"),
     };
+    refuse_netcdf4(path)?;
     let mut reader = netcdf3::FileReader::open(path).map_err(unreadable)?;
     let mut all = reader.read_all_vars().map_err(unreadable)?;
     let ds = reader.data_set();

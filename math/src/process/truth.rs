@@ -69,11 +69,12 @@ struct TruthKeys {
 impl TryFrom<TruthKeys> for TruthSource {
     type Error = TruthError;
     fn try_from(k: TruthKeys) -> Result<Self, TruthError> {
-        let netcdf = |d: &PathBuf| is_netcdf(d);
+        // By content where the file can be read now, else by name; a `variable` names a
+        // NetCDF file's, whatever it is called, unless it is a NumPy array.
         match (k.preset, k.dataset, k.variable, k.select) {
             (Some(p), None, None, None) => Ok(Self::Preset(p)),
-            (None, Some(d), None, None) if !netcdf(&d) => Ok(Self::Dataset(d)),
-            (None, Some(d), Some(variable), select) if netcdf(&d) => Ok(Self::NetCdf {
+            (None, Some(d), None, None) if !is_netcdf(&d) => Ok(Self::Dataset(d)),
+            (None, Some(d), Some(variable), select) if !is_npy(&d) => Ok(Self::NetCdf {
                 path: d,
                 variable,
                 select: select.unwrap_or_default(),
@@ -207,11 +208,63 @@ impl TruthSource {
     }
 }
 
-/// A NetCDF file by its name (`.nc`, `.cdf`, `.nc3`, `.netcdf`), as GDAL and xarray accept it.
+/// What a data file is, by its first bytes (as GDAL and xarray tell a file's format, whatever
+/// its name).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FileKind {
+    /// NetCDF-3: classic (`CDF\x01`), 64-bit offset (`CDF\x02`) or 64-bit data (`CDF\x05`).
+    NetCdf3,
+    /// NetCDF-4, an HDF5 file (`\x89HDF\r\n\x1a\n`).
+    NetCdf4,
+    /// A NumPy array (`\x93NUMPY`).
+    Npy,
+    /// Something else.
+    Other,
+}
+
+/// The kind of the file at `path` by its magic bytes; `None` when it cannot be read (yet: a
+/// mission's paths are read where they are used).
+pub fn sniff(path: &std::path::Path) -> Option<FileKind> {
+    use std::io::Read;
+    let mut head = [0u8; 8];
+    let mut f = std::fs::File::open(path).ok()?;
+    let n = f.read(&mut head).ok()?;
+    let head = &head[..n];
+    Some(if head.starts_with(b"CDF") && matches!(head.get(3), Some(1 | 2 | 5)) {
+        FileKind::NetCdf3
+    } else if head.starts_with(b"\x89HDF\r\n\x1a\n") {
+        FileKind::NetCdf4
+    } else if head.starts_with(b"\x93NUMPY") {
+        FileKind::Npy
+    } else {
+        FileKind::Other
+    })
+}
+
+/// A NetCDF file: by its content when it can be read, else by its name (`.nc`, `.cdf`, `.nc3`,
+/// `.netcdf`, `.nc4`).
 pub fn is_netcdf(path: &std::path::Path) -> bool {
-    path.extension()
-        .and_then(|e| e.to_str())
-        .is_some_and(|e| ["nc", "cdf", "nc3", "netcdf"].iter().any(|n| e.eq_ignore_ascii_case(n)))
+    match sniff(path) {
+        Some(FileKind::NetCdf3 | FileKind::NetCdf4) => true,
+        Some(FileKind::Npy) => false,
+        Some(FileKind::Other) | None => path.extension().and_then(|e| e.to_str()).is_some_and(|e| {
+            ["nc", "cdf", "nc3", "nc4", "netcdf"]
+                .iter()
+                .any(|n| e.eq_ignore_ascii_case(n))
+        }),
+    }
+}
+
+/// A `.npy` file: by its content when it can be read, else by its name.
+pub fn is_npy(path: &std::path::Path) -> bool {
+    match sniff(path) {
+        Some(FileKind::Npy) => true,
+        Some(FileKind::NetCdf3 | FileKind::NetCdf4) => false,
+        Some(FileKind::Other) | None => path
+            .extension()
+            .and_then(|e| e.to_str())
+            .is_some_and(|e| e.eq_ignore_ascii_case("npy")),
+    }
 }
 
 /// `full` area-averaged by `factor` in both directions (the model grid of that space rate).
