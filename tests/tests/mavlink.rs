@@ -21,9 +21,11 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
     let ep = format!("tcp/127.0.0.1:{}", free_port());
     let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
     let gcs_port = free_udp_port();
-    // Slow enough for a ground station to act between epochs: 250 ms a step, 60 steps.
+    // Slow enough for a ground station to act between epochs: 250 ms a step, 120 steps.
     edit(&mission, "resend_ms = 500", "resend_ms = 500\nstep_ms = 250");
-    edit(&mission, "frames = 40", "frames = 60");
+    // 30 s of mission: the ground station's steps (heartbeats, the watch, the upload and AUTO,
+    // the hold) all happen before the fleet ends it (each vehicle then returns to launch).
+    edit(&mission, "frames = 40", "frames = 120");
     edit(
         &mission,
         r#"autopilot = "sim""#,

@@ -254,6 +254,8 @@ fn an_unarmed_or_held_vehicle_does_not_move_and_unknown_commands_are_unsupported
 #[test]
 fn a_mission_uploads_with_the_handshake_runs_and_reports_each_item() {
     let mut s = sim(Frame::Boat);
+    // ArduRover's defaults: items reached within WP_RADIUS, turns on TURN_RADIUS under way.
+    (s.spec.wp_radius, s.spec.turn_radius) = (2.0, 0.9);
     let site = s.spec.site;
     s.handle(
         &GCS,
