@@ -61,6 +61,9 @@ if set(out["heartbeats"]) != set(want):
 # 2. Targets and positions: distance to the newest guided target, first and last seen, until
 # every vehicle with a target has reached it (or the watch ends).
 first, last, targets, since = {}, {}, {}, {}
+# Each autopilot says its EKF origin once, at its fix: ask for it again (MAV_CMD_REQUEST_MESSAGE).
+for s in want:
+    m.mav.command_long_send(s, 1, mavutil.mavlink.MAV_CMD_REQUEST_MESSAGE, 0, 49, 0, 0, 0, 0, 0, 0)
 watch_end = time.time() + args.watch_s
 while time.time() < watch_end:
     msg = recv(["POSITION_TARGET_LOCAL_NED", "LOCAL_POSITION_NED", "GPS_GLOBAL_ORIGIN"], 0.5)

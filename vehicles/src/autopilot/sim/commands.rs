@@ -111,6 +111,12 @@ impl SimAutopilot {
             // the ack, as ArduPilot sends it.
             MAV_CMD_GET_HOME_POSITION => return self.send_home(command),
             MAV_CMD_REQUEST_MESSAGE if p[0] as u32 == HOME_POSITION_DATA::ID => return self.send_home(command),
+            // The EKF origin is said once, at the fix; asked for, again (none before the fix).
+            MAV_CMD_REQUEST_MESSAGE if p[0] as u32 == GPS_GLOBAL_ORIGIN_DATA::ID => {
+                let origin = self.gps_global_origin();
+                self.ack(command, origin.is_some());
+                return self.out.extend(origin);
+            }
             _ => {
                 self.out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
                     command,

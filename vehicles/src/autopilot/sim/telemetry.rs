@@ -157,7 +157,6 @@ impl SimAutopilot {
         ];
         out.extend(self.fence_status());
         out.extend(self.readiness_reports());
-        out.extend(self.gps_global_origin());
         out
     }
 
