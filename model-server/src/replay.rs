@@ -91,7 +91,7 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
     let _ = r
         .answer_until(tokio::time::Instant::now() + END_LINGER, &mut stop)
         .await;
-    r.session.close().await.map_err(e("closing the Zenoh session"))?;
+    fleet_net::close(&r.session).await?;
     Ok(())
 }
 

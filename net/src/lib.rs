@@ -206,6 +206,25 @@ pub async fn open(cfg: zenoh::Config) -> Result<Session, NetError> {
         .map_err(NetError::zenoh("opening the Zenoh session"))
 }
 
+/// How long closing a session may take before the node goes without it.
+pub const CLOSE_WITHIN: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// Close a session, within [`CLOSE_WITHIN`]: what a node had to say is said by then (its
+/// acknowledgements are in), and a close that waits on a peer that went away (a link just cut)
+/// must not keep the process from exiting. Past the bound the node goes on, with a warning.
+pub async fn close(session: &Session) -> Result<(), NetError> {
+    match tokio::time::timeout(CLOSE_WITHIN, session.close()).await {
+        Ok(closed) => closed.map_err(NetError::zenoh("closing the Zenoh session")),
+        Err(_) => {
+            tracing::warn!(
+                within_s = CLOSE_WITHIN.as_secs(),
+                "the Zenoh session did not close in time: leaving it"
+            );
+            Ok(())
+        }
+    }
+}
+
 /// The protocol's encoding, as Zenoh carries it.
 pub fn encoding() -> Encoding {
     Encoding::from(ENCODING)

@@ -129,7 +129,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     info!(to_gcs = g.down, from_gcs = g.up, refused = ?g.router.refused, "gateway stopped");
-    g.session.close().await.map_err(e("closing the Zenoh session"))?;
+    fleet_net::close(&g.session).await?;
     Ok(())
 }
 

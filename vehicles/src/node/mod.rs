@@ -139,11 +139,7 @@ impl Vehicle {
         );
         // After the last telemetry, so the server never takes the return for a hold.
         self.end_action().await;
-        self.session
-            .clone()
-            .close()
-            .await
-            .map_err(fleet_net::NetError::zenoh("closing the Zenoh session"))?;
+        fleet_net::close(&self.session).await?;
         Ok(())
     }
 
@@ -314,17 +310,21 @@ impl Vehicle {
             _ => return,
         };
         let Some(b) = self.bridge.as_ref().filter(|b| b.drivable()) else {
+            info!("mission done: the autopilot is not driven by us, left as it is");
             return;
         };
         let mut changes = b.status_changes();
         if b.failsafe(role, "mission done") {
-            let taken = tokio::time::timeout(Duration::from_secs(1), changes.wait_for(|s| !s.guided)).await;
+            // The `Ref` `wait_for` returns holds the channel's read lock: dropped here, before
+            // `status()` reads the channel again (a second read behind the actor's waiting write
+            // deadlocks the node).
+            let taken = tokio::time::timeout(Duration::from_secs(1), changes.wait_for(|s| !s.guided))
+                .await
+                .is_ok_and(|r| r.is_ok());
             let mode = b.status().mode;
             info!(
                 action = self.mavlink.end_action,
-                mode,
-                taken = taken.is_ok(),
-                "mission done: the autopilot ends it"
+                mode, taken, "mission done: the autopilot ends it"
             );
         }
     }
