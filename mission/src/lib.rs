@@ -14,6 +14,7 @@ pub mod assimilator;
 pub mod config;
 pub mod events;
 pub mod fence;
+pub mod foxglove;
 pub mod holdout;
 pub mod instrument;
 pub mod launch;

@@ -89,13 +89,37 @@ pub fn now_ns() -> u64 {
         .map_or(0, |d| d.as_nanos() as u64)
 }
 
-/// Writes a recording as the node goes. Records go straight to the file (no chunks), so a
-/// flushed recording is readable up to its last message even if the node dies.
+/// What a recording keeps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, strum::Display, strum::EnumString)]
+#[strum(serialize_all = "lowercase")]
+pub enum RecordMode {
+    /// Everything the server saw and sent, uncompressed, each model as published.
+    Full,
+    /// What `fleet replay` needs to rebuild the model bit for bit (the core's operations, every
+    /// batch, plan, telemetry and event) and the Foxglove channels, in zstd chunks closed at
+    /// every flush; of the published models, every [`LEAN_MODEL_EVERY`]th and the last.
+    #[default]
+    Lean,
+}
+
+/// A lean recording keeps one published model in this many (and always the last).
+pub const LEAN_MODEL_EVERY: u64 = 50;
+
+/// Writes a recording as the node goes. A full recording writes records straight to the file
+/// (no chunks), a lean one in compressed chunks closed at each [`Recorder::flush`]: either way
+/// a flushed recording is readable up to its last flush even if the node dies.
 pub struct Recorder<W: Write + Seek> {
     w: mcap::Writer<W>,
     path: PathBuf,
+    mode: RecordMode,
     channels: BTreeMap<String, u16>,
+    schemas: BTreeMap<String, u16>,
     next: u32,
+    /// Models published so far, and the newest one a lean recording has not kept yet.
+    models: u64,
+    held_model: Option<(String, Vec<u8>, u64)>,
+    /// The Foxglove channels' translation of what is recorded.
+    view: Option<crate::foxglove::FoxgloveView>,
 }
 
 impl Recorder<BufWriter<std::fs::File>> {
@@ -103,6 +127,7 @@ impl Recorder<BufWriter<std::fs::File>> {
     /// restarted server does not overwrite its first life's recording.
     pub fn create(
         path: &Path,
+        mode: RecordMode,
         mission: &MissionConfig,
         mission_toml: &str,
         grid: &Grid,
@@ -120,9 +145,12 @@ impl Recorder<BufWriter<std::fs::File>> {
             why: e.to_string(),
         };
         let file = std::fs::File::create(&path).map_err(|e| io(&e))?;
+        let lean = mode == RecordMode::Lean;
         let opts = mcap::WriteOptions::new()
-            .compression(None)
-            .use_chunks(false)
+            .compression(lean.then_some(mcap::Compression::Zstd))
+            .use_chunks(lean)
+            // A lean recording's chunks close at each flush (an epoch), not by size.
+            .chunk_size(None)
             .profile("hetfleet")
             .library(concat!("hetfleet-", env!("CARGO_PKG_VERSION")));
         let mut w = opts.create(BufWriter::new(file)).map_err(|e| io(&e))?;
@@ -132,6 +160,7 @@ impl Recorder<BufWriter<std::fs::File>> {
             ("cols".into(), grid.cols.to_string()),
             ("cell_m".into(), grid.cell_m.to_string()),
             ("frames".into(), frames.to_string()),
+            ("mode".into(), mode.to_string()),
             // The boundary as read (the file it came from need not travel with the recording).
             (
                 "fence".into(),
@@ -151,8 +180,13 @@ impl Recorder<BufWriter<std::fs::File>> {
         Ok(Self {
             w,
             path,
+            mode,
             channels: BTreeMap::new(),
+            schemas: BTreeMap::new(),
             next: 0,
+            models: 0,
+            held_model: None,
+            view: None,
         })
     }
 }
@@ -169,19 +203,93 @@ impl<W: Write + Seek> Recorder<W> {
         }
     }
 
+    /// Translate what is recorded into Foxglove's channels too (from here on).
+    pub fn with_foxglove(mut self, view: crate::foxglove::FoxgloveView) -> Result<Self, RecordingError> {
+        let ns = now_ns();
+        for m in view.start() {
+            self.fox_message(&m, ns)?;
+        }
+        self.view = Some(view);
+        Ok(self)
+    }
+
+    /// The channel of `topic`, added (with `schema`, if any) on first use.
+    fn channel(
+        &mut self,
+        topic: &str,
+        encoding: &str,
+        schema: Option<&foxglove::Schema>,
+    ) -> Result<u16, RecordingError> {
+        if let Some(&id) = self.channels.get(topic) {
+            return Ok(id);
+        }
+        let schema_id = match schema {
+            None => 0,
+            Some(s) => match self.schemas.get(&s.name) {
+                Some(&id) => id,
+                None => {
+                    let id = self
+                        .w
+                        .add_schema(&s.name, &s.encoding, &s.data)
+                        .map_err(|e| self.failed(e))?;
+                    self.schemas.insert(s.name.clone(), id);
+                    id
+                }
+            },
+        };
+        let id = self
+            .w
+            .add_channel(schema_id, topic, encoding, &BTreeMap::new())
+            .map_err(|e| self.failed(e))?;
+        self.channels.insert(topic.to_string(), id);
+        Ok(id)
+    }
+
+    fn fox_message(&mut self, m: &crate::foxglove::FoxMessage, log_ns: u64) -> Result<u32, RecordingError> {
+        let channel_id = self.channel(&m.topic, &m.encoding, Some(&m.schema))?;
+        self.write(channel_id, &m.data, log_ns)
+    }
+
+    /// Record `body` (encoded as `data`) on `topic` at `log_ns`, and its Foxglove translation;
+    /// returns the sequence number of `data`, or `None` where a lean recording holds it back
+    /// (a model between the ones it keeps).
+    pub fn body(&mut self, topic: &str, body: &Body, data: &[u8], log_ns: u64) -> Result<Option<u32>, RecordingError> {
+        let seq = if matches!(body, Body::Model(_)) {
+            self.model(topic, data, log_ns)?
+        } else {
+            Some(self.message(topic, "cbor", data, log_ns)?)
+        };
+        self.foxglove(body, log_ns)?;
+        Ok(seq)
+    }
+
+    /// Only the Foxglove translation of `body` (its own bytes recorded already).
+    pub fn foxglove(&mut self, body: &Body, log_ns: u64) -> Result<(), RecordingError> {
+        let Some(view) = self.view.as_ref() else { return Ok(()) };
+        for m in view.of(body, log_ns) {
+            self.fox_message(&m, log_ns)?;
+        }
+        Ok(())
+    }
+
+    /// A published model: recorded, or in a lean recording held unless it is one to keep.
+    fn model(&mut self, topic: &str, data: &[u8], log_ns: u64) -> Result<Option<u32>, RecordingError> {
+        self.models += 1;
+        if self.mode == RecordMode::Full || self.models.is_multiple_of(LEAN_MODEL_EVERY) {
+            self.held_model = None;
+            return self.message(topic, "cbor", data, log_ns).map(Some);
+        }
+        self.held_model = Some((topic.to_string(), data.to_vec(), log_ns));
+        Ok(None)
+    }
+
     /// Record `data` on `topic` at `log_ns`; returns its sequence number.
     pub fn message(&mut self, topic: &str, encoding: &str, data: &[u8], log_ns: u64) -> Result<u32, RecordingError> {
-        let channel_id = match self.channels.get(topic) {
-            Some(&id) => id,
-            None => {
-                let id = self
-                    .w
-                    .add_channel(0, topic, encoding, &BTreeMap::new())
-                    .map_err(|e| self.failed(e))?;
-                self.channels.insert(topic.to_string(), id);
-                id
-            }
-        };
+        let channel_id = self.channel(topic, encoding, None)?;
+        self.write(channel_id, data, log_ns)
+    }
+
+    fn write(&mut self, channel_id: u16, data: &[u8], log_ns: u64) -> Result<u32, RecordingError> {
         let sequence = self.next;
         self.next += 1;
         let header = mcap::records::MessageHeader {
@@ -208,8 +316,11 @@ impl<W: Write + Seek> Recorder<W> {
         self.w.flush().map_err(|e| self.failed(e))
     }
 
-    /// End the recording (its summary and footer).
+    /// End the recording (its summary and footer), with the last model a lean one held.
     pub fn finish(mut self) -> Result<(), RecordingError> {
+        if let Some((topic, data, log_ns)) = self.held_model.take() {
+            self.message(&topic, "cbor", &data, log_ns)?;
+        }
         self.w.finish().map_err(|e| self.failed(e))?;
         Ok(())
     }
@@ -246,7 +357,9 @@ impl Recording {
         let mut topics: BTreeMap<u16, String> = BTreeMap::new();
         let mut messages = vec![];
         let mut footer = false;
-        let reader = mcap::read::LinearReader::new(&bytes).map_err(|e| bad(format!("not an MCAP recording ({e})")))?;
+        // Chunks (a lean recording's) opened in place: their records in order.
+        let reader =
+            mcap::read::ChunkFlattener::new(&bytes).map_err(|e| bad(format!("not an MCAP recording ({e})")))?;
         for record in reader {
             let record = record.map_err(|e| {
                 bad(format!(
@@ -326,7 +439,16 @@ impl Recording {
     /// A fresh core of this mission with every recorded operation applied, in order. `each`
     /// sees each operation's log time (for pacing) before it is applied.
     pub fn replay(&self, path: &Path, mut each: impl FnMut(u64, &CoreOp)) -> Result<ServerCore, RecordingError> {
-        let mut core = ServerCore::new(&self.mission.team, self.grid, self.frames)
+        let mut r = self.replayer(path)?;
+        for m in self.messages.iter().filter(|m| m.topic == CORE_TOPIC) {
+            r.apply(m, &mut each)?;
+        }
+        Ok(r.core)
+    }
+
+    /// A fresh core of this mission, to apply the recorded operations to one by one.
+    pub fn replayer<'a>(&'a self, path: &'a Path) -> Result<Replayer<'a>, RecordingError> {
+        let core = ServerCore::new(&self.mission.team, self.grid, self.frames)
             .map_err(|e| RecordingError::Bad {
                 path: path.into(),
                 why: format!("its mission makes no core: {e}"),
@@ -334,59 +456,80 @@ impl Recording {
             .with_boat_speed(self.mission.motion.boat_speed);
         let mut ctx = Context::new(self.grid);
         ctx.vehicles = core.vehicles().iter().map(|v| v.id.clone()).collect();
-        let by_seq: BTreeMap<u32, &Recorded> = self.messages.iter().map(|m| (m.sequence, m)).collect();
+        Ok(Replayer {
+            path,
+            core,
+            ctx,
+            by_seq: self.messages.iter().map(|m| (m.sequence, m)).collect(),
+            index: 0,
+        })
+    }
+}
+
+/// A core the recorded operations are applied to, in their order: `fleet replay` applies them
+/// all at once, `model-server --replay` as it plays them (its models are this core's).
+pub struct Replayer<'a> {
+    path: &'a Path,
+    pub core: ServerCore,
+    ctx: Context,
+    by_seq: BTreeMap<u32, &'a Recorded>,
+    /// Operations applied so far.
+    index: usize,
+}
+
+impl Replayer<'_> {
+    /// Apply the operation recorded as `m` (on [`CORE_TOPIC`]); `each` sees it first.
+    pub fn apply(&mut self, m: &Recorded, each: &mut impl FnMut(u64, &CoreOp)) -> Result<(), RecordingError> {
+        let (path, index) = (self.path, self.index);
+        self.index += 1;
+        let op: CoreOp = ciborium::from_reader(&m.data[..]).map_err(|e| RecordingError::Bad {
+            path: path.into(),
+            why: format!("operation {index} does not decode: {e}"),
+        })?;
+        let fail = |why: String| RecordingError::Replay {
+            path: path.into(),
+            index,
+            op: format!("{op:?}").chars().take(60).collect(),
+            why,
+        };
+        each(m.log_ns, &op);
         let decode = |bytes: &[u8]| -> Result<MeasurementBatch, String> {
-            match protocol::decode(bytes, &ctx) {
+            match protocol::decode(bytes, &self.ctx) {
                 Ok(Body::Batch(b)) => Ok(b),
                 Ok(_) => Err("not a batch".into()),
                 Err(e) => Err(e.to_string()),
             }
         };
-        for (index, m) in self.messages.iter().filter(|m| m.topic == CORE_TOPIC).enumerate() {
-            let op: CoreOp = ciborium::from_reader(&m.data[..]).map_err(|e| RecordingError::Bad {
-                path: path.into(),
-                why: format!("operation {index} does not decode: {e}"),
-            })?;
-            let fail = |why: String| RecordingError::Replay {
-                path: path.into(),
-                index,
-                op: format!("{op:?}").chars().take(60).collect(),
-                why,
-            };
-            each(m.log_ns, &op);
-            match &op {
-                CoreOp::Restore { batches, records } => {
-                    let batches = batches
-                        .iter()
-                        .map(|b| decode(b))
-                        .collect::<Result<Vec<_>, _>>()
-                        .map_err(&fail)?;
-                    core.restore(batches, records).map_err(|e| fail(e.to_string()))?;
-                }
-                CoreOp::Ingest { arrival } => {
-                    let raw = by_seq
-                        .get(arrival)
-                        .ok_or_else(|| fail(format!("message {arrival} is not in the recording")))?;
-                    let batch = decode(&raw.data).map_err(&fail)?;
-                    // Refusals are part of what happened: the core counts them as it did live.
-                    match core.ingest_deferred(batch) {
-                        Ok(_)
-                        | Err(crate::server::IngestError::Rejected { .. })
-                        | Err(crate::server::IngestError::Protocol(_)) => {}
-                        Err(e) => return Err(fail(e.to_string())),
-                    }
-                }
-                CoreOp::Settle => {
-                    core.settle().map_err(|e| fail(e.to_string()))?;
-                }
-                CoreOp::Force => {
-                    core.force().map_err(|e| fail(e.to_string()))?;
-                }
-                CoreOp::Available { vehicle, available } => {
-                    core.set_available(vehicle, *available);
+        let core = &mut self.core;
+        match &op {
+            CoreOp::Restore { batches, records } => {
+                let batches = batches
+                    .iter()
+                    .map(|b| decode(b))
+                    .collect::<Result<Vec<_>, _>>()
+                    .map_err(&fail)?;
+                core.restore(batches, records).map_err(|e| fail(e.to_string()))?;
+            }
+            CoreOp::Ingest { arrival } => {
+                let raw = self
+                    .by_seq
+                    .get(arrival)
+                    .ok_or_else(|| fail(format!("message {arrival} is not in the recording")))?;
+                let batch = decode(&raw.data).map_err(&fail)?;
+                // Refusals are part of what happened: the core counts them as it did live.
+                match core.ingest_deferred(batch) {
+                    Ok(_)
+                    | Err(crate::server::IngestError::Rejected { .. })
+                    | Err(crate::server::IngestError::Protocol(_)) => {}
+                    Err(e) => return Err(fail(e.to_string())),
                 }
             }
+            CoreOp::Settle => core.settle().map(drop).map_err(|e| fail(e.to_string()))?,
+            CoreOp::Force => core.force().map(drop).map_err(|e| fail(e.to_string()))?,
+            CoreOp::Available { vehicle, available } => {
+                core.set_available(vehicle, *available);
+            }
         }
-        Ok(core)
+        Ok(())
     }
 }

@@ -31,6 +31,11 @@ pub struct Args {
     /// is kept: the recording goes beside it (`recording.1.mcap`, ...).
     #[arg(long)]
     pub record: Option<std::path::PathBuf>,
+    /// What the recording keeps: `lean` (what `fleet replay` needs to rebuild the model bit for
+    /// bit, the Foxglove channels, one model in ten and the last, compressed) or `full`
+    /// (every model as published, uncompressed).
+    #[arg(long, default_value = "lean")]
+    pub record_mode: fleet_mission::recording::RecordMode,
     /// Where the journal of accepted batches lives (`<state-dir>/<mission>.redb`); a restart
     /// replays it and carries on.
     #[arg(long, default_value = "server-state")]

@@ -107,9 +107,14 @@ impl Server {
         });
     }
 
+    /// Record `body`, encoded as `data`, with its Foxglove translation, now.
+    fn record_body(&self, key: &str, body: &Body, data: &[u8]) {
+        self.recording(|r| r.body(key, body, data, recording::now_ns()).map(drop));
+    }
+
     /// Publish `body` on `key`, recorded.
     async fn put(&self, session: &zenoh::Session, key: &str, body: &Body) -> anyhow::Result<()> {
-        self.record(key, &protocol::encode(body));
+        self.record_body(key, body, &protocol::encode(body));
         Ok(fleet_net::put(session, key, body).await?)
     }
 
@@ -523,7 +528,7 @@ impl Server {
         };
         let bytes = body.map(|b| {
             let bytes = protocol::encode(&b);
-            self.record(q.key_expr().as_str(), &bytes);
+            self.record_body(q.key_expr().as_str(), &b, &bytes);
             bytes
         });
         reply(q, bytes).await;
@@ -600,6 +605,7 @@ impl Server {
         if let Some(traffic) = &t.traffic {
             self.traffic.insert(t.vehicle.clone(), traffic.clone());
         }
+        self.recording(|r| r.foxglove(&Body::Telemetry(t.clone()), recording::now_ns()));
         self.heard.insert(t.vehicle.clone(), (Instant::now(), t.clone()));
         let available = t.available();
         if self.core.set_available(&t.vehicle, available) {
@@ -759,14 +765,16 @@ fn open_recorder(
     mission: &MissionConfig,
     grid: &fleet_mission::grid::Grid,
     frames: usize,
+    truth: Option<&fleet_mission::process::FieldSeries>,
 ) -> anyhow::Result<Option<Recorder<std::io::BufWriter<std::fs::File>>>> {
     let Some(path) = &args.record else { return Ok(None) };
     let text = match &args.node.mission {
         Some(p) => std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?,
         None => fleet_mission::config::DEFAULT_MISSION.to_string(),
     };
-    let r = Recorder::create(path, mission, &text, grid, frames)?;
-    info!(recording = %r.path().display(), "recording the mission");
+    let view = fleet_mission::foxglove::FoxgloveView::new(mission, *grid, truth.cloned());
+    let r = Recorder::create(path, args.record_mode, mission, &text, grid, frames)?.with_foxglove(view)?;
+    info!(recording = %r.path().display(), mode = %args.record_mode, "recording the mission");
     Ok(Some(r))
 }
 
@@ -829,7 +837,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     ctx.vehicles = core.vehicles().iter().map(|v| v.id.clone()).collect();
     let journal_path = args.state_dir.join(format!("{}.redb", mission.mission));
     let (journal, restored, restore) = open_journal(&journal_path, &mission.mission, &mut core, &ctx)?;
-    let recorder = open_recorder(&args, &mission, &grid, frames)?;
+    let recorder = open_recorder(&args, &mission, &grid, frames, truth.as_ref())?;
     let session = fleet_net::open(args.node.zenoh_config(Role::Server, &mission.network, &mission.link)?).await?;
     let inputs = Inputs::declare(&session, &keys).await?;
     let mut s = Server {

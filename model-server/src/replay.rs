@@ -1,9 +1,10 @@
 //! `model-server --replay <recording.mcap>`: a recorded mission played back onto Zenoh at its
 //! recorded pace (times `--speed`), as the model server would have served it, so a live view
-//! (`fleet-watch`) can follow it: every recorded message put on its key again, the model and
-//! the plans answered to queries from what was recorded by then, and each vehicle's liveliness
-//! token declared and dropped as the recorded link events say. No core runs here: `fleet
-//! replay` checks the core.
+//! (`fleet-watch`) can follow it: every recorded message put on its key again, the plans
+//! answered to queries from what was recorded by then, and each vehicle's liveliness token
+//! declared and dropped as the recorded link events say. The models are a core's, fed the
+//! recorded operations as they are played (a lean recording keeps few models; `fleet replay`
+//! checks that the core's final one is the recorded one, bit for bit).
 
 use crate::Args;
 use fleet_exit::bad_input;
@@ -77,12 +78,26 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
     let start = tokio::time::Instant::now();
     let mut stop = fleet_net::StopSignals::new()?;
     info!(recording = %file.display(), messages = rec.messages.len(), speed, "replaying onto Zenoh");
+    // The models are the replayed core's, published as its version advances: a lean recording
+    // keeps few of them, and `fleet replay` shows the core's are the recorded ones bit for bit.
+    let mut core = rec.replayer(file).map_err(|e| {
+        let bad = e.is_bad_file();
+        fleet_exit::bad_input_if(e, bad)
+    })?;
     for m in &rec.messages {
         let due = start + Duration::from_nanos(((m.log_ns.saturating_sub(first)) as f64 / speed) as u64);
         if !r.answer_until(due, &mut stop).await {
             return Ok(());
         }
-        r.play(m).await?;
+        if m.topic == CORE_TOPIC {
+            let before = core.core.version;
+            core.apply(m, &mut |_, _| {})?;
+            if core.core.version != before {
+                r.publish_model(&core.core).await;
+            }
+        } else {
+            r.play(m).await?;
+        }
     }
     info!("replay done");
     // What was put last is still on its way (the final model to a view behind a small send
@@ -114,11 +129,26 @@ impl Replay {
         }
     }
 
+    /// The replayed core's model, put on its key and kept to answer queries with.
+    async fn publish_model(&mut self, core: &fleet_mission::server::ServerCore) {
+        let Some(m) = core.model_update() else { return };
+        let bytes = protocol::encode(&Body::Model(m));
+        let key = self.keys.model_latest();
+        if let Err(e) = self
+            .session
+            .put(&key, bytes.clone())
+            .encoding(fleet_net::encoding())
+            .await
+        {
+            warn!("put on {key}: {e}");
+        }
+        self.model = Some(bytes);
+    }
+
     /// One recorded message, played: a vehicle's link as a liveliness token, a plan kept to
     /// answer queries with, anything else put on its key.
     async fn play(&mut self, m: &fleet_mission::recording::Recorded) -> anyhow::Result<()> {
         match m.topic.as_str() {
-            CORE_TOPIC => {}
             EVENTS_TOPIC => {
                 if let Ok(ServerEvent::Link { vehicle, alive }) = serde_json::from_slice(&m.data) {
                     if alive {
@@ -136,10 +166,9 @@ impl Replay {
                         .insert((p.vehicle.to_string(), p.epoch), m.data.clone());
                 }
             }
+            // The models are the replayed core's (see `run`).
+            key if key == self.keys.model_latest() => {}
             key => {
-                if key == self.keys.model_latest() {
-                    self.model = Some(m.data.clone());
-                }
                 if let Err(e) = self
                     .session
                     .put(key, m.data.clone())

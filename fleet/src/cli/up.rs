@@ -40,6 +40,11 @@ pub struct Args {
     /// finished run and save its report (Ctrl-C ends it sooner; 0: stop with the mission).
     #[arg(long, default_value_t = 600)]
     web_linger_s: u64,
+    /// What recording.mcap keeps: `lean` (what `fleet replay` needs to rebuild the model bit
+    /// for bit and the Foxglove channels, compressed; one model in ten and the last) or `full`
+    /// (also every model as published, uncompressed).
+    #[arg(long, default_value = "lean")]
+    record: fleet_mission::recording::RecordMode,
 }
 
 /// What a run leaves in `--out` (replaced as a whole by the next run's).
@@ -288,6 +293,7 @@ fn start_server(
     server.arg("--state-dir").arg(staging.join("state"));
     // Moved into --out with the rest once the server is up (the open file goes with its name).
     server.arg("--record").arg(staging.join("recording.mcap"));
+    server.arg("--record-mode").arg(args.record.to_string());
     let (server_log, _) = log_file(&staging.join("logs"), "server")?;
     server
         .arg("--events")

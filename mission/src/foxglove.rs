@@ -1,0 +1,390 @@
+//! The mission as Foxglove shows it: what the server hears and says, translated into Foxglove's
+//! own message schemas, so a recording (or the live view's `--foxglove` server) opens in
+//! Foxglove with the vehicles on the Map panel and the fields on a 3D panel, not as opaque
+//! CBOR. The schemas and their protobuf encoding are the Foxglove SDK's (`foxglove::messages`);
+//! the state and counters are plain JSON with a JSON schema (Foxglove decodes both natively).
+//!
+//! Channels ([`topics`]): each vehicle's `LocationFix` from its telemetry; the site (the fence)
+//! and each vehicle's plan (its planned places; a boat's sensing disks) as styled
+//! `GeoJSON`; the estimate, its standard deviation and the truth (where the server has one) as
+//! `Grid`s in the site's frame (x east, y north, metres of the grid, cell (0, 0) at the origin),
+//! land cells NaN; the model's state and the server's counters as JSON.
+
+use crate::config::MissionConfig;
+use crate::fence::SiteFence;
+use crate::grid::Grid;
+use crate::protocol::{AutopilotLink, Body, ModelUpdate, Plan, ServerStatus, Telemetry, VehicleId, VehicleKind};
+use crate::site::Site;
+use foxglove::messages as fx;
+use foxglove::{Encode, Schema};
+use std::collections::BTreeMap;
+
+/// The channels' topics.
+pub mod topics {
+    /// Prefix of every Foxglove channel (beside the mission's own keys in a recording).
+    pub const PREFIX: &str = "/foxglove";
+    pub const SITE: &str = "/foxglove/site";
+    pub const ESTIMATE: &str = "/foxglove/estimate";
+    pub const STD: &str = "/foxglove/std";
+    pub const TRUTH: &str = "/foxglove/truth";
+    pub const MODEL: &str = "/foxglove/model";
+    pub const SERVER: &str = "/foxglove/server";
+    /// A vehicle's newest plan: `/foxglove/plans/<id>`.
+    pub fn plan(id: &str) -> String {
+        format!("/foxglove/plans/{id}")
+    }
+    /// A vehicle's position: `/foxglove/vehicles/<id>`.
+    pub fn vehicle(id: &str) -> String {
+        format!("/foxglove/vehicles/{id}")
+    }
+}
+
+/// The frame the grids are drawn in: the site's, x east and y north, grid metres.
+pub const SITE_FRAME: &str = "site";
+
+/// One message for a Foxglove channel: its topic, schema, encoding and bytes.
+#[derive(Debug, Clone)]
+pub struct FoxMessage {
+    pub topic: String,
+    pub schema: Schema,
+    pub encoding: String,
+    pub data: Vec<u8>,
+}
+
+impl FoxMessage {
+    fn encoded<T: Encode>(topic: impl Into<String>, m: &T) -> Self {
+        let mut data = Vec::with_capacity(m.encoded_len().unwrap_or(256));
+        m.encode(&mut data).expect("a Vec grows to any message");
+        Self {
+            topic: topic.into(),
+            schema: T::get_schema().expect("Foxglove's messages have schemas"),
+            encoding: T::get_message_encoding(),
+            data,
+        }
+    }
+
+    fn json(topic: &str, schema: &'static str, title: &str, value: &serde_json::Value) -> Self {
+        Self {
+            topic: topic.into(),
+            schema: Schema::new(title, "jsonschema", schema.as_bytes()),
+            encoding: "json".into(),
+            data: serde_json::to_vec(value).expect("JSON values serialise"),
+        }
+    }
+}
+
+/// What the translation needs to know of the mission.
+pub struct FoxgloveView {
+    site: Site,
+    grid: Grid,
+    fence: Option<SiteFence>,
+    kinds: BTreeMap<VehicleId, VehicleKind>,
+    truth: Option<crate::process::FieldSeries>,
+}
+
+impl FoxgloveView {
+    /// The view of `mission` on `grid`; `truth` (the field the vehicles sample, where the
+    /// server has it) adds the truth's grid at each model's step.
+    pub fn new(mission: &MissionConfig, grid: Grid, truth: Option<crate::process::FieldSeries>) -> Self {
+        Self {
+            site: mission.mavlink.site(&grid),
+            grid,
+            fence: mission.team.fence.clone(),
+            kinds: mission.vehicles().into_iter().map(|v| (v.id, v.kind)).collect(),
+            truth,
+        }
+    }
+
+    /// What is known before anything is heard: the site.
+    pub fn start(&self) -> Vec<FoxMessage> {
+        vec![self.site_geojson()]
+    }
+
+    /// `body`, heard or said at `ns` (Unix nanoseconds), as Foxglove messages (none for what
+    /// Foxglove has no panel for: batches, acknowledgements).
+    pub fn of(&self, body: &Body, ns: u64) -> Vec<FoxMessage> {
+        let t = stamp(ns);
+        match body {
+            // A vehicle whose autopilot is still connecting has no position yet (it says 0, 0).
+            Body::Telemetry(tm)
+                if tm
+                    .autopilot
+                    .as_ref()
+                    .is_some_and(|a| a.link == AutopilotLink::Connecting) =>
+            {
+                vec![]
+            }
+            Body::Telemetry(tm) => vec![self.location_fix(tm, t)],
+            Body::Model(m) => self.model(m, t),
+            Body::Plan(p) => vec![self.plan_geojson(p)],
+            Body::Status(s) => vec![server_json(s)],
+            _ => vec![],
+        }
+    }
+
+    fn latlon(&self, xy: [f64; 2]) -> [f64; 2] {
+        let (lat, lon, _) = self.site.global_of(&self.site.ned_of((xy[0], xy[1]), 0.0));
+        [lat, lon]
+    }
+
+    fn location_fix(&self, tm: &Telemetry, t: fx::Timestamp) -> FoxMessage {
+        let [latitude, longitude] = self.latlon(tm.position);
+        let boat = self.kinds.get(&tm.vehicle) == Some(&VehicleKind::Boat);
+        let meta = |k: &str, v: String| fx::KeyValuePair {
+            key: k.into(),
+            value: v,
+        };
+        let fix = fx::LocationFix {
+            timestamp: Some(t),
+            frame_id: tm.vehicle.to_string(),
+            latitude,
+            longitude,
+            altitude: self.site.origin[2],
+            // Heading is the telemetry's, radians clockwise from north.
+            heading: Some(tm.heading),
+            color: Some(if boat {
+                rgba(0.1, 0.45, 0.95)
+            } else {
+                rgba(0.95, 0.5, 0.1)
+            }),
+            metadata: vec![
+                meta("kind", if boat { "boat" } else { "aerial" }.into()),
+                meta("step", tm.step.to_string()),
+                meta("battery", format!("{:.2}", tm.battery)),
+                meta("outbox", tm.outbox_depth.to_string()),
+            ],
+            ..Default::default()
+        };
+        FoxMessage::encoded(topics::vehicle(&tm.vehicle), &fix)
+    }
+
+    fn model(&self, m: &ModelUpdate, t: fx::Timestamp) -> Vec<FoxMessage> {
+        let land = |v: Vec<f64>| masked(v, &m.land);
+        let mut out = vec![];
+        if !m.estimate.is_empty() {
+            out.push(self.grid_message(topics::ESTIMATE, "estimate", &land(m.estimate.clone()), t));
+        }
+        let std: Vec<f64> = m.variance.iter().map(|v| v.max(0.0).sqrt()).collect();
+        out.push(self.grid_message(topics::STD, "std", &land(std), t));
+        if let Some(truth) = self.truth.as_ref().filter(|s| (m.step as usize) < s.frames()) {
+            let values = truth.snapshots.col(m.step as usize).iter().copied().collect();
+            out.push(self.grid_message(topics::TRUTH, "truth", &land(values), t));
+        }
+        out.push(model_json(m));
+        out
+    }
+
+    /// A field as a `Grid` of one FLOAT32 field named `name`, row-major as the model's cells.
+    fn grid_message(&self, topic: &str, name: &str, values: &[f64], t: fx::Timestamp) -> FoxMessage {
+        let g = grid_of(&self.grid, name, values, t);
+        FoxMessage::encoded(topic, &g)
+    }
+
+    fn site_geojson(&self) -> FoxMessage {
+        let mut features = vec![];
+        if let Some(f) = &self.fence {
+            // The fence's vertices are physical metres east and north of the origin.
+            let unscaled = |[e, n]: [f64; 2]| self.latlon([e / self.site.scale.x, n / self.site.scale.y]);
+            let ring: Vec<[f64; 2]> = f.polygon_m.iter().map(|&p| unscaled(p)).collect();
+            features.push(polygon(&ring, "fence", "#d62728", 0.0));
+        }
+        let (w, h) = (self.grid.width_m(), self.grid.height_m());
+        let extent: Vec<[f64; 2]> = [[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]]
+            .iter()
+            .map(|&p| self.latlon(p))
+            .collect();
+        features.push(polygon(&extent, "model grid", "#7f7f7f", 0.0));
+        geojson_message(topics::SITE, features)
+    }
+
+    /// A vehicle's plan: each place as a point, a boat's disks for the plan's own epoch.
+    fn plan_geojson(&self, plan: &Plan) -> FoxMessage {
+        let boat = self.kinds.get(&plan.vehicle) == Some(&VehicleKind::Boat);
+        let colour = if boat { "#1f77b4" } else { "#ff7f0e" };
+        let mut features = vec![];
+        for target in &plan.targets {
+            let name = format!("{}: epoch {} step {}", plan.vehicle, target.epoch, target.step);
+            features.push(point(self.latlon(target.position), &name, colour));
+            if boat && target.radius > 0.0 && target.epoch == plan.epoch {
+                let r = target.radius * self.grid.cell_m;
+                let ring: Vec<[f64; 2]> = (0..DISK_VERTICES)
+                    .map(|k| {
+                        let a = k as f64 * std::f64::consts::TAU / DISK_VERTICES as f64;
+                        self.latlon([target.position[0] + r * a.cos(), target.position[1] + r * a.sin()])
+                    })
+                    .collect();
+                features.push(polygon(&ring, &format!("{name} disk"), colour, 0.15));
+            }
+        }
+        geojson_message(&topics::plan(&plan.vehicle), features)
+    }
+}
+
+/// Vertices of a sensing disk drawn on the map.
+const DISK_VERTICES: usize = 16;
+
+/// Degrees to 1e-7 (about a centimetre): what a map can show, and a third of the JSON.
+fn round7(x: f64) -> f64 {
+    (x * 1e7).round() / 1e7
+}
+
+/// Unix nanoseconds as Foxglove's timestamp.
+pub fn stamp(ns: u64) -> fx::Timestamp {
+    fx::Timestamp::new((ns / 1_000_000_000) as u32, (ns % 1_000_000_000) as u32)
+}
+
+fn rgba(r: f64, g: f64, b: f64) -> fx::Color {
+    fx::Color { r, g, b, a: 1.0 }
+}
+
+/// The cells off the model grid (land) as NaN: Foxglove leaves them undrawn.
+fn masked(mut values: Vec<f64>, land: &[u32]) -> Vec<f64> {
+    for &c in land {
+        if let Some(v) = values.get_mut(c as usize) {
+            *v = f64::NAN;
+        }
+    }
+    values
+}
+
+/// A `Grid` of `values` (row-major, `grid.rows x grid.cols`) as one FLOAT32 field.
+pub fn grid_of(grid: &Grid, name: &str, values: &[f64], t: fx::Timestamp) -> fx::Grid {
+    let data: Vec<u8> = values.iter().flat_map(|&v| (v as f32).to_le_bytes()).collect();
+    fx::Grid {
+        timestamp: Some(t),
+        frame_id: SITE_FRAME.into(),
+        pose: Some(fx::Pose {
+            position: Some(fx::Vector3 { x: 0.0, y: 0.0, z: 0.0 }),
+            orientation: Some(fx::Quaternion {
+                x: 0.0,
+                y: 0.0,
+                z: 0.0,
+                w: 1.0,
+            }),
+        }),
+        column_count: grid.cols as u32,
+        cell_size: Some(fx::Vector2 {
+            x: grid.cell_m,
+            y: grid.cell_m,
+        }),
+        row_stride: (grid.cols * 4) as u32,
+        cell_stride: 4,
+        fields: vec![fx::PackedElementField {
+            name: name.into(),
+            offset: 0,
+            r#type: fx::packed_element_field::NumericType::Float32 as i32,
+        }],
+        data: data.into(),
+    }
+}
+
+fn polygon(ring: &[[f64; 2]], name: &str, colour: &str, fill: f64) -> serde_json::Value {
+    // GeoJSON is [lon, lat], its rings closed.
+    let mut coords: Vec<[f64; 2]> = ring.iter().map(|&[lat, lon]| [round7(lon), round7(lat)]).collect();
+    coords.extend(coords.first().copied());
+    serde_json::json!({
+        "type": "Feature",
+        "geometry": {"type": "Polygon", "coordinates": [coords]},
+        "properties": {"name": name, "style": {"color": colour, "weight": 2, "fillColor": colour, "fillOpacity": fill}},
+    })
+}
+
+fn point([lat, lon]: [f64; 2], name: &str, colour: &str) -> serde_json::Value {
+    serde_json::json!({
+        "type": "Feature",
+        "geometry": {"type": "Point", "coordinates": [round7(lon), round7(lat)]},
+        "properties": {"name": name, "style": {"color": colour}},
+    })
+}
+
+fn geojson_message(topic: &str, features: Vec<serde_json::Value>) -> FoxMessage {
+    let doc = serde_json::json!({"type": "FeatureCollection", "features": features});
+    FoxMessage::encoded(
+        topic,
+        &fx::GeoJson {
+            geojson: doc.to_string(),
+        },
+    )
+}
+
+const MODEL_SCHEMA: &str = r#"{
+  "title": "hetfleet.Model",
+  "description": "The model the server published: its version, epoch and step, its rank, and summaries of its estimate and variance",
+  "type": "object",
+  "properties": {
+    "version": {"type": "integer"}, "epoch": {"type": "integer"}, "step": {"type": "integer"},
+    "rank": {"type": "integer"}, "dt": {"type": "number"}, "forecast_steps": {"type": "integer"},
+    "cells": {"type": "integer"}, "land_cells": {"type": "integer"},
+    "mean_variance": {"type": "number"}, "max_variance": {"type": "number"},
+    "eigenvalues": {"type": "array", "items": {"type": "array", "items": {"type": "number"}}}
+  },
+  "required": ["version", "epoch", "step", "rank"]
+}"#;
+
+const SERVER_SCHEMA: &str = r#"{
+  "title": "hetfleet.ServerStatus",
+  "description": "The model server's status and counters (server/status)",
+  "type": "object",
+  "properties": {
+    "version": {"type": "integer"}, "next_epoch": {"type": "integer"}, "finished": {"type": "boolean"},
+    "batches": {"type": "integer"}, "duplicates": {"type": "integer"},
+    "rejected": {"type": "object", "additionalProperties": {"type": "integer"}},
+    "alive": {"type": "array", "items": {"type": "string"}},
+    "waiting_for": {"type": "array", "items": {"type": "string"}},
+    "pending_epochs": {"type": "integer"},
+    "latency_p50_ms": {"type": "number"}, "latency_p99_ms": {"type": "number"}
+  },
+  "required": ["version", "batches"],
+  "additionalProperties": true
+}"#;
+
+fn model_json(m: &ModelUpdate) -> FoxMessage {
+    let sea: Vec<f64> = m
+        .variance
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| m.land.binary_search(&(*i as u32)).is_err())
+        .map(|(_, v)| *v)
+        .collect();
+    let mean = sea.iter().sum::<f64>() / sea.len().max(1) as f64;
+    let value = serde_json::json!({
+        "version": m.version, "epoch": m.epoch, "step": m.step, "rank": m.eigenvalues.len(),
+        "dt": m.dt, "forecast_steps": m.forecast_steps, "cells": m.variance.len(),
+        "land_cells": m.land.len(), "mean_variance": mean,
+        "max_variance": sea.iter().copied().fold(0.0, f64::max),
+        "eigenvalues": m.eigenvalues,
+    });
+    FoxMessage::json(topics::MODEL, MODEL_SCHEMA, "hetfleet.Model", &value)
+}
+
+fn server_json(s: &ServerStatus) -> FoxMessage {
+    let value = serde_json::to_value(s).expect("the status serialises");
+    FoxMessage::json(topics::SERVER, SERVER_SCHEMA, "hetfleet.ServerStatus", &value)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_grid_holds_the_cells_row_major_as_little_endian_f32_with_land_as_nan() {
+        let grid = Grid::new(2, 3, 2.5).unwrap();
+        let values = masked(vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0], &[4]);
+        let g = grid_of(&grid, "estimate", &values, stamp(1_500_000_000));
+        assert_eq!((g.column_count, g.row_stride, g.cell_stride), (3, 12, 4));
+        assert_eq!(g.data.len(), 24);
+        let cell = |i: usize| f32::from_le_bytes(g.data[4 * i..4 * i + 4].try_into().unwrap());
+        // Row 1 (north of row 0), column 0 is flat index 3.
+        assert_eq!(cell(3), 3.0);
+        assert!(cell(4).is_nan());
+        assert_eq!(g.timestamp, Some(fx::Timestamp::new(1, 500_000_000)));
+    }
+
+    #[test]
+    fn the_json_schemas_are_json() {
+        for s in [MODEL_SCHEMA, SERVER_SCHEMA] {
+            let v: serde_json::Value = serde_json::from_str(s).unwrap();
+            assert_eq!(v["type"], "object");
+        }
+    }
+}
