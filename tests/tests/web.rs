@@ -395,3 +395,82 @@ fn a_vehicle_that_goes_silent_is_marked_lost_within_the_lease_and_a_public_addre
     assert_eq!(link(&s, "boat-1"), "up", "the others are not");
     println!("boat-2 marked lost {after:.2} s after kill -9 (lease 1 s)");
 }
+
+/// The Foxglove WebSocket client (`tests/py/foxglove_ws.py`) at `url`: what it printed.
+fn foxglove_client(url: &str, vehicles: &str, mode: &str) -> String {
+    let o = Command::new("python3")
+        .args(["tests/py/foxglove_ws.py", url, vehicles, mode])
+        .current_dir(root())
+        .output()
+        .expect("python3");
+    let said = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(o.status.success(), "{said}{}", String::from_utf8_lossy(&o.stderr));
+    said
+}
+
+#[test]
+fn foxglove_sees_the_vehicles_and_the_grid_live_and_a_public_address_needs_a_credential() {
+    let dir = scratch("foxglove");
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = paced_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep), 150);
+    let m = mission.to_str().unwrap();
+
+    // Beyond loopback without a credential: refused, exit 2, one line naming the flag.
+    let out = Command::new(bin("fleet-watch"))
+        .args(["--mission", m, "--http", "127.0.0.1:0", "--foxglove", "0.0.0.0:1"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("--foxglove") && err.contains("--credential"), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+
+    // With a credential: a client without it is refused (401); with it in the URL, let in.
+    let port = free_port();
+    let mut watch = Command::new(bin("fleet-watch"))
+        .args([
+            "--mission",
+            m,
+            "--http",
+            "127.0.0.1:0",
+            "--credential",
+            "ops:s3cret@sea",
+        ])
+        .args(["--foxglove", &format!("127.0.0.1:{port}")])
+        .stderr(std::fs::File::create(dir.join("watch.log")).unwrap())
+        .spawn()
+        .unwrap();
+    let url = format!("ws://127.0.0.1:{port}");
+    let refused = foxglove_client(&url, "", "refused");
+    let admitted = foxglove_client(&format!("{url}/?credential=ops%3As3cret%40sea"), "", "connect");
+    watch.kill().unwrap();
+    let _ = watch.wait();
+    assert!(refused.starts_with("refused 401"), "{refused}");
+    assert!(admitted.starts_with("connected"), "{admitted}");
+
+    // `fleet up --foxglove`: while the mission runs, the client subscribes and receives every
+    // vehicle's LocationFix and the estimate's Grid.
+    let port = free_port();
+    let mut up = Command::new(bin("fleet"))
+        .args(["up", m, "--out", dir.join("run").to_str().unwrap()])
+        .args(["--foxglove", &format!("127.0.0.1:{port}")])
+        .current_dir(root())
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(dir.join("up.log")).unwrap())
+        .spawn()
+        .unwrap();
+    let vehicles: Vec<String> = MissionConfig::load(Some(&mission))
+        .unwrap()
+        .vehicles()
+        .into_iter()
+        .map(|v| v.id.to_string())
+        .collect();
+    let said = foxglove_client(&format!("ws://127.0.0.1:{port}"), &vehicles.join(","), "data");
+    assert!(
+        up.wait().unwrap().success(),
+        "fleet up failed: see {}",
+        dir.join("up.log").display()
+    );
+    assert!(said.starts_with("ok") && said.contains("/foxglove/estimate"), "{said}");
+    println!("{said}");
+}

@@ -124,24 +124,27 @@ async fn guard(State(s): State<Shared>, req: axum::extract::Request, next: axum:
 }
 
 fn authorised(headers: &HeaderMap, credential: &str) -> bool {
-    use base64::Engine as _;
-    let Some(given) = headers
+    headers
         .get(header::AUTHORIZATION)
         .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Basic "))
-    else {
+        .is_some_and(|v| basic_matches(v, credential))
+}
+
+/// Whether an `Authorization` value is HTTP Basic with exactly `credential` (`user:password`).
+pub fn basic_matches(value: &str, credential: &str) -> bool {
+    use base64::Engine as _;
+    let Some(given) = value.strip_prefix("Basic ") else {
         return false;
     };
     let Ok(decoded) = base64::engine::general_purpose::STANDARD.decode(given.trim()) else {
         return false;
     };
-    // Length-independent comparison of equal-length inputs: no early exit on the first byte.
-    decoded.len() == credential.len()
-        && decoded
-            .iter()
-            .zip(credential.as_bytes())
-            .fold(0u8, |acc, (a, b)| acc | (a ^ b))
-            == 0
+    same(&decoded, credential.as_bytes())
+}
+
+/// Length-independent comparison of equal-length inputs: no early exit on the first byte.
+pub fn same(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
 async fn page() -> Response {

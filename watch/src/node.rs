@@ -34,6 +34,11 @@ pub struct Args {
     /// Or a file holding it: `--credential @path`.
     #[arg(long)]
     pub credential: Option<String>,
+    /// Also serve the mission to Foxglove here (its WebSocket protocol; e.g. 127.0.0.1:8765):
+    /// the vehicles, the site, the plans, the fields and the counters, on the channels a
+    /// recording has. Behind `--credential` as the page is; a non-loopback address needs one.
+    #[arg(long)]
+    pub foxglove: Option<SocketAddr>,
     /// A run directory (`fleet up --out`): the page offers its report.md once it exists.
     #[arg(long)]
     pub run_dir: Option<std::path::PathBuf>,
@@ -64,6 +69,12 @@ fn credential(args: &Args) -> anyhow::Result<Option<String>> {
             "--http {}: a non-loopback address needs \
             --credential user:password (the page is readable by anyone who can reach it)",
             args.http
+        )));
+    }
+    if let Some(addr) = args.foxglove.filter(|a| c.is_none() && !a.ip().is_loopback()) {
+        return Err(fleet_exit::bad_input(anyhow::anyhow!(
+            "--foxglove {addr}: a non-loopback address needs \
+            --credential user:password (the mission is readable by anyone who can reach it)"
         )));
     }
     Ok(c)
@@ -117,6 +128,13 @@ type Samples = fleet_net::zenoh::pubsub::Subscriber<
     fleet_net::zenoh::handlers::FifoChannelHandler<fleet_net::zenoh::sample::Sample>,
 >;
 
+/// Where what is heard goes: the view, and Foxglove's channels when served.
+#[derive(Clone, Copy)]
+struct Sinks<'a> {
+    view: &'a Mutex<View>,
+    fox: Option<&'a crate::foxglove::FoxLive>,
+}
+
 /// What the view listens to: telemetry, models, the server's status, and the links (the
 /// vehicles' liveliness tokens: Zenoh drops one when its session says nothing within the
 /// link lease).
@@ -161,12 +179,23 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let (view, ctx) = view_of(&mission, grid, truth.as_ref());
     let view = Arc::new(Mutex::new(view));
     let (tx, rx) = tokio::sync::watch::channel(Arc::new(Snapshot::of(&view.lock().expect("view lock"))));
+    let fox = match args.foxglove {
+        Some(addr) => {
+            let fv = fleet_mission::foxglove::FoxgloveView::new(&mission, grid, truth.clone());
+            Some(crate::foxglove::FoxLive::start(addr, credential.clone(), fv).await?)
+        }
+        None => None,
+    };
     let server = serve_http(&args, view.clone(), rx, credential).await?;
     // A client like any vehicle; under the secure configs, as the observer (read-only).
     let network = mission.network.for_node(fleet_mission::security::OBSERVER);
     let session = fleet_net::open(args.node.zenoh_config(Role::Vehicle, &network, &mission.link)?).await?;
     let inputs = Inputs::declare(&session, &keys).await?;
-    follow(&session, &keys, &ctx, &view, &inputs, &tx).await?;
+    let sinks = Sinks {
+        view: &view,
+        fox: fox.as_ref(),
+    };
+    follow(&session, &keys, &ctx, sinks, &inputs, &tx).await?;
     server.abort();
     Ok(())
 }
@@ -177,26 +206,27 @@ async fn follow(
     session: &fleet_net::zenoh::Session,
     keys: &Keys,
     ctx: &Context,
-    view: &Mutex<View>,
+    sinks: Sinks<'_>,
     inputs: &Inputs,
     tx: &tokio::sync::watch::Sender<Arc<Snapshot>>,
 ) -> anyhow::Result<()> {
+    let view = sinks.view;
     let mut stop = fleet_net::StopSignals::new()?;
     let t0 = Instant::now();
     let mut tick = tokio::time::interval(PUSH_EVERY);
     // A page opened mid-mission sees the current model at once: ask for it.
-    let mut dirty = ask(session, keys.model_latest(), view, ctx).await;
+    let mut dirty = ask(session, keys.model_latest(), sinks, ctx).await;
     loop {
         tokio::select! {
-            s = inputs.telemetry.recv_async() => if let Ok(s) = s { dirty |= take(view, fleet_net::decode(&s, ctx)) },
-            s = inputs.status.recv_async() => if let Ok(s) = s { dirty |= take(view, fleet_net::decode(&s, ctx)) },
+            s = inputs.telemetry.recv_async() => if let Ok(s) = s { dirty |= take(sinks, fleet_net::decode(&s, ctx)) },
+            s = inputs.status.recv_async() => if let Ok(s) = s { dirty |= take(sinks, fleet_net::decode(&s, ctx)) },
             s = inputs.models.recv_async() => if let Ok(s) = s {
                 // The model is shown at once; its plans follow when the server answers (a
                 // server gone away must not hold the view).
-                if take(view, fleet_net::decode(&s, ctx)) {
+                if take(sinks, fleet_net::decode(&s, ctx)) {
                     tx.send_replace(Arc::new(Snapshot::of(&view.lock().expect("view lock"))));
                 }
-                dirty |= ask_plans(session, keys, ctx, view).await;
+                dirty |= ask_plans(session, keys, ctx, sinks).await;
             },
             s = inputs.links.recv_async() => if let Ok(s) = s {
                 if let Some(id) = keys.id_after(s.key_expr().as_str(), "alive") {
@@ -220,13 +250,13 @@ async fn follow(
 
 /// The plans that go with a new model: from the epoch after its own (the server answers one
 /// vehicle's key at a time). Returns whether the view changed.
-async fn ask_plans(session: &fleet_net::zenoh::Session, keys: &Keys, ctx: &Context, view: &Mutex<View>) -> bool {
-    let next = view.lock().expect("view lock").state().model.map(|m| m.epoch + 1);
+async fn ask_plans(session: &fleet_net::zenoh::Session, keys: &Keys, ctx: &Context, sinks: Sinks<'_>) -> bool {
+    let next = sinks.view.lock().expect("view lock").state().model.map(|m| m.epoch + 1);
     let Some(next) = next else { return false };
     let asks = ctx
         .vehicles
         .iter()
-        .map(|id| ask(session, format!("{}?epoch={next}", keys.plan(id)), view, ctx));
+        .map(|id| ask(session, format!("{}?epoch={next}", keys.plan(id)), sinks, ctx));
     futures_util::future::join_all(asks).await.into_iter().any(|c| c)
 }
 
@@ -235,12 +265,12 @@ async fn ask_plans(session: &fleet_net::zenoh::Session, keys: &Keys, ctx: &Conte
 const ASK_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(2);
 
 /// Query `selector` and apply every reply. Returns whether the view changed.
-async fn ask(session: &fleet_net::zenoh::Session, selector: String, view: &Mutex<View>, ctx: &Context) -> bool {
+async fn ask(session: &fleet_net::zenoh::Session, selector: String, sinks: Sinks<'_>, ctx: &Context) -> bool {
     let mut changed = false;
     if let Ok(replies) = session.get(selector).timeout(ASK_TIMEOUT).await {
         while let Ok(r) = replies.recv_async().await {
             if let Ok(s) = r.result() {
-                changed |= take(view, fleet_net::decode(s, ctx));
+                changed |= take(sinks, fleet_net::decode(s, ctx));
             }
         }
     }
@@ -248,8 +278,11 @@ async fn ask(session: &fleet_net::zenoh::Session, selector: String, view: &Mutex
 }
 
 /// Apply one decoded message; a message that does not decode is counted, never fatal.
-fn take(view: &Mutex<View>, body: Result<Body, fleet_mission::protocol::ProtocolError>) -> bool {
-    let mut v = view.lock().expect("view lock");
+fn take(sinks: Sinks<'_>, body: Result<Body, fleet_mission::protocol::ProtocolError>) -> bool {
+    if let (Some(fox), Ok(b)) = (sinks.fox, &body) {
+        fox.heard(b);
+    }
+    let mut v = sinks.view.lock().expect("view lock");
     match body {
         Ok(b) => v.apply(b),
         Err(e) => {

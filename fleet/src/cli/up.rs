@@ -45,6 +45,10 @@ pub struct Args {
     /// (also every model as published, uncompressed).
     #[arg(long, default_value = "lean")]
     record: fleet_mission::recording::RecordMode,
+    /// Serve the mission to Foxglove here while it runs (its WebSocket protocol, loopback; e.g.
+    /// 127.0.0.1:8765): `fleet-watch --foxglove`, with the channels a recording has.
+    #[arg(long)]
+    foxglove: Option<std::net::SocketAddr>,
 }
 
 /// What a run leaves in `--out` (replaced as a whole by the next run's).
@@ -171,7 +175,9 @@ impl Binaries {
             gateway: (!mission.mavlink.gcs.is_empty())
                 .then(|| sibling("gcs-gateway"))
                 .transpose()?,
-            watch: args.web.map(|_| sibling("fleet-watch")).transpose()?,
+            watch: (args.web.is_some() || args.foxglove.is_some())
+                .then(|| sibling("fleet-watch"))
+                .transpose()?,
         })
     }
 }
@@ -184,6 +190,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(addr) = args.web {
         std::net::TcpListener::bind(addr)
             .with_context(|| format!("--web {addr}: cannot serve the live view there"))
+            .input()?;
+    }
+    if let Some(addr) = args.foxglove {
+        if !addr.ip().is_loopback() {
+            return Err(fleet::exit::bad_input(anyhow::anyhow!(
+                "--foxglove {addr}: fleet up serves Foxglove on loopback only; for another address run \
+                `fleet-watch --foxglove {addr} --credential user:password` beside it"
+            )));
+        }
+        std::net::TcpListener::bind(addr)
+            .with_context(|| format!("--foxglove {addr}: cannot serve Foxglove there"))
             .input()?;
     }
     let out = &args.out;
@@ -382,13 +399,19 @@ fn start_nodes(args: &Args, bins: &Binaries, mission: &MissionConfig, fleet: &mu
         c.arg("--id").arg(v.id.as_str()).stdout(Stdio::null()).stderr(log);
         fleet.spawn(&v.id, c, path)?;
     }
-    if let (Some(addr), Some(bin)) = (args.web, &bins.watch) {
+    if let Some(bin) = &bins.watch {
         let mut c = Command::new(bin);
         c.arg("--mission").arg(&mission_path);
         truth_arg(&mut c, &truth_path);
         let (log, path) = log_file(&logs, "fleet-watch")?;
+        if let Some(addr) = args.foxglove {
+            c.arg("--foxglove").arg(addr.to_string());
+            println!("Foxglove: ws://{addr} (open it in Foxglove with docs/foxglove-layout.json)");
+        }
+        // Without --web the page is on an ephemeral loopback port, for nobody.
+        let http = args.web.unwrap_or(std::net::SocketAddr::from(([127, 0, 0, 1], 0)));
         c.arg("--http")
-            .arg(addr.to_string())
+            .arg(http.to_string())
             .arg("--run-dir")
             .arg(out)
             .stdout(Stdio::null())
@@ -396,7 +419,9 @@ fn start_nodes(args: &Args, bins: &Binaries, mission: &MissionConfig, fleet: &mu
         fleet.spawn("fleet-watch", c, path)?;
         // The mission does not depend on its view: if the view dies, it is said, not fatal.
         fleet.optional("fleet-watch");
-        println!("live view: http://{addr}/");
+        if let Some(addr) = args.web {
+            println!("live view: http://{addr}/");
+        }
     }
     Ok(())
 }
