@@ -380,6 +380,37 @@ mod tests {
         assert_eq!(g.timestamp, Some(fx::Timestamp::new(1, 500_000_000)));
     }
 
+    /// The layout in `docs/` names only panels it arranges and channels this module makes.
+    #[test]
+    fn the_foxglove_layout_arranges_its_panels_on_our_channels() {
+        let layout: serde_json::Value = serde_json::from_str(include_str!("../../docs/foxglove-layout.json")).unwrap();
+        let panels = layout["configById"].as_object().unwrap();
+        fn leaves(v: &serde_json::Value, out: &mut Vec<String>) {
+            match v {
+                serde_json::Value::String(s) => out.push(s.clone()),
+                v => ["first", "second"].iter().for_each(|k| leaves(&v[k], out)),
+            }
+        }
+        let mut arranged = vec![];
+        leaves(&layout["layout"], &mut arranged);
+        arranged.sort();
+        assert_eq!(arranged, panels.keys().cloned().collect::<Vec<_>>());
+        let ours = [
+            topics::ESTIMATE,
+            topics::STD,
+            topics::TRUTH,
+            topics::MODEL,
+            topics::SERVER,
+        ];
+        for (id, config) in panels {
+            let named = config["topics"]
+                .as_object()
+                .map(|t| t.keys().cloned().collect::<Vec<_>>());
+            let named = named.unwrap_or_else(|| config["topicPath"].as_str().map(String::from).into_iter().collect());
+            assert!(named.iter().all(|t| ours.contains(&t.as_str())), "{id}: {named:?}");
+        }
+    }
+
     #[test]
     fn the_json_schemas_are_json() {
         for s in [MODEL_SCHEMA, SERVER_SCHEMA] {
