@@ -3,6 +3,7 @@
 //! killed and restarted server and boat; a recording cut short is one clear line.
 
 use fleet::mission::config::MissionConfig;
+use fleet_mission::recording::Recording;
 use hetfleet_tests::*;
 
 #[test]
@@ -80,6 +81,9 @@ fn a_recording_through_kills_replays_to_the_recorded_model_bit_for_bit() {
         String::from_utf8_lossy(&o.stderr)
     );
     assert!(said.contains("identical to the recorded one, bit for bit"), "{said}");
+    // From a lean recording (the default): of the models published, only the last is in it.
+    let models = Recording::read(&second).unwrap().on("/model/latest").count();
+    assert_eq!(models, 1, "a lean recording keeps the last model only (of < 50)");
     // The model the server wrote at the end is the recording's last, and the replay's.
     assert_eq!(
         std::fs::read(replayed.join("model.cbor")).unwrap(),
