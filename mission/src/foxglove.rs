@@ -309,7 +309,7 @@ fn geojson_message(topic: &str, features: Vec<serde_json::Value>) -> FoxMessage 
 
 const MODEL_SCHEMA: &str = r#"{
   "title": "hetfleet.Model",
-  "description": "The model the server published: its version, epoch and step, its rank, and summaries of its estimate and variance",
+  "description": "The model the server published: version, epoch, step, rank, variance summary",
   "type": "object",
   "properties": {
     "version": {"type": "integer"}, "epoch": {"type": "integer"}, "step": {"type": "integer"},

@@ -69,7 +69,8 @@ async def main(url, vehicles, mode):
                 g.ParseFromString(payload)
                 assert g.column_count > 0 and len(g.data) == g.row_stride * (len(g.data) // g.row_stride), g
                 grids += 1
-    print("ok", json.dumps({"fixes": sorted(fixes), "grids": grids, "channels": sorted(c["topic"] for c in channels.values())}))
+    topics = sorted(c["topic"] for c in channels.values())
+    print("ok", json.dumps({"fixes": sorted(fixes), "grids": grids, "channels": topics}))
 
 
 if __name__ == "__main__":

@@ -185,6 +185,20 @@ fn configurations_that_cannot_run_are_refused_up_front_naming_the_field() {
         );
         assert!(!out.join("state").exists(), "{to}: nothing started");
     }
+    // A NetCDF-4 (HDF5) truth, whatever its name: one line saying what it is and how to
+    // convert it, before anything starts.
+    let h5 = dir.join("sst.nc");
+    std::fs::write(&h5, b"\x89HDF\r\n\x1a\n\0\0\0\0").unwrap();
+    let m = hetfleet_tests::tiny_mission(&dir, &["tcp/127.0.0.1:7461".into()], &["tcp/127.0.0.1:7461".into()]);
+    let dataset = format!("dataset = {:?}\nvariable = \"sst\"", h5.to_str().unwrap());
+    hetfleet_tests::edit(&m, "preset = \"cloud2\"\ngrid = [48, 96]", &dataset);
+    let out = dir.join("run-netcdf4");
+    assert_refused(
+        "fleet",
+        &["up", m.to_str().unwrap(), "--out", out.to_str().unwrap()],
+        "NetCDF-4",
+    );
+    assert!(!out.join("state").exists(), "a NetCDF-4 truth: nothing started");
     // An integer rank is a rank.
     let m = hetfleet_tests::tiny_mission(&dir, &[], &["tcp/127.0.0.1:7461".into()]);
     hetfleet_tests::edit(&m, "rank = \"6\"", "rank = 6");

@@ -69,11 +69,18 @@ fn a_file_with_land_cloud_packed_shorts_and_a_level_runs_as_xarray_reads_it() {
     let dir = scratch("holes");
     let nc = dir.join("island.nc");
     holes_py(&["write", nc.to_str().unwrap()]);
-    let truth = format!(
-        "dataset = {:?}\nvariable = \"temp\"\nselect = {{ depth = 5 }}",
-        nc.to_str().unwrap()
-    );
-    let (o, rep) = experiment(&dir, "island", 40, &truth);
+    // The same file under no extension (the experiment) and as `.cdf` (the mission, Ferret's
+    // name): known by its first bytes, not its name.
+    let (bare, cdf) = (dir.join("island-data"), dir.join("island.cdf"));
+    std::fs::copy(&nc, &bare).unwrap();
+    std::fs::copy(&nc, &cdf).unwrap();
+    let truth_of = |f: &Path| {
+        format!(
+            "dataset = {:?}\nvariable = \"temp\"\nselect = {{ depth = 5 }}",
+            f.to_str().unwrap()
+        )
+    };
+    let (o, rep) = experiment(&dir, "island", 40, &truth_of(&bare));
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     no_fill_value_in(&rep);
 
@@ -82,7 +89,7 @@ fn a_file_with_land_cloud_packed_shorts_and_a_level_runs_as_xarray_reads_it() {
     let mission = hetfleet_tests::paced_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep), 150);
     let text = std::fs::read_to_string(&mission)
         .unwrap()
-        .replace("preset = \"cloud2\"", &truth)
+        .replace("preset = \"cloud2\"", &truth_of(&cdf))
         .replace("grid = [48, 96]\n", "")
         .replace("average = 2", "average = 1");
     std::fs::write(&mission, text).unwrap();
