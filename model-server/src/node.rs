@@ -117,8 +117,10 @@ impl Server {
     /// of it a second encoding of the same model for the wire.
     async fn put(&self, session: &zenoh::Session, key: &str, body: &Body) -> anyhow::Result<()> {
         let bytes = protocol::encode(body);
+        // Out first; the recording (and its Foxglove translation) after, off the path to Zenoh.
+        let sent = fleet_net::put_bytes(session, key, bytes.clone(), fleet_net::Traffic::of(body)).await;
         self.record_body(key, body, &bytes);
-        Ok(fleet_net::put_bytes(session, key, bytes, fleet_net::Traffic::of(body)).await?)
+        Ok(sent?)
     }
 
     /// Count a refusal the node made itself, and log it (once per reason).

@@ -80,7 +80,7 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
     info!(recording = %file.display(), messages = rec.messages.len(), speed, "replaying onto Zenoh");
     // The models are the replayed core's, published as its version advances: a lean recording
     // keeps few of them, and `fleet replay` shows the core's are the recorded ones bit for bit.
-    let mut core = rec.replayer(file).map_err(|e| {
+    let mut replayer = rec.replayer(file).map_err(|e| {
         let bad = e.is_bad_file();
         fleet_exit::bad_input_if(e, bad)
     })?;
@@ -90,10 +90,10 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
             return Ok(());
         }
         if m.topic == CORE_TOPIC {
-            let before = core.core.version;
-            core.apply(m, &mut |_, _| {})?;
-            if core.core.version != before {
-                r.publish_model(&core.core).await;
+            let before = replayer.core.version;
+            replayer.apply(m, &mut |_, _| {})?;
+            if replayer.core.version != before {
+                r.publish_model(&replayer.core).await;
             }
         } else {
             r.play(m).await?;
