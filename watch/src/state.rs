@@ -91,6 +91,8 @@ pub struct View {
     plans_taken: u64,
     /// Mission time, when the mission has it: steps are then spans of UTC.
     clock: Option<fleet_mission::instrument::MissionClock>,
+    /// When the newest link event was (seconds since the watch started).
+    last_link_event_s: f64,
 }
 
 /// `/api/state`: everything but the per-cell fields.
@@ -156,6 +158,7 @@ impl View {
             refused: 0,
             plans_taken: 0,
             clock: None,
+            last_link_event_s: 0.0,
         }
     }
 
@@ -171,6 +174,9 @@ impl View {
             Body::Telemetry(t) => self.telemetry(t),
             Body::Model(m) => self.model(m),
             Body::Status(s) => {
+                if s.finished {
+                    self.lost_at_the_end_left();
+                }
                 self.status = Some(s);
                 true
             }
@@ -319,6 +325,7 @@ impl View {
         let Some(v) = self.vehicles.get_mut(id) else {
             return false;
         };
+        self.last_link_event_s = self.last_link_event_s.max(now_s);
         let finished = self.status.as_ref().is_some_and(|s| s.finished);
         let (link, since) = match (alive, finished) {
             (true, _) => ("up", None),
@@ -330,6 +337,20 @@ impl View {
         }
         (v.link, v.lost_since_s) = (link, since);
         true
+    }
+
+    /// The server says the mission finished, and the vehicles that finished with it may have
+    /// gone before that word arrived (their tokens and the status travel on different keys):
+    /// a vehicle whose outbox was empty and whose token went within a lease of the newest link
+    /// event has left, not been lost. One lost earlier, or with batches still to send, stays lost.
+    fn lost_at_the_end_left(&mut self) {
+        let since = self.last_link_event_s - self.lease_s;
+        for v in self.vehicles.values_mut() {
+            let recent = v.lost_since_s.is_some_and(|t| t >= since);
+            if v.link == "lost" && recent && v.outbox_depth == Some(0) {
+                (v.link, v.lost_since_s) = ("left", None);
+            }
+        }
     }
 
     pub fn state(&self) -> State<'_> {
@@ -463,9 +484,37 @@ mod tests {
             behind: Default::default(),
             skill: None,
         };
-        assert!(v.apply(Body::Status(status)));
+        assert!(v.apply(Body::Status(status.clone())));
         assert!(v.liveliness("boat-1", false, 5.0));
         assert_eq!((boat(&v).link, boat(&v).lost_since_s), ("left", None));
+
+        // The word that it finished may come after the vehicles went: one that went at the end
+        // with nothing left to send has left; one lost long before, or with batches unsent,
+        // stays lost.
+        let mut v = view();
+        for (id, outbox) in [("boat-1", 0), ("av-1", 2)] {
+            let Body::Telemetry(mut t) = tele(id, 0.5) else {
+                unreachable!()
+            };
+            t.outbox_depth = outbox;
+            v.apply(Body::Telemetry(t));
+            v.liveliness(id, true, 1.0);
+        }
+        v.liveliness("boat-1", false, 30.0);
+        v.liveliness("av-1", false, 30.2);
+        let link = |v: &View, id: &str| v.vehicles[id].link;
+        v.apply(Body::Status(status.clone()));
+        assert_eq!((link(&v, "boat-1"), link(&v, "av-1")), ("left", "lost"));
+        let mut v = view();
+        let Body::Telemetry(mut t) = tele("boat-1", 0.5) else {
+            unreachable!()
+        };
+        t.outbox_depth = 0;
+        v.apply(Body::Telemetry(t));
+        v.liveliness("boat-1", false, 3.0);
+        v.liveliness("av-1", true, 40.0);
+        v.apply(Body::Status(status));
+        assert_eq!(link(&v, "boat-1"), "lost", "lost mid-mission, long before the end");
     }
 
     #[test]
