@@ -40,6 +40,8 @@ pub enum ServerEvent {
         #[serde(default)]
         missing: Vec<VehicleId>,
     },
+    /// A sensor's verdict changed ([`crate::health`]): from what to what, at which step, why.
+    Sensor(crate::protocol::SensorVerdict),
     /// A late batch (of an epoch assimilated without it) is in the model: re-fitted and
     /// published as `version`.
     Late {
@@ -144,6 +146,11 @@ pub struct ServerSummary {
     /// lattice, and how far the map between the lattice follows the filter.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub skill: Vec<crate::protocol::EpochSkill>,
+    /// Every change of a sensor's verdict, and what the health tests did to the readings.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sensor_verdicts: Vec<crate::protocol::SensorVerdict>,
+    #[serde(default)]
+    pub screened: crate::health::Screened,
 }
 
 fn is_zero(n: &usize) -> bool {

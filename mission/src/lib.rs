@@ -15,6 +15,7 @@ pub mod config;
 pub mod events;
 pub mod fence;
 pub mod foxglove;
+pub mod health;
 pub mod holdout;
 pub mod instrument;
 pub mod launch;

@@ -8,6 +8,7 @@
 //! without a disk sends an empty batch). An epoch is complete when every batch for it is in.
 
 use crate::grid::Grid;
+use crate::health::{Health, Tagged, Verdict};
 use crate::protocol::{self, Ack, MeasurementBatch, ModelUpdate, Plan, Sample, Target, VehicleId, VehicleKind};
 use crate::team::{LearnFrom, TeamConfig, TeamError};
 use crate::{schedule::Schedule, Allocation, Assimilator};
@@ -154,6 +155,8 @@ pub struct ServerCore {
     innovations: BTreeMap<usize, crate::kalman::Innovation>,
     /// The model's skill by epoch (a re-fit writes its epochs again).
     skills: BTreeMap<u64, crate::protocol::EpochSkill>,
+    /// The sensors' verdicts that changed, by step (a re-fit writes its steps again).
+    verdicts: BTreeMap<usize, Vec<Verdict>>,
 }
 
 impl ServerCore {
@@ -180,6 +183,7 @@ impl ServerCore {
             held_out: BTreeMap::new(),
             innovations: BTreeMap::new(),
             skills: BTreeMap::new(),
+            verdicts: BTreeMap::new(),
             forced: BTreeSet::new(),
             unjournalled: BTreeSet::new(),
         })
@@ -575,10 +579,20 @@ impl ServerCore {
 
     /// Samples of every vehicle of a kind at step `k`, in vehicle order.
     fn samples_at(batches: &BTreeMap<usize, MeasurementBatch>, kind: VehicleKind, k: usize) -> Vec<Sample> {
+        Self::tagged_at(batches, kind, k).into_iter().map(|(_, s)| s).collect()
+    }
+
+    /// [`Self::samples_at`] with each sample's vehicle index (for the health tests).
+    fn tagged_at(batches: &BTreeMap<usize, MeasurementBatch>, kind: VehicleKind, k: usize) -> Vec<Tagged> {
         batches
-            .values()
-            .filter(|b| b.kind == kind)
-            .flat_map(|b| b.samples.iter().filter(|s| s.step as usize == k).cloned())
+            .iter()
+            .filter(|(_, b)| b.kind == kind)
+            .flat_map(|(&v, b)| {
+                b.samples
+                    .iter()
+                    .filter(|s| s.step as usize == k)
+                    .map(move |s| (v, s.clone()))
+            })
             .collect()
     }
 
@@ -607,13 +621,20 @@ impl ServerCore {
             let k0 = steps.start;
             let (mut epoch, mut learn) = (vec![], vec![]);
             for k in steps {
-                let aerial = self
-                    .assim
-                    .aerial_estimate(&Self::samples_at(&batches, VehicleKind::Aerial, k))?;
+                let ahead = (k + 1 - k0) as u64;
+                let aerials = Self::tagged_at(&batches, VehicleKind::Aerial, k);
+                let aerials = self.assim.screen_aerials(k as u64, ahead, aerials);
+                let aerial = self.assim.aerial_estimate(&aerials)?;
                 self.aerial_estimates.push(aerial.estimate.values.clone());
-                let boats = Self::samples_at(&batches, VehicleKind::Boat, k);
+                let boats = Self::tagged_at(&batches, VehicleKind::Boat, k);
+                let boats = self.assim.screen_boats(k as u64, ahead, boats, &aerial)?;
+                let verdicts = self.assim.screen().take_verdicts();
+                match verdicts.is_empty() {
+                    true => self.verdicts.remove(&k),
+                    false => self.verdicts.insert(k, verdicts),
+                };
                 let (boats, held) = crate::holdout::split(boats, self.holdout_share, self.cfg.boat_sigma);
-                let fused = self.assim.fuse_step((k + 1 - k0) as u64, &aerial, &boats)?;
+                let fused = self.assim.fuse_step(ahead, &aerial, &boats)?;
                 if let Some(i) = self.assim.take_innovation() {
                     self.innovations.insert(k, i);
                 }
@@ -861,6 +882,42 @@ impl ServerCore {
     /// The hold-out's figures so far (`None`: nothing held out).
     pub fn holdout(&self) -> Option<crate::holdout::HoldoutScore> {
         crate::holdout::score(self.held_out.values().flatten())
+    }
+
+    /// Every change of a sensor's verdict, in step order.
+    pub fn verdicts(&self) -> Vec<Verdict> {
+        self.verdicts.values().flatten().cloned().collect()
+    }
+
+    /// The changes of a sensor's verdict at `steps`, by vehicle id.
+    pub fn verdicts_at(&self, steps: std::ops::Range<usize>) -> Vec<protocol::SensorVerdict> {
+        self.verdicts
+            .range(steps)
+            .flat_map(|(_, v)| v)
+            .map(|v| protocol::SensorVerdict {
+                vehicle: self.vehicles.at(v.vehicle).id.clone(),
+                step: v.step,
+                from: v.from,
+                to: v.to,
+                reason: v.reason.clone(),
+            })
+            .collect()
+    }
+
+    /// Every tested sensor's verdict now, by vehicle id.
+    pub fn sensor_health(&self) -> BTreeMap<VehicleId, protocol::SensorHealth> {
+        self.health()
+            .0
+            .into_iter()
+            .map(|(v, (state, reason))| (self.vehicles.at(v).id.clone(), protocol::SensorHealth { state, reason }))
+            .collect()
+    }
+
+    /// Every tested sensor's verdict now and why, by vehicle index, and what the tests did to
+    /// the readings.
+    pub fn health(&self) -> (BTreeMap<usize, (Health, String)>, crate::health::Screened) {
+        let s = self.assim.screen_state();
+        (s.health(), s.counts)
     }
 
     /// The model's skill at each epoch assimilated with the filter, in epoch order.

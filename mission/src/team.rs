@@ -85,6 +85,10 @@ pub struct TeamConfig {
     /// Floor of the aerials' coverage density.
     pub density_floor: f64,
     pub seed: u64,
+    /// Test every reading and judge every sensor before the fusion uses them
+    /// ([`crate::health`]); `false` takes every reading at its word.
+    #[serde(skip_serializing_if = "is_true")]
+    pub sensor_health: bool,
     /// The site's boundary (`[mavlink] boundary` of a mission, read when the mission is
     /// loaded): no disk and no aerial place outside it. Not settable in `[team]`; serialised,
     /// so a journal's fingerprint knows it.
@@ -95,6 +99,10 @@ pub struct TeamConfig {
     /// like cells outside the fence, and zero in every snapshot the model learns from.
     #[serde(skip_deserializing, skip_serializing_if = "Vec::is_empty")]
     pub land: Vec<u32>,
+}
+
+fn is_true(b: &bool) -> bool {
+    *b
 }
 
 impl Default for TeamConfig {
@@ -119,6 +127,7 @@ impl Default for TeamConfig {
             learn_from: LearnFrom::Posterior,
             density_floor: 0.2,
             seed: 7,
+            sensor_health: true,
             fence: None,
             land: vec![],
         }

@@ -191,6 +191,7 @@ impl Server {
             readings: self.readings.clone(),
             behind: self.behind.clone(),
             skill: self.core.skills().last().copied(),
+            health: self.core.sensor_health(),
         }
     }
 
@@ -387,6 +388,10 @@ impl Server {
                 mse = mse.map(|m| format!("{m:.3e}")),
                 "epoch assimilated"
             );
+            for v in self.core.verdicts_at(self.core.steps_of(e)) {
+                warn!(vehicle = %v.vehicle, step = v.step, from = %v.from, to = %v.to, reason = %v.reason, "sensor health");
+                self.event(&ServerEvent::Sensor(v));
+            }
             let next = e + 1;
             let places = places_at(&self.core, next);
             self.event(&ServerEvent::Epoch {
@@ -662,6 +667,8 @@ impl Server {
             traffic: self.traffic.clone(),
             land_cells: self.core.assimilator().land().len(),
             skill: self.core.skills(),
+            sensor_verdicts: self.core.verdicts_at(0..usize::MAX),
+            screened: self.core.health().1,
             dt: self
                 .truth
                 .as_ref()

@@ -483,6 +483,7 @@ mod tests {
             readings: Default::default(),
             behind: Default::default(),
             skill: None,
+            health: Default::default(),
         };
         assert!(v.apply(Body::Status(status.clone())));
         assert!(v.liveliness("boat-1", false, 5.0));

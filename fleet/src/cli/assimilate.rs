@@ -94,6 +94,8 @@ pub fn run(args: Args) -> Result<()> {
         traffic: BTreeMap::new(),
         land_cells: core.assimilator().land().len(),
         skill: core.skills(),
+        sensor_verdicts: core.verdicts_at(0..usize::MAX),
+        screened: core.health().1,
     };
     let path = args.out.join("summary.json");
     std::fs::write(&path, serde_json::to_string_pretty(&summary)?)

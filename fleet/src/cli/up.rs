@@ -543,6 +543,10 @@ fn on_event(
         ServerEvent::Lost { vehicle, seqs } => notices.say(format!(
             "{vehicle}: batches {seqs:?} were acknowledged but are not in the journal: lost"
         )),
+        ServerEvent::Sensor(v) => notices.say(format!(
+            "{}: sensor {} at step {} ({})",
+            v.vehicle, v.to, v.step, v.reason
+        )),
         ServerEvent::Finished { .. } => {}
     }
     Ok(())

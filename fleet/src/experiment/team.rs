@@ -67,6 +67,10 @@ pub struct TeamOutcome {
     pub snapshot_variances: Vec<Vec<f64>>,
     /// Model rank after the last update.
     pub rank: usize,
+    /// Every change of a sensor's verdict ([`mission::health`]).
+    pub verdicts: Vec<mission::health::Verdict>,
+    /// What the health tests did to the readings.
+    pub screened: mission::health::Screened,
     /// The heterogeneous team's reliability by decile of reported variance over the scored
     /// steps: per decile (smallest variance first), mean error^2 over mean reported variance
     /// (1 when the variance is the error's there, not only on average).
@@ -125,7 +129,16 @@ pub fn run(
     truth: &FieldSeries,
     progress: impl FnMut(usize, usize),
 ) -> Result<TeamOutcome, TeamError> {
-    run_placing(cfg, truth, false, progress)
+    run_placing(cfg, truth, false, None, progress)
+}
+
+/// [`run`] with one vehicle's sensor failing ([`super::faults::Fault`]).
+pub fn run_with_fault(
+    cfg: &TeamConfig,
+    truth: &FieldSeries,
+    fault: &super::faults::Fault,
+) -> Result<TeamOutcome, TeamError> {
+    run_placing(cfg, truth, false, Some(fault), |_, _| {})
 }
 
 /// [`run`] with the boats placed by an oracle that knows the truth (a diagnostic, not a
@@ -134,7 +147,7 @@ pub fn run(
 /// furthest from the truth ([`where_the_error_is`]). It bounds what putting the disks where the
 /// error is can buy over the configured placement, on the same truth and noise.
 pub fn run_oracle(cfg: &TeamConfig, truth: &FieldSeries) -> Result<TeamOutcome, TeamError> {
-    run_placing(cfg, truth, true, |_, _| {})
+    run_placing(cfg, truth, true, None, |_, _| {})
 }
 
 /// Every vehicle senses epoch `e` under the server's plan; their batches.
@@ -240,6 +253,7 @@ fn run_placing(
     cfg: &TeamConfig,
     truth: &FieldSeries,
     oracle: bool,
+    fault: Option<&super::faults::Fault>,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<TeamOutcome, TeamError> {
     let grid = Grid::new(truth.rows, truth.cols, 1.0)?;
@@ -262,7 +276,12 @@ fn run_placing(
         let allocation = server
             .allocation(e)
             .ok_or_else(|| TeamError::Config(format!("no allocation for epoch {e}")))?;
-        let batches = sense(&server, &mut brains, e, &truth_at)?;
+        let mut batches = sense(&server, &mut brains, e, &truth_at)?;
+        if let Some(f) = fault {
+            f.apply(&mut batches, |b| {
+                server.roster().index_of(&b.vehicle).unwrap_or(usize::MAX)
+            });
+        }
         let boat_samples: Vec<Sample> = batches
             .iter()
             .filter(|b| b.kind == VehicleKind::Boat)
@@ -298,6 +317,8 @@ fn run_placing(
         }
     }
     out.rank = server.assimilator().rank();
+    out.verdicts = server.verdicts();
+    out.screened = server.health().1;
     out.score(frames);
     Ok(out)
 }

@@ -157,6 +157,7 @@ pub fn write_mission_report(
     r.holdout()?;
     r.innovations()?;
     r.skill()?;
+    r.sensor_health()?;
     r.traffic()?;
     r.fleet()?;
     r.eigenvalues(dt)?;
@@ -431,6 +432,36 @@ impl MissionReport<'_> {
         for s in epochs {
             let forecast = s.forecast.map_or("-".into(), |f| format!("{f:.3}"));
             writeln!(self.md, "| {} | {forecast} | {:.2} |", s.epoch, s.between)?;
+        }
+        writeln!(self.md)?;
+        Ok(())
+    }
+
+    /// What the health tests did: every change of a sensor's verdict, and the readings refused,
+    /// down-weighted and withheld.
+    fn sensor_health(&mut self) -> anyhow::Result<()> {
+        use std::fmt::Write as _;
+        let (c, verdicts) = (&self.summary.screened, &self.summary.sensor_verdicts);
+        if c.checks == 0 {
+            return Ok(());
+        }
+        writeln!(
+            self.md,
+            "## Sensor health\n\n{} sensor-steps tested: {} value(s) refused as spikes, {} down-weighted, {} withheld \
+             (an excluded sensor's), {} aerial frame(s) and {} quadrant(s) refused.\n",
+            c.checks, c.spikes_refused, c.down_weighted, c.withheld, c.frames_refused, c.quadrants_refused
+        )?;
+        if verdicts.is_empty() {
+            writeln!(self.md, "Every sensor stayed `ok`.\n")?;
+            return Ok(());
+        }
+        writeln!(self.md, "| step | vehicle | from | to | why |\n|---|---|---|---|---|")?;
+        for v in verdicts {
+            writeln!(
+                self.md,
+                "| {} | {} | {} | {} | {} |",
+                v.step, v.vehicle, v.from, v.to, v.reason
+            )?;
         }
         writeln!(self.md)?;
         Ok(())

@@ -43,6 +43,8 @@ pub struct Sources<'a> {
     pub dense: Observation<'a>,
     pub aerial: &'a [f64],
     pub aerial_var: &'a [f64],
+    /// Cells where the aerials' estimate is a fill (a lattice cell nobody saw): not evidence.
+    pub filled: &'a [bool],
 }
 
 /// The two estimates of the field, with their variances per cell.
@@ -68,24 +70,32 @@ impl<'a> Evidence<'a> {
 impl Between {
     /// The filter's update by one step's sources: the modes by the lattice and the boats, the
     /// detail by the dense frame, then the field between the lattice blended by the skill the
-    /// boats have shown (learned first at a boat step, from the filter updated without them),
-    /// then the detail by the boats.
+    /// boats have shown (learned first at a boat step, from the filter updated without them;
+    /// where the aerials' estimate is a fill, the filter's own), then the detail by the boats.
     pub fn update(&mut self, f: &mut ModalFilter, src: &Sources<'_>, on_lattice: &[bool]) -> Result<(), FilterError> {
         if !src.boats.cells.is_empty() {
             let mut without = f.clone();
             without.update(&[src.lattice])?;
             without.update_detail(&[src.dense])?;
+            let not_evidence: Vec<bool> = on_lattice.iter().zip(src.filled).map(|(l, f)| *l || *f).collect();
             self.learn(
                 &Evidence::of(&without, src),
                 src.boats.cells,
                 src.boats.values,
-                on_lattice,
+                &not_evidence,
             );
         }
         f.update(&[src.lattice, src.boats])?;
         f.update_detail(&[src.dense])?;
         let evidence = Evidence::of(f, src);
-        let cells: Vec<usize> = src.dense.cells.iter().copied().filter(|&c| !on_lattice[c]).collect();
+        // Where the aerials' estimate is a fill (a lattice cell nobody saw), the filter's own.
+        let cells: Vec<usize> = src
+            .dense
+            .cells
+            .iter()
+            .copied()
+            .filter(|&c| !on_lattice[c] && !src.filled[c])
+            .collect();
         let (values, variance): (Vec<f64>, Vec<f64>) = cells.iter().map(|&c| self.estimate(c, &evidence)).unzip();
         f.assign(&Observation {
             cells: &cells,
@@ -95,13 +105,14 @@ impl Between {
         f.update_detail(&[src.boats])
     }
 
-    /// Learn from the boats' values at cells off the lattice (`on_lattice[c]` false), against
-    /// evidence the boats did not enter; the regression's sums decay by [`MEMORY`] a boat step.
-    fn learn(&mut self, e: &Evidence<'_>, cells: &[usize], vals: &[f64], on_lattice: &[bool]) {
+    /// Learn from the boats' values at cells between the lattice where the aerials' estimate is
+    /// their interpolation (`skip[c]` false: off the lattice, not a fill), against evidence the
+    /// boats did not enter; the regression's sums decay by [`MEMORY`] a boat step.
+    fn learn(&mut self, e: &Evidence<'_>, cells: &[usize], vals: &[f64], skip: &[bool]) {
         let at: Vec<(f64, f64)> = cells
             .iter()
             .zip(vals)
-            .filter(|(&c, _)| !on_lattice[c])
+            .filter(|(&c, _)| !skip[c])
             .map(|(&c, &v)| (v - e.aerial[c], e.filtered[c] - e.aerial[c]))
             .collect();
         if at.is_empty() {

@@ -26,6 +26,11 @@ pub struct AerialSight {
     /// The fine cells the frame observes (the filter's dense observation): those off land (a
     /// cell interpolated from a lattice cell nobody saw has that fill's variance).
     pub covered: Vec<bool>,
+    /// The fine cells whose interpolation leans on a lattice cell nobody saw this step and that
+    /// was filled from further than a diagonal neighbour (a refused frame, a wide cloud; not a
+    /// coast's land): there the aerials' estimate is no estimate of the field, and no evidence
+    /// of how the filter compares with their interpolation.
+    pub filled: Vec<bool>,
 }
 
 impl Assimilator {
@@ -39,6 +44,7 @@ impl Assimilator {
             let estimate = s.held_aerial.clone().ok_or(TeamError::NotReady(Missing::AerialData))?;
             return Ok(AerialSight {
                 covered: vec![false; estimate.values.len()],
+                filled: vec![false; estimate.values.len()],
                 estimate,
                 interpolation: s.held_interpolation.clone(),
                 cells: vec![],
@@ -55,7 +61,13 @@ impl Assimilator {
             return Err(TeamError::NotReady(Missing::AerialData));
         }
         let unseen: Vec<usize> = (0..frame.seen.len()).filter(|&k| !frame.seen[k]).collect();
-        fill_unseen(&mut frame, &unseen);
+        let far = fill_unseen(&mut frame, &unseen);
+        let filled = frame
+            .lattice
+            .upsample_bilinear(&far.iter().map(|&f| if f { 1.0 } else { 0.0 }).collect::<Vec<_>>())?
+            .into_iter()
+            .map(|w| w > 1e-9)
+            .collect();
         let estimate = frame.upsample()?;
         let interpolation = frame.interpolation_variance()?;
         // The dense observation is of the water: a cell interpolated from a filled lattice value
@@ -71,7 +83,35 @@ impl Assimilator {
             values,
             variance,
             covered,
+            filled,
         })
+    }
+
+    /// The field `ahead` steps after the newest snapshot as the fleet knows it without any boat
+    /// value of that step, with its variance: the filter's forecast updated with the aerials'
+    /// lattice and frame (`fusion = "kalman"`), or the aerials' estimate with its calibrated
+    /// extra. What a boat's values are tested against ([`crate::health`]).
+    pub(super) fn boat_reference(&self, ahead: u64, aerial: &AerialSight) -> Result<(Vec<f64>, Vec<f64>), TeamError> {
+        let Some((f, at)) = self.state.filter.as_ref() else {
+            let extra = self.state.aerial_extra;
+            let variance = aerial.estimate.variance.iter().map(|v| v + extra).collect();
+            return Ok((aerial.estimate.values.clone(), variance));
+        };
+        let mut f = f.clone();
+        (*at..ahead).for_each(|_| f.predict());
+        let lattice = Observation {
+            cells: &aerial.cells,
+            values: &aerial.values,
+            variance: &aerial.variance,
+        };
+        f.update(&[lattice])?;
+        let (_, seen, values, variance) = dense(aerial, self.state.aerial_extra, &self.setup.on_lattice);
+        f.update_detail(&[Observation {
+            cells: &seen,
+            values: &values,
+            variance: &variance,
+        }])?;
+        Ok(f.field())
     }
 
     /// Fuse one step `ahead` steps after the model's newest snapshot: the aerial estimate with
@@ -228,17 +268,7 @@ impl Assimilator {
         // The detail: the aerial estimate at every cell (noise, interpolation and the
         // calibrated extra), then the boats; between the lattice, as far as the boats have seen
         // the filter beat the aerials there (`between`).
-        let seen: Vec<usize> = (0..aerial.estimate.values.len())
-            .filter(|&i| aerial.covered[i])
-            .collect();
-        let aerial_var = aerial_detail_variance(
-            &aerial.estimate.variance,
-            &aerial.interpolation,
-            s.aerial_extra,
-            &self.setup.on_lattice,
-        );
-        let (values, variance): (Vec<f64>, Vec<f64>) =
-            seen.iter().map(|&i| (aerial.estimate.values[i], aerial_var[i])).unzip();
+        let (aerial_var, seen, values, variance) = dense(aerial, s.aerial_extra, &self.setup.on_lattice);
         let dense = Observation {
             cells: &seen,
             values: &values,
@@ -250,6 +280,7 @@ impl Assimilator {
             dense,
             aerial: &aerial.estimate.values,
             aerial_var: &aerial_var,
+            filled: &aerial.filled,
         };
         s.between.update(f, &sources, &self.setup.on_lattice)?;
         if !cells.is_empty() {
@@ -261,6 +292,18 @@ impl Assimilator {
         let (values, variance) = f.field();
         Ok(Estimate { values, variance })
     }
+}
+
+/// The aerial frame as the filter's detail observes it: the variance per cell (noise, the
+/// interpolation's error and, between the lattice, the calibrated `extra`), and the covered
+/// cells with their values and variances.
+fn dense(aerial: &AerialSight, extra: f64, on_lattice: &[bool]) -> (Vec<f64>, Vec<usize>, Vec<f64>, Vec<f64>) {
+    let aerial_var = aerial_detail_variance(&aerial.estimate.variance, &aerial.interpolation, extra, on_lattice);
+    let seen: Vec<usize> = (0..aerial.estimate.values.len())
+        .filter(|&i| aerial.covered[i])
+        .collect();
+    let (values, variance) = seen.iter().map(|&i| (aerial.estimate.values[i], aerial_var[i])).unzip();
+    (aerial_var, seen, values, variance)
 }
 
 /// The forecast's skill against a dense observation: 1 - (its mean squared error at the cells,
@@ -305,7 +348,10 @@ fn check_detail(
 /// Give the lattice cells nobody saw this step (land, cloud, an aerial that did not report) a
 /// value to interpolate from: the nearest seen lattice cell's value this step, as uncertain as
 /// the seen values are spread (an earlier frame's value would go stale: land is never seen).
-fn fill_unseen(frame: &mut AerialFrame, unseen: &[usize]) {
+/// Which lattice cells were filled from further than a diagonal neighbour: there the fill is
+/// no estimate of the field (a whole frame refused leaves half the lattice to one far edge).
+fn fill_unseen(frame: &mut AerialFrame, unseen: &[usize]) -> Vec<bool> {
+    let mut far = vec![false; frame.seen.len()];
     let seen: Vec<usize> = (0..frame.seen.len()).filter(|&k| frame.seen[k]).collect();
     let spread = kalman::variance_of(&seen.iter().map(|&k| frame.values[k]).collect::<Vec<_>>());
     let lattice = frame.lattice;
@@ -317,7 +363,10 @@ fn fill_unseen(frame: &mut AerialFrame, unseen: &[usize]) {
         };
         let j = seen.iter().copied().min_by_key(|&j| (d2(j), j)).unwrap_or(k);
         (frame.values[k], frame.variance[k]) = (frame.values[j], frame.variance[j] + spread);
+        let stride = lattice.stride as i64;
+        far[k] = d2(j) > 2 * stride * stride;
     }
+    far
 }
 
 /// The displacement the filter does not model, from the boats' innovations against the

@@ -20,6 +20,7 @@ use crate::dmd::{Dmd, DmdConfig, DmdModel};
 use crate::fusion::{AerialNoise, Estimate};
 use crate::grid::Grid;
 use crate::kalman::{self, ModalFilter};
+use crate::protocol::Sample;
 use crate::sensing::{coverage, real_basis};
 use crate::team::{Missing, TeamConfig, TeamError};
 use faer::Mat;
@@ -78,6 +79,8 @@ pub struct AssimilatorState {
     /// The boats' innovations against the forecast at the last step that had boat values
     /// (taken by [`Assimilator::take_innovation`]).
     innovation: Option<kalman::Innovation>,
+    /// Every sensor's tests and verdict ([`crate::health`]).
+    screen: crate::health::Screen,
 }
 
 /// The assimilator's state between two epochs, to come back to.
@@ -157,6 +160,7 @@ impl Assimilator {
             aerial_positions,
             filter: None,
             innovation: None,
+            screen: Default::default(),
         };
         Ok(Self { setup, state })
     }
@@ -228,7 +232,57 @@ impl Assimilator {
         &self.state.boat_positions
     }
 
-    /// The model's rank (0 before the first fit).
+    /// The aerials' samples of a step `ahead` steps after the newest snapshot, each frame
+    /// tested against the model's forecast ([`crate::health::Screen::aerials`]; all of them
+    /// with `sensor_health = false` or before the first model).
+    pub fn screen_aerials(&mut self, step: u64, ahead: u64, samples: Vec<crate::health::Tagged>) -> Vec<Sample> {
+        if !self.setup.cfg.sensor_health {
+            return samples.into_iter().map(|(_, s)| s).collect();
+        }
+        let forecast = self.state.fitted.as_ref().map(|(p, _)| p.predict(ahead as f64));
+        let grid = self.setup.grid;
+        self.state.screen.aerials(&grid, step, samples, forecast.as_deref())
+    }
+
+    /// The boats' samples of a step `ahead` steps after the newest snapshot, tested against
+    /// what the fleet knows of it without any boat value of the step
+    /// ([`crate::health::Screen::boats`]).
+    pub fn screen_boats(
+        &mut self,
+        step: u64,
+        ahead: u64,
+        samples: Vec<crate::health::Tagged>,
+        aerial: &AerialSight,
+    ) -> Result<Vec<Sample>, TeamError> {
+        if !self.setup.cfg.sensor_health || samples.is_empty() {
+            return Ok(samples.into_iter().map(|(_, s)| s).collect());
+        }
+        let (mean, variance) = self.boat_reference(ahead, aerial)?;
+        let (grid, sigma) = (self.setup.grid, self.setup.cfg.boat_sigma);
+        let lattice = aerial
+            .cells
+            .iter()
+            .zip(aerial.values.iter().zip(&aerial.variance))
+            .map(|(&c, (&y, &v))| (c, (y, v)))
+            .collect();
+        let reference = crate::health::Reference {
+            mean: &mean,
+            variance: &variance,
+            lattice: &lattice,
+        };
+        Ok(self.state.screen.boats(&grid, step, samples, reference, sigma))
+    }
+
+    /// Every sensor's health, the verdicts changed since the last call, and the readings'
+    /// counts.
+    pub fn screen(&mut self) -> &mut crate::health::Screen {
+        &mut self.state.screen
+    }
+
+    pub fn screen_state(&self) -> &crate::health::Screen {
+        &self.state.screen
+    }
+
     /// The boats' innovations of the last step [`Self::fuse_step`] fused boat values in, once.
     pub fn take_innovation(&mut self) -> Option<kalman::Innovation> {
         self.state.innovation.take()

@@ -61,16 +61,34 @@ impl Assimilator {
         if self.state.fitted.is_none() {
             return Err(TeamError::NotReady(Missing::Model));
         }
-        let cfg = &self.setup.cfg;
-        let roster = crate::roster::Roster::of(cfg);
+        let cfg = self.setup.cfg.clone();
+        let roster = crate::roster::Roster::of(&cfg);
+        let excluded = self.state.screen.excluded();
         let free: Vec<usize> = (0..cfg.boats)
-            .filter(|&b| !held.contains(&roster.boat_index(b)))
+            .filter(|&b| !held.contains(&roster.boat_index(b)) && !excluded.contains(&roster.boat_index(b)))
             .collect();
         let view = self.horizon_view()?;
-        let boats = match &view {
+        let mut boats = match &view {
             Some(v) => self.place_boats_over_the_horizon(v, &free)?,
             None => self.place_boats_on_modes(&free)?,
         };
+        // A boat whose sensor is excluded counts for nothing in the placement (its disk would
+        // be a hole in the map), and measures where it is: its values are still tested, and it
+        // comes back when they read true again.
+        for b in (0..cfg.boats)
+            .filter(|&b| excluded.contains(&roster.boat_index(b)) && !held.contains(&roster.boat_index(b)))
+        {
+            let grid = &self.setup.grid;
+            let (x, y) = self.state.boat_positions[b];
+            let clamp = |v: f64, n: usize| ((v / grid.cell_m).max(0.0) as usize).min(n - 1);
+            let here = Cell::new(clamp(y, grid.rows), clamp(x, grid.cols));
+            let cells: Vec<usize> = grid
+                .disk(here, cfg.radius)
+                .into_iter()
+                .filter(|&c| !self.setup.excluded.get(c).copied().unwrap_or(false))
+                .collect();
+            boats[b] = (!cells.is_empty()).then_some((cells, (here.row, here.col)));
+        }
         let density = self.aerial_density(view.as_ref().map(|v| v.variance.as_slice()))?;
         self.place_aerials(&density, held)?;
         Ok(Allocation {

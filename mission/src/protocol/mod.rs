@@ -328,6 +328,52 @@ pub struct ServerStatus {
     /// The model's skill at the last epoch assimilated (`fusion = "kalman"`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub skill: Option<EpochSkill>,
+    /// Each tested sensor's verdict and why ([`crate::health`]).
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub health: std::collections::BTreeMap<VehicleId, SensorHealth>,
+}
+
+/// A sensor's verdict ([`crate::health`]).
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    Default,
+    PartialEq,
+    Eq,
+    PartialOrd,
+    Ord,
+    Serialize,
+    Deserialize,
+    strum::Display,
+    strum::EnumString,
+)]
+#[serde(rename_all = "kebab-case")]
+#[strum(serialize_all = "kebab-case")]
+pub enum Health {
+    #[default]
+    Ok,
+    Suspect,
+    Excluded,
+}
+
+/// A sensor's verdict now, and why (empty when ok).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SensorHealth {
+    pub state: Health,
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub reason: String,
+}
+
+/// A change of a sensor's verdict: which vehicle (its id on the wire, its roster index inside
+/// the server), at which step, from what to what, and why (an event and a line of the summary).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SensorVerdict<V = VehicleId> {
+    pub vehicle: V,
+    pub step: u64,
+    pub from: Health,
+    pub to: Health,
+    pub reason: String,
 }
 
 /// How much the model was worth in one epoch, as the filter measured it (no truth needed).

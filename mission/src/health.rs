@@ -1,0 +1,712 @@
+//! Sensor health: every reading is tested before it is used, and every sensor carries a
+//! verdict (`ok`, `suspect`, `excluded`) from the sequence of its tests.
+//!
+//! A fouled probe, a sonde that drifts, a stuck value or an over-exposed frame is taken at its
+//! word by the fusion, and one boat pulls the map and the model that learns from it. So each
+//! vehicle's readings of a step are tested, before the fusion sees them, against what it did
+//! not make:
+//! - **bias**: a boat's values against the aerials' own at the lattice cells both measured that
+//!   step (the same cell at the same step: only the two instruments' noises differ, so the
+//!   inverse-variance weighted mean difference over its standard error is N(0, 1) exactly for
+//!   a healthy pair, on any field; with no lattice cell in the disk, no test that step). A
+//!   two-sided CUSUM of it (slack [`SLACK`]) catches an offset and a slow drift; one step beyond
+//!   [`Z_SUSPECT`] catches a jump at once.
+//! - **spikes**: each boat value against the median of its neighbours in the same sample, in
+//!   its noise and the neighbours' own spread (a front the boats found splits the neighbours,
+//!   a spike stands apart from neighbours that agree) and, for a cell with neighbours on one
+//!   side only, against the fleet's estimate without the boats in its and the estimate's
+//!   standard deviations. Beyond [`HUBER`] its variance grows as the square of the excess (a
+//!   Huber update), beyond [`GATE`] it is refused. For Gaussian noise on a smooth field the
+//!   design rates are 6e-5 and 1e-15 per value.
+//! - **stuck**: three or more values of one sample equal to within a millionth of the noise
+//!   (a real instrument's noise makes that impossible: a stuck probe repeats itself).
+//! - **a frame**: an aerial's frame is judged by quadrant (its cells split at their median row
+//!   and column), then as a whole over the quadrants kept, against the model's forecast on the
+//!   scale of the healthy frames' (robust: 1.4826 times the median absolute mean of the recent
+//!   ones, so a faulty frame cannot set the scale it is judged on); beyond [`FRAME_GATE`] the
+//!   quadrant, or the frame, is refused.
+//!
+//! Verdicts have hysteresis: `suspect` when the CUSUM passes [`H_SUSPECT`], a value is refused
+//! as a spike, or 2 of an aerial's last 10 frames were (its values are down-weighted, their
+//! variance times [`SUSPECT_INFLATION`]); `excluded` past [`H_EXCLUDE`] or at once when stuck
+//! (its values are withheld from the fusion and still tested, and the placement gives its boat
+//! no disk of its own: it measures where it is); back to `ok` only after [`CLEAN_STEPS`] clean
+//! steps in a row. Nothing is lost: the server's journal holds every batch as received, and a
+//! re-fit replays the same tests. The design rate of a false `suspect` from the CUSUM is about
+//! one in 1,300 of a sensor's tested steps (its average run length, Siegmund's approximation);
+//! the measured rate is in the README.
+
+use crate::grid::Grid;
+use crate::protocol::Sample;
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, VecDeque};
+
+/// Deviations of a value from its neighbours (and the reference) beyond which its variance
+/// grows.
+pub const HUBER: f64 = 4.0;
+/// How far a reading may stand from its neighbours' median, in its noise, before it counts as
+/// apart from them (the median of a few noisy neighbours errs by about this much).
+const NEIGHBOURS: f64 = 1.5;
+/// Neighbours (of 24) from which a cell counts as surrounded: a spike test on them alone.
+const SURROUNDED: usize = 20;
+/// Deviations beyond which a value is refused.
+pub const GATE: f64 = 8.0;
+/// The CUSUM's slack (half the shift in standard deviations it is tuned to catch soonest).
+pub const SLACK: f64 = 0.5;
+/// CUSUM levels for `suspect` and `excluded`.
+pub const H_SUSPECT: f64 = 6.0;
+pub const H_EXCLUDE: f64 = 12.0;
+/// One step's bias z beyond which a sensor is suspect at once.
+pub const Z_SUSPECT: f64 = 4.5;
+/// A frame's (or a quadrant's) bias z beyond which it is refused.
+pub const FRAME_GATE: f64 = 5.0;
+/// Clean steps in a row that bring a sensor back to `ok`.
+pub const CLEAN_STEPS: u32 = 3;
+/// A suspect sensor's values count with this many times their variance.
+pub const SUSPECT_INFLATION: f64 = 4.0;
+/// How many recent values a scale is the median of, and how many it needs first.
+const WINDOW: usize = 2000;
+const WARM_UP: usize = 12;
+/// A step is clean when its bias z is below this and no value of it was refused.
+const CLEAN_Z: f64 = 2.0;
+
+pub use crate::protocol::Health;
+
+/// A change of a sensor's verdict, by the vehicle's roster index.
+pub type Verdict = crate::protocol::SensorVerdict<usize>;
+
+/// What the tests did to the readings (counts over the mission).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Screened {
+    /// Sensor-steps tested (one vehicle's readings of one step).
+    pub checks: u64,
+    /// Readings refused as spikes, and readings down-weighted.
+    pub spikes_refused: u64,
+    pub down_weighted: u64,
+    /// Readings withheld because their sensor was excluded.
+    pub withheld: u64,
+    /// Aerial frames and quadrants refused.
+    pub frames_refused: u64,
+    pub quadrants_refused: u64,
+}
+
+/// The median absolute value of the recent values, as a standard deviation (x 1.4826: exact
+/// for Gaussian values).
+#[derive(Debug, Clone, Default)]
+struct RobustScale {
+    recent: VecDeque<f64>,
+}
+
+impl RobustScale {
+    fn push(&mut self, v: f64) {
+        if v.is_finite() {
+            if self.recent.len() == WINDOW {
+                self.recent.pop_front();
+            }
+            self.recent.push_back(v.abs());
+        }
+    }
+
+    fn sd(&self) -> Option<f64> {
+        if self.recent.len() < WARM_UP {
+            return None;
+        }
+        let mut v: Vec<f64> = self.recent.iter().copied().collect();
+        let mid = v.len() / 2;
+        let (_, m, _) = v.select_nth_unstable_by(mid, f64::total_cmp);
+        (*m > 0.0).then_some(1.4826 * *m)
+    }
+}
+
+/// One sensor's running state.
+#[derive(Debug, Clone, Default)]
+struct Sensor {
+    health: Health,
+    reason: String,
+    /// The two CUSUMs of the bias z (upwards, downwards).
+    up: f64,
+    down: f64,
+    clean: u32,
+    /// Whether each of the last ten frames was refused (aerials).
+    frames: VecDeque<bool>,
+}
+
+/// One test of one sensor at one step.
+#[derive(Debug, Clone, Copy, Default)]
+struct Check {
+    z: Option<f64>,
+    stuck: bool,
+    refused: usize,
+    frame_refused: bool,
+}
+
+impl Sensor {
+    /// The verdict after this step's check (a [`Verdict`] when it changed).
+    fn observe(&mut self, vehicle: usize, step: u64, c: Check) -> Option<Verdict> {
+        let z = c.z.unwrap_or(0.0);
+        self.up = (self.up + z - SLACK).max(0.0);
+        self.down = (self.down - z - SLACK).max(0.0);
+        if self.frames.len() == 10 {
+            self.frames.pop_front();
+        }
+        self.frames.push_back(c.frame_refused);
+        let cusum = self.up.max(self.down);
+        let side = if self.up >= self.down { "above" } else { "below" };
+        let (to, reason) = if c.stuck {
+            (Health::Excluded, "stuck: its values repeat one number".to_string())
+        } else if cusum > H_EXCLUDE {
+            (
+                Health::Excluded,
+                format!("biased {side} the reference (CUSUM {cusum:.1})"),
+            )
+        } else if cusum > H_SUSPECT || z.abs() > Z_SUSPECT {
+            (
+                Health::Suspect,
+                format!("biased {side} the reference (z {z:+.1}, CUSUM {cusum:.1})"),
+            )
+        } else if c.refused > 0 && c.z.is_some() {
+            (Health::Suspect, format!("spikes: {} value(s) refused", c.refused))
+        } else if self.frames.iter().filter(|&&r| r).count() >= 2 {
+            (Health::Suspect, "frames refused: 2 or more of its last 10".to_string())
+        } else {
+            (Health::Ok, String::new())
+        };
+        let clean = !c.stuck && c.refused == 0 && !c.frame_refused && z.abs() < CLEAN_Z;
+        self.clean = if clean { self.clean + 1 } else { 0 };
+        let next = match (self.health, to) {
+            (now, to) if to > now => to,
+            // Back to ok only after clean steps in a row: the CUSUM starts again from there.
+            (Health::Ok, _) => Health::Ok,
+            (_, _) if self.clean >= CLEAN_STEPS => {
+                (self.up, self.down) = (0.0, 0.0);
+                self.frames.clear();
+                Health::Ok
+            }
+            (now, _) => now,
+        };
+        if next == self.health {
+            return None;
+        }
+        let from = std::mem::replace(&mut self.health, next);
+        self.reason = match next {
+            Health::Ok => format!("reads true again ({CLEAN_STEPS} clean steps)"),
+            _ => reason,
+        };
+        Some(Verdict {
+            vehicle,
+            step,
+            from,
+            to: next,
+            reason: self.reason.clone(),
+        })
+    }
+}
+
+/// The tests and verdicts of a mission's sensors (a value: part of the assimilator's state,
+/// so a checkpoint holds it and a re-fit replays it).
+#[derive(Debug, Clone, Default)]
+pub struct Screen {
+    /// The healthy aerials' scales: a frame's and a quadrant's mean residual from the forecast.
+    frame_bias: RobustScale,
+    quadrant_bias: RobustScale,
+    sensors: BTreeMap<usize, Sensor>,
+    verdicts: Vec<Verdict>,
+    pub counts: Screened,
+}
+
+/// What a sensor's values are tested against: a mean and a variance per cell.
+#[derive(Debug, Clone, Copy)]
+pub struct Reference<'a> {
+    pub mean: &'a [f64],
+    pub variance: &'a [f64],
+    /// The aerials' values of the step on the lattice, with their noise variance, by cell.
+    pub lattice: &'a BTreeMap<usize, (f64, f64)>,
+}
+
+/// A vehicle's sample, with the vehicle's index.
+pub type Tagged = (usize, Sample);
+
+impl Screen {
+    /// Every sensor's verdict and its reason, by vehicle index (sensors never tested: none).
+    pub fn health(&self) -> BTreeMap<usize, (Health, String)> {
+        self.sensors
+            .iter()
+            .map(|(&v, s)| (v, (s.health, s.reason.clone())))
+            .collect()
+    }
+
+    /// The vehicles whose sensor is excluded now.
+    pub fn excluded(&self) -> std::collections::BTreeSet<usize> {
+        self.sensors
+            .iter()
+            .filter(|(_, s)| s.health == Health::Excluded)
+            .map(|(&v, _)| v)
+            .collect()
+    }
+
+    /// The verdicts that changed since the last call.
+    pub fn take_verdicts(&mut self) -> Vec<Verdict> {
+        std::mem::take(&mut self.verdicts)
+    }
+
+    /// The boats' samples of step `step`, tested against `reference` (the aerials' estimate of
+    /// the step) with the boats' noise `sigma`: what the fusion may use (spikes refused, a
+    /// suspect sensor's values down-weighted, an excluded one's withheld).
+    pub fn boats(
+        &mut self,
+        grid: &Grid,
+        step: u64,
+        samples: Vec<Tagged>,
+        reference: Reference<'_>,
+        sigma: f64,
+    ) -> Vec<Sample> {
+        let mut out = vec![];
+        for (v, mut s) in samples {
+            let local = local_deviations(grid, &s);
+            let sig: Vec<f64> = s.sigma.clone().unwrap_or_else(|| vec![sigma; s.values.len()]);
+            let mut keep = vec![true; s.values.len()];
+            let mut inflate = vec![1.0; s.values.len()];
+            for i in 0..s.values.len() {
+                // A spike stands apart from its neighbours, further than its noise and their
+                // own spread allow (a front the boats found splits its neighbours too), and
+                // where it has neighbours on one side only, from the reference too, in its and
+                // the reference's standard deviations (a lone cell on a disk's edge across a
+                // front from its neighbours is where the reference says it is).
+                let c = s.cells[i] as usize;
+                let unit = (s.values[i] - reference.mean[c]).abs() / (reference.variance[c] + sig[i] * sig[i]).sqrt();
+                let r = local[i].map_or(0.0, |(d, spread, n)| {
+                    let apart = d.abs() / (NEIGHBOURS * sig[i]).hypot(spread);
+                    if n >= SURROUNDED {
+                        apart
+                    } else {
+                        apart.min(unit)
+                    }
+                });
+                keep[i] = r <= GATE;
+                inflate[i] = if r > HUBER { (r / HUBER).powi(2) } else { 1.0 };
+            }
+            // The bias: the boat's values against the aerials' own at the lattice cells both
+            // measured this step (the same cell at the same step: only the two noises differ).
+            let (mut num, mut den) = (0.0, 0.0);
+            for i in (0..s.values.len()).filter(|&i| keep[i]) {
+                if let Some((a, av)) = reference.lattice.get(&(s.cells[i] as usize)) {
+                    let w = 1.0 / (sig[i] * sig[i] + av).max(1e-300);
+                    (num, den) = (num + w * (s.values[i] - a), den + w);
+                }
+            }
+            let z = (den > 0.0).then(|| num / den.sqrt());
+            let check = Check {
+                z,
+                stuck: stuck(&s.values, &sig),
+                refused: keep.iter().filter(|k| !**k).count(),
+                frame_refused: false,
+            };
+            self.counts.checks += 1;
+            let sensor = self.sensors.entry(v).or_default();
+            self.verdicts.extend(sensor.observe(v, step, check));
+            let health = self.sensors[&v].health;
+            if health == Health::Excluded {
+                self.counts.withheld += s.values.len() as u64;
+                continue;
+            }
+            let weight = if health == Health::Suspect {
+                SUSPECT_INFLATION
+            } else {
+                1.0
+            };
+            self.counts.spikes_refused += check.refused as u64;
+            self.counts.down_weighted += inflate.iter().zip(&keep).filter(|(f, k)| **k && **f > 1.0).count() as u64;
+            if keep.iter().all(|&k| k) && weight == 1.0 && inflate.iter().all(|&f| f == 1.0) {
+                out.push(s); // untouched: the very bits it came with
+                continue;
+            }
+            let kept: Vec<usize> = (0..s.values.len()).filter(|&i| keep[i]).collect();
+            s.sigma = Some(kept.iter().map(|&i| sig[i] * (inflate[i] * weight).sqrt()).collect());
+            s.values = kept.iter().map(|&i| s.values[i]).collect();
+            s.cells = kept.iter().map(|&i| s.cells[i]).collect();
+            if !s.cells.is_empty() {
+                out.push(s);
+            }
+        }
+        out
+    }
+
+    /// The aerials' samples of step `step`, each frame tested as a whole and by quadrant
+    /// against `forecast` (the model's, `None` before the first model: nothing to test with).
+    pub fn aerials(&mut self, grid: &Grid, step: u64, samples: Vec<Tagged>, forecast: Option<&[f64]>) -> Vec<Sample> {
+        let Some(forecast) = forecast else {
+            return samples.into_iter().map(|(_, s)| s).collect();
+        };
+        let (frame_sd, quadrant_sd) = (self.frame_bias.sd(), self.quadrant_bias.sd());
+        let mut out = vec![];
+        for (v, mut s) in samples {
+            let residual: Vec<f64> = s
+                .cells
+                .iter()
+                .zip(&s.values)
+                .map(|(&c, y)| y - forecast[c as usize])
+                .collect();
+            // By quadrant first (a glare on part of the frame loses that part), then the frame
+            // as a whole over the quadrants kept.
+            let quadrants = quadrants(grid, &s.cells);
+            let means: Vec<Option<f64>> = quadrants
+                .iter()
+                .map(|q| mean(&q.iter().map(|&i| residual[i]).collect::<Vec<_>>()))
+                .collect();
+            let refused_quadrants: Vec<bool> = means
+                .iter()
+                .map(|m| m.zip(quadrant_sd).is_some_and(|(m, sd)| (m / sd).abs() > FRAME_GATE))
+                .collect();
+            let kept: Vec<f64> = quadrants
+                .iter()
+                .zip(&refused_quadrants)
+                .filter(|(_, r)| !**r)
+                .flat_map(|(q, _)| q.iter().map(|&i| residual[i]))
+                .collect();
+            let frame = mean(&kept);
+            let z = frame.zip(frame_sd).map(|(m, sd)| m / sd);
+            let frame_refused = frame.is_none() || z.is_some_and(|z| z.abs() > FRAME_GATE);
+            let check = Check {
+                z: None, // an aerial's frames are judged one by one, not accumulated
+                stuck: false,
+                refused: refused_quadrants.iter().filter(|r| **r).count(),
+                frame_refused: frame_refused || refused_quadrants.iter().any(|r| *r),
+            };
+            self.counts.checks += 1;
+            let sensor = self.sensors.entry(v).or_default();
+            self.verdicts.extend(sensor.observe(v, step, check));
+            if frame_refused {
+                self.counts.frames_refused += 1;
+                continue;
+            }
+            frame.into_iter().for_each(|m| self.frame_bias.push(m));
+            means
+                .iter()
+                .zip(&refused_quadrants)
+                .filter(|(_, r)| !**r)
+                .for_each(|(m, _)| m.iter().for_each(|m| self.quadrant_bias.push(*m)));
+            if refused_quadrants.iter().any(|r| *r) {
+                self.counts.quadrants_refused += refused_quadrants.iter().filter(|r| **r).count() as u64;
+                let drop: Vec<usize> = quadrants
+                    .iter()
+                    .zip(&refused_quadrants)
+                    .filter(|(_, r)| **r)
+                    .flat_map(|(q, _)| q.iter().copied())
+                    .collect();
+                let kept: Vec<usize> = (0..s.values.len()).filter(|i| !drop.contains(i)).collect();
+                s.sigma = s.sigma.map(|sd| kept.iter().map(|&i| sd[i]).collect());
+                s.values = kept.iter().map(|&i| s.values[i]).collect();
+                s.cells = kept.iter().map(|&i| s.cells[i]).collect();
+            }
+            if !s.cells.is_empty() {
+                out.push(s);
+            }
+        }
+        out
+    }
+}
+
+fn mean(v: &[f64]) -> Option<f64> {
+    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+}
+
+/// Each value's deviation from the median of its neighbours in the sample (the cells at most
+/// two rows and two columns away: a cell on a disk's edge then has neighbours on both sides of
+/// a front beside it), and how far the neighbours spread themselves (half their range: a spike
+/// stands apart from neighbours that agree, a front splits them); `None` with fewer than eight
+/// neighbours (with the count).
+fn local_deviations(grid: &Grid, s: &Sample) -> Vec<Option<(f64, f64, usize)>> {
+    let at: BTreeMap<(usize, usize), f64> = s
+        .cells
+        .iter()
+        .zip(&s.values)
+        .map(|(&c, &y)| {
+            let cell = grid.cell(c as usize);
+            ((cell.row, cell.col), y)
+        })
+        .collect();
+    s.cells
+        .iter()
+        .zip(&s.values)
+        .map(|(&c, &y)| {
+            let cell = grid.cell(c as usize);
+            let near: Vec<f64> = (-2i64..=2)
+                .flat_map(|dr| (-2i64..=2).map(move |dc| (dr, dc)))
+                .filter(|&d| d != (0, 0))
+                .filter_map(|(dr, dc)| {
+                    let (r, c) = (cell.row as i64 + dr, cell.col as i64 + dc);
+                    (r >= 0 && c >= 0)
+                        .then(|| at.get(&(r as usize, c as usize)).copied())
+                        .flatten()
+                })
+                .collect();
+            if near.len() < 8 {
+                return None;
+            }
+            let m = median(near.clone());
+            let (lo, hi) = near.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &x| {
+                (lo.min(x), hi.max(x))
+            });
+            Some((y - m, 0.5 * (hi - lo), near.len()))
+        })
+        .collect()
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let m = v.len() / 2;
+    if v.len() % 2 == 1 {
+        v[m]
+    } else {
+        0.5 * (v[m - 1] + v[m])
+    }
+}
+
+/// Three or more values equal to within a millionth of their noise.
+fn stuck(values: &[f64], sigma: &[f64]) -> bool {
+    if values.len() < 3 {
+        return false;
+    }
+    let (lo, hi) = values.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
+        (lo.min(v), hi.max(v))
+    });
+    let noise = sigma.iter().copied().fold(f64::INFINITY, f64::min);
+    hi - lo <= 1e-6 * noise.max(0.0)
+}
+
+/// A frame's cells (by position in the sample) in four quadrants, split at their median row
+/// and column.
+fn quadrants(grid: &Grid, cells: &[u32]) -> [Vec<usize>; 4] {
+    let rc: Vec<(usize, usize)> = cells
+        .iter()
+        .map(|&c| {
+            let cell = grid.cell(c as usize);
+            (cell.row, cell.col)
+        })
+        .collect();
+    let median = |mut v: Vec<usize>| {
+        v.sort_unstable();
+        v.get(v.len() / 2).copied().unwrap_or(0)
+    };
+    let (mr, mc) = (
+        median(rc.iter().map(|p| p.0).collect()),
+        median(rc.iter().map(|p| p.1).collect()),
+    );
+    let mut q: [Vec<usize>; 4] = Default::default();
+    for (i, &(r, c)) in rc.iter().enumerate() {
+        q[usize::from(r >= mr) * 2 + usize::from(c >= mc)].push(i);
+    }
+    q
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+
+    const SIGMA: f64 = 0.01;
+
+    /// A 30 x 30 field with a sharp front (a jump of 30 noise deviations) down its middle, the
+    /// aerials' lattice every third cell (their values with their noise), and a boat's disk.
+    struct World {
+        grid: Grid,
+        truth: Vec<f64>,
+        rng: rand_chacha::ChaCha8Rng,
+    }
+
+    impl World {
+        fn new(seed: u64) -> Self {
+            let grid = Grid::new(30, 30, 1.0).unwrap();
+            let truth = (0..grid.len())
+                .map(|i| 0.1 * (i % 30) as f64 / 30.0 + if i % 30 >= 15 { 30.0 * SIGMA } else { 0.0 })
+                .collect();
+            Self {
+                grid,
+                truth,
+                rng: rand_chacha::ChaCha8Rng::seed_from_u64(seed),
+            }
+        }
+
+        fn noise(&mut self) -> f64 {
+            Normal::new(0.0, SIGMA).unwrap().sample(&mut self.rng)
+        }
+
+        fn lattice(&mut self) -> BTreeMap<usize, (f64, f64)> {
+            (0..self.grid.len())
+                .filter(|i| (i / 30) % 3 == 0 && (i % 30) % 3 == 0)
+                .map(|i| (i, (self.truth[i] + self.noise(), SIGMA * SIGMA)))
+                .collect()
+        }
+
+        /// A boat's disk of radius 4 at `(row, col)`, each value through `fault`.
+        fn disk(&mut self, step: u64, at: (usize, usize), fault: impl Fn(usize, f64) -> f64) -> Sample {
+            let cells: Vec<u32> = self
+                .grid
+                .disk(crate::grid::Cell::new(at.0, at.1), 4.0)
+                .iter()
+                .map(|&c| c as u32)
+                .collect();
+            let values = cells
+                .iter()
+                .enumerate()
+                .map(|(k, &c)| fault(k, self.truth[c as usize] + self.noise()))
+                .collect();
+            Sample {
+                step,
+                position: [0.0, 0.0],
+                cells,
+                values,
+                sigma: None,
+            }
+        }
+
+        /// One step of two boats (vehicles 2 and 3, the second through `fault`), screened.
+        fn step(&mut self, screen: &mut Screen, step: u64, fault: impl Fn(usize, f64) -> f64) -> Vec<Sample> {
+            let lattice = self.lattice();
+            let place = |s: u64| (6 + (s as usize * 7) % 18, 6 + (s as usize * 11) % 18);
+            let samples = vec![
+                (2, self.disk(step, place(step), |_, v| v)),
+                (3, self.disk(step, place(step + 5), fault)),
+            ];
+            let variance = vec![4.0 * SIGMA * SIGMA; self.grid.len()];
+            let reference = Reference {
+                mean: &self.truth.clone(),
+                variance: &variance,
+                lattice: &lattice,
+            };
+            screen.boats(&self.grid, step, samples, reference, SIGMA)
+        }
+    }
+
+    fn health_of(screen: &Screen, v: usize) -> Health {
+        screen.health().get(&v).map_or(Health::Ok, |h| h.0)
+    }
+
+    /// Known answers: a healthy pair of boats is never marked and its values reach the fusion as
+    /// they came; a stuck probe is excluded at its first step and withheld; a bias of 3 noise
+    /// deviations is marked within 3 steps; once the sensor reads true again it is back after
+    /// [`CLEAN_STEPS`] clean steps, with its values as they came.
+    #[test]
+    fn faults_are_marked_and_a_sensor_that_reads_true_comes_back() {
+        let mut w = World::new(1);
+        let mut screen = Screen::default();
+        for k in 0..20 {
+            let out = w.step(&mut screen, k, |_, v| v);
+            assert_eq!(out.len(), 2);
+            assert!(
+                out.iter().all(|s| s.sigma.is_none()),
+                "a healthy value was altered at step {k}"
+            );
+        }
+        assert!(screen.take_verdicts().is_empty());
+        let out = w.step(&mut screen, 20, |_, _| 0.5);
+        assert_eq!(health_of(&screen, 3), Health::Excluded);
+        assert_eq!(out.len(), 1, "a stuck probe's values are withheld");
+        for k in 21..21 + CLEAN_STEPS as u64 {
+            assert_ne!(health_of(&screen, 3), Health::Ok, "back too soon at step {k}");
+            w.step(&mut screen, k, |_, v| v);
+        }
+        assert_eq!(health_of(&screen, 3), Health::Ok);
+        let from = 30;
+        for k in from..from + 3 {
+            w.step(&mut screen, k, |_, v| v + 3.0 * SIGMA);
+        }
+        assert_ne!(
+            health_of(&screen, 3),
+            Health::Ok,
+            "a bias of 3 sigma unmarked after 3 steps"
+        );
+        assert_eq!(health_of(&screen, 2), Health::Ok);
+        let reasons: Vec<String> = screen.take_verdicts().into_iter().map(|v| v.reason).collect();
+        assert!(reasons.iter().any(|r| r.starts_with("stuck")) && reasons.iter().any(|r| r.contains("above")));
+    }
+
+    /// A spike of 50 noise deviations is refused and its sensor suspect; the front's values,
+    /// 30 deviations apart from their neighbours across it, are kept as they came.
+    #[test]
+    fn a_spike_is_refused_and_a_front_is_kept() {
+        let mut w = World::new(2);
+        let mut screen = Screen::default();
+        let front = w.disk(0, (15, 15), |_, v| v);
+        assert!(front.cells.iter().any(|&c| c % 30 < 15) && front.cells.iter().any(|&c| c % 30 >= 15));
+        let spiked = w.disk(0, (5, 5), |k, v| if k == 7 { v + 50.0 * SIGMA } else { v });
+        let lattice = w.lattice();
+        let variance = vec![SIGMA * SIGMA; w.grid.len()];
+        let truth = w.truth.clone();
+        let reference = Reference {
+            mean: &truth,
+            variance: &variance,
+            lattice: &lattice,
+        };
+        let out = screen.boats(
+            &w.grid,
+            0,
+            vec![(2, front.clone()), (3, spiked.clone())],
+            reference,
+            SIGMA,
+        );
+        assert_eq!(out[0], front);
+        assert_eq!(out[1].values.len(), spiked.values.len() - 1);
+        assert!(!out[1].values.contains(&spiked.values[7]));
+        assert_eq!(screen.counts.spikes_refused, 1);
+        assert_eq!(health_of(&screen, 3), Health::Suspect);
+    }
+
+    /// The false-alarm rate of the bias test on healthy sensors, by Monte Carlo: the z of a
+    /// healthy boat against the lattice is N(0, 1) exactly, so the CUSUM's design rate (one
+    /// false `suspect` in about 1,300 sensor-steps) bounds what is seen: fewer than 3 times it
+    /// over 8,000 sensor-steps (the expected count is about 6; a Poisson count of 6 passes 18
+    /// with probability below 1e-4).
+    #[test]
+    fn a_healthy_fleet_is_rarely_marked() {
+        let mut w = World::new(3);
+        let mut screen = Screen::default();
+        for k in 0..4000 {
+            w.step(&mut screen, k, |_, v| v);
+        }
+        let marked = screen.take_verdicts().iter().filter(|v| v.to != Health::Ok).count();
+        assert!(marked < 18, "{marked} false alarms in 8000 sensor-steps");
+        assert_eq!(screen.counts.checks, 8000);
+    }
+
+    /// An over-exposed frame is refused as a whole, a frame with one over-exposed quadrant loses
+    /// that quadrant only, and a sensor with 2 frames refused of its last 10 is suspect.
+    #[test]
+    fn an_over_exposed_frame_or_quadrant_is_refused() {
+        let mut w = World::new(4);
+        let mut screen = Screen::default();
+        let forecast = w.truth.clone();
+        let frame = |w: &mut World, k: u64, f: &dyn Fn(u32, f64) -> f64| -> Sample {
+            let cells: Vec<u32> = (0..900u32).filter(|i| (i / 30) % 3 == 0 && (i % 30) % 3 == 0).collect();
+            let values = cells.iter().map(|&c| f(c, w.truth[c as usize] + w.noise())).collect();
+            Sample {
+                step: k,
+                position: [0.0, 0.0],
+                cells,
+                values,
+                sigma: None,
+            }
+        };
+        for k in 0..30 {
+            let s = frame(&mut w, k, &|_, v| v);
+            assert_eq!(
+                screen.aerials(&w.grid, k, vec![(0, s.clone())], Some(&forecast)),
+                vec![s]
+            );
+        }
+        let over = frame(&mut w, 30, &|_, v| v + 20.0 * SIGMA);
+        assert!(screen.aerials(&w.grid, 30, vec![(0, over)], Some(&forecast)).is_empty());
+        let corner = frame(&mut w, 31, &|c, v| {
+            if c / 30 < 15 && c % 30 < 15 {
+                v + 20.0 * SIGMA
+            } else {
+                v
+            }
+        });
+        let out = screen.aerials(&w.grid, 31, vec![(0, corner.clone())], Some(&forecast));
+        assert_eq!(out[0].cells.len(), corner.cells.len() - 25);
+        assert_eq!((screen.counts.frames_refused, screen.counts.quadrants_refused), (1, 1));
+        assert_eq!(health_of(&screen, 0), Health::Suspect);
+    }
+}
