@@ -119,6 +119,7 @@ fn start_emulator(
     gcs: u16,
     truth: Option<&Path>,
     hostile: bool,
+    stuck: Option<(&str, u64)>,
 ) -> (Procs, PathBuf, std::process::ChildStdout) {
     let mission = fleet_mission::config::MissionConfig::load(Some(m)).unwrap();
     let mut emulator = std::process::Command::new(bin("instrument_emulator"));
@@ -141,6 +142,9 @@ fn start_emulator(
     }
     if let Some(t) = truth {
         emulator.arg("--truth").arg(t);
+    }
+    if let Some((id, step)) = stuck {
+        emulator.args(["--stuck", &format!("{id}={step}")]);
     }
     let mut child = emulator
         .stdout(std::process::Stdio::piped())
@@ -235,7 +239,8 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     let gcs = udp_port();
     let start = fleet_mission::instrument::MissionClock::now().ceil() + 12.0;
     let m = timed_mission(&dir, start, &feeds, gcs);
-    let (mut procs, log, stdout) = start_emulator(&dir, &m, &feeds, gcs, None, true);
+    // boat-1's probe sticks from step 25: the server's health tests must find it.
+    let (mut procs, log, stdout) = start_emulator(&dir, &m, &feeds, gcs, None, true, Some(("boat-1", 25)));
     let out = dir.join("run");
     let stop = Arc::new(AtomicBool::new(false));
     let rss = [
@@ -374,11 +379,47 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     assert_eq!(counts.received, good("boat-1") + flooded);
     assert_eq!(boat2.accepted, good("boat-2"));
     assert!(good("boat-2") >= 5, "boat-2's sonde sent {} values", good("boat-2"));
+    stuck_probe_is_excluded(&out, "boat-1", 25);
     same_model_offline(&out, &dir.join("offline"));
     eprintln!(
         "flood: {flooded} hostile lines in 30 s; peak memory boat-1 {flooded_kb} kB, boat-3 {quiet_kb} kB; boat-2's \
          sonde: {} values over MAVLink",
         good("boat-2")
+    );
+}
+
+/// The stuck probe of `id` (from step `from`, sent through its instrument's interface) is
+/// excluded at its first sampling step after, once, with the reason: in the summary, as a
+/// `sensor` event, and in the mission report; no other sensor is marked.
+fn stuck_probe_is_excluded(out: &Path, id: &str, from: u64) {
+    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    let verdicts = summary["sensor_verdicts"]
+        .as_array()
+        .expect("sensor verdicts in the summary");
+    let excluded: Vec<&serde_json::Value> = verdicts.iter().filter(|v| v["to"] == "excluded").collect();
+    assert_eq!(excluded.len(), 1, "{verdicts:?}");
+    let v = excluded[0];
+    assert_eq!(v["vehicle"], id, "{v}");
+    assert!(
+        v["step"].as_u64().unwrap() >= from && v["step"].as_u64().unwrap() < from + 10,
+        "{v}"
+    );
+    assert!(v["reason"].as_str().unwrap().starts_with("stuck"), "{v}");
+    assert!(
+        verdicts.iter().all(|v| v["vehicle"] == id),
+        "a healthy sensor was marked: {verdicts:?}"
+    );
+    let events = std::fs::read_to_string(out.join("events.jsonl")).unwrap();
+    assert!(
+        events
+            .lines()
+            .any(|l| l.contains("\"event\":\"sensor\"") && l.contains(id) && l.contains("excluded")),
+        "no sensor event for {id}"
+    );
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(
+        report.contains("## Sensor health") && report.contains("stuck"),
+        "the report says so"
     );
 }
 
@@ -502,7 +543,7 @@ fn the_real_site_mission_runs_without_a_truth_and_is_scored_by_held_out_readings
         mission.truth.is_none() && mission.team.fence.is_some(),
         "no truth, a fence from the plan"
     );
-    let (mut procs, log, stdout) = start_emulator(&dir, &m, &feeds, gcs, Some(&world_path), false);
+    let (mut procs, log, stdout) = start_emulator(&dir, &m, &feeds, gcs, Some(&world_path), false, None);
     let out = dir.join("run");
     let o = fleet_up(&m, &out, stdout).join().unwrap();
     assert!(o.status.success(), "fleet up: {}", String::from_utf8_lossy(&o.stderr));

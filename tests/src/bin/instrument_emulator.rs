@@ -12,7 +12,9 @@
 //! really is, timed by its TIFF DateTime, written aside and renamed in.
 //!
 //! `--send boat-3=-` writes that boat's readings to standard output (for a vehicle reading
-//! `stdin`).
+//! `stdin`). `--stuck boat-1=STEP` makes that boat's disk instrument a stuck probe from step
+//! STEP on: every value it sends is the first one it read at that step (a fault for the
+//! server's health tests to find, sent through the same interface as every reading).
 //!
 //! `--mavlink boat-2=PORT` makes it that boat's sonde on its autopilot: a companion computer on
 //! the simulated autopilot's companion link (`udpout:127.0.0.1:PORT`) that hears the autopilot's
@@ -46,6 +48,7 @@ struct Args {
     mavlink: Vec<(String, u16)>,
     name: String,
     hostile_mavlink: bool,
+    stuck: BTreeMap<String, u64>,
     truth: Option<std::path::PathBuf>,
     seed: u64,
     log: std::path::PathBuf,
@@ -60,6 +63,7 @@ fn args() -> Args {
         mavlink: vec![],
         name: "SONDE".into(),
         hostile_mavlink: false,
+        stuck: BTreeMap::new(),
         truth: None,
         seed: 0,
         log: "sent.ndjson".into(),
@@ -80,6 +84,10 @@ fn args() -> Args {
                 a.send.push((id.into(), addr.into()));
             }
             "--name" => a.name = v.into(),
+            "--stuck" => {
+                let (id, step) = v.split_once('=').expect("--stuck ID=STEP");
+                a.stuck.insert(id.into(), step.parse().expect("--stuck ID=STEP"));
+            }
             "--hostile-mavlink" => a.hostile_mavlink = v.parse().expect("--hostile-mavlink true|false"),
             "--mavlink" => {
                 let (id, port) = v.split_once('=').expect("--mavlink ID=PORT");
@@ -158,6 +166,7 @@ fn main() {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);
     let noise = Normal::new(0.0, mission.team.boat_sigma).expect("a noise");
     let mut sent: BTreeSet<(u64, String)> = BTreeSet::new();
+    let mut stuck_at: BTreeMap<String, f64> = BTreeMap::new();
     loop {
         let now = MissionClock::now();
         let Some(k) = clock.step_of(now) else {
@@ -212,7 +221,10 @@ fn main() {
             let Some(here) = grid.cell_at(x, y) else { continue };
             let mut lines = String::new();
             for c in grid.disk(here, mission.team.radius) {
-                let value = truth.snapshots[(c, k as usize)] + noise.sample(&mut rng);
+                let mut value = truth.snapshots[(c, k as usize)] + noise.sample(&mut rng);
+                if a.stuck.get(id).is_some_and(|&from| k >= from) {
+                    value = *stuck_at.entry(id.clone()).or_insert(value);
+                }
                 let (cx, cy) = grid.centre_m(grid.cell(c));
                 let (lat, lon, _) = site.global_of(&site.ned_of((cx, cy), 0.0));
                 let reading = serde_json::json!({"t": t, "lat": lat, "lon": lon, "value": value,
