@@ -153,23 +153,17 @@ impl Sensor {
         }
         self.frames.push_back(c.frame_refused);
         let cusum = self.up.max(self.down);
-        let side = if self.up >= self.down { "above" } else { "below" };
+        let side = if self.up >= self.down { "high" } else { "low" };
         let (to, reason) = if c.stuck {
-            (Health::Excluded, "stuck: its values repeat one number".to_string())
+            (Health::Excluded, "stuck: its values repeat".to_string())
         } else if cusum > H_EXCLUDE {
-            (
-                Health::Excluded,
-                format!("biased {side} the reference (CUSUM {cusum:.1})"),
-            )
+            (Health::Excluded, format!("biased {side} (CUSUM {cusum:.1})"))
         } else if cusum > H_SUSPECT || z.abs() > Z_SUSPECT {
-            (
-                Health::Suspect,
-                format!("biased {side} the reference (z {z:+.1}, CUSUM {cusum:.1})"),
-            )
+            (Health::Suspect, format!("biased {side} (z {z:+.1}, CUSUM {cusum:.1})"))
         } else if c.refused > 0 && c.z.is_some() {
-            (Health::Suspect, format!("spikes: {} value(s) refused", c.refused))
+            (Health::Suspect, format!("spikes: {} refused", c.refused))
         } else if self.frames.iter().filter(|&&r| r).count() >= 2 {
-            (Health::Suspect, "frames refused: 2 or more of its last 10".to_string())
+            (Health::Suspect, "frames refused: 2 of its last 10".to_string())
         } else {
             (Health::Ok, String::new())
         };
@@ -621,7 +615,7 @@ mod tests {
         );
         assert_eq!(health_of(&screen, 2), Health::Ok);
         let reasons: Vec<String> = screen.take_verdicts().into_iter().map(|v| v.reason).collect();
-        assert!(reasons.iter().any(|r| r.starts_with("stuck")) && reasons.iter().any(|r| r.contains("above")));
+        assert!(reasons.iter().any(|r| r.starts_with("stuck")) && reasons.iter().any(|r| r.contains("biased high")));
     }
 
     /// A spike of 50 noise deviations is refused and its sensor suspect; the front's values,

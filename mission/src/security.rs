@@ -102,9 +102,14 @@ pub fn access_control(mission: &MissionConfig, tls: bool) -> Result<Value, Proto
                 "gcs-gateway/subscribe",
                 "ingress",
                 &["declare_subscriber"],
-                &[k.all_mavlink()],
+                &[k.all_mavlink(), k.server_status()],
             ),
-            rule("gcs-gateway/receive", "egress", &["put"], &[k.all_mavlink()]),
+            rule(
+                "gcs-gateway/receive",
+                "egress",
+                &["put"],
+                &[k.all_mavlink(), k.server_status()],
+            ),
             rule("gcs-gateway/put", "ingress", &["put"], &[k.all_gcs()]),
             rule(
                 "gcs-gateway/token",

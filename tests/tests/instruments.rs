@@ -380,6 +380,16 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     assert_eq!(boat2.accepted, good("boat-2"));
     assert!(good("boat-2") >= 5, "boat-2's sonde sent {} values", good("boat-2"));
     stuck_probe_is_excluded(&out, "boat-1", 25);
+    // And the ground station heard it from the gateway, under boat-1's system id.
+    let sysid = mission.sysid("boat-1").unwrap() as u64;
+    let said = std::fs::read_to_string(log.with_extension("statustext")).unwrap();
+    assert!(
+        said.lines().any(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            v["system"] == sysid && v["text"].as_str().unwrap().starts_with("Sensor excluded: stuck")
+        }),
+        "no STATUSTEXT for boat-1 (system {sysid}): {said}"
+    );
     same_model_offline(&out, &dir.join("offline"));
     eprintln!(
         "flood: {flooded} hostile lines in 30 s; peak memory boat-1 {flooded_kb} kB, boat-3 {quiet_kb} kB; boat-2's \

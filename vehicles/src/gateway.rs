@@ -173,6 +173,73 @@ impl RefusalLog {
     }
 }
 
+/// The component a sensor-health notice comes from: the vehicle's companion computer
+/// (`MAV_COMP_ID_ONBOARD_COMPUTER`), not its autopilot, whose message sequence it must not
+/// disturb.
+pub const HEALTH_COMPONENT: u8 = 191;
+
+/// What the ground station is told of the vehicles' sensors: a STATUSTEXT under the vehicle's
+/// system id when the model server's verdict on its sensor changes (an error when excluded, a
+/// warning when suspect, a notice when it is back), as an autopilot says its own failures.
+#[derive(Debug, Default)]
+pub struct HealthNotices {
+    said: BTreeMap<String, fleet_mission::protocol::Health>,
+    sequence: u8,
+}
+
+impl HealthNotices {
+    /// The notices a server status calls for, each once per change of verdict.
+    pub fn of(
+        &mut self,
+        status: &fleet_mission::protocol::ServerStatus,
+        router: &Router,
+    ) -> Vec<(MavHeader, MavMessage)> {
+        use fleet_mission::protocol::Health;
+        use mavlink::dialects::ardupilotmega::{MavSeverity, STATUSTEXT_DATA};
+        let mut out = vec![];
+        for (vehicle, h) in &status.health {
+            let (id, was) = (
+                vehicle.to_string(),
+                self.said.get(vehicle.as_str()).copied().unwrap_or_default(),
+            );
+            let Some(&sysid) = router.sysid_of.get(&id).filter(|_| h.state != was) else {
+                continue;
+            };
+            self.said.insert(id, h.state);
+            let severity = match h.state {
+                Health::Excluded => MavSeverity::MAV_SEVERITY_ERROR,
+                Health::Suspect => MavSeverity::MAV_SEVERITY_WARNING,
+                Health::Ok => MavSeverity::MAV_SEVERITY_NOTICE,
+            };
+            let text = shortened(&format!("Sensor {}: {}", h.state, h.reason), 50);
+            let header = MavHeader {
+                system_id: sysid as u32,
+                component_id: HEALTH_COMPONENT,
+                sequence: self.sequence,
+            };
+            self.sequence = self.sequence.wrapping_add(1);
+            out.push((
+                header,
+                MavMessage::STATUSTEXT(STATUSTEXT_DATA {
+                    severity,
+                    text: text.as_str().into(),
+                    ..Default::default()
+                }),
+            ));
+        }
+        out
+    }
+}
+
+/// At most `n` bytes of `s`, cut at a character's boundary (STATUSTEXT carries 50).
+fn shortened(s: &str, n: usize) -> String {
+    let mut end = s.len().min(n);
+    while !s.is_char_boundary(end) {
+        end -= 1;
+    }
+    s[..end].trim_end().to_string()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -297,5 +364,44 @@ mod tests {
             .is_some(),
             "another reason is logged at once"
         );
+    }
+
+    /// A verdict becomes one STATUSTEXT under the vehicle's system id, from its companion
+    /// computer, at the severity an autopilot would give it, at most 50 bytes; the same verdict
+    /// again says nothing; a vehicle the mission does not have gets nothing.
+    #[test]
+    fn a_sensor_verdict_is_told_to_the_ground_station_once() {
+        use fleet_mission::protocol::{Health, SensorHealth, ServerStatus};
+        let router = mission_router();
+        let mut status: ServerStatus = serde_json::from_str(
+            r#"{"version":1,"next_epoch":1,"finished":false,"batches":0,"duplicates":0,"rejected":{},"alive":[],
+            "waiting_for":[],"pending_epochs":0,"latency_p50_ms":0,"latency_p99_ms":0}"#,
+        )
+        .unwrap();
+        let mut say = HealthNotices::default();
+        assert!(say.of(&status, &router).is_empty());
+        let reason = "stuck: its values repeat".to_string();
+        for (id, state) in [
+            ("boat-1", Health::Excluded),
+            ("av-1", Health::Ok),
+            ("boat-9", Health::Excluded),
+        ] {
+            let reason = reason.clone();
+            status
+                .health
+                .insert(id.parse().unwrap(), SensorHealth { state, reason });
+        }
+        let said = say.of(&status, &router);
+        assert_eq!(said.len(), 1, "{said:?}");
+        let (h, m) = &said[0];
+        assert_eq!((h.system_id, h.component_id), (3, HEALTH_COMPONENT));
+        let MavMessage::STATUSTEXT(t) = m else { panic!("{m:?}") };
+        assert_eq!(t.severity, MavSeverity::MAV_SEVERITY_ERROR);
+        let text = t.text.to_str().unwrap();
+        assert!(text.starts_with("Sensor excluded: stuck") && text.len() <= 50, "{text}");
+        assert!(say.of(&status, &router).is_empty(), "said twice");
+        status.health.get_mut("boat-1").unwrap().state = Health::Ok;
+        let back = say.of(&status, &router);
+        assert!(matches!(&back[0].1, MavMessage::STATUSTEXT(t) if t.severity == MavSeverity::MAV_SEVERITY_NOTICE));
     }
 }

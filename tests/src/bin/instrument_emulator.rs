@@ -14,7 +14,8 @@
 //! `--send boat-3=-` writes that boat's readings to standard output (for a vehicle reading
 //! `stdin`). `--stuck boat-1=STEP` makes that boat's disk instrument a stuck probe from step
 //! STEP on: every value it sends is the first one it read at that step (a fault for the
-//! server's health tests to find, sent through the same interface as every reading).
+//! server's health tests to find, sent through the same interface as every reading). Every
+//! STATUSTEXT the ground-station stream carries is logged beside the log (`.statustext`).
 //!
 //! `--mavlink boat-2=PORT` makes it that boat's sonde on its autopilot: a companion computer on
 //! the simulated autopilot's companion link (`udpout:127.0.0.1:PORT`) that hears the autopilot's
@@ -140,14 +141,24 @@ fn main() {
     let fixes: Arc<Mutex<BTreeMap<String, (f64, f64)>>> = Arc::default();
     let gcs = GroundStation::listen(a.gcs_port);
     let heard = fixes.clone();
+    // What the ground station is told of the sensors, logged beside what was sent.
+    let mut said = std::fs::File::create(a.log.with_extension("statustext")).expect("the STATUSTEXT log");
     std::thread::spawn(move || loop {
-        if let (h, MavMessage::GLOBAL_POSITION_INT(p)) = gcs.recv() {
-            if let Some(id) = sysids.get(&(h.system_id as u8)) {
-                heard
-                    .lock()
-                    .unwrap()
-                    .insert(id.clone(), (p.lat as f64 / 1e7, p.lon as f64 / 1e7));
+        match gcs.recv() {
+            (h, MavMessage::GLOBAL_POSITION_INT(p)) => {
+                if let Some(id) = sysids.get(&(h.system_id as u8)) {
+                    heard
+                        .lock()
+                        .unwrap()
+                        .insert(id.clone(), (p.lat as f64 / 1e7, p.lon as f64 / 1e7));
+                }
             }
+            (h, MavMessage::STATUSTEXT(t)) => {
+                let entry = serde_json::json!({"system": h.system_id, "component": h.component_id,
+                    "severity": t.severity as u8, "text": t.text.to_str().unwrap_or_default()});
+                let _ = writeln!(said, "{entry}");
+            }
+            _ => {}
         }
     });
     let port_of: BTreeMap<String, u16> = a.mavlink.iter().cloned().collect();

@@ -11,7 +11,7 @@ use fleet_net::{Role, Traffic};
 use std::sync::Arc;
 use std::time::Duration;
 use tracing::{debug, info, warn};
-use vehicles::gateway::{RefusalLog, Router};
+use vehicles::gateway::{HealthNotices, RefusalLog, Router};
 use vehicles::link::{MavLink, Received};
 use vehicles::signing::{LinkSigning, LINK_GATEWAY};
 
@@ -74,6 +74,8 @@ struct Gateway {
     session: fleet_net::zenoh::Session,
     router: Router,
     refusals: RefusalLog,
+    /// The sensors' verdicts told to the ground station, from the server's status.
+    health: HealthNotices,
     up: u64,
     down: u64,
 }
@@ -92,6 +94,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
         .declare_subscriber(keys.all_mavlink())
         .await
         .map_err(e("the vehicles' frames"))?;
+    let status = session
+        .declare_subscriber(keys.server_status())
+        .await
+        .map_err(e("the server's status"))?;
     let token = session.liveliness().declare_token(keys.alive("gcs-gateway")).await;
     let _token = token.map_err(e("the liveliness token"))?;
     let router = router_of(&mission)?;
@@ -112,6 +118,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         session,
         router,
         refusals: RefusalLog::new(Duration::from_secs(10)),
+        health: HealthNotices::default(),
         up: 0,
         down: 0,
     };
@@ -124,6 +131,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 Err(_) => break,
             },
             Some(got) = from_gcs.recv() => g.on_gcs_read(got).await,
+            Ok(s) = status.recv_async() => g.on_status(&s),
             _ = stats.tick() => info!(to_gcs = g.down, from_gcs = g.up, refused = ?g.router.refused, "gateway"),
             sig = stop.recv() => { info!(signal = sig, "stopping"); break }
         }
@@ -158,6 +166,28 @@ impl Gateway {
                     }
                 }
             }
+        }
+    }
+
+    /// The server's status: a STATUSTEXT for each vehicle whose sensor's verdict changed.
+    fn on_status(&mut self, s: &fleet_net::zenoh::sample::Sample) {
+        // A status carries no cells: any grid decodes it.
+        let ctx =
+            fleet_mission::protocol::Context::new(fleet_mission::grid::Grid::new(1, 1, 1.0).expect("a 1 x 1 grid"));
+        let bytes = s.payload().to_bytes();
+        let Ok(fleet_mission::protocol::Body::Status(status)) = fleet_mission::protocol::decode(&bytes, &ctx) else {
+            return debug!("a server status the gateway could not read");
+        };
+        for (h, m) in self.health.of(&status, &self.router) {
+            if let mavlink::dialects::ardupilotmega::MavMessage::STATUSTEXT(t) = &m {
+                info!(
+                    system = h.system_id,
+                    text = t.text.to_str().unwrap_or_default(),
+                    "sensor health to the ground station"
+                );
+            }
+            let _ = self.gcs.send(&h, &m);
+            self.down += 1;
         }
     }
 
