@@ -3,6 +3,7 @@
 
 use fleet::experiment::team::{self, TeamConfig};
 use fleet::grid::Grid;
+use fleet::mission::schedule::Schedule;
 use fleet::mission::server::{Ingested, ServerCore};
 use fleet::mission::vehicle::VehicleBrain;
 use fleet::mission::vehicle_rng;
@@ -780,4 +781,134 @@ fn instrument_readings_enter_at_their_own_steps_with_their_own_noise() {
         assert!(server.ingest(bad).is_err());
     }
     assert!(server.ingest(boat(&[10, 12, 14], true)).is_ok());
+}
+
+/// boat-1's probe stuck in epoch 3 (every value the same; it samples one step an epoch), true before and after: the
+/// mission's batches, with the stuck ones, as the live server took them (its plans).
+fn a_probe_stuck_in_epoch_3() -> (ServerCore, Vec<MeasurementBatch>, Grid, TeamConfig, usize) {
+    let (truth, grid, cfg) = plume_team();
+    let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
+    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+    let mut brains = brains_of(&server, &cfg, grid);
+    let mut all = vec![];
+    for e in 0..server.schedule().epochs() {
+        for brain in &mut brains {
+            brain.set_plan(server.plan(&brain.id, e, 2).expect("plan"));
+            let Some(mut b) = brain.sense_epoch(e, x).unwrap() else {
+                continue;
+            };
+            if brain.id == "boat-1" && (3..=3).contains(&e) {
+                b.samples
+                    .iter_mut()
+                    .for_each(|s| s.values.iter_mut().for_each(|v| *v = 0.5));
+            }
+            all.push(b.clone());
+            server.ingest(b).unwrap();
+        }
+    }
+    assert!(server.finished());
+    (server, all, grid, cfg, truth.frames())
+}
+
+/// The same batches fed in order to a fresh server, with `adjust` applied first.
+fn fed(
+    all: &[MeasurementBatch],
+    grid: Grid,
+    cfg: &TeamConfig,
+    frames: usize,
+    adjust: impl FnOnce(&mut ServerCore),
+) -> ServerCore {
+    let mut s = ServerCore::new(cfg, grid, frames).unwrap();
+    adjust(&mut s);
+    all.iter().for_each(|b| drop(s.ingest(b.clone()).unwrap()));
+    assert!(s.finished());
+    s
+}
+
+fn same_model(a: &ServerCore, b: &ServerCore) {
+    assert_eq!(a.snapshots, b.snapshots);
+    assert_eq!(a.variances, b.variances);
+    let (a, b) = (a.model_update().unwrap(), b.model_update().unwrap());
+    assert_eq!((a.eigenvalues, a.modes_re), (b.eigenvalues, b.modes_re));
+}
+
+/// A stuck probe is excluded at its first stuck step and re-admitted once it reads true
+/// again; the server then re-fits from its clean steps, so the model is exactly the one of a
+/// fleet whose sensor never failed and simply said nothing while stuck (same batches, the
+/// stuck samples taken out). Without the re-fit the clean steps it was still excluded over
+/// would be missing, and the models would differ.
+#[test]
+fn a_sensor_that_reads_true_again_is_readmitted_to_the_model_of_a_fleet_it_never_failed() {
+    let (server, all, grid, cfg, frames) = a_probe_stuck_in_epoch_3();
+    let health = server.sensor_health();
+    assert_eq!(health["boat-1"].state, fleet::protocol::Health::Ok);
+    let verdicts = server.verdicts();
+    assert!(verdicts
+        .iter()
+        .any(|v| v.to == fleet::protocol::Health::Excluded && v.reason.starts_with("stuck")));
+    assert!(server.counters.readmissions >= 1, "re-admitted with a re-fit");
+    let silent: Vec<MeasurementBatch> = all
+        .iter()
+        .cloned()
+        .map(|mut b| {
+            if b.vehicle == "boat-1" && (3..=3).contains(&Schedule::epoch_of(b.kind, b.seq)) {
+                b.samples.clear();
+            }
+            b
+        })
+        .collect();
+    let never_failed = fed(&silent, grid, &cfg, frames, |_| {});
+    let boat1 = |s: &ServerCore| {
+        s.verdicts_at(0..frames)
+            .into_iter()
+            .filter(|v| v.vehicle == "boat-1")
+            .count()
+    };
+    assert_eq!(boat1(&never_failed), 0, "the silent boat is never marked");
+    same_model(&server, &never_failed);
+}
+
+/// The operator's override of a verdict re-fits the model from its step: boat-1 trusted from
+/// step 0 gives the model of a server told so before the first batch, and a server restored
+/// from the journal's batches and records (the override among them) gives it too.
+#[test]
+fn an_operators_override_refits_and_survives_a_restart() {
+    let (mut server, all, grid, cfg, frames) = a_probe_stuck_in_epoch_3();
+    server.take_journal_records();
+    let trust = fleet::protocol::SensorOverride {
+        vehicle: "boat-1".parse().unwrap(),
+        from_step: 0,
+        set: Some(fleet::protocol::Health::Ok),
+    };
+    let before = server.snapshots.clone();
+    server.override_sensor(&trust).unwrap();
+    assert!(server.settle().unwrap(), "a step in the model re-fits");
+    assert_ne!(server.snapshots, before, "the stuck values are in the model now");
+    let boat1 = server
+        .verdicts_at(0..frames)
+        .into_iter()
+        .filter(|v| v.vehicle == "boat-1")
+        .count();
+    assert_eq!(boat1, 0, "a trusted sensor is never marked");
+    let told_first = fed(&all, grid, &cfg, frames, |s| s.override_sensor(&trust).unwrap());
+    same_model(&server, &told_first);
+    let records = server.take_journal_records();
+    assert!(
+        records.iter().any(|(k, _)| k == "sensor/boat-1/0000000000"),
+        "{records:?}"
+    );
+    let mut restored = ServerCore::new(&cfg, grid, frames).unwrap();
+    restored.restore(all.clone(), &records).unwrap();
+    same_model(&server, &restored);
+    for bad in [
+        ("boat-9", 0, Some(fleet::protocol::Health::Ok)),
+        ("boat-1", 10_000, None),
+    ] {
+        let o = fleet::protocol::SensorOverride {
+            vehicle: bad.0.parse().unwrap(),
+            from_step: bad.1,
+            set: bad.2,
+        };
+        assert!(server.override_sensor(&o).is_err(), "{o:?} refused");
+    }
 }

@@ -42,6 +42,9 @@ pub enum ServerEvent {
     },
     /// A sensor's verdict changed ([`crate::health`]): from what to what, at which step, why.
     Sensor(crate::protocol::SensorVerdict),
+    /// The operator's verdict on a sensor, taken (the model re-fitted from its step when that
+    /// was in it already).
+    Override(crate::protocol::SensorOverride),
     /// A late batch (of an epoch assimilated without it) is in the model: re-fitted and
     /// published as `version`.
     Late {

@@ -129,8 +129,20 @@ struct Sensor {
     up: f64,
     down: f64,
     clean: u32,
+    /// The step the clean steps in a row began at.
+    clean_since: u64,
     /// Whether each of the last ten frames was refused (aerials).
     frames: VecDeque<bool>,
+}
+
+/// A verdict decided outside the tests for one step: the operator's (`ok` trusts every value
+/// as it came, `excluded` withholds them), or the server's re-admission of a sensor that read
+/// true again over the clean steps it was still marked for (their values then count as they
+/// came, as they would have for a sensor never marked).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Pin {
+    pub health: Health,
+    pub reason: String,
 }
 
 /// One test of one sensor at one step.
@@ -168,6 +180,9 @@ impl Sensor {
             (Health::Ok, String::new())
         };
         let clean = !c.stuck && c.refused == 0 && !c.frame_refused && z.abs() < CLEAN_Z;
+        if clean && self.clean == 0 {
+            self.clean_since = step;
+        }
         self.clean = if clean { self.clean + 1 } else { 0 };
         let next = match (self.health, to) {
             (now, to) if to > now => to,
@@ -198,6 +213,27 @@ impl Sensor {
     }
 }
 
+impl Sensor {
+    /// The verdict `pin` sets for this step, whatever the tests say (their sums start again
+    /// from it: a pinned sensor owes nothing to the readings before).
+    fn pinned(&mut self, vehicle: usize, step: u64, pin: &Pin) -> Option<Verdict> {
+        (self.up, self.down, self.clean) = (0.0, 0.0, 0);
+        self.frames.clear();
+        if self.health == pin.health {
+            return None;
+        }
+        let from = std::mem::replace(&mut self.health, pin.health);
+        self.reason = pin.reason.clone();
+        Some(Verdict {
+            vehicle,
+            step,
+            from,
+            to: pin.health,
+            reason: pin.reason.clone(),
+        })
+    }
+}
+
 /// The tests and verdicts of a mission's sensors (a value: part of the assimilator's state,
 /// so a checkpoint holds it and a re-fit replays it).
 #[derive(Debug, Clone, Default)]
@@ -207,6 +243,10 @@ pub struct Screen {
     quadrant_bias: RobustScale,
     sensors: BTreeMap<usize, Sensor>,
     verdicts: Vec<Verdict>,
+    /// The verdicts decided outside the tests for the step being screened, by vehicle.
+    pins: BTreeMap<usize, Pin>,
+    /// Boats re-admitted by their tests, with the step their clean steps began at.
+    readmitted: Vec<(usize, u64)>,
     pub counts: Screened,
 }
 
@@ -243,6 +283,34 @@ impl Screen {
     /// The verdicts that changed since the last call.
     pub fn take_verdicts(&mut self) -> Vec<Verdict> {
         std::mem::take(&mut self.verdicts)
+    }
+
+    /// The verdicts decided outside the tests for the next steps screened (until the next call).
+    pub fn pin(&mut self, pins: BTreeMap<usize, Pin>) {
+        self.pins = pins;
+    }
+
+    /// The boats re-admitted by their tests since the last call, each with the step its clean
+    /// steps began at (the server re-fits from there with the sensor pinned `ok` over them).
+    pub fn take_readmissions(&mut self) -> Vec<(usize, u64)> {
+        std::mem::take(&mut self.readmitted)
+    }
+
+    /// Sensor `v`'s verdict after this step's check, or its pin's (and whether pinned); a
+    /// re-admission noted when `readmit` (a boat: its values counted less while it was marked).
+    fn judge(&mut self, v: usize, step: u64, check: Check, readmit: bool) -> (Health, bool) {
+        self.counts.checks += 1;
+        let sensor = self.sensors.entry(v).or_default();
+        let Some(pin) = self.pins.get(&v) else {
+            let changed = sensor.observe(v, step, check);
+            if let Some(c) = changed.as_ref().filter(|c| readmit && c.to == Health::Ok) {
+                self.readmitted.push((c.vehicle, sensor.clean_since));
+            }
+            self.verdicts.extend(changed);
+            return (sensor.health, false);
+        };
+        self.verdicts.extend(sensor.pinned(v, step, pin));
+        (sensor.health, true)
     }
 
     /// The boats' samples of step `step`, tested against `reference` (the aerials' estimate of
@@ -297,12 +365,13 @@ impl Screen {
                 refused: keep.iter().filter(|k| !**k).count(),
                 frame_refused: false,
             };
-            self.counts.checks += 1;
-            let sensor = self.sensors.entry(v).or_default();
-            self.verdicts.extend(sensor.observe(v, step, check));
-            let health = self.sensors[&v].health;
+            let (health, pinned) = self.judge(v, step, check, true);
             if health == Health::Excluded {
                 self.counts.withheld += s.values.len() as u64;
+                continue;
+            }
+            if pinned {
+                out.push(s); // trusted as it came
                 continue;
             }
             let weight = if health == Health::Suspect {
@@ -368,9 +437,17 @@ impl Screen {
                 refused: refused_quadrants.iter().filter(|r| **r).count(),
                 frame_refused: frame_refused || refused_quadrants.iter().any(|r| *r),
             };
-            self.counts.checks += 1;
-            let sensor = self.sensors.entry(v).or_default();
-            self.verdicts.extend(sensor.observe(v, step, check));
+            match self.judge(v, step, check, false) {
+                (Health::Excluded, _) => {
+                    self.counts.withheld += s.values.len() as u64;
+                    continue;
+                }
+                (_, true) => {
+                    out.push(s); // trusted as it came, and no measure of the healthy frames
+                    continue;
+                }
+                _ => {}
+            }
             if frame_refused {
                 self.counts.frames_refused += 1;
                 continue;

@@ -57,6 +57,8 @@ pub enum CoreOp {
         vehicle: crate::protocol::VehicleId,
         available: bool,
     },
+    /// `ServerCore::override_sensor` from the operator, then `ServerCore::settle`.
+    Override(crate::protocol::SensorOverride),
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -528,6 +530,12 @@ impl Replayer<'_> {
             CoreOp::Force => core.force().map(drop).map_err(|e| fail(e.to_string()))?,
             CoreOp::Available { vehicle, available } => {
                 core.set_available(vehicle, *available);
+            }
+            CoreOp::Override(o) => {
+                // A refused override is part of what happened too: the core took nothing.
+                if core.override_sensor(o).is_ok() {
+                    core.settle().map_err(|e| fail(e.to_string()))?;
+                }
             }
         }
         Ok(())

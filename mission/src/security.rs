@@ -110,7 +110,13 @@ pub fn access_control(mission: &MissionConfig, tls: bool) -> Result<Value, Proto
                 &["put"],
                 &[k.all_mavlink(), k.server_status()],
             ),
-            rule("gcs-gateway/put", "ingress", &["put"], &[k.all_gcs()]),
+            // The operator's commands: frames to the autopilots, verdicts on sensors.
+            rule(
+                "gcs-gateway/put",
+                "ingress",
+                &["put"],
+                &[k.all_gcs(), k.all_sensor_overrides()],
+            ),
             rule(
                 "gcs-gateway/token",
                 "ingress",

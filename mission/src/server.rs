@@ -8,7 +8,7 @@
 //! without a disk sends an empty batch). An epoch is complete when every batch for it is in.
 
 use crate::grid::Grid;
-use crate::health::{Health, Tagged, Verdict};
+use crate::health::{Health, Pin, Tagged, Verdict, CLEAN_STEPS};
 use crate::protocol::{self, Ack, MeasurementBatch, ModelUpdate, Plan, Sample, Target, VehicleId, VehicleKind};
 use crate::team::{LearnFrom, TeamConfig, TeamError};
 use crate::{schedule::Schedule, Allocation, Assimilator};
@@ -35,6 +35,10 @@ pub enum Ingested {
     /// `ingest_deferred`, once `settle` has run).
     Refitted(u64),
 }
+
+/// The journal's metadata key prefix of the operator's sensor overrides
+/// (`sensor/<vehicle>/<step>`, zero-padded: key order is step order per vehicle).
+pub const OVERRIDE_PREFIX: &str = "sensor/";
 
 /// Why [`ServerCore::check`] refuses a batch.
 enum BatchFault {
@@ -107,6 +111,12 @@ pub struct Counters {
     /// Zenoh sessions the router refused at the handshake (wrong or missing credentials).
     #[serde(default)]
     pub sessions_refused: u64,
+    /// Sensors re-admitted by their tests (each re-fits from its clean steps), and the
+    /// operator's overrides taken.
+    #[serde(default)]
+    pub readmissions: u64,
+    #[serde(default)]
+    pub overrides: u64,
 }
 
 #[derive(Clone)]
@@ -157,6 +167,16 @@ pub struct ServerCore {
     skills: BTreeMap<u64, crate::protocol::EpochSkill>,
     /// The sensors' verdicts that changed, by step (a re-fit writes its steps again).
     verdicts: BTreeMap<usize, Vec<Verdict>>,
+    /// The operator's overrides by vehicle, then the step each takes effect from (`None`: the
+    /// tests decide again); journalled, and those not yet journalled.
+    overrides: BTreeMap<usize, BTreeMap<u64, Option<Health>>>,
+    unjournalled_overrides: BTreeSet<(usize, u64)>,
+    /// Boats re-admitted by their tests: by vehicle, the first and last of the clean steps that
+    /// re-admitted it (pinned `ok` when re-fitted: their values count as they came). Derived
+    /// from the batches, so a re-fit from before one forgets it and finds it again.
+    readmissions: BTreeMap<usize, BTreeMap<u64, u64>>,
+    /// The earliest step a re-admission found since the last re-fit re-fits from.
+    readmit_from: Option<u64>,
 }
 
 impl ServerCore {
@@ -184,6 +204,10 @@ impl ServerCore {
             innovations: BTreeMap::new(),
             skills: BTreeMap::new(),
             verdicts: BTreeMap::new(),
+            overrides: BTreeMap::new(),
+            unjournalled_overrides: BTreeSet::new(),
+            readmissions: BTreeMap::new(),
+            readmit_from: None,
             forced: BTreeSet::new(),
             unjournalled: BTreeSet::new(),
         })
@@ -257,6 +281,7 @@ impl ServerCore {
             return Ok(false);
         }
         self.assimilate_epoch(e)?;
+        self.readmit()?;
         self.counters.forced += 1;
         self.forced.insert(e);
         self.unjournalled.insert(e);
@@ -268,6 +293,81 @@ impl ServerCore {
     fn assimilate_complete(&mut self) -> Result<(), TeamError> {
         while self.epoch_complete(self.epoch) {
             self.assimilate_epoch(self.epoch)?;
+            self.readmit()?;
+        }
+        Ok(())
+    }
+
+    /// Re-fit from the clean steps of each boat its tests re-admitted since the last call, with
+    /// the boat pinned `ok` over them: a sensor that reads true again owes the model nothing
+    /// (the model is then the one a fleet whose sensor never failed makes of the same values).
+    fn readmit(&mut self) -> Result<(), TeamError> {
+        while let Some(step) = self.readmit_from.take() {
+            self.stale_from = self.stale_from.min(self.schedule.epoch_of_step(step as usize));
+            self.refit()?;
+            self.counters.readmissions += 1;
+        }
+        Ok(())
+    }
+
+    /// The verdicts decided outside the tests at step `k`: re-admissions, then the operator's.
+    fn pins_at(&self, k: u64) -> BTreeMap<usize, Pin> {
+        let mut pins = BTreeMap::new();
+        for (&v, r) in &self.readmissions {
+            if r.range(..=k).next_back().is_some_and(|(_, &until)| k <= until) {
+                let reason = format!("reads true again ({CLEAN_STEPS} clean steps)");
+                pins.insert(
+                    v,
+                    Pin {
+                        health: Health::Ok,
+                        reason,
+                    },
+                );
+            }
+        }
+        for (&v, o) in &self.overrides {
+            if let Some((_, Some(health))) = o.range(..=k).next_back() {
+                let reason = match health {
+                    Health::Ok => "trusted by the operator",
+                    _ => "excluded by the operator",
+                };
+                pins.insert(
+                    v,
+                    Pin {
+                        health: *health,
+                        reason: reason.into(),
+                    },
+                );
+            }
+        }
+        pins
+    }
+
+    /// The operator's verdict on `vehicle`'s sensor from step `from_step` on (`None`: the tests
+    /// decide again). Journalled ([`Self::take_journal_records`]); a step already in the model
+    /// re-fits it from there at the next [`Self::settle`]. Refused (with why) for a vehicle not
+    /// in the mission, a step past its end, or `suspect` (a sensor is trusted or not).
+    pub fn override_sensor(&mut self, o: &protocol::SensorOverride) -> Result<(), String> {
+        let v = self
+            .vehicles
+            .index_of(&o.vehicle)
+            .ok_or_else(|| format!("{} is not a vehicle of the mission", o.vehicle))?;
+        if o.from_step as usize >= self.schedule.frames {
+            return Err(format!(
+                "step {} is past the mission's end ({} steps)",
+                o.from_step, self.schedule.frames
+            ));
+        }
+        if o.set == Some(Health::Suspect) {
+            return Err("an operator sets a sensor ok or excluded, or hands it back to the tests".into());
+        }
+        self.overrides.entry(v).or_default().insert(o.from_step, o.set);
+        self.unjournalled_overrides.insert((v, o.from_step));
+        self.counters.overrides += 1;
+        let e = self.schedule.epoch_of_step(o.from_step as usize);
+        if e < self.epoch {
+            self.stale = true;
+            self.stale_from = self.stale_from.min(e);
         }
         Ok(())
     }
@@ -317,7 +417,6 @@ impl ServerCore {
             self.plans.insert(upto, p);
         }
         self.version = version + 1;
-        self.counters.refits += 1;
         Ok(())
     }
 
@@ -373,8 +472,15 @@ impl ServerCore {
         if !self.stale {
             return Ok(false);
         }
+        // Re-admissions found after the late epoch's start were found without its batches.
+        let first = self.steps_of(self.stale_from.min(self.epoch)).start as u64;
+        self.readmissions
+            .values_mut()
+            .for_each(|r| r.retain(|_, until| *until < first));
         self.refit()?;
+        self.counters.refits += 1;
         self.stale = false;
+        self.readmit()?;
         self.assimilate_complete()?;
         Ok(true)
     }
@@ -480,6 +586,19 @@ impl ServerCore {
     /// metadata (key, CBOR): the node commits them with the batch that caused them, before any
     /// plan of those epochs is handed out.
     pub fn take_journal_records(&mut self) -> Vec<(String, Vec<u8>)> {
+        let overrides = std::mem::take(&mut self.unjournalled_overrides)
+            .into_iter()
+            .map(|(v, step)| {
+                let o = protocol::SensorOverride {
+                    vehicle: self.vehicles.at(v).id.clone(),
+                    from_step: step,
+                    set: self.overrides[&v][&step],
+                };
+                let mut bytes = vec![];
+                ciborium::into_writer(&o, &mut bytes).expect("a record serialises");
+                (format!("{OVERRIDE_PREFIX}{}/{step:010}", o.vehicle), bytes)
+            });
+        let overrides: Vec<(String, Vec<u8>)> = overrides.collect();
         std::mem::take(&mut self.unjournalled)
             .into_iter()
             .map(|e| {
@@ -497,6 +616,7 @@ impl ServerCore {
                 .expect("a record serialises");
                 (EpochRecord::key(e), bytes)
             })
+            .chain(overrides)
             .collect()
     }
 
@@ -511,6 +631,11 @@ impl ServerCore {
     ) -> Result<u64, RestoreError> {
         for (key, bytes) in records {
             let bad = |why: String| RestoreError::Record { key: key.clone(), why };
+            if key.starts_with(OVERRIDE_PREFIX) {
+                let o: protocol::SensorOverride = ciborium::from_reader(&bytes[..]).map_err(|e| bad(e.to_string()))?;
+                self.override_sensor(&o).map_err(bad)?;
+                continue;
+            }
             let e: u64 = key
                 .strip_prefix(EpochRecord::PREFIX)
                 .and_then(|n| n.parse().ok())
@@ -558,9 +683,12 @@ impl ServerCore {
                 self.counters.forced += 1;
             }
             self.assimilate_epoch(self.epoch)?;
+            self.readmit()?;
         }
         self.held = self.holds.get(&self.epoch).cloned().unwrap_or_default();
         self.unjournalled.clear();
+        self.unjournalled_overrides.clear();
+        (self.stale, self.stale_from) = (false, u64::MAX);
         Ok(n)
     }
 
@@ -596,6 +724,34 @@ impl ServerCore {
             .collect()
     }
 
+    /// Step `k`'s readings tested ([`crate::health`]), with the verdicts decided outside the
+    /// tests pinned: the aerials' estimate of the step, and the boats' samples the fusion may
+    /// use. Notes the verdicts that changed and the re-admissions.
+    fn screened(
+        &mut self,
+        batches: &BTreeMap<usize, MeasurementBatch>,
+        k: usize,
+        ahead: u64,
+    ) -> Result<(crate::AerialSight, Vec<Sample>), TeamError> {
+        let pins = self.pins_at(k as u64);
+        self.assim.screen().pin(pins);
+        let aerials = Self::tagged_at(batches, VehicleKind::Aerial, k);
+        let aerials = self.assim.screen_aerials(k as u64, ahead, aerials);
+        let aerial = self.assim.aerial_estimate(&aerials)?;
+        let boats = Self::tagged_at(batches, VehicleKind::Boat, k);
+        let boats = self.assim.screen_boats(k as u64, ahead, boats, &aerial)?;
+        for (v, since) in self.assim.screen().take_readmissions() {
+            self.readmissions.entry(v).or_default().insert(since, k as u64);
+            self.readmit_from = Some(self.readmit_from.map_or(since, |r| r.min(since)));
+        }
+        let verdicts = self.assim.screen().take_verdicts();
+        match verdicts.is_empty() {
+            true => self.verdicts.remove(&k),
+            false => self.verdicts.insert(k, verdicts),
+        };
+        Ok((aerial, boats))
+    }
+
     fn assimilate_epoch(&mut self, e: u64) -> Result<(), TeamError> {
         if e > 0 && e.is_multiple_of(CHECKPOINT_EVERY) {
             let steps = self.snapshots.len();
@@ -622,17 +778,8 @@ impl ServerCore {
             let (mut epoch, mut learn) = (vec![], vec![]);
             for k in steps {
                 let ahead = (k + 1 - k0) as u64;
-                let aerials = Self::tagged_at(&batches, VehicleKind::Aerial, k);
-                let aerials = self.assim.screen_aerials(k as u64, ahead, aerials);
-                let aerial = self.assim.aerial_estimate(&aerials)?;
+                let (aerial, boats) = self.screened(&batches, k, ahead)?;
                 self.aerial_estimates.push(aerial.estimate.values.clone());
-                let boats = Self::tagged_at(&batches, VehicleKind::Boat, k);
-                let boats = self.assim.screen_boats(k as u64, ahead, boats, &aerial)?;
-                let verdicts = self.assim.screen().take_verdicts();
-                match verdicts.is_empty() {
-                    true => self.verdicts.remove(&k),
-                    false => self.verdicts.insert(k, verdicts),
-                };
                 let (boats, held) = crate::holdout::split(boats, self.holdout_share, self.cfg.boat_sigma);
                 let fused = self.assim.fuse_step(ahead, &aerial, &boats)?;
                 if let Some(i) = self.assim.take_innovation() {

@@ -10,7 +10,7 @@ use fleet_mission::events::{Percentiles, ServerEvent, ServerSummary};
 use fleet_mission::process::FieldSeries;
 use fleet_mission::protocol::{self, keys::Keys, AutopilotLink, Body, Context, ServerStatus, VehicleId};
 use fleet_mission::recording::{self, CoreOp, Recorder, RecordingError};
-use fleet_mission::server::{EpochRecord, IngestError, Ingested, ServerCore};
+use fleet_mission::server::{EpochRecord, IngestError, Ingested, ServerCore, OVERRIDE_PREFIX};
 use fleet_net::store::{Store, StoreError};
 use fleet_net::{zenoh, Role};
 use std::collections::{BTreeMap, BTreeSet};
@@ -192,6 +192,7 @@ impl Server {
             behind: self.behind.clone(),
             skill: self.core.skills().last().copied(),
             health: self.core.sensor_health(),
+            overrides: self.core.counters.overrides,
         }
     }
 
@@ -647,6 +648,47 @@ impl Server {
         }
     }
 
+    /// The operator's verdict on a sensor (from the ground station's seat: the access control
+    /// lets no one else put there): journalled, then the model re-fitted from its step.
+    async fn on_override(&mut self, session: &zenoh::Session, sample: &zenoh::sample::Sample) -> anyhow::Result<()> {
+        let key = sample.key_expr().as_str();
+        self.record(key, &sample.payload().to_bytes());
+        let ours = |o: &protocol::SensorOverride| {
+            self.keys.id_after(key, "server/sensor").as_deref() == Some(o.vehicle.as_str())
+        };
+        let o = match fleet_net::decode(sample, &self.ctx) {
+            Ok(Body::Override(o)) if ours(&o) => o,
+            Ok(Body::Override(o)) => {
+                self.refuse("key_mismatch", format!("{key} carries an override of {}", o.vehicle));
+                return Ok(());
+            }
+            Ok(_) => {
+                self.refuse("wrong_type", format!("{key}: not a sensor override"));
+                return Ok(());
+            }
+            Err(e) => {
+                self.refuse(e.reason(), format!("{key}: {e}"));
+                return Ok(());
+            }
+        };
+        self.record_op(CoreOp::Override(o.clone()));
+        if let Err(why) = self.core.override_sensor(&o) {
+            self.refuse("invalid_override", format!("{key}: {why}"));
+            return Ok(());
+        }
+        let set = o.set.map_or_else(|| "back to its tests".to_string(), |h| h.to_string());
+        warn!(vehicle = %o.vehicle, from_step = o.from_step, set, "sensor verdict set by the operator");
+        self.journal(None)?;
+        self.event(&ServerEvent::Override(o));
+        let t0 = Instant::now();
+        if self.core.settle()? {
+            self.journal(None)?;
+            let done = (0..self.core.next_epoch()).collect();
+            self.model_changed(session, done, t0, true).await?;
+        }
+        Ok(())
+    }
+
     fn summary(&self) -> ServerSummary {
         let eigenvalues = self.core.model_update().map(|m| m.eigenvalues).unwrap_or_default();
         ServerSummary {
@@ -753,6 +795,10 @@ fn open_journal(
     }
     let records = journal
         .meta_with_prefix(EpochRecord::PREFIX)
+        .and_then(|mut r| {
+            r.extend(journal.meta_with_prefix(OVERRIDE_PREFIX)?);
+            Ok(r)
+        })
         .map_err(|e| damaged(e.to_string()))?;
     let n = core.restore(batches, &records).map_err(|e| damaged(e.to_string()))?;
     let restore = (!raw.is_empty() || !records.is_empty()).then(|| CoreOp::Restore {
@@ -799,6 +845,7 @@ struct Inputs {
     plans: Queries,
     models: Queries,
     telemetry: Samples,
+    overrides: Samples,
     links: Samples,
     _token: zenoh::liveliness::LivelinessToken,
 }
@@ -828,6 +875,10 @@ impl Inputs {
                 .declare_subscriber(keys.telemetry("*"))
                 .await
                 .map_err(e("the telemetry"))?,
+            overrides: session
+                .declare_subscriber(keys.all_sensor_overrides())
+                .await
+                .map_err(e("the sensor overrides"))?,
             links: links.map_err(e("the vehicles' liveliness"))?,
             _token: session
                 .liveliness()
@@ -940,6 +991,7 @@ impl Server {
                 r = inputs.plans.recv_async() => if let Ok(q) = r { self.on_plan_query(q).await },
                 r = inputs.models.recv_async() => if let Ok(q) = r { self.on_model_query(q).await },
                 r = inputs.telemetry.recv_async() => if let Ok(sample) = r { self.on_telemetry(&sample) },
+                r = inputs.overrides.recv_async() => if let Ok(sample) = r { self.on_override(session, &sample).await? },
                 r = inputs.links.recv_async() => if let Ok(sample) = r {
                     self.on_liveliness(sample.key_expr().as_str(), sample.kind())
                 },

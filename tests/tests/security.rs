@@ -289,7 +289,55 @@ fn secured_fleet(tls: bool) {
         }
         assert_eq!(dup, c.duplicates + 1, "the replay was seen as a duplicate");
         assert_eq!(get_version().await, before, "and not assimilated");
+        // A vehicle may not set its own sensor's verdict: the router drops it.
+        let trust = fleet::protocol::SensorOverride {
+            vehicle: "boat-1".parse().unwrap(),
+            from_step: 0,
+            set: Some(fleet::protocol::Health::Ok),
+        };
+        let key = format!("{root_key}/server/sensor/boat-1");
+        put(&boat1, &key, protocol::encode(&Body::Override(trust))).await;
+        tokio::time::sleep(Duration::from_millis(2500)).await;
+        let mut newest = None;
+        while let Ok(Some(sample)) = status.try_recv() {
+            newest = Some(sample);
+        }
+        let Ok(Body::Status(s)) = fleet_net::decode(&newest.expect("a status"), &ctx) else {
+            panic!("not a status")
+        };
+        assert_eq!(s.overrides, 0, "a vehicle's override reached the server");
     });
+    operator_overrides_a_sensor(mp, &summary);
+}
+
+/// The operator, from the ground station's seat (`fleet-operator`, as the gateway's user),
+/// excludes boat-1's sensor from step 20: the server takes it and says so in its status, the
+/// model is re-fitted (a new version); a vehicle not in the mission is refused (exit 2).
+fn operator_overrides_a_sensor(mission: &str, summary: &fleet::mission::report::ServerSummary) {
+    let run = |args: &[&str]| {
+        std::process::Command::new(bin("fleet-operator"))
+            .args(["--mission", mission, "sensor"])
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let o = run(&["boat-1", "excluded", "--from-step", "20"]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(0), "{out}{}", String::from_utf8_lossy(&o.stderr));
+    let version: u64 = out
+        .trim()
+        .rsplit_once("version ")
+        .unwrap()
+        .1
+        .trim_end_matches(')')
+        .parse()
+        .unwrap();
+    assert!(
+        out.contains("its sensor is excluded") && version > summary.model_version,
+        "{out}"
+    );
+    let o = run(&["boat-9", "ok"]);
+    assert_eq!(o.status.code(), Some(2), "{}", String::from_utf8_lossy(&o.stderr));
 }
 
 #[test]

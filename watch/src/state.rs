@@ -192,7 +192,7 @@ impl View {
                 self.plans_taken += 1;
                 true
             }
-            Body::Batch(_) | Body::Ack(_) => false,
+            Body::Batch(_) | Body::Ack(_) | Body::Override(_) => false,
         }
     }
 
@@ -484,6 +484,7 @@ mod tests {
             behind: Default::default(),
             skill: None,
             health: Default::default(),
+            overrides: 0,
         };
         assert!(v.apply(Body::Status(status.clone())));
         assert!(v.liveliness("boat-1", false, 5.0));

@@ -547,6 +547,12 @@ fn on_event(
             "{}: sensor {} at step {} ({})",
             v.vehicle, v.to, v.step, v.reason
         )),
+        ServerEvent::Override(o) => notices.say(format!(
+            "{}: sensor {} from step {}, by the operator",
+            o.vehicle,
+            o.set.map_or_else(|| "back to its tests".to_string(), |h| h.to_string()),
+            o.from_step
+        )),
         ServerEvent::Finished { .. } => {}
     }
     Ok(())

@@ -109,6 +109,16 @@ impl Keys {
         format!("{ROOT}/{}/server/status", self.mission)
     }
 
+    /// The operator's verdict on a vehicle's sensor (only the ground station's seat, the
+    /// gateway's user, puts here).
+    pub fn sensor_override(&self, id: &str) -> String {
+        format!("{ROOT}/{}/server/sensor/{id}", self.mission)
+    }
+
+    pub fn all_sensor_overrides(&self) -> String {
+        self.sensor_override("*")
+    }
+
     /// The vehicle id in a concrete key of this mission's vehicle space, if it is one.
     pub fn vehicle_of(&self, key: &str) -> Option<super::VehicleId> {
         self.id_after(key, "vehicle")?.parse().ok()

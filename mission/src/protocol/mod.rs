@@ -331,6 +331,13 @@ pub struct ServerStatus {
     /// Each tested sensor's verdict and why ([`crate::health`]).
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub health: std::collections::BTreeMap<VehicleId, SensorHealth>,
+    /// The operator's sensor overrides taken so far (a sender sees its own taken).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub overrides: u64,
+}
+
+fn is_zero(n: &u64) -> bool {
+    *n == 0
 }
 
 /// A sensor's verdict ([`crate::health`]).
@@ -376,6 +383,17 @@ pub struct SensorVerdict<V = VehicleId> {
     pub reason: String,
 }
 
+/// The operator's verdict on a sensor from a step on: `set` pins it (`ok`: every value trusted
+/// as it came; `excluded`: withheld), `None` hands it back to the tests. Sent by the ground
+/// station's seat on `server/sensor/<vehicle>`; the server journals it and re-fits from its
+/// step when that is already in the model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SensorOverride {
+    pub vehicle: VehicleId,
+    pub from_step: u64,
+    pub set: Option<Health>,
+}
+
 /// How much the model was worth in one epoch, as the filter measured it (no truth needed).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct EpochSkill {
@@ -399,6 +417,7 @@ pub enum Body {
     Model(ModelUpdate),
     Plan(Plan),
     Status(ServerStatus),
+    Override(SensorOverride),
 }
 
 #[derive(Serialize, Deserialize)]
@@ -443,6 +462,11 @@ impl Context {
             max_samples: 10_000,
             max_cells: grid.len(),
         }
+    }
+
+    /// For messages that carry no cells (the server's status, an override): any grid reads them.
+    pub fn cell_free() -> Self {
+        Self::new(Grid::new(1, 1, 1.0).expect("a 1 x 1 grid"))
     }
 }
 
@@ -582,6 +606,7 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
             }
         }
         Body::Ack(a) => vehicle(&a.vehicle, ctx)?,
+        Body::Override(o) => vehicle(&o.vehicle, ctx)?,
         Body::Model(m) => {
             if m.grid != ctx.grid {
                 return inv(format!("model grid {:?} is not ours {:?}", m.grid, ctx.grid));

@@ -171,9 +171,7 @@ impl Gateway {
 
     /// The server's status: a STATUSTEXT for each vehicle whose sensor's verdict changed.
     fn on_status(&mut self, s: &fleet_net::zenoh::sample::Sample) {
-        // A status carries no cells: any grid decodes it.
-        let ctx =
-            fleet_mission::protocol::Context::new(fleet_mission::grid::Grid::new(1, 1, 1.0).expect("a 1 x 1 grid"));
+        let ctx = fleet_mission::protocol::Context::cell_free();
         let bytes = s.payload().to_bytes();
         let Ok(fleet_mission::protocol::Body::Status(status)) = fleet_mission::protocol::decode(&bytes, &ctx) else {
             return debug!("a server status the gateway could not read");
