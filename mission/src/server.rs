@@ -976,9 +976,17 @@ impl ServerCore {
             }
             seq = Some(s);
         }
+        let sensor = self
+            .assim
+            .screen_state()
+            .health()
+            .remove(&index)
+            .filter(|(h, _)| *h != Health::Ok)
+            .map(|(state, reason)| protocol::SensorHealth { state, reason });
         Some(Ack {
             vehicle: vehicle.clone(),
             seq: seq?,
+            sensor,
         })
     }
 

@@ -136,10 +136,15 @@ fn wire_seeds() -> Vec<Vec<u8>> {
                 sent: [("batch".to_string(), [3, 12_000])].into(),
                 received: [("ack".to_string(), [3, 90])].into(),
             }),
+            sensor: Some(fleet::protocol::SensorHealth {
+                state: fleet::protocol::Health::Suspect,
+                reason: "biased high (CUSUM 7.0)".into(),
+            }),
         }),
         Body::Ack(Ack {
             vehicle: "boat-1".parse().unwrap(),
             seq: 9,
+            sensor: None,
         }),
         Body::Model(ModelUpdate {
             version: 1,

@@ -431,6 +431,13 @@ fn stuck_probe_is_excluded(out: &Path, id: &str, from: u64) {
         report.contains("## Sensor health") && report.contains("stuck"),
         "the report says so"
     );
+    // The vehicle hears it in its acks, logs it, and says it in its telemetry.
+    let log = std::fs::read_to_string(out.join(format!("logs/{id}.log"))).unwrap();
+    assert!(
+        log.lines()
+            .any(|l| l.contains("the server doubts this vehicle's sensor") && l.contains("excluded")),
+        "{id}'s log does not say its sensor was excluded"
+    );
 }
 
 /// `fleet assimilate` on the readings the live run into `out` logged makes its model again, byte

@@ -417,6 +417,7 @@ mod tests {
             acked: None,
             readings: None,
             traffic: None,
+            sensor: None,
         })
     }
 

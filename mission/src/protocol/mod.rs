@@ -142,6 +142,9 @@ pub struct Telemetry {
     /// What the vehicle has sent and received over its link so far, by key.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub traffic: Option<LinkTraffic>,
+    /// The server's verdict on its sensor when not ok, as its last ack said.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sensor: Option<SensorHealth>,
 }
 
 /// A vehicle's traffic so far, by what it is (`batch`, `telemetry`, `mavlink`, `plan_query`
@@ -238,6 +241,10 @@ pub struct AutopilotStatus {
 pub struct Ack {
     pub vehicle: VehicleId,
     pub seq: u64,
+    /// The vehicle's sensor verdict when it is not ok ([`crate::health`]; absent: ok), so the
+    /// vehicle knows, and says in its telemetry, that its readings are doubted.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sensor: Option<SensorHealth>,
 }
 
 /// The model the server publishes on `model/latest`.
@@ -728,10 +735,15 @@ mod tests {
                 acked: Some(3),
                 readings: None,
                 traffic: None,
+                sensor: None,
             }),
             Body::Ack(Ack {
                 vehicle: "boat-1".parse::<VehicleId>().unwrap(),
                 seq: 9,
+                sensor: Some(SensorHealth {
+                    state: Health::Excluded,
+                    reason: "stuck: its values repeat".into(),
+                }),
             }),
             Body::Model(ModelUpdate {
                 version: 1,

@@ -74,6 +74,8 @@ struct Vehicle {
     brain: VehicleBrain,
     outbox: Outbox,
     server_alive: bool,
+    /// The server's verdict on this vehicle's sensor when not ok (from its acks).
+    sensor: Option<fleet_mission::protocol::SensorHealth>,
     /// When the link to the server went down, and whether the link-loss failsafe acted.
     link_lost_at: Option<Instant>,
     link_failsafe: bool,
@@ -148,6 +150,7 @@ impl Vehicle {
         match fleet_net::decode(sample, &self.ctx) {
             Ok(Body::Ack(a)) if a.vehicle == self.brain.id => {
                 self.time_ack(a.seq);
+                self.sensor_verdict(a.sensor);
                 if let Err(e) = self.outbox.ack(a.seq) {
                     warn!("recording ack {}: {e:#}", a.seq);
                 }
@@ -166,6 +169,19 @@ impl Vehicle {
             Err(e) => warn!("refused an ack: {e}"),
         }
         Ok(())
+    }
+
+    /// The server's verdict on this vehicle's sensor, in its log when it changes (and in its
+    /// telemetry from now on).
+    fn sensor_verdict(&mut self, sensor: Option<fleet_mission::protocol::SensorHealth>) {
+        if sensor == self.sensor {
+            return;
+        }
+        match &sensor {
+            Some(s) => warn!(state = %s.state, reason = %s.reason, "the server doubts this vehicle's sensor"),
+            None => info!("the server trusts this vehicle's sensor again"),
+        }
+        self.sensor = sensor;
     }
 
     /// The ack covers `seq`: the batches it covers that went once are timed (the link's round
@@ -549,6 +565,7 @@ impl Vehicle {
             acked: self.outbox.acked(),
             readings: self.instrument.as_ref().map(readings::Instrument::counts),
             traffic: Some(self.traffic_now()),
+            sensor: self.sensor.clone(),
         };
         let bytes = protocol::encode(&Body::Telemetry(t.clone())).len();
         self.traffic.send("telemetry", bytes);
@@ -768,6 +785,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         brain,
         outbox,
         server_alive: false,
+        sensor: None,
         link_lost_at: None,
         link_failsafe: false,
         mavlink: mission.mavlink.clone(),
