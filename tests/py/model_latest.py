@@ -27,15 +27,17 @@ def main():
     sample = ok[0]
     assert str(sample.encoding).startswith("application/cbor"), sample.encoding
     m = cbor2.loads(sample.payload.to_bytes())
-    assert m["v"] == 2 and m["type"] == "model", (m["v"], m["type"])
+    assert m["v"] == 3 and m["type"] == "model", (m["v"], m["type"])
+    # Float arrays are packed little-endian f64 bytes (mission/src/protocol/floats.rs).
+    f8 = lambda k: np.frombuffer(m[k], "<f8")
     rows, cols = m["grid"]["rows"], m["grid"]["cols"]
     lam = np.array(m["eigenvalues"], dtype=float)
     r = lam.shape[0]
-    modes = np.array(m["modes_re"]).reshape(rows * cols, r) + 1j * np.array(m["modes_im"]).reshape(rows * cols, r)
+    modes = f8("modes_re").reshape(rows * cols, r) + 1j * f8("modes_im").reshape(rows * cols, r)
     assert r == summary["rank"], (r, summary["rank"])
     assert len(m["amplitudes"]) == r and len(m["variance"]) == rows * cols
     # The estimate's reported variance and the forecast's to the next boat step, per cell.
-    var, fvar = np.array(m["variance"]), np.array(m["forecast_variance"])
+    var, fvar = f8("variance"), f8("forecast_variance")
     assert fvar.shape == var.shape and m["forecast_steps"] > 0, (fvar.shape, m["forecast_steps"])
     assert np.all(var >= 0) and np.all(fvar >= 0) and np.all(np.isfinite(fvar)), "variances finite and >= 0"
     assert m["version"] == summary["model_version"], (m["version"], summary["model_version"])
@@ -45,7 +47,7 @@ def main():
     step = m["step"]
     for key in ("estimate", "variance"):
         kept = np.load(os.path.join(run, f"{key}.npy"))
-        sent = np.array(m[key], dtype=float)
+        sent = f8(key)
         assert sent.shape == (rows * cols,), (key, sent.shape)
         assert np.array_equal(kept[step].reshape(-1), sent), f"{key} on the wire differs from the server's {key}.npy at step {step}"
 

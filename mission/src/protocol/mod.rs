@@ -12,6 +12,7 @@
 //! it (see the README for a Python snippet). Cells travel as runs ([`cells`]).
 
 pub mod cells;
+pub mod floats;
 pub mod keys;
 mod vehicle_id;
 
@@ -21,9 +22,9 @@ use crate::grid::Grid;
 use serde::{Deserialize, Serialize};
 
 /// Schema version carried by every message; bumped on any incompatible change.
-pub const SCHEMA_VERSION: u16 = 2;
+pub const SCHEMA_VERSION: u16 = 3;
 /// Zenoh encoding set on every publication.
-pub const ENCODING: &str = "application/cbor;hetfleet-v2";
+pub const ENCODING: &str = "application/cbor;hetfleet-v3";
 /// Default size limit of one payload (a 384 x 768 model at rank 10 is ~50 MB; batches are
 /// far smaller). Receivers may lower it.
 pub const MAX_PAYLOAD: usize = 64 << 20;
@@ -80,6 +81,8 @@ pub struct Sample {
     /// on the wire as runs ([`cells`]).
     #[serde(with = "cells")]
     pub cells: Vec<u32>,
+    /// On the wire as packed bytes ([`floats`]).
+    #[serde(with = "floats")]
     pub values: Vec<f64>,
     /// Each value's own noise standard deviation, when an instrument said it (readings
     /// averaged in a cell, [`crate::instrument`]); absent, the batch's `noise` applies. Not
@@ -259,20 +262,24 @@ pub struct ModelUpdate {
     /// Discrete-time eigenvalues `[re, im]`, one per mode.
     pub eigenvalues: Vec<[f64; 2]>,
     /// Modes, row-major `N x r`, real and imaginary parts separately.
+    #[serde(with = "floats")]
     pub modes_re: Vec<f64>,
+    #[serde(with = "floats")]
     pub modes_im: Vec<f64>,
     pub amplitudes: Vec<[f64; 2]>,
     /// The newest fused estimate per cell (step `step`; the filter's posterior mean), which
     /// the modes alone do not hold (they leave out the filter's detail). Empty from a server
     /// that did not send it.
-    #[serde(default)]
+    #[serde(default, with = "floats")]
     pub estimate: Vec<f64>,
     /// Per-cell error variance the newest estimate (step `step`) reports: the fusion's
     /// posterior variance.
+    #[serde(with = "floats")]
     pub variance: Vec<f64>,
     /// How many steps after `step` the forecast variance is for (the next boat step).
     pub forecast_steps: u64,
     /// Per-cell variance of the forecast `forecast_steps` ahead.
+    #[serde(with = "floats")]
     pub forecast_variance: Vec<f64>,
     /// The cells off the model grid (no data in the truth: land), ascending; their values
     /// above are zeros that stand for nothing. Absent from a server without them.
@@ -796,6 +803,11 @@ mod tests {
             get("vehicle").and_then(|x| x.as_text().map(str::to_string)).as_deref(),
             Some("boat-1")
         );
+        // A sample's values: one byte string of packed f64s ([`floats`]), not a list.
+        let samples = get("samples").unwrap();
+        let first = samples.as_array().unwrap()[0].as_map().unwrap().clone();
+        let values = first.iter().find(|(k, _)| k.as_text() == Some("values")).unwrap();
+        assert!(values.1.is_bytes(), "{:?}", values.1);
     }
 
     #[test]
