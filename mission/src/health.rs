@@ -297,13 +297,18 @@ impl Screen {
     }
 
     /// Sensor `v`'s verdict after this step's check, or its pin's (and whether pinned); a
-    /// re-admission noted when `readmit` (a boat: its values counted less while it was marked).
+    /// re-admission noted when `readmit` (a boat) and it was excluded (its values withheld: a
+    /// suspect one's counted, down-weighted, and a re-fit for them is not worth its cost, which
+    /// grows with the grid).
     fn judge(&mut self, v: usize, step: u64, check: Check, readmit: bool) -> (Health, bool) {
         self.counts.checks += 1;
         let sensor = self.sensors.entry(v).or_default();
         let Some(pin) = self.pins.get(&v) else {
             let changed = sensor.observe(v, step, check);
-            if let Some(c) = changed.as_ref().filter(|c| readmit && c.to == Health::Ok) {
+            if let Some(c) = changed
+                .as_ref()
+                .filter(|c| readmit && c.from == Health::Excluded && c.to == Health::Ok)
+            {
                 self.readmitted.push((c.vehicle, sensor.clean_since));
             }
             self.verdicts.extend(changed);

@@ -111,7 +111,7 @@ pub struct Counters {
     /// Zenoh sessions the router refused at the handshake (wrong or missing credentials).
     #[serde(default)]
     pub sessions_refused: u64,
-    /// Sensors re-admitted by their tests (each re-fits from its clean steps), and the
+    /// Sensors re-admitted from `excluded` by their tests (each re-fits from its clean steps), and the
     /// operator's overrides taken.
     #[serde(default)]
     pub readmissions: u64,
@@ -171,7 +171,7 @@ pub struct ServerCore {
     /// tests decide again); journalled, and those not yet journalled.
     overrides: BTreeMap<usize, BTreeMap<u64, Option<Health>>>,
     unjournalled_overrides: BTreeSet<(usize, u64)>,
-    /// Boats re-admitted by their tests: by vehicle, the first and last of the clean steps that
+    /// Boats re-admitted from `excluded` by their tests: by vehicle, the first and last of the clean steps that
     /// re-admitted it (pinned `ok` when re-fitted: their values count as they came). Derived
     /// from the batches, so a re-fit from before one forgets it and finds it again.
     readmissions: BTreeMap<usize, BTreeMap<u64, u64>>,

@@ -32,7 +32,7 @@ impl ProjectedFit {
     pub fn decompose(
         &self,
         debias: Debias,
-        pairs: &SnapshotPairs,
+        pairs: Option<&SnapshotPairs>,
         xt: Option<MatRef<'_, f64>>,
     ) -> Result<Modes, DmdError> {
         match debias {
@@ -42,6 +42,7 @@ impl ProjectedFit {
                 Ok(Modes { eigenvalues, modes })
             }
             kind => {
+                let pairs = pairs.ok_or_else(|| DmdError::Unsupported("debiasing without the stored pairs".into()))?;
                 let computed;
                 let xt = match xt {
                     Some(xt) => xt,
@@ -130,7 +131,8 @@ impl Dmd for BatchDmd {
     }
 
     fn decompose(&self) -> Result<Modes, DmdError> {
-        self.fit.decompose(self.debias, &self.pairs, Some(self.xt.as_ref()))
+        self.fit
+            .decompose(self.debias, Some(&self.pairs), Some(self.xt.as_ref()))
     }
 
     fn rank(&self) -> usize {

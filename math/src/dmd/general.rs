@@ -21,6 +21,7 @@
 use super::batch::{exact_fit, ProjectedFit};
 use super::debias::Debias;
 use super::linalg::{div_cols, orthogonality_error, scale_cols_by, thin_svd};
+use super::snapshots::check_pairs;
 use super::{numerical_rank, Dmd, DmdError, Method, Modes, RankPolicy, SnapshotPairs};
 use faer::{Mat, MatRef};
 
@@ -31,7 +32,12 @@ pub const REORTH_TOL: f64 = 1e-13;
 
 #[derive(Clone, Debug)]
 pub struct GeneralDmd {
-    pairs: SnapshotPairs,
+    /// Every pair, kept only when the debiasing needs them (`Debias::None` does not: `yw`
+    /// carries `Y W` along, so a mission's history of full fields is not held in memory, nor
+    /// copied by every checkpoint); and how many pairs, of what dimension.
+    pairs: Option<SnapshotPairs>,
+    count: usize,
+    dim: usize,
     /// The rank rule applied after each update (energy / optimal are frozen to a number at init).
     rank: RankPolicy,
     debias: Debias,
@@ -45,6 +51,8 @@ pub struct GeneralDmd {
 impl GeneralDmd {
     pub fn init(x: MatRef<'_, f64>, y: MatRef<'_, f64>, rank: RankPolicy, debias: Debias) -> Result<Self, DmdError> {
         let pairs = SnapshotPairs::new(x, y)?;
+        let (count, dim) = (pairs.len(), pairs.dim());
+        let pairs = (debias != Debias::None).then_some(pairs);
         let (fit, _) = exact_fit(x, y, rank)?;
         let ProjectedFit { u, s, yws } = fit;
         let held = match rank {
@@ -54,6 +62,8 @@ impl GeneralDmd {
         let yw = scale_cols_by(yws, &s);
         Ok(Self {
             pairs,
+            count,
+            dim,
             rank: held,
             debias,
             u,
@@ -131,7 +141,11 @@ impl Dmd for GeneralDmd {
     }
 
     fn update(&mut self, x_new: MatRef<'_, f64>, y_new: MatRef<'_, f64>) -> Result<(), DmdError> {
-        self.pairs.push(x_new, y_new)?;
+        check_pairs(x_new, y_new, Some(self.dim))?;
+        if let Some(p) = &mut self.pairs {
+            p.push(x_new, y_new)?;
+        }
+        self.count += x_new.ncols();
         let (n, r, tau) = (self.u.nrows(), self.u.ncols(), x_new.ncols());
         let ut = self.u.transpose();
         let mut l = ut * x_new;
@@ -157,8 +171,8 @@ impl Dmd for GeneralDmd {
         z.submatrix_mut(r, r, k, tau).copy_from(&p);
         let zs = thin_svd(z.as_ref())?;
         let keep = match self.rank {
-            RankPolicy::Full => numerical_rank(&zs.s, n, self.pairs.len()),
-            policy => policy.select(&zs.s, n, self.pairs.len()),
+            RankPolicy::Full => numerical_rank(&zs.s, n, self.count),
+            policy => policy.select(&zs.s, n, self.count),
         }
         .max(1);
         let zs = zs.truncate(keep);
@@ -178,7 +192,7 @@ impl Dmd for GeneralDmd {
     }
 
     fn decompose(&self) -> Result<Modes, DmdError> {
-        self.projected().decompose(self.debias, &self.pairs, None)
+        self.projected().decompose(self.debias, self.pairs.as_ref(), None)
     }
 
     fn rank(&self) -> usize {
@@ -186,10 +200,10 @@ impl Dmd for GeneralDmd {
     }
 
     fn pairs(&self) -> usize {
-        self.pairs.len()
+        self.count
     }
 
     fn dim(&self) -> usize {
-        self.pairs.dim()
+        self.dim
     }
 }

@@ -1,7 +1,7 @@
 //! A growable, column-major store of snapshot pairs `(x_j, y_j)` with `y_j = A x_j`.
 //!
-//! The batch and general methods keep every pair (the paper's general method needs `Y`, and a
-//! late batch can only be folded in by re-fitting from the stored data).
+//! The batch method keeps every pair (it re-fits from them at every update); the general method
+//! only when its debiasing needs them (it carries `Y W` along, the paper's eq. 12).
 
 use super::DmdError;
 use faer::{Mat, MatRef};
