@@ -35,7 +35,7 @@ def main():
     r = lam.shape[0]
     modes = f8("modes_re").reshape(rows * cols, r) + 1j * f8("modes_im").reshape(rows * cols, r)
     assert r == summary["rank"], (r, summary["rank"])
-    assert len(m["amplitudes"]) == r and len(m["variance"]) == rows * cols
+    assert len(m["amplitudes"]) == r and len(f8("variance")) == rows * cols
     # The estimate's reported variance and the forecast's to the next boat step, per cell.
     var, fvar = f8("variance"), f8("forecast_variance")
     assert fvar.shape == var.shape and m["forecast_steps"] > 0, (fvar.shape, m["forecast_steps"])
