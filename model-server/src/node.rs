@@ -991,7 +991,9 @@ impl Server {
                 r = inputs.plans.recv_async() => if let Ok(q) = r { self.on_plan_query(q).await },
                 r = inputs.models.recv_async() => if let Ok(q) = r { self.on_model_query(q).await },
                 r = inputs.telemetry.recv_async() => if let Ok(sample) = r { self.on_telemetry(&sample) },
-                r = inputs.overrides.recv_async() => if let Ok(sample) = r { self.on_override(session, &sample).await? },
+                r = inputs.overrides.recv_async() => if let Ok(sample) = r {
+                    self.on_override(session, &sample).await?
+                },
                 r = inputs.links.recv_async() => if let Ok(sample) = r {
                     self.on_liveliness(sample.key_expr().as_str(), sample.kind())
                 },

@@ -49,6 +49,23 @@ enum What {
         #[arg(long, default_value = "48x96")]
         grid: String,
     },
+    /// The model server's epoch at each grid size (the core without the network): from the
+    /// batch that completes an epoch to the model encoded and every next plan answered.
+    Epoch {
+        /// Grid sizes, ROWSxCOLS (radius and aerial stride scale with the rows).
+        #[arg(long, value_delimiter = ',', default_value = "48x96,96x192,192x384,384x768")]
+        grid: Vec<String>,
+        #[arg(long, default_value_t = 2)]
+        aerials: usize,
+        #[arg(long, default_value_t = 5)]
+        boats: usize,
+        /// The boats' sensing radius at 48 x 96 (cells), scaled with the rows.
+        #[arg(long, default_value_t = 10.0)]
+        radius: f64,
+        /// Boat epochs timed at each size.
+        #[arg(long, default_value_t = 10)]
+        epochs: usize,
+    },
     /// Sensor placement (point QR beside pysensors, block QR, D-optimal, horizon) and gappy timings.
     Sensing {
         #[arg(long, default_value_t = 20)]
@@ -65,6 +82,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         What::EigStudy { trials, seed } => eig_study_bench(trials, seed)?,
         What::Team { repeats, truth } => team_bench(repeats, truth)?,
         What::Refit { epochs, late, grid } => refit_bench(epochs, late, &grid)?,
+        What::Epoch {
+            grid,
+            aerials,
+            boats,
+            radius,
+            epochs,
+        } => {
+            let fleet = fleet::experiment::epoch_timing::Fleet { aerials, boats, radius };
+            epoch_bench(&grid, fleet, epochs)?
+        }
         What::Sensing { repeats, no_peers } => sensing_bench(repeats, no_peers)?,
     };
     if let Some(out) = args.out {
@@ -161,12 +188,49 @@ fn team_bench(repeats: usize, truth: Option<PathBuf>) -> anyhow::Result<serde_js
     Ok(serde_json::json!({ "median_s": median, "runs": ts }))
 }
 
+/// `ROWSxCOLS`.
+fn grid_size(grid: &str) -> anyhow::Result<(usize, usize)> {
+    grid.split_once('x')
+        .and_then(|(r, c)| Some((r.parse().ok()?, c.parse().ok()?)))
+        .ok_or_else(|| fleet::exit::bad_input(anyhow::anyhow!("--grid {grid}: expected ROWSxCOLS")))
+}
+
+/// The epoch's critical path at each size, as a Markdown table.
+fn epoch_bench(
+    grids: &[String],
+    fleet: fleet::experiment::epoch_timing::Fleet,
+    epochs: usize,
+) -> anyhow::Result<serde_json::Value> {
+    let sizes = grids.iter().map(|g| grid_size(g)).collect::<anyhow::Result<Vec<_>>>()?;
+    println!(
+        "| grid | vehicles | first fit (ms) | epoch p50 / p99 (ms) | model (bytes) | batches an epoch (bytes) \
+         | peak resident (MB) |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    let mut out = vec![];
+    for (rows, cols) in sizes {
+        eprintln!("{rows} x {cols}: {epochs} epochs...");
+        let t = fleet::experiment::epoch_timing::run(rows, cols, fleet, epochs)?;
+        println!(
+            "| {rows} x {cols} | {} + {} | {:.0} | {:.1} / {:.1} | {} | {:.0} | {} |",
+            t.aerials,
+            t.boats,
+            t.first_fit_ms,
+            t.p50_ms,
+            t.p99_ms,
+            t.model_bytes,
+            t.batch_bytes_per_epoch,
+            t.peak_resident_kb
+                .map_or("?".into(), |k| format!("{:.0}", k as f64 / 1024.0))
+        );
+        out.push(t);
+    }
+    Ok(serde_json::to_value(out)?)
+}
+
 /// A late batch's re-fit from a checkpoint against one from epoch 0.
 fn refit_bench(epochs: usize, late: u64, grid: &str) -> anyhow::Result<serde_json::Value> {
-    let (rows, cols) = grid
-        .split_once('x')
-        .and_then(|(r, c)| Some((r.parse().ok()?, c.parse().ok()?)))
-        .ok_or_else(|| fleet::exit::bad_input(anyhow::anyhow!("--grid {grid}: expected ROWSxCOLS")))?;
+    let (rows, cols) = grid_size(grid)?;
     eprintln!("driving a {epochs}-epoch mission twice (not timed)...");
     let t = fleet::experiment::refit_timing::run(rows, cols, epochs, late)?;
     println!(

@@ -1,0 +1,118 @@
+//! The model server's epoch at scale, without the network: the core driven by the vehicles
+//! as the vehicle node runs them on a moving plume, and each epoch timed from the batch that
+//! completes it to the published model encoded and every vehicle's next plan answered (the
+//! critical path of issue 40, less Zenoh and the files). Timings for `fleet bench epoch`.
+
+use super::team::{TeamConfig, TeamError};
+use crate::grid::Grid;
+use crate::mission::server::{Ingested, ServerCore};
+use crate::process::synthetic::plume_field;
+use crate::protocol::{self, Body};
+use serde::Serialize;
+use std::time::Instant;
+
+#[derive(Debug, Clone, Serialize)]
+pub struct EpochTiming {
+    pub grid: [usize; 2],
+    pub aerials: usize,
+    pub boats: usize,
+    /// Epochs timed (the first, the initial fit, is reported apart).
+    pub epochs: usize,
+    pub first_fit_ms: f64,
+    pub p50_ms: f64,
+    pub p99_ms: f64,
+    /// Bytes of the published model, and of every batch of an epoch (mean), on the wire.
+    pub model_bytes: usize,
+    pub batch_bytes_per_epoch: f64,
+    /// The process's peak resident size so far (kB, Linux's VmHWM; the truth is in it too).
+    pub peak_resident_kb: Option<u64>,
+}
+
+/// The team scaled with the grid as `fleet up` missions are (`radius` and the default
+/// mission's aerial stride at 48 x 96, times rows / 48).
+fn team(rows: usize, aerials: usize, boats: usize, radius: f64) -> TeamConfig {
+    let scale = (rows as f64 / 48.0).max(1.0);
+    TeamConfig {
+        aerials,
+        boats,
+        radius: radius * scale,
+        aerial_stride: (5.0 * scale).round() as usize,
+        ..TeamConfig::default()
+    }
+}
+
+/// How big a team, and its boats' radius at 48 x 96 (the default mission's is 10).
+#[derive(Debug, Clone, Copy)]
+pub struct Fleet {
+    pub aerials: usize,
+    pub boats: usize,
+    pub radius: f64,
+}
+
+/// Run `epochs` boat epochs at `rows x cols` and time each.
+pub fn run(rows: usize, cols: usize, fleet: Fleet, epochs: usize) -> Result<EpochTiming, TeamError> {
+    let Fleet { aerials, boats, radius } = fleet;
+    let cfg = team(rows, aerials, boats, radius);
+    let frames = cfg.init_steps + epochs * cfg.boat_period + 1;
+    let truth = plume_field(rows, cols, frames, 0.0, 3);
+    let grid = Grid::new(rows, cols, 1.0)?;
+    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+    let mut server = ServerCore::new(&cfg, grid, frames)?;
+    let mut brains = super::team::brains_of(&server, &cfg, grid);
+    let (mut times, mut batch_bytes, mut model_bytes) = (vec![], 0usize, 0);
+    for e in 0..server.schedule().epochs() {
+        let mut batches = vec![];
+        for brain in brains.iter_mut() {
+            let plan = server.plan(&brain.id, e, 2);
+            brain.set_plan(plan.ok_or(TeamError::NotReady(crate::mission::team::Missing::Plan { epoch: e }))?);
+            batches.extend(brain.sense_epoch(e, x)?);
+        }
+        batch_bytes += batches
+            .iter()
+            .map(|b| protocol::encode(&Body::Batch(b.clone())).len())
+            .sum::<usize>();
+        let mut t0 = Instant::now();
+        for b in batches {
+            t0 = Instant::now();
+            let taken = server.ingest(b).map_err(|err| TeamError::Config(err.to_string()))?;
+            if matches!(taken, Ingested::Assimilated(_)) {
+                break;
+            }
+        }
+        let model = server.model_update().map(|m| protocol::encode(&Body::Model(m)));
+        model_bytes = model.map_or(0, |m| m.len());
+        for v in server.vehicles().to_vec() {
+            let plan = server.plan(&v.id, e + 1, 3).map(|p| protocol::encode(&Body::Plan(p)));
+            std::hint::black_box(plan);
+        }
+        times.push(t0.elapsed().as_secs_f64() * 1e3);
+    }
+    let first_fit_ms = times.remove(0);
+    let n = times.len();
+    let pct = |p: f64| -> f64 {
+        let mut t = times.clone();
+        t.sort_by(f64::total_cmp);
+        t.get(((p * n as f64).ceil() as usize).clamp(1, n.max(1)) - 1)
+            .copied()
+            .unwrap_or(f64::NAN)
+    };
+    Ok(EpochTiming {
+        grid: [rows, cols],
+        aerials,
+        boats,
+        epochs: n,
+        first_fit_ms,
+        p50_ms: pct(0.5),
+        p99_ms: pct(0.99),
+        model_bytes,
+        batch_bytes_per_epoch: batch_bytes as f64 / (n + 1) as f64,
+        peak_resident_kb: peak_resident_kb(),
+    })
+}
+
+/// Linux's VmHWM of this process (kB).
+fn peak_resident_kb() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    line.split_whitespace().nth(1)?.parse().ok()
+}
