@@ -61,11 +61,15 @@ if set(out["heartbeats"]) != set(want):
 # 2. Targets and positions: distance to the newest guided target, first and last seen, until
 # every vehicle with a target has reached it (or the watch ends).
 first, last, targets, since = {}, {}, {}, {}
-# Each autopilot says its EKF origin once, at its fix: ask for it again (MAV_CMD_REQUEST_MESSAGE).
-for s in want:
-    m.mav.command_long_send(s, 1, mavutil.mavlink.MAV_CMD_REQUEST_MESSAGE, 0, 49, 0, 0, 0, 0, 0, 0)
-watch_end = time.time() + args.watch_s
+# Each autopilot says its EKF origin once, at its fix: ask for it again (MAV_CMD_REQUEST_MESSAGE),
+# and again every 2 s until it answers (a command over UDP and the fleet's links may be lost).
+watch_end, asked = time.time() + args.watch_s, 0.0
 while time.time() < watch_end:
+    if time.time() - asked > 2.0:
+        for s in want:
+            if s not in out.get("origins", {}):
+                m.mav.command_long_send(s, 1, mavutil.mavlink.MAV_CMD_REQUEST_MESSAGE, 0, 49, 0, 0, 0, 0, 0, 0)
+        asked = time.time()
     msg = recv(["POSITION_TARGET_LOCAL_NED", "LOCAL_POSITION_NED", "GPS_GLOBAL_ORIGIN"], 0.5)
     if msg is None:
         continue
@@ -88,7 +92,12 @@ while time.time() < watch_end:
             first[s], since[s] = d, time.time()
         last[s] = d
         boats = [v for v, t in want.items() if t == 11]
-        if all(b in last and last[b] < 0.5 for b in boats) and any(first[b] - last[b] > 2.0 for b in boats):
+        origins = out.get("origins", {})
+        if (
+            all(b in last and last[b] < 0.5 for b in boats)
+            and any(first[b] - last[b] > 2.0 for b in boats)
+            and all(v in origins for v in targets)
+        ):
             break
 out["targets"] = {s: [list(t) for t in ts] for s, ts in targets.items()}
 out["approach"] = {s: [first[s], last[s], time.time() - since[s]] for s in last}

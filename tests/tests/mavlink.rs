@@ -209,6 +209,10 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
         // Local NED is from the autopilot's EKF origin (where it booted); on the site's 1 m grid,
         // north and east of the grid's corner are grid y and x.
         let origin = &gs["origins"][&sysid];
+        assert!(
+            origin.is_array(),
+            "{v} has targets but the ground station heard no GPS_GLOBAL_ORIGIN: {gs}"
+        );
         let site = m.mavlink.site(&fleet_mission::grid::Grid::new(24, 48, 1.0).unwrap());
         let o = site.ned_of_global(
             origin[0].as_f64().unwrap() * 1e-7,
