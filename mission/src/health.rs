@@ -271,6 +271,12 @@ impl Screen {
             .collect()
     }
 
+    /// Vehicle `v`'s verdict and reason when it is not `ok` (what its ack carries).
+    pub fn doubted(&self, v: usize) -> Option<(Health, String)> {
+        let s = self.sensors.get(&v).filter(|s| s.health != Health::Ok)?;
+        Some((s.health, s.reason.clone()))
+    }
+
     /// The vehicles whose sensor is excluded now.
     pub fn excluded(&self) -> std::collections::BTreeSet<usize> {
         self.sensors

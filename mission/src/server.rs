@@ -976,13 +976,8 @@ impl ServerCore {
             }
             seq = Some(s);
         }
-        let sensor = self
-            .assim
-            .screen_state()
-            .health()
-            .remove(&index)
-            .filter(|(h, _)| *h != Health::Ok)
-            .map(|(state, reason)| protocol::SensorHealth { state, reason });
+        let sensor =
+            (self.assim.screen_state().doubted(index)).map(|(state, reason)| protocol::SensorHealth { state, reason });
         Some(Ack {
             vehicle: vehicle.clone(),
             seq: seq?,
