@@ -733,11 +733,12 @@ impl ServerCore {
         k: usize,
         ahead: u64,
     ) -> Result<(crate::AerialSight, Vec<Sample>), TeamError> {
+        let _span = tracing::info_span!("screen").entered();
         let pins = self.pins_at(k as u64);
         self.assim.screen().pin(pins);
         let aerials = Self::tagged_at(batches, VehicleKind::Aerial, k);
         let aerials = self.assim.screen_aerials(k as u64, ahead, aerials);
-        let aerial = self.assim.aerial_estimate(&aerials)?;
+        let aerial = tracing::info_span!("aerial estimate").in_scope(|| self.assim.aerial_estimate(&aerials))?;
         let boats = Self::tagged_at(batches, VehicleKind::Boat, k);
         let boats = self.assim.screen_boats(k as u64, ahead, boats, &aerial)?;
         for (v, since) in self.assim.screen().take_readmissions() {
@@ -781,7 +782,7 @@ impl ServerCore {
                 let (aerial, boats) = self.screened(&batches, k, ahead)?;
                 self.aerial_estimates.push(aerial.estimate.values.clone());
                 let (boats, held) = crate::holdout::split(boats, self.holdout_share, self.cfg.boat_sigma);
-                let fused = self.assim.fuse_step(ahead, &aerial, &boats)?;
+                let fused = tracing::info_span!("fuse").in_scope(|| self.assim.fuse_step(ahead, &aerial, &boats))?;
                 if let Some(i) = self.assim.take_innovation() {
                     self.innovations.insert(k, i);
                 }
@@ -808,7 +809,7 @@ impl ServerCore {
             if let Some(skill) = self.assim.take_skill(e) {
                 self.skills.insert(e, skill);
             }
-            self.assim.assimilate(learn)?;
+            tracing::info_span!("model update").in_scope(|| self.assim.assimilate(learn))?;
         }
         self.epoch = e + 1;
         self.version += 1;
@@ -818,7 +819,8 @@ impl ServerCore {
                 self.holds.insert(self.epoch, self.held.clone());
                 self.unjournalled.insert(self.epoch);
             }
-            let plan = self.assim.allocate_without(&self.holds[&self.epoch])?;
+            let plan =
+                tracing::info_span!("placement").in_scope(|| self.assim.allocate_without(&self.holds[&self.epoch]))?;
             self.plans.insert(self.epoch, plan);
         }
         Ok(())

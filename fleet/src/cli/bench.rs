@@ -225,7 +225,34 @@ fn epoch_bench(
         );
         out.push(t);
     }
+    print_phases(&out);
     Ok(serde_json::to_value(out)?)
+}
+
+/// Milliseconds an epoch per phase, a column per size (nested phases indented under the
+/// phase that holds them are in its figure too).
+fn print_phases(runs: &[fleet::experiment::epoch_timing::EpochTiming]) {
+    let mut names: Vec<&str> = vec![];
+    for (name, _) in runs.iter().flat_map(|t| &t.phases_ms) {
+        if !names.contains(&name.as_str()) {
+            names.push(name);
+        }
+    }
+    let sizes: Vec<String> = runs.iter().map(|t| format!("{} x {}", t.grid[0], t.grid[1])).collect();
+    println!("\n| phase (ms an epoch) | {} |", sizes.join(" | "));
+    println!("|---|{}", "---|".repeat(runs.len()));
+    for name in names {
+        let cells: Vec<String> = runs
+            .iter()
+            .map(|t| {
+                t.phases_ms
+                    .iter()
+                    .find(|(n, _)| n == name)
+                    .map_or("-".into(), |(_, ms)| format!("{ms:.1}"))
+            })
+            .collect();
+        println!("| {name} | {} |", cells.join(" | "));
+    }
 }
 
 /// A late batch's re-fit from a checkpoint against one from epoch 0.

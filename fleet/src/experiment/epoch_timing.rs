@@ -26,6 +26,9 @@ pub struct EpochTiming {
     pub batch_bytes_per_epoch: f64,
     /// The process's peak resident size so far (kB, Linux's VmHWM; the truth is in it too).
     pub peak_resident_kb: Option<u64>,
+    /// Mean milliseconds an epoch in each phase (the core's `tracing` spans, nested spans
+    /// counted in their parents too), over the timed epochs.
+    pub phases_ms: Vec<(String, f64)>,
 }
 
 /// The team scaled with the grid as `fleet up` missions are (`radius` and the default
@@ -49,8 +52,27 @@ pub struct Fleet {
     pub radius: f64,
 }
 
-/// Run `epochs` boat epochs at `rows x cols` and time each.
+/// Run `epochs` boat epochs at `rows x cols` and time each, and each phase of each.
 pub fn run(rows: usize, cols: usize, fleet: Fleet, epochs: usize) -> Result<EpochTiming, TeamError> {
+    let phases = super::phases::Phases::default();
+    let mut timing =
+        tracing::subscriber::with_default(phases.subscriber(), || timed(rows, cols, fleet, epochs, &phases))?;
+    let per_epoch = timing.epochs.max(1) as f64;
+    timing.phases_ms = phases
+        .totals()
+        .into_iter()
+        .map(|(name, d)| (name, d.as_secs_f64() * 1e3 / per_epoch))
+        .collect();
+    Ok(timing)
+}
+
+fn timed(
+    rows: usize,
+    cols: usize,
+    fleet: Fleet,
+    epochs: usize,
+    phases: &super::phases::Phases,
+) -> Result<EpochTiming, TeamError> {
     let Fleet { aerials, boats, radius } = fleet;
     let cfg = team(rows, aerials, boats, radius);
     let frames = cfg.init_steps + epochs * cfg.boat_period + 1;
@@ -79,13 +101,19 @@ pub fn run(rows: usize, cols: usize, fleet: Fleet, epochs: usize) -> Result<Epoc
                 break;
             }
         }
-        let model = server.model_update().map(|m| protocol::encode(&Body::Model(m)));
+        let model = tracing::info_span!("model encoded")
+            .in_scope(|| server.model_update().map(|m| protocol::encode(&Body::Model(m))));
         model_bytes = model.map_or(0, |m| m.len());
-        for v in server.vehicles().to_vec() {
-            let plan = server.plan(&v.id, e + 1, 3).map(|p| protocol::encode(&Body::Plan(p)));
-            std::hint::black_box(plan);
-        }
+        tracing::info_span!("plans encoded").in_scope(|| {
+            for v in server.vehicles().to_vec() {
+                let plan = server.plan(&v.id, e + 1, 3).map(|p| protocol::encode(&Body::Plan(p)));
+                std::hint::black_box(plan);
+            }
+        });
         times.push(t0.elapsed().as_secs_f64() * 1e3);
+        if e == 0 {
+            phases.reset();
+        }
     }
     let first_fit_ms = times.remove(0);
     let n = times.len();
@@ -107,6 +135,7 @@ pub fn run(rows: usize, cols: usize, fleet: Fleet, epochs: usize) -> Result<Epoc
         model_bytes,
         batch_bytes_per_epoch: batch_bytes as f64 / (n + 1) as f64,
         peak_resident_kb: peak_resident_kb(),
+        phases_ms: vec![],
     })
 }
 

@@ -21,6 +21,7 @@
 //! q x q systems, with no inverse of `P` (which may be singular).
 
 use faer::{c64, Mat, MatRef};
+use std::sync::{Arc, OnceLock};
 
 mod displacement;
 mod lookahead;
@@ -58,10 +59,43 @@ impl Observation<'_> {
     }
 }
 
+/// A column of an owned matrix as a slice (faer's `Mat` stores columns contiguously).
+fn column(m: MatRef<'_, f64>, k: usize) -> &[f64] {
+    m.col(k)
+        .try_as_col_major()
+        .expect("a Mat's columns are contiguous")
+        .as_slice()
+}
+
+/// Per row `i`, `sum_k a[(i, k)] * b[(i, k)]`, each row's terms added in column order as a
+/// per-row dot product adds them (so the same to the bit), but computed a column at a time,
+/// reading the N x q matrices contiguously: a row of a column-major N x q matrix is q cache
+/// lines apart.
+fn row_dots(a: MatRef<'_, f64>, b: MatRef<'_, f64>) -> Vec<f64> {
+    let mut out = vec![-0.0; a.nrows()];
+    for k in 0..a.ncols() {
+        out.iter_mut()
+            .zip(column(a, k))
+            .zip(column(b, k))
+            .for_each(|((o, x), y)| *o += x * y);
+    }
+    out
+}
+
+/// The modal part's mean and variance per cell, `B a` and `diag(B P B^T)`.
+fn modal_of(basis: MatRef<'_, f64>, cov: MatRef<'_, f64>, mean: &[f64]) -> (Vec<f64>, Vec<f64>) {
+    let m = Mat::from_fn(mean.len(), 1, |i, _| mean[i]);
+    let modal_mean = (basis * m.as_ref()).col(0).iter().copied().collect();
+    let mut variance = row_dots((basis * cov).as_ref(), basis);
+    variance.iter_mut().for_each(|x| *x = x.max(0.0));
+    (modal_mean, variance)
+}
+
 /// The filter's state: modal mean and covariance, and the two noise levels.
 #[derive(Debug, Clone)]
 pub struct ModalFilter {
-    basis: Mat<f64>,
+    /// Shared, not copied, by the filter's clones (a look ahead, a test without the boats).
+    basis: Arc<Mat<f64>>,
     dynamics: Mat<f64>,
     mean: Vec<f64>,
     cov: Mat<f64>,
@@ -80,6 +114,10 @@ pub struct ModalFilter {
     /// [`Self::learn_persistence`]).
     last_residual: Vec<(f64, f64)>,
     moments: (f64, f64),
+    /// The modal part's mean and variance per cell, `B a` and `diag(B P B^T)`, computed once
+    /// per modal state (an N x q x q product): a step reads them five times between changes of
+    /// `a` and `P`. Emptied wherever the basis, the mean or the covariance change.
+    modal: OnceLock<(Vec<f64>, Vec<f64>)>,
 }
 
 fn check_finite(what: &str, v: impl IntoIterator<Item = f64>) -> Result<(), FilterError> {
@@ -94,13 +132,14 @@ impl ModalFilter {
     /// A filter over `basis` (N x q, orthonormal columns) with `dynamics` (q x q), starting at
     /// `mean` with covariance `cov`.
     pub fn new(
-        basis: Mat<f64>,
+        basis: impl Into<Arc<Mat<f64>>>,
         dynamics: Mat<f64>,
         mean: Vec<f64>,
         cov: Mat<f64>,
         process: f64,
         model_error: f64,
     ) -> Result<Self, FilterError> {
+        let basis = basis.into();
         let q = basis.ncols();
         if dynamics.nrows() != q || dynamics.ncols() != q || mean.len() != q || cov.nrows() != q || cov.ncols() != q {
             return Err(FilterError::Input(format!(
@@ -128,6 +167,7 @@ impl ModalFilter {
             detail_var: vec![model_error; n],
             last_residual: vec![(f64::NAN, 0.0); n],
             moments: (0.0, 0.0),
+            modal: OnceLock::new(),
         })
     }
 
@@ -214,7 +254,7 @@ impl ModalFilter {
     }
 
     pub fn basis(&self) -> MatRef<'_, f64> {
-        self.basis.as_ref()
+        (*self.basis).as_ref()
     }
 
     pub fn dynamics(&self) -> MatRef<'_, f64> {
@@ -230,6 +270,7 @@ impl ModalFilter {
         let m = Mat::from_fn(self.dim(), 1, |i, _| self.mean[i]);
         self.mean = (self.dynamics.as_ref() * m).col(0).iter().copied().collect();
         self.cov = self.predicted_cov(self.cov.as_ref());
+        self.modal.take();
     }
 
     /// Condition on every observation of one step. Returns the innovations (observed minus
@@ -238,6 +279,7 @@ impl ModalFilter {
         let (n, q) = (self.basis.nrows(), self.dim());
         let mut j = Mat::<f64>::zeros(q, q);
         let mut g = vec![0.0; q]; // H^T R^-1 (y - H a)
+        let mut h = vec![0.0; q]; // the cell's row of the basis
         let mut innovations = vec![];
         for o in obs {
             o.check_lengths()?;
@@ -249,7 +291,7 @@ impl ModalFilter {
                 if !(y.is_finite() && r > 0.0 && r.is_finite()) {
                     return Err(FilterError::Input(format!("cell {c}: value {y} with variance {r}")));
                 }
-                let h = self.basis.row(c);
+                h.iter_mut().enumerate().for_each(|(k, x)| *x = self.basis[(c, k)]);
                 let predicted: f64 = (0..q).map(|k| h[k] * self.mean[k]).sum();
                 let d = y - self.detail[c] - predicted;
                 innovations.push(d);
@@ -282,6 +324,7 @@ impl ModalFilter {
         )
         .map_err(|_| FilterError::Numerical("the update lost finiteness (an ill-conditioned I + P J)".into()))?;
         self.cov = post;
+        self.modal.take();
         Ok(innovations)
     }
 
@@ -296,7 +339,7 @@ impl ModalFilter {
             return Ok(None);
         }
         let (n, q) = (self.basis.nrows(), self.dim());
-        let bp = self.basis.as_ref() * self.cov.as_ref();
+        let bp = (*self.basis).as_ref() * self.cov.as_ref();
         let (mut covered, mut forecast) = (0.0, 0.0);
         for ((&c, &y), &v) in obs.cells.iter().zip(obs.values).zip(obs.variance) {
             if c >= n || !y.is_finite() || !(v >= 0.0) {
@@ -369,15 +412,16 @@ impl ModalFilter {
     /// Condition the detail on observations, cell by cell, from their residuals against the
     /// posterior modal mean (call after [`Self::update`]): a scalar Kalman update per value.
     pub fn update_detail(&mut self, obs: &[Observation<'_>]) -> Result<(), FilterError> {
-        let (n, q) = (self.basis.nrows(), self.dim());
-        let modal_var = self.modal_variance();
+        let n = self.basis.nrows();
+        let (basis, cov, mean) = ((*self.basis).as_ref(), self.cov.as_ref(), &self.mean);
+        let (modal_mean, modal_var) = self.modal.get_or_init(|| modal_of(basis, cov, mean));
         for o in obs {
             o.check_lengths()?;
             for ((&c, &y), &a) in o.cells.iter().zip(o.values).zip(o.variance) {
                 if c >= n || !(y.is_finite() && a > 0.0 && a.is_finite()) {
                     return Err(FilterError::Input(format!("cell {c}: value {y} with variance {a}")));
                 }
-                let modal: f64 = (0..q).map(|k| self.basis[(c, k)] * self.mean[k]).sum();
+                let modal = modal_mean[c];
                 let (d, v) = (&mut self.detail[c], &mut self.detail_var[c]);
                 // The value corrects the field at the cell, whose forecast is uncertain by the
                 // modal posterior's variance as well as the detail's: a gain on the detail's
@@ -398,7 +442,8 @@ impl ModalFilter {
     pub fn assign(&mut self, obs: &Observation<'_>) -> Result<(), FilterError> {
         let n = self.basis.nrows();
         obs.check_lengths()?;
-        let (modal, modal_var) = (self.modal_mean(), self.modal_variance());
+        let (basis, cov, mean) = ((*self.basis).as_ref(), self.cov.as_ref(), &self.mean);
+        let (modal, modal_var) = self.modal.get_or_init(|| modal_of(basis, cov, mean));
         for ((&c, &y), &a) in obs.cells.iter().zip(obs.values).zip(obs.variance) {
             if c >= n || !(y.is_finite() && a >= 0.0 && a.is_finite()) {
                 return Err(FilterError::Input(format!("cell {c}: value {y} with variance {a}")));
@@ -410,18 +455,18 @@ impl ModalFilter {
     }
 
     /// The modal part of the field, `B a`.
-    pub fn modal_mean(&self) -> Vec<f64> {
-        let m = Mat::from_fn(self.dim(), 1, |i, _| self.mean[i]);
-        (self.basis.as_ref() * m.as_ref()).col(0).iter().copied().collect()
+    pub fn modal_mean(&self) -> &[f64] {
+        &self.modal().0
     }
 
     /// The modal part's variance per cell, `diag(B P B^T)`.
-    pub fn modal_variance(&self) -> Vec<f64> {
-        let (n, q) = (self.basis.nrows(), self.dim());
-        let bp = self.basis.as_ref() * self.cov.as_ref();
-        (0..n)
-            .map(|i| (0..q).map(|k| bp[(i, k)] * self.basis[(i, k)]).sum::<f64>().max(0.0))
-            .collect()
+    pub fn modal_variance(&self) -> &[f64] {
+        &self.modal().1
+    }
+
+    fn modal(&self) -> &(Vec<f64>, Vec<f64>) {
+        self.modal
+            .get_or_init(|| modal_of((*self.basis).as_ref(), self.cov.as_ref(), &self.mean))
     }
 
     /// The field `h` steps ahead of the filter's state (0: the posterior) with its variance per
@@ -441,18 +486,17 @@ impl ModalFilter {
 
     /// The field of the current state and its variance per cell.
     pub fn field(&self) -> (Vec<f64>, Vec<f64>) {
-        let add = |a: Vec<f64>, b: &[f64]| a.into_iter().zip(b).map(|(x, y)| x + y).collect();
-        (
-            add(self.modal_mean(), &self.detail),
-            add(self.modal_variance(), &self.detail_var),
-        )
+        let add = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x + y).collect();
+        let (mean, variance) = self.modal();
+        (add(mean, &self.detail), add(variance, &self.detail_var))
     }
 
     /// The model changed (a refit): carry the state into the new basis and dynamics. The part
     /// of the old state the new basis cannot hold is not lost: its mean goes into the detail
     /// and its variance (the trace of what projects out, spread over the cells) into the
     /// detail's variance, so the field and its total variance are unchanged.
-    pub fn reproject(&mut self, basis: Mat<f64>, dynamics: Mat<f64>) -> Result<(), FilterError> {
+    pub fn reproject(&mut self, basis: impl Into<Arc<Mat<f64>>>, dynamics: Mat<f64>) -> Result<(), FilterError> {
+        let basis = basis.into();
         let (n, q) = (basis.nrows(), basis.ncols());
         if n != self.basis.nrows() || dynamics.nrows() != q || dynamics.ncols() != q {
             return Err(FilterError::Input(format!(
@@ -461,19 +505,20 @@ impl ModalFilter {
                 dynamics.ncols()
             )));
         }
-        let t = basis.transpose() * self.basis.as_ref(); // q x q_old
+        let t = basis.transpose() * (*self.basis).as_ref(); // q x q_old
         let m = Mat::from_fn(self.dim(), 1, |i, _| self.mean[i]);
         let mean: Vec<f64> = (t.as_ref() * m.as_ref()).col(0).iter().copied().collect();
         let cov = symmetrised(t.as_ref() * self.cov.as_ref() * t.transpose());
         let trace = |p: &Mat<f64>| (0..p.nrows()).map(|i| p[(i, i)]).sum::<f64>();
         let lost = (trace(&self.cov) - trace(&cov)).max(0.0) / n as f64;
-        let old_field = self.basis.as_ref() * m.as_ref();
+        let old_field = (*self.basis).as_ref() * m.as_ref();
         let new_field = basis.as_ref() * Mat::from_fn(q, 1, |i, _| mean[i]).as_ref();
         for c in 0..n {
             self.detail[c] += old_field[(c, 0)] - new_field[(c, 0)];
             self.detail_var[c] += lost;
         }
         (self.basis, self.dynamics, self.mean, self.cov) = (basis, dynamics, mean, cov);
+        self.modal.take();
         Ok(())
     }
 }

@@ -196,7 +196,7 @@ impl Assimilator {
             return Ok(prediction(predicted));
         }
         let (_, basis) = self.state.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
-        match gappy::reconstruct(basis.as_ref(), cells, vals, boat_var) {
+        match gappy::reconstruct(faer::Mat::as_ref(basis), cells, vals, boat_var) {
             Ok(g) => {
                 // Truncation error: the fit's residual at the measured cells, inflated for
                 // the degrees of freedom the fit used.

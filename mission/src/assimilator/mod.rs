@@ -26,6 +26,7 @@ use crate::team::{Missing, TeamConfig, TeamError};
 use faer::Mat;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use std::sync::Arc;
 
 /// What the mission fixes when it starts: the team, the grid, the DMD method, the fence's
 /// mask, the aerial lattice and how fast boats go.
@@ -56,7 +57,7 @@ pub struct AssimilatorState {
     /// The newest fused snapshot (the model's forecasts count from it).
     newest: Option<Vec<f64>>,
     /// The model fitted to its newest snapshot, and a real basis of its modes.
-    fitted: Option<(DmdModel, Mat<f64>)>,
+    fitted: Option<(DmdModel, Arc<Mat<f64>>)>,
     held_aerial: Option<Estimate>,
     held_interpolation: Vec<f64>,
     pred_var: f64,
@@ -239,6 +240,7 @@ impl Assimilator {
         if !self.setup.cfg.sensor_health {
             return samples.into_iter().map(|(_, s)| s).collect();
         }
+        let _span = tracing::info_span!("screen aerials").entered();
         let forecast = self.state.fitted.as_ref().map(|(p, _)| p.predict(ahead as f64));
         let grid = self.setup.grid;
         self.state.screen.aerials(&grid, step, samples, forecast.as_deref())
@@ -257,6 +259,7 @@ impl Assimilator {
         if !self.setup.cfg.sensor_health || samples.is_empty() {
             return Ok(samples.into_iter().map(|(_, s)| s).collect());
         }
+        let _span = tracing::info_span!("screen boats").entered();
         let (mean, variance) = self.boat_reference(ahead, aerial)?;
         let (grid, sigma) = (self.setup.grid, self.setup.cfg.boat_sigma);
         let lattice = aerial
@@ -342,10 +345,8 @@ impl Assimilator {
         chain.extend(epoch.into_iter().map(|e| self.setup.dry(e)));
         let z = to_mat(&chain);
         let m = chain.len() - 1;
-        s.model
-            .as_mut()
-            .ok_or(TeamError::NotReady(Missing::Model))?
-            .update(z.subcols(0, m), z.subcols(1, m))?;
+        let model = s.model.as_mut().ok_or(TeamError::NotReady(Missing::Model))?;
+        tracing::info_span!("dmd update").in_scope(|| model.update(z.subcols(0, m), z.subcols(1, m)))?;
         s.newest = chain.pop();
         self.refit()?;
         self.move_filter()
@@ -355,7 +356,8 @@ impl Assimilator {
         let s = &mut self.state;
         let model = s.model.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
         let newest = s.newest.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
-        s.fitted = Some(fit_to(model.as_ref(), newest)?);
+        let (fitted, basis) = tracing::info_span!("refit").in_scope(|| fit_to(model.as_ref(), newest))?;
+        s.fitted = Some((fitted, Arc::new(basis)));
         Ok(())
     }
 
@@ -367,9 +369,10 @@ impl Assimilator {
         if self.setup.cfg.fusion != crate::fusion::Scheme::Kalman {
             return Ok(());
         }
+        let _span = tracing::info_span!("move filter").entered();
         let s = &mut self.state;
         let (pred, basis) = s.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
-        let dynamics = kalman::modal_dynamics(pred.modes.modes.as_ref(), &pred.modes.eigenvalues, basis.as_ref())?;
+        let dynamics = kalman::modal_dynamics(pred.modes.modes.as_ref(), &pred.modes.eigenvalues, Mat::as_ref(basis))?;
         s.filter = Some(match s.filter.take() {
             Some((mut f, _)) => {
                 f.reproject(basis.clone(), dynamics)?;
@@ -396,9 +399,10 @@ impl Assimilator {
 /// A model fitted to its newest snapshot (forecasts count from it), and an orthonormal real
 /// basis of its modes (for gappy reconstruction and placement).
 pub fn fit_to(model: &dyn Dmd, newest: &[f64]) -> Result<(DmdModel, Mat<f64>), TeamError> {
-    let modes = model.decompose()?;
-    let basis = real_basis(modes.modes.as_ref())?;
-    Ok((modes.model(newest, 1.0)?, basis))
+    let modes = tracing::info_span!("decompose").in_scope(|| model.decompose())?;
+    let basis = tracing::info_span!("basis").in_scope(|| real_basis(modes.modes.as_ref()))?;
+    let fitted = tracing::info_span!("amplitudes").in_scope(|| modes.model(newest, 1.0))?;
+    Ok((fitted, basis))
 }
 
 /// Columns to a matrix.

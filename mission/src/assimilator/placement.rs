@@ -188,11 +188,11 @@ impl Assimilator {
         let (_, basis) = s.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
         let disks: Vec<Vec<usize>> = match (free.len(), cfg.placement) {
             (0, _) => vec![],
-            (k, Placement::Qr) => qr::block_qr_within(basis.as_ref(), grid, k, cfg.radius, excluded)?
+            (k, Placement::Qr) => qr::block_qr_within(faer::Mat::as_ref(basis), grid, k, cfg.radius, excluded)?
                 .into_iter()
                 .map(|d| d.cells)
                 .collect(),
-            (k, Placement::DOptimal) => qr::block_dopt_within(basis.as_ref(), grid, k, cfg.radius, excluded)?
+            (k, Placement::DOptimal) => qr::block_dopt_within(faer::Mat::as_ref(basis), grid, k, cfg.radius, excluded)?
                 .into_iter()
                 .map(|d| d.cells)
                 .collect(),
