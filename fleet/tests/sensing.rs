@@ -359,3 +359,88 @@ fn real_basis_of_a_conjugate_pair_and_a_real_mode_is_three_orthonormal_direction
         resid.norm_l2()
     );
 }
+
+/// The factored path (`Phi = F C`, one thin factorisation of the real N x r `F`, then r x r
+/// work) against the direct one (an N x 2r SVD; a QR of the complex N x r modes): the same
+/// numerical rank, the same span to rounding, and the same fit of a snapshot, for a
+/// well-conditioned `F` and an ill-conditioned one (its columns' scales 1e-7 apart, so
+/// CholeskyQR is refused and Householder QR takes over); coefficients with a conjugate pair and
+/// a real eigenvector, and (for the span only: a least-squares fit on dependent modes is not
+/// unique) with a column that repeats a direction, rank 4 of 5.
+#[test]
+fn the_factored_real_basis_and_amplitudes_are_the_direct_ones() {
+    use faer::c64;
+    use fleet::dmd::{ModeFactors, Modes};
+    let n = 400;
+    let entry = |i: usize, j: usize| {
+        let a = ((i * 7 + j * 3) % 11) as f64 / 5.0 - 1.0;
+        let b = ((i * 5 + j * 2) % 13) as f64 / 6.0 - 1.0;
+        c64::new(a, if j == 2 { 0.0 } else { b })
+    };
+    // Column 1 is column 0's conjugate (a pair), column 2 real.
+    let full = Mat::from_fn(5, 5, |i, j| if j == 1 { entry(i, 0).conj() } else { entry(i, j) });
+    // Columns 3 and 4 real and parallel: four real directions.
+    let repeated = Mat::from_fn(5, 5, |i, j| match j {
+        3 => c64::new(full[(i, 3)].re, 0.0),
+        4 => c64::new(2.0 * full[(i, 3)].re, 0.0),
+        _ => full[(i, j)],
+    });
+    let x: Vec<f64> = (0..n).map(|i| (i as f64 * 0.37).sin()).collect();
+    let cases = [
+        ("well conditioned", [1.0, 2.0, 0.5, 3.0, 1.5]),
+        ("ill conditioned", [1.0, 1e-7, 1.0, 1.0, 1.0]),
+    ];
+    for ((label, scales), (c, rank)) in cases.iter().flat_map(|k| [(k, (&full, 5)), (k, (&repeated, 4))]) {
+        let b = random_basis(n, 5, 11);
+        let f = Mat::from_fn(n, 5, |i, j| b[(i, j)] * scales[j] + 0.3 * b[(i, (j + 1) % 5)]);
+        let modes = fleet::dmd::linalg::to_complex(f.as_ref()) * c;
+        let direct = fleet::sensing::real_basis(modes.as_ref()).unwrap();
+        let factors = ModeFactors {
+            real: f.clone(),
+            coefficients: c.clone(),
+        };
+        let orthogonal = factors.orthogonal();
+        let factored = fleet::sensing::real_basis_factored(&orthogonal).unwrap();
+        assert_eq!(
+            (factored.ncols(), direct.ncols()),
+            (rank, rank),
+            "{label}: the numerical rank"
+        );
+        let resid = &direct - &factored * (factored.transpose() * &direct);
+        assert!(
+            resid.norm_l2() < 1e-9,
+            "{label}: the same span, residual {:e}",
+            resid.norm_l2()
+        );
+        let gram = factored.transpose() * &factored;
+        let off = (0..gram.nrows())
+            .flat_map(|i| (0..gram.ncols()).map(move |j| (i, j)))
+            .map(|(i, j)| (gram[(i, j)] - if i == j { 1.0 } else { 0.0 }).abs())
+            .fold(0.0, f64::max);
+        assert!(off < 1e-12, "{label}: orthonormal to rounding ({off:e})");
+        if rank < 5 {
+            continue;
+        }
+        let eigenvalues = vec![c64::new(0.9, 0.1); 5];
+        let on_phi = Modes {
+            eigenvalues: eigenvalues.clone(),
+            modes: modes.clone(),
+        };
+        let on_q = Modes { eigenvalues, modes };
+        let (a, b) = (
+            on_phi.model(&x, 1.0).unwrap(),
+            on_q.model_on(&orthogonal, &x, 1.0).unwrap(),
+        );
+        let gap = a
+            .amplitudes
+            .iter()
+            .zip(&b.amplitudes)
+            .map(|(u, v)| (u - v).norm())
+            .fold(0.0, f64::max);
+        let size = a.amplitudes.iter().map(|u| u.norm()).fold(0.0, f64::max);
+        assert!(
+            gap < 1e-6 * size,
+            "{label}: the same amplitudes, largest difference {gap:e} of {size:e}"
+        );
+    }
+}

@@ -4,7 +4,7 @@
 
 use super::debias::{debiased_eig, Debias};
 use super::linalg::{div_cols, eig, pod, scale_rows};
-use super::{Dmd, DmdError, Method, Modes, RankPolicy, SnapshotPairs};
+use super::{Dmd, DmdError, Method, ModeFactors, Modes, RankPolicy, SnapshotPairs};
 use faer::{Mat, MatRef};
 
 /// The projected pieces of one exact-DMD fit.
@@ -35,11 +35,38 @@ impl ProjectedFit {
         pairs: Option<&SnapshotPairs>,
         xt: Option<MatRef<'_, f64>>,
     ) -> Result<Modes, DmdError> {
+        let (eigenvalues, v, on_u) = self.eigenvectors(debias, pairs, xt)?;
+        let real = if on_u { &self.u } else { &self.yws };
+        let modes = super::linalg::to_complex(real.as_ref()) * v;
+        Ok(Modes { eigenvalues, modes })
+    }
+
+    /// [`Self::decompose`] with the modes' factors, the fit given up for its `F`.
+    pub fn decompose_factored(
+        self,
+        debias: Debias,
+        pairs: Option<&SnapshotPairs>,
+        xt: Option<MatRef<'_, f64>>,
+    ) -> Result<(Modes, Option<ModeFactors>), DmdError> {
+        let (eigenvalues, v, on_u) = self.eigenvectors(debias, pairs, xt)?;
+        let real = if on_u { self.u } else { self.yws };
+        let modes = super::linalg::to_complex(real.as_ref()) * &v;
+        let factors = ModeFactors { real, coefficients: v };
+        Ok((Modes { eigenvalues, modes }, Some(factors)))
+    }
+
+    /// The eigenvalues and eigenvectors `C`, and whether the modes are `U C` (debiased) rather
+    /// than `Y W S^-1 C`.
+    fn eigenvectors(
+        &self,
+        debias: Debias,
+        pairs: Option<&SnapshotPairs>,
+        xt: Option<MatRef<'_, f64>>,
+    ) -> Result<(Vec<faer::c64>, Mat<faer::c64>, bool), DmdError> {
         match debias {
             Debias::None => {
                 let (eigenvalues, v) = eig(self.atilde().as_ref())?;
-                let modes = super::linalg::to_complex(self.yws.as_ref()) * v;
-                Ok(Modes { eigenvalues, modes })
+                Ok((eigenvalues, v, false))
             }
             kind => {
                 let pairs = pairs.ok_or_else(|| DmdError::Unsupported("debiasing without the stored pairs".into()))?;
@@ -53,8 +80,7 @@ impl ProjectedFit {
                 };
                 let yt = self.u.transpose() * pairs.y();
                 let (eigenvalues, v) = debiased_eig(kind, xt, yt.as_ref())?;
-                let modes = super::linalg::to_complex(self.u.as_ref()) * v;
-                Ok(Modes { eigenvalues, modes })
+                Ok((eigenvalues, v, true))
             }
         }
     }
@@ -133,6 +159,12 @@ impl Dmd for BatchDmd {
     fn decompose(&self) -> Result<Modes, DmdError> {
         self.fit
             .decompose(self.debias, Some(&self.pairs), Some(self.xt.as_ref()))
+    }
+
+    fn decompose_factored(&self) -> Result<(Modes, Option<ModeFactors>), DmdError> {
+        self.fit
+            .clone()
+            .decompose_factored(self.debias, Some(&self.pairs), Some(self.xt.as_ref()))
     }
 
     fn rank(&self) -> usize {

@@ -22,7 +22,7 @@ use super::batch::{exact_fit, ProjectedFit};
 use super::debias::Debias;
 use super::linalg::{div_cols, orthogonality_error, scale_cols_by, thin_svd};
 use super::snapshots::check_pairs;
-use super::{numerical_rank, Dmd, DmdError, Method, Modes, RankPolicy, SnapshotPairs};
+use super::{numerical_rank, Dmd, DmdError, Method, ModeFactors, Modes, RankPolicy, SnapshotPairs};
 use faer::{Mat, MatRef};
 
 /// Updates between orthogonality checks of `U`.
@@ -193,6 +193,11 @@ impl Dmd for GeneralDmd {
 
     fn decompose(&self) -> Result<Modes, DmdError> {
         self.projected().decompose(self.debias, self.pairs.as_ref(), None)
+    }
+
+    fn decompose_factored(&self) -> Result<(Modes, Option<ModeFactors>), DmdError> {
+        self.projected()
+            .decompose_factored(self.debias, self.pairs.as_ref(), None)
     }
 
     fn rank(&self) -> usize {

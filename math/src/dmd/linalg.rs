@@ -152,6 +152,37 @@ pub fn orthogonality_error(a: MatRef<'_, f64>) -> f64 {
     e
 }
 
+/// `F = Q R` with orthonormal `Q` (N x r) and upper-triangular `R`: CholeskyQR twice (a Gram
+/// matrix and a triangular solve each, all matrix products; the second pass takes the first's
+/// loss of orthogonality, `eps cond(F)^2`, back to rounding), or Householder QR when `F` is too
+/// ill-conditioned for Cholesky (its factor's diagonal spans more than 1e6) or rank-deficient.
+pub fn orthonormal_factor(f: MatRef<'_, f64>) -> (Mat<f64>, Mat<f64>) {
+    let twice = cholesky_qr(f).and_then(|(q1, r1)| cholesky_qr(q1.as_ref()).map(|(q, r2)| (q, r2 * r1)));
+    twice.unwrap_or_else(|| {
+        let qr = f.qr();
+        (qr.compute_thin_Q(), qr.thin_R().to_owned())
+    })
+}
+
+/// One CholeskyQR pass: `R` the Cholesky factor of `F^T F`, `Q = F R^-1`; `None` when the
+/// factor's diagonal spans more than 1e6 (condition above 1e12 of the Gram matrix).
+fn cholesky_qr(f: MatRef<'_, f64>) -> Option<(Mat<f64>, Mat<f64>)> {
+    let gram = f.transpose() * f;
+    let llt = gram.llt(faer::Side::Lower).ok()?;
+    let l = llt.L();
+    let d: Vec<f64> = (0..l.nrows()).map(|i| l[(i, i)].abs()).collect();
+    let (lo, hi) = d
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(a, b), &v| (a.min(v), b.max(v)));
+    if !(lo > 1e-6 * hi) {
+        return None;
+    }
+    // Q^T = L^-1 F^T (L = R^T).
+    let mut qt = f.transpose().to_owned();
+    faer::linalg::triangular_solve::solve_lower_triangular_in_place(l, qt.as_mut(), faer::Par::Seq);
+    Some((qt.transpose().to_owned(), l.transpose().to_owned()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -6,6 +6,32 @@ use super::DmdError;
 use faer::{c64, Mat};
 use serde::Serialize;
 
+/// Modes as a real N x r matrix times complex r x r coefficients, `Phi = F C`, as exact DMD
+/// makes them (`F = Y W S^-1` and `C` the eigenvectors of `A~`; debiased: `F = U`). Past one
+/// thin factorisation of `F`, what is asked of the modes' span is r x r work
+/// ([`crate::sensing::real_basis_factored`]).
+#[derive(Debug, Clone)]
+pub struct ModeFactors {
+    pub real: Mat<f64>,
+    pub coefficients: Mat<c64>,
+}
+
+impl ModeFactors {
+    /// `Phi = F C = Q (R C)` with `F = Q R`, Q orthonormal.
+    pub fn orthogonal(&self) -> OrthogonalModes {
+        let (q, r) = super::linalg::orthonormal_factor(self.real.as_ref());
+        let m = super::linalg::to_complex(r.as_ref()) * &self.coefficients;
+        OrthogonalModes { q, m }
+    }
+}
+
+/// Modes as `Phi = Q M`: `Q` (N x r) orthonormal, `M` (r x r) complex.
+#[derive(Debug, Clone)]
+pub struct OrthogonalModes {
+    pub q: Mat<f64>,
+    pub m: Mat<c64>,
+}
+
 /// Eigenvalues (discrete time, one step) and modes (columns, `N x r`) of a DMD operator.
 #[derive(Debug, Clone)]
 pub struct Modes {
@@ -28,6 +54,30 @@ impl Modes {
     /// the snapshot `t` steps after `x_ref` (PyDMD fits to the first snapshot; an online model
     /// fits to its newest one to forecast forward).
     pub fn model(self, x_ref: &[f64], dt: f64) -> Result<DmdModel, DmdError> {
+        self.model_with(x_ref, dt, |modes, b| lstsq_complex(modes.modes.as_ref(), b))
+    }
+
+    /// [`Self::model`] with the modes as `Q M` (`self.modes` must equal `Q M`): the least
+    /// squares `min |Q M alpha - x|` is `min |M alpha - Q^T x|` (the part of `x` off Q's span
+    /// is the same residual for every `alpha`), an r x r problem.
+    pub fn model_on(self, factored: &OrthogonalModes, x_ref: &[f64], dt: f64) -> Result<DmdModel, DmdError> {
+        if factored.q.nrows() != self.modes.nrows() || factored.m.ncols() != self.modes.ncols() {
+            return Err(DmdError::Shape("the factored modes are not these modes' shape".into()));
+        }
+        self.model_with(x_ref, dt, |_, b| {
+            let x = Mat::from_fn(b.len(), 1, |i, _| b[i].re);
+            let qtx = factored.q.transpose() * x;
+            let rhs: Vec<c64> = (0..qtx.nrows()).map(|i| c64::new(qtx[(i, 0)], 0.0)).collect();
+            lstsq_complex(factored.m.as_ref(), &rhs)
+        })
+    }
+
+    fn model_with(
+        self,
+        x_ref: &[f64],
+        dt: f64,
+        solve: impl FnOnce(&Self, &[c64]) -> Vec<c64>,
+    ) -> Result<DmdModel, DmdError> {
         if x_ref.len() != self.modes.nrows() {
             return Err(DmdError::Shape(format!(
                 "reference snapshot has {} values, the modes {}",
@@ -42,7 +92,7 @@ impl Modes {
         let amplitudes = if self.modes.ncols() == 0 {
             vec![]
         } else {
-            lstsq_complex(self.modes.as_ref(), &b)
+            solve(&self, &b)
         };
         Ok(DmdModel {
             modes: self,

@@ -14,6 +14,7 @@ pub mod horizon;
 pub mod qr;
 
 use crate::dmd::linalg::thin_svd;
+use crate::dmd::OrthogonalModes;
 use faer::{Mat, MatRef};
 use thiserror::Error;
 
@@ -43,4 +44,22 @@ pub fn real_basis(modes: MatRef<'_, faer::c64>) -> Result<Mat<f64>, SensingError
     let svd = thin_svd(stacked.as_ref()).map_err(|e| SensingError::Numerical(e.to_string()))?;
     let q = crate::dmd::numerical_rank(&svd.s, n, 2 * r);
     Ok(svd.truncate(q).u)
+}
+
+/// [`real_basis`] of modes given as `Phi = Q M` ([`OrthogonalModes`], Q orthonormal N x r, M
+/// r x r): `[Re Phi, Im Phi] = Q [Re M, Im M]`, so its singular values are those of the r x 2r
+/// `[Re M, Im M]` and its left singular vectors `Q` times that matrix's. The same span,
+/// numerical rank and tolerance as [`real_basis`], for one N x r product instead of an N x 2r
+/// SVD (at 192 x 384, 57 ms an epoch before).
+pub fn real_basis_factored(modes: &OrthogonalModes) -> Result<Mat<f64>, SensingError> {
+    let (n, r) = (modes.q.nrows(), modes.m.ncols());
+    let m = &modes.m;
+    let stacked = Mat::from_fn(
+        m.nrows(),
+        2 * r,
+        |i, j| if j < r { m[(i, j)].re } else { m[(i, j - r)].im },
+    );
+    let svd = thin_svd(stacked.as_ref()).map_err(|e| SensingError::Numerical(e.to_string()))?;
+    let keep = crate::dmd::numerical_rank(&svd.s, n, 2 * r);
+    Ok(&modes.q * svd.u.subcols(0, keep))
 }

@@ -21,7 +21,7 @@ use crate::fusion::{AerialNoise, Estimate};
 use crate::grid::Grid;
 use crate::kalman::{self, ModalFilter};
 use crate::protocol::Sample;
-use crate::sensing::{coverage, real_basis};
+use crate::sensing::{coverage, real_basis, real_basis_factored};
 use crate::team::{Missing, TeamConfig, TeamError};
 use faer::Mat;
 use rand::{RngExt, SeedableRng};
@@ -399,9 +399,15 @@ impl Assimilator {
 /// A model fitted to its newest snapshot (forecasts count from it), and an orthonormal real
 /// basis of its modes (for gappy reconstruction and placement).
 pub fn fit_to(model: &dyn Dmd, newest: &[f64]) -> Result<(DmdModel, Mat<f64>), TeamError> {
-    let modes = tracing::info_span!("decompose").in_scope(|| model.decompose())?;
-    let basis = tracing::info_span!("basis").in_scope(|| real_basis(modes.modes.as_ref()))?;
-    let fitted = tracing::info_span!("amplitudes").in_scope(|| modes.model(newest, 1.0))?;
+    let (modes, factors) = tracing::info_span!("decompose").in_scope(|| model.decompose_factored())?;
+    let Some(factors) = factors else {
+        let basis = tracing::info_span!("basis").in_scope(|| real_basis(modes.modes.as_ref()))?;
+        let fitted = tracing::info_span!("amplitudes").in_scope(|| modes.model(newest, 1.0))?;
+        return Ok((fitted, basis));
+    };
+    let orthogonal = tracing::info_span!("orthogonal factor").in_scope(|| factors.orthogonal());
+    let basis = tracing::info_span!("basis").in_scope(|| real_basis_factored(&orthogonal))?;
+    let fitted = tracing::info_span!("amplitudes").in_scope(|| modes.model_on(&orthogonal, newest, 1.0))?;
     Ok((fitted, basis))
 }
 
