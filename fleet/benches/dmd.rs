@@ -9,7 +9,6 @@ use fleet::process::synthetic::smooth_sphere_field;
 
 fn batch_4608x100_r10(c: &mut Criterion) {
     fleet::configure_linalg_threads();
-    fleet::keep_freed_memory();
     let times: Vec<f64> = (0..101).map(|k| 20.0 * k as f64 / 199.0).collect();
     let field = smooth_sphere_field(&times, 0.01, 42);
     let (x, y) = pairs_of(field.snapshots.as_ref());

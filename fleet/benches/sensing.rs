@@ -11,7 +11,6 @@ use fleet::sensing::qr::{block_qr, point_qr};
 
 fn placement(c: &mut Criterion) {
     fleet::configure_linalg_threads();
-    fleet::keep_freed_memory();
     let grid = Grid::new(48, 96, 1.0).unwrap();
     let phi = smooth_basis(&grid, 10, 7);
     c.bench_function("block QR 48x96 r10 radius 10, 5 boats", |b| {

@@ -9,9 +9,7 @@
 //! `fleet-math`, `fleet-mission` <- `fleet` (this crate: CLI, experiments, plots, reports).
 
 pub use fleet_exit as exit;
-pub use fleet_math::{
-    configure_linalg_threads, dmd, fusion, grid, kalman, keep_freed_memory, npy, process, sensing, Allocator,
-};
+pub use fleet_math::{configure_linalg_threads, dmd, fusion, grid, kalman, npy, process, sensing, Allocator};
 pub use fleet_mission::protocol;
 
 pub mod experiment;

@@ -14,7 +14,6 @@ fn main() {
         .with_writer(std::io::stderr)
         .init();
     fleet::configure_linalg_threads();
-    fleet::keep_freed_memory();
     let args = cli::Cli::parse();
     if let Err(e) = cli::run(args) {
         fleet::exit::fail("fleet", &e);

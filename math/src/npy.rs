@@ -158,9 +158,20 @@ pub fn write<T: npyz::AutoSerialize + Copy>(
     shape: &[usize],
     data: &[T],
 ) -> Result<(), NpyError> {
+    write_values(path, shape, data.len(), data.iter().copied())
+}
+
+/// [`write`] from `count` values as they come (no copy of the whole array in memory: a run's
+/// every step at 384 x 768 is hundreds of megabytes).
+pub fn write_values<T: npyz::AutoSerialize>(
+    path: impl AsRef<Path>,
+    shape: &[usize],
+    count: usize,
+    values: impl IntoIterator<Item = T>,
+) -> Result<(), NpyError> {
     let p = path.as_ref().display().to_string();
     let expected: usize = shape.iter().product();
-    if expected != data.len() {
+    if expected != count {
         return Err(NpyError::Shape {
             path: p,
             expected: format!("{expected} values"),
@@ -179,7 +190,7 @@ pub fn write<T: npyz::AutoSerialize + Copy>(
         .writer(BufWriter::new(file))
         .begin_nd()
         .map_err(io)?;
-    w.extend(data.iter().copied()).map_err(io)?;
+    w.extend(values.into_iter().take(count)).map_err(io)?;
     w.finish().map_err(io)
 }
 

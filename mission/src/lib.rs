@@ -8,9 +8,7 @@
 //! The mathematics it stands on is re-exported from `fleet-math` at the root (`grid`, `dmd`,
 //! `sensing`, `fusion`, `process`, `npy`).
 
-pub use fleet_math::{
-    configure_linalg_threads, dmd, fusion, grid, kalman, keep_freed_memory, npy, process, sensing, Allocator,
-};
+pub use fleet_math::{configure_linalg_threads, dmd, fusion, grid, kalman, npy, process, sensing, Allocator};
 
 pub mod assimilator;
 pub mod config;

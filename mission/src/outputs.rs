@@ -18,12 +18,14 @@ pub fn write(dir: &Path, core: &ServerCore, horizon: u64) -> anyhow::Result<()> 
     let grid = core.assimilator().grid();
     // Land (no data in the truth) is NaN: numpy's mark of a value that is not there.
     let land = core.assimilator().land();
+    let mut on_land = vec![false; grid.len()];
+    land.iter().for_each(|&c| on_land[c] = true);
     for (name, steps) in [("estimate.npy", &core.snapshots), ("variance.npy", &core.variances)] {
-        let mut data: Vec<f64> = steps.iter().flatten().copied().collect();
-        for k in 0..steps.len() {
-            land.iter().for_each(|&c| data[k * grid.len() + c] = f64::NAN);
-        }
-        crate::npy::write(dir.join(name), &[steps.len(), grid.rows, grid.cols], &data)?;
+        let values = steps
+            .iter()
+            .flat_map(|step| step.iter().zip(&on_land).map(|(&v, &l)| if l { f64::NAN } else { v }));
+        let shape = [steps.len(), grid.rows, grid.cols];
+        crate::npy::write_values(dir.join(name), &shape, steps.iter().map(Vec::len).sum(), values)?;
     }
     let plans = (0..core.counters.epochs)
         .flat_map(|e| {

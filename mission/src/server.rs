@@ -141,8 +141,11 @@ pub struct ServerCore {
     pub version: u64,
     /// Fused snapshots of every step assimilated so far (for metrics).
     pub snapshots: Vec<Vec<f64>>,
-    /// The aerial estimate of every step assimilated so far (the aerial-only team's map).
+    /// The aerial estimate of every step assimilated so far (the aerial-only team's map),
+    /// kept only when asked for ([`Self::with_aerial_history`]: the experiments' baseline): a
+    /// full field a step, 2.4 MB at 384 x 768, that the model server never reads.
     pub aerial_estimates: Vec<Vec<f64>>,
+    keep_aerial_estimates: bool,
     /// The reported variance per cell of every fused snapshot (for calibration).
     pub variances: Vec<Vec<f64>>,
     /// Late batches taken by [`Self::ingest_deferred`] and not yet re-fitted.
@@ -195,6 +198,7 @@ impl ServerCore {
             version: 0,
             snapshots: vec![],
             aerial_estimates: vec![],
+            keep_aerial_estimates: false,
             variances: vec![],
             stale: false,
             stale_from: u64::MAX,
@@ -418,6 +422,12 @@ impl ServerCore {
         }
         self.version = version + 1;
         Ok(())
+    }
+
+    /// Keep the aerial estimate of every step in [`Self::aerial_estimates`].
+    pub fn with_aerial_history(mut self) -> Self {
+        self.keep_aerial_estimates = true;
+        self
     }
 
     /// Turn the checkpoints off (every re-fit then starts from epoch 0): for benchmarks.
@@ -768,7 +778,9 @@ impl ServerCore {
                 let est = self
                     .assim
                     .aerial_estimate(&Self::samples_at(&batches, VehicleKind::Aerial, k))?;
-                self.aerial_estimates.push(est.estimate.values.clone());
+                if self.keep_aerial_estimates {
+                    self.aerial_estimates.push(est.estimate.values.clone());
+                }
                 self.variances.push(est.estimate.variance);
                 init.push(est.estimate.values);
             }
@@ -780,7 +792,9 @@ impl ServerCore {
             for k in steps {
                 let ahead = (k + 1 - k0) as u64;
                 let (aerial, boats) = self.screened(&batches, k, ahead)?;
-                self.aerial_estimates.push(aerial.estimate.values.clone());
+                if self.keep_aerial_estimates {
+                    self.aerial_estimates.push(aerial.estimate.values.clone());
+                }
                 let (boats, held) = crate::holdout::split(boats, self.holdout_share, self.cfg.boat_sigma);
                 let fused = tracing::info_span!("fuse").in_scope(|| self.assim.fuse_step(ahead, &aerial, &boats))?;
                 if let Some(i) = self.assim.take_innovation() {

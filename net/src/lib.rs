@@ -322,7 +322,6 @@ pub fn init_node() {
     use tracing_subscriber::util::SubscriberInitExt as _;
     use tracing_subscriber::Layer as _;
     fleet_mission::configure_linalg_threads();
-    fleet_mission::keep_freed_memory();
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
     // Colour only on a terminal: a log file gets plain text.

@@ -297,6 +297,9 @@ fn truth_arg(c: &mut Command, path: &Path) {
 /// one.
 type Said = Result<ServerEvent, String>;
 
+/// mimalloc's purge delay (ms; -1: never give freed memory back to the system).
+const PURGE_DELAY: &str = "MIMALLOC_PURGE_DELAY";
+
 /// The model server, started on the staged run; its events (also kept in `events.jsonl`).
 fn start_server(
     args: &Args,
@@ -305,6 +308,14 @@ fn start_server(
     staging: &Path,
 ) -> anyhow::Result<mpsc::Receiver<Said>> {
     let mut server = Command::new(&bins.server);
+    // mimalloc keeps the memory the server frees for its next epoch instead of returning it to
+    // the system, where each epoch's N x r matrices came back as fresh pages the kernel zeroed
+    // (192 x 384: p50 414 -> 253 ms, README "Where an epoch's time goes"). Only the
+    // environment sets it early enough: `mi_option_set` at start-up did not take. A value the
+    // user set is kept.
+    if std::env::var_os(PURGE_DELAY).is_none() {
+        server.env(PURGE_DELAY, "-1");
+    }
     server.arg("--mission").arg(mission_file(args, staging));
     truth_arg(&mut server, &staging.join("truth.npy"));
     server.arg("--state-dir").arg(staging.join("state"));

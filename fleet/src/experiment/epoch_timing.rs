@@ -101,8 +101,10 @@ fn timed(
                 break;
             }
         }
-        let model = tracing::info_span!("model encoded")
-            .in_scope(|| server.model_update().map(|m| protocol::encode(&Body::Model(m))));
+        let model = tracing::info_span!("model encoded").in_scope(|| {
+            let m = tracing::info_span!("model assembled").in_scope(|| server.model_update());
+            m.map(|m| protocol::encode(&Body::Model(m)))
+        });
         model_bytes = model.map_or(0, |m| m.len());
         tracing::info_span!("plans encoded").in_scope(|| {
             for v in server.vehicles().to_vec() {

@@ -262,7 +262,7 @@ fn run_placing(
         land: truth.land(),
         ..cfg.clone()
     };
-    let mut server = ServerCore::new(cfg, grid, frames)?;
+    let mut server = ServerCore::new(cfg, grid, frames)?.with_aerial_history();
     let truth_at = |k: usize| column(&truth.snapshots, k);
     let mut brains = brains_of(&server, cfg, grid);
     let mut out = TeamOutcome::default();

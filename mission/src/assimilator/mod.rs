@@ -167,13 +167,23 @@ impl Assimilator {
     }
 
     /// Its state now, to come back to with [`Self::rewind`].
+    ///
+    /// The fitted model (its modes are N x r complex, 47 MB at 384 x 768 and rank 10) is left
+    /// out: it is what [`Self::refit`] makes of the model and the newest snapshot, so
+    /// [`Self::rewind`] makes it again, to the bit.
     pub fn checkpoint(&self) -> AssimilatorCheckpoint {
-        self.state.clone()
+        AssimilatorState {
+            fitted: None,
+            ..self.state.clone()
+        }
     }
 
     /// Back to a checkpoint taken earlier on this same Assimilator.
     pub fn rewind(&mut self, c: &AssimilatorCheckpoint) -> Result<(), TeamError> {
         self.state = c.clone();
+        if self.state.model.is_some() {
+            self.refit()?;
+        }
         Ok(())
     }
 

@@ -16,7 +16,8 @@ pub fn serialize<S: Serializer>(values: &[f64], s: S) -> Result<S::Ok, S::Error>
     if s.is_human_readable() {
         return s.collect_seq(values);
     }
-    let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+    let mut bytes = Vec::with_capacity(8 * values.len());
+    values.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
     s.serialize_bytes(&bytes)
 }
 
