@@ -110,8 +110,9 @@ fn hostile(now: f64, site: &fleet_mission::site::Site) -> Vec<(String, &'static 
 }
 
 /// The instrument emulator for the mission at `m`, feeding `feeds` (`--truth`: the world, when
-/// the mission has none; `hostile`: bad MAVLink values too); its process, the log of what it
-/// sent and its standard output (a `stdin` boat's readings).
+/// the mission has none; `hostile`: bad MAVLink values too; `faults`: its fault flags, such as
+/// `("--fault", "boat-3=bias@25")`); its process, the log of what it sent and its standard
+/// output (a `stdin` boat's readings).
 fn start_emulator(
     dir: &Path,
     m: &Path,
@@ -119,7 +120,7 @@ fn start_emulator(
     gcs: u16,
     truth: Option<&Path>,
     hostile: bool,
-    stuck: Option<(&str, u64)>,
+    faults: &[(&str, &str)],
 ) -> (Procs, PathBuf, std::process::ChildStdout) {
     let mission = fleet_mission::config::MissionConfig::load(Some(m)).unwrap();
     let mut emulator = std::process::Command::new(bin("instrument_emulator"));
@@ -143,8 +144,8 @@ fn start_emulator(
     if let Some(t) = truth {
         emulator.arg("--truth").arg(t);
     }
-    if let Some((id, step)) = stuck {
-        emulator.args(["--stuck", &format!("{id}={step}")]);
+    for (flag, value) in faults {
+        emulator.args([flag, value]);
     }
     let mut child = emulator
         .stdout(std::process::Stdio::piped())
@@ -239,8 +240,10 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     let gcs = udp_port();
     let start = fleet_mission::instrument::MissionClock::now().ceil() + 12.0;
     let m = timed_mission(&dir, start, &feeds, gcs);
-    // boat-1's probe sticks from step 25: the server's health tests must find it.
-    let (mut procs, log, stdout) = start_emulator(&dir, &m, &feeds, gcs, None, true, Some(("boat-1", 25)));
+    // boat-1's probe sticks from step 25, and boat-3's (through its standard input) reads 3
+    // noise standard deviations high from then on: the server's health tests must find both.
+    let faults = [("--stuck", "boat-1=25"), ("--fault", "boat-3=bias@25")];
+    let (mut procs, log, stdout) = start_emulator(&dir, &m, &feeds, gcs, None, true, &faults);
     let out = dir.join("run");
     let stop = Arc::new(AtomicBool::new(false));
     let rss = [
@@ -379,7 +382,8 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     assert_eq!(counts.received, good("boat-1") + flooded);
     assert_eq!(boat2.accepted, good("boat-2"));
     assert!(good("boat-2") >= 5, "boat-2's sonde sent {} values", good("boat-2"));
-    stuck_probe_is_excluded(&out, "boat-1", 25);
+    stuck_probe_is_excluded(&out, "boat-1", 25, &["boat-3"]);
+    biased_probe_is_marked(&out, "boat-3", 25);
     // And the ground station heard it from the gateway, under boat-1's system id.
     let sysid = mission.sysid("boat-1").unwrap() as u64;
     let said = std::fs::read_to_string(log.with_extension("statustext")).unwrap();
@@ -398,15 +402,44 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     );
 }
 
+/// The sensor verdicts of the run in `out` (its summary's).
+fn verdicts(out: &Path) -> Vec<serde_json::Value> {
+    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    summary["sensor_verdicts"]
+        .as_array()
+        .expect("sensor verdicts in the summary")
+        .clone()
+}
+
+/// The biased probe of `id` (3 noise standard deviations high from step `from`, sent through
+/// its instrument's interface) is marked for its bias, after the fault began. How soon depends
+/// on how many aerial lattice cells its disk holds where the boat really went (the bias test
+/// compares the two at the same cells), so the test asks only that it is found; the fault
+/// study measures how soon, over seeds.
+fn biased_probe_is_marked(out: &Path, id: &str, from: u64) {
+    let verdicts = verdicts(out);
+    let first = verdicts
+        .iter()
+        .find(|v| v["vehicle"] == id && v["to"] != "ok")
+        .unwrap_or_else(|| panic!("{id}'s bias was never found: {verdicts:?}"));
+    assert!(first["step"].as_u64().unwrap() >= from, "{first}");
+    assert!(first["reason"].as_str().unwrap().starts_with("biased"), "{first}");
+    eprintln!(
+        "{id}'s bias from step {from} found at step {}: {}",
+        first["step"], first["reason"]
+    );
+}
+
 /// The stuck probe of `id` (from step `from`, sent through its instrument's interface) is
 /// excluded at its first sampling step after, once, with the reason: in the summary, as a
-/// `sensor` event, and in the mission report; no other sensor is marked.
-fn stuck_probe_is_excluded(out: &Path, id: &str, from: u64) {
-    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
-    let verdicts = summary["sensor_verdicts"]
-        .as_array()
-        .expect("sensor verdicts in the summary");
-    let excluded: Vec<&serde_json::Value> = verdicts.iter().filter(|v| v["to"] == "excluded").collect();
+/// `sensor` event, and in the mission report; no other sensor is marked but those `failing` too.
+fn stuck_probe_is_excluded(out: &Path, id: &str, from: u64, failing: &[&str]) {
+    let verdicts = verdicts(out);
+    let others = |v: &serde_json::Value| failing.iter().any(|f| v["vehicle"] == *f);
+    let excluded: Vec<&serde_json::Value> = verdicts
+        .iter()
+        .filter(|v| v["to"] == "excluded" && !others(v))
+        .collect();
     assert_eq!(excluded.len(), 1, "{verdicts:?}");
     let v = excluded[0];
     assert_eq!(v["vehicle"], id, "{v}");
@@ -416,7 +449,7 @@ fn stuck_probe_is_excluded(out: &Path, id: &str, from: u64) {
     );
     assert!(v["reason"].as_str().unwrap().starts_with("stuck"), "{v}");
     assert!(
-        verdicts.iter().all(|v| v["vehicle"] == id),
+        verdicts.iter().all(|v| v["vehicle"] == id || others(v)),
         "a healthy sensor was marked: {verdicts:?}"
     );
     let events = std::fs::read_to_string(out.join("events.jsonl")).unwrap();
@@ -560,7 +593,7 @@ fn the_real_site_mission_runs_without_a_truth_and_is_scored_by_held_out_readings
         mission.truth.is_none() && mission.team.fence.is_some(),
         "no truth, a fence from the plan"
     );
-    let (mut procs, log, stdout) = start_emulator(&dir, &m, &feeds, gcs, Some(&world_path), false, None);
+    let (mut procs, log, stdout) = start_emulator(&dir, &m, &feeds, gcs, Some(&world_path), false, &[]);
     let out = dir.join("run");
     let o = fleet_up(&m, &out, stdout).join().unwrap();
     assert!(o.status.success(), "fleet up: {}", String::from_utf8_lossy(&o.stderr));

@@ -23,7 +23,8 @@ use std::collections::BTreeMap;
 pub enum FaultKind {
     /// A boat's calibration error: every value 3 noise standard deviations high.
     Bias,
-    /// A boat's probe stuck: every value the first one it read after the fault.
+    /// A boat's probe stuck: every value of a reading the first one of it (the disk reads one
+    /// value throughout).
     Stuck,
     /// A fouled boat sensor: 2% of the values 50 standard deviations off (either sign).
     Spikes,
@@ -78,30 +79,41 @@ impl Fault {
     /// The vehicle's batches as its failing instrument would have reported them.
     pub fn apply(&self, batches: &mut [MeasurementBatch], vehicle_of: impl Fn(&MeasurementBatch) -> usize) {
         for b in batches.iter_mut().filter(|b| vehicle_of(b) == self.vehicle) {
-            for s in b.samples.iter_mut().filter(|s| s.step >= self.from) {
-                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(self.seed ^ s.step.wrapping_mul(0x9e37_79b9));
-                let sd = self.sigma;
-                match self.kind {
-                    FaultKind::Bias => s.values.iter_mut().for_each(|v| *v += 3.0 * sd),
-                    FaultKind::Stuck => {
-                        let first = s.values.first().copied().unwrap_or(0.0);
-                        s.values.iter_mut().for_each(|v| *v = first);
-                    }
-                    FaultKind::Spikes => s.values.iter_mut().for_each(|v| {
-                        if rng.random_bool(0.02) {
-                            *v += if rng.random_bool(0.5) { 50.0 } else { -50.0 } * sd;
-                        }
-                    }),
-                    FaultKind::Drift => {
-                        let span = (self.last.saturating_sub(self.from)).max(1) as f64;
-                        let offset = 5.0 * sd * (s.step - self.from) as f64 / span;
-                        s.values.iter_mut().for_each(|v| *v += offset);
-                    }
-                    FaultKind::Overexposed => {
-                        if rng.random_bool(0.1) {
-                            s.values.iter_mut().for_each(|v| *v += 20.0 * sd);
-                        }
-                    }
+            for s in b.samples.iter_mut() {
+                self.alter(s.step, &mut s.values);
+            }
+        }
+    }
+
+    /// One reading's values at `step` as the failing instrument reports them (as they are
+    /// before the fault's step): what [`Self::apply`] does to each sample of a batch, and what
+    /// the tests' instrument emulator sends through a sensor's own interface (UDP, a camera's
+    /// GeoTIFF, MAVLink). A stuck probe repeats the reading's first value.
+    pub fn alter(&self, step: u64, values: &mut [f64]) {
+        if step < self.from {
+            return;
+        }
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(self.seed ^ step.wrapping_mul(0x9e37_79b9));
+        let sd = self.sigma;
+        match self.kind {
+            FaultKind::Bias => values.iter_mut().for_each(|v| *v += 3.0 * sd),
+            FaultKind::Stuck => {
+                let first = values.first().copied().unwrap_or(0.0);
+                values.iter_mut().for_each(|v| *v = first);
+            }
+            FaultKind::Spikes => values.iter_mut().for_each(|v| {
+                if rng.random_bool(0.02) {
+                    *v += if rng.random_bool(0.5) { 50.0 } else { -50.0 } * sd;
+                }
+            }),
+            FaultKind::Drift => {
+                let span = (self.last.saturating_sub(self.from)).max(1) as f64;
+                let offset = 5.0 * sd * (step - self.from) as f64 / span;
+                values.iter_mut().for_each(|v| *v += offset);
+            }
+            FaultKind::Overexposed => {
+                if rng.random_bool(0.1) {
+                    values.iter_mut().for_each(|v| *v += 20.0 * sd);
                 }
             }
         }

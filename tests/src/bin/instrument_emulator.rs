@@ -16,6 +16,9 @@
 //! STEP on: every value it sends is the first one it read at that step (a fault for the
 //! server's health tests to find, sent through the same interface as every reading). Every
 //! STATUSTEXT the ground-station stream carries is logged beside the log (`.statustext`).
+//! `--fault ID=KIND@STEP` makes that vehicle's instrument fail from step STEP as the fault
+//! study's do (`bias`, `stuck`, `spikes`, `drift` for a boat's disk or sonde, `overexposed` for
+//! an aerial's frames; `fleet::experiment::faults::Fault::alter`), through the same interface.
 //!
 //! `--mavlink boat-2=PORT` makes it that boat's sonde on its autopilot: a companion computer on
 //! the simulated autopilot's companion link (`udpout:127.0.0.1:PORT`) that hears the autopilot's
@@ -30,6 +33,7 @@
 //! --frames av-1=DIR ... [--truth field.npy] --seed N --log sent.ndjson`; exits when the
 //! mission's last step has passed. `--truth` is the world when the mission has none.
 
+use fleet::experiment::faults::{Fault, FaultKind};
 use fleet_mission::config::MissionConfig;
 use fleet_mission::instrument::MissionClock;
 use fleet_mission::protocol::VehicleKind;
@@ -50,6 +54,7 @@ struct Args {
     name: String,
     hostile_mavlink: bool,
     stuck: BTreeMap<String, u64>,
+    faults: BTreeMap<String, (FaultKind, u64)>,
     truth: Option<std::path::PathBuf>,
     seed: u64,
     log: std::path::PathBuf,
@@ -65,6 +70,7 @@ fn args() -> Args {
         name: "SONDE".into(),
         hostile_mavlink: false,
         stuck: BTreeMap::new(),
+        faults: BTreeMap::new(),
         truth: None,
         seed: 0,
         log: "sent.ndjson".into(),
@@ -88,6 +94,15 @@ fn args() -> Args {
             "--stuck" => {
                 let (id, step) = v.split_once('=').expect("--stuck ID=STEP");
                 a.stuck.insert(id.into(), step.parse().expect("--stuck ID=STEP"));
+            }
+            "--fault" => {
+                let (id, what) = v.split_once('=').expect("--fault ID=KIND@STEP");
+                let (kind, step) = what.split_once('@').expect("--fault ID=KIND@STEP");
+                let kind = kind
+                    .parse()
+                    .unwrap_or_else(|_| panic!("--fault {v}: no fault kind {kind}"));
+                a.faults
+                    .insert(id.into(), (kind, step.parse().expect("--fault ID=KIND@STEP")));
             }
             "--hostile-mavlink" => a.hostile_mavlink = v.parse().expect("--hostile-mavlink true|false"),
             "--mavlink" => {
@@ -176,6 +191,7 @@ fn main() {
     let mut log = std::fs::File::create(&a.log).expect("the log");
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);
     let noise = Normal::new(0.0, mission.team.boat_sigma).expect("a noise");
+    let faults = failing(&a, &mission, frames);
     let mut sent: BTreeSet<(u64, String)> = BTreeSet::new();
     let mut stuck_at: BTreeMap<String, f64> = BTreeMap::new();
     loop {
@@ -195,13 +211,16 @@ fn main() {
             };
             let at = site.grid_of(&site.ned_of_global(lat, lon, site.origin[2]));
             let noise = mission.noise(VehicleKind::Aerial);
-            let values: Vec<f64> = (0..grid.len())
+            let mut values: Vec<f64> = (0..grid.len())
                 .map(|c| {
                     let (x, y) = grid.centre_m(grid.cell(c));
                     let sd = noise.std_at((at.0 - x).hypot(at.1 - y));
                     truth.snapshots[(c, k as usize)] + sd * Normal::new(0.0, 1.0).unwrap().sample(&mut rng)
                 })
                 .collect();
+            if let Some(f) = faults.get(id) {
+                f.alter(k, &mut values);
+            }
             write_frame(dir, &grid, &site, &values, t);
             sent.insert((k, id.clone()));
         }
@@ -214,7 +233,11 @@ fn main() {
             let (x, y) = site.grid_of(&site.ned_of_global(lat, lon, site.origin[2]));
             let Some(here) = grid.cell_at(x, y) else { continue };
             let c = grid.index(here);
-            let value = (truth.snapshots[(c, k as usize)] + noise.sample(&mut rng)) as f32;
+            let mut value = [truth.snapshots[(c, k as usize)] + noise.sample(&mut rng)];
+            if let Some(f) = faults.get(id) {
+                f.alter(k, &mut value);
+            }
+            let value = value[0] as f32;
             link.send_value(boot_ms, &a.name, value);
             if a.hostile_mavlink && !link.hostile_sent.swap(true, std::sync::atomic::Ordering::Relaxed) {
                 link.send_hostile(boot_ms, &a.name, *port_of.get(id).expect("a companion port"));
@@ -231,8 +254,15 @@ fn main() {
             let (x, y) = site.grid_of(&site.ned_of_global(lat, lon, site.origin[2]));
             let Some(here) = grid.cell_at(x, y) else { continue };
             let mut lines = String::new();
-            for c in grid.disk(here, mission.team.radius) {
-                let mut value = truth.snapshots[(c, k as usize)] + noise.sample(&mut rng);
+            let cells = grid.disk(here, mission.team.radius);
+            let mut values: Vec<f64> = cells
+                .iter()
+                .map(|&c| truth.snapshots[(c, k as usize)] + noise.sample(&mut rng))
+                .collect();
+            if let Some(f) = faults.get(id) {
+                f.alter(k, &mut values);
+            }
+            for (&c, mut value) in cells.iter().zip(values) {
                 if a.stuck.get(id).is_some_and(|&from| k >= from) {
                     value = *stuck_at.entry(id.clone()).or_insert(value);
                 }
@@ -387,4 +417,31 @@ impl Companion {
         });
         self.conn.send(&Self::header(self.sysid), &m).expect("sending a value");
     }
+}
+
+/// Each `--fault` as the fault study's [`Fault`]: the noise it is sized by is the vehicle's
+/// kind's (a camera's at the aerial's own position, a boat's), its drift reaches its full size
+/// at the mission's last step, and its random draws follow `--seed`.
+fn failing(a: &Args, mission: &MissionConfig, frames: usize) -> BTreeMap<String, Fault> {
+    a.faults
+        .iter()
+        .map(|(id, &(kind, from))| {
+            let sigma = match kind.kind() {
+                VehicleKind::Aerial => mission.team.aerial_sigma0,
+                VehicleKind::Boat => mission.team.boat_sigma,
+            };
+            let last = frames.saturating_sub(1) as u64;
+            (
+                id.clone(),
+                Fault {
+                    kind,
+                    vehicle: 0,
+                    from,
+                    last,
+                    sigma,
+                    seed: a.seed,
+                },
+            )
+        })
+        .collect()
 }
