@@ -14,11 +14,18 @@ use std::net::UdpSocket;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use vehicles::autopilot::modes::Frame;
+use vehicles::autopilot::modes::{Frame, Role};
 use vehicles::autopilot::serve;
 use vehicles::autopilot::sim::{SimAutopilot, SimSpec};
 use vehicles::bridge::{Bridge, BridgeSpec};
 use vehicles::link::{frame_bytes, parse_frame};
+
+/// The scripted autopilot's frames: system 7, the autopilot's component.
+const AP_HEADER: MavHeader = MavHeader {
+    system_id: 7,
+    component_id: 1,
+    sequence: 0,
+};
 
 fn site() -> Site {
     MavlinkConfig::default().site(&Grid::new(24, 48, 1.0).unwrap())
@@ -67,20 +74,9 @@ fn heartbeat(mode: u32) -> MavMessage {
     })
 }
 
-fn wait_for(what: &str, secs: f64, mut cond: impl FnMut() -> bool) {
-    let deadline = Instant::now() + Duration::from_secs_f64(secs);
-    while !cond() {
-        assert!(Instant::now() < deadline, "{what}: not within {secs} s");
-        std::thread::sleep(Duration::from_millis(10));
-    }
-}
-
-#[test]
-fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
-    // A fake autopilot we script by hand on a UDP socket.
-    let ap = UdpSocket::bind("127.0.0.1:0").unwrap();
-    ap.set_read_timeout(Some(Duration::from_millis(200))).unwrap();
-    let spec = BridgeSpec {
+/// A boat's bridge (system 7) that drives as soon as the autopilot shows GUIDED and armed.
+fn boat_spec() -> BridgeSpec {
+    BridgeSpec {
         vehicle: SimSpec {
             frame: Frame::Boat,
             sysid: 7,
@@ -105,7 +101,41 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
         mavlink_hz: f64::INFINITY,
         ready_timeout: Duration::from_secs(10),
         clearance_m: 0.0,
-    };
+    }
+}
+
+/// The autopilot's HEARTBEAT (system 7) at 10 Hz to `peer`, in the mode stored in the returned
+/// cell (0: silent; `u32::MAX`: stop).
+fn heartbeats(ap: &UdpSocket, peer: std::net::SocketAddr, first: u32) -> Arc<std::sync::atomic::AtomicU32> {
+    let mode = Arc::new(std::sync::atomic::AtomicU32::new(first));
+    let (ap, cell) = (ap.try_clone().unwrap(), mode.clone());
+    std::thread::spawn(move || loop {
+        let m = cell.load(std::sync::atomic::Ordering::Relaxed);
+        if m == u32::MAX {
+            return;
+        }
+        if m != 0 {
+            let _ = ap.send_to(&frame_bytes(AP_HEADER, &heartbeat(m)), peer);
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    });
+    mode
+}
+
+fn wait_for(what: &str, secs: f64, mut cond: impl FnMut() -> bool) {
+    let deadline = Instant::now() + Duration::from_secs_f64(secs);
+    while !cond() {
+        assert!(Instant::now() < deadline, "{what}: not within {secs} s");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+#[test]
+fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
+    // A fake autopilot we script by hand on a UDP socket.
+    let ap = UdpSocket::bind("127.0.0.1:0").unwrap();
+    ap.set_read_timeout(Some(Duration::from_millis(200))).unwrap();
+    let spec = boat_spec();
     let mut bridge = Bridge::connect(&format!("udpout:{}", ap.local_addr().unwrap()), spec, None).unwrap();
     // The bridge's companion heartbeat tells us where it is.
     let mut buf = [0u8; 512];
@@ -124,26 +154,8 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
     );
     assert!(bridge.position().is_none());
 
-    let ap_header = MavHeader {
-        system_id: 7,
-        component_id: 1,
-        sequence: 0,
-    };
     // The autopilot's HEARTBEAT at 10 Hz in the mode set here (0: silent).
-    let mode = Arc::new(std::sync::atomic::AtomicU32::new(15));
-    {
-        let (ap, mode) = (ap.try_clone().unwrap(), mode.clone());
-        std::thread::spawn(move || loop {
-            let m = mode.load(std::sync::atomic::Ordering::Relaxed);
-            if m == u32::MAX {
-                return;
-            }
-            if m != 0 {
-                let _ = ap.send_to(&frame_bytes(ap_header, &heartbeat(m)), peer);
-            }
-            std::thread::sleep(Duration::from_millis(100));
-        });
-    }
+    let mode = heartbeats(&ap, peer, 15);
     let alive = |m| mode.store(m, std::sync::atomic::Ordering::Relaxed);
     wait_for("link up in GUIDED", 3.0, || {
         bridge.status().link == AutopilotLink::Up && bridge.drivable()
@@ -156,10 +168,10 @@ fn garbage_and_a_silent_autopilot_never_break_the_bridge() {
         hdg: u16::MAX,
         ..Default::default()
     });
-    send(&frame_bytes(ap_header, &pos));
+    send(&frame_bytes(AP_HEADER, &pos));
     // A position off the Earth is refused, not believed.
     send(&frame_bytes(
-        ap_header,
+        AP_HEADER,
         &MavMessage::GLOBAL_POSITION_INT(GLOBAL_POSITION_INT_DATA {
             lat: i32::MAX,
             lon: 5,
@@ -275,4 +287,75 @@ fn the_simulated_autopilot_answers_through_garbage() {
     }
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
     assert!(acked, "no COMMAND_ACK after the garbage");
+}
+
+/// The DO_SET_MODE commands for `want` the bridge sends within `secs` (the scripted autopilot
+/// applies none of them; a refusal, `ack`, answers the first).
+fn mode_requests(ap: &UdpSocket, want: u32, secs: f64, ack: Option<MavResult>) -> usize {
+    let (mut buf, mut n) = ([0u8; 512], 0);
+    let deadline = Instant::now() + Duration::from_secs_f64(secs);
+    while Instant::now() < deadline {
+        let Ok((len, peer)) = ap.recv_from(&mut buf) else {
+            continue;
+        };
+        let Ok((_, MavMessage::COMMAND_LONG(c))) = parse_frame(&buf[..len]) else {
+            continue;
+        };
+        if c.command != MavCmd::MAV_CMD_DO_SET_MODE || c.param2 as u32 != want {
+            continue;
+        }
+        n += 1;
+        if let (1, Some(result)) = (n, ack) {
+            let a = COMMAND_ACK_DATA {
+                command: c.command,
+                result,
+                ..Default::default()
+            };
+            ap.send_to(&frame_bytes(AP_HEADER, &MavMessage::COMMAND_ACK(a)), peer)
+                .unwrap();
+        }
+    }
+    n
+}
+
+/// The vehicle's own mode change (a link-loss failsafe's RTL) lost on the link is asked for
+/// again until the autopilot's heartbeat shows it, and its reason stays in telemetry through
+/// the heartbeats sent before it took; a mode change the autopilot refuses is said, not retried.
+#[test]
+fn a_lost_mode_change_is_asked_again_until_the_autopilot_shows_it() {
+    const GUIDED: u32 = 15;
+    const RTL: u32 = 11;
+    let ap = UdpSocket::bind("127.0.0.1:0").unwrap();
+    ap.set_read_timeout(Some(Duration::from_millis(100))).unwrap();
+    let bridge = Bridge::connect(&format!("udpout:{}", ap.local_addr().unwrap()), boat_spec(), None).unwrap();
+    let mut buf = [0u8; 512];
+    let (_, peer) = ap.recv_from(&mut buf).expect("the bridge's heartbeat");
+    let mode = heartbeats(&ap, peer, GUIDED);
+    wait_for("link up in GUIDED", 3.0, || bridge.drivable());
+
+    assert!(bridge.failsafe(Role::Return, "ground link lost"));
+    // The autopilot never hears it (a lost datagram): still GUIDED, asked again.
+    let asked = mode_requests(&ap, RTL, 4.5, None);
+    assert!(
+        asked >= 2,
+        "RTL asked for {asked} time(s) while the autopilot stayed in GUIDED"
+    );
+    let status = bridge.status();
+    assert_eq!(status.failsafe.as_deref(), Some("ground link lost"), "{status:?}");
+    // Now it takes: no more requests once the heartbeat shows RTL.
+    mode.store(RTL, std::sync::atomic::Ordering::Relaxed);
+    wait_for("RTL shown", 2.0, || bridge.status().mode == "RTL");
+    assert_eq!(
+        mode_requests(&ap, RTL, 2.5, None),
+        0,
+        "asked again after the autopilot showed RTL"
+    );
+    assert_eq!(bridge.status().failsafe.as_deref(), Some("ground link lost"));
+
+    // GUIDED again on rejoining, refused by the autopilot: said, and not asked again.
+    bridge.rejoin();
+    assert_eq!(mode_requests(&ap, GUIDED, 3.0, Some(MavResult::MAV_RESULT_DENIED)), 1);
+    let failsafe = bridge.status().failsafe.unwrap_or_default();
+    assert!(failsafe.contains("refused GUIDED"), "{failsafe}");
+    mode.store(u32::MAX, std::sync::atomic::Ordering::Relaxed);
 }

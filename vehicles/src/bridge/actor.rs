@@ -12,6 +12,7 @@
 //! autopilot's rate, for the drive), the status (link, mode, arming, failsafe: telemetry), and
 //! the counters (read, never woken on).
 
+use super::mode_request::{Due, ModeRequest, MODE_TRIES};
 use super::named::NamedSource;
 use super::readiness::{self, is_arming_refusal};
 use super::ROUTE_INSET_M;
@@ -73,6 +74,8 @@ struct Actor {
     prepared: bool,
     /// The instrument on this link (`mavlink:NAME`), once the node asks for it.
     named: Option<NamedSource>,
+    /// The vehicle's own mode request (a failsafe, a rejoin) until the heartbeat shows it.
+    mode_request: Option<ModeRequest>,
     /// What of the autopilot's stream goes on to the ground stations.
     throttle: crate::throttle::Throttle,
     state_tx: watch::Sender<AutopilotState>,
@@ -109,6 +112,7 @@ pub(super) fn spawn(
         enable_tries: 0,
         prepared: false,
         named: None,
+        mode_request: None,
         throttle,
         state_tx,
         status_tx,
@@ -341,6 +345,9 @@ impl Actor {
                     self.on_limit(name);
                 }
             }
+            MavMessage::COMMAND_ACK(a) if a.command == MavCmd::MAV_CMD_DO_SET_MODE && refused(a.result) => {
+                self.on_mode_refused(a.result)
+            }
             m => self.state.readiness.on_message(m),
         }
     }
@@ -418,9 +425,13 @@ impl Actor {
             self.found_at = Some(Instant::now());
             self.ask_for_streams(system_id as u8);
         }
+        if self.mode_request.is_some_and(|r| r.shown_by(hb.custom_mode)) {
+            self.mode_request = None;
+        }
         let s = &mut self.state;
         s.sysid = u8::try_from(system_id).ok();
-        if frame.role(hb.custom_mode) == Some(Role::Guided) {
+        // GUIDED ends a failsafe, unless it is a heartbeat sent before the failsafe's mode took.
+        if frame.role(hb.custom_mode) == Some(Role::Guided) && self.mode_request.is_none() {
             s.failsafe = None;
         }
         s.mode = Some(hb.custom_mode);
@@ -439,10 +450,13 @@ impl Actor {
             Command::Goto(goal) => self.goto(target, goal),
             Command::Failsafe { mode, why } => {
                 self.state.failsafe = Some(why);
-                self.set_mode(target, mode);
+                self.request_mode(target, mode);
             }
-            Command::Rejoin => self.set_mode(target, self.spec.vehicle.frame.mode(Role::Guided)),
+            Command::Rejoin => self.request_mode(target, self.spec.vehicle.frame.mode(Role::Guided)),
             Command::Forward(h, m) => {
+                if is_mode_change(&m) && self.mode_request.take().is_some() {
+                    info!("an operator's mode change: the vehicle's own mode request is dropped");
+                }
                 if let Err(e) = self.conn.send(&h, &m) {
                     warn!("a ground station's frame to the autopilot: {e}");
                 }
@@ -531,6 +545,53 @@ impl Actor {
         self.send(&Self::command(target, MavCmd::MAV_CMD_DO_SET_MODE, flag, mode as f32));
     }
 
+    /// The vehicle's own mode change, asked for until the heartbeat shows it ([`ModeRequest`]).
+    fn request_mode(&mut self, target: u8, mode: u32) {
+        self.set_mode(target, mode);
+        self.mode_request = Some(ModeRequest::sent(mode, Instant::now()));
+    }
+
+    /// A pending mode request, a second on: asked again, or given up on with a warning.
+    fn follow_mode_request(&mut self, target: u8) {
+        let Some(r) = self.mode_request.as_mut() else { return };
+        let (mode, shown) = (self.spec.vehicle.frame.name(r.mode), self.state.mode);
+        match r.due(Instant::now()) {
+            Due::Wait => {}
+            Due::Resend(n) => {
+                let r = r.mode;
+                warn!(
+                    sysid = target,
+                    mode,
+                    try_ = n,
+                    "the autopilot does not show the mode asked for: asking again"
+                );
+                self.set_mode(target, r);
+            }
+            Due::GiveUp => {
+                let now = shown.map_or_else(|| "unknown".into(), |m| self.spec.vehicle.frame.name(m));
+                warn!(
+                    sysid = target,
+                    mode, now, "the autopilot never showed the mode asked for {MODE_TRIES} times"
+                );
+                self.mode_request = None;
+            }
+        }
+    }
+
+    /// The autopilot refused a mode change while the vehicle's own request was pending: asking
+    /// again changes nothing, and the operator must know.
+    fn on_mode_refused(&mut self, result: MavResult) {
+        let Some(r) = self.mode_request.take() else { return };
+        let mode = self.spec.vehicle.frame.name(r.mode);
+        warn!(
+            sysid = self.state.sysid,
+            mode,
+            ?result,
+            "the autopilot refused the mode asked for"
+        );
+        self.state.failsafe = Some(format!("the autopilot refused {mode} ({result:?})"));
+    }
+
     /// The companion's HEARTBEAT at 1 Hz (it also tells a `udpin:` autopilot where we are);
     /// unanswered set-up steps are asked again.
     fn on_second(&mut self) {
@@ -542,6 +603,9 @@ impl Actor {
             system_status: MavState::MAV_STATE_ACTIVE,
             mavlink_version: 3,
         }));
+        if let Some(target) = self.state.sysid {
+            self.follow_mode_request(target);
+        }
         self.advance(true);
     }
 
@@ -728,5 +792,26 @@ async fn sleep_until_some(at: Option<Instant>) {
     match at {
         Some(t) => tokio::time::sleep_until(t).await,
         None => std::future::pending().await,
+    }
+}
+
+/// A refusal that asking again does not change (TEMPORARILY_REJECTED and IN_PROGRESS may).
+fn refused(result: MavResult) -> bool {
+    matches!(
+        result,
+        MavResult::MAV_RESULT_DENIED | MavResult::MAV_RESULT_FAILED | MavResult::MAV_RESULT_UNSUPPORTED
+    )
+}
+
+/// Whether a ground station's frame changes the autopilot's mode (SET_MODE is deprecated, and
+/// ground stations still send it).
+#[allow(deprecated)]
+fn is_mode_change(m: &MavMessage) -> bool {
+    use MavCmd::{MAV_CMD_DO_SET_MODE, MAV_CMD_NAV_RETURN_TO_LAUNCH};
+    match m {
+        MavMessage::SET_MODE(_) => true,
+        MavMessage::COMMAND_LONG(c) => matches!(c.command, MAV_CMD_DO_SET_MODE | MAV_CMD_NAV_RETURN_TO_LAUNCH),
+        MavMessage::COMMAND_INT(c) => matches!(c.command, MAV_CMD_DO_SET_MODE | MAV_CMD_NAV_RETURN_TO_LAUNCH),
+        _ => false,
     }
 }

@@ -14,6 +14,7 @@
 //! [`Bridge`] handle (and its cloneable [`Driver`]) is how the node reads and commands it.
 
 mod actor;
+mod mode_request;
 mod named;
 pub mod readiness;
 
