@@ -41,15 +41,22 @@ impl ProjectedFit {
         Ok(Modes { eigenvalues, modes })
     }
 
-    /// [`Self::decompose`] with the modes' factors, the fit given up for its `F`.
+    /// [`Self::decompose`] with the modes' factors: an owned fit gives up its `F`, a borrowed
+    /// one copies only `F`.
     pub fn decompose_factored(
-        self,
+        fit: std::borrow::Cow<'_, Self>,
         debias: Debias,
         pairs: Option<&SnapshotPairs>,
         xt: Option<MatRef<'_, f64>>,
     ) -> Result<(Modes, Option<ModeFactors>), DmdError> {
-        let (eigenvalues, v, on_u) = self.eigenvectors(debias, pairs, xt)?;
-        let real = if on_u { self.u } else { self.yws };
+        use std::borrow::Cow;
+        let (eigenvalues, v, on_u) = fit.eigenvectors(debias, pairs, xt)?;
+        let real = match fit {
+            Cow::Owned(f) if on_u => f.u,
+            Cow::Owned(f) => f.yws,
+            Cow::Borrowed(f) if on_u => f.u.clone(),
+            Cow::Borrowed(f) => f.yws.clone(),
+        };
         let modes = super::linalg::to_complex(real.as_ref()) * &v;
         let factors = ModeFactors { real, coefficients: v };
         Ok((Modes { eigenvalues, modes }, Some(factors)))
@@ -162,9 +169,8 @@ impl Dmd for BatchDmd {
     }
 
     fn decompose_factored(&self) -> Result<(Modes, Option<ModeFactors>), DmdError> {
-        self.fit
-            .clone()
-            .decompose_factored(self.debias, Some(&self.pairs), Some(self.xt.as_ref()))
+        let fit = std::borrow::Cow::Borrowed(&self.fit);
+        ProjectedFit::decompose_factored(fit, self.debias, Some(&self.pairs), Some(self.xt.as_ref()))
     }
 
     fn rank(&self) -> usize {

@@ -196,8 +196,8 @@ impl Dmd for GeneralDmd {
     }
 
     fn decompose_factored(&self) -> Result<(Modes, Option<ModeFactors>), DmdError> {
-        self.projected()
-            .decompose_factored(self.debias, self.pairs.as_ref(), None)
+        let fit = std::borrow::Cow::Owned(self.projected());
+        ProjectedFit::decompose_factored(fit, self.debias, self.pairs.as_ref(), None)
     }
 
     fn rank(&self) -> usize {

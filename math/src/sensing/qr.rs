@@ -49,22 +49,13 @@ struct Coords {
 }
 
 /// An upper-triangular `R` with `R^T R = Phi^T Phi` (so `|R phi_p^T|` are the column norms of
-/// `Phi Phi^T`): the Cholesky factor of the small Gram matrix, which is 3-5x cheaper than a QR of
-/// the tall `Phi`; the QR's `R` when the Gram matrix is too ill-conditioned for Cholesky to be
-/// accurate (diagonal ratio below 1e-6, i.e. condition above 1e12).
+/// `Phi Phi^T`): the Cholesky factor of the small Gram matrix, or the QR's `R` when the Gram
+/// matrix is too ill-conditioned for Cholesky to be accurate.
 fn triangular_factor(phi: MatRef<'_, f64>) -> Mat<f64> {
-    let gram = phi.transpose() * phi;
-    if let Ok(llt) = gram.llt(faer::Side::Lower) {
-        let l = llt.L();
-        let d: Vec<f64> = (0..l.nrows()).map(|i| l[(i, i)].abs()).collect();
-        let (lo, hi) = d
-            .iter()
-            .fold((f64::INFINITY, 0.0f64), |(a, b), &v| (a.min(v), b.max(v)));
-        if lo > 1e-6 * hi {
-            return l.transpose().to_owned();
-        }
+    match crate::dmd::linalg::gram_cholesky(phi) {
+        Some(l) => l.transpose().to_owned(),
+        None => phi.qr().thin_R().to_owned(),
     }
-    phi.qr().thin_R().to_owned()
 }
 
 impl Coords {
