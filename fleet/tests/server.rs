@@ -95,7 +95,9 @@ fn shuffled_and_repeated_batches_give_the_offline_result() {
     );
     // Step for step, the server's fused snapshots are the offline experiment's.
     let mse: Vec<f64> = server
-        .snapshots
+        .history()
+        .estimates()
+        .unwrap()
         .iter()
         .enumerate()
         .map(|(k, s)| s.iter().zip(x(k)).map(|(a, b)| (a - b).powi(2)).sum::<f64>() / s.len() as f64)
@@ -366,7 +368,10 @@ fn equals_offline(server: &ServerCore, mut all: Vec<MeasurementBatch>, mut offli
         offline.ingest(b).unwrap();
     }
     assert!(offline.finished());
-    assert_eq!(server.snapshots, offline.snapshots);
+    assert_eq!(
+        server.history().estimates().unwrap(),
+        offline.history().estimates().unwrap()
+    );
     let (a, b) = (server.model_update().unwrap(), offline.model_update().unwrap());
     assert_eq!(a.eigenvalues, b.eigenvalues);
     assert_eq!(a.modes_re, b.modes_re);
@@ -544,7 +549,10 @@ fn a_mission_with_holds(kills: &[u64]) -> ServerCore {
 fn a_server_that_held_vehicles_restarts_from_its_journal_to_the_same_model() {
     let uninterrupted = a_mission_with_holds(&[]);
     let restarted = a_mission_with_holds(&[1, 2, 4]);
-    assert_eq!(restarted.snapshots, uninterrupted.snapshots);
+    assert_eq!(
+        restarted.history().estimates().unwrap(),
+        uninterrupted.history().estimates().unwrap()
+    );
     let (a, b) = (restarted.model_update().unwrap(), uninterrupted.model_update().unwrap());
     assert_eq!(
         (a.eigenvalues, a.modes_re, a.amplitudes),
@@ -571,7 +579,10 @@ fn a_server_restarted_after_forcing_epochs_reaches_the_same_epoch_and_takes_the_
         server.next_epoch(),
         "the forced epochs are assimilated again without boat-2"
     );
-    assert_eq!(fresh.snapshots, server.snapshots);
+    assert_eq!(
+        fresh.history().estimates().unwrap(),
+        server.history().estimates().unwrap()
+    );
     assert_eq!(fresh.counters.forced, 3);
     for b in held {
         assert!(matches!(fresh.ingest(b).unwrap(), Ingested::Refitted(_)));
@@ -705,7 +716,7 @@ fn run_with_boats(rewrite: impl Fn(MeasurementBatch) -> MeasurementBatch) -> Vec
         }
         e += 1;
     }
-    server.snapshots.clone()
+    server.history().estimates().unwrap()
 }
 
 /// An instrument's readings (each value with its own sigma, [`fleet::mission::instrument`])
@@ -826,8 +837,8 @@ fn fed(
 }
 
 fn same_model(a: &ServerCore, b: &ServerCore) {
-    assert_eq!(a.snapshots, b.snapshots);
-    assert_eq!(a.variances, b.variances);
+    assert_eq!(a.history().estimates().unwrap(), b.history().estimates().unwrap());
+    assert_eq!(a.history().variances().unwrap(), b.history().variances().unwrap());
     let (a, b) = (a.model_update().unwrap(), b.model_update().unwrap());
     assert_eq!((a.eigenvalues, a.modes_re), (b.eigenvalues, b.modes_re));
 }
@@ -880,10 +891,14 @@ fn an_operators_override_refits_and_survives_a_restart() {
         from_step: 0,
         set: Some(fleet::protocol::Health::Ok),
     };
-    let before = server.snapshots.clone();
+    let before = server.history().estimates().unwrap();
     server.override_sensor(&trust).unwrap();
     assert!(server.settle().unwrap(), "a step in the model re-fits");
-    assert_ne!(server.snapshots, before, "the stuck values are in the model now");
+    assert_ne!(
+        server.history().estimates().unwrap(),
+        before,
+        "the stuck values are in the model now"
+    );
     let boat1 = server
         .verdicts_at(0..frames)
         .into_iter()

@@ -2,8 +2,8 @@
 //! what a mission and a team are ([`config`], [`team`], the [`roster`] of its vehicles), the
 //! epoch [`schedule`] every node agrees on, the model server's core ([`server`], with the
 //! [`assimilator`] that fuses and allocates), the vehicle's brain ([`vehicle`]), the server's
-//! events ([`events`]), and the secured configs ([`security`]). Pure and testable without a
-//! socket; the nodes wrap it.
+//! events ([`events`]), the fused map at every step ([`history`]), and the secured configs
+//! ([`security`]). Pure and testable without a socket; the nodes wrap it.
 //!
 //! The mathematics it stands on is re-exported from `fleet-math` at the root (`grid`, `dmd`,
 //! `sensing`, `fusion`, `process`, `npy`).
@@ -16,6 +16,7 @@ pub mod events;
 pub mod fence;
 pub mod foxglove;
 pub mod health;
+pub mod history;
 pub mod holdout;
 pub mod instrument;
 pub mod launch;
@@ -29,6 +30,7 @@ pub mod security;
 pub mod server;
 pub mod signing_key;
 pub mod site;
+pub mod step_file;
 pub mod team;
 pub mod vehicle;
 

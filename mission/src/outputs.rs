@@ -9,24 +9,52 @@ use crate::server::ServerCore;
 use anyhow::Context as _;
 use std::path::Path;
 
+/// `estimate.npy` and `variance.npy`: already written step by step when the core keeps its
+/// history in `dir` (then given their names), otherwise written from it, land NaN.
+fn write_history(dir: &Path, core: &ServerCore) -> anyhow::Result<()> {
+    let history = core.history();
+    if history.files_dir().is_some_and(|d| same_dir(d, dir)) {
+        return history
+            .publish()
+            .with_context(|| format!("naming {}/estimate.npy and variance.npy", dir.display()));
+    }
+    let grid = core.assimilator().grid();
+    let land = core.assimilator().land();
+    let mut on_land = vec![false; grid.len()];
+    land.iter().for_each(|&c| on_land[c] = true);
+    let steps = history.len();
+    for (name, estimate) in [("estimate.npy", true), ("variance.npy", false)] {
+        let mut out = crate::step_file::StepFile::create(dir.join(name), grid.rows, grid.cols)
+            .with_context(|| format!("writing {}/{name}", dir.display()))?;
+        for k in 0..steps {
+            let step = if estimate {
+                history.estimate(k)
+            } else {
+                history.variance(k)
+            }?;
+            let values = step.iter().zip(&on_land).map(|(&v, &l)| if l { f64::NAN } else { v });
+            out.append(values)
+                .with_context(|| format!("writing {}/{name}", dir.display()))?;
+        }
+    }
+    Ok(())
+}
+
+/// Whether two paths name the same directory.
+fn same_dir(a: &Path, b: &Path) -> bool {
+    match (a.canonicalize(), b.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => a == b,
+    }
+}
+
 pub fn write(dir: &Path, core: &ServerCore, horizon: u64) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     if let Some(m) = core.model_update() {
         std::fs::write(dir.join("model.cbor"), protocol::encode(&Body::Model(m)))
             .with_context(|| format!("writing {}/model.cbor", dir.display()))?;
     }
-    let grid = core.assimilator().grid();
-    // Land (no data in the truth) is NaN: numpy's mark of a value that is not there.
-    let land = core.assimilator().land();
-    let mut on_land = vec![false; grid.len()];
-    land.iter().for_each(|&c| on_land[c] = true);
-    for (name, steps) in [("estimate.npy", &core.snapshots), ("variance.npy", &core.variances)] {
-        let values = steps
-            .iter()
-            .flat_map(|step| step.iter().zip(&on_land).map(|(&v, &l)| if l { f64::NAN } else { v }));
-        let shape = [steps.len(), grid.rows, grid.cols];
-        crate::npy::write_values(dir.join(name), &shape, steps.iter().map(Vec::len).sum(), values)?;
-    }
+    write_history(dir, core)?;
     let plans = (0..core.counters.epochs)
         .flat_map(|e| {
             core.vehicles()

@@ -9,6 +9,7 @@
 
 use crate::grid::Grid;
 use crate::health::{Health, Pin, Tagged, Verdict, CLEAN_STEPS};
+use crate::history::History;
 use crate::protocol::{self, Ack, MeasurementBatch, ModelUpdate, Plan, Sample, Target, VehicleId, VehicleKind};
 use crate::team::{LearnFrom, TeamConfig, TeamError};
 use crate::{schedule::Schedule, Allocation, Assimilator};
@@ -139,15 +140,14 @@ pub struct ServerCore {
     pub counters: Counters,
     /// Model version: bumped at every assimilated epoch.
     pub version: u64,
-    /// Fused snapshots of every step assimilated so far (for metrics).
-    pub snapshots: Vec<Vec<f64>>,
+    /// The fused estimate and its reported variance at every step assimilated so far (in
+    /// memory, or in the run's files: [`Self::with_history_in`]).
+    history: History,
     /// The aerial estimate of every step assimilated so far (the aerial-only team's map),
     /// kept only when asked for ([`Self::with_aerial_history`]: the experiments' baseline): a
     /// full field a step, 2.4 MB at 384 x 768, that the model server never reads.
     pub aerial_estimates: Vec<Vec<f64>>,
     keep_aerial_estimates: bool,
-    /// The reported variance per cell of every fused snapshot (for calibration).
-    pub variances: Vec<Vec<f64>>,
     /// Late batches taken by [`Self::ingest_deferred`] and not yet re-fitted.
     stale: bool,
     /// The earliest epoch those late batches belong to: the re-fit starts there.
@@ -196,10 +196,9 @@ impl ServerCore {
             holds: BTreeMap::new(),
             counters: Counters::default(),
             version: 0,
-            snapshots: vec![],
+            history: History::default(),
             aerial_estimates: vec![],
             keep_aerial_estimates: false,
-            variances: vec![],
             stale: false,
             stale_from: u64::MAX,
             checkpoints: Some(BTreeMap::new()),
@@ -395,18 +394,16 @@ impl ServerCore {
             Some(e) => {
                 let (cp, steps) = &self.checkpoints.as_ref().expect("checkpoints on")[&e];
                 self.assim.rewind(cp)?;
-                self.snapshots.truncate(*steps);
+                self.history.truncate(*steps).map_err(history_error)?;
                 self.aerial_estimates.truncate(*steps);
-                self.variances.truncate(*steps);
                 self.epoch = e;
             }
             None => {
                 let speed = self.assim.boat_speed();
                 self.assim = Assimilator::new(&self.cfg, *self.assim.grid(), self.schedule.frames)?;
                 self.assim.set_boat_speed(speed);
-                self.snapshots.clear();
+                self.history.truncate(0).map_err(history_error)?;
                 self.aerial_estimates.clear();
-                self.variances.clear();
                 self.epoch = 0;
             }
         }
@@ -422,6 +419,26 @@ impl ServerCore {
         }
         self.version = version + 1;
         Ok(())
+    }
+
+    /// Write every step's fused estimate and variance to `dir`'s `estimate.npy` and
+    /// `variance.npy` as they are made, instead of holding them in memory (the model server's
+    /// memory then does not grow with the mission). Before the first step only.
+    pub fn with_history_in(mut self, dir: &std::path::Path) -> Result<Self, TeamError> {
+        if !self.history.is_empty() {
+            return Err(TeamError::Config(
+                "the history moves to files before the first step only".into(),
+            ));
+        }
+        let grid = *self.assim.grid();
+        self.history = History::in_files(dir, grid.rows, grid.cols, self.assim.land())
+            .map_err(|e| TeamError::History(format!("{}: {e}", dir.display())))?;
+        Ok(self)
+    }
+
+    /// The fused estimate and its reported variance at every step assimilated so far.
+    pub fn history(&self) -> &History {
+        &self.history
     }
 
     /// Keep the aerial estimate of every step in [`Self::aerial_estimates`].
@@ -765,7 +782,7 @@ impl ServerCore {
 
     fn assimilate_epoch(&mut self, e: u64) -> Result<(), TeamError> {
         if e > 0 && e.is_multiple_of(CHECKPOINT_EVERY) {
-            let steps = self.snapshots.len();
+            let steps = self.history.len();
             if let Some(c) = self.checkpoints.as_mut() {
                 c.insert(e, (self.assim.checkpoint(), steps));
             }
@@ -781,14 +798,16 @@ impl ServerCore {
                 if self.keep_aerial_estimates {
                     self.aerial_estimates.push(est.estimate.values.clone());
                 }
-                self.variances.push(est.estimate.variance);
-                init.push(est.estimate.values);
+                let values = est.estimate.values;
+                self.history
+                    .push(values.clone(), est.estimate.variance)
+                    .map_err(history_error)?;
+                init.push(values);
             }
-            self.snapshots.extend(init.iter().cloned());
             self.assim.initialise(init)?;
         } else {
             let k0 = steps.start;
-            let (mut epoch, mut learn) = (vec![], vec![]);
+            let mut learn = vec![];
             for k in steps {
                 let ahead = (k + 1 - k0) as u64;
                 let (aerial, boats) = self.screened(&batches, k, ahead)?;
@@ -812,14 +831,14 @@ impl ServerCore {
                         });
                     self.held_out.insert(k, scored.collect());
                 }
-                self.variances.push(fused.variance);
                 learn.push(match self.cfg.learn_from {
                     LearnFrom::Posterior => fused.values.clone(),
                     LearnFrom::Aerial => aerial.estimate.values,
                 });
-                epoch.push(fused.values);
+                tracing::info_span!("history written")
+                    .in_scope(|| self.history.push(fused.values, fused.variance))
+                    .map_err(history_error)?;
             }
-            self.snapshots.extend(epoch);
             if let Some(skill) = self.assim.take_skill(e) {
                 self.skills.insert(e, skill);
             }
@@ -1017,19 +1036,18 @@ impl ServerCore {
         Some(ModelUpdate {
             version: self.version,
             epoch: self.epoch.saturating_sub(1),
-            step: self.snapshots.len().saturating_sub(1) as u64,
+            step: self.history.len().saturating_sub(1) as u64,
             grid: *self.assim.grid(),
             dt: m.dt,
             eigenvalues: m.modes.eigenvalues.iter().map(|l| [l.re, l.im]).collect(),
             modes_re,
             modes_im,
             amplitudes: m.amplitudes.iter().map(|a| [a.re, a.im]).collect(),
-            estimate: self.snapshots.last().cloned().unwrap_or_default(),
+            estimate: self.history.last().map(|l| l.0.to_vec()).unwrap_or_default(),
             variance: self
-                .variances
+                .history
                 .last()
-                .cloned()
-                .unwrap_or_else(|| vec![self.assim.prediction_variance(); n]),
+                .map_or_else(|| vec![self.assim.prediction_variance(); n], |l| l.1.to_vec()),
             forecast_steps: self.cfg.boat_period as u64,
             forecast_variance: self.assim.forecast_variance(self.cfg.boat_period as u64),
             land: self.assim.land().iter().map(|&c| c as u32).collect(),
@@ -1095,7 +1113,7 @@ impl ServerCore {
     /// values (epochs assimilated so far), with their epoch and step.
     pub fn innovations(&self) -> Vec<crate::holdout::StepInnovation> {
         self.innovations
-            .range(..self.snapshots.len())
+            .range(..self.history.len())
             .map(|(&k, i)| crate::holdout::StepInnovation {
                 epoch: self.schedule.epoch_of_step(k),
                 step: k as u64,
@@ -1113,4 +1131,9 @@ impl ServerCore {
     pub fn assimilator(&self) -> &Assimilator {
         &self.assim
     }
+}
+
+/// The run's estimate files could not be written or read back.
+fn history_error(e: std::io::Error) -> TeamError {
+    TeamError::History(e.to_string())
 }

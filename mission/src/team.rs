@@ -151,6 +151,9 @@ pub enum TeamError {
     Filter(#[from] crate::kalman::FilterError),
     #[error(transparent)]
     Grid(#[from] crate::grid::GridError),
+    /// The fused map's files in the run directory (`estimate.npy`, `variance.npy`).
+    #[error("the run's estimate files: {0}")]
+    History(String),
 }
 
 impl TeamConfig {

@@ -444,9 +444,15 @@ impl Server {
         let truth = self.truth.as_ref()?;
         let mut sum = 0.0;
         for k in steps.clone() {
-            let est = self.core.snapshots.get(k)?;
+            let est = match self.core.history().estimate(k) {
+                Ok(est) => est,
+                Err(e) => {
+                    warn!(step = k, "the fused estimate could not be read back to score it: {e}");
+                    return None;
+                }
+            };
             let x: Vec<f64> = truth.snapshots.col(k).iter().copied().collect();
-            let e = fleet_mission::fusion::mse(est, &x);
+            let e = fleet_mission::fusion::mse(&est, &x);
             if self.mse.len() == k {
                 self.mse.push(e);
             }
@@ -896,6 +902,11 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let mut core = ServerCore::new(&mission.team, grid, frames)?
         .with_boat_speed(mission.motion.boat_speed)
         .with_holdout(mission.holdout_share());
+    // The fused map of every step goes to the run's files as it is made (memory does not grow
+    // with the mission); a restart rebuilds them from the journal.
+    if let Some(dir) = &args.out {
+        core = core.with_history_in(dir)?;
+    }
     let mut ctx = Context::new(grid);
     ctx.vehicles = core.vehicles().iter().map(|v| v.id.clone()).collect();
     let journal_path = args.state_dir.join(format!("{}.redb", mission.mission));

@@ -60,19 +60,16 @@ pub fn run(args: Args) -> Result<()> {
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     fleet_mission::outputs::write(&args.out, core, mission.pace.horizon)?;
     std::fs::copy(&args.mission, args.out.join("mission.toml")).context("copying the mission into the run")?;
-    let mse: Vec<f64> = truth
-        .as_ref()
-        .map(|t| {
-            (0..core.snapshots.len())
-                .map(|k| {
-                    fleet::fusion::mse(
-                        &core.snapshots[k],
-                        &t.snapshots.col(k).iter().copied().collect::<Vec<_>>(),
-                    )
-                })
-                .collect()
-        })
-        .unwrap_or_default();
+    let mse: Vec<f64> = match truth.as_ref() {
+        Some(t) => (0..core.history().len())
+            .map(|k| {
+                let truth: Vec<f64> = t.snapshots.col(k).iter().copied().collect();
+                Ok(fleet::fusion::mse(&core.history().estimate(k)?, &truth))
+            })
+            .collect::<std::io::Result<_>>()
+            .context("reading the estimate back")?,
+        None => vec![],
+    };
     let summary = ServerSummary {
         mission: mission.mission.clone(),
         vehicles: core.vehicles().iter().map(|v| v.id.clone()).collect(),

@@ -1,7 +1,8 @@
 //! The model server's epoch at scale, without the network: the core driven by the vehicles
 //! as the vehicle node runs them on a moving plume, and each epoch timed from the batch that
 //! completes it to the published model encoded and every vehicle's next plan answered (the
-//! critical path of issue 40, less Zenoh and the files). Timings for `fleet bench epoch`.
+//! critical path of issue 40, less Zenoh and the files but for the fused map's, which the
+//! server writes step by step). Timings for `fleet bench epoch`.
 
 use super::team::{TeamConfig, TeamError};
 use crate::grid::Grid;
@@ -79,7 +80,9 @@ fn timed(
     let truth = plume_field(rows, cols, frames, 0.0, 3);
     let grid = Grid::new(rows, cols, 1.0)?;
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
-    let mut server = ServerCore::new(&cfg, grid, frames)?;
+    // As the model server keeps it: every step's fused map in files, not in memory.
+    let dir = std::env::temp_dir().join(format!("hetfleet-bench-epoch-{}", std::process::id()));
+    let mut server = ServerCore::new(&cfg, grid, frames)?.with_history_in(&dir)?;
     let mut brains = super::team::brains_of(&server, &cfg, grid);
     let (mut times, mut batch_bytes, mut model_bytes) = (vec![], 0usize, 0);
     for e in 0..server.schedule().epochs() {
@@ -117,6 +120,8 @@ fn timed(
             phases.reset();
         }
     }
+    drop(server);
+    let _ = std::fs::remove_dir_all(&dir);
     let first_fit_ms = times.remove(0);
     let n = times.len();
     let pct = |p: f64| -> f64 {

@@ -203,7 +203,8 @@ fn oracle_disks(
     assimilate(&mut probe, batches, e)?;
     let mut err2 = vec![0.0; grid.len()];
     for k in probe.schedule().sample_steps(VehicleKind::Boat, e) {
-        for ((s, x), t) in err2.iter_mut().zip(&probe.snapshots[k]).zip(truth_at(k)) {
+        let estimate = step_of(probe.history().estimate(k))?;
+        for ((s, x), t) in err2.iter_mut().zip(estimate.iter()).zip(truth_at(k)) {
             if !t.is_nan() {
                 *s += (x - t).powi(2);
             }
@@ -290,13 +291,16 @@ fn run_placing(
         assimilate(&mut server, batches, e)?;
         for k in steps.clone() {
             let x = truth_at(k);
-            out.heterogeneous.push(mse(&server.snapshots[k], &x));
-            out.calibration
-                .push(calibration(&server.snapshots[k], &server.variances[k], &x));
+            let (estimate, variance) = (
+                step_of(server.history().estimate(k))?,
+                step_of(server.history().variance(k))?,
+            );
+            out.heterogeneous.push(mse(&estimate, &x));
+            out.calibration.push(calibration(&estimate, &variance, &x));
             out.cell_errors.push(
                 x.iter()
-                    .zip(&server.snapshots[k])
-                    .zip(&server.variances[k])
+                    .zip(estimate.iter())
+                    .zip(variance.iter())
                     .filter(|((t, _), _)| !t.is_nan())
                     .map(|((t, e), v)| (*v as f32, ((e - t) * (e - t)) as f32))
                     .collect(),
@@ -310,8 +314,8 @@ fn run_placing(
                 out.disks
                     .push(allocation.boats.iter().flatten().map(|(_, c)| *c).collect());
                 out.aerial_positions.push(allocation.aerials.clone());
-                out.snapshots.push(server.snapshots[k].clone());
-                out.snapshot_variances.push(server.variances[k].clone());
+                out.snapshots.push(estimate.to_vec());
+                out.snapshot_variances.push(variance.to_vec());
             }
             progress(k + 1, frames);
         }
@@ -430,4 +434,9 @@ impl TeamOutcome {
         (self.reliability_variance, self.reliability) = deciles(&mut pooled);
         self.aerial_only_from_step0 = mean_from(&self.aerial_only, 0);
     }
+}
+
+/// A step of the core's history (in memory in an experiment: a miss is a defect, said).
+fn step_of(step: std::io::Result<std::borrow::Cow<'_, [f64]>>) -> Result<std::borrow::Cow<'_, [f64]>, TeamError> {
+    step.map_err(|e| TeamError::History(e.to_string()))
 }
