@@ -4,7 +4,7 @@
 use fleet::experiment::team::{self, TeamConfig};
 use fleet::grid::Grid;
 use fleet::mission::schedule::Schedule;
-use fleet::mission::server::{Ingested, ServerCore};
+use fleet::mission::server::{keep_checkpoint, Ingested, ServerCore, CHECKPOINT_EVERY};
 use fleet::mission::vehicle::VehicleBrain;
 use fleet::mission::vehicle_rng;
 use fleet::process::synthetic::plume_field;
@@ -632,10 +632,19 @@ fn a_late_batch_refits_from_the_newest_checkpoint_before_it_to_the_same_model() 
     assert!(server.settle().unwrap());
     assert!(server.finished());
     assert_eq!(server.counters.refits, 1);
+    // The newest checkpoint at or before epoch 13 that thinning kept (12 is dropped by then:
+    // 8 is the one, still not epoch 0).
+    let newest = (epochs - 1) / CHECKPOINT_EVERY * CHECKPOINT_EVERY;
+    let start = (1..=13 / CHECKPOINT_EVERY)
+        .map(|i| i * CHECKPOINT_EVERY)
+        .filter(|&at| keep_checkpoint(at, newest))
+        .max()
+        .unwrap_or(0);
+    assert_eq!(start, 8);
     assert_eq!(
         server.counters.refit_epochs,
-        epochs - 12,
-        "re-fitted from epoch 12 (the checkpoint at or before 13)"
+        epochs - start,
+        "re-fitted from epoch {start} (the checkpoint kept at or before 13)"
     );
     equals_offline(&server, all, offline);
 }

@@ -15,10 +15,24 @@ use crate::team::{LearnFrom, TeamConfig, TeamError};
 use crate::{schedule::Schedule, Allocation, Assimilator};
 use std::collections::{BTreeMap, BTreeSet};
 
-/// Epochs between checkpoints of the model state (a late batch re-fits at most this many
-/// epochs more than its lateness; each checkpoint holds the model's factors and the aerial
-/// estimate, about 0.8 MB at 48 x 96 and rank 10).
+/// Epochs between checkpoints of the model state (each holds the model's factors and the
+/// aerial estimate, about 0.8 MB at 48 x 96 and rank 10, 50-70 MB at 384 x 768); older ones
+/// are thinned ([`keep_checkpoint`]).
 pub const CHECKPOINT_EVERY: u64 = 4;
+
+/// Whether the checkpoint at epoch `at` is kept once the newest is at `newest`: the nearest
+/// ones all, older ones ever sparser, each spaced by the largest power of two (in checkpoint
+/// intervals) not above its age. So a mission of E epochs keeps at most 2 log2(E / 4 + 1) of
+/// them, not E / 4 (memory that does not grow with the mission), and a batch late by A epochs
+/// re-fits at most 3 A + 4 epochs (tested). The rule only tightens with age, so a checkpoint
+/// dropped would never have been kept later; which one a re-fit starts from never changes the
+/// model (a re-fit equals the fresh run, tested).
+pub fn keep_checkpoint(at: u64, newest: u64) -> bool {
+    let index = at / CHECKPOINT_EVERY;
+    let age = newest.saturating_sub(at) / CHECKPOINT_EVERY;
+    let spacing_log2 = age.checked_ilog2().unwrap_or(0);
+    index.is_multiple_of(1 << spacing_log2)
+}
 
 pub use crate::roster::{Roster, VehicleSpec};
 
@@ -152,9 +166,10 @@ pub struct ServerCore {
     stale: bool,
     /// The earliest epoch those late batches belong to: the re-fit starts there.
     stale_from: u64,
-    /// The state before every `CHECKPOINT_EVERY`-th epoch: a re-fit starts from the newest one
-    /// at or before the earliest late epoch, so its cost grows with how late the batch is, not
-    /// with the mission's length. (`None`: checkpoints off, every re-fit from epoch 0.)
+    /// The state before every `CHECKPOINT_EVERY`-th epoch, older ones thinned
+    /// ([`keep_checkpoint`]): a re-fit starts from the newest one at or before the earliest
+    /// late epoch, so its cost grows with how late the batch is, not with the mission's length.
+    /// (`None`: checkpoints off, every re-fit from epoch 0.)
     checkpoints: Option<BTreeMap<u64, (crate::AssimilatorCheckpoint, usize)>>,
     /// Epochs assimilated without some batch (by [`Self::force`]).
     forced: BTreeSet<u64>,
@@ -785,6 +800,7 @@ impl ServerCore {
             let steps = self.history.len();
             if let Some(c) = self.checkpoints.as_mut() {
                 c.insert(e, (self.assim.checkpoint(), steps));
+                c.retain(|&at, _| keep_checkpoint(at, e));
             }
         }
         let batches = self.received.get(&e).cloned().unwrap_or_default();
@@ -1136,4 +1152,34 @@ impl ServerCore {
 /// The run's estimate files could not be written or read back.
 fn history_error(e: std::io::Error) -> TeamError {
     TeamError::History(e.to_string())
+}
+
+#[cfg(test)]
+mod checkpoint_tests {
+    use super::*;
+
+    /// Over missions of 1 to 300 checkpoints: at most 2 log2(n + 1) kept, and a batch late by
+    /// A epochs re-fits from a kept checkpoint (or epoch 0) at most 3 A + CHECKPOINT_EVERY
+    /// epochs back; a dropped checkpoint is never kept again as the mission goes on.
+    #[test]
+    fn thinned_checkpoints_stay_few_and_near_the_late_epoch() {
+        let mut dropped = BTreeSet::new();
+        for n in 1..=300u64 {
+            let newest = n * CHECKPOINT_EVERY;
+            let kept: Vec<u64> = (1..=n)
+                .map(|i| i * CHECKPOINT_EVERY)
+                .filter(|&at| keep_checkpoint(at, newest))
+                .collect();
+            assert!(kept.len() as f64 <= 2.0 * ((n + 1) as f64).log2(), "{n}: {kept:?}");
+            assert!(kept.iter().all(|at| !dropped.contains(at)), "{n}: dropped, then kept");
+            dropped.extend((1..=n).map(|i| i * CHECKPOINT_EVERY).filter(|at| !kept.contains(at)));
+            for late in 0..=newest {
+                let start = kept.iter().copied().filter(|&c| c <= late).max().unwrap_or(0);
+                assert!(
+                    newest - start <= 3 * (newest - late) + CHECKPOINT_EVERY,
+                    "{n}: late {late} from {start}"
+                );
+            }
+        }
+    }
 }

@@ -120,19 +120,26 @@ impl Assimilator {
     /// against the boats' measurements.
     pub fn fuse_step(&mut self, ahead: u64, sight: &AerialSight, boats: &[Sample]) -> Result<Estimate, TeamError> {
         let (pred, _) = self.state.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
-        let predicted = pred.predict(ahead as f64);
         // A canonical order (disks do not overlap, so first cells differ): the result does not
         // depend on the order the boats' samples arrived in.
         let mut boats: Vec<&Sample> = boats.iter().collect();
         boats.sort_by_key(|s| (s.cells.first().copied(), s.cells.len()));
         let cells: Vec<usize> = boats.iter().flat_map(|s| s.cells.iter().map(|&c| c as usize)).collect();
+        // The model's own prediction of the step (a full field, N x r complex products): for
+        // the sources' calibration at boat steps and the boats' gappy estimate; the Kalman
+        // filter forecasts by itself, so between boat steps it is not made.
+        let kalman = self.setup.cfg.fusion == Scheme::Kalman;
+        let predicted = match kalman && cells.is_empty() {
+            true => vec![],
+            false => pred.predict(ahead as f64),
+        };
         let vals: Vec<f64> = boats.iter().flat_map(|s| s.values.iter().copied()).collect();
         let vars = boat_variances(&boats, self.setup.cfg.boat_sigma);
         let boat_var = typical(&vars, self.setup.cfg.boat_sigma * self.setup.cfg.boat_sigma);
         if !cells.is_empty() {
             self.calibrate(sight, &predicted, &cells, &vals, boat_var);
         }
-        if self.setup.cfg.fusion == Scheme::Kalman {
+        if kalman {
             let fused = self.filter_step(ahead, sight, &cells, &vals, &vars)?;
             return Ok(self.setup.dry_estimate(fused));
         }
