@@ -5,7 +5,8 @@
 //!   the core for a probe, so they read the steps back as they were made;
 //! - in the run directory, written as the steps are made ([`History::in_files`]): the model
 //!   server. Memory then does not grow with the mission (a step of the two is 4.7 MB at
-//!   384 x 768) and nothing is copied whole at the end. The files are `estimate.npy.part` and
+//!   384 x 768) and nothing is copied whole at the end. A thread writes them from a bounded
+//!   queue ([`crate::step_writer`]), off the epoch's path. The files are `estimate.npy.part` and
 //!   `variance.npy.part` until the run's outputs are written ([`History::publish`]), when they
 //!   take their names: a finished run's files appear when it finishes, as its other outputs do
 //!   (and `fleet up`, which clears the previous run's outputs as it starts, never removes
@@ -15,10 +16,12 @@
 //! the core itself keeps land at 0 (dry), and the newest step, which the published model
 //! carries, is kept in memory as the core made it.
 
-use crate::step_file::StepFile;
+use crate::step_file::{StepFile, StepReader};
+use crate::step_writer::{Step, StepWriter};
 use std::borrow::Cow;
 use std::io;
 use std::path::Path;
+use std::sync::Arc;
 
 /// The run's files of the fused map, and the suffix they have until the run's outputs are
 /// written.
@@ -38,12 +41,14 @@ enum Store {
         variances: Vec<Vec<f64>>,
     },
     Files {
-        estimate: StepFile,
-        variance: StepFile,
+        writer: StepWriter,
+        /// The estimate's and the variance's files, read back after the writer has caught up.
+        readers: [StepReader; 2],
+        steps: usize,
         /// Cells with no data (NaN in the files).
         land: Vec<bool>,
         /// The newest step as the core made it.
-        last: Option<(Vec<f64>, Vec<f64>)>,
+        last: Option<Step>,
     },
 }
 
@@ -71,10 +76,10 @@ impl Clone for History {
                 estimates: estimates.clone(),
                 variances: variances.clone(),
             }),
-            Store::Files { estimate, last, .. } => {
-                let (estimates, variances) = last.iter().cloned().unzip();
+            Store::Files { steps, last, .. } => {
+                let (estimates, variances) = last.iter().map(|s| (s.0.clone(), s.1.clone())).unzip();
                 Self(Store::Memory {
-                    first: estimate.steps() - usize::from(last.is_some()),
+                    first: steps - usize::from(last.is_some()),
                     estimates,
                     variances,
                 })
@@ -90,9 +95,15 @@ impl History {
         std::fs::create_dir_all(dir)?;
         let mut on_land = vec![false; rows * cols];
         land.iter().for_each(|&c| on_land[c] = true);
+        let files = [
+            StepFile::create(dir.join(format!("{}{PART}", FILES[0])), rows, cols)?,
+            StepFile::create(dir.join(format!("{}{PART}", FILES[1])), rows, cols)?,
+        ];
+        let (writer, readers) = StepWriter::start(files, on_land.clone())?;
         Ok(Self(Store::Files {
-            estimate: StepFile::create(dir.join(format!("{}{PART}", FILES[0])), rows, cols)?,
-            variance: StepFile::create(dir.join(format!("{}{PART}", FILES[1])), rows, cols)?,
+            writer,
+            readers,
+            steps: 0,
             land: on_land,
             last: None,
         }))
@@ -101,7 +112,7 @@ impl History {
     /// The directory whose `.npy` files the steps go to (`None`: in memory).
     pub fn files_dir(&self) -> Option<&Path> {
         match &self.0 {
-            Store::Files { estimate, .. } => estimate.path().parent(),
+            Store::Files { writer, .. } => writer.dir(),
             Store::Memory { .. } => None,
         }
     }
@@ -110,7 +121,7 @@ impl History {
     pub fn len(&self) -> usize {
         match &self.0 {
             Store::Memory { first, estimates, .. } => first + estimates.len(),
-            Store::Files { estimate, .. } => estimate.steps(),
+            Store::Files { steps, .. } => *steps,
         }
     }
 
@@ -128,21 +139,12 @@ impl History {
                 variances.push(variance);
             }
             Store::Files {
-                estimate: ef,
-                variance: vf,
-                land,
-                last,
+                writer, steps, last, ..
             } => {
-                let wet = |values: &[f64], land: &[bool]| -> Vec<f64> {
-                    values
-                        .iter()
-                        .zip(land)
-                        .map(|(&v, &l)| if l { f64::NAN } else { v })
-                        .collect()
-                };
-                ef.append(wet(&estimate, land).into_iter())?;
-                vf.append(wet(&variance, land).into_iter())?;
-                *last = Some((estimate, variance));
+                let step = Arc::new((estimate, variance));
+                writer.append(step.clone())?;
+                *steps += 1;
+                *last = Some(step);
             }
         }
         Ok(())
@@ -163,16 +165,17 @@ impl History {
                 variances.truncate(steps - *first);
             }
             Store::Files {
-                estimate,
-                variance,
+                writer,
+                readers,
+                steps: made,
                 land,
                 last,
             } => {
-                if steps >= estimate.steps() {
+                if steps >= *made {
                     return Ok(());
                 }
-                estimate.truncate(steps)?;
-                variance.truncate(steps)?;
+                writer.truncate(steps)?;
+                *made = steps;
                 // The newest step again, land dry (0) as the core keeps it.
                 let dry = |v: Vec<f64>| -> Vec<f64> {
                     v.into_iter()
@@ -182,7 +185,10 @@ impl History {
                 };
                 *last = match steps {
                     0 => None,
-                    s => Some((dry(estimate.read(s - 1)?), dry(variance.read(s - 1)?))),
+                    s => {
+                        writer.wait()?;
+                        Some(Arc::new((dry(readers[0].read(s - 1)?), dry(readers[1].read(s - 1)?))))
+                    }
                 };
             }
         }
@@ -213,10 +219,14 @@ impl History {
                     .ok_or_else(|| not_kept(k, *first))
             }
             Store::Files {
-                estimate: ef,
-                variance: vf,
-                ..
-            } => Ok(Cow::Owned(if estimate { ef.read(k) } else { vf.read(k) }?)),
+                writer, readers, steps, ..
+            } => {
+                if k >= *steps {
+                    return Err(io::Error::new(io::ErrorKind::NotFound, format!("step {k} of {steps}")));
+                }
+                writer.wait()?;
+                Ok(Cow::Owned(readers[usize::from(!estimate)].read(k)?))
+            }
         }
     }
 
@@ -239,7 +249,7 @@ impl History {
                 .last()
                 .zip(variances.last())
                 .map(|(e, v)| (e.as_slice(), v.as_slice())),
-            Store::Files { last, .. } => last.as_ref().map(|(e, v)| (e.as_slice(), v.as_slice())),
+            Store::Files { last, .. } => last.as_deref().map(|(e, v)| (e.as_slice(), v.as_slice())),
         }
     }
 
@@ -247,12 +257,12 @@ impl History {
     /// files. Steps made after it (a late batch's re-fit) still go to them: the open files
     /// are the same.
     pub fn publish(&self) -> io::Result<()> {
-        if let Store::Files { estimate, variance, .. } = &self.0 {
-            for (f, name) in [estimate, variance].into_iter().zip(FILES) {
-                f.sync()?;
-                let done = f.path().with_file_name(name);
-                if f.path().exists() {
-                    std::fs::rename(f.path(), &done)?;
+        if let Store::Files { writer, readers, .. } = &self.0 {
+            writer.wait()?;
+            for ((part, reader), name) in writer.paths().iter().zip(readers).zip(FILES) {
+                reader.sync()?;
+                if part.exists() {
+                    std::fs::rename(part, part.with_file_name(name))?;
                 }
             }
         }
@@ -323,6 +333,7 @@ mod tests {
         files.publish().unwrap();
         files.publish().unwrap();
         files.push(step(9).0, step(9).1).unwrap();
+        assert_eq!(files.variance(2).unwrap()[0], step(9).1[0], "read back once written");
         assert_eq!(crate::npy::read(dir.join("variance.npy")).unwrap().shape, vec![3, 2, 3]);
         assert!(!dir.join("estimate.npy.part").exists());
         std::fs::remove_dir_all(&dir).unwrap();

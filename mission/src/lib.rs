@@ -31,6 +31,7 @@ pub mod server;
 pub mod signing_key;
 pub mod site;
 pub mod step_file;
+pub mod step_writer;
 pub mod team;
 pub mod vehicle;
 

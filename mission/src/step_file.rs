@@ -94,22 +94,47 @@ impl StepFile {
                 format!("step {k} of {}", self.steps),
             ));
         }
-        let mut bytes = vec![0u8; self.step_bytes()];
-        self.file.read_exact_at(&mut bytes, self.offset(k))?;
-        Ok(bytes
-            .chunks_exact(8)
-            .map(|b| f64::from_le_bytes(b.try_into().expect("8 bytes")))
-            .collect())
+        read_step(&self.file, self.step_bytes(), k)
     }
 
-    /// Data and header on the disk (the header is already in the file after every change).
-    pub fn sync(&self) -> std::io::Result<()> {
-        self.file.sync_data()
+    /// A handle that reads steps on another thread (the same open file: it follows a rename).
+    pub fn reader(&self) -> std::io::Result<StepReader> {
+        Ok(StepReader {
+            file: self.file.try_clone()?,
+            step_bytes: self.step_bytes(),
+        })
     }
 
     fn write_header(&self) -> std::io::Result<()> {
         self.file.write_all_at(&header(self.steps, self.rows, self.cols), 0)
     }
+}
+
+/// Reads the steps of a [`StepFile`] written elsewhere (the caller knows how many there are).
+#[derive(Debug)]
+pub struct StepReader {
+    file: File,
+    step_bytes: usize,
+}
+
+impl StepReader {
+    pub fn read(&self, k: usize) -> std::io::Result<Vec<f64>> {
+        read_step(&self.file, self.step_bytes, k)
+    }
+
+    /// The file's data on the disk.
+    pub fn sync(&self) -> std::io::Result<()> {
+        self.file.sync_data()
+    }
+}
+
+fn read_step(file: &File, step_bytes: usize, k: usize) -> std::io::Result<Vec<f64>> {
+    let mut bytes = vec![0u8; step_bytes];
+    file.read_exact_at(&mut bytes, (HEADER + k * step_bytes) as u64)?;
+    Ok(bytes
+        .chunks_exact(8)
+        .map(|b| f64::from_le_bytes(b.try_into().expect("8 bytes")))
+        .collect())
 }
 
 /// numpy's format 1.0 header for a C-order float64 `(steps, rows, cols)`, padded with spaces
