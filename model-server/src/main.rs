@@ -23,7 +23,8 @@ pub struct Args {
     #[arg(long)]
     pub events: bool,
     /// Write the summary (summary.json), the final model (model.cbor), the estimate and variance
-    /// per step (estimate.npy, variance.npy) and the plans published (plans.json) here at the end.
+    /// per step (estimate.npy, variance.npy: written as the steps are made, as .npy.part files
+    /// named at the end) and the plans published (plans.json) here.
     #[arg(long)]
     pub out: Option<std::path::PathBuf>,
     /// Record the mission here (MCAP: the traffic the server saw and sent, with receive times,

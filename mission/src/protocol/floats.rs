@@ -16,9 +16,17 @@ pub fn serialize<S: Serializer>(values: &[f64], s: S) -> Result<S::Ok, S::Error>
     if s.is_human_readable() {
         return s.collect_seq(values);
     }
-    let mut bytes = Vec::with_capacity(8 * values.len());
-    values.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
-    s.serialize_bytes(&bytes)
+    s.serialize_bytes(&le_bytes(values))
+}
+
+/// The values' little-endian bytes: their memory as it is on a little-endian machine (no copy:
+/// at 384 x 768 a model's 54 MB were copied once more for it), a copy elsewhere.
+fn le_bytes(values: &[f64]) -> std::borrow::Cow<'_, [u8]> {
+    if cfg!(target_endian = "little") {
+        std::borrow::Cow::Borrowed(bytemuck::cast_slice(values))
+    } else {
+        std::borrow::Cow::Owned(values.iter().flat_map(|v| v.to_le_bytes()).collect())
+    }
 }
 
 pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<f64>, D::Error> {

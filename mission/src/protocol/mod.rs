@@ -451,7 +451,16 @@ struct WireOut<'a> {
 
 /// Encode a message with the current schema version.
 pub fn encode(body: &Body) -> Vec<u8> {
-    let mut out = vec![];
+    // A model is mostly its packed float arrays: room for them at once, not grown by doubling
+    // (each doubling copied all so far into fresh pages).
+    let capacity = match body {
+        Body::Model(m) => {
+            let floats = [&m.modes_re, &m.modes_im, &m.estimate, &m.variance, &m.forecast_variance];
+            4096 + 8 * floats.iter().map(|f| f.len()).sum::<usize>() + 16 * m.amplitudes.len()
+        }
+        _ => 256,
+    };
+    let mut out = Vec::with_capacity(capacity);
     ciborium::into_writer(
         &WireOut {
             v: SCHEMA_VERSION,
