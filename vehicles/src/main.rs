@@ -38,7 +38,8 @@ pub struct Args {
     /// Default: the mission's `[sensors]`.
     #[arg(long)]
     pub sensor: Option<String>,
-    /// Give up waiting for the final acknowledgement after this long (ms).
+    /// Give up waiting for the final acknowledgement after this long without one that moves
+    /// the outbox (ms): a slow link still delivering is waited for, a silent one is not.
     #[arg(long, default_value_t = 60_000)]
     pub final_ack_ms: u64,
 }

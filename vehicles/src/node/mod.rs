@@ -55,7 +55,8 @@ enum Phase {
     Full {
         epoch: u64,
     },
-    /// Every epoch sensed: waiting until the last batch is acknowledged.
+    /// Every epoch sensed: waiting until the last batch is acknowledged (`deadline`: the
+    /// final wait from the last ack that moved the outbox).
     Finish {
         deadline: Instant,
     },
@@ -151,8 +152,16 @@ impl Vehicle {
             Ok(Body::Ack(a)) if a.vehicle == self.brain.id => {
                 self.time_ack(a.seq);
                 self.sensor_verdict(a.sensor);
+                let before = self.outbox.depth();
                 if let Err(e) = self.outbox.ack(a.seq) {
                     warn!("recording ack {}: {e:#}", a.seq);
+                }
+                // The final wait counts from the last ack that moved the outbox: a slow link
+                // that still delivers (a 9.6 kbit/s radio draining a backlog) is not a lost one.
+                if let Phase::Finish { deadline } = &mut self.phase {
+                    if self.outbox.depth() < before {
+                        *deadline = Instant::now() + Duration::from_millis(self.args.final_ack_ms);
+                    }
                 }
                 match self.phase {
                     // The model moved on: its plan may be there now.
