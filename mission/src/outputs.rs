@@ -18,25 +18,18 @@ fn write_history(dir: &Path, core: &ServerCore) -> anyhow::Result<()> {
             .publish()
             .with_context(|| format!("naming {}/estimate.npy and variance.npy", dir.display()));
     }
+    // The same writer the server uses (land NaN, the header, the names at the end).
     let grid = core.assimilator().grid();
-    let land = core.assimilator().land();
-    let mut on_land = vec![false; grid.len()];
-    land.iter().for_each(|&c| on_land[c] = true);
-    let steps = history.len();
-    for (name, estimate) in [("estimate.npy", true), ("variance.npy", false)] {
-        let mut out = crate::step_file::StepFile::create(dir.join(name), grid.rows, grid.cols)
-            .with_context(|| format!("writing {}/{name}", dir.display()))?;
-        for k in 0..steps {
-            let step = if estimate {
-                history.estimate(k)
-            } else {
-                history.variance(k)
-            }?;
-            let values = step.iter().zip(&on_land).map(|(&v, &l)| if l { f64::NAN } else { v });
-            out.append(values)
-                .with_context(|| format!("writing {}/{name}", dir.display()))?;
-        }
+    let context = || format!("writing {}/estimate.npy and variance.npy", dir.display());
+    let mut files = crate::history::History::in_files(dir, grid.rows, grid.cols, core.assimilator().land())
+        .with_context(context)?;
+    for k in 0..history.len() {
+        let (estimate, variance) = (history.estimate(k)?, history.variance(k)?);
+        files
+            .push(estimate.into_owned(), variance.into_owned())
+            .with_context(context)?;
     }
+    files.publish().with_context(context)?;
     Ok(())
 }
 
