@@ -168,10 +168,15 @@ pub fn orthonormal_factor(f: MatRef<'_, f64>) -> (Mat<f64>, Mat<f64>) {
 /// Gram matrix is too ill-conditioned for it ([`gram_cholesky`]).
 fn cholesky_qr(f: MatRef<'_, f64>) -> Option<(Mat<f64>, Mat<f64>)> {
     let l = gram_cholesky(f)?;
-    // Q^T = L^-1 F^T (L = R^T).
-    let mut qt = f.transpose().to_owned();
-    faer::linalg::triangular_solve::solve_lower_triangular_in_place(l.as_ref(), qt.as_mut(), faer::Par::Seq);
-    Some((qt.transpose().to_owned(), l.transpose().to_owned()))
+    // Q^T = L^-1 F^T (L = R^T), solved in place on Q's transposed view: no N x r transpose is
+    // copied (two strided copies of F were most of this function's time).
+    let mut q = f.to_owned();
+    faer::linalg::triangular_solve::solve_lower_triangular_in_place(
+        l.as_ref(),
+        q.as_mut().transpose_mut(),
+        faer::Par::Seq,
+    );
+    Some((q, l.transpose().to_owned()))
 }
 
 /// The lower Cholesky factor `L` of the small Gram matrix `F^T F` (so `L^T` is the `R` of a QR

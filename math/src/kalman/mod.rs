@@ -84,12 +84,46 @@ fn row_dots(a: MatRef<'_, f64>, b: MatRef<'_, f64>) -> Vec<f64> {
 
 /// The modal part's mean and variance per cell, `B a` and `diag(B P B^T)`.
 fn modal_of(basis: MatRef<'_, f64>, cov: MatRef<'_, f64>, mean: &[f64]) -> (Vec<f64>, Vec<f64>) {
-    let m = Mat::from_fn(mean.len(), 1, |i, _| mean[i]);
-    let modal_mean = (basis * m.as_ref()).col(0).iter().copied().collect();
+    let modal_mean = modal_mean_of(basis, mean);
     let mut variance = row_dots((basis * cov).as_ref(), basis);
     variance.iter_mut().for_each(|x| *x = x.max(0.0));
     (modal_mean, variance)
 }
+
+/// One value `y` (noise variance `a`) at a cell into the cell's detail `(d, v)`, where the
+/// modal part is `modal` with variance `modal_var`. The value corrects the field at the cell,
+/// whose forecast is uncertain by the modal posterior's variance as well as the detail's: a
+/// gain on the detail's alone trusted a poorly fitted model's modes between the data.
+fn detail_step((d, v): (f64, f64), modal: f64, modal_var: f64, y: f64, a: f64) -> (f64, f64) {
+    let prior = modal_var + v;
+    let gain = prior / (prior + a);
+    (
+        d + gain * (y - modal - d),
+        (prior * a / (prior + a) - modal_var).max(v * a / (v + a)),
+    )
+}
+
+/// The modal part's mean per cell, `B a` (N q).
+fn modal_mean_of(basis: MatRef<'_, f64>, mean: &[f64]) -> Vec<f64> {
+    let m = Mat::from_fn(mean.len(), 1, |i, _| mean[i]);
+    (basis * m.as_ref()).col(0).iter().copied().collect()
+}
+
+/// The modal part's mean and variance at one cell, `b a` and `b P b^T` for the cell's row `b` of
+/// the basis (q^2 products): for the few cells a test or a source looks at, where
+/// [`modal_of`]'s whole field (N q^2) would be wasted.
+fn modal_at(basis: MatRef<'_, f64>, cov: MatRef<'_, f64>, mean: &[f64], c: usize) -> (f64, f64) {
+    let b: Vec<f64> = basis.row(c).iter().copied().collect();
+    let modal = b.iter().zip(mean).fold(0.0, |s, (x, m)| s + x * m);
+    // b P b^T, a column of P at a time (P is stored by columns).
+    let var = (0..b.len()).fold(0.0, |s, k| {
+        s + b[k] * column(cov, k).iter().zip(&b).fold(0.0, |t, (p, x)| t + p * x)
+    });
+    (modal, var.max(0.0))
+}
+
+/// A modal posterior, mean and covariance, and the innovations that made it.
+type Conditioned = (Vec<f64>, Mat<f64>, Vec<f64>);
 
 /// The filter's state: modal mean and covariance, and the two noise levels.
 #[derive(Debug, Clone)]
@@ -210,13 +244,23 @@ impl ModalFilter {
         &self.detail_var
     }
 
-    /// The forecast before an update, which innovations are measured against.
-    pub fn prior(&self) -> Prior {
-        let (mean, variance) = self.field();
+    /// The forecast before an update, which innovations are measured against: its mean
+    /// everywhere (N q), its variances at `cells` only (q^2 a cell, not the field's N q^2).
+    pub fn prior_at(&self, cells: &[usize]) -> Prior {
+        let modal = match self.modal.get() {
+            Some((m, _)) => m.clone(),
+            None => modal_mean_of((*self.basis).as_ref(), &self.mean),
+        };
+        let (basis, cov) = ((*self.basis).as_ref(), self.cov.as_ref());
+        let variance = cells
+            .iter()
+            .map(|&c| modal_at(basis, cov, &self.mean, c).1 + self.detail_var[c])
+            .collect();
         Prior {
-            mean,
+            mean: modal.iter().zip(&self.detail).map(|(m, d)| m + d).collect(),
+            cells: cells.to_vec(),
             variance,
-            detail_var: self.detail_var.clone(),
+            detail_var: cells.iter().map(|&c| self.detail_var[c]).collect(),
         }
     }
 
@@ -226,11 +270,12 @@ impl ModalFilter {
     /// the model error by the ratio of the detail's part, the process noise by `sqrt(NIS)`
     /// with NIS clamped to [1/4, 4]; both smoothed and clamped to the variance of the values
     /// themselves, so neither can run away.
-    pub fn adapt_noise(&mut self, prior: &Prior, cells: &[usize], values: &[f64], noise_var: f64) {
+    pub fn adapt_noise(&mut self, prior: &Prior, values: &[f64], noise_var: f64) {
+        let cells = &prior.cells;
         if cells.is_empty() {
             return;
         }
-        let mean_at = |v: &[f64]| cells.iter().map(|&c| v[c]).sum::<f64>() / cells.len() as f64;
+        let mean_at = |v: &[f64]| v.iter().sum::<f64>() / cells.len() as f64;
         let field_var = variance_of(values).max(1e-12);
         let d2 = cells
             .iter()
@@ -276,6 +321,15 @@ impl ModalFilter {
     /// Condition on every observation of one step. Returns the innovations (observed minus
     /// predicted value, before the update) in the order given.
     pub fn update(&mut self, obs: &[Observation<'_>]) -> Result<Vec<f64>, FilterError> {
+        let (mean, cov, innovations) = self.conditioned(obs)?;
+        (self.mean, self.cov) = (mean, cov);
+        self.modal.take();
+        Ok(innovations)
+    }
+
+    /// [`Self::update`]'s posterior modal mean and covariance, and the innovations, with the
+    /// filter left as it was.
+    fn conditioned(&self, obs: &[Observation<'_>]) -> Result<Conditioned, FilterError> {
         let (n, q) = (self.basis.nrows(), self.dim());
         let mut j = Mat::<f64>::zeros(q, q);
         let mut g = vec![0.0; q]; // H^T R^-1 (y - H a)
@@ -312,20 +366,68 @@ impl ModalFilter {
         let post = symmetrised(faer::linalg::solvers::Solve::solve(&lu, self.cov.as_ref()));
         let gm = Mat::from_fn(q, 1, |i, _| g[i]);
         let step = post.as_ref() * gm.as_ref();
+        let mut mean = self.mean.clone();
         for i in 0..q {
-            self.mean[i] += step[(i, 0)];
+            mean[i] += step[(i, 0)];
         }
         check_finite(
             "the posterior",
-            self.mean
-                .iter()
+            mean.iter()
                 .copied()
                 .chain(post.col_iter().flat_map(|c| c.iter().copied().collect::<Vec<_>>())),
         )
         .map_err(|_| FilterError::Numerical("the update lost finiteness (an ill-conditioned I + P J)".into()))?;
-        self.cov = post;
-        self.modal.take();
-        Ok(innovations)
+        Ok((mean, post, innovations))
+    }
+
+    /// The field and its variance at `cells` as they would be after [`Self::update`] with
+    /// `modes` and [`Self::update_detail`] with `detail`, the filter left as it was: a test of
+    /// the filter without some source looks at a few cells, and the whole field's variance
+    /// (N q^2) would be wasted on it. The same arithmetic per cell as the two updates, but
+    /// for the modal variance, summed by hand rather than by a matrix product (the last bits
+    /// may differ).
+    pub fn field_at_after(
+        &self,
+        modes: &[Observation<'_>],
+        detail: &[Observation<'_>],
+        cells: &[usize],
+    ) -> Result<(Vec<f64>, Vec<f64>), FilterError> {
+        let n = self.basis.nrows();
+        if let Some(&c) = cells.iter().find(|&&c| c >= n) {
+            return Err(FilterError::Input(format!("cell {c} outside the grid of {n}")));
+        }
+        let (mean, cov, _) = self.conditioned(modes)?;
+        let basis = (*self.basis).as_ref();
+        // Per wanted cell: its modal mean and variance, and its detail as the values update it
+        // (`slot`: where a cell's are in `at`).
+        let mut at: Vec<(f64, f64, f64, f64)> = cells
+            .iter()
+            .map(|&c| {
+                let (m, v) = modal_at(basis, cov.as_ref(), &mean, c);
+                (m, v, self.detail[c], self.detail_var[c])
+            })
+            .collect();
+        let mut slot = vec![u32::MAX; n];
+        cells.iter().enumerate().for_each(|(i, &c)| slot[c] = i as u32);
+        for o in detail {
+            o.check_lengths()?;
+            for ((&c, &y), &a) in o.cells.iter().zip(o.values).zip(o.variance) {
+                let Some((modal, modal_var, d, v)) = slot.get(c).and_then(|&i| at.get_mut(i as usize)) else {
+                    continue;
+                };
+                if !(y.is_finite() && a > 0.0 && a.is_finite()) {
+                    return Err(FilterError::Input(format!("cell {c}: value {y} with variance {a}")));
+                }
+                (*d, *v) = detail_step((*d, *v), *modal, *modal_var, y, a);
+            }
+        }
+        Ok(cells
+            .iter()
+            .map(|&c| {
+                let (m, mv, d, v) = at[slot[c] as usize];
+                (m + d, mv + v)
+            })
+            .unzip())
     }
 
     /// How the forecast's detail variance fared against `obs` (call before [`Self::update`],
@@ -338,19 +440,15 @@ impl ModalFilter {
         if obs.cells.is_empty() {
             return Ok(None);
         }
-        let (n, q) = (self.basis.nrows(), self.dim());
-        let bp = (*self.basis).as_ref() * self.cov.as_ref();
+        let n = self.basis.nrows();
+        let (basis, cov) = ((*self.basis).as_ref(), self.cov.as_ref());
         let (mut covered, mut forecast) = (0.0, 0.0);
         for ((&c, &y), &v) in obs.cells.iter().zip(obs.values).zip(obs.variance) {
             if c >= n || !y.is_finite() || !(v >= 0.0) {
                 return Err(FilterError::Input(format!("cell {c}: value {y} with variance {v}")));
             }
-            let (mut modal, mut modal_var) = (0.0, 0.0);
-            for k in 0..q {
-                modal += self.basis[(c, k)] * self.mean[k];
-                modal_var += bp[(c, k)] * self.basis[(c, k)];
-            }
-            covered += (y - modal - self.detail[c]).powi(2) - v - modal_var.max(0.0);
+            let (modal, modal_var) = modal_at(basis, cov, &self.mean, c);
+            covered += (y - modal - self.detail[c]).powi(2) - v - modal_var;
             forecast += self.detail_var[c];
         }
         Ok(Some(covered / forecast.max(1e-300)))
@@ -421,15 +519,8 @@ impl ModalFilter {
                 if c >= n || !(y.is_finite() && a > 0.0 && a.is_finite()) {
                     return Err(FilterError::Input(format!("cell {c}: value {y} with variance {a}")));
                 }
-                let modal = modal_mean[c];
-                let (d, v) = (&mut self.detail[c], &mut self.detail_var[c]);
-                // The value corrects the field at the cell, whose forecast is uncertain by the
-                // modal posterior's variance as well as the detail's: a gain on the detail's
-                // alone trusted a poorly fitted model's modes between the data.
-                let prior = modal_var[c] + *v;
-                let gain = prior / (prior + a);
-                *d += gain * (y - modal - *d);
-                *v = (prior * a / (prior + a) - modal_var[c]).max(*v * a / (*v + a));
+                let dv = (self.detail[c], self.detail_var[c]);
+                (self.detail[c], self.detail_var[c]) = detail_step(dv, modal_mean[c], modal_var[c], y, a);
             }
         }
         Ok(())
@@ -536,13 +627,16 @@ pub struct Innovation {
 }
 
 impl Innovation {
-    /// The innovations of `values` at `cells` (noise variances `noise_var`) against `prior`.
-    pub fn of(prior: &Prior, cells: &[usize], values: &[f64], noise_var: &[f64]) -> Self {
+    /// The innovations of `values` at the prior's cells (noise variances `noise_var`) against
+    /// `prior`.
+    pub fn of(prior: &Prior, values: &[f64], noise_var: &[f64]) -> Self {
+        let cells = &prior.cells;
         let sum: f64 = cells
             .iter()
+            .zip(&prior.variance)
             .zip(values)
             .zip(noise_var)
-            .map(|((&c, v), r)| (v - prior.mean[c]).powi(2) / (prior.variance[c] + r).max(1e-300))
+            .map(|(((&c, p), v), r)| (v - prior.mean[c]).powi(2) / (p + r).max(1e-300))
             .sum();
         Self {
             nis: sum / cells.len().max(1) as f64,
@@ -551,10 +645,12 @@ impl Innovation {
     }
 }
 
-/// The forecast's mean and variance per cell, and its detail's variance, before an update.
+/// The forecast before an update: its mean per cell of the grid, and at `cells` (the values
+/// it is tested against) its variance and its detail's variance, in the order of `cells`.
 #[derive(Debug, Clone)]
 pub struct Prior {
     pub mean: Vec<f64>,
+    pub cells: Vec<usize>,
     pub variance: Vec<f64>,
     pub detail_var: Vec<f64>,
 }
@@ -616,10 +712,10 @@ mod tests {
         let n = 20_000;
         let prior = Prior {
             mean: (0..n).map(|i| (i as f64).sin()).collect(),
+            cells: (0..n).collect(),
             variance: (0..n).map(|i| 0.01 + 0.001 * (i % 7) as f64).collect(),
             detail_var: vec![0.0; n],
         };
-        let cells: Vec<usize> = (0..n).collect();
         let noise: Vec<f64> = (0..n).map(|i| 0.0004 * (1 + i % 3) as f64).collect();
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
         let z = Normal::new(0.0, 1.0).unwrap();
@@ -628,10 +724,10 @@ mod tests {
                 .map(|c| prior.mean[c] + scale * (prior.variance[c] + noise[c]).sqrt() * z.sample(rng))
                 .collect()
         };
-        let right = Innovation::of(&prior, &cells, &draw(1.0, &mut rng), &noise);
+        let right = Innovation::of(&prior, &draw(1.0, &mut rng), &noise);
         assert_eq!(right.values, n);
         assert!((right.nis - 1.0).abs() < 4.0 * (2.0 / n as f64).sqrt(), "{}", right.nis);
-        let wide = Innovation::of(&prior, &cells, &draw(2.0, &mut rng), &noise);
+        let wide = Innovation::of(&prior, &draw(2.0, &mut rng), &noise);
         assert!(
             (wide.nis - 4.0).abs() < 4.0 * 4.0 * (2.0 / n as f64).sqrt(),
             "{}",
@@ -1002,6 +1098,61 @@ mod tests {
         assert!(worst < 1e-12, "the field moved by {worst:e}");
         let (tb, ta) = (var_before.iter().sum::<f64>(), var_after.iter().sum::<f64>());
         assert!((tb - ta).abs() < 1e-12 * tb, "total variance {tb} -> {ta}");
+    }
+
+    /// The look at a few cells without updating ([`ModalFilter::field_at_after`],
+    /// [`ModalFilter::prior_at`]) is what the update leaves there and what the field was: the
+    /// same posterior and per-cell arithmetic, the modal variance summed by hand rather than by
+    /// faer's product (a few ulps of values of order 1: 1e-12). The filter is not changed.
+    #[test]
+    fn a_look_at_a_few_cells_is_what_the_update_leaves_there() {
+        let n = 40;
+        let (b, a) = system(n);
+        let cov = Mat::from_fn(3, 3, |i, j| if i == j { 0.5 } else { 0.1 });
+        let mut f = ModalFilter::new(b, a, vec![1.0, -2.0, 0.5], cov, 1e-3, 2e-2)
+            .unwrap()
+            .with_persistence(0.6);
+        f.predict();
+        let lattice: Vec<usize> = (0..n).step_by(5).collect();
+        let lat_y: Vec<f64> = lattice.iter().map(|&c| (c as f64 * 0.3).sin()).collect();
+        let dense: Vec<usize> = (0..n).filter(|c| c % 7 != 3).collect();
+        let dense_y: Vec<f64> = dense.iter().map(|&c| (c as f64 * 0.3).sin() + 0.05).collect();
+        let (lat_v, dense_v) = (vec![0.01; lattice.len()], vec![0.03; dense.len()]);
+        let modes = [Observation {
+            cells: &lattice,
+            values: &lat_y,
+            variance: &lat_v,
+        }];
+        let detail = [Observation {
+            cells: &dense,
+            values: &dense_y,
+            variance: &dense_v,
+        }];
+        let wanted = [3, 7, 10, 22, 39, 7];
+        let close = |x: f64, y: f64| (x - y).abs() <= 1e-12 * x.abs().max(1.0);
+        let (field, variance) = f.field();
+        let prior = f.prior_at(&wanted);
+        for (i, &c) in wanted.iter().enumerate() {
+            assert!(
+                close(prior.mean[c], field[c]) && close(prior.variance[i], variance[c]),
+                "prior at {c}"
+            );
+        }
+        let before = f.field();
+        let (mean, var) = f.field_at_after(&modes, &detail, &wanted).unwrap();
+        assert_eq!(f.field(), before, "the look changed the filter");
+        f.update(&modes).unwrap();
+        f.update_detail(&detail).unwrap();
+        let (field, variance) = f.field();
+        for (i, &c) in wanted.iter().enumerate() {
+            assert!(close(mean[i], field[c]), "mean at {c}: {} vs {}", mean[i], field[c]);
+            assert!(
+                close(var[i], variance[c]),
+                "variance at {c}: {} vs {}",
+                var[i],
+                variance[c]
+            );
+        }
     }
 
     #[test]

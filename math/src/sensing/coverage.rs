@@ -34,8 +34,10 @@ pub fn temporal_density(model: &DmdModel, floor: f64) -> Result<Vec<f64>, Sensin
             continue;
         }
         let a = model.amplitudes[j];
-        for (q, sq) in s.iter_mut().enumerate() {
-            *sq += rate * (phi[(q, j)] * a).norm();
+        // |z| as the square root of |z|^2, not `hypot` (a library call per cell and mode, a
+        // third of the density's time): the magnitudes here are far from over- or underflow.
+        for (sq, p) in s.iter_mut().zip(phi.col(j).iter()) {
+            *sq += rate * (p * a).norm_sqr().sqrt();
         }
     }
     let max = s.iter().cloned().fold(0.0, f64::max);

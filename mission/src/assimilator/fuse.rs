@@ -10,6 +10,7 @@ use crate::kalman::{self, Observation};
 use crate::protocol::Sample;
 use crate::sensing::gappy;
 use crate::team::{Missing, TeamError};
+use std::collections::HashMap;
 
 /// One step of the aerials: the estimate on the fine grid (the coarse frame upsampled, for
 /// the heuristic schemes and the aerial-only team) and what they saw this step, the lattice
@@ -88,30 +89,35 @@ impl Assimilator {
     }
 
     /// The field `ahead` steps after the newest snapshot as the fleet knows it without any boat
-    /// value of that step, with its variance: the filter's forecast updated with the aerials'
-    /// lattice and frame (`fusion = "kalman"`), or the aerials' estimate with its calibrated
-    /// extra. What a boat's values are tested against ([`crate::health`]).
-    pub(super) fn boat_reference(&self, ahead: u64, aerial: &AerialSight) -> Result<(Vec<f64>, Vec<f64>), TeamError> {
+    /// value of that step, with its variance, at `cells` (by cell): the filter's forecast
+    /// updated with the aerials' lattice and frame (`fusion = "kalman"`), or the aerials'
+    /// estimate with its calibrated extra. What a boat's values are tested against
+    /// ([`crate::health`]).
+    pub(super) fn boat_reference(
+        &self,
+        ahead: u64,
+        aerial: &AerialSight,
+        cells: &[usize],
+    ) -> Result<HashMap<usize, (f64, f64)>, TeamError> {
         let Some((f, at)) = self.state.filter.as_ref() else {
+            let (values, variance) = (&aerial.estimate.values, &aerial.estimate.variance);
             let extra = self.state.aerial_extra;
-            let variance = aerial.estimate.variance.iter().map(|v| v + extra).collect();
-            return Ok((aerial.estimate.values.clone(), variance));
+            return Ok(cells.iter().map(|&c| (c, (values[c], variance[c] + extra))).collect());
         };
-        let mut f = f.clone();
-        (*at..ahead).for_each(|_| f.predict());
+        let f = f.ahead(ahead.saturating_sub(*at) as usize);
         let lattice = Observation {
             cells: &aerial.cells,
             values: &aerial.values,
             variance: &aerial.variance,
         };
-        f.update(&[lattice])?;
         let (_, seen, values, variance) = dense(aerial, self.state.aerial_extra, &self.setup.on_lattice);
-        f.update_detail(&[Observation {
+        let dense = Observation {
             cells: &seen,
             values: &values,
             variance: &variance,
-        }])?;
-        Ok(f.field())
+        };
+        let (mean, variance) = f.field_at_after(&[lattice], &[dense], cells)?;
+        Ok(cells.iter().copied().zip(mean.into_iter().zip(variance)).collect())
     }
 
     /// Fuse one step `ahead` steps after the model's newest snapshot: the aerial estimate with
@@ -255,7 +261,7 @@ impl Assimilator {
             *at += 1;
         }
         // Boat innovations against the forecast, for the noise estimates.
-        let prior = f.prior();
+        let prior = f.prior_at(cells);
         let boats = Observation {
             cells,
             values: vals,
@@ -291,10 +297,10 @@ impl Assimilator {
         };
         s.between.update(f, &sources, &self.setup.on_lattice)?;
         if !cells.is_empty() {
-            s.innovation = Some(kalman::Innovation::of(&prior, cells, vals, &boat_vars));
-            f.adapt_noise(&prior, cells, vals, boat_var);
+            s.innovation = Some(kalman::Innovation::of(&prior, vals, &boat_vars));
+            f.adapt_noise(&prior, vals, boat_var);
             let grid = self.setup.grid;
-            s.displacement = learn_displacement(s.displacement, &grid, &prior, cells, vals, &boat_vars)?;
+            s.displacement = learn_displacement(s.displacement, &grid, &prior, vals, &boat_vars)?;
         }
         let (values, variance) = f.field();
         Ok(Estimate { values, variance })
@@ -383,21 +389,17 @@ fn learn_displacement(
     displacement: f64,
     grid: &crate::grid::Grid,
     prior: &kalman::Prior,
-    cells: &[usize],
     vals: &[f64],
     boat_vars: &[f64],
 ) -> Result<f64, TeamError> {
+    let cells = &prior.cells;
     let grad2 = grid.squared_gradient(&prior.mean)?;
     let innovation2: Vec<f64> = cells
         .iter()
         .zip(vals)
         .map(|(&c, v)| (v - prior.mean[c]).powi(2))
         .collect();
-    let expected: Vec<f64> = cells
-        .iter()
-        .zip(boat_vars)
-        .map(|(&c, b)| prior.variance[c] + b)
-        .collect();
+    let expected: Vec<f64> = prior.variance.iter().zip(boat_vars).map(|(p, b)| p + b).collect();
     let at: Vec<f64> = cells.iter().map(|&c| grad2[c]).collect();
     Ok(match kalman::displacement_variance(&innovation2, &expected, &at) {
         Some(s2) => {

@@ -251,9 +251,16 @@ impl Assimilator {
             return samples.into_iter().map(|(_, s)| s).collect();
         }
         let _span = tracing::info_span!("screen aerials").entered();
-        let forecast = self.state.fitted.as_ref().map(|(p, _)| p.predict(ahead as f64));
+        let cells: Vec<usize> = samples
+            .iter()
+            .flat_map(|(_, s)| s.cells.iter().map(|&c| c as usize))
+            .collect();
+        let forecast = self.state.fitted.as_ref().map(|(p, _)| {
+            let at = p.predict_at(ahead as f64, &cells);
+            cells.iter().copied().zip(at).collect()
+        });
         let grid = self.setup.grid;
-        self.state.screen.aerials(&grid, step, samples, forecast.as_deref())
+        self.state.screen.aerials(&grid, step, samples, forecast.as_ref())
     }
 
     /// The boats' samples of a step `ahead` steps after the newest snapshot, tested against
@@ -270,7 +277,11 @@ impl Assimilator {
             return Ok(samples.into_iter().map(|(_, s)| s).collect());
         }
         let _span = tracing::info_span!("screen boats").entered();
-        let (mean, variance) = self.boat_reference(ahead, aerial)?;
+        let cells: Vec<usize> = samples
+            .iter()
+            .flat_map(|(_, s)| s.cells.iter().map(|&c| c as usize))
+            .collect();
+        let field = self.boat_reference(ahead, aerial, &cells)?;
         let (grid, sigma) = (self.setup.grid, self.setup.cfg.boat_sigma);
         let lattice = aerial
             .cells
@@ -279,8 +290,7 @@ impl Assimilator {
             .map(|(&c, (&y, &v))| (c, (y, v)))
             .collect();
         let reference = crate::health::Reference {
-            mean: &mean,
-            variance: &variance,
+            field: &field,
             lattice: &lattice,
         };
         Ok(self.state.screen.boats(&grid, step, samples, reference, sigma))
