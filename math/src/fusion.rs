@@ -312,7 +312,15 @@ impl AerialFrame {
             }
         }
         let up = |v: &[f64]| self.lattice.upsample_bilinear(v);
-        let (dr, dc, er, ec) = (up(&along_rows)?, up(&along_cols)?, up(&end_rows)?, up(&end_cols)?);
+        let (dr, dc) = (up(&along_rows)?, up(&along_cols)?);
+        // The ends' terms weigh only the fine rows (columns) beyond the last lattice row
+        // (column): elsewhere their weight is 0 and the term exactly 0, so they are upsampled
+        // there only (a band of under a stride), not over the whole grid.
+        let fine = self.lattice.fine;
+        let (row0, col0) = ((rows - 1) * s, (cols - 1) * s);
+        let er = self.lattice.upsample_bilinear_from(&end_rows, row0, 0)?;
+        let ec = self.lattice.upsample_bilinear_from(&end_cols, 0, col0)?;
+        let band_cols = fine.cols.saturating_sub(col0);
         // (weight of the second difference, weight of the end's first difference)
         let weight = |i: usize, n: usize| {
             let last = (n - 1) * s;
@@ -322,12 +330,19 @@ impl AerialFrame {
             let t = (i % s) as f64 / s as f64;
             ((t * (1.0 - t) / 2.0).powi(2), 0.0)
         };
-        let fine = self.lattice.fine;
         Ok((0..fine.len())
             .map(|i| {
-                let cell = fine.cell(i);
-                let ((wr, xr), (wc, xc)) = (weight(cell.row, rows), weight(cell.col, cols));
-                wr * dr[i] + xr * er[i] + wc * dc[i] + xc * ec[i]
+                let (r, c) = (i / fine.cols, i % fine.cols);
+                let ((wr, xr), (wc, xc)) = (weight(r, rows), weight(c, cols));
+                let mut v = wr * dr[i];
+                if r >= row0 {
+                    v += xr * er[(r - row0) * fine.cols + c];
+                }
+                v += wc * dc[i];
+                if c >= col0 {
+                    v += xc * ec[r * band_cols + c - col0];
+                }
+                v
             })
             .collect())
     }

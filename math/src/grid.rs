@@ -285,6 +285,15 @@ impl StridedGrid {
         Ok(())
     }
 
+    /// [`Self::upsample_bilinear`] of the fine rows from `row0` and the fine columns from `col0`
+    /// only (row-major over that corner), each value as the whole upsampling makes it.
+    pub fn upsample_bilinear_from(&self, values: &[f64], row0: usize, col0: usize) -> Result<Vec<f64>, GridError> {
+        self.check_coarse_len(values.len())?;
+        let (rows, cols) = self.axes();
+        let (rows, cols) = (&rows[row0.min(rows.len())..], &cols[col0.min(cols.len())..]);
+        Ok(bilinear(rows, cols, self.cols, values, false))
+    }
+
     /// Per fine row and per fine column: the two coarse neighbours and the weight of the second.
     fn axes(&self) -> (Vec<Neighbours>, Vec<Neighbours>) {
         let axis = |n_fine: usize, n_coarse: usize| -> Vec<(usize, usize, f64)> {
