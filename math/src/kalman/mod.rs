@@ -687,7 +687,8 @@ pub fn modal_dynamics(
     let lu = gram.partial_piv_lu();
     let coef = faer::linalg::solvers::Solve::solve(&lu, c.as_ref()); // Phi^+ B
     let scaled = Mat::from_fn(r, q, |i, j| eigenvalues[i] * coef[(i, j)]);
-    let a = bc.adjoint() * modes * scaled.as_ref(); // q x q
+    // B^H Phi = (Phi^H B)^H = c^H: the N x q x r product is already made.
+    let a = c.adjoint() * scaled.as_ref(); // q x q
     let out = Mat::from_fn(q, q, |i, j| a[(i, j)].re);
     check_finite(
         "the modal dynamics",
