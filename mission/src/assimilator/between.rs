@@ -191,4 +191,58 @@ mod tests {
         b.learn(&aerial, &[], &[], &[]);
         assert_eq!(b, Between::default());
     }
+
+    /// A step's boats on the lattice or on a fill are no evidence of the filter between the
+    /// lattice ([`Between::update`] leaves them out): the skill stays where it was; the same
+    /// boats off the lattice move it.
+    #[test]
+    fn boats_on_the_lattice_or_a_fill_teach_nothing() {
+        let n = 16;
+        let basis = faer::Mat::from_fn(n, 1, |_, _| 0.25); // one flat mode, orthonormal
+        let filter = ModalFilter::new(
+            basis,
+            faer::Mat::identity(1, 1),
+            vec![0.0],
+            faer::Mat::identity(1, 1),
+            0.01,
+            0.1,
+        )
+        .unwrap();
+        let aerial: Vec<f64> = (0..n).map(|i| (i as f64 * 0.7).sin()).collect();
+        let aerial_var = vec![0.05; n];
+        let dense: Vec<usize> = (0..n).collect();
+        let on_lattice: Vec<bool> = (0..n).map(|c| c % 4 == 0).collect();
+        let filled: Vec<bool> = (0..n).map(|c| c == 5).collect();
+        let skill_after = |boats: &[usize]| {
+            let values: Vec<f64> = boats.iter().map(|&c| aerial[c] + 0.8).collect();
+            let noise = vec![0.01; boats.len()];
+            let lattice: Vec<usize> = (0..n).filter(|&c| on_lattice[c]).collect();
+            let (lat_y, lat_v): (Vec<f64>, Vec<f64>) = lattice.iter().map(|&c| (aerial[c], 0.05)).unzip();
+            let src = Sources {
+                lattice: Observation {
+                    cells: &lattice,
+                    values: &lat_y,
+                    variance: &lat_v,
+                },
+                boats: Observation {
+                    cells: boats,
+                    values: &values,
+                    variance: &noise,
+                },
+                dense: Observation {
+                    cells: &dense,
+                    values: &aerial,
+                    variance: &aerial_var,
+                },
+                aerial: &aerial,
+                aerial_var: &aerial_var,
+                filled: &filled,
+            };
+            let mut b = Between::default();
+            b.update(&mut filter.clone(), &src, &on_lattice).unwrap();
+            b
+        };
+        assert_eq!(skill_after(&[0, 4, 5, 8]), Between::default());
+        assert_ne!(skill_after(&[1, 2, 6, 9]), Between::default());
+    }
 }
