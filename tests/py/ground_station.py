@@ -60,7 +60,9 @@ if set(out["heartbeats"]) != set(want):
 
 # 2. Targets and positions: distance to the newest guided target, first and last seen, until
 # every vehicle with a target has reached it (or the watch ends).
-first, last, targets, since = {}, {}, {}, {}
+first, last, targets, since, current = {}, {}, {}, {}, {}
+# GUIDED's custom mode: ArduRover's 15, ArduCopter's 4 (MAV_TYPE 2, a quadrotor).
+GUIDED = {False: 15, True: 4}
 # Each autopilot says its EKF origin once, at its fix: ask for it again (MAV_CMD_REQUEST_MESSAGE),
 # and again every 2 s until it answers (a command over UDP and the fleet's links may be lost).
 watch_end, asked = time.time() + args.watch_s, 0.0
@@ -70,11 +72,18 @@ while time.time() < watch_end:
             if s not in out.get("origins", {}):
                 m.mav.command_long_send(s, 1, mavutil.mavlink.MAV_CMD_REQUEST_MESSAGE, 0, 49, 0, 0, 0, 0, 0, 0)
         asked = time.time()
-    msg = recv(["POSITION_TARGET_LOCAL_NED", "LOCAL_POSITION_NED", "GPS_GLOBAL_ORIGIN"], 0.5)
+    msg = recv(["POSITION_TARGET_LOCAL_NED", "LOCAL_POSITION_NED", "GPS_GLOBAL_ORIGIN", "HEARTBEAT"], 0.5)
     if msg is None:
         continue
     s = msg.get_srcSystem()
-    if msg.get_type() == "GPS_GLOBAL_ORIGIN":
+    if msg.get_type() == "HEARTBEAT":
+        # Out of GUIDED (the fleet's end sends it home, a failsafe to RTL or HOLD) it drives to
+        # no guided target: its approach is measured again from its next one.
+        if msg.get_srcComponent() == 1 and s in want and msg.custom_mode != GUIDED[want[s] == 2]:
+            current.pop(s, None)
+            first.pop(s, None)
+            last.pop(s, None)
+    elif msg.get_type() == "GPS_GLOBAL_ORIGIN":
         # Local NED is from each autopilot's EKF origin (where it booted), not the site's corner.
         out.setdefault("origins", {})[s] = [msg.latitude, msg.longitude]
     elif msg.get_type() == "POSITION_TARGET_LOCAL_NED":
@@ -82,11 +91,13 @@ while time.time() < watch_end:
         targets.setdefault(s, [])
         if t not in targets[s]:
             targets[s].append(t)
-            # A new target: measure the approach to it afresh.
+        if current.get(s) != t:
+            # A new target, or a return to an earlier one: measure the approach to it afresh.
+            current[s] = t
             first.pop(s, None)
             last.pop(s, None)
-    elif s in targets:
-        tx, ty = targets[s][-1]
+    elif s in current:
+        tx, ty = current[s]
         d = math.hypot(msg.x - tx, msg.y - ty)
         if s not in first:
             first[s], since[s] = d, time.time()
