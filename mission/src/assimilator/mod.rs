@@ -251,10 +251,7 @@ impl Assimilator {
             return samples.into_iter().map(|(_, s)| s).collect();
         }
         let _span = tracing::info_span!("screen aerials").entered();
-        let cells: Vec<usize> = samples
-            .iter()
-            .flat_map(|(_, s)| s.cells.iter().map(|&c| c as usize))
-            .collect();
+        let cells = cells_of(&samples);
         let forecast = self.state.fitted.as_ref().map(|(p, _)| {
             let at = p.predict_at(ahead as f64, &cells);
             cells.iter().copied().zip(at).collect()
@@ -277,10 +274,7 @@ impl Assimilator {
             return Ok(samples.into_iter().map(|(_, s)| s).collect());
         }
         let _span = tracing::info_span!("screen boats").entered();
-        let cells: Vec<usize> = samples
-            .iter()
-            .flat_map(|(_, s)| s.cells.iter().map(|&c| c as usize))
-            .collect();
+        let cells = cells_of(&samples);
         let field = self.boat_reference(ahead, aerial, &cells)?;
         let (grid, sigma) = (self.setup.grid, self.setup.cfg.boat_sigma);
         let lattice = aerial
@@ -429,6 +423,14 @@ pub fn fit_to(model: &dyn Dmd, newest: &[f64]) -> Result<(DmdModel, Mat<f64>), T
     let basis = tracing::info_span!("basis").in_scope(|| real_basis_factored(&orthogonal))?;
     let fitted = tracing::info_span!("amplitudes").in_scope(|| modes.model_on(&orthogonal, newest, 1.0))?;
     Ok((fitted, basis))
+}
+
+/// Every cell the samples cover, in their order.
+fn cells_of(samples: &[crate::health::Tagged]) -> Vec<usize> {
+    samples
+        .iter()
+        .flat_map(|(_, s)| s.cells.iter().map(|&c| c as usize))
+        .collect()
 }
 
 /// Columns to a matrix.
