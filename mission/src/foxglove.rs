@@ -51,25 +51,56 @@ pub struct FoxMessage {
     pub data: Vec<u8>,
 }
 
-impl FoxMessage {
-    fn encoded<T: Encode>(topic: impl Into<String>, m: &T) -> Self {
-        let mut data = Vec::with_capacity(m.encoded_len().unwrap_or(256));
-        m.encode(&mut data).expect("a Vec grows to any message");
+/// A Foxglove channel before any message: its topic, schema and encoding.
+#[derive(Debug, Clone)]
+pub struct FoxChannel {
+    pub topic: String,
+    pub schema: Schema,
+    pub encoding: String,
+}
+
+impl FoxChannel {
+    fn of<T: Encode>(topic: impl Into<String>) -> Self {
         Self {
             topic: topic.into(),
             schema: T::get_schema().expect("Foxglove's messages have schemas"),
             encoding: T::get_message_encoding(),
-            data,
         }
     }
 
-    fn json(topic: &str, schema: &'static str, title: &str, value: &serde_json::Value) -> Self {
+    fn json(topic: &str, schema: &'static str, title: &str) -> Self {
         Self {
             topic: topic.into(),
             schema: Schema::new(title, "jsonschema", schema.as_bytes()),
             encoding: "json".into(),
-            data: serde_json::to_vec(value).expect("JSON values serialise"),
         }
+    }
+}
+
+impl FoxMessage {
+    fn on(channel: FoxChannel, data: Vec<u8>) -> Self {
+        let FoxChannel {
+            topic,
+            schema,
+            encoding,
+        } = channel;
+        Self {
+            topic,
+            schema,
+            encoding,
+            data,
+        }
+    }
+
+    fn encoded<T: Encode>(topic: impl Into<String>, m: &T) -> Self {
+        let mut data = Vec::with_capacity(m.encoded_len().unwrap_or(256));
+        m.encode(&mut data).expect("a Vec grows to any message");
+        Self::on(FoxChannel::of::<T>(topic), data)
+    }
+
+    fn json(topic: &str, schema: &'static str, title: &str, value: &serde_json::Value) -> Self {
+        let data = serde_json::to_vec(value).expect("JSON values serialise");
+        Self::on(FoxChannel::json(topic, schema, title), data)
     }
 }
 
@@ -98,6 +129,27 @@ impl FoxgloveView {
     /// What is known before anything is heard: the site.
     pub fn start(&self) -> Vec<FoxMessage> {
         vec![self.site_geojson()]
+    }
+
+    /// Every channel this view's messages can be on, known from the mission before anything is
+    /// heard: a live server that advertises them all before its first client connects never
+    /// advertises a channel to a client mid-mission (see `watch`'s Foxglove module for why).
+    pub fn channels(&self) -> Vec<FoxChannel> {
+        let mut out = vec![
+            FoxChannel::of::<fx::GeoJson>(topics::SITE),
+            FoxChannel::of::<fx::Grid>(topics::ESTIMATE),
+            FoxChannel::of::<fx::Grid>(topics::STD),
+            FoxChannel::json(topics::MODEL, MODEL_SCHEMA, MODEL_TITLE),
+            FoxChannel::json(topics::SERVER, SERVER_SCHEMA, SERVER_TITLE),
+        ];
+        if self.truth.is_some() {
+            out.push(FoxChannel::of::<fx::Grid>(topics::TRUTH));
+        }
+        for id in self.kinds.keys() {
+            out.push(FoxChannel::of::<fx::LocationFix>(topics::vehicle(id)));
+            out.push(FoxChannel::of::<fx::GeoJson>(topics::plan(id)));
+        }
+        out
     }
 
     /// `body`, heard or said at `ns` (Unix nanoseconds), as Foxglove messages (none for what
@@ -307,6 +359,7 @@ fn geojson_message(topic: &str, features: Vec<serde_json::Value>) -> FoxMessage 
     )
 }
 
+const MODEL_TITLE: &str = "hetfleet.Model";
 const MODEL_SCHEMA: &str = r#"{
   "title": "hetfleet.Model",
   "description": "The model the server published: version, epoch, step, rank, variance summary",
@@ -321,6 +374,7 @@ const MODEL_SCHEMA: &str = r#"{
   "required": ["version", "epoch", "step", "rank"]
 }"#;
 
+const SERVER_TITLE: &str = "hetfleet.ServerStatus";
 const SERVER_SCHEMA: &str = r#"{
   "title": "hetfleet.ServerStatus",
   "description": "The model server's status and counters (server/status)",
@@ -354,12 +408,12 @@ fn model_json(m: &ModelUpdate) -> FoxMessage {
         "max_variance": sea.iter().copied().fold(0.0, f64::max),
         "eigenvalues": m.eigenvalues,
     });
-    FoxMessage::json(topics::MODEL, MODEL_SCHEMA, "hetfleet.Model", &value)
+    FoxMessage::json(topics::MODEL, MODEL_SCHEMA, MODEL_TITLE, &value)
 }
 
 fn server_json(s: &ServerStatus) -> FoxMessage {
     let value = serde_json::to_value(s).expect("the status serialises");
-    FoxMessage::json(topics::SERVER, SERVER_SCHEMA, "hetfleet.ServerStatus", &value)
+    FoxMessage::json(topics::SERVER, SERVER_SCHEMA, SERVER_TITLE, &value)
 }
 
 #[cfg(test)]
@@ -378,6 +432,70 @@ mod tests {
         assert_eq!(cell(3), 3.0);
         assert!(cell(4).is_nan());
         assert_eq!(g.timestamp, Some(fx::Timestamp::new(1, 500_000_000)));
+    }
+
+    /// A live server creates every channel from `channels()` before its first client: each
+    /// message the view makes must be on one of them, with the same schema and encoding.
+    #[test]
+    fn every_message_is_on_a_channel_known_before_anything_is_heard() {
+        let mission = MissionConfig::load(None).unwrap();
+        let grid = Grid::new(4, 6, 2.5).unwrap();
+        let view = FoxgloveView::new(&mission, grid, None);
+        let vehicle = mission.vehicles()[0].id.clone();
+        let telemetry = Telemetry {
+            vehicle: vehicle.clone(),
+            step: 3,
+            position: [1.0, 2.0],
+            heading: 0.5,
+            battery: 0.9,
+            link: crate::protocol::LinkState::Up,
+            outbox_depth: 0,
+            autopilot: None,
+            acked: None,
+            readings: None,
+            traffic: None,
+            sensor: None,
+        };
+        let plan = Plan {
+            vehicle,
+            model_version: 1,
+            epoch: 0,
+            targets: vec![],
+        };
+        let n = grid.len();
+        let model = ModelUpdate {
+            version: 1,
+            epoch: 0,
+            step: 0,
+            grid,
+            dt: 1.0,
+            eigenvalues: vec![],
+            modes_re: vec![],
+            modes_im: vec![],
+            amplitudes: vec![],
+            estimate: vec![0.0; n],
+            variance: vec![1.0; n],
+            forecast_steps: 1,
+            forecast_variance: vec![1.0; n],
+            land: vec![],
+        };
+        let known: BTreeMap<String, FoxChannel> = view.channels().into_iter().map(|c| (c.topic.clone(), c)).collect();
+        let bodies = [Body::Telemetry(telemetry), Body::Plan(plan), Body::Model(model)];
+        let made: Vec<FoxMessage> = view
+            .start()
+            .into_iter()
+            .chain(bodies.iter().flat_map(|b| view.of(b, 1)))
+            .collect();
+        assert!(made.len() >= 5, "{made:?}");
+        for m in made {
+            let c = known
+                .get(&m.topic)
+                .unwrap_or_else(|| panic!("{} is not among the channels", m.topic));
+            assert_eq!(
+                (&c.schema.name, &c.schema.encoding, &c.encoding),
+                (&m.schema.name, &m.schema.encoding, &m.encoding)
+            );
+        }
     }
 
     /// The layout in `docs/` names only panels it arranges and channels this module makes.

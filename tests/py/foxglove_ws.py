@@ -7,6 +7,10 @@ with Foxglove's published schemas (foxglove-schemas-protobuf) until it has a Loc
 each of VEHICLES (comma-separated) and an estimate Grid; prints "ok" and what it got. With
 "refused", expects the server to refuse the connection (HTTP 401) and prints "refused"; with
 "connect", only checks the handshake and prints "connected".
+
+The Foxglove SDK's server can answer a subscription that follows an advertisement too quickly with
+"Unknown channel ID" (it sends the advertisement before it records it); the client then subscribes
+to that channel again, as a client that must not miss a vehicle would, and says how often it did.
 """
 import asyncio
 import json
@@ -38,12 +42,19 @@ async def main(url, vehicles, mode):
         await ws.close()
         print("connected")
         return
-    channels, subs, fixes, grids = {}, {}, {}, 0
+    channels, subs, fixes, grids, again = {}, {}, {}, 0, 0
     async with ws:
         while not (set(vehicles) <= set(fixes) and grids):
             msg = await asyncio.wait_for(ws.recv(), 60)
             if isinstance(msg, str):
                 m = json.loads(msg)
+                unknown = m["op"] == "status" and m.get("message", "").startswith("Unknown channel ID: ")
+                if unknown:
+                    cid = int(m["message"].rsplit(" ", 1)[1])
+                    sid = next(s for s, c in subs.items() if c["id"] == cid)
+                    await asyncio.sleep(0.05)
+                    await ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": sid, "channelId": cid}]}))
+                    again += 1
                 if m["op"] != "advertise":
                     continue
                 new = []
@@ -70,7 +81,7 @@ async def main(url, vehicles, mode):
                 assert g.column_count > 0 and len(g.data) == g.row_stride * (len(g.data) // g.row_stride), g
                 grids += 1
     topics = sorted(c["topic"] for c in channels.values())
-    print("ok", json.dumps({"fixes": sorted(fixes), "grids": grids, "channels": topics}))
+    print("ok", json.dumps({"fixes": sorted(fixes), "grids": grids, "channels": topics, "resubscribed": again}))
 
 
 if __name__ == "__main__":

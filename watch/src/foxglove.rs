@@ -8,10 +8,16 @@
 //! cannot set headers on a WebSocket) and then passes the connection through untouched. The SDK
 //! names its subprotocol `foxglove.sdk.v1`; clients that offer the protocol's older name,
 //! `foxglove.websocket.v1` (the same protocol), are let through under that name.
+//!
+//! Every channel the mission can have ([`FoxgloveView::channels`]) is made before the gate opens.
+//! The SDK (0.30.3) sends a channel's advertisement to a client before it records the channel as
+//! advertised to that client, so a client quick to subscribe can be told "unknown channel" and
+//! never get it (seen in CI, on a loaded machine). Made at start, the channels reach each client
+//! in the advertisement that follows its handshake, not one by one while it is subscribing.
 
-use fleet_mission::foxglove::{FoxMessage, FoxgloveView};
+use fleet_mission::foxglove::{FoxChannel, FoxMessage, FoxgloveView};
 use fleet_mission::protocol::Body;
-use foxglove::{ChannelBuilder, Context, RawChannel};
+use foxglove::{ChannelBuilder, Context, RawChannel, Schema};
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
@@ -45,18 +51,26 @@ impl FoxLive {
             .start()
             .await?;
         let backend = SocketAddr::from(([127, 0, 0, 1], server.port()));
-        info!(url = %format!("ws://{}", listener.local_addr()?), "serving Foxglove (WebSocket)");
-        tokio::spawn(gate(listener, backend, credential));
         let live = Self {
             view,
             ctx,
             channels: Mutex::new(BTreeMap::new()),
             _server: server,
         };
+        for FoxChannel {
+            topic,
+            encoding,
+            schema,
+        } in live.view.channels()
+        {
+            live.channel(&topic, &encoding, &schema);
+        }
         let now = fleet_mission::recording::now_ns();
         for m in live.view.start() {
             live.log(&m, now);
         }
+        info!(url = %format!("ws://{}", listener.local_addr()?), "serving Foxglove (WebSocket)");
+        tokio::spawn(gate(listener, backend, credential));
         Ok(live)
     }
 
@@ -75,20 +89,29 @@ impl FoxLive {
     }
 
     fn log(&self, m: &FoxMessage, ns: u64) {
+        if let Some(channel) = self.channel(&m.topic, &m.encoding, &m.schema) {
+            channel.log_with_meta(&m.data, foxglove::PartialMetadata { log_time: Some(ns) });
+        }
+    }
+
+    /// The channel on `topic`, made the first time (`None`, with a warning, if the SDK refuses it).
+    fn channel(&self, topic: &str, encoding: &str, schema: &Schema) -> Option<Arc<RawChannel>> {
         let mut channels = self.channels.lock().expect("channels lock");
-        let channel = match channels.get(&m.topic) {
-            Some(c) => c.clone(),
-            None => match ChannelBuilder::new(&m.topic)
-                .message_encoding(&m.encoding)
-                .schema(m.schema.clone())
-                .context(&self.ctx)
-                .build_raw()
-            {
-                Ok(c) => channels.entry(m.topic.clone()).or_insert(c).clone(),
-                Err(e) => return warn!("Foxglove channel {}: {e}", m.topic),
-            },
-        };
-        channel.log_with_meta(&m.data, foxglove::PartialMetadata { log_time: Some(ns) });
+        if let Some(made) = channels.get(topic) {
+            return Some(made.clone());
+        }
+        let built = ChannelBuilder::new(topic)
+            .message_encoding(encoding)
+            .schema(schema.clone())
+            .context(&self.ctx)
+            .build_raw();
+        match built {
+            Ok(made) => Some(channels.entry(topic.to_string()).or_insert(made).clone()),
+            Err(e) => {
+                warn!("Foxglove channel {topic}: {e}");
+                None
+            }
+        }
     }
 }
 
