@@ -11,15 +11,16 @@
 //!   a healthy pair, on any field; with no lattice cell in the disk, no test that step). A
 //!   two-sided CUSUM of it (slack [`SLACK`]) catches an offset and a slow drift; one step beyond
 //!   [`Z_SUSPECT`] catches a jump at once.
-//! - **spikes**: each boat value against the median of its neighbours in the same sample, in
-//!   its noise and the neighbours' own spread (a front the boats found splits the neighbours,
-//!   a spike stands apart from neighbours that agree) and, for a cell with neighbours on one
-//!   side only, against the fleet's estimate without the boats in its and the estimate's
-//!   standard deviations. Beyond [`HUBER`] its variance grows as the square of the excess (a
-//!   Huber update), beyond [`GATE`] it is refused. For Gaussian noise on a smooth field (a value
-//!   less the median of 20-odd noisy neighbours has about 1.03 times the noise's deviation, and
-//!   the thresholds are 6 and 12 noise deviations) the design rates are below 1e-8 and 1e-30 a
-//!   value.
+//! - **spikes**: each boat value against a plane fitted to its neighbours in the same sample,
+//!   in its noise and the neighbours' own robust scatter about that plane (a front the boats
+//!   found splits the neighbours, a spike stands apart from neighbours on a slope) and, for a
+//!   cell with neighbours on one side only, against the fleet's estimate without the boats in
+//!   its and the estimate's standard deviations. Beyond [`HUBER`] the variance of its
+//!   innovation (its noise and the reference's) grows as the square of the excess (a Huber
+//!   update: it moves the map no further than a value at the threshold would), beyond [`GATE`]
+//!   it is refused. For Gaussian noise on a smooth field (a value less the plane of 20-odd noisy
+//!   neighbours has about 1.02 times the noise's deviation, and the thresholds are at least 6
+//!   and 12 noise deviations) the design rates are below 1e-8 and 1e-30 a value.
 //! - **stuck**: three or more values of one sample equal to within a millionth of the noise
 //!   (a real instrument's noise makes that impossible: a stuck probe repeats itself).
 //! - **a frame**: an aerial's frame is judged by quadrant (its cells split at their median row
@@ -64,8 +65,11 @@ pub const Z_SUSPECT: f64 = 4.5;
 pub const FRAME_GATE: f64 = 5.0;
 /// Clean steps in a row that bring a sensor back to `ok`.
 pub const CLEAN_STEPS: u32 = 3;
-/// A suspect sensor's values count with this many times their variance.
+/// A suspect sensor's values count with this many times their variance (not one suspect for
+/// its spikes alone: those are refused one by one).
 pub const SUSPECT_INFLATION: f64 = 4.0;
+/// The reason a sensor is suspect for its spikes begins with this.
+const SPIKES: &str = "spikes";
 /// How many recent values a scale is the median of, and how many it needs first.
 const WINDOW: usize = 2000;
 const WARM_UP: usize = 12;
@@ -133,6 +137,9 @@ struct Sensor {
     clean_since: u64,
     /// Whether each of the last ten frames was refused (aerials).
     frames: VecDeque<bool>,
+    /// Whether every test that marked the sensor since it was last `ok` was a refused spike:
+    /// the spikes are refused one by one, and its other values count as they came.
+    spikes_only: bool,
 }
 
 /// A verdict decided outside the tests for one step: the operator's (`ok` trusts every value
@@ -173,12 +180,13 @@ impl Sensor {
         } else if cusum > H_SUSPECT || z.abs() > Z_SUSPECT {
             (Health::Suspect, format!("biased {side} (z {z:+.1}, CUSUM {cusum:.1})"))
         } else if c.refused > 0 && c.z.is_some() {
-            (Health::Suspect, format!("spikes: {} refused", c.refused))
+            (Health::Suspect, format!("{SPIKES}: {} refused", c.refused))
         } else if self.frames.iter().filter(|&&r| r).count() >= 2 {
             (Health::Suspect, "frames refused: 2 of its last 10".to_string())
         } else {
             (Health::Ok, String::new())
         };
+        let spikes = to != Health::Ok && reason.starts_with(SPIKES);
         let clean = !c.stuck && c.refused == 0 && !c.frame_refused && z.abs() < CLEAN_Z;
         if clean && self.clean == 0 {
             self.clean_since = step;
@@ -194,6 +202,12 @@ impl Sensor {
                 Health::Ok
             }
             (now, _) => now,
+        };
+        self.spikes_only = match (self.health, next) {
+            (_, Health::Ok) => false,
+            (Health::Ok, _) => spikes,
+            (_, _) if to != Health::Ok => self.spikes_only && spikes,
+            _ => self.spikes_only,
         };
         if next == self.health {
             return None;
@@ -335,6 +349,17 @@ impl Screen {
         (sensor.health, true)
     }
 
+    /// What a sensor's variances are multiplied by under `health`: [`SUSPECT_INFLATION`] when
+    /// suspect, unless for its spikes alone.
+    fn inflation(&self, v: usize, health: Health) -> f64 {
+        let spikes_only = self.sensors.get(&v).is_some_and(|s| s.spikes_only);
+        if health == Health::Suspect && !spikes_only {
+            SUSPECT_INFLATION
+        } else {
+            1.0
+        }
+    }
+
     /// The boats' samples of step `step`, tested against `reference` (the aerials' estimate of
     /// the step) with the boats' noise `sigma`: what the fusion may use (spikes refused, a
     /// suspect sensor's values down-weighted, an excluded one's withheld).
@@ -348,10 +373,11 @@ impl Screen {
     ) -> Vec<Sample> {
         let mut out = vec![];
         for (v, mut s) in samples {
-            let local = local_deviations(grid, &s);
             let sig: Vec<f64> = s.sigma.clone().unwrap_or_else(|| vec![sigma; s.values.len()]);
+            let local = local_deviations(grid, &s, &sig);
             let mut keep = vec![true; s.values.len()];
-            let mut inflate = vec![1.0; s.values.len()];
+            // Each value's noise variance as the fusion will take it.
+            let mut var: Vec<f64> = sig.iter().map(|g| g * g).collect();
             for i in 0..s.values.len() {
                 // A spike stands apart from its neighbours, further than its noise and their
                 // own spread allow (a front the boats found splits its neighbours too), and
@@ -359,8 +385,8 @@ impl Screen {
                 // the reference's standard deviations (a lone cell on a disk's edge across a
                 // front from its neighbours is where the reference says it is).
                 let c = s.cells[i] as usize;
-                let (mean, var) = reference.at(c, s.values[i]);
-                let unit = (s.values[i] - mean).abs() / (var + sig[i] * sig[i]).sqrt();
+                let (mean, ref_var) = reference.at(c, s.values[i]);
+                let unit = (s.values[i] - mean).abs() / (ref_var + var[i]).sqrt();
                 let r = local[i].map_or(0.0, |(d, spread, n)| {
                     let apart = d.abs() / (NEIGHBOURS * sig[i]).hypot(spread);
                     if n >= SURROUNDED {
@@ -370,7 +396,7 @@ impl Screen {
                     }
                 });
                 keep[i] = r <= GATE;
-                inflate[i] = if r > HUBER { (r / HUBER).powi(2) } else { 1.0 };
+                var[i] = huber_variance(var[i], ref_var, r);
             }
             // The bias: the boat's values against the aerials' own at the lattice cells both
             // measured this step (the same cell at the same step: only the two noises differ).
@@ -397,19 +423,16 @@ impl Screen {
                 out.push(s); // trusted as it came
                 continue;
             }
-            let weight = if health == Health::Suspect {
-                SUSPECT_INFLATION
-            } else {
-                1.0
-            };
+            let weight = self.inflation(v, health);
             self.counts.spikes_refused += check.refused as u64;
-            self.counts.down_weighted += inflate.iter().zip(&keep).filter(|(f, k)| **k && **f > 1.0).count() as u64;
-            if keep.iter().all(|&k| k) && weight == 1.0 && inflate.iter().all(|&f| f == 1.0) {
+            let inflated = |i: usize| var[i] != sig[i] * sig[i];
+            self.counts.down_weighted += (0..var.len()).filter(|&i| keep[i] && inflated(i)).count() as u64;
+            if keep.iter().all(|&k| k) && weight == 1.0 && !(0..var.len()).any(inflated) {
                 out.push(s); // untouched: the very bits it came with
                 continue;
             }
             let kept: Vec<usize> = (0..s.values.len()).filter(|&i| keep[i]).collect();
-            s.sigma = Some(kept.iter().map(|&i| sig[i] * (inflate[i] * weight).sqrt()).collect());
+            s.sigma = Some(kept.iter().map(|&i| (var[i] * weight).sqrt()).collect());
             s.values = kept.iter().map(|&i| s.values[i]).collect();
             s.cells = kept.iter().map(|&i| s.cells[i]).collect();
             if !s.cells.is_empty() {
@@ -504,6 +527,19 @@ impl Screen {
     }
 }
 
+/// A value's noise variance after the Huber step: a value `r` deviations out (`r` > [`HUBER`])
+/// counts as if its innovation against the reference (variance `ref_var`, the fusion's prior
+/// there) were [`HUBER`] deviations, so it moves the map no further than a value at the
+/// threshold would. Growing the noise alone by `(r / HUBER)^2` did not: where the reference is
+/// unsure, a 50-deviation spike kept nearly all its weight (README, "Sensor health").
+fn huber_variance(noise_var: f64, ref_var: f64, r: f64) -> f64 {
+    if r <= HUBER {
+        return noise_var;
+    }
+    let grow = (r / HUBER).powi(2);
+    (noise_var + ref_var) * grow - ref_var
+}
+
 fn mean(v: &[f64]) -> Option<f64> {
     (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
 }
@@ -515,48 +551,103 @@ fn residuals(s: &Sample, forecast: &Forecast) -> Vec<f64> {
     s.cells.iter().zip(&s.values).map(|(&c, &y)| y - at(c, y)).collect()
 }
 
-/// Each value's deviation from the median of its neighbours in the sample (the cells at most
-/// two rows and two columns away: a cell on a disk's edge then has neighbours on both sides of
-/// a front beside it), and how far the neighbours spread themselves (half their range: a spike
-/// stands apart from neighbours that agree, a front splits them); `None` with fewer than eight
-/// neighbours (with the count). The deviation of a value within its neighbours' range is given
-/// as 0: it is within twice their spread, never a verdict (checked below against [`HUBER`]).
-fn local_deviations(grid: &Grid, s: &Sample) -> Vec<Option<(f64, f64, usize)>> {
+/// Each value's deviation from a plane fitted to its neighbours in the sample (the cells at
+/// most two rows and two columns away: a cell on a disk's edge then has neighbours on both
+/// sides of a front beside it), and how far the neighbours stray from that plane themselves
+/// (1.4826 times their median absolute residual: a spike stands apart from neighbours that lie
+/// on a slope, a front splits them, and a spike among them does not count); `None` with fewer
+/// than eight neighbours (with the count). Against the neighbours' median and half their range
+/// (the test before), a 50-deviation spike on a slope of the cloud was within a spread or two,
+/// and a spike beside another within their range. A deviation under [`HUBER`] times
+/// [`NEIGHBOURS`] times the value's noise is given as 0: never a verdict, whatever the scale
+/// (most values; only the rest pay for the median).
+fn local_deviations(grid: &Grid, s: &Sample, sig: &[f64]) -> Vec<Option<(f64, f64, usize)>> {
     let at = Window::of(grid, s);
     s.cells
         .iter()
         .zip(&s.values)
-        .map(|(&c, &y)| {
+        .zip(sig)
+        .map(|((&c, &y), &sd)| {
             let cell = grid.cell(c as usize);
-            let mut near = [0.0; 24];
+            let mut near = [(0.0, 0.0, 0.0); 24];
             let mut count = 0;
             for (dr, dc) in (-2i64..=2).flat_map(|dr| (-2i64..=2).map(move |dc| (dr, dc))) {
                 if let Some(v) = at
                     .get(cell.row as i64 + dr, cell.col as i64 + dc)
                     .filter(|_| (dr, dc) != (0, 0))
                 {
-                    near[count] = v;
+                    near[count] = (dr as f64, dc as f64, v);
                     count += 1;
                 }
             }
             if count < 8 {
                 return None;
             }
-            let (lo, hi) = near[..count]
-                .iter()
-                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &x| {
-                    (lo.min(x), hi.max(x))
-                });
-            // A value within its neighbours' range is at most `hi - lo` (twice their spread)
-            // from their median: apart by under 2 < HUBER, so the median's exact place would
-            // change no verdict and is not looked for (most values; the rest pay for it).
-            const _: () = assert!(HUBER > 2.0, "the shortcut below needs HUBER above 2");
-            if (lo..=hi).contains(&y) {
-                return Some((0.0, 0.5 * (hi - lo), count));
+            let plane = Plane::fit(&near[..count]);
+            let d = y - plane.at(0.0, 0.0);
+            if d.abs() <= HUBER * NEIGHBOURS * sd {
+                return Some((0.0, 0.0, count));
             }
-            Some((y - median(&mut near[..count]), 0.5 * (hi - lo), count))
+            let mut off = [0.0; 24];
+            for (o, &(dr, dc, v)) in off.iter_mut().zip(&near[..count]) {
+                *o = (v - plane.at(dr, dc)).abs();
+            }
+            Some((d, 1.4826 * median(&mut off[..count]), count))
         })
         .collect()
+}
+
+/// A least-squares plane `a + b dr + c dc` through values at row and column offsets.
+struct Plane {
+    a: f64,
+    b: f64,
+    c: f64,
+}
+
+impl Plane {
+    /// The fit to `(dr, dc, value)` points. The slopes are held by a hair (1e-9 of a unit
+    /// cell's weight) so that points on one line fit a plane level across it, not a singular
+    /// system.
+    fn fit(points: &[(f64, f64, f64)]) -> Self {
+        let (mut m, mut rhs) = ([[0.0; 3]; 3], [0.0; 3]);
+        for &(dr, dc, v) in points {
+            let x = [1.0, dr, dc];
+            for i in 0..3 {
+                rhs[i] += x[i] * v;
+                for j in 0..3 {
+                    m[i][j] += x[i] * x[j];
+                }
+            }
+        }
+        m[1][1] += 1e-9;
+        m[2][2] += 1e-9;
+        let [a, b, c] = solve3(m, rhs);
+        Self { a, b, c }
+    }
+
+    fn at(&self, dr: f64, dc: f64) -> f64 {
+        self.a + self.b * dr + self.c * dc
+    }
+}
+
+/// `m x = rhs` for a symmetric positive definite 3 x 3 `m` (Cholesky).
+fn solve3(m: [[f64; 3]; 3], rhs: [f64; 3]) -> [f64; 3] {
+    let mut l = [[0.0; 3]; 3];
+    for i in 0..3 {
+        for j in 0..=i {
+            let s: f64 = m[i][j] - (0..j).map(|k| l[i][k] * l[j][k]).sum::<f64>();
+            l[i][j] = if i == j { s.max(1e-300).sqrt() } else { s / l[j][j] };
+        }
+    }
+    let mut y = [0.0; 3];
+    for i in 0..3 {
+        y[i] = (rhs[i] - (0..i).map(|k| l[i][k] * y[k]).sum::<f64>()) / l[i][i];
+    }
+    let mut x = [0.0; 3];
+    for i in (0..3).rev() {
+        x[i] = (y[i] - (i + 1..3).map(|k| l[k][i] * x[k]).sum::<f64>()) / l[i][i];
+    }
+    x
 }
 
 /// A sample's values laid out over the rectangle of rows and columns its cells span (NaN where
@@ -808,6 +899,39 @@ mod tests {
         assert!(!out[1].values.contains(&spiked.values[7]));
         assert_eq!(screen.counts.spikes_refused, 1);
         assert_eq!(health_of(&screen, 3), Health::Suspect);
+    }
+
+    /// Two spikes side by side are both refused: each stands within the full range of its
+    /// neighbours (the other is among them), not within the scatter of their plane.
+    #[test]
+    fn spikes_side_by_side_are_each_refused() {
+        let mut w = World::new(4);
+        let mut screen = Screen::default();
+        let spiked = w.disk(0, (5, 5), |k, v| if k == 7 || k == 8 { v + 50.0 * SIGMA } else { v });
+        let lattice = w.lattice();
+        let field = w.truth.iter().map(|&t| (t, SIGMA * SIGMA)).enumerate().collect();
+        let reference = Reference {
+            field: &field,
+            lattice: &lattice,
+        };
+        let out = screen.boats(&w.grid, 0, vec![(3, spiked.clone())], reference, SIGMA);
+        assert_eq!(out[0].values.len(), spiked.values.len() - 2);
+        assert_eq!(screen.counts.spikes_refused, 2);
+    }
+
+    /// Beyond the threshold a value counts as if its innovation were at the threshold, on the
+    /// scale of its noise and the reference's together (where the reference is unsure as well
+    /// as where it is sure), and below it as it came.
+    #[test]
+    fn the_huber_step_caps_a_values_innovation_at_the_threshold() {
+        for (noise_var, ref_var, innovation) in [(1e-4, 1e-2, 0.6), (1e-4, 0.0, 0.1), (1.0, 4.0, 30.0)] {
+            let r = innovation / f64::sqrt(noise_var + ref_var);
+            assert!(r > HUBER);
+            let v = huber_variance(noise_var, ref_var, r);
+            let capped = innovation / (v + ref_var).sqrt();
+            assert!((capped - HUBER).abs() < 1e-12 * HUBER, "{capped}");
+        }
+        assert_eq!(huber_variance(1e-4, 1e-2, HUBER), 1e-4);
     }
 
     /// The false-alarm rate of the bias test on healthy sensors, by Monte Carlo: the z of a
