@@ -609,19 +609,25 @@ impl Plane {
     /// cell's weight) so that points on one line fit a plane level across it, not a singular
     /// system.
     fn fit(points: &[(f64, f64, f64)]) -> Self {
-        let (mut m, mut rhs) = ([[0.0; 3]; 3], [0.0; 3]);
-        for &(dr, dc, v) in points {
-            let x = [1.0, dr, dc];
-            for i in 0..3 {
-                rhs[i] += x[i] * v;
-                for j in 0..3 {
-                    m[i][j] += x[i] * x[j];
-                }
-            }
+        // The normal equations' moments in one pass (a 3 x 3 system a value, 25,000 values a
+        // step at 192 x 384).
+        let (mut n, mut r, mut c, mut rr, mut rc, mut cc) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+        let (mut v, mut rv, mut cv) = (0.0, 0.0, 0.0);
+        for &(dr, dc, y) in points {
+            (n, r, c) = (n + 1.0, r + dr, c + dc);
+            (rr, rc, cc) = (rr + dr * dr, rc + dr * dc, cc + dc * dc);
+            (v, rv, cv) = (v + y, rv + dr * y, cv + dc * y);
         }
-        m[1][1] += 1e-9;
-        m[2][2] += 1e-9;
-        let [a, b, c] = solve3(m, rhs);
+        if r == 0.0 && c == 0.0 && rc == 0.0 {
+            // A symmetric neighbourhood (every cell around): the system is diagonal.
+            return Self {
+                a: v / n,
+                b: rv / (rr + 1e-9),
+                c: cv / (cc + 1e-9),
+            };
+        }
+        let m = [[n, r, c], [r, rr + 1e-9, rc], [c, rc, cc + 1e-9]];
+        let [a, b, c] = solve3(m, [v, rv, cv]);
         Self { a, b, c }
     }
 
