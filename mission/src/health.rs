@@ -29,6 +29,11 @@
 //!   ones, so a faulty frame cannot set the scale it is judged on); beyond [`FRAME_GATE`] the
 //!   quadrant, or the frame, is refused.
 //!
+//! A boat marked for a bias is recalibrated, not dropped: its offset from the aerials since it
+//! was last `ok` (the bias test's own sums) is taken off its values and the offset's variance
+//! added to theirs, so it keeps counting nearly as a healthy boat (withheld, a fifth of the
+//! boats was lost to the map for the rest of the mission).
+//!
 //! Verdicts have hysteresis: `suspect` when the CUSUM passes [`H_SUSPECT`], a value is refused
 //! as a spike, or 2 of an aerial's last 10 frames were (its values are down-weighted, their
 //! variance times [`SUSPECT_INFLATION`]); `excluded` past [`H_EXCLUDE`] or at once when stuck
@@ -70,6 +75,8 @@ pub const CLEAN_STEPS: u32 = 3;
 pub const SUSPECT_INFLATION: f64 = 4.0;
 /// The reason a sensor is suspect for its spikes begins with this.
 const SPIKES: &str = "spikes";
+/// The reason a sensor is marked for a bias begins with this.
+const BIASED: &str = "biased";
 /// How many recent values a scale is the median of, and how many it needs first.
 const WINDOW: usize = 2000;
 const WARM_UP: usize = 12;
@@ -91,6 +98,9 @@ pub struct Screened {
     pub down_weighted: u64,
     /// Readings withheld because their sensor was excluded.
     pub withheld: u64,
+    /// Readings of a sensor marked for a bias, counted with its offset taken off.
+    #[serde(default)]
+    pub recalibrated: u64,
     /// Aerial frames and quadrants refused.
     pub frames_refused: u64,
     pub quadrants_refused: u64,
@@ -140,6 +150,9 @@ struct Sensor {
     /// Whether every test that marked the sensor since it was last `ok` was a refused spike:
     /// the spikes are refused one by one, and its other values count as they came.
     spikes_only: bool,
+    /// Its weighted differences from the aerials at shared lattice cells (`sum w d`, `sum w`)
+    /// since it was last `ok`: its offset, when it is marked for a bias.
+    offset: (f64, f64),
 }
 
 /// A verdict decided outside the tests for one step: the operator's (`ok` trusts every value
@@ -156,6 +169,8 @@ pub struct Pin {
 #[derive(Debug, Clone, Copy, Default)]
 struct Check {
     z: Option<f64>,
+    /// The sums behind `z`: `sum w d` and `sum w`.
+    diff: (f64, f64),
     stuck: bool,
     refused: usize,
     frame_refused: bool,
@@ -176,9 +191,12 @@ impl Sensor {
         let (to, reason) = if c.stuck {
             (Health::Excluded, "stuck: its values repeat".to_string())
         } else if cusum > H_EXCLUDE {
-            (Health::Excluded, format!("biased {side} (CUSUM {cusum:.1})"))
+            (Health::Excluded, format!("{BIASED} {side} (CUSUM {cusum:.1})"))
         } else if cusum > H_SUSPECT || z.abs() > Z_SUSPECT {
-            (Health::Suspect, format!("biased {side} (z {z:+.1}, CUSUM {cusum:.1})"))
+            (
+                Health::Suspect,
+                format!("{BIASED} {side} (z {z:+.1}, CUSUM {cusum:.1})"),
+            )
         } else if c.refused > 0 && c.z.is_some() {
             (Health::Suspect, format!("{SPIKES}: {} refused", c.refused))
         } else if self.frames.iter().filter(|&&r| r).count() >= 2 {
@@ -202,6 +220,10 @@ impl Sensor {
                 Health::Ok
             }
             (now, _) => now,
+        };
+        self.offset = match next {
+            Health::Ok => (0.0, 0.0),
+            _ => (self.offset.0 + c.diff.0, self.offset.1 + c.diff.1),
         };
         self.spikes_only = match (self.health, next) {
             (_, Health::Ok) => false,
@@ -349,6 +371,15 @@ impl Screen {
         (sensor.health, true)
     }
 
+    /// A sensor marked for a bias (`suspect` or `excluded`): its offset from the aerials since
+    /// it was last `ok` (their weighted mean difference at the lattice cells both measured),
+    /// and that offset's variance. `None`: not marked for a bias, or no shared cell yet.
+    fn bias_of(&self, v: usize) -> Option<(f64, f64)> {
+        let s = self.sensors.get(&v)?;
+        let marked = s.health != Health::Ok && s.reason.starts_with(BIASED);
+        (marked && s.offset.1 > 0.0).then(|| (s.offset.0 / s.offset.1, 1.0 / s.offset.1))
+    }
+
     /// What a sensor's variances are multiplied by under `health`: [`SUSPECT_INFLATION`] when
     /// suspect, unless for its spikes alone.
     fn inflation(&self, v: usize, health: Health) -> f64 {
@@ -374,56 +405,38 @@ impl Screen {
         let mut out = vec![];
         for (v, mut s) in samples {
             let sig: Vec<f64> = s.sigma.clone().unwrap_or_else(|| vec![sigma; s.values.len()]);
-            let local = local_deviations(grid, &s, &sig);
-            let mut keep = vec![true; s.values.len()];
-            // Each value's noise variance as the fusion will take it.
-            let mut var: Vec<f64> = sig.iter().map(|g| g * g).collect();
-            for i in 0..s.values.len() {
-                // A spike stands apart from its neighbours, further than its noise and their
-                // own spread allow (a front the boats found splits its neighbours too), and
-                // where it has neighbours on one side only, from the reference too, in its and
-                // the reference's standard deviations (a lone cell on a disk's edge across a
-                // front from its neighbours is where the reference says it is).
-                let c = s.cells[i] as usize;
-                let (mean, ref_var) = reference.at(c, s.values[i]);
-                let unit = (s.values[i] - mean).abs() / (ref_var + var[i]).sqrt();
-                let r = local[i].map_or(0.0, |(d, spread, n)| {
-                    let apart = d.abs() / (NEIGHBOURS * sig[i]).hypot(spread);
-                    if n >= SURROUNDED {
-                        apart
-                    } else {
-                        apart.min(unit)
-                    }
-                });
-                keep[i] = r <= GATE;
-                var[i] = huber_variance(var[i], ref_var, r);
-            }
-            // The bias: the boat's values against the aerials' own at the lattice cells both
-            // measured this step (the same cell at the same step: only the two noises differ).
-            let (mut num, mut den) = (0.0, 0.0);
-            for i in (0..s.values.len()).filter(|&i| keep[i]) {
-                if let Some((a, av)) = reference.lattice.get(&(s.cells[i] as usize)) {
-                    let w = 1.0 / (sig[i] * sig[i] + av).max(1e-300);
-                    (num, den) = (num + w * (s.values[i] - a), den + w);
-                }
-            }
+            let (keep, mut var) = spikes(grid, &s, &sig, &reference);
+            let (num, den) = offset_sums(&s, &sig, &keep, &reference);
             let z = (den > 0.0).then(|| num / den.sqrt());
             let check = Check {
                 z,
+                diff: (num, den),
                 stuck: stuck(&s.values, &sig),
                 refused: keep.iter().filter(|k| !**k).count(),
                 frame_refused: false,
             };
             let (health, pinned) = self.judge(v, step, check, true);
-            if health == Health::Excluded {
+            let offset = self.bias_of(v).filter(|_| !pinned);
+            if health == Health::Excluded && offset.is_none() {
                 self.counts.withheld += s.values.len() as u64;
                 continue;
+            }
+            if let Some((b, b_var)) = offset {
+                // Recalibrated against the aerials: the offset taken off each value, its
+                // variance added to each (README, "Sensor health": why not more).
+                s.values.iter_mut().for_each(|y| *y -= b);
+                var.iter_mut().for_each(|x| *x += b_var);
+                self.counts.recalibrated += s.values.len() as u64;
             }
             if pinned {
                 out.push(s); // trusted as it came
                 continue;
             }
-            let weight = self.inflation(v, health);
+            let weight = if offset.is_some() {
+                1.0
+            } else {
+                self.inflation(v, health)
+            };
             self.counts.spikes_refused += check.refused as u64;
             let inflated = |i: usize| var[i] != sig[i] * sig[i];
             self.counts.down_weighted += (0..var.len()).filter(|&i| keep[i] && inflated(i)).count() as u64;
@@ -479,11 +492,11 @@ impl Screen {
             let frame = mean(&kept);
             let z = frame.zip(frame_sd).map(|(m, sd)| m / sd);
             let frame_refused = frame.is_none() || z.is_some_and(|z| z.abs() > FRAME_GATE);
+            // No bias z: an aerial's frames are judged one by one, not accumulated.
             let check = Check {
-                z: None, // an aerial's frames are judged one by one, not accumulated
-                stuck: false,
                 refused: refused_quadrants.iter().filter(|r| **r).count(),
                 frame_refused: frame_refused || refused_quadrants.iter().any(|r| *r),
+                ..Check::default()
             };
             match self.judge(v, step, check, false) {
                 (Health::Excluded, _) => {
@@ -525,6 +538,49 @@ impl Screen {
         }
         out
     }
+}
+
+/// The spike test of a boat's sample: which values are kept, and each one's noise variance as
+/// the fusion will take it (grown by the Huber step).
+fn spikes(grid: &Grid, s: &Sample, sig: &[f64], reference: &Reference<'_>) -> (Vec<bool>, Vec<f64>) {
+    let local = local_deviations(grid, s, sig);
+    let mut keep = vec![true; s.values.len()];
+    let mut var: Vec<f64> = sig.iter().map(|g| g * g).collect();
+    for i in 0..s.values.len() {
+        // A spike stands apart from its neighbours, further than its noise and their own
+        // spread allow (a front the boats found splits its neighbours too), and where it has
+        // neighbours on one side only, from the reference too, in its and the reference's
+        // standard deviations (a lone cell on a disk's edge across a front from its neighbours
+        // is where the reference says it is).
+        let c = s.cells[i] as usize;
+        let (mean, ref_var) = reference.at(c, s.values[i]);
+        let unit = (s.values[i] - mean).abs() / (ref_var + var[i]).sqrt();
+        let r = local[i].map_or(0.0, |(d, spread, n)| {
+            let apart = d.abs() / (NEIGHBOURS * sig[i]).hypot(spread);
+            if n >= SURROUNDED {
+                apart
+            } else {
+                apart.min(unit)
+            }
+        });
+        keep[i] = r <= GATE;
+        var[i] = huber_variance(var[i], ref_var, r);
+    }
+    (keep, var)
+}
+
+/// The bias test's sums (`sum w d`, `sum w`): the kept values against the aerials' own at the
+/// lattice cells both measured this step (the same cell at the same step: only the two noises
+/// differ).
+fn offset_sums(s: &Sample, sig: &[f64], keep: &[bool], reference: &Reference<'_>) -> (f64, f64) {
+    let (mut num, mut den) = (0.0, 0.0);
+    for i in (0..s.values.len()).filter(|&i| keep[i]) {
+        if let Some((a, av)) = reference.lattice.get(&(s.cells[i] as usize)) {
+            let w = 1.0 / (sig[i] * sig[i] + av).max(1e-300);
+            (num, den) = (num + w * (s.values[i] - a), den + w);
+        }
+    }
+    (num, den)
 }
 
 /// A value's noise variance after the Huber step: a value `r` deviations out (`r` > [`HUBER`])
@@ -876,6 +932,38 @@ mod tests {
         assert_eq!(health_of(&screen, 2), Health::Ok);
         let reasons: Vec<String> = screen.take_verdicts().into_iter().map(|v| v.reason).collect();
         assert!(reasons.iter().any(|r| r.starts_with("stuck")) && reasons.iter().any(|r| r.contains("biased high")));
+    }
+
+    /// A boat marked for a bias keeps counting, with its offset from the aerials taken off:
+    /// 3 noise deviations high for 8 steps, its values come out within half a deviation of the
+    /// truth on average (its raw values 3 high), each with the offset's variance added, and a
+    /// healthy boat beside it is untouched.
+    #[test]
+    fn a_biased_boat_is_recalibrated_against_the_aerials() {
+        let mut w = World::new(5);
+        let mut screen = Screen::default();
+        let mut out = vec![];
+        for k in 0..8 {
+            out = w.step(&mut screen, k, |_, v| v + 3.0 * SIGMA);
+        }
+        assert_ne!(health_of(&screen, 3), Health::Ok);
+        assert_eq!(out[0].sigma, None, "the healthy boat is untouched");
+        let biased = &out[1];
+        let off: f64 = biased
+            .cells
+            .iter()
+            .zip(&biased.values)
+            .map(|(&c, &y)| y - w.truth[c as usize])
+            .sum::<f64>()
+            / biased.values.len() as f64;
+        assert!(
+            off.abs() < 0.5 * SIGMA,
+            "recalibrated values are {} deviations off",
+            off / SIGMA
+        );
+        let sigma = biased.sigma.as_ref().expect("the offset's variance is added");
+        assert!(sigma.iter().all(|&s| s > SIGMA && s < 1.1 * SIGMA), "{sigma:?}");
+        assert!(screen.counts.recalibrated > 0 && screen.counts.withheld == 0);
     }
 
     /// A spike of 50 noise deviations is refused and its sensor suspect; the front's values,
