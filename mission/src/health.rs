@@ -35,8 +35,8 @@
 //! boats was lost to the map for the rest of the mission).
 //!
 //! Verdicts have hysteresis: `suspect` when the CUSUM passes [`H_SUSPECT`], a value is refused
-//! as a spike, an aerial's frame is refused as a whole or in part in 2 of its last 10 frames
-//! (its values are down-weighted, their variance times [`SUSPECT_INFLATION`]); `excluded` past [`H_EXCLUDE`] or at once when stuck
+//! as a spike, or 2 of an aerial's last 10 frames were (its values are down-weighted, their
+//! variance times [`SUSPECT_INFLATION`]); `excluded` past [`H_EXCLUDE`] or at once when stuck
 //! (its values are withheld from the fusion and still tested, and the placement gives its boat
 //! no disk of its own: it measures where it is); back to `ok` only after [`CLEAN_STEPS`] clean
 //! steps in a row. Nothing is lost: the server's journal holds every batch as received, and a
@@ -173,9 +173,7 @@ struct Check {
     diff: (f64, f64),
     stuck: bool,
     refused: usize,
-    /// A frame refused in part (a quadrant) or as a whole, and as a whole.
     frame_refused: bool,
-    whole_frame_refused: bool,
 }
 
 impl Sensor {
@@ -201,10 +199,6 @@ impl Sensor {
             )
         } else if c.refused > 0 && c.z.is_some() {
             (Health::Suspect, format!("{SPIKES}: {} refused", c.refused))
-        } else if c.whole_frame_refused {
-            // Beyond FRAME_GATE on the healthy frames' robust scale: under 1e-6 of healthy
-            // frames, and none of the 25,000 healthy sensor-steps of the fault study.
-            (Health::Suspect, "a frame refused".to_string())
         } else if self.frames.iter().filter(|&&r| r).count() >= 2 {
             (Health::Suspect, "frames refused: 2 of its last 10".to_string())
         } else {
@@ -419,7 +413,7 @@ impl Screen {
                 diff: (num, den),
                 stuck: stuck(&s.values, &sig),
                 refused: keep.iter().filter(|k| !**k).count(),
-                ..Check::default()
+                frame_refused: false,
             };
             let (health, pinned) = self.judge(v, step, check, true);
             let offset = self.bias_of(v).filter(|_| !pinned);
@@ -463,8 +457,7 @@ impl Screen {
 
     /// The aerials' samples of step `step`, each frame tested as a whole and by quadrant
     /// against `forecast` (the model's at the samples' cells, by cell; `None` before the first
-    /// model: nothing to test with). No bias z: an aerial's frames are judged one by one, not
-    /// accumulated.
+    /// model: nothing to test with).
     pub fn aerials(
         &mut self,
         grid: &Grid,
@@ -499,10 +492,10 @@ impl Screen {
             let frame = mean(&kept);
             let z = frame.zip(frame_sd).map(|(m, sd)| m / sd);
             let frame_refused = frame.is_none() || z.is_some_and(|z| z.abs() > FRAME_GATE);
+            // No bias z: an aerial's frames are judged one by one, not accumulated.
             let check = Check {
                 refused: refused_quadrants.iter().filter(|r| **r).count(),
                 frame_refused: frame_refused || refused_quadrants.iter().any(|r| *r),
-                whole_frame_refused: frame_refused,
                 ..Check::default()
             };
             match self.judge(v, step, check, false) {
@@ -1052,8 +1045,8 @@ mod tests {
         assert_eq!(screen.counts.checks, 8000);
     }
 
-    /// An over-exposed frame is refused as a whole and its sensor is suspect at once; a frame
-    /// with one over-exposed quadrant loses that quadrant only.
+    /// An over-exposed frame is refused as a whole, a frame with one over-exposed quadrant loses
+    /// that quadrant only, and a sensor with 2 frames refused of its last 10 is suspect.
     #[test]
     fn an_over_exposed_frame_or_quadrant_is_refused() {
         let mut w = World::new(4);
@@ -1079,11 +1072,6 @@ mod tests {
         }
         let over = frame(&mut w, 30, &|_, v| v + 20.0 * SIGMA);
         assert!(screen.aerials(&w.grid, 30, vec![(0, over)], Some(&forecast)).is_empty());
-        assert_eq!(
-            health_of(&screen, 0),
-            Health::Suspect,
-            "a frame refused as a whole marks it"
-        );
         let corner = frame(&mut w, 31, &|c, v| {
             if c / 30 < 15 && c % 30 < 15 {
                 v + 20.0 * SIGMA
