@@ -39,9 +39,10 @@
 //! variance times [`SUSPECT_INFLATION`]); `excluded` past [`H_EXCLUDE`] or at once when stuck
 //! (its values are withheld from the fusion, unless it is marked for a bias, and still tested,
 //! and the placement gives its boat no disk of its own: it measures where it is); back to `ok`
-//! only after [`CLEAN_STEPS`] clean steps in a row. Nothing is lost: the server's journal holds every batch as received, and a
-//! re-fit replays the same tests. The design rate of a false `suspect` from the CUSUM is about
-//! one in 1,300 of a sensor's tested steps (its average run length, Siegmund's approximation);
+//! only after [`CLEAN_STEPS`] clean steps in a row. Nothing is lost: the server's journal holds
+//! every batch as received, and a re-fit replays the same tests. The design rate of a false
+//! `suspect` from the CUSUM is about one in 1,300 of a sensor's tested steps (its average run
+//! length, Siegmund's approximation);
 //! the measured rate is in the README.
 
 use crate::grid::Grid;
