@@ -35,15 +35,15 @@
 //! boats was lost to the map for the rest of the mission).
 //!
 //! Verdicts have hysteresis: `suspect` when the CUSUM passes [`H_SUSPECT`], a value is refused
-//! as a spike, or 2 of an aerial's last 10 frames were (its values are down-weighted, their
-//! variance times [`SUSPECT_INFLATION`]); `excluded` past [`H_EXCLUDE`] or at once when stuck
-//! (its values are withheld from the fusion, unless it is marked for a bias, and still tested,
-//! and the placement gives its boat no disk of its own: it measures where it is); back to `ok`
-//! only after [`CLEAN_STEPS`] clean steps in a row. Nothing is lost: the server's journal holds
-//! every batch as received, and a re-fit replays the same tests. The design rate of a false
-//! `suspect` from the CUSUM is about one in 1,300 of a sensor's tested steps (its average run
-//! length, Siegmund's approximation);
-//! the measured rate is in the README.
+//! as a spike, an aerial's frame is refused as a whole, or 2 of its last 10 frames were refused
+//! in part (its values are down-weighted, their variance times [`SUSPECT_INFLATION`]);
+//! `excluded` past [`H_EXCLUDE`] or at once when stuck (its values are withheld from the fusion,
+//! unless it is marked for a bias, and still tested, and the placement gives its boat no disk of
+//! its own: it measures where it is); back to `ok` only after [`CLEAN_STEPS`] clean steps in a
+//! row. A frame of no cell is not judged. Nothing is lost: the server's journal holds every
+//! batch as received, and a re-fit replays the same tests. The design rate of a false `suspect`
+//! from the CUSUM is about one in 1,300 of a sensor's tested steps (its average run length,
+//! Siegmund's approximation); the measured rate is in the README.
 
 use crate::grid::Grid;
 use crate::protocol::Sample;
@@ -174,7 +174,9 @@ struct Check {
     diff: (f64, f64),
     stuck: bool,
     refused: usize,
+    /// A frame refused in part (a quadrant) or as a whole, and as a whole.
     frame_refused: bool,
+    whole_frame_refused: bool,
 }
 
 impl Sensor {
@@ -200,6 +202,10 @@ impl Sensor {
             )
         } else if c.refused > 0 && c.z.is_some() {
             (Health::Suspect, format!("{SPIKES}: {} refused", c.refused))
+        } else if c.whole_frame_refused {
+            // Beyond FRAME_GATE on the healthy frames' robust scale: under 1e-6 of healthy
+            // frames, and none of the 25,000 healthy sensor-steps of the fault study.
+            (Health::Suspect, "a frame refused".to_string())
         } else if self.frames.iter().filter(|&&r| r).count() >= 2 {
             (Health::Suspect, "frames refused: 2 of its last 10".to_string())
         } else {
@@ -414,7 +420,7 @@ impl Screen {
                 diff: (num, den),
                 stuck: stuck(&s.values, &sig),
                 refused: keep.iter().filter(|k| !**k).count(),
-                frame_refused: false,
+                ..Check::default()
             };
             let (health, pinned) = self.judge(v, step, check, true);
             let offset = self.bias_of(v).filter(|_| !pinned);
@@ -458,7 +464,8 @@ impl Screen {
 
     /// The aerials' samples of step `step`, each frame tested as a whole and by quadrant
     /// against `forecast` (the model's at the samples' cells, by cell; `None` before the first
-    /// model: nothing to test with).
+    /// model: nothing to test with). No bias z: an aerial's frames are judged one by one, not
+    /// accumulated.
     pub fn aerials(
         &mut self,
         grid: &Grid,
@@ -472,31 +479,16 @@ impl Screen {
         let (frame_sd, quadrant_sd) = (self.frame_bias.sd(), self.quadrant_bias.sd());
         let mut out = vec![];
         for (v, mut s) in samples {
-            let residual = residuals(&s, forecast);
-            // By quadrant first (a glare on part of the frame loses that part), then the frame
-            // as a whole over the quadrants kept.
-            let quadrants = quadrants(grid, &s.cells);
-            let means: Vec<Option<f64>> = quadrants
-                .iter()
-                .map(|q| mean(&q.iter().map(|&i| residual[i]).collect::<Vec<_>>()))
-                .collect();
-            let refused_quadrants: Vec<bool> = means
-                .iter()
-                .map(|m| m.zip(quadrant_sd).is_some_and(|(m, sd)| (m / sd).abs() > FRAME_GATE))
-                .collect();
-            let kept: Vec<f64> = quadrants
-                .iter()
-                .zip(&refused_quadrants)
-                .filter(|(_, r)| !**r)
-                .flat_map(|(q, _)| q.iter().map(|&i| residual[i]))
-                .collect();
-            let frame = mean(&kept);
-            let z = frame.zip(frame_sd).map(|(m, sd)| m / sd);
-            let frame_refused = frame.is_none() || z.is_some_and(|z| z.abs() > FRAME_GATE);
-            // No bias z: an aerial's frames are judged one by one, not accumulated.
+            if s.cells.is_empty() {
+                // A frame of no cell (the aerial saw none of the site that step) says nothing
+                // of its sensor: not a frame refused, nor a clean one.
+                continue;
+            }
+            let test = FrameTest::of(grid, &s, forecast, frame_sd, quadrant_sd);
             let check = Check {
-                refused: refused_quadrants.iter().filter(|r| **r).count(),
-                frame_refused: frame_refused || refused_quadrants.iter().any(|r| *r),
+                refused: test.refused.iter().filter(|r| **r).count(),
+                frame_refused: test.whole_refused || test.refused.iter().any(|r| *r),
+                whole_frame_refused: test.whole_refused,
                 ..Check::default()
             };
             match self.judge(v, step, check, false) {
@@ -510,34 +502,83 @@ impl Screen {
                 }
                 _ => {}
             }
-            if frame_refused {
+            if test.whole_refused {
                 self.counts.frames_refused += 1;
                 continue;
             }
-            frame.into_iter().for_each(|m| self.frame_bias.push(m));
-            means
-                .iter()
-                .zip(&refused_quadrants)
-                .filter(|(_, r)| !**r)
-                .for_each(|(m, _)| m.iter().for_each(|m| self.quadrant_bias.push(*m)));
-            if refused_quadrants.iter().any(|r| *r) {
-                self.counts.quadrants_refused += refused_quadrants.iter().filter(|r| **r).count() as u64;
-                let drop: Vec<usize> = quadrants
-                    .iter()
-                    .zip(&refused_quadrants)
-                    .filter(|(_, r)| **r)
-                    .flat_map(|(q, _)| q.iter().copied())
-                    .collect();
-                let kept: Vec<usize> = (0..s.values.len()).filter(|i| !drop.contains(i)).collect();
-                s.sigma = s.sigma.map(|sd| kept.iter().map(|&i| sd[i]).collect());
-                s.values = kept.iter().map(|&i| s.values[i]).collect();
-                s.cells = kept.iter().map(|&i| s.cells[i]).collect();
+            test.frame.into_iter().for_each(|m| self.frame_bias.push(m));
+            for (m, _) in test.means.iter().zip(&test.refused).filter(|(_, r)| !**r) {
+                m.iter().for_each(|m| self.quadrant_bias.push(*m));
             }
+            self.counts.quadrants_refused += test.refused.iter().filter(|r| **r).count() as u64;
+            test.drop_refused_quadrants(&mut s);
             if !s.cells.is_empty() {
                 out.push(s);
             }
         }
         out
+    }
+}
+
+/// One aerial frame's test: by quadrant first (a glare on part of the frame loses that part),
+/// then the frame as a whole over the quadrants kept, each mean residual from the forecast on
+/// the healthy frames' scale.
+struct FrameTest {
+    /// Each quadrant's sample indices, its mean residual, and whether it is refused.
+    quadrants: [Vec<usize>; 4],
+    means: Vec<Option<f64>>,
+    refused: Vec<bool>,
+    /// The mean residual over the quadrants kept (`None`: every quadrant refused).
+    frame: Option<f64>,
+    whole_refused: bool,
+}
+
+impl FrameTest {
+    fn of(grid: &Grid, s: &Sample, forecast: &Forecast, frame_sd: Option<f64>, quadrant_sd: Option<f64>) -> Self {
+        let residual = residuals(s, forecast);
+        let quadrants = quadrants(grid, &s.cells);
+        let means: Vec<Option<f64>> = quadrants
+            .iter()
+            .map(|q| mean(&q.iter().map(|&i| residual[i]).collect::<Vec<_>>()))
+            .collect();
+        let beyond = |m: f64, sd: Option<f64>| sd.is_some_and(|sd| (m / sd).abs() > FRAME_GATE);
+        let refused: Vec<bool> = means
+            .iter()
+            .map(|m| m.is_some_and(|m| beyond(m, quadrant_sd)))
+            .collect();
+        let kept: Vec<f64> = quadrants
+            .iter()
+            .zip(&refused)
+            .filter(|(_, r)| !**r)
+            .flat_map(|(q, _)| q.iter().map(|&i| residual[i]))
+            .collect();
+        let frame = mean(&kept);
+        let whole_refused = frame.is_none_or(|m| beyond(m, frame_sd));
+        Self {
+            quadrants,
+            means,
+            refused,
+            frame,
+            whole_refused,
+        }
+    }
+
+    /// `s` without the values of its refused quadrants.
+    fn drop_refused_quadrants(&self, s: &mut Sample) {
+        if !self.refused.iter().any(|r| *r) {
+            return;
+        }
+        let drop: Vec<usize> = self
+            .quadrants
+            .iter()
+            .zip(&self.refused)
+            .filter(|(_, r)| **r)
+            .flat_map(|(q, _)| q.iter().copied())
+            .collect();
+        let kept: Vec<usize> = (0..s.values.len()).filter(|i| !drop.contains(i)).collect();
+        s.sigma = s.sigma.as_ref().map(|sd| kept.iter().map(|&i| sd[i]).collect());
+        s.values = kept.iter().map(|&i| s.values[i]).collect();
+        s.cells = kept.iter().map(|&i| s.cells[i]).collect();
     }
 }
 
@@ -1046,8 +1087,8 @@ mod tests {
         assert_eq!(screen.counts.checks, 8000);
     }
 
-    /// An over-exposed frame is refused as a whole, a frame with one over-exposed quadrant loses
-    /// that quadrant only, and a sensor with 2 frames refused of its last 10 is suspect.
+    /// An over-exposed frame is refused as a whole and its sensor is suspect at once; a frame
+    /// with one over-exposed quadrant loses that quadrant only.
     #[test]
     fn an_over_exposed_frame_or_quadrant_is_refused() {
         let mut w = World::new(4);
@@ -1073,6 +1114,11 @@ mod tests {
         }
         let over = frame(&mut w, 30, &|_, v| v + 20.0 * SIGMA);
         assert!(screen.aerials(&w.grid, 30, vec![(0, over)], Some(&forecast)).is_empty());
+        assert_eq!(
+            health_of(&screen, 0),
+            Health::Suspect,
+            "a frame refused as a whole marks it"
+        );
         let corner = frame(&mut w, 31, &|c, v| {
             if c / 30 < 15 && c % 30 < 15 {
                 v + 20.0 * SIGMA
@@ -1084,5 +1130,33 @@ mod tests {
         assert_eq!(out[0].cells.len(), corner.cells.len() - 25);
         assert_eq!((screen.counts.frames_refused, screen.counts.quadrants_refused), (1, 1));
         assert_eq!(health_of(&screen, 0), Health::Suspect);
+    }
+
+    /// A frame of no cell (an aerial off the site: its return to launch, a climb) is neither
+    /// refused nor clean: a healthy aerial is not marked for it, and nothing is counted.
+    #[test]
+    fn an_aerial_that_sees_no_cell_is_not_marked() {
+        let mut w = World::new(5);
+        let mut screen = Screen::default();
+        let forecast: HashMap<usize, f64> = w.truth.iter().copied().enumerate().collect();
+        for k in 0..40u64 {
+            let cells: Vec<u32> = if k < 30 {
+                (0..900u32).step_by(7).collect()
+            } else {
+                vec![]
+            };
+            let values = cells.iter().map(|&c| w.truth[c as usize] + w.noise()).collect();
+            let s = Sample {
+                step: k,
+                position: [0.0, 0.0],
+                cells,
+                values,
+                sigma: None,
+            };
+            let kept = screen.aerials(&w.grid, k, vec![(0, s.clone())], Some(&forecast));
+            assert_eq!(kept, if k < 30 { vec![s] } else { vec![] }, "step {k}");
+        }
+        assert_eq!(health_of(&screen, 0), Health::Ok);
+        assert_eq!((screen.counts.frames_refused, screen.counts.checks), (0, 30));
     }
 }
