@@ -42,12 +42,10 @@ pub mod topics {
 /// The frame the grids are drawn in: the site's, x east and y north, grid metres.
 pub const SITE_FRAME: &str = "site";
 
-/// One message for a Foxglove channel: its topic, schema, encoding and bytes.
+/// One message for a Foxglove channel: the channel (topic, schema, encoding) and its bytes.
 #[derive(Debug, Clone)]
 pub struct FoxMessage {
-    pub topic: String,
-    pub schema: Schema,
-    pub encoding: String,
+    pub channel: FoxChannel,
     pub data: Vec<u8>,
 }
 
@@ -79,17 +77,7 @@ impl FoxChannel {
 
 impl FoxMessage {
     fn on(channel: FoxChannel, data: Vec<u8>) -> Self {
-        let FoxChannel {
-            topic,
-            schema,
-            encoding,
-        } = channel;
-        Self {
-            topic,
-            schema,
-            encoding,
-            data,
-        }
+        Self { channel, data }
     }
 
     fn encoded<T: Encode>(topic: impl Into<String>, m: &T) -> Self {
@@ -489,8 +477,9 @@ mod tests {
         assert!(made.len() >= 5, "{made:?}");
         for m in made {
             let c = known
-                .get(&m.topic)
-                .unwrap_or_else(|| panic!("{} is not among the channels", m.topic));
+                .get(&m.channel.topic)
+                .unwrap_or_else(|| panic!("{} is not among the channels", m.channel.topic));
+            let m = &m.channel;
             assert_eq!(
                 (&c.schema.name, &c.schema.encoding, &c.encoding),
                 (&m.schema.name, &m.schema.encoding, &m.encoding)

@@ -74,10 +74,6 @@ pub const CLEAN_STEPS: u32 = 3;
 /// A suspect sensor's values count with this many times their variance (not one suspect for
 /// its spikes alone: those are refused one by one).
 pub const SUSPECT_INFLATION: f64 = 4.0;
-/// The reason a sensor is suspect for its spikes begins with this.
-const SPIKES: &str = "spikes";
-/// The reason a sensor is marked for a bias begins with this.
-const BIASED: &str = "biased";
 /// How many recent values a scale is the median of, and how many it needs first.
 const WINDOW: usize = 2000;
 const WARM_UP: usize = 12;
@@ -135,10 +131,22 @@ impl RobustScale {
     }
 }
 
+/// What a sensor was marked for: what its values are still worth depends on it (a bias is
+/// taken off, spikes are refused one by one, the rest are down-weighted or withheld).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Cause {
+    Stuck,
+    Biased,
+    Spikes,
+    Frames,
+}
+
 /// One sensor's running state.
 #[derive(Debug, Clone, Default)]
 struct Sensor {
     health: Health,
+    /// What marked it (`None` when ok, or marked by the operator), and why, in words.
+    cause: Option<Cause>,
     reason: String,
     /// The two CUSUMs of the bias z (upwards, downwards).
     up: f64,
@@ -189,29 +197,8 @@ impl Sensor {
             self.frames.pop_front();
         }
         self.frames.push_back(c.frame_refused);
-        let cusum = self.up.max(self.down);
-        let side = if self.up >= self.down { "high" } else { "low" };
-        let (to, reason) = if c.stuck {
-            (Health::Excluded, "stuck: its values repeat".to_string())
-        } else if cusum > H_EXCLUDE {
-            (Health::Excluded, format!("{BIASED} {side} (CUSUM {cusum:.1})"))
-        } else if cusum > H_SUSPECT || z.abs() > Z_SUSPECT {
-            (
-                Health::Suspect,
-                format!("{BIASED} {side} (z {z:+.1}, CUSUM {cusum:.1})"),
-            )
-        } else if c.refused > 0 && c.z.is_some() {
-            (Health::Suspect, format!("{SPIKES}: {} refused", c.refused))
-        } else if c.whole_frame_refused {
-            // Beyond FRAME_GATE on the healthy frames' robust scale: under 1e-6 of healthy
-            // frames, and none of the 25,000 healthy sensor-steps of the fault study.
-            (Health::Suspect, "a frame refused".to_string())
-        } else if self.frames.iter().filter(|&&r| r).count() >= 2 {
-            (Health::Suspect, "frames refused: 2 of its last 10".to_string())
-        } else {
-            (Health::Ok, String::new())
-        };
-        let spikes = to != Health::Ok && reason.starts_with(SPIKES);
+        let (to, cause, reason) = self.called_for(&c, z);
+        let spikes = cause == Some(Cause::Spikes);
         let clean = !c.stuck && c.refused == 0 && !c.frame_refused && z.abs() < CLEAN_Z;
         if clean && self.clean == 0 {
             self.clean_since = step;
@@ -242,9 +229,10 @@ impl Sensor {
             return None;
         }
         let from = std::mem::replace(&mut self.health, next);
-        self.reason = match next {
-            Health::Ok => format!("reads true again ({CLEAN_STEPS} clean steps)"),
-            _ => reason,
+        // A change of verdict is back to ok or up to `to`'s: its cause and reason.
+        (self.cause, self.reason) = match next {
+            Health::Ok => (None, format!("reads true again ({CLEAN_STEPS} clean steps)")),
+            _ => (cause, reason),
         };
         Some(Verdict {
             vehicle,
@@ -253,6 +241,37 @@ impl Sensor {
             to: next,
             reason: self.reason.clone(),
         })
+    }
+
+    /// The verdict this step's check calls for by itself (`z` its bias z, 0 without one), with
+    /// its cause and reason; hysteresis is [`Sensor::observe`]'s.
+    fn called_for(&self, c: &Check, z: f64) -> (Health, Option<Cause>, String) {
+        let cusum = self.up.max(self.down);
+        let side = if self.up >= self.down { "high" } else { "low" };
+        let (health, cause, why) = if c.stuck {
+            (Health::Excluded, Cause::Stuck, "stuck: its values repeat".to_string())
+        } else if cusum > H_EXCLUDE {
+            (
+                Health::Excluded,
+                Cause::Biased,
+                format!("biased {side} (CUSUM {cusum:.1})"),
+            )
+        } else if cusum > H_SUSPECT || z.abs() > Z_SUSPECT {
+            let why = format!("biased {side} (z {z:+.1}, CUSUM {cusum:.1})");
+            (Health::Suspect, Cause::Biased, why)
+        } else if c.refused > 0 && c.z.is_some() {
+            (Health::Suspect, Cause::Spikes, format!("spikes: {} refused", c.refused))
+        } else if c.whole_frame_refused {
+            // Beyond FRAME_GATE on the healthy frames' robust scale: under 1e-6 of healthy
+            // frames, and none of the 25,000 healthy sensor-steps of the fault study.
+            (Health::Suspect, Cause::Frames, "a frame refused".to_string())
+        } else if self.frames.iter().filter(|&&r| r).count() >= 2 {
+            let why = "frames refused: 2 of its last 10".to_string();
+            (Health::Suspect, Cause::Frames, why)
+        } else {
+            return (Health::Ok, None, String::new());
+        };
+        (health, Some(cause), why)
     }
 }
 
@@ -266,7 +285,7 @@ impl Sensor {
             return None;
         }
         let from = std::mem::replace(&mut self.health, pin.health);
-        self.reason = pin.reason.clone();
+        (self.cause, self.reason) = (None, pin.reason.clone());
         Some(Verdict {
             vehicle,
             step,
@@ -383,7 +402,7 @@ impl Screen {
     /// and that offset's variance. `None`: not marked for a bias, or no shared cell yet.
     fn bias_of(&self, v: usize) -> Option<(f64, f64)> {
         let s = self.sensors.get(&v)?;
-        let marked = s.health != Health::Ok && s.reason.starts_with(BIASED);
+        let marked = s.health != Health::Ok && s.cause == Some(Cause::Biased);
         (marked && s.offset.1 > 0.0).then(|| (s.offset.0 / s.offset.1, 1.0 / s.offset.1))
     }
 

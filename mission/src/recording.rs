@@ -248,7 +248,8 @@ impl<W: Write + Seek> Recorder<W> {
     }
 
     fn fox_message(&mut self, m: &crate::foxglove::FoxMessage, log_ns: u64) -> Result<u32, RecordingError> {
-        let channel_id = self.channel(&m.topic, &m.encoding, Some(&m.schema))?;
+        let c = &m.channel;
+        let channel_id = self.channel(&c.topic, &c.encoding, Some(&c.schema))?;
         self.write(channel_id, &m.data, log_ns)
     }
 

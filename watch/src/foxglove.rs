@@ -89,7 +89,8 @@ impl FoxLive {
     }
 
     fn log(&self, m: &FoxMessage, ns: u64) {
-        if let Some(channel) = self.channel(&m.topic, &m.encoding, &m.schema) {
+        let c = &m.channel;
+        if let Some(channel) = self.channel(&c.topic, &c.encoding, &c.schema) {
             channel.log_with_meta(&m.data, foxglove::PartialMetadata { log_time: Some(ns) });
         }
     }
