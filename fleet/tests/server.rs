@@ -84,9 +84,18 @@ fn shuffled_and_repeated_batches_give_the_offline_result() {
                 assimilated += epochs.len();
             }
         }
+        if !server.finished() {
+            // Made beside the placement, on the other core: the model as it is, encoded.
+            let made = server.published().expect("the model published beside the placement");
+            assert_eq!(made.bytes, encoded_model(&server), "epoch {e}");
+        }
         sent.extend(batches);
         e += 1;
     }
+    // The last epoch places nothing: its model is made when asked for, not the stale one.
+    assert!(server.published().is_none());
+    let last = server.take_published().unwrap();
+    assert_eq!(last.bytes, encoded_model(&server));
     assert_eq!(assimilated as u64, server.counters.epochs);
     assert_eq!(
         server.counters.batches - server.counters.duplicates,
@@ -646,7 +655,15 @@ fn a_late_batch_refits_from_the_newest_checkpoint_before_it_to_the_same_model() 
         epochs - start,
         "re-fitted from epoch {start} (the checkpoint kept at or before 13)"
     );
+    // The model published is the re-fitted one, not the one made before the late batch.
+    let published = server.take_published().unwrap();
+    assert_eq!(published.bytes, encoded_model(&server));
     equals_offline(&server, all, offline);
+}
+
+/// The model as `model/latest` would carry it if made now.
+fn encoded_model(server: &ServerCore) -> Vec<u8> {
+    fleet::protocol::encode(&fleet::protocol::Body::Model(server.model_update().unwrap()))
 }
 
 /// An experiment that places the boats itself: the plans of the epoch follow, the boats'

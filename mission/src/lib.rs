@@ -23,6 +23,7 @@ pub mod launch;
 pub mod offline;
 pub mod outputs;
 pub mod protocol;
+pub mod published;
 pub mod recording;
 pub mod roster;
 pub mod schedule;

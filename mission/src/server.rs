@@ -11,6 +11,7 @@ use crate::grid::Grid;
 use crate::health::{Health, Pin, Tagged, Verdict, CLEAN_STEPS};
 use crate::history::History;
 use crate::protocol::{self, Ack, MeasurementBatch, ModelUpdate, Plan, Sample, Target, VehicleId, VehicleKind};
+use crate::published::{assemble, Made, Published};
 use crate::team::{LearnFrom, TeamConfig, TeamError};
 use crate::{schedule::Schedule, Allocation, Assimilator};
 use std::collections::{BTreeMap, BTreeSet};
@@ -195,6 +196,9 @@ pub struct ServerCore {
     readmissions: BTreeMap<usize, BTreeMap<u64, u64>>,
     /// The earliest step a re-admission found since the last re-fit re-fits from.
     readmit_from: Option<u64>,
+    /// The model as published and its encoding, made beside the epoch's placement (or when
+    /// asked for, if the model changed since).
+    published: Option<Published>,
 }
 
 impl ServerCore {
@@ -226,6 +230,7 @@ impl ServerCore {
             unjournalled_overrides: BTreeSet::new(),
             readmissions: BTreeMap::new(),
             readmit_from: None,
+            published: None,
             forced: BTreeSet::new(),
             unjournalled: BTreeSet::new(),
         })
@@ -799,7 +804,8 @@ impl ServerCore {
         if e > 0 && e.is_multiple_of(CHECKPOINT_EVERY) {
             let steps = self.history.len();
             if let Some(c) = self.checkpoints.as_mut() {
-                c.insert(e, (self.assim.checkpoint(), steps));
+                let at = tracing::info_span!("checkpoint").in_scope(|| self.assim.checkpoint());
+                c.insert(e, (at, steps));
                 c.retain(|&at, _| keep_checkpoint(at, e));
             }
         }
@@ -868,8 +874,7 @@ impl ServerCore {
                 self.holds.insert(self.epoch, self.held.clone());
                 self.unjournalled.insert(self.epoch);
             }
-            let plan =
-                tracing::info_span!("placement").in_scope(|| self.assim.allocate_without(&self.holds[&self.epoch]))?;
+            let plan = self.place_and_publish()?;
             self.plans.insert(self.epoch, plan);
         }
         Ok(())
@@ -1040,34 +1045,96 @@ impl ServerCore {
     /// newest estimate's reported variance per cell and the forecast's to the next boat step.
     pub fn model_update(&self) -> Option<ModelUpdate> {
         let m = self.assim.model()?;
-        let (n, r) = (m.modes.modes.nrows(), m.modes.modes.ncols());
-        let mut modes_re = Vec::with_capacity(n * r);
-        let mut modes_im = Vec::with_capacity(n * r);
-        for i in 0..n {
-            for j in 0..r {
-                modes_re.push(m.modes.modes[(i, j)].re);
-                modes_im.push(m.modes.modes[(i, j)].im);
-            }
-        }
-        Some(ModelUpdate {
+        let shell = ModelUpdate {
+            forecast_variance: self.assim.forecast_variance(self.cfg.boat_period as u64),
+            ..self.model_shell()
+        };
+        Some(assemble(
+            shell,
+            m,
+            self.history.last(),
+            self.assim.prediction_variance(),
+        ))
+    }
+
+    /// The published model but for the fitted model, the newest estimate and the forecast
+    /// variance (those left empty).
+    fn model_shell(&self) -> ModelUpdate {
+        ModelUpdate {
             version: self.version,
             epoch: self.epoch.saturating_sub(1),
             step: self.history.len().saturating_sub(1) as u64,
             grid: *self.assim.grid(),
-            dt: m.dt,
-            eigenvalues: m.modes.eigenvalues.iter().map(|l| [l.re, l.im]).collect(),
-            modes_re,
-            modes_im,
-            amplitudes: m.amplitudes.iter().map(|a| [a.re, a.im]).collect(),
-            estimate: self.history.last().map(|l| l.0.to_vec()).unwrap_or_default(),
-            variance: self
-                .history
-                .last()
-                .map_or_else(|| vec![self.assim.prediction_variance(); n], |l| l.1.to_vec()),
+            dt: 0.0,
+            eigenvalues: vec![],
+            modes_re: vec![],
+            modes_im: vec![],
+            amplitudes: vec![],
+            estimate: vec![],
+            variance: vec![],
             forecast_steps: self.cfg.boat_period as u64,
-            forecast_variance: self.assim.forecast_variance(self.cfg.boat_period as u64),
+            forecast_variance: vec![],
             land: self.assim.land().iter().map(|&c| c as u32).collect(),
-        })
+        }
+    }
+
+    fn made(&self) -> Made {
+        (self.version, self.epoch, self.history.len())
+    }
+
+    /// The model as published on `model/latest` and its encoding, taken out to send: the one
+    /// made beside the epoch's placement, or made now if the model changed since (`None` before
+    /// the first fit). Give it back with [`Self::keep_published`] for the next reader.
+    pub fn take_published(&mut self) -> Option<Published> {
+        let made = self.made();
+        match self.published.take() {
+            Some(p) if p.of == made => Some(p),
+            // The old one's memory first (54 MB at 384 x 768), then the new one.
+            _ => self.model_update().map(|m| Published::of(m, made)),
+        }
+    }
+
+    pub fn keep_published(&mut self, p: Published) {
+        self.published = Some(p);
+    }
+
+    /// The published model made for the model as it is now, if one was (a reader that cannot
+    /// wait for one to be made uses [`Self::model_update`]).
+    pub fn published(&self) -> Option<&Published> {
+        self.published.as_ref().filter(|p| p.of == self.made())
+    }
+
+    /// The next epoch's allocation, and beside it (on the other core) the model to publish:
+    /// neither needs the other, and the placement leaves the model as it is.
+    fn place_and_publish(&mut self) -> Result<Allocation, TeamError> {
+        let holds = self.holds[&self.epoch].clone();
+        let (mut shell, made, model) = (self.model_shell(), self.made(), self.assim.model_shared());
+        let prior_variance = self.assim.prediction_variance();
+        let forecast_variance = self.assim.forecast_variance_later(self.cfg.boat_period as u64);
+        self.published = None;
+        let (assim, history) = (&mut self.assim, &self.history);
+        // Both run on rayon's threads: their spans go to this thread's subscriber (the bench's
+        // phases).
+        let dispatch = tracing::dispatcher::get_default(|d| d.clone());
+        let (plan, published) = rayon::join(
+            || {
+                tracing::dispatcher::with_default(&dispatch, || {
+                    tracing::info_span!("placement").in_scope(|| assim.allocate_without(&holds))
+                })
+            },
+            || {
+                tracing::dispatcher::with_default(&dispatch, || {
+                    let m = model?;
+                    shell.forecast_variance = tracing::info_span!("forecast variance").in_scope(forecast_variance);
+                    let last = history.last();
+                    let update =
+                        tracing::info_span!("model assembled").in_scope(|| assemble(shell, &m, last, prior_variance));
+                    Some(Published::of(update, made))
+                })
+            },
+        );
+        self.published = published;
+        plan
     }
 
     /// Boats go at most `speed` metres per step (the mission's `[motion]`): horizon placement

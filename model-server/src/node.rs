@@ -461,11 +461,18 @@ impl Server {
         (!steps.is_empty()).then(|| sum / steps.len() as f64)
     }
 
-    async fn publish_model(&self, session: &zenoh::Session) -> anyhow::Result<()> {
-        if let Some(m) = self.core.model_update() {
-            self.put(session, &self.keys.model_latest(), &Body::Model(m)).await?;
-        }
-        Ok(())
+    /// The model on `model/latest`: the one the core made beside the placement (encoded there),
+    /// or made now.
+    async fn publish_model(&mut self, session: &zenoh::Session) -> anyhow::Result<()> {
+        let Some(p) = self.core.take_published() else {
+            return Ok(());
+        };
+        let key = self.keys.model_latest();
+        let traffic = fleet_net::Traffic::of(&p.body);
+        let sent = fleet_net::put_bytes(session, &key, p.bytes.clone(), traffic).await;
+        self.record_body(&key, &p.body, &p.bytes);
+        self.core.keep_published(p);
+        Ok(sent?)
     }
 
     async fn ack(&self, session: &zenoh::Session, vehicle: &VehicleId) -> anyhow::Result<()> {
@@ -552,9 +559,13 @@ impl Server {
     }
 
     async fn on_model_query(&self, q: zenoh::query::Query) {
-        let sent = match self.core.model_update() {
-            Some(m) => {
-                q.reply(q.key_expr().clone(), protocol::encode(&Body::Model(m)))
+        let bytes = match self.core.published() {
+            Some(p) => Some(p.bytes.clone()),
+            None => self.core.model_update().map(|m| protocol::encode(&Body::Model(m))),
+        };
+        let sent = match bytes {
+            Some(bytes) => {
+                q.reply(q.key_expr().clone(), bytes)
                     .encoding(fleet_net::encoding())
                     .await
             }

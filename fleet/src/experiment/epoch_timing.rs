@@ -104,11 +104,10 @@ fn timed(
                 break;
             }
         }
-        let model = tracing::info_span!("model encoded").in_scope(|| {
-            let m = tracing::info_span!("model assembled").in_scope(|| server.model_update());
-            m.map(|m| protocol::encode(&Body::Model(m)))
-        });
-        model_bytes = model.map_or(0, |m| m.len());
+        // As the node publishes it: made beside the placement, or now if it was not.
+        let model = server.take_published();
+        model_bytes = model.as_ref().map_or(0, |m| m.bytes.len());
+        model.into_iter().for_each(|m| server.keep_published(m));
         tracing::info_span!("plans encoded").in_scope(|| {
             for v in server.vehicles().to_vec() {
                 let plan = server.plan(&v.id, e + 1, 3).map(|p| protocol::encode(&Body::Plan(p)));

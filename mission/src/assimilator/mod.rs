@@ -57,7 +57,7 @@ pub struct AssimilatorState {
     /// The newest fused snapshot (the model's forecasts count from it).
     newest: Option<Vec<f64>>,
     /// The model fitted to its newest snapshot, and a real basis of its modes.
-    fitted: Option<(DmdModel, Arc<Mat<f64>>)>,
+    fitted: Option<(Arc<DmdModel>, Arc<Mat<f64>>)>,
     held_aerial: Option<Estimate>,
     held_interpolation: Vec<f64>,
     pred_var: f64,
@@ -212,9 +212,21 @@ impl Assimilator {
     /// The variance per cell of the forecast `h` steps after the newest snapshot: the Kalman
     /// filter's, or the calibrated prediction variance for the other schemes.
     pub fn forecast_variance(&self, h: u64) -> Vec<f64> {
-        match &self.state.filter {
-            Some((f, at)) => f.forecast(h.saturating_sub(*at) as usize).1,
-            None => vec![self.state.pred_var; self.setup.grid.len()],
+        self.forecast_variance_later(h)()
+    }
+
+    /// [`Self::forecast_variance`] to be computed later, on another thread, while the
+    /// assimilator goes on (the filter is copied: its detail is a few fields).
+    pub fn forecast_variance_later(&self, h: u64) -> impl FnOnce() -> Vec<f64> + Send + use<> {
+        let filter = self
+            .state
+            .filter
+            .as_ref()
+            .map(|(f, at)| (f.clone(), h.saturating_sub(*at) as usize));
+        let (pred_var, n) = (self.state.pred_var, self.setup.grid.len());
+        move || match filter {
+            Some((f, ahead)) => f.forecast(ahead).1,
+            None => vec![pred_var; n],
         }
     }
 
@@ -324,7 +336,13 @@ impl Assimilator {
 
     /// The model fitted to the newest snapshot (forecasts count from it).
     pub fn model(&self) -> Option<&DmdModel> {
-        self.state.fitted.as_ref().map(|f| &f.0)
+        self.state.fitted.as_ref().map(|f| f.0.as_ref())
+    }
+
+    /// The same model, shared: to read it on another thread while the assimilator goes on
+    /// (the published model is assembled while the placement runs).
+    pub fn model_shared(&self) -> Option<Arc<DmdModel>> {
+        self.state.fitted.as_ref().map(|f| f.0.clone())
     }
 
     /// The first model, from the initialisation's aerial estimates (one per step).
@@ -371,7 +389,7 @@ impl Assimilator {
         let model = s.model.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
         let newest = s.newest.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
         let (fitted, basis) = tracing::info_span!("refit").in_scope(|| fit_to(model.as_ref(), newest))?;
-        s.fitted = Some((fitted, Arc::new(basis)));
+        s.fitted = Some((Arc::new(fitted), Arc::new(basis)));
         Ok(())
     }
 
