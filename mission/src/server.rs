@@ -1113,16 +1113,11 @@ impl ServerCore {
         let forecast_variance = self.assim.forecast_variance_later(self.cfg.boat_period as u64);
         self.published = None;
         let (assim, history) = (&mut self.assim, &self.history);
-        // Both run on rayon's threads: their spans go to this thread's subscriber (the bench's
-        // phases).
+        // The placement here (its work and memory where they were), the model on a thread of
+        // its own, its spans to this thread's subscriber (the bench's phases).
         let dispatch = tracing::dispatcher::get_default(|d| d.clone());
-        let (plan, published) = rayon::join(
-            || {
-                tracing::dispatcher::with_default(&dispatch, || {
-                    tracing::info_span!("placement").in_scope(|| assim.allocate_without(&holds))
-                })
-            },
-            || {
+        let (plan, published) = std::thread::scope(|scope| {
+            let model = scope.spawn(|| {
                 tracing::dispatcher::with_default(&dispatch, || {
                     let m = model?;
                     shell.forecast_variance = tracing::info_span!("forecast variance").in_scope(forecast_variance);
@@ -1131,8 +1126,11 @@ impl ServerCore {
                         tracing::info_span!("model assembled").in_scope(|| assemble(shell, &m, last, prior_variance));
                     Some(Published::of(update, made))
                 })
-            },
-        );
+            });
+            let plan = tracing::info_span!("placement").in_scope(|| assim.allocate_without(&holds));
+            (plan, model.join())
+        });
+        let published = published.unwrap_or_else(|panic| std::panic::resume_unwind(panic));
         self.published = published;
         plan
     }

@@ -468,9 +468,9 @@ impl Server {
             return Ok(());
         };
         let key = self.keys.model_latest();
-        let traffic = fleet_net::Traffic::of(&p.body);
+        let traffic = fleet_net::Traffic::of(&p.shown);
         let sent = fleet_net::put_bytes(session, &key, p.bytes.clone(), traffic).await;
-        self.record_body(&key, &p.body, &p.bytes);
+        self.record_body(&key, &p.shown, &p.bytes);
         self.core.keep_published(p);
         Ok(sent?)
     }
