@@ -226,6 +226,11 @@ impl Sensor {
             _ => self.spikes_only,
         };
         if next == self.health {
+            // Marked for something else (spikes) and now found biased at the same verdict:
+            // marked for the bias from here, so its offset is taken off as any biased boat's.
+            if next != Health::Ok && to == next && cause == Some(Cause::Biased) {
+                (self.cause, self.reason) = (cause, reason);
+            }
             return None;
         }
         let from = std::mem::replace(&mut self.health, next);
@@ -1025,6 +1030,29 @@ mod tests {
         let sigma = biased.sigma.as_ref().expect("the offset's variance is added");
         assert!(sigma.iter().all(|&s| s > SIGMA && s < 1.1 * SIGMA), "{sigma:?}");
         assert!(screen.counts.recalibrated > 0 && screen.counts.withheld == 0);
+    }
+
+    /// A boat suspect for a spike that then reads biased is marked for the bias while still
+    /// suspect, and recalibrated (it was left marked for its spike, its values down-weighted
+    /// but their offset kept, until the bias excluded it).
+    #[test]
+    fn a_spiking_boat_found_biased_is_recalibrated_while_suspect() {
+        let mut w = World::new(7);
+        let mut screen = Screen::default();
+        w.step(&mut screen, 0, |i, v| if i == 7 { v + 50.0 * SIGMA } else { v });
+        let reason = |screen: &Screen| screen.health().get(&3).map(|h| h.1.clone()).unwrap_or_default();
+        assert!(reason(&screen).starts_with("spikes"), "{}", reason(&screen));
+        let mut seen = false;
+        for k in 1..8 {
+            let out = w.step(&mut screen, k, |_, v| v + 2.0 * SIGMA);
+            if health_of(&screen, 3) == Health::Suspect && reason(&screen).starts_with("biased") {
+                assert!(out[1].sigma.is_some(), "recalibrated at step {k}");
+                seen = true;
+                break;
+            }
+        }
+        assert!(seen, "never marked for its bias while suspect: {}", reason(&screen));
+        assert!(screen.counts.recalibrated > 0);
     }
 
     /// A spike of 50 noise deviations is refused and its sensor suspect; the front's values,
