@@ -9,29 +9,46 @@
 
 use crate::dmd::DmdModel;
 use crate::protocol::{self, Body, ModelUpdate};
+use std::sync::Arc;
 
-/// The published model: `shell` (what the server knows without the fitted model, read before
-/// the placement runs: version, steps, grid, forecast variance, land) with the model `m` and
-/// `last`, the newest fused estimate and its variance (without one, `prior_variance` a cell).
-pub fn assemble(shell: ModelUpdate, m: &DmdModel, last: Option<(&[f64], &[f64])>, prior_variance: f64) -> ModelUpdate {
-    let (n, r) = (m.modes.modes.nrows(), m.modes.modes.ncols());
-    let mut modes_re = Vec::with_capacity(n * r);
-    let mut modes_im = Vec::with_capacity(n * r);
-    for i in 0..n {
-        for j in 0..r {
-            modes_re.push(m.modes.modes[(i, j)].re);
-            modes_im.push(m.modes.modes[(i, j)].im);
+/// What the published model is made of, read from the server in a moment: everything it knows
+/// without the fitted model (version, steps, grid, land), the fitted model (shared), and the
+/// forecast variance still to compute. Assembling it may then run on another thread.
+pub struct ModelParts {
+    /// The published model with its modes, estimate and variances left empty.
+    pub shell: ModelUpdate,
+    pub model: Arc<DmdModel>,
+    pub forecast_variance: Box<dyn FnOnce() -> Vec<f64> + Send>,
+    /// The variance per cell reported before any estimate (the prediction's).
+    pub prior_variance: f64,
+}
+
+impl ModelParts {
+    /// The published model, with `last` the newest fused estimate and its variance.
+    pub fn assemble(self, last: Option<(&[f64], &[f64])>) -> ModelUpdate {
+        let forecast_variance = tracing::info_span!("forecast variance").in_scope(self.forecast_variance);
+        let _span = tracing::info_span!("model assembled").entered();
+        let m = &self.model;
+        let (n, r) = (m.modes.modes.nrows(), m.modes.modes.ncols());
+        let mut modes_re = Vec::with_capacity(n * r);
+        let mut modes_im = Vec::with_capacity(n * r);
+        for i in 0..n {
+            for j in 0..r {
+                modes_re.push(m.modes.modes[(i, j)].re);
+                modes_im.push(m.modes.modes[(i, j)].im);
+            }
         }
-    }
-    ModelUpdate {
-        dt: m.dt,
-        eigenvalues: m.modes.eigenvalues.iter().map(|l| [l.re, l.im]).collect(),
-        modes_re,
-        modes_im,
-        amplitudes: m.amplitudes.iter().map(|a| [a.re, a.im]).collect(),
-        estimate: last.map(|l| l.0.to_vec()).unwrap_or_default(),
-        variance: last.map_or_else(|| vec![prior_variance; n], |l| l.1.to_vec()),
-        ..shell
+        ModelUpdate {
+            dt: m.dt,
+            eigenvalues: m.modes.eigenvalues.iter().map(|l| [l.re, l.im]).collect(),
+            modes_re,
+            modes_im,
+            amplitudes: m.amplitudes.iter().map(|a| [a.re, a.im]).collect(),
+            estimate: last.map(|l| l.0.to_vec()).unwrap_or_default(),
+            variance: last.map_or_else(|| vec![self.prior_variance; n], |l| l.1.to_vec()),
+            forecast_variance,
+            ..self.shell
+        }
     }
 }
 

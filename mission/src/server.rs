@@ -11,7 +11,7 @@ use crate::grid::Grid;
 use crate::health::{Health, Pin, Tagged, Verdict, CLEAN_STEPS};
 use crate::history::History;
 use crate::protocol::{self, Ack, MeasurementBatch, ModelUpdate, Plan, Sample, Target, VehicleId, VehicleKind};
-use crate::published::{assemble, Made, Published};
+use crate::published::{Made, ModelParts, Published};
 use crate::team::{LearnFrom, TeamConfig, TeamError};
 use crate::{schedule::Schedule, Allocation, Assimilator};
 use std::collections::{BTreeMap, BTreeSet};
@@ -1044,23 +1044,12 @@ impl ServerCore {
     /// The model as published on `model/latest` (`None` before the first fit), with the
     /// newest estimate's reported variance per cell and the forecast's to the next boat step.
     pub fn model_update(&self) -> Option<ModelUpdate> {
-        let m = self.assim.model()?;
-        let shell = ModelUpdate {
-            forecast_variance: self.assim.forecast_variance(self.cfg.boat_period as u64),
-            ..self.model_shell()
-        };
-        Some(assemble(
-            shell,
-            m,
-            self.history.last(),
-            self.assim.prediction_variance(),
-        ))
+        Some(self.model_parts()?.assemble(self.history.last()))
     }
 
-    /// The published model but for the fitted model, the newest estimate and the forecast
-    /// variance (those left empty).
-    fn model_shell(&self) -> ModelUpdate {
-        ModelUpdate {
+    /// What the published model is made of (`None` before the first fit).
+    fn model_parts(&self) -> Option<ModelParts> {
+        let shell = ModelUpdate {
             version: self.version,
             epoch: self.epoch.saturating_sub(1),
             step: self.history.len().saturating_sub(1) as u64,
@@ -1075,7 +1064,13 @@ impl ServerCore {
             forecast_steps: self.cfg.boat_period as u64,
             forecast_variance: vec![],
             land: self.assim.land().iter().map(|&c| c as u32).collect(),
-        }
+        };
+        Some(ModelParts {
+            shell,
+            model: self.assim.model_shared()?,
+            forecast_variance: Box::new(self.assim.forecast_variance_later(self.cfg.boat_period as u64)),
+            prior_variance: self.assim.prediction_variance(),
+        })
     }
 
     fn made(&self) -> Made {
@@ -1087,11 +1082,11 @@ impl ServerCore {
     /// the first fit). Give it back with [`Self::keep_published`] for the next reader.
     pub fn take_published(&mut self) -> Option<Published> {
         let made = self.made();
-        match self.published.take() {
-            Some(p) if p.of == made => Some(p),
-            // The old one's memory first (54 MB at 384 x 768), then the new one.
-            _ => self.model_update().map(|m| Published::of(m, made)),
+        // A stale one is dropped here, its memory (54 MB at 384 x 768) freed before the new one.
+        if let Some(p) = self.published.take().filter(|p| p.of == made) {
+            return Some(p);
         }
+        self.model_update().map(|m| Published::of(m, made))
     }
 
     pub fn keep_published(&mut self, p: Published) {
@@ -1108,9 +1103,7 @@ impl ServerCore {
     /// neither needs the other, and the placement leaves the model as it is.
     fn place_and_publish(&mut self) -> Result<Allocation, TeamError> {
         let holds = self.holds[&self.epoch].clone();
-        let (mut shell, made, model) = (self.model_shell(), self.made(), self.assim.model_shared());
-        let prior_variance = self.assim.prediction_variance();
-        let forecast_variance = self.assim.forecast_variance_later(self.cfg.boat_period as u64);
+        let (parts, made) = (self.model_parts(), self.made());
         self.published = None;
         let (assim, history) = (&mut self.assim, &self.history);
         // The placement here (its work and memory where they were), the model on a thread of
@@ -1119,12 +1112,7 @@ impl ServerCore {
         let (plan, published) = std::thread::scope(|scope| {
             let model = scope.spawn(|| {
                 tracing::dispatcher::with_default(&dispatch, || {
-                    let m = model?;
-                    shell.forecast_variance = tracing::info_span!("forecast variance").in_scope(forecast_variance);
-                    let last = history.last();
-                    let update =
-                        tracing::info_span!("model assembled").in_scope(|| assemble(shell, &m, last, prior_variance));
-                    Some(Published::of(update, made))
+                    parts.map(|parts| Published::of(parts.assemble(history.last()), made))
                 })
             });
             let plan = tracing::info_span!("placement").in_scope(|| assim.allocate_without(&holds));

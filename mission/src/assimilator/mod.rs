@@ -210,13 +210,9 @@ impl Assimilator {
     }
 
     /// The variance per cell of the forecast `h` steps after the newest snapshot: the Kalman
-    /// filter's, or the calibrated prediction variance for the other schemes.
-    pub fn forecast_variance(&self, h: u64) -> Vec<f64> {
-        self.forecast_variance_later(h)()
-    }
-
-    /// [`Self::forecast_variance`] to be computed later, on another thread, while the
-    /// assimilator goes on (the filter is copied: its detail is a few fields).
+    /// filter's, or the calibrated prediction variance for the other schemes; computed when
+    /// called, on any thread, while the assimilator goes on (the filter is copied: its detail is
+    /// a few fields).
     pub fn forecast_variance_later(&self, h: u64) -> impl FnOnce() -> Vec<f64> + Send + use<> {
         let filter = self
             .state
