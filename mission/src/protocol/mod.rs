@@ -214,7 +214,7 @@ pub enum AutopilotLink {
     Lost,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct AutopilotStatus {
     pub link: AutopilotLink,
     /// MAVLink system id (0 before the first HEARTBEAT).

@@ -10,6 +10,7 @@ mod compose;
 mod drive;
 mod readings;
 mod readings_log;
+mod shown;
 
 use crate::Args;
 use drive::{drive, query_plan, Drive};
@@ -100,7 +101,7 @@ struct Vehicle {
     bridge: Option<Bridge>,
     /// What the last telemetry said of the autopilot (link, guided, mode): a change is sent at
     /// once, so the server leaves a held vehicle out of the next allocation.
-    shown: Option<(protocol::AutopilotLink, bool, String)>,
+    shown: shown::Shown,
     /// When the epoch's plan came in, and how long after it each first guided target left (ms).
     plan_at: Option<Instant>,
     guided_ms: Vec<f64>,
@@ -546,7 +547,10 @@ impl Vehicle {
     }
 
     async fn telemetry(&mut self) {
-        self.shown = self.bridge.as_ref().map(|b| shown_of(&b.status()));
+        let autopilot = self.bridge.as_ref().map(Bridge::status);
+        if let Some(s) = &autopilot {
+            self.shown.note(s);
+        }
         let t = Telemetry {
             vehicle: self.brain.id.clone(),
             step: self.step,
@@ -559,7 +563,7 @@ impl Vehicle {
                 .map(|(x, y)| (x.clamp(0.0, self.grid.width_m()), y.clamp(0.0, self.grid.height_m())))
                 .or(self.brain.position())
                 .map_or([0.0, 0.0], |p| [p.0, p.1]),
-            autopilot: self.bridge.as_ref().map(Bridge::status),
+            autopilot,
             heading: self.bridge.as_ref().and_then(|b| b.heading()).unwrap_or(0.0),
             // The autopilot's battery; without one, a stand-in draining linearly over the mission.
             battery: self.bridge.as_ref().and_then(|b| b.battery()).unwrap_or_else(|| {
@@ -596,11 +600,6 @@ impl Vehicle {
     }
 }
 
-/// What telemetry says of the autopilot that matters to the allocation.
-fn shown_of(s: &AutopilotStatus) -> (protocol::AutopilotLink, bool, String) {
-    (s.link, s.guided, s.mode.clone())
-}
-
 /// The last batch this vehicle sends (none: it senses nothing in this mission).
 fn schedule_last(brain: &VehicleBrain) -> Option<u64> {
     brain.schedule().last_seq(brain.kind)
@@ -609,8 +608,7 @@ fn schedule_last(brain: &VehicleBrain) -> Option<u64> {
 impl Vehicle {
     /// The autopilot's status changed: telemetry at once when the link, GUIDED or the mode did.
     async fn on_autopilot(&mut self, status: AutopilotStatus) {
-        if self.shown.as_ref() != Some(&shown_of(&status)) {
-            info!(link = ?status.link, mode = status.mode, armed = status.armed, "autopilot");
+        if self.shown.note(&status) {
             self.telemetry().await;
         }
     }
@@ -811,7 +809,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         driven: driven_tx,
         args,
         bridge,
-        shown: None,
+        shown: shown::Shown::default(),
         plan_at: None,
         guided_ms: vec![],
         clock: mission.clock(),
