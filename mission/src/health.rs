@@ -69,6 +69,11 @@ pub const H_EXCLUDE: f64 = 12.0;
 pub const Z_SUSPECT: f64 = 4.5;
 /// A frame's (or a quadrant's) bias z beyond which it is refused.
 pub const FRAME_GATE: f64 = 5.0;
+/// With a quadrant refused, the rest of the frame leaning the same way beyond this z refuses
+/// the frame whole (one-sided, 1.3e-3 for a healthy rest): an over-exposure raises every
+/// quadrant, and on a field whose quadrants differ from the forecast by tens of noise
+/// deviations the raised ones can fall either side of the quadrant gate.
+pub const LEANING_GATE: f64 = 3.0;
 /// Clean steps in a row that bring a sensor back to `ok`.
 pub const CLEAN_STEPS: u32 = 3;
 /// A suspect sensor's values count with this many times their variance (not one suspect for
@@ -577,7 +582,7 @@ impl FrameTest {
             .flat_map(|(q, _)| q.iter().map(|&i| residual[i]))
             .collect();
         let frame = mean(&kept);
-        let whole_refused = frame.is_none_or(|m| beyond(m, frame_sd));
+        let whole_refused = frame.is_none_or(|m| beyond(m, frame_sd) || leaning(m, &means, &refused, frame_sd));
         Self {
             quadrants,
             means,
@@ -604,6 +609,19 @@ impl FrameTest {
         s.values = kept.iter().map(|&i| s.values[i]).collect();
         s.cells = kept.iter().map(|&i| s.cells[i]).collect();
     }
+}
+
+/// Whether the kept part of a frame (mean residual `kept`) leans, beyond [`LEANING_GATE`] on the
+/// healthy frames' scale, the way its refused quadrants do: the whole frame raised (or
+/// lowered), not a glare on part of it.
+fn leaning(kept: f64, means: &[Option<f64>], refused: &[bool], frame_sd: Option<f64>) -> bool {
+    let off: Vec<f64> = means
+        .iter()
+        .zip(refused)
+        .filter_map(|(m, r)| m.filter(|_| *r))
+        .collect();
+    let Some(off) = mean(&off) else { return false };
+    frame_sd.is_some_and(|sd| kept.signum() == off.signum() && (kept / sd).abs() > LEANING_GATE)
 }
 
 /// The spike test of a boat's sample: which values are kept, and each one's noise variance as
@@ -1177,6 +1195,60 @@ mod tests {
         assert_eq!(out[0].cells.len(), corner.cells.len() - 25);
         assert_eq!((screen.counts.frames_refused, screen.counts.quadrants_refused), (1, 1));
         assert_eq!(health_of(&screen, 0), Health::Suspect);
+    }
+
+    /// On a field whose quadrants differ from the forecast by tens of noise deviations (a real
+    /// field under a model with no skill), an over-exposed frame can raise two quadrants past
+    /// the quadrant gate and leave the other two under it, and the kept half under the frame
+    /// gate: it is refused whole, because the kept half leans the way the refused half does.
+    /// Without the leaning test half the over-exposed frame went into the map (the 500 hPa
+    /// field's fault study: +147% MSE).
+    #[test]
+    fn an_over_exposed_frame_on_a_rough_field_is_refused_whole() {
+        let mut w = World::new(6);
+        let mut screen = Screen::default();
+        let forecast: HashMap<usize, f64> = w.truth.iter().copied().enumerate().collect();
+        let quadrant = |c: u32| usize::from(c / 30 >= 15) * 2 + usize::from(c % 30 >= 15);
+        let frame = |w: &mut World, k: u64, offsets: [f64; 4]| -> Sample {
+            let cells: Vec<u32> = (0..900u32).filter(|i| (i / 30) % 3 == 0 && (i % 30) % 3 == 0).collect();
+            let values = cells
+                .iter()
+                .map(|&c| w.truth[c as usize] + w.noise() + offsets[quadrant(c)])
+                .collect();
+            Sample {
+                step: k,
+                position: [0.0, 0.0],
+                cells,
+                values,
+                sigma: None,
+            }
+        };
+        let wander = Normal::new(0.0, 10.0 * SIGMA).unwrap();
+        for k in 0..40 {
+            let offsets = [0; 4].map(|_| wander.sample(&mut w.rng));
+            let s = frame(&mut w, k, offsets);
+            assert_eq!(
+                screen.aerials(&w.grid, k, vec![(0, s.clone())], Some(&forecast)).len(),
+                1
+            );
+        }
+        let (frame_sd, quadrant_sd) = (screen.frame_bias.sd().unwrap(), screen.quadrant_bias.sd().unwrap());
+        // Raised by 4 frame deviations; two quadrants already high, two low: the high ones
+        // past the quadrant gate, the low ones' mean under the frame gate.
+        let raise = 4.0 * frame_sd;
+        let high = FRAME_GATE * quadrant_sd - raise + frame_sd;
+        let low = 3.6 * frame_sd - raise;
+        let over = frame(&mut w, 40, [high + raise, high + raise, low + raise, low + raise]);
+        assert!(screen.aerials(&w.grid, 40, vec![(0, over)], Some(&forecast)).is_empty());
+        assert_eq!(screen.counts.frames_refused, 1);
+        // A glare on two quadrants with the rest as the forecast says keeps the rest.
+        let glare = frame(&mut w, 41, [high + raise, high + raise, 0.0, 0.0]);
+        assert_eq!(
+            screen.aerials(&w.grid, 41, vec![(0, glare)], Some(&forecast))[0]
+                .cells
+                .len(),
+            50
+        );
     }
 
     /// A frame of no cell (an aerial off the site: its return to launch, a climb) is neither

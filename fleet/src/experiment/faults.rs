@@ -76,13 +76,35 @@ impl Fault {
         }
     }
 
-    /// The vehicle's batches as its failing instrument would have reported them.
-    pub fn apply(&self, batches: &mut [MeasurementBatch], vehicle_of: impl Fn(&MeasurementBatch) -> usize) {
+    /// The vehicle's batches as its failing instrument would have reported them; or, with
+    /// `withhold`, without the readings the fault alters (what a health test that knew which
+    /// readings were bad could at best do: the information the fault takes away).
+    pub fn apply(
+        &self,
+        batches: &mut [MeasurementBatch],
+        withhold: bool,
+        vehicle_of: impl Fn(&MeasurementBatch) -> usize,
+    ) {
         for b in batches.iter_mut().filter(|b| vehicle_of(b) == self.vehicle) {
             for s in b.samples.iter_mut() {
-                self.alter(s.step, &mut s.values);
+                match withhold {
+                    // The reading of no cell a vehicle off the site sends (a batch holds every step).
+                    true if self.alters(s.step) => (s.cells, s.values, s.sigma) = (vec![], vec![], None),
+                    true => {}
+                    false => self.alter(s.step, &mut s.values),
+                }
             }
         }
+    }
+
+    /// Whether the fault alters the reading of `step` (an over-exposure only some frames).
+    fn alters(&self, step: u64) -> bool {
+        step >= self.from && (self.kind != FaultKind::Overexposed || self.rng(step).random_bool(0.1))
+    }
+
+    /// The fault's draws at `step` (the same in every run of the seed).
+    fn rng(&self, step: u64) -> rand_chacha::ChaCha8Rng {
+        rand_chacha::ChaCha8Rng::seed_from_u64(self.seed ^ step.wrapping_mul(0x9e37_79b9))
     }
 
     /// One reading's values at `step` as the failing instrument reports them (as they are
@@ -93,7 +115,7 @@ impl Fault {
         if step < self.from {
             return;
         }
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(self.seed ^ step.wrapping_mul(0x9e37_79b9));
+        let mut rng = self.rng(step);
         let sd = self.sigma;
         match self.kind {
             FaultKind::Bias => values.iter_mut().for_each(|v| *v += 3.0 * sd),
@@ -120,12 +142,14 @@ impl Fault {
     }
 }
 
-/// One fault's runs of one seed: the fused MSE with the health tests and without them, and how
-/// many boat epochs after the fault's start the faulty sensor was first marked (`None`: never).
+/// One fault's runs of one seed: the fused MSE with the health tests, without them, and with
+/// the altered readings withheld (the floor a test can reach), and how many boat epochs after
+/// the fault's start the faulty sensor was first marked (`None`: never).
 #[derive(Debug, Clone, Serialize)]
 pub struct FaultRun {
     pub with_health: f64,
     pub without_health: f64,
+    pub withheld: f64,
     pub marked_after_epochs: Option<f64>,
 }
 
@@ -139,7 +163,7 @@ pub fn run_faults(
         .iter()
         .map(|&kind| {
             let fault = Fault::mid_mission(kind, cfg, truth.frames());
-            let with = team::run_with_fault(cfg, truth, &fault)?;
+            let with = team::run_with_fault(cfg, truth, &fault, false)?;
             let without = team::run_with_fault(
                 &TeamConfig {
                     sensor_health: false,
@@ -147,13 +171,16 @@ pub fn run_faults(
                 },
                 truth,
                 &fault,
+                false,
             )?;
+            let withheld = team::run_with_fault(cfg, truth, &fault, true)?;
             let marked = first_marked(&with, &fault, cfg);
             Ok((
                 kind,
                 FaultRun {
                     with_health: with.mean_heterogeneous,
                     without_health: without.mean_heterogeneous,
+                    withheld: withheld.mean_heterogeneous,
                     marked_after_epochs: marked,
                 },
             ))
@@ -177,9 +204,11 @@ pub struct FaultSummary {
     pub fault: FaultKind,
     pub with_health: Interval,
     pub without_health: Interval,
-    /// (with - healthy) / healthy and (without - healthy) / healthy, per seed.
+    /// (with - healthy) / healthy, (without - healthy) / healthy and (withheld - healthy) /
+    /// healthy, per seed.
     pub cost_with: Interval,
     pub cost_without: Interval,
+    pub cost_withheld: Interval,
     /// Seeds where the faulty sensor was marked within 3 boat epochs of the fault's start, of
     /// all seeds; and the median epochs to the mark over the seeds it was marked in.
     pub marked_within_3: usize,
@@ -204,6 +233,7 @@ pub fn summarise(healthy: &[f64], runs: &[&BTreeMap<FaultKind, FaultRun>]) -> Ve
                 without_health: Interval::of(&without),
                 cost_with: cost(&with),
                 cost_without: cost(&without),
+                cost_withheld: cost(&of(|r| r.withheld)),
                 marked_within_3: marks.iter().filter(|&&m| m <= 3.0).count(),
                 seeds: runs.len(),
                 median_epochs_to_mark: marks.get(marks.len() / 2).copied(),
@@ -219,12 +249,13 @@ pub fn table(md: &mut String, row: &str, faults: &[FaultSummary]) -> std::fmt::R
         let pct = |i: &Interval| format!("{:+.1}% [{:+.1}, {:+.1}]", 100.0 * i.mean, 100.0 * i.lo, 100.0 * i.hi);
         writeln!(
             md,
-            "| {row} | {} | {:.3e} | {} | {:.3e} | {} | {}/{} | {} |",
+            "| {row} | {} | {:.3e} | {} | {:.3e} | {} | {} | {}/{} | {} |",
             f.fault,
             f.with_health.mean,
             pct(&f.cost_with),
             f.without_health.mean,
             pct(&f.cost_without),
+            pct(&f.cost_withheld),
             f.marked_within_3,
             f.seeds,
             f.median_epochs_to_mark.map_or("never".into(), |m| format!("{m:.1}")),

@@ -132,13 +132,15 @@ pub fn run(
     run_placing(cfg, truth, false, None, progress)
 }
 
-/// [`run`] with one vehicle's sensor failing ([`super::faults::Fault`]).
+/// [`run`] with one vehicle's sensor failing ([`super::faults::Fault`]); with `withhold`, its
+/// altered readings withheld instead.
 pub fn run_with_fault(
     cfg: &TeamConfig,
     truth: &FieldSeries,
     fault: &super::faults::Fault,
+    withhold: bool,
 ) -> Result<TeamOutcome, TeamError> {
-    run_placing(cfg, truth, false, Some(fault), |_, _| {})
+    run_placing(cfg, truth, false, Some((fault, withhold)), |_, _| {})
 }
 
 /// [`run`] with the boats placed by an oracle that knows the truth (a diagnostic, not a
@@ -254,7 +256,7 @@ fn run_placing(
     cfg: &TeamConfig,
     truth: &FieldSeries,
     oracle: bool,
-    fault: Option<&super::faults::Fault>,
+    fault: Option<(&super::faults::Fault, bool)>,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<TeamOutcome, TeamError> {
     let grid = Grid::new(truth.rows, truth.cols, 1.0)?;
@@ -278,8 +280,8 @@ fn run_placing(
             .allocation(e)
             .ok_or_else(|| TeamError::Config(format!("no allocation for epoch {e}")))?;
         let mut batches = sense(&server, &mut brains, e, &truth_at)?;
-        if let Some(f) = fault {
-            f.apply(&mut batches, |b| {
+        if let Some((f, withhold)) = fault {
+            f.apply(&mut batches, withhold, |b| {
                 server.roster().index_of(&b.vehicle).unwrap_or(usize::MAX)
             });
         }
