@@ -144,6 +144,8 @@ enum Cause {
     Biased,
     Spikes,
     Frames,
+    /// No reading at all in an epoch it was sent to sense.
+    Silent,
 }
 
 /// One sensor's running state.
@@ -190,6 +192,8 @@ struct Check {
     /// A frame refused in part (a quadrant) or as a whole, and as a whole.
     frame_refused: bool,
     whole_frame_refused: bool,
+    /// No reading in an epoch the boat had a disk for.
+    silent: bool,
 }
 
 impl Sensor {
@@ -204,7 +208,7 @@ impl Sensor {
         self.frames.push_back(c.frame_refused);
         let (to, cause, reason) = self.called_for(&c, z);
         let spikes = cause == Some(Cause::Spikes);
-        let clean = !c.stuck && c.refused == 0 && !c.frame_refused && z.abs() < CLEAN_Z;
+        let clean = !c.silent && !c.stuck && c.refused == 0 && !c.frame_refused && z.abs() < CLEAN_Z;
         if clean && self.clean == 0 {
             self.clean_since = step;
         }
@@ -258,7 +262,12 @@ impl Sensor {
     fn called_for(&self, c: &Check, z: f64) -> (Health, Option<Cause>, String) {
         let cusum = self.up.max(self.down);
         let side = if self.up >= self.down { "high" } else { "low" };
-        let (health, cause, why) = if c.stuck {
+        let (health, cause, why) = if c.silent {
+            // Nothing to weigh or withhold, but the placement must not send it where the map
+            // needs a reading: left out of the disks, it measures where it is.
+            let why = "silent: no reading in an epoch it had a disk for".to_string();
+            (Health::Suspect, Cause::Silent, why)
+        } else if c.stuck {
             (Health::Excluded, Cause::Stuck, "stuck: its values repeat".to_string())
         } else if cusum > H_EXCLUDE {
             (
@@ -360,11 +369,11 @@ impl Screen {
         Some((s.health, s.reason.clone()))
     }
 
-    /// The vehicles whose sensor is excluded now.
-    pub fn excluded(&self) -> std::collections::BTreeSet<usize> {
+    /// The vehicles the placement leaves out now: their sensor excluded, or silent.
+    pub fn left_out(&self) -> std::collections::BTreeSet<usize> {
         self.sensors
             .iter()
-            .filter(|(_, s)| s.health == Health::Excluded)
+            .filter(|(_, s)| s.health == Health::Excluded || (s.health != Health::Ok && s.cause == Some(Cause::Silent)))
             .map(|(&v, _)| v)
             .collect()
     }
@@ -417,14 +426,29 @@ impl Screen {
     }
 
     /// What a sensor's variances are multiplied by under `health`: [`SUSPECT_INFLATION`] when
-    /// suspect, unless for its spikes alone.
+    /// suspect, unless for its spikes alone or its silence.
     fn inflation(&self, v: usize, health: Health) -> f64 {
-        let spikes_only = self.sensors.get(&v).is_some_and(|s| s.spikes_only);
-        if health == Health::Suspect && !spikes_only {
+        let as_came = self
+            .sensors
+            .get(&v)
+            .is_some_and(|s| s.spikes_only || s.cause == Some(Cause::Silent));
+        if health == Health::Suspect && !as_came {
             SUSPECT_INFLATION
         } else {
             1.0
         }
+    }
+
+    /// Boat `v` sent no reading at all in an epoch it had a disk for (judged at `step`, the
+    /// epoch's first boat step): suspect and left out of the placement (the disk it held was
+    /// where the map most needed a value, and no other boat went there); its readings, when
+    /// they come, count as they came; `ok` again after clean steps.
+    pub fn silent(&mut self, v: usize, step: u64) {
+        let check = Check {
+            silent: true,
+            ..Check::default()
+        };
+        self.judge(v, step, check, true);
     }
 
     /// The boats' samples of step `step`, tested against `reference` (the aerials' estimate of
@@ -440,6 +464,9 @@ impl Screen {
     ) -> Vec<Sample> {
         let mut out = vec![];
         for (v, mut s) in samples {
+            if s.cells.is_empty() {
+                continue; // a reading of no cell says nothing of the sensor ([`Self::silent`])
+            }
             let sig: Vec<f64> = s.sigma.clone().unwrap_or_else(|| vec![sigma; s.values.len()]);
             let (keep, mut var) = spikes(grid, &s, &sig, &reference);
             let (num, den) = offset_sums(&s, &sig, &keep, &reference);

@@ -783,6 +783,8 @@ impl ServerCore {
         let _span = tracing::info_span!("screen").entered();
         let pins = self.pins_at(k as u64);
         self.assim.screen().pin(pins);
+        let silent = self.silent_boats(batches, k);
+        self.assim.screen_silent(k as u64, &silent);
         let aerials = Self::tagged_at(batches, VehicleKind::Aerial, k);
         let aerials = self.assim.screen_aerials(k as u64, ahead, aerials);
         let aerial = tracing::info_span!("aerial estimate").in_scope(|| self.assim.aerial_estimate(&aerials))?;
@@ -798,6 +800,33 @@ impl ServerCore {
             false => self.verdicts.insert(k, verdicts),
         };
         Ok((aerial, boats))
+    }
+
+    /// At an epoch's first boat step `k`: the boats that had a disk (not held) and whose batch
+    /// holds no reading at all. A batch not yet in is not silence (a boat out of range sends
+    /// its backlog later); a boat's instrument may report at any step of its epoch.
+    fn silent_boats(&self, batches: &BTreeMap<usize, MeasurementBatch>, k: usize) -> Vec<usize> {
+        let e = self.schedule.epoch_of_step(k);
+        let (Some(alloc), Some(&first)) = (
+            self.allocation(e),
+            self.schedule.sample_steps(VehicleKind::Boat, e).first(),
+        ) else {
+            return vec![];
+        };
+        if first != k {
+            return vec![];
+        }
+        let sent_to_sense = |slot: usize| alloc.boats[slot].as_ref().is_some_and(|(cells, _)| !cells.is_empty());
+        (0..alloc.boats.len())
+            .filter(|&slot| sent_to_sense(slot))
+            .map(|slot| self.vehicles.boat_index(slot))
+            .filter(|v| !alloc.held.contains(v))
+            .filter(|v| {
+                batches
+                    .get(v)
+                    .is_some_and(|b| b.samples.iter().all(|s| s.cells.is_empty()))
+            })
+            .collect()
     }
 
     fn assimilate_epoch(&mut self, e: u64) -> Result<(), TeamError> {

@@ -298,6 +298,14 @@ impl Assimilator {
         Ok(self.state.screen.boats(&grid, step, samples, reference, sigma))
     }
 
+    /// Boats (vehicle indices) that sent no reading in the epoch whose first boat step is
+    /// `step` though they had a disk: marked silent ([`crate::health::Screen::silent`]).
+    pub fn screen_silent(&mut self, step: u64, boats: &[usize]) {
+        if self.setup.cfg.sensor_health {
+            boats.iter().for_each(|&v| self.state.screen.silent(v, step));
+        }
+    }
+
     /// Every sensor's health, the verdicts changed since the last call, and the readings'
     /// counts.
     pub fn screen(&mut self) -> &mut crate::health::Screen {

@@ -63,7 +63,7 @@ impl Assimilator {
         }
         let cfg = self.setup.cfg.clone();
         let roster = crate::roster::Roster::of(&cfg);
-        let excluded = self.state.screen.excluded();
+        let excluded = self.state.screen.left_out();
         let free: Vec<usize> = (0..cfg.boats)
             .filter(|&b| !held.contains(&roster.boat_index(b)) && !excluded.contains(&roster.boat_index(b)))
             .collect();
@@ -72,9 +72,9 @@ impl Assimilator {
             Some(v) => self.place_boats_over_the_horizon(v, &free)?,
             None => self.place_boats_on_modes(&free)?,
         };
-        // A boat whose sensor is excluded counts for nothing in the placement (its disk would
-        // be a hole in the map), and measures where it is: its values are still tested, and it
-        // comes back when they read true again.
+        // A boat whose sensor is excluded (or silent) counts for nothing in the placement (its
+        // disk would be a hole in the map), and measures where it is: its values are still
+        // tested, and it comes back when they read true again.
         for b in (0..cfg.boats)
             .filter(|&b| excluded.contains(&roster.boat_index(b)) && !held.contains(&roster.boat_index(b)))
         {
