@@ -958,6 +958,22 @@ mod tests {
                 .collect()
         }
 
+        /// An aerial frame of the lattice at step `k`, each value through `f` (cell, value).
+        fn frame(&mut self, k: u64, f: impl Fn(u32, f64) -> f64) -> Sample {
+            let cells: Vec<u32> = (0..900u32).filter(|i| (i / 30) % 3 == 0 && (i % 30) % 3 == 0).collect();
+            let values = cells
+                .iter()
+                .map(|&c| f(c, self.truth[c as usize] + self.noise()))
+                .collect();
+            Sample {
+                step: k,
+                position: [0.0, 0.0],
+                cells,
+                values,
+                sigma: None,
+            }
+        }
+
         /// A boat's disk of radius 4 at `(row, col)`, each value through `fault`.
         fn disk(&mut self, step: u64, at: (usize, usize), fault: impl Fn(usize, f64) -> f64) -> Sample {
             let cells: Vec<u32> = self
@@ -1186,17 +1202,7 @@ mod tests {
         let mut w = World::new(4);
         let mut screen = Screen::default();
         let forecast: HashMap<usize, f64> = w.truth.iter().copied().enumerate().collect();
-        let frame = |w: &mut World, k: u64, f: &dyn Fn(u32, f64) -> f64| -> Sample {
-            let cells: Vec<u32> = (0..900u32).filter(|i| (i / 30) % 3 == 0 && (i % 30) % 3 == 0).collect();
-            let values = cells.iter().map(|&c| f(c, w.truth[c as usize] + w.noise())).collect();
-            Sample {
-                step: k,
-                position: [0.0, 0.0],
-                cells,
-                values,
-                sigma: None,
-            }
-        };
+        let frame = |w: &mut World, k: u64, f: &dyn Fn(u32, f64) -> f64| w.frame(k, f);
         for k in 0..30 {
             let s = frame(&mut w, k, &|_, v| v);
             assert_eq!(
@@ -1236,20 +1242,7 @@ mod tests {
         let mut screen = Screen::default();
         let forecast: HashMap<usize, f64> = w.truth.iter().copied().enumerate().collect();
         let quadrant = |c: u32| usize::from(c / 30 >= 15) * 2 + usize::from(c % 30 >= 15);
-        let frame = |w: &mut World, k: u64, offsets: [f64; 4]| -> Sample {
-            let cells: Vec<u32> = (0..900u32).filter(|i| (i / 30) % 3 == 0 && (i % 30) % 3 == 0).collect();
-            let values = cells
-                .iter()
-                .map(|&c| w.truth[c as usize] + w.noise() + offsets[quadrant(c)])
-                .collect();
-            Sample {
-                step: k,
-                position: [0.0, 0.0],
-                cells,
-                values,
-                sigma: None,
-            }
-        };
+        let frame = |w: &mut World, k: u64, offsets: [f64; 4]| w.frame(k, |c, v| v + offsets[quadrant(c)]);
         let wander = Normal::new(0.0, 10.0 * SIGMA).unwrap();
         for k in 0..40 {
             let offsets = [0; 4].map(|_| wander.sample(&mut w.rng));
