@@ -956,6 +956,46 @@ fn a_silent_boat_is_left_out_of_the_placement() {
     assert_ne!(ok3, ok4, "placed: its disk moves");
 }
 
+/// A re-fit replays the silent verdict as the live server made it: boat-1 sends nothing in
+/// epoch 4, and an operator's override of boat-2 from that epoch re-fits from the checkpoint at
+/// epoch 4. The re-fit once started with no plans at all, so its first epoch judged no boat
+/// silent and the verdict was lost from the history.
+#[test]
+fn a_refit_marks_a_silent_boat_as_the_live_server_did() {
+    let (truth, grid, cfg) = plume_team();
+    let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
+    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+    let mut brains = brains_of(&server, &cfg, grid);
+    for e in 0..server.schedule().epochs() {
+        for brain in &mut brains {
+            brain.set_plan(server.plan(&brain.id, e, 1).expect("plan"));
+            let Some(mut b) = brain.sense_epoch(e, x).unwrap() else {
+                continue;
+            };
+            if brain.id == "boat-1" && e == CHECKPOINT_EVERY {
+                b.samples.clear();
+            }
+            server.ingest(b).unwrap();
+        }
+    }
+    let frames = truth.frames();
+    let silent = |s: &ServerCore| {
+        s.verdicts_at(0..frames)
+            .into_iter()
+            .filter(|v| v.vehicle == "boat-1" && v.reason.starts_with("silent"))
+            .count()
+    };
+    assert_eq!(silent(&server), 1, "marked live");
+    let trust = fleet::protocol::SensorOverride {
+        vehicle: "boat-2".parse().unwrap(),
+        from_step: server.steps_of(CHECKPOINT_EVERY).start as u64,
+        set: Some(fleet::protocol::Health::Ok),
+    };
+    server.override_sensor(&trust).unwrap();
+    assert!(server.settle().unwrap(), "re-fitted");
+    assert_eq!(silent(&server), 1, "marked by the re-fit too");
+}
+
 /// The operator's override of a verdict re-fits the model from its step: boat-1 trusted from
 /// step 0 gives the model of a server told so before the first batch, and a server restored
 /// from the journal's batches and records (the override among them) gives it too.

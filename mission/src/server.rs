@@ -398,11 +398,12 @@ impl ServerCore {
     /// Rebuild the model with every batch now in, from the newest checkpoint at or before the
     /// earliest late epoch (the model of the epochs before it is the same: their batches did
     /// not change), or from the start without one. Plans already handed out stay as history;
-    /// the next epoch's plan is the re-fitted model's.
+    /// the next epoch's plan is the re-fitted model's. The replay sees the plans handed out
+    /// until it makes its own (the first epoch it replays judges its silent boats by them).
     fn refit(&mut self) -> Result<(), TeamError> {
         let upto = self.epoch;
         let version = self.version;
-        let history = std::mem::take(&mut self.plans);
+        let history = self.plans.clone();
         let unjournalled = std::mem::take(&mut self.unjournalled);
         let from = std::mem::replace(&mut self.stale_from, u64::MAX);
         let start = self.checkpoints.as_mut().and_then(|c| {
