@@ -820,9 +820,14 @@ fn instrument_readings_enter_at_their_own_steps_with_their_own_noise() {
     assert!(server.ingest(boat(&[10, 12, 14], true)).is_ok());
 }
 
-/// boat-1's probe stuck in epoch 3 (every value the same; it samples one step an epoch), true before and after: the
-/// mission's batches, with the stuck ones, as the live server took them (its plans).
-fn a_probe_stuck_in_epoch_3() -> (ServerCore, Vec<MeasurementBatch>, Grid, TeamConfig, usize) {
+/// The plume mission's live loop: each vehicle's plan of each epoch (`horizon` epochs) shown to
+/// `planned`, its batch through `alter` (vehicle, epoch, batch), then to the server. The server
+/// and every batch it took.
+fn live_loop(
+    horizon: u64,
+    mut planned: impl FnMut(&str, u64, &fleet::protocol::Plan),
+    mut alter: impl FnMut(&str, u64, &mut MeasurementBatch),
+) -> (ServerCore, Vec<MeasurementBatch>, Grid, TeamConfig, usize) {
     let (truth, grid, cfg) = plume_team();
     let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
@@ -830,21 +835,36 @@ fn a_probe_stuck_in_epoch_3() -> (ServerCore, Vec<MeasurementBatch>, Grid, TeamC
     let mut all = vec![];
     for e in 0..server.schedule().epochs() {
         for brain in &mut brains {
-            brain.set_plan(server.plan(&brain.id, e, 2).expect("plan"));
+            let plan = server.plan(&brain.id, e, horizon).expect("plan");
+            planned(&brain.id, e, &plan);
+            brain.set_plan(plan);
             let Some(mut b) = brain.sense_epoch(e, x).unwrap() else {
                 continue;
             };
-            if brain.id == "boat-1" && (3..=3).contains(&e) {
-                b.samples
-                    .iter_mut()
-                    .for_each(|s| s.values.iter_mut().for_each(|v| *v = 0.5));
-            }
+            alter(&brain.id, e, &mut b);
             all.push(b.clone());
             server.ingest(b).unwrap();
         }
     }
-    assert!(server.finished());
     (server, all, grid, cfg, truth.frames())
+}
+
+/// boat-1's probe stuck in epoch 3 (every value the same; it samples one step an epoch), true before and after: the
+/// mission's batches, with the stuck ones, as the live server took them (its plans).
+fn a_probe_stuck_in_epoch_3() -> (ServerCore, Vec<MeasurementBatch>, Grid, TeamConfig, usize) {
+    let (server, all, grid, cfg, frames) = live_loop(
+        2,
+        |_, _, _| {},
+        |id, e, b| {
+            if id == "boat-1" && e == 3 {
+                b.samples
+                    .iter_mut()
+                    .for_each(|s| s.values.iter_mut().for_each(|v| *v = 0.5));
+            }
+        },
+    );
+    assert!(server.finished());
+    (server, all, grid, cfg, frames)
 }
 
 /// The same batches fed in order to a fresh server, with `adjust` applied first.
@@ -916,27 +936,17 @@ fn a_sensor_that_reads_true_again_is_readmitted_to_the_model_of_a_fleet_it_never
 /// boat-1's positions planned for epochs 3 and 4 when it sends nothing in epoch 3 (`silent`)
 /// or reads as it should, the live loop otherwise.
 fn boat1_planned_after_epoch_3(silent: bool) -> [[f64; 2]; 2] {
-    let (truth, grid, cfg) = plume_team();
-    let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
-    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
-    let mut brains = brains_of(&server, &cfg, grid);
     let mut planned = vec![];
-    for e in 0..server.schedule().epochs() {
-        for brain in &mut brains {
-            let plan = server.plan(&brain.id, e, 1).expect("plan");
-            if brain.id == "boat-1" && e >= 2 {
-                planned.push(plan.targets.iter().find(|t| !t.cells.is_empty()).map(|t| t.position));
-            }
-            brain.set_plan(plan);
-            let Some(mut b) = brain.sense_epoch(e, x).unwrap() else {
-                continue;
-            };
-            if silent && brain.id == "boat-1" && e == 3 {
-                b.samples.clear();
-            }
-            server.ingest(b).unwrap();
+    let see = |id: &str, e: u64, plan: &fleet::protocol::Plan| {
+        if id == "boat-1" && e >= 2 {
+            planned.push(plan.targets.iter().find(|t| !t.cells.is_empty()).map(|t| t.position));
         }
-    }
+    };
+    live_loop(1, see, |id, e, b| {
+        if silent && id == "boat-1" && e == 3 {
+            b.samples.clear();
+        }
+    });
     [
         planned[1].expect("a disk in epoch 3"),
         planned[2].expect("a disk in epoch 4"),
@@ -962,23 +972,15 @@ fn a_silent_boat_is_left_out_of_the_placement() {
 /// silent and the verdict was lost from the history.
 #[test]
 fn a_refit_marks_a_silent_boat_as_the_live_server_did() {
-    let (truth, grid, cfg) = plume_team();
-    let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
-    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
-    let mut brains = brains_of(&server, &cfg, grid);
-    for e in 0..server.schedule().epochs() {
-        for brain in &mut brains {
-            brain.set_plan(server.plan(&brain.id, e, 1).expect("plan"));
-            let Some(mut b) = brain.sense_epoch(e, x).unwrap() else {
-                continue;
-            };
-            if brain.id == "boat-1" && e == CHECKPOINT_EVERY {
+    let (mut server, _, _, _, frames) = live_loop(
+        1,
+        |_, _, _| {},
+        |id, e, b| {
+            if id == "boat-1" && e == CHECKPOINT_EVERY {
                 b.samples.clear();
             }
-            server.ingest(b).unwrap();
-        }
-    }
-    let frames = truth.frames();
+        },
+    );
     let silent = |s: &ServerCore| {
         s.verdicts_at(0..frames)
             .into_iter()

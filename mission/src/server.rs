@@ -808,15 +808,13 @@ impl ServerCore {
     /// its backlog later); a boat's instrument may report at any step of its epoch.
     fn silent_boats(&self, batches: &BTreeMap<usize, MeasurementBatch>, k: usize) -> Vec<usize> {
         let e = self.schedule.epoch_of_step(k);
-        let (Some(alloc), Some(&first)) = (
-            self.allocation(e),
-            self.schedule.sample_steps(VehicleKind::Boat, e).first(),
-        ) else {
-            return vec![];
-        };
-        if first != k {
+        if self.schedule.sample_steps(VehicleKind::Boat, e).first() != Some(&k) {
             return vec![];
         }
+        // Borrowed, not `allocation`'s copy (its disks' cells); epoch 0 has no boat steps.
+        let Some(alloc) = self.plans.get(&e) else {
+            return vec![];
+        };
         let sent_to_sense = |slot: usize| alloc.boats[slot].as_ref().is_some_and(|(cells, _)| !cells.is_empty());
         (0..alloc.boats.len())
             .filter(|&slot| sent_to_sense(slot))
