@@ -8,15 +8,20 @@
 //! writing, on a copy and in a child process (a damaged page size can make redb ask for
 //! terabytes, and the failed allocation aborts whoever asked). A damaged file is refused with
 //! one error naming it and what is wrong, and is never changed by the refusal (opening a file
-//! for writing may repair it).
+//! for writing may repair it). Each table's census (count, bytes, sum of checksums), committed
+//! with every change, catches damage that leaves every remaining record sound but drops some,
+//! or brings back an older page.
 
 use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition, TableHandle};
 use std::path::{Path, PathBuf};
 
 /// `(vehicle, seq) -> sealed message`.
-const MESSAGES: TableDefinition<(&str, u64), &[u8]> = TableDefinition::new("messages");
+const MESSAGES: TableDefinition<(&str, u64), &[u8]> = TableDefinition::new(TABLES[0]);
 /// Small named values (a vehicle's state, the highest ack, the server's decisions), sealed.
-const META: TableDefinition<&str, &[u8]> = TableDefinition::new("meta");
+const META: TableDefinition<&str, &[u8]> = TableDefinition::new(TABLES[1]);
+
+/// `table name -> sealed census` of the two tables above (see [`Census`]).
+const CENSUS: TableDefinition<&str, &[u8]> = TableDefinition::new(TABLES[2]);
 
 /// A sealed value: `MAGIC`, then the CRC-32 (little-endian) of the table tag, the key and the
 /// payload, then the payload.
@@ -76,6 +81,73 @@ fn seal(table: u8, key: &[u8], payload: &[u8]) -> Vec<u8> {
     v
 }
 
+/// The checksum a sealed value carries (0 for one too short to carry any).
+fn sealed_checksum(sealed: &[u8]) -> u32 {
+    sealed
+        .get(MAGIC.len()..HEADER)
+        .map_or(0, |b| u32::from_le_bytes(b.try_into().expect("4 bytes")))
+}
+
+/// What a table holds, in sum: its records, their payload bytes and the sum of their checksums.
+///
+/// Why: redb checks its pages' checksums only after a crash, so one flipped bit in a cleanly
+/// closed file can drop a table's records (they read as none: found by the fuzz test) or bring
+/// back an older version of a page, and every record left still passes its own checksum. The
+/// census is committed in the same transaction as every change, and a file whose tables
+/// disagree with it is refused. Wrapping arithmetic: a census is compared, never trusted.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct Census {
+    count: u64,
+    bytes: u64,
+    checksums: u64,
+}
+
+impl Census {
+    /// Count one record of `payload` bytes and this checksum in (`+1`) or out (`-1`).
+    fn tally(&mut self, sign: i64, payload: usize, checksum: u32) {
+        self.count = self.count.wrapping_add_signed(sign);
+        self.bytes = self.bytes.wrapping_add((payload as u64).wrapping_mul(sign as u64));
+        self.checksums = self
+            .checksums
+            .wrapping_add(u64::from(checksum).wrapping_mul(sign as u64));
+    }
+
+    fn add(&mut self, sealed: &[u8]) {
+        self.tally(1, sealed.len().saturating_sub(HEADER), sealed_checksum(sealed));
+    }
+
+    fn remove(&mut self, sealed: &[u8]) {
+        self.tally(-1, sealed.len().saturating_sub(HEADER), sealed_checksum(sealed));
+    }
+
+    /// The census of records read back as `(key, payload)` (each already checked).
+    fn of<K: AsRef<[u8]>, P: AsRef<[u8]>>(table: u8, records: impl Iterator<Item = (K, P)>) -> Self {
+        let mut c = Self::default();
+        for (key, payload) in records {
+            let (key, payload) = (key.as_ref(), payload.as_ref());
+            c.tally(1, payload.len(), checksum(table, key, payload));
+        }
+        c
+    }
+
+    fn to_bytes(self) -> Vec<u8> {
+        [self.count, self.bytes, self.checksums]
+            .iter()
+            .flat_map(|x| x.to_le_bytes())
+            .collect()
+    }
+
+    fn from_bytes(b: &[u8]) -> Option<Self> {
+        let word = |i: usize| Some(u64::from_le_bytes(b.get(8 * i..8 * i + 8)?.try_into().ok()?));
+        (b.len() == 24).then_some(())?;
+        Some(Self {
+            count: word(0)?,
+            bytes: word(1)?,
+            checksums: word(2)?,
+        })
+    }
+}
+
 /// The payload of a sealed value, or what is wrong with it.
 fn unseal<'a>(table: u8, key: &[u8], sealed: &'a [u8]) -> std::result::Result<&'a [u8], &'static str> {
     if sealed.len() < HEADER || sealed[..MAGIC.len()] != MAGIC {
@@ -107,9 +179,9 @@ fn contained<T>(f: impl FnOnce() -> T) -> std::result::Result<T, String> {
 pub struct Store {
     db: Database,
     path: PathBuf,
-    /// Bytes of the messages held (kept in step with every commit).
-    bytes: u64,
-    count: u64,
+    /// The census of each table (kept in step with every commit).
+    messages: Census,
+    meta: Census,
 }
 
 impl Store {
@@ -134,12 +206,12 @@ impl Store {
             Err(e) => return Err(io(e)),
         }
         let existing = path.exists();
-        let (db, bytes, count) = open_checked(path, existing)?;
+        let (db, [messages, meta]) = open_checked(path, existing)?;
         Ok(Self {
             db,
             path: path.to_path_buf(),
-            bytes,
-            count,
+            messages,
+            meta,
         })
     }
 
@@ -149,7 +221,7 @@ impl Store {
 
     /// Bytes and number of the messages held.
     pub fn size(&self) -> (u64, u64) {
-        (self.bytes, self.count)
+        (self.messages.bytes, self.messages.count)
     }
 
     fn failed(&self, e: &dyn std::fmt::Display) -> StoreError {
@@ -162,37 +234,53 @@ impl Store {
     /// One durable transaction: these messages (replacing any under the same key) and these
     /// metadata values, all or nothing.
     pub fn commit(&mut self, messages: &[((&str, u64), &[u8])], meta: &[(&str, &[u8])]) -> Result<()> {
-        let mut tx = self.db.begin_write().map_err(|e| self.failed(&e))?;
-        tx.set_durability(Durability::Immediate).map_err(|e| self.failed(&e))?;
-        let (mut bytes, mut count) = (self.bytes, self.count);
+        let tx = self.begin().map_err(|e| self.failed(&e))?;
+        let mut census = [self.messages, self.meta];
         {
             let mut t = tx.open_table(MESSAGES).map_err(|e| self.failed(&e))?;
             for ((vehicle, seq), v) in messages {
-                match t
-                    .insert((*vehicle, *seq), seal(b'M', &message_key(vehicle, *seq), v).as_slice())
+                let sealed = seal(b'M', &message_key(vehicle, *seq), v);
+                if let Some(old) = t
+                    .insert((*vehicle, *seq), sealed.as_slice())
                     .map_err(|e| self.failed(&e))?
                 {
-                    Some(old) => bytes -= (old.value().len() - HEADER) as u64,
-                    None => count += 1,
+                    census[0].remove(old.value());
                 }
-                bytes += v.len() as u64;
-            }
-            let mut m = tx.open_table(META).map_err(|e| self.failed(&e))?;
-            for (k, v) in meta {
-                m.insert(*k, seal(b'T', k.as_bytes(), v).as_slice())
-                    .map_err(|e| self.failed(&e))?;
+                census[0].add(&sealed);
             }
         }
+        self.finish(tx, meta, census)
+    }
+
+    fn begin(&self) -> std::result::Result<redb::WriteTransaction, redb::Error> {
+        let mut tx = self.db.begin_write()?;
+        tx.set_durability(Durability::Immediate)?;
+        Ok(tx)
+    }
+
+    /// Write `meta` and the census into `tx` (whose messages `census[0]` counts), and commit.
+    fn finish(&mut self, tx: redb::WriteTransaction, meta: &[(&str, &[u8])], mut census: [Census; 2]) -> Result<()> {
+        {
+            let mut m = tx.open_table(META).map_err(|e| self.failed(&e))?;
+            for (k, v) in meta {
+                let sealed = seal(b'T', k.as_bytes(), v);
+                if let Some(old) = m.insert(*k, sealed.as_slice()).map_err(|e| self.failed(&e))? {
+                    census[1].remove(old.value());
+                }
+                census[1].add(&sealed);
+            }
+        }
+        write_census(&tx, census).map_err(|e| self.failed(&e))?;
         tx.commit().map_err(|e| self.failed(&e))?;
-        (self.bytes, self.count) = (bytes, count);
+        [self.messages, self.meta] = census;
         Ok(())
     }
 
     /// Drop `vehicle`'s messages with seq `<= seq`, and record `meta` in the same transaction.
     pub fn remove_through(&mut self, vehicle: &str, seq: u64, meta: &[(&str, &[u8])]) -> Result<u64> {
-        let mut tx = self.db.begin_write().map_err(|e| self.failed(&e))?;
-        tx.set_durability(Durability::Immediate).map_err(|e| self.failed(&e))?;
-        let (mut bytes, mut count, mut removed) = (self.bytes, self.count, 0);
+        let tx = self.begin().map_err(|e| self.failed(&e))?;
+        let mut census = [self.messages, self.meta];
+        let mut removed = 0;
         {
             let mut t = tx.open_table(MESSAGES).map_err(|e| self.failed(&e))?;
             let gone = t
@@ -200,18 +288,11 @@ impl Store {
                 .map_err(|e| self.failed(&e))?;
             for item in gone {
                 let (_, v) = item.map_err(|e| self.failed(&e))?;
-                bytes -= v.value().len().saturating_sub(HEADER) as u64;
-                count -= 1;
+                census[0].remove(v.value());
                 removed += 1;
             }
-            let mut m = tx.open_table(META).map_err(|e| self.failed(&e))?;
-            for (k, v) in meta {
-                m.insert(*k, seal(b'T', k.as_bytes(), v).as_slice())
-                    .map_err(|e| self.failed(&e))?;
-            }
         }
-        tx.commit().map_err(|e| self.failed(&e))?;
-        (self.bytes, self.count) = (bytes, count);
+        self.finish(tx, meta, census)?;
         Ok(removed)
     }
 
@@ -279,63 +360,128 @@ fn read_meta(db: &impl ReadableDatabase, path: &Path, prefix: &str) -> Result<Ve
     Ok(out)
 }
 
+/// The tables of a store: the two that hold records, and their census.
+const TABLES: [&str; 3] = ["messages", "meta", "census"];
+
 /// Open `path` for writing (creating the tables of a new file; an existing file must have
 /// exactly ours: a damaged table name would otherwise read as a missing table, created empty),
-/// read every record back (checked), and count the messages; a panic inside the store is an
-/// error.
-fn open_checked(path: &Path, existing: bool) -> Result<(Database, u64, u64)> {
-    let opened = contained(|| -> Result<(Database, u64, u64)> {
-        let db = Database::create(path).map_err(|e| match e {
-            redb::DatabaseError::DatabaseAlreadyOpen => StoreError::InUse { path: path.into() },
-            // redb reports some damage as I/O errors of these kinds.
-            redb::DatabaseError::Storage(redb::StorageError::Io(source))
-                if matches!(
-                    source.kind(),
-                    std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof
-                ) =>
-            {
-                damaged(path, source.to_string())
-            }
-            redb::DatabaseError::Storage(redb::StorageError::Io(source)) => StoreError::Io {
-                path: path.into(),
-                source,
-            },
-            other => damaged(path, other.to_string()),
-        })?;
+/// read every record back (checked) and hold it to the census; a panic inside the store is an
+/// error. Returns the census of the messages and of the metadata.
+fn open_checked(path: &Path, existing: bool) -> Result<(Database, [Census; 2])> {
+    let opened = contained(|| -> Result<(Database, [Census; 2])> {
+        let db = create(path)?;
         let bad = |e: &dyn std::fmt::Display| damaged(path, e.to_string());
         if existing {
-            let tables: Vec<String> = db
-                .begin_read()
-                .map_err(|e| bad(&e))?
-                .list_tables()
-                .map_err(|e| bad(&e))?
-                .map(|t| t.name().to_string())
-                .collect();
-            for want in [MESSAGES.name(), META.name()] {
-                if !tables.iter().any(|t| t == want) {
-                    return Err(damaged(
-                        path,
-                        format!("its `{want}` table is missing (tables: {tables:?})"),
-                    ));
-                }
-            }
-            if let Some(other) = tables.iter().find(|t| *t != MESSAGES.name() && *t != META.name()) {
-                return Err(damaged(
-                    path,
-                    format!("it has a table this store never writes, `{other}`"),
-                ));
-            }
+            check_tables(&db, path)?;
         }
         let tx = db.begin_write().map_err(|e| bad(&e))?;
         tx.open_table(MESSAGES).map_err(|e| bad(&e))?;
         tx.open_table(META).map_err(|e| bad(&e))?;
+        if !existing {
+            write_census(&tx, [Census::default(); 2]).map_err(|e| bad(&e))?;
+        }
         tx.commit().map_err(|e| bad(&e))?;
         let messages = read_messages(&db, path)?;
-        read_meta(&db, path, "")?;
-        let bytes = messages.iter().map(|(_, v)| v.len() as u64).sum();
-        Ok((db, bytes, messages.len() as u64))
+        let meta = read_meta(&db, path, "")?;
+        let found = [
+            Census::of(b'M', messages.iter().map(|((id, seq), p)| (message_key(id, *seq), p))),
+            Census::of(b'T', meta.iter().map(|(k, p)| (k.as_bytes(), p))),
+        ];
+        check_census(&db, path, found)?;
+        Ok((db, found))
     });
     opened.map_err(|panic| damaged(path, format!("the store could not read it ({panic})")))?
+}
+
+/// Open or create the database, naming damage as such.
+fn create(path: &Path) -> Result<Database> {
+    Database::create(path).map_err(|e| match e {
+        redb::DatabaseError::DatabaseAlreadyOpen => StoreError::InUse { path: path.into() },
+        // redb reports some damage as I/O errors of these kinds.
+        redb::DatabaseError::Storage(redb::StorageError::Io(source))
+            if matches!(
+                source.kind(),
+                std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof
+            ) =>
+        {
+            damaged(path, source.to_string())
+        }
+        redb::DatabaseError::Storage(redb::StorageError::Io(source)) => StoreError::Io {
+            path: path.into(),
+            source,
+        },
+        other => damaged(path, other.to_string()),
+    })
+}
+
+/// An existing file holds exactly our tables.
+fn check_tables(db: &Database, path: &Path) -> Result<()> {
+    let bad = |e: &dyn std::fmt::Display| damaged(path, e.to_string());
+    let tables: Vec<String> = db
+        .begin_read()
+        .map_err(|e| bad(&e))?
+        .list_tables()
+        .map_err(|e| bad(&e))?
+        .map(|t| t.name().to_string())
+        .collect();
+    for want in TABLES {
+        if !tables.iter().any(|t| t == want) {
+            let older = if want == CENSUS.name() {
+                " (an older hetfleet wrote none)"
+            } else {
+                ""
+            };
+            return Err(damaged(
+                path,
+                format!("its `{want}` table is missing{older} (tables: {tables:?})"),
+            ));
+        }
+    }
+    if let Some(other) = tables.iter().find(|t| !TABLES.contains(&t.as_str())) {
+        return Err(damaged(
+            path,
+            format!("it has a table this store never writes, `{other}`"),
+        ));
+    }
+    Ok(())
+}
+
+fn write_census(tx: &redb::WriteTransaction, census: [Census; 2]) -> std::result::Result<(), redb::Error> {
+    let mut t = tx.open_table(CENSUS)?;
+    for (name, c) in TABLES[..2].iter().zip(census) {
+        t.insert(*name, seal(b'C', name.as_bytes(), &c.to_bytes()).as_slice())?;
+    }
+    Ok(())
+}
+
+/// The tables hold what the census says was committed.
+fn check_census(db: &Database, path: &Path, found: [Census; 2]) -> Result<()> {
+    let bad = |e: &dyn std::fmt::Display| damaged(path, e.to_string());
+    let tx = db.begin_read().map_err(|e| bad(&e))?;
+    let t = tx.open_table(CENSUS).map_err(|e| bad(&e))?;
+    for (name, found) in TABLES[..2].iter().zip(found) {
+        let sealed = t.get(*name).map_err(|e| bad(&e))?;
+        let committed = sealed
+            .as_ref()
+            .and_then(|v| unseal(b'C', name.as_bytes(), v.value()).ok())
+            .and_then(Census::from_bytes)
+            .ok_or_else(|| damaged(path, format!("the census of its `{name}` table is missing or damaged")))?;
+        if committed != found {
+            let other = if committed.count == found.count {
+                " (other records than those)"
+            } else {
+                ""
+            };
+            return Err(damaged(
+                path,
+                format!(
+                    "its `{name}` table holds {} records ({} bytes) where {} ({} bytes) were committed{other}",
+                    found.count, found.bytes, committed.count, committed.bytes
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Check an existing file whole, on a copy beside it (removed after), so the file itself is
@@ -517,6 +663,48 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
         dir
+    }
+
+    #[test]
+    fn a_flipped_bit_in_a_page_header_is_refused_or_reads_the_same() {
+        // Found by the fuzz test: one bit flipped in a page's entry count (byte 3) of a cleanly
+        // closed file made every message read as none, and the store opened empty. redb checks
+        // its pages' checksums only after a crash; the census catches it. Each page's header
+        // (its first 8 bytes) is flipped in turn.
+        let dir = scratch("page-header");
+        let p = dir.join("s.redb");
+        let mut s = Store::open(&p).unwrap();
+        for seq in 0..6u64 {
+            for v in ["av-1", "boat-1"] {
+                s.commit(&[((v, seq), &[seq as u8; 160])], &[("epoch", v.as_bytes())])
+                    .unwrap();
+            }
+        }
+        s.remove_through("av-1", 1, &[]).unwrap();
+        let want = (s.messages().unwrap(), s.meta_with_prefix("").unwrap());
+        drop(s);
+        let good = std::fs::read(&p).unwrap();
+        let mut refused = 0;
+        for i in (0..good.len()).filter(|i| i % 4096 < 8) {
+            let mut bytes = good.clone();
+            bytes[i] ^= 4;
+            std::fs::write(&p, &bytes).unwrap();
+            match Store::open(&p) {
+                Ok(s) => assert_eq!(
+                    (s.messages().unwrap(), s.meta_with_prefix("").unwrap()),
+                    want,
+                    "byte {i} (page {}, offset {}): opened with different data",
+                    i / 4096,
+                    i % 4096
+                ),
+                Err(e) => {
+                    assert!(e.is_bad_file(), "byte {i}: {e}");
+                    refused += 1;
+                }
+            }
+        }
+        assert!(refused > 0, "no damage was refused");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]
