@@ -87,6 +87,7 @@ pub trait Reading {
 }
 
 /// A reading drawn here (a simulated frame).
+#[derive(Clone)]
 struct Drawn {
     position: [f64; 2],
     cells: Vec<u32>,
@@ -263,8 +264,18 @@ impl AerialFrame {
                 let (x, y) = grid.centre_m(cell);
                 let [px, py] = s.position();
                 let sd = noise.std_at((px - x).hypot(py - y));
-                frame.values[k] = v;
-                frame.variance[k] = sd * sd;
+                let var = sd * sd;
+                let (was, was_var) = (frame.values[k], frame.variance[k]);
+                (frame.values[k], frame.variance[k]) = match frame.seen[k] {
+                    // Two aerials' readings of one cell (one covering for a doubted other): each
+                    // weighed by its precision; an exact one (no noise) stands.
+                    true if was_var > 0.0 && var > 0.0 => {
+                        let (a, b) = (1.0 / was_var, 1.0 / var);
+                        ((a * was + b * v) / (a + b), 1.0 / (a + b))
+                    }
+                    true if was_var == 0.0 => (was, was_var),
+                    _ => (v, var),
+                };
                 frame.seen[k] = true;
             }
         }
@@ -581,6 +592,40 @@ mod tests {
             values: vec![v; n],
             variance: vec![var; n],
         }
+    }
+
+    #[test]
+    fn a_cell_two_aerials_read_is_weighed_by_their_precisions() {
+        // One lattice cell (0, 0) read by an aerial on it (sd 1) and one 2 m away (sd 1 + 2 =
+        // 3): precisions 1 and 1/9, so (1 * 1 + 10 / 9) / (10 / 9) = 1.9 and variance 0.9, in
+        // either order. A noiseless reading stands.
+        let grid = Grid::new(4, 4, 1.0).unwrap();
+        let noise = Noise {
+            sigma0: 1.0,
+            growth_per_m: 1.0,
+        };
+        let (near, far) = (
+            Drawn {
+                position: [0.5, 0.5],
+                cells: vec![0],
+                values: vec![1.0],
+            },
+            Drawn {
+                position: [2.5, 0.5],
+                cells: vec![0],
+                values: vec![10.0],
+            },
+        );
+        for pair in [[&near, &far], [&far, &near]] {
+            let f = AerialFrame::assemble(&grid, 2, &pair.map(|d| d.clone()), noise).unwrap();
+            assert!((f.values[0] - 1.9).abs() < 1e-12 && (f.variance[0] - 0.9).abs() < 1e-12);
+        }
+        let exact = Noise {
+            sigma0: 0.0,
+            growth_per_m: 0.0,
+        };
+        let f = AerialFrame::assemble(&grid, 2, &[near.clone(), far.clone()], exact).unwrap();
+        assert_eq!((f.values[0], f.variance[0]), (1.0, 0.0));
     }
 
     #[test]

@@ -235,10 +235,23 @@ impl Sensor {
             _ => self.spikes_only,
         };
         if next == self.health {
+            let retold = next != Health::Ok && to == next && cause != self.cause;
             // Marked for something else (spikes) and now found biased at the same verdict:
             // marked for the bias from here, so its offset is taken off as any biased boat's.
-            if next != Health::Ok && to == next && cause == Some(Cause::Biased) {
+            // Marked for its frames or spikes and now silent: silent from here, so the placement
+            // leaves it out (told, as that changes where the others go).
+            if retold && matches!(cause, Some(Cause::Biased | Cause::Silent)) {
                 (self.cause, self.reason) = (cause, reason);
+            }
+            if retold && cause == Some(Cause::Silent) {
+                self.spikes_only = false;
+                return Some(Verdict {
+                    vehicle,
+                    step,
+                    from: next,
+                    to: next,
+                    reason: self.reason.clone(),
+                });
             }
             return None;
         }
@@ -265,7 +278,7 @@ impl Sensor {
         let (health, cause, why) = if c.silent {
             // Nothing to weigh or withhold, but the placement must not send it where the map
             // needs a reading: left out of the disks, it measures where it is.
-            let why = "silent: no reading in an epoch it had a disk for".to_string();
+            let why = "silent: no reading where it had a disk or a region to sense".to_string();
             (Health::Suspect, Cause::Silent, why)
         } else if c.stuck {
             (Health::Excluded, Cause::Stuck, "stuck: its values repeat".to_string())
@@ -439,10 +452,11 @@ impl Screen {
         }
     }
 
-    /// Boat `v` sent no reading at all in an epoch it had a disk for (judged at `step`, the
-    /// epoch's first boat step): suspect and left out of the placement (the disk it held was
-    /// where the map most needed a value, and no other boat went there); its readings, when
-    /// they come, count as they came; `ok` again after clean steps.
+    /// Vehicle `v` sent no reading though it had a disk or a region (a boat in the epoch whose
+    /// first boat step is `step`, an aerial at frame step `step`): suspect and left out of the
+    /// placement (a boat's disk was where the map most needed a value, and no other boat went
+    /// there; an aerial's region was no other aerial's); its readings, when they come, count as
+    /// they came; `ok` again after clean steps.
     pub fn silent(&mut self, v: usize, step: u64) {
         let check = Check {
             silent: true,

@@ -784,7 +784,7 @@ impl ServerCore {
         let _span = tracing::info_span!("screen").entered();
         let pins = self.pins_at(k as u64);
         self.assim.screen().pin(pins);
-        let silent = self.silent_boats(batches, k);
+        let silent = self.silent_sensors(batches, k);
         self.assim.screen_silent(k as u64, &silent);
         let aerials = Self::tagged_at(batches, VehicleKind::Aerial, k);
         let aerials = self.assim.screen_aerials(k as u64, ahead, aerials);
@@ -803,28 +803,45 @@ impl ServerCore {
         Ok((aerial, boats))
     }
 
-    /// At an epoch's first boat step `k`: the boats that had a disk (not held) and whose batch
-    /// holds no reading at all. A batch not yet in is not silence (a boat out of range sends
-    /// its backlog later); a boat's instrument may report at any step of its epoch.
-    fn silent_boats(&self, batches: &BTreeMap<usize, MeasurementBatch>, k: usize) -> Vec<usize> {
+    /// The vehicles sent to sense (a boat's disk, an aerial's region; not held) that said
+    /// nothing: at an epoch's first boat step `k`, the boats whose batch holds no reading at all
+    /// (a boat's instrument may report at any step of its epoch); at a frame step `k`, the
+    /// aerials whose batch holds no reading of it (a frame is of its step, and a camera dark
+    /// from mid-epoch is then covered from the next epoch, not the one after: +393% -> +87% on
+    /// the 500 hPa height). A batch not yet in is not silence (a vehicle out of range sends its
+    /// backlog later).
+    fn silent_sensors(&self, batches: &BTreeMap<usize, MeasurementBatch>, k: usize) -> Vec<usize> {
         let e = self.schedule.epoch_of_step(k);
-        if self.schedule.sample_steps(VehicleKind::Boat, e).first() != Some(&k) {
-            return vec![];
-        }
-        // Borrowed, not `allocation`'s copy (its disks' cells); epoch 0 has no boat steps.
-        let Some(alloc) = self.plans.get(&e) else {
+        let first_boat = self.schedule.sample_steps(VehicleKind::Boat, e).first() == Some(&k);
+        let frame = self.schedule.sample_steps(VehicleKind::Aerial, e).contains(&k);
+        // Borrowed, not `allocation`'s copy (its disks' cells); epoch 0 has no plan.
+        let Some(alloc) = self.plans.get(&e).filter(|_| first_boat || frame) else {
             return vec![];
         };
-        let sent_to_sense = |slot: usize| alloc.boats[slot].as_ref().is_some_and(|(cells, _)| !cells.is_empty());
-        (0..alloc.boats.len())
-            .filter(|&slot| sent_to_sense(slot))
-            .map(|slot| self.vehicles.boat_index(slot))
-            .filter(|v| !alloc.held.contains(v))
-            .filter(|v| {
-                batches
-                    .get(v)
-                    .is_some_and(|b| b.samples.iter().all(|s| s.cells.is_empty()))
+        let disk = |slot: usize| alloc.boats[slot].as_ref().is_some_and(|(cells, _)| !cells.is_empty());
+        let boats = (0..alloc.boats.len())
+            .filter(|&slot| first_boat && disk(slot))
+            .map(|slot| self.vehicles.boat_index(slot));
+        let stride = self.cfg.aerial_stride;
+        let region = |a: usize| {
+            alloc
+                .aerial_region(self.assim.grid(), stride, a)
+                .is_some_and(|r| !r.is_empty())
+        };
+        let aerials = (0..alloc.aerials.len()).filter(|&a| frame && region(a));
+        let is_boat = |v: usize| v >= alloc.aerials.len();
+        let said_nothing = |v: &usize| {
+            batches.get(v).is_some_and(|b| {
+                b.samples
+                    .iter()
+                    .filter(|s| is_boat(*v) || s.step as usize == k)
+                    .all(|s| s.cells.is_empty())
             })
+        };
+        aerials
+            .chain(boats)
+            .filter(|v| !alloc.held.contains(v))
+            .filter(said_nothing)
             .collect()
     }
 
@@ -916,6 +933,7 @@ impl ServerCore {
                 boats: vec![None; self.cfg.boats],
                 aerials: self.assim.aerial_positions().to_vec(),
                 held: BTreeSet::new(),
+                doubted: BTreeSet::new(),
             });
         }
         self.plans.get(&e).cloned()
@@ -980,9 +998,7 @@ impl ServerCore {
             VehicleKind::Aerial if alloc.held.contains(&index) => (alloc.aerials[index], 0.0, vec![]),
             VehicleKind::Boat if alloc.held.contains(&index) => (self.assim.boat_positions()[slot], 0.0, vec![]),
             VehicleKind::Aerial => {
-                let (ids, positions) = alloc.active_aerials();
-                let me = ids.iter().position(|&a| a == index)?;
-                let region = crate::fusion::aerial_region(grid, self.cfg.aerial_stride, &positions, me).ok()?;
+                let region = alloc.aerial_region(grid, self.cfg.aerial_stride, index)?;
                 (alloc.aerials[index], 0.0, region)
             }
             VehicleKind::Boat => match &alloc.boats[slot] {

@@ -33,15 +33,25 @@ pub enum FaultKind {
     /// An aerial camera over-exposed in 10% of its frames: every value of such a frame 20 of
     /// its noise standard deviations high.
     Overexposed,
+    /// An aerial camera gone dark: from mid-mission each of its frames arrives with no cell (the
+    /// vehicle flies on and reports, its camera sends nothing).
+    Silent,
 }
 
 impl FaultKind {
-    pub const ALL: [FaultKind; 5] = [Self::Bias, Self::Stuck, Self::Spikes, Self::Drift, Self::Overexposed];
+    pub const ALL: [FaultKind; 6] = [
+        Self::Bias,
+        Self::Stuck,
+        Self::Spikes,
+        Self::Drift,
+        Self::Overexposed,
+        Self::Silent,
+    ];
 
     /// The kind of vehicle that carries it (the first of that kind fails).
     pub fn kind(self) -> VehicleKind {
         match self {
-            Self::Overexposed => VehicleKind::Aerial,
+            Self::Overexposed | Self::Silent => VehicleKind::Aerial,
             _ => VehicleKind::Boat,
         }
     }
@@ -87,7 +97,7 @@ impl Fault {
     ) {
         for b in batches.iter_mut().filter(|b| vehicle_of(b) == self.vehicle) {
             for s in b.samples.iter_mut() {
-                match withhold {
+                match withhold || self.kind == FaultKind::Silent {
                     // The reading of no cell a vehicle off the site sends (a batch holds every step).
                     true if self.alters(s.step) => (s.cells, s.values, s.sigma) = (vec![], vec![], None),
                     true => {}
@@ -95,6 +105,11 @@ impl Fault {
                 }
             }
         }
+    }
+
+    /// Whether the instrument sends nothing at `step` (a camera gone dark).
+    pub fn silences(&self, step: u64) -> bool {
+        self.kind == FaultKind::Silent && step >= self.from
     }
 
     /// Whether the fault alters the reading of `step` (an over-exposure only some frames).
@@ -110,7 +125,8 @@ impl Fault {
     /// One reading's values at `step` as the failing instrument reports them (as they are
     /// before the fault's step): what [`Self::apply`] does to each sample of a batch, and what
     /// the tests' instrument emulator sends through a sensor's own interface (UDP, a camera's
-    /// GeoTIFF, MAVLink). A stuck probe repeats the reading's first value.
+    /// GeoTIFF, MAVLink). A stuck probe repeats the reading's first value; a dark camera's
+    /// values are left alone (it sends nothing: [`Self::silences`]).
     pub fn alter(&self, step: u64, values: &mut [f64]) {
         if step < self.from {
             return;
@@ -138,6 +154,7 @@ impl Fault {
                     values.iter_mut().for_each(|v| *v += 20.0 * sd);
                 }
             }
+            FaultKind::Silent => {}
         }
     }
 }

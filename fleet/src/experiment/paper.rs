@@ -81,7 +81,7 @@ pub struct ExperimentConfig {
     #[serde(rename = "row")]
     pub rows: Vec<Row>,
     /// Sensor failures to inject, each in its own run of the QR team with and without the
-    /// health tests (`bias`, `stuck`, `spikes`, `drift`, `overexposed`; see
+    /// health tests (`bias`, `stuck`, `spikes`, `drift`, `overexposed`, `silent`; see
     /// [`super::faults::FaultKind`]).
     #[serde(default)]
     pub faults: Vec<FaultKind>,
@@ -1259,7 +1259,7 @@ impl Report<'_> {
         }
         writeln!(
             md,
-            "One vehicle's sensor fails from mid-mission (the first boat; the first aerial for `overexposed`), \
+            "One vehicle's sensor fails from mid-mission (the first boat; the first aerial for `overexposed` and `silent`), \
              each fault in its own run of the QR team on the same truth and noise as the healthy one. Cost: the \
              fused MSE over the healthy fleet's, per seed, mean [95% interval]; the claim is within +10% with the \
              tests. Withheld: the cost with the altered readings withheld (a test that knew which readings \

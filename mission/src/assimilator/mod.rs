@@ -298,11 +298,11 @@ impl Assimilator {
         Ok(self.state.screen.boats(&grid, step, samples, reference, sigma))
     }
 
-    /// Boats (vehicle indices) that sent no reading in the epoch whose first boat step is
-    /// `step` though they had a disk: marked silent ([`crate::health::Screen::silent`]).
-    pub fn screen_silent(&mut self, step: u64, boats: &[usize]) {
+    /// Vehicles (indices) that sent no reading though they had a disk or a region, judged at
+    /// `step`: marked silent ([`crate::health::Screen::silent`]).
+    pub fn screen_silent(&mut self, step: u64, vehicles: &[usize]) {
         if self.setup.cfg.sensor_health {
-            boats.iter().for_each(|&v| self.state.screen.silent(v, step));
+            vehicles.iter().for_each(|&v| self.state.screen.silent(v, step));
         }
     }
 

@@ -26,15 +26,23 @@ pub struct Allocation {
     /// Vehicles (by index: aerials, then boats) left out: on operator hold or without an
     /// autopilot. They sense nothing; the others share the work.
     pub held: BTreeSet<usize>,
+    /// Aerials whose camera the health tests doubt (suspect or excluded: frames refused, or
+    /// none sent): the others cover the site as if they were not there, and each keeps its own
+    /// region, so its frames are still tested and a camera that reads true again is seen (where
+    /// two aerials read a cell, each reading is weighed by its precision).
+    pub doubted: BTreeSet<usize>,
 }
 
 impl Allocation {
-    /// The aerials that take part, and their positions.
-    pub fn active_aerials(&self) -> (Vec<usize>, Vec<(f64, f64)>) {
-        (0..self.aerials.len())
-            .filter(|a| !self.held.contains(a))
-            .map(|a| (a, self.aerials[a]))
-            .unzip()
+    /// The lattice cells aerial `a` senses: those nearest it among the aerials that take part
+    /// (not held), the doubted ones other than `a` set aside. `None` for a held aerial.
+    pub fn aerial_region(&self, grid: &Grid, stride: usize, a: usize) -> Option<Vec<usize>> {
+        let (ids, positions): (Vec<usize>, Vec<(f64, f64)>) = (0..self.aerials.len())
+            .filter(|b| !self.held.contains(b) && (*b == a || !self.doubted.contains(b)))
+            .map(|b| (b, self.aerials[b]))
+            .unzip();
+        let me = ids.iter().position(|&b| b == a)?;
+        crate::fusion::aerial_region(grid, stride, &positions, me).ok()
     }
 }
 
@@ -89,12 +97,19 @@ impl Assimilator {
                 .collect();
             boats[b] = (!cells.is_empty()).then_some((cells, (here.row, here.col)));
         }
+        // A doubted aerial keeps its place; Lloyd spreads the others over the whole site. Its
+        // region is only as good as its frames: a silent one's was lost (+2,526% on the 500 hPa
+        // height for a camera dark from mid-mission), an over-exposed one's refused frames too.
+        let doubted: BTreeSet<usize> = (0..cfg.aerials)
+            .filter(|&a| self.state.screen.doubted(a).is_some() && !held.contains(&a))
+            .collect();
         let density = self.aerial_density(view.as_ref().map(|v| v.variance.as_slice()))?;
-        self.place_aerials(&density, held)?;
+        self.place_aerials(&density, &held.union(&doubted).copied().collect())?;
         Ok(Allocation {
             boats,
             aerials: self.state.aerial_positions.clone(),
             held: held.clone(),
+            doubted,
         })
     }
 

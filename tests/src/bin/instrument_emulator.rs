@@ -18,7 +18,8 @@
 //! STATUSTEXT the ground-station stream carries is logged beside the log (`.statustext`).
 //! `--fault ID=KIND@STEP` makes that vehicle's instrument fail from step STEP as the fault
 //! study's do (`bias`, `stuck`, `spikes`, `drift` for a boat's disk or sonde, `overexposed` for
-//! an aerial's frames; `fleet::experiment::faults::Fault::alter`), through the same interface.
+//! an aerial's frames, `silent` for a camera that writes none; `fleet::experiment::faults::Fault`),
+//! through the same interface.
 //!
 //! `--mavlink boat-2=PORT` makes it that boat's sonde on its autopilot: a companion computer on
 //! the simulated autopilot's companion link (`udpout:127.0.0.1:PORT`) that hears the autopilot's
@@ -209,6 +210,10 @@ fn main() {
             let Some(&(lat, lon)) = fixes.lock().unwrap().get(id).filter(|_| due) else {
                 continue;
             };
+            if faults.get(id).is_some_and(|f| f.silences(k)) {
+                sent.insert((k, id.clone()));
+                continue; // a camera gone dark writes no frame
+            }
             let at = site.grid_of(&site.ned_of_global(lat, lon, site.origin[2]));
             let noise = mission.noise(VehicleKind::Aerial);
             let mut values: Vec<f64> = (0..grid.len())
