@@ -708,6 +708,36 @@ mod tests {
     }
 
     #[test]
+    fn a_file_without_a_census_is_refused_and_left_as_it_is() {
+        // What an older hetfleet wrote: the two tables, every record sealed, no census. It
+        // cannot be told from a file whose census a damaged page dropped, so it is refused.
+        let dir = scratch("no-census");
+        let p = dir.join("old.redb");
+        {
+            let db = Database::create(&p).unwrap();
+            let tx = db.begin_write().unwrap();
+            {
+                let mut t = tx.open_table(MESSAGES).unwrap();
+                let sealed = seal(b'M', &message_key("boat-1", 0), b"abc");
+                t.insert(("boat-1", 0), sealed.as_slice()).unwrap();
+                tx.open_table(META).unwrap();
+            }
+            tx.commit().unwrap();
+        }
+        let before = std::fs::read(&p).unwrap();
+        let err = Store::open(&p).err().expect("refused");
+        assert!(
+            err.is_bad_file()
+                && err
+                    .to_string()
+                    .contains("`census` table is missing (an older hetfleet wrote none)"),
+            "{err}"
+        );
+        assert_eq!(std::fs::read(&p).unwrap(), before, "the refusal changed the file");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
     fn a_damaged_table_name_is_refused_not_read_as_an_empty_table() {
         // Found by the fuzz test: one flipped byte in the name `messages` made the table look
         // missing, and opening created it anew, empty: every message silently gone.
