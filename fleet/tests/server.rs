@@ -178,7 +178,7 @@ fn horizon_placement_keeps_each_boat_within_reach_and_the_model_carries_its_vari
         .iter()
         .chain(&m.forecast_variance)
         .all(|v| v.is_finite() && *v > 0.0));
-    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    let mean = |v: &[f32]| v.iter().map(|&x| f64::from(x)).sum::<f64>() / v.len() as f64;
     assert!(
         mean(&m.forecast_variance) >= mean(&m.variance),
         "forecast {} < posterior {}",

@@ -202,9 +202,10 @@ impl FoxgloveView {
         let land = |v: Vec<f64>| masked(v, &m.land);
         let mut out = vec![];
         if !m.estimate.is_empty() {
-            out.push(self.grid_message(topics::ESTIMATE, "estimate", &land(m.estimate.clone()), t));
+            let estimate = m.estimate.iter().map(|&v| f64::from(v)).collect();
+            out.push(self.grid_message(topics::ESTIMATE, "estimate", &land(estimate), t));
         }
-        let std: Vec<f64> = m.variance.iter().map(|v| v.max(0.0).sqrt()).collect();
+        let std: Vec<f64> = m.variance.iter().map(|&v| f64::from(v).max(0.0).sqrt()).collect();
         out.push(self.grid_message(topics::STD, "std", &land(std), t));
         if let Some(truth) = self.truth.as_ref().filter(|s| (m.step as usize) < s.frames()) {
             let values = truth.snapshots.col(m.step as usize).iter().copied().collect();
@@ -386,7 +387,7 @@ fn model_json(m: &ModelUpdate) -> FoxMessage {
         .iter()
         .enumerate()
         .filter(|(i, _)| m.land.binary_search(&(*i as u32)).is_err())
-        .map(|(_, v)| *v)
+        .map(|(_, &v)| f64::from(v))
         .collect();
     let mean = sea.iter().sum::<f64>() / sea.len().max(1) as f64;
     let value = serde_json::json!({

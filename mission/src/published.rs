@@ -34,19 +34,20 @@ impl ModelParts {
         let mut modes_im = Vec::with_capacity(n * r);
         for i in 0..n {
             for j in 0..r {
-                modes_re.push(m.modes.modes[(i, j)].re);
-                modes_im.push(m.modes.modes[(i, j)].im);
+                modes_re.push(m.modes.modes[(i, j)].re as f32);
+                modes_im.push(m.modes.modes[(i, j)].im as f32);
             }
         }
+        let narrow = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
         ModelUpdate {
             dt: m.dt,
             eigenvalues: m.modes.eigenvalues.iter().map(|l| [l.re, l.im]).collect(),
             modes_re,
             modes_im,
             amplitudes: m.amplitudes.iter().map(|a| [a.re, a.im]).collect(),
-            estimate: last.map(|l| l.0.to_vec()).unwrap_or_default(),
-            variance: last.map_or_else(|| vec![self.prior_variance; n], |l| l.1.to_vec()),
-            forecast_variance,
+            estimate: last.map(|l| narrow(l.0)).unwrap_or_default(),
+            variance: last.map_or_else(|| vec![self.prior_variance as f32; n], |l| narrow(l.1)),
+            forecast_variance: narrow(&forecast_variance),
             ..self.shell
         }
     }

@@ -27,29 +27,30 @@ def main():
     sample = ok[0]
     assert str(sample.encoding).startswith("application/cbor"), sample.encoding
     m = cbor2.loads(sample.payload.to_bytes())
-    assert m["v"] == 3 and m["type"] == "model", (m["v"], m["type"])
-    # Float arrays are packed little-endian f64 bytes (mission/src/protocol/floats.rs).
-    f8 = lambda k: np.frombuffer(m[k], "<f8")
+    assert m["v"] == 4 and m["type"] == "model", (m["v"], m["type"])
+    # The model's per-cell arrays are packed little-endian f32 bytes (schema 4;
+    # mission/src/protocol/floats.rs); eigenvalues and amplitudes are f64 lists.
+    f4 = lambda k: np.frombuffer(m[k], "<f4")
     rows, cols = m["grid"]["rows"], m["grid"]["cols"]
     lam = np.array(m["eigenvalues"], dtype=float)
     r = lam.shape[0]
-    modes = f8("modes_re").reshape(rows * cols, r) + 1j * f8("modes_im").reshape(rows * cols, r)
+    modes = f4("modes_re").reshape(rows * cols, r) + 1j * f4("modes_im").reshape(rows * cols, r)
     assert r == summary["rank"], (r, summary["rank"])
-    assert len(m["amplitudes"]) == r and len(f8("variance")) == rows * cols
+    assert len(m["amplitudes"]) == r and len(f4("variance")) == rows * cols
     # The estimate's reported variance and the forecast's to the next boat step, per cell.
-    var, fvar = f8("variance"), f8("forecast_variance")
+    var, fvar = f4("variance"), f4("forecast_variance")
     assert fvar.shape == var.shape and m["forecast_steps"] > 0, (fvar.shape, m["forecast_steps"])
     assert np.all(var >= 0) and np.all(fvar >= 0) and np.all(np.isfinite(fvar)), "variances finite and >= 0"
     assert m["version"] == summary["model_version"], (m["version"], summary["model_version"])
-    # The fused estimate and its variance at the model's step: the server's own arrays of that
-    # step (estimate.npy / variance.npy beside summary.json), bit for bit.
+    # The fused estimate and its variance at the model's step: the server's own f64 arrays of
+    # that step (estimate.npy / variance.npy beside summary.json) rounded to f32, bit for bit.
     run = os.path.dirname(summary_path)
     step = m["step"]
     for key in ("estimate", "variance"):
         kept = np.load(os.path.join(run, f"{key}.npy"))
-        sent = f8(key)
+        sent = f4(key)
         assert sent.shape == (rows * cols,), (key, sent.shape)
-        assert np.array_equal(kept[step].reshape(-1), sent), f"{key} on the wire differs from the server's {key}.npy at step {step}"
+        assert np.array_equal(kept[step].reshape(-1).astype(np.float32), sent), f"{key} on the wire differs from the server's {key}.npy at step {step}"
 
     expected = np.array(summary["eigenvalues"], dtype=float)
     assert np.allclose(lam, expected, rtol=0, atol=1e-12), (lam, expected)

@@ -266,20 +266,21 @@ impl View {
         // The fused estimate at the model's step, or (from a server that does not send it)
         // the model's own field there, Re(Phi alpha).
         let mut estimate: Vec<f64> = if m.estimate.len() == n {
-            m.estimate
+            m.estimate.iter().map(|&v| f64::from(v)).collect()
         } else {
             (0..n)
                 .map(|i| {
                     (0..r)
                         .map(|k| {
-                            m.modes_re[i * r + k] * m.amplitudes[k][0] - m.modes_im[i * r + k] * m.amplitudes[k][1]
+                            f64::from(m.modes_re[i * r + k]) * m.amplitudes[k][0]
+                                - f64::from(m.modes_im[i * r + k]) * m.amplitudes[k][1]
                         })
                         .sum()
                 })
                 .collect()
         };
         // Land has no estimate: NaN, which the page paints as land (and the truth has none).
-        let mut variance = m.variance;
+        let mut variance: Vec<f64> = m.variance.iter().map(|&v| f64::from(v)).collect();
         for &c in &m.land {
             (estimate[c as usize], variance[c as usize]) = (f64::NAN, f64::NAN);
         }

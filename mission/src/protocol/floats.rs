@@ -1,18 +1,47 @@
 //! Float arrays on the wire as packed little-endian bytes. CBOR writes each float as its own
 //! item and ciborium tries each one as f16 and f32 first: at 192 x 384 that was about 40% of
 //! the model server's CPU (README, "Where an epoch's time goes"). A byte string of `8 n` bytes
-//! is one copy each way, and the values are the very bits they were (numpy reads it with
-//! `np.frombuffer(b, "<f8")`). Human-readable formats (JSON: the live view, events) keep a
-//! plain list of numbers. Either is read back, whatever the format says of itself (serde's
-//! buffering of a tagged enum says it is human-readable when the CBOR under it is not).
+//! (`4 n` for an `f32` array: the published model's fields) is one copy each way, and the
+//! values are the very bits they were (numpy reads it with `np.frombuffer(b, "<f8")` or
+//! `"<f4"`). Human-readable formats (JSON: the live view, events) keep a plain list of numbers.
+//! Either is read back, whatever the format says of itself (serde's buffering of a tagged enum
+//! says it is human-readable when the CBOR under it is not).
 
-use serde::de::{Error, SeqAccess, Visitor};
-use serde::{Deserializer, Serializer};
+use serde::de::{DeserializeOwned, Error, SeqAccess, Visitor};
+use serde::{Deserializer, Serialize, Serializer};
+use std::marker::PhantomData;
 
 /// The most floats an array may hold (as many as the most cells of a list).
 const MAX_FLOATS: usize = super::cells::MAX_CELLS;
 
-pub fn serialize<S: Serializer>(values: &[f64], s: S) -> Result<S::Ok, S::Error> {
+/// A float as it travels: its width and its little-endian bytes.
+pub trait Float: bytemuck::Pod + Serialize + DeserializeOwned {
+    const NAME: &'static str;
+    fn from_le(bytes: &[u8]) -> Self;
+    fn le(self) -> Vec<u8>;
+}
+
+impl Float for f64 {
+    const NAME: &'static str = "f64";
+    fn from_le(bytes: &[u8]) -> Self {
+        f64::from_le_bytes(bytes.try_into().expect("8 bytes"))
+    }
+    fn le(self) -> Vec<u8> {
+        self.to_le_bytes().to_vec()
+    }
+}
+
+impl Float for f32 {
+    const NAME: &'static str = "f32";
+    fn from_le(bytes: &[u8]) -> Self {
+        f32::from_le_bytes(bytes.try_into().expect("4 bytes"))
+    }
+    fn le(self) -> Vec<u8> {
+        self.to_le_bytes().to_vec()
+    }
+}
+
+pub fn serialize<T: Float, S: Serializer>(values: &[T], s: S) -> Result<S::Ok, S::Error> {
     if s.is_human_readable() {
         return s.collect_seq(values);
     }
@@ -21,46 +50,46 @@ pub fn serialize<S: Serializer>(values: &[f64], s: S) -> Result<S::Ok, S::Error>
 
 /// The values' little-endian bytes: their memory as it is on a little-endian machine (no copy:
 /// at 384 x 768 a model's 54 MB were copied once more for it), a copy elsewhere.
-fn le_bytes(values: &[f64]) -> std::borrow::Cow<'_, [u8]> {
+fn le_bytes<T: Float>(values: &[T]) -> std::borrow::Cow<'_, [u8]> {
     if cfg!(target_endian = "little") {
         std::borrow::Cow::Borrowed(bytemuck::cast_slice(values))
     } else {
-        std::borrow::Cow::Owned(values.iter().flat_map(|v| v.to_le_bytes()).collect())
+        std::borrow::Cow::Owned(values.iter().flat_map(|v| v.le()).collect())
     }
 }
 
-pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<f64>, D::Error> {
-    d.deserialize_any(Packed)
+pub fn deserialize<'de, T: Float, D: Deserializer<'de>>(d: D) -> Result<Vec<T>, D::Error> {
+    d.deserialize_any(Packed(PhantomData))
 }
 
-struct Packed;
+struct Packed<T>(PhantomData<T>);
 
-impl<'de> Visitor<'de> for Packed {
-    type Value = Vec<f64>;
+impl<'de, T: Float> Visitor<'de> for Packed<T> {
+    type Value = Vec<T>;
 
     fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
-        f.write_str("floats: packed little-endian f64 bytes, or a list")
+        write!(f, "floats: packed little-endian {} bytes, or a list", T::NAME)
     }
 
-    fn visit_bytes<E: Error>(self, b: &[u8]) -> Result<Vec<f64>, E> {
-        if !b.len().is_multiple_of(8) || b.len() / 8 > MAX_FLOATS {
+    fn visit_bytes<E: Error>(self, b: &[u8]) -> Result<Vec<T>, E> {
+        let width = std::mem::size_of::<T>();
+        if !b.len().is_multiple_of(width) || b.len() / width > MAX_FLOATS {
             return Err(E::custom(format!(
-                "packed floats: {} bytes is not a whole number of f64s, or more than {MAX_FLOATS} of them",
-                b.len()
+                "packed floats: {} bytes is not a whole number of {}s, or more than {MAX_FLOATS} of them",
+                b.len(),
+                T::NAME
             )));
         }
-        Ok(b.chunks_exact(8)
-            .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
-            .collect())
+        Ok(b.chunks_exact(width).map(T::from_le).collect())
     }
 
-    fn visit_byte_buf<E: Error>(self, b: Vec<u8>) -> Result<Vec<f64>, E> {
+    fn visit_byte_buf<E: Error>(self, b: Vec<u8>) -> Result<Vec<T>, E> {
         self.visit_bytes(&b)
     }
 
-    fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Vec<f64>, A::Error> {
+    fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Vec<T>, A::Error> {
         let mut out = Vec::with_capacity(seq.size_hint().unwrap_or(0).min(MAX_FLOATS));
-        while let Some(v) = seq.next_element::<f64>()? {
+        while let Some(v) = seq.next_element::<T>()? {
             if out.len() == MAX_FLOATS {
                 return Err(A::Error::custom(format!("more than {MAX_FLOATS} floats")));
             }
@@ -106,6 +135,31 @@ mod tests {
         let mut odd = vec![];
         ciborium::into_writer(&serde_bytes_like(&[0u8; 12]), &mut odd).unwrap();
         assert!(ciborium::from_reader::<Floats, _>(&odd[..]).is_err());
+    }
+
+    #[derive(Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+    struct Floats32(#[serde(with = "super")] Vec<f32>);
+
+    /// An `f32` array (the published model's) is 4 bytes a value, every bit back; a byte string
+    /// that is not whole f32s is refused, saying which width it wanted.
+    #[test]
+    fn f32_arrays_travel_as_four_bytes_a_value() {
+        let v = vec![0.1f32, -0.0, f32::MIN_POSITIVE / 3.0, f32::INFINITY, 3.0e38];
+        let mut bytes = vec![];
+        ciborium::into_writer(&Floats32(v.clone()), &mut bytes).unwrap();
+        assert_eq!(
+            bytes.len(),
+            1 + 4 * v.len(),
+            "a byte string of 20 bytes after its header"
+        );
+        let back: Floats32 = ciborium::from_reader(&bytes[..]).unwrap();
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&back.0), bits(&v));
+        assert_eq!(serde_json::to_string(&Floats32(vec![0.5, 2.0])).unwrap(), "[0.5,2.0]");
+        let mut odd = vec![];
+        ciborium::into_writer(&serde_bytes_like(&[0u8; 6]), &mut odd).unwrap();
+        let err = ciborium::from_reader::<Floats32, _>(&odd[..]).unwrap_err().to_string();
+        assert!(err.contains("whole number of f32s"), "{err}");
     }
 
     fn serde_bytes_like(b: &[u8]) -> ciborium::Value {
