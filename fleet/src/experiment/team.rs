@@ -12,7 +12,9 @@
 //!   model's disks (the paper's reading): at a boat step its snapshot is the gappy estimate on
 //!   its own model's modes, between boat steps its own prediction. It has no estimate before
 //!   its first sample (those steps are not scored for any team: every team is scored over the
-//!   same steps); until it has a model the measured cells' mean fills the grid.
+//!   same steps); until it has a model, and when its modes are not determined by the disks or
+//!   their fit leaves the range of every value measured so far (widened by that range), the
+//!   measured cells' mean fills the grid.
 
 use crate::dmd::{DmdConfig, DmdModel, Method};
 use crate::fusion::AerialNoise;
@@ -361,6 +363,19 @@ struct BoatOnly {
     /// The model, its basis, and the step of its newest snapshot.
     model: Option<(DmdModel, Mat<f64>, usize)>,
     guess: Option<Vec<f64>>,
+    /// The least and the most of every value the boats have measured.
+    seen: (f64, f64),
+}
+
+/// Whether a reconstruction stays within the range of the values measured so far, widened by
+/// that range on either side. The disks' rows of the modes can be nearly collinear (4 disks of
+/// 13 cells for 6 modes on the 500 hPa height): the least-squares fit then amplifies the noise
+/// into values hundreds of times the field's (4e5 m for a 5,500 m height), and a model fitted
+/// on that snapshot grows 100-fold a boat period. Such a fit is no estimate of the field: the
+/// team keeps the measured mean, as when the modes are not determined at all.
+fn plausible(field: &[f64], (lo, hi): (f64, f64)) -> bool {
+    let width = hi - lo;
+    field.iter().all(|&v| v >= lo - width && v <= hi + width)
 }
 
 impl BoatOnly {
@@ -379,6 +394,7 @@ impl BoatOnly {
             snaps: vec![],
             model: None,
             guess: None,
+            seen: (f64::INFINITY, f64::NEG_INFINITY),
         }
     }
 
@@ -394,10 +410,15 @@ impl BoatOnly {
             });
         }
         let mean = measured_vals.iter().sum::<f64>() / measured_vals.len() as f64;
+        self.seen = measured_vals
+            .iter()
+            .fold(self.seen, |(lo, hi), &v| (lo.min(v), hi.max(v)));
         let mut est = match &self.model {
             Some((_, b, _)) => gappy::reconstruct(b.as_ref(), &measured_cells, &measured_vals, self.boat_var)
+                .ok()
                 .map(|g| g.field)
-                .unwrap_or_else(|_| vec![mean; self.n]),
+                .filter(|f| plausible(f, self.seen))
+                .unwrap_or_else(|| vec![mean; self.n]),
             None => vec![mean; self.n],
         };
         for (&c, &v) in measured_cells.iter().zip(&measured_vals) {
