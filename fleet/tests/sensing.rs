@@ -421,6 +421,21 @@ fn the_factored_real_basis_and_amplitudes_are_the_direct_ones() {
         if rank < 5 {
             continue;
         }
+        // The filter's dynamics in the basis, from the factors (r x r) and from the N rows.
+        let lambdas = [(0.9, 0.1), (0.9, -0.1), (0.7, 0.0), (0.5, 0.0), (0.95, 0.0)].map(|(a, b)| c64::new(a, b));
+        let coordinates = fleet::sensing::real_basis_coordinates(&orthogonal).unwrap();
+        let from_rows = fleet::kalman::modal_dynamics(modes.as_ref(), &lambdas, factored.as_ref()).unwrap();
+        let from_factors =
+            fleet::kalman::modal_dynamics(orthogonal.m.as_ref(), &lambdas, coordinates.as_ref()).unwrap();
+        // Both solve with the modes' Gram matrix, whose condition is the square of the scales'
+        // spread (1e14 for the ill-conditioned case): each loses about that spread's digits
+        // (1e-16 x 1e7), 2.1e-8 here; a wrong formula differs by O(1).
+        let spread = scales.iter().fold(0.0f64, |m, &x| m.max(x)) / scales.iter().fold(f64::MAX, |m, &x| m.min(x));
+        let gap = (&from_rows - &from_factors).norm_max();
+        assert!(
+            gap < 1e-13 * spread.max(10.0) * 10.0,
+            "{label}: the dynamics from the factors differ by {gap:e}"
+        );
         let eigenvalues = vec![c64::new(0.9, 0.1); 5];
         let on_phi = Modes {
             eigenvalues: eigenvalues.clone(),

@@ -21,7 +21,7 @@ use crate::fusion::{AerialNoise, Estimate};
 use crate::grid::Grid;
 use crate::kalman::{self, ModalFilter};
 use crate::protocol::Sample;
-use crate::sensing::{coverage, real_basis, real_basis_factored};
+use crate::sensing::{coverage, real_basis, real_basis_coordinates};
 use crate::team::{Missing, TeamConfig, TeamError};
 use faer::Mat;
 use rand::{RngExt, SeedableRng};
@@ -58,6 +58,9 @@ pub struct AssimilatorState {
     newest: Option<Vec<f64>>,
     /// The model fitted to its newest snapshot, and a real basis of its modes.
     fitted: Option<(Arc<DmdModel>, Arc<Mat<f64>>)>,
+    /// `fitted`'s dynamics in its basis when the refit could make them in r x r
+    /// ([`fit_with_dynamics`]; else the filter makes them from the modes).
+    dynamics: Option<Mat<f64>>,
     held_aerial: Option<Estimate>,
     held_interpolation: Vec<f64>,
     pred_var: f64,
@@ -149,6 +152,7 @@ impl Assimilator {
             model: None,
             newest: None,
             fitted: None,
+            dynamics: None,
             held_aerial: None,
             held_interpolation: vec![0.0; grid.len()],
             pred_var: 1.0,
@@ -392,8 +396,10 @@ impl Assimilator {
         let s = &mut self.state;
         let model = s.model.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
         let newest = s.newest.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
-        let (fitted, basis) = tracing::info_span!("refit").in_scope(|| fit_to(model.as_ref(), newest))?;
+        let (fitted, basis, dynamics) =
+            tracing::info_span!("refit").in_scope(|| fit_with_dynamics(model.as_ref(), newest))?;
         s.fitted = Some((Arc::new(fitted), Arc::new(basis)));
+        s.dynamics = dynamics;
         Ok(())
     }
 
@@ -408,7 +414,10 @@ impl Assimilator {
         let _span = tracing::info_span!("move filter").entered();
         let s = &mut self.state;
         let (pred, basis) = s.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
-        let dynamics = kalman::modal_dynamics(pred.modes.modes.as_ref(), &pred.modes.eigenvalues, Mat::as_ref(basis))?;
+        let dynamics = match &s.dynamics {
+            Some(d) => d.clone(),
+            None => kalman::modal_dynamics(pred.modes.modes.as_ref(), &pred.modes.eigenvalues, Mat::as_ref(basis))?,
+        };
         s.filter = Some(match s.filter.take() {
             Some((mut f, _)) => {
                 f.reproject(basis.clone(), dynamics)?;
@@ -435,16 +444,30 @@ impl Assimilator {
 /// A model fitted to its newest snapshot (forecasts count from it), and an orthonormal real
 /// basis of its modes (for gappy reconstruction and placement).
 pub fn fit_to(model: &dyn Dmd, newest: &[f64]) -> Result<(DmdModel, Mat<f64>), TeamError> {
+    fit_with_dynamics(model, newest).map(|(fitted, basis, _)| (fitted, basis))
+}
+
+/// A fitted model, its real basis, and (when the refit could make them cheaply) its dynamics
+/// in that basis.
+type Fitted = (DmdModel, Mat<f64>, Option<Mat<f64>>);
+
+/// [`fit_to`], and the model's dynamics in that basis ([`kalman::modal_dynamics`]) when the
+/// modes come factored as `Phi = Q M` with the basis `Q U`: then `Phi^H Phi = M^H M` and
+/// `Phi^H B = M^H U`, r x r products, where the modes' N rows cost two N x r x r complex
+/// products (most of the filter's move to a new model at 192 x 384).
+fn fit_with_dynamics(model: &dyn Dmd, newest: &[f64]) -> Result<Fitted, TeamError> {
     let (modes, factors) = tracing::info_span!("decompose").in_scope(|| model.decompose_factored())?;
     let Some(factors) = factors else {
         let basis = tracing::info_span!("basis").in_scope(|| real_basis(modes.modes.as_ref()))?;
         let fitted = tracing::info_span!("amplitudes").in_scope(|| modes.model(newest, 1.0))?;
-        return Ok((fitted, basis));
+        return Ok((fitted, basis, None));
     };
     let orthogonal = tracing::info_span!("orthogonal factor").in_scope(|| factors.orthogonal());
-    let basis = tracing::info_span!("basis").in_scope(|| real_basis_factored(&orthogonal))?;
+    let coordinates = tracing::info_span!("basis").in_scope(|| real_basis_coordinates(&orthogonal))?;
+    let basis = &orthogonal.q * &coordinates;
+    let dynamics = kalman::modal_dynamics(orthogonal.m.as_ref(), &modes.eigenvalues, coordinates.as_ref())?;
     let fitted = tracing::info_span!("amplitudes").in_scope(|| modes.model_on(&orthogonal, newest, 1.0))?;
-    Ok((fitted, basis))
+    Ok((fitted, basis, Some(dynamics)))
 }
 
 /// Every cell the samples cover, in their order.
