@@ -172,12 +172,13 @@ impl Assimilator {
 
     /// Its state now, to come back to with [`Self::rewind`].
     ///
-    /// The fitted model (its modes are N x r complex, 47 MB at 384 x 768 and rank 10) is left
-    /// out: it is what [`Self::refit`] makes of the model and the newest snapshot, so
-    /// [`Self::rewind`] makes it again, to the bit.
+    /// The fitted model (its modes are N x r complex, 47 MB at 384 x 768 and rank 10) and its
+    /// dynamics are left out: they are what [`Self::refit`] makes of the model and the newest
+    /// snapshot, so [`Self::rewind`] makes them again, to the bit.
     pub fn checkpoint(&self) -> AssimilatorCheckpoint {
         AssimilatorState {
             fitted: None,
+            dynamics: None,
             ..self.state.clone()
         }
     }
@@ -463,9 +464,11 @@ fn fit_with_dynamics(model: &dyn Dmd, newest: &[f64]) -> Result<Fitted, TeamErro
         return Ok((fitted, basis, None));
     };
     let orthogonal = tracing::info_span!("orthogonal factor").in_scope(|| factors.orthogonal());
-    let coordinates = tracing::info_span!("basis").in_scope(|| real_basis_coordinates(&orthogonal))?;
-    let basis = &orthogonal.q * &coordinates;
-    let dynamics = kalman::modal_dynamics(orthogonal.m.as_ref(), &modes.eigenvalues, coordinates.as_ref())?;
+    let (basis, dynamics) = tracing::info_span!("basis").in_scope(|| -> Result<_, TeamError> {
+        let coordinates = real_basis_coordinates(&orthogonal)?;
+        let dynamics = kalman::modal_dynamics(orthogonal.m.as_ref(), &modes.eigenvalues, coordinates.as_ref())?;
+        Ok((&orthogonal.q * &coordinates, dynamics))
+    })?;
     let fitted = tracing::info_span!("amplitudes").in_scope(|| modes.model_on(&orthogonal, newest, 1.0))?;
     Ok((fitted, basis, Some(dynamics)))
 }

@@ -21,25 +21,23 @@ pub trait Float: bytemuck::Pod + Serialize + DeserializeOwned {
     fn le(self) -> Vec<u8>;
 }
 
-impl Float for f64 {
-    const NAME: &'static str = "f64";
-    fn from_le(bytes: &[u8]) -> Self {
-        f64::from_le_bytes(bytes.try_into().expect("8 bytes"))
-    }
-    fn le(self) -> Vec<u8> {
-        self.to_le_bytes().to_vec()
-    }
+/// [`Float`] for a primitive float: its name, and its bytes through `from_le_bytes` /
+/// `to_le_bytes`.
+macro_rules! float {
+    ($t:ty) => {
+        impl Float for $t {
+            const NAME: &'static str = stringify!($t);
+            fn from_le(bytes: &[u8]) -> Self {
+                <$t>::from_le_bytes(bytes.try_into().expect("a whole float's bytes"))
+            }
+            fn le(self) -> Vec<u8> {
+                self.to_le_bytes().to_vec()
+            }
+        }
+    };
 }
-
-impl Float for f32 {
-    const NAME: &'static str = "f32";
-    fn from_le(bytes: &[u8]) -> Self {
-        f32::from_le_bytes(bytes.try_into().expect("4 bytes"))
-    }
-    fn le(self) -> Vec<u8> {
-        self.to_le_bytes().to_vec()
-    }
-}
+float!(f64);
+float!(f32);
 
 pub fn serialize<T: Float, S: Serializer>(values: &[T], s: S) -> Result<S::Ok, S::Error> {
     if s.is_human_readable() {
