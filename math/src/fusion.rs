@@ -341,21 +341,19 @@ impl AerialFrame {
             let t = (i % s) as f64 / s as f64;
             ((t * (1.0 - t) / 2.0).powi(2), 0.0)
         };
-        Ok((0..fine.len())
-            .map(|i| {
-                let (r, c) = (i / fine.cols, i % fine.cols);
-                let ((wr, xr), (wc, xc)) = (weight(r, rows), weight(c, cols));
-                let mut v = wr * dr[i];
-                if r >= row0 {
-                    v += xr * er[(r - row0) * fine.cols + c];
-                }
-                v += wc * dc[i];
-                if c >= col0 {
-                    v += xc * ec[r * band_cols + c - col0];
-                }
-                v
-            })
-            .collect())
+        Ok(crate::par::map(fine.len(), 4, |i| {
+            let (r, c) = (i / fine.cols, i % fine.cols);
+            let ((wr, xr), (wc, xc)) = (weight(r, rows), weight(c, cols));
+            let mut v = wr * dr[i];
+            if r >= row0 {
+                v += xr * er[(r - row0) * fine.cols + c];
+            }
+            v += wc * dc[i];
+            if c >= col0 {
+                v += xc * ec[r * band_cols + c - col0];
+            }
+            v
+        }))
     }
 
     /// Bilinear upsampling to the fine grid, with the propagated variance.

@@ -320,15 +320,16 @@ fn bilinear(
     v: &[f64],
     squared: bool,
 ) -> Vec<f64> {
-    let mut out = Vec::with_capacity(rows.len() * cols.len());
+    let mut out = vec![0.0; rows.len() * cols.len()];
     let w = |a: f64| if squared { a * a } else { a };
-    for &(r0, r1, fr) in rows {
-        for &(c0, c1, fc) in cols {
+    crate::par::chunks_mut(&mut out, cols.len(), 4, |k, row| {
+        let (r0, r1, fr) = rows[k];
+        for (o, &(c0, c1, fc)) in row.iter_mut().zip(cols) {
             let top = v[r0 * coarse_cols + c0] * w(1.0 - fc) + v[r0 * coarse_cols + c1] * w(fc);
             let bot = v[r1 * coarse_cols + c0] * w(1.0 - fc) + v[r1 * coarse_cols + c1] * w(fc);
-            out.push(top * w(1.0 - fr) + bot * w(fr));
+            *o = top * w(1.0 - fr) + bot * w(fr);
         }
-    }
+    });
     out
 }
 

@@ -13,6 +13,7 @@ pub mod fusion;
 pub mod grid;
 pub mod kalman;
 pub mod npy;
+pub mod par;
 pub mod process;
 pub mod sensing;
 

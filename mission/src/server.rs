@@ -1150,19 +1150,23 @@ impl ServerCore {
         let (parts, made) = (self.model_parts(), self.made());
         self.published = None;
         let (assim, history) = (&mut self.assim, &self.history);
-        // The placement here (its work and memory where they were), the model on a thread of
-        // its own, its spans to this thread's subscriber (the bench's phases).
+        // The placement and the model side by side on rayon's pool, the model's spans to this
+        // thread's subscriber (the bench's phases). Not a thread of its own that this one
+        // joins: inside `fleet experiment`'s parallel rows this thread is one of the pool's,
+        // and a pool thread blocked on a join cannot run the model's own parallel loops.
         let dispatch = tracing::dispatcher::get_default(|d| d.clone());
-        let (plan, published) = std::thread::scope(|scope| {
-            let model = scope.spawn(|| {
+        let (plan, published) = rayon::join(
+            || {
+                tracing::dispatcher::with_default(&dispatch, || {
+                    tracing::info_span!("placement").in_scope(|| assim.allocate_without(&holds))
+                })
+            },
+            || {
                 tracing::dispatcher::with_default(&dispatch, || {
                     parts.map(|parts| Published::of(parts.assemble(history.last()), made))
                 })
-            });
-            let plan = tracing::info_span!("placement").in_scope(|| assim.allocate_without(&holds));
-            (plan, model.join())
-        });
-        let published = published.unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+            },
+        );
         self.published = published;
         plan
     }

@@ -81,7 +81,10 @@ fn timed(
     let grid = Grid::new(rows, cols, 1.0)?;
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
     // As the model server keeps it: every step's fused map in files, not in memory.
-    let dir = std::env::temp_dir().join(format!("hetfleet-bench-epoch-{}", std::process::id()));
+    // One directory a run (two runs of one process side by side do not share their files).
+    static RUNS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let run = RUNS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let dir = std::env::temp_dir().join(format!("hetfleet-bench-epoch-{}-{run}", std::process::id()));
     let mut server = ServerCore::new(&cfg, grid, frames)?.with_history_in(&dir)?;
     let mut brains = super::team::brains_of(&server, &cfg, grid);
     let (mut times, mut batch_bytes, mut model_bytes) = (vec![], 0usize, 0);

@@ -23,6 +23,7 @@ use super::debias::Debias;
 use super::linalg::{div_cols, orthogonality_error, scale_cols_by, thin_svd};
 use super::snapshots::check_pairs;
 use super::{numerical_rank, Dmd, DmdError, Method, ModeFactors, Modes, RankPolicy, SnapshotPairs};
+use crate::par::product;
 use faer::{Mat, MatRef};
 
 /// Updates between orthogonality checks of `U`.
@@ -124,7 +125,7 @@ fn new_directions(h: MatRef<'_, f64>, s0: f64, max_k: usize) -> Result<(Mat<f64>
     let scale = s0.max(svd.s.first().copied().unwrap_or(0.0));
     let tol = (n.max(tau) as f64) * f64::EPSILON * scale;
     let k = svd.s.iter().take_while(|&&s| s > tol).count().min(max_k);
-    let j = qr.compute_thin_Q() * svd.u.subcols(0, k);
+    let j = product(qr.compute_thin_Q().as_ref(), svd.u.subcols(0, k));
     let p = Mat::from_fn(k, tau, |i, c| svd.s[i] * svd.v[(c, i)]);
     Ok((j, p))
 }
@@ -143,9 +144,9 @@ impl Dmd for GeneralDmd {
         let (n, r, tau) = (self.u.nrows(), self.u.ncols(), x_new.ncols());
         let ut = self.u.transpose();
         let mut l = ut * x_new;
-        let mut h = x_new - &self.u * &l;
+        let mut h = x_new - product(self.u.as_ref(), l.as_ref());
         let l2 = ut * &h;
-        h -= &self.u * &l2;
+        h -= product(self.u.as_ref(), l2.as_ref());
         l += &l2;
 
         // Directions of H that are really new (none when U already spans R^N), by a
@@ -171,11 +172,11 @@ impl Dmd for GeneralDmd {
         .max(1);
         let zs = zs.truncate(keep);
 
-        let mut u = &self.u * zs.u.subrows(0, r);
+        let mut u = product(self.u.as_ref(), zs.u.subrows(0, r));
         if k > 0 {
-            u += &j * zs.u.subrows(r, k);
+            u += product(j.as_ref(), zs.u.subrows(r, k));
         }
-        self.yw = &self.yw * zs.v.subrows(0, r) + y_new * zs.v.subrows(r, tau);
+        self.yw = product(self.yw.as_ref(), zs.v.subrows(0, r)) + product(y_new, zs.v.subrows(r, tau));
         self.u = u;
         self.s = zs.s;
         self.updates += 1;

@@ -71,22 +71,28 @@ fn column(m: MatRef<'_, f64>, k: usize) -> &[f64] {
 /// per-row dot product adds them (so the same to the bit), but computed a column at a time,
 /// reading the N x q matrices contiguously: a row of a column-major N x q matrix is q cache
 /// lines apart.
-fn row_dots(a: MatRef<'_, f64>, b: MatRef<'_, f64>) -> Vec<f64> {
-    let mut out = vec![-0.0; a.nrows()];
+fn row_dots(a: MatRef<'_, f64>, b: MatRef<'_, f64>, out: &mut [f64]) {
+    out.fill(-0.0);
     for k in 0..a.ncols() {
         out.iter_mut()
             .zip(column(a, k))
             .zip(column(b, k))
             .for_each(|((o, x), y)| *o += x * y);
     }
-    out
 }
 
-/// The modal part's mean and variance per cell, `B a` and `diag(B P B^T)`.
+/// The modal part's mean and variance per cell, `B a` and `diag(B P B^T)`, made a block of
+/// cells at a time on every core (each block's rows as the whole product makes them).
 fn modal_of(basis: MatRef<'_, f64>, cov: MatRef<'_, f64>, mean: &[f64]) -> (Vec<f64>, Vec<f64>) {
     let modal_mean = modal_mean_of(basis, mean);
-    let mut variance = row_dots((basis * cov).as_ref(), basis);
-    variance.iter_mut().for_each(|x| *x = x.max(0.0));
+    let weight = cov.ncols().pow(2);
+    let rows = crate::par::block_rows(basis.nrows(), weight);
+    let mut variance = vec![0.0; basis.nrows()];
+    crate::par::chunks_mut(&mut variance, rows, weight, |k, out| {
+        let b = basis.subrows(k * rows, out.len());
+        row_dots((b * cov).as_ref(), b, out);
+        out.iter_mut().for_each(|x| *x = x.max(0.0));
+    });
     (modal_mean, variance)
 }
 
@@ -106,7 +112,7 @@ fn detail_step((d, v): (f64, f64), modal: f64, modal_var: f64, y: f64, a: f64) -
 /// The modal part's mean per cell, `B a` (N q).
 fn modal_mean_of(basis: MatRef<'_, f64>, mean: &[f64]) -> Vec<f64> {
     let m = Mat::from_fn(mean.len(), 1, |i, _| mean[i]);
-    (basis * m.as_ref()).col(0).iter().copied().collect()
+    crate::par::product(basis, m.as_ref()).col(0).iter().copied().collect()
 }
 
 /// The modal part's mean and variance at one cell, `b a` and `b P b^T` for the cell's row `b` of
@@ -252,10 +258,9 @@ impl ModalFilter {
             None => modal_mean_of((*self.basis).as_ref(), &self.mean),
         };
         let (basis, cov) = ((*self.basis).as_ref(), self.cov.as_ref());
-        let variance = cells
-            .iter()
-            .map(|&c| modal_at(basis, cov, &self.mean, c).1 + self.detail_var[c])
-            .collect();
+        let variance = crate::par::map(cells.len(), self.dim().pow(2), |i| {
+            modal_at(basis, cov, &self.mean, cells[i]).1 + self.detail_var[cells[i]]
+        });
         Prior {
             mean: modal.iter().zip(&self.detail).map(|(m, d)| m + d).collect(),
             cells: cells.to_vec(),
@@ -400,13 +405,11 @@ impl ModalFilter {
         let basis = (*self.basis).as_ref();
         // Per wanted cell: its modal mean and variance, and its detail as the values update it
         // (`slot`: where a cell's are in `at`).
-        let mut at: Vec<(f64, f64, f64, f64)> = cells
-            .iter()
-            .map(|&c| {
-                let (m, v) = modal_at(basis, cov.as_ref(), &mean, c);
-                (m, v, self.detail[c], self.detail_var[c])
-            })
-            .collect();
+        let mut at: Vec<(f64, f64, f64, f64)> = crate::par::map(cells.len(), self.dim().pow(2), |i| {
+            let c = cells[i];
+            let (m, v) = modal_at(basis, cov.as_ref(), &mean, c);
+            (m, v, self.detail[c], self.detail_var[c])
+        });
         let mut slot = vec![u32::MAX; n];
         cells.iter().enumerate().for_each(|(i, &c)| slot[c] = i as u32);
         for o in detail {

@@ -3,7 +3,8 @@
 //! over the horizon), boats assigned to disks by least total travel, and aerials by Lloyd's
 //! coverage under a density (the model's temporal modes, or the forecast's variance).
 
-use super::{aerial_detail_variance, Assimilator};
+use super::{aerial_detail_variance, Assimilator, AssimilatorState, Setup};
+use crate::dmd::DmdModel;
 use crate::grid::{Cell, Grid};
 use crate::kalman::{self, Lookahead, ModalFilter};
 use crate::sensing::{assign::assign, coverage, horizon, qr};
@@ -76,10 +77,31 @@ impl Assimilator {
             .filter(|&b| !held.contains(&roster.boat_index(b)) && !excluded.contains(&roster.boat_index(b)))
             .collect();
         let view = self.horizon_view()?;
-        let mut boats = match &view {
-            Some(v) => self.place_boats_over_the_horizon(v, &free)?,
-            None => self.place_boats_on_modes(&free)?,
-        };
+        // A doubted aerial keeps its place; Lloyd spreads the others over the whole site. Its
+        // region is only as good as its frames: a silent one's was lost (+2,526% on the 500 hPa
+        // height for a camera dark from mid-mission), an over-exposed one's refused frames too.
+        let doubted: BTreeSet<usize> = (0..cfg.aerials)
+            .filter(|&a| self.state.screen.doubted(a).is_some() && !held.contains(&a))
+            .collect();
+        let staying: BTreeSet<usize> = held.union(&doubted).copied().collect();
+        let (model, _) = self.state.fitted.clone().ok_or(TeamError::NotReady(Missing::Model))?;
+        let starts = self.state.aerial_positions.clone();
+        let Assimilator { setup, state } = self;
+        // The boats' disks and the aerials' places depend on the same model, not on each
+        // other: made on the two cores at once (the aerials' Lloyd was a quarter of the
+        // placement at 192 x 384).
+        let (boats, aerials) = rayon::join(
+            || match &view {
+                Some(v) => place_boats_over_the_horizon(setup, state, v, &free),
+                None => place_boats_on_modes(setup, state, &free),
+            },
+            || {
+                let density = setup.aerial_density(&model, view.as_ref().map(|v| v.variance.as_slice()))?;
+                setup.place_aerials(&density, &starts, &staying)
+            },
+        );
+        let mut boats = boats?;
+        self.state.aerial_positions = aerials?;
         // A boat whose sensor is excluded (or silent) counts for nothing in the placement (its
         // disk would be a hole in the map), and measures where it is: its values are still
         // tested, and it comes back when they read true again.
@@ -97,14 +119,6 @@ impl Assimilator {
                 .collect();
             boats[b] = (!cells.is_empty()).then_some((cells, (here.row, here.col)));
         }
-        // A doubted aerial keeps its place; Lloyd spreads the others over the whole site. Its
-        // region is only as good as its frames: a silent one's was lost (+2,526% on the 500 hPa
-        // height for a camera dark from mid-mission), an over-exposed one's refused frames too.
-        let doubted: BTreeSet<usize> = (0..cfg.aerials)
-            .filter(|&a| self.state.screen.doubted(a).is_some() && !held.contains(&a))
-            .collect();
-        let density = self.aerial_density(view.as_ref().map(|v| v.variance.as_slice()))?;
-        self.place_aerials(&density, &held.union(&doubted).copied().collect())?;
         Ok(Allocation {
             boats,
             aerials: self.state.aerial_positions.clone(),
@@ -159,94 +173,96 @@ impl Assimilator {
             variance: var,
         }))
     }
+}
 
-    /// `placement = "horizon"`: the disks whose values remove the most of the forecast's
-    /// variance over the horizon, each within reach of a boat by the sampling step.
-    fn place_boats_over_the_horizon(
-        &mut self,
-        v: &HorizonView,
-        free: &[usize],
-    ) -> Result<Vec<Option<BoatDisk>>, TeamError> {
-        let (cfg, grid) = (&self.setup.cfg, &self.setup.grid);
-        let s = &mut self.state;
-        let reach = self.setup.boat_speed * cfg.boat_period as f64;
-        let fleet: Vec<horizon::Boat> = free
-            .iter()
-            .map(|&b| horizon::Boat {
-                position: s.boat_positions[b],
-                reach_m: reach,
-            })
-            .collect();
-        // What the filter does not model at the sampling step: the forecast's features
-        // displaced, of variance s2 |grad x|^2 per cell.
-        let unmodelled: Vec<f64> = grid
-            .squared_gradient(&v.mean)?
-            .iter()
-            .map(|g2| s.displacement * g2)
-            .collect();
-        let f = horizon::Forecast::of(v.at_sampling.basis(), &v.ahead).with_unmodelled(&unmodelled);
-        let mut boats = vec![None; cfg.boats];
-        let noise_var = (cfg.boat_sigma * cfg.boat_sigma).max(1e-12);
-        for c in horizon::plan_within(grid, &f, &fleet, cfg.radius, noise_var, &self.setup.excluded)? {
-            let b = free[c.boat];
-            s.boat_positions[b] = grid.centre_m(c.centre);
-            boats[b] = Some((c.cells, (c.centre.row, c.centre.col)));
-        }
-        Ok(boats)
+/// `placement = "horizon"`: the disks whose values remove the most of the forecast's
+/// variance over the horizon, each within reach of a boat by the sampling step.
+fn place_boats_over_the_horizon(
+    setup: &Setup,
+    s: &mut AssimilatorState,
+    v: &HorizonView,
+    free: &[usize],
+) -> Result<Vec<Option<BoatDisk>>, TeamError> {
+    let (cfg, grid) = (&setup.cfg, &setup.grid);
+    let reach = setup.boat_speed * cfg.boat_period as f64;
+    let fleet: Vec<horizon::Boat> = free
+        .iter()
+        .map(|&b| horizon::Boat {
+            position: s.boat_positions[b],
+            reach_m: reach,
+        })
+        .collect();
+    // What the filter does not model at the sampling step: the forecast's features
+    // displaced, of variance s2 |grad x|^2 per cell.
+    let unmodelled: Vec<f64> = grid
+        .squared_gradient(&v.mean)?
+        .iter()
+        .map(|g2| s.displacement * g2)
+        .collect();
+    let f = horizon::Forecast::of(v.at_sampling.basis(), &v.ahead).with_unmodelled(&unmodelled);
+    let mut boats = vec![None; cfg.boats];
+    let noise_var = (cfg.boat_sigma * cfg.boat_sigma).max(1e-12);
+    for c in horizon::plan_within(grid, &f, &fleet, cfg.radius, noise_var, &setup.excluded)? {
+        let b = free[c.boat];
+        s.boat_positions[b] = grid.centre_m(c.centre);
+        boats[b] = Some((c.cells, (c.centre.row, c.centre.col)));
     }
+    Ok(boats)
+}
 
-    /// Disks on the model's modes (block QR, D-optimal) or at random, the free boats assigned
-    /// to them by least total travel.
-    fn place_boats_on_modes(&mut self, free: &[usize]) -> Result<Vec<Option<BoatDisk>>, TeamError> {
-        let (cfg, grid, excluded) = (&self.setup.cfg, &self.setup.grid, &self.setup.excluded);
-        let s = &mut self.state;
-        let (_, basis) = s.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
-        let disks: Vec<Vec<usize>> = match (free.len(), cfg.placement) {
-            (0, _) => vec![],
-            (k, Placement::Qr) => qr::block_qr_within(faer::Mat::as_ref(basis), grid, k, cfg.radius, excluded)?
-                .into_iter()
-                .map(|d| d.cells)
-                .collect(),
-            (k, Placement::DOptimal) => qr::block_dopt_within(faer::Mat::as_ref(basis), grid, k, cfg.radius, excluded)?
-                .into_iter()
-                .map(|d| d.cells)
-                .collect(),
-            (k, Placement::Random) => random_disks(grid, k, cfg.radius, excluded, &mut s.placement_rng),
-            (_, Placement::Horizon) => return Err(TeamError::NotReady(Missing::Model)),
-        };
-        let centres: Vec<(usize, usize)> = disks.iter().map(|d| centre_of(grid, d)).collect();
-        let targets: Vec<(f64, f64)> = centres.iter().map(|&(r, c)| grid.centre_m(Cell::new(r, c))).collect();
-        let starts: Vec<(f64, f64)> = free.iter().map(|&b| s.boat_positions[b]).collect();
-        let (assignment, _) = if free.is_empty() {
-            (vec![], 0.0)
-        } else {
-            assign(&starts, &targets, 1.0)?
-        };
-        let mut boats = vec![None; cfg.boats];
-        for (&b, a) in free.iter().zip(&assignment) {
-            if let Some(t) = a {
-                boats[b] = Some((disks[*t].clone(), centres[*t]));
-                s.boat_positions[b] = targets[*t];
-            }
+/// Disks on the model's modes (block QR, D-optimal) or at random, the free boats assigned
+/// to them by least total travel.
+fn place_boats_on_modes(
+    setup: &Setup,
+    s: &mut AssimilatorState,
+    free: &[usize],
+) -> Result<Vec<Option<BoatDisk>>, TeamError> {
+    let (cfg, grid, excluded) = (&setup.cfg, &setup.grid, &setup.excluded);
+    let (_, basis) = s.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
+    let disks: Vec<Vec<usize>> = match (free.len(), cfg.placement) {
+        (0, _) => vec![],
+        (k, Placement::Qr) => qr::block_qr_within(faer::Mat::as_ref(basis), grid, k, cfg.radius, excluded)?
+            .into_iter()
+            .map(|d| d.cells)
+            .collect(),
+        (k, Placement::DOptimal) => qr::block_dopt_within(faer::Mat::as_ref(basis), grid, k, cfg.radius, excluded)?
+            .into_iter()
+            .map(|d| d.cells)
+            .collect(),
+        (k, Placement::Random) => random_disks(grid, k, cfg.radius, excluded, &mut s.placement_rng),
+        (_, Placement::Horizon) => return Err(TeamError::NotReady(Missing::Model)),
+    };
+    let centres: Vec<(usize, usize)> = disks.iter().map(|d| centre_of(grid, d)).collect();
+    let targets: Vec<(f64, f64)> = centres.iter().map(|&(r, c)| grid.centre_m(Cell::new(r, c))).collect();
+    let starts: Vec<(f64, f64)> = free.iter().map(|&b| s.boat_positions[b]).collect();
+    let (assignment, _) = if free.is_empty() {
+        (vec![], 0.0)
+    } else {
+        assign(&starts, &targets, 1.0)?
+    };
+    let mut boats = vec![None; cfg.boats];
+    for (&b, a) in free.iter().zip(&assignment) {
+        if let Some(t) = a {
+            boats[b] = Some((disks[*t].clone(), centres[*t]));
+            s.boat_positions[b] = targets[*t];
         }
-        Ok(boats)
     }
+    Ok(boats)
+}
 
-    /// Where the aerials' coverage goes: the temporal density of the model's modes, or (with
+impl Setup {
+    /// Where the aerials' coverage goes: the temporal density of `model`'s modes, or (with
     /// horizon placement) the forecast's variance, floored; nothing outside the fence.
-    fn aerial_density(&self, forecast_variance: Option<&[f64]>) -> Result<Vec<f64>, TeamError> {
-        let floor = self.setup.cfg.density_floor;
+    fn aerial_density(&self, model: &DmdModel, forecast_variance: Option<&[f64]>) -> Result<Vec<f64>, TeamError> {
+        let floor = self.cfg.density_floor;
         let density = match forecast_variance {
             Some(var) => {
                 let top = var.iter().cloned().fold(0.0, f64::max).max(1e-300);
                 var.iter().map(|v| floor + (1.0 - floor) * v / top).collect()
             }
-            None => {
-                let (pred, _) = self.state.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
-                coverage::temporal_density(pred, floor)?
-            }
+            None => coverage::temporal_density(model, floor)?,
         };
-        let outside = |i: usize| self.setup.excluded.get(i).copied().unwrap_or(false);
+        let outside = |i: usize| self.excluded.get(i).copied().unwrap_or(false);
         Ok(density
             .iter()
             .enumerate()
@@ -254,22 +270,26 @@ impl Assimilator {
             .collect())
     }
 
-    /// Lloyd's iterations place the aerials that are not held; the held keep their places.
-    fn place_aerials(&mut self, density: &[f64], held: &BTreeSet<usize>) -> Result<(), TeamError> {
-        let grid = &self.setup.grid;
-        let flying: Vec<usize> = (0..self.setup.cfg.aerials).filter(|a| !held.contains(a)).collect();
+    /// The aerials' places from `positions`: Lloyd's iterations move those not `staying`.
+    fn place_aerials(
+        &self,
+        density: &[f64],
+        positions: &[(f64, f64)],
+        staying: &BTreeSet<usize>,
+    ) -> Result<Vec<(f64, f64)>, TeamError> {
+        let mut positions = positions.to_vec();
+        let flying: Vec<usize> = (0..self.cfg.aerials).filter(|a| !staying.contains(a)).collect();
         if flying.is_empty() {
-            return Ok(());
+            return Ok(positions);
         }
-        let positions = &mut self.state.aerial_positions;
         let starts: Vec<(f64, f64)> = flying.iter().map(|&a| positions[a]).collect();
-        let placed = coverage::lloyd(grid, density, &starts, 50, 1e-3)?.positions;
-        let placed = coverage::snap_inside(grid, &self.setup.excluded, &placed)
+        let placed = coverage::lloyd(&self.grid, density, &starts, 50, 1e-3)?.positions;
+        let placed = coverage::snap_inside(&self.grid, &self.excluded, &placed)
             .ok_or_else(|| TeamError::Config("the site's boundary leaves no cell of the grid inside it".into()))?;
         for (&a, p) in flying.iter().zip(placed) {
             positions[a] = p;
         }
-        Ok(())
+        Ok(positions)
     }
 }
 
