@@ -12,6 +12,11 @@ use rayon::prelude::*;
 /// what a 48 x 96 field's pass takes (4,608 cells).
 pub const MIN_WORK: usize = 1 << 20;
 
+/// Whether `n` items of `weight` each are work enough to share with the pool.
+fn worth_sharing(n: usize, weight: usize) -> bool {
+    n.saturating_mul(weight.max(1)) >= MIN_WORK
+}
+
 /// How many items a task takes so that it holds at least half of [`MIN_WORK`].
 fn per_task(weight: usize) -> usize {
     (MIN_WORK / 2 / weight.max(1)).max(1)
@@ -20,15 +25,15 @@ fn per_task(weight: usize) -> usize {
 /// How many of `n` rows a block of a blocked kernel holds ([`chunks_mut`] with this width):
 /// all of them when the work is too small to share, else a task's worth.
 pub fn block_rows(n: usize, weight: usize) -> usize {
-    match n.saturating_mul(weight.max(1)) < MIN_WORK {
-        true => n.max(1),
-        false => per_task(weight),
+    match worth_sharing(n, weight) {
+        true => per_task(weight),
+        false => n.max(1),
     }
 }
 
 /// `f(i)` for every `i < n`, in order; `weight` is the work of one item.
 pub fn map<T: Send>(n: usize, weight: usize, f: impl Fn(usize) -> T + Sync + Send) -> Vec<T> {
-    if n.saturating_mul(weight.max(1)) < MIN_WORK {
+    if !worth_sharing(n, weight) {
         return (0..n).map(f).collect();
     }
     (0..n).into_par_iter().with_min_len(per_task(weight)).map(f).collect()
@@ -38,7 +43,7 @@ pub fn map<T: Send>(n: usize, weight: usize, f: impl Fn(usize) -> T + Sync + Sen
 /// work of one value.
 pub fn chunks_mut<T: Send>(out: &mut [T], width: usize, weight: usize, f: impl Fn(usize, &mut [T]) + Sync + Send) {
     let width = width.max(1);
-    if out.len().saturating_mul(weight.max(1)) < MIN_WORK {
+    if !worth_sharing(out.len(), weight) {
         out.chunks_mut(width).enumerate().for_each(|(k, c)| f(k, c));
         return;
     }
@@ -55,7 +60,7 @@ pub fn product<T: ComplexField>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Mat<T> {
     let (n, m) = (a.nrows(), b.ncols());
     let weight = a.ncols() * m;
     let mut out = Mat::<T>::zeros(n, m);
-    if n.saturating_mul(weight.max(1)) < MIN_WORK || m == 0 {
+    if !worth_sharing(n, weight) || m == 0 {
         matmul(out.as_mut(), Accum::Replace, a, b, T::one_impl(), Par::Seq);
         return out;
     }

@@ -467,7 +467,10 @@ fn fit_with_dynamics(model: &dyn Dmd, newest: &[f64]) -> Result<Fitted, TeamErro
     let (basis, dynamics) = tracing::info_span!("basis").in_scope(|| -> Result<_, TeamError> {
         let coordinates = real_basis_coordinates(&orthogonal)?;
         let dynamics = kalman::modal_dynamics(orthogonal.m.as_ref(), &modes.eigenvalues, coordinates.as_ref())?;
-        Ok((&orthogonal.q * &coordinates, dynamics))
+        Ok((
+            fleet_math::par::product(orthogonal.q.as_ref(), coordinates.as_ref()),
+            dynamics,
+        ))
     })?;
     let fitted = tracing::info_span!("amplitudes").in_scope(|| modes.model_on(&orthogonal, newest, 1.0))?;
     Ok((fitted, basis, Some(dynamics)))

@@ -67,9 +67,9 @@ impl Assimilator {
     /// disks go to the other boats (as many disks as boats free), Lloyd places the other
     /// aerials, and the held keep their places.
     pub fn allocate_without(&mut self, held: &BTreeSet<usize>) -> Result<Allocation, TeamError> {
-        if self.state.fitted.is_none() {
+        let Some((model, _)) = self.state.fitted.clone() else {
             return Err(TeamError::NotReady(Missing::Model));
-        }
+        };
         let cfg = self.setup.cfg.clone();
         let roster = crate::roster::Roster::of(&cfg);
         let excluded = self.state.screen.left_out();
@@ -84,7 +84,6 @@ impl Assimilator {
             .filter(|&a| self.state.screen.doubted(a).is_some() && !held.contains(&a))
             .collect();
         let staying: BTreeSet<usize> = held.union(&doubted).copied().collect();
-        let (model, _) = self.state.fitted.clone().ok_or(TeamError::NotReady(Missing::Model))?;
         let starts = self.state.aerial_positions.clone();
         let Assimilator { setup, state } = self;
         // The boats' disks and the aerials' places depend on the same model, not on each
@@ -97,7 +96,7 @@ impl Assimilator {
             },
             || {
                 let density = setup.aerial_density(&model, view.as_ref().map(|v| v.variance.as_slice()))?;
-                setup.place_aerials(&density, &starts, &staying)
+                setup.place_aerials(&density, starts, &staying)
             },
         );
         let mut boats = boats?;
@@ -274,10 +273,9 @@ impl Setup {
     fn place_aerials(
         &self,
         density: &[f64],
-        positions: &[(f64, f64)],
+        mut positions: Vec<(f64, f64)>,
         staying: &BTreeSet<usize>,
     ) -> Result<Vec<(f64, f64)>, TeamError> {
-        let mut positions = positions.to_vec();
         let flying: Vec<usize> = (0..self.cfg.aerials).filter(|a| !staying.contains(a)).collect();
         if flying.is_empty() {
             return Ok(positions);
