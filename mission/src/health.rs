@@ -342,6 +342,10 @@ pub struct Screen {
     /// Boats re-admitted by their tests, with the step their clean steps began at.
     readmitted: Vec<(usize, u64)>,
     pub counts: Screened,
+    /// When asked for ([`Self::keep_information`]; the fault study's, not a mission's): each
+    /// boat test's information on an offset, `sum w` of its bias test (one over the variance of
+    /// the boat's mean difference from the aerials), by vehicle and step.
+    information: Option<BTreeMap<(usize, u64), f64>>,
 }
 
 /// What a sensor's values are tested against: a mean and a variance per cell.
@@ -389,6 +393,18 @@ impl Screen {
             .filter(|(_, s)| s.health == Health::Excluded || (s.health != Health::Ok && s.cause == Some(Cause::Silent)))
             .map(|(&v, _)| v)
             .collect()
+    }
+
+    /// Keep each boat test's information on an offset from here ([`Self::information`]).
+    pub fn keep_information(&mut self) {
+        self.information.get_or_insert_with(BTreeMap::new);
+    }
+
+    /// Each boat test's information on an offset (`sum w` of its bias test, by vehicle and
+    /// step) since [`Self::keep_information`]: how well a test that knew the offset's size could
+    /// have told it from the noise. `None` when not asked for.
+    pub fn information(&self) -> Option<&BTreeMap<(usize, u64), f64>> {
+        self.information.as_ref()
     }
 
     /// The verdicts that changed since the last call.
@@ -485,6 +501,9 @@ impl Screen {
             let (keep, mut var) = spikes(grid, &s, &sig, &reference);
             let (num, den) = offset_sums(&s, &sig, &keep, &reference);
             let z = (den > 0.0).then(|| num / den.sqrt());
+            if let Some(info) = self.information.as_mut() {
+                info.insert((v, step), den);
+            }
             let check = Check {
                 z,
                 diff: (num, den),

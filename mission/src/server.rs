@@ -468,6 +468,13 @@ impl ServerCore {
         self
     }
 
+    /// Keep each boat test's information on an offset ([`crate::health::Screen::information`]):
+    /// for the fault study.
+    pub fn with_screen_information(mut self) -> Self {
+        self.assim.screen().keep_information();
+        self
+    }
+
     /// Turn the checkpoints off (every re-fit then starts from epoch 0): for benchmarks.
     pub fn without_checkpoints(mut self) -> Self {
         self.checkpoints = None;

@@ -195,6 +195,20 @@ fn the_files_a_python_package_ships_keep_the_claims_and_a_missing_level_is_refus
             let cost = |k: &str| f[k]["mean"].as_f64().unwrap();
             assert!(cost("cost_with") < cost("cost_without"), "{name}: {f}");
         }
+        // An unmistakable fault (a stuck probe, a spike, an over-exposed frame, a dark camera)
+        // is marked as soon as a reading it altered arrives: within 3 epochs in exactly the
+        // seeds where one arrived by then (`knowable_within_3`; a spike that has not happened
+        // cannot be seen, a mark before it would be a false alarm).
+        for fault in ["stuck", "spikes", "overexposed", "silent"] {
+            let f = row["faults"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|f| f["fault"] == fault)
+                .unwrap();
+            let knowable = f["knowable_within_3"].as_f64().unwrap();
+            assert_eq!(f["marked_within_3"].as_f64().unwrap(), knowable, "{name}: {f}");
+        }
         let (alarms, checks) = (
             row["false_alarms"].as_f64().unwrap(),
             row["sensor_checks"].as_f64().unwrap(),

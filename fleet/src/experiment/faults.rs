@@ -12,7 +12,7 @@ use crate::process::FieldSeries;
 use crate::protocol::{MeasurementBatch, VehicleKind};
 use rand::{RngExt, SeedableRng};
 use serde::{Deserialize, Serialize};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 /// A sensor's failure. Sizes are in the vehicle's noise standard deviations (the row's).
 #[derive(
@@ -88,23 +88,37 @@ impl Fault {
 
     /// The vehicle's batches as its failing instrument would have reported them; or, with
     /// `withhold`, without the readings the fault alters (what a health test that knew which
-    /// readings were bad could at best do: the information the fault takes away).
+    /// readings were bad could at best do: the information the fault takes away). The steps
+    /// whose readings it changed or took away.
     pub fn apply(
         &self,
         batches: &mut [MeasurementBatch],
         withhold: bool,
         vehicle_of: impl Fn(&MeasurementBatch) -> usize,
-    ) {
+    ) -> BTreeSet<u64> {
+        let mut altered = BTreeSet::new();
         for b in batches.iter_mut().filter(|b| vehicle_of(b) == self.vehicle) {
             for s in b.samples.iter_mut() {
-                match withhold || self.kind == FaultKind::Silent {
+                let changed = match withhold || self.kind == FaultKind::Silent {
                     // The reading of no cell a vehicle off the site sends (a batch holds every step).
-                    true if self.alters(s.step) => (s.cells, s.values, s.sigma) = (vec![], vec![], None),
-                    true => {}
-                    false => self.alter(s.step, &mut s.values),
+                    true if self.alters(s.step) => {
+                        let had = !s.cells.is_empty();
+                        (s.cells, s.values, s.sigma) = (vec![], vec![], None);
+                        had
+                    }
+                    true => false,
+                    false => {
+                        let before = s.values.clone();
+                        self.alter(s.step, &mut s.values);
+                        s.values != before
+                    }
+                };
+                if changed {
+                    altered.insert(s.step);
                 }
             }
         }
+        altered
     }
 
     /// Whether the instrument sends nothing at `step` (a camera gone dark).
@@ -134,7 +148,10 @@ impl Fault {
         let mut rng = self.rng(step);
         let sd = self.sigma;
         match self.kind {
-            FaultKind::Bias => values.iter_mut().for_each(|v| *v += 3.0 * sd),
+            FaultKind::Bias | FaultKind::Drift => {
+                let offset = self.offset(step);
+                values.iter_mut().for_each(|v| *v += offset);
+            }
             FaultKind::Stuck => {
                 let first = values.first().copied().unwrap_or(0.0);
                 values.iter_mut().for_each(|v| *v = first);
@@ -144,11 +161,6 @@ impl Fault {
                     *v += if rng.random_bool(0.5) { 50.0 } else { -50.0 } * sd;
                 }
             }),
-            FaultKind::Drift => {
-                let span = (self.last.saturating_sub(self.from)).max(1) as f64;
-                let offset = 5.0 * sd * (step - self.from) as f64 / span;
-                values.iter_mut().for_each(|v| *v += offset);
-            }
             FaultKind::Overexposed => {
                 if rng.random_bool(0.1) {
                     values.iter_mut().for_each(|v| *v += 20.0 * sd);
@@ -159,6 +171,57 @@ impl Fault {
     }
 }
 
+impl Fault {
+    /// The offset a bias or a drift adds to every value at `step` (0 before the fault, and for
+    /// the other kinds).
+    fn offset(&self, step: u64) -> f64 {
+        let after = step.saturating_sub(self.from) as f64;
+        match (self.kind, step >= self.from) {
+            (FaultKind::Bias, true) => 3.0 * self.sigma,
+            (FaultKind::Drift, true) => 5.0 * self.sigma * after / (self.last.saturating_sub(self.from)).max(1) as f64,
+            _ => 0.0,
+        }
+    }
+
+    /// The chance that a test that knew the fault (its kind, size, sign and start) would have
+    /// marked the sensor by step `by`, from what the readings `out` received held of it: an
+    /// upper bound on any test's chance at [`ALPHA`] false alarms a look. An offset (bias,
+    /// drift) is seen only through the boat's differences from the aerials at the lattice cells
+    /// both measured (the field unknown elsewhere): with `W_t` the information of the
+    /// difference's weighted mean at step `t` and `mu_t` the offset, the best test (Neyman-
+    /// Pearson, one look at `by`, sign known) has power `Phi(sqrt(sum mu_t^2 W_t) - z_ALPHA)`.
+    /// A stuck probe, a spike, an over-exposed frame or a dark camera is unmistakable once it
+    /// happens, and indistinguishable from a healthy sensor before: 1 if a reading it altered
+    /// arrived by `by`, else 0.
+    pub fn knowable(&self, out: &TeamOutcome, by: u64) -> f64 {
+        match self.kind {
+            FaultKind::Bias | FaultKind::Drift => {
+                let lambda: f64 = out
+                    .information
+                    .range((self.vehicle, self.from)..=(self.vehicle, by))
+                    .map(|(&(_, t), &w)| self.offset(t).powi(2) * w)
+                    .sum();
+                normal_cdf(lambda.sqrt() - Z_ALPHA)
+            }
+            _ => f64::from(u8::from(out.altered.range(self.from..=by).next().is_some())),
+        }
+    }
+}
+
+/// False alarms a look of [`Fault::knowable`]'s test: the healthy fleets' rate a sensor-step
+/// (3.6e-4) over the 3 boat steps of its window, about.
+pub const ALPHA: f64 = 1e-3;
+/// The one-sided normal quantile of `1 - ALPHA`.
+const Z_ALPHA: f64 = 3.090_232_306_167_813;
+
+/// The standard normal's distribution function.
+fn normal_cdf(x: f64) -> f64 {
+    0.5 * libm::erfc(-x / std::f64::consts::SQRT_2)
+}
+
+/// Boat epochs after a fault's start within which its sensor counts as marked in time.
+pub const WITHIN: u64 = 3;
+
 /// One fault's runs of one seed: the fused MSE with the health tests, without them, and with
 /// the altered readings withheld (the floor a test can reach), and how many boat epochs after
 /// the fault's start the faulty sensor was first marked (`None`: never).
@@ -168,6 +231,9 @@ pub struct FaultRun {
     pub without_health: f64,
     pub withheld: f64,
     pub marked_after_epochs: Option<f64>,
+    /// The chance a test that knew the fault could have marked it within [`WITHIN`] boat epochs
+    /// ([`Fault::knowable`]).
+    pub knowable_in_time: f64,
 }
 
 /// Every fault of `kinds` on the QR team `cfg` (whose healthy run is the caller's).
@@ -192,6 +258,7 @@ pub fn run_faults(
             )?;
             let withheld = team::run_with_fault(cfg, truth, &fault, true)?;
             let marked = first_marked(&with, &fault, cfg);
+            let knowable = fault.knowable(&with, fault.from + WITHIN * cfg.boat_period.max(1) as u64);
             Ok((
                 kind,
                 FaultRun {
@@ -199,6 +266,7 @@ pub fn run_faults(
                     without_health: without.mean_heterogeneous,
                     withheld: withheld.mean_heterogeneous,
                     marked_after_epochs: marked,
+                    knowable_in_time: knowable,
                 },
             ))
         })
@@ -229,6 +297,8 @@ pub struct FaultSummary {
     /// Seeds where the faulty sensor was marked within 3 boat epochs of the fault's start, of
     /// all seeds; and the median epochs to the mark over the seeds it was marked in.
     pub marked_within_3: usize,
+    /// The seeds a test that knew the fault could have marked it in, expected ([`Fault::knowable`]).
+    pub knowable_within_3: f64,
     pub seeds: usize,
     pub median_epochs_to_mark: Option<f64>,
 }
@@ -251,7 +321,8 @@ pub fn summarise(healthy: &[f64], runs: &[&BTreeMap<FaultKind, FaultRun>]) -> Ve
                 cost_with: cost(&with),
                 cost_without: cost(&without),
                 cost_withheld: cost(&of(|r| r.withheld)),
-                marked_within_3: marks.iter().filter(|&&m| m <= 3.0).count(),
+                marked_within_3: marks.iter().filter(|&&m| m <= WITHIN as f64).count(),
+                knowable_within_3: of(|r| r.knowable_in_time).iter().sum(),
                 seeds: runs.len(),
                 median_epochs_to_mark: marks.get(marks.len() / 2).copied(),
             }
@@ -266,7 +337,7 @@ pub fn table(md: &mut String, row: &str, faults: &[FaultSummary]) -> std::fmt::R
         let pct = |i: &Interval| format!("{:+.1}% [{:+.1}, {:+.1}]", 100.0 * i.mean, 100.0 * i.lo, 100.0 * i.hi);
         writeln!(
             md,
-            "| {row} | {} | {:.3e} | {} | {:.3e} | {} | {} | {}/{} | {} |",
+            "| {row} | {} | {:.3e} | {} | {:.3e} | {} | {} | {}/{} | {:.1} | {} |",
             f.fault,
             f.with_health.mean,
             pct(&f.cost_with),
@@ -275,8 +346,92 @@ pub fn table(md: &mut String, row: &str, faults: &[FaultSummary]) -> std::fmt::R
             pct(&f.cost_withheld),
             f.marked_within_3,
             f.seeds,
+            f.knowable_within_3,
             f.median_epochs_to_mark.map_or("never".into(), |m| format!("{m:.1}")),
         )?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fault(kind: FaultKind) -> Fault {
+        Fault {
+            kind,
+            vehicle: 2,
+            from: 10,
+            last: 20,
+            sigma: 0.5,
+            seed: 1,
+        }
+    }
+
+    /// Known answers: a bias whose offsets' information is exactly `z_ALPHA^2` is found by the
+    /// best test half the time (and one twice as informative more often, a steady sensor's
+    /// information before the fault or another vehicle's counting nothing); a drift's offset
+    /// grows from 0, so its first step after the start tells nothing; a spike is knowable once
+    /// a reading it altered has arrived, not before.
+    #[test]
+    fn what_a_test_that_knew_the_fault_could_see() {
+        let mut out = TeamOutcome::default();
+        let bias = fault(FaultKind::Bias);
+        // mu = 1.5: mu^2 W = z^2 at W = (z / 1.5)^2, the information at step 12.
+        out.information.insert((2, 12), (Z_ALPHA / 1.5).powi(2));
+        out.information.insert((2, 9), 1e6);
+        out.information.insert((3, 12), 1e6);
+        assert!((bias.knowable(&out, 15) - 0.5).abs() < 1e-12);
+        assert_eq!(bias.knowable(&out, 11), normal_cdf(-Z_ALPHA));
+        assert!((normal_cdf(-Z_ALPHA) - ALPHA).abs() < 1e-15);
+        out.information.insert((2, 13), (Z_ALPHA / 1.5).powi(2));
+        assert!((bias.knowable(&out, 15) - normal_cdf((2.0f64.sqrt() - 1.0) * Z_ALPHA)).abs() < 1e-12);
+        let drift = fault(FaultKind::Drift);
+        let mut out = TeamOutcome::default();
+        out.information.insert((2, 10), 1e6);
+        assert_eq!(drift.knowable(&out, 10), normal_cdf(-Z_ALPHA));
+        out.information.insert((2, 20), 1.0);
+        // At the last step the drift is 5 sd = 2.5: lambda = 6.25.
+        assert!((drift.knowable(&out, 20) - normal_cdf(2.5 - Z_ALPHA)).abs() < 1e-12);
+        let spikes = fault(FaultKind::Spikes);
+        let mut out = TeamOutcome::default();
+        out.altered.insert(14);
+        assert_eq!((spikes.knowable(&out, 13), spikes.knowable(&out, 14)), (0.0, 1.0));
+    }
+
+    /// The steps [`Fault::apply`] reports are those whose readings it changed: a bias every
+    /// step from the start, an over-exposure only its frames.
+    #[test]
+    fn apply_reports_the_steps_it_altered() {
+        use crate::protocol::{Noise, Sample, VehicleId};
+        let batch = |vehicle: &str| MeasurementBatch {
+            vehicle: vehicle.parse::<VehicleId>().unwrap(),
+            kind: VehicleKind::Boat,
+            seq: 0,
+            noise: Noise {
+                sigma0: 0.5,
+                growth_per_m: 0.0,
+            },
+            samples: (0..20)
+                .map(|step| Sample {
+                    step,
+                    position: [0.0, 0.0],
+                    cells: vec![1, 2, 3],
+                    values: vec![0.1, 0.2, 0.3],
+                    sigma: None,
+                })
+                .collect(),
+        };
+        let mut batches = vec![batch("boat-0"), batch("boat-1")];
+        let vehicle_of = |b: &MeasurementBatch| usize::from(b.vehicle == *"boat-0") + 1;
+        let altered = fault(FaultKind::Bias).apply(&mut batches, false, vehicle_of);
+        assert_eq!(altered, (10..20).collect());
+        assert_eq!(batches[1].samples[15].values, vec![0.1, 0.2, 0.3]);
+        let over = Fault {
+            kind: FaultKind::Overexposed,
+            ..fault(FaultKind::Bias)
+        };
+        let altered = over.apply(&mut batches, false, vehicle_of);
+        assert!(altered.len() < 10 && altered.iter().all(|&s| s >= 10));
+    }
 }

@@ -30,6 +30,7 @@ use crate::sensing::gappy;
 use faer::Mat;
 use fleet_mission::fusion::mse;
 use serde::Serialize;
+use std::collections::BTreeMap;
 
 /// Per-step mean squared errors of the three teams, and what the fleet did.
 ///
@@ -73,6 +74,12 @@ pub struct TeamOutcome {
     pub verdicts: Vec<mission::health::Verdict>,
     /// What the health tests did to the readings.
     pub screened: mission::health::Screened,
+    /// With a fault: the steps whose readings it altered (or silenced), and each boat test's
+    /// information on an offset by vehicle and step ([`mission::health::Screen::information`]).
+    #[serde(skip)]
+    pub altered: std::collections::BTreeSet<u64>,
+    #[serde(skip)]
+    pub information: BTreeMap<(usize, u64), f64>,
     /// The heterogeneous team's reliability by decile of reported variance over the scored
     /// steps: per decile (smallest variance first), mean error^2 over mean reported variance
     /// (1 when the variance is the error's there, not only on average).
@@ -254,6 +261,23 @@ pub fn where_the_error_is(grid: &Grid, err2: &[f64], m: usize, radius: f64, excl
     out
 }
 
+impl TeamOutcome {
+    /// The fused team's step against the truth `x`: its MSE, calibration, and each cell's
+    /// reported variance beside its squared error (the reliability diagram's).
+    fn score_fused(&mut self, x: &[f64], estimate: &[f64], variance: &[f64]) {
+        self.heterogeneous.push(mse(estimate, x));
+        self.calibration.push(calibration(estimate, variance, x));
+        self.cell_errors.push(
+            x.iter()
+                .zip(estimate)
+                .zip(variance)
+                .filter(|((t, _), _)| !t.is_nan())
+                .map(|((t, e), v)| (*v as f32, ((e - t) * (e - t)) as f32))
+                .collect(),
+        );
+    }
+}
+
 fn run_placing(
     cfg: &TeamConfig,
     truth: &FieldSeries,
@@ -268,6 +292,9 @@ fn run_placing(
         ..cfg.clone()
     };
     let mut server = ServerCore::new(cfg, grid, frames)?.with_aerial_history();
+    if fault.is_some() {
+        server = server.with_screen_information();
+    }
     let truth_at = |k: usize| column(&truth.snapshots, k);
     let mut brains = brains_of(&server, cfg, grid);
     let mut out = TeamOutcome::default();
@@ -283,9 +310,9 @@ fn run_placing(
             .ok_or_else(|| TeamError::Config(format!("no allocation for epoch {e}")))?;
         let mut batches = sense(&server, &mut brains, e, &truth_at)?;
         if let Some((f, withhold)) = fault {
-            f.apply(&mut batches, withhold, |b| {
+            out.altered.extend(f.apply(&mut batches, withhold, |b| {
                 server.roster().index_of(&b.vehicle).unwrap_or(usize::MAX)
-            });
+            }));
         }
         let boat_samples: Vec<Sample> = batches
             .iter()
@@ -299,16 +326,7 @@ fn run_placing(
                 step_of(server.history().estimate(k))?,
                 step_of(server.history().variance(k))?,
             );
-            out.heterogeneous.push(mse(&estimate, &x));
-            out.calibration.push(calibration(&estimate, &variance, &x));
-            out.cell_errors.push(
-                x.iter()
-                    .zip(estimate.iter())
-                    .zip(variance.iter())
-                    .filter(|((t, _), _)| !t.is_nan())
-                    .map(|((t, e), v)| (*v as f32, ((e - t) * (e - t)) as f32))
-                    .collect(),
-            );
+            out.score_fused(&x, &estimate, &variance);
             out.aerial_only.push(mse(&server.aerial_estimates[k], &x));
             // Boat-only team, from the same boat samples.
             let here: Vec<&Sample> = boat_samples.iter().filter(|s| s.step as usize == k).collect();
@@ -327,6 +345,12 @@ fn run_placing(
     out.rank = server.assimilator().rank();
     out.verdicts = server.verdicts();
     out.screened = server.health().1;
+    out.information = server
+        .assimilator()
+        .screen_state()
+        .information()
+        .cloned()
+        .unwrap_or_default();
     out.score(frames);
     Ok(out)
 }
