@@ -560,7 +560,7 @@ impl Server {
 
     async fn on_model_query(&self, q: zenoh::query::Query) {
         let bytes = match self.core.published() {
-            Some(p) => Some(p.bytes.clone()),
+            Some(p) => Some(p.full().to_vec()),
             None => self.core.model_update().map(|m| protocol::encode(&Body::Model(m))),
         };
         let sent = match bytes {

@@ -250,9 +250,11 @@ impl View {
     fn model(&mut self, m: ModelUpdate) -> bool {
         let n = self.grid.len();
         let r = m.eigenvalues.len();
+        // The model put every epoch has no modes and carries its estimate (a get answers them).
+        let modes = m.modes_re.len() == n * r && m.modes_im.len() == n * r;
+        let lean = m.modes_re.is_empty() && m.modes_im.is_empty() && m.estimate.len() == n;
         if m.grid != self.grid
-            || m.modes_re.len() != n * r
-            || m.modes_im.len() != n * r
+            || !(modes || lean)
             || m.amplitudes.len() != r
             || m.variance.len() != n
             || m.land.iter().any(|&c| c as usize >= n)
@@ -592,6 +594,20 @@ mod tests {
         assert_eq!(v.fields().unwrap().estimate, vec![1.5, 1.5, 1.5, 0.5, 0.5, 0.5]);
         assert_eq!(v.state().mse.last(), Some(&(3, 0.25)));
         assert_eq!(v.state().model.unwrap().utc, None, "no mission time, no UTC");
+        // The model as it is put every epoch: no modes, its estimate drawn; without either,
+        // nothing to draw: refused.
+        let lean = |version: u64, estimate: Vec<f32>| match model(version, 3.0) {
+            Body::Model(m) => Body::Model(ModelUpdate {
+                modes_re: vec![],
+                modes_im: vec![],
+                estimate,
+                ..m
+            }),
+            other => other,
+        };
+        assert!(!v.apply(lean(4, vec![])), "no modes and no estimate: refused");
+        assert!(v.apply(lean(5, vec![2.0; 6])));
+        assert_eq!(v.fields().unwrap().estimate, vec![2.0; 6]);
     }
 
     #[test]

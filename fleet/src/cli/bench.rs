@@ -203,22 +203,23 @@ fn epoch_bench(
 ) -> anyhow::Result<serde_json::Value> {
     let sizes = grids.iter().map(|g| grid_size(g)).collect::<anyhow::Result<Vec<_>>>()?;
     println!(
-        "| grid | vehicles | first fit (ms) | epoch p50 / p99 (ms) | model (bytes) | batches an epoch (bytes) \
-         | peak resident (MB) |"
+        "| grid | vehicles | first fit (ms) | epoch p50 / p99 (ms) | model put an epoch (bytes) | with its modes, \
+         on request (bytes) | batches an epoch (bytes) | peak resident (MB) |"
     );
-    println!("|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|");
     let mut out = vec![];
     for (rows, cols) in sizes {
         eprintln!("{rows} x {cols}: {epochs} epochs...");
         let t = fleet::experiment::epoch_timing::run(rows, cols, fleet, epochs)?;
         println!(
-            "| {rows} x {cols} | {} + {} | {:.0} | {:.1} / {:.1} | {} | {:.0} | {} |",
+            "| {rows} x {cols} | {} + {} | {:.0} | {:.1} / {:.1} | {} | {} | {:.0} | {} |",
             t.aerials,
             t.boats,
             t.first_fit_ms,
             t.p50_ms,
             t.p99_ms,
             t.model_bytes,
+            t.model_full_bytes,
             t.batch_bytes_per_epoch,
             t.peak_resident_kb
                 .map_or("?".into(), |k| format!("{:.0}", k as f64 / 1024.0))

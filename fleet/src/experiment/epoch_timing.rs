@@ -22,8 +22,12 @@ pub struct EpochTiming {
     pub first_fit_ms: f64,
     pub p50_ms: f64,
     pub p99_ms: f64,
-    /// Bytes of the published model, and of every batch of an epoch (mean), on the wire.
+    /// Each timed epoch's milliseconds, in order (where a slow one falls).
+    pub epoch_ms: Vec<f64>,
+    /// Bytes of the model put every epoch (without its modes), of the whole model a get
+    /// answers, and of every batch of an epoch (mean), on the wire.
     pub model_bytes: usize,
+    pub model_full_bytes: usize,
     pub batch_bytes_per_epoch: f64,
     /// The process's peak resident size so far (kB, Linux's VmHWM; the truth is in it too).
     pub peak_resident_kb: Option<u64>,
@@ -81,13 +85,10 @@ fn timed(
     let grid = Grid::new(rows, cols, 1.0)?;
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
     // As the model server keeps it: every step's fused map in files, not in memory.
-    // One directory a run (two runs of one process side by side do not share their files).
-    static RUNS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-    let run = RUNS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let dir = std::env::temp_dir().join(format!("hetfleet-bench-epoch-{}-{run}", std::process::id()));
+    let dir = run_dir();
     let mut server = ServerCore::new(&cfg, grid, frames)?.with_history_in(&dir)?;
     let mut brains = super::team::brains_of(&server, &cfg, grid);
-    let (mut times, mut batch_bytes, mut model_bytes) = (vec![], 0usize, 0);
+    let (mut times, mut batch_bytes, mut model_bytes, mut model_full_bytes) = (vec![], 0usize, 0, 0);
     for e in 0..server.schedule().epochs() {
         let mut batches = vec![];
         for brain in brains.iter_mut() {
@@ -118,6 +119,8 @@ fn timed(
             }
         });
         times.push(t0.elapsed().as_secs_f64() * 1e3);
+        // Made when a get first asks for it, off the epoch's path.
+        model_full_bytes = server.published().map_or(0, |m| m.full().len());
         if e == 0 {
             phases.reset();
         }
@@ -126,13 +129,7 @@ fn timed(
     let _ = std::fs::remove_dir_all(&dir);
     let first_fit_ms = times.remove(0);
     let n = times.len();
-    let pct = |p: f64| -> f64 {
-        let mut t = times.clone();
-        t.sort_by(f64::total_cmp);
-        t.get(((p * n as f64).ceil() as usize).clamp(1, n.max(1)) - 1)
-            .copied()
-            .unwrap_or(f64::NAN)
-    };
+    let pct = |p: f64| percentile(&times, p);
     Ok(EpochTiming {
         grid: [rows, cols],
         aerials,
@@ -141,11 +138,32 @@ fn timed(
         first_fit_ms,
         p50_ms: pct(0.5),
         p99_ms: pct(0.99),
+        epoch_ms: times,
         model_bytes,
+        model_full_bytes,
         batch_bytes_per_epoch: batch_bytes as f64 / (n + 1) as f64,
         peak_resident_kb: peak_resident_kb(),
         phases_ms: vec![],
     })
+}
+
+/// A directory for one run's history files (two runs of one process side by side do not share
+/// their files).
+fn run_dir() -> std::path::PathBuf {
+    static RUNS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let run = RUNS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    std::env::temp_dir().join(format!("hetfleet-bench-epoch-{}-{run}", std::process::id()))
+}
+
+/// The `p` quantile of `times`: the smallest value at least a share `p` of them reach (the
+/// largest, for p99 of fewer than 100).
+fn percentile(times: &[f64], p: f64) -> f64 {
+    let mut t = times.to_vec();
+    t.sort_by(f64::total_cmp);
+    let n = t.len();
+    t.get(((p * n as f64).ceil() as usize).clamp(1, n.max(1)) - 1)
+        .copied()
+        .unwrap_or(f64::NAN)
 }
 
 /// Linux's VmHWM of this process (kB).

@@ -261,7 +261,9 @@ pub struct ModelUpdate {
     pub dt: f64,
     /// Discrete-time eigenvalues `[re, im]`, one per mode.
     pub eigenvalues: Vec<[f64; 2]>,
-    /// Modes, row-major `N x r`, real and imaginary parts separately. The per-cell arrays travel
+    /// Modes, row-major `N x r`, real and imaginary parts separately; empty in the model put on
+    /// `model/latest` every epoch (which then carries `estimate`), held in the one a get on that
+    /// key answers: an observer that forecasts asks for them. The per-cell arrays travel
     /// as `f32` (schema 4): an observer draws or forecasts the field from them, to a relative
     /// 6e-8 (half an `f32` ulp), far inside any sensor's noise, at half the bytes (27 MB
     /// rather than 54 at 384 x 768). The eigenvalues and amplitudes, raised to powers in a
@@ -647,8 +649,10 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
                 return inv(format!("model grid {:?} is not ours {:?}", m.grid, ctx.grid));
             }
             let r = m.eigenvalues.len();
-            if m.modes_re.len() != n * r
-                || m.modes_im.len() != n * r
+            // Without its modes (as `model/latest` is put: a get asks for them) a model must
+            // carry the estimate an observer draws.
+            let lean = m.modes_re.is_empty() && m.modes_im.is_empty() && m.estimate.len() == n;
+            if !lean && (m.modes_re.len() != n * r || m.modes_im.len() != n * r)
                 || m.amplitudes.len() != r
                 || m.variance.len() != n
                 || m.forecast_variance.len() != n
@@ -889,6 +893,50 @@ mod tests {
             .to_string()
             .contains("at most 0 samples"));
         assert!(bad(&|b| b.noise.sigma0 = -1.0).to_string().contains("noise"));
+    }
+
+    /// The model put every epoch leaves out its modes and carries its estimate; a model with
+    /// neither, or with half its modes, gives an observer nothing to draw: refused.
+    #[test]
+    fn a_model_without_its_modes_must_carry_its_estimate() {
+        let c = ctx();
+        let whole = ModelUpdate {
+            version: 1,
+            epoch: 2,
+            step: 40,
+            grid: c.grid,
+            dt: 0.25,
+            eigenvalues: vec![[0.9, 0.1]],
+            modes_re: vec![0.1; 20],
+            modes_im: vec![0.0; 20],
+            amplitudes: vec![[1.0, 0.0]],
+            estimate: vec![],
+            variance: vec![0.01; 20],
+            forecast_steps: 5,
+            forecast_variance: vec![0.02; 20],
+            land: vec![],
+        };
+        let check = |m: &ModelUpdate| decode(&encode(&Body::Model(m.clone())), &c);
+        assert!(check(&whole).is_ok());
+        let lean = ModelUpdate {
+            modes_re: vec![],
+            modes_im: vec![],
+            estimate: vec![0.5; 20],
+            ..whole.clone()
+        };
+        assert_eq!(check(&lean), Ok(Body::Model(lean.clone())));
+        for bad in [
+            ModelUpdate {
+                estimate: vec![],
+                ..lean.clone()
+            },
+            ModelUpdate {
+                modes_im: vec![],
+                ..whole.clone()
+            },
+        ] {
+            assert!(check(&bad).unwrap_err().to_string().contains("mode values"), "{bad:?}");
+        }
     }
 
     #[test]
