@@ -297,10 +297,8 @@ fn truth_arg(c: &mut Command, path: &Path) {
 /// one.
 type Said = Result<ServerEvent, String>;
 
-/// mimalloc's settings for the server, each unless the user set it: the purge delay (ms; -1:
-/// never give freed memory back to the system), and its memory in transparent huge pages
-/// (`madvise`d: this kernel's default gives them only to who asks).
-const ALLOCATOR: [(&str, &str); 2] = [("MIMALLOC_PURGE_DELAY", "-1"), ("MIMALLOC_ALLOW_LARGE_OS_PAGES", "1")];
+/// mimalloc's purge delay (ms; -1: never give freed memory back to the system).
+const PURGE_DELAY: &str = "MIMALLOC_PURGE_DELAY";
 
 /// The model server, started on the staged run; its events (also kept in `events.jsonl`).
 fn start_server(
@@ -312,14 +310,11 @@ fn start_server(
     let mut server = Command::new(&bins.server);
     // mimalloc keeps the memory the server frees for its next epoch instead of returning it to
     // the system, where each epoch's N x r matrices came back as fresh pages the kernel zeroed
-    // (192 x 384: p50 414 -> 253 ms, README "Where an epoch's time goes"); and the memory it
-    // first touches comes in 2 MB pages, a fault each rather than 512 (the first epoch after
-    // the fit at 192 x 384: 146-148 -> 111-113 ms). Only the environment sets them early
-    // enough: `mi_option_set` at start-up did not take. A value the user set is kept.
-    for (name, value) in ALLOCATOR {
-        if std::env::var_os(name).is_none() {
-            server.env(name, value);
-        }
+    // (192 x 384: p50 414 -> 253 ms, README "Where an epoch's time goes"). Only the
+    // environment sets it early enough: `mi_option_set` at start-up did not take. A value the
+    // user set is kept.
+    if std::env::var_os(PURGE_DELAY).is_none() {
+        server.env(PURGE_DELAY, "-1");
     }
     server.arg("--mission").arg(mission_file(args, staging));
     truth_arg(&mut server, &staging.join("truth.npy"));
