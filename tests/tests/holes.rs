@@ -184,13 +184,12 @@ fn the_files_a_python_package_ships_keep_the_claims_and_a_missing_level_is_refus
         // boat epochs in every seed and cost less with the tests than without (the dark camera's
         // region covered by the other aerial); the healthy fleets are marked at most 3 times as
         // often as the bias CUSUM's design rate (about 7.7e-4 a sensor-step).
+        let fault_of = |fault: &str| {
+            let faults = row["faults"].as_array().unwrap();
+            faults.iter().find(|f| f["fault"] == fault).unwrap().clone()
+        };
         for fault in ["stuck", "silent"] {
-            let f = row["faults"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .find(|f| f["fault"] == fault)
-                .unwrap();
+            let f = fault_of(fault);
             assert_eq!(f["marked_within_3"], 10, "{name}: {f}");
             let cost = |k: &str| f[k]["mean"].as_f64().unwrap();
             assert!(cost("cost_with") < cost("cost_without"), "{name}: {f}");
@@ -200,12 +199,7 @@ fn the_files_a_python_package_ships_keep_the_claims_and_a_missing_level_is_refus
         // seeds where one arrived by then (`knowable_within_3`; a spike that has not happened
         // cannot be seen, a mark before it would be a false alarm).
         for fault in ["stuck", "spikes", "overexposed", "silent"] {
-            let f = row["faults"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .find(|f| f["fault"] == fault)
-                .unwrap();
+            let f = fault_of(fault);
             let knowable = f["knowable_within_3"].as_f64().unwrap();
             assert_eq!(f["marked_within_3"].as_f64().unwrap(), knowable, "{name}: {f}");
         }
