@@ -87,7 +87,7 @@ fn shuffled_and_repeated_batches_give_the_offline_result() {
         if !server.finished() {
             // Made beside the placement, on the other core: the model as it is, encoded.
             let made = server.published().expect("the model published beside the placement");
-            assert_eq!(made.bytes, encoded_model(&server), "epoch {e}");
+            assert_eq!(made.full(), encoded_model(&server), "epoch {e}");
         }
         sent.extend(batches);
         e += 1;
@@ -95,7 +95,7 @@ fn shuffled_and_repeated_batches_give_the_offline_result() {
     // The last epoch places nothing: its model is made when asked for, not the stale one.
     assert!(server.published().is_none());
     let last = server.take_published().unwrap();
-    assert_eq!(last.bytes, encoded_model(&server));
+    assert_eq!(last.full(), encoded_model(&server));
     assert_eq!(assimilated as u64, server.counters.epochs);
     assert_eq!(
         server.counters.batches - server.counters.duplicates,
@@ -657,7 +657,7 @@ fn a_late_batch_refits_from_the_newest_checkpoint_before_it_to_the_same_model() 
     );
     // The model published is the re-fitted one, not the one made before the late batch.
     let published = server.take_published().unwrap();
-    assert_eq!(published.bytes, encoded_model(&server));
+    assert_eq!(published.full(), encoded_model(&server));
     equals_offline(&server, all, offline);
 }
 
