@@ -81,10 +81,7 @@ pub(crate) type Made = (u64, u64, usize);
 impl Published {
     pub(crate) fn of(mut update: ModelUpdate, made: Made) -> Self {
         let _span = tracing::info_span!("model encoded").entered();
-        let modes = [
-            std::mem::take(&mut update.modes_re),
-            std::mem::take(&mut update.modes_im),
-        ];
+        let modes = update.take_modes();
         let shown = Body::Model(update);
         Self {
             bytes: protocol::encode(&shown),

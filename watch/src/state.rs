@@ -250,11 +250,8 @@ impl View {
     fn model(&mut self, m: ModelUpdate) -> bool {
         let n = self.grid.len();
         let r = m.eigenvalues.len();
-        // The model put every epoch has no modes and carries its estimate (a get answers them).
-        let modes = m.modes_re.len() == n * r && m.modes_im.len() == n * r;
-        let lean = m.modes_re.is_empty() && m.modes_im.is_empty() && m.estimate.len() == n;
         if m.grid != self.grid
-            || !(modes || lean)
+            || !m.has_a_field(n)
             || m.amplitudes.len() != r
             || m.variance.len() != n
             || m.land.iter().any(|&c| c as usize >= n)

@@ -2,7 +2,7 @@
 //! recorded operations, offline; the final model must equal the recorded one bit for bit.
 
 use anyhow::{bail, Result};
-use fleet::protocol::{self, Body, ModelUpdate};
+use fleet::protocol::{self, Body};
 use fleet_mission::recording::{CoreOp, Recording, RecordingError};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -165,11 +165,8 @@ fn linger(addr: std::net::SocketAddr, linger_s: u64, stop: &super::supervise::St
 /// model is put (and recorded) without its modes; a recording of an older build holds them.
 fn compare_models(core: &fleet_mission::server::ServerCore, rec: &Recording) -> Result<()> {
     let replayed = core.model_update().map(|m| {
-        let lean = ModelUpdate {
-            modes_re: vec![],
-            modes_im: vec![],
-            ..m.clone()
-        };
+        let mut lean = m.clone();
+        lean.take_modes();
         [lean, m].map(|m| protocol::encode(&Body::Model(m)))
     });
     let recorded = rec.final_model().map(|m| m.data.clone());

@@ -88,7 +88,7 @@ fn timed(
     let dir = run_dir();
     let mut server = ServerCore::new(&cfg, grid, frames)?.with_history_in(&dir)?;
     let mut brains = super::team::brains_of(&server, &cfg, grid);
-    let (mut times, mut batch_bytes, mut model_bytes, mut model_full_bytes) = (vec![], 0usize, 0, 0);
+    let (mut times, mut batch_bytes, mut model_bytes) = (vec![], 0usize, 0);
     for e in 0..server.schedule().epochs() {
         let mut batches = vec![];
         for brain in brains.iter_mut() {
@@ -119,12 +119,12 @@ fn timed(
             }
         });
         times.push(t0.elapsed().as_secs_f64() * 1e3);
-        // Made when a get first asks for it, off the epoch's path.
-        model_full_bytes = server.published().map_or(0, |m| m.full().len());
         if e == 0 {
             phases.reset();
         }
     }
+    // The whole model, its modes in, as a get is answered: encoded once, off the epochs' path.
+    let model_full_bytes = server.take_published().map_or(0, |m| m.full().len());
     drop(server);
     let _ = std::fs::remove_dir_all(&dir);
     let first_fit_ms = times.remove(0);

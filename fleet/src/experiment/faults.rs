@@ -203,7 +203,8 @@ impl Fault {
                     .sum();
                 normal_cdf(lambda.sqrt() - Z_ALPHA)
             }
-            _ => f64::from(u8::from(out.altered.range(self.from..=by).next().is_some())),
+            _ if out.altered.range(self.from..=by).next().is_some() => 1.0,
+            _ => 0.0,
         }
     }
 }

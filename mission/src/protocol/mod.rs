@@ -293,6 +293,22 @@ pub struct ModelUpdate {
     pub land: Vec<u32>,
 }
 
+impl ModelUpdate {
+    /// Takes the modes out (the model as `model/latest` is put every epoch), and gives them back.
+    pub fn take_modes(&mut self) -> [Vec<f32>; 2] {
+        [std::mem::take(&mut self.modes_re), std::mem::take(&mut self.modes_im)]
+    }
+
+    /// Whether the model on `n` cells gives an observer a field to draw: all its modes, or none
+    /// and its estimate (as `model/latest` is put: a get asks for the modes).
+    pub fn has_a_field(&self, n: usize) -> bool {
+        let r = self.eigenvalues.len();
+        let whole = self.modes_re.len() == n * r && self.modes_im.len() == n * r;
+        let lean = self.modes_re.is_empty() && self.modes_im.is_empty() && self.estimate.len() == n;
+        whole || lean
+    }
+}
+
 /// One target of a plan: a sampling step of the vehicle.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Target {
@@ -649,14 +665,7 @@ pub fn validate(body: &Body, ctx: &Context) -> Result<(), ProtocolError> {
                 return inv(format!("model grid {:?} is not ours {:?}", m.grid, ctx.grid));
             }
             let r = m.eigenvalues.len();
-            // Without its modes (as `model/latest` is put: a get asks for them) a model must
-            // carry the estimate an observer draws.
-            let lean = m.modes_re.is_empty() && m.modes_im.is_empty() && m.estimate.len() == n;
-            if !lean && (m.modes_re.len() != n * r || m.modes_im.len() != n * r)
-                || m.amplitudes.len() != r
-                || m.variance.len() != n
-                || m.forecast_variance.len() != n
-            {
+            if !m.has_a_field(n) || m.amplitudes.len() != r || m.variance.len() != n || m.forecast_variance.len() != n {
                 return inv(format!(
                     "model of rank {r} on {n} cells has {} / {} mode values, {} amplitudes, {} variances, {} forecast \
                         variances",
