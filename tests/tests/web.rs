@@ -2,7 +2,8 @@
 //! Chromium (Debian's `chromium`, installed by scripts/test.sh) opens the page twice, sees
 //! every vehicle and the model version advance, logs nothing to the console, and saves a
 //! screenshot; the mission outlives a killed view and the open page reconnects to a new one.
-//! `/api/state` says the same; bad requests get 4xx; a lost vehicle is marked.
+//! `/api/state` says the same; bad requests get 4xx; a lost vehicle is marked; a view that
+//! missed the model's puts catches up.
 
 use fleet::mission::config::MissionConfig;
 use hetfleet_tests::*;
@@ -396,6 +397,44 @@ fn a_vehicle_that_goes_silent_is_marked_lost_within_the_lease_and_a_public_addre
     println!("boat-2 marked lost {after:.2} s after kill -9 (lease 1 s)");
 }
 
+/// A view that could not hear the model go by (stopped past its 1 s link lease while the whole
+/// mission ran, as a laptop asleep or a view that joins as the last put leaves) shows the
+/// final model once it is back: the server's status says a newer version, and it asks.
+#[test]
+fn a_view_that_was_away_while_the_model_went_by_catches_up_from_the_servers_status() {
+    let dir = scratch("web-away");
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
+    edit(&mission, "listen = [", "lease_ms = 1000\nlisten = [");
+    let (m, state) = (mission.to_str().unwrap(), dir.join("state"));
+    let mut procs = Procs::default();
+    let server = start_server(
+        &mut procs,
+        &["--mission", m, "--state-dir", state.to_str().unwrap()],
+        &dir.join("server.log"),
+    );
+    let port = free_port();
+    let watch = Command::new(bin("fleet-watch"))
+        .args(["--mission", m, "--http", &format!("127.0.0.1:{port}")])
+        .stderr(std::fs::File::create(dir.join("watch.log")).unwrap())
+        .spawn()
+        .unwrap();
+    let pid = watch.id() as i32;
+    procs.0.push(watch);
+    eventually(30, "the view hears the server", || {
+        web_state(port).is_some_and(|s| s["server"].is_object())
+    });
+    unsafe { libc::kill(pid, libc::SIGSTOP) };
+    // Past the lease: the server has closed the view's session before the first model.
+    std::thread::sleep(std::time::Duration::from_secs(3));
+    start_vehicles(&mut procs, &mission, state.to_str().unwrap(), &dir, &[]);
+    let summary = server.finished(120);
+    unsafe { libc::kill(pid, libc::SIGCONT) };
+    eventually(15, "the view has the final model", || {
+        web_state(port).is_some_and(|s| version(&s) == summary.model_version)
+    });
+}
+
 /// The Foxglove WebSocket client (`tests/py/foxglove_ws.py`) at `url`: what it printed.
 fn foxglove_client(url: &str, vehicles: &str, mode: &str) -> String {
     let o = Command::new("python3")
@@ -427,7 +466,9 @@ fn foxglove_sees_the_vehicles_and_the_grid_live_and_a_public_address_needs_a_cre
 
     // With a credential: a client without it is refused (401); with it in the URL, let in.
     let port = free_port();
-    let mut watch = Command::new(bin("fleet-watch"))
+    // In `Procs`, so that a client that fails does not leave the view running.
+    let mut watch = Procs::default();
+    let child = Command::new(bin("fleet-watch"))
         .args([
             "--mission",
             m,
@@ -440,11 +481,11 @@ fn foxglove_sees_the_vehicles_and_the_grid_live_and_a_public_address_needs_a_cre
         .stderr(std::fs::File::create(dir.join("watch.log")).unwrap())
         .spawn()
         .unwrap();
+    watch.0.push(child);
     let url = format!("ws://127.0.0.1:{port}");
     let refused = foxglove_client(&url, "", "refused");
     let admitted = foxglove_client(&format!("{url}/?credential=ops%3As3cret%40sea"), "", "connect");
-    watch.kill().unwrap();
-    let _ = watch.wait();
+    drop(watch);
     assert!(refused.starts_with("refused 401"), "{refused}");
     assert!(admitted.starts_with("connected"), "{admitted}");
 

@@ -219,7 +219,17 @@ async fn follow(
     loop {
         tokio::select! {
             s = inputs.telemetry.recv_async() => if let Ok(s) = s { dirty |= take(sinks, fleet_net::decode(&s, ctx)) },
-            s = inputs.status.recv_async() => if let Ok(s) = s { dirty |= take(sinks, fleet_net::decode(&s, ctx)) },
+            s = inputs.status.recv_async() => if let Ok(s) = s {
+                let body = fleet_net::decode(&s, ctx);
+                let missed = matches!(&body, Ok(Body::Status(st)) if view.lock().expect("view lock").behind(st.version));
+                dirty |= take(sinks, body);
+                // A model put while this view could not hear it (it joined as the mission
+                // ended, or its link's lease ran out): no put comes again, so ask for it.
+                if missed {
+                    dirty |= ask(session, keys.model_latest(), sinks, ctx).await;
+                    dirty |= ask_plans(session, keys, ctx, sinks).await;
+                }
+            },
             s = inputs.models.recv_async() => if let Ok(s) = s {
                 // The model is shown at once; its plans follow when the server answers (a
                 // server gone away must not hold the view).

@@ -196,6 +196,13 @@ impl View {
         }
     }
 
+    /// Whether the server has published a model (its status says `version`) newer than the one
+    /// shown: a put this view missed (it joined after its get was answered, or its link's lease
+    /// ran out while the model went by). Versions count from 1; 0 is "no model yet".
+    pub fn behind(&self, version: u64) -> bool {
+        self.model.as_ref().map_or(0, |m| m.version) < version
+    }
+
     /// Count a message the watch could not use.
     pub fn refuse(&mut self) {
         self.refused += 1;
@@ -567,6 +574,7 @@ mod tests {
     #[test]
     fn a_model_gives_the_estimate_its_error_and_continuous_eigenvalues() {
         let mut v = view();
+        assert!(!v.behind(0) && v.behind(1), "no model yet: any published one is newer");
         assert!(v.apply(model(1, 3.0)));
         let f = v.fields().unwrap();
         assert_eq!(f.estimate, vec![3.0; 6]);
@@ -576,6 +584,10 @@ mod tests {
         let ct = &v.state().model.unwrap().eigenvalues_ct[0];
         assert!((ct[0] - 0.5f64.ln()).abs() < 1e-15 && ct[1] == 0.0);
         assert!(!v.apply(model(1, 5.0)), "an older or repeated version is not taken");
+        assert!(
+            !v.behind(1) && v.behind(2),
+            "behind a server whose status says a newer model"
+        );
         let mut bad = model(2, 1.0);
         if let Body::Model(m) = &mut bad {
             m.variance.pop();
