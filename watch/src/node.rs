@@ -221,7 +221,8 @@ async fn follow(
             s = inputs.telemetry.recv_async() => if let Ok(s) = s { dirty |= take(sinks, fleet_net::decode(&s, ctx)) },
             s = inputs.status.recv_async() => if let Ok(s) = s {
                 let body = fleet_net::decode(&s, ctx);
-                let missed = matches!(&body, Ok(Body::Status(st)) if view.lock().expect("view lock").behind(st.version));
+                let behind = |v: u64| view.lock().expect("view lock").behind(v);
+                let missed = matches!(&body, Ok(Body::Status(st)) if behind(st.version));
                 dirty |= take(sinks, body);
                 // A model put while this view could not hear it (it joined as the mission
                 // ended, or its link's lease ran out): no put comes again, so ask for it.
