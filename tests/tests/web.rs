@@ -341,13 +341,7 @@ fn a_vehicle_that_goes_silent_is_marked_lost_within_the_lease_and_a_public_addre
         ],
         &dir.join("server.log"),
     );
-    let port = free_port();
-    let watch = Command::new(bin("fleet-watch"))
-        .args(["--mission", m, "--http", &format!("127.0.0.1:{port}")])
-        .stderr(std::fs::File::create(dir.join("watch.log")).unwrap())
-        .spawn()
-        .unwrap();
-    procs.0.push(watch);
+    let (port, _) = start_view(&mut procs, m, &dir);
     let mut boat2 = 0;
     for v in MissionConfig::load(Some(&mission)).unwrap().vehicles() {
         let args = [
@@ -397,6 +391,19 @@ fn a_vehicle_that_goes_silent_is_marked_lost_within_the_lease_and_a_public_addre
     println!("boat-2 marked lost {after:.2} s after kill -9 (lease 1 s)");
 }
 
+/// `fleet-watch` on `mission` at a free loopback port, its log in `dir`: the port and the pid.
+fn start_view(procs: &mut Procs, mission: &str, dir: &Path) -> (u16, i32) {
+    let port = free_port();
+    let watch = Command::new(bin("fleet-watch"))
+        .args(["--mission", mission, "--http", &format!("127.0.0.1:{port}")])
+        .stderr(std::fs::File::create(dir.join("watch.log")).unwrap())
+        .spawn()
+        .unwrap();
+    let pid = watch.id() as i32;
+    procs.0.push(watch);
+    (port, pid)
+}
+
 /// A view that could not hear the model go by (stopped past its 1 s link lease while the whole
 /// mission ran, as a laptop asleep or a view that joins as the last put leaves) shows the
 /// final model once it is back: the server's status says a newer version, and it asks.
@@ -413,14 +420,7 @@ fn a_view_that_was_away_while_the_model_went_by_catches_up_from_the_servers_stat
         &["--mission", m, "--state-dir", state.to_str().unwrap()],
         &dir.join("server.log"),
     );
-    let port = free_port();
-    let watch = Command::new(bin("fleet-watch"))
-        .args(["--mission", m, "--http", &format!("127.0.0.1:{port}")])
-        .stderr(std::fs::File::create(dir.join("watch.log")).unwrap())
-        .spawn()
-        .unwrap();
-    let pid = watch.id() as i32;
-    procs.0.push(watch);
+    let (port, pid) = start_view(&mut procs, m, &dir);
     eventually(30, "the view hears the server", || {
         web_state(port).is_some_and(|s| s["server"].is_object())
     });
