@@ -57,7 +57,7 @@ impl ProjectedFit {
             Cow::Borrowed(f) if on_u => f.u.clone(),
             Cow::Borrowed(f) => f.yws.clone(),
         };
-        let modes = crate::par::product(super::linalg::to_complex(real.as_ref()).as_ref(), v.as_ref());
+        let modes = crate::par::real_times_complex(real.as_ref(), v.as_ref());
         let factors = ModeFactors { real, coefficients: v };
         Ok((Modes { eigenvalues, modes }, Some(factors)))
     }
