@@ -128,6 +128,10 @@ pub struct ServerSummary {
     /// Times each vehicle's liveliness token appeared (1: never lost).
     pub link_ups: BTreeMap<VehicleId, u64>,
     pub wall_s: f64,
+    /// The server process's peak resident size (MiB, Linux's `VmHWM`), the mixed-reality truth
+    /// it scores against included.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub peak_resident_mib: Option<f64>,
     /// Seconds of the field's own time between steps (the time axis of `estimate.npy`).
     #[serde(default)]
     pub dt: f64,

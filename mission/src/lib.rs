@@ -20,6 +20,7 @@ pub mod history;
 pub mod holdout;
 pub mod instrument;
 pub mod launch;
+pub mod memory;
 pub mod offline;
 pub mod outputs;
 pub mod protocol;

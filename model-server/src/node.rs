@@ -25,7 +25,7 @@ struct Server {
     core: ServerCore,
     ctx: Context,
     /// The mixed-reality truth the run is scored against (`None` in the field).
-    truth: Option<FieldSeries>,
+    truth: Option<std::sync::Arc<FieldSeries>>,
     /// Each instrument-fed vehicle's reading counts, as its telemetry last said.
     readings: BTreeMap<VehicleId, fleet_mission::protocol::ReadingCounts>,
     /// Each vehicle's link traffic, as its telemetry last said.
@@ -721,6 +721,7 @@ impl Server {
             eigenvalues,
             link_ups: self.link_ups.clone(),
             wall_s: self.started.elapsed().as_secs_f64(),
+            peak_resident_mib: fleet_mission::memory::peak_resident_kb().map(|kb| kb as f64 / 1024.0),
             holdout: self.core.holdout(),
             innovations: self.core.innovations(),
             traffic: self.traffic.clone(),
@@ -840,14 +841,14 @@ fn open_recorder(
     mission: &MissionConfig,
     grid: &fleet_mission::grid::Grid,
     frames: usize,
-    truth: Option<&fleet_mission::process::FieldSeries>,
+    truth: Option<std::sync::Arc<fleet_mission::process::FieldSeries>>,
 ) -> anyhow::Result<Option<Recorder<std::io::BufWriter<std::fs::File>>>> {
     let Some(path) = &args.record else { return Ok(None) };
     let text = match &args.node.mission {
         Some(p) => std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?,
         None => fleet_mission::config::DEFAULT_MISSION.to_string(),
     };
-    let view = fleet_mission::foxglove::FoxgloveView::new(mission, *grid, truth.cloned());
+    let view = fleet_mission::foxglove::FoxgloveView::new(mission, *grid, truth);
     let r = Recorder::create(path, args.record_mode, mission, &text, grid, frames)?.with_foxglove(view)?;
     info!(recording = %r.path().display(), mode = %args.record_mode, "recording the mission");
     Ok(Some(r))
@@ -909,6 +910,8 @@ impl Inputs {
 pub async fn run(args: Args) -> anyhow::Result<()> {
     let (mission, truth) = args.node.load()?;
     let (grid, frames) = mission.workspace(truth.as_ref())?;
+    // One truth, shared with the recording's Foxglove view.
+    let truth = truth.map(std::sync::Arc::new);
     let keys = Keys::new(&mission.mission)?;
     let mut core = ServerCore::new(&mission.team, grid, frames)?
         .with_boat_speed(mission.motion.boat_speed)
@@ -922,7 +925,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     ctx.vehicles = core.vehicles().iter().map(|v| v.id.clone()).collect();
     let journal_path = args.state_dir.join(format!("{}.redb", mission.mission));
     let (journal, restored, restore) = open_journal(&journal_path, &mission.mission, &mut core, &ctx)?;
-    let recorder = open_recorder(&args, &mission, &grid, frames, truth.as_ref())?;
+    let recorder = open_recorder(&args, &mission, &grid, frames, truth.clone())?;
     let session = fleet_net::open(args.node.zenoh_config(Role::Server, &mission.network, &mission.link)?).await?;
     let inputs = Inputs::declare(&session, &keys).await?;
     let mut s = Server {

@@ -57,6 +57,13 @@ fn fleet_up_runs_a_mission_that_equals_the_offline_loop() {
         .iter()
         .all(|s| s.forecast.is_some_and(|f| f <= 1.0) && (0.0..=1.0).contains(&s.between)));
     assert!(report.contains("## Forecast skill"), "{report}");
+    // The server's own peak memory (an operator sizes the base station's machine by it).
+    assert!(
+        summary.peak_resident_mib.is_some_and(|m| m > 1.0),
+        "{:?}",
+        summary.peak_resident_mib
+    );
+    assert!(report.contains("| server peak resident memory |"), "{report}");
     assert_eq!(
         summary.link_ups.len(),
         summary.vehicles.len(),

@@ -82,7 +82,7 @@ fn credential(args: &Args) -> anyhow::Result<Option<String>> {
 
 /// The view of the mission before anything is heard: the site on the Earth, the roster, the
 /// link lease, the truth when there is one; and the context messages are checked against.
-fn view_of(mission: &MissionConfig, grid: Grid, truth: Option<&FieldSeries>) -> (View, Context) {
+fn view_of(mission: &MissionConfig, grid: Grid, truth: Option<Arc<FieldSeries>>) -> (View, Context) {
     let site = mission.mavlink.site(&grid);
     let ne = site.global_of(&site.ned_of((grid.width_m(), grid.height_m()), 0.0));
     let geo = Geo {
@@ -92,14 +92,9 @@ fn view_of(mission: &MissionConfig, grid: Grid, truth: Option<&FieldSeries>) -> 
     };
     let specs: Vec<_> = mission.vehicles().into_iter().map(|v| (v.id, v.kind)).collect();
     let lease_s = mission.network.lease_ms.unwrap_or(10_000) as f64 / 1000.0;
-    let truth_steps = truth.map(|truth| {
-        (0..truth.frames())
-            .map(|t| truth.snapshots.col(t).iter().copied().collect())
-            .collect()
-    });
     let mut ctx = Context::new(grid);
     ctx.vehicles = specs.iter().map(|(id, _)| id.clone()).collect();
-    let view = View::new(&mission.mission, grid, geo, lease_s, &specs, truth_steps).with_clock(mission.clock());
+    let view = View::new(&mission.mission, grid, geo, lease_s, &specs, truth).with_clock(mission.clock());
     (view, ctx)
 }
 
@@ -176,7 +171,8 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let (mission, truth) = args.node.load()?;
     let (grid, _frames) = mission.workspace(truth.as_ref())?;
     let keys = Keys::new(&mission.mission)?;
-    let (view, ctx) = view_of(&mission, grid, truth.as_ref());
+    let truth = truth.map(Arc::new);
+    let (view, ctx) = view_of(&mission, grid, truth.clone());
     let view = Arc::new(Mutex::new(view));
     let (tx, rx) = tokio::sync::watch::channel(Arc::new(Snapshot::of(&view.lock().expect("view lock"))));
     let fox = match args.foxglove {

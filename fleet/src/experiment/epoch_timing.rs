@@ -147,7 +147,7 @@ fn timed(
         model_bytes,
         model_full_bytes,
         batch_bytes_per_epoch: batch_bytes as f64 / (n + 1) as f64,
-        peak_resident_kb: peak_resident_kb(),
+        peak_resident_kb: crate::mission::memory::peak_resident_kb(),
         phases_ms: vec![],
     })
 }
@@ -179,13 +179,6 @@ fn minor_faults() -> u64 {
         return 0;
     }
     usage.ru_minflt as u64
-}
-
-/// Linux's VmHWM of this process (kB).
-fn peak_resident_kb() -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    line.split_whitespace().nth(1)?.parse().ok()
 }
 
 #[cfg(test)]

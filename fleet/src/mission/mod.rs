@@ -4,6 +4,8 @@
 
 pub use fleet_mission::assimilator::*;
 pub use fleet_mission::vehicle::{aerial_region, sense_aerial, sense_boat, sense_cells, vehicle_rng};
-pub use fleet_mission::{config, events, health, launch, schedule, security, server, signing_key, site, team, vehicle};
+pub use fleet_mission::{
+    config, events, health, launch, memory, schedule, security, server, signing_key, site, team, vehicle,
+};
 
 pub mod report;

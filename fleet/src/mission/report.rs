@@ -542,6 +542,9 @@ impl MissionReport<'_> {
                 .collect::<Vec<_>>()
                 .join(", ")
         )?;
+        if let Some(mib) = summary.peak_resident_mib {
+            writeln!(md, "| server peak resident memory | {mib:.0} MiB |")?;
+        }
         writeln!(md, "| server wall time | {:.2} s |\n", summary.wall_s)?;
         Ok(())
     }
