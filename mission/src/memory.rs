@@ -21,14 +21,15 @@ mod tests {
         line.split_whitespace().nth(1).unwrap().parse().unwrap()
     }
 
-    /// The peak sees memory this process touched: 64 MB written on top of what is resident now
-    /// put the peak at least 60 MB above it.
+    /// The peak sees memory this process touched: 128 MB written on top of what is resident now
+    /// put the peak at least 96 MB above it (the margin for what tests on other threads free
+    /// meanwhile).
     #[test]
     fn the_peak_sees_memory_touched() {
         let now = resident_kb();
-        let touched = vec![1u8; 64 << 20];
+        let touched = vec![1u8; 128 << 20];
         std::hint::black_box(&touched);
         let peak = peak_resident_kb().expect("VmHWM on Linux");
-        assert!(peak >= now + (60 << 10), "resident {now} kB, then a peak of {peak} kB");
+        assert!(peak >= now + (96 << 10), "resident {now} kB, then a peak of {peak} kB");
     }
 }
