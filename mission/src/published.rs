@@ -26,31 +26,44 @@ pub struct ModelParts {
 impl ModelParts {
     /// The published model, with `last` the newest fused estimate and its variance.
     pub fn assemble(self, last: Option<(&[f64], &[f64])>) -> ModelUpdate {
+        let (mut update, model) = self.assemble_lean(last);
+        [update.modes_re, update.modes_im] = modes_f32(&model);
+        update
+    }
+
+    /// [`Self::assemble`] without the modes, and the model they come from: what is put every
+    /// epoch, and what a get's whole model is made of when one is asked for.
+    pub fn assemble_lean(self, last: Option<(&[f64], &[f64])>) -> (ModelUpdate, Arc<DmdModel>) {
         let forecast_variance = tracing::info_span!("forecast variance").in_scope(self.forecast_variance);
         let _span = tracing::info_span!("model assembled").entered();
         let m = &self.model;
-        let (n, r) = (m.modes.modes.nrows(), m.modes.modes.ncols());
-        let mut modes_re = Vec::with_capacity(n * r);
-        let mut modes_im = Vec::with_capacity(n * r);
-        for i in 0..n {
-            for j in 0..r {
-                modes_re.push(m.modes.modes[(i, j)].re as f32);
-                modes_im.push(m.modes.modes[(i, j)].im as f32);
-            }
-        }
+        let n = m.modes.modes.nrows();
         let narrow = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
-        ModelUpdate {
+        let update = ModelUpdate {
             dt: m.dt,
             eigenvalues: m.modes.eigenvalues.iter().map(|l| [l.re, l.im]).collect(),
-            modes_re,
-            modes_im,
             amplitudes: m.amplitudes.iter().map(|a| [a.re, a.im]).collect(),
             estimate: last.map(|l| narrow(l.0)).unwrap_or_default(),
             variance: last.map_or_else(|| vec![self.prior_variance as f32; n], |l| narrow(l.1)),
             forecast_variance: narrow(&forecast_variance),
             ..self.shell
+        };
+        (update, self.model)
+    }
+}
+
+/// The modes as they travel: `f32`, cell by cell, the real and the imaginary parts apart.
+fn modes_f32(m: &DmdModel) -> [Vec<f32>; 2] {
+    let (n, r) = (m.modes.modes.nrows(), m.modes.modes.ncols());
+    let mut modes_re = Vec::with_capacity(n * r);
+    let mut modes_im = Vec::with_capacity(n * r);
+    for i in 0..n {
+        for j in 0..r {
+            modes_re.push(m.modes.modes[(i, j)].re as f32);
+            modes_im.push(m.modes.modes[(i, j)].im as f32);
         }
     }
+    [modes_re, modes_im]
 }
 
 /// The published model's encodings on the wire, the model as the live views and recordings
@@ -68,8 +81,10 @@ pub struct Published {
     pub bytes: Vec<u8>,
     /// The model without its modes (no translation reads them).
     pub shown: Body,
-    /// The modes, as they travel (`f32`), and the whole model's encoding once asked for.
-    modes: [Vec<f32>; 2],
+    /// The modes, as they travel (`f32`), or the model to make them from when first asked for
+    /// (the model put every epoch never needs them: at 192 x 384 making them took 5.9 MB and
+    /// a pass over the modes every epoch), and the whole model's encoding once asked for.
+    modes: Modes,
     full: std::sync::OnceLock<Vec<u8>>,
     pub(crate) of: Made,
 }
@@ -78,10 +93,27 @@ pub struct Published {
 /// the history.
 pub(crate) type Made = (u64, u64, usize);
 
+/// The published model's modes: made (a model that came whole), or still in the model.
+#[derive(Debug, Clone)]
+enum Modes {
+    Made([Vec<f32>; 2]),
+    Of(Arc<DmdModel>),
+}
+
 impl Published {
+    /// A whole model's encodings (its modes taken out).
     pub(crate) fn of(mut update: ModelUpdate, made: Made) -> Self {
+        let modes = Modes::Made(update.take_modes());
+        Self::encoded(update, modes, made)
+    }
+
+    /// A model without its modes, made from `model` when the whole model is first asked for.
+    pub(crate) fn of_lean((update, model): (ModelUpdate, Arc<DmdModel>), made: Made) -> Self {
+        Self::encoded(update, Modes::Of(model), made)
+    }
+
+    fn encoded(update: ModelUpdate, modes: Modes, made: Made) -> Self {
         let _span = tracing::info_span!("model encoded").entered();
-        let modes = update.take_modes();
         let shown = Body::Model(update);
         Self {
             bytes: protocol::encode(&shown),
@@ -95,11 +127,17 @@ impl Published {
     /// The whole model, its modes in, encoded (what a get on `model/latest` answers).
     pub fn full(&self) -> &[u8] {
         self.full.get_or_init(|| match &self.shown {
-            Body::Model(m) => protocol::encode(&Body::Model(ModelUpdate {
-                modes_re: self.modes[0].clone(),
-                modes_im: self.modes[1].clone(),
-                ..m.clone()
-            })),
+            Body::Model(m) => {
+                let [modes_re, modes_im] = match &self.modes {
+                    Modes::Made(modes) => modes.clone(),
+                    Modes::Of(model) => modes_f32(model),
+                };
+                protocol::encode(&Body::Model(ModelUpdate {
+                    modes_re,
+                    modes_im,
+                    ..m.clone()
+                }))
+            }
             other => protocol::encode(other),
         })
     }

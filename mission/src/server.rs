@@ -853,6 +853,10 @@ impl ServerCore {
     }
 
     fn assimilate_epoch(&mut self, e: u64) -> Result<(), TeamError> {
+        // The model published for the last epoch is stale from here on, and it holds the model
+        // it was made of (its modes made only when a get asks): dropped before the refit makes
+        // the new one, so the two are never in memory together (the server's peak).
+        self.published = None;
         if e > 0 && e.is_multiple_of(CHECKPOINT_EVERY) {
             let steps = self.history.len();
             if let Some(c) = self.checkpoints.as_mut() {
@@ -1170,7 +1174,7 @@ impl ServerCore {
             },
             || {
                 tracing::dispatcher::with_default(&dispatch, || {
-                    parts.map(|parts| Published::of(parts.assemble(history.last()), made))
+                    parts.map(|parts| Published::of_lean(parts.assemble_lean(history.last()), made))
                 })
             },
         );
