@@ -852,11 +852,9 @@ impl ServerCore {
             .collect()
     }
 
-    fn assimilate_epoch(&mut self, e: u64) -> Result<(), TeamError> {
-        // The model published for the last epoch is stale from here on, and it holds the model
-        // it was made of (its modes made only when a get asks): dropped before the refit makes
-        // the new one, so the two are never in memory together (the server's peak).
-        self.published = None;
+    /// Every [`CHECKPOINT_EVERY`] epochs, the assimilator's state before epoch `e` (what a
+    /// re-fit from there starts from), thinned as [`keep_checkpoint`] says.
+    fn checkpoint_at(&mut self, e: u64) {
         if e > 0 && e.is_multiple_of(CHECKPOINT_EVERY) {
             let steps = self.history.len();
             if let Some(c) = self.checkpoints.as_mut() {
@@ -865,6 +863,14 @@ impl ServerCore {
                 c.retain(|&at, _| keep_checkpoint(at, e));
             }
         }
+    }
+
+    fn assimilate_epoch(&mut self, e: u64) -> Result<(), TeamError> {
+        // The model published for the last epoch is stale from here on, and it holds the model
+        // it was made of (its modes made only when a get asks): dropped before the refit makes
+        // the new one, so the two are never in memory together (the server's peak).
+        self.published = None;
+        self.checkpoint_at(e);
         let batches = self.received.get(&e).cloned().unwrap_or_default();
         let steps = self.steps_of(e);
         if e == 0 {
