@@ -10,6 +10,11 @@ pub fn peak_resident_kb() -> Option<u64> {
     line.split_whitespace().nth(1)?.parse().ok()
 }
 
+/// [`peak_resident_kb`] in MiB, as the server's summary and report give it.
+pub fn peak_resident_mib() -> Option<f64> {
+    peak_resident_kb().map(|kb| kb as f64 / 1024.0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -721,7 +721,7 @@ impl Server {
             eigenvalues,
             link_ups: self.link_ups.clone(),
             wall_s: self.started.elapsed().as_secs_f64(),
-            peak_resident_mib: fleet_mission::memory::peak_resident_kb().map(|kb| kb as f64 / 1024.0),
+            peak_resident_mib: fleet_mission::memory::peak_resident_mib(),
             holdout: self.core.holdout(),
             innovations: self.core.innovations(),
             traffic: self.traffic.clone(),

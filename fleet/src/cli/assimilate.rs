@@ -83,7 +83,7 @@ pub fn run(args: Args) -> Result<()> {
         eigenvalues: core.model_update().map(|m| m.eigenvalues).unwrap_or_default(),
         link_ups: BTreeMap::new(),
         wall_s: t0.elapsed().as_secs_f64(),
-        peak_resident_mib: fleet::mission::memory::peak_resident_kb().map(|kb| kb as f64 / 1024.0),
+        peak_resident_mib: fleet::mission::memory::peak_resident_mib(),
         dt: truth
             .as_ref()
             .map_or_else(|| mission.clock().map_or(1.0, |c| c.step_s), |t| t.dt),
