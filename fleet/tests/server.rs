@@ -933,12 +933,12 @@ fn a_sensor_that_reads_true_again_is_readmitted_to_the_model_of_a_fleet_it_never
     same_model(&server, &never_failed);
 }
 
-/// boat-1's positions planned for epochs 3, 4 and 5 when it sends nothing in epoch 3 (`silent`)
-/// or reads as it should, the live loop otherwise.
-fn boat1_planned_after_epoch_3(silent: bool) -> [[f64; 2]; 3] {
+/// boat-1's positions planned for epochs 3 to the last (`None` for an epoch without a disk)
+/// when it sends nothing in epoch 3 (`silent`) or reads as it should, the live loop otherwise.
+fn boat1_planned_from_epoch_3(silent: bool) -> Vec<Option<[f64; 2]>> {
     let mut planned = vec![];
     let see = |id: &str, e: u64, plan: &fleet::protocol::Plan| {
-        if id == "boat-1" && e >= 2 {
+        if id == "boat-1" && e >= 3 {
             planned.push(plan.targets.iter().find(|t| !t.cells.is_empty()).map(|t| t.position));
         }
     };
@@ -947,20 +947,25 @@ fn boat1_planned_after_epoch_3(silent: bool) -> [[f64; 2]; 3] {
             b.samples.clear();
         }
     });
-    [3, 4, 5].map(|e| planned[e - 2].unwrap_or_else(|| panic!("a disk in epoch {e}")))
+    planned
 }
 
 /// A boat that sends nothing in an epoch it had a disk for is left out of the placement: it
 /// stays where it is and measures there, and the disk where the map most needs a value goes to
 /// another boat (before, it was sent there again and again, and nobody measured it: +123% on
 /// the default mission's cloud with one boat silent from mid-mission, 4-6x in 3 seeds of 10).
-/// The same boat reading as it should is moved by the placement.
+/// The same boat reading as it should is moved by the placement (in some epoch from the 3rd
+/// on: the placement may keep a disk where it is for a few epochs when the map wants it there).
 #[test]
 fn a_silent_boat_is_left_out_of_the_placement() {
-    let [at3, at4, at5] = boat1_planned_after_epoch_3(true);
-    assert!(at3 == at4 && at4 == at5, "left out: it stays where it is");
-    let [ok3, ok4, ok5] = boat1_planned_after_epoch_3(false);
-    assert!(ok3 != ok4 || ok4 != ok5, "placed: its disk moves");
+    let silent = boat1_planned_from_epoch_3(true);
+    assert!(silent[0].is_some(), "a disk in epoch 3");
+    assert!(
+        silent[0] == silent[1] && silent[1] == silent[2],
+        "left out: it stays where it is"
+    );
+    let ok: Vec<[f64; 2]> = boat1_planned_from_epoch_3(false).into_iter().flatten().collect();
+    assert!(ok.windows(2).any(|w| w[0] != w[1]), "placed: its disk moves: {ok:?}");
 }
 
 /// The number of cells in each aerial's plan, epoch by epoch, with av-1's camera dark (its

@@ -341,7 +341,9 @@ fn forecast_skill(forecast: &[f64], o: &Observation<'_>) -> Option<f64> {
 /// the update, never grown past the field's own variance (`cap`): every cell by the aerials'
 /// check (every step, evenly spread: the detail's refresh and persistence are the same
 /// everywhere), then the cells between the lattice by the boats' (at boat steps): the
-/// interpolation's misfit there is seen only by them.
+/// interpolation's misfit there is seen only by them. A forecast worse than the aerials' check
+/// allows raises the model error too ([`kalman::ModalFilter::raise_model_error`]), which the
+/// detail's variance returns to at each predict.
 fn check_detail(
     f: &mut kalman::ModalFilter,
     lattice: &Observation<'_>,
@@ -351,6 +353,7 @@ fn check_detail(
 ) -> Result<(), TeamError> {
     if let Some(fit) = f.detail_fit(lattice)? {
         f.rescale_detail(fit, cap, 0..on_lattice.len());
+        f.raise_model_error(fit, cap);
     }
     if let Some(fit) = f.detail_fit(boats)? {
         f.rescale_detail(fit, cap, (0..on_lattice.len()).filter(|&c| !on_lattice[c]));
