@@ -987,6 +987,40 @@ mod tests {
         );
     }
 
+    /// A pure, white detail (rho = 0) of true variance 1 seen densely every step (400 cells,
+    /// noise 0.1) by a filter that starts believing the model error `start`: each step's
+    /// forecast fit ratio (before `after` acts on it with the filter), over 40 steps.
+    fn white_detail_fits(
+        start: f64,
+        seed: u64,
+        mut after: impl FnMut(&mut ModalFilter, f64),
+    ) -> (Vec<f64>, ModalFilter) {
+        let n = 400;
+        let (b, a) = system(n);
+        let std = Normal::new(0.0, 1.0).unwrap();
+        let noise = 0.1f64;
+        let cells: Vec<usize> = (0..n).collect();
+        let var = vec![noise; n];
+        let mut f = ModalFilter::new(b, a, vec![0.0; 3], Mat::zeros(3, 3), 0.0, start).unwrap();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let mut ratios = vec![];
+        for _ in 0..40 {
+            f.predict();
+            let y: Vec<f64> = (0..n)
+                .map(|_| std.sample(&mut rng) + noise.sqrt() * std.sample(&mut rng))
+                .collect();
+            let o = Observation {
+                cells: &cells,
+                values: &y,
+                variance: &var,
+            };
+            let ratio = f.detail_fit(&o).unwrap().unwrap();
+            ratios.push(ratio);
+            after(&mut f, ratio);
+        }
+        (ratios, f)
+    }
+
     #[test]
     fn a_detail_variance_set_wrong_is_rescaled_until_it_fits() {
         // Pure detail, white (rho = 0) with true variance s = 1, seen densely every step with
@@ -996,30 +1030,13 @@ mod tests {
         // noise (400 cells a step).
         let n = 400;
         let (b, a) = system(n);
-        let std = Normal::new(0.0, 1.0).unwrap();
-        let (s, noise) = (1.0f64, 0.1f64);
-        let cells: Vec<usize> = (0..n).collect();
-        let var = vec![noise; n];
+        let s = 1.0f64;
         for (start, seed) in [(0.01, 21), (100.0, 22)] {
-            let mut f = ModalFilter::new(b.clone(), a.clone(), vec![0.0; 3], Mat::zeros(3, 3), 0.0, start).unwrap();
-            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-            let mut ratios = vec![];
-            for _ in 0..40 {
-                f.predict();
-                let y: Vec<f64> = (0..n)
-                    .map(|_| s.sqrt() * std.sample(&mut rng) + noise.sqrt() * std.sample(&mut rng))
-                    .collect();
-                let o = Observation {
-                    cells: &cells,
-                    values: &y,
-                    variance: &var,
-                };
-                let ratio = f.detail_fit(&o).unwrap().unwrap();
-                ratios.push(ratio);
+            let (ratios, f) = white_detail_fits(start, seed, |f, ratio| {
                 f.rescale_detail(ratio, 1e6, 0..n);
                 // (The detail's own forecast variance is what is checked: no update here.)
                 f.model_error = f.detail_var[0];
-            }
+            });
             let settled = ratios[30..].iter().sum::<f64>() / 10.0;
             println!(
                 "start s = {start}: fit ratio {:.3} at first, {settled:.3} settled; detail variance {:.3}",
@@ -1067,33 +1084,14 @@ mod tests {
     /// off (the 500 hPa height's first epochs).
     #[test]
     fn a_model_error_too_small_is_raised_by_the_lattices_fit() {
-        let n = 400;
-        let (b, a) = system(n);
-        let std = Normal::new(0.0, 1.0).unwrap();
-        let (s, noise) = (1.0f64, 0.1f64);
-        let cells: Vec<usize> = (0..n).collect();
-        let var = vec![noise; n];
+        let (n, s) = (400, 1.0);
         let settled = |raise: bool| {
-            let mut f = ModalFilter::new(b.clone(), a.clone(), vec![0.0; 3], Mat::zeros(3, 3), 0.0, 0.01).unwrap();
-            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(23);
-            let mut ratios = vec![];
-            for _ in 0..40 {
-                f.predict();
-                let y: Vec<f64> = (0..n)
-                    .map(|_| s.sqrt() * std.sample(&mut rng) + noise.sqrt() * std.sample(&mut rng))
-                    .collect();
-                let o = Observation {
-                    cells: &cells,
-                    values: &y,
-                    variance: &var,
-                };
-                let ratio = f.detail_fit(&o).unwrap().unwrap();
-                ratios.push(ratio);
+            let (ratios, f) = white_detail_fits(0.01, 23, |f, ratio| {
                 f.rescale_detail(ratio, 1e6, 0..n);
                 if raise {
                     f.raise_model_error(ratio, 1e6);
                 }
-            }
+            });
             (ratios[30..].iter().sum::<f64>() / 10.0, f.model_error)
         };
         let (with, model_error) = settled(true);
@@ -1105,7 +1103,8 @@ mod tests {
         assert!((model_error - s).abs() < 0.3, "model error {model_error}");
         assert!(without > 20.0, "without the raise the fit stays off: {without}");
         // Only raising, capped; a ratio that is not a number changes nothing.
-        let mut f = ModalFilter::new(b.clone(), a.clone(), vec![0.0; 3], Mat::zeros(3, 3), 0.0, 1.0).unwrap();
+        let (b, a) = system(n);
+        let mut f = ModalFilter::new(b, a, vec![0.0; 3], Mat::zeros(3, 3), 0.0, 1.0).unwrap();
         f.raise_model_error(0.25, 1e6);
         f.raise_model_error(f64::NAN, 1e6);
         assert_eq!(f.model_error, 1.0);
