@@ -109,6 +109,12 @@ fn detail_step((d, v): (f64, f64), modal: f64, modal_var: f64, y: f64, a: f64) -
     )
 }
 
+/// A variance `v` grown by `factor` (> 1), never past `cap`, and not lowered to it when it is
+/// already above (a flat field's cap of 0 must not zero it).
+fn grown(v: f64, factor: f64, cap: f64) -> f64 {
+    (v * factor).min(cap.max(v))
+}
+
 /// The modal part's mean per cell, `B a` (N q).
 fn modal_mean_of(basis: MatRef<'_, f64>, mean: &[f64]) -> Vec<f64> {
     let m = Mat::from_fn(mean.len(), 1, |i, _| mean[i]);
@@ -463,6 +469,23 @@ impl ModalFilter {
     /// must not zero the detail). A damped feedback (adaptive covariance inflation): the next
     /// fit is taken against the rescaled variance, so the factor settles at 1 when the
     /// variance is right, and one step moves it by at most 2x, so it cannot run away.
+    pub fn rescale_detail(&mut self, ratio: f64, cap: f64, cells: impl IntoIterator<Item = usize>) {
+        if !ratio.is_finite() {
+            return;
+        }
+        let factor = ratio.clamp(0.25, 4.0).sqrt();
+        for c in cells {
+            if let Some(v) = self.detail_var.get_mut(c) {
+                *v = if factor > 1.0 {
+                    grown(*v, factor, cap)
+                } else {
+                    *v * factor
+                }
+                .max(1e-12);
+            }
+        }
+    }
+
     /// Raise the model error by a [`Self::detail_fit`] ratio above 1 (by its square root, at
     /// most 2x, never past `cap` nor lowered to it); a ratio of 1 or less changes nothing.
     ///
@@ -479,21 +502,7 @@ impl ModalFilter {
         if !(ratio > 1.0) || !ratio.is_finite() {
             return;
         }
-        let raised = self.model_error * ratio.min(4.0).sqrt();
-        self.model_error = raised.min(cap.max(self.model_error));
-    }
-
-    pub fn rescale_detail(&mut self, ratio: f64, cap: f64, cells: impl IntoIterator<Item = usize>) {
-        if !ratio.is_finite() {
-            return;
-        }
-        let factor = ratio.clamp(0.25, 4.0).sqrt();
-        for c in cells {
-            if let Some(v) = self.detail_var.get_mut(c) {
-                let scaled = *v * factor;
-                *v = if factor > 1.0 { scaled.min(cap.max(*v)) } else { scaled }.max(1e-12);
-            }
-        }
+        self.model_error = grown(self.model_error, ratio.min(4.0).sqrt(), cap);
     }
 
     /// Estimate the detail's persistence from a source that looks at many cells every step
