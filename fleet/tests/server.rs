@@ -933,13 +933,14 @@ fn a_sensor_that_reads_true_again_is_readmitted_to_the_model_of_a_fleet_it_never
     same_model(&server, &never_failed);
 }
 
-/// boat-1's positions planned for epochs 3 to the last (`None` for an epoch without a disk)
-/// when it sends nothing in epoch 3 (`silent`) or reads as it should, the live loop otherwise.
-fn boat1_planned_from_epoch_3(silent: bool) -> Vec<Option<[f64; 2]>> {
-    let mut planned = vec![];
+/// Each boat's position planned for each epoch (`None` for an epoch without a disk) when
+/// boat-1 sends nothing in epoch 3 (`silent`) or reads as it should, the live loop otherwise.
+fn boats_planned(silent: bool) -> std::collections::BTreeMap<(String, u64), Option<[f64; 2]>> {
+    let mut planned = std::collections::BTreeMap::new();
     let see = |id: &str, e: u64, plan: &fleet::protocol::Plan| {
-        if id == "boat-1" && e >= 3 {
-            planned.push(plan.targets.iter().find(|t| !t.cells.is_empty()).map(|t| t.position));
+        if id.starts_with("boat-") {
+            let disk = plan.targets.iter().find(|t| !t.cells.is_empty()).map(|t| t.position);
+            planned.insert((id.to_string(), e), disk);
         }
     };
     live_loop(1, see, |id, e, b| {
@@ -950,22 +951,44 @@ fn boat1_planned_from_epoch_3(silent: bool) -> Vec<Option<[f64; 2]>> {
     planned
 }
 
+/// The epochs after the 3rd in which a boat other than boat-1 was planned at boat-1's disk of
+/// epoch 3.
+fn others_sent_to_boat1s_disk(planned: &std::collections::BTreeMap<(String, u64), Option<[f64; 2]>>) -> Vec<u64> {
+    let disk = planned[&("boat-1".to_string(), 3)];
+    planned
+        .iter()
+        .filter(|((id, e), p)| id != "boat-1" && *e > 3 && p.is_some() && **p == disk)
+        .map(|((_, e), _)| *e)
+        .collect()
+}
+
 /// A boat that sends nothing in an epoch it had a disk for is left out of the placement: it
 /// stays where it is and measures there, and the disk where the map most needs a value goes to
 /// another boat (before, it was sent there again and again, and nobody measured it: +123% on
 /// the default mission's cloud with one boat silent from mid-mission, 4-6x in 3 seeds of 10).
-/// The same boat reading as it should is moved by the placement (in some epoch from the 3rd
-/// on: the placement may keep a disk where it is for a few epochs when the map wants it there).
+/// The control: with boat-1 reading as it should, no other boat is sent to its disk (the
+/// placement may keep a disk where it is for several epochs, so the silent boat's staying put
+/// alone would not show it was left out).
 #[test]
 fn a_silent_boat_is_left_out_of_the_placement() {
-    let silent = boat1_planned_from_epoch_3(true);
-    assert!(silent[0].is_some(), "a disk in epoch 3");
+    let silent = boats_planned(true);
+    let boat1 = |e: u64| silent[&("boat-1".to_string(), e)];
+    assert!(boat1(3).is_some(), "a disk in epoch 3");
     assert!(
-        silent[0] == silent[1] && silent[1] == silent[2],
+        boat1(3) == boat1(4) && boat1(4) == boat1(5),
         "left out: it stays where it is"
     );
-    let ok: Vec<[f64; 2]> = boat1_planned_from_epoch_3(false).into_iter().flatten().collect();
-    assert!(ok.windows(2).any(|w| w[0] != w[1]), "placed: its disk moves: {ok:?}");
+    let taken_over = others_sent_to_boat1s_disk(&silent);
+    assert!(
+        !taken_over.is_empty(),
+        "another boat is sent to the silent boat's disk: {silent:?}"
+    );
+    let healthy = boats_planned(false);
+    let control = others_sent_to_boat1s_disk(&healthy);
+    assert!(
+        control.is_empty(),
+        "with boat-1 healthy nobody else goes there: {healthy:?}"
+    );
 }
 
 /// The number of cells in each aerial's plan, epoch by epoch, with av-1's camera dark (its
