@@ -101,7 +101,7 @@ impl Assimilator {
     ) -> Result<HashMap<usize, (f64, f64)>, TeamError> {
         let Some((f, at)) = self.state.filter.as_ref() else {
             let (values, variance) = (&aerial.estimate.values, &aerial.estimate.variance);
-            let extra = self.state.aerial_extra;
+            let extra = self.state.aerial_extra.mean();
             return Ok(cells.iter().map(|&c| (c, (values[c], variance[c] + extra))).collect());
         };
         let f = f.ahead(ahead.saturating_sub(*at) as usize);
@@ -110,7 +110,7 @@ impl Assimilator {
             values: &aerial.values,
             variance: &aerial.variance,
         };
-        let (_, seen, values, variance) = dense(aerial, self.state.aerial_extra, &self.setup.on_lattice);
+        let (_, seen, values, variance) = dense(aerial, self.state.aerial_extra.mean(), &self.setup.on_lattice);
         let dense = Observation {
             cells: &seen,
             values: &values,
@@ -151,7 +151,8 @@ impl Assimilator {
         }
         let hifi = self.boats_estimate(predicted, &cells, &vals, boat_var)?;
         let mut aerial = sight.estimate.clone();
-        aerial.variance.iter_mut().for_each(|v| *v += self.state.aerial_extra);
+        let extra = self.state.aerial_extra.mean();
+        aerial.variance.iter_mut().for_each(|v| *v += extra);
         let measured = (!cells.is_empty()).then_some(Measured {
             cells: &cells,
             values: &vals,
@@ -192,8 +193,7 @@ impl Assimilator {
             .iter()
             .map(|&(c, v)| (sight.estimate.values[c] - v).powi(2))
             .sum::<f64>();
-        self.state.extra_pool.add(seen - expected, between.len());
-        self.state.aerial_extra = self.state.extra_pool.mean();
+        self.state.aerial_extra.add(seen - expected, between.len());
     }
 
     /// The boats' estimate of the whole field for the heuristic schemes: their gappy
@@ -286,7 +286,7 @@ impl Assimilator {
         // The detail: the aerial estimate at every cell (noise, interpolation and the
         // calibrated extra), then the boats; between the lattice, as far as the boats have seen
         // the filter beat the aerials there (`between`).
-        let (aerial_var, seen, values, variance) = dense(aerial, s.aerial_extra, &self.setup.on_lattice);
+        let (aerial_var, seen, values, variance) = dense(aerial, s.aerial_extra.mean(), &self.setup.on_lattice);
         let dense = Observation {
             cells: &seen,
             values: &values,
@@ -338,7 +338,7 @@ impl Pooled {
     }
 
     /// The pooled excess per cell (a variance, so never below 0; 0 before any cell).
-    fn mean(&self) -> f64 {
+    pub(super) fn mean(&self) -> f64 {
         match self.cells > 0.0 {
             true => (self.excess / self.cells).max(0.0),
             false => 0.0,

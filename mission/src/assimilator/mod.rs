@@ -65,9 +65,8 @@ pub struct AssimilatorState {
     held_interpolation: Vec<f64>,
     pred_var: f64,
     /// The aerials' error beyond their noise (and, with the filter, beyond the interpolation's
-    /// modelled error), pooled over the boat epochs ([`fuse::Pooled`]).
-    aerial_extra: f64,
-    extra_pool: fuse::Pooled,
+    /// modelled error), pooled over the boat epochs: its `mean()` is the extra they are given.
+    aerial_extra: fuse::Pooled,
     /// `fusion = "kalman"`: what the boats showed of the filter between the lattice.
     between: between::Between,
     /// `fusion = "kalman"`: the forecast's skill against the lattice at each step since the
@@ -159,8 +158,7 @@ impl Assimilator {
             held_aerial: None,
             held_interpolation: vec![0.0; grid.len()],
             pred_var: 1.0,
-            aerial_extra: 0.0,
-            extra_pool: Default::default(),
+            aerial_extra: Default::default(),
             between: Default::default(),
             forecast_skill: vec![],
             displacement: 0.0,

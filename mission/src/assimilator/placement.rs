@@ -154,7 +154,7 @@ impl Assimilator {
         let everywhere = aerial_detail_variance(
             &held.variance,
             &s.held_interpolation,
-            s.aerial_extra,
+            s.aerial_extra.mean(),
             &self.setup.on_lattice,
         );
         let aerials = kalman::Scheduled {
