@@ -1250,7 +1250,8 @@ impl Report<'_> {
             md,
             "\n### Sensor health\n\nEvery reading is tested before the fusion uses it (README, \"Sensor health\"). \
              Healthy fleets (every fused team, row and seed): **{alarms} sensor(s) marked in {checks} sensor-steps \
-             tested** ({:.1e} a sensor-step; the bias CUSUM's design rate is about 7.7e-4); healthy values refused \
+             tested** ({:.1e} a sensor-step; the bias tests' design rate is about 1.0e-3 a tested step, the CUSUM's \
+             7.7e-4 and the change test's 2.6e-4); healthy values refused \
              as spikes: {spikes}; healthy aerial frames refused: {frames}, quadrants: {quadrants}.\n",
             alarms as f64 / checks as f64
         )?;
