@@ -17,7 +17,7 @@
 //! standardised statistic `sum k_i D_i / sqrt(sum k_i^2 W_i)` is N(0, 1) when healthy; the test
 //! is its largest magnitude over starts and shapes, against [`GATE`].
 //!
-//! Design rate (Monte Carlo, [`tests::a_healthy_sequence_alarms_at_the_design_rate`]): 2.65
+//! Design rate (Monte Carlo, `tests::a_healthy_sequence_alarms_at_the_design_rate`): 2.65
 //! alarms in 10,000 tests (1,060 in 4 million), the window cleared at each (the sensor's tests
 //! start again when it is back to `ok`), against the CUSUM's 7.7 in 10,000.
 
