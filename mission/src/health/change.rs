@@ -72,9 +72,10 @@ impl ChangeTest {
         best
     }
 
-    /// Whether a change is called now.
-    pub fn called(&self) -> bool {
-        self.z().0.abs() > GATE
+    /// The change called now, if any: its statistic and whether a ramp gave it ([`Self::z`]).
+    pub fn called(&self) -> Option<(f64, bool)> {
+        let z = self.z();
+        (z.0.abs() > GATE).then_some(z)
     }
 }
 
@@ -127,7 +128,7 @@ mod tests {
             let w: f64 = info.sample(&mut rng);
             let d = Normal::new(0.0, w.sqrt()).unwrap().sample(&mut rng);
             c.push(d, w);
-            if c.called() {
+            if c.called().is_some() {
                 alarms += 1;
                 c.clear();
             }
@@ -153,7 +154,7 @@ mod tests {
             }
             called += (1..=3).any(|i| {
                 c.push(0.5 * i as f64 * w + noise.sample(&mut rng), w);
-                c.called()
+                c.called().is_some()
             }) as usize;
         }
         let share = called as f64 / trials as f64;

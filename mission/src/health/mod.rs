@@ -301,8 +301,7 @@ impl Sensor {
         } else if cusum > H_SUSPECT || z.abs() > Z_SUSPECT {
             let why = format!("biased {side} (z {z:+.1}, CUSUM {cusum:.1})");
             (Health::Suspect, Cause::Biased, why)
-        } else if self.change.called() {
-            let (g, ramp) = self.change.z();
+        } else if let Some((g, ramp)) = self.change.called() {
             let (side, shape) = (if g > 0.0 { "high" } else { "low" }, if ramp { "ramp" } else { "step" });
             (
                 Health::Suspect,
