@@ -778,8 +778,14 @@ mod tests {
         let cells: Vec<usize> = (0..n).rev().step_by(3).chain(0..50).collect();
         let at = modal_at_cells(basis.as_ref(), cov.as_ref(), &mean, &cells);
         for (&c, &(m, v)) in cells.iter().zip(&at) {
-            assert!((m - field_mean[c]).abs() <= 1e-12 * (1.0 + field_mean[c].abs()), "mean at {c}");
-            assert!((v - field_var[c]).abs() <= 1e-12 * (1.0 + field_var[c]), "variance at {c}");
+            assert!(
+                (m - field_mean[c]).abs() <= 1e-12 * (1.0 + field_mean[c].abs()),
+                "mean at {c}"
+            );
+            assert!(
+                (v - field_var[c]).abs() <= 1e-12 * (1.0 + field_var[c]),
+                "variance at {c}"
+            );
             assert_eq!(modal_at_cells(basis.as_ref(), cov.as_ref(), &mean, &[c])[0], (m, v));
         }
     }

@@ -63,12 +63,17 @@ impl Assimilator {
         }
         let unseen: Vec<usize> = (0..frame.seen.len()).filter(|&k| !frame.seen[k]).collect();
         let far = fill_unseen(&mut frame, &unseen);
-        let filled = frame
-            .lattice
-            .upsample_bilinear(&far.iter().map(|&f| if f { 1.0 } else { 0.0 }).collect::<Vec<_>>())?
-            .into_iter()
-            .map(|w| w > 1e-9)
-            .collect();
+        // A fine cell is a fill where a far value has any weight (none far: none, without a
+        // pass over the field).
+        let filled = match far.contains(&true) {
+            true => frame
+                .lattice
+                .upsample_bilinear(&far.iter().map(|&f| if f { 1.0 } else { 0.0 }).collect::<Vec<_>>())?
+                .into_iter()
+                .map(|w| w > 1e-9)
+                .collect(),
+            false => vec![false; grid.len()],
+        };
         let estimate = frame.upsample()?;
         let interpolation = frame.interpolation_variance()?;
         // The dense observation is of the water: a cell interpolated from a filled lattice value
