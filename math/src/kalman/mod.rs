@@ -151,8 +151,8 @@ fn modal_block(basis: MatRef<'_, f64>, cov: MatRef<'_, f64>, mean: &[f64], cells
         .collect();
     let b = |k: usize| &rows[k * m..(k + 1) * m];
     let (mut modal, mut var, mut inner) = (vec![0.0; m], vec![0.0; m], vec![0.0; m]);
-    for k in 0..q {
-        modal.iter_mut().zip(b(k)).for_each(|(s, &x)| *s += x * mean[k]);
+    for (k, &a) in mean.iter().enumerate().take(q) {
+        modal.iter_mut().zip(b(k)).for_each(|(s, &x)| *s += x * a);
         inner.fill(0.0);
         for (j, &p) in column(cov, k).iter().enumerate() {
             inner.iter_mut().zip(b(j)).for_each(|(t, &x)| *t += p * x);
