@@ -207,6 +207,8 @@ struct DiskSums {
     pad: usize,
     /// Half-width in columns of the disk's row at each row offset `-reach..=reach`.
     half: Vec<i64>,
+    /// Whether every value is >= 0 (a square's sum then bounds its disk's).
+    nonnegative: bool,
 }
 
 impl DiskSums {
@@ -233,6 +235,7 @@ impl DiskSums {
             width,
             pad,
             half,
+            nonnegative: v.iter().all(|&x| x >= 0.0),
         }
     }
 
@@ -359,7 +362,7 @@ fn best_candidate(grid: &Grid, taken: &DiskSums, score: impl Fn(Cell) -> f64) ->
 /// the largest part of the placement (a disk of radius 40 adds 81 row segments a centre).
 fn best_disk(grid: &Grid, taken: &DiskSums, sums: &DiskSums) -> Option<(Cell, f64)> {
     let bounds = sums.row_bounds();
-    if bounds.iter().any(|b| !b.is_finite()) {
+    if !sums.nonnegative || bounds.iter().any(|b| !b.is_finite()) {
         return best_disk_of_all(grid, taken, sums);
     }
     let mut order: Vec<usize> = (0..grid.rows).collect();
@@ -391,7 +394,7 @@ fn best_disk(grid: &Grid, taken: &DiskSums, sums: &DiskSums) -> Option<(Cell, f6
 }
 
 /// [`best_disk`] by summing every row first: the scan of every centre in order, for scores a
-/// bound cannot be put on (not finite).
+/// bound cannot be put on (not finite, or from values below 0).
 fn best_disk_of_all(grid: &Grid, taken: &DiskSums, sums: &DiskSums) -> Option<(Cell, f64)> {
     // The overlap is summed a row of centres at a time, for the rows that hold a centre that
     // would win: once disks are taken, those centres are mostly beside them, and testing them
@@ -597,7 +600,8 @@ mod row_sum_tests {
     /// The rows summed in the order of their bound pick what the scan of every centre picks:
     /// the largest valid score, the first centre of a tie. On fields with one peak, many,
     /// none (flat: every centre ties) and steps (plateaus of ties), with disks taken, and
-    /// every row bound at or above its row's largest disk sum.
+    /// every row bound at or above its row's largest disk sum; on a field with values below 0
+    /// (where a square's sum bounds nothing) by the scan itself.
     #[test]
     fn the_bounded_rows_pick_what_the_scan_of_every_centre_picks() {
         let grid = Grid::new(23, 41, 1.0).unwrap();
@@ -615,13 +619,14 @@ mod row_sum_tests {
                 .map(|i| if at(i).1 < 20.0 { 2.0 } else { 1.0 })
                 .collect(),
             vec![0.0; grid.len()],
+            (0..grid.len()).map(|i| ((i * 31) % 17) as f64 - 8.0).collect(),
         ];
         for v in &fields {
             for radius in [0.0, 1.5, 4.0, 9.0, 30.0] {
                 let sums = DiskSums::new(grid, v, radius);
                 let bounds = sums.row_bounds();
                 let mut row = vec![0.0; grid.cols];
-                for (r, bound) in bounds.iter().enumerate() {
+                for (r, bound) in bounds.iter().enumerate().filter(|_| sums.nonnegative) {
                     sums.row_sums(r, &mut row);
                     assert!(row.iter().all(|s| s <= bound), "row {r} radius {radius}");
                 }
