@@ -75,6 +75,23 @@ pub fn product<T: ComplexField>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Mat<T> {
     out
 }
 
+/// `dst + alpha a b` into `dst` (`alpha` 1 or -1: the same bits as adding or subtracting
+/// [`product`]'s result, without a second field-sized matrix or a pass to add it), a block of
+/// rows at a time on every core.
+pub fn product_add(mut dst: faer::MatMut<'_, f64>, a: MatRef<'_, f64>, b: MatRef<'_, f64>, alpha: f64) {
+    let (n, m) = (a.nrows(), b.ncols());
+    let weight = a.ncols() * m;
+    if !worth_sharing(n, weight) || m == 0 {
+        matmul(dst.as_mut(), Accum::Add, a, b, alpha, Par::Seq);
+        return;
+    }
+    let rows = per_task(weight);
+    dst.par_row_chunks_mut(rows).enumerate().for_each(|(k, block)| {
+        let a = a.subrows(k * rows, block.nrows());
+        matmul(block, Accum::Add, a, b, alpha, Par::Seq);
+    });
+}
+
 /// The product `a b` of a tall real `a` and a small complex `b` (the modes `F C` from their
 /// factors), as two real products `a Re(b)` and `a Im(b)`, a block of rows at a time on every
 /// core. A complex copy of `a` times `b` held a second field-sized complex matrix at the refit
@@ -139,6 +156,31 @@ mod tests {
             let c = faer::Mat::<faer::c64>::from_fn(n, k, |i, j| faer::c64::new(a[(i, j)], a[(i, j)] * 0.5));
             let d = faer::Mat::<faer::c64>::from_fn(k, m, |i, j| faer::c64::new(b[(i, j)], -b[(i, j)]));
             assert!(product(c.as_ref(), d.as_ref()) == &c * &d, "complex {n} x {k} x {m}");
+        }
+    }
+
+    /// Adding or subtracting a product in place gives the bits of the product made apart and
+    /// then added or subtracted (what the DMD update did, with a field-sized matrix more).
+    #[test]
+    fn a_product_added_in_place_is_the_product_added() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        for (n, k, m) in [
+            (5, 3, 2),
+            (3 * MIN_WORK / 20 + 17, 10, 10),
+            (3 * MIN_WORK / 50 + 3, 5, 10),
+            (7, 4, 0),
+        ] {
+            let a = Mat::<f64>::from_fn(n, k, |_, _| rng.random::<f64>() - 0.5);
+            let b = Mat::<f64>::from_fn(k, m, |_, _| rng.random::<f64>() - 0.5);
+            let c = Mat::<f64>::from_fn(n, m, |_, _| rng.random::<f64>() - 0.5);
+            for alpha in [1.0, -1.0] {
+                let mut got = c.clone();
+                product_add(got.as_mut(), a.as_ref(), b.as_ref(), alpha);
+                let p = product(a.as_ref(), b.as_ref());
+                let want = if alpha > 0.0 { &c + &p } else { &c - &p };
+                assert!(got == want, "{n} x {k} x {m}, {alpha}");
+            }
         }
     }
 

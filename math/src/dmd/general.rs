@@ -23,7 +23,7 @@ use super::debias::Debias;
 use super::linalg::{div_cols, orthogonality_error, scale_cols_by, thin_svd};
 use super::snapshots::check_pairs;
 use super::{numerical_rank, Dmd, DmdError, Method, ModeFactors, Modes, RankPolicy, SnapshotPairs};
-use crate::par::product;
+use crate::par::{product, product_add};
 use faer::{Mat, MatRef};
 
 /// Updates between orthogonality checks of `U`.
@@ -144,9 +144,10 @@ impl Dmd for GeneralDmd {
         let (n, r, tau) = (self.u.nrows(), self.u.ncols(), x_new.ncols());
         let ut = self.u.transpose();
         let mut l = ut * x_new;
-        let mut h = x_new - product(self.u.as_ref(), l.as_ref());
+        let mut h = x_new.to_owned();
+        product_add(h.as_mut(), self.u.as_ref(), l.as_ref(), -1.0);
         let l2 = ut * &h;
-        h -= product(self.u.as_ref(), l2.as_ref());
+        product_add(h.as_mut(), self.u.as_ref(), l2.as_ref(), -1.0);
         l += &l2;
 
         // Directions of H that are really new (none when U already spans R^N), by a
@@ -172,11 +173,14 @@ impl Dmd for GeneralDmd {
         .max(1);
         let zs = zs.truncate(keep);
 
+        // Each sum made in place (the bits of the two products added).
         let mut u = product(self.u.as_ref(), zs.u.subrows(0, r));
         if k > 0 {
-            u += product(j.as_ref(), zs.u.subrows(r, k));
+            product_add(u.as_mut(), j.as_ref(), zs.u.subrows(r, k), 1.0);
         }
-        self.yw = product(self.yw.as_ref(), zs.v.subrows(0, r)) + product(y_new, zs.v.subrows(r, tau));
+        let mut yw = product(self.yw.as_ref(), zs.v.subrows(0, r));
+        product_add(yw.as_mut(), y_new, zs.v.subrows(r, tau), 1.0);
+        self.yw = yw;
         self.u = u;
         self.s = zs.s;
         self.updates += 1;

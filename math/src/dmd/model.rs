@@ -197,3 +197,32 @@ pub struct ModelSummary {
     pub continuous_eigenvalues: Vec<[f64; 2]>,
     pub amplitude_moduli: Vec<f64>,
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The forecast at a few cells is the whole forecast's value at each, to the bit (the
+    /// filter's calibration reads the boats' cells alone and must see what it saw before).
+    #[test]
+    fn the_forecast_at_cells_is_the_whole_forecasts_there() {
+        let (n, r) = (257, 4);
+        let modes = Mat::from_fn(n, r, |i, j| {
+            c64::new(((i * 7 + j) as f64).sin(), ((i + 3 * j) as f64).cos() * 0.3)
+        });
+        let eigenvalues = vec![
+            c64::new(0.9, 0.2),
+            c64::new(0.9, -0.2),
+            c64::new(1.01, 0.0),
+            c64::new(-0.5, 0.1),
+        ];
+        let x: Vec<f64> = (0..n).map(|i| (i as f64 * 0.05).sin()).collect();
+        let model = Modes { eigenvalues, modes }.model(&x, 1.0).unwrap();
+        let cells = [200, 3, 0, 256, 3, 99];
+        for t in [0.0, 1.0, 2.5, -1.0] {
+            let whole = model.predict(t);
+            let want: Vec<f64> = cells.iter().map(|&c| whole[c]).collect();
+            assert_eq!(model.predict_at(t, &cells), want, "t = {t}");
+        }
+    }
+}

@@ -376,7 +376,8 @@ impl ModalFilter {
     fn conditioned(&self, obs: &[Observation<'_>]) -> Result<Conditioned, FilterError> {
         let (n, q) = (self.basis.nrows(), self.dim());
         // H^T R^-1 H by rows of q (a slice the compiler runs 4 lanes at a time, divisions
-        // too: each entry's terms the same, in the same order, as one at a time).
+        // too: each entry's terms the same, in the same order, as one at a time), the upper
+        // triangle only (`h_a h_b` is `h_b h_a` to the bit, so the lower is the same sums).
         let mut jf = vec![0.0; q * q];
         let mut g = vec![0.0; q]; // H^T R^-1 (y - H a)
         let mut h = vec![0.0; q]; // the cell's row of the basis
@@ -398,11 +399,11 @@ impl ModalFilter {
                 for (a, row) in jf.chunks_exact_mut(q.max(1)).enumerate() {
                     let ha = h[a];
                     g[a] += ha * d / r;
-                    row.iter_mut().zip(&h).for_each(|(x, &hb)| *x += ha * hb / r);
+                    row[a..].iter_mut().zip(&h[a..]).for_each(|(x, &hb)| *x += ha * hb / r);
                 }
             }
         }
-        let j = Mat::from_fn(q, q, |a, b| jf[a * q + b]);
+        let j = Mat::from_fn(q, q, |a, b| jf[a.min(b) * q + a.max(b)]);
         // P+ = P (I + J P)^-1, i.e. (I + J P)^T P+^T = P^T, solved as (I + P J) P+ = P.
         let mut m = self.cov.as_ref() * j.as_ref();
         for i in 0..q {

@@ -136,11 +136,12 @@ impl Assimilator {
         let mut boats: Vec<&Sample> = boats.iter().collect();
         boats.sort_by_key(|s| (s.cells.first().copied(), s.cells.len()));
         let cells: Vec<usize> = boats.iter().flat_map(|s| s.cells.iter().map(|&c| c as usize)).collect();
-        // The model's own prediction of the step (a full field, N x r complex products): for
-        // the sources' calibration at boat steps and the boats' gappy estimate; the Kalman
-        // filter forecasts by itself, so between boat steps it is not made.
+        // The model's own prediction of the step: for the sources' calibration at the boats'
+        // cells, and for the heuristic schemes as a whole field (N x r complex products; the
+        // boats' gappy estimate falls back on it). The Kalman filter forecasts by itself, so
+        // with it only the boats' cells are predicted.
         let kalman = self.setup.cfg.fusion == Scheme::Kalman;
-        let predicted = match kalman && cells.is_empty() {
+        let predicted = match kalman {
             true => vec![],
             false => pred.predict(ahead as f64),
         };
@@ -148,7 +149,11 @@ impl Assimilator {
         let vars = boat_variances(&boats, self.setup.cfg.boat_sigma);
         let boat_var = typical(&vars, self.setup.cfg.boat_sigma * self.setup.cfg.boat_sigma);
         if !cells.is_empty() {
-            self.calibrate(sight, &predicted, &cells, &vals, boat_var);
+            let at_cells = match kalman {
+                true => pred.predict_at(ahead as f64, &cells),
+                false => cells.iter().map(|&c| predicted[c]).collect(),
+            };
+            self.calibrate(sight, &at_cells, &cells, &vals, boat_var);
         }
         if kalman {
             let fused = self.filter_step(ahead, sight, &cells, &vals, &vars)?;
@@ -176,13 +181,11 @@ impl Assimilator {
     /// own noise: the aerials' error is mostly interpolation and the prediction's mostly model
     /// error, and neither is in their noise models. (The Kalman filter models the
     /// interpolation's error itself: the aerials' extra is what is left beyond it.)
+    /// `predicted` is the model's prediction at `cells`, in their order.
     fn calibrate(&mut self, sight: &AerialSight, predicted: &[f64], cells: &[usize], vals: &[f64], boat_var: f64) {
-        let innovation = |est: &[f64], cells: &[(usize, f64)]| -> f64 {
-            let m = cells.iter().map(|&(c, v)| (est[c] - v).powi(2)).sum::<f64>() / cells.len() as f64;
-            (m - boat_var).max(1e-12)
-        };
+        let squared = predicted.iter().zip(vals).map(|(p, v)| (p - v).powi(2)).sum::<f64>();
+        self.state.pred_var = (squared / cells.len() as f64 - boat_var).max(1e-12);
         let all: Vec<(usize, f64)> = cells.iter().copied().zip(vals.iter().copied()).collect();
-        self.state.pred_var = innovation(predicted, &all);
         let kalman = self.setup.cfg.fusion == Scheme::Kalman;
         // The filter's extra is the interpolation's misfit, so it is measured where there is one.
         let between: Vec<(usize, f64)> = match kalman {
