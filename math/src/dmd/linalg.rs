@@ -157,26 +157,31 @@ pub fn orthogonality_error(a: MatRef<'_, f64>) -> f64 {
 /// loss of orthogonality, `eps cond(F)^2`, back to rounding), or Householder QR when `F` is too
 /// ill-conditioned for Cholesky (its factor's diagonal spans more than 1e6) or rank-deficient.
 pub fn orthonormal_factor(f: MatRef<'_, f64>) -> (Mat<f64>, Mat<f64>) {
-    let twice = cholesky_qr(f).and_then(|(q1, r1)| cholesky_qr(q1.as_ref()).map(|(q, r2)| (q, r2 * r1)));
+    let twice = cholesky_qr(f.to_owned()).and_then(|(q1, r1)| cholesky_qr(q1).map(|(q, r2)| (q, r2 * r1)));
     twice.unwrap_or_else(|| {
         let qr = f.qr();
         (qr.compute_thin_Q(), qr.thin_R().to_owned())
     })
 }
 
-/// One CholeskyQR pass: `R` the Cholesky factor of `F^T F`, `Q = F R^-1`; `None` when the
-/// Gram matrix is too ill-conditioned for it ([`gram_cholesky`]).
-fn cholesky_qr(f: MatRef<'_, f64>) -> Option<(Mat<f64>, Mat<f64>)> {
-    let l = gram_cholesky(f)?;
-    // Q^T = L^-1 F^T (L = R^T), solved in place on Q's transposed view: no N x r transpose is
-    // copied (two strided copies of F were most of this function's time).
-    let mut q = f.to_owned();
-    faer::linalg::triangular_solve::solve_lower_triangular_in_place(
-        l.as_ref(),
-        q.as_mut().transpose_mut(),
-        faer::Par::Seq,
-    );
+/// One CholeskyQR pass on `f`, in place: `R` the Cholesky factor of `F^T F`, `Q = F R^-1`;
+/// `None` when the Gram matrix is too ill-conditioned for it ([`gram_cholesky`]).
+fn cholesky_qr(mut q: Mat<f64>) -> Option<(Mat<f64>, Mat<f64>)> {
+    let l = gram_cholesky(q.as_ref())?;
+    right_solve_lower_transposed(l.as_ref(), q.as_mut());
     Some((q, l.transpose().to_owned()))
+}
+
+/// `F <- F L^-T` in place, each row of `F` solved as `L x = f^T`, a block of rows at a time
+/// on every core: rows are independent, so each gets the bits one solve of all of them gives
+/// (solved on `F`'s transposed view, no N x r transpose is copied: two strided copies of `F`
+/// were once most of the factor's time).
+fn right_solve_lower_transposed(l: MatRef<'_, f64>, f: faer::MatMut<'_, f64>) {
+    use faer::linalg::triangular_solve::solve_lower_triangular_in_place;
+    use rayon::prelude::*;
+    let rows = crate::par::block_rows(f.nrows(), l.nrows() * l.nrows());
+    f.par_row_chunks_mut(rows)
+        .for_each(|block| solve_lower_triangular_in_place(l, block.transpose_mut(), faer::Par::Seq));
 }
 
 /// The lower Cholesky factor `L` of the small Gram matrix `F^T F` (so `L^T` is the `R` of a QR
@@ -235,5 +240,28 @@ mod tests {
         let pod = pod(a.as_ref(), |_| 5).unwrap();
         assert_eq!(pod.s.len(), 5);
         assert!(pod.s[3] < 1e-12 * pod.s[0], "{:?}", pod.s);
+    }
+
+    /// The row blocks' solves give every row the bits of one solve of the whole matrix.
+    #[test]
+    fn a_triangular_solve_by_row_blocks_is_the_whole_solve() {
+        for n in [7, crate::par::MIN_WORK / 50 + 13] {
+            let f = randn(n, 10, 6);
+            let l = randn(10, 10, 7);
+            let l = Mat::from_fn(10, 10, |i, j| match i.cmp(&j) {
+                std::cmp::Ordering::Less => 0.0,
+                std::cmp::Ordering::Equal => 2.0 + l[(i, j)].abs(),
+                std::cmp::Ordering::Greater => l[(i, j)],
+            });
+            let mut want = f.clone();
+            faer::linalg::triangular_solve::solve_lower_triangular_in_place(
+                l.as_ref(),
+                want.as_mut().transpose_mut(),
+                faer::Par::Seq,
+            );
+            let mut got = f.clone();
+            right_solve_lower_transposed(l.as_ref(), got.as_mut());
+            assert!(got == want, "{n} rows");
+        }
     }
 }
