@@ -41,22 +41,18 @@ impl ProjectedFit {
         Ok(Modes { eigenvalues, modes })
     }
 
-    /// [`Self::decompose`] with the modes' factors: an owned fit gives up its `F`, a borrowed
-    /// one copies only `F`.
+    /// [`Self::decompose`] with the modes' factors, from `U` and `F = Y W S^-1`: an owned `F`
+    /// is given up as the factor, a borrowed one copied only when it is the factor (the online
+    /// method's `U` is not copied at all when the modes are `F C`).
     pub fn decompose_factored(
-        fit: std::borrow::Cow<'_, Self>,
+        u: &Mat<f64>,
+        yws: std::borrow::Cow<'_, Mat<f64>>,
         debias: Debias,
         pairs: Option<&SnapshotPairs>,
         xt: Option<MatRef<'_, f64>>,
     ) -> Result<(Modes, Option<ModeFactors>), DmdError> {
-        use std::borrow::Cow;
-        let (eigenvalues, v, on_u) = fit.eigenvectors(debias, pairs, xt)?;
-        let real = match fit {
-            Cow::Owned(f) if on_u => f.u,
-            Cow::Owned(f) => f.yws,
-            Cow::Borrowed(f) if on_u => f.u.clone(),
-            Cow::Borrowed(f) => f.yws.clone(),
-        };
+        let (eigenvalues, v, on_u) = eigenvectors(u.as_ref(), yws.as_ref().as_ref(), debias, pairs, xt)?;
+        let real = if on_u { u.clone() } else { yws.into_owned() };
         let modes = crate::par::real_times_complex(real.as_ref(), v.as_ref());
         let factors = ModeFactors { real, coefficients: v };
         Ok((Modes { eigenvalues, modes }, Some(factors)))
@@ -70,25 +66,36 @@ impl ProjectedFit {
         pairs: Option<&SnapshotPairs>,
         xt: Option<MatRef<'_, f64>>,
     ) -> Result<(Vec<faer::c64>, Mat<faer::c64>, bool), DmdError> {
-        match debias {
-            Debias::None => {
-                let (eigenvalues, v) = eig(self.atilde().as_ref())?;
-                Ok((eigenvalues, v, false))
-            }
-            kind => {
-                let pairs = pairs.ok_or_else(|| DmdError::Unsupported("debiasing without the stored pairs".into()))?;
-                let computed;
-                let xt = match xt {
-                    Some(xt) => xt,
-                    None => {
-                        computed = self.u.transpose() * pairs.x();
-                        computed.as_ref()
-                    }
-                };
-                let yt = self.u.transpose() * pairs.y();
-                let (eigenvalues, v) = debiased_eig(kind, xt, yt.as_ref())?;
-                Ok((eigenvalues, v, true))
-            }
+        eigenvectors(self.u.as_ref(), self.yws.as_ref(), debias, pairs, xt)
+    }
+}
+
+/// [`ProjectedFit::eigenvectors`] of `U` and `F = Y W S^-1` (`A~ = U^T F`).
+fn eigenvectors(
+    u: MatRef<'_, f64>,
+    yws: MatRef<'_, f64>,
+    debias: Debias,
+    pairs: Option<&SnapshotPairs>,
+    xt: Option<MatRef<'_, f64>>,
+) -> Result<(Vec<faer::c64>, Mat<faer::c64>, bool), DmdError> {
+    match debias {
+        Debias::None => {
+            let (eigenvalues, v) = eig((u.transpose() * yws).as_ref())?;
+            Ok((eigenvalues, v, false))
+        }
+        kind => {
+            let pairs = pairs.ok_or_else(|| DmdError::Unsupported("debiasing without the stored pairs".into()))?;
+            let computed;
+            let xt = match xt {
+                Some(xt) => xt,
+                None => {
+                    computed = u.transpose() * pairs.x();
+                    computed.as_ref()
+                }
+            };
+            let yt = u.transpose() * pairs.y();
+            let (eigenvalues, v) = debiased_eig(kind, xt, yt.as_ref())?;
+            Ok((eigenvalues, v, true))
         }
     }
 }
@@ -169,8 +176,8 @@ impl Dmd for BatchDmd {
     }
 
     fn decompose_factored(&self) -> Result<(Modes, Option<ModeFactors>), DmdError> {
-        let fit = std::borrow::Cow::Borrowed(&self.fit);
-        ProjectedFit::decompose_factored(fit, self.debias, Some(&self.pairs), Some(self.xt.as_ref()))
+        let yws = std::borrow::Cow::Borrowed(&self.fit.yws);
+        ProjectedFit::decompose_factored(&self.fit.u, yws, self.debias, Some(&self.pairs), Some(self.xt.as_ref()))
     }
 
     fn rank(&self) -> usize {

@@ -195,8 +195,8 @@ impl Dmd for GeneralDmd {
     }
 
     fn decompose_factored(&self) -> Result<(Modes, Option<ModeFactors>), DmdError> {
-        let fit = std::borrow::Cow::Owned(self.projected());
-        ProjectedFit::decompose_factored(fit, self.debias, self.pairs.as_ref(), None)
+        let yws = std::borrow::Cow::Owned(div_cols(self.yw.clone(), &self.s));
+        ProjectedFit::decompose_factored(&self.u, yws, self.debias, self.pairs.as_ref(), None)
     }
 
     fn rank(&self) -> usize {
