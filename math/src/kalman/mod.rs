@@ -20,7 +20,8 @@
 //! aerial frame observes every cell (N in the thousands) and the filter still solves only
 //! q x q systems, with no inverse of `P` (which may be singular).
 
-use faer::{c64, Mat, MatRef};
+use faer::linalg::matmul::matmul;
+use faer::{c64, Accum, Mat, MatRef, Par};
 use std::sync::{Arc, OnceLock};
 
 mod displacement;
@@ -82,19 +83,37 @@ fn row_dots(a: MatRef<'_, f64>, b: MatRef<'_, f64>, out: &mut [f64]) {
 }
 
 /// The modal part's mean and variance per cell, `B a` and `diag(B P B^T)`, made a block of
-/// cells at a time on every core (each block's rows as the whole product makes them).
+/// cells at a time on every core, each block in pieces of [`SUB_ROWS`] rows through one
+/// buffer (each row as the whole product makes it): a block's `B P` whole was a fresh matrix
+/// per block, out of cache by the time its row sums read it (2.5 ms against 1.8 ms at
+/// 73,728 cells, rank 10).
 fn modal_of(basis: MatRef<'_, f64>, cov: MatRef<'_, f64>, mean: &[f64]) -> (Vec<f64>, Vec<f64>) {
     let modal_mean = modal_mean_of(basis, mean);
     let weight = cov.ncols().pow(2);
     let rows = crate::par::block_rows(basis.nrows(), weight);
     let mut variance = vec![0.0; basis.nrows()];
     crate::par::chunks_mut(&mut variance, rows, weight, |k, out| {
-        let b = basis.subrows(k * rows, out.len());
-        row_dots((b * cov).as_ref(), b, out);
-        out.iter_mut().for_each(|x| *x = x.max(0.0));
+        let mut bp = Mat::<f64>::zeros(SUB_ROWS.min(out.len()), cov.ncols());
+        for (s, out) in out.chunks_mut(SUB_ROWS).enumerate() {
+            let b = basis.subrows(k * rows + s * SUB_ROWS, out.len());
+            matmul(
+                bp.as_mut().subrows_mut(0, out.len()),
+                Accum::Replace,
+                b,
+                cov,
+                1.0,
+                Par::Seq,
+            );
+            row_dots(bp.as_ref().subrows(0, out.len()), b, out);
+            out.iter_mut().for_each(|x| *x = x.max(0.0));
+        }
     });
     (modal_mean, variance)
 }
+
+/// Rows of the basis per piece of [`modal_of`]'s products: `B P` of that many rows stays in
+/// the first cache levels until its row sums read it (20 KB at rank 10).
+const SUB_ROWS: usize = 256;
 
 /// One value `y` (noise variance `a`) at a cell into the cell's detail `(d, v)`, where the
 /// modal part is `modal` with variance `modal_var`. The value corrects the field at the cell,
@@ -143,12 +162,13 @@ fn modal_at_cells(basis: MatRef<'_, f64>, cov: MatRef<'_, f64>, mean: &[f64], ce
 /// cells are asked with it.
 fn modal_block(basis: MatRef<'_, f64>, cov: MatRef<'_, f64>, mean: &[f64], cells: &[usize]) -> Vec<(f64, f64)> {
     let (m, q) = (cells.len(), basis.ncols());
-    let rows: Vec<f64> = (0..q)
-        .flat_map(|k| {
-            let col = column(basis, k);
-            cells.iter().map(move |&c| col[c])
-        })
-        .collect();
+    // Column by column into one buffer: a flat_map's per-value branch cost more than the sums
+    // (1.7 ms against 1.0 ms for 25,000 cells at rank 10).
+    let mut rows = Vec::with_capacity(m * q);
+    for k in 0..q {
+        let col = column(basis, k);
+        rows.extend(cells.iter().map(|&c| col[c]));
+    }
     let b = |k: usize| &rows[k * m..(k + 1) * m];
     let (mut modal, mut var, mut inner) = (vec![0.0; m], vec![0.0; m], vec![0.0; m]);
     for (k, &a) in mean.iter().enumerate().take(q) {
@@ -815,6 +835,28 @@ mod tests {
             let row: Vec<f64> = basis.row(c).iter().copied().collect();
             let (rm, rv) = one_cell(&row, cov.as_ref(), &mean);
             assert_eq!((m.to_bits(), v.to_bits()), (rm.to_bits(), rv.to_bits()), "cell {c}");
+        }
+    }
+
+    /// The field's modal variance made in pieces of [`SUB_ROWS`] rows, on both cores, is the
+    /// one whole product `B P` and its row sums to the bit: 40,003 cells (neither the cores'
+    /// blocks nor the pieces divide it).
+    #[test]
+    fn the_modal_variance_in_pieces_is_the_whole_products() {
+        let (n, q) = (40_003, 9);
+        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+        let normal = Normal::new(0.0, 1.0).unwrap();
+        let basis = Mat::from_fn(n, q, |_, _| normal.sample(&mut rng));
+        let l = Mat::from_fn(q, q, |_, _| normal.sample(&mut rng));
+        let cov = &l * l.transpose();
+        let mean: Vec<f64> = (0..q).map(|_| normal.sample(&mut rng)).collect();
+        let (_, pieces) = modal_of(basis.as_ref(), cov.as_ref(), &mean);
+        let mut whole = vec![0.0; n];
+        let mut bp = Mat::<f64>::zeros(n, q);
+        matmul(bp.as_mut(), Accum::Replace, basis.as_ref(), cov.as_ref(), 1.0, Par::Seq);
+        row_dots(bp.as_ref(), basis.as_ref(), &mut whole);
+        for (c, (a, b)) in pieces.iter().zip(&whole).enumerate() {
+            assert_eq!(a.to_bits(), b.max(0.0).to_bits(), "cell {c}");
         }
     }
 
