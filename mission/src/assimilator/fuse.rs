@@ -290,7 +290,7 @@ impl Assimilator {
             s.forecast_skill.extend(forecast_skill(&prior.mean, &lattice));
         }
         let cap = kalman::variance_of(&aerial.estimate.values);
-        check_detail(f, &lattice, &boats, cap, &self.setup.on_lattice)?;
+        check_detail(f, &prior, (&lattice, &boats), cap, &self.setup.on_lattice)?;
         // The detail: the aerial estimate at every cell (noise, interpolation and the
         // calibrated extra), then the boats; between the lattice, as far as the boats have seen
         // the filter beat the aerials there (`between`).
@@ -393,8 +393,8 @@ fn forecast_skill(forecast: &[f64], o: &Observation<'_>) -> Option<f64> {
 /// detail's variance returns to at each predict.
 fn check_detail(
     f: &mut kalman::ModalFilter,
-    lattice: &Observation<'_>,
-    boats: &Observation<'_>,
+    prior: &kalman::Prior,
+    (lattice, boats): (&Observation<'_>, &Observation<'_>),
     cap: f64,
     on_lattice: &[bool],
 ) -> Result<(), TeamError> {
@@ -402,7 +402,8 @@ fn check_detail(
         f.rescale_detail(fit, cap, 0..on_lattice.len());
         f.raise_model_error(fit, cap);
     }
-    if let Some(fit) = f.detail_fit(boats)? {
+    // The boats' cells are the prior's: their modal part is taken from it, not made again.
+    if let Some(fit) = f.detail_fit_at_prior(prior, boats)? {
         f.rescale_detail(fit, cap, (0..on_lattice.len()).filter(|&c| !on_lattice[c]));
     }
     Ok(())
