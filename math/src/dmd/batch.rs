@@ -35,7 +35,7 @@ impl ProjectedFit {
         pairs: Option<&SnapshotPairs>,
         xt: Option<MatRef<'_, f64>>,
     ) -> Result<Modes, DmdError> {
-        let (eigenvalues, v, on_u) = self.eigenvectors(debias, pairs, xt)?;
+        let (eigenvalues, v, on_u) = eigenvectors(self.u.as_ref(), self.yws.as_ref(), debias, pairs, xt)?;
         let real = if on_u { &self.u } else { &self.yws };
         let modes = super::linalg::to_complex(real.as_ref()) * v;
         Ok(Modes { eigenvalues, modes })
@@ -57,20 +57,11 @@ impl ProjectedFit {
         let factors = ModeFactors { real, coefficients: v };
         Ok((Modes { eigenvalues, modes }, Some(factors)))
     }
-
-    /// The eigenvalues and eigenvectors `C`, and whether the modes are `U C` (debiased) rather
-    /// than `Y W S^-1 C`.
-    fn eigenvectors(
-        &self,
-        debias: Debias,
-        pairs: Option<&SnapshotPairs>,
-        xt: Option<MatRef<'_, f64>>,
-    ) -> Result<(Vec<faer::c64>, Mat<faer::c64>, bool), DmdError> {
-        eigenvectors(self.u.as_ref(), self.yws.as_ref(), debias, pairs, xt)
-    }
 }
 
-/// [`ProjectedFit::eigenvectors`] of `U` and `F = Y W S^-1` (`A~ = U^T F`).
+/// The eigenvalues and eigenvectors `C` of `A~ = U^T F` (`F = Y W S^-1`), or of a debiased
+/// operator on the projected pairs, and whether the modes are then `U C` (debiased) rather
+/// than `F C`.
 fn eigenvectors(
     u: MatRef<'_, f64>,
     yws: MatRef<'_, f64>,

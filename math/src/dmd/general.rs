@@ -94,8 +94,13 @@ impl GeneralDmd {
         ProjectedFit {
             u: self.u.clone(),
             s: self.s.clone(),
-            yws: div_cols(self.yw.clone(), &self.s),
+            yws: self.yws(),
         }
+    }
+
+    /// `F = Y W S^-1`, the factor the modes are made from (`A~ = U^T F`).
+    fn yws(&self) -> Mat<f64> {
+        div_cols(self.yw.clone(), &self.s)
     }
 
     fn reorthonormalise(&mut self) -> Result<(), DmdError> {
@@ -195,7 +200,7 @@ impl Dmd for GeneralDmd {
     }
 
     fn decompose_factored(&self) -> Result<(Modes, Option<ModeFactors>), DmdError> {
-        let yws = std::borrow::Cow::Owned(div_cols(self.yw.clone(), &self.s));
+        let yws = std::borrow::Cow::Owned(self.yws());
         ProjectedFit::decompose_factored(&self.u, yws, self.debias, self.pairs.as_ref(), None)
     }
 

@@ -847,6 +847,16 @@ mod tests {
         (modal, var.max(0.0))
     }
 
+    /// A random N x q basis, a random covariance `L L^T` and a random mean, from `seed`.
+    fn random_modal_state(n: usize, q: usize, seed: u64) -> (Mat<f64>, Mat<f64>, Vec<f64>) {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let normal = Normal::new(0.0, 1.0).unwrap();
+        let basis = Mat::from_fn(n, q, |_, _| normal.sample(&mut rng));
+        let l = Mat::from_fn(q, q, |_, _| normal.sample(&mut rng));
+        let mean: Vec<f64> = (0..q).map(|_| normal.sample(&mut rng)).collect();
+        (basis, &l * l.transpose(), mean)
+    }
+
     /// The modal mean and variance at a set of cells are the whole field's ([`modal_of`]) at
     /// those cells, to rounding (1e-12 relative: q = 7 terms), and each cell's the bits of the
     /// cell alone, its terms added one at a time, whichever other cells are asked with it and
@@ -855,12 +865,7 @@ mod tests {
     #[test]
     fn the_modal_part_at_cells_is_the_fields_whatever_cells_are_asked() {
         let (n, q) = (40_000, 7);
-        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
-        let normal = Normal::new(0.0, 1.0).unwrap();
-        let basis = Mat::from_fn(n, q, |_, _| normal.sample(&mut rng));
-        let l = Mat::from_fn(q, q, |_, _| normal.sample(&mut rng));
-        let cov = &l * l.transpose();
-        let mean: Vec<f64> = (0..q).map(|_| normal.sample(&mut rng)).collect();
+        let (basis, cov, mean) = random_modal_state(n, q, 3);
         let (field_mean, field_var) = modal_of(basis.as_ref(), cov.as_ref(), &mean);
         let cells: Vec<usize> = (0..n).rev().step_by(3).chain(0..50).collect();
         let at = modal_at_cells(basis.as_ref(), cov.as_ref(), &mean, &cells);
@@ -885,12 +890,7 @@ mod tests {
     #[test]
     fn the_modal_variance_in_pieces_is_the_whole_products() {
         let (n, q) = (40_003, 9);
-        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
-        let normal = Normal::new(0.0, 1.0).unwrap();
-        let basis = Mat::from_fn(n, q, |_, _| normal.sample(&mut rng));
-        let l = Mat::from_fn(q, q, |_, _| normal.sample(&mut rng));
-        let cov = &l * l.transpose();
-        let mean: Vec<f64> = (0..q).map(|_| normal.sample(&mut rng)).collect();
+        let (basis, cov, mean) = random_modal_state(n, q, 5);
         let (_, pieces) = modal_of(basis.as_ref(), cov.as_ref(), &mean);
         let mut whole = vec![0.0; n];
         let mut bp = Mat::<f64>::zeros(n, q);
