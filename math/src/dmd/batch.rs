@@ -25,7 +25,7 @@ impl ProjectedFit {
 
     /// `A~ = U^T (Y W S^-1)`.
     pub fn atilde(&self) -> Mat<f64> {
-        self.u.transpose() * &self.yws
+        atilde(self.u.as_ref(), self.yws.as_ref())
     }
 
     /// Eigenvalues and modes: exact DMD, or a debiased operator on the projected data.
@@ -59,6 +59,11 @@ impl ProjectedFit {
     }
 }
 
+/// `A~ = U^T F`, the operator projected on `U` (`F = Y W S^-1`).
+fn atilde(u: MatRef<'_, f64>, yws: MatRef<'_, f64>) -> Mat<f64> {
+    u.transpose() * yws
+}
+
 /// The eigenvalues and eigenvectors `C` of `A~ = U^T F` (`F = Y W S^-1`), or of a debiased
 /// operator on the projected pairs, and whether the modes are then `U C` (debiased) rather
 /// than `F C`.
@@ -71,7 +76,7 @@ fn eigenvectors(
 ) -> Result<(Vec<faer::c64>, Mat<faer::c64>, bool), DmdError> {
     match debias {
         Debias::None => {
-            let (eigenvalues, v) = eig((u.transpose() * yws).as_ref())?;
+            let (eigenvalues, v) = eig(atilde(u, yws).as_ref())?;
             Ok((eigenvalues, v, false))
         }
         kind => {
