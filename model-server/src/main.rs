@@ -2,6 +2,7 @@
 //! assimilates complete epochs with the same `fleet_mission::server::ServerCore` the offline
 //! experiment is tested against, and publishes models, acks, plans and its own status.
 
+mod departure;
 mod node;
 mod replay;
 
@@ -41,10 +42,13 @@ pub struct Args {
     /// replays it and carries on.
     #[arg(long, default_value = "server-state")]
     pub state_dir: std::path::PathBuf,
-    /// Exit once the mission is finished and every vehicle has left (or `--linger-ms` later).
+    /// Exit once the mission is finished and every vehicle has left, or once no batch has come
+    /// for `--linger-ms` from those still here (a vehicle re-sends until its last ack arrives).
     #[arg(long)]
     pub exit_when_done: bool,
-    #[arg(long, default_value_t = 10_000)]
+    /// With --exit-when-done: how long to wait for a vehicle still here that sends nothing
+    /// (the default outlasts a vehicle's longest wait before it re-sends, 60 s).
+    #[arg(long, default_value_t = departure::DEFAULT_LINGER_MS)]
     pub linger_ms: u64,
     /// Instead of serving a mission, play this recording back onto Zenoh at its recorded pace
     /// (times --speed), for a live view to follow (`fleet replay --web` starts it).

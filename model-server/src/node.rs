@@ -2,6 +2,7 @@
 //! model queries, liveliness changes and a status tick. Everything that reaches the core has
 //! been decoded and validated; everything refused is counted by reason and logged once.
 
+use crate::departure::Departure;
 use crate::Args;
 use anyhow::Context as _;
 use fleet_exit::bad_input;
@@ -1005,13 +1006,14 @@ impl Server {
         // The summary as written when the mission finished: batches may still come after it (a
         // vehicle re-sends until it sees its ack) and are recorded, so its counters are brought
         // up to date when the server leaves.
-        let (mut finished, mut done_at) = (None, None::<Instant>);
-        let linger = Duration::from_millis(args.linger_ms);
+        let mut finished = None;
+        let mut departure = Departure::new(Duration::from_millis(args.linger_ms));
         loop {
             tokio::select! {
                 r = inputs.batches.recv_async() => {
                     let sample = r.map_err(|e| anyhow::anyhow!("batch subscriber closed: {e}"))?;
                     self.on_batches(session, &inputs.batches, &sample).await?;
+                    departure.heard_batch(Instant::now());
                 }
                 r = inputs.plans.recv_async() => if let Ok(q) = r { self.on_plan_query(q).await },
                 r = inputs.models.recv_async() => if let Ok(q) = r { self.on_model_query(q).await },
@@ -1035,11 +1037,11 @@ impl Server {
                     break;
                 }
             }
-            if self.core.finished() && done_at.is_none() {
-                done_at = Some(Instant::now());
+            if self.core.finished() && finished.is_none() {
+                departure.mission_done(Instant::now());
                 finished = Some(self.on_finished(session, args).await?);
             }
-            if done_at.is_some_and(|t| args.exit_when_done && (self.alive.is_empty() || t.elapsed() > linger)) {
+            if args.exit_when_done && departure.leave(Instant::now(), !self.alive.is_empty()) {
                 break;
             }
         }
