@@ -59,26 +59,40 @@ fn triangular_factor(phi: MatRef<'_, f64>) -> Mat<f64> {
 }
 
 impl Coords {
+    /// Each row `i` of `R Phi^T` and each cell's squared norm made on the cores as one thread
+    /// makes it (the same bits: a row's terms in `k` order, a cell's in `i` order), reading
+    /// the basis's columns where they are (a copy of the basis was 24 MB at 384 x 768).
     fn new(phi: MatRef<'_, f64>) -> Self {
         let (n, r) = (phi.nrows(), phi.ncols());
         let rm = triangular_factor(phi);
-        let cols: Vec<Vec<f64>> = (0..r).map(|k| phi.col(k).iter().copied().collect()).collect();
+        let owned;
+        let phi = match phi.col(0).try_as_col_major() {
+            Some(_) => phi,
+            None => {
+                owned = phi.to_owned();
+                owned.as_ref()
+            }
+        };
+        let col = |k: usize| phi.col(k).try_as_col_major().expect("contiguous columns").as_slice();
         let mut rows = vec![0.0; n * r];
-        for (i, row) in rows.chunks_exact_mut(n).enumerate() {
-            // Row i of R Phi^T = sum_k R[i, k] Phi[:, k]^T (R upper triangular).
-            for (k, col) in cols.iter().enumerate().skip(i) {
+        // Row i of R Phi^T = sum_k R[i, k] Phi[:, k]^T (R upper triangular).
+        crate::par::chunks_mut(&mut rows, n.max(1), r, |i, row| {
+            for k in i..r {
                 let a = rm[(i, k)];
-                for (x, v) in row.iter_mut().zip(col) {
+                for (x, v) in row.iter_mut().zip(col(k)) {
                     *x += a * v;
                 }
             }
-        }
+        });
         let mut n2 = vec![0.0; n];
-        for row in rows.chunks_exact(n) {
-            for (s, v) in n2.iter_mut().zip(row) {
-                *s += v * v;
+        let block = crate::par::block_rows(n, r);
+        crate::par::chunks_mut(&mut n2, block, r, |b, out| {
+            for row in rows.chunks_exact(n) {
+                for (s, v) in out.iter_mut().zip(&row[b * block..]) {
+                    *s += v * v;
+                }
             }
-        }
+        });
         Self {
             r,
             n,
@@ -121,16 +135,21 @@ impl Coords {
             return;
         }
         q.iter_mut().for_each(|v| *v /= nq);
-        let mut dots = vec![0.0; self.n];
-        for (row, &qi) in self.rows.chunks_exact(self.n).zip(&q) {
-            for (d, v) in dots.iter_mut().zip(row) {
-                *d += qi * v;
+        // Per cell, q . c_p in `i` order and the norm's drop, a block of cells on each core.
+        let (n, rows) = (self.n, &self.rows);
+        let block = crate::par::block_rows(n, self.r);
+        crate::par::chunks_mut(&mut self.n2, block, self.r, |b, n2| {
+            let mut dots = vec![0.0; n2.len()];
+            for (row, &qi) in rows.chunks_exact(n).zip(&q) {
+                for (d, v) in dots.iter_mut().zip(&row[b * block..]) {
+                    *d += qi * v;
+                }
             }
-        }
+            for (n2, d) in n2.iter_mut().zip(&dots) {
+                *n2 -= d * d;
+            }
+        });
         self.removed.push(q);
-        for (n2, d) in self.n2.iter_mut().zip(&dots) {
-            *n2 -= d * d;
-        }
     }
 
     /// The leading left singular vector of the block of residual columns `cells` (the
@@ -209,6 +228,8 @@ struct DiskSums {
     half: Vec<i64>,
     /// Whether every value is >= 0 (a square's sum then bounds its disk's).
     nonnegative: bool,
+    /// Whether every value is 0 (nothing taken yet: every disk sum is 0).
+    zero: bool,
 }
 
 impl DiskSums {
@@ -236,6 +257,7 @@ impl DiskSums {
             pad,
             half,
             nonnegative: v.iter().all(|&x| x >= 0.0),
+            zero: v.iter().all(|&x| x == 0.0),
         }
     }
 
@@ -368,29 +390,70 @@ fn best_disk(grid: &Grid, taken: &DiskSums, sums: &DiskSums) -> Option<(Cell, f6
     let mut order: Vec<usize> = (0..grid.rows).collect();
     order.sort_by(|&a, &b| bounds[b].total_cmp(&bounds[a]).then(a.cmp(&b)));
     let cols = grid.cols;
-    let (mut scores, mut overlap) = (vec![0.0; cols], vec![0.0; cols]);
+    // The rows' scores a batch at a time on the cores, then taken in the same order with the
+    // same stop as one at a time: the same pick, a few rows past the stop summed for nothing.
+    // A row's overlap with the disks taken is summed (on the cores too) only when one of its
+    // scores reaches the best at the batch's start: no other centre of it can win.
+    let weight = cols * sums.half.len();
+    // Enough rows that a batch is work enough to share (fewer stayed on one core).
+    let batch = crate::par::MIN_WORK.div_ceil(weight.max(1)).max(2);
+    best_disk_in_batches(grid, taken, sums, (&bounds, &order), batch)
+}
+
+/// [`best_disk`] with the rows in `order` summed `batch` at a time.
+fn best_disk_in_batches(
+    grid: &Grid,
+    taken: &DiskSums,
+    sums: &DiskSums,
+    (bounds, order): (&[f64], &[usize]),
+    batch: usize,
+) -> Option<(Cell, f64)> {
+    let (cols, weight) = (grid.cols, grid.cols * sums.half.len());
     let mut best: Option<(usize, f64)> = None;
-    for r in order {
-        if best.is_some_and(|(_, b)| bounds[r] < b) {
+    let none_taken = vec![0.0; if taken.zero { cols } else { 0 }];
+    for rows in order.chunks(batch) {
+        let live = rows
+            .iter()
+            .take_while(|&&r| !best.is_some_and(|(_, b)| bounds[r] < b))
+            .count();
+        if live == 0 {
             break;
         }
-        sums.row_sums(r, &mut scores);
-        let mut overlap_made = false;
-        for (c, &s) in scores.iter().enumerate() {
-            let i = r * cols + c;
-            // The scan's pick: the largest score, the first cell of it.
-            if best.is_none_or(|(j, b)| s > b || (s == b && i < j)) {
-                if !overlap_made {
-                    taken.row_sums(r, &mut overlap);
-                    overlap_made = true;
-                }
-                if overlap[c] < 0.5 {
-                    best = Some((i, s));
-                }
+        let row_sums = |of: &DiskSums, r: usize| {
+            let mut out = vec![0.0; cols];
+            of.row_sums(r, &mut out);
+            out
+        };
+        let scored = crate::par::map(live, weight, |j| row_sums(sums, rows[j]));
+        let floor = best.map(|(_, b)| b);
+        let overlaps = crate::par::map(live, weight, |j| {
+            let reaches = floor.is_none_or(|b| scored[j].iter().any(|&s| s >= b));
+            (reaches && !taken.zero).then(|| row_sums(taken, rows[j]))
+        });
+        for ((&r, scores), overlap) in rows.iter().zip(&scored).zip(&overlaps) {
+            if best.is_some_and(|(_, b)| bounds[r] < b) {
+                return best.map(|(i, s)| (grid.cell(i), s));
+            }
+            let overlap = overlap.as_deref().unwrap_or(&none_taken);
+            if !overlap.is_empty() {
+                best = best_in_row(r * cols, scores, overlap, best);
             }
         }
     }
     best.map(|(i, s)| (grid.cell(i), s))
+}
+
+/// The scan's pick through a row of centres (the first at cell `first`) given their scores
+/// and their disks' overlap with what is taken: the largest score, the first cell of it,
+/// among the centres whose disk touches nothing taken.
+fn best_in_row(first: usize, scores: &[f64], overlap: &[f64], mut best: Option<(usize, f64)>) -> Option<(usize, f64)> {
+    for (c, (&s, &o)) in scores.iter().zip(overlap).enumerate() {
+        let i = first + c;
+        if best.is_none_or(|(j, b)| s > b || (s == b && i < j)) && o < 0.5 {
+            best = Some((i, s));
+        }
+    }
+    best
 }
 
 /// [`best_disk`] by summing every row first: the scan of every centre in order, for scores a
@@ -564,6 +627,45 @@ pub fn block_dopt_within(
 mod row_sum_tests {
     use super::*;
 
+    /// The coordinates `R Phi^T`, their squared norms and a deflation's new norms, made a block
+    /// of cells at a time on the cores, are what one thread makes, to the bit: at a size whose
+    /// work is shared ([`crate::par::MIN_WORK`]), and on a basis that is a view, not a `Mat`.
+    #[test]
+    fn the_coordinates_made_on_the_cores_are_one_threads_to_the_bit() {
+        let (n, r) = (150_001, 7);
+        assert!(
+            n * r >= crate::par::MIN_WORK,
+            "the work must be shared for the test to test it"
+        );
+        let value = |i: usize, k: usize| ((i * 7919 + k * 104_729) % 1009) as f64 / 1009.0 - 0.5;
+        let (tall, across) = (Mat::from_fn(n, r, value), Mat::from_fn(r, n, |k, i| value(i, k)));
+        for phi in [tall.as_ref(), across.as_ref().transpose()] {
+            let n = phi.nrows();
+            let rm = triangular_factor(phi);
+            let mut rows = vec![0.0; n * r];
+            let mut n2 = vec![0.0; n];
+            for i in 0..r {
+                for k in i..r {
+                    (0..n).for_each(|p| rows[i * n + p] += rm[(i, k)] * phi[(p, k)]);
+                }
+                (0..n).for_each(|p| n2[p] += rows[i * n + p] * rows[i * n + p]);
+            }
+            let mut c = Coords::new(phi);
+            let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&c.rows), bits(&rows));
+            assert_eq!(bits(&c.n2), bits(&n2));
+            let raw: Vec<f64> = (0..r).map(|i| 1.0 + i as f64).collect();
+            let norm = raw.iter().map(|v| v * v).sum::<f64>().sqrt();
+            let q: Vec<f64> = raw.iter().map(|v| v / norm).collect();
+            for (p, n2) in n2.iter_mut().enumerate() {
+                let d = (0..r).fold(0.0, |d, i| d + q[i] * rows[i * n + p]);
+                *n2 -= d * d;
+            }
+            c.deflate(&raw);
+            assert_eq!(bits(&c.n2), bits(&n2));
+        }
+    }
+
     /// Every centre's row sum is its disk sum to the bit, on grids narrower than the disk,
     /// as wide, and wider, with radii from 0 to past the grid.
     #[test]
@@ -635,6 +737,15 @@ mod row_sum_tests {
                     let taken = DiskSums::new(grid, &covered, radius);
                     let want = best_disk_of_all(&grid, &taken, &sums);
                     assert_eq!(best_disk(&grid, &taken, &sums), want, "radius {radius}");
+                    if sums.nonnegative {
+                        // Batches of rows: the overlap summed only for rows that reach the best.
+                        let mut order: Vec<usize> = (0..grid.rows).collect();
+                        order.sort_by(|&a, &b| bounds[b].total_cmp(&bounds[a]).then(a.cmp(&b)));
+                        for batch in [1, 2, 5] {
+                            let got = best_disk_in_batches(&grid, &taken, &sums, (&bounds, &order), batch);
+                            assert_eq!(got, want, "radius {radius}, batches of {batch}");
+                        }
+                    }
                     let Some((centre, _)) = want else { break };
                     grid.disk(centre, radius).into_iter().for_each(|p| covered[p] = 1.0);
                 }
