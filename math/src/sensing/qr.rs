@@ -387,17 +387,26 @@ fn best_disk(grid: &Grid, taken: &DiskSums, sums: &DiskSums) -> Option<(Cell, f6
     if !sums.nonnegative || bounds.iter().any(|b| !b.is_finite()) {
         return best_disk_of_all(grid, taken, sums);
     }
-    let mut order: Vec<usize> = (0..grid.rows).collect();
-    order.sort_by(|&a, &b| bounds[b].total_cmp(&bounds[a]).then(a.cmp(&b)));
-    let cols = grid.cols;
+    let order = rows_by_bound(&bounds);
     // The rows' scores a batch at a time on the cores, then taken in the same order with the
     // same stop as one at a time: the same pick, a few rows past the stop summed for nothing.
     // A row's overlap with the disks taken is summed (on the cores too) only when one of its
     // scores reaches the best at the batch's start: no other centre of it can win.
-    let weight = cols * sums.half.len();
     // Enough rows that a batch is work enough to share (fewer stayed on one core).
-    let batch = crate::par::MIN_WORK.div_ceil(weight.max(1)).max(2);
+    let batch = crate::par::MIN_WORK.div_ceil(row_work(grid, sums)).max(2);
     best_disk_in_batches(grid, taken, sums, (&bounds, &order), batch)
+}
+
+/// The rows of centres, the highest bound first (the lower row on a tie).
+fn rows_by_bound(bounds: &[f64]) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..bounds.len()).collect();
+    order.sort_by(|&a, &b| bounds[b].total_cmp(&bounds[a]).then(a.cmp(&b)));
+    order
+}
+
+/// The work of one row of disk sums: a segment per row offset for every centre.
+fn row_work(grid: &Grid, sums: &DiskSums) -> usize {
+    (grid.cols * sums.half.len()).max(1)
 }
 
 /// [`best_disk`] with the rows in `order` summed `batch` at a time.
@@ -408,7 +417,7 @@ fn best_disk_in_batches(
     (bounds, order): (&[f64], &[usize]),
     batch: usize,
 ) -> Option<(Cell, f64)> {
-    let (cols, weight) = (grid.cols, grid.cols * sums.half.len());
+    let (cols, weight) = (grid.cols, row_work(grid, sums));
     let mut best: Option<(usize, f64)> = None;
     let none_taken = vec![0.0; if taken.zero { cols } else { 0 }];
     for rows in order.chunks(batch) {
@@ -739,8 +748,7 @@ mod row_sum_tests {
                     assert_eq!(best_disk(&grid, &taken, &sums), want, "radius {radius}");
                     if sums.nonnegative {
                         // Batches of rows: the overlap summed only for rows that reach the best.
-                        let mut order: Vec<usize> = (0..grid.rows).collect();
-                        order.sort_by(|&a, &b| bounds[b].total_cmp(&bounds[a]).then(a.cmp(&b)));
+                        let order = rows_by_bound(&bounds);
                         for batch in [1, 2, 5] {
                             let got = best_disk_in_batches(&grid, &taken, &sums, (&bounds, &order), batch);
                             assert_eq!(got, want, "radius {radius}, batches of {batch}");
