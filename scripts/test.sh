@@ -18,26 +18,43 @@ if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pyma
     foxglove-schemas-protobuf==0.4.0 jsonschema websockets==15.0.1
 fi
 # Debian's chromium for the live view's browser test, gdal-bin for the GeoTIFF test, DejaVu
-# for the charts' text, nftables and iproute2's tc for the radio test's shaped link.
+# for the charts' text, nftables and iproute2's tc for the radio test's shaped link, and the
+# system's zstd for the recordings' compression (below).
 missing=()
+command -v pkg-config >/dev/null || missing+=(pkg-config)
+[ -e /usr/lib/x86_64-linux-gnu/pkgconfig/libzstd.pc ] || pkg-config --exists libzstd 2>/dev/null || missing+=(libzstd-dev)
 command -v nft >/dev/null || missing+=(nftables)
 command -v tc >/dev/null || missing+=(iproute2)
 command -v chromium >/dev/null || missing+=(chromium)
 command -v gdalinfo >/dev/null || missing+=(gdal-bin)
 [ -e /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf ] || missing+=(fonts-dejavu-core)
 if [ ${#missing[@]} -gt 0 ]; then
-  echo "== installing ${missing[*]} (the live view's browser test, the GeoTIFF test, the charts' font, the radio test)"
+  echo "== installing ${missing[*]} (the live view's browser test, the GeoTIFF test, the charts' font, the radio test, zstd)"
   export DEBIAN_FRONTEND=noninteractive
   apt-get update -q >/dev/null && apt-get install -y -q "${missing[@]}" >/dev/null
 fi
-echo "== house style (rustfmt.toml; clippy with warnings as errors; the code's shape)"
+echo "== house style (rustfmt.toml; the code's shape; clippy runs in the build below)"
 cargo fmt --all --check
 # No import loops in vehicles/ and mission/, no sleeping in a loop in the vehicle node and its
 # bridge, no struct's field list written twice (scripts/check_structure.py says what it checks).
 python3 scripts/check_structure.py
-echo "== building (release)"
+# Clippy lints the workspace as it is built, with warnings as errors: `clippy-driver` (the
+# compiler `cargo clippy` runs) compiles the workspace's own crates, so one build both lints and
+# makes the binaries the tests run (a separate `cargo clippy` pass type-checked the whole
+# dependency tree a second time: 4 of the suite's 38 minutes). Dependencies are built by rustc
+# as always, their lints capped by cargo. The recordings' zstd is the system's (libzstd-dev)
+# rather than the copy of its C sources `zstd-sys` compiles (2 minutes of the build); a user's
+# `cargo build` still compiles that copy. These settings are the test build's own: every cargo
+# command below runs with them, so the tests reuse the one build.
+RUSTC_WORKSPACE_WRAPPER="$(rustup which clippy-driver 2>/dev/null || command -v clippy-driver || true)"
+if ! "${RUSTC_WORKSPACE_WRAPPER:-false}" --version 2>/dev/null | grep -q clippy; then
+  echo "test.sh: clippy-driver not found (rustup component add clippy): the build would not be linted" >&2
+  exit 1
+fi
+export RUSTC_WORKSPACE_WRAPPER
+export RUSTFLAGS="-D warnings" ZSTD_SYS_USE_PKG_CONFIG=1
+echo "== building and linting (release; clippy with warnings as errors)"
 cargo build --release --workspace --all-targets
-cargo clippy --release --workspace --all-targets -- -D warnings
 echo "== testing (release)"
 cargo test --release --workspace -- --skip malformed_inputs_never_panic_a_decoder
 echo "== fuzzing the decoders (release; prints how many inputs)"
