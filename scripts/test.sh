@@ -53,6 +53,17 @@ if ! "${RUSTC_WORKSPACE_WRAPPER:-false}" --version 2>/dev/null | grep -q clippy;
 fi
 export RUSTC_WORKSPACE_WRAPPER
 export RUSTFLAGS="-D warnings" ZSTD_SYS_USE_PKG_CONFIG=1
+# The lints must be able to fail: a crate with two of clippy's warnings must not build.
+probe="$(mktemp -d)"
+cargo new -q --vcs none --name lint_probe "$probe/lint_probe"
+printf 'fn main() {\n    let v = vec![1];\n    for i in 0..v.len() {\n        println!("{}", v[i]);\n    }\n}\n' \
+  > "$probe/lint_probe/src/main.rs"
+if cargo build -q --manifest-path "$probe/lint_probe/Cargo.toml" 2> "$probe/lints.txt" \
+  || ! grep -q "clippy::needless_range_loop" "$probe/lints.txt"; then
+  echo "test.sh: the build did not refuse clippy's warnings in a probe crate ($probe): lints are not running" >&2
+  exit 1
+fi
+rm -rf "$probe"
 echo "== building and linting (release; clippy with warnings as errors)"
 cargo build --release --workspace --all-targets
 echo "== testing (release)"
