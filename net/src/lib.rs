@@ -211,18 +211,18 @@ pub const CLOSE_WITHIN: std::time::Duration = std::time::Duration::from_secs(5);
 
 /// Close a session, within [`CLOSE_WITHIN`]: what a node had to say is said by then (its
 /// acknowledgements are in), and a close that waits on a peer that went away (a link just cut)
-/// must not keep the process from exiting. Past the bound the node goes on, with a warning.
+/// must not keep the process from exiting. A close that fails is no failure of the node either:
+/// Zenoh's own close gives up on a peer behind a slow, lossy link (it timed out on a 9.6 kbit/s
+/// radio at 5% loss, after every batch of the mission had been acknowledged). Past the bound,
+/// or on such an error, the node goes on, with a warning naming it.
 pub async fn close(session: &Session) -> Result<(), NetError> {
-    match tokio::time::timeout(CLOSE_WITHIN, session.close()).await {
-        Ok(closed) => closed.map_err(NetError::zenoh("closing the Zenoh session")),
-        Err(_) => {
-            tracing::warn!(
-                within_s = CLOSE_WITHIN.as_secs(),
-                "the Zenoh session did not close in time: leaving it"
-            );
-            Ok(())
-        }
-    }
+    let why = match tokio::time::timeout(CLOSE_WITHIN, session.close()).await {
+        Ok(Ok(())) => return Ok(()),
+        Ok(Err(e)) => e.to_string(),
+        Err(_) => format!("not closed within {} s", CLOSE_WITHIN.as_secs()),
+    };
+    tracing::warn!(%why, "the Zenoh session did not close cleanly: leaving it");
+    Ok(())
 }
 
 /// The protocol's encoding, as Zenoh carries it.
