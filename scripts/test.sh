@@ -22,7 +22,7 @@ fi
 # system's zstd for the recordings' compression (below).
 missing=()
 command -v pkg-config >/dev/null || missing+=(pkg-config)
-[ -e /usr/lib/x86_64-linux-gnu/pkgconfig/libzstd.pc ] || pkg-config --exists libzstd 2>/dev/null || missing+=(libzstd-dev)
+pkg-config --exists libzstd 2>/dev/null || missing+=(libzstd-dev)
 command -v nft >/dev/null || missing+=(nftables)
 command -v tc >/dev/null || missing+=(iproute2)
 command -v chromium >/dev/null || missing+=(chromium)
