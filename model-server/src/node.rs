@@ -1097,7 +1097,7 @@ impl Server {
         }
         self.put(session, &self.keys.server_status(), &Body::Status(self.status()))
             .await?;
-        fleet_net::close(session).await?;
+        fleet_net::close(session).await;
         if let Some(r) = self.recorder.into_inner().unwrap_or_else(|p| p.into_inner()) {
             let path = r.path().to_path_buf();
             r.finish()?;

@@ -106,7 +106,7 @@ pub async fn run(args: &Args, file: &Path, speed: f64) -> anyhow::Result<()> {
     let _ = r
         .answer_until(tokio::time::Instant::now() + END_LINGER, &mut stop)
         .await;
-    fleet_net::close(&r.session).await?;
+    fleet_net::close(&r.session).await;
     Ok(())
 }
 

@@ -214,12 +214,11 @@ pub const CLOSE_WITHIN: std::time::Duration = std::time::Duration::from_secs(5);
 /// must not keep the process from exiting. A close that fails is no failure of the node either:
 /// Zenoh's own close gives up on a peer behind a slow, lossy link (it timed out on a 9.6 kbit/s
 /// radio at 5% loss, after every batch of the mission had been acknowledged). Past the bound,
-/// or on such an error, the node goes on, with a warning naming it.
-pub async fn close(session: &Session) -> Result<(), NetError> {
+/// or on such an error, the node goes on, with a warning naming it: so nothing is returned.
+pub async fn close(session: &Session) {
     if let Some(why) = unclean_close(std::future::IntoFuture::into_future(session.close()), CLOSE_WITHIN).await {
         tracing::warn!(%why, "the Zenoh session did not close cleanly: leaving it");
     }
-    Ok(())
 }
 
 /// Why a close did not end cleanly within `bound` (its error, or the bound passed), or `None`

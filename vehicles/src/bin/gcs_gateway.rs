@@ -137,7 +137,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     info!(to_gcs = g.down, from_gcs = g.up, refused = ?g.router.refused, "gateway stopped");
-    fleet_net::close(&g.session).await?;
+    fleet_net::close(&g.session).await;
     Ok(())
 }
 

@@ -143,7 +143,7 @@ impl Vehicle {
         );
         // After the last telemetry, so the server never takes the return for a hold.
         self.end_action().await;
-        fleet_net::close(&self.session).await?;
+        fleet_net::close(&self.session).await;
         Ok(())
     }
 
