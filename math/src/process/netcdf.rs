@@ -1,8 +1,9 @@
 //! One variable of a NetCDF-3 file as a field, decoded the way xarray decodes it (CF
 //! conventions): a value equal to `_FillValue` or `missing_value` (compared in the variable's
 //! own type, as xarray casts them) or outside `valid_min`/`valid_max`/`valid_range` (as
-//! netCDF4-python masks them) is missing, never data; packed integers are unpacked with
-//! `scale_factor` and `add_offset`; `units` is carried along.
+//! netCDF4-python masks them) is missing, never data; integers marked `_Unsigned = "true"` are
+//! read unsigned, and packed integers unpacked with `scale_factor` and `add_offset`; `units` is
+//! carried along.
 //!
 //! Dimensions are taken the way files have them: `select` fixes a dimension (by coordinate
 //! value where the dimension has a coordinate variable, xarray's `sel`; by index where it has
@@ -391,12 +392,19 @@ struct Decode {
     valid_packed: bool,
     scale: f64,
     offset: f64,
+    /// `_Unsigned = "true"`: the stored type's span, `2^bits` (see [`unsigned_span`]).
+    unsigned: Option<f64>,
 }
 
 impl Decode {
     fn of(var: &Variable, stored: DataType) -> Result<Self, String> {
         let attr = |name: &str| var.get_attr(name).and_then(attr_numbers);
-        let in_type = |v: f64| cast(v, &stored);
+        let unsigned = unsigned_span(var, &stored)?;
+        let in_type = |v: f64| match unsigned {
+            // A fill written unsigned (65535 for a short) is already the value as read.
+            Some(_) if v >= 0.0 => v,
+            _ => as_unsigned(unsigned, cast(v, &stored)),
+        };
         let mut missing: Vec<f64> = vec![];
         for name in ["_FillValue", "missing_value"] {
             missing.extend(attr(name).unwrap_or_default().into_iter().map(in_type));
@@ -421,6 +429,9 @@ impl Decode {
         let valid_packed = typed
             .iter()
             .all(|n| var.get_attr(n).is_some_and(|a| a.data_type() == stored));
+        if valid_packed {
+            valid = (as_unsigned(unsigned, valid.0), as_unsigned(unsigned, valid.1));
+        }
         let one = |name: &str, default: f64| -> Result<f64, String> {
             match attr(name).as_deref() {
                 None => Ok(default),
@@ -434,6 +445,7 @@ impl Decode {
             valid_packed,
             scale: one("scale_factor", 1.0)?,
             offset: one("add_offset", 0.0)?,
+            unsigned,
         })
     }
 
@@ -444,6 +456,7 @@ impl Decode {
             stored
                 .into_iter()
                 .map(|s| {
+                    let s = as_unsigned(self.unsigned, s);
                     let v = s * self.scale + self.offset;
                     let checked = if self.valid_packed { s } else { v };
                     let out_of_range = checked < self.valid.0 || checked > self.valid.1;
@@ -455,6 +468,38 @@ impl Decode {
                 })
                 .collect(),
         )
+    }
+}
+
+/// `_Unsigned = "true"` (the NUG's way to store unsigned integers in NetCDF-3, which has none:
+/// GOES-R's products are shorts so marked, with `valid_range = 0S, -6S`): the stored type's span
+/// `2^bits`, which a negative stored value is read with, as netCDF4-python and netCDF-Java read
+/// it, and so are its fill values and a valid range in the stored type (xarray converts only
+/// `_FillValue`, leaving a `missing_value` of 254 in a byte as data). Read as signed, a byte of
+/// 200 would be -56: data altered in silence. `"false"` or no attribute: signed. Anything else,
+/// or `"true"` on a type that is not an integer, is refused (no setting ignored).
+fn unsigned_span(var: &Variable, stored: &DataType) -> Result<Option<f64>, String> {
+    let Some(said) = var.get_attr("_Unsigned") else {
+        return Ok(None);
+    };
+    let said = said.get_as_string().unwrap_or_default();
+    match (said.trim().to_ascii_lowercase().as_str(), stored) {
+        ("false", _) => Ok(None),
+        ("true", DataType::I8) => Ok(Some(256.0)),
+        ("true", DataType::I16) => Ok(Some(65_536.0)),
+        ("true", DataType::I32) => Ok(Some(4_294_967_296.0)),
+        ("true", t) => Err(format!(
+            "_Unsigned is \"true\" on a variable of {t:?}: only integers are unsigned"
+        )),
+        _ => Err(format!("_Unsigned is {said:?}; the NUG wants \"true\" or \"false\"")),
+    }
+}
+
+/// A stored integer as `_Unsigned` reads it: a negative one plus the type's span.
+fn as_unsigned(span: Option<f64>, stored: f64) -> f64 {
+    match span {
+        Some(span) if stored < 0.0 => stored + span,
+        _ => stored,
     }
 }
 
@@ -489,6 +534,11 @@ mod tests {
     /// `v(time, level, lat, lon)` of shorts with the attributes given, `lat` and `level`
     /// coordinates; written by `netcdf3`.
     fn write(path: &Path, data: &[i16], lat: &[f64], attrs: &[(&str, f64)]) {
+        write_with(path, data, lat, attrs, |_| {});
+    }
+
+    /// [`write`], with `more` adding what a double cannot say (strings, typed pairs).
+    fn write_with(path: &Path, data: &[i16], lat: &[f64], attrs: &[(&str, f64)], more: impl Fn(&mut DataSet)) {
         let (t, rows, cols) = (data.len() / (lat.len() * 3), lat.len(), 3);
         let mut ds = netcdf3::DataSet::new();
         for (d, n) in [("time", t), ("level", 1), ("lat", rows), ("lon", cols)] {
@@ -504,6 +554,7 @@ mod tests {
             }
         }
         ds.add_var_attr_string("v", "units", "K").unwrap();
+        more(&mut ds);
         ds.add_var_f64("lat", &["lat"]).unwrap();
         ds.add_var_f64("level", &["level"]).unwrap();
         ds.add_var_f64("time", &["time"]).unwrap();
@@ -584,6 +635,52 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("not strictly monotonic"));
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn unsigned_shorts_read_as_netcdf4_python_reads_them_and_a_bad_mark_is_named() {
+        let dir = std::env::temp_dir().join(format!("hetfleet-unsigned-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("u.nc");
+        // GOES-R's marking: `_Unsigned = "true"`, `_FillValue = -1S` (65535), `valid_range = 0S,
+        // -6S` (0 to 65530, in the stored type). Stored -5 is 65531, past the range; -7 is
+        // 65529, in it; -32768 is 32768. Signed, every value below 0 would be outside the
+        // range, and the file refused as missing everywhere.
+        let data = [100, -1, -7, -5, -32768, 0];
+        let unsigned = |said: &'static str| {
+            move |ds: &mut DataSet| {
+                ds.add_var_attr_string("v", "_Unsigned", said).unwrap();
+                ds.add_var_attr_i16("v", "valid_range", vec![0, -6]).unwrap();
+            }
+        };
+        let attrs = [("_FillValue", -1.0), ("scale_factor", 0.5), ("add_offset", 10.0)];
+        write_with(&p, &data, &[50.0, 60.0], &attrs, unsigned("true"));
+        let f = read(&p, "v", &Select::new()).unwrap();
+        let got: Vec<f64> = f.field.snapshots.col(0).iter().copied().collect();
+        let want = [
+            60.0,
+            f64::NAN,
+            65_529.0 * 0.5 + 10.0,
+            f64::NAN,
+            32_768.0 * 0.5 + 10.0,
+            10.0,
+        ];
+        for (g, w) in got.iter().zip(want) {
+            assert!(g == &w || (g.is_nan() && w.is_nan()), "{got:?} vs {want:?}");
+        }
+        assert_eq!(f.missing, 2);
+        // "TRUE" is true (netCDF-Java compares without case); "false" is signed, so the range
+        // 0 to -6 holds nothing: refused, as the file was before `_Unsigned` was read.
+        write_with(&p, &data, &[50.0, 60.0], &attrs, unsigned("TRUE"));
+        assert_eq!(read(&p, "v", &Select::new()).unwrap().missing, 2);
+        write_with(&p, &data, &[50.0, 60.0], &attrs, unsigned("false"));
+        let e = read(&p, "v", &Select::new()).unwrap_err().to_string();
+        assert!(e.contains("every value is missing"), "{e}");
+        // A mark that is neither is refused, naming it, not read one way or the other.
+        write_with(&p, &data, &[50.0, 60.0], &attrs, unsigned("yes"));
+        let e = read(&p, "v", &Select::new()).unwrap_err().to_string();
+        assert!(e.contains("_Unsigned is \"yes\"") && e.contains("u.nc"), "{e}");
         std::fs::remove_dir_all(&dir).ok();
     }
 }
