@@ -56,7 +56,7 @@ pub fn shape(path: impl AsRef<Path>, variable: &str, select: &Select) -> Option<
         .filter_map(|d| Some((d.clone(), numbers(&reader.read_var(&d).ok()?)?)))
         .collect();
     let var = reader.data_set().get_var(variable)?;
-    let layout = Layout::of(var, select, &coords, &|why| why).ok()?;
+    let layout = Layout::of(reader.data_set(), var, select, &coords, &|why| why).ok()?;
     Some(layout.kept.iter().map(|&d| layout.sizes[d]).collect())
 }
 
@@ -68,15 +68,15 @@ pub fn bounds(path: impl AsRef<Path>, variable: &str, select: &Select) -> Option
     let ds = reader.data_set();
     let var = ds.get_var(variable)?;
     let names = var.dim_names();
-    let is = |name: &str, units: &str, standard: &str| {
+    let is = |name: &str, north: bool, standard: &str| {
         is_coordinate(ds, name)
             && (ds
                 .get_var_attr_as_string(name, "units")
-                .is_some_and(|u| u.starts_with(units))
+                .is_some_and(|u| in_degrees(&u, north))
                 || ds.get_var_attr_as_string(name, "standard_name").as_deref() == Some(standard))
     };
-    let lat = names.iter().find(|n| is(n, "degrees_n", "latitude"))?.clone();
-    let lon = names.iter().find(|n| is(n, "degrees_e", "longitude"))?.clone();
+    let lat = names.iter().find(|n| is(n, true, "latitude"))?.clone();
+    let lon = names.iter().find(|n| is(n, false, "longitude"))?.clone();
     if select.contains_key(&lat) || select.contains_key(&lon) {
         return None;
     }
@@ -101,6 +101,17 @@ pub fn units(path: impl AsRef<Path>, variable: &str) -> Option<String> {
         .ok()?
         .data_set()
         .get_var_attr_as_string(variable, "units")
+}
+
+/// Whether `units` are degrees north (`north`) or east, in any of CF's spellings
+/// (`degrees_north`, `degree_N`, `degreesN`, ...).
+fn in_degrees(units: &str, north: bool) -> bool {
+    let u = units.trim().to_ascii_lowercase();
+    let spellings = match north {
+        true => ["degrees_n", "degree_n", "degreesn", "degreen"],
+        false => ["degrees_e", "degree_e", "degreese", "degreee"],
+    };
+    spellings.iter().any(|e| u.starts_with(e))
 }
 
 /// A coordinate variable: one dimension, named as the variable.
@@ -152,7 +163,7 @@ pub fn read(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<N
         .filter(|(name, _)| is_coordinate(ds, name))
         .filter_map(|(name, v)| Some((name.clone(), numbers(v)?)))
         .collect();
-    let layout = Layout::of(var, select, &coords, &cf)?;
+    let layout = Layout::of(ds, var, select, &coords, &cf)?;
     let coord = |d: usize| coords.get(&layout.names[d]).cloned();
     let [t_dim, y_dim, x_dim] = [layout.kept[0], layout.kept[1], layout.kept[2]];
     let (times, mut y, mut x) = (coord(t_dim), coord(y_dim), coord(x_dim));
@@ -230,8 +241,11 @@ struct Layout {
 }
 
 impl Layout {
-    /// `coords`: the values of the coordinate variables of the dimensions `select` names.
+    /// `coords`: the values of the coordinate variables of the dimensions `select` names. The
+    /// kept dimensions come out as `(time, y, x)`: in the file's order, or in the order their
+    /// coordinates' CF attributes give ([`Axis`]) where those say otherwise.
     fn of<E>(
+        ds: &DataSet,
         var: &Variable,
         select: &Select,
         coords: &BTreeMap<String, Vec<f64>>,
@@ -281,11 +295,22 @@ impl Layout {
         if sizes[kept[0]] < 1 || sizes[kept[1]] == 0 || sizes[kept[2]] == 0 {
             return Err(err(format!("has dimensions ({}): no values", listed())));
         }
+        let axes = [0, 1, 2].map(|i| Axis::of(ds, &names[kept[i]]));
+        let kept = field_order([kept[0], kept[1], kept[2]], axes).ok_or_else(|| {
+            let said = (0..3)
+                .map(|i| format!("{} {}", names[kept[i]], axes[i].map_or("?", Axis::name)))
+                .collect::<Vec<_>>()
+                .join(", ");
+            err(format!(
+                "has dimensions ({said}) by its coordinates' CF attributes, which do not settle which is \
+                 time, y and x: write it as (time, y, x), e.g. `ncpdq -a time,lat,lon IN OUT`"
+            ))
+        })?;
         Ok(Self {
             names,
             sizes,
             fixed,
-            kept,
+            kept: kept.to_vec(),
         })
     }
 
@@ -298,6 +323,72 @@ impl Layout {
         }
         i
     }
+}
+
+/// What a dimension is to a field, as its coordinate variable's CF attributes say (`axis`,
+/// a time's `units` "<unit> since <date>", latitude's and longitude's `units` or a
+/// `standard_name`, projected ones included), the attributes xarray's and GDAL's readers go by.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Axis {
+    Time,
+    Y,
+    X,
+}
+
+impl Axis {
+    /// The axis of dimension `dim`: `None` where it has no coordinate variable or that says none
+    /// of these (a level's `Z`).
+    fn of(ds: &DataSet, dim: &str) -> Option<Self> {
+        if !is_coordinate(ds, dim) {
+            return None;
+        }
+        let attr = |a: &str| ds.get_var_attr_as_string(dim, a).unwrap_or_default();
+        let (axis, units) = (attr("axis").trim().to_ascii_uppercase(), attr("units"));
+        let standard = attr("standard_name");
+        let is = |letter: &str, north: bool, names: &[&str]| {
+            axis == letter || in_degrees(&units, north) || names.contains(&standard.trim())
+        };
+        if axis == "T" || units.contains(" since ") || standard.trim() == "time" {
+            Some(Self::Time)
+        } else if is("Y", true, &["latitude", "projection_y_coordinate", "grid_latitude"]) {
+            Some(Self::Y)
+        } else if is("X", false, &["longitude", "projection_x_coordinate", "grid_longitude"]) {
+            Some(Self::X)
+        } else {
+            None
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Self::Time => "(time)",
+            Self::Y => "(y)",
+            Self::X => "(x)",
+        }
+    }
+}
+
+/// The three kept dimensions (in the file's order) as `(time, y, x)`, given what each is
+/// (`None`: not said). The file's order where nothing says otherwise; the order the axes give
+/// where they do (a `(time, lon, lat)` file, read as it stands, would be the field transposed
+/// and its map's latitude the longitude); `None` where they cannot settle it (two dimensions
+/// the same axis, or one out of place and two unsaid).
+fn field_order(kept: [usize; 3], axes: [Option<Axis>; 3]) -> Option<[usize; 3]> {
+    const WANT: [Axis; 3] = [Axis::Time, Axis::Y, Axis::X];
+    if (0..3).all(|i| axes[i].is_none_or(|a| a == WANT[i])) {
+        return Some(kept);
+    }
+    let unsaid: Vec<usize> = (0..3).filter(|&i| axes[i].is_none()).collect();
+    let missing: Vec<Axis> = WANT.into_iter().filter(|a| !axes.contains(&Some(*a))).collect();
+    if unsaid.len() > 1 || missing.len() != unsaid.len() {
+        return None;
+    }
+    let mut axes = axes;
+    if let (Some(&i), Some(&a)) = (unsaid.first(), missing.first()) {
+        axes[i] = Some(a);
+    }
+    let at = |want: Axis| kept[axes.iter().position(|&a| a == Some(want)).unwrap_or(0)];
+    Some(WANT.map(at))
 }
 
 /// The index `value` names along `dim`: a coordinate value where the file has a coordinate
@@ -681,6 +772,88 @@ mod tests {
         write_with(&p, &data, &[50.0, 60.0], &attrs, unsigned("yes"));
         let e = read(&p, "v", &Select::new()).unwrap_err().to_string();
         assert!(e.contains("_Unsigned is \"yes\"") && e.contains("u.nc"), "{e}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// `v` of doubles over `dims` (name, size) in that order, each dimension with a coordinate
+    /// variable (0, 1, 2, ...) whose `units` are given, or none where they are "".
+    fn write_dims(path: &Path, dims: &[(&str, usize, &str)], data: &[f64]) {
+        let mut ds = netcdf3::DataSet::new();
+        for &(d, n, units) in dims {
+            ds.add_fixed_dim(d, n).unwrap();
+            if !units.is_empty() {
+                ds.add_var_f64(d, &[d]).unwrap();
+                ds.add_var_attr_string(d, "units", units).unwrap();
+            }
+        }
+        ds.add_var_f64("v", &dims.iter().map(|d| d.0).collect::<Vec<_>>())
+            .unwrap();
+        let mut w = netcdf3::FileWriter::open(path).unwrap();
+        w.set_def(&ds, netcdf3::Version::Classic, 0).unwrap();
+        w.write_var_f64("v", data).unwrap();
+        for &(d, n, units) in dims {
+            if !units.is_empty() {
+                w.write_var_f64(d, &(0..n).map(|k| 10.0 + k as f64).collect::<Vec<_>>())
+                    .unwrap();
+            }
+        }
+        w.close().unwrap();
+    }
+
+    #[test]
+    fn dimensions_in_another_order_are_read_by_their_axes_or_refused() {
+        let dir = std::env::temp_dir().join(format!("hetfleet-axes-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (t, lat, lon) = (
+            ("time", 2, "days since 2000-01-01"),
+            ("lat", 3, "degrees_north"),
+            ("lon", 4, "degrees_east"),
+        );
+        // value = 100 t + 10 y + x, stored (time, lat, lon) and (lon, time, lat).
+        let value = |k: usize, y: usize, x: usize| (100 * k + 10 * y + x) as f64;
+        let stored: Vec<f64> = (0..2)
+            .flat_map(|k| (0..3).flat_map(move |y| (0..4).map(move |x| value(k, y, x))))
+            .collect();
+        let turned: Vec<f64> = (0..4)
+            .flat_map(|x| (0..2).flat_map(move |k| (0..3).map(move |y| value(k, y, x))))
+            .collect();
+        let (a, b) = (dir.join("a.nc"), dir.join("b.nc"));
+        write_dims(&a, &[t, lat, lon], &stored);
+        write_dims(&b, &[lon, t, lat], &turned);
+        let (fa, fb) = (
+            read(&a, "v", &Select::new()).unwrap(),
+            read(&b, "v", &Select::new()).unwrap(),
+        );
+        let want: Vec<f64> = (0..2)
+            .flat_map(|k| (0..12).map(move |c| value(k, c / 4, c % 4)))
+            .collect();
+        for f in [&fa, &fb] {
+            assert_eq!(
+                (f.field.rows, f.field.cols, f.field.frames(), f.field.dt),
+                (3, 4, 2, 86_400.0)
+            );
+            let got: Vec<f64> = (0..2)
+                .flat_map(|k| f.field.snapshots.col(k).iter().copied().collect::<Vec<_>>())
+                .collect();
+            assert_eq!(got, want, "the field as (time, lat, lon)");
+            assert_eq!(
+                (f.y.as_deref(), f.x.as_deref()),
+                (Some(&[10.0, 11.0, 12.0][..]), Some(&[10.0, 11.0, 12.0, 13.0][..]))
+            );
+        }
+        assert_eq!(shape(&b, "v", &Select::new()), Some(vec![2, 3, 4]));
+        assert_eq!(bounds(&b, "v", &Select::new()), bounds(&a, "v", &Select::new()));
+        // Unsaid dimensions keep the file's order; one axis out of place among two unsaid is
+        // refused, not guessed.
+        let bare = [("t", 2, ""), ("y", 3, ""), ("x", 4, "")];
+        write_dims(&a, &bare, &stored);
+        assert_eq!(
+            read(&a, "v", &Select::new()).unwrap().field.snapshots,
+            fa.field.snapshots
+        );
+        write_dims(&b, &[("x", 4, "degrees_east"), ("t", 2, ""), ("y", 3, "")], &turned);
+        let e = read(&b, "v", &Select::new()).unwrap_err().to_string();
+        assert!(e.contains("x (x), t ?, y ?") && e.contains("ncpdq"), "{e}");
         std::fs::remove_dir_all(&dir).ok();
     }
 }
