@@ -90,7 +90,7 @@ pub fn bounds(path: impl AsRef<Path>, variable: &str, select: &Select) -> Option
         (v.len() >= 2 && step > 0.0 && even).then_some((lo - step / 2.0, hi + step / 2.0))
     };
     let (south, north) = edges(numbers(&reader.read_var(&lat).ok()?)?)?;
-    let (west, east) = edges(numbers(&reader.read_var(&lon).ok()?)?)?;
+    let (west, east) = edges(across_the_dateline(numbers(&reader.read_var(&lon).ok()?)?))?;
     let wrapped = (west + 180.0).rem_euclid(360.0) - 180.0;
     Some([south, wrapped, north, wrapped + (east - west)])
 }
@@ -112,6 +112,31 @@ fn in_degrees(units: &str, north: bool) -> bool {
         false => ["degrees_e", "degree_e", "degreese", "degreee"],
     };
     spellings.iter().any(|e| u.starts_with(e))
+}
+
+/// Whether dimension `dim` is a longitude (its coordinate in degrees east, or so named by its
+/// `standard_name`).
+fn is_longitude(ds: &DataSet, dim: &str) -> bool {
+    let attr = |a: &str| ds.get_var_attr_as_string(dim, a).unwrap_or_default();
+    is_coordinate(ds, dim) && (in_degrees(&attr("units"), false) || attr("standard_name").trim() == "longitude")
+}
+
+/// Longitudes that cross the dateline made continuous: a step of more than 180 degrees is a
+/// wrap, and the values after it move by 360 (`170, 175, -180, -175` is `170 ... 185`: a
+/// Pacific box cut from a file in -180..180, as `cdo sellonlatbox,150,-150` writes it). Read
+/// as they stand they are not monotonic and the file was refused; xarray and GDAL read it.
+fn across_the_dateline(mut lon: Vec<f64>) -> Vec<f64> {
+    let mut shift = 0.0;
+    for i in 1..lon.len() {
+        let step = lon[i] + shift - lon[i - 1];
+        shift += match step {
+            s if s < -180.0 => 360.0,
+            s if s > 180.0 => -360.0,
+            _ => 0.0,
+        };
+        lon[i] += shift;
+    }
+    lon
 }
 
 /// A coordinate variable: one dimension, named as the variable.
@@ -167,6 +192,9 @@ pub fn read(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<N
     let coord = |d: usize| coords.get(&layout.names[d]).cloned();
     let [t_dim, y_dim, x_dim] = [layout.kept[0], layout.kept[1], layout.kept[2]];
     let (times, mut y, mut x) = (coord(t_dim), coord(y_dim), coord(x_dim));
+    if is_longitude(ds, &layout.names[x_dim]) {
+        x = x.map(across_the_dateline);
+    }
     let flip_y = orientation(&layout.names[y_dim], y.as_deref()).map_err(&cf)?;
     let flip_x = orientation(&layout.names[x_dim], x.as_deref()).map_err(&cf)?;
     if let (true, Some(v)) = (flip_y, y.as_mut()) {
@@ -778,6 +806,16 @@ mod tests {
     /// `v` of doubles over `dims` (name, size) in that order, each dimension with a coordinate
     /// variable (0, 1, 2, ...) whose `units` are given, or none where they are "".
     fn write_dims(path: &Path, dims: &[(&str, usize, &str)], data: &[f64]) {
+        write_dims_with(path, dims, data, |_, n| (0..n).map(|k| 10.0 + k as f64).collect());
+    }
+
+    /// [`write_dims`] with each coordinate's values `coord(name, size)`.
+    fn write_dims_with(
+        path: &Path,
+        dims: &[(&str, usize, &str)],
+        data: &[f64],
+        coord: impl Fn(&str, usize) -> Vec<f64>,
+    ) {
         let mut ds = netcdf3::DataSet::new();
         for &(d, n, units) in dims {
             ds.add_fixed_dim(d, n).unwrap();
@@ -793,8 +831,7 @@ mod tests {
         w.write_var_f64("v", data).unwrap();
         for &(d, n, units) in dims {
             if !units.is_empty() {
-                w.write_var_f64(d, &(0..n).map(|k| 10.0 + k as f64).collect::<Vec<_>>())
-                    .unwrap();
+                w.write_var_f64(d, &coord(d, n)).unwrap();
             }
         }
         w.close().unwrap();
@@ -854,6 +891,28 @@ mod tests {
         write_dims(&b, &[("x", 4, "degrees_east"), ("t", 2, ""), ("y", 3, "")], &turned);
         let e = read(&b, "v", &Select::new()).unwrap_err().to_string();
         assert!(e.contains("x (x), t ?, y ?") && e.contains("ncpdq"), "{e}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn longitudes_across_the_dateline_are_one_box() {
+        let dir = std::env::temp_dir().join(format!("hetfleet-dateline-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("pacific.nc");
+        let dims = [
+            ("time", 2, "days since 2000-01-01"),
+            ("lat", 3, "degrees_north"),
+            ("lon", 4, "degrees_east"),
+        ];
+        let data: Vec<f64> = (0..24).map(f64::from).collect();
+        let lon = |d: &str, n: usize| match d {
+            "lon" => vec![170.0, 175.0, -180.0, -175.0],
+            _ => (0..n).map(|k| 10.0 + k as f64).collect(),
+        };
+        write_dims_with(&p, &dims, &data, lon);
+        let f = read(&p, "v", &Select::new()).unwrap();
+        assert_eq!(f.x, Some(vec![170.0, 175.0, 180.0, 185.0]));
+        assert_eq!(bounds(&p, "v", &Select::new()), Some([9.5, 167.5, 12.5, 187.5]));
         std::fs::remove_dir_all(&dir).ok();
     }
 }
