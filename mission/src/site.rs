@@ -34,25 +34,45 @@ impl Site {
         (ned.y / self.scale.x, ned.x / self.scale.y)
     }
 
-    /// Latitude, longitude (degrees) and altitude AMSL of a local NED position.
+    /// Latitude, longitude (degrees) and altitude AMSL of a local NED position, the longitude in
+    /// [-180, 180) as autopilots and receivers give and take it: ArduPilot refuses a waypoint
+    /// past 180 (`check_latlng`), and a site across the dateline has its east in -180...
     pub fn global_of(&self, ned: &Vector3<f64>) -> (f64, f64, f64) {
-        let [lat0, lon0, alt0] = self.origin;
-        let lat = lat0 + (ned.x / EARTH_RADIUS_M).to_degrees();
-        let lon = lon0 + (ned.y / (EARTH_RADIUS_M * lat0.to_radians().cos())).to_degrees();
-        (lat, lon, alt0 - ned.z)
+        let (lat, lon) = self.map_of(ned);
+        (lat, wrap_longitude(lon), self.origin[2] - ned.z)
     }
 
-    /// The local NED position of a latitude, longitude and altitude AMSL.
+    /// Latitude and longitude of a local NED position on the site's map: the longitude
+    /// continuous from the origin's (past 180 east of a dateline), as a map's axes and a
+    /// GeoTIFF's transform need it.
+    pub fn map_of(&self, ned: &Vector3<f64>) -> (f64, f64) {
+        let [lat0, lon0, _] = self.origin;
+        let lat = lat0 + (ned.x / EARTH_RADIUS_M).to_degrees();
+        let lon = lon0 + (ned.y / (EARTH_RADIUS_M * lat0.to_radians().cos())).to_degrees();
+        (lat, lon)
+    }
+
+    /// The local NED position of a latitude, longitude and altitude AMSL; the longitude taken
+    /// the short way round from the origin's (-179.9 is 0.2 degrees east of 179.9).
     pub fn ned_of_global(&self, lat: f64, lon: f64, alt: f64) -> Vector3<f64> {
         let [lat0, lon0, alt0] = self.origin;
         let north = (lat - lat0).to_radians() * EARTH_RADIUS_M;
-        let east = (lon - lon0).to_radians() * EARTH_RADIUS_M * lat0.to_radians().cos();
+        let east = wrap_longitude(lon - lon0).to_radians() * EARTH_RADIUS_M * lat0.to_radians().cos();
         Vector3::new(north, east, alt0 - alt)
     }
 
     /// A physical distance (m) in grid metres (the smaller scale: a bound that holds both ways).
     pub fn grid_distance(&self, metres: f64) -> f64 {
         metres / self.scale.x.max(self.scale.y)
+    }
+}
+
+/// A longitude (or a difference of two) in [-180, 180); one already there is returned as it
+/// is, to the bit (adding and taking away 180 would move its last bit).
+pub fn wrap_longitude(lon: f64) -> f64 {
+    match (-180.0..180.0).contains(&lon) {
+        true => lon,
+        false => (lon + 180.0).rem_euclid(360.0) - 180.0,
     }
 }
 
@@ -76,5 +96,23 @@ mod tests {
         // One degree of latitude is about 111.3 km.
         assert!(((lat - cfg.origin[0]) * 111_319.5 - 120.0).abs() < 0.1);
         assert!((site.ned_of_global(lat, lon, alt) - ned).norm() < 1e-6);
+    }
+
+    #[test]
+    fn a_site_across_the_dateline_gives_autopilots_longitudes_within_180_and_maps_one_box() {
+        let grid = Grid::new(10, 10, 100.0).unwrap();
+        let site = Site::new([-17.0, 179.99, 0.0], None, &grid);
+        // 2 km east of the origin is past the dateline.
+        let east = Vector3::new(0.0, 2_000.0, 0.0);
+        let (lat, lon, _) = site.global_of(&east);
+        let (_, map_lon) = site.map_of(&east);
+        assert!(map_lon > 180.0 && (-180.0..-179.9).contains(&lon), "{lon} {map_lon}");
+        assert!((map_lon - lon - 360.0).abs() < 1e-9);
+        // Back from the autopilot's longitude, or the map's: the same point, not 40,000 km west.
+        assert!((site.ned_of_global(lat, lon, 0.0) - east).norm() < 1e-6);
+        assert!((site.ned_of_global(lat, map_lon, 0.0) - east).norm() < 1e-6);
+        assert_eq!(wrap_longitude(180.0), -180.0);
+        assert_eq!(wrap_longitude(-180.0), -180.0);
+        assert_eq!(wrap_longitude(190.0), -170.0);
     }
 }

@@ -84,7 +84,7 @@ fn credential(args: &Args) -> anyhow::Result<Option<String>> {
 /// link lease, the truth when there is one; and the context messages are checked against.
 fn view_of(mission: &MissionConfig, grid: Grid, truth: Option<Arc<FieldSeries>>) -> (View, Context) {
     let site = mission.mavlink.site(&grid);
-    let ne = site.global_of(&site.ned_of((grid.width_m(), grid.height_m()), 0.0));
+    let ne = site.map_of(&site.ned_of((grid.width_m(), grid.height_m()), 0.0));
     let geo = Geo {
         south_west: [mission.mavlink.origin[0], mission.mavlink.origin[1]],
         north_east: [ne.0, ne.1],

@@ -188,20 +188,21 @@ impl Run {
     }
 
     /// Longitude of each column's centre and latitude of each row's (the flat-Earth site: a
-    /// column has one longitude, a row one latitude).
+    /// column has one longitude, a row one latitude), on the site's map: increasing across a
+    /// dateline, as CF coordinates may.
     pub fn axes_deg(&self) -> (Vec<f64>, Vec<f64>) {
         let g = &self.grid;
         let lon = (0..g.cols)
             .map(|c| {
                 self.site
-                    .global_of(&self.site.ned_of(((c as f64 + 0.5) * g.cell_m, 0.0), 0.0))
+                    .map_of(&self.site.ned_of(((c as f64 + 0.5) * g.cell_m, 0.0), 0.0))
                     .1
             })
             .collect();
         let lat = (0..g.rows)
             .map(|r| {
                 self.site
-                    .global_of(&self.site.ned_of((0.0, (r as f64 + 0.5) * g.cell_m), 0.0))
+                    .map_of(&self.site.ned_of((0.0, (r as f64 + 0.5) * g.cell_m), 0.0))
                     .0
             })
             .collect();
@@ -210,10 +211,10 @@ impl Run {
 
     /// `[west, south, east, north]` of the grid's outer edges, degrees.
     pub fn bounds_deg(&self) -> [f64; 4] {
-        let (lat0, lon0, _) = self.site.global_of(&self.site.ned_of((0.0, 0.0), 0.0));
-        let (lat1, lon1, _) = self
+        let (lat0, lon0) = self.site.map_of(&self.site.ned_of((0.0, 0.0), 0.0));
+        let (lat1, lon1) = self
             .site
-            .global_of(&self.site.ned_of((self.grid.width_m(), self.grid.height_m()), 0.0));
+            .map_of(&self.site.ned_of((self.grid.width_m(), self.grid.height_m()), 0.0));
         [lon0, lat0, lon1, lat1]
     }
 

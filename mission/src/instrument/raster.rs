@@ -175,17 +175,22 @@ pub fn time_from_name(name: &str) -> Option<f64> {
 impl GeoFrame {
     /// The pixel value at latitude and longitude (`None` off the frame or no data).
     pub fn at(&self, lat: f64, lon: f64) -> Option<f64> {
-        let (x, y) = match self.crs {
-            Crs::Geographic => (lon, lat),
+        let (east, y) = match self.crs {
+            // East of the frame's west edge the frame's way round: -179 is 11 degrees east of
+            // a west edge at 170 (a frame across the dateline, or in 0..360).
+            Crs::Geographic => ((lon - self.west).rem_euclid(360.0), lat),
             Crs::Utm { zone, north } => {
                 // The crate adds the southern false northing by the point's own latitude; the
                 // frame's zone says which one its coordinates carry.
                 let (northing, easting, _) = utm::to_utm_wgs84(lat, lon, zone);
                 let true_northing = northing - if lat > 0.0 { 0.0 } else { 10_000_000.0 };
-                (easting, true_northing + if north { 0.0 } else { 10_000_000.0 })
+                (
+                    easting - self.west,
+                    true_northing + if north { 0.0 } else { 10_000_000.0 },
+                )
             }
         };
-        let (c, r) = ((x - self.west) / self.pixel.0, (self.north - y) / self.pixel.1);
+        let (c, r) = (east / self.pixel.0, (self.north - y) / self.pixel.1);
         if !(c >= 0.0 && r >= 0.0 && (c as usize) < self.width && (r as usize) < self.height) {
             return None;
         }
@@ -282,6 +287,34 @@ mod tests {
             .iter()
             .all(|v| v.is_none_or(|v| [1.0, 2.0, 3.0].contains(&v) || (1.0..=3.0).contains(&v))));
         assert!(cells.iter().any(Option::is_none));
+    }
+
+    #[test]
+    fn a_geographic_frame_across_the_dateline_is_read_on_both_sides() {
+        // A site whose eastern half is past 180 (its autopilot longitudes there are -179.9...)
+        // and a frame of 2 x 2 pixels with its west edge at the site's: each half under a column
+        // (square pixels of half the site's width in degrees cover its height at 17 S).
+        let grid = Grid::new(4, 4, 1.0).unwrap();
+        let site = Site::new([-17.0, 179.999, 0.0], Some([400.0, 400.0]), &grid);
+        let (north, east) = site.map_of(&site.ned_of((4.0, 4.0), 0.0));
+        let p = (east - 179.999) / 2.0;
+        assert!(east > 180.0 && 2.0 * p > north + 17.0);
+        let f = decode(&geotiff(
+            2,
+            2,
+            &[1.0, 2.0, 1.0, 2.0],
+            [179.999, north, p],
+            &GEOGRAPHIC,
+            None,
+        ))
+        .unwrap();
+        let cells = f.resample(&site, &grid);
+        assert_eq!((cells[0], cells[3]), (Some(1.0), Some(2.0)), "{cells:?}");
+        // A frame stored in 0..360 reads a site in -180..180 the same way.
+        let west = Site::new([-17.0, -10.0, 0.0], Some([400.0, 400.0]), &grid);
+        let (_, e) = west.map_of(&west.ned_of((4.0, 4.0), 0.0));
+        let f = decode(&geotiff(1, 1, &[5.0], [350.0, north, e - -10.0], &GEOGRAPHIC, None)).unwrap();
+        assert_eq!(f.resample(&west, &grid)[0], Some(5.0));
     }
 
     #[test]
