@@ -53,7 +53,10 @@ pub fn shape(path: impl AsRef<Path>, variable: &str, select: &Select) -> Option<
         .collect();
     let coords: BTreeMap<String, Vec<f64>> = named
         .into_iter()
-        .filter_map(|d| Some((d.clone(), numbers(&reader.read_var(&d).ok()?)?)))
+        .filter_map(|d| {
+            let raw = reader.read_var(&d).ok()?;
+            Some((d.clone(), coordinate(reader.data_set(), &d, &raw).ok()??))
+        })
         .collect();
     let var = reader.data_set().get_var(variable)?;
     let layout = Layout::of(reader.data_set(), var, select, &coords, &|why| why).ok()?;
@@ -89,8 +92,10 @@ pub fn bounds(path: impl AsRef<Path>, variable: &str, select: &Select) -> Option
             .all(|w| ((w[1] - w[0]).abs() - step).abs() <= 1e-6 * step.max(1e-12));
         (v.len() >= 2 && step > 0.0 && even).then_some((lo - step / 2.0, hi + step / 2.0))
     };
-    let (south, north) = edges(numbers(&reader.read_var(&lat).ok()?)?)?;
-    let (west, east) = edges(across_the_dateline(numbers(&reader.read_var(&lon).ok()?)?))?;
+    let (lat_raw, lon_raw) = (reader.read_var(&lat).ok()?, reader.read_var(&lon).ok()?);
+    let ds = reader.data_set();
+    let (south, north) = edges(coordinate(ds, &lat, &lat_raw).ok()??)?;
+    let (west, east) = edges(across_the_dateline(coordinate(ds, &lon, &lon_raw).ok()??))?;
     let wrapped = (west + 180.0).rem_euclid(360.0) - 180.0;
     Some([south, wrapped, north, wrapped + (east - west)])
 }
@@ -183,11 +188,12 @@ pub fn read(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<N
         });
     };
     let raw = all.remove(variable).ok_or_else(|| cf("no data".into()))?;
-    let coords: BTreeMap<String, Vec<f64>> = all
-        .iter()
-        .filter(|(name, _)| is_coordinate(ds, name))
-        .filter_map(|(name, v)| Some((name.clone(), numbers(v)?)))
-        .collect();
+    let mut coords: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+    for (name, v) in all.iter().filter(|(name, _)| is_coordinate(ds, name)) {
+        if let Some(values) = coordinate(ds, name, v).map_err(|why| cf(format!("coordinate {name:?}: {why}")))? {
+            coords.insert(name.clone(), values);
+        }
+    }
     let layout = Layout::of(ds, var, select, &coords, &cf)?;
     let coord = |d: usize| coords.get(&layout.names[d]).cloned();
     let [t_dim, y_dim, x_dim] = [layout.kept[0], layout.kept[1], layout.kept[2]];
@@ -438,6 +444,14 @@ fn pick(dim: &str, size: usize, coordinate: Option<&Vec<f64>>, value: f64) -> Re
             values.iter().map(|v| v.to_string()).collect::<Vec<_>>().join(", ")
         )
     })
+}
+
+/// A coordinate variable's values as xarray decodes them, as the variable's are: packed
+/// integers unpacked (a latitude stored as shorts of 0.01 degrees is 20 to 60, not 2000 to
+/// 6000), a fill value NaN (so refused as not monotonic); `None` for characters.
+fn coordinate(ds: &DataSet, name: &str, raw: &DataVector) -> Result<Option<Vec<f64>>, String> {
+    let Some(var) = ds.get_var(name) else { return Ok(None) };
+    Ok(Decode::of(var, raw_type(raw))?.values(raw))
 }
 
 /// Any numeric vector as doubles (`None` for characters).
@@ -913,6 +927,43 @@ mod tests {
         let f = read(&p, "v", &Select::new()).unwrap();
         assert_eq!(f.x, Some(vec![170.0, 175.0, 180.0, 185.0]));
         assert_eq!(bounds(&p, "v", &Select::new()), Some([9.5, 167.5, 12.5, 187.5]));
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn a_packed_coordinate_is_unpacked_as_its_variable_would_be() {
+        let dir = std::env::temp_dir().join(format!("hetfleet-packed-lat-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("packed.nc");
+        let mut ds = netcdf3::DataSet::new();
+        for (d, n) in [("time", 2), ("lat", 2), ("lon", 3)] {
+            ds.add_fixed_dim(d, n).unwrap();
+        }
+        ds.add_var_f64("v", &["time", "lat", "lon"]).unwrap();
+        ds.add_var_i16("lat", &["lat"]).unwrap();
+        ds.add_var_attr_string("lat", "units", "degrees_north").unwrap();
+        ds.add_var_attr_f64("lat", "scale_factor", vec![0.5]).unwrap();
+        ds.add_var_f64("lon", &["lon"]).unwrap();
+        ds.add_var_attr_string("lon", "units", "degrees_east").unwrap();
+        let mut w = netcdf3::FileWriter::open(&p).unwrap();
+        w.set_def(&ds, netcdf3::Version::Classic, 0).unwrap();
+        w.write_var_f64("v", &(0..12).map(f64::from).collect::<Vec<_>>())
+            .unwrap();
+        w.write_var_i16("lat", &[120, 100]).unwrap();
+        w.write_var_f64("lon", &[1.0, 2.0, 3.0]).unwrap();
+        w.close().unwrap();
+        // Stored 120, 100 (north first): 60 and 50 degrees, flipped to run south to north. Raw,
+        // the map would have been placed at 100 to 120 degrees of latitude.
+        let f = read(&p, "v", &Select::new()).unwrap();
+        assert_eq!(f.y, Some(vec![50.0, 60.0]));
+        assert_eq!(bounds(&p, "v", &Select::new()), Some([45.0, 0.5, 65.0, 3.5]));
+        let at = |lat: f64| Select::from([("lat".to_string(), lat)]);
+        assert!(
+            read(&p, "v", &at(60.0)).is_err(),
+            "lat selected leaves (time, lon): not a field"
+        );
+        let e = read(&p, "v", &at(120.0)).unwrap_err().to_string();
+        assert!(e.contains("no such lat (it has: 60, 50)"), "{e}");
         std::fs::remove_dir_all(&dir).ok();
     }
 }
