@@ -664,6 +664,13 @@ fn cast(v: f64, t: &DataType) -> f64 {
 mod tests {
     use super::*;
 
+    /// A fresh directory for one test's files (removed at its end).
+    fn scratch(name: &str) -> std::path::PathBuf {
+        let dir = std::env::temp_dir().join(format!("{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
     /// `v(time, level, lat, lon)` of shorts with the attributes given, `lat` and `level`
     /// coordinates; written by `netcdf3`.
     fn write(path: &Path, data: &[i16], lat: &[f64], attrs: &[(&str, f64)]) {
@@ -705,8 +712,7 @@ mod tests {
 
     #[test]
     fn packed_shorts_with_fill_values_decode_as_cf_says_and_bad_files_are_named() {
-        let dir = std::env::temp_dir().join(format!("hetfleet-cf-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = scratch("hetfleet-cf");
         let p = dir.join("v.nc");
         // 2 frames of 2 x 3; lat north to south; -999 is the fill, 30000 (15010 unpacked) above
         // valid_max (a double: in unpacked units).
@@ -773,8 +779,7 @@ mod tests {
 
     #[test]
     fn unsigned_shorts_read_as_netcdf4_python_reads_them_and_a_bad_mark_is_named() {
-        let dir = std::env::temp_dir().join(format!("hetfleet-unsigned-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = scratch("hetfleet-unsigned");
         let p = dir.join("u.nc");
         // GOES-R's marking: `_Unsigned = "true"`, `_FillValue = -1S` (65535), `valid_range = 0S,
         // -6S` (0 to 65530, in the stored type). Stored -5 is 65531, past the range; -7 is
@@ -853,8 +858,7 @@ mod tests {
 
     #[test]
     fn dimensions_in_another_order_are_read_by_their_axes_or_refused() {
-        let dir = std::env::temp_dir().join(format!("hetfleet-axes-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = scratch("hetfleet-axes");
         let (t, lat, lon) = (
             ("time", 2, "days since 2000-01-01"),
             ("lat", 3, "degrees_north"),
@@ -910,8 +914,7 @@ mod tests {
 
     #[test]
     fn longitudes_across_the_dateline_are_one_box() {
-        let dir = std::env::temp_dir().join(format!("hetfleet-dateline-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = scratch("hetfleet-dateline");
         let p = dir.join("pacific.nc");
         let dims = [
             ("time", 2, "days since 2000-01-01"),
@@ -932,8 +935,7 @@ mod tests {
 
     #[test]
     fn a_packed_coordinate_is_unpacked_as_its_variable_would_be() {
-        let dir = std::env::temp_dir().join(format!("hetfleet-packed-lat-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = scratch("hetfleet-packed-lat");
         let p = dir.join("packed.nc");
         let mut ds = netcdf3::DataSet::new();
         for (d, n) in [("time", 2), ("lat", 2), ("lon", 3)] {
