@@ -56,12 +56,14 @@ impl<T, E: Into<anyhow::Error>> InputResult<T> for Result<T, E> {
 
 /// The exit status of an error.
 pub fn code_of(e: &anyhow::Error) -> i32 {
-    use fleet_mission::process::dataset::DatasetError;
+    use fleet_mission::process::{dataset::DatasetError, truth::TruthError};
     // A dataset that cannot be used as it is (unreadable, wrong shape, not finite, no such
-    // variable) is the user's input wherever it was read; failing to write one is not.
+    // variable) is the user's input wherever it was read; failing to write one is not. So is a
+    // truth the mission's settings cannot make (a grid of 0 rows was exit 1).
     let bad_dataset = |c: &(dyn std::error::Error + 'static)| {
         c.downcast_ref::<DatasetError>()
             .is_some_and(|d| !matches!(d, DatasetError::Io { .. }))
+            || c.downcast_ref::<TruthError>().is_some_and(TruthError::is_input)
     };
     if e.chain()
         .any(|c| c.is::<BadInput>() || c.is::<fleet_mission::config::ConfigError>() || bad_dataset(c))
@@ -108,5 +110,13 @@ mod tests {
         assert_eq!(one_line(&e), "mission.toml: rank: must be positive");
         let r: Result<(), std::io::Error> = Err(std::io::Error::other("x\ny"));
         assert_eq!(one_line(&r.input().unwrap_err()), "x y");
+        // A truth the settings cannot make is theirs, wherever it surfaces.
+        use fleet_mission::process::truth::TruthError;
+        let coarse = TruthError::TooCoarse {
+            rows: 4,
+            cols: 4,
+            factor: 2,
+        };
+        assert_eq!(code_of(&anyhow::Error::new(coarse).context("truth")), BAD_INPUT);
     }
 }

@@ -36,6 +36,20 @@ pub enum TruthError {
     Grid(#[from] crate::grid::GridError),
 }
 
+impl TruthError {
+    /// Whether the file or settings that asked for this truth are at fault (exit 2): all but
+    /// the simulator failing to converge on valid parameters and a dataset the disk would not
+    /// give (`DatasetError::Io`). A grid the simulator cannot take, or one averaged below 4 x 4,
+    /// is the mission file's.
+    pub fn is_input(&self) -> bool {
+        match self {
+            Self::Simulation { source, .. } => matches!(source, super::plasma::PlasmaError::Param(_)),
+            Self::Dataset { source, .. } => !matches!(source, super::dataset::DatasetError::Io { .. }),
+            Self::Source | Self::Variable | Self::Select | Self::TooCoarse { .. } | Self::Grid(_) => true,
+        }
+    }
+}
+
 /// Where the truth comes from: the plasma-cloud simulator's preset, a `(frames, rows, cols)`
 /// `.npy` dataset, or a `(time, y, x)` variable of a NetCDF-3 file. In files it is written as
 /// one of two keys, `preset = "cloud1"` or `dataset = "path.npy"` (`dataset = "f.nc"` with
