@@ -188,12 +188,7 @@ pub fn read(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<N
         });
     };
     let raw = all.remove(variable).ok_or_else(|| cf("no data".into()))?;
-    let mut coords: BTreeMap<String, Vec<f64>> = BTreeMap::new();
-    for (name, v) in all.iter().filter(|(name, _)| is_coordinate(ds, name)) {
-        if let Some(values) = coordinate(ds, name, v).map_err(|why| cf(format!("coordinate {name:?}: {why}")))? {
-            coords.insert(name.clone(), values);
-        }
-    }
+    let coords = coordinates(ds, &all).map_err(&cf)?;
     let layout = Layout::of(ds, var, select, &coords, &cf)?;
     let coord = |d: usize| coords.get(&layout.names[d]).cloned();
     let [t_dim, y_dim, x_dim] = [layout.kept[0], layout.kept[1], layout.kept[2]];
@@ -444,6 +439,21 @@ fn pick(dim: &str, size: usize, coordinate: Option<&Vec<f64>>, value: f64) -> Re
             values.iter().map(|v| v.to_string()).collect::<Vec<_>>().join(", ")
         )
     })
+}
+
+/// Every coordinate variable's values among `all`, decoded ([`coordinate`]); the error names
+/// the one whose attributes cannot be read.
+fn coordinates<S: std::hash::BuildHasher>(
+    ds: &DataSet,
+    all: &std::collections::HashMap<String, DataVector, S>,
+) -> Result<BTreeMap<String, Vec<f64>>, String> {
+    let mut coords = BTreeMap::new();
+    for (name, v) in all.iter().filter(|(name, _)| is_coordinate(ds, name)) {
+        if let Some(values) = coordinate(ds, name, v).map_err(|why| format!("coordinate {name:?}: {why}"))? {
+            coords.insert(name.clone(), values);
+        }
+    }
+    Ok(coords)
 }
 
 /// A coordinate variable's values as xarray decodes them, as the variable's are: packed
