@@ -71,15 +71,8 @@ pub fn bounds(path: impl AsRef<Path>, variable: &str, select: &Select) -> Option
     let ds = reader.data_set();
     let var = ds.get_var(variable)?;
     let names = var.dim_names();
-    let is = |name: &str, north: bool, standard: &str| {
-        is_coordinate(ds, name)
-            && (ds
-                .get_var_attr_as_string(name, "units")
-                .is_some_and(|u| in_degrees(&u, north))
-                || ds.get_var_attr_as_string(name, "standard_name").as_deref() == Some(standard))
-    };
-    let lat = names.iter().find(|n| is(n, true, "latitude"))?.clone();
-    let lon = names.iter().find(|n| is(n, false, "longitude"))?.clone();
+    let lat = names.iter().find(|n| is_geographic(ds, n, true))?.clone();
+    let lon = names.iter().find(|n| is_geographic(ds, n, false))?.clone();
     if select.contains_key(&lat) || select.contains_key(&lon) {
         return None;
     }
@@ -119,11 +112,12 @@ fn in_degrees(units: &str, north: bool) -> bool {
     spellings.iter().any(|e| u.starts_with(e))
 }
 
-/// Whether dimension `dim` is a longitude (its coordinate in degrees east, or so named by its
-/// `standard_name`).
-fn is_longitude(ds: &DataSet, dim: &str) -> bool {
+/// Whether dimension `dim` is a latitude (`north`) or a longitude: its coordinate in degrees
+/// north or east, or so named by its `standard_name`.
+fn is_geographic(ds: &DataSet, dim: &str, north: bool) -> bool {
     let attr = |a: &str| ds.get_var_attr_as_string(dim, a).unwrap_or_default();
-    is_coordinate(ds, dim) && (in_degrees(&attr("units"), false) || attr("standard_name").trim() == "longitude")
+    let name = if north { "latitude" } else { "longitude" };
+    is_coordinate(ds, dim) && (in_degrees(&attr("units"), north) || attr("standard_name").trim() == name)
 }
 
 /// Longitudes that cross the dateline made continuous: a step of more than 180 degrees is a
@@ -193,7 +187,7 @@ pub fn read(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<N
     let coord = |d: usize| coords.get(&layout.names[d]).cloned();
     let [t_dim, y_dim, x_dim] = [layout.kept[0], layout.kept[1], layout.kept[2]];
     let (times, mut y, mut x) = (coord(t_dim), coord(y_dim), coord(x_dim));
-    if is_longitude(ds, &layout.names[x_dim]) {
+    if is_geographic(ds, &layout.names[x_dim], false) {
         x = x.map(across_the_dateline);
     }
     let flip_y = orientation(&layout.names[y_dim], y.as_deref()).map_err(&cf)?;
