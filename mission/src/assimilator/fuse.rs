@@ -4,19 +4,20 @@
 //! the aerial lattice and the disks directly.
 
 use super::between::Sources;
-use super::{aerial_detail_variance, Assimilator};
+use super::{aerial_detail_variance, Assimilator, Setup};
 use crate::fusion::{fuse, AerialFrame, Estimate, Measured, Scheme};
 use crate::kalman::{self, Observation};
 use crate::protocol::Sample;
 use crate::sensing::gappy;
 use crate::team::{Missing, TeamError};
 use std::collections::HashMap;
+use std::sync::Arc;
 
 /// One step of the aerials: the estimate on the fine grid (the coarse frame upsampled, for
 /// the heuristic schemes and the aerial-only team) and what they saw this step, the lattice
 /// cells with each value's own noise variance (what the Kalman filter observes: those errors
 /// are independent, the upsampled field's are not).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct AerialSight {
     pub estimate: Estimate,
     /// The interpolation's own error variance per fine cell (from the frame's curvature).
@@ -34,26 +35,18 @@ pub struct AerialSight {
     pub filled: Vec<bool>,
 }
 
-impl Assimilator {
-    /// The aerial estimate of a step from the aerials' samples (any order): the coarse frame
+impl Setup {
+    /// The aerials' sight of a step from their samples (any order): the coarse frame
     /// reassembled, each value with its sampling aerial's noise at that distance, upsampled
-    /// with its variance. A step without aerial samples holds the previous estimate.
-    pub fn aerial_estimate(&mut self, samples: &[Sample]) -> Result<AerialSight, TeamError> {
-        let noise = self.aerial_noise();
-        let (grid, s) = (&self.setup.grid, &mut self.state);
+    /// with its variance. `None` without samples (the assimilator then holds its last sight).
+    /// It reads the mission's settings only, so it is made on any thread
+    /// ([`Assimilator::aerial_sight_later`]).
+    fn aerial_sight(&self, samples: &[Sample]) -> Result<Option<AerialSight>, TeamError> {
         if samples.is_empty() {
-            let estimate = s.held_aerial.clone().ok_or(TeamError::NotReady(Missing::AerialData))?;
-            return Ok(AerialSight {
-                covered: vec![false; estimate.values.len()],
-                filled: vec![false; estimate.values.len()],
-                estimate,
-                interpolation: s.held_interpolation.clone(),
-                cells: vec![],
-                values: vec![],
-                variance: vec![],
-            });
+            return Ok(None);
         }
-        let mut frame = AerialFrame::assemble(grid, self.setup.cfg.aerial_stride, samples, noise)?;
+        let grid = &self.grid;
+        let mut frame = AerialFrame::assemble(grid, self.cfg.aerial_stride, samples, self.aerial_noise())?;
         let seen: Vec<usize> = (0..frame.seen.len()).filter(|&k| frame.seen[k]).collect();
         let cells = seen.iter().map(|&k| grid.index(frame.lattice.fine_cell(k))).collect();
         let values = seen.iter().map(|&k| frame.values[k]).collect();
@@ -79,10 +72,8 @@ impl Assimilator {
         // The dense observation is of the water: a cell interpolated from a filled lattice value
         // carries that value's large variance in `estimate.variance`.
         let mut covered = vec![true; grid.len()];
-        self.setup.land.iter().for_each(|&c| covered[c] = false);
-        s.held_aerial = Some(estimate.clone());
-        s.held_interpolation = interpolation.clone();
-        Ok(AerialSight {
+        self.land.iter().for_each(|&c| covered[c] = false);
+        Ok(Some(AerialSight {
             estimate,
             interpolation,
             cells,
@@ -90,7 +81,48 @@ impl Assimilator {
             variance,
             covered,
             filled,
-        })
+        }))
+    }
+}
+
+impl Assimilator {
+    /// The aerial estimate of a step from the aerials' samples ([`Setup::aerial_sight`]),
+    /// held for the steps without any.
+    pub fn aerial_estimate(&mut self, samples: &[Sample]) -> Result<AerialSight, TeamError> {
+        let sight = self.setup.aerial_sight(samples)?;
+        self.hold_aerial(sight)
+    }
+
+    /// A function making a step's aerial sight from `samples` on any thread, while the
+    /// assimilator goes on (the model server makes the next step's beside the filter's step);
+    /// its result goes to [`Self::hold_aerial`].
+    pub fn aerial_sight_later(
+        &self,
+        samples: Vec<Sample>,
+    ) -> impl FnOnce() -> Result<Option<AerialSight>, TeamError> + Send + use<> {
+        let setup = Arc::clone(&self.setup);
+        move || setup.aerial_sight(&samples)
+    }
+
+    /// A step's aerial sight, held for the steps after it without any; without one (no
+    /// samples), the sight held, which covers no cell and observes nothing.
+    pub fn hold_aerial(&mut self, sight: Option<AerialSight>) -> Result<AerialSight, TeamError> {
+        let s = &mut self.state;
+        let Some(sight) = sight else {
+            let estimate = s.held_aerial.clone().ok_or(TeamError::NotReady(Missing::AerialData))?;
+            return Ok(AerialSight {
+                covered: vec![false; estimate.values.len()],
+                filled: vec![false; estimate.values.len()],
+                estimate,
+                interpolation: s.held_interpolation.clone(),
+                cells: vec![],
+                values: vec![],
+                variance: vec![],
+            });
+        };
+        s.held_aerial = Some(sight.estimate.clone());
+        s.held_interpolation = sight.interpolation.clone();
+        Ok(sight)
     }
 
     /// The field `ahead` steps after the newest snapshot as the fleet knows it without any boat

@@ -93,6 +93,14 @@ pub struct AssimilatorState {
 pub type AssimilatorCheckpoint = AssimilatorState;
 
 impl Setup {
+    /// The aerials' noise model (the mission's settings).
+    fn aerial_noise(&self) -> AerialNoise {
+        AerialNoise {
+            sigma0: self.cfg.aerial_sigma0,
+            growth_per_m: self.cfg.aerial_growth_per_cell,
+        }
+    }
+
     /// `x` with the land cells at zero (a no-op without land).
     fn dry(&self, mut x: Vec<f64>) -> Vec<f64> {
         self.land.iter().for_each(|&c| x[c] = 0.0);
@@ -111,7 +119,9 @@ impl Setup {
 /// epoch on it and keep the original).
 #[derive(Clone)]
 pub struct Assimilator {
-    setup: Setup,
+    /// Shared with the work made on other threads from the settings alone (a step's aerial
+    /// sight beside the filter's step): fixed once the mission starts.
+    setup: Arc<Setup>,
     state: AssimilatorState,
 }
 
@@ -169,7 +179,10 @@ impl Assimilator {
             innovation: None,
             screen: Default::default(),
         };
-        Ok(Self { setup, state })
+        Ok(Self {
+            setup: Arc::new(setup),
+            state,
+        })
     }
 
     /// Its state now, to come back to with [`Self::rewind`].
@@ -197,7 +210,7 @@ impl Assimilator {
     /// Boats go at most `speed` metres per step: `placement = "horizon"` plans only disks
     /// they can reach by their sampling step.
     pub fn set_boat_speed(&mut self, speed: f64) {
-        self.setup.boat_speed = speed;
+        Arc::make_mut(&mut self.setup).boat_speed = speed;
     }
 
     /// Where boat `slot` will be (an experiment that places the boats itself says so).
@@ -243,10 +256,7 @@ impl Assimilator {
     }
 
     pub fn aerial_noise(&self) -> AerialNoise {
-        AerialNoise {
-            sigma0: self.setup.cfg.aerial_sigma0,
-            growth_per_m: self.setup.cfg.aerial_growth_per_cell,
-        }
+        self.setup.aerial_noise()
     }
 
     /// The aerials' current positions (what they should fly to).
@@ -515,10 +525,10 @@ mod tests {
     use crate::vehicle::{sense_aerial, sense_boat, vehicle_rng};
     use rand::seq::SliceRandom;
 
-    #[test]
-    fn arrival_order_does_not_change_the_estimates() {
+    /// A small mission: a plume at 24 x 48, 3 aerials on a lattice of stride 3, 4 boats, rank
+    /// 6, 10 initial steps; the truth at step `k`.
+    fn small_mission() -> (TeamConfig, Grid, impl Fn(usize) -> Vec<f64>) {
         let truth = plume_field(24, 48, 30, 0.0, 1);
-        let grid = Grid::new(24, 48, 1.0).unwrap();
         let cfg = TeamConfig {
             aerials: 3,
             boats: 4,
@@ -528,19 +538,42 @@ mod tests {
             aerial_stride: 3,
             ..TeamConfig::default()
         };
-        let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+        let x = move |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+        (cfg, Grid::new(24, 48, 1.0).unwrap(), x)
+    }
+
+    /// The aerials' samples of step `k` of the field `x`, each from its own stream.
+    fn aerial_samples(server: &Assimilator, x: &[f64], k: usize, rngs: &mut [ChaCha8Rng]) -> Vec<Sample> {
+        let (pos, grid) = (server.aerial_positions().to_vec(), *server.grid());
+        (0..pos.len())
+            .map(|a| sense_aerial(&grid, x, k as u64, 3, &pos, a, server.aerial_noise(), &mut rngs[a]).unwrap())
+            .collect()
+    }
+
+    /// The boats' samples of step `k` of the field `x` on the disks `plan` gives them.
+    fn boat_samples(plan: &Allocation, grid: &Grid, x: &[f64], k: usize, rngs: &mut [ChaCha8Rng]) -> Vec<Sample> {
+        let aerials = rngs.len() - plan.boats.len();
+        plan.boats
+            .iter()
+            .enumerate()
+            .filter_map(|(b, d)| {
+                let rng = &mut rngs[aerials + b];
+                d.as_ref()
+                    .map(|(c, _)| sense_boat(grid, x, k as u64, (0.0, 0.0), c, 0.01, rng).unwrap())
+            })
+            .collect()
+    }
+
+    #[test]
+    fn arrival_order_does_not_change_the_estimates() {
+        let (cfg, grid, x) = small_mission();
         let run = |shuffle: bool| -> (Vec<f64>, Vec<f64>) {
             let mut server = Assimilator::new(&cfg, grid, 30).unwrap();
             let mut rngs: Vec<ChaCha8Rng> = (0..7).map(|v| vehicle_rng(cfg.seed, v)).collect();
             let mut order = ChaCha8Rng::seed_from_u64(99);
             let mut init = vec![];
             for k in 0..10 {
-                let pos = server.aerial_positions().to_vec();
-                let mut s: Vec<Sample> = (0..3)
-                    .map(|a| {
-                        sense_aerial(&grid, &x(k), k as u64, 3, &pos, a, server.aerial_noise(), &mut rngs[a]).unwrap()
-                    })
-                    .collect();
+                let mut s = aerial_samples(&server, &x(k), k, &mut rngs);
                 if shuffle {
                     s.shuffle(&mut order);
                 }
@@ -548,15 +581,7 @@ mod tests {
             }
             server.initialise(init).unwrap();
             let plan = server.allocate().unwrap();
-            let mut boats: Vec<Sample> = plan
-                .boats
-                .iter()
-                .enumerate()
-                .filter_map(|(b, d)| {
-                    d.as_ref()
-                        .map(|(c, _)| sense_boat(&grid, &x(10), 10, (0.0, 0.0), c, 0.01, &mut rngs[3 + b]).unwrap())
-                })
-                .collect();
+            let mut boats = boat_samples(&plan, &grid, &x(10), 10, &mut rngs);
             if shuffle {
                 boats.shuffle(&mut order);
             }
@@ -568,6 +593,46 @@ mod tests {
         let (a, b) = (run(false), run(true));
         assert_eq!(a.0, b.0, "fused snapshot depends on arrival order");
         assert_eq!(a.1, b.1, "model depends on arrival order");
+    }
+
+    /// The model server makes the next step's aerial sight on the other core while the filter
+    /// steps, which is right only if the sight reads nothing the step changes: made beside a
+    /// filter step and held after it, it is the sight made after the step, to the bit, and so
+    /// is what a step without aerial samples then holds.
+    #[test]
+    fn an_aerial_sight_made_beside_a_filter_step_is_the_one_made_after_it() {
+        let (cfg, grid, x) = small_mission();
+        let mut server = Assimilator::new(&cfg, grid, 30).unwrap();
+        let mut rngs: Vec<ChaCha8Rng> = (0..7).map(|v| vehicle_rng(cfg.seed, v)).collect();
+        let init = (0..10)
+            .map(|k| {
+                let s = aerial_samples(&server, &x(k), k, &mut rngs);
+                server.aerial_estimate(&s).unwrap().estimate.values
+            })
+            .collect();
+        server.initialise(init).unwrap();
+        let plan = server.allocate().unwrap();
+        let boats = boat_samples(&plan, &grid, &x(10), 10, &mut rngs);
+        let now = aerial_samples(&server, &x(10), 10, &mut rngs);
+        let next = aerial_samples(&server, &x(11), 11, &mut rngs);
+        let mut in_turn = server.clone();
+        let aerial = in_turn.aerial_estimate(&now).unwrap();
+        let fused = in_turn.fuse_step(1, &aerial, &boats).unwrap();
+        let after = in_turn.aerial_estimate(&next).unwrap();
+        let mut beside = server;
+        let aerial = beside.aerial_estimate(&now).unwrap();
+        let later = beside.aerial_sight_later(next);
+        let (fused_beside, made) = rayon::join(|| beside.fuse_step(1, &aerial, &boats).unwrap(), later);
+        let made = beside.hold_aerial(made.unwrap()).unwrap();
+        assert_eq!(fused, fused_beside);
+        assert_eq!(
+            after, made,
+            "the sight made beside the step differs from the one made after it"
+        );
+        assert_eq!(
+            in_turn.aerial_estimate(&[]).unwrap(),
+            beside.aerial_estimate(&[]).unwrap()
+        );
     }
 
     /// The known answer behind "land leaves the model grid": land is zero in every snapshot,
