@@ -30,6 +30,7 @@ pub mod roster;
 pub mod schedule;
 pub mod security;
 pub mod server;
+pub mod side_by_side;
 pub mod signing_key;
 pub mod site;
 pub mod step_file;

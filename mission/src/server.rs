@@ -826,7 +826,7 @@ impl ServerCore {
         next: Option<impl FnOnce() -> Sight + Send>,
     ) -> (Result<crate::fusion::Estimate, TeamError>, Option<Sight>) {
         let assim = &mut self.assim;
-        beside(
+        crate::side_by_side::beside(
             || tracing::info_span!("fuse").in_scope(|| assim.fuse_step(ahead, aerial, boats)),
             || Some(tracing::info_span!("aerial estimate").in_scope(next?)),
         )
@@ -1226,7 +1226,7 @@ impl ServerCore {
         let (parts, made) = (self.model_parts(), self.made());
         self.published = None;
         let (assim, history) = (&mut self.assim, &self.history);
-        let (plan, published) = beside(
+        let (plan, published) = crate::side_by_side::beside(
             || tracing::info_span!("placement").in_scope(|| assim.allocate_without(&holds)),
             || parts.map(|parts| Published::of_lean(parts.assemble_lean(history.last()), made)),
         );
@@ -1311,19 +1311,6 @@ impl ServerCore {
     pub fn assimilator(&self) -> &Assimilator {
         &self.assim
     }
-}
-
-/// `a` and `b` side by side on rayon's pool, both with this thread's `tracing` subscriber (the
-/// bench's phases): a join called from outside the pool runs both closures on its threads.
-/// Not a thread of its own that this one joins: inside `fleet experiment`'s parallel rows this
-/// thread is one of the pool's, and a pool thread blocked on a join cannot run the closures'
-/// own parallel loops.
-fn beside<A: Send, B: Send>(a: impl FnOnce() -> A + Send, b: impl FnOnce() -> B + Send) -> (A, B) {
-    let dispatch = tracing::dispatcher::get_default(|d| d.clone());
-    rayon::join(
-        || tracing::dispatcher::with_default(&dispatch, a),
-        || tracing::dispatcher::with_default(&dispatch, b),
-    )
 }
 
 /// A step's aerial sight made apart (`None`: the step had no aerial samples).

@@ -4,7 +4,7 @@
 
 use super::debias::{debiased_eig, Debias};
 use super::linalg::{div_cols, eig, pod, scale_rows};
-use super::{Dmd, DmdError, Method, ModeFactors, Modes, RankPolicy, SnapshotPairs};
+use super::{Dmd, DmdError, Factored, Method, ModeFactors, Modes, RankPolicy, SnapshotPairs};
 use faer::{Mat, MatRef};
 
 /// The projected pieces of one exact-DMD fit.
@@ -41,21 +41,23 @@ impl ProjectedFit {
         Ok(Modes { eigenvalues, modes })
     }
 
-    /// [`Self::decompose`] with the modes' factors, from `U` and `F = Y W S^-1`: an owned `F`
-    /// is given up as the factor, a borrowed one copied only when it is the factor (the online
-    /// method's `U` is not copied at all when the modes are `F C`).
-    pub fn decompose_factored(
+    /// The eigenvalues of [`Self::decompose`] and its modes' factors, from `U` and
+    /// `F = Y W S^-1`: an owned `F` is given up as the factor, a borrowed one copied only when
+    /// it is the factor (the online method's `U` is not copied at all when the modes are
+    /// `F C`). The modes themselves are [`ModeFactors::modes`].
+    pub fn factored(
         u: &Mat<f64>,
         yws: std::borrow::Cow<'_, Mat<f64>>,
         debias: Debias,
         pairs: Option<&SnapshotPairs>,
         xt: Option<MatRef<'_, f64>>,
-    ) -> Result<(Modes, Option<ModeFactors>), DmdError> {
+    ) -> Result<Factored, DmdError> {
         let (eigenvalues, v, on_u) = eigenvectors(u.as_ref(), yws.as_ref().as_ref(), debias, pairs, xt)?;
         let real = if on_u { u.clone() } else { yws.into_owned() };
-        let modes = crate::par::real_times_complex(real.as_ref(), v.as_ref());
-        let factors = ModeFactors { real, coefficients: v };
-        Ok((Modes { eigenvalues, modes }, Some(factors)))
+        Ok(Factored {
+            eigenvalues,
+            factors: ModeFactors { real, coefficients: v },
+        })
     }
 }
 
@@ -171,9 +173,9 @@ impl Dmd for BatchDmd {
             .decompose(self.debias, Some(&self.pairs), Some(self.xt.as_ref()))
     }
 
-    fn decompose_factored(&self) -> Result<(Modes, Option<ModeFactors>), DmdError> {
+    fn factored(&self) -> Result<Option<Factored>, DmdError> {
         let yws = std::borrow::Cow::Borrowed(&self.fit.yws);
-        ProjectedFit::decompose_factored(&self.fit.u, yws, self.debias, Some(&self.pairs), Some(self.xt.as_ref()))
+        ProjectedFit::factored(&self.fit.u, yws, self.debias, Some(&self.pairs), Some(self.xt.as_ref())).map(Some)
     }
 
     fn rank(&self) -> usize {

@@ -22,7 +22,7 @@ use super::batch::{exact_fit, ProjectedFit};
 use super::debias::Debias;
 use super::linalg::{div_cols, orthogonality_error, scale_cols_by, thin_svd};
 use super::snapshots::check_pairs;
-use super::{numerical_rank, Dmd, DmdError, Method, ModeFactors, Modes, RankPolicy, SnapshotPairs};
+use super::{numerical_rank, Dmd, DmdError, Factored, Method, Modes, RankPolicy, SnapshotPairs};
 use crate::par::{product, product_add};
 use faer::{Mat, MatRef};
 
@@ -199,9 +199,9 @@ impl Dmd for GeneralDmd {
         self.projected().decompose(self.debias, self.pairs.as_ref(), None)
     }
 
-    fn decompose_factored(&self) -> Result<(Modes, Option<ModeFactors>), DmdError> {
+    fn factored(&self) -> Result<Option<Factored>, DmdError> {
         let yws = std::borrow::Cow::Owned(self.yws());
-        ProjectedFit::decompose_factored(&self.u, yws, self.debias, self.pairs.as_ref(), None)
+        ProjectedFit::factored(&self.u, yws, self.debias, self.pairs.as_ref(), None).map(Some)
     }
 
     fn rank(&self) -> usize {

@@ -23,7 +23,7 @@ pub use batch::BatchDmd;
 pub use debias::Debias;
 pub use general::GeneralDmd;
 pub use longterm::{Forgetting, ForgettingDirections, ForgettingUnit, LongTermDmd};
-pub use model::{DmdModel, ModeFactors, ModelSummary, Modes, OrthogonalModes};
+pub use model::{DmdModel, Factored, ModeFactors, ModelSummary, Modes, OrthogonalModes};
 pub use rank::{numerical_rank, RankPolicy};
 pub use snapshots::SnapshotPairs;
 
@@ -125,9 +125,11 @@ pub trait Dmd: dyn_clone::DynClone + Send + Sync {
     fn update(&mut self, x_new: MatRef<'_, f64>, y_new: MatRef<'_, f64>) -> Result<(), DmdError>;
     /// Eigenvalues (discrete time) and modes of the current operator.
     fn decompose(&self) -> Result<Modes, DmdError>;
-    /// [`Self::decompose`], with the modes' factors when the method has them (exact DMD's).
-    fn decompose_factored(&self) -> Result<(Modes, Option<ModeFactors>), DmdError> {
-        Ok((self.decompose()?, None))
+    /// [`Self::decompose`]'s eigenvalues and its modes' factors, without the modes, when the
+    /// method has them (exact DMD's; `None` for the others): what needs only the modes' span
+    /// is then made from the factors while the modes are ([`ModeFactors::modes`]).
+    fn factored(&self) -> Result<Option<Factored>, DmdError> {
+        Ok(None)
     }
     /// Number of modes the model currently keeps.
     fn rank(&self) -> usize;

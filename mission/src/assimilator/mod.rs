@@ -16,7 +16,7 @@ mod placement;
 pub use fuse::AerialSight;
 pub use placement::{Allocation, BoatDisk};
 
-use crate::dmd::{Dmd, DmdConfig, DmdModel};
+use crate::dmd::{Dmd, DmdConfig, DmdModel, Factored, Modes};
 use crate::fusion::{AerialNoise, Estimate};
 use crate::grid::Grid;
 use crate::kalman::{self, ModalFilter};
@@ -469,21 +469,28 @@ type Fitted = (DmdModel, Mat<f64>, Option<Mat<f64>>);
 /// `Phi^H B = M^H U`, r x r products, where the modes' N rows cost two N x r x r complex
 /// products (most of the filter's move to a new model at 192 x 384).
 fn fit_with_dynamics(model: &dyn Dmd, newest: &[f64]) -> Result<Fitted, TeamError> {
-    let (modes, factors) = tracing::info_span!("decompose").in_scope(|| model.decompose_factored())?;
-    let Some(factors) = factors else {
+    let factored = tracing::info_span!("decompose").in_scope(|| model.factored())?;
+    let Some(Factored { eigenvalues, factors }) = factored else {
+        let modes = tracing::info_span!("decompose").in_scope(|| model.decompose())?;
         let basis = tracing::info_span!("basis").in_scope(|| real_basis(modes.modes.as_ref()))?;
         let fitted = tracing::info_span!("amplitudes").in_scope(|| modes.model(newest, 1.0))?;
         return Ok((fitted, basis, None));
     };
-    let orthogonal = tracing::info_span!("orthogonal factor").in_scope(|| factors.orthogonal());
-    let (basis, dynamics) = tracing::info_span!("basis").in_scope(|| -> Result<_, TeamError> {
-        let coordinates = real_basis_coordinates(&orthogonal)?;
-        let dynamics = kalman::modal_dynamics(orthogonal.m.as_ref(), &modes.eigenvalues, coordinates.as_ref())?;
-        Ok((
-            fleet_math::par::product(orthogonal.q.as_ref(), coordinates.as_ref()),
-            dynamics,
-        ))
-    })?;
+    // The modes (N x r complex) need only the factors, and so do the basis and the dynamics:
+    // made side by side.
+    let (modes, spanned) = crate::side_by_side::beside(
+        || tracing::info_span!("modes").in_scope(|| factors.modes()),
+        || -> Result<_, TeamError> {
+            let orthogonal = tracing::info_span!("orthogonal factor").in_scope(|| factors.orthogonal());
+            let _span = tracing::info_span!("basis").entered();
+            let coordinates = real_basis_coordinates(&orthogonal)?;
+            let dynamics = kalman::modal_dynamics(orthogonal.m.as_ref(), &eigenvalues, coordinates.as_ref())?;
+            let basis = fleet_math::par::product(orthogonal.q.as_ref(), coordinates.as_ref());
+            Ok((orthogonal, basis, dynamics))
+        },
+    );
+    let (orthogonal, basis, dynamics) = spanned?;
+    let modes = Modes { eigenvalues, modes };
     let fitted = tracing::info_span!("amplitudes").in_scope(|| modes.model_on(&orthogonal, newest, 1.0))?;
     Ok((fitted, basis, Some(dynamics)))
 }
