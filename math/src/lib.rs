@@ -12,6 +12,7 @@ pub mod dmd;
 pub mod fusion;
 pub mod grid;
 pub mod kalman;
+pub mod longitude;
 pub mod npy;
 pub mod par;
 pub mod process;

@@ -822,7 +822,8 @@ impl ServerCore {
     fn fuse_beside(
         &mut self,
         ahead: u64,
-        (aerial, boats): (&crate::AerialSight, &[Sample]),
+        aerial: &crate::AerialSight,
+        boats: &[Sample],
         next: Option<impl FnOnce() -> Sight + Send>,
     ) -> (Result<crate::fusion::Estimate, TeamError>, Option<Sight>) {
         let assim = &mut self.assim;
@@ -968,7 +969,7 @@ impl ServerCore {
                 let samples = self.screened_aerials(batches, k + 1, ahead + 1);
                 self.assim.aerial_sight_later(samples)
             });
-            let (fused, sight) = self.fuse_beside(ahead, (&aerial, &boats), later);
+            let (fused, sight) = self.fuse_beside(ahead, &aerial, &boats, later);
             next = sight;
             let fused = fused?;
             if let Some(i) = self.assim.take_innovation() {

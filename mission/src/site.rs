@@ -4,6 +4,7 @@
 //! a field site); the flat-Earth approximation is well under a centimetre over a few kilometres.
 
 use crate::grid::Grid;
+use fleet_math::longitude::wrap_longitude;
 use nalgebra::{Vector2, Vector3};
 
 /// WGS-84 equatorial radius (m).
@@ -64,15 +65,6 @@ impl Site {
     /// A physical distance (m) in grid metres (the smaller scale: a bound that holds both ways).
     pub fn grid_distance(&self, metres: f64) -> f64 {
         metres / self.scale.x.max(self.scale.y)
-    }
-}
-
-/// A longitude (or a difference of two) in [-180, 180); one already there is returned as it
-/// is, to the bit (adding and taking away 180 would move its last bit).
-pub fn wrap_longitude(lon: f64) -> f64 {
-    match (-180.0..180.0).contains(&lon) {
-        true => lon,
-        false => (lon + 180.0).rem_euclid(360.0) - 180.0,
     }
 }
 

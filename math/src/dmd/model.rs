@@ -240,10 +240,10 @@ mod tests {
 
     /// The modes made from a decomposition's factors are its modes (the refit makes them beside
     /// the basis, from the factors alone), for the batch and the online general method, and
-    /// with debiased operators (modes on `U`). An exact
-    /// rank-4 system (a damped rotation and two decays) seen through 40 cells. Tolerance: the
-    /// two products sum the same r = 4 terms per entry in another order, so they differ by a
-    /// few ulps of the largest term, far below 1e-12 of the largest mode.
+    /// with debiased operators (modes on `U`). An exact rank-4 system (a damped rotation and
+    /// two decays) seen through 40 cells. Tolerance: the two products sum the same r = 4 terms
+    /// per entry in another order, so they differ by a few ulps of the largest term, far below
+    /// 1e-12 of the largest mode.
     #[test]
     fn the_modes_of_the_factors_are_the_decompositions() {
         use crate::dmd::{Debias, DmdConfig, Method, RankPolicy};
@@ -280,12 +280,12 @@ mod tests {
             let whole = model.decompose().unwrap();
             assert_eq!(factored.eigenvalues, whole.eigenvalues, "{method:?} {debias:?}");
             let made = factored.factors.modes();
-            let scale = (0..n).flat_map(|i| (0..4).map(move |j| (i, j)));
-            let largest = scale
+            let entries = (0..n).flat_map(|i| (0..4).map(move |j| (i, j)));
+            let largest = entries
                 .clone()
                 .map(|(i, j)| whole.modes[(i, j)].norm())
                 .fold(0.0, f64::max);
-            for (i, j) in scale {
+            for (i, j) in entries {
                 let d = (made[(i, j)] - whole.modes[(i, j)]).norm();
                 assert!(d <= 1e-12 * largest, "{method:?} {debias:?} ({i}, {j}): {d:e}");
             }

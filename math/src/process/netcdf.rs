@@ -89,7 +89,7 @@ pub fn bounds(path: impl AsRef<Path>, variable: &str, select: &Select) -> Option
     let ds = reader.data_set();
     let (south, north) = edges(coordinate(ds, &lat, &lat_raw).ok()??)?;
     let (west, east) = edges(across_the_dateline(coordinate(ds, &lon, &lon_raw).ok()??))?;
-    let wrapped = (west + 180.0).rem_euclid(360.0) - 180.0;
+    let wrapped = crate::longitude::wrap_longitude(west);
     Some([south, wrapped, north, wrapped + (east - west)])
 }
 
