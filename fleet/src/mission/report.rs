@@ -524,8 +524,10 @@ impl MissionReport<'_> {
         )?;
         writeln!(
             md,
-            "| batches received | {} ({} duplicates, {rejected} refused {:?}) |",
-            c.batches, c.duplicates, c.rejected
+            "| batches received | {} ({} duplicates, {rejected} refused{}) |",
+            c.batches,
+            c.duplicates,
+            refusals_text(&c.rejected)
         )?;
         writeln!(
             md,
@@ -596,6 +598,16 @@ impl MissionReport<'_> {
     }
 }
 
+/// The refusals by reason, as a reader would want them: "" when there were none, else
+/// ": reason n, reason m" (the map printed raw showed `{}` to a field team).
+fn refusals_text(rejected: &std::collections::BTreeMap<String, u64>) -> String {
+    if rejected.is_empty() {
+        return String::new();
+    }
+    let by_reason: Vec<String> = rejected.iter().map(|(reason, n)| format!("{reason} {n}")).collect();
+    format!(": {}", by_reason.join(", "))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -614,5 +626,14 @@ mod tests {
             got,
             ["1st", "2nd", "3rd", "4th", "5th", "11th", "12th", "13th", "21st", "22nd", "23rd", "101st", "111th"]
         );
+    }
+
+    #[test]
+    fn refusals_read_as_english() {
+        let mut rejected = std::collections::BTreeMap::new();
+        assert_eq!(refusals_text(&rejected), "");
+        rejected.insert("bad signature".to_string(), 2);
+        rejected.insert("stale".to_string(), 1);
+        assert_eq!(refusals_text(&rejected), ": bad signature 2, stale 1");
     }
 }
