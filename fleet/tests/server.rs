@@ -1124,3 +1124,51 @@ fn an_operators_override_refits_and_survives_a_restart() {
         assert!(server.override_sensor(&o).is_err(), "{o:?} refused");
     }
 }
+
+/// Each epoch's model goes to the publisher the moment it is made, once: the one the server
+/// then holds as published, to the bit, marked as handed out. The epochs a re-fit makes again
+/// hand over nothing (they are not news); the model after it is made when asked for.
+#[test]
+fn each_epochs_model_is_handed_to_the_publisher_once_as_it_is_made() {
+    use std::sync::{Arc, Mutex};
+    let (truth, grid, cfg) = plume_team();
+    let handed: Arc<Mutex<Vec<Vec<u8>>>> = Arc::default();
+    let sink = handed.clone();
+    let publisher: fleet::mission::server::Publisher = Arc::new(move |p| sink.lock().unwrap().push(p.bytes.clone()));
+    let mut server = ServerCore::new(&cfg, grid, truth.frames())
+        .unwrap()
+        .with_publisher(publisher);
+    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+    let mut brains = brains_of(&server, &cfg, grid);
+    let mut late = None;
+    for e in 0..server.schedule().epochs() {
+        if e == 3 {
+            // Epoch 2's boat-2 batch, late: a re-fit of epoch 2 on, before epoch 3 is complete.
+            assert!(matches!(
+                server.ingest(late.take().unwrap()).unwrap(),
+                Ingested::Refitted(_)
+            ));
+            assert_eq!(handed.lock().unwrap().len(), 3, "the re-fit handed nothing over");
+            assert!(server.take_published().unwrap().handed_out.is_none());
+        }
+        for brain in &mut brains {
+            brain.set_plan(server.plan(&brain.id, e, 2).expect("plan"));
+            match brain.sense_epoch(e, x).unwrap() {
+                Some(b) if e == 2 && brain.id == "boat-2" => late = Some(b),
+                Some(b) => drop(server.ingest(b).unwrap()),
+                None => {}
+            }
+        }
+        if e == 2 {
+            assert!(server.force().unwrap());
+        }
+        if server.finished() {
+            break;
+        }
+        let handed = handed.lock().unwrap();
+        assert_eq!(handed.len(), e as usize + 1, "one model an epoch, epoch {e}");
+        let published = server.published().expect("the epoch's model");
+        assert!(published.handed_out.is_some(), "epoch {e}");
+        assert_eq!(handed.last(), Some(&published.bytes), "epoch {e}");
+    }
+}

@@ -87,6 +87,9 @@ pub struct Published {
     modes: Modes,
     full: std::sync::OnceLock<Vec<u8>>,
     pub(crate) of: Made,
+    /// When it was handed to the publisher the moment it was made ([`crate::server::Publisher`]:
+    /// beside the placement, not after it); `None`: not yet, the node puts it itself.
+    pub handed_out: Option<std::time::Instant>,
 }
 
 /// What a published model was made of: the model's version, the next epoch, and the steps in
@@ -121,6 +124,7 @@ impl Published {
             modes,
             full: std::sync::OnceLock::new(),
             of: made,
+            handed_out: None,
         }
     }
 

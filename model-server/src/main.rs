@@ -4,6 +4,7 @@
 
 mod departure;
 mod node;
+mod publisher;
 mod replay;
 
 #[global_allocator]

@@ -3,6 +3,7 @@
 //! been decoded and validated; everything refused is counted by reason and logged once.
 
 use crate::departure::Departure;
+use crate::publisher::ModelPublisher;
 use crate::Args;
 use anyhow::Context as _;
 use fleet_exit::bad_input;
@@ -58,6 +59,8 @@ struct Server {
     /// The mission's recording (`--record`): traffic and the core's operations. A recording
     /// that cannot be written is dropped with one warning; the mission goes on.
     recorder: std::sync::Mutex<Option<Recorder<std::io::BufWriter<std::fs::File>>>>,
+    /// Puts every model on `model/latest`, in order, the moment it is handed over.
+    publisher: ModelPublisher,
 }
 
 fn emit(on: bool, e: &ServerEvent) {
@@ -367,8 +370,9 @@ impl Server {
         t0: Instant,
         refit: bool,
     ) -> anyhow::Result<()> {
-        self.publish_model(session).await?;
-        let latency_ms = t0.elapsed().as_secs_f64() * 1e3;
+        // From the batch to the model out: beside the placement, not after it.
+        let out = self.publish_model().unwrap_or_else(Instant::now);
+        let latency_ms = out.saturating_duration_since(t0).as_secs_f64() * 1e3;
         self.answer_held().await;
         for v in self.core.vehicles().to_vec() {
             self.ack(session, &v.id).await?;
@@ -462,18 +466,15 @@ impl Server {
         (!steps.is_empty()).then(|| sum / steps.len() as f64)
     }
 
-    /// The model on `model/latest`: the one the core made beside the placement (encoded there),
-    /// or made now.
-    async fn publish_model(&mut self, session: &zenoh::Session) -> anyhow::Result<()> {
-        let Some(p) = self.core.take_published() else {
-            return Ok(());
-        };
-        let key = self.keys.model_latest();
-        let traffic = fleet_net::Traffic::of(&p.shown);
-        let sent = fleet_net::put_bytes(session, &key, p.bytes.clone(), traffic).await;
-        self.record_body(&key, &p.shown, &p.bytes);
+    /// The model on `model/latest`: the one the core made beside the placement (encoded there,
+    /// and already handed to the publisher), or made now.
+    /// Returns when it went out (handed to the publisher), if there is one.
+    fn publish_model(&mut self) -> Option<Instant> {
+        let mut p = self.core.take_published()?;
+        let at = self.publisher.publish(&mut p);
+        self.record_body(&self.keys.model_latest(), &p.shown, &p.bytes);
         self.core.keep_published(p);
-        Ok(sent?)
+        Some(at)
     }
 
     async fn ack(&self, session: &zenoh::Session, vehicle: &VehicleId) -> anyhow::Result<()> {
@@ -929,9 +930,11 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let recorder = open_recorder(&args, &mission, &grid, frames, truth.clone())?;
     let session = fleet_net::open(args.node.zenoh_config(Role::Server, &mission.network, &mission.link)?).await?;
     let inputs = Inputs::declare(&session, &keys).await?;
+    let publisher = ModelPublisher::start(session.clone(), keys.model_latest());
     let mut s = Server {
+        core: core.with_publisher(publisher.hook()),
+        publisher,
         keys,
-        core,
         ctx,
         truth,
         readings: BTreeMap::new(),
@@ -966,7 +969,7 @@ impl Server {
             self.record_op(op);
         }
         if restored > 0 {
-            self.publish_model(session).await?;
+            self.publish_model();
             for v in self.core.vehicles().to_vec() {
                 self.ack(session, &v.id).await?;
             }
@@ -1095,6 +1098,7 @@ impl Server {
                     .with_context(|| format!("writing {}/summary.json", dir.display()))?;
             }
         }
+        self.publisher.flush().await;
         self.put(session, &self.keys.server_status(), &Body::Status(self.status()))
             .await?;
         fleet_net::close(session).await;

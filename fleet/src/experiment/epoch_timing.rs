@@ -24,6 +24,11 @@ pub struct EpochTiming {
     pub p99_ms: f64,
     /// Each timed epoch's milliseconds, in order (where a slow one falls).
     pub epoch_ms: Vec<f64>,
+    /// From the same batch to the model handed to the publisher (as the node's is: beside the
+    /// placement, so before the plans): what observers wait, and the latency.
+    pub model_p50_ms: f64,
+    pub model_p99_ms: f64,
+    pub model_epoch_ms: Vec<f64>,
     /// Each timed epoch's minor page faults (the whole process: memory first touched).
     pub epoch_faults: Vec<u64>,
     /// Bytes of the model put every epoch (without its modes), of the whole model a get
@@ -88,9 +93,12 @@ fn timed(
     let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
     // As the model server keeps it: every step's fused map in files, not in memory.
     let dir = run_dir();
-    let mut server = ServerCore::new(&cfg, grid, frames)?.with_history_in(&dir)?;
+    // As the node's: each epoch's model handed over the moment it is made (here to nobody).
+    let mut server = ServerCore::new(&cfg, grid, frames)?
+        .with_history_in(&dir)?
+        .with_publisher(std::sync::Arc::new(|_| ()));
     let mut brains = super::team::brains_of(&server, &cfg, grid);
-    let (mut times, mut faults, mut batch_bytes, mut model_bytes) = (vec![], vec![], 0usize, 0);
+    let (mut timed, mut batch_bytes) = (vec![], 0usize);
     for e in 0..server.schedule().epochs() {
         let mut batches = vec![];
         for brain in brains.iter_mut() {
@@ -102,26 +110,7 @@ fn timed(
             .iter()
             .map(|b| protocol::encode(&Body::Batch(b.clone())).len())
             .sum::<usize>();
-        let (mut t0, mut f0) = (Instant::now(), minor_faults());
-        for b in batches {
-            (t0, f0) = (Instant::now(), minor_faults());
-            let taken = server.ingest(b).map_err(|err| TeamError::Config(err.to_string()))?;
-            if matches!(taken, Ingested::Assimilated(_)) {
-                break;
-            }
-        }
-        // As the node publishes it: made beside the placement, or now if it was not.
-        let model = server.take_published();
-        model_bytes = model.as_ref().map_or(0, |m| m.bytes.len());
-        model.into_iter().for_each(|m| server.keep_published(m));
-        tracing::info_span!("plans encoded").in_scope(|| {
-            for v in server.vehicles().to_vec() {
-                let plan = server.plan(&v.id, e + 1, 3).map(|p| protocol::encode(&Body::Plan(p)));
-                std::hint::black_box(plan);
-            }
-        });
-        times.push(t0.elapsed().as_secs_f64() * 1e3);
-        faults.push(minor_faults() - f0);
+        timed.push(time_epoch(&mut server, batches, e)?);
         if e == 0 {
             phases.reset();
         }
@@ -130,8 +119,12 @@ fn timed(
     let model_full_bytes = server.take_published().map_or(0, |m| m.full().len());
     drop(server);
     let _ = std::fs::remove_dir_all(&dir);
-    let first_fit_ms = times.remove(0);
-    faults.remove(0);
+    let first = timed.remove(0);
+    let model_bytes = timed.last().map_or(first.model_bytes, |t| t.model_bytes);
+    let times: Vec<f64> = timed.iter().map(|t| t.ms).collect();
+    let model_times: Vec<f64> = timed.iter().map(|t| t.model_ms).collect();
+    let first_fit_ms = first.ms;
+    let faults: Vec<u64> = timed.iter().map(|t| t.faults).collect();
     let n = times.len();
     let pct = |p: f64| percentile(&times, p);
     Ok(EpochTiming {
@@ -143,12 +136,58 @@ fn timed(
         p50_ms: pct(0.5),
         p99_ms: pct(0.99),
         epoch_ms: times,
+        model_p50_ms: percentile(&model_times, 0.5),
+        model_p99_ms: percentile(&model_times, 0.99),
+        model_epoch_ms: model_times,
         epoch_faults: faults,
         model_bytes,
         model_full_bytes,
         batch_bytes_per_epoch: batch_bytes as f64 / (n + 1) as f64,
         peak_resident_kb: crate::mission::memory::peak_resident_kb(),
         phases_ms: vec![],
+    })
+}
+
+/// One epoch's figures, from the batch that completes it.
+struct EpochTimes {
+    /// To the model out and every vehicle's next plan encoded.
+    ms: f64,
+    /// To the model handed to the publisher.
+    model_ms: f64,
+    faults: u64,
+    model_bytes: usize,
+}
+
+/// Ingest epoch `e`'s `batches` and time the last one's epoch: as the node publishes the model
+/// (handed over beside the placement, or made now if it was not), then the plans.
+fn time_epoch(
+    server: &mut ServerCore,
+    batches: Vec<protocol::MeasurementBatch>,
+    e: u64,
+) -> Result<EpochTimes, TeamError> {
+    let (mut t0, mut f0) = (Instant::now(), minor_faults());
+    for b in batches {
+        (t0, f0) = (Instant::now(), minor_faults());
+        let taken = server.ingest(b).map_err(|err| TeamError::Config(err.to_string()))?;
+        if matches!(taken, Ingested::Assimilated(_)) {
+            break;
+        }
+    }
+    let model = server.take_published();
+    let out = model.as_ref().and_then(|m| m.handed_out).unwrap_or_else(Instant::now);
+    let model_bytes = model.as_ref().map_or(0, |m| m.bytes.len());
+    model.into_iter().for_each(|m| server.keep_published(m));
+    tracing::info_span!("plans encoded").in_scope(|| {
+        for v in server.vehicles().to_vec() {
+            let plan = server.plan(&v.id, e + 1, 3).map(|p| protocol::encode(&Body::Plan(p)));
+            std::hint::black_box(plan);
+        }
+    });
+    Ok(EpochTimes {
+        ms: t0.elapsed().as_secs_f64() * 1e3,
+        model_ms: out.saturating_duration_since(t0).as_secs_f64() * 1e3,
+        faults: minor_faults() - f0,
+        model_bytes,
     })
 }
 
@@ -205,5 +244,8 @@ mod tests {
         assert!(t.epochs >= 2, "{} epochs", t.epochs);
         assert_eq!((t.epoch_ms.len(), t.epoch_faults.len()), (t.epochs, t.epochs));
         assert!(t.p50_ms > 0.0 && t.p99_ms >= t.p50_ms && t.model_bytes > 0);
+        // The model goes out before the plans are answered, never after.
+        assert_eq!(t.model_epoch_ms.len(), t.epochs);
+        assert!(t.model_epoch_ms.iter().zip(&t.epoch_ms).all(|(m, e)| m <= e));
     }
 }

@@ -141,19 +141,21 @@ impl Assimilator {
             let extra = self.state.aerial_extra.mean();
             return Ok(cells.iter().map(|&c| (c, (values[c], variance[c] + extra))).collect());
         };
-        let f = f.ahead(ahead.saturating_sub(*at) as usize);
+        let f = tracing::info_span!("reference ahead").in_scope(|| f.ahead(ahead.saturating_sub(*at) as usize));
         let lattice = Observation {
             cells: &aerial.cells,
             values: &aerial.values,
             variance: &aerial.variance,
         };
-        let (_, seen, values, variance) = dense(aerial, self.state.aerial_extra.mean(), &self.setup.on_lattice);
+        let (_, seen, values, variance) = tracing::info_span!("reference dense")
+            .in_scope(|| dense(aerial, self.state.aerial_extra.mean(), &self.setup.on_lattice));
         let dense = Observation {
             cells: &seen,
             values: &values,
             variance: &variance,
         };
-        let (mean, variance) = f.field_at_after(&[lattice], &[dense], cells)?;
+        let (mean, variance) =
+            tracing::info_span!("reference conditioned").in_scope(|| f.field_at_after(&[lattice], &[dense], cells))?;
         Ok(cells.iter().copied().zip(mean.into_iter().zip(variance)).collect())
     }
 

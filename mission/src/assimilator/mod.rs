@@ -300,7 +300,7 @@ impl Assimilator {
         }
         let _span = tracing::info_span!("screen boats").entered();
         let cells = cells_of(&samples);
-        let field = self.boat_reference(ahead, aerial, &cells)?;
+        let field = tracing::info_span!("boat reference").in_scope(|| self.boat_reference(ahead, aerial, &cells))?;
         let (grid, sigma) = (self.setup.grid, self.setup.cfg.boat_sigma);
         let lattice = aerial
             .cells
@@ -312,6 +312,7 @@ impl Assimilator {
             field: &field,
             lattice: &lattice,
         };
+        let _tests = tracing::info_span!("boat tests").entered();
         Ok(self.state.screen.boats(&grid, step, samples, reference, sigma))
     }
 
