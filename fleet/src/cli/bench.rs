@@ -50,7 +50,7 @@ enum What {
         grid: String,
     },
     /// The model server's epoch at each grid size (the core without the network): from the
-    /// batch that completes an epoch to the model encoded and every next plan answered.
+    /// batch that completes an epoch to the model handed out, and to every next plan answered.
     Epoch {
         /// Grid sizes, ROWSxCOLS (radius and aerial stride scale with the rows).
         #[arg(long, value_delimiter = ',', default_value = "48x96,96x192,192x384,384x768")]

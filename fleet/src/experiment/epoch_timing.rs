@@ -1,8 +1,9 @@
 //! The model server's epoch at scale, without the network: the core driven by the vehicles
 //! as the vehicle node runs them on a moving plume, and each epoch timed from the batch that
-//! completes it to the published model encoded and every vehicle's next plan answered (the
-//! critical path of issue 40, less Zenoh and the files but for the fused map's, which the
-//! server writes step by step). Timings for `fleet bench epoch`.
+//! completes it to the published model handed out (beside the placement, as the node's is), and
+//! to every vehicle's next plan answered too (the critical paths of issue 40, less Zenoh and
+//! the files but for the fused map's, which the server writes step by step). Timings for
+//! `fleet bench epoch`.
 
 use super::team::{TeamConfig, TeamError};
 use crate::grid::Grid;
