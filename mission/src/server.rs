@@ -1240,6 +1240,7 @@ impl ServerCore {
 
     /// The next epoch's allocation, and beside it (on the other core) the model to publish:
     /// neither needs the other, and the placement leaves the model as it is.
+    ///
     /// The model goes to the publisher as soon as it is made, unless a re-admission's re-fit
     /// follows (that one publishes the model it makes).
     fn place_and_publish(&mut self) -> Result<Allocation, TeamError> {

@@ -45,7 +45,7 @@ impl ModelPublisher {
     /// placement beside it).
     pub fn hook(&self) -> Publisher {
         let tx = self.tx.clone();
-        Arc::new(move |p: &Published| drop(tx.send(Out::Put(p.bytes.clone(), Traffic::of(&p.shown)))))
+        Arc::new(move |p: &Published| queue(&tx, p))
     }
 
     /// Put `p` unless the core already handed it over; when it went out either way.
@@ -53,7 +53,7 @@ impl ModelPublisher {
         if let Some(at) = p.handed_out {
             return at;
         }
-        drop(self.tx.send(Out::Put(p.bytes.clone(), Traffic::of(&p.shown))));
+        queue(&self.tx, p);
         *p.handed_out.insert(Instant::now())
     }
 
@@ -64,4 +64,9 @@ impl ModelPublisher {
             drop(out.await);
         }
     }
+}
+
+/// Queue `p`'s put (the task gone, at the node's end, there is no one left to put it to).
+fn queue(tx: &mpsc::UnboundedSender<Out>, p: &Published) {
+    drop(tx.send(Out::Put(p.bytes.clone(), Traffic::of(&p.shown))));
 }
