@@ -62,6 +62,11 @@ pub struct Args {
 
 fn main() {
     fleet_net::init_node();
+    // Before the mission's matrices are allocated: a 2 MB page found by compaction at the
+    // fault stalled the first epochs (fleet_mission::memory::small_pages_only).
+    if fleet_mission::memory::small_pages_only() == fleet_mission::memory::HugePages::Refused {
+        tracing::warn!("the kernel refused to turn transparent huge pages off: the first epochs may stall");
+    }
     let args = Args::parse();
     match args.replay.clone() {
         Some(file) => fleet_net::run_node(

@@ -202,6 +202,9 @@ fn epoch_bench(
     epochs: usize,
 ) -> anyhow::Result<serde_json::Value> {
     let sizes = grids.iter().map(|g| grid_size(g)).collect::<anyhow::Result<Vec<_>>>()?;
+    // As the model server runs its epochs (fleet_mission::memory::small_pages_only).
+    let pages = fleet_mission::memory::small_pages_only();
+    eprintln!("transparent huge pages: {}", huge_pages_said(pages));
     println!(
         "| grid | vehicles | first fit (ms) | to the model out, p50 / p99 (ms) | to the plans too, p50 / p99 (ms) \
          | model put an epoch (bytes) | with its modes, on request (bytes) | batches an epoch (bytes) \
@@ -231,6 +234,16 @@ fn epoch_bench(
     }
     print_phases(&out);
     Ok(serde_json::to_value(out)?)
+}
+
+/// What [`fleet_mission::memory::small_pages_only`] did, in words.
+fn huge_pages_said(pages: fleet_mission::memory::HugePages) -> String {
+    use fleet_mission::memory::{HugePages, ALLOW_THP};
+    match pages {
+        HugePages::Off => "off, as the model server runs".into(),
+        HugePages::AsSet => format!("as {ALLOW_THP} says"),
+        HugePages::Refused => "the kernel refused to turn them off".into(),
+    }
 }
 
 /// Milliseconds an epoch per phase, a column per size (nested phases indented under the
