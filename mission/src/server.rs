@@ -834,20 +834,20 @@ impl ServerCore {
         Ok(boats)
     }
 
-    /// Step `k`'s filter step, and beside it, on the other core, the aerial sight `next` makes
-    /// of the next step (it reads the mission's settings and its own samples only, and the
+    /// Step `k`'s filter step, and beside it, on the other core, `job`: the aerial sight of
+    /// the next step (it reads the mission's settings and its own samples only, and the
     /// filter's step takes about three times as long: 9 against 3 ms at 192 x 384).
-    fn fuse_beside(
+    fn fuse_beside<T: Send>(
         &mut self,
         ahead: u64,
         aerial: &crate::AerialSight,
         boats: &[Sample],
-        next: Option<impl FnOnce() -> Sight + Send>,
-    ) -> (Result<crate::fusion::Estimate, TeamError>, Option<Sight>) {
+        job: Option<impl FnOnce() -> T + Send>,
+    ) -> (Result<crate::fusion::Estimate, TeamError>, Option<T>) {
         let assim = &mut self.assim;
         crate::side_by_side::beside(
             || tracing::info_span!("fuse").in_scope(|| assim.fuse_step(ahead, aerial, boats)),
-            || Some(tracing::info_span!("aerial estimate").in_scope(next?)),
+            || Some(job?()),
         )
     }
 
@@ -957,7 +957,12 @@ impl ServerCore {
     }
 
     /// A later epoch `e`: each step's readings screened and fused, the next step's aerial
-    /// sight made beside each filter step, then the model updated with the fused steps.
+    /// sight made beside each filter step, then the model updated with the fused steps. The
+    /// update's first part needs only the steps before the last
+    /// ([`crate::assimilator::Assimilator::update_ahead`]), so it is made beside the whole of
+    /// the last step, on the other core, idle there (the update's projections, `H`'s factor and
+    /// the new `U`: 12 of its 15 ms at 192 x 384); the last step's snapshot is then all the
+    /// update waits for.
     fn assimilate_steps(
         &mut self,
         e: u64,
@@ -965,59 +970,87 @@ impl ServerCore {
         steps: std::ops::Range<usize>,
     ) -> Result<(), TeamError> {
         let (k0, end) = (steps.start, steps.end);
-        let mut learn = vec![];
-        // The next step's aerial sight, made beside this step's filter step.
-        let mut next = None;
+        let (mut learn, mut next, mut prepared) = (vec![], None, None);
         for k in steps {
-            let ahead = (k + 1 - k0) as u64;
-            let sight = match next.take() {
-                Some(sight) => sight,
-                None => {
-                    let samples = self.screened_aerials(batches, k, ahead);
-                    tracing::info_span!("aerial estimate").in_scope(self.assim.aerial_sight_later(samples))
+            let (learned, sight) = match k + 1 < end {
+                true => self.step_fused(batches, k, k0..end, next.take())?,
+                false => {
+                    let job = self.assim.update_ahead(&learn);
+                    let (done, ahead) = crate::side_by_side::beside(
+                        || self.step_fused(batches, k, k0..end, next.take()),
+                        || job.map(|j| tracing::info_span!("dmd update ahead").in_scope(|| j.run())),
+                    );
+                    if let Some((model, made)) = ahead {
+                        self.assim.model_back(model);
+                        prepared = made;
+                    }
+                    done?
                 }
             };
-            let aerial = self.assim.hold_aerial(sight?)?;
-            let boats = self.screened_boats(batches, k, ahead, &aerial)?;
-            if self.keep_aerial_estimates {
-                self.aerial_estimates.push(aerial.estimate.values.clone());
-            }
-            let (boats, held) = crate::holdout::split(boats, self.holdout_share, self.cfg.boat_sigma);
-            let later = (k + 1 < end).then(|| {
-                let samples = self.screened_aerials(batches, k + 1, ahead + 1);
-                self.assim.aerial_sight_later(samples)
-            });
-            let (fused, sight) = self.fuse_beside(ahead, &aerial, &boats, later);
             next = sight;
-            let fused = fused?;
-            if let Some(i) = self.assim.take_innovation() {
-                self.innovations.insert(k, i);
-            }
-            if self.holdout_share > 0.0 {
-                let scored = held
-                    .into_iter()
-                    .map(|(cell, value, noise_var)| crate::holdout::HeldOut {
-                        cell,
-                        value,
-                        noise_var,
-                        predicted: fused.values[cell],
-                        variance: fused.variance[cell],
-                    });
-                self.held_out.insert(k, scored.collect());
-            }
-            learn.push(match self.cfg.learn_from {
-                LearnFrom::Posterior => fused.values.clone(),
-                LearnFrom::Aerial => aerial.estimate.values,
-            });
-            tracing::info_span!("history written")
-                .in_scope(|| self.history.push(fused.values, fused.variance))
-                .map_err(history_error)?;
+            learn.push(learned);
         }
         if let Some(skill) = self.assim.take_skill(e) {
             self.skills.insert(e, skill);
         }
-        tracing::info_span!("model update").in_scope(|| self.assim.assimilate(learn))?;
+        tracing::info_span!("model update").in_scope(|| self.assim.assimilate_prepared(learn, prepared))?;
         Ok(())
+    }
+
+    /// Step `k` of the epoch's `steps`: its readings screened and fused (with `sight`, its
+    /// aerial sight when made ahead), the fused step written; what the model learns of it, and
+    /// the next step's aerial sight, made beside the filter step.
+    fn step_fused(
+        &mut self,
+        batches: &BTreeMap<usize, MeasurementBatch>,
+        k: usize,
+        steps: std::ops::Range<usize>,
+        sight: Option<Sight>,
+    ) -> Result<(Vec<f64>, Option<Sight>), TeamError> {
+        let ahead = (k + 1 - steps.start) as u64;
+        let sight = match sight {
+            Some(sight) => sight,
+            None => {
+                let samples = self.screened_aerials(batches, k, ahead);
+                tracing::info_span!("aerial estimate").in_scope(self.assim.aerial_sight_later(samples))
+            }
+        };
+        let aerial = self.assim.hold_aerial(sight?)?;
+        let boats = self.screened_boats(batches, k, ahead, &aerial)?;
+        if self.keep_aerial_estimates {
+            self.aerial_estimates.push(aerial.estimate.values.clone());
+        }
+        let (boats, held) = crate::holdout::split(boats, self.holdout_share, self.cfg.boat_sigma);
+        let later = (k + 1 < steps.end).then(|| {
+            let samples = self.screened_aerials(batches, k + 1, ahead + 1);
+            let later = self.assim.aerial_sight_later(samples);
+            move || tracing::info_span!("aerial estimate").in_scope(later)
+        });
+        let (fused, next) = self.fuse_beside(ahead, &aerial, &boats, later);
+        let fused = fused?;
+        if let Some(i) = self.assim.take_innovation() {
+            self.innovations.insert(k, i);
+        }
+        if self.holdout_share > 0.0 {
+            let scored = held
+                .into_iter()
+                .map(|(cell, value, noise_var)| crate::holdout::HeldOut {
+                    cell,
+                    value,
+                    noise_var,
+                    predicted: fused.values[cell],
+                    variance: fused.variance[cell],
+                });
+            self.held_out.insert(k, scored.collect());
+        }
+        let learned = match self.cfg.learn_from {
+            LearnFrom::Posterior => fused.values.clone(),
+            LearnFrom::Aerial => aerial.estimate.values,
+        };
+        tracing::info_span!("history written")
+            .in_scope(|| self.history.push(fused.values, fused.variance))
+            .map_err(history_error)?;
+        Ok((learned, next))
     }
 
     /// The allocation vehicles sense epoch `e` under (`None` before it is computed). Epoch 0

@@ -20,9 +20,9 @@
 
 use super::batch::{exact_fit, ProjectedFit};
 use super::debias::Debias;
-use super::linalg::{div_cols, orthogonality_error, scale_cols_by, thin_svd};
+use super::linalg::{div_cols, orthogonality_error, orthonormal_factor, scale_cols_by, thin_svd};
 use super::snapshots::check_pairs;
-use super::{numerical_rank, Dmd, DmdError, Factored, Method, Modes, RankPolicy, SnapshotPairs};
+use super::{numerical_rank, Dmd, DmdError, Factored, Method, Modes, Prepared, RankPolicy, SnapshotPairs};
 use crate::par::{product, product_add};
 use faer::{Mat, MatRef};
 
@@ -103,6 +103,72 @@ impl GeneralDmd {
         div_cols(self.yw.clone(), &self.s)
     }
 
+    /// The update's part that needs only `x_new` (checked): `U`'s and `S`'s new values and
+    /// the right singular vectors `W'` that carry `YW` over, the model left as it is. `Y` is
+    /// not in `Z = [[S, L], [0, P]]`, so a server can make all this beside the epoch's last
+    /// filter step, whose result is only `y_new`'s last column ([`Dmd::prepare`]).
+    fn ahead(&self, x_new: MatRef<'_, f64>) -> Result<Ahead, DmdError> {
+        let count = self.count + x_new.ncols();
+        let (n, r, tau) = (self.u.nrows(), self.u.ncols(), x_new.ncols());
+        let ut = self.u.transpose();
+        let mut l = ut * x_new;
+        let mut h = x_new.to_owned();
+        product_add(h.as_mut(), self.u.as_ref(), l.as_ref(), -1.0);
+        let l2 = ut * &h;
+        product_add(h.as_mut(), self.u.as_ref(), l2.as_ref(), -1.0);
+        l += &l2;
+
+        // Directions of H that are really new (none when U already spans R^N).
+        let new = match r < n {
+            true => new_directions(h.as_ref(), self.s.first().copied().unwrap_or(0.0), n - r)?,
+            false => NewDirections::none(n, tau),
+        };
+        let (k, p) = (new.k(), &new.p);
+
+        let mut z = Mat::<f64>::zeros(r + k, r + tau);
+        for i in 0..r {
+            z[(i, i)] = self.s[i];
+        }
+        z.submatrix_mut(0, r, r, tau).copy_from(&l);
+        z.submatrix_mut(r, r, k, tau).copy_from(p);
+        let zs = thin_svd(z.as_ref())?;
+        let keep = match self.rank {
+            RankPolicy::Full => numerical_rank(&zs.s, n, count),
+            policy => policy.select(&zs.s, n, count),
+        }
+        .max(1);
+        let zs = zs.truncate(keep);
+
+        // Each sum made in place (the bits of the two products added).
+        let mut u = product(self.u.as_ref(), zs.u.subrows(0, r));
+        if k > 0 {
+            // J W = Q (U_k W): the small product first.
+            let w = &new.u_k * zs.u.subrows(r, k);
+            product_add(u.as_mut(), new.q.as_ref(), w.as_ref(), 1.0);
+        }
+        Ok(Ahead { u, s: zs.s, w: zs.v })
+    }
+
+    /// The update made whole with `y_new` (checked): the pairs kept, `YW <- YW W'_top +
+    /// Y_new W'_bottom`, and what [`Self::ahead`] made put in place.
+    fn finish(&mut self, ahead: Ahead, x_new: MatRef<'_, f64>, y_new: MatRef<'_, f64>) -> Result<(), DmdError> {
+        if let Some(p) = &mut self.pairs {
+            p.push(x_new, y_new)?;
+        }
+        let (r, tau) = (self.u.ncols(), x_new.ncols());
+        self.count += tau;
+        let mut yw = product(self.yw.as_ref(), ahead.w.subrows(0, r));
+        product_add(yw.as_mut(), y_new, ahead.w.subrows(r, tau), 1.0);
+        self.yw = yw;
+        self.u = ahead.u;
+        self.s = ahead.s;
+        self.updates += 1;
+        if self.updates.is_multiple_of(REORTH_EVERY) && self.orthogonality_error() > REORTH_TOL {
+            self.reorthonormalise()?;
+        }
+        Ok(())
+    }
+
     fn reorthonormalise(&mut self) -> Result<(), DmdError> {
         let qr = self.u.qr();
         let q = qr.compute_thin_Q();
@@ -116,23 +182,62 @@ impl GeneralDmd {
     }
 }
 
-/// `H ~ J P` with `J` orthonormal (N x k) and `k` the numerical rank of `H` (at most `max_k`):
-/// a Householder QR of the tall, thin `H` and an SVD of its small `R`, `H = Q R = (Q U_R) S V_R^T`,
-/// so `J = Q U_R` over the singular values above rounding and `P = S V_R^T` there. Each kept
-/// column of `J` is `H v / s`, in the range of `H` (orthogonal to `U`); an unpivoted QR's `Q`
-/// alone would not do, its extra columns for a rank-deficient `H` being arbitrary. (A
-/// column-pivoted QR reveals the rank too, but faer's took 5-7 ms of a 73,728 x 5 `H`, a tenth
-/// of the epoch at 192 x 384; the SVD of a 5 x 5 `R` is nothing.)
-fn new_directions(h: MatRef<'_, f64>, s0: f64, max_k: usize) -> Result<(Mat<f64>, Mat<f64>), DmdError> {
+/// `H ~ J P` with `J = Q U_k` orthonormal (N x k) and `k` the numerical rank of `H` (at most
+/// `max_k`): `H = Q R` ([`orthonormal_factor`]: CholeskyQR twice, Householder where `H` is too
+/// ill-conditioned for it) and an SVD of the small `R`, `H = (Q U_R) S V_R^T`, so `U_k` is
+/// `U_R` over the singular values above rounding and `P = S V_R^T` there. Each kept column of
+/// `J` is `H v / s`, in the range of `H` (orthogonal to `U`); an unpivoted QR's `Q` alone would
+/// not do, its extra columns for a rank-deficient `H` being arbitrary. `J` itself is never made:
+/// the caller needs only `J W = Q (U_k W)` for a small `W`.
+///
+/// Why not a Householder QR of the tall, thin `H` always: with its `Q` formed and `Q U_R`
+/// multiplied out it read and wrote `H` a dozen times, 4.4 of the update's 15 ms at
+/// 73,728 x 5; CholeskyQR twice is two Gram matrices and two triangular solves. (A
+/// column-pivoted QR reveals the rank too, but faer's took 5-7 ms of the same `H`.)
+fn new_directions(h: MatRef<'_, f64>, s0: f64, max_k: usize) -> Result<NewDirections, DmdError> {
     let (n, tau) = (h.nrows(), h.ncols());
-    let qr = h.qr();
-    let svd = thin_svd(qr.thin_R())?;
+    let (q, r) = orthonormal_factor(h);
+    let svd = thin_svd(r.as_ref())?;
     let scale = s0.max(svd.s.first().copied().unwrap_or(0.0));
     let tol = (n.max(tau) as f64) * f64::EPSILON * scale;
     let k = svd.s.iter().take_while(|&&s| s > tol).count().min(max_k);
-    let j = product(qr.compute_thin_Q().as_ref(), svd.u.subcols(0, k));
     let p = Mat::from_fn(k, tau, |i, c| svd.s[i] * svd.v[(c, i)]);
-    Ok((j, p))
+    Ok(NewDirections {
+        q,
+        u_k: svd.u.subcols(0, k).to_owned(),
+        p,
+    })
+}
+
+/// [`new_directions`]' answer: `J = Q U_k` (N x k, not made) and `P` (k x tau).
+struct NewDirections {
+    q: Mat<f64>,
+    u_k: Mat<f64>,
+    p: Mat<f64>,
+}
+
+impl NewDirections {
+    /// None (when `U` already spans R^N).
+    fn none(n: usize, tau: usize) -> Self {
+        Self {
+            q: Mat::zeros(n, 0),
+            u_k: Mat::zeros(0, 0),
+            p: Mat::zeros(0, tau),
+        }
+    }
+
+    fn k(&self) -> usize {
+        self.p.nrows()
+    }
+}
+
+/// [`GeneralDmd::ahead`]'s answer: the new `U` and `S`, and the right singular vectors `W'`
+/// of `Z` (r + tau rows) that carry `YW` over.
+#[derive(Debug, Clone)]
+pub(super) struct Ahead {
+    u: Mat<f64>,
+    s: Vec<f64>,
+    w: Mat<f64>,
 }
 
 impl Dmd for GeneralDmd {
@@ -142,57 +247,33 @@ impl Dmd for GeneralDmd {
 
     fn update(&mut self, x_new: MatRef<'_, f64>, y_new: MatRef<'_, f64>) -> Result<(), DmdError> {
         check_pairs(x_new, y_new, Some(self.dim))?;
-        if let Some(p) = &mut self.pairs {
-            p.push(x_new, y_new)?;
-        }
-        self.count += x_new.ncols();
-        let (n, r, tau) = (self.u.nrows(), self.u.ncols(), x_new.ncols());
-        let ut = self.u.transpose();
-        let mut l = ut * x_new;
-        let mut h = x_new.to_owned();
-        product_add(h.as_mut(), self.u.as_ref(), l.as_ref(), -1.0);
-        let l2 = ut * &h;
-        product_add(h.as_mut(), self.u.as_ref(), l2.as_ref(), -1.0);
-        l += &l2;
+        let ahead = self.ahead(x_new)?;
+        self.finish(ahead, x_new, y_new)
+    }
 
-        // Directions of H that are really new (none when U already spans R^N), by a
-        // rank-revealing (column-pivoted) QR: H P = J R, keeping the rows of R above rounding.
-        let (j, p) = if r < n {
-            new_directions(h.as_ref(), self.s.first().copied().unwrap_or(0.0), n - r)?
-        } else {
-            (Mat::zeros(n, 0), Mat::zeros(0, tau))
-        };
-        let k = j.ncols();
+    fn prepare(&self, x_new: MatRef<'_, f64>) -> Option<Prepared> {
+        check_pairs(x_new, x_new, Some(self.dim)).ok()?;
+        let ahead = self.ahead(x_new).ok()?;
+        Some(Prepared {
+            x: x_new.to_owned(),
+            updates: self.updates,
+            ahead,
+        })
+    }
 
-        let mut z = Mat::<f64>::zeros(r + k, r + tau);
-        for i in 0..r {
-            z[(i, i)] = self.s[i];
+    fn update_prepared(
+        &mut self,
+        prepared: Option<Prepared>,
+        x_new: MatRef<'_, f64>,
+        y_new: MatRef<'_, f64>,
+    ) -> Result<(), DmdError> {
+        match prepared {
+            Some(p) if p.updates == self.updates && p.x.as_ref() == x_new => {
+                check_pairs(x_new, y_new, Some(self.dim))?;
+                self.finish(p.ahead, x_new, y_new)
+            }
+            _ => self.update(x_new, y_new),
         }
-        z.submatrix_mut(0, r, r, tau).copy_from(&l);
-        z.submatrix_mut(r, r, k, tau).copy_from(&p);
-        let zs = thin_svd(z.as_ref())?;
-        let keep = match self.rank {
-            RankPolicy::Full => numerical_rank(&zs.s, n, self.count),
-            policy => policy.select(&zs.s, n, self.count),
-        }
-        .max(1);
-        let zs = zs.truncate(keep);
-
-        // Each sum made in place (the bits of the two products added).
-        let mut u = product(self.u.as_ref(), zs.u.subrows(0, r));
-        if k > 0 {
-            product_add(u.as_mut(), j.as_ref(), zs.u.subrows(r, k), 1.0);
-        }
-        let mut yw = product(self.yw.as_ref(), zs.v.subrows(0, r));
-        product_add(yw.as_mut(), y_new, zs.v.subrows(r, tau), 1.0);
-        self.yw = yw;
-        self.u = u;
-        self.s = zs.s;
-        self.updates += 1;
-        if self.updates.is_multiple_of(REORTH_EVERY) && self.orthogonality_error() > REORTH_TOL {
-            self.reorthonormalise()?;
-        }
-        Ok(())
     }
 
     fn decompose(&self) -> Result<Modes, DmdError> {
@@ -214,5 +295,56 @@ impl Dmd for GeneralDmd {
 
     fn dim(&self) -> usize {
         self.dim
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dmd::Debias;
+
+    fn snapshots(n: usize, m: usize, phase: f64) -> Mat<f64> {
+        Mat::from_fn(n, m, |i, j| {
+            (i as f64 * 0.37 + j as f64 * phase).sin() + 0.1 * ((i * (j + 1)) as f64 * 0.01).cos()
+        })
+    }
+
+    fn same(a: &GeneralDmd, b: &GeneralDmd) -> bool {
+        a.u == b.u && a.s == b.s && a.yw == b.yw && (a.count, a.updates) == (b.count, b.updates)
+    }
+
+    /// An update made with what `prepare` made ahead is the update made whole, to the bit; what
+    /// was prepared for other snapshots, or before the model last changed, is not taken; and
+    /// snapshots the update would refuse get nothing prepared.
+    #[test]
+    fn a_prepared_update_is_the_whole_update_to_the_bit() {
+        let z = snapshots(300, 12, 0.3);
+        let model = GeneralDmd::init(z.subcols(0, 8), z.subcols(1, 8), RankPolicy::Fixed(4), Debias::None).unwrap();
+        let (x, y) = (z.subcols(8, 3), z.subcols(9, 3));
+        let mut whole = model.clone();
+        whole.update(x, y).unwrap();
+
+        let mut ahead = model.clone();
+        let prepared = ahead.prepare(x);
+        assert!(prepared.is_some());
+        ahead.update_prepared(prepared, x, y).unwrap();
+        assert!(same(&ahead, &whole));
+
+        let mut other = model.clone();
+        let prepared = other.prepare(snapshots(300, 3, 0.7).as_ref());
+        other.update_prepared(prepared, x, y).unwrap();
+        assert!(same(&other, &whole), "prepared for other snapshots, and taken");
+
+        let mut stale = model.clone();
+        let prepared = stale.prepare(x);
+        stale.update(x, y).unwrap();
+        stale.update_prepared(prepared, x, y).unwrap();
+        let mut twice = whole.clone();
+        twice.update(x, y).unwrap();
+        assert!(same(&stale, &twice), "prepared before the model changed, and taken");
+
+        let mut bad = x.to_owned();
+        bad[(3, 1)] = f64::NAN;
+        assert!(model.prepare(bad.as_ref()).is_none());
     }
 }

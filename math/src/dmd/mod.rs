@@ -27,7 +27,7 @@ pub use model::{DmdModel, Factored, ModeFactors, ModelSummary, Modes, Orthogonal
 pub use rank::{numerical_rank, RankPolicy};
 pub use snapshots::SnapshotPairs;
 
-use faer::MatRef;
+use faer::{Mat, MatRef};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
@@ -123,6 +123,25 @@ pub trait Dmd: dyn_clone::DynClone + Send + Sync {
     /// Fold in new pairs: column `j` of `y_new` is the snapshot one step after column `j` of
     /// `x_new`. Any number of columns, including one.
     fn update(&mut self, x_new: MatRef<'_, f64>, y_new: MatRef<'_, f64>) -> Result<(), DmdError>;
+    /// The part of [`Self::update`] that needs only `x_new` (the snapshots the pairs start
+    /// from), made ahead of `y_new` and the model left as it is: a server makes it beside the
+    /// filter step that makes `y_new`'s last column. `None` where the method has no such part,
+    /// or where `x_new` would be refused (the update then makes, or refuses, it all itself).
+    fn prepare(&self, _x_new: MatRef<'_, f64>) -> Option<Prepared> {
+        None
+    }
+    /// [`Self::update`] with what [`Self::prepare`] made: the same model to the bit. What was
+    /// made of another `x_new`, or before the model last changed, is not taken (the update is
+    /// then made whole).
+    fn update_prepared(
+        &mut self,
+        prepared: Option<Prepared>,
+        x_new: MatRef<'_, f64>,
+        y_new: MatRef<'_, f64>,
+    ) -> Result<(), DmdError> {
+        let _ = prepared;
+        self.update(x_new, y_new)
+    }
     /// Eigenvalues (discrete time) and modes of the current operator.
     fn decompose(&self) -> Result<Modes, DmdError>;
     /// [`Self::decompose`]'s eigenvalues and its modes' factors, without the modes, when the
@@ -137,6 +156,16 @@ pub trait Dmd: dyn_clone::DynClone + Send + Sync {
     fn pairs(&self) -> usize;
     /// State dimension `N`.
     fn dim(&self) -> usize;
+}
+
+/// What [`Dmd::prepare`] made of a model's next `x_new` (the general method's new `U`, `S`
+/// and the vectors that carry `YW` over), with the `x_new` and the model's update count it
+/// was made at, so that no other update takes it.
+#[derive(Debug)]
+pub struct Prepared {
+    x: Mat<f64>,
+    updates: usize,
+    ahead: general::Ahead,
 }
 
 // A boxed model is `Clone` (a server keeps copies as checkpoints, to re-fit from the middle).

@@ -16,7 +16,7 @@ mod placement;
 pub use fuse::AerialSight;
 pub use placement::{Allocation, BoatDisk};
 
-use crate::dmd::{Dmd, DmdConfig, DmdModel, Factored, Modes};
+use crate::dmd::{Dmd, DmdConfig, DmdModel, Factored, Modes, Prepared};
 use crate::fusion::{AerialNoise, Estimate};
 use crate::grid::Grid;
 use crate::kalman::{self, ModalFilter};
@@ -391,6 +391,33 @@ impl Assimilator {
     /// Fold an epoch's fused snapshots into the model (pairs chained from the newest one) and
     /// refit.
     pub fn assimilate(&mut self, epoch: Vec<Vec<f64>>) -> Result<(), TeamError> {
+        self.assimilate_prepared(epoch, None)
+    }
+
+    /// The part of the model update that needs only the pairs' first snapshots (the newest
+    /// one, then `fused`: the epoch's fused steps but its last), as a job to run beside the
+    /// epoch's last filter step ([`Dmd::prepare`]). The job takes the model with it: give
+    /// [`Self::model_back`] the model it returns before anything else is asked of this
+    /// assimilator, and [`Self::assimilate_prepared`] what it made.
+    pub fn update_ahead<'a>(&mut self, fused: &'a [Vec<f64>]) -> Option<UpdateAhead<'a>> {
+        let newest = self.state.newest.clone()?;
+        let model = self.state.model.take()?;
+        Some(UpdateAhead {
+            model,
+            setup: self.setup.clone(),
+            newest,
+            fused,
+        })
+    }
+
+    /// The model an [`UpdateAhead`] took, back.
+    pub fn model_back(&mut self, model: Box<dyn Dmd>) {
+        self.state.model = Some(model);
+    }
+
+    /// [`Self::assimilate`] with what an [`UpdateAhead`] made of this epoch's first snapshots
+    /// (the same model to the bit; what does not fit them is not taken).
+    pub fn assimilate_prepared(&mut self, epoch: Vec<Vec<f64>>, prepared: Option<Prepared>) -> Result<(), TeamError> {
         if epoch.is_empty() {
             return Ok(());
         }
@@ -400,7 +427,8 @@ impl Assimilator {
         let z = to_mat(&chain);
         let m = chain.len() - 1;
         let model = s.model.as_mut().ok_or(TeamError::NotReady(Missing::Model))?;
-        tracing::info_span!("dmd update").in_scope(|| model.update(z.subcols(0, m), z.subcols(1, m)))?;
+        tracing::info_span!("dmd update")
+            .in_scope(|| model.update_prepared(prepared, z.subcols(0, m), z.subcols(1, m)))?;
         s.newest = chain.pop();
         self.refit()?;
         self.move_filter()
@@ -502,6 +530,26 @@ fn cells_of(samples: &[crate::health::Tagged]) -> Vec<usize> {
         .iter()
         .flat_map(|(_, s)| s.cells.iter().map(|&c| c as usize))
         .collect()
+}
+
+/// The model and the snapshots its next update starts from, taken to make that update's
+/// first part on another thread ([`Assimilator::update_ahead`]).
+pub struct UpdateAhead<'a> {
+    model: Box<dyn Dmd>,
+    setup: Arc<Setup>,
+    newest: Vec<f64>,
+    fused: &'a [Vec<f64>],
+}
+
+impl UpdateAhead<'_> {
+    /// The model, to be given back, and what it made ahead (`None` where its method makes
+    /// nothing ahead, or refuses the snapshots: the update then does it all, or says why).
+    pub fn run(self) -> (Box<dyn Dmd>, Option<Prepared>) {
+        let mut columns = vec![self.newest];
+        columns.extend(self.fused.iter().map(|e| self.setup.dry(e.clone())));
+        let prepared = self.model.prepare(to_mat(&columns).as_ref());
+        (self.model, prepared)
+    }
 }
 
 /// Columns to a matrix.
