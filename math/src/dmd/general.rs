@@ -21,7 +21,7 @@
 use super::batch::{exact_fit, ProjectedFit};
 use super::debias::Debias;
 use super::linalg::{div_cols, orthogonality_error, orthonormal_factor, scale_cols_by, thin_svd};
-use super::snapshots::check_pairs;
+use super::snapshots::{check_finite, check_pairs, check_shapes};
 use super::{numerical_rank, Dmd, DmdError, Factored, Method, Modes, Prepared, RankPolicy, SnapshotPairs};
 use crate::par::{product, product_add};
 use faer::{Mat, MatRef};
@@ -252,7 +252,8 @@ impl Dmd for GeneralDmd {
     }
 
     fn prepare(&self, x_new: MatRef<'_, f64>) -> Option<Prepared> {
-        check_pairs(x_new, x_new, Some(self.dim)).ok()?;
+        check_shapes(x_new, x_new, Some(self.dim)).ok()?;
+        check_finite(x_new).ok()?;
         let ahead = self.ahead(x_new).ok()?;
         Some(Prepared {
             x: x_new.to_owned(),
@@ -268,8 +269,10 @@ impl Dmd for GeneralDmd {
         y_new: MatRef<'_, f64>,
     ) -> Result<(), DmdError> {
         match prepared {
+            // `x_new` is the prepared one, checked when it was prepared: `y_new` is left.
             Some(p) if p.updates == self.updates && p.x.as_ref() == x_new => {
-                check_pairs(x_new, y_new, Some(self.dim))?;
+                check_shapes(x_new, y_new, Some(self.dim))?;
+                check_finite(y_new)?;
                 self.finish(p.ahead, x_new, y_new)
             }
             _ => self.update(x_new, y_new),

@@ -58,6 +58,13 @@ fn append_cols(dst: &mut Mat<f64>, src: MatRef<'_, f64>) {
 
 /// Shapes agree, there is at least one pair, and every value is finite.
 pub fn check_pairs(x: MatRef<'_, f64>, y: MatRef<'_, f64>, dim: Option<usize>) -> Result<(), DmdError> {
+    check_shapes(x, y, dim)?;
+    check_finite(x)?;
+    check_finite(y)
+}
+
+/// [`check_pairs`]' shapes: `X` and `Y` alike, not empty, of `dim` rows when given.
+pub fn check_shapes(x: MatRef<'_, f64>, y: MatRef<'_, f64>, dim: Option<usize>) -> Result<(), DmdError> {
     if x.nrows() != y.nrows() || x.ncols() != y.ncols() {
         return Err(DmdError::Shape(format!(
             "X is {} x {} but Y is {} x {}; they must match",
@@ -70,19 +77,20 @@ pub fn check_pairs(x: MatRef<'_, f64>, y: MatRef<'_, f64>, dim: Option<usize>) -
     if x.ncols() == 0 || x.nrows() == 0 {
         return Err(DmdError::Shape("no snapshot pairs given".into()));
     }
-    if let Some(n) = dim {
-        if x.nrows() != n {
-            return Err(DmdError::Shape(format!(
-                "new snapshots have {} rows, the model has {n}",
-                x.nrows()
-            )));
-        }
+    match dim {
+        Some(n) if x.nrows() != n => Err(DmdError::Shape(format!(
+            "new snapshots have {} rows, the model has {n}",
+            x.nrows()
+        ))),
+        _ => Ok(()),
     }
-    for m in [x, y] {
-        for j in 0..m.ncols() {
-            if let Some(i) = m.col(j).iter().position(|v| !v.is_finite()) {
-                return Err(DmdError::NonFinite { row: i, col: j });
-            }
+}
+
+/// [`check_pairs`]' values: the first one not finite, by column.
+pub fn check_finite(m: MatRef<'_, f64>) -> Result<(), DmdError> {
+    for j in 0..m.ncols() {
+        if let Some(i) = m.col(j).iter().position(|v| !v.is_finite()) {
+            return Err(DmdError::NonFinite { row: i, col: j });
         }
     }
     Ok(())
