@@ -103,24 +103,36 @@ impl Coords {
         }
     }
 
-    /// Current residual norms (recomputing the ones cancellation has made unreliable).
+    /// Current residual norms (recomputing the ones cancellation has made unreliable). Near
+    /// the rank's end that is most cells: each recomputed into one buffer per block of cells,
+    /// the blocks on the cores (each cell's arithmetic as before: the same bits).
     fn norms(&mut self) -> Vec<f64> {
-        for p in 0..self.n {
-            if self.n2[p] < 1e-8 * self.n2_orig[p] && !self.removed.is_empty() {
-                self.n2[p] = self.residual(p).iter().map(|v| v * v).sum();
-                // Exact from here on: compare future cancellation with this value.
-                self.n2_orig[p] = self.n2[p];
-            }
+        if !self.removed.is_empty() {
+            use rayon::prelude::*;
+            let (n, r, rows, removed) = (self.n, self.r, &self.rows, &self.removed);
+            let block = crate::par::block_rows(n, r * removed.len());
+            let recompute = |b: usize, (n2, orig): (&mut [f64], &mut [f64])| {
+                let mut c = vec![0.0; r];
+                for (i, (n2, orig)) in n2.iter_mut().zip(orig).enumerate() {
+                    if *n2 < 1e-8 * *orig {
+                        residual_into((rows, n, removed), b * block + i, &mut c);
+                        *n2 = c.iter().map(|v| v * v).sum();
+                        // Exact from here on: compare future cancellation with this value.
+                        *orig = *n2;
+                    }
+                }
+            };
+            let (n2, orig) = (&mut self.n2, &mut self.n2_orig);
+            let pairs = n2.par_chunks_mut(block).zip(orig.par_chunks_mut(block));
+            pairs.enumerate().for_each(|(b, pair)| recompute(b, pair));
         }
         self.n2.iter().map(|v| v.max(0.0).sqrt()).collect()
     }
 
     /// The residual of column `p` after the removed directions (twice, for orthogonality).
     fn residual(&self, p: usize) -> Vec<f64> {
-        let mut c: Vec<f64> = (0..self.r).map(|i| self.rows[i * self.n + p]).collect();
-        for _ in 0..2 {
-            project_out(&mut c, &self.removed);
-        }
+        let mut c = vec![0.0; self.r];
+        residual_into((&self.rows, self.n, &self.removed), p, &mut c);
         c
     }
 
@@ -172,6 +184,15 @@ impl Coords {
         let s = eig.S().column_vector();
         // Eigenvalues come in ascending order.
         Ok((s[r - 1] > 0.0).then(|| eig.U().col(r - 1).iter().copied().collect()))
+    }
+}
+
+/// [`Coords::residual`] into `c` (length r), from the coordinates' rows (of `n` values each)
+/// and the directions removed.
+fn residual_into((rows, n, removed): (&[f64], usize, &[Vec<f64>]), p: usize, c: &mut [f64]) {
+    c.iter_mut().enumerate().for_each(|(i, x)| *x = rows[i * n + p]);
+    for _ in 0..2 {
+        project_out(c, removed);
     }
 }
 
@@ -502,6 +523,63 @@ fn all_row_sums(grid: &Grid, sums: &DiskSums) -> Vec<f64> {
     all
 }
 
+/// The centres by their disk sums, for the picks once the directions are used up: those
+/// picks score by the undeflated weights, which no pick changes, so the centres are ranked
+/// once (a heap, made in O(N)) and each pick takes the first whose disk touches nothing taken.
+/// A centre found touching stays so (cells are only ever taken), so it is dropped for good.
+/// The same pick as [`best_disk`]: the largest score, the first centre of a tie, among the
+/// valid; the scores are [`DiskSums::row_sums`]'s, the same bits (with 32 boats at rank 10,
+/// 22 of the 32 picks summed rows of the same scores again, deeper each time).
+struct Ranked(std::collections::BinaryHeap<Ranking>);
+
+/// A centre's place in [`Ranked`]: a larger score first, then the lower cell.
+#[derive(Debug, PartialEq)]
+struct Ranking {
+    score: f64,
+    cell: usize,
+}
+
+impl Eq for Ranking {}
+
+impl Ord for Ranking {
+    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
+        self.score.total_cmp(&other.score).then(other.cell.cmp(&self.cell))
+    }
+}
+
+impl PartialOrd for Ranking {
+    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
+
+impl Ranked {
+    /// `None` where [`best_disk`] scans every centre instead (scores not finite or from values
+    /// below 0: there `total_cmp`'s order is not the scan's).
+    fn new(grid: &Grid, sums: &DiskSums) -> Option<Self> {
+        let scores = all_row_sums(grid, sums);
+        if !sums.nonnegative || scores.iter().any(|s| !s.is_finite()) {
+            return None;
+        }
+        // `+ 0.0` makes a -0.0 (which `total_cmp` puts below 0.0, the scan not) a 0.0.
+        let ranks = scores
+            .into_iter()
+            .enumerate()
+            .map(|(cell, s)| Ranking { score: s + 0.0, cell });
+        Some(Self(ranks.collect()))
+    }
+
+    fn best_valid(&mut self, grid: &Grid, taken: &DiskSums) -> Option<(Cell, f64)> {
+        while let Some(top) = self.0.peek() {
+            if taken.disk_sum(grid.cell(top.cell)) < 0.5 {
+                return Some((grid.cell(top.cell), top.score));
+            }
+            self.0.pop();
+        }
+        None
+    }
+}
+
 /// Block pivoted QR with sensing radius (Alg. 2): up to `m` non-overlapping disks of radius
 /// `radius` cells. Fewer are returned only when no non-overlapping disk is left.
 pub fn block_qr(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Result<Vec<Disk>, SensingError> {
@@ -523,14 +601,20 @@ pub fn block_qr_within(
     let original = DiskSums::new(*grid, &norms, radius);
     let mut covered = blocked(grid, excluded)?;
     let mut first_total: Option<f64> = None;
+    let mut ranked: Option<Option<Ranked>> = None;
     let mut out = vec![];
     for _ in 0..m {
         let total: f64 = norms.iter().sum();
         let first = *first_total.get_or_insert(total);
-        let sums = DiskSums::new(*grid, &norms, radius);
         let taken = DiskSums::new(*grid, &covered, radius);
         let exhausted = !(total > 1e-12 * first);
-        let pick = best_disk(grid, &taken, if exhausted { &original } else { &sums });
+        let pick = match exhausted {
+            false => best_disk(grid, &taken, &DiskSums::new(*grid, &norms, radius)),
+            true => match ranked.get_or_insert_with(|| Ranked::new(grid, &original)) {
+                Some(r) => r.best_valid(grid, &taken),
+                None => best_disk(grid, &taken, &original),
+            },
+        };
         let Some((centre, _)) = pick else { break };
         let cells = grid.disk(centre, radius);
         let weight: f64 = cells.iter().map(|&p| norms[p]).sum();
@@ -706,6 +790,37 @@ mod row_sum_tests {
                 }
             }
         }
+    }
+
+    /// The ranked centres pick, disk after disk, what the scan of every centre picks, on the
+    /// fields of the test below (ties of every kind, a flat field, an empty one), with cells
+    /// excluded from the start, until no valid centre is left; on a field with values below 0
+    /// there is no ranking (the scan stays).
+    #[test]
+    fn the_ranked_centres_pick_what_the_scan_picks() {
+        let grid = Grid::new(17, 29, 1.0).unwrap();
+        let fields: Vec<Vec<f64>> = vec![
+            (0..grid.len()).map(|i| ((i * 7919) % 97) as f64 / 97.0).collect(),
+            vec![1.0; grid.len()],
+            (0..grid.len()).map(|i| if i % 29 < 11 { 2.0 } else { 1.0 }).collect(),
+            vec![0.0; grid.len()],
+        ];
+        for v in &fields {
+            for radius in [0.0, 1.5, 4.0, 12.0] {
+                let sums = DiskSums::new(grid, v, radius);
+                let mut ranked = Ranked::new(&grid, &sums).expect("scores >= 0");
+                let mut covered: Vec<f64> = (0..grid.len()).map(|i| f64::from(i % 13 == 5)).collect();
+                loop {
+                    let taken = DiskSums::new(grid, &covered, radius);
+                    let want = best_disk_of_all(&grid, &taken, &sums);
+                    assert_eq!(ranked.best_valid(&grid, &taken), want, "radius {radius}");
+                    let Some((centre, _)) = want else { break };
+                    grid.disk(centre, radius).into_iter().for_each(|p| covered[p] = 1.0);
+                }
+            }
+        }
+        let below: Vec<f64> = (0..grid.len()).map(|i| ((i * 31) % 17) as f64 - 8.0).collect();
+        assert!(Ranked::new(&grid, &DiskSums::new(grid, &below, 2.0)).is_none());
     }
 
     /// The rows summed in the order of their bound pick what the scan of every centre picks:
