@@ -116,13 +116,7 @@ pub fn lloyd(
     let (mut cost, mut iterations) = (Vec::with_capacity(max_iter + 1), 0);
     cost.push(partition(grid, density, &p, &mut owner));
     for _ in 0..max_iter {
-        let mut sums = vec![(0.0, 0.0, 0.0); p.len()];
-        for (q, &(x, y)) in centres.iter().enumerate() {
-            let s = &mut sums[owner[q]];
-            s.0 += density[q] * x;
-            s.1 += density[q] * y;
-            s.2 += density[q];
-        }
+        let sums = centroid_sums(&centres, density, &owner, p.len());
         let mut moved: f64 = 0.0;
         for (pj, (sx, sy, m)) in p.iter_mut().zip(sums) {
             if m > 0.0 {
@@ -143,6 +137,26 @@ pub fn lloyd(
         cost,
         iterations,
     })
+}
+
+/// Per generator, the sums of density times x, times y, and of density over its cells, each
+/// added up in the cells' order (the same bits as a cell at a time). A run of cells of one
+/// owner (a row's stretch of its region) is summed in registers: with the sums in memory each
+/// cell waited for the last one's store.
+fn centroid_sums(centres: &[Point], density: &[f64], owner: &[usize], a: usize) -> Vec<(f64, f64, f64)> {
+    let mut sums = vec![(0.0, 0.0, 0.0); a];
+    let mut q = 0;
+    while q < owner.len() {
+        let o = owner[q];
+        let mut s = sums[o];
+        while q < owner.len() && owner[q] == o {
+            let ((x, y), d) = (centres[q], density[q]);
+            (s.0, s.1, s.2) = (s.0 + d * x, s.1 + d * y, s.2 + d);
+            q += 1;
+        }
+        sums[o] = s;
+    }
+    sums
 }
 
 /// Assign each cell to its nearest generator (ties to the lower index) and return the cost.
@@ -316,6 +330,33 @@ mod tests {
         assert_eq!(a, b);
         // Some cells kept, some taken, none by 4 (each a tie with 3: the lower stays).
         assert!(a.0.contains(&1.0) && a.0.contains(&3.0) && !a.0.contains(&4.0));
+    }
+
+    /// The centroid sums by runs of one owner are a cell at a time's, to the bit, with owners
+    /// in runs, alternating every cell, and a generator owning nothing.
+    #[test]
+    fn the_centroid_sums_by_runs_are_a_cell_at_a_times() {
+        let g = Grid::new(9, 31, 1.5).unwrap();
+        let centres: Vec<Point> = (0..g.len()).map(|i| g.centre_m(g.cell(i))).collect();
+        let density: Vec<f64> = (0..g.len()).map(|i| ((i * 7919) % 101) as f64 / 101.0).collect();
+        for owner in [
+            (0..g.len()).map(|i| (i / 17) % 3).collect::<Vec<_>>(),
+            (0..g.len()).map(|i| i % 2).collect(),
+            (0..g.len()).map(|i| usize::from(g.cell(i).col > 20) * 3).collect(),
+        ] {
+            let mut want = vec![(0.0, 0.0, 0.0); 4];
+            for (q, &(x, y)) in centres.iter().enumerate() {
+                let s: &mut (f64, f64, f64) = &mut want[owner[q]];
+                (s.0, s.1, s.2) = (s.0 + density[q] * x, s.1 + density[q] * y, s.2 + density[q]);
+            }
+            let got = centroid_sums(&centres, &density, &owner, 4);
+            let bits = |v: &[(f64, f64, f64)]| -> Vec<[u64; 3]> {
+                v.iter()
+                    .map(|s| [s.0.to_bits(), s.1.to_bits(), s.2.to_bits()])
+                    .collect()
+            };
+            assert_eq!(bits(&got), bits(&want));
+        }
     }
 
     #[test]
