@@ -296,24 +296,34 @@ impl DiskSums {
             .collect();
         let pad = half.iter().copied().max().unwrap_or(0).max(0) as usize;
         let width = grid.cols + 1 + 2 * pad;
-        let mut prefix = vec![0.0; grid.rows * width];
-        for (r, row) in prefix.chunks_exact_mut(width).enumerate() {
-            let mut sum = 0.0;
-            for c in 0..grid.cols {
-                sum += v[r * grid.cols + c];
-                row[pad + c + 1] = sum;
-            }
-            row[pad + grid.cols + 1..].fill(sum);
-        }
-        Self {
+        let mut sums = Self {
             grid,
-            prefix,
+            prefix: vec![0.0; grid.rows * width],
             width,
             pad,
             half,
-            nonnegative: v.iter().all(|&x| x >= 0.0),
-            zero: v.iter().all(|&x| x == 0.0),
+            nonnegative: true,
+            zero: true,
+        };
+        sums.renew_rows(v, 0..grid.rows);
+        sums
+    }
+
+    /// The prefix sums of `rows` made again from `v` (the values of the other rows unchanged
+    /// since they were made): a disk taken changes only the rows it spans.
+    fn renew_rows(&mut self, v: &[f64], rows: std::ops::Range<usize>) {
+        let (cols, pad) = (self.grid.cols, self.pad);
+        for r in rows.start..rows.end.min(self.grid.rows) {
+            let row = &mut self.prefix[r * self.width..(r + 1) * self.width];
+            let mut sum = 0.0;
+            for c in 0..cols {
+                sum += v[r * cols + c];
+                row[pad + c + 1] = sum;
+            }
+            row[pad + cols + 1..].fill(sum);
         }
+        self.nonnegative = v.iter().all(|&x| x >= 0.0);
+        self.zero = v.iter().all(|&x| x == 0.0);
     }
 
     /// Sum over the disk centred on `cell` (same cells as [`Grid::disk`]).
@@ -634,13 +644,12 @@ pub fn block_qr_within(
     let mut norms = c.norms();
     let original = DiskSums::new(*grid, &norms, radius);
     let mut covered = blocked(grid, excluded)?;
-    let mut first_total: Option<f64> = None;
+    let mut taken = DiskSums::new(*grid, &covered, radius);
+    let mut total: f64 = norms.iter().sum();
+    let first = total;
     let mut ranked: Option<Option<Ranked>> = None;
     let mut out = vec![];
     for _ in 0..m {
-        let total: f64 = norms.iter().sum();
-        let first = *first_total.get_or_insert(total);
-        let taken = DiskSums::new(*grid, &covered, radius);
         let exhausted = !(total > 1e-12 * first);
         let pick = match exhausted {
             false => best_disk(grid, &taken, &DiskSums::new(*grid, &norms, radius)),
@@ -655,18 +664,22 @@ pub fn block_qr_within(
         for &p in &cells {
             covered[p] = 1.0;
         }
+        let reach = radius.max(0.0).floor() as usize;
+        taken.renew_rows(&covered, centre.row.saturating_sub(reach)..centre.row + reach + 1);
+        let share = if total > 0.0 { weight / total } else { 0.0 };
         if !exhausted {
             // Deflate by the block's leading left singular vector.
             if let Some(q) = c.leading_direction(&cells)? {
                 c.deflate(&q);
                 norms = c.norms();
+                total = norms.iter().sum();
             }
         }
         out.push(Disk {
             centre,
             cells,
             weight,
-            share: if total > 0.0 { weight / total } else { 0.0 },
+            share,
         });
     }
     Ok(out)
@@ -845,6 +858,26 @@ mod row_sum_tests {
             }
         }
         assert!(residual_norms((&c.rows, c.n, &c.removed), std::iter::empty()).is_empty());
+    }
+
+    /// Sums renewed in the rows a disk spans are the sums made afresh, to the bit, disk after
+    /// disk (at the borders too), and so are their flags.
+    #[test]
+    fn sums_renewed_where_a_disk_was_taken_are_made_afresh() {
+        let grid = Grid::new(19, 27, 1.0).unwrap();
+        for radius in [0.0, 2.5, 6.0] {
+            let mut covered = vec![0.0; grid.len()];
+            let mut taken = DiskSums::new(grid, &covered, radius);
+            for centre in [Cell::new(0, 0), Cell::new(9, 13), Cell::new(18, 26), Cell::new(3, 20)] {
+                grid.disk(centre, radius).into_iter().for_each(|p| covered[p] = 1.0);
+                let reach = radius.floor() as usize;
+                taken.renew_rows(&covered, centre.row.saturating_sub(reach)..centre.row + reach + 1);
+                let fresh = DiskSums::new(grid, &covered, radius);
+                let bits = |d: &DiskSums| d.prefix.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&taken), bits(&fresh), "radius {radius}, centre {centre:?}");
+                assert_eq!((taken.zero, taken.nonnegative), (fresh.zero, fresh.nonnegative));
+            }
+        }
     }
 
     /// The ranked centres pick, disk after disk, what the scan of every centre picks, on the

@@ -90,11 +90,15 @@ impl Assimilator {
         // other: made on the two cores at once (the aerials' Lloyd was a quarter of the
         // placement at 192 x 384).
         let (boats, aerials) = rayon::join(
-            || match &view {
-                Some(v) => place_boats_over_the_horizon(setup, state, v, &free),
-                None => place_boats_on_modes(setup, state, &free),
+            || {
+                let _span = tracing::info_span!("boats placed").entered();
+                match &view {
+                    Some(v) => place_boats_over_the_horizon(setup, state, v, &free),
+                    None => place_boats_on_modes(setup, state, &free),
+                }
             },
             || {
+                let _span = tracing::info_span!("aerials placed").entered();
                 let density = setup.aerial_density(&model, view.as_ref().map(|v| v.variance.as_slice()))?;
                 setup.place_aerials(&density, starts, &staying)
             },
