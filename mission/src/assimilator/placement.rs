@@ -89,7 +89,7 @@ impl Assimilator {
         // The boats' disks and the aerials' places depend on the same model, not on each
         // other: made on the two cores at once (the aerials' Lloyd was a quarter of the
         // placement at 192 x 384).
-        let (boats, aerials) = rayon::join(
+        let (boats, aerials) = crate::side_by_side::beside(
             || {
                 let _span = tracing::info_span!("boats placed").entered();
                 match &view {
