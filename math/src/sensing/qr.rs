@@ -285,6 +285,9 @@ struct DiskSums {
     nonnegative: bool,
     /// Whether every value is 0 (nothing taken yet: every disk sum is 0).
     zero: bool,
+    /// Per row, whether its values are all `>= 0` and all 0 (the two flags above of a row,
+    /// kept so that renewing a few rows need not look at the others).
+    row_flags: Vec<(bool, bool)>,
 }
 
 impl DiskSums {
@@ -304,6 +307,7 @@ impl DiskSums {
             half,
             nonnegative: true,
             zero: true,
+            row_flags: vec![(true, true); grid.rows],
         };
         sums.renew_rows(v, 0..grid.rows);
         sums
@@ -321,9 +325,11 @@ impl DiskSums {
                 row[pad + c + 1] = sum;
             }
             row[pad + cols + 1..].fill(sum);
+            let values = &v[r * cols..(r + 1) * cols];
+            self.row_flags[r] = (values.iter().all(|&x| x >= 0.0), values.iter().all(|&x| x == 0.0));
         }
-        self.nonnegative = v.iter().all(|&x| x >= 0.0);
-        self.zero = v.iter().all(|&x| x == 0.0);
+        self.nonnegative = self.row_flags.iter().all(|f| f.0);
+        self.zero = self.row_flags.iter().all(|f| f.1);
     }
 
     /// Sum over the disk centred on `cell` (same cells as [`Grid::disk`]).
