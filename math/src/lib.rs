@@ -6,7 +6,8 @@
 //! coverage, assignment), [`fusion`] (the sensor model, aerial frames and their combination
 //! with the boats' estimate), [`kalman`] (a Kalman filter in a DMD model's modal coordinates:
 //! the fused map as a posterior), [`process`] (field sources: the plasma-cloud simulator,
-//! synthetic fields, `.npy` datasets), [`npy`] (numpy-compatible files).
+//! synthetic fields, `.npy` datasets), [`npy`] (numpy-compatible files), [`par`] and [`simd`]
+//! (both cores, and the CPU's wider vectors, for loops of our own, to the same bits).
 
 pub mod dmd;
 pub mod fusion;
@@ -17,6 +18,7 @@ pub mod npy;
 pub mod par;
 pub mod process;
 pub mod sensing;
+pub mod simd;
 
 /// The allocator hetfleet's binaries and benchmarks use (`#[global_allocator] static A:
 /// fleet_math::Allocator = fleet_math::Allocator;`): a fit allocates and frees matrices of

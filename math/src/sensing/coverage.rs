@@ -177,15 +177,13 @@ fn partition(grid: &Grid, density: &[f64], p: &[Point], owner: &mut [usize]) -> 
         .map(|pj| x.iter().map(|&x| (x - pj.0).powi(2)).collect())
         .collect();
     let (mut nearest, mut d2) = (vec![0.0; cols], vec![f64::INFINITY; cols]);
-    let nearer = nearer_on_this_cpu();
     let mut h = 0.0;
     for row in 0..grid.rows {
         let y = grid.centre_m(Cell::new(row, 0)).1;
         nearest.fill(0.0);
         d2.fill(f64::INFINITY);
         for (j, (pj, dx)) in p.iter().zip(&across).enumerate() {
-            let dy = (y - pj.1).powi(2);
-            nearer(&mut nearest, &mut d2, dx, dy, j as f64);
+            nearer_here(&mut nearest, &mut d2, dx, (y - pj.1).powi(2), j as f64);
         }
         let cells = row * cols..(row + 1) * cols;
         owner[cells.clone()]
@@ -201,9 +199,10 @@ fn partition(grid: &Grid, density: &[f64], p: &[Point], owner: &mut [usize]) -> 
 /// `j` where it is strictly nearer than their nearest so far (`nearest`, `d2`); `j` as f64 is
 /// exact. Two selects by one comparison: without blend instructions (the x86-64 baseline,
 /// SSE2) the compiler makes the index's a store under a branch per cell, and which generator
-/// is nearer changes along a row; with AVX2's blends they run four cells at once.
+/// is nearer changes along a row; with AVX2's blends ([`nearer_here`]) they run four cells at
+/// once.
 #[inline(always)]
-fn nearer_generic(nearest: &mut [f64], d2: &mut [f64], dx: &[f64], dy: f64, j: f64) {
+fn nearer(nearest: &mut [f64], d2: &mut [f64], dx: &[f64], dy: f64, j: f64) {
     let n = dx.len();
     let (b, m) = (&mut nearest[..n], &mut d2[..n]);
     for c in 0..n {
@@ -214,26 +213,9 @@ fn nearer_generic(nearest: &mut [f64], d2: &mut [f64], dx: &[f64], dy: f64, j: f
     }
 }
 
-/// [`nearer_generic`] compiled for AVX2 (the same IEEE operations: the same bits).
-///
-/// # Safety
-/// Only on a CPU with AVX2 ([`nearer_on_this_cpu`] asks).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn nearer_avx2(nearest: &mut [f64], d2: &mut [f64], dx: &[f64], dy: f64, j: f64) {
-    nearer_generic(nearest, d2, dx, dy, j)
-}
-
-type Nearer = fn(&mut [f64], &mut [f64], &[f64], f64, f64);
-
-/// [`nearer_generic`] as this CPU runs it fastest.
-fn nearer_on_this_cpu() -> Nearer {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU has AVX2, asked just above.
-        return |nearest, d2, dx, dy, j| unsafe { nearer_avx2(nearest, d2, dx, dy, j) };
-    }
-    nearer_generic
+crate::simd::on_avx2! {
+    /// [`nearer`] as this CPU runs it fastest.
+    fn nearer_here(nearest: &mut [f64], d2: &mut [f64], dx: &[f64], dy: f64, j: f64) = nearer;
 }
 
 /// The formation aerials hold at the start: Lloyd under the uniform density from generators
@@ -319,13 +301,13 @@ mod tests {
             );
             assert_eq!(fast, slow, "case {case}");
         }
-        // This CPU's compilation of the row step is the generic one's, to the bit (ties too).
+        // This CPU's compilation of the row step is the baseline's, to the bit (ties too).
         let dx: Vec<f64> = (0..203).map(|i| ((i * 37) % 11) as f64 * 0.5).collect();
         let start: Vec<f64> = (0..203).map(|i| ((i * 13) % 7) as f64).collect();
         let (mut a, mut b) = ((vec![1.0; 203], start.clone()), (vec![1.0; 203], start));
         for (j, dy) in [(2.0, 0.5), (3.0, 0.0), (4.0, 0.0)] {
-            nearer_generic(&mut a.0, &mut a.1, &dx, dy, j);
-            nearer_on_this_cpu()(&mut b.0, &mut b.1, &dx, dy, j);
+            nearer(&mut a.0, &mut a.1, &dx, dy, j);
+            nearer_here(&mut b.0, &mut b.1, &dx, dy, j);
         }
         assert_eq!(a, b);
         // Some cells kept, some taken, none by 4 (each a tie with 3: the lower stays).

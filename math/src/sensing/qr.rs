@@ -203,7 +203,8 @@ const STALE_AT_ONCE: usize = 64;
 /// side: each cell's arithmetic is [`residual_into`]'s and the sum of its squares, term by
 /// term in the same order from the same start (`Iterator::sum`'s `-0.0`), so the same bits;
 /// the loops run across the cells, many at once, where one cell's dot is a chain of r
-/// dependent additions (the norms of 32 boats' picks were a tenth of the epoch at 192 x 384).
+/// dependent additions (the norms of 32 boats' picks were a tenth of the epoch at 192 x 384),
+/// four at a time where the CPU has AVX2 ([`residuals_here`]).
 fn residual_norms((rows, n, removed): (&[f64], usize, &[Vec<f64>]), cells: impl Iterator<Item = usize>) -> Vec<f64> {
     let cells: Vec<usize> = cells.collect();
     let (w, r) = (cells.len(), rows.len() / n.max(1));
@@ -211,23 +212,36 @@ fn residual_norms((rows, n, removed): (&[f64], usize, &[Vec<f64>]), cells: impl 
     let mut c: Vec<f64> = (0..r)
         .flat_map(|i| cells.iter().map(move |&p| rows[i * n + p]))
         .collect();
-    let mut d = vec![0.0; w];
+    let mut n2 = vec![-0.0; w];
+    residuals_here(&mut c, removed, &mut n2);
+    n2
+}
+
+/// [`residual_norms`]' arithmetic: `c` holds the cells' coordinates (`c[i * w + t]`, `w` the
+/// length of `n2`), made their residuals; `n2` gets each one's squared norm.
+#[inline(always)]
+fn residuals_side_by_side(c: &mut [f64], removed: &[Vec<f64>], n2: &mut [f64]) {
+    let w = n2.len().max(1);
+    let mut d = vec![0.0; n2.len()];
     for _ in 0..2 {
         for q in removed {
             d.fill(-0.0);
-            for (&qi, ci) in q.iter().zip(c.chunks_exact(w.max(1))) {
+            for (&qi, ci) in q.iter().zip(c.chunks_exact(w)) {
                 d.iter_mut().zip(ci).for_each(|(d, &x)| *d += qi * x);
             }
-            for (&qi, ci) in q.iter().zip(c.chunks_exact_mut(w.max(1))) {
+            for (&qi, ci) in q.iter().zip(c.chunks_exact_mut(w)) {
                 ci.iter_mut().zip(&d).for_each(|(x, &d)| *x -= d * qi);
             }
         }
     }
-    let mut n2 = vec![-0.0; w];
-    for ci in c.chunks_exact(w.max(1)) {
+    for ci in c.chunks_exact(w) {
         n2.iter_mut().zip(ci).for_each(|(s, &x)| *s += x * x);
     }
-    n2
+}
+
+crate::simd::on_avx2! {
+    /// [`residuals_side_by_side`] as this CPU runs it fastest.
+    fn residuals_here(c: &mut [f64], removed: &[Vec<f64>], n2: &mut [f64]) = residuals_side_by_side;
 }
 
 /// `c -= sum_j q_j (q_j . c)` for orthonormal `q_j`.
