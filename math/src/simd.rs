@@ -2,7 +2,7 @@
 //!
 //! The workspace is built for the x86-64 baseline (SSE2: two f64 at a time, and no blend
 //! instruction, so a select in a loop becomes a branch per element). faer and gemm choose
-//! their kernels when they run; [`on_avx2`] lets a loop of our own do the same. Only the
+//! their kernels when they run; `on_avx2` lets a loop of our own do the same. Only the
 //! instructions differ: Rust never fuses a multiply and an add unless asked (`mul_add`), so
 //! each element's arithmetic is the same IEEE operations in the same order, the same bits.
 
