@@ -130,8 +130,10 @@ impl Coords {
 
     /// The residual of column `p` after the removed directions (twice, for orthogonality).
     fn residual(&self, p: usize) -> Vec<f64> {
-        let mut c = vec![0.0; self.r];
-        residual_into((&self.rows, self.n, &self.removed), p, &mut c);
+        let mut c: Vec<f64> = (0..self.r).map(|i| self.rows[i * self.n + p]).collect();
+        for _ in 0..2 {
+            project_out(&mut c, &self.removed);
+        }
         c
     }
 
@@ -186,21 +188,12 @@ impl Coords {
     }
 }
 
-/// [`Coords::residual`] into `c` (length r), from the coordinates' rows (of `n` values each)
-/// and the directions removed.
-fn residual_into((rows, n, removed): (&[f64], usize, &[Vec<f64>]), p: usize, c: &mut [f64]) {
-    c.iter_mut().enumerate().for_each(|(i, x)| *x = rows[i * n + p]);
-    for _ in 0..2 {
-        project_out(c, removed);
-    }
-}
-
 /// How many cells [`residual_norms`] takes at once: their coordinates (r values each) and dots
 /// stay in the first-level cache.
 const STALE_AT_ONCE: usize = 64;
 
 /// The squared norms of the residuals of `cells` ([`Coords::residual`]), the cells side by
-/// side: each cell's arithmetic is [`residual_into`]'s and the sum of its squares, term by
+/// side: each cell's arithmetic is [`Coords::residual`]'s and the sum of its squares, term by
 /// term in the same order from the same start (`Iterator::sum`'s `-0.0`), so the same bits;
 /// the loops run across the cells, many at once, where one cell's dot is a chain of r
 /// dependent additions (the norms of 32 boats' picks were a tenth of the epoch at 192 x 384),
