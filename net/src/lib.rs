@@ -117,6 +117,17 @@ fn radio_transport(link: &Link) -> [(&'static str, String); 3] {
     ]
 }
 
+/// The link lease a configuration sets (Zenoh's 10 s if it sets none): how long a silent link
+/// lasts before it counts as lost.
+pub fn lease(cfg: &zenoh::Config) -> std::time::Duration {
+    let ms = cfg
+        .get_json("transport/link/tx/lease")
+        .ok()
+        .and_then(|j| j.trim_matches('"').parse::<u64>().ok())
+        .unwrap_or(10_000);
+    std::time::Duration::from_millis(ms)
+}
+
 /// The Zenoh configuration of a node: its role's JSON5 file (from the command line or the
 /// mission, if any), then the role's mode (the server a router, vehicles clients that retry
 /// forever) and endpoints.
@@ -624,6 +635,13 @@ mod tests {
         assert_eq!(radio(9.6), (4096, 27_307));
         // A LAN: the 16 kB ceiling, Zenoh's lease.
         assert_eq!(radio(100_000.0), (16384, 10_000));
+        // What a node reads back as its lease.
+        let slow = Link {
+            rate_kbps: 9.6,
+            ..Link::default()
+        };
+        let c = config(Role::Vehicle, &Network::default(), &slow, None, &Endpoints::default()).unwrap();
+        assert_eq!(lease(&c), std::time::Duration::from_millis(27_307));
         // The mission's own lease wins.
         let net = Network {
             lease_ms: Some(3_000),

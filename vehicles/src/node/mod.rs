@@ -81,6 +81,13 @@ struct Vehicle {
     /// When the link to the server went down, and whether the link-loss failsafe acted.
     link_lost_at: Option<Instant>,
     link_failsafe: bool,
+    /// When the node started (the server not seen yet counts as gone since then), and how long
+    /// the server's token must stay gone before the vehicle stops waiting for plans: two of the
+    /// session's leases. A link whose lease ran out on one side is refused by the other (Zenoh's
+    /// `MAX_LINKS`) until that side's lease runs out too, and then comes back; over a lossy radio
+    /// a token vanishes for that long now and then while the server is there.
+    started: Instant,
+    link_grace: Duration,
     mavlink: fleet_mission::config::MavlinkConfig,
     /// The radio to the base (`[link]`): how long an answer over it may take.
     link: fleet_mission::config::Link,
@@ -192,6 +199,19 @@ impl Vehicle {
             None => info!("the server trusts this vehicle's sensor again"),
         }
         self.sensor = sensor;
+    }
+
+    /// The server's token has been gone for the link's grace (or never came in that time):
+    /// out of range, not a moment's loss. Acting on the first loss sent a boat to its held
+    /// plan's disk while the server's plan for the epoch, made from the same batches, was on
+    /// its way; the two differ, so the mission's estimate then depended on a lost keep-alive.
+    fn cut_off(&self, now: Instant) -> bool {
+        link_cut_off(
+            self.server_alive,
+            self.link_lost_at.unwrap_or(self.started),
+            self.link_grace,
+            now,
+        )
     }
 
     /// The ack covers `seq`: the batches it covers that went once are timed (the link's round
@@ -391,9 +411,9 @@ impl Vehicle {
                 warned,
                 next_ask,
             } => {
-                // Cut off from the server (its liveliness token gone): no use waiting out the
-                // timeout, the held horizon says where to sense, at the mission's pace.
-                if (now > deadline || !self.server_alive) && self.brain.covers(epoch) {
+                // Cut off from the server (its liveliness token gone for two leases): no use waiting
+                // out the timeout, the held horizon says where to sense, at the mission's pace.
+                if (now > deadline || self.cut_off(now)) && self.brain.covers(epoch) {
                     warn!(
                         epoch,
                         server_alive = self.server_alive,
@@ -720,14 +740,27 @@ fn brain_of(args: &Args, mission: &MissionConfig, grid: Grid, frames: usize) -> 
     ))
 }
 
-/// The Zenoh side: the session, this vehicle's liveliness token and its subscriptions.
+/// Whether a vehicle whose server was last seen `lost_at` (or never, since it started then) is
+/// cut off at `now`: gone, and for at least `grace`.
+fn link_cut_off(alive: bool, lost_at: Instant, grace: Duration, now: Instant) -> bool {
+    !alive && now.saturating_duration_since(lost_at) >= grace
+}
+
+/// The Zenoh side: the session, this vehicle's liveliness token and its subscriptions, and how
+/// long the server's token may be gone before the vehicle counts itself out of range.
 async fn join(
     args: &Args,
     mission: &MissionConfig,
     keys: &Keys,
-) -> anyhow::Result<(zenoh::Session, zenoh::liveliness::LivelinessToken, [SampleSub; 3])> {
+) -> anyhow::Result<(
+    zenoh::Session,
+    zenoh::liveliness::LivelinessToken,
+    [SampleSub; 3],
+    Duration,
+)> {
     let network = mission.network.for_node(&args.id);
     let zenoh_config = args.node.zenoh_config(Role::Vehicle, &network, &mission.link)?;
+    let grace = 2 * fleet_net::lease(&zenoh_config);
     fleet_net::exit_when_refused("vehicle", &zenoh_config, args.node.zenoh_file(Role::Vehicle, &network));
     let session = fleet_net::open(zenoh_config).await?;
     let e = |e: zenoh::Error| anyhow::anyhow!("{e}");
@@ -745,7 +778,7 @@ async fn join(
         .await
         .map_err(e)?;
     let gcs = session.declare_subscriber(keys.gcs(&args.id)).await.map_err(e)?;
-    Ok((session, token, [acks, links, gcs]))
+    Ok((session, token, [acks, links, gcs], grace))
 }
 
 type SampleSub = zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>;
@@ -763,7 +796,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let outbox = Outbox::open(&path, &args.id, args.outbox_limit_mb << 20).map_err(outbox_error)?;
     let state: Option<BrainState> = outbox.state().map_err(outbox_error)?;
     let bridge = compose::open_bridge(&args, &mission, &grid)?;
-    let (session, _token, [acks, links, gcs]) = join(&args, &mission, &keys).await?;
+    let (session, _token, [acks, links, gcs], grace) = join(&args, &mission, &keys).await?;
     let mavlink_out = compose::Counted::default();
     let bridge = bridge.map(|(b, frames)| {
         let linger = mission.link.mavlink_linger();
@@ -795,6 +828,8 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         sensor: None,
         link_lost_at: None,
         link_failsafe: false,
+        started: Instant::now(),
+        link_grace: grace,
         mavlink: mission.mavlink.clone(),
         link: mission.link.clone(),
         resend: fleet_net::rto::Retransmit::new(Duration::from_millis(pace.resend_ms)),
@@ -912,5 +947,30 @@ impl Vehicle {
         let (kind, epochs) = (self.brain.kind, self.brain.schedule().epochs());
         info!(vehicle = %self.brain.id, ?kind, epochs, "vehicle up");
         self.begin(first);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A token gone for less than the grace is a moment's loss (the vehicle keeps waiting for
+    /// the server's plan); gone for the grace, or never seen in that time, it is out of range.
+    #[test]
+    fn a_server_token_lost_for_a_moment_is_not_out_of_range() {
+        let (t0, grace) = (Instant::now(), Duration::from_secs(10));
+        let at = |s: u64| t0 + Duration::from_secs(s);
+        assert!(
+            !link_cut_off(false, t0, grace, at(0)),
+            "cut off the moment the token went"
+        );
+        assert!(!link_cut_off(false, t0, grace, at(9)));
+        assert!(link_cut_off(false, t0, grace, at(10)));
+        assert!(
+            !link_cut_off(true, t0, grace, at(60)),
+            "a server that is here is not gone"
+        );
+        // A clock read before the loss was noted does not count as time gone.
+        assert!(!link_cut_off(false, at(5), grace, t0));
     }
 }
