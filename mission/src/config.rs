@@ -671,8 +671,9 @@ impl MissionConfig {
 
     /// Where the truth has no value in any frame (land) is off the model grid: every node and
     /// every replay of the mission sets it from the truth here.
-    pub fn adopt_land(&mut self, truth: Option<&FieldSeries>) {
-        self.team.land = truth.map_or_else(Vec::new, |t| t.land());
+    /// `land` is the truth's ([`FieldSeries::land`]; none without a truth).
+    pub fn adopt_land(&mut self, land: Vec<u32>) {
+        self.team.land = land;
     }
 
     /// Steps in the mission as the file says them (a dataset's may be fewer).
@@ -684,9 +685,10 @@ impl MissionConfig {
 
     /// The workspace grid and length: a truth's (checked against the team), or `[field]`'s.
     /// Bad input: a truth that does not fit the team (see [`TeamConfig::validate`]).
-    pub fn workspace(&self, truth: Option<&FieldSeries>) -> Result<(Grid, usize), ConfigError> {
+    /// `truth` is the truth's `(rows, cols, frames)` ([`FieldSeries::shape`]).
+    pub fn workspace(&self, truth: Option<(usize, usize, usize)>) -> Result<(Grid, usize), ConfigError> {
         let (rows, cols, frames) = match (truth, &self.field) {
-            (Some(t), _) => (t.rows, t.cols, t.frames()),
+            (Some(t), _) => t,
             (None, Some(f)) => (f.grid[0], f.grid[1], f.frames),
             (None, None) => return Err(field("truth", None, "no truth given and no [field] to size the grid")),
         };
@@ -716,15 +718,16 @@ impl MissionConfig {
     }
 
     /// Check a truth given to a node (`--truth`) against [`Self::model_shape`].
-    pub fn check_truth(&self, truth: &FieldSeries, path: &Path) -> Result<(), ConfigError> {
+    /// `truth` is the truth's `(rows, cols, frames)` ([`FieldSeries::shape`]).
+    pub fn check_truth(&self, truth: (usize, usize, usize), path: &Path) -> Result<(), ConfigError> {
         let Some((rows, cols, frames)) = self.model_shape() else {
             return Ok(());
         };
-        if (truth.rows, truth.cols, truth.frames()) != (rows, cols, frames) {
+        if truth != (rows, cols, frames) {
             return Err(ConfigError::TruthShape {
                 path: path.into(),
                 mission: self.mission.clone(),
-                got: (truth.rows, truth.cols, truth.frames()),
+                got: truth,
                 want: (rows, cols, frames),
             });
         }

@@ -100,7 +100,7 @@ pub struct FoxgloveView {
     kinds: BTreeMap<VehicleId, VehicleKind>,
     /// Shared with the server that owns it (a copy was the truth's size again: 238 MB at
     /// 384 x 768, 101 frames).
-    truth: Option<std::sync::Arc<crate::process::FieldSeries>>,
+    truth: Option<std::sync::Arc<crate::process::frames::Frames>>,
 }
 
 impl FoxgloveView {
@@ -109,7 +109,7 @@ impl FoxgloveView {
     pub fn new(
         mission: &MissionConfig,
         grid: Grid,
-        truth: Option<std::sync::Arc<crate::process::FieldSeries>>,
+        truth: Option<std::sync::Arc<crate::process::frames::Frames>>,
     ) -> Self {
         Self {
             site: mission.mavlink.site(&grid),
@@ -214,8 +214,10 @@ impl FoxgloveView {
         let std: Vec<f64> = m.variance.iter().map(|&v| f64::from(v).max(0.0).sqrt()).collect();
         out.push(self.grid_message(topics::STD, "std", &land(std), t));
         if let Some(truth) = self.truth.as_ref().filter(|s| (m.step as usize) < s.frames()) {
-            let values = truth.snapshots.col(m.step as usize).iter().copied().collect();
-            out.push(self.grid_message(topics::TRUTH, "truth", &land(values), t));
+            match truth.frame(m.step as usize) {
+                Ok(values) => out.push(self.grid_message(topics::TRUTH, "truth", &land(values), t)),
+                Err(e) => tracing::warn!(step = m.step, "the truth's frame is not on the Foxglove channel: {e}"),
+            }
         }
         out.push(model_json(m));
         out

@@ -9,7 +9,7 @@ use anyhow::Context as _;
 use fleet_exit::bad_input;
 use fleet_mission::config::MissionConfig;
 use fleet_mission::events::{Percentiles, ServerEvent, ServerSummary};
-use fleet_mission::process::FieldSeries;
+use fleet_mission::process::frames::Frames;
 use fleet_mission::protocol::{self, keys::Keys, AutopilotLink, Body, Context, ServerStatus, VehicleId};
 use fleet_mission::recording::{self, CoreOp, Recorder, RecordingError};
 use fleet_mission::server::{EpochRecord, IngestError, Ingested, ServerCore, OVERRIDE_PREFIX};
@@ -27,7 +27,7 @@ struct Server {
     core: ServerCore,
     ctx: Context,
     /// The mixed-reality truth the run is scored against (`None` in the field).
-    truth: Option<std::sync::Arc<FieldSeries>>,
+    truth: Option<std::sync::Arc<Frames>>,
     /// Each instrument-fed vehicle's reading counts, as its telemetry last said.
     readings: BTreeMap<VehicleId, fleet_mission::protocol::ReadingCounts>,
     /// Each vehicle's link traffic, as its telemetry last said.
@@ -456,7 +456,13 @@ impl Server {
                     return None;
                 }
             };
-            let x: Vec<f64> = truth.snapshots.col(k).iter().copied().collect();
+            let x = match truth.frame(k) {
+                Ok(x) => x,
+                Err(e) => {
+                    warn!(step = k, "the truth could not be read to score the estimate: {e}");
+                    return None;
+                }
+            };
             let e = fleet_mission::fusion::mse(&est, &x);
             if self.mse.len() == k {
                 self.mse.push(e);
@@ -734,7 +740,7 @@ impl Server {
             dt: self
                 .truth
                 .as_ref()
-                .map_or_else(|| self.mission.clock().map_or(1.0, |c| c.step_s), |t| t.dt),
+                .map_or_else(|| self.mission.clock().map_or(1.0, |c| c.step_s), |t| t.dt()),
         }
     }
 }
@@ -843,7 +849,7 @@ fn open_recorder(
     mission: &MissionConfig,
     grid: &fleet_mission::grid::Grid,
     frames: usize,
-    truth: Option<std::sync::Arc<fleet_mission::process::FieldSeries>>,
+    truth: Option<std::sync::Arc<Frames>>,
 ) -> anyhow::Result<Option<Recorder<std::io::BufWriter<std::fs::File>>>> {
     let Some(path) = &args.record else { return Ok(None) };
     let text = match &args.node.mission {
@@ -911,7 +917,7 @@ impl Inputs {
 
 pub async fn run(args: Args) -> anyhow::Result<()> {
     let (mission, truth) = args.node.load()?;
-    let (grid, frames) = mission.workspace(truth.as_ref())?;
+    let (grid, frames) = mission.workspace(truth.as_ref().map(Frames::shape))?;
     // One truth, shared with the recording's Foxglove view.
     let truth = truth.map(std::sync::Arc::new);
     let keys = Keys::new(&mission.mission)?;

@@ -482,32 +482,38 @@ pub struct NodeArgs {
 
 impl NodeArgs {
     /// The mission and its truth on the model grid (`--truth`, else the mission's `[truth]`;
-    /// `None`: a mission in the field, without one).
+    /// `None`: a mission in the field, without one). A `--truth` file is read a frame at a time
+    /// as the node asks for one ([`Frames`](fleet_mission::process::frames::Frames)), after a
+    /// check of the whole file; a truth made here (the simulator) is held in memory.
     pub fn load(
         &self,
     ) -> Result<
         (
             fleet_mission::config::MissionConfig,
-            Option<fleet_mission::process::FieldSeries>,
+            Option<fleet_mission::process::frames::Frames>,
         ),
         NetError,
     > {
+        use fleet_mission::process::frames::Frames;
         let mut mission =
             fleet_mission::config::MissionConfig::load(self.mission.as_deref()).map_err(NetError::Mission)?;
         let truth = match &self.truth {
             Some(p) => {
                 // The time between frames from the sidecar `fleet up` and `fleet simulate` write.
                 let dt = fleet_mission::process::dataset::sidecar_dt(p).unwrap_or(1.0);
-                let t = fleet_mission::process::dataset::load_truth(p, dt).map_err(|e| NetError::Truth {
+                let t = Frames::open_npy(p, dt).map_err(|e| NetError::Truth {
                     path: p.clone(),
                     source: fleet_exit::BadInput(e.into()),
                 })?;
-                mission.check_truth(&t, p).map_err(NetError::Mission)?;
+                mission.check_truth(t.shape(), p).map_err(NetError::Mission)?;
                 Some(t)
             }
-            None => mission.truth(|_| {}).map_err(NetError::MissionTruth)?,
+            None => mission
+                .truth(|_| {})
+                .map_err(NetError::MissionTruth)?
+                .map(Frames::in_memory),
         };
-        mission.adopt_land(truth.as_ref());
+        mission.adopt_land(truth.as_ref().map_or_else(Vec::new, |t| t.land().to_vec()));
         Ok((mission, truth))
     }
 

@@ -476,7 +476,7 @@ pub fn start_mission(
 pub fn check_exactly_once_and_same_model(mission: &std::path::Path, state: &std::path::Path, out: &std::path::Path) {
     let m = fleet::mission::config::MissionConfig::load(Some(mission)).unwrap();
     let truth = m.truth(|_| {}).unwrap().expect("a truth");
-    let (grid, frames) = m.workspace(Some(&truth)).unwrap();
+    let (grid, frames) = m.workspace(Some(truth.shape())).unwrap();
     let journal = fleet_net::store::Store::open(&state.join(format!("{}.redb", m.mission))).unwrap();
     let mut ctx = fleet::protocol::Context::new(grid);
     ctx.vehicles = m.vehicles().into_iter().map(|v| v.id).collect();

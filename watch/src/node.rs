@@ -7,7 +7,7 @@ use crate::state::{Geo, View};
 use anyhow::Context as _;
 use fleet_mission::config::MissionConfig;
 use fleet_mission::grid::Grid;
-use fleet_mission::process::FieldSeries;
+use fleet_mission::process::frames::Frames;
 use fleet_mission::protocol::{keys::Keys, Body, Context};
 use fleet_net::Role;
 use std::net::SocketAddr;
@@ -82,7 +82,7 @@ fn credential(args: &Args) -> anyhow::Result<Option<String>> {
 
 /// The view of the mission before anything is heard: the site on the Earth, the roster, the
 /// link lease, the truth when there is one; and the context messages are checked against.
-fn view_of(mission: &MissionConfig, grid: Grid, truth: Option<Arc<FieldSeries>>) -> (View, Context) {
+fn view_of(mission: &MissionConfig, grid: Grid, truth: Option<Arc<Frames>>) -> (View, Context) {
     let site = mission.mavlink.site(&grid);
     let ne = site.map_of(&site.ned_of((grid.width_m(), grid.height_m()), 0.0));
     let geo = Geo {
@@ -169,7 +169,7 @@ impl Inputs {
 pub async fn run(args: Args) -> anyhow::Result<()> {
     let credential = credential(&args)?;
     let (mission, truth) = args.node.load()?;
-    let (grid, _frames) = mission.workspace(truth.as_ref())?;
+    let (grid, _frames) = mission.workspace(truth.as_ref().map(Frames::shape))?;
     let keys = Keys::new(&mission.mission)?;
     let truth = truth.map(Arc::new);
     let (view, ctx) = view_of(&mission, grid, truth.clone());

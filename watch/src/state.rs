@@ -3,7 +3,7 @@
 //! `/api/state` is [`View::state`]; the heat maps are [`View::fields`].
 
 use fleet_mission::grid::Grid;
-use fleet_mission::process::FieldSeries;
+use fleet_mission::process::frames::Frames;
 use fleet_mission::protocol::VehicleId;
 use fleet_mission::protocol::{
     AutopilotLink, Body, LinkState, ModelUpdate, Plan, ServerStatus, Telemetry, VehicleKind,
@@ -89,7 +89,7 @@ pub struct View {
     mse: Vec<(u64, f64)>,
     /// The node's own truth, shared with its Foxglove view (not copied step by step: at
     /// 384 x 768 each copy was the truth's 238 MB again).
-    truth: Option<Arc<FieldSeries>>,
+    truth: Option<Arc<Frames>>,
     /// Messages the watch refused (not decodable, wrong grid, unknown vehicle).
     refused: u64,
     plans_taken: u64,
@@ -125,7 +125,7 @@ impl View {
         geo: Geo,
         lease_s: f64,
         vehicles: &[(VehicleId, VehicleKind)],
-        truth: Option<Arc<FieldSeries>>,
+        truth: Option<Arc<Frames>>,
     ) -> Self {
         let vehicles = vehicles
             .iter()
@@ -297,7 +297,13 @@ impl View {
         let step = m.step as usize;
         let truth = (self.truth.as_ref())
             .filter(|t| step < t.frames())
-            .map(|t| t.snapshots.col(step).iter().copied().collect::<Vec<f64>>());
+            .and_then(|t| match t.frame(step) {
+                Ok(x) => Some(x),
+                Err(e) => {
+                    tracing::warn!(step, "the truth could not be read to score the model: {e}");
+                    None
+                }
+            });
         if let Some(t) = &truth {
             let mse = fleet_mission::fusion::mse(&estimate, t);
             self.mse.retain(|(e, _)| *e != m.epoch);
@@ -396,6 +402,7 @@ impl View {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use fleet_mission::process::FieldSeries;
 
     fn view() -> View {
         let grid = Grid::new(2, 3, 1.0).unwrap();
@@ -404,12 +411,12 @@ mod tests {
             north_east: [55.1, 12.1],
             size_m: [3.0, 2.0],
         };
-        let truth = Arc::new(FieldSeries {
+        let truth = Arc::new(Frames::in_memory(FieldSeries {
             rows: 2,
             cols: 3,
             dt: 1.0,
             snapshots: faer::Mat::from_fn(6, 4, |_, _| 1.0),
-        });
+        }));
         View::new(
             "m",
             grid,

@@ -6,6 +6,7 @@
 
 use anyhow::{Context as _, Result};
 use fleet::mission::config::MissionConfig;
+use fleet::process::FieldSeries;
 use fleet_mission::events::{Percentiles, ServerSummary};
 use fleet_mission::instrument::{raster, Entry, Logged, SensorSource};
 use fleet_mission::offline::{self, VehicleLog};
@@ -36,9 +37,11 @@ pub fn run(args: Args) -> Result<()> {
     let mut mission = MissionConfig::load(Some(&args.mission)).map_err(fleet::exit::bad_input)?;
     let pb = super::progress_bar(mission.frames_hint() as u64, "truth");
     let truth = mission.truth(|k| pb.set_position(k as u64))?;
-    mission.adopt_land(truth.as_ref());
+    mission.adopt_land(truth.as_ref().map_or_else(Vec::new, FieldSeries::land));
     pb.finish_and_clear();
-    let (grid, frames) = mission.workspace(truth.as_ref()).map_err(fleet::exit::bad_input)?;
+    let (grid, frames) = mission
+        .workspace(truth.as_ref().map(FieldSeries::shape))
+        .map_err(fleet::exit::bad_input)?;
     if let Some(v) = mission
         .vehicles()
         .iter()

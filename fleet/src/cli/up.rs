@@ -260,7 +260,7 @@ fn make_truth(mission: &MissionConfig, staging: &Path, t0: Instant) -> anyhow::R
     let pb = super::progress_bar(mission.frames_hint() as u64, "truth");
     let truth = mission.truth(|k| pb.set_position(k as u64))?;
     pb.finish_and_clear();
-    let (grid, frames) = mission.workspace(truth.as_ref())?;
+    let (grid, frames) = mission.workspace(truth.as_ref().map(FieldSeries::shape))?;
     // The autopilots' launch points must clear the fence's margin: refused here, not at the shore.
     if mission.mavlink.autopilot != "none" {
         fleet::mission::launch::launch_points(mission, &grid)?;

@@ -3,6 +3,7 @@
 //! `N x T` matrix on a grid, a step `dt` apart.
 
 pub mod dataset;
+pub mod frames;
 pub mod netcdf;
 pub mod plasma;
 pub mod synthetic;
@@ -56,6 +57,11 @@ pub struct FieldSeries {
 }
 
 impl FieldSeries {
+    /// `(rows, cols, frames)`.
+    pub fn shape(&self) -> (usize, usize, usize) {
+        (self.rows, self.cols, self.frames())
+    }
+
     pub fn frames(&self) -> usize {
         self.snapshots.ncols()
     }

@@ -17,7 +17,7 @@ use drive::{drive, query_plan, Drive};
 use fleet_mission::config::MissionConfig;
 use fleet_mission::grid::Grid;
 use fleet_mission::instrument::{check_source, MissionClock, SensorSource};
-use fleet_mission::process::FieldSeries;
+use fleet_mission::process::frames::Frames;
 use fleet_mission::protocol::{self, keys::Keys, AutopilotStatus, Body, Context, LinkState, Plan, Telemetry};
 use fleet_mission::vehicle::{BrainState, VehicleBrain};
 use fleet_mission::vehicle_rng;
@@ -511,7 +511,7 @@ impl Vehicle {
         &mut self,
         e: u64,
         fixes: &std::collections::BTreeMap<u64, fleet_mission::vehicle::Fix>,
-        truth: Option<&FieldSeries>,
+        truth: Option<&Frames>,
     ) -> anyhow::Result<Option<protocol::MeasurementBatch>> {
         if let Some(i) = &mut self.instrument {
             let steps = self.brain.schedule().steps_of(e);
@@ -527,7 +527,15 @@ impl Vehicle {
         }
         // (A simulated sensor without a truth is refused when the source is chosen.)
         let truth = truth.ok_or_else(|| anyhow::anyhow!("{}: the simulated sensor has no truth", self.brain.id))?;
-        let truth_at = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+        // The frames of the epoch's sampling steps, read first: a frame the disk will not give
+        // back is an error here, not a value drawn from nothing.
+        let mut frames = std::collections::BTreeMap::new();
+        for k in self.brain.schedule().sample_steps(self.brain.kind, e) {
+            frames.insert(k, truth.frame(k)?);
+        }
+        // (Only those steps are sampled; another would read as a truth without values.)
+        let truth_at =
+            |k: usize| -> Vec<f64> { frames.get(&k).cloned().unwrap_or_else(|| vec![f64::NAN; truth.dim()]) };
         Ok(self.brain.sense_epoch_at(e, truth_at, fixes)?)
     }
 
@@ -540,7 +548,7 @@ impl Vehicle {
 
     /// Epoch `e` driven: sense it, commit the batch (durable first, then sent: a crash in
     /// between re-sends it after the restart), send it, go on.
-    async fn on_driven(&mut self, (e, (fixes, guided)): Driven, truth: Option<&FieldSeries>) -> anyhow::Result<()> {
+    async fn on_driven(&mut self, (e, (fixes, guided)): Driven, truth: Option<&Frames>) -> anyhow::Result<()> {
         self.guided_ms.extend(guided);
         self.step = self.brain.schedule().steps_of(e).end.saturating_sub(1) as u64;
         if let Some(batch) = self.batch_of(e, &fixes, truth)? {
@@ -705,7 +713,7 @@ fn closed(what: &str) -> impl Fn(zenoh::Error) -> anyhow::Error + '_ {
 
 impl Vehicle {
     /// The node's one loop: every event, one at a time, until every batch is acknowledged.
-    async fn run_loop(&mut self, mut inputs: Inputs, truth: Option<&FieldSeries>) -> anyhow::Result<()> {
+    async fn run_loop(&mut self, mut inputs: Inputs, truth: Option<&Frames>) -> anyhow::Result<()> {
         // Resends, the next plan query and the deadlines are checked at this rate; everything
         // else wakes the loop when it happens.
         let mut tick = tokio::time::interval(ASK_EVERY);
@@ -785,7 +793,7 @@ type SampleSub = zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<z
 
 pub async fn run(args: Args) -> anyhow::Result<()> {
     let (mission, truth) = args.node.load()?;
-    let (grid, frames) = mission.workspace(truth.as_ref())?;
+    let (grid, frames) = mission.workspace(truth.as_ref().map(Frames::shape))?;
     let keys = Keys::new(&mission.mission)?;
     let brain = brain_of(&args, &mission, grid, frames)?;
     let mut ctx = Context::new(grid);
