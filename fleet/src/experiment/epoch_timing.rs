@@ -8,7 +8,7 @@
 use super::team::{TeamConfig, TeamError};
 use crate::grid::Grid;
 use crate::mission::server::{Ingested, ServerCore};
-use crate::process::synthetic::plume_field;
+use crate::process::synthetic::plume_frame;
 use crate::protocol::{self, Body};
 use serde::Serialize;
 use std::time::Instant;
@@ -37,7 +37,8 @@ pub struct EpochTiming {
     pub model_bytes: usize,
     pub model_full_bytes: usize,
     pub batch_bytes_per_epoch: f64,
-    /// The process's peak resident size so far (kB, Linux's VmHWM; the truth is in it too).
+    /// The process's peak resident size so far (kB, Linux's VmHWM; no truth is held, as in the
+    /// model server: each frame is made when it is sampled).
     pub peak_resident_kb: Option<u64>,
     /// Mean milliseconds an epoch in each phase (the core's `tracing` spans, nested spans
     /// counted in their parents too), over the timed epochs.
@@ -89,9 +90,10 @@ fn timed(
     let Fleet { aerials, boats, radius } = fleet;
     let cfg = team(rows, aerials, boats, radius);
     let frames = cfg.init_steps + epochs * cfg.boat_period + 1;
-    let truth = plume_field(rows, cols, frames, 0.0, 3);
+    // Each frame made when it is sampled, as the model server holds no truth of its own (a
+    // node reads its truth a frame at a time): the peak resident size is the core's.
     let grid = Grid::new(rows, cols, 1.0)?;
-    let x = |k: usize| -> Vec<f64> { truth.snapshots.col(k).iter().copied().collect() };
+    let x = |k: usize| plume_frame(rows, cols, frames, k);
     // As the model server keeps it: every step's fused map in files, not in memory.
     let dir = run_dir();
     // As the node's: each epoch's model handed over the moment it is made (here to nobody).

@@ -242,33 +242,69 @@ pub fn smooth_basis(grid: &crate::grid::Grid, r: usize, seed: u64) -> Mat<f64> {
 /// `t` in `[0, 10]`; plus i.i.d. noise of variance `noise_var`. A field whose modes are not
 /// few: what a changing plume looks like to DMD.
 pub fn plume_field(rows: usize, cols: usize, frames: usize, noise_var: f64, seed: u64) -> FieldSeries {
-    let pi = std::f64::consts::PI;
-    let t_end = 10.0;
-    let dt = if frames > 1 { t_end / (frames - 1) as f64 } else { 1.0 };
     let mut z = Mat::zeros(rows * cols, frames);
     for k in 0..frames {
-        let t = k as f64 * dt;
-        let phase = 2.0 * pi * t / t_end;
-        let (xc, yc) = (1.0 + 0.5 * phase.cos(), 0.5 + 0.25 * phase.sin());
-        let angle = 0.5 * phase;
-        let (ca, sa) = (angle.cos(), angle.sin());
-        let (sl, sw) = (0.25 + 0.01 * t, 0.08 + 0.005 * t);
-        let amp = (-0.2 * t).exp();
-        for r in 0..rows {
-            let y = (r as f64 + 0.5) / rows as f64;
-            for c in 0..cols {
-                let x = 2.0 * (c as f64 + 0.5) / cols as f64;
-                let (dx, dy) = (x - xc, y - yc);
-                let (along, across) = (ca * dx + sa * dy, -sa * dx + ca * dy);
-                z[(r * cols + c, k)] = amp * (-0.5 * (along * along / (sl * sl) + across * across / (sw * sw))).exp();
-            }
-        }
+        z.col_mut(k)
+            .iter_mut()
+            .zip(plume_frame(rows, cols, frames, k))
+            .for_each(|(z, v)| *z = v);
     }
     add_noise(&mut z, noise_var, seed);
     FieldSeries {
         rows,
         cols,
-        dt,
+        dt: plume_dt(frames),
         snapshots: z,
+    }
+}
+
+/// The time between [`plume_field`]'s frames.
+fn plume_dt(frames: usize) -> f64 {
+    if frames > 1 {
+        10.0 / (frames - 1) as f64
+    } else {
+        1.0
+    }
+}
+
+/// Frame `k` of [`plume_field`] without noise (the same values, to the bit), made alone: what a
+/// benchmark samples from without holding every frame.
+pub fn plume_frame(rows: usize, cols: usize, frames: usize, k: usize) -> Vec<f64> {
+    let pi = std::f64::consts::PI;
+    let t_end = 10.0;
+    let t = k as f64 * plume_dt(frames);
+    let phase = 2.0 * pi * t / t_end;
+    let (xc, yc) = (1.0 + 0.5 * phase.cos(), 0.5 + 0.25 * phase.sin());
+    let angle = 0.5 * phase;
+    let (ca, sa) = (angle.cos(), angle.sin());
+    let (sl, sw) = (0.25 + 0.01 * t, 0.08 + 0.005 * t);
+    let amp = (-0.2 * t).exp();
+    let mut z = Vec::with_capacity(rows * cols);
+    for r in 0..rows {
+        let y = (r as f64 + 0.5) / rows as f64;
+        for c in 0..cols {
+            let x = 2.0 * (c as f64 + 0.5) / cols as f64;
+            let (dx, dy) = (x - xc, y - yc);
+            let (along, across) = (ca * dx + sa * dy, -sa * dx + ca * dy);
+            z.push(amp * (-0.5 * (along * along / (sl * sl) + across * across / (sw * sw))).exp());
+        }
+    }
+    z
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A plume frame made alone is the series' frame to the bit (a bench samples from it).
+    #[test]
+    fn a_plume_frame_made_alone_is_the_series_frame() {
+        let s = plume_field(6, 10, 7, 0.0, 3);
+        for k in [0, 3, 6] {
+            let alone: Vec<u64> = plume_frame(6, 10, 7, k).iter().map(|v| v.to_bits()).collect();
+            let whole: Vec<u64> = s.snapshots.col(k).iter().map(|v| v.to_bits()).collect();
+            assert_eq!(alone, whole, "frame {k}");
+        }
+        assert_eq!(s.dt, 10.0 / 6.0);
     }
 }
