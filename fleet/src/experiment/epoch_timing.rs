@@ -90,10 +90,19 @@ fn timed(
     let Fleet { aerials, boats, radius } = fleet;
     let cfg = team(rows, aerials, boats, radius);
     let frames = cfg.init_steps + epochs * cfg.boat_period + 1;
-    // Each frame made when it is sampled, as the model server holds no truth of its own (a
-    // node reads its truth a frame at a time): the peak resident size is the core's.
+    // Each frame made when it is first sampled and kept for the epoch's other vehicles (the
+    // newest steps only), as the model server holds no truth of its own (a node reads its truth
+    // a frame at a time): the peak resident size is the core's.
     let grid = Grid::new(rows, cols, 1.0)?;
-    let x = |k: usize| plume_frame(rows, cols, frames, k);
+    let made = std::cell::RefCell::new(std::collections::BTreeMap::new());
+    let x = |k: usize| -> Vec<f64> {
+        let mut made = made.borrow_mut();
+        let newest = made.keys().next_back().map_or(k, |&j: &usize| j.max(k));
+        made.retain(|&j, _| j + cfg.boat_period >= newest);
+        made.entry(k)
+            .or_insert_with(|| plume_frame(rows, cols, frames, k))
+            .clone()
+    };
     // As the model server keeps it: every step's fused map in files, not in memory.
     let dir = run_dir();
     // As the node's: each epoch's model handed over the moment it is made (here to nobody).
