@@ -338,3 +338,56 @@ fn a_netcdf_variable_can_be_the_truth_and_gives_the_same_results_as_the_npy() {
     assert!(err.contains("cut.nc: not a readable NetCDF-3 file"), "{err}");
     assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
 }
+
+/// A field whose water is narrower than a boat's disk everywhere (channels one cell wide, every
+/// other row land, as in a harbour of piers or a maze of islands) still gets its boats: a disk
+/// may reach the coast when no open water is left, and measures the water up to it. Disks kept
+/// off every land cell left the boats idle the whole run, and the report then failed as an
+/// internal error (exit 1, "no finite points"). And a row whose file is shorter than the
+/// team's initial fit is refused before any run, exit 2, one line naming the row.
+#[test]
+fn channels_narrower_than_a_disk_get_their_boats_and_a_short_file_is_refused() {
+    let dir = hetfleet_tests::scratch("channels");
+    let npy = dir.join("channels.npy");
+    let made = std::process::Command::new("python3")
+        .args([
+            "-c",
+            "import numpy as np, sys\n\
+             t, r, c = np.meshgrid(np.arange(30), np.arange(24), np.arange(48), indexing='ij')\n\
+             x = np.sin(0.2 * c - 0.3 * t) * np.cos(0.25 * r + 0.1 * t)\n\
+             x[:, 1::2, :] = np.nan\n\
+             np.save(sys.argv[1], x)",
+            npy.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
+    let row = |init: usize| {
+        format!(
+            "seed = 3\nseeds = [1]\nframes = 30\nradius = 2.0\neig_trials = 0\nforgetting = []\n\
+             extra_placements = [\"horizon\"]\n\
+             [team]\naerials = 2\nboats = 4\ninit_steps = {init}\nrank = \"4\"\n\
+             [[row]]\ndataset = {npy:?}\nav_time = 1\nmv_time = 5\nav_space = 3\nmv_space = 1\nnoise = 0.05\n"
+        )
+    };
+    let (out, rep) = hetfleet_tests::experiment_file(&dir, "narrow", &row(10));
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let res: serde_json::Value = serde_json::from_slice(&std::fs::read(rep.join("results.json")).unwrap()).unwrap();
+    let r = &res["rows"][0];
+    // The boats sampled from the first boat epoch (step 10 + 4, its sampling step).
+    assert_eq!(r["scored_from"], 14, "{r}");
+    for team in [
+        "heterogeneous",
+        "heterogeneous-random",
+        "heterogeneous-horizon",
+        "boat-only",
+    ] {
+        let mse = r["teams"][team]["mean"].as_f64().unwrap();
+        assert!(mse.is_finite() && mse > 0.0, "{team}: {mse}");
+    }
+    let (out, _) = hetfleet_tests::experiment_file(&dir, "short", &row(28));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+    assert!(err.contains("channels") && err.contains("init_steps 28"), "{err}");
+}

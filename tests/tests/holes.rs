@@ -119,7 +119,7 @@ fn a_file_with_land_cloud_packed_shorts_and_a_level_runs_as_xarray_reads_it() {
         "{report}"
     );
     // Truth as xarray decodes it, per-step MSE as numpy computes it over the cells with a
-    // truth (1e-12), no boat disk on land, estimate.npy and estimate.nc missing on land only.
+    // truth (1e-12), no boat target on land, estimate.npy and estimate.nc missing on land only.
     println!("{}", holes_py(&["check", nc.to_str().unwrap(), out.to_str().unwrap()]));
 }
 

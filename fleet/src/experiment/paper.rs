@@ -534,6 +534,7 @@ pub fn run(
     let progress = std::sync::Mutex::new(progress);
     let say = |m: &str| (progress.lock().unwrap_or_else(|p| p.into_inner()))(m);
     let (cache, truths) = make_truths(cfg, &say)?;
+    check_rows(cfg, &truths)?;
     let seeds = cfg.seeds();
     let jobs: Vec<(usize, u64)> = (0..cfg.rows.len())
         .flat_map(|i| seeds.iter().map(move |&s| (i, s)))
@@ -576,6 +577,22 @@ pub fn run(
 
 /// One truth per cloud, simulated once (in parallel), and each row's truth on its model grid.
 #[allow(clippy::type_complexity)]
+/// Every row's teams checked on the row's field before anything runs: a setting the field
+/// cannot hold (more initial steps than the file has frames, a mask that leaves no room) is
+/// the file's fault, one line naming the row, exit 2, not an internal error at its first seed.
+fn check_rows(cfg: &ExperimentConfig, truths: &[FieldSeries]) -> anyhow::Result<()> {
+    let placements = [Placement::Qr, Placement::Random]
+        .into_iter()
+        .chain(cfg.extra_placements.iter().copied());
+    for (r, truth) in cfg.rows.iter().zip(truths) {
+        for p in placements.clone() {
+            team::check(&cfg.team_for_seed(r, p, cfg.seeds()[0]), truth)
+                .map_err(|e| crate::exit::bad_input(anyhow::anyhow!("{}: {e}", r.name())))?;
+        }
+    }
+    Ok(())
+}
+
 fn make_truths(
     cfg: &ExperimentConfig,
     say: &(impl Fn(&str) + Sync),

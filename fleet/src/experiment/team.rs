@@ -141,6 +141,17 @@ pub fn run(
     run_placing(cfg, truth, false, None, progress)
 }
 
+/// Whether `cfg` can run on `truth` as [`run`] would run it (its grid, its frames, its land):
+/// the same check the team makes when it starts, made before any run.
+pub fn check(cfg: &TeamConfig, truth: &FieldSeries) -> Result<(), TeamError> {
+    let grid = Grid::new(truth.rows, truth.cols, 1.0)?;
+    let cfg = TeamConfig {
+        land: truth.land(),
+        ..cfg.clone()
+    };
+    cfg.validate(&grid, truth.frames())
+}
+
 /// [`run`] with one vehicle's sensor failing ([`super::faults::Fault`]); with `withhold`, its
 /// altered readings withheld instead.
 pub fn run_with_fault(

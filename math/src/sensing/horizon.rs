@@ -82,6 +82,9 @@ struct Candidate {
     at: (f64, f64),
     info: Mat<f64>,
     detail_gain: f64,
+    /// Whether the disk reaches land (its cells are then the wet ones): such a disk is a
+    /// candidate only once no disk in open water is left ([`super::Room`]).
+    coastal: bool,
 }
 
 /// The disks and their boats (at most one disk per boat; fewer when no admissible disk is
@@ -93,11 +96,11 @@ pub fn plan(
     radius: f64,
     noise_var: f64,
 ) -> Result<Vec<Chosen>, SensingError> {
-    plan_within(grid, f, boats, radius, noise_var, &[])
+    plan_within(grid, f, boats, radius, noise_var, super::Room::OPEN)
 }
 
-/// [`plan`] with the cells marked in `excluded` (one flag per cell; empty: none) never in a
-/// disk: outside the site's fence.
+/// [`plan`] in the `room` the site leaves: no disk beyond its fence, none centred on land, each
+/// disk its wet cells.
 ///
 /// Long because the greedy choice, its conditioning and the reach check share one candidate state
 /// that each pick updates; apart, that state would travel between functions.
@@ -107,7 +110,7 @@ pub fn plan_within(
     boats: &[Boat],
     radius: f64,
     noise_var: f64,
-    excluded: &[bool],
+    room: super::Room<'_>,
 ) -> Result<Vec<Chosen>, SensingError> {
     let (n, q) = (f.basis.nrows(), f.basis.ncols());
     grid.check_len(n).map_err(|e| SensingError::Input(e.to_string()))?;
@@ -165,7 +168,12 @@ pub fn plan_within(
     for r in (0..grid.rows).step_by(every) {
         for c in (0..grid.cols).step_by(every) {
             let centre = Cell::new(r, c);
-            let cells = grid.disk(centre, radius);
+            if room.is_dry(grid.index(centre)) {
+                continue;
+            }
+            let whole = grid.disk(centre, radius);
+            let coastal = whole.iter().any(|&i| room.is_dry(i));
+            let cells = room.wet(whole);
             let mut info = Mat::<f64>::zeros(q, q);
             let mut detail_gain = 0.0;
             for &i in &cells {
@@ -184,17 +192,20 @@ pub fn plan_within(
                 centre,
                 info,
                 detail_gain,
+                coastal,
             });
         }
     }
     let mut cov = f.ahead.cov.clone();
-    let mut taken: Vec<bool> = super::qr::blocked(grid, excluded)?.iter().map(|&b| b > 0.0).collect();
+    let mut taken: Vec<bool> = super::qr::blocked(grid, room)?.iter().map(|&b| b > 0.0).collect();
     let mut chosen: Vec<usize> = vec![];
+    let mut coast = false;
     let reachable = |b: &Boat, at: (f64, f64)| (b.position.0 - at.0).hypot(b.position.1 - at.1) <= b.reach_m;
     while chosen.len() < boats.len() {
         let mut best: Option<(f64, usize, Mat<f64>)> = None;
         for (ci, cand) in candidates.iter().enumerate() {
             if cand.cells.is_empty()
+                || (cand.coastal && !coast)
                 || cand.cells.iter().any(|&i| taken[i])
                 || !boats.iter().any(|b| reachable(b, cand.at))
             {
@@ -210,7 +221,13 @@ pub fn plan_within(
                 }
             }
         }
-        let Some((_, ci, post)) = best else { break };
+        let Some((_, ci, post)) = best else {
+            if coast || !candidates.iter().any(|c| c.coastal) {
+                break;
+            }
+            coast = true; // no disk in open water left: the rest reach the coast
+            continue;
+        };
         cov = post;
         candidates[ci].cells.iter().for_each(|&i| taken[i] = true);
         chosen.push(ci);
@@ -297,6 +314,42 @@ mod tests {
             .collect();
         let norm = raw.iter().map(|v| v * v).sum::<f64>().sqrt();
         Mat::from_fn(grid.len(), 1, |i, _| raw[i] / norm)
+    }
+
+    /// Land on every other column (a comb of piers: every disk reaches land, no open water is
+    /// left). The disk still goes where the mode is, centred on water, holding only the wet
+    /// cells; before disks could reach land, the boat got none.
+    #[test]
+    fn a_disk_goes_where_the_uncertainty_is_even_when_every_disk_reaches_land() {
+        let grid = Grid::new(10, 20, 1.0).unwrap();
+        let dry: Vec<bool> = (0..grid.len()).map(|i| grid.cell(i).col % 2 == 1).collect();
+        let b = left_mode(&grid);
+        let b = Mat::from_fn(grid.len(), 1, |i, j| if dry[i] { 0.0 } else { b[(i, j)] });
+        let ahead = Lookahead {
+            cov: Mat::from_fn(1, 1, |_, _| 1.0),
+            detail_var: vec![1e-6; grid.len()],
+            modal_weight: Mat::from_fn(1, 1, |_, _| 2.0),
+            detail_gain: vec![0.0; grid.len()],
+            value_weight: vec![0.5; grid.len()],
+        };
+        let f = Forecast::of(b.as_ref(), &ahead);
+        let boats = [Boat {
+            position: (19.5, 5.5),
+            reach_m: 100.0,
+        }];
+        let room = super::super::Room {
+            outside: &[],
+            dry: &dry,
+        };
+        let got = plan_within(&grid, &f, &boats, 2.0, 1e-4, room).unwrap();
+        assert_eq!(got.len(), 1);
+        assert!(
+            got[0].centre.col < 10,
+            "the disk goes where the mode is: {:?}",
+            got[0].centre
+        );
+        assert!(!dry[grid.index(got[0].centre)], "centred on land: {:?}", got[0].centre);
+        assert!(got[0].cells.iter().all(|&c| !dry[c]));
     }
 
     #[test]

@@ -18,6 +18,65 @@ use crate::dmd::OrthogonalModes;
 use faer::{Mat, MatRef};
 use thiserror::Error;
 
+/// Where the boats' disks may go on the grid (one flag per cell in each; empty: none).
+///
+/// - `outside`: cells no disk may touch: beyond the site's fence, where a boat may not drive.
+/// - `dry`: cells with no water (land, for an ocean field). Disks go in open water (touching
+///   no land) while any is left; then a disk may reach the coast: centred on water, it holds
+///   only its wet cells (a boat measures the water around it up to the coast, as the sensor
+///   model clips it, `mission::vehicle::sense_cells`), and two disks may reach one stretch of
+///   coast. So a strait or an archipelago narrower than a disk still gets its boats (disks
+///   kept off every land cell left such a field with none), and a field with open water
+///   places as it did. Open water first because coastal disks were measured to cost the fused
+///   map on the Pacific SST (README, "Land").
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Room<'a> {
+    pub outside: &'a [bool],
+    pub dry: &'a [bool],
+}
+
+impl<'a> Room<'a> {
+    /// No fence and no land: every disk anywhere on the grid.
+    pub const OPEN: Room<'static> = Room { outside: &[], dry: &[] };
+
+    /// Whether `cell` is dry.
+    pub fn is_dry(&self, cell: usize) -> bool {
+        self.dry.get(cell).copied().unwrap_or(false)
+    }
+
+    /// Whether any cell is dry (a second, coastal pass can follow the open-water one).
+    pub fn has_land(&self) -> bool {
+        self.dry.iter().any(|&d| d)
+    }
+
+    /// Whether `cell` is beyond the fence.
+    pub fn is_outside(&self, cell: usize) -> bool {
+        self.outside.get(cell).copied().unwrap_or(false)
+    }
+
+    /// The wet cells of `cells` (a disk as the grid draws it).
+    pub fn wet(&self, cells: Vec<usize>) -> Vec<usize> {
+        if self.dry.is_empty() {
+            return cells;
+        }
+        cells.into_iter().filter(|&c| !self.is_dry(c)).collect()
+    }
+
+    /// Both flag lists fit `grid` (or are empty).
+    pub fn check(&self, grid: &crate::grid::Grid) -> Result<(), SensingError> {
+        for (what, flags) in [("fence", self.outside), ("land", self.dry)] {
+            if !(flags.is_empty() || flags.len() == grid.len()) {
+                return Err(SensingError::Input(format!(
+                    "{} {what} flags for {} cells",
+                    flags.len(),
+                    grid.len()
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
 #[derive(Debug, Error)]
 pub enum SensingError {
     #[error(

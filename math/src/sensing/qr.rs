@@ -12,7 +12,7 @@
 //! 1e-12 of the first), the remaining disks are chosen by the undeflated weights, so boats
 //! beyond the rank still go where the modes have energy.
 
-use super::SensingError;
+use super::{Room, SensingError};
 use crate::grid::{Cell, Grid};
 use faer::{Mat, MatRef};
 use serde::Serialize;
@@ -295,6 +295,9 @@ struct DiskSums {
     /// Per row, whether its values are all `>= 0` and all 0 (the two flags above of a row,
     /// kept so that renewing a few rows need not look at the others).
     row_flags: Vec<(bool, bool)>,
+    /// Centres no disk may have (land), each adding 1 to its own disk's sum: empty for none.
+    /// Only the overlap test's sums have them ([`Self::barring`]).
+    barred: Vec<bool>,
 }
 
 impl DiskSums {
@@ -315,8 +318,20 @@ impl DiskSums {
             nonnegative: true,
             zero: true,
             row_flags: vec![(true, true); grid.rows],
+            barred: vec![],
         };
         sums.renew_rows(v, 0..grid.rows);
+        sums
+    }
+
+    /// The overlap test's sums: of `covered` (0/1 weights), and 1 more at every centre that is
+    /// `dry`, so a disk centred on land reads as touching what is taken.
+    fn barring(grid: Grid, covered: &[f64], k: f64, dry: &[bool]) -> Self {
+        let mut sums = Self::new(grid, covered, k);
+        if dry.iter().any(|&d| d) {
+            sums.barred = dry.to_vec();
+            sums.zero = false;
+        }
         sums
     }
 
@@ -336,7 +351,7 @@ impl DiskSums {
             self.row_flags[r] = (values.iter().all(|&x| x >= 0.0), values.iter().all(|&x| x == 0.0));
         }
         self.nonnegative = self.row_flags.iter().all(|f| f.0);
-        self.zero = self.row_flags.iter().all(|f| f.1);
+        self.zero = self.row_flags.iter().all(|f| f.1) && self.barred.is_empty();
     }
 
     /// Sum over the disk centred on `cell` (same cells as [`Grid::disk`]).
@@ -351,6 +366,9 @@ impl DiskSums {
             let base = row as usize * self.width + self.pad + cell.col;
             let hw = hw as usize;
             s += self.prefix[base + hw + 1] - self.prefix[base - hw];
+        }
+        if self.barred.get(self.grid.index(cell)).copied().unwrap_or(false) {
+            s += 1.0;
         }
         s
     }
@@ -403,19 +421,42 @@ impl DiskSums {
                 *s += a - b;
             }
         }
+        if !self.barred.is_empty() {
+            let barred = &self.barred[row * cols..(row + 1) * cols];
+            out[..cols]
+                .iter_mut()
+                .zip(barred)
+                .filter(|(_, b)| **b)
+                .for_each(|(s, _)| *s += 1.0);
+        }
     }
 }
 
-/// Cells no disk may touch, as the 0/1 weights the overlap test sums (`excluded` empty: none).
-pub(crate) fn blocked(grid: &Grid, excluded: &[bool]) -> Result<Vec<f64>, SensingError> {
-    match excluded.len() {
-        0 => Ok(vec![0.0; grid.len()]),
-        n if n == grid.len() => Ok(excluded.iter().map(|&x| if x { 1.0 } else { 0.0 }).collect()),
-        n => Err(SensingError::Input(format!(
-            "{n} exclusion flags for {} cells",
-            grid.len()
-        ))),
+/// Cells no disk may touch (beyond the fence), as the 0/1 weights the overlap test sums.
+pub(crate) fn blocked(grid: &Grid, room: Room<'_>) -> Result<Vec<f64>, SensingError> {
+    room.check(grid)?;
+    Ok((0..grid.len())
+        .map(|i| if room.is_outside(i) { 1.0 } else { 0.0 })
+        .collect())
+}
+
+/// The overlap test's sums for the disks' two passes ([`Room`]): in open water, `covered` and
+/// the land both taken; reaching the coast, `covered` taken and land centres barred.
+fn overlap_sums(grid: Grid, covered: &[f64], radius: f64, room: Room<'_>, coast: bool) -> DiskSums {
+    match (coast, room.has_land()) {
+        (true, _) => DiskSums::barring(grid, covered, radius, room.dry),
+        (false, false) => DiskSums::new(grid, covered, radius),
+        (false, true) => DiskSums::new(grid, &with_land(covered, room), radius),
     }
+}
+
+/// `covered` with the land taken as well.
+fn with_land(covered: &[f64], room: Room<'_>) -> Vec<f64> {
+    covered
+        .iter()
+        .enumerate()
+        .map(|(i, &c)| if room.is_dry(i) { 1.0 } else { c })
+        .collect()
 }
 
 fn check(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Result<(), SensingError> {
@@ -640,29 +681,30 @@ impl Ranked {
 /// Block pivoted QR with sensing radius (Alg. 2): up to `m` non-overlapping disks of radius
 /// `radius` cells. Fewer are returned only when no non-overlapping disk is left.
 pub fn block_qr(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Result<Vec<Disk>, SensingError> {
-    block_qr_within(phi, grid, m, radius, &[])
+    block_qr_within(phi, grid, m, radius, Room::OPEN)
 }
 
-/// [`block_qr`] with the cells marked in `excluded` (one flag per cell; empty: none) never in
-/// a disk: outside the site's fence.
+/// [`block_qr`] in the `room` the site leaves: no disk beyond its fence, none centred on land,
+/// each disk its wet cells.
 pub fn block_qr_within(
     phi: MatRef<'_, f64>,
     grid: &Grid,
     m: usize,
     radius: f64,
-    excluded: &[bool],
+    room: Room<'_>,
 ) -> Result<Vec<Disk>, SensingError> {
     check(phi, grid, m, radius)?;
     let mut c = Coords::new(phi);
     let mut norms = c.norms();
     let original = DiskSums::new(*grid, &norms, radius);
-    let mut covered = blocked(grid, excluded)?;
-    let mut taken = DiskSums::new(*grid, &covered, radius);
+    let mut covered = blocked(grid, room)?;
+    let mut coast = false;
+    let mut taken = overlap_sums(*grid, &covered, radius, room, coast);
     let mut total: f64 = norms.iter().sum();
     let first = total;
     let mut ranked: Option<Option<Ranked>> = None;
     let mut out = vec![];
-    for _ in 0..m {
+    while out.len() < m {
         let exhausted = !(total > 1e-12 * first);
         let pick = match exhausted {
             false => best_disk(grid, &taken, &DiskSums::new(*grid, &norms, radius)),
@@ -671,14 +713,28 @@ pub fn block_qr_within(
                 None => best_disk(grid, &taken, &original),
             },
         };
-        let Some((centre, _)) = pick else { break };
-        let cells = grid.disk(centre, radius);
+        let Some((centre, _)) = pick else {
+            if coast || !room.has_land() {
+                break;
+            }
+            // No open water left for a disk: the rest reach the coast (centres found touching
+            // land in open water may be valid now, so they are ranked again).
+            (coast, ranked) = (true, None);
+            taken = overlap_sums(*grid, &covered, radius, room, coast);
+            continue;
+        };
+        let cells = room.wet(grid.disk(centre, radius));
         let weight: f64 = cells.iter().map(|&p| norms[p]).sum();
         for &p in &cells {
             covered[p] = 1.0;
         }
         let reach = radius.max(0.0).floor() as usize;
-        taken.renew_rows(&covered, centre.row.saturating_sub(reach)..centre.row + reach + 1);
+        let rows = centre.row.saturating_sub(reach)..centre.row + reach + 1;
+        match (coast, room.has_land()) {
+            // In open water the land counts as taken too ([`overlap_sums`]).
+            (false, true) => taken.renew_rows(&with_land(&covered, room), rows),
+            _ => taken.renew_rows(&covered, rows),
+        }
         let share = if total > 0.0 { weight / total } else { 0.0 };
         if !exhausted {
             // Deflate by the block's leading left singular vector.
@@ -702,26 +758,27 @@ pub fn block_qr_within(
 /// `sum_{p in L} phi_p^T phi_p + eps I` (eps = 1e-9 of the mean diagonal, so the first pick is
 /// defined). Uses the rows of `Phi` only (r x r matrices), never `Phi Phi^T`.
 pub fn block_dopt(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Result<Vec<Disk>, SensingError> {
-    block_dopt_within(phi, grid, m, radius, &[])
+    block_dopt_within(phi, grid, m, radius, Room::OPEN)
 }
 
-/// [`block_dopt`] with the cells marked in `excluded` never in a disk.
+/// [`block_dopt`] in the `room` the site leaves ([`block_qr_within`]).
 pub fn block_dopt_within(
     phi: MatRef<'_, f64>,
     grid: &Grid,
     m: usize,
     radius: f64,
-    excluded: &[bool],
+    room: Room<'_>,
 ) -> Result<Vec<Disk>, SensingError> {
     check(phi, grid, m, radius)?;
     let (n, r) = (phi.nrows(), phi.ncols());
     let trace: f64 = (0..r).map(|j| phi.col(j).squared_norm_l2()).sum();
     let eps = 1e-9 * trace / r as f64;
     let mut info = Mat::<f64>::identity(r, r) * faer::Scale(eps);
-    let mut covered = blocked(grid, excluded)?;
+    let mut covered = blocked(grid, room)?;
+    let mut coast = false;
     let mut out = vec![];
     let packed: Vec<(usize, usize)> = (0..r).flat_map(|a| (a..r).map(move |b| (a, b))).collect();
-    for _ in 0..m {
+    while out.len() < m {
         // Whiten the rows by the current information: g_p = L^-1 phi_p^T.
         let llt = info
             .llt(faer::Side::Lower)
@@ -739,7 +796,7 @@ pub fn block_dopt_within(
                 )
             })
             .collect();
-        let taken = DiskSums::new(*grid, &covered, radius);
+        let taken = overlap_sums(*grid, &covered, radius, room, coast);
         let gain = |cell: Cell| -> f64 {
             let mut b = Mat::<f64>::identity(r, r);
             for (k, &(i, j)) in packed.iter().enumerate() {
@@ -755,9 +812,13 @@ pub fn block_dopt_within(
             }
         };
         let Some((centre, g_best)) = best_candidate(grid, &taken, gain) else {
-            break;
+            if coast || !room.has_land() {
+                break;
+            }
+            coast = true; // no open water left for a disk: the rest reach the coast
+            continue;
         };
-        let cells = grid.disk(centre, radius);
+        let cells = room.wet(grid.disk(centre, radius));
         for &p in &cells {
             covered[p] = 1.0;
             for i in 0..r {
@@ -975,5 +1036,87 @@ mod row_sum_tests {
                 }
             }
         }
+    }
+
+    /// Channels one cell wide (rows 1 and 3 land, rows 0, 2 and 4 water): a disk of radius 2
+    /// reaches land wherever it is centred, so there is no open water. Every disk is then
+    /// centred on water, holds only wet cells, shares none with another and touches no cell
+    /// beyond the fence; and they go where the modes are (the middle channel). Before disks
+    /// could reach land, such a field got no disk at all.
+    #[test]
+    fn disks_reach_the_coast_centred_on_water_where_no_open_water_is_left() {
+        let grid = Grid::new(5, 30, 1.0).unwrap();
+        let dry: Vec<bool> = (0..grid.len()).map(|i| matches!(grid.cell(i).row, 1 | 3)).collect();
+        let outside: Vec<bool> = (0..grid.len()).map(|i| grid.cell(i).col >= 28).collect();
+        let phi = Mat::from_fn(grid.len(), 2, |i, j| {
+            let (r, c) = (grid.cell(i).row, grid.cell(i).col as f64);
+            match (dry[i], r) {
+                (true, _) => 0.0,
+                (false, 2) => ((j + 1) as f64 * c * 0.2).cos() + 1.5,
+                _ => 0.01 * ((i * (j + 7)) % 13) as f64,
+            }
+        });
+        let room = Room {
+            outside: &outside,
+            dry: &dry,
+        };
+        for disks in [
+            block_qr_within(phi.as_ref(), &grid, 4, 2.0, room).unwrap(),
+            block_dopt_within(phi.as_ref(), &grid, 4, 2.0, room).unwrap(),
+        ] {
+            assert_eq!(disks.len(), 4);
+            let mut seen = std::collections::BTreeSet::new();
+            for d in &disks {
+                assert!(!dry[grid.index(d.centre)], "a disk centred on land: {:?}", d.centre);
+                assert!(d.cells.iter().all(|&c| !dry[c] && !outside[c]), "{:?}", d.cells);
+                assert!(d.cells.iter().all(|&c| seen.insert(c)), "disks share a cell");
+            }
+            assert!(
+                disks.iter().filter(|d| d.centre.row == 2).count() >= 2,
+                "the middle channel, where the modes are, gets disks: {:?}",
+                disks.iter().map(|d| d.centre).collect::<Vec<_>>()
+            );
+        }
+    }
+
+    /// Open water first: a strait between two coasts holds the modes, an open sea beside it
+    /// holds room for disks. The disks go to the open sea while it has room (none reaches
+    /// land), and only the one it has no room for reaches the coast.
+    #[test]
+    fn disks_go_in_open_water_while_it_has_room() {
+        let grid = Grid::new(12, 30, 1.0).unwrap();
+        // Land everywhere but the strait (row 5) and a basin of 5 x 5 (rows 7-11, columns
+        // 0-4): room in open water for exactly one disk of radius 2.
+        let dry: Vec<bool> = (0..grid.len())
+            .map(|i| {
+                let (r, c) = (grid.cell(i).row, grid.cell(i).col);
+                matches!(r, 4 | 6) || r <= 3 || (r >= 7 && c >= 5)
+            })
+            .collect();
+        let phi = Mat::from_fn(grid.len(), 1, |i, _| match (dry[i], grid.cell(i).row) {
+            (true, _) => 0.0,
+            (false, 5) => 1.0,
+            _ => 0.1,
+        });
+        let room = Room {
+            outside: &[],
+            dry: &dry,
+        };
+        let disks = block_qr_within(phi.as_ref(), &grid, 2, 2.0, room).unwrap();
+        assert_eq!(disks.len(), 2);
+        let reaches_land = |d: &Disk| grid.disk(d.centre, 2.0).iter().any(|&c| dry[c]);
+        assert!(
+            !reaches_land(&disks[0]) && disks[0].centre.row >= 7,
+            "{:?}",
+            disks[0].centre
+        );
+        assert!(
+            reaches_land(&disks[1]) && !dry[grid.index(disks[1].centre)],
+            "{:?}",
+            disks[1].centre
+        );
+        // Without land in the room, the same basis and grid give the grid's own disks.
+        let open = block_qr(phi.as_ref(), &grid, 4, 2.0).unwrap();
+        assert!(open.iter().all(|d| d.cells == grid.disk(d.centre, 2.0)));
     }
 }

@@ -35,9 +35,12 @@ pub struct Setup {
     cfg: TeamConfig,
     grid: Grid,
     dmd: DmdConfig,
-    /// Cells outside the site's fence or on land (empty: neither): never in a disk, never an
-    /// aerial place.
+    /// Cells outside the site's fence or on land (empty: neither): never an aerial place.
     excluded: Vec<bool>,
+    /// Cells outside the fence (no disk touches one) and on land (no disk is centred on one,
+    /// and a disk holds only its wet cells): [`crate::sensing::Room`]. Empty: none.
+    outside: Vec<bool>,
+    dry: Vec<bool>,
     /// The cells with no data (`TeamConfig::land`): zero in every snapshot the model learns
     /// from, so they are zero rows of its snapshot matrices (the DMD of the other cells).
     land: Vec<usize>,
@@ -133,11 +136,17 @@ impl Assimilator {
         let boat_positions = (0..cfg.boats)
             .map(|_| (placement_rng.random_range(0.0..w), placement_rng.random_range(0.0..h)))
             .collect();
-        let mut excluded = cfg.fence.as_ref().map_or_else(Vec::new, |f| f.excluded(&grid));
+        let outside = cfg.fence.as_ref().map_or_else(Vec::new, |f| f.excluded(&grid));
+        let mut dry = vec![];
         if !cfg.land.is_empty() {
-            excluded.resize(grid.len(), false);
-            cfg.land.iter().for_each(|&c| excluded[c as usize] = true);
+            dry.resize(grid.len(), false);
+            cfg.land.iter().for_each(|&c| dry[c as usize] = true);
         }
+        let excluded = match (outside.is_empty(), dry.is_empty()) {
+            (_, true) => outside.clone(),
+            (true, false) => dry.clone(),
+            (false, false) => outside.iter().zip(&dry).map(|(o, d)| *o || *d).collect(),
+        };
         let formation = coverage::uniform_formation(&grid, cfg.aerials)?.positions;
         let aerial_positions = coverage::snap_inside(&grid, &excluded, &formation)
             .ok_or_else(|| TeamError::Config("the site's boundary leaves no cell of the grid inside it".into()))?;
@@ -155,6 +164,8 @@ impl Assimilator {
             cfg: cfg.clone(),
             grid,
             excluded,
+            outside,
+            dry,
             land: cfg.land.iter().map(|&c| c as usize).collect(),
             lattice: (0..grid.len()).filter(|&i| on_lattice[i]).collect(),
             on_lattice,

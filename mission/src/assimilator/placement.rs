@@ -115,10 +115,11 @@ impl Assimilator {
             let (x, y) = self.state.boat_positions[b];
             let clamp = |v: f64, n: usize| ((v / grid.cell_m).max(0.0) as usize).min(n - 1);
             let here = Cell::new(clamp(y, grid.rows), clamp(x, grid.cols));
-            let cells: Vec<usize> = grid
-                .disk(here, cfg.radius)
+            let room = self.setup.room();
+            let cells: Vec<usize> = room
+                .wet(grid.disk(here, cfg.radius))
                 .into_iter()
-                .filter(|&c| !self.setup.excluded.get(c).copied().unwrap_or(false))
+                .filter(|&c| !room.is_outside(c))
                 .collect();
             boats[b] = (!cells.is_empty()).then_some((cells, (here.row, here.col)));
         }
@@ -205,7 +206,7 @@ fn place_boats_over_the_horizon(
     let f = horizon::Forecast::of(v.at_sampling.basis(), &v.ahead).with_unmodelled(&unmodelled);
     let mut boats = vec![None; cfg.boats];
     let noise_var = (cfg.boat_sigma * cfg.boat_sigma).max(1e-12);
-    for c in horizon::plan_within(grid, &f, &fleet, cfg.radius, noise_var, &setup.excluded)? {
+    for c in horizon::plan_within(grid, &f, &fleet, cfg.radius, noise_var, setup.room())? {
         let b = free[c.boat];
         s.boat_positions[b] = grid.centre_m(c.centre);
         boats[b] = Some((c.cells, (c.centre.row, c.centre.col)));
@@ -220,22 +221,22 @@ fn place_boats_on_modes(
     s: &mut AssimilatorState,
     free: &[usize],
 ) -> Result<Vec<Option<BoatDisk>>, TeamError> {
-    let (cfg, grid, excluded) = (&setup.cfg, &setup.grid, &setup.excluded);
+    let (cfg, grid, room) = (&setup.cfg, &setup.grid, setup.room());
     let (_, basis) = s.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
     let disks: Vec<Vec<usize>> = match (free.len(), cfg.placement) {
         (0, _) => vec![],
-        (k, Placement::Qr) => qr::block_qr_within(faer::Mat::as_ref(basis), grid, k, cfg.radius, excluded)?
+        (k, Placement::Qr) => qr::block_qr_within(faer::Mat::as_ref(basis), grid, k, cfg.radius, room)?
             .into_iter()
             .map(|d| d.cells)
             .collect(),
-        (k, Placement::DOptimal) => qr::block_dopt_within(faer::Mat::as_ref(basis), grid, k, cfg.radius, excluded)?
+        (k, Placement::DOptimal) => qr::block_dopt_within(faer::Mat::as_ref(basis), grid, k, cfg.radius, room)?
             .into_iter()
             .map(|d| d.cells)
             .collect(),
-        (k, Placement::Random) => random_disks(grid, k, cfg.radius, excluded, &mut s.placement_rng),
+        (k, Placement::Random) => random_disks(grid, k, cfg.radius, room, &mut s.placement_rng),
         (_, Placement::Horizon) => return Err(TeamError::NotReady(Missing::Model)),
     };
-    let centres: Vec<(usize, usize)> = disks.iter().map(|d| centre_of(grid, d)).collect();
+    let centres: Vec<(usize, usize)> = disks.iter().map(|d| centre_of(grid, d, room)).collect();
     let targets: Vec<(f64, f64)> = centres.iter().map(|&(r, c)| grid.centre_m(Cell::new(r, c))).collect();
     let starts: Vec<(f64, f64)> = free.iter().map(|&b| s.boat_positions[b]).collect();
     let (assignment, _) = if free.is_empty() {
@@ -254,6 +255,14 @@ fn place_boats_on_modes(
 }
 
 impl Setup {
+    /// Where the boats' disks may go: inside the fence, centred on water.
+    fn room(&self) -> crate::sensing::Room<'_> {
+        crate::sensing::Room {
+            outside: &self.outside,
+            dry: &self.dry,
+        }
+    }
+
     /// Where the aerials' coverage goes: the temporal density of `model`'s modes, or (with
     /// horizon placement) the forecast's variance, floored; nothing outside the fence.
     fn aerial_density(&self, model: &DmdModel, forecast_variance: Option<&[f64]>) -> Result<Vec<f64>, TeamError> {
@@ -295,31 +304,46 @@ impl Setup {
     }
 }
 
-/// A disk's centre: the mean of its cells' rows and columns, rounded.
-fn centre_of(grid: &Grid, disk: &[usize]) -> (usize, usize) {
+/// A disk's centre, the boat's target: the mean of its cells' rows and columns, rounded; where
+/// that is dry (a disk wrapped round a headland), the disk's cell nearest it.
+fn centre_of(grid: &Grid, disk: &[usize], room: crate::sensing::Room<'_>) -> (usize, usize) {
     let (r, c) = disk.iter().fold((0.0, 0.0), |(r, c), &i| {
         (r + grid.cell(i).row as f64, c + grid.cell(i).col as f64)
     });
-    (
-        (r / disk.len() as f64).round() as usize,
-        (c / disk.len() as f64).round() as usize,
-    )
+    let (r, c) = (r / disk.len() as f64, c / disk.len() as f64);
+    let mean = ((r.round() as usize), (c.round() as usize));
+    if !room.is_dry(grid.index(Cell::new(mean.0, mean.1))) {
+        return mean;
+    }
+    let away = |i: &usize| (grid.cell(*i).row as f64 - r).hypot(grid.cell(*i).col as f64 - c);
+    disk.iter()
+        .min_by(|a, b| away(a).total_cmp(&away(b)).then(a.cmp(b)))
+        .map_or(mean, |&i| (grid.cell(i).row, grid.cell(i).col))
 }
 
-/// `m` random non-overlapping disks (rejection sampling; fewer if the grid is full).
-fn random_disks(grid: &Grid, m: usize, radius: f64, excluded: &[bool], rng: &mut ChaCha8Rng) -> Vec<Vec<usize>> {
-    let mut taken = if excluded.is_empty() {
-        vec![false; grid.len()]
-    } else {
-        excluded.to_vec()
-    };
+/// `m` random non-overlapping disks in `room` (rejection sampling; fewer if the grid is full).
+fn random_disks(
+    grid: &Grid,
+    m: usize,
+    radius: f64,
+    room: crate::sensing::Room<'_>,
+    rng: &mut ChaCha8Rng,
+) -> Vec<Vec<usize>> {
+    let mut taken: Vec<bool> = (0..grid.len()).map(|i| room.is_outside(i)).collect();
     let mut out = vec![];
-    for _ in 0..m * 200 {
+    // Open water first, then (where that left boats without a disk) disks reaching the coast.
+    let coastal_pass = if room.has_land() { m * 200 } else { 0 };
+    for draw in 0..m * 200 + coastal_pass {
         if out.len() == m {
             break;
         }
         let c = Cell::new(rng.random_range(0..grid.rows), rng.random_range(0..grid.cols));
-        let d = grid.disk(c, radius);
+        let whole = grid.disk(c, radius);
+        let coast = draw >= m * 200;
+        if room.is_dry(grid.index(c)) || (!coast && whole.iter().any(|&i| room.is_dry(i))) {
+            continue;
+        }
+        let d = room.wet(whole);
         if d.iter().all(|&i| !taken[i]) {
             d.iter().for_each(|&i| taken[i] = true);
             out.push(d);
