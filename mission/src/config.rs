@@ -532,6 +532,9 @@ impl MissionConfig {
     /// Parse and check a mission; every error is bad input (the binaries exit 2), on one line.
     pub fn from_toml(text: &str) -> Result<Self, ConfigError> {
         let mut cfg: Self = toml::from_str(text).map_err(|e| ConfigError::Toml(toml_error(text, &e)))?;
+        if !crate::team::gives_growth(text) {
+            cfg.team.aerial_growth_per_cell = crate::team::default_growth(cfg.team.aerial_sigma0);
+        }
         cfg.place_by_truth(text);
         keys::check_id("mission", &cfg.mission).map_err(ConfigError::MissionId)?;
         match (&cfg.truth, &cfg.field) {

@@ -60,7 +60,8 @@ pub struct TeamConfig {
     pub aerial_period: usize,
     /// Aerials keep every this-many-th cell (space rate).
     pub aerial_stride: usize,
-    /// Aerial noise std at the aerial, and its growth per cell of distance.
+    /// Aerial noise std at the aerial, and its growth per cell of distance (both in the field's
+    /// units; a file that gives no growth gets [`default_growth`] of its noise).
     pub aerial_sigma0: f64,
     pub aerial_growth_per_cell: f64,
     pub boats: usize,
@@ -103,6 +104,27 @@ pub struct TeamConfig {
 
 fn is_true(b: &bool) -> bool {
     *b
+}
+
+/// The aerial noise's growth per cell where a file does not give one: a twentieth of the noise
+/// at the aerial (the default mission's 0.0005 at 0.01, to the bit). A fixed growth in the
+/// field's units is no default: at 0.0005 a cell, a field of magnitude 1e-3 (a concentration,
+/// a field in other units) had aerial noise 75 times the `noise` it was given, at 15 cells
+/// (README, "A field in any units").
+pub fn default_growth(sigma0: f64) -> f64 {
+    sigma0 / 20.0
+}
+
+/// Whether the `[team]` table of the TOML `text` gives `aerial_growth_per_cell` itself.
+pub fn gives_growth(text: &str) -> bool {
+    toml::from_str::<toml::Table>(text)
+        .ok()
+        .and_then(|t| {
+            t.get("team")
+                .and_then(|t| t.as_table())
+                .map(|t| t.contains_key("aerial_growth_per_cell"))
+        })
+        .unwrap_or(false)
 }
 
 impl Default for TeamConfig {
@@ -233,6 +255,9 @@ impl TeamConfig {
         ];
         if nonneg.iter().any(|v| !(v.is_finite() && *v >= 0.0)) || !(self.radius.is_finite() && self.radius >= 0.0) {
             return bad("noise, radius and density floor must be finite and >= 0".into());
+        }
+        for (what, sigma) in [("aerial_sigma0", self.aerial_sigma0), ("boat_sigma", self.boat_sigma)] {
+            crate::process::units::check_noise(sigma).map_err(|why| TeamError::Config(format!("{what}: {why}")))?;
         }
         self.check_choices()?;
         if self.density_floor > 1.0 {

@@ -391,3 +391,68 @@ fn channels_narrower_than_a_disk_get_their_boats_and_a_short_file_is_refused() {
     assert_eq!(err.trim().lines().count(), 1, "{err}");
     assert!(err.contains("channels") && err.contains("init_steps 28"), "{err}");
 }
+
+/// A field in any units: the same field and noise in units 1e4 times and 1e-4 times the
+/// field's own give the same estimate in those units, to the step (every team's per-step MSE
+/// 1e16 times apart, relative 1e-9, and the same calibration). Before, the aerials' noise grew
+/// by a fixed 0.0005 a cell in whatever units the file had, so a field of magnitude 1e-4 had
+/// aerials 40 times noisier than its `noise`. Units whose values the variance floor or the
+/// squares' range cannot hold are refused with the factor to rescale by (exit 2).
+#[test]
+fn a_field_in_other_units_gives_the_same_estimate_in_those_units_or_is_refused() {
+    let dir = hetfleet_tests::scratch("units");
+    let write = |name: &str, scale: f64| {
+        let npy = dir.join(format!("{name}.npy"));
+        let made = std::process::Command::new("python3")
+            .args([
+                "-c",
+                "import numpy as np, sys\n\
+                 t, r, c = np.meshgrid(np.arange(30), np.arange(16), np.arange(32), indexing='ij')\n\
+                 x = np.sin(0.2 * c - 0.3 * t) * np.cos(0.25 * r + 0.1 * t) + 0.2 * np.cos(0.5 * r - 0.2 * t)\n\
+                 np.save(sys.argv[1], x * float(sys.argv[2]))",
+                npy.to_str().unwrap(),
+                &scale.to_string(),
+            ])
+            .output()
+            .unwrap();
+        assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
+        format!(
+            "seed = 3\nseeds = [1]\nframes = 30\nradius = 2.0\neig_trials = 0\nforgetting = []\n\
+             [team]\naerials = 2\nboats = 3\ninit_steps = 10\nrank = \"4\"\n\
+             [[row]]\ndataset = {npy:?}\nav_time = 1\nmv_time = 5\nav_space = 3\nmv_space = 1\nnoise = {}\n",
+            0.1 * scale
+        )
+    };
+    let per_step = |rep: &std::path::Path| -> Vec<(f64, f64)> {
+        let text = std::fs::read_to_string(rep.join("per_step.csv")).unwrap();
+        text.lines()
+            .skip(1)
+            .map(|l| {
+                let f: Vec<&str> = l.split(',').collect();
+                (f[5].parse().unwrap(), f[6].parse().unwrap_or(f64::NAN))
+            })
+            .collect()
+    };
+    let mut runs = vec![];
+    for (name, scale) in [("large", 8192.0), ("small", 1.0 / 8192.0)] {
+        let (out, rep) = hetfleet_tests::experiment_file(&dir, name, &write(name, scale));
+        assert!(out.status.success(), "{name}: {}", String::from_utf8_lossy(&out.stderr));
+        runs.push(per_step(&rep));
+    }
+    assert_eq!(runs[0].len(), runs[1].len());
+    assert!(!runs[0].is_empty());
+    for ((large, cal_l), (small, cal_s)) in runs[0].iter().zip(&runs[1]) {
+        assert!(
+            (large / small / 8192f64.powi(4) - 1.0).abs() < 1e-9,
+            "MSE {large} and {small}"
+        );
+        assert!(cal_l.is_nan() && cal_s.is_nan() || (cal_l - cal_s).abs() < 1e-9 * cal_l.abs().max(1.0));
+    }
+    for (name, scale, says) in [("tiny", 1e-7, "multiply it by 1e3"), ("huge", 1e18, "divide it by 1e4")] {
+        let (out, _) = hetfleet_tests::experiment_file(&dir, name, &write(name, scale));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{name}: {err}");
+        assert_eq!(err.trim().lines().count(), 1, "{err}");
+        assert!(err.contains(&format!("{name}.npy")) && err.contains(says), "{err}");
+    }
+}

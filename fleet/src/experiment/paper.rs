@@ -95,6 +95,10 @@ pub struct ExperimentConfig {
     /// reading, default) or each pair by its age (`pair`, odmd's).
     #[serde(default)]
     pub forgetting_unit: crate::dmd::ForgettingUnit,
+    /// Whether `[team]` gives `aerial_growth_per_cell` (in the field's units, for every row);
+    /// otherwise each row's is [`crate::mission::team::default_growth`] of its `noise`.
+    #[serde(skip)]
+    pub growth_given: bool,
 }
 
 /// `[team]` keys an experiment sets elsewhere, and where: a value there would be ignored.
@@ -166,6 +170,10 @@ impl ExperimentConfig {
             bail!("the experiment has no [[row]]");
         }
         refuse_row_keys(text)?;
+        let cfg = Self {
+            growth_given: crate::mission::team::gives_growth(text),
+            ..cfg
+        };
         for (i, r) in cfg.rows.iter().enumerate() {
             let r_ = format!("[[row]] {} ({})", i + 1, r.name());
             if r.av_time == 0 || r.mv_time == 0 || r.av_space == 0 || r.mv_space == 0 || r.av_space % r.mv_space != 0 {
@@ -235,6 +243,10 @@ impl ExperimentConfig {
             boat_period: r.mv_time,
             aerial_stride: r.av_space / r.mv_space,
             aerial_sigma0: r.noise,
+            aerial_growth_per_cell: match self.growth_given {
+                true => self.team.aerial_growth_per_cell,
+                false => crate::mission::team::default_growth(r.noise),
+            },
             boat_sigma: r.noise,
             radius: self.radius / r.mv_space as f64,
             placement,
@@ -585,6 +597,8 @@ fn check_rows(cfg: &ExperimentConfig, truths: &[FieldSeries]) -> anyhow::Result<
         .into_iter()
         .chain(cfg.extra_placements.iter().copied());
     for (r, truth) in cfg.rows.iter().zip(truths) {
+        crate::process::units::check_noise(r.noise)
+            .map_err(|why| crate::exit::bad_input(anyhow::anyhow!("{}: {why}", r.name())))?;
         for p in placements.clone() {
             team::check(&cfg.team_for_seed(r, p, cfg.seeds()[0]), truth)
                 .map_err(|e| crate::exit::bad_input(anyhow::anyhow!("{}: {e}", r.name())))?;

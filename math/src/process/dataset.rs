@@ -40,6 +40,24 @@ pub enum DatasetError {
     },
     #[error("{path}: {why}")]
     Holes { path: String, why: String },
+    /// Values in units the estimator does not hold exactly ([`super::units`]).
+    #[error("{path}: {why}")]
+    Units { path: String, why: String },
+}
+
+/// `field` if its values are in units the estimator holds exactly ([`super::units`]).
+pub fn in_units(field: FieldSeries, path: &Path) -> Result<FieldSeries, DatasetError> {
+    let mut spread = super::units::Spread::default();
+    for col in field.snapshots.col_iter() {
+        col.iter().for_each(|&v| spread.add(v));
+    }
+    match spread.check() {
+        Ok(()) => Ok(field),
+        Err(why) => Err(DatasetError::Units {
+            path: path.display().to_string(),
+            why,
+        }),
+    }
 }
 
 /// Load a truth `.npy`: as [`load`], except that a NaN is a value the truth does not have

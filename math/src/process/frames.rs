@@ -112,8 +112,10 @@ impl Frames {
         let mut everywhere = vec![true; n];
         let mut all_missing = true;
         let mut empty_frame = None;
+        let mut spread = super::units::Spread::default();
         for k in 0..self.frames {
             let x = self.frame(k)?;
+            x.iter().for_each(|&v| spread.add(v));
             if let Some(i) = x.iter().position(|v| v.is_infinite()) {
                 let path = self.path_name();
                 return Err(NpyError::NonFinite {
@@ -142,6 +144,10 @@ impl Frames {
                 why,
             });
         }
+        spread.check().map_err(|why| DatasetError::Units {
+            path: self.path_name(),
+            why,
+        })?;
         Ok((0..n).filter(|&i| everywhere[i]).map(|i| i as u32).collect())
     }
 

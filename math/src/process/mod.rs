@@ -8,6 +8,7 @@ pub mod netcdf;
 pub mod plasma;
 pub mod synthetic;
 pub mod truth;
+pub mod units;
 
 use faer::Mat;
 

@@ -208,16 +208,18 @@ impl TruthSource {
                 let mut sim = PlasmaCloud::new(p).map_err(sim_err)?;
                 sim.run(frames, progress).map_err(sim_err)
             }
-            Self::Dataset(path) => super::dataset::load_truth(path, 1.0).map_err(|source| TruthError::Dataset {
-                path: path.clone(),
-                source,
-            }),
-            Self::NetCdf { path, variable, select } => {
-                super::dataset::load_netcdf(path, variable, select).map_err(|source| TruthError::Dataset {
+            Self::Dataset(path) => super::dataset::load_truth(path, 1.0)
+                .and_then(|f| super::dataset::in_units(f, path))
+                .map_err(|source| TruthError::Dataset {
                     path: path.clone(),
                     source,
-                })
-            }
+                }),
+            Self::NetCdf { path, variable, select } => super::dataset::load_netcdf(path, variable, select)
+                .and_then(|f| super::dataset::in_units(f, path))
+                .map_err(|source| TruthError::Dataset {
+                    path: path.clone(),
+                    source,
+                }),
         }
     }
 }
