@@ -228,6 +228,14 @@ impl TeamConfig {
         Ok(())
     }
 
+    /// The sensors' noises in units the estimator holds ([`crate::process::units::check_noise`]).
+    fn check_noise(&self) -> Result<(), TeamError> {
+        for (what, sigma) in [("aerial_sigma0", self.aerial_sigma0), ("boat_sigma", self.boat_sigma)] {
+            crate::process::units::check_noise(sigma).map_err(|why| TeamError::Config(format!("{what}: {why}")))?;
+        }
+        Ok(())
+    }
+
     pub fn validate(&self, grid: &Grid, frames: usize) -> Result<(), TeamError> {
         let bad = |m: String| Err(TeamError::Config(m));
         if self.aerial_period == 0 || self.boat_period == 0 || self.aerial_stride == 0 {
@@ -256,9 +264,7 @@ impl TeamConfig {
         if nonneg.iter().any(|v| !(v.is_finite() && *v >= 0.0)) || !(self.radius.is_finite() && self.radius >= 0.0) {
             return bad("noise, radius and density floor must be finite and >= 0".into());
         }
-        for (what, sigma) in [("aerial_sigma0", self.aerial_sigma0), ("boat_sigma", self.boat_sigma)] {
-            crate::process::units::check_noise(sigma).map_err(|why| TeamError::Config(format!("{what}: {why}")))?;
-        }
+        self.check_noise()?;
         self.check_choices()?;
         if self.density_floor > 1.0 {
             return bad("density_floor must be in [0, 1]".into());
