@@ -48,7 +48,9 @@ pub enum Refusal {
     WrongType,
     /// A time, position or value that is not a finite number.
     NotFinite,
-    /// `sigma` not a positive finite number.
+    /// `sigma` not a finite number of at least [`crate::process::units::SMALLEST_NOISE`] (below,
+    /// the estimator's variance floor is not negligible beside it: a reading so sure of itself
+    /// would be taken as exact).
     BadSigma,
     /// A line longer than [`MAX_LINE`].
     Oversized,
@@ -92,8 +94,9 @@ pub fn parse_line(line: &[u8]) -> Result<Reading, (Refusal, String)> {
         return Err((Refusal::OutsideSite, format!("({lat}, {lon}) is not a WGS 84 position")));
     }
     if let Some(s) = r.sigma {
-        if !(s.is_finite() && s > 0.0) {
-            return Err((Refusal::BadSigma, format!("sigma {s} must be > 0")));
+        if !(s.is_finite() && s >= crate::process::units::SMALLEST_NOISE) {
+            let least = crate::process::units::SMALLEST_NOISE;
+            return Err((Refusal::BadSigma, format!("sigma {s} must be at least {least:e}")));
         }
     }
     Ok(r)
@@ -149,6 +152,12 @@ mod tests {
             kind(r#"{"t":1,"lat":0,"lon":0,"value":1,"sigma":-1}"#),
             Refusal::BadSigma
         );
+        // A sigma the variance floor cannot hold beside it would make the reading exact.
+        assert_eq!(
+            kind(r#"{"t":1,"lat":0,"lon":0,"value":1,"sigma":1e-9}"#),
+            Refusal::BadSigma
+        );
+        assert!(parse_line(br#"{"t":1,"lat":0,"lon":0,"value":1,"sigma":1e-5}"#).is_ok());
         let long = format!(
             r#"{{"t":1,"lat":0,"lon":0,"value":1,"pad":"{}"}}"#,
             "x".repeat(MAX_LINE)
