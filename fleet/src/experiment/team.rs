@@ -144,12 +144,18 @@ pub fn run(
 /// Whether `cfg` can run on `truth` as [`run`] would run it (its grid, its frames, its land):
 /// the same check the team makes when it starts, made before any run.
 pub fn check(cfg: &TeamConfig, truth: &FieldSeries) -> Result<(), TeamError> {
+    let (grid, cfg) = on_truth(cfg, truth)?;
+    cfg.validate(&grid, truth.frames())
+}
+
+/// The grid of `truth` and `cfg` with the truth's land: what a team runs on.
+fn on_truth(cfg: &TeamConfig, truth: &FieldSeries) -> Result<(Grid, TeamConfig), TeamError> {
     let grid = Grid::new(truth.rows, truth.cols, 1.0)?;
     let cfg = TeamConfig {
         land: truth.land(),
         ..cfg.clone()
     };
-    cfg.validate(&grid, truth.frames())
+    Ok((grid, cfg))
 }
 
 /// [`run`] with one vehicle's sensor failing ([`super::faults::Fault`]); with `withhold`, its
@@ -296,12 +302,8 @@ fn run_placing(
     fault: Option<(&super::faults::Fault, bool)>,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<TeamOutcome, TeamError> {
-    let grid = Grid::new(truth.rows, truth.cols, 1.0)?;
-    let frames = truth.frames();
-    let cfg = &TeamConfig {
-        land: truth.land(),
-        ..cfg.clone()
-    };
+    let (grid, cfg) = on_truth(cfg, truth)?;
+    let (cfg, frames) = (&cfg, truth.frames());
     let mut server = ServerCore::new(cfg, grid, frames)?.with_aerial_history();
     if fault.is_some() {
         server = server.with_screen_information();

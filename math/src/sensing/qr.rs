@@ -440,23 +440,23 @@ pub(crate) fn blocked(grid: &Grid, room: Room<'_>) -> Result<Vec<f64>, SensingEr
         .collect())
 }
 
-/// The overlap test's sums for the disks' two passes ([`Room`]): in open water, `covered` and
-/// the land both taken; reaching the coast, `covered` taken and land centres barred.
-fn overlap_sums(grid: Grid, covered: &[f64], radius: f64, room: Room<'_>, coast: bool) -> DiskSums {
-    match (coast, room.has_land()) {
-        (true, _) => DiskSums::barring(grid, covered, radius, room.dry),
-        (false, false) => DiskSums::new(grid, covered, radius),
-        (false, true) => DiskSums::new(grid, &with_land(covered, room), radius),
-    }
+/// The overlap test's weights for the disks' first pass, in open water ([`Room`]): the cells
+/// beyond the fence and the land taken.
+fn open_water(grid: &Grid, room: Room<'_>) -> Result<Vec<f64>, SensingError> {
+    let mut covered = blocked(grid, room)?;
+    (0..grid.len())
+        .filter(|&i| room.is_dry(i))
+        .for_each(|i| covered[i] = 1.0);
+    Ok(covered)
 }
 
-/// `covered` with the land taken as well.
-fn with_land(covered: &[f64], room: Room<'_>) -> Vec<f64> {
-    covered
-        .iter()
-        .enumerate()
-        .map(|(i, &c)| if room.is_dry(i) { 1.0 } else { c })
-        .collect()
+/// The second pass, reaching the coast: the land no longer taken in `covered` (no disk took a
+/// dry cell: a disk holds only its wet ones), its centres barred instead.
+fn to_coast(grid: Grid, covered: &mut [f64], radius: f64, room: Room<'_>) -> DiskSums {
+    (0..covered.len())
+        .filter(|&i| room.is_dry(i))
+        .for_each(|i| covered[i] = 0.0);
+    DiskSums::barring(grid, covered, radius, room.dry)
 }
 
 fn check(phi: MatRef<'_, f64>, grid: &Grid, m: usize, radius: f64) -> Result<(), SensingError> {
@@ -697,9 +697,9 @@ pub fn block_qr_within(
     let mut c = Coords::new(phi);
     let mut norms = c.norms();
     let original = DiskSums::new(*grid, &norms, radius);
-    let mut covered = blocked(grid, room)?;
+    let mut covered = open_water(grid, room)?;
     let mut coast = false;
-    let mut taken = overlap_sums(*grid, &covered, radius, room, coast);
+    let mut taken = DiskSums::new(*grid, &covered, radius);
     let mut total: f64 = norms.iter().sum();
     let first = total;
     let mut ranked: Option<Option<Ranked>> = None;
@@ -720,7 +720,7 @@ pub fn block_qr_within(
             // No open water left for a disk: the rest reach the coast (centres found touching
             // land in open water may be valid now, so they are ranked again).
             (coast, ranked) = (true, None);
-            taken = overlap_sums(*grid, &covered, radius, room, coast);
+            taken = to_coast(*grid, &mut covered, radius, room);
             continue;
         };
         let cells = room.wet(grid.disk(centre, radius));
@@ -729,12 +729,7 @@ pub fn block_qr_within(
             covered[p] = 1.0;
         }
         let reach = radius.max(0.0).floor() as usize;
-        let rows = centre.row.saturating_sub(reach)..centre.row + reach + 1;
-        match (coast, room.has_land()) {
-            // In open water the land counts as taken too ([`overlap_sums`]).
-            (false, true) => taken.renew_rows(&with_land(&covered, room), rows),
-            _ => taken.renew_rows(&covered, rows),
-        }
+        taken.renew_rows(&covered, centre.row.saturating_sub(reach)..centre.row + reach + 1);
         let share = if total > 0.0 { weight / total } else { 0.0 };
         if !exhausted {
             // Deflate by the block's leading left singular vector.
@@ -774,7 +769,7 @@ pub fn block_dopt_within(
     let trace: f64 = (0..r).map(|j| phi.col(j).squared_norm_l2()).sum();
     let eps = 1e-9 * trace / r as f64;
     let mut info = Mat::<f64>::identity(r, r) * faer::Scale(eps);
-    let mut covered = blocked(grid, room)?;
+    let mut covered = open_water(grid, room)?;
     let mut coast = false;
     let mut out = vec![];
     let packed: Vec<(usize, usize)> = (0..r).flat_map(|a| (a..r).map(move |b| (a, b))).collect();
@@ -796,7 +791,10 @@ pub fn block_dopt_within(
                 )
             })
             .collect();
-        let taken = overlap_sums(*grid, &covered, radius, room, coast);
+        let taken = match coast {
+            true => DiskSums::barring(*grid, &covered, radius, room.dry),
+            false => DiskSums::new(*grid, &covered, radius),
+        };
         let gain = |cell: Cell| -> f64 {
             let mut b = Mat::<f64>::identity(r, r);
             for (k, &(i, j)) in packed.iter().enumerate() {
@@ -816,6 +814,9 @@ pub fn block_dopt_within(
                 break;
             }
             coast = true; // no open water left for a disk: the rest reach the coast
+            (0..covered.len())
+                .filter(|&i| room.is_dry(i))
+                .for_each(|i| covered[i] = 0.0);
             continue;
         };
         let cells = room.wet(grid.disk(centre, radius));
