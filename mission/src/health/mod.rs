@@ -28,7 +28,9 @@
 //!   and column), then as a whole over the quadrants kept, against the model's forecast on the
 //!   scale of the healthy frames' (robust: 1.4826 times the median absolute mean of the recent
 //!   ones, so a faulty frame cannot set the scale it is judged on); beyond [`FRAME_GATE`] the
-//!   quadrant, or the frame, is refused.
+//!   quadrant, or the frame, is refused. A quadrant's scale is widened in a step whose other
+//!   quadrants (its frame's and the other aerials') all depart from the forecast more than the
+//!   history says: a step unlike any the model has seen, which is not a fault ([`QuadrantScale`]).
 //!
 //! A boat marked for a bias is recalibrated, not dropped: its offset from the aerials since it
 //! was last `ok` (the bias test's own sums) is taken off its values and the offset's variance
@@ -87,6 +89,10 @@ pub const SUSPECT_INFLATION: f64 = 4.0;
 /// How many recent values a scale is the median of, and how many it needs first.
 const WINDOW: usize = 2000;
 const WARM_UP: usize = 12;
+/// Quadrants a step needs besides the one judged before they widen its gate
+/// ([`QuadrantScale`]): one aerial's frame (a fleet of one aerial has three, and is judged on the
+/// history alone).
+const WITNESSES: usize = 4;
 /// A step is clean when its bias z is below this and no value of it was refused.
 const CLEAN_Z: f64 = 2.0;
 
@@ -584,6 +590,7 @@ impl Screen {
             return samples.into_iter().map(|(_, s)| s).collect();
         };
         let (frame_sd, quadrant_sd) = (self.frame_bias.sd(), self.quadrant_bias.sd());
+        let departures = self.departures(grid, &samples, forecast);
         let mut out = vec![];
         for (v, mut s) in samples {
             if s.cells.is_empty() {
@@ -591,7 +598,15 @@ impl Screen {
                 // of its sensor: not a frame refused, nor a clean one.
                 continue;
             }
-            let test = FrameTest::of(grid, &s, forecast, frame_sd, quadrant_sd);
+            let quadrant_sd = QuadrantScale {
+                history: quadrant_sd,
+                others: departures
+                    .iter()
+                    .filter(|(w, _)| *w != v)
+                    .map(|(_, m)| m.abs())
+                    .collect(),
+            };
+            let test = FrameTest::of(grid, &s, forecast, frame_sd, &quadrant_sd);
             let check = Check {
                 refused: test.refused.iter().filter(|r| **r).count(),
                 frame_refused: test.whole_refused || test.refused.iter().any(|r| *r),
@@ -627,6 +642,68 @@ impl Screen {
     }
 }
 
+impl Screen {
+    /// Each aerial's quadrants' mean residuals from the forecast this step, by vehicle (not the
+    /// excluded ones': their frames witness nothing), for [`QuadrantScale`].
+    fn departures(&self, grid: &Grid, samples: &[Tagged], forecast: &Forecast) -> Vec<(usize, f64)> {
+        let excluded = |v: &usize| self.sensors.get(v).is_some_and(|s| s.health == Health::Excluded);
+        samples
+            .iter()
+            .filter(|(v, _)| !excluded(v))
+            .flat_map(|(v, s)| {
+                let residual = residuals(s, forecast);
+                quadrant_means(&residual, &quadrants(grid, &s.cells))
+                    .into_iter()
+                    .flatten()
+                    .map(move |m| (*v, m))
+            })
+            .collect()
+    }
+}
+
+/// A quadrant's scale: the healthy quadrants' history, widened by this step's own departure
+/// from the forecast as the step's other quadrants see it.
+///
+/// Why: in a step unlike any the model has seen (an extreme winter, a storm, an El Nino) the
+/// whole field departs from the forecast at once, and every aerial's quadrants with it. On the
+/// history's scale alone a healthy quadrant is then refused, and the map there is the filter's
+/// own, worse than the aerials' values it refused (the 500 hPa height less its mean: 39 healthy
+/// quadrants refused in one winter of the 10 seeds, and the fused map worse than the aerials').
+/// A fault does not move the step's other quadrants: a glare on part of a frame leaves the
+/// frame's other quadrants and the other aerials' frames as they are, and a frame over-exposed
+/// whole, which raises all four of its own, is outvoted by the other aerials' (the median of
+/// the others) and is the frame test's to refuse, on the history's scale alone.
+struct QuadrantScale {
+    history: Option<f64>,
+    /// The other aerials' quadrants' absolute mean residuals this step.
+    others: Vec<f64>,
+}
+
+impl QuadrantScale {
+    /// The scale quadrant `i` of a frame whose quadrants' mean residuals are `means` is judged
+    /// on: the history's, times 1.4826 times the median absolute mean residual of the step's
+    /// other quadrants (this frame's and the other aerials') over it when that is larger and
+    /// there are at least [`WITNESSES`] of them.
+    fn of(&self, means: &[Option<f64>], i: usize) -> Option<f64> {
+        let history = self.history?;
+        let mut witnesses = self.others.clone();
+        let own = means.iter().enumerate().filter(|(j, _)| *j != i);
+        witnesses.extend(own.filter_map(|(_, m)| m.map(f64::abs)));
+        if witnesses.len() < WITNESSES {
+            return Some(history);
+        }
+        Some(history.max(1.4826 * median(&mut witnesses)))
+    }
+}
+
+/// Each quadrant's mean residual (`None`: a quadrant of no cell).
+fn quadrant_means(residual: &[f64], quadrants: &[Vec<usize>; 4]) -> Vec<Option<f64>> {
+    quadrants
+        .iter()
+        .map(|q| mean(&q.iter().map(|&i| residual[i]).collect::<Vec<_>>()))
+        .collect()
+}
+
 /// One aerial frame's test: by quadrant first (a glare on part of the frame loses that part),
 /// then the frame as a whole over the quadrants kept, each mean residual from the forecast on
 /// the healthy frames' scale.
@@ -641,17 +718,13 @@ struct FrameTest {
 }
 
 impl FrameTest {
-    fn of(grid: &Grid, s: &Sample, forecast: &Forecast, frame_sd: Option<f64>, quadrant_sd: Option<f64>) -> Self {
+    fn of(grid: &Grid, s: &Sample, forecast: &Forecast, frame_sd: Option<f64>, quadrant_sd: &QuadrantScale) -> Self {
         let residual = residuals(s, forecast);
         let quadrants = quadrants(grid, &s.cells);
-        let means: Vec<Option<f64>> = quadrants
-            .iter()
-            .map(|q| mean(&q.iter().map(|&i| residual[i]).collect::<Vec<_>>()))
-            .collect();
+        let means = quadrant_means(&residual, &quadrants);
         let beyond = |m: f64, sd: Option<f64>| sd.is_some_and(|sd| (m / sd).abs() > FRAME_GATE);
-        let refused: Vec<bool> = means
-            .iter()
-            .map(|m| m.is_some_and(|m| beyond(m, quadrant_sd)))
+        let refused: Vec<bool> = (0..means.len())
+            .map(|i| means[i].is_some_and(|m| beyond(m, quadrant_sd.of(&means, i))))
             .collect();
         let kept: Vec<f64> = quadrants
             .iter()
@@ -1345,6 +1418,39 @@ mod tests {
                 .len(),
             50
         );
+    }
+
+    /// In a step unlike any the model has seen (an extreme winter) the whole field departs
+    /// from the forecast, and every aerial's frame with it: the other aerials witness it, and no
+    /// quadrant is refused (on the history's scale alone, 3 of the 8 would be). One aerial's
+    /// glare at an ordinary step is still refused, and the other aerial's frame kept whole.
+    #[test]
+    fn a_step_where_the_whole_field_departs_refuses_no_quadrant_and_a_glare_is_still_refused() {
+        let mut w = World::new(8);
+        let mut screen = Screen::default();
+        let forecast: HashMap<usize, f64> = w.truth.iter().copied().enumerate().collect();
+        let quadrant = |c: u32| usize::from(c / 30 >= 15) * 2 + usize::from(c % 30 >= 15);
+        let frame = |w: &mut World, k: u64, offsets: [f64; 4]| w.frame(k, |c, v| v + offsets[quadrant(c)]);
+        let both = |w: &mut World, k: u64, offsets: [[f64; 4]; 2]| {
+            vec![(0, frame(w, k, offsets[0])), (1, frame(w, k, offsets[1]))]
+        };
+        let wander = Normal::new(0.0, 10.0 * SIGMA).unwrap();
+        for k in 0..40 {
+            let offsets = [0; 4].map(|_| wander.sample(&mut w.rng));
+            let frames = both(&mut w, k, [offsets; 2]);
+            assert_eq!(screen.aerials(&w.grid, k, frames, Some(&forecast)).len(), 2);
+        }
+        let sd = screen.quadrant_bias.sd().unwrap();
+        let extreme = [8.0, -8.0, 6.0, -4.0].map(|z| z * sd);
+        let frames = both(&mut w, 40, [extreme; 2]);
+        let kept = screen.aerials(&w.grid, 40, frames, Some(&forecast));
+        assert_eq!(kept.iter().map(|s| s.cells.len()).collect::<Vec<_>>(), [100, 100]);
+        assert_eq!((screen.counts.frames_refused, screen.counts.quadrants_refused), (0, 0));
+        let glare = [8.0 * sd, 8.0 * sd, 0.0, 0.0];
+        let frames = both(&mut w, 41, [glare, [0.0; 4]]);
+        let kept = screen.aerials(&w.grid, 41, frames, Some(&forecast));
+        assert_eq!(kept.iter().map(|s| s.cells.len()).collect::<Vec<_>>(), [50, 100]);
+        assert_eq!((screen.counts.frames_refused, screen.counts.quadrants_refused), (0, 2));
     }
 
     /// A frame of no cell (an aerial off the site: its return to launch, a climb) is neither
