@@ -562,16 +562,23 @@ impl ModalFilter {
     }
 
     /// Rescale the detail's variance at `cells` by a [`Self::detail_fit`] ratio: by its square
-    /// root, clamped to `[1/2, 2]`; growing, never past `cap` (the field's own variance; a
-    /// variance already above it is not raised, nor lowered to it: a flat field's cap of 0
-    /// must not zero the detail). A damped feedback (adaptive covariance inflation): the next
-    /// fit is taken against the rescaled variance, so the factor settles at 1 when the
-    /// variance is right, and one step moves it by at most 2x, so it cannot run away.
+    /// root, shrinking by at most 2x a step; growing, never past `cap` (the field's own
+    /// variance; a variance already above it is not raised, nor lowered to it: a flat field's
+    /// cap of 0 must not zero the detail). A damped feedback (adaptive covariance inflation):
+    /// the next fit is taken against the rescaled variance, so the factor settles at 1 when
+    /// the variance is right; the square root closes half the (logarithmic) distance a step,
+    /// so it does not overshoot, and the cap keeps it from running away.
+    ///
+    /// Growing is not limited to 2x a step (it was, until 2026-12-02): a field that changes at
+    /// once (a calm start, then the event; a first fit on frames unlike the rest) left the
+    /// filter 10,000x surer of its forecast than the lattice said, and at 2x a step it took 13
+    /// steps to believe the aerials, with a map 35x worse than theirs meanwhile; by the square
+    /// root alone it takes 4.
     pub fn rescale_detail(&mut self, ratio: f64, cap: f64, cells: impl IntoIterator<Item = usize>) {
         if !ratio.is_finite() {
             return;
         }
-        let factor = ratio.clamp(0.25, 4.0).sqrt();
+        let factor = ratio.max(0.25).sqrt();
         for c in cells {
             if let Some(v) = self.detail_var.get_mut(c) {
                 *v = if factor > 1.0 {
@@ -584,8 +591,9 @@ impl ModalFilter {
         }
     }
 
-    /// Raise the model error by a [`Self::detail_fit`] ratio above 1 (by its square root, at
-    /// most 2x, never past `cap` nor lowered to it); a ratio of 1 or less changes nothing.
+    /// Raise the model error by a [`Self::detail_fit`] ratio above 1 (by its square root, never
+    /// past `cap` nor lowered to it; not limited to 2x a step, as [`Self::rescale_detail`]
+    /// says why); a ratio of 1 or less changes nothing.
     ///
     /// The detail's forecast variance relaxes to the model error at the rate `1 - rho^2` a
     /// step ([`Self::predict`]), so at a low persistence (a field whose winters are
@@ -600,7 +608,7 @@ impl ModalFilter {
         if !(ratio > 1.0) || !ratio.is_finite() {
             return;
         }
-        self.model_error = grown(self.model_error, ratio.min(4.0).sqrt(), cap);
+        self.model_error = grown(self.model_error, ratio.sqrt(), cap);
     }
 
     /// Estimate the detail's persistence from a source that looks at many cells every step
@@ -1285,6 +1293,25 @@ mod tests {
         assert_eq!(f.model_error, 1.0);
         f.raise_model_error(16.0, 1.5);
         assert_eq!(f.model_error, 1.5);
+    }
+
+    /// A field that changes at once: the detail's variance and the model error 10,000x too
+    /// small (a first fit on calm frames, then the event). The lattice's fit catches up within
+    /// 4 steps (its ratio under 2); growing by at most 2x a step, as until 2026-12-02, took 13.
+    #[test]
+    fn a_variance_ten_thousand_times_too_small_is_caught_up_in_four_steps() {
+        let n = 400;
+        let (ratios, _) = white_detail_fits(1e-4, 24, |f, ratio| {
+            f.rescale_detail(ratio, 1e6, 0..n);
+            f.raise_model_error(ratio, 1e6);
+        });
+        let caught = ratios.iter().position(|r| *r < 2.0).unwrap();
+        println!("fit ratios {:.1?}: under 2 at step {caught}", &ratios[..6]);
+        assert!(caught <= 4, "under 2 only at step {caught}");
+        assert!(
+            ratios[caught..].iter().all(|r| *r < 2.0),
+            "and stays there: {ratios:.2?}"
+        );
     }
 
     #[test]
