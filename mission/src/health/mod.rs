@@ -591,22 +591,27 @@ impl Screen {
         };
         let (frame_sd, quadrant_sd) = (self.frame_bias.sd(), self.quadrant_bias.sd());
         let departures = self.departures(grid, &samples, forecast);
-        let mut out = vec![];
-        for (v, mut s) in samples {
-            if s.cells.is_empty() {
+        let tests: Vec<Option<FrameTest>> = samples
+            .iter()
+            .map(|(v, s)| {
                 // A frame of no cell (the aerial saw none of the site that step) says nothing
                 // of its sensor: not a frame refused, nor a clean one.
-                continue;
-            }
-            let quadrant_sd = QuadrantScale {
-                history: quadrant_sd,
-                others: departures
-                    .iter()
-                    .filter(|(w, _)| *w != v)
-                    .map(|(_, m)| m.abs())
-                    .collect(),
-            };
-            let test = FrameTest::of(grid, &s, forecast, frame_sd, &quadrant_sd);
+                let quadrant_sd = QuadrantScale {
+                    history: quadrant_sd,
+                    others: departures
+                        .iter()
+                        .filter(|(w, _)| w != v)
+                        .map(|(_, m)| m.abs())
+                        .collect(),
+                };
+                (!s.cells.is_empty()).then(|| FrameTest::of(grid, s, forecast, frame_sd, &quadrant_sd))
+            })
+            .collect();
+        let forecast_failed = self.forecast_failed(&samples, &tests);
+        let mut out = vec![];
+        for ((v, mut s), test) in samples.into_iter().zip(tests) {
+            let Some(mut test) = test else { continue };
+            test.whole_refused &= !forecast_failed;
             let check = Check {
                 refused: test.refused.iter().filter(|r| **r).count(),
                 frame_refused: test.whole_refused || test.refused.iter().any(|r| *r),
@@ -643,6 +648,32 @@ impl Screen {
 }
 
 impl Screen {
+    /// Whether every aerial's frame of the step (two or more, of sensors not excluded) is
+    /// refused as a whole, all departing from the forecast the same way: then the forecast has
+    /// failed, not every camera at once, and no frame is refused for it.
+    ///
+    /// Why: a field that shifts (a new level, a regime the model has not seen) departs from the
+    /// forecast in every frame; refused, none of them reaches the model, which then never
+    /// learns the shift, and every later frame is refused too (the 500 hPa height 300 m higher
+    /// from its 36th winter: 120 healthy frames refused a seed, the aerials marked, the fused map
+    /// 390x worse than with the tests off). A fault is one sensor's: an over-exposed camera is
+    /// refused while another aerial's frame agrees with the forecast. A fleet of one aerial has
+    /// no witness and is judged on the history alone.
+    fn forecast_failed(&self, samples: &[Tagged], tests: &[Option<FrameTest>]) -> bool {
+        let excluded = |v: &usize| self.sensors.get(v).is_some_and(|s| s.health == Health::Excluded);
+        let judged: Vec<&FrameTest> = samples
+            .iter()
+            .zip(tests)
+            .filter(|((v, _), _)| !excluded(v))
+            .filter_map(|(_, t)| t.as_ref())
+            .collect();
+        let signs: Vec<f64> = judged.iter().filter_map(|t| t.departure().map(f64::signum)).collect();
+        judged.len() >= 2
+            && judged.iter().all(|t| t.whole_refused)
+            && signs.len() == judged.len()
+            && signs.iter().all(|&g| g == signs[0])
+    }
+
     /// Each aerial's quadrants' mean residuals from the forecast this step, by vehicle (not the
     /// excluded ones': their frames witness nothing), for [`QuadrantScale`].
     fn departures(&self, grid: &Grid, samples: &[Tagged], forecast: &Forecast) -> Vec<(usize, f64)> {
@@ -741,6 +772,13 @@ impl FrameTest {
             frame,
             whole_refused,
         }
+    }
+
+    /// The frame's mean departure from the forecast: over the quadrants kept, or over all of
+    /// them when every one is refused (`None`: no quadrant has a cell).
+    fn departure(&self) -> Option<f64> {
+        self.frame
+            .or_else(|| mean(&self.means.iter().flatten().copied().collect::<Vec<_>>()))
     }
 
     /// `s` without the values of its refused quadrants.
@@ -1451,6 +1489,38 @@ mod tests {
         let kept = screen.aerials(&w.grid, 41, frames, Some(&forecast));
         assert_eq!(kept.iter().map(|s| s.cells.len()).collect::<Vec<_>>(), [50, 100]);
         assert_eq!((screen.counts.frames_refused, screen.counts.quadrants_refused), (0, 2));
+    }
+
+    /// A field that shifts (a new level) departs from the forecast in every aerial's frame: no
+    /// frame is refused for it, nor any aerial marked (refused, the shift never reached the
+    /// model and every later frame was refused too). A frame over-exposed whole on one aerial
+    /// while the other agrees with the forecast is still refused.
+    #[test]
+    fn a_shift_every_aerial_sees_is_the_fields_and_one_over_exposed_frame_is_refused() {
+        let mut w = World::new(9);
+        let mut screen = Screen::default();
+        let forecast: HashMap<usize, f64> = w.truth.iter().copied().enumerate().collect();
+        let both = |w: &mut World, k: u64, raise: [f64; 2]| {
+            vec![
+                (0, w.frame(k, |_, v| v + raise[0])),
+                (1, w.frame(k, |_, v| v + raise[1])),
+            ]
+        };
+        for k in 0..30 {
+            let frames = both(&mut w, k, [0.0; 2]);
+            assert_eq!(screen.aerials(&w.grid, k, frames, Some(&forecast)).len(), 2);
+        }
+        for k in 30..33 {
+            let frames = both(&mut w, k, [30.0 * SIGMA; 2]);
+            assert_eq!(screen.aerials(&w.grid, k, frames, Some(&forecast)).len(), 2, "step {k}");
+        }
+        assert_eq!(screen.counts.frames_refused, 0);
+        assert_eq!((health_of(&screen, 0), health_of(&screen, 1)), (Health::Ok, Health::Ok));
+        let frames = both(&mut w, 33, [20.0 * SIGMA, 0.0]);
+        let kept = screen.aerials(&w.grid, 33, frames.clone(), Some(&forecast));
+        assert_eq!(kept, vec![frames[1].1.clone()]);
+        assert_eq!(screen.counts.frames_refused, 1);
+        assert_eq!(health_of(&screen, 0), Health::Suspect);
     }
 
     /// A frame of no cell (an aerial off the site: its return to launch, a climb) is neither
