@@ -590,12 +590,17 @@ impl Screen {
             return samples.into_iter().map(|(_, s)| s).collect();
         };
         let (frame_sd, quadrant_sd) = (self.frame_bias.sd(), self.quadrant_bias.sd());
-        let departures = self.departures(grid, &samples, forecast);
+        // A frame of no cell (the aerial saw none of the site that step) says nothing of its
+        // sensor: not a frame refused, nor a clean one.
+        let measured: Vec<Option<Measured>> = samples
+            .iter()
+            .map(|(_, s)| (!s.cells.is_empty()).then(|| Measured::of(grid, s, forecast)))
+            .collect();
+        let departures = self.departures(&samples, &measured);
         let tests: Vec<Option<FrameTest>> = samples
             .iter()
-            .map(|(v, s)| {
-                // A frame of no cell (the aerial saw none of the site that step) says nothing
-                // of its sensor: not a frame refused, nor a clean one.
+            .zip(measured)
+            .map(|((v, _), m)| {
                 let quadrant_sd = QuadrantScale {
                     history: quadrant_sd,
                     others: departures
@@ -604,7 +609,7 @@ impl Screen {
                         .map(|(_, m)| m.abs())
                         .collect(),
                 };
-                (!s.cells.is_empty()).then(|| FrameTest::of(grid, s, forecast, frame_sd, &quadrant_sd))
+                m.map(|m| FrameTest::of(m, frame_sd, &quadrant_sd))
             })
             .collect();
         let forecast_failed = self.forecast_failed(&samples, &tests);
@@ -660,11 +665,10 @@ impl Screen {
     /// refused while another aerial's frame agrees with the forecast. A fleet of one aerial has
     /// no witness and is judged on the history alone.
     fn forecast_failed(&self, samples: &[Tagged], tests: &[Option<FrameTest>]) -> bool {
-        let excluded = |v: &usize| self.sensors.get(v).is_some_and(|s| s.health == Health::Excluded);
         let judged: Vec<&FrameTest> = samples
             .iter()
             .zip(tests)
-            .filter(|((v, _), _)| !excluded(v))
+            .filter(|((v, _), _)| !self.excluded(*v))
             .filter_map(|(_, t)| t.as_ref())
             .collect();
         let signs: Vec<f64> = judged.iter().filter_map(|t| t.departure().map(f64::signum)).collect();
@@ -676,19 +680,19 @@ impl Screen {
 
     /// Each aerial's quadrants' mean residuals from the forecast this step, by vehicle (not the
     /// excluded ones': their frames witness nothing), for [`QuadrantScale`].
-    fn departures(&self, grid: &Grid, samples: &[Tagged], forecast: &Forecast) -> Vec<(usize, f64)> {
-        let excluded = |v: &usize| self.sensors.get(v).is_some_and(|s| s.health == Health::Excluded);
+    fn departures(&self, samples: &[Tagged], measured: &[Option<Measured>]) -> Vec<(usize, f64)> {
         samples
             .iter()
-            .filter(|(v, _)| !excluded(v))
-            .flat_map(|(v, s)| {
-                let residual = residuals(s, forecast);
-                quadrant_means(&residual, &quadrants(grid, &s.cells))
-                    .into_iter()
-                    .flatten()
-                    .map(move |m| (*v, m))
-            })
+            .zip(measured)
+            .filter(|((v, _), _)| !self.excluded(*v))
+            .filter_map(|((v, _), m)| m.as_ref().map(|m| (*v, m)))
+            .flat_map(|(v, m)| m.means.iter().flatten().map(move |&q| (v, q)))
             .collect()
+    }
+
+    /// Whether vehicle `v`'s sensor is excluded now.
+    fn excluded(&self, v: usize) -> bool {
+        self.sensors.get(&v).is_some_and(|s| s.health == Health::Excluded)
     }
 }
 
@@ -748,11 +752,35 @@ struct FrameTest {
     whole_refused: bool,
 }
 
-impl FrameTest {
-    fn of(grid: &Grid, s: &Sample, forecast: &Forecast, frame_sd: Option<f64>, quadrant_sd: &QuadrantScale) -> Self {
+/// A frame against the forecast: each value's residual, the frame's quadrants (sample
+/// indices) and each quadrant's mean residual; made once a step, for the frame's own test and
+/// as a witness to the others' ([`QuadrantScale`]).
+struct Measured {
+    residual: Vec<f64>,
+    quadrants: [Vec<usize>; 4],
+    means: Vec<Option<f64>>,
+}
+
+impl Measured {
+    fn of(grid: &Grid, s: &Sample, forecast: &Forecast) -> Self {
         let residual = residuals(s, forecast);
         let quadrants = quadrants(grid, &s.cells);
         let means = quadrant_means(&residual, &quadrants);
+        Self {
+            residual,
+            quadrants,
+            means,
+        }
+    }
+}
+
+impl FrameTest {
+    fn of(measured: Measured, frame_sd: Option<f64>, quadrant_sd: &QuadrantScale) -> Self {
+        let Measured {
+            residual,
+            quadrants,
+            means,
+        } = measured;
         let beyond = |m: f64, sd: Option<f64>| sd.is_some_and(|sd| (m / sd).abs() > FRAME_GATE);
         let refused: Vec<bool> = (0..means.len())
             .map(|i| means[i].is_some_and(|m| beyond(m, quadrant_sd.of(&means, i))))
