@@ -60,6 +60,19 @@ fn tiny_experiment_writes_a_deterministic_report() {
             "the report states the {key} verdict"
         );
     }
+    // Each row's claims agree with its paired intervals and are in the report's claims table.
+    assert!(report.contains("### The claims, row by row"), "{report}");
+    for row in res["rows"].as_array().unwrap() {
+        let claims = row["claims"].as_array().unwrap();
+        let verdict = row["comparisons"].as_array().unwrap()[0]["verdict"].as_str().unwrap();
+        assert_eq!(row["comparisons"][0]["second"], "aerial-only");
+        assert_eq!(claims[0]["holds"].as_bool(), Some(verdict == "better"), "{row}");
+        let cells: Vec<String> = claims
+            .iter()
+            .map(|c| c["evidence"].as_str().unwrap().to_string())
+            .collect();
+        assert!(cells.iter().all(|e| report.contains(e.as_str())), "{cells:?}");
+    }
     // per_step.csv recomputes the table: the mean of one team's scored steps for one seed is
     // the number in results.json.
     let csv = std::fs::read_to_string(a.join("per_step.csv")).unwrap();

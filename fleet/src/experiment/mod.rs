@@ -1,6 +1,7 @@
 //! The paper's evaluations, run offline and deterministically: the online-DMD studies of
 //! Sect. 5 (eigenvalue accuracy, Fig. 7; execution time, Table 1).
 
+pub mod claims;
 pub mod eig_study;
 pub mod epoch_timing;
 pub mod faults;

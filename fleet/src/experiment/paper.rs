@@ -5,6 +5,7 @@
 //! figures and `results.json`. Same file and seed, same JSON, byte for byte (timings go to
 //! `timings.json`).
 
+use super::claims;
 use super::faults::{self, FaultKind, FaultRun};
 use super::stats::{Interval, Verdict as StatVerdict};
 use super::team::{self, Placement, TeamConfig, TeamOutcome};
@@ -132,6 +133,21 @@ impl Row {
     /// The truth's name in tables and figure files: the preset (`Cloud1`) or the file stem.
     pub fn name(&self) -> String {
         self.truth.name()
+    }
+
+    /// The row's first cells in the per-row tables: `| name | AV/MV time | AV/MV space | noise |`
+    /// (a truth's name alone does not tell its rows apart).
+    fn cells(&self) -> String {
+        let (t, s) = ((self.av_time, self.mv_time), (self.av_space, self.mv_space));
+        format!(
+            "| {} | {}/{} | {}/{} | {} |",
+            self.name(),
+            t.0,
+            t.1,
+            s.0,
+            s.1,
+            self.noise
+        )
     }
 }
 
@@ -333,6 +349,8 @@ pub struct RowResult {
     /// Fused teams: the fraction of scored steps, pooled over seeds, where the team's MSE is
     /// at most the better single team's (aerial-only or boat-only).
     pub at_most_best_single: BTreeMap<String, f64>,
+    /// The claims the fused estimate is held to, each with whether this row's numbers show it.
+    pub claims: Vec<claims::Check>,
     /// Each fault of `faults`, over the seeds ([`faults::summarise`]).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub faults: Vec<faults::FaultSummary>,
@@ -665,6 +683,41 @@ fn summarise_row(
         .keys()
         .map(|t| (t.clone(), Interval::of(&of(t))))
         .collect();
+    let comparisons = comparisons_of(cfg, &of);
+    let (calibration, reliability) = calibration_over(&seed_results);
+    let at_most_best_single = at_most_best_single(&per_step, figure.scored_from);
+    let claims = claims::of(&comparisons, &teams, &at_most_best_single, &reliability);
+    let step0 = |f: fn(&SeedResult) -> f64| Interval::of(&seed_results.iter().map(f).collect::<Vec<_>>());
+    let fault_runs: Vec<&BTreeMap<FaultKind, FaultRun>> = seed_results.iter().map(|s| &s.faults).collect();
+    let faults = faults::summarise(&of(HETEROGENEOUS), &fault_runs);
+    Ok(RowResult {
+        faults,
+        false_alarms: seed_results.iter().map(|s| s.false_alarms).sum(),
+        sensor_checks: seed_results.iter().map(|s| s.sensor_checks).sum(),
+        false_refusals: seed_results.iter().fold([0; 3], |[a, b, c], s| {
+            let [x, y, z] = s.false_refusals;
+            [a + x, b + y, c + z]
+        }),
+        row: r.clone(),
+        model_grid: [truth.rows, truth.cols],
+        scored_from: figure.scored_from,
+        heterogeneous_from_step0: step0(|s| s.heterogeneous_from_step0),
+        aerial_only_from_step0: step0(|s| s.aerial_only_from_step0),
+        seeds: seed_results,
+        teams,
+        comparisons,
+        calibration,
+        reliability,
+        at_most_best_single,
+        claims,
+        figure,
+        per_step,
+    })
+}
+
+/// The paired differences a row reports: the fused team against each single team and random
+/// disks, each extra fusion and placement against the fused team (and random), the oracle's.
+fn comparisons_of(cfg: &ExperimentConfig, of: &impl Fn(&str) -> Vec<f64>) -> Vec<Comparison> {
     let compare = |a: &str, b: &str| {
         let d = Interval::paired(&of(a), &of(b));
         Comparison {
@@ -694,33 +747,7 @@ fn summarise_row(
             comparisons.push(compare(ORACLE, &format!("{HETEROGENEOUS}-{placement}")));
         }
     }
-    let (calibration, reliability) = calibration_over(&seed_results);
-    let at_most_best_single = at_most_best_single(&per_step, figure.scored_from);
-    let step0 = |f: fn(&SeedResult) -> f64| Interval::of(&seed_results.iter().map(f).collect::<Vec<_>>());
-    let fault_runs: Vec<&BTreeMap<FaultKind, FaultRun>> = seed_results.iter().map(|s| &s.faults).collect();
-    let faults = faults::summarise(&of(HETEROGENEOUS), &fault_runs);
-    Ok(RowResult {
-        faults,
-        false_alarms: seed_results.iter().map(|s| s.false_alarms).sum(),
-        sensor_checks: seed_results.iter().map(|s| s.sensor_checks).sum(),
-        false_refusals: seed_results.iter().fold([0; 3], |[a, b, c], s| {
-            let [x, y, z] = s.false_refusals;
-            [a + x, b + y, c + z]
-        }),
-        row: r.clone(),
-        model_grid: [truth.rows, truth.cols],
-        scored_from: figure.scored_from,
-        heterogeneous_from_step0: step0(|s| s.heterogeneous_from_step0),
-        aerial_only_from_step0: step0(|s| s.aerial_only_from_step0),
-        seeds: seed_results,
-        teams,
-        comparisons,
-        calibration,
-        reliability,
-        at_most_best_single,
-        figure,
-        per_step,
-    })
+    comparisons
 }
 
 /// Each fused team's calibration, and its calibration by decile: the mean over seeds with its
@@ -967,6 +994,7 @@ pub fn write_report(
     r.differences()?;
     r.fused_teams()?;
     r.reliability()?;
+    r.claims()?;
     r.sensor_health()?;
     r.verdict()?;
     r.fig10()?;
@@ -1113,17 +1141,7 @@ impl Report<'_> {
         )?;
         writeln!(md, "|{}", "---|".repeat(4 + heads.len()))?;
         for r in &res.rows {
-            let w = &r.row;
-            write!(
-                md,
-                "| {} | {}/{} | {}/{} | {} |",
-                w.name(),
-                w.av_time,
-                w.mv_time,
-                w.av_space,
-                w.mv_space,
-                w.noise
-            )?;
+            write!(md, "{}", r.row.cells())?;
             for c in &r.comparisons {
                 write!(md, " {} **{}** |", interval_cell(&c.difference), c.verdict.words())?;
             }
@@ -1139,16 +1157,10 @@ impl Report<'_> {
             |\n|---|---|---|---|---|---|"
         )?;
         for r in &res.rows {
-            let w = &r.row;
             writeln!(
                 md,
-                "| {} | {}/{} | {}/{} | {} | {} | {} |",
-                w.name(),
-                w.av_time,
-                w.mv_time,
-                w.av_space,
-                w.mv_space,
-                w.noise,
+                "{} {} | {} |",
+                r.row.cells(),
                 interval_cell(&r.heterogeneous_from_step0),
                 interval_cell(&r.aerial_only_from_step0)
             )?;
@@ -1181,17 +1193,7 @@ impl Report<'_> {
         )?;
         writeln!(md, "|{}", "---|".repeat(4 + 2 * fused.len()))?;
         for r in &res.rows {
-            let w = &r.row;
-            write!(
-                md,
-                "| {} | {}/{} | {}/{} | {} |",
-                w.name(),
-                w.av_time,
-                w.mv_time,
-                w.av_space,
-                w.mv_space,
-                w.noise
-            )?;
+            write!(md, "{}", r.row.cells())?;
             for t in &fused {
                 write!(
                     md,
@@ -1262,6 +1264,64 @@ impl Report<'_> {
         Ok(())
     }
 
+    /// The claims, row by row: where each holds and where it does not, with its number.
+    fn claims(&mut self) -> anyhow::Result<()> {
+        let Report { res, md, .. } = self;
+        let Some(first) = res.rows.first() else {
+            return Ok(());
+        };
+        writeln!(
+            md,
+            "\n### The claims, row by row\n\n\
+             What the tables above say of each claim the fused estimate is held to (the README's Results say why \
+             where one does not). A difference (the first team named minus the second) is in percent of the \
+             second's MSE, mean [95% interval] over seeds; `not run`: the config has no such team.\n"
+        )?;
+        write!(md, "| cloud | AV/MV time | AV/MV space | noise |")?;
+        for c in &first.claims {
+            write!(md, " {} |", c.claim)?;
+        }
+        writeln!(md, "\n|{}", "---|".repeat(4 + first.claims.len()))?;
+        for r in &res.rows {
+            write!(md, "{}", r.row.cells())?;
+            for c in &r.claims {
+                write!(md, " {} |", c.cell())?;
+            }
+            writeln!(md)?;
+        }
+        let count = |claim: &str, held: bool| {
+            res.rows
+                .iter()
+                .filter(|r| r.claims.iter().any(|c| c.claim == claim && c.holds == Some(held)))
+                .count()
+        };
+        let (won, lost) = (
+            count(claims::HORIZON_OVER_QR, true),
+            count(claims::HORIZON_OVER_QR, false),
+        );
+        if won + lost > 0 {
+            writeln!(
+                md,
+                "\nHorizon placement better than QR on **{won} of {}** rows (the claim: most).",
+                won + lost
+            )?;
+        }
+        let held = res
+            .rows
+            .iter()
+            .flat_map(|r| &r.claims)
+            .filter(|c| c.holds == Some(true))
+            .count();
+        let run = res
+            .rows
+            .iter()
+            .flat_map(|r| &r.claims)
+            .filter(|c| c.holds.is_some())
+            .count();
+        writeln!(md, "Claims held: **{held} of {run}** checked.")?;
+        Ok(())
+    }
+
     /// Sensor health: false alarms on the healthy fleets, and each injected fault's cost with
     /// and without the health tests.
     fn sensor_health(&mut self) -> anyhow::Result<()> {
@@ -1291,16 +1351,17 @@ impl Report<'_> {
         }
         writeln!(
             md,
-            "One vehicle's sensor fails from mid-mission (the first boat; the first aerial for `overexposed` and `silent`), \
-             each fault in its own run of the QR team on the same truth and noise as the healthy one. Cost: the \
-             fused MSE over the healthy fleet's, per seed, mean [95% interval]; the claim is within +10% with the \
-             tests. Withheld: the cost with the altered readings withheld (a test that knew which readings \
-             were bad could do no better: the information the fault takes away). Marked: seeds where the faulty sensor was suspect or excluded within 3 boat epochs of the \
-             fault's start, and the median epochs to the mark. Knowable: the seeds in which a test that knew the \
-             fault (kind, size, sign, start) could have marked it within those 3 epochs, expected, at 1e-3 false \
-             alarms: a stuck probe, a spike, an over-exposed frame or a dark camera once one reached the server; \
-             an offset by the best test's power on the boat's differences from the aerials at the lattice cells \
-             both measured (the only place an offset shows: README, \"Sensor health\").\n"
+            "One vehicle's sensor fails from mid-mission (the first boat; the first aerial for `overexposed` and \
+             `silent`), each fault in its own run of the QR team on the same truth and noise as the healthy one. Cost: \
+             the fused MSE over the healthy fleet's, per seed, mean [95% interval]; the claim is within +10% with the \
+             tests. Withheld: the cost with the altered readings withheld (a test that knew which readings were bad \
+             could do no better: the information the fault takes away). Marked: seeds where the faulty sensor was \
+             suspect or excluded within 3 boat epochs of the fault's start, and the median epochs to the mark. \
+             Knowable: the seeds in which a test that knew the fault (kind, size, sign, start) could have marked it \
+             within those 3 epochs, expected, at 1e-3 false alarms: a stuck probe, a spike, an over-exposed frame or a \
+             dark camera once one reached the server; an offset by the best test's power on the boat's differences \
+             from the aerials at the lattice cells both measured (the only place an offset shows: README, \"Sensor \
+             health\").\n"
         )?;
         writeln!(
             md,
