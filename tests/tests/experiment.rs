@@ -18,6 +18,8 @@ fn tiny_experiment_writes_a_deterministic_report() {
             ],
         );
         assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let said = String::from_utf8_lossy(&out.stdout);
+        assert_eq!(said.matches("  claims held ").count(), 2, "a claims line a row: {said}");
     }
     let ja = std::fs::read(a.join("results.json")).unwrap();
     assert_eq!(

@@ -62,6 +62,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 .collect::<Vec<_>>()
                 .join(", ")
         );
+        let checked: Vec<_> = r.claims.iter().filter(|c| c.holds.is_some()).collect();
+        let not_held: Vec<&str> = checked
+            .iter()
+            .filter(|c| c.holds == Some(false))
+            .map(|c| c.claim.as_str())
+            .collect();
+        println!(
+            "  claims held {} of {} (the report's \"The claims, row by row\"){}",
+            checked.len() - not_held.len(),
+            checked.len(),
+            match not_held.is_empty() {
+                true => String::new(),
+                false => format!("; not held: {}", not_held.join("; ")),
+            }
+        );
     }
     println!(
         "wrote {}/report.md with {} figures ({secs:.1} s)",
