@@ -2,6 +2,7 @@
 
 use anyhow::Context;
 use fleet::exit::bad_input;
+use fleet::experiment::claims;
 use fleet::experiment::paper::{self, ExperimentConfig};
 use std::path::PathBuf;
 
@@ -62,16 +63,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 .collect::<Vec<_>>()
                 .join(", ")
         );
-        let checked: Vec<_> = r.claims.iter().filter(|c| c.holds.is_some()).collect();
-        let not_held: Vec<&str> = checked
+        let (held, checked) = claims::tally(&r.claims);
+        let not_held: Vec<&str> = r
+            .claims
             .iter()
             .filter(|c| c.holds == Some(false))
             .map(|c| c.claim.as_str())
             .collect();
         println!(
-            "  claims held {} of {} (the report's \"The claims, row by row\"){}",
-            checked.len() - not_held.len(),
-            checked.len(),
+            "  claims held {held} of {checked} (the report's \"The claims, row by row\"){}",
             match not_held.is_empty() {
                 true => String::new(),
                 false => format!("; not held: {}", not_held.join("; ")),

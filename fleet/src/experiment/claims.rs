@@ -38,6 +38,14 @@ impl Check {
     }
 }
 
+/// Of `checks`, how many hold and how many were checked (a claim `not run` is neither).
+pub fn tally<'a>(checks: impl IntoIterator<Item = &'a Check>) -> (usize, usize) {
+    checks.into_iter().fold((0, 0), |(held, checked), c| match c.holds {
+        Some(h) => (held + usize::from(h), checked + 1),
+        None => (held, checked),
+    })
+}
+
 /// What a row's numbers say of each claim, in a fixed order (the report's columns).
 pub fn of(
     comparisons: &[Comparison],
@@ -200,5 +208,6 @@ mod tests {
         );
         assert_eq!(checks[6].cell(), "not run");
         assert!(checks[1].cell().starts_with("**not held**"));
+        assert_eq!(tally(&checks), (3, 6));
     }
 }

@@ -1235,7 +1235,7 @@ impl Report<'_> {
                     continue;
                 }
                 let means: Vec<f64> = by_decile.iter().map(|i| i.mean).collect();
-                let in_band = means.iter().filter(|m| (0.7..=1.3).contains(*m)).count();
+                let in_band = means.iter().filter(|m| claims::DECILE_BAND.contains(*m)).count();
                 writeln!(
                     md,
                     "| {} | {team} |{} {in_band}/10 |",
@@ -1306,18 +1306,7 @@ impl Report<'_> {
                 won + lost
             )?;
         }
-        let held = res
-            .rows
-            .iter()
-            .flat_map(|r| &r.claims)
-            .filter(|c| c.holds == Some(true))
-            .count();
-        let run = res
-            .rows
-            .iter()
-            .flat_map(|r| &r.claims)
-            .filter(|c| c.holds.is_some())
-            .count();
+        let (held, run) = claims::tally(res.rows.iter().flat_map(|r| &r.claims));
         writeln!(md, "Claims held: **{held} of {run}** checked.")?;
         Ok(())
     }
