@@ -138,7 +138,7 @@ pub struct ServerSummary {
     /// The boats' held-out readings against the estimate (`[scoring] holdout`; a run without
     /// a truth is scored this way).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub holdout: Option<crate::holdout::HoldoutScore>,
+    pub holdout: Option<crate::protocol::HoldoutScore>,
     /// The boats' normalised innovation squared against the forecast at each boat step: the
     /// filter's own check of its reported variance, truth or not (`fusion = "kalman"`).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]

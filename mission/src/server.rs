@@ -1311,7 +1311,7 @@ impl ServerCore {
     }
 
     /// The hold-out's figures so far (`None`: nothing held out).
-    pub fn holdout(&self) -> Option<crate::holdout::HoldoutScore> {
+    pub fn holdout(&self) -> Option<crate::protocol::HoldoutScore> {
         crate::holdout::score(self.held_out.values().flatten())
     }
 

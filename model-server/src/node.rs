@@ -197,6 +197,7 @@ impl Server {
             skill: self.core.skills().last().copied(),
             health: self.core.sensor_health(),
             overrides: self.core.counters.overrides,
+            holdout: self.core.holdout(),
         }
     }
 

@@ -648,6 +648,15 @@ fn the_real_site_mission_runs_without_a_truth_and_is_scored_by_held_out_readings
     );
     assert!(n >= 20, "{n} readings held out");
     eprintln!("held out: {n} readings");
+    // The truth-free check by place: every held-out reading in one decile of reported variance.
+    let deciles = h["by_decile"].as_array().expect("the held-out readings by decile");
+    let in_deciles: u64 = deciles.iter().map(|d| d["readings"].as_u64().unwrap()).sum();
+    assert_eq!((deciles.len(), in_deciles), (10, n), "{h}");
+    assert!(h["ence"].as_f64().is_some_and(f64::is_finite), "{h}");
+    assert!(
+        report.contains("By decile of the variance the estimate reported"),
+        "{report}"
+    );
     let truth_mse = held
         .iter()
         .map(|&(k, c)| (est.snapshots[(c, k)] - world.snapshots[(c, k)]).powi(2))

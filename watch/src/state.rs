@@ -512,6 +512,7 @@ mod tests {
             skill: None,
             health: Default::default(),
             overrides: 0,
+            holdout: None,
         };
         assert!(v.apply(Body::Status(status.clone())));
         assert!(v.liveliness("boat-1", false, 5.0));

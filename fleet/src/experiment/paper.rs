@@ -305,6 +305,8 @@ pub struct SeedResult {
     pub calibration: BTreeMap<String, f64>,
     /// Fused teams: calibration by decile of reported variance ([`team::deciles`]).
     pub reliability: BTreeMap<String, Vec<f64>>,
+    /// Fused teams: the expected normalised calibration error of those deciles ([`team::ence`]).
+    pub ence: BTreeMap<String, f64>,
     /// Each fault of `faults` on the QR team, with and without the health tests.
     #[serde(skip_serializing_if = "BTreeMap::is_empty")]
     pub faults: BTreeMap<FaultKind, FaultRun>,
@@ -346,6 +348,9 @@ pub struct RowResult {
     /// Fused teams: calibration by decile of reported variance, per decile the mean over seeds
     /// with its 95% interval.
     pub reliability: BTreeMap<String, Vec<Interval>>,
+    /// Fused teams: the expected normalised calibration error ([`team::ence`]), mean over seeds
+    /// with its 95% interval.
+    pub ence: BTreeMap<String, Interval>,
     /// Fused teams: the fraction of scored steps, pooled over seeds, where the team's MSE is
     /// at most the better single team's (aerial-only or boat-only).
     pub at_most_best_single: BTreeMap<String, f64>,
@@ -500,6 +505,7 @@ fn run_seed(
         mse,
         heterogeneous_from_step0: qr.heterogeneous_from_step0,
         aerial_only_from_step0: qr.aerial_only_from_step0,
+        ence: reliability.iter().map(|(t, r)| (t.clone(), team::ence(r))).collect(),
         calibration,
         reliability,
     };
@@ -685,6 +691,16 @@ fn summarise_row(
         .collect();
     let comparisons = comparisons_of(cfg, &of);
     let (calibration, reliability) = calibration_over(&seed_results);
+    let ence = seed_results[0]
+        .ence
+        .keys()
+        .map(|t| {
+            (
+                t.clone(),
+                Interval::of(&seed_results.iter().map(|s| s.ence[t]).collect::<Vec<_>>()),
+            )
+        })
+        .collect();
     let at_most_best_single = at_most_best_single(&per_step, figure.scored_from);
     let claims = claims::of(&comparisons, &teams, &at_most_best_single, &reliability);
     let step0 = |f: fn(&SeedResult) -> f64| Interval::of(&seed_results.iter().map(f).collect::<Vec<_>>());
@@ -708,6 +724,7 @@ fn summarise_row(
         comparisons,
         calibration,
         reliability,
+        ence,
         at_most_best_single,
         claims,
         figure,
@@ -1220,14 +1237,17 @@ impl Report<'_> {
             "\n### Calibration by decile of reported variance\n\n\
              Each fused team's cells and scored steps, pooled per seed, sorted by reported variance and cut into ten \
              equal parts; per part the mean error^2 over the mean reported variance (1: the variance is the error's \
-             there), mean over seeds. The claim is 0.7-1.3 in every decile; `in band` counts the deciles that are.\n"
+             there), mean over seeds. The claim is 0.7-1.3 in every decile; `in band` counts the deciles that are. \
+             ENCE, the expected normalised calibration error, is the mean over the deciles of |RMV - RMSE| / RMV (root \
+             mean variance against root mean squared error; 0 is calibrated in every decile), mean over seeds [95% \
+             interval].\n"
         )?;
         writeln!(
             md,
-            "| cloud | team |{} in band |",
+            "| cloud | team |{} in band | ENCE |",
             (1..=10).map(|d| format!(" d{d} |")).collect::<String>()
         )?;
-        writeln!(md, "|{}", "---|".repeat(13))?;
+        writeln!(md, "|{}", "---|".repeat(14))?;
         let mut series = vec![];
         for r in &res.rows {
             for (team, by_decile) in &r.reliability {
@@ -1236,9 +1256,13 @@ impl Report<'_> {
                 }
                 let means: Vec<f64> = by_decile.iter().map(|i| i.mean).collect();
                 let in_band = means.iter().filter(|m| claims::DECILE_BAND.contains(*m)).count();
+                let ence = r
+                    .ence
+                    .get(team)
+                    .map_or(String::new(), |e| format!("{:.3} [{:.3}, {:.3}]", e.mean, e.lo, e.hi));
                 writeln!(
                     md,
-                    "| {} | {team} |{} {in_band}/10 |",
+                    "| {} | {team} |{} {in_band}/10 | {ence} |",
                     r.row.name(),
                     means.iter().map(|m| format!(" {m:.2} |")).collect::<String>()
                 )?;

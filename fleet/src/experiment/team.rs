@@ -109,6 +109,15 @@ pub fn deciles(pairs: &mut [(f32, f32)]) -> (Vec<f64>, Vec<f64>) {
         .unzip()
 }
 
+/// The expected normalised calibration error of a reliability by decile ([`deciles`]): the
+/// mean over the deciles of `|RMV - RMSE| / RMV` (root mean variance against root mean squared
+/// error, the measure of Levi et al. 2022), which is `|1 - sqrt(ratio)|` for each decile's
+/// ratio of mean error^2 to mean variance. 0 when every decile is calibrated; NaN without
+/// deciles.
+pub fn ence(reliability: &[f64]) -> f64 {
+    reliability.iter().map(|r| (1.0 - r.max(0.0).sqrt()).abs()).sum::<f64>() / reliability.len() as f64
+}
+
 /// Mean over cells of error^2 / reported variance.
 /// Over the cells where the truth has a value.
 fn calibration(estimate: &[f64], variance: &[f64], truth: &[f64]) -> f64 {

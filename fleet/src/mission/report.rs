@@ -346,7 +346,9 @@ impl MissionReport<'_> {
     /// The boats' held-out readings against the estimate, when some were held out.
     fn holdout(&mut self) -> anyhow::Result<()> {
         use std::fmt::Write as _;
-        let Some(h) = self.summary.holdout else { return Ok(()) };
+        let Some(h) = self.summary.holdout.clone() else {
+            return Ok(());
+        };
         let share = self.mission.holdout_share();
         writeln!(self.md, "## Held-out readings\n")?;
         writeln!(
@@ -374,6 +376,41 @@ impl MissionReport<'_> {
             "| normalised squared error (1: calibrated) | {:.2} |\n",
             h.normalised
         )?;
+        self.holdout_deciles(&h)
+    }
+
+    /// The held-out readings by decile of the variance the estimate reported at their cells:
+    /// whether it is right where it is small and where it is large, without a truth.
+    fn holdout_deciles(&mut self, h: &fleet_mission::protocol::HoldoutScore) -> anyhow::Result<()> {
+        use std::fmt::Write as _;
+        if h.by_decile.is_empty() {
+            return Ok(());
+        }
+        writeln!(
+            self.md,
+            "By decile of the variance the estimate reported at the readings' cells (smallest first): the mean squared \
+                z-score, (reading - estimate)^2 / (reported variance + the reading's noise), is 1 where the reported \
+                variance is right, above 1 where it is too small. ENCE (the mean over the deciles of |RMV - RMSE| / \
+                RMV): **{:.3}** (0: right in every decile).\n",
+            h.ence.unwrap_or(f64::NAN)
+        )?;
+        writeln!(
+            self.md,
+            "| decile | readings | mean reported variance | the estimate's error there (difference less noise) | mean z^2 |\n\
+             |---|---|---|---|---|"
+        )?;
+        for (d, dec) in h.by_decile.iter().enumerate() {
+            writeln!(
+                self.md,
+                "| {} | {} | {:.3e} | {:.3e} | {:.2} |",
+                d + 1,
+                dec.readings,
+                dec.variance,
+                dec.error,
+                dec.z2
+            )?;
+        }
+        writeln!(self.md)?;
         Ok(())
     }
 

@@ -370,6 +370,50 @@ pub struct ServerStatus {
     /// The operator's sensor overrides taken so far (a sender sees its own taken).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub overrides: u64,
+    /// The boats' held-out readings against the estimate so far (`[scoring] holdout`), with
+    /// their squared z-scores by decile of the reported variance: the estimate's check of its
+    /// own uncertainty without a truth.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub holdout: Option<HoldoutScore>,
+}
+
+/// The hold-out's figures over a run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HoldoutScore {
+    pub readings: usize,
+    /// Mean squared difference between the held-out readings and the estimate.
+    pub mse: f64,
+    /// The readings' mean noise variance: `mse - noise_var` estimates the estimate's own MSE
+    /// at the held-out cells.
+    pub noise_var: f64,
+    /// Share of held-out readings inside the estimate's 95% interval.
+    pub coverage_95: f64,
+    /// Mean normalised squared error (1 when the reported variance is right).
+    pub normalised: f64,
+    /// The readings by decile of the variance the estimate reported at their cells (smallest
+    /// first): whether the reported variance is right where it is small and where it is
+    /// large, not only on average. Empty with fewer than ten readings.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub by_decile: Vec<HeldDecile>,
+    /// The expected normalised calibration error over those deciles: the mean of
+    /// `|RMV - RMSE| / RMV`, the root mean reported variance against the root of the mean
+    /// squared difference less the readings' noise (0: right in every decile).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ence: Option<f64>,
+}
+
+/// One decile of the held-out readings by reported variance.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct HeldDecile {
+    pub readings: usize,
+    /// The mean variance the estimate reported at the readings' cells.
+    pub variance: f64,
+    /// The mean squared z-score, `(value - estimate)^2 / (variance + noise)`: 1 when the
+    /// reported variance is right in this decile, above 1 overconfident.
+    pub z2: f64,
+    /// The mean squared difference less the mean noise variance (the estimate's own error
+    /// there, at least 0).
+    pub error: f64,
 }
 
 fn is_zero(n: &u64) -> bool {
