@@ -33,6 +33,15 @@ if [ ${#missing[@]} -gt 0 ]; then
   export DEBIAN_FRONTEND=noninteractive
   apt-get update -q >/dev/null && apt-get install -y -q "${missing[@]}" >/dev/null
 fi
+# mdBook builds the user's guide (docs/book.toml); installed here, before the lint settings
+# below, which would lint its sources as if they were ours.
+if ! command -v mdbook >/dev/null; then
+  echo "== installing mdbook (the guide's builder)"
+  cargo install mdbook --version "^0.4" --locked --no-default-features --quiet
+fi
+echo "== documents (the guide builds; every relative link of the Markdown resolves)"
+mdbook build docs
+python3 scripts/check_links.py
 echo "== house style (rustfmt.toml; the code's shape; clippy runs in the build below)"
 cargo fmt --all --check
 # No import loops in vehicles/ and mission/, no sleeping in a loop in the vehicle node and its

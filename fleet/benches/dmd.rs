@@ -1,4 +1,4 @@
-//! Criterion benchmarks of the DMD core (the Python side: `bench/peers/`, see the README).
+//! Criterion benchmarks of the DMD core (the Python side: `bench/peers/`, see docs/benchmarks.md).
 
 #[global_allocator]
 static ALLOCATOR: fleet::Allocator = fleet::Allocator;

@@ -16,3 +16,4 @@ pub mod experiment;
 pub mod export;
 pub mod mission;
 pub mod plot;
+pub mod reference;

@@ -1,4 +1,4 @@
-//! The plasma-cloud specification's sanity checks (`../shared/plasma-cloud.md`, "Checks"), on
+//! The plasma-cloud specification's sanity checks (`docs/simulator.md`, "Checks"), on
 //! grids small enough for the test suite. Each tolerance says where it comes from.
 
 use fleet::process::plasma::{PlasmaCloud, PlasmaParams};

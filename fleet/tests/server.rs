@@ -1020,7 +1020,7 @@ fn aerial_regions_with_av1_dark(
 /// covers the whole site from the next epoch while the silent one keeps its own region, so its
 /// frames are seen when they come back; after clean steps the regions are split again. Before,
 /// its region went unseen for the rest of the mission (a camera dark from mid-mission: +64% on
-/// the default mission's cloud, +2,526% on the 500 hPa height; README, "Sensor health").
+/// the default mission's cloud, +2,526% on the 500 hPa height; docs/guide/sensor-health.md).
 #[test]
 fn a_silent_aerials_region_is_covered_by_the_other() {
     let lattice = Grid::new(24, 48, 1.0)

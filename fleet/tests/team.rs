@@ -36,7 +36,7 @@ fn tiny_config() -> TeamConfig {
 /// With either fusion the fused team beats both single-kind teams. QR disks beat random ones
 /// with inverse-variance fusion; with the Kalman filter they are not distinguishable on this
 /// tiny cloud (the filter's detail takes most of what the disks' placement used to decide:
-/// README, "Placement"), so that verdict is asserted for inverse-variance only.
+/// docs/results/README.md, "Where they hold"), so that verdict is asserted for inverse-variance only.
 #[test]
 fn over_ten_seeds_the_heterogeneous_team_beats_both_single_kind_teams() {
     use fleet::experiment::stats::{Interval, Verdict};

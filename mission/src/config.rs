@@ -26,7 +26,7 @@ fn field(table: &'static str, key: impl Into<Option<String>>, rule: impl Into<St
 
 /// What is wrong with a mission file, or with a node's inputs against it. Every variant is the
 /// operator's to fix (exit 2), named by file or field.
-#[derive(Debug, thiserror::Error)]
+#[derive(Debug, thiserror::Error, strum::VariantNames)]
 pub enum ConfigError {
     /// Not a mission file: its TOML (syntax, a type, an unknown key), reason first, then where.
     #[error("{0}")]
@@ -81,7 +81,7 @@ pub const DEFAULT_MISSION: &str = include_str!("../../config/mission.toml");
 
 /// The mixed-reality truth: a simulator preset or a dataset, on `grid`, averaged by
 /// `average` onto the model grid.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct TruthSpec {
     #[serde(flatten)]
@@ -90,8 +90,11 @@ pub struct TruthSpec {
     /// its file's, and a `grid` beside one is refused (it would be ignored).
     #[serde(default)]
     pub grid: Option<[usize; 2]>,
+    /// Steps of the mission: the truth's frames (a dataset's first `frames`).
     #[serde(default = "default_frames")]
     pub frames: usize,
+    /// The truth is area-averaged over blocks of this many cells a side onto the model grid
+    /// (the simulator's 96 x 192 by 2 is the default mission's 48 x 96).
     #[serde(default = "one")]
     pub average: usize,
 }
@@ -112,16 +115,17 @@ fn one() -> usize {
 /// The model grid and the mission's length, for a mission without a truth (`[field]`): the
 /// instruments' readings land on `grid` cells of 1 grid metre (`[mavlink] size_m` places them
 /// on the Earth), and the mission runs `frames` steps.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct FieldSpec {
     /// Model grid `[rows, cols]`.
     pub grid: [usize; 2],
+    /// Steps of the mission.
     pub frames: usize,
 }
 
 /// How nodes reach each other (Zenoh endpoints; a Zenoh JSON5 file may override anything).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct Network {
     /// Where the server, in router mode, listens.
@@ -160,7 +164,7 @@ impl Default for Network {
 }
 
 /// Pace of a mixed-reality run.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct Pace {
     /// Wall-clock milliseconds per step (0: as fast as the plans come).
@@ -192,12 +196,14 @@ impl Default for Pace {
 /// The radio between the vehicles and the base: what crosses it besides the mission's own data,
 /// and how long a question over it may take. The defaults fit a SiK-class telemetry radio
 /// (64 kbit/s on air, shared by the fleet, a few hundred ms of round trip).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct Link {
     /// The link's rate (kbit/s) and round trip (ms): a plan reply's transfer time and the
     /// round trip bound how long a vehicle waits for an answer before it asks again.
     pub rate_kbps: f64,
+    /// The link's round trip (ms): with `rate_kbps`, how long a vehicle waits for an answer
+    /// before it asks again.
     pub rtt_ms: u64,
     /// Each periodic message of the autopilot's stream (position, status, battery) goes to the
     /// ground stations at most this often (Hz); events (text, command and mission replies,
@@ -252,10 +258,13 @@ impl Link {
 }
 
 /// Vehicle kinematics (metres per step on the model grid, 1 m cells).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct Motion {
+    /// How far an aerial goes in one step (model-grid metres: cells).
     pub aerial_speed: f64,
+    /// How far a boat goes in one step (model-grid metres: cells); horizon placement plans
+    /// only disks a boat reaches by its sampling step.
     pub boat_speed: f64,
 }
 
@@ -270,7 +279,7 @@ impl Default for Motion {
 
 /// How vehicle nodes reach their autopilots and ground stations (MAVLink 2, common dialect).
 /// The workspace grid is placed on the Earth by `origin` (its (0, 0) corner) and `size_m`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct MavlinkConfig {
     /// Each vehicle's autopilot: `sim` (a simulated one in the vehicle node), `none` (the
@@ -294,9 +303,12 @@ pub struct MavlinkConfig {
     pub sim_companion_port: Option<u16>,
     /// Simulated boat: top speed (m/s) and turn-rate limit (deg/s).
     pub boat_speed_ms: f64,
+    /// Simulated boat: turn-rate limit (deg/s).
     pub boat_turn_rate_dps: f64,
     /// Simulated multirotor: top speed (m/s) and cruise altitude above the origin (m).
     pub multirotor_speed_ms: f64,
+    /// Copters' cruise altitude above the origin (m): a copter takes off to it before the
+    /// planner drives it.
     pub cruise_alt_m: f64,
     /// A target counts as reached within this distance (m, physical), or within the
     /// autopilot's own `WP_RADIUS` (`WPNAV_RADIUS` for copters) when that is larger: the bridge
@@ -308,6 +320,8 @@ pub struct MavlinkConfig {
     /// sweeps the radius), and a fence that leaves no such room is refused at load. A bridge
     /// whose autopilot keeps a larger margin says so.
     pub fence_margin_m: f64,
+    /// A boat's turning radius (`TURN_RADIUS`, m; ArduRover's default 0.9): launch and rally
+    /// points sit inside the fence by it and the margin.
     pub turn_radius_m: f64,
     /// The simulated autopilots' `WP_RADIUS` / `WPNAV_RADIUS` (m; ArduPilot's default 2).
     pub wp_radius_m: f64,
@@ -345,12 +359,17 @@ pub struct MavlinkConfig {
     /// acts, and how (`rtl`, `hold`, `continue`): their `BATT_CAPACITY`, `BATT_LOW_MAH` and
     /// `BATT_FS_LOW_ACT`.
     pub battery_mah: f64,
+    /// Simulated autopilots: the charge left (mAh) at which the low-battery failsafe acts
+    /// (`BATT_LOW_MAH`).
     pub battery_low_mah: f64,
+    /// Simulated autopilots: what the low-battery failsafe does, `rtl`, `hold` or `continue`
+    /// (`BATT_FS_LOW_ACT`).
     pub low_battery_action: String,
     /// What a vehicle does when its link to the model server is lost for `link_loss_s`
     /// seconds: `continue` (boats keep sensing out of range, the default), `rtl` or `hold`.
     /// Back in range, it rejoins (GUIDED again, back in the allocation).
     pub link_loss_action: String,
+    /// Seconds without the model server before `link_loss_action` acts.
     pub link_loss_s: f64,
     /// What each autopilot does when the mission is done: `rtl` (back to its launch point; a
     /// copter lands there, as ArduCopter's RTL does), `hold`, or `continue` (left as it is).
@@ -484,7 +503,7 @@ impl MavlinkConfig {
     }
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct MissionConfig {
     /// The mission id: every key lives under `fleet/<mission>/`.
@@ -522,9 +541,12 @@ pub struct MissionConfig {
 
 /// `[scoring]`: the share of the boats' readings held out of the fusion to score it
 /// ([`crate::holdout`]); unset, 0.1 without a truth and none with one (the truth scores it).
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Scoring {
+    /// The share (0-1) of the boats' readings held out of the fusion and predicted by the
+    /// estimate that never saw them (a fixed hash of step and cell); unset: 0.1 without a
+    /// truth, none with one.
     pub holdout: Option<f64>,
 }
 

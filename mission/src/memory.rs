@@ -38,7 +38,7 @@ pub enum HugePages {
 /// (this machine's, and the default of many distributions) then compacts memory at the fault
 /// to find a 2 MB page. The model server's heap grows over its first epochs, so those epochs
 /// took 2 MB faults and stalled: at 384 x 768 the first epoch's model came out in 724-743 ms
-/// with them and 541-557 ms without, the median unchanged (README, "Huge pages off").
+/// with them and 541-557 ms without, the median unchanged (docs/decisions/082).
 pub fn small_pages_only() -> HugePages {
     if std::env::var_os(ALLOW_THP).is_some() {
         return HugePages::AsSet;

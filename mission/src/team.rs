@@ -9,7 +9,17 @@ use serde::{Deserialize, Serialize};
 
 /// Where boats go.
 #[derive(
-    Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, strum::EnumString, strum::Display, strum::VariantNames,
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Serialize,
+    Deserialize,
+    strum::EnumString,
+    strum::Display,
+    strum::VariantNames,
+    schemars::JsonSchema,
 )]
 #[serde(rename_all = "kebab-case")]
 #[strum(serialize_all = "kebab-case", parse_err_ty = String, parse_err_fn = placement_name_error)]
@@ -39,6 +49,7 @@ pub enum Placement {
     strum::EnumString,
     strum::Display,
     strum::VariantNames,
+    schemars::JsonSchema,
 )]
 #[serde(rename_all = "kebab-case")]
 #[strum(serialize_all = "kebab-case", parse_err_ty = String, parse_err_fn = learnfrom_name_error)]
@@ -52,9 +63,10 @@ pub enum LearnFrom {
 }
 
 /// Every choice of one run.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct TeamConfig {
+    /// Aerial vehicles in the team.
     pub aerials: usize,
     /// Aerial frames every this many steps (time rate).
     pub aerial_period: usize,
@@ -63,7 +75,10 @@ pub struct TeamConfig {
     /// Aerial noise std at the aerial, and its growth per cell of distance (both in the field's
     /// units; a file that gives no growth gets [`default_growth`] of its noise).
     pub aerial_sigma0: f64,
+    /// Growth of the aerial noise std per cell of distance from the aerial (field units a cell;
+    /// unset: a twentieth of `aerial_sigma0`).
     pub aerial_growth_per_cell: f64,
+    /// Boats in the team.
     pub boats: usize,
     /// Boat samples (and model updates) every this many steps.
     pub boat_period: usize,
@@ -76,29 +91,35 @@ pub struct TeamConfig {
     /// `full`, `optimal`, `energy:<f>` or an integer (`rank = 6` or `rank = "6"`).
     pub rank: RankPolicy,
     pub method: Method,
+    /// The forgetting factor of `method = "long-term"` (0 < gamma <= 1; 1: no forgetting).
     pub gamma: f64,
     pub placement: Placement,
     /// `placement = "horizon"`: how many epochs ahead the uncertainty counts.
     pub horizon_epochs: usize,
     pub fusion: Scheme,
-    /// What the model learns from (README, "What the model learns from").
+    /// What the model learns from: the fused estimate (`posterior`) or the aerials' frame alone
+    /// (`aerial`).
     pub learn_from: LearnFrom,
     /// Floor of the aerials' coverage density.
     pub density_floor: f64,
+    /// Seed of the vehicles' random streams (sensor noise) and of random placement.
     pub seed: u64,
     /// Test every reading and judge every sensor before the fusion uses them
     /// ([`crate::health`]); `false` takes every reading at its word.
     #[serde(skip_serializing_if = "is_true")]
+    #[schemars(extend("default" = true))]
     pub sensor_health: bool,
     /// The site's boundary (`[mavlink] boundary` of a mission, read when the mission is
     /// loaded): no disk and no aerial place outside it. Not settable in `[team]`; serialised,
     /// so a journal's fingerprint knows it.
     #[serde(skip_deserializing, skip_serializing_if = "Option::is_none")]
+    #[schemars(skip)]
     pub fence: Option<crate::fence::SiteFence>,
     /// Cells with no data in any frame of the truth (land, for an ocean field; set from the
     /// truth where it is loaded, [`crate::process::FieldSeries::land`]): off the model grid,
     /// like cells outside the fence, and zero in every snapshot the model learns from.
     #[serde(skip_deserializing, skip_serializing_if = "Vec::is_empty")]
+    #[schemars(skip)]
     pub land: Vec<u32>,
 }
 
@@ -110,7 +131,7 @@ fn is_true(b: &bool) -> bool {
 /// at the aerial (the default mission's 0.0005 at 0.01, to the bit). A fixed growth in the
 /// field's units is no default: at 0.0005 a cell, a field of magnitude 1e-3 (a concentration,
 /// a field in other units) had aerial noise 75 times the `noise` it was given, at 15 cells
-/// (README, "A field in any units").
+/// (docs/guide/fields.md, "A field in any units").
 pub fn default_growth(sigma0: f64) -> f64 {
     sigma0 / 20.0
 }

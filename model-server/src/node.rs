@@ -117,8 +117,7 @@ impl Server {
     }
 
     /// Publish `body` on `key`, recorded. Encoded once: CBOR's float encoding (ciborium tries
-    /// each float as f16 and f32) was 40% of the server's time at 48 x 96 and 192 x 384, half
-    /// of it a second encoding of the same model for the wire.
+    /// each float as f16 and f32) is costly, and the recording takes the wire's bytes.
     async fn put(&self, session: &zenoh::Session, key: &str, body: &Body) -> anyhow::Result<()> {
         let bytes = protocol::encode(body);
         // Out first; the recording (and its Foxglove translation) after, off the path to Zenoh.

@@ -332,7 +332,7 @@ fn fleet_dmd_saves_the_model_for_numpy() {
         ],
     );
     assert_eq!(code, Some(0), "{err}");
-    // The README's three lines: the record rebuilt in numpy from what was saved, with the error
+    // The guide's three lines (docs/guide/after.md): the record rebuilt in numpy from what was saved, with the error
     // fleet reported.
     let script = r#"
 import json, sys, numpy as np

@@ -124,7 +124,7 @@ fn a_file_with_land_cloud_packed_shorts_and_a_level_runs_as_xarray_reads_it() {
 }
 
 /// The real rows of `config/experiment-real.toml` (the two files eofs ships, copied by
-/// `scripts/real_fields.py` as the README says): over 10 seeds the fused map is never worse than
+/// `scripts/real_fields.py` as docs/guide/fields.md says): over 10 seeds the fused map is never worse than
 /// the aerials' own (it was 25% and 20% worse before the filter measured its skill between the
 /// lattice, issue 37) and better than inverse-variance weighting; a stuck boat is caught and the
 /// healthy fleets are rarely marked, a dark camera's region is covered by the other aerial (issue

@@ -197,7 +197,7 @@ fn a_real_browser_sees_every_vehicle_and_the_model_advance_without_console_error
         web_state(port).is_some_and(|s| version(&s) >= 1)
     });
 
-    // The JSON endpoint the page uses, as documented in the README.
+    // The JSON endpoint the page uses, as documented in docs/guide/watching.md.
     let s = web_state(port).unwrap();
     let ids: Vec<String> = MissionConfig::load(Some(&mission))
         .unwrap()

@@ -7,6 +7,7 @@ mod experiment;
 mod export;
 mod render;
 mod replay;
+mod schema;
 mod secure;
 mod simulate;
 mod supervise;
@@ -47,6 +48,10 @@ enum Command {
     Assimilate(assimilate::Args),
     /// Zenoh configs of a secured mission: passwords, mutual TLS, access control per vehicle.
     Secure(secure::Args),
+    /// The JSON Schema of the mission or experiment file (for editors that check TOML).
+    Schema(schema::Args),
+    /// A reference page made from the code, in Markdown (`files`: every key of both files).
+    Reference(schema::ReferenceArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -61,6 +66,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Replay(a) => replay::run(a),
         Command::Assimilate(a) => assimilate::run(a),
         Command::Secure(a) => secure::run(a),
+        Command::Schema(a) => schema::run(a),
+        Command::Reference(a) => schema::reference(a),
     }
 }
 

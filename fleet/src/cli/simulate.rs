@@ -12,7 +12,7 @@ use std::path::PathBuf;
 
 #[derive(ValueEnum, Clone, Copy, Debug, PartialEq)]
 enum Process {
-    /// The plasma-cloud simulator (../shared/plasma-cloud.md).
+    /// The plasma-cloud simulator (docs/simulator.md).
     PlasmaCloud,
     /// The paper's Table 1 timing field (cosh(x) cosh(y) times a damped oscillation).
     Table1,

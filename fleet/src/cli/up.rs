@@ -310,7 +310,7 @@ fn start_server(
     let mut server = Command::new(&bins.server);
     // mimalloc keeps the memory the server frees for its next epoch instead of returning it to
     // the system, where each epoch's N x r matrices came back as fresh pages the kernel zeroed
-    // (192 x 384: p50 414 -> 253 ms, README "Where an epoch's time goes"). Only the
+    // (docs/decisions/064 and the third pass, 066, measured what it bought). Only the
     // environment sets it early enough: `mi_option_set` at start-up did not take. A value the
     // user set is kept.
     if std::env::var_os(PURGE_DELAY).is_none() {

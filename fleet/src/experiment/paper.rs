@@ -26,7 +26,7 @@ use std::path::Path;
 
 /// One row of Table 2: sampling rates in time (steps) and space (cells of the simulator's grid)
 /// for aerials (AV) and boats (MV), and the noise standard deviation of both.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Row {
     /// The simulator's cloud (`preset = "cloud1"`), or a `(frames, rows, cols)` `.npy`
@@ -34,10 +34,16 @@ pub struct Row {
     /// area-averaged by `mv_space` like the simulator's output).
     #[serde(flatten)]
     pub truth: TruthSource,
+    /// Aerial frames every this many steps.
     pub av_time: usize,
+    /// Boat samples (and model updates) every this many steps.
     pub mv_time: usize,
+    /// The aerials' space rate: every this-many-th cell of the truth's grid (on the model grid,
+    /// every `av_space / mv_space`-th).
     pub av_space: usize,
+    /// The boats' space rate, which sets the model grid: the truth is area-averaged by it.
     pub mv_space: usize,
+    /// The noise standard deviation of both aerials and boats (field units).
     pub noise: f64,
     /// The paper's MSE for this row, when it has one (shown beside ours).
     #[serde(default)]
@@ -45,7 +51,7 @@ pub struct Row {
 }
 
 /// The experiment file.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ExperimentConfig {
     /// The truth's seed (one simulated cloud per preset, as the paper has one dataset per
@@ -73,6 +79,7 @@ pub struct ExperimentConfig {
     /// an experiment of datasets only is refused one) and frames.
     #[serde(default)]
     pub truth_grid: Option<[usize; 2]>,
+    /// Steps of every run (a preset's frames; a dataset's first `frames`).
     pub frames: usize,
     /// Boats' sensing radius in simulator cells (divided by `mv_space` on the model grid).
     pub radius: f64,
@@ -103,7 +110,7 @@ pub struct ExperimentConfig {
 }
 
 /// `[team]` keys an experiment sets elsewhere, and where: a value there would be ignored.
-const SET_ELSEWHERE: [(&str, &str); 8] = [
+pub const SET_ELSEWHERE: [(&str, &str); 8] = [
     ("aerial_period", "each [[row]]'s av_time"),
     ("boat_period", "each [[row]]'s mv_time"),
     ("aerial_stride", "each [[row]]'s av_space / mv_space"),
@@ -1297,7 +1304,7 @@ impl Report<'_> {
         writeln!(
             md,
             "\n### The claims, row by row\n\n\
-             What the tables above say of each claim the fused estimate is held to (the README's Results say why \
+             What the tables above say of each claim the fused estimate is held to (docs/results/README.md says what each means; docs/decisions say why \
              where one does not). A difference (the first team named minus the second) is in percent of the \
              second's MSE, mean [95% interval] over seeds; `not run`: the config has no such team.\n"
         )?;
@@ -1352,7 +1359,7 @@ impl Report<'_> {
         }
         writeln!(
             md,
-            "\n### Sensor health\n\nEvery reading is tested before the fusion uses it (README, \"Sensor health\"). \
+            "\n### Sensor health\n\nEvery reading is tested before the fusion uses it (the guide, docs/guide/sensor-health.md). \
              Healthy fleets (every fused team, row and seed): **{alarms} sensor(s) marked in {checks} sensor-steps \
              tested** ({:.1e} a sensor-step; the bias tests' design rate is about 1.0e-3 a tested step, the CUSUM's \
              7.7e-4 and the change test's 2.6e-4); healthy values refused \
@@ -1373,7 +1380,7 @@ impl Report<'_> {
              Knowable: the seeds in which a test that knew the fault (kind, size, sign, start) could have marked it \
              within those 3 epochs, expected, at 1e-3 false alarms: a stuck probe, a spike, an over-exposed frame or a \
              dark camera once one reached the server; an offset by the best test's power on the boat's differences \
-             from the aerials at the lattice cells both measured (the only place an offset shows: README, \"Sensor \
+             from the aerials at the lattice cells both measured (the only place an offset shows: docs/guide/sensor-health.md, \"Sensor \
              health\").\n"
         )?;
         writeln!(

@@ -49,6 +49,7 @@ use serde::{Deserialize, Serialize};
     strum::EnumString,
     strum::Display,
     strum::VariantNames,
+    schemars::JsonSchema,
 )]
 #[serde(rename_all = "kebab-case")]
 #[strum(serialize_all = "kebab-case", parse_err_ty = String, parse_err_fn = forgettingunit_name_error)]

@@ -85,6 +85,22 @@ impl fmt::Display for RankPolicy {
 }
 
 /// In files: `"full"`, `"optimal"`, `"energy:<f>"`, or an integer (`6` or `"6"`).
+impl schemars::JsonSchema for RankPolicy {
+    fn schema_name() -> std::borrow::Cow<'static, str> {
+        "RankPolicy".into()
+    }
+
+    fn json_schema(_: &mut schemars::SchemaGenerator) -> schemars::Schema {
+        schemars::json_schema!({
+            "description": "How many singular values the DMD keeps: an integer (at most that many), \"full\" (every one above the numerical-rank tolerance), \"optimal\" (Gavish and Donoho's hard threshold) or \"energy:<fraction>\" (the fewest reaching that fraction of the energy).",
+            "anyOf": [
+                {"type": "integer", "minimum": 1},
+                {"type": "string", "pattern": "^(full|optimal|energy:[0-9.eE+-]+|[1-9][0-9]*)$"}
+            ]
+        })
+    }
+}
+
 impl serde::Serialize for RankPolicy {
     fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
         s.collect_str(self)

@@ -2,7 +2,7 @@
 //!
 //! The filter's detail is independent per cell and fixed in space, so a front the forecast
 //! puts a little off errs where the field is steep, by more than the detail's variance says
-//! there (README, "where the error is"). A displacement `delta` of the features, isotropic
+//! there (docs/decisions/031-placement-over-the-horizon.md). A displacement `delta` of the features, isotropic
 //! with variance `s2` per axis (cells^2), errs by `grad x . delta` at a cell: variance
 //! `s2 |grad x|^2`. `s2` is read from the boats' innovations against the forecast: their
 //! excess over what the filter expects (its variance plus the boats' noise), regressed on the

@@ -84,9 +84,8 @@ fn row_dots(a: MatRef<'_, f64>, b: MatRef<'_, f64>, out: &mut [f64]) {
 
 /// The modal part's mean and variance per cell, `B a` and `diag(B P B^T)`, made a block of
 /// cells at a time on every core, each block in pieces of [`SUB_ROWS`] rows through one
-/// buffer (each row as the whole product makes it): a block's `B P` whole was a fresh matrix
-/// per block, out of cache by the time its row sums read it (2.5 ms against 1.8 ms at
-/// 73,728 cells, rank 10).
+/// buffer (each row as the whole product makes it): a block's `B P` made whole was a fresh
+/// matrix per block, out of cache by the time its row sums read it.
 fn modal_of(basis: MatRef<'_, f64>, cov: MatRef<'_, f64>, mean: &[f64]) -> (Vec<f64>, Vec<f64>) {
     let modal_mean = modal_mean_of(basis, mean);
     let weight = cov.ncols().pow(2);

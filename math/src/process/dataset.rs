@@ -8,7 +8,7 @@ use crate::npy::{self, NpyError};
 use faer::Mat;
 use std::path::Path;
 
-#[derive(Debug, thiserror::Error)]
+#[derive(Debug, thiserror::Error, strum::VariantNames)]
 pub enum DatasetError {
     #[error(transparent)]
     Npy(#[from] NpyError),

@@ -1,7 +1,7 @@
 //! A truth a node reads a frame at a time. A mixed-reality node needs the truth's frame at each
 //! step it senses or scores, never all of them at once, and at 384 x 768 the 100 frames of the
 //! bundled mission are 236 MB: held in memory, they were a fifth of the model server's peak
-//! and as much again in every vehicle (README, "A twenty-first pass"). So a truth given as a
+//! and as much again in every vehicle (docs/decisions/085, the twenty-first pass). So a truth given as a
 //! `.npy` file stays in its file and each frame is read from it when asked (one positioned
 //! read); a truth made here (the simulator) stays in memory. Either way a frame is the same
 //! values, NaN where the truth has none, and the whole file is checked once when it is opened,

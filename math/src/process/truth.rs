@@ -6,7 +6,7 @@ use super::FieldSeries;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
-#[derive(Debug, thiserror::Error)]
+#[derive(Debug, thiserror::Error, strum::VariantNames)]
 pub enum TruthError {
     #[error(
         "give exactly one of `preset` or `dataset` (in [truth] of a mission file, in each [[row]] of an \
@@ -54,7 +54,7 @@ impl TruthError {
 /// `.npy` dataset, or a `(time, y, x)` variable of a NetCDF-3 file. In files it is written as
 /// one of two keys, `preset = "cloud1"` or `dataset = "path.npy"` (`dataset = "f.nc"` with
 /// `variable = "density"`); giving both or neither is refused where the file is read.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(try_from = "TruthKeys", into = "TruthKeys")]
 pub enum TruthSource {
     Preset(Preset),
@@ -68,14 +68,22 @@ pub enum TruthSource {
 }
 
 /// The two keys as they stand in a file.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize, schemars::JsonSchema)]
 struct TruthKeys {
+    /// The plasma-cloud simulator's cloud (`cloud1`, `cloud2`, `cloud10`): one of `preset` and
+    /// `dataset`.
     #[serde(default)]
     preset: Option<Preset>,
+    /// A field from a file, `(frames, rows, cols)`: a NumPy `.npy` array or a NetCDF file (with
+    /// `variable`); its cells with no value (NaN, `_FillValue`) are land. Relative to the file
+    /// that names it.
     #[serde(default)]
     dataset: Option<PathBuf>,
+    /// A NetCDF dataset's variable (its time, y and x dimensions; decoded as xarray decodes it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     variable: Option<String>,
+    /// A NetCDF variable's dimensions beyond time, y and x fixed at one coordinate value
+    /// (`select = { pressure = 500 }`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     select: Option<super::netcdf::Select>,
 }

@@ -28,7 +28,7 @@ use thiserror::Error;
 ///   coast. So a strait or an archipelago narrower than a disk still gets its boats (disks
 ///   kept off every land cell left such a field with none), and a field with open water
 ///   places as it did. Open water first because coastal disks were measured to cost the fused
-///   map on the Pacific SST (README, "Water narrower than a disk").
+///   map on the Pacific SST (docs/guide/fields.md, "Water narrower than a disk").
 #[derive(Debug, Clone, Copy, Default)]
 pub struct Room<'a> {
     pub outside: &'a [bool],

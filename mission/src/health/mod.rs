@@ -47,7 +47,7 @@
 //! batch as received, and a re-fit replays the same tests. The design rate of a false `suspect`
 //! from the CUSUM is about one in 1,300 of a sensor's tested steps (its average run length,
 //! Siegmund's approximation), and from the change test one in 3,800; the measured rate is in
-//! the README.
+//! docs/guide/sensor-health.md.
 
 mod change;
 
@@ -543,7 +543,7 @@ impl Screen {
             }
             if let Some((b, b_var)) = offset {
                 // Recalibrated against the aerials: the offset taken off each value, its
-                // variance added to each (README, "Sensor health": why not more).
+                // variance added to each (docs/guide/sensor-health.md: why not more).
                 s.values.iter_mut().for_each(|y| *y -= b);
                 var.iter_mut().for_each(|x| *x += b_var);
                 self.counts.recalibrated += s.values.len() as u64;
@@ -888,7 +888,7 @@ fn offset_sums(s: &Sample, sig: &[f64], keep: &[bool], reference: &Reference<'_>
 /// counts as if its innovation against the reference (variance `ref_var`, the fusion's prior
 /// there) were [`HUBER`] deviations, so it moves the map no further than a value at the
 /// threshold would. Growing the noise alone by `(r / HUBER)^2` did not: where the reference is
-/// unsure, a 50-deviation spike kept nearly all its weight (README, "Sensor health").
+/// unsure, a 50-deviation spike kept nearly all its weight (docs/guide/sensor-health.md).
 fn huber_variance(noise_var: f64, ref_var: f64, r: f64) -> f64 {
     if r <= HUBER {
         return noise_var;

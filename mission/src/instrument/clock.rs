@@ -6,7 +6,7 @@
 use serde::{Deserialize, Serialize};
 
 /// The mission's `[time]` table as written.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct TimeConfig {
     /// The start of step 0, RFC 3339 in UTC (`"2026-11-25T09:00:00Z"`).

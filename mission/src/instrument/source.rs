@@ -73,10 +73,14 @@ impl fmt::Display for SensorSource {
 
 /// The mission's `[sensors]` table: `default` for every vehicle, and one entry per vehicle id
 /// that differs (`boat-2 = "udp:0.0.0.0:15602"`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Sensors {
+    /// Every vehicle's source unless it has its own entry: `sim` (the truth sampled at the
+    /// vehicle's fix), `stdin`, `udp:ADDR:PORT` (NDJSON readings), `mavlink:NAME`
+    /// (NAMED_VALUE_FLOAT on the autopilot's link) or `geotiff:DIR` (an aerial's frames).
     #[serde(default = "sim")]
     pub default: String,
+    /// One entry per vehicle id whose source differs from `default` (`boat-2 = "udp:0.0.0.0:15602"`).
     #[serde(flatten)]
     pub vehicles: BTreeMap<String, String>,
 }

@@ -1,6 +1,6 @@
 //! Float arrays on the wire as packed little-endian bytes. CBOR writes each float as its own
 //! item and ciborium tries each one as f16 and f32 first: at 192 x 384 that was about 40% of
-//! the model server's CPU (README, "Where an epoch's time goes"). A byte string of `8 n` bytes
+//! the model server's CPU (docs/decisions/064). A byte string of `8 n` bytes
 //! (`4 n` for an `f32` array: the published model's fields) is one copy each way, and the
 //! values are the very bits they were (numpy reads it with `np.frombuffer(b, "<f8")` or
 //! `"<f4"`). Human-readable formats (JSON: the live view, events) keep a plain list of numbers.

@@ -9,7 +9,7 @@
 //! why; nodes count them by [`ProtocolError::reason`].
 //!
 //! A message is a CBOR map `{"v": 2, "type": "<kind>", ...fields}`; any CBOR library decodes
-//! it (see the README for a Python snippet). Cells travel as runs ([`cells`]).
+//! it (see docs/reference/protocol.md and the Python client in examples/). Cells travel as runs ([`cells`]).
 
 pub mod cells;
 pub mod floats;

@@ -1,4 +1,4 @@
-//! The plasma-cloud simulator (`../shared/plasma-cloud.md`): the 2-D field-line-integrated
+//! The plasma-cloud simulator (`docs/simulator.md`): the 2-D field-line-integrated
 //! striation model of an ionospheric barium cloud, nondimensional (length = the cloud's
 //! e-folding radius `a`, velocity = `|E0|/B`, time = `a / V0`, density = `N / N_peak`).
 //!
@@ -80,9 +80,19 @@ impl Default for PlasmaParams {
     }
 }
 
-/// The three named clouds (the paper's names; parameters ours, see the README).
+/// The three named clouds (the paper's names; parameters ours, `docs/simulator.md`).
 #[derive(
-    Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, strum::EnumString, strum::Display, strum::VariantNames,
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Serialize,
+    Deserialize,
+    strum::EnumString,
+    strum::Display,
+    strum::VariantNames,
+    schemars::JsonSchema,
 )]
 #[serde(rename_all = "kebab-case")]
 #[strum(serialize_all = "kebab-case", parse_err_ty = String, parse_err_fn = preset_name_error)]

@@ -59,7 +59,7 @@ impl Fct {
     /// `out` (which may not alias the inputs).
     ///
     /// Long because it is one time step of the scheme, each stage in the order of the
-    /// specification's equations (`plasma-cloud.md`).
+    /// specification's equations (`docs/simulator.md`).
     pub fn step(&mut self, old: &[f64], ho: &[f64], vel: &FaceVelocity, dt: f64, out: &mut [f64]) {
         let g = &self.grid;
         let (nx, ny) = (g.nx, g.ny);
