@@ -952,12 +952,14 @@ fn boats_planned(silent: bool) -> std::collections::BTreeMap<(String, u64), Opti
 }
 
 /// The epochs after the 3rd in which a boat other than boat-1 was planned at boat-1's disk of
-/// epoch 3.
+/// epoch 3, or a cell beside it (disks of radius 3 one cell apart cover the same water: which
+/// of the two the placement picks moves with the model's modes).
 fn others_sent_to_boat1s_disk(planned: &std::collections::BTreeMap<(String, u64), Option<[f64; 2]>>) -> Vec<u64> {
-    let disk = planned[&("boat-1".to_string(), 3)];
+    let disk = planned[&("boat-1".to_string(), 3)].expect("a disk in epoch 3");
+    let beside = |p: &[f64; 2]| (p[0] - disk[0]).hypot(p[1] - disk[1]) <= 1.0 + 1e-9;
     planned
         .iter()
-        .filter(|((id, e), p)| id != "boat-1" && *e > 3 && p.is_some() && **p == disk)
+        .filter(|((id, e), p)| id != "boat-1" && *e > 3 && p.as_ref().is_some_and(beside))
         .map(|((_, e), _)| *e)
         .collect()
 }

@@ -475,6 +475,7 @@ mod tests {
             forecast_steps: 1,
             forecast_variance: vec![1.0; n],
             land: vec![],
+            level: 0.0,
         };
         let known: BTreeMap<String, FoxChannel> = view.channels().into_iter().map(|c| (c.topic.clone(), c)).collect();
         let bodies = [Body::Telemetry(telemetry), Body::Plan(plan), Body::Model(model)];

@@ -171,6 +171,7 @@ mod tests {
             forecast_steps: 5,
             forecast_variance: vec![0.02; 20],
             land: vec![3],
+            level: 0.0,
         };
         let p = Published::of(update.clone(), (3, 3, 41));
         let ctx = protocol::Context::new(grid);

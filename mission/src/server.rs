@@ -1236,6 +1236,7 @@ impl ServerCore {
             forecast_steps: self.cfg.boat_period as u64,
             forecast_variance: vec![],
             land: self.assim.land().iter().map(|&c| c as u32).collect(),
+            level: self.assim.field_level(),
         };
         Some(ModelParts {
             shell,

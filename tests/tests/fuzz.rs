@@ -160,6 +160,7 @@ fn wire_seeds() -> Vec<Vec<u8>> {
             forecast_steps: 5,
             forecast_variance: vec![0.02; n],
             land: vec![],
+            level: 0.0,
             estimate: vec![0.3; n],
         }),
         Body::Plan(Plan {

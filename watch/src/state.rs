@@ -464,6 +464,7 @@ mod tests {
             forecast_steps: 1,
             forecast_variance: vec![0.2; 6],
             land: vec![],
+            level: 0.0,
         })
     }
 

@@ -4,7 +4,7 @@
 //! the aerial lattice and the disks directly.
 
 use super::between::Sources;
-use super::{aerial_detail_variance, Assimilator, Setup};
+use super::{aerial_detail_variance, plus, Assimilator, Setup};
 use crate::fusion::{fuse, AerialFrame, Estimate, Measured, Scheme};
 use crate::kalman::{self, Observation};
 use crate::protocol::Sample;
@@ -86,6 +86,18 @@ impl Setup {
 }
 
 impl Assimilator {
+    /// An aerial sight in the field's anomalies about the initialisation's mean (as the
+    /// filter holds the field): its lattice values and its estimate less the mean there.
+    fn anomaly_of(&self, sight: &AerialSight) -> AerialSight {
+        let mut a = sight.clone();
+        a.values
+            .iter_mut()
+            .zip(self.mean_at(&sight.cells))
+            .for_each(|(v, m)| *v -= m);
+        a.estimate.values = self.less_mean(a.estimate.values);
+        a
+    }
+
     /// The aerial estimate of a step from the aerials' samples ([`Setup::aerial_sight`]),
     /// held for the steps without any.
     pub fn aerial_estimate(&mut self, samples: &[Sample]) -> Result<AerialSight, TeamError> {
@@ -133,14 +145,15 @@ impl Assimilator {
     pub(super) fn boat_reference(
         &self,
         ahead: u64,
-        aerial: &AerialSight,
+        sight: &AerialSight,
         cells: &[usize],
     ) -> Result<HashMap<usize, (f64, f64)>, TeamError> {
         let Some((f, at)) = self.state.filter.as_ref() else {
-            let (values, variance) = (&aerial.estimate.values, &aerial.estimate.variance);
+            let (values, variance) = (&sight.estimate.values, &sight.estimate.variance);
             let extra = self.state.aerial_extra.mean();
             return Ok(cells.iter().map(|&c| (c, (values[c], variance[c] + extra))).collect());
         };
+        let aerial = &self.anomaly_of(sight);
         let f = tracing::info_span!("reference ahead").in_scope(|| f.ahead(ahead.saturating_sub(*at) as usize));
         let lattice = Observation {
             cells: &aerial.cells,
@@ -156,7 +169,8 @@ impl Assimilator {
         };
         let (mean, variance) =
             tracing::info_span!("reference conditioned").in_scope(|| f.field_at_after(&[lattice], &[dense], cells))?;
-        Ok(cells.iter().copied().zip(mean.into_iter().zip(variance)).collect())
+        let mean = mean.iter().zip(self.mean_at(cells)).map(|(a, m)| a + m);
+        Ok(cells.iter().copied().zip(mean.zip(variance)).collect())
     }
 
     /// Fuse one step `ahead` steps after the model's newest snapshot: the aerial estimate with
@@ -177,14 +191,17 @@ impl Assimilator {
         let kalman = self.setup.cfg.fusion == Scheme::Kalman;
         let predicted = match kalman {
             true => vec![],
-            false => pred.predict(ahead as f64),
+            false => self.plus_mean(pred.predict(ahead as f64)),
         };
         let vals: Vec<f64> = boats.iter().flat_map(|s| s.values.iter().copied()).collect();
         let vars = boat_variances(&boats, self.setup.cfg.boat_sigma);
         let boat_var = typical(&vars, self.setup.cfg.boat_sigma * self.setup.cfg.boat_sigma);
         if !cells.is_empty() {
-            let at_cells = match kalman {
-                true => pred.predict_at(ahead as f64, &cells),
+            let at_cells: Vec<f64> = match kalman {
+                true => {
+                    let at = pred.predict_at(ahead as f64, &cells);
+                    at.iter().zip(self.mean_at(&cells)).map(|(a, m)| a + m).collect()
+                }
                 false => cells.iter().map(|&c| predicted[c]).collect(),
             };
             self.calibrate(sight, &at_cells, &cells, &vals, boat_var);
@@ -256,8 +273,11 @@ impl Assimilator {
             return Ok(prediction(predicted));
         }
         let (_, basis) = self.state.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
-        match gappy::reconstruct(faer::Mat::as_ref(basis), cells, vals, boat_var) {
-            Ok(g) => {
+        // The modes hold the field's anomalies: the gappy fit is of the values less the mean.
+        let anomalies: Vec<f64> = vals.iter().zip(self.mean_at(cells)).map(|(v, m)| v - m).collect();
+        match gappy::reconstruct(faer::Mat::as_ref(basis), cells, &anomalies, boat_var) {
+            Ok(mut g) => {
+                g.field = self.plus_mean(g.field);
                 // Truncation error: the fit's residual at the measured cells, inflated for
                 // the degrees of freedom the fit used.
                 let dof = (cells.len() as f64 - basis.ncols() as f64).max(1.0);
@@ -289,11 +309,33 @@ impl Assimilator {
     fn filter_step(
         &mut self,
         ahead: u64,
-        aerial: &AerialSight,
+        sight: &AerialSight,
         cells: &[usize],
         vals: &[f64],
         vars: &[f64],
     ) -> Result<Estimate, TeamError> {
+        // The filter holds the field's anomalies about its mean level: what it observes is
+        // taken as anomalies, what it gives back as the field.
+        let aerial = self.anomaly_of(sight);
+        let vals: Vec<f64> = vals.iter().zip(self.mean_at(cells)).map(|(v, m)| v - m).collect();
+        let (values, variance) = self.filtered(ahead, (sight, &aerial), cells, &vals, vars)?;
+        Ok(Estimate {
+            values: self.plus_mean(values),
+            variance,
+        })
+    }
+
+    /// [`Self::filter_step`] in the field's anomalies: `aerial` is `sight` less the mean level,
+    /// `vals` the boats' values less it; the field's anomaly and its variance.
+    fn filtered(
+        &mut self,
+        ahead: u64,
+        (sight, aerial): (&AerialSight, &AerialSight),
+        cells: &[usize],
+        vals: &[f64],
+        vars: &[f64],
+    ) -> Result<(Vec<f64>, Vec<f64>), TeamError> {
+        let raw_forecast_mean = self.state.mean.clone();
         let boat_vars: Vec<f64> = vars.iter().map(|v| v.max(1e-12)).collect();
         let boat_var = typical(
             &boat_vars,
@@ -321,7 +363,8 @@ impl Assimilator {
         };
         if !aerial.cells.is_empty() {
             f.learn_persistence(&lattice, 1.0)?;
-            s.forecast_skill.extend(forecast_skill(&prior.mean, &lattice));
+            s.forecast_skill
+                .extend(skill_on_lattice(sight, &prior, raw_forecast_mean.as_deref()));
         }
         let cap = kalman::variance_of(&aerial.estimate.values);
         check_detail(f, &prior, (&lattice, &boats), cap, &self.setup.on_lattice)?;
@@ -347,10 +390,16 @@ impl Assimilator {
             s.innovation = Some(kalman::Innovation::of(&prior, vals, &boat_vars));
             f.adapt_noise(&prior, vals, boat_var);
             let grid = self.setup.grid;
-            s.displacement = learn_displacement(s.displacement, &grid, &prior, vals, &boat_vars)?;
+            s.displacement = learn_displacement(
+                s.displacement,
+                &grid,
+                &prior,
+                raw_forecast_mean.as_deref(),
+                vals,
+                &boat_vars,
+            )?;
         }
-        let (values, variance) = f.field();
-        Ok(Estimate { values, variance })
+        Ok(f.field())
     }
 }
 
@@ -398,6 +447,17 @@ fn dense(aerial: &AerialSight, extra: f64, on_lattice: &[bool]) -> (Vec<f64>, Ve
         .collect();
     let (values, variance) = seen.iter().map(|&i| (aerial.estimate.values[i], aerial_var[i])).unzip();
     (aerial_var, seen, values, variance)
+}
+
+/// The forecast's skill against the aerials' lattice in the field's values (a mean level that
+/// is part of the field counts as skill, as it did before the model learned anomalies).
+fn skill_on_lattice(sight: &AerialSight, prior: &kalman::Prior, mean: Option<&Vec<f64>>) -> Option<f64> {
+    let raw = Observation {
+        cells: &sight.cells,
+        values: &sight.values,
+        variance: &sight.variance,
+    };
+    forecast_skill(&plus(mean, prior.mean.clone()), &raw)
 }
 
 /// The forecast's skill against a dense observation: 1 - (its mean squared error at the cells,
@@ -474,11 +534,13 @@ fn learn_displacement(
     displacement: f64,
     grid: &crate::grid::Grid,
     prior: &kalman::Prior,
+    mean: Option<&Vec<f64>>,
     vals: &[f64],
     boat_vars: &[f64],
 ) -> Result<f64, TeamError> {
     let cells = &prior.cells;
-    let grad2 = grid.squared_gradient(&prior.mean)?;
+    // The gradient of the field the features move in, not of its anomaly.
+    let grad2 = grid.squared_gradient(&plus(mean, prior.mean.clone()))?;
     let innovation2: Vec<f64> = cells
         .iter()
         .zip(vals)

@@ -291,6 +291,10 @@ pub struct ModelUpdate {
     /// above are zeros that stand for nothing. Absent from a server without them.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub land: Vec<u32>,
+    /// The field's mean level the modes' anomalies are about: a forecast at a wet cell is
+    /// `level + (Phi Lambda^t b)` there (0 from a server that modelled the field itself).
+    #[serde(default)]
+    pub level: f64,
 }
 
 impl ModelUpdate {
@@ -845,6 +849,7 @@ mod tests {
                 forecast_steps: 5,
                 forecast_variance: vec![0.02; 20],
                 land: vec![],
+                level: 0.0,
             }),
             Body::Plan(Plan {
                 vehicle: "boat-1".parse::<VehicleId>().unwrap(),
@@ -968,6 +973,7 @@ mod tests {
             forecast_steps: 5,
             forecast_variance: vec![0.02; 20],
             land: vec![],
+            level: 0.0,
         };
         let check = |m: &ModelUpdate| decode(&encode(&Body::Model(m.clone())), &c);
         assert!(check(&whole).is_ok());
