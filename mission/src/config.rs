@@ -316,8 +316,9 @@ pub struct MavlinkConfig {
     pub acceptance_m: f64,
     /// The autopilots' `FENCE_MARGIN` (m; ArduPilot's default 2) and a boat's turning radius
     /// (`TURN_RADIUS`, m; ArduRover's default 0.9): launch and rally points are set inside the
-    /// fence by their sum (ArduPilot refuses to arm within the margin, and a turn from rest
-    /// sweeps the radius), and a fence that leaves no such room is refused at load. A bridge
+    /// fence by their sum (a vehicle inside the margin is in a margin breach, which versions
+    /// before 4.7 refused to arm in, and a turn from rest sweeps the radius), and a fence that
+    /// leaves no such room is refused at load. A bridge
     /// whose autopilot keeps a larger margin says so.
     pub fence_margin_m: f64,
     /// A boat's turning radius (`TURN_RADIUS`, m; ArduRover's default 0.9): launch and rally
@@ -355,6 +356,11 @@ pub struct MavlinkConfig {
     /// What an autopilot does on a fence breach (`rtl`, `hold`, or `report`): set as its
     /// `FENCE_ACTION` when the bridge uploads the site's fence and enables it.
     pub fence_action: String,
+    /// Drive a vehicle whose autopilot did not confirm the fence (the upload failed, the list
+    /// read back differs, or FENCE_ENABLE did not take). Off by default: such a vehicle waits,
+    /// unarmed, with the reason on telemetry, the live view and the log; on, the planner alone
+    /// keeps it inside and the node says so at start.
+    pub drive_without_fence: bool,
     /// Simulated autopilots' battery (mAh), the charge left at which the low-battery failsafe
     /// acts, and how (`rtl`, `hold`, `continue`): their `BATT_CAPACITY`, `BATT_LOW_MAH` and
     /// `BATT_FS_LOW_ACT`.
@@ -406,6 +412,7 @@ impl Default for MavlinkConfig {
             autopilot_signing_key: None,
             accept_unsigned_telemetry: false,
             fence_action: "rtl".into(),
+            drive_without_fence: false,
             battery_mah: 20_000.0,
             battery_low_mah: 4_000.0,
             low_battery_action: "rtl".into(),

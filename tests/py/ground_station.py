@@ -8,7 +8,8 @@ It listens where the fleet's gateway sends (udpin), and:
   3. uploads a 3-item mission to one vehicle with the standard handshake
      (MISSION_COUNT -> MISSION_REQUEST_INT -> MISSION_ITEM_INT ... -> MISSION_ACK; item 0 is
      home, as ArduPilot has it), sets AUTO and waits for MISSION_ITEM_REACHED 1, 2, 3;
-  4. puts another vehicle on HOLD (SET_MODE) and waits for its HEARTBEAT to show it.
+  4. puts another vehicle on HOLD (SET_MODE) and waits for its HEARTBEAT to show it;
+  5. times every autopilot's HEARTBEAT over the whole run (rate, longest gap).
 Prints one JSON object with what it saw; the Rust test checks it against the server.
 """
 
@@ -30,11 +31,23 @@ ap.add_argument("--hold-sysid", type=int, required=True)
 ap.add_argument("--hold-mode", type=int, default=4)
 ap.add_argument("--auto-mode", type=int, default=10)
 ap.add_argument("--watch-s", type=float, default=15.0)
+ap.add_argument("--heartbeat-s", type=float, default=22.0, help="seconds of heartbeats timed from discovery")
 args = ap.parse_args()
 
 want = {int(s): int(t) for s, t in (p.split(":") for p in args.vehicles.split(","))}
 m = mavutil.mavlink_connection(f"udpin:127.0.0.1:{args.port}", source_system=255, source_component=190)
 out = {"heartbeats": {}, "targets": {}, "approach": {}, "mission": {}, "hold": {}}
+# When each autopilot's HEARTBEAT arrived, whatever the steps below wait for: a ground station
+# judges the link by them (QGroundControl calls a vehicle lost after 3.5 s without one).
+heard = {}
+
+
+def on_message(_conn, msg):
+    if msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == 1:
+        heard.setdefault(msg.get_srcSystem(), []).append(time.monotonic())
+
+
+m.message_hooks.append(on_message)
 
 
 def fail(why):
@@ -57,6 +70,7 @@ while time.time() < deadline and set(out["heartbeats"]) != set(want):
     out["heartbeats"][hb.get_srcSystem()] = {"type": hb.type, "autopilot": hb.autopilot, "mode": hb.custom_mode}
 if set(out["heartbeats"]) != set(want):
     fail(f"heartbeats from {sorted(out['heartbeats'])}, wanted {sorted(want)}")
+discovered = time.monotonic()
 
 # 2. Targets and positions: distance to the newest guided target, first and last seen, until
 # every vehicle with a target has reached it (or the watch ends); and over all its targets, the
@@ -232,4 +246,12 @@ while time.time() < deadline:
         break
 if not out["hold"]:
     fail("the held vehicle never showed HOLD")
+
+# 5. Heartbeats timed over a window from discovery, however soon the steps above ended.
+while time.monotonic() - discovered < args.heartbeat_s:
+    recv("HEARTBEAT", 0.5)
+out["heartbeat_timing"] = {
+    s: {"count": len(t), "span_s": t[-1] - t[0], "max_gap_s": max((b - a for a, b in zip(t, t[1:])), default=0.0)}
+    for s, t in heard.items()
+}
 print(json.dumps(out))

@@ -68,8 +68,8 @@ fn a_server_that_held_vehicles_restarts_after_kill_9_and_the_mission_completes()
             .unwrap(),
     );
     // boat-3 drives an autopilot of its own process, so the test can make it go silent. It is
-    // switched on at boat-3's launch point (ArduPilot arms nowhere within FENCE_MARGIN of the
-    // fence, and the site's corner is on it).
+    // switched on at boat-3's launch point (inside the fence by its margin, as the fleet keeps
+    // every launch point; the site's corner is on the fence).
     let ap_port = free_udp_port();
     let grid = fleet_mission::grid::Grid::new(24, 48, 1.0).unwrap();
     let at = fleet_mission::launch::launch_points(&m, &grid).unwrap()[m.vehicle("boat-3").unwrap().0];

@@ -44,7 +44,7 @@ impl Chromium {
             "--disable-gpu",
             "--hide-scrollbars",
             "--remote-debugging-pipe",
-            "--window-size=1400,1500",
+            "--window-size=1366,1500",
         ]);
         c.arg(format!("--user-data-dir={}", dir.join("chromium-profile").display()));
         c.stdin(Stdio::null())
@@ -305,10 +305,21 @@ fn a_real_browser_sees_every_vehicle_and_the_model_advance_without_console_error
         ids.len(),
         shot.display()
     );
-    drop(page);
-    drop(view);
-
+    // A laptop's screen: nothing wider than the window.
+    let wide = page.eval("document.documentElement.scrollWidth - document.documentElement.clientWidth");
+    assert!(
+        wide.as_i64().is_some_and(|w| w <= 0),
+        "the page is {wide} px wider than a 1,366 px window"
+    );
+    // A normal end is no alarm: "finished" while the view is up, and after it stops.
     procs.wait_all(120);
+    eventually(30, "the page says the mission finished", || {
+        badge(&mut page) == "finished"
+    });
+    drop(view);
+    std::thread::sleep(std::time::Duration::from_secs(2));
+    assert_eq!(badge(&mut page), "finished", "the view stopped after a normal end");
+    drop(page);
 }
 
 #[test]

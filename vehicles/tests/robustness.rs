@@ -90,6 +90,7 @@ fn boat_spec() -> BridgeSpec {
             disarm_delay_s: 10.0,
             speedup: 1.0,
             safety: Default::default(),
+            wind: Default::default(),
         },
         acceptance_m: 0.25,
         heartbeat_timeout: Duration::from_millis(400),
@@ -97,6 +98,7 @@ fn boat_spec() -> BridgeSpec {
         signing: None,
         fence_m: vec![],
         fence_action: 1.0,
+        drive_without_fence: false,
         rally: vec![],
         mavlink_hz: f64::INFINITY,
         ready_timeout: Duration::from_secs(10),
@@ -243,6 +245,7 @@ fn the_simulated_autopilot_answers_through_garbage() {
         disarm_delay_s: 10.0,
         speedup: 1.0,
         safety: Default::default(),
+        wind: Default::default(),
     };
     let stop = Arc::new(AtomicBool::new(false));
     serve::spawn(

@@ -37,6 +37,7 @@ fn spec(sysid: u8) -> SimSpec {
         disarm_delay_s: 10.0,
         speedup: 1.0,
         safety: Default::default(),
+        wind: Default::default(),
     }
 }
 
@@ -46,7 +47,7 @@ fn autopilot(sysid: u8, key: Option<&SigningKey>, stop: &Arc<AtomicBool>) -> (u1
     let signing = key.map(|k| LinkSigning::new(k.clone(), vehicles::signing::LINK_AUTOPILOT, false));
     let stats = serve::spawn(
         &format!("udpin:127.0.0.1:{port}"),
-        // Switched on 5 m inside the fence: ArduPilot arms nowhere within FENCE_MARGIN of it.
+        // Switched on 5 m inside the fence, clear of its margin as the fleet's launch points are.
         SimAutopilot::new(spec(sysid), Vector3::new(5.0, 10.0, 0.0)),
         signing,
         stop.clone(),
@@ -152,6 +153,7 @@ fn bridge_to(port: u16, key: Option<SigningKey>, accept_unsigned: bool) -> Bridg
         // The site's extent as the fence, and two rally points: uploaded over the signed link.
         fence_m: vec![[0.0, 0.0], [48.0, 0.0], [48.0, 24.0], [0.0, 24.0]],
         fence_action: 1.0,
+        drive_without_fence: false,
         rally: vec![Vector3::new(1.0, 1.0, 0.0), Vector3::new(1.0, 40.0, 0.0)],
         mavlink_hz: f64::INFINITY,
         ready_timeout: Duration::from_secs(10),

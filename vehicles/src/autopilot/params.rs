@@ -100,9 +100,35 @@ macro_rules! length_param {
 /// Arming is refused within this distance inside the fence (m; `AC_Fence`'s `FENCE_MARGIN`).
 const FENCE_MARGIN: Param = length_param!("FENCE_MARGIN", safety.fence_margin, 1.0);
 
+/// Whether RTL may go home as well as to the rally points (0/1).
+const RALLY_INCL_HOME: Param = Param {
+    name: "RALLY_INCL_HOME",
+    get: |s| f32::from(u8::from(s.safety.rally_include_home)),
+    set: Some(|s, v| {
+        (v == 0.0 || v == 1.0) && {
+            s.safety.rally_include_home = v == 1.0;
+            true
+        }
+    }),
+};
+
+/// SITL's steady wind (m/s, and the degrees it comes from): a push a test sets to drive a
+/// vehicle where it was not told to go (out of its fence), as one does to SITL.
+const SIM_WIND_DIR: Param = Param {
+    name: "SIM_WIND_DIR",
+    get: |s| s.wind.from_deg as f32,
+    set: Some(|s, v| {
+        v.is_finite() && {
+            s.wind.from_deg = v as f64;
+            true
+        }
+    }),
+};
+const SIM_WIND_SPD: Param = length_param!("SIM_WIND_SPD", wind.speed, 1.0);
+
 /// A Rover's: cruise speed (m/s), steering rate limit (deg/s), turning radius and waypoint
 /// radius (m).
-const BOAT: [Param; 11] = [
+const BOAT: [Param; 14] = [
     Param {
         name: "ATC_STR_RAT_MAX",
         get: |s| s.turn_rate.to_degrees() as f32,
@@ -130,13 +156,16 @@ const BOAT: [Param; 11] = [
     FENCE_ENABLE,
     FENCE_MARGIN,
     SYSID,
+    RALLY_INCL_HOME,
+    SIM_WIND_DIR,
+    SIM_WIND_SPD,
     length_param!("TURN_RADIUS", turn_radius, 1.0),
     length_param!("WP_RADIUS", wp_radius, 1.0),
 ];
 
 /// A Copter's: the delay before it disarms itself on the ground (s), waypoint radius (cm) and
 /// speed (cm/s).
-const MULTIROTOR: [Param; 10] = [
+const MULTIROTOR: [Param; 13] = [
     BATT_CAPACITY,
     BATT_FS_LOW_ACT,
     BATT_LOW_MAH,
@@ -145,6 +174,9 @@ const MULTIROTOR: [Param; 10] = [
     FENCE_ENABLE,
     FENCE_MARGIN,
     SYSID,
+    RALLY_INCL_HOME,
+    SIM_WIND_DIR,
+    SIM_WIND_SPD,
     length_param!("WPNAV_RADIUS", wp_radius, 100.0),
     Param {
         name: "WPNAV_SPEED",

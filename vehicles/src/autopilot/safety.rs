@@ -54,6 +54,9 @@ pub struct Safety {
     pub low_battery_action: Action,
     /// The charge at boot (mAh; `None`: full), for a pack that was not charged.
     pub battery_start_mah: Option<f64>,
+    /// RTL goes to the nearest of the rally points and home, not of the rally points alone
+    /// (`RALLY_INCL_HOME`, 1 by default: `AP_Rally::calc_best_rally_or_home_location`).
+    pub rally_include_home: bool,
 }
 
 impl Default for Safety {
@@ -69,6 +72,7 @@ impl Default for Safety {
             battery_low_mah: 4_000.0,
             low_battery_action: Action::Rtl,
             battery_start_mah: None,
+            rally_include_home: true,
         }
     }
 }

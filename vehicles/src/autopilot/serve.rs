@@ -123,6 +123,7 @@ fn run(
         header.sequence = header.sequence.wrapping_add(1);
     };
     let start = Instant::now();
+    // `slow`: the number of once-a-second bursts sent.
     let (mut last, mut fast, mut slow) = (Instant::now(), 0u64, 0u64);
     // What the last HEARTBEAT said; a change (or the first peer) is announced at once.
     let mut shown: Option<(u32, bool)> = None;
@@ -162,8 +163,8 @@ fn run(
                 send(&m);
             }
         }
-        if ms / 1000 >= slow {
-            slow = ms / 1000 + 1;
+        if ms >= second_due(slow, sim.spec.sysid) {
+            slow += 1;
             send(&sim.heartbeat());
             shown = shown.map(|_| (sim.mode, sim.armed));
             send(&sim.sys_status());
@@ -172,5 +173,34 @@ fn run(
             }
         }
         std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+/// When the once-a-second burst of `second` is due, in ms since the start: on the second, up
+/// to 20 ms early or late. ArduPilot's scheduler runs its stream tasks when the loop reaches
+/// them, so a real autopilot's 1 Hz HEARTBEAT comes with milliseconds of jitter, and a ground
+/// link that thinned by the exact period would drop every early one (issue 83). A hash of the
+/// second and the system id, not a clock: the same run gives the same times.
+fn second_due(second: u64, sysid: u8) -> u64 {
+    const JITTER_MS: u64 = 20;
+    let h = second.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ u64::from(sysid).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    (second * 1000 + (h >> 32) % (2 * JITTER_MS + 1)).saturating_sub(JITTER_MS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::second_due;
+
+    #[test]
+    fn the_heartbeat_is_due_each_second_within_twenty_ms_and_not_on_the_dot() {
+        let gaps: Vec<i64> = (1..200)
+            .map(|k| second_due(k + 1, 7) as i64 - second_due(k, 7) as i64)
+            .collect();
+        assert!(gaps.iter().all(|g| (960..=1040).contains(g)), "{gaps:?}");
+        assert!(
+            gaps.iter().filter(|&&g| g < 1000).count() > 50,
+            "about half come early: {gaps:?}"
+        );
+        assert!(second_due(0, 7) <= 20);
     }
 }

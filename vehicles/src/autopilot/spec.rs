@@ -34,6 +34,24 @@ pub struct SimSpec {
     /// Simulated seconds per wall second.
     pub speedup: f64,
     pub safety: Safety,
+    /// None unless a test sets SITL's `SIM_WIND_SPD`.
+    pub wind: Wind,
+}
+
+/// A steady push on an armed vehicle, as SITL's wind (`SIM_WIND_SPD` m/s, `SIM_WIND_DIR` the
+/// degrees it comes from, 0 from the north): a fault a test injects, never a mission setting.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Wind {
+    pub speed: f64,
+    pub from_deg: f64,
+}
+
+impl Wind {
+    /// The push (m/s, local NED): toward where the wind goes.
+    pub fn push(&self) -> nalgebra::Vector3<f64> {
+        let to = (self.from_deg + 180.0).to_radians();
+        nalgebra::Vector3::new(self.speed * to.cos(), self.speed * to.sin(), 0.0)
+    }
 }
 
 impl SimSpec {
@@ -65,6 +83,7 @@ impl SimSpec {
             disarm_delay_s: 10.0,
             speedup: m.sim_speedup,
             safety,
+            wind: Wind::default(),
         }
     }
 }

@@ -27,7 +27,7 @@ use nalgebra::Vector3;
 use std::sync::Arc;
 use tokio::sync::{mpsc, watch};
 use tokio::time::{Duration, Instant};
-use tracing::{info, warn};
+use tracing::{error, info, warn};
 
 /// GUIDED and arming are asked for at most this many times (once a second) once the autopilot
 /// is ready, then left to the operator.
@@ -161,7 +161,7 @@ fn status_of(spec: &BridgeSpec, s: &AutopilotState, c: &LinkCounters) -> Autopil
         guided: guided(spec, s),
         unreadable: c.unreadable,
         refused_from_gcs: 0,
-        failsafe: s.failsafe.clone(),
+        failsafe: s.breach.clone().or_else(|| s.failsafe.clone()),
         waiting: s.waiting.clone(),
     }
 }
@@ -296,8 +296,8 @@ impl Actor {
             MavMessage::HEARTBEAT(hb) if hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID => {
                 self.on_heartbeat(h.system_id, hb);
             }
-            // The autopilot's side of our fence and rally uploads (some autopilots still ask
-            // with the old MISSION_REQUEST).
+            // The autopilot's side of our fence and rally uploads and their read-back (some
+            // autopilots still ask with the old MISSION_REQUEST).
             #[allow(deprecated)]
             MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
                 seq,
@@ -311,16 +311,17 @@ impl Actor {
                 target_component,
                 ..
             }) if *target_component == COMPANION_COMPONENT => {
-                let reply = self
-                    .uploads
-                    .iter()
-                    .find_map(|u| u.item(*mission_type, *seq, from.unwrap_or(0)));
-                if let Some(r) = reply {
-                    self.send(&r);
-                }
+                let target = from.unwrap_or(0);
+                self.answer_uploads(|u| u.on_request(*mission_type, *seq, target).into_iter().collect());
             }
             MavMessage::MISSION_ACK(a) if a.target_component == COMPANION_COMPONENT => {
-                self.uploads.iter_mut().for_each(|u| u.ack(a.mission_type, a.mavtype));
+                self.answer_uploads(|u| u.on_ack(a.mission_type, a.mavtype, from.unwrap_or(0)));
+            }
+            MavMessage::MISSION_COUNT(c) if c.target_component == COMPANION_COMPONENT => {
+                self.answer_uploads(|u| u.on_count(c.mission_type, c.count, from.unwrap_or(0)));
+            }
+            MavMessage::MISSION_ITEM_INT(i) if i.target_component == COMPANION_COMPONENT => {
+                self.answer_uploads(|u| u.on_item(i, from.unwrap_or(0)));
             }
             // What the autopilot says (a fence breach, a failsafe) goes in the log.
             MavMessage::STATUSTEXT(t) if t.severity as u8 <= MavSeverity::MAV_SEVERITY_WARNING as u8 => {
@@ -333,6 +334,7 @@ impl Actor {
                     self.state.failsafe = Some(text);
                 }
             }
+            MavMessage::FENCE_STATUS(f) => self.on_fence_status(f),
             MavMessage::SYS_STATUS(st) if st.battery_remaining >= 0 => {
                 self.state.battery = Some((st.battery_remaining as f64 / 100.0).min(1.0));
             }
@@ -428,6 +430,7 @@ impl Actor {
         if self.mode_request.is_some_and(|r| r.shown_by(hb.custom_mode)) {
             self.mode_request = None;
         }
+        self.note_uncommanded(hb.custom_mode);
         let s = &mut self.state;
         s.sysid = u8::try_from(system_id).ok();
         // GUIDED ends a failsafe, unless it is a heartbeat sent before the failsafe's mode took.
@@ -437,6 +440,50 @@ impl Actor {
         s.mode = Some(hb.custom_mode);
         s.armed = hb.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
         self.heartbeat_at = Some(Instant::now());
+    }
+
+    /// A mode the autopilot took from GUIDED that neither the vehicle nor an operator through
+    /// the gateway asked for (a failsafe, `FENCE_ACTION` on a breach, which ArduPilot takes
+    /// without a word): the reason, until it is GUIDED again.
+    fn note_uncommanded(&mut self, mode: u32) {
+        let frame = self.spec.vehicle.frame;
+        let s = &mut self.state;
+        let left_guided = s.mode.is_some_and(|m| m != mode && frame.role(m) == Some(Role::Guided))
+            && frame.role(mode) != Some(Role::Guided);
+        if !left_guided {
+            return;
+        }
+        if std::mem::take(&mut s.operator_mode) || self.mode_request.is_some() || s.failsafe.is_some() {
+            return;
+        }
+        let why = format!("the autopilot left GUIDED for {} by itself", frame.name(mode));
+        warn!(
+            sysid = s.sysid,
+            "{why}: left out of the allocation until it is GUIDED again"
+        );
+        s.failsafe = Some(why);
+    }
+
+    /// FENCE_STATUS: a breach takes the vehicle out of the allocation (as [`guided`] reads it)
+    /// until the autopilot reports it inside again.
+    fn on_fence_status(&mut self, f: &FENCE_STATUS_DATA) {
+        let breach = (f.breach_status != 0).then(|| {
+            let kind = match f.breach_type {
+                FenceBreach::FENCE_BREACH_MINALT => "below its minimum altitude",
+                FenceBreach::FENCE_BREACH_MAXALT => "above its maximum altitude",
+                _ => "outside its boundary",
+            };
+            format!("fence breach: {kind} (breach {} since boot)", f.breach_count)
+        });
+        match (&self.state.breach, &breach) {
+            (None, Some(b)) => warn!(
+                sysid = self.state.sysid,
+                "{b}: left out of the allocation until it is inside"
+            ),
+            (Some(_), None) => info!(sysid = self.state.sysid, "back inside the fence"),
+            _ => {}
+        }
+        self.state.breach = breach;
     }
 
     fn on_command(&mut self, c: Command) {
@@ -454,8 +501,11 @@ impl Actor {
             }
             Command::Rejoin => self.request_mode(target, self.spec.vehicle.frame.mode(Role::Guided)),
             Command::Forward(h, m) => {
-                if is_mode_change(&m) && self.mode_request.take().is_some() {
-                    info!("an operator's mode change: the vehicle's own mode request is dropped");
+                if is_mode_change(&m) {
+                    self.state.operator_mode = true;
+                    if self.mode_request.take().is_some() {
+                        info!("an operator's mode change: the vehicle's own mode request is dropped");
+                    }
                 }
                 if let Err(e) = self.conn.send(&h, &m) {
                     warn!("a ground station's frame to the autopilot: {e}");
@@ -724,64 +774,110 @@ impl Actor {
         Setup::Done
     }
 
-    /// The fence and rally points uploaded, then the fence enabled with the mission's action,
-    /// each step sent at once and again each second while unanswered; whether that is done
-    /// (or given up: an autopilot without fences is still driven, inside the fence by the
-    /// planner alone).
+    /// What the uploads answer to one of the autopilot's mission-protocol messages, sent.
+    fn answer_uploads(&mut self, mut answer: impl FnMut(&mut Upload) -> Vec<MavMessage>) {
+        let out: Vec<MavMessage> = self.uploads.iter_mut().flat_map(&mut answer).collect();
+        for m in &out {
+            self.send(m);
+        }
+    }
+
+    /// The fence and rally points uploaded and read back, then the fence enabled with the
+    /// mission's action, each step sent at once and again each second while unanswered; whether
+    /// that is done. A vehicle whose fence is not confirmed (read back as sent and enabled) is
+    /// not driven, the reason in `waiting`, unless the mission sets `drive_without_fence`.
     fn prepared(&mut self, target: u8, second: bool) -> bool {
         if self.prepared {
             return true;
         }
-        let mut out = vec![];
-        if let Some(u) = self.uploads.iter_mut().find(|u| !u.finished()) {
-            if second || !u.started() {
-                out.extend(u.count(target));
-            }
-        } else if self.fence_accepted() && !self.state.fence_enabled && self.enable_tries < upload::TRIES {
-            if second || self.enable_tries == 0 {
-                self.enable_tries += 1;
-                let set = |name: &str, v: f32| {
-                    MavMessage::PARAM_SET(PARAM_SET_DATA {
-                        param_value: v,
-                        target_system: target,
-                        target_component: 1,
-                        param_id: name.into(),
-                        param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
-                    })
-                };
-                out = vec![set("FENCE_ACTION", self.spec.fence_action), set("FENCE_ENABLE", 1.0)];
-            }
-        } else {
-            self.prepared = true;
-            self.say_prepared(target);
-        }
+        let out = match self.uploads.iter_mut().find(|u| !u.finished()) {
+            Some(u) if second => u.tick(target),
+            Some(u) => u.start(target),
+            None => self.enable_fence(target, second),
+        };
         for m in &out {
             self.send(m);
         }
         self.prepared
     }
 
-    fn fence_accepted(&self) -> bool {
+    /// The uploads done: FENCE_ACTION and FENCE_ENABLE set (again each second until the
+    /// autopilot shows the fence enabled), then prepared, or refused with the reason.
+    fn enable_fence(&mut self, target: u8, second: bool) -> Vec<MavMessage> {
+        let confirmed = self.fence_confirmed();
+        let fenced = self.uploads.is_empty() || (confirmed && self.state.fence_enabled);
+        if !fenced && confirmed && self.enable_tries < upload::TRIES {
+            if !(second || self.enable_tries == 0) {
+                return vec![];
+            }
+            self.enable_tries += 1;
+            let set = |name: &str, v: f32| {
+                MavMessage::PARAM_SET(PARAM_SET_DATA {
+                    param_value: v,
+                    target_system: target,
+                    target_component: 1,
+                    param_id: name.into(),
+                    param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+                })
+            };
+            // RTL to the nearest of the fleet's rally (launch) points, never to wherever the
+            // autopilot booted: ArduPilot's RALLY_INCL_HOME = 1 (its default) counts home too.
+            let rally = self
+                .uploads
+                .iter()
+                .any(|u| u.kind == MavMissionType::MAV_MISSION_TYPE_RALLY);
+            let home = rally.then(|| set("RALLY_INCL_HOME", 0.0));
+            let fence = [set("FENCE_ACTION", self.spec.fence_action), set("FENCE_ENABLE", 1.0)];
+            return home.into_iter().chain(fence).collect();
+        }
+        if fenced || self.spec.drive_without_fence {
+            self.prepared = true;
+            self.say_prepared(target);
+        } else {
+            let why = self.unfenced_reason();
+            if self.state.waiting.as_ref() != Some(&why) {
+                error!(sysid = target, "not driven: {why}");
+                self.state.waiting = Some(why);
+            }
+        }
+        vec![]
+    }
+
+    /// Why the fence is not confirmed, for the operator.
+    fn unfenced_reason(&self) -> String {
+        let fence = self
+            .uploads
+            .iter()
+            .find(|u| u.kind == MavMissionType::MAV_MISSION_TYPE_FENCE);
+        let why = match fence.map(|u| &u.state) {
+            Some(upload::State::Failed(why)) => format!("the autopilot did not take the fence ({why})"),
+            _ => "the autopilot did not enable the fence (FENCE_ENABLE)".into(),
+        };
+        format!("a confirmed fence: {why}; [mavlink] drive_without_fence = true drives it anyway")
+    }
+
+    fn fence_confirmed(&self) -> bool {
         self.uploads
             .iter()
-            .any(|u| u.kind == MavMissionType::MAV_MISSION_TYPE_FENCE && u.accepted())
+            .any(|u| u.kind == MavMissionType::MAV_MISSION_TYPE_FENCE && u.confirmed())
     }
 
     fn say_prepared(&self, target: u8) {
         let states: Vec<String> = self
             .uploads
             .iter()
-            .map(|u| format!("{:?}: {:?}", u.kind, u.state))
+            .map(|u| format!("{:?}: {:?} ({} starts)", u.kind, u.state, u.starts()))
             .collect();
         if self.uploads.is_empty() {
             // No fence to upload (none given): nothing to say.
-        } else if self.state.fence_enabled {
-            info!(sysid = target, uploads = ?states, "fence and rally points uploaded, fence enabled");
+        } else if self.state.fence_enabled && self.fence_confirmed() {
+            info!(sysid = target, uploads = ?states, "fence and rally points uploaded and read back, fence enabled");
         } else {
             warn!(
                 sysid = target,
                 uploads = ?states,
-                "the autopilot did not take the fence (or enable it): the planner alone keeps it inside"
+                "the autopilot did not take the fence (or enable it): driven anyway (drive_without_fence), \
+                 the planner alone keeps it inside"
             );
         }
     }

@@ -30,7 +30,7 @@ use nalgebra::Vector3;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::{mpsc, watch};
-use tracing::info;
+use tracing::{info, warn};
 
 /// The companion computer's component id (MAV_COMP_ID_ONBOARD_COMPUTER).
 pub const COMPANION_COMPONENT: u8 = 191;
@@ -55,6 +55,9 @@ pub struct BridgeSpec {
     /// (`FENCE_ACTION`'s number), and the way to each target is routed round it.
     pub fence_m: Vec<[f64; 2]>,
     pub fence_action: f32,
+    /// Drive the vehicle even when its autopilot did not confirm the fence (`[mavlink]
+    /// drive_without_fence`): otherwise it waits, the reason on telemetry.
+    pub drive_without_fence: bool,
     /// Rally points (local NED), where RTL takes it: the fleet's launch points.
     pub rally: Vec<Vector3<f64>>,
     /// Each periodic message of the autopilot's stream goes to the ground stations at most
@@ -98,6 +101,12 @@ pub struct AutopilotState {
     pub battery: Option<f64>,
     pub heading_deg: Option<f64>,
     pub fence_enabled: bool,
+    /// Outside the fence, as the autopilot's FENCE_STATUS says (ArduPilot acts on a breach by
+    /// its `FENCE_ACTION` without a text): why, until it reports the vehicle inside again.
+    pub breach: Option<String>,
+    /// An operator's mode change passed on to the autopilot, not yet shown by its HEARTBEAT:
+    /// the mode that follows is the operator's, not one the autopilot took by itself.
+    pub operator_mode: bool,
     /// What the autopilot has said of its readiness, and its own settings the bridge keeps to.
     pub readiness: readiness::Readiness,
     pub limits: readiness::Limits,
@@ -167,6 +176,9 @@ impl Bridge {
         let conn =
             Arc::new(MavLink::open(address, signing).map_err(|e| anyhow::anyhow!("autopilot at {address}: {e}"))?);
         info!(autopilot = address, signed = conn.signed(), "MAVLink bridge up");
+        if spec.drive_without_fence && !spec.fence_m.is_empty() {
+            warn!("[mavlink] drive_without_fence = true: driven even if the autopilot does not confirm the fence");
+        }
         let frames = conn.reader("mavlink-autopilot-rx")?;
         let spec = Arc::new(spec);
         let (commands, inbox) = mpsc::unbounded_channel();
@@ -354,5 +366,5 @@ fn airborne(spec: &BridgeSpec, s: &AutopilotState) -> bool {
 
 /// Whether the autopilot is armed and in GUIDED.
 fn guided(spec: &BridgeSpec, s: &AutopilotState) -> bool {
-    s.mode.is_some_and(|m| spec.vehicle.frame.role(m) == Some(Role::Guided)) && s.armed
+    s.mode.is_some_and(|m| spec.vehicle.frame.role(m) == Some(Role::Guided)) && s.armed && s.breach.is_none()
 }

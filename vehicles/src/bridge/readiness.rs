@@ -126,14 +126,15 @@ impl Limits {
 }
 
 /// The messages the bridge reads and the interval it asks for each (microseconds): positions
-/// at 10 Hz, readiness at 1 Hz. ArduPilot streams what a link's `SRn_` rates say, which may be
-/// nothing: MAV_CMD_SET_MESSAGE_INTERVAL asks for each by id.
-pub fn intervals() -> [(u32, f32); 4] {
+/// at 10 Hz, readiness and the fence's state at 1 Hz. ArduPilot streams what a link's `SRn_`
+/// rates say, which may be nothing: MAV_CMD_SET_MESSAGE_INTERVAL asks for each by id.
+pub fn intervals() -> [(u32, f32); 5] {
     [
         (GLOBAL_POSITION_INT_DATA::ID, 100_000.0),
         (GPS_RAW_INT_DATA::ID, 1_000_000.0),
         (EKF_STATUS_REPORT_DATA::ID, 1_000_000.0),
         (SYS_STATUS_DATA::ID, 1_000_000.0),
+        (FENCE_STATUS_DATA::ID, 1_000_000.0),
     ]
 }
 

@@ -74,6 +74,7 @@ fn bridge_spec(args: &Args, mission: &MissionConfig, grid: &Grid) -> anyhow::Res
         fence_m: fleet_mission::launch::fence_polygon_m(mission, grid),
         // (The mission file's name was checked when it was read.)
         fence_action: Action::from_name(&m.fence_action).unwrap_or(Action::Continue) as u8 as f32,
+        drive_without_fence: m.drive_without_fence,
         rally: launch,
         signing: autopilot_key(m, &args.id)?,
         mavlink_hz: mission.link.mavlink_hz,

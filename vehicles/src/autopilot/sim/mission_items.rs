@@ -120,20 +120,21 @@ impl SimAutopilot {
         )
     }
 
+    /// An uploaded item, as ArduPilot's `MissionItemProtocol::handle_mission_item` takes it:
+    /// any item but the one asked for is answered INVALID_SEQUENCE and the upload stays open;
+    /// an item the list cannot hold ends it.
     pub(super) fn take_item(&mut self, sender: (u8, u8), item: &MISSION_ITEM_INT_DATA) {
         let Some(u) = &mut self.upload else { return };
-        if u.from != sender || u.kind != item.mission_type {
+        if u.kind != item.mission_type {
             return;
         }
         let (next, kind) = (u.items.len() as u16, u.kind);
-        if item.seq < next {
-            // A repeat: the request for the next was lost; ask again.
-            self.request_item(next);
+        if item.seq != next {
+            self.mission_ack(sender, MavMissionResult::MAV_MISSION_INVALID_SEQUENCE, kind);
             return;
         }
-        if item.seq > next {
-            self.mission_ack(sender, MavMissionResult::MAV_MISSION_INVALID_SEQUENCE, kind);
-            self.upload = None;
+        if u.from != sender {
+            self.mission_ack(sender, MavMissionResult::MAV_MISSION_DENIED, kind);
             return;
         }
         if let Err(why) = Self::valid_item(kind, item) {
@@ -142,7 +143,7 @@ impl SimAutopilot {
             return;
         }
         u.items.push(item.clone());
-        u.tries = 0;
+        u.received_at = self.wall_s;
         if u.items.len() as u16 == u.count {
             let done = self.upload.take().expect("upload in progress");
             let result = self.store(kind, done.items);
@@ -152,19 +153,31 @@ impl SimAutopilot {
         }
     }
 
+    /// An open upload: the request asked again each second without an item, the upload
+    /// cancelled after [`UPLOAD_TIMEOUT_S`] (ArduPilot's `MissionItemProtocol::update`, and
+    /// its fence's and rally's `timeout` texts).
     pub(super) fn retry_upload(&mut self) {
         let Some(u) = &mut self.upload else { return };
-        if self.wall_s - u.asked_at < UPLOAD_RETRY_S {
-            return;
-        }
-        u.tries += 1;
-        let (from, tries, next, kind) = (u.from, u.tries, u.items.len() as u16, u.kind);
-        if tries > 5 {
+        if self.wall_s - u.received_at > UPLOAD_TIMEOUT_S {
+            let (from, kind) = (u.from, u.kind);
             self.upload = None;
+            let list = match kind {
+                MavMissionType::MAV_MISSION_TYPE_FENCE => "Fence",
+                MavMissionType::MAV_MISSION_TYPE_RALLY => "Rally",
+                _ => "Mission",
+            };
+            self.say(MavSeverity::MAV_SEVERITY_WARNING, &format!("{list} upload timeout"));
             self.mission_ack(from, MavMissionResult::MAV_MISSION_OPERATION_CANCELLED, kind);
-        } else {
+        } else if self.wall_s - u.asked_at >= UPLOAD_RETRY_S {
+            let next = u.items.len() as u16;
             self.request_item(next);
         }
+    }
+
+    /// An upload open from someone else: ArduPilot answers DENIED to its count, and to any
+    /// download while one is open.
+    fn busy(&self, sender: (u8, u8)) -> bool {
+        self.upload.as_ref().is_some_and(|u| u.from != sender)
     }
 
     /// In AUTO, the DO items at the current place in the sequence are done at once.
@@ -217,6 +230,9 @@ impl SimAutopilot {
                     _ => None,
                 };
                 match room {
+                    _ if self.busy(sender) => {
+                        self.mission_ack(sender, MavMissionResult::MAV_MISSION_DENIED, c.mission_type)
+                    }
                     None => self.mission_ack(sender, MavMissionResult::MAV_MISSION_UNSUPPORTED, c.mission_type),
                     Some(_) if c.count == 0 => {
                         let r = self.store(c.mission_type, vec![]);
@@ -225,6 +241,7 @@ impl SimAutopilot {
                     Some(n) if c.count > n => {
                         self.mission_ack(sender, MavMissionResult::MAV_MISSION_NO_SPACE, c.mission_type)
                     }
+                    // A second count from the same sender restarts its upload.
                     Some(_) => {
                         self.upload = Some(Upload {
                             kind: c.mission_type,
@@ -232,13 +249,19 @@ impl SimAutopilot {
                             items: vec![],
                             from: sender,
                             asked_at: self.wall_s,
-                            tries: 0,
+                            received_at: self.wall_s,
                         });
                         self.request_item(0);
                     }
                 }
             }
             MavMessage::MISSION_ITEM_INT(item) => self.take_item(sender, item),
+            MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA { mission_type, .. })
+            | MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA { mission_type, .. })
+                if self.upload.as_ref().is_some_and(|u| u.kind == *mission_type) =>
+            {
+                self.mission_ack(sender, MavMissionResult::MAV_MISSION_DENIED, *mission_type)
+            }
             MavMessage::MISSION_REQUEST_LIST(r) => {
                 let mission_type = r.mission_type;
                 match self.items(mission_type).map(|v| v.len() as u16) {

@@ -38,8 +38,12 @@ use std::f64::consts::PI;
 pub const MAX_MISSION_ITEMS: u16 = 500;
 /// Physics step (simulated seconds).
 const SUBSTEP_S: f64 = 0.05;
-/// An upload waits this long (wall seconds) for an item before asking again, five times.
-const UPLOAD_RETRY_S: f64 = 0.5;
+/// An upload waits this long (wall seconds) for an item before asking again, as ArduPilot's
+/// `MissionItemProtocol::update` does (1 s plus the link's slowdown).
+const UPLOAD_RETRY_S: f64 = 1.0;
+/// An upload with no item for this long (wall seconds) is cancelled (ArduPilot's
+/// `upload_timeout_ms`).
+const UPLOAD_TIMEOUT_S: f64 = 8.0;
 
 /// How far the mission has run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -55,7 +59,8 @@ struct Upload {
     items: Vec<MISSION_ITEM_INT_DATA>,
     from: (u8, u8),
     asked_at: f64,
-    tries: u32,
+    /// When the last item came (or the count).
+    received_at: f64,
 }
 
 pub struct SimAutopilot {

@@ -51,6 +51,9 @@ impl SimAutopilot {
                 }
                 _ => false,
             };
+            if self.armed {
+                self.pos += self.spec.wind.push() * dt;
+            }
             self.vel = (self.pos - before) / dt;
             moved += (self.pos - before).norm();
             if reached && self.role() == Some(Role::Auto) {
@@ -118,9 +121,11 @@ impl SimAutopilot {
         };
     }
 
-    /// Where RTL goes: the nearest rally point, or home (at cruise altitude).
+    /// Where RTL goes, at cruise altitude: the nearest of the rally points, and of home with
+    /// `RALLY_INCL_HOME = 1` (ArduPilot's default), or home when there are none.
     pub(super) fn return_point(&self) -> Vector3<f64> {
         let home = Vector3::new(self.home.x, self.home.y, -self.spec.cruise_alt);
+        let with_home = self.rally.is_empty() || self.spec.safety.rally_include_home;
         self.rally
             .iter()
             .map(|r| {
@@ -128,21 +133,23 @@ impl SimAutopilot {
                 p.z = -self.spec.cruise_alt;
                 p
             })
+            .chain(with_home.then_some(home))
             .min_by(|a, b| (a - self.pos).xy().norm().total_cmp(&(b - self.pos).xy().norm()))
             .unwrap_or(home)
     }
 
     /// A breach of the enforced fence triggers the fence action once; back inside, it is over.
+    /// What an operator hears of it is ArduPilot's: a rover says nothing (`Rover/fence.cpp`
+    /// only changes mode), a copter says "Polygon fence breached" at NOTICE
+    /// (`AC_Fence::print_fence_message`); both report it in FENCE_STATUS.
     pub(super) fn check_fence(&mut self) {
         let out = self.fenced_out(&self.pos);
         if out && !self.breached {
             self.breach_count = self.breach_count.saturating_add(1);
-            let action = self.spec.safety.fence_action;
-            self.act_on(action);
-            self.say(
-                MavSeverity::MAV_SEVERITY_CRITICAL,
-                &format!("Fence breach: {}", ["report only", "RTL", "HOLD"][action as usize]),
-            );
+            self.act_on(self.spec.safety.fence_action);
+            if self.spec.frame == Frame::Multirotor {
+                self.say(MavSeverity::MAV_SEVERITY_NOTICE, "Polygon fence breached");
+            }
         }
         self.breached = out;
     }

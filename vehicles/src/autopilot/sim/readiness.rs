@@ -1,10 +1,12 @@
 //! Readiness as ArduPilot has it: no GPS fix for `gps_delay_s` after boot, so no position, no
 //! EKF origin and no arming ("Need Position Estimate"); at the fix the EKF's origin is set where
 //! the vehicle is (`libraries/AP_AHRS`: the origin is the first good GPS position, not the
-//! site's corner) and announced with GPS_GLOBAL_ORIGIN. Arming is refused within
-//! `FENCE_MARGIN` of an enforced fence ("Vehicle breaching Polygon fence": `libraries/AC_Fence`,
-//! `libraries/AP_Arming/AP_Arming.cpp`). A refusal is a STATUSTEXT "Arm: ..." and a
-//! COMMAND_ACK of MAV_RESULT_FAILED; SYS_STATUS carries the pre-arm bit. A copter armed on the
+//! site's corner) and announced with GPS_GLOBAL_ORIGIN. Arming is refused outside an enforced
+//! fence ("Vehicle breaching Polygon fence"), not within its `FENCE_MARGIN`: ArduPilot 4.7's
+//! `AC_Fence::pre_arm_check` refuses a breach, and only records a margin breach
+//! (`libraries/AC_Fence/AC_Fence.cpp`, `libraries/AP_Arming/AP_Arming.cpp`). A refusal is a
+//! STATUSTEXT "Arm: ..." and a COMMAND_ACK of MAV_RESULT_FAILED; SYS_STATUS carries the pre-arm
+//! bit; arming is said ("Throttle armed" by a rover, "Arming motors" by a copter). A copter armed on the
 //! ground and not told to take off disarms itself after `DISARM_DELAY`
 //! (`ArduCopter/motors.cpp`, `auto_disarm_check`).
 
@@ -38,7 +40,7 @@ impl SimAutopilot {
         }
         if self.spec.safety.fence_enable {
             if let Some((room, kind)) = self.fence.clearance(&self.pos) {
-                if room < self.spec.safety.fence_margin {
+                if room < 0.0 {
                     return Some(format!("Vehicle breaching {kind} fence"));
                 }
             }
@@ -64,6 +66,11 @@ impl SimAutopilot {
         }
         self.armed = true;
         self.armed_on_ground_s = 0.0;
+        let said = match self.spec.frame {
+            Frame::Boat => "Throttle armed",
+            Frame::Multirotor => "Arming motors",
+        };
+        self.say(MavSeverity::MAV_SEVERITY_INFO, said);
         true
     }
 

@@ -20,6 +20,7 @@ fn sim(frame: Frame) -> SimAutopilot {
         disarm_delay_s: 10.0,
         speedup: 1.0,
         safety: Default::default(),
+        wind: Default::default(),
     };
     SimAutopilot::new(spec, Vector3::zeros())
 }
@@ -102,11 +103,11 @@ fn home_parameters_and_the_fence_bit_answer_as_ardupilot_does() {
             .unwrap_or_else(|| panic!("no {n} in {values:?}"))
             .param_value
     };
-    assert_eq!(values.len(), 11);
+    assert_eq!(values.len(), 14);
     assert!(values
         .iter()
         .enumerate()
-        .all(|(i, v)| v.param_index as usize == i && v.param_count == 11));
+        .all(|(i, v)| v.param_index as usize == i && v.param_count == 14));
     assert!(
         values
             .windows(2)
@@ -387,34 +388,140 @@ fn return_to_launch_brings_it_home_and_reposition_sends_it_out() {
     assert!(results(&s.take()).iter().all(|r| *r == MavResult::MAV_RESULT_ACCEPTED));
 }
 
+/// ArduPilot's RTL with rally points (`AP_Rally::calc_best_rally_or_home_location`): the
+/// nearest of them and of home with `RALLY_INCL_HOME = 1` (its default), of them alone with 0.
 #[test]
-fn a_stalled_upload_is_asked_again_then_cancelled() {
+fn rtl_goes_to_the_nearest_of_the_rally_points_and_home_unless_rally_incl_home_is_0() {
+    for (include, want) in [(None, Vector3::zeros()), (Some(0.0), Vector3::new(40.0, 40.0, 0.0))] {
+        let mut s = sim(Frame::Boat);
+        let site = s.spec.site;
+        let rally = [at(&site, MavCmd::MAV_CMD_NAV_RALLY_POINT, 0.0, 40.0, 40.0)];
+        assert_eq!(
+            upload(&mut s, MavMissionType::MAV_MISSION_TYPE_RALLY, &rally),
+            MavMissionResult::MAV_MISSION_ACCEPTED
+        );
+        if let Some(v) = include {
+            s.handle(
+                &GCS,
+                &MavMessage::PARAM_SET(PARAM_SET_DATA {
+                    param_value: v,
+                    target_system: 3,
+                    target_component: 1,
+                    param_id: "RALLY_INCL_HOME".into(),
+                    param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+                }),
+            );
+        }
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
+        // From 15 m north and east of home: home is nearer than the rally point.
+        s.pos = Vector3::new(15.0, 15.0, 0.0);
+        s.handle(&GCS, &long(MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0, 0.0));
+        assert_eq!(s.role(), Some(Role::Return));
+        for _ in 0..1000 {
+            s.step(0.05);
+        }
+        assert!(
+            (s.pos - want).norm() < 0.05,
+            "RALLY_INCL_HOME {include:?}: at {}, not {want}",
+            s.pos
+        );
+    }
+}
+
+fn count(n: u16, kind: MavMissionType) -> MavMessage {
+    MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+        count: n,
+        target_system: 3,
+        target_component: 1,
+        mission_type: kind,
+        ..Default::default()
+    })
+}
+
+#[test]
+fn a_stalled_upload_is_asked_again_each_second_then_cancelled_after_eight() {
     let mut s = sim(Frame::Boat);
-    s.handle(
-        &GCS,
-        &MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
-            count: 2,
-            target_system: 3,
-            target_component: 1,
-            ..Default::default()
-        }),
-    );
+    s.handle(&GCS, &count(2, MavMissionType::MAV_MISSION_TYPE_FENCE));
     s.take();
-    let mut asks = 0;
-    let mut cancelled = false;
+    let (mut asks, mut cancelled, mut said) = (0, false, vec![]);
+    // Quarter seconds add up exactly: the eighth ask comes at 8 s, the cancel after.
     for _ in 0..100 {
-        s.step(0.1);
+        s.step(0.25);
         for m in s.take() {
             match m {
                 MavMessage::MISSION_REQUEST_INT(r) => asks += usize::from(r.seq == 0),
                 MavMessage::MISSION_ACK(a) => {
                     cancelled = a.mavtype == MavMissionResult::MAV_MISSION_OPERATION_CANCELLED
                 }
+                MavMessage::STATUSTEXT(t) => said.push(t.text.to_str().unwrap_or_default().to_string()),
                 _ => {}
             }
         }
     }
-    assert_eq!((asks, cancelled), (5, true));
+    assert_eq!((asks, cancelled), (8, true));
+    assert!(said.iter().any(|t| t == "Fence upload timeout"), "{said:?}");
+}
+
+#[test]
+fn an_upload_follows_ardupilots_rules_for_counts_and_duplicates() {
+    let mut s = sim(Frame::Boat);
+    let fence = MavMissionType::MAV_MISSION_TYPE_FENCE;
+    let site = s.spec.site;
+    let cmd = MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION;
+    let corners = [(-50.0, -50.0), (-50.0, 50.0), (50.0, 50.0), (50.0, -50.0)];
+    let items: Vec<_> = corners
+        .iter()
+        .enumerate()
+        .map(|(seq, &(n, e))| MISSION_ITEM_INT_DATA {
+            seq: seq as u16,
+            mission_type: fence,
+            target_system: 3,
+            ..at(&site, cmd, 4.0, n, e)
+        })
+        .collect();
+    let item = |i: usize| MavMessage::MISSION_ITEM_INT(items[i].clone());
+    let acks = |out: &[MavMessage]| -> Vec<MavMissionResult> {
+        out.iter()
+            .filter_map(|m| {
+                if let MavMessage::MISSION_ACK(a) = m {
+                    Some(a.mavtype)
+                } else {
+                    None
+                }
+            })
+            .collect()
+    };
+    s.handle(&GCS, &count(4, fence));
+    s.handle(&GCS, &item(0));
+    s.handle(&GCS, &item(1));
+    // A second count from the same sender starts the upload again at item 0.
+    s.handle(&GCS, &count(4, fence));
+    assert!(matches!(s.take().last(), Some(MavMessage::MISSION_REQUEST_INT(r)) if r.seq == 0));
+    s.handle(&GCS, &item(0));
+    // A duplicate (and an item ahead) are answered INVALID_SEQUENCE; the upload stays open.
+    s.handle(&GCS, &item(0));
+    s.handle(&GCS, &item(3));
+    use MavMissionResult::*;
+    assert_eq!(
+        acks(&s.take()),
+        [MAV_MISSION_INVALID_SEQUENCE, MAV_MISSION_INVALID_SEQUENCE]
+    );
+    // Someone else's count, and a read-back, while it is open: DENIED.
+    let other = MavHeader { system_id: 254, ..GCS };
+    s.handle(&other, &count(1, fence));
+    s.handle(
+        &GCS,
+        &MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA {
+            mission_type: fence,
+            ..Default::default()
+        }),
+    );
+    assert_eq!(acks(&s.take()), [MAV_MISSION_DENIED, MAV_MISSION_DENIED]);
+    for i in 1..4 {
+        s.handle(&GCS, &item(i));
+    }
+    assert_eq!(acks(&s.take()), [MAV_MISSION_ACCEPTED]);
+    assert_eq!(s.fence_items.len(), 4);
 }
 
 /// Upload `items` of `kind` with the handshake; the ack's result.
@@ -569,7 +676,7 @@ fn an_enforced_fence_refuses_targets_outside_and_a_breach_returns_to_the_nearest
     );
 
     // A mission that leaves the fence (an operator's, in AUTO): breach, RTL to the nearer
-    // rally point, said; the health bit drops while outside, and FENCE_STATUS counts it.
+    // rally point; the health bit drops while outside, and FENCE_STATUS counts it.
     let out_wp = at(&site, MavCmd::MAV_CMD_NAV_WAYPOINT, 0.0, 30.0, 60.0);
     assert_eq!(
         upload(&mut s, MavMissionType::MAV_MISSION_TYPE_MISSION, &[wp, out_wp]),
@@ -594,7 +701,8 @@ fn an_enforced_fence_refuses_targets_outside_and_a_breach_returns_to_the_nearest
         }
     }
     assert_eq!(s.role(), Some(Role::Return));
-    assert!(said.iter().any(|t| t.contains("Fence breach: RTL")), "{said:?}");
+    // A rover breaches in silence, as ArduRover does: FENCE_STATUS and the mode tell.
+    assert!(!said.iter().any(|t| t.contains("reach")), "{said:?}");
     assert!(unhealthy && !s.breached, "unhealthy while outside, then back inside");
     assert!(
         (s.pos.xy() - Vector3::new(30.0, 35.0, 0.0).xy()).norm() < 0.05,
@@ -685,7 +793,7 @@ fn readiness_the_ekf_origin_the_fence_margin_and_a_copters_takeoff_are_ardupilot
         "local NED is from the EKF origin, where it booted"
     );
     assert!(matches!(s.gps_global_origin(), Some(MavMessage::GPS_GLOBAL_ORIGIN(_))));
-    // Within FENCE_MARGIN of an enforced fence it will not arm; 3 m inside it will.
+    // Outside an enforced fence it will not arm.
     let site = s.spec.site;
     let corner = |n: f64, e: f64| {
         let (lat, lon, _) = site.global_of(&Vector3::new(n, e, 0.0));
@@ -708,11 +816,20 @@ fn readiness_the_ekf_origin_the_fence_margin_and_a_copters_takeoff_are_ardupilot
     )
     .unwrap();
     s.spec.safety.fence_enable = true;
+    s.pos.x = 0.5;
     assert_eq!(s.arming_refusal().as_deref(), Some("Vehicle breaching Polygon fence"));
-    s.pos.x = 4.0;
-    assert_eq!(s.arming_refusal(), None);
+    // ArduPilot 4.7 arms inside the fence within its margin: a margin breach is recorded only.
+    s.pos.x = 1.5;
+    assert_eq!(s.arming_refusal(), None, "0.5 m inside, within FENCE_MARGIN 2 m");
+    s.take();
     s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
     assert!(s.armed);
+    assert!(
+        s.take()
+            .iter()
+            .any(|m| matches!(m, MavMessage::STATUSTEXT(t) if t.text.to_str().unwrap() == "Throttle armed")),
+        "a rover says it armed"
+    );
     // Under way beside the fence, heading 45 degrees toward it, a goal along it is reached on
     // an arc of TURN_RADIUS: from 0.2 m inside, the arc breaches the fence.
     s.spec.turn_radius = 0.9;
