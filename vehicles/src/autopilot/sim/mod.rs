@@ -100,6 +100,8 @@ pub struct SimAutopilot {
     /// there (simulated seconds).
     pub landed: bool,
     armed_on_ground_s: f64,
+    /// When "PreArm: ..." was last said (simulated s), while a check fails and it is disarmed.
+    prearm_said_s: Option<f64>,
     /// Charge used (mAh), and the draw now (A).
     pub consumed_mah: f64,
     draw_a: f64,
@@ -147,6 +149,7 @@ impl SimAutopilot {
             ekf_origin,
             landed,
             armed_on_ground_s: 0.0,
+            prearm_said_s: None,
             boot_unix_s: std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
                 .map_or(0.0, |d| d.as_secs_f64()),
@@ -184,19 +187,16 @@ impl SimAutopilot {
         self.spec.safety.fence_enable && !self.fence.contains(ned)
     }
 
-    /// A guided target (the site's NED), unless the fence keeps it out: no ack exists for the
-    /// position-target messages, so a refusal is said and the old goal kept.
+    /// A guided target (the site's NED). Outside the enforced fence a copter ignores it without
+    /// a word and keeps its old goal (`ArduCopter/mode_guided.cpp`: the destination is refused,
+    /// and a position target has no ack to carry that); a rover takes it (ArduRover's guided
+    /// mode does not check it) and the breach triggers `FENCE_ACTION`.
     fn guided_target(&mut self, p: Vector3<f64>) {
         if !p.iter().all(|v| v.is_finite()) {
             return;
         }
         let p = self.at_altitude(p);
-        if self.fenced_out(&p) {
-            self.say(
-                MavSeverity::MAV_SEVERITY_WARNING,
-                "Fence: target outside the fence, refused",
-            );
-        } else {
+        if !(self.fenced_out(&p) && self.spec.frame == Frame::Multirotor) {
             self.goal = Some(p);
         }
     }

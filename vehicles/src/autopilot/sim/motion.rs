@@ -33,6 +33,7 @@ impl SimAutopilot {
         self.wall_s += dt_wall;
         self.sim_s += dt_wall * self.spec.speedup;
         self.update_fix();
+        self.report_prearm();
         self.check_auto_disarm(dt_wall * self.spec.speedup);
         self.retry_upload();
         self.run_do_items();

@@ -14,6 +14,9 @@ use super::*;
 
 /// ArduPilot's "force" value for MAV_CMD_COMPONENT_ARM_DISARM's param2: arm without checks.
 const FORCE_ARM: f32 = 2989.0;
+/// A failing pre-arm check is said again this often while disarmed (simulated s;
+/// `AP_Arming::update`, `PREARM_DISPLAY_PERIOD`).
+const PREARM_PERIOD_S: f64 = 30.0;
 
 impl SimAutopilot {
     /// Whether the GPS has its fix and the EKF its origin.
@@ -29,8 +32,31 @@ impl SimAutopilot {
         }
         self.ekf_origin = Some(self.pos);
         self.say(MavSeverity::MAV_SEVERITY_INFO, "EKF3 IMU0 origin set");
-        let origin = self.gps_global_origin();
-        self.out.extend(origin);
+        self.announce_origin();
+    }
+
+    /// GPS_GLOBAL_ORIGIN unasked, as a copter sends it when its origin is set and on arming; a
+    /// rover sends it only when asked (MAV_CMD_REQUEST_MESSAGE).
+    fn announce_origin(&mut self) {
+        if self.spec.frame == Frame::Multirotor {
+            let origin = self.gps_global_origin();
+            self.out.extend(origin);
+        }
+    }
+
+    /// While disarmed with a check failing: "PreArm: <why>" at once, then every 30 s, as a
+    /// ground station hears it from ArduPilot.
+    pub(super) fn report_prearm(&mut self) {
+        let why = self.arming_refusal().filter(|_| !self.armed);
+        let Some(why) = why else {
+            self.prearm_said_s = None;
+            return;
+        };
+        if self.prearm_said_s.is_some_and(|t| self.sim_s - t < PREARM_PERIOD_S) {
+            return;
+        }
+        self.prearm_said_s = Some(self.sim_s);
+        self.say(MavSeverity::MAV_SEVERITY_CRITICAL, &format!("PreArm: {why}"));
     }
 
     /// Why arming would be refused now (ArduPilot's words), or `None`.
@@ -71,6 +97,7 @@ impl SimAutopilot {
             Frame::Multirotor => "Arming motors",
         };
         self.say(MavSeverity::MAV_SEVERITY_INFO, said);
+        self.announce_origin();
         true
     }
 

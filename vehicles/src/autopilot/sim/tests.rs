@@ -633,8 +633,8 @@ fn an_enforced_fence_refuses_targets_outside_and_a_breach_returns_to_the_nearest
     };
     s.handle(&GCS, &target(60.0, 10.0));
     assert_eq!(s.goal.map(|g| g.x), Some(60.0));
-    // Enforced: a target outside is refused (said; the goal stays), one inside is taken,
-    // and a reposition outside is denied.
+    // Enforced: a rover takes a target outside (ArduRover does; the breach then acts), one
+    // inside too, and a reposition outside is denied.
     let set = |name: &str, v: f32| {
         MavMessage::PARAM_SET(PARAM_SET_DATA {
             param_value: v,
@@ -645,15 +645,29 @@ fn an_enforced_fence_refuses_targets_outside_and_a_breach_returns_to_the_nearest
         })
     };
     s.handle(&GCS, &set("FENCE_ENABLE", 1.0));
-    s.handle(&GCS, &target(10.0, 20.0));
     s.handle(&GCS, &target(10.0, 50.0));
-    let out = s.take();
-    assert!(
-        out.iter()
-            .any(|m| matches!(m, MavMessage::STATUSTEXT(t) if t.text.to_str().unwrap().contains("outside the fence"))),
-        "{out:?}"
-    );
+    assert_eq!(s.goal.map(|g| (g.x, g.y)), Some((10.0, 50.0)));
+    s.handle(&GCS, &target(10.0, 20.0));
     assert_eq!(s.goal.map(|g| (g.x, g.y)), Some((10.0, 20.0)));
+    // A copter ignores one outside without a word, and fails a reposition there.
+    let mut c = sim(Frame::Multirotor);
+    c.fence = s.fence.clone();
+    c.spec.safety.fence_enable = true;
+    c.goal = Some(Vector3::new(10.0, 20.0, -30.0));
+    c.take();
+    c.handle(&GCS, &target(10.0, 50.0));
+    assert_eq!(c.goal.map(|g| (g.x, g.y)), Some((10.0, 20.0)));
+    assert!(c.take().is_empty(), "no answer");
+    let (lat, lon, _) = site.global_of(&Vector3::new(10.0, 50.0, 0.0));
+    let far = COMMAND_INT_DATA {
+        command: MavCmd::MAV_CMD_DO_REPOSITION,
+        x: (lat * 1e7).round() as i32,
+        y: (lon * 1e7).round() as i32,
+        target_system: 3,
+        ..Default::default()
+    };
+    c.handle(&GCS, &MavMessage::COMMAND_INT(far));
+    assert_eq!(results(&c.take()), [MavResult::MAV_RESULT_FAILED]);
     let (lat, lon, _) = site.global_of(&Vector3::new(10.0, 50.0, 0.0));
     let c = COMMAND_INT_DATA {
         command: MavCmd::MAV_CMD_DO_REPOSITION,
@@ -781,9 +795,23 @@ fn readiness_the_ekf_origin_the_fence_margin_and_a_copters_takeoff_are_ardupilot
     s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
     assert_eq!(results(&s.take()), vec![MavResult::MAV_RESULT_FAILED]);
     assert!(!s.armed);
+    // Said as ArduPilot says a failing check: at once, then every 30 s while it fails.
+    let prearm = |s: &mut SimAutopilot| {
+        s.take()
+            .iter()
+            .filter(|m| matches!(m, MavMessage::STATUSTEXT(t) if t.text.to_str().unwrap() == "PreArm: Need Position Estimate"))
+            .count()
+    };
+    s.step(0.1);
+    assert_eq!(prearm(&mut s), 1);
     s.step(19.0);
     assert!(!s.has_fix());
+    assert_eq!(prearm(&mut s), 0, "not again within 30 s");
     s.step(1.5);
+    assert!(
+        !s.take().iter().any(|m| matches!(m, MavMessage::GPS_GLOBAL_ORIGIN(_))),
+        "a rover says its origin only when asked"
+    );
     let Some(MavMessage::LOCAL_POSITION_NED(p)) = s.position().get(1).cloned() else {
         panic!("no local position after the fix")
     };
