@@ -164,10 +164,8 @@ fn a_bad_experiment_file_is_a_clear_error() {
     );
 }
 
-#[test]
-fn a_dataset_can_be_the_truth() {
-    let dir = std::env::temp_dir().join(format!("hetfleet-exp-ds-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+/// `fleet simulate plume` on `grid` for 40 frames, as `dir/plume.npy`.
+fn simulated_plume(dir: &std::path::Path, grid: &str) -> std::path::PathBuf {
     let npy = dir.join("plume.npy");
     let out = run(
         "fleet",
@@ -175,7 +173,7 @@ fn a_dataset_can_be_the_truth() {
             "simulate",
             "plume",
             "--grid",
-            "48x96",
+            grid,
             "--frames",
             "40",
             "--out",
@@ -183,6 +181,14 @@ fn a_dataset_can_be_the_truth() {
         ],
     );
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    npy
+}
+
+#[test]
+fn a_dataset_can_be_the_truth() {
+    let dir = std::env::temp_dir().join(format!("hetfleet-exp-ds-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let npy = simulated_plume(&dir, "48x96");
     let toml = dir.join("ds.toml");
     std::fs::write(
         &toml,
@@ -212,21 +218,7 @@ fn a_dataset_can_be_the_truth() {
 fn a_netcdf_variable_can_be_the_truth_and_gives_the_same_results_as_the_npy() {
     let dir = std::env::temp_dir().join(format!("hetfleet-exp-nc-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let npy = dir.join("plume.npy");
-    let out = run(
-        "fleet",
-        &[
-            "simulate",
-            "plume",
-            "--grid",
-            "48x96",
-            "--frames",
-            "40",
-            "--out",
-            npy.to_str().unwrap(),
-        ],
-    );
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let npy = simulated_plume(&dir, "48x96");
     // The same field as NetCDF-3, written by the tool people use (scipy's netcdf_file), with a
     // second variable beside it.
     let nc = dir.join("plume.nc");
@@ -482,21 +474,7 @@ fn a_field_in_other_units_gives_the_same_estimate_in_those_units_or_is_refused()
 #[test]
 fn a_field_plus_a_constant_or_in_other_units_gives_the_same_estimate() {
     let dir = hetfleet_tests::scratch("exp-units");
-    let npy = dir.join("plume.npy");
-    let out = run(
-        "fleet",
-        &[
-            "simulate",
-            "plume",
-            "--grid",
-            "24x48",
-            "--frames",
-            "40",
-            "--out",
-            npy.to_str().unwrap(),
-        ],
-    );
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let npy = simulated_plume(&dir, "24x48");
     let field = fleet::process::dataset::load(&npy, 1.0).unwrap();
     let mut rows = String::new();
     for (name, scale, offset) in [("plume", 1.0, 0.0), ("plus", 1.0, 280.0), ("times", 1000.0, 0.0)] {

@@ -63,19 +63,14 @@ fn a_boat_driven_out_of_its_fence_leaves_the_allocation_and_comes_back_guided_an
     )
     .unwrap();
     let spec = BridgeSpec {
-        vehicle,
         acceptance_m: 1.0,
         heartbeat_timeout: Duration::from_secs(3),
         home: launch,
-        signing: None,
         // A 40 m square (east, north) with the launch point inside as the rally point.
         fence_m: vec![[0.0, 0.0], [40.0, 0.0], [40.0, 40.0], [0.0, 40.0]],
-        fence_action: 1.0,
-        drive_without_fence: false,
         rally: vec![launch],
-        mavlink_hz: f64::INFINITY,
         ready_timeout: Duration::from_secs(20),
-        clearance_m: 0.0,
+        ..BridgeSpec::plain(vehicle)
     };
     let mut bridge = Bridge::connect(&format!("udpout:127.0.0.1:{port}"), spec, None).unwrap();
     wait_for("the boat is driven (fence confirmed, GUIDED, armed)", 30.0, || {

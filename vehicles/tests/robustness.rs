@@ -77,7 +77,8 @@ fn heartbeat(mode: u32) -> MavMessage {
 /// A boat's bridge (system 7) that drives as soon as the autopilot shows GUIDED and armed.
 fn boat_spec() -> BridgeSpec {
     BridgeSpec {
-        vehicle: SimSpec {
+        heartbeat_timeout: Duration::from_millis(400),
+        ..BridgeSpec::plain(SimSpec {
             frame: Frame::Boat,
             sysid: 7,
             site: site(),
@@ -91,18 +92,7 @@ fn boat_spec() -> BridgeSpec {
             speedup: 1.0,
             safety: Default::default(),
             wind: Default::default(),
-        },
-        acceptance_m: 0.25,
-        heartbeat_timeout: Duration::from_millis(400),
-        home: Vector3::zeros(),
-        signing: None,
-        fence_m: vec![],
-        fence_action: 1.0,
-        drive_without_fence: false,
-        rally: vec![],
-        mavlink_hz: f64::INFINITY,
-        ready_timeout: Duration::from_secs(10),
-        clearance_m: 0.0,
+        })
     }
 }
 

@@ -145,19 +145,12 @@ fn a_signed_autopilot_obeys_only_signed_frames_and_counts_every_refusal() {
 
 fn bridge_to(port: u16, key: Option<SigningKey>, accept_unsigned: bool) -> Bridge {
     let spec = BridgeSpec {
-        vehicle: spec(5),
-        acceptance_m: 0.25,
         heartbeat_timeout: Duration::from_millis(1500),
-        home: Vector3::zeros(),
         signing: key.map(|k| (k, accept_unsigned)),
         // The site's extent as the fence, and two rally points: uploaded over the signed link.
         fence_m: vec![[0.0, 0.0], [48.0, 0.0], [48.0, 24.0], [0.0, 24.0]],
-        fence_action: 1.0,
-        drive_without_fence: false,
         rally: vec![Vector3::new(1.0, 1.0, 0.0), Vector3::new(1.0, 40.0, 0.0)],
-        mavlink_hz: f64::INFINITY,
-        ready_timeout: Duration::from_secs(10),
-        clearance_m: 0.0,
+        ..BridgeSpec::plain(spec(5))
     };
     Bridge::connect(&format!("udpout:127.0.0.1:{port}"), spec, None).unwrap()
 }

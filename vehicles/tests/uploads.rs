@@ -204,17 +204,8 @@ fn a_vehicle_whose_fence_is_refused_is_never_armed() {
 fn test_spec() -> BridgeSpec {
     let site = MavlinkConfig::default().site(&Grid::new(24, 48, 1.0).unwrap());
     BridgeSpec {
-        vehicle: SimSpec::from_config(Frame::Boat, 7, site, &MavlinkConfig::default()),
-        acceptance_m: 0.25,
         heartbeat_timeout: Duration::from_millis(1500),
-        home: Vector3::zeros(),
-        signing: None,
-        fence_m: vec![],
-        fence_action: 1.0,
-        drive_without_fence: false,
-        rally: vec![],
-        mavlink_hz: f64::INFINITY,
         ready_timeout: Duration::from_secs(1),
-        clearance_m: 0.0,
+        ..BridgeSpec::plain(SimSpec::from_config(Frame::Boat, 7, site, &MavlinkConfig::default()))
     }
 }

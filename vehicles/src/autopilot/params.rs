@@ -44,18 +44,25 @@ macro_rules! action_param {
     };
 }
 
+/// A 0/1 parameter over a flag of [`super::safety::Safety`] (other values refused).
+macro_rules! flag_param {
+    ($name:literal, $field:ident) => {
+        Param {
+            name: $name,
+            get: |s| f32::from(u8::from(s.safety.$field)),
+            set: Some(|s, v| {
+                (v == 0.0 || v == 1.0) && {
+                    s.safety.$field = v == 1.0;
+                    true
+                }
+            }),
+        }
+    };
+}
+
 /// Whether the uploaded fence is enforced (0/1), and what a breach does (0 report, 1 RTL,
 /// 2 HOLD: ArduRover's numbers).
-const FENCE_ENABLE: Param = Param {
-    name: "FENCE_ENABLE",
-    get: |s| f32::from(u8::from(s.safety.fence_enable)),
-    set: Some(|s, v| {
-        (v == 0.0 || v == 1.0) && {
-            s.safety.fence_enable = v == 1.0;
-            true
-        }
-    }),
-};
+const FENCE_ENABLE: Param = flag_param!("FENCE_ENABLE", fence_enable);
 const FENCE_ACTION: Param = action_param!("FENCE_ACTION", fence_action);
 
 /// The battery: capacity and low mark (mAh), and the low-battery action (0 none, 1 RTL, 2 HOLD).
@@ -101,16 +108,7 @@ macro_rules! length_param {
 const FENCE_MARGIN: Param = length_param!("FENCE_MARGIN", safety.fence_margin, 1.0);
 
 /// Whether RTL may go home as well as to the rally points (0/1).
-const RALLY_INCL_HOME: Param = Param {
-    name: "RALLY_INCL_HOME",
-    get: |s| f32::from(u8::from(s.safety.rally_include_home)),
-    set: Some(|s, v| {
-        (v == 0.0 || v == 1.0) && {
-            s.safety.rally_include_home = v == 1.0;
-            true
-        }
-    }),
-};
+const RALLY_INCL_HOME: Param = flag_param!("RALLY_INCL_HOME", rally_include_home);
 
 /// SITL's steady wind (m/s, and the degrees it comes from): a push a test sets to drive a
 /// vehicle where it was not told to go (out of its fence), as one does to SITL.

@@ -71,6 +71,28 @@ pub struct BridgeSpec {
     pub clearance_m: f64,
 }
 
+impl BridgeSpec {
+    /// A bridge to `vehicle` with nothing to set up (no fence, rally points or signing), that
+    /// passes the whole stream on, arrives within 0.25 m and asks to arm after 10 s at most:
+    /// what a test or a bench starts from, changing what it is about.
+    pub fn plain(vehicle: SimSpec) -> Self {
+        Self {
+            vehicle,
+            acceptance_m: 0.25,
+            heartbeat_timeout: Duration::from_secs(2),
+            home: Vector3::zeros(),
+            signing: None,
+            fence_m: vec![],
+            fence_action: 1.0,
+            drive_without_fence: false,
+            rally: vec![],
+            mavlink_hz: f64::INFINITY,
+            ready_timeout: Duration::from_secs(10),
+            clearance_m: 0.0,
+        }
+    }
+}
+
 /// Counters of the autopilot link (MAVLink messages).
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
 pub struct LinkCounters {

@@ -171,7 +171,6 @@ mod tests {
     use fleet_mission::config::MavlinkConfig;
     use mavlink::dialects::ardupilotmega::*;
     use mavlink::MavHeader;
-    use nalgebra::Vector3;
     use std::net::UdpSocket;
     use vehicles::autopilot::modes::Frame;
     use vehicles::autopilot::sim::SimSpec;
@@ -217,18 +216,8 @@ mod tests {
         let ap = UdpSocket::bind("127.0.0.1:0").unwrap();
         ap.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
         let spec = BridgeSpec {
-            vehicle: SimSpec::from_config(Frame::Boat, 7, site, &MavlinkConfig::default()),
-            acceptance_m: 0.25,
-            heartbeat_timeout: Duration::from_secs(2),
-            home: Vector3::zeros(),
-            signing: None,
-            fence_m: vec![],
-            fence_action: 1.0,
-            drive_without_fence: false,
-            rally: vec![],
-            mavlink_hz: f64::INFINITY,
             ready_timeout: Duration::from_secs(5),
-            clearance_m: 0.0,
+            ..BridgeSpec::plain(SimSpec::from_config(Frame::Boat, 7, site, &MavlinkConfig::default()))
         };
         let bridge = Bridge::connect(&format!("udpout:{}", ap.local_addr().unwrap()), spec, None).unwrap();
         let mut buf = [0u8; 512];

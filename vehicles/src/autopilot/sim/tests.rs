@@ -666,17 +666,9 @@ fn an_enforced_fence_refuses_targets_outside_and_a_breach_returns_to_the_nearest
         target_system: 3,
         ..Default::default()
     };
-    c.handle(&GCS, &MavMessage::COMMAND_INT(far));
+    c.handle(&GCS, &MavMessage::COMMAND_INT(far.clone()));
     assert_eq!(results(&c.take()), [MavResult::MAV_RESULT_FAILED]);
-    let (lat, lon, _) = site.global_of(&Vector3::new(10.0, 50.0, 0.0));
-    let c = COMMAND_INT_DATA {
-        command: MavCmd::MAV_CMD_DO_REPOSITION,
-        x: (lat * 1e7).round() as i32,
-        y: (lon * 1e7).round() as i32,
-        target_system: 3,
-        ..Default::default()
-    };
-    s.handle(&GCS, &MavMessage::COMMAND_INT(c));
+    s.handle(&GCS, &MavMessage::COMMAND_INT(far));
     assert_eq!(results(&s.take()), [MavResult::MAV_RESULT_DENIED]);
     let MavMessage::SYS_STATUS(st) = s.sys_status() else {
         panic!()
