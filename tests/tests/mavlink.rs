@@ -754,3 +754,114 @@ fn vehicles_out_of_range_take_the_link_loss_failsafe_and_rejoin_when_the_server_
         "no epoch after the restart with every boat allocated: {events:?}"
     );
 }
+
+/// Where a boat ends, read from its autopilot directly once the fleet has gone: its position
+/// on the grid (m) once it has stopped moving, and its RALLY_INCL_HOME.
+fn where_it_ends(ap_port: u16, sysid: u8, site: &fleet_mission::site::Site) -> ((f64, f64), Option<f32>) {
+    use mavlink::dialects::ardupilotmega::*;
+    let gcs = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    gcs.set_read_timeout(Some(Duration::from_millis(100))).unwrap();
+    let header = mavlink::MavHeader {
+        system_id: 255,
+        component_id: 190,
+        sequence: 0,
+    };
+    let ask = |m: &MavMessage| {
+        let _ = gcs.send_to(&vehicles::link::frame_bytes(header, m), ("127.0.0.1", ap_port));
+    };
+    let (mut at, mut still_since, mut incl_home) = (None::<(f64, f64)>, Instant::now(), None);
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while Instant::now() < deadline && (still_since.elapsed() < Duration::from_secs(3) || incl_home.is_none()) {
+        ask(&MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+            mavtype: MavType::MAV_TYPE_GCS,
+            autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+            ..Default::default()
+        }));
+        ask(&MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA {
+            param_index: -1,
+            target_system: sysid,
+            target_component: 1,
+            param_id: "RALLY_INCL_HOME".into(),
+        }));
+        let mut buf = [0u8; 2048];
+        while let Ok((n, _)) = gcs.recv_from(&mut buf) {
+            let Ok((_, m)) = vehicles::link::parse_frame(&buf[..n]) else {
+                continue;
+            };
+            match m {
+                MavMessage::GLOBAL_POSITION_INT(g) => {
+                    let ned = site.ned_of_global(g.lat as f64 * 1e-7, g.lon as f64 * 1e-7, site.origin[2]);
+                    let p = site.grid_of(&ned);
+                    if at.is_none_or(|a| (a.0 - p.0).hypot(a.1 - p.1) > 0.05) {
+                        still_since = Instant::now();
+                    }
+                    at = Some(p);
+                }
+                MavMessage::PARAM_VALUE(v) if v.param_id.to_str().unwrap_or("") == "RALLY_INCL_HOME" => {
+                    incl_home = Some(v.param_value);
+                }
+                _ => {}
+            }
+        }
+    }
+    (at.expect("the autopilot reports where it is"), incl_home)
+}
+
+/// At the end every vehicle goes where the README says: ArduPilot's RTL goes to the nearest of
+/// the rally points and home while RALLY_INCL_HOME = 1 (its default, which `sim` plays), home
+/// being where the autopilot was switched on. A boat switched on in the middle of the site,
+/// away from every launch point, returns to the nearest launch point: the bridge set
+/// RALLY_INCL_HOME to 0 with the rally points.
+#[test]
+fn at_the_end_a_boat_switched_on_elsewhere_returns_to_the_nearest_launch_point() {
+    let dir = scratch("rtl-home");
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
+    let m = MissionConfig::load(Some(&mission)).unwrap();
+    let mp = mission.to_str().unwrap().to_string();
+    let (state, ap_port) = (dir.join("state"), free_udp_port());
+    let st = state.to_str().unwrap().to_string();
+    let grid = fleet_mission::grid::Grid::new(24, 48, 1.0).unwrap();
+    let site = m.mavlink.site(&grid);
+    let launch = fleet_mission::launch::launch_points(&m, &grid).unwrap();
+    let (boot, sysid) = ((24.0, 12.0), m.sysid("boat-3").unwrap());
+    let mut procs = Procs::default();
+    procs.0.push(
+        std::process::Command::new(bin("sim-autopilot"))
+            .args(["--mission", &mp, "--frame", "boat", "--sysid", &sysid.to_string()])
+            .args(["--listen", &format!("udpin:127.0.0.1:{ap_port}"), "--grid", "24", "48"])
+            .args(["--home", &boot.0.to_string(), &boot.1.to_string()])
+            .stderr(std::fs::File::create(dir.join("autopilot.log")).unwrap())
+            .spawn()
+            .unwrap(),
+    );
+    let server = start_server(
+        &mut procs,
+        &["--mission", &mp, "--state-dir", &st],
+        &dir.join("server.log"),
+    );
+    let remote = format!("udpout:127.0.0.1:{ap_port}");
+    for v in m.vehicles() {
+        let mut args = vec!["--mission", &mp, "--id", &v.id, "--state-dir", &st];
+        if v.id == "boat-3" {
+            args.extend(["--autopilot", &remote]);
+        }
+        start_vehicle(&mut procs, &[], &args, &dir.join(format!("{}.log", v.id)));
+    }
+    server.finished(120);
+    let (end, incl_home) = where_it_ends(ap_port, sysid, &site);
+    let nearest = launch
+        .iter()
+        .map(|l| (l[0] - end.0).hypot(l[1] - end.1))
+        .fold(f64::INFINITY, f64::min);
+    println!("boat-3 switched on at {boot:?}, ends at {end:?}, {nearest:.2} m from a launch point");
+    assert_eq!(incl_home, Some(0.0), "the bridge sets RALLY_INCL_HOME");
+    assert!(
+        nearest <= m.mavlink.wp_radius_m + 0.5,
+        "boat-3 ends at {end:?}, {nearest:.1} m from the nearest launch point {launch:?}"
+    );
+    assert!(
+        (end.0 - boot.0).hypot(end.1 - boot.1) > 5.0,
+        "not where it was switched on"
+    );
+}
