@@ -564,7 +564,7 @@ impl MissionConfig {
         if !crate::team::gives_growth(text) {
             cfg.team.aerial_growth_per_cell = crate::team::default_growth(cfg.team.aerial_sigma0);
         }
-        cfg.place_by_truth(text);
+        cfg.place_by_truth(text)?;
         keys::check_id("mission", &cfg.mission).map_err(ConfigError::MissionId)?;
         match (&cfg.truth, &cfg.field) {
             (Some(t), None) if t.frames < 10 || t.average == 0 => {
@@ -637,20 +637,24 @@ impl MissionConfig {
     /// A NetCDF truth with latitude and longitude places the site where `[mavlink]` gives
     /// neither `origin` nor `size_m`: the grid's corner at the file's south-west cell edge, its
     /// extent the file's (east at the southern edge's scale, as [`crate::site::Site`] maps it).
-    fn place_by_truth(&mut self, text: &str) {
+    /// A latitude or longitude that cannot place it (not evenly spaced) is refused.
+    fn place_by_truth(&mut self, text: &str) -> Result<(), ConfigError> {
         let given = text
             .parse::<toml::Table>()
             .ok()
             .and_then(|t| t.get("mavlink").and_then(|m| m.as_table()).cloned())
             .is_some_and(|m| m.contains_key("origin") || m.contains_key("size_m"));
         let Some(TruthSource::NetCdf { path, variable, select }) = self.truth.as_ref().map(|t| &t.source) else {
-            return;
+            return Ok(());
         };
-        let Some([south, west, north, east]) = (!given)
-            .then(|| crate::process::netcdf::bounds(path, variable, select))
-            .flatten()
+        if given {
+            return Ok(());
+        }
+        let placed = crate::process::netcdf::bounds(path, variable, select);
+        let Some([south, west, north, east]) =
+            placed.map_err(|e| field("truth", "dataset".to_string(), e.to_string()))?
         else {
-            return;
+            return Ok(());
         };
         const R: f64 = crate::site::EARTH_RADIUS_M;
         self.mavlink.origin = [south, west, 0.0];
@@ -658,6 +662,39 @@ impl MissionConfig {
             (east - west).to_radians() * R * south.to_radians().cos(),
             (north - south).to_radians() * R,
         ]);
+        Ok(())
+    }
+
+    /// Where the site is on the Earth and why, in one line: its south-west corner, extent and
+    /// cell size in metres, and whether the truth's latitude and longitude placed it
+    /// ([`Self::place_by_truth`]), the mission's `[mavlink] origin`, or the default origin (a
+    /// truth without latitude and longitude is not on the Earth: its map is put there).
+    pub fn site_said(&self, grid: &Grid) -> String {
+        let m = &self.mavlink;
+        let site = m.site(grid);
+        let (east, north) = (grid.width_m() * site.scale.x, grid.height_m() * site.scale.y);
+        let from_truth = match self.truth.as_ref().map(|t| &t.source) {
+            Some(TruthSource::NetCdf { path, variable, select }) => {
+                crate::process::netcdf::bounds(path, variable, select)
+                    .ok()
+                    .flatten()
+                    .filter(|b| [b[0], b[1]] == [m.origin[0], m.origin[1]])
+                    .map(|_| format!("from the latitude and longitude of {}", path.display()))
+            }
+            _ => None,
+        };
+        let why = from_truth.unwrap_or_else(|| match m.origin == MavlinkConfig::default().origin {
+            true => "the default origin: give [mavlink] origin and size_m to put it where it is".into(),
+            false => "the mission's [mavlink] origin".into(),
+        });
+        let hemi = |v: f64, pos: char, neg: char| format!("{:.5}{}", v.abs(), if v < 0.0 { neg } else { pos });
+        format!(
+            "site: south-west corner {} {}, {east:.0} m east x {north:.0} m north, cells of {:.1} x {:.1} m ({why})",
+            hemi(m.origin[0], 'N', 'S'),
+            hemi(m.origin[1], 'E', 'W'),
+            east / grid.cols as f64,
+            north / grid.rows as f64,
+        )
     }
 
     /// The mission file at `path`, or the bundled default.

@@ -53,9 +53,9 @@ def fail(why):
     sys.exit(1)
 
 
-def check(path, run):
-    # xarray's decoding, south to north, the level selected.
-    truth = xr.open_dataset(path).temp.sel(depth=5.0).sortby("lat").values
+def same_truth(truth, run):
+    """RUN's `truth.npy` against `truth` (xarray's decoding): the same shape, missing at the same
+    cells, the values to 1e-12; the largest difference."""
     ours = np.load(f"{run}/truth.npy")
     if ours.shape != truth.shape:
         fail(f"truth.npy has shape {ours.shape}, xarray {truth.shape}")
@@ -64,6 +64,13 @@ def check(path, run):
     worst = float(np.nanmax(np.abs(ours - truth)))
     if worst > 1e-12:
         fail(f"truth.npy differs from xarray's decoding by {worst}")
+    return worst
+
+
+def check(path, run):
+    # xarray's decoding, south to north, the level selected.
+    truth = xr.open_dataset(path).temp.sel(depth=5.0).sortby("lat").values
+    worst = same_truth(truth, run)
     land = np.isnan(truth).all(axis=0)
     est = np.load(f"{run}/estimate.npy")
     steps = est.shape[0]

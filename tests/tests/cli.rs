@@ -185,8 +185,8 @@ fn configurations_that_cannot_run_are_refused_up_front_naming_the_field() {
         );
         assert!(!out.join("state").exists(), "{to}: nothing started");
     }
-    // A NetCDF-4 (HDF5) truth, whatever its name: one line saying what it is and how to
-    // convert it, before anything starts.
+    // A NetCDF-4 (HDF5) truth cut short, whatever its name: one line naming it, before
+    // anything starts.
     let h5 = dir.join("sst.nc");
     std::fs::write(&h5, b"\x89HDF\r\n\x1a\n\0\0\0\0").unwrap();
     let m = hetfleet_tests::tiny_mission(&dir, &["tcp/127.0.0.1:7461".into()], &["tcp/127.0.0.1:7461".into()]);
@@ -196,7 +196,30 @@ fn configurations_that_cannot_run_are_refused_up_front_naming_the_field() {
     assert_refused(
         "fleet",
         &["up", m.to_str().unwrap(), "--out", out.to_str().unwrap()],
-        "NetCDF-4",
+        "sst.nc: not a readable NetCDF file (HDF5 error",
+    );
+    // Latitudes not evenly spaced (tests/py/netcdf4.py): the site is not placed from them in
+    // silence (it was put at the default origin) but refused, naming the coordinate.
+    let uneven = dir.join("uneven.nc");
+    let o = Command::new("python3")
+        .args(["tests/py/netcdf4.py", "write", uneven.to_str().unwrap(), "uneven"])
+        .current_dir(root())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let dataset = format!("dataset = {:?}\nvariable = \"ocean/sst\"", uneven.to_str().unwrap());
+    let m = hetfleet_tests::tiny_mission(&dir, &["tcp/127.0.0.1:7461".into()], &["tcp/127.0.0.1:7461".into()]);
+    hetfleet_tests::edit(&m, "preset = \"cloud2\"\ngrid = [48, 96]", &dataset);
+    hetfleet_tests::edit(&m, "frames = 40\naverage = 2", "frames = 30\naverage = 1");
+    assert_refused(
+        "fleet",
+        &[
+            "up",
+            m.to_str().unwrap(),
+            "--out",
+            dir.join("run-uneven").to_str().unwrap(),
+        ],
+        "coordinate \"ocean/lat\" is not evenly spaced: value 4",
     );
     assert!(!out.join("state").exists(), "a NetCDF-4 truth: nothing started");
     // An integer rank is a rank.

@@ -18,14 +18,19 @@ fn python(args: &[&str]) -> std::process::Output {
 }
 
 fn holes_py(args: &[&str]) -> String {
-    let script = root().join("tests/py/holes.py");
-    let mut all = vec![script.to_str().unwrap()];
+    script("holes.py", args)
+}
+
+/// `tests/py/<name>` run with `args`: its output, or the test fails with it.
+fn script(name: &str, args: &[&str]) -> String {
+    let path = root().join("tests/py").join(name);
+    let mut all = vec![path.to_str().unwrap()];
     all.extend_from_slice(args);
     let o = python(&all);
     let out = String::from_utf8_lossy(&o.stdout).to_string();
     assert!(
         o.status.success(),
-        "holes.py {args:?}: {out}{}",
+        "{name} {args:?}: {out}{}",
         String::from_utf8_lossy(&o.stderr)
     );
     out
@@ -121,6 +126,48 @@ fn a_file_with_land_cloud_packed_shorts_and_a_level_runs_as_xarray_reads_it() {
     // Truth as xarray decodes it, per-step MSE as numpy computes it over the cells with a
     // truth (1e-12), no boat target on land, estimate.npy and estimate.nc missing on land only.
     println!("{}", holes_py(&["check", nc.to_str().unwrap(), out.to_str().unwrap()]));
+}
+
+/// A NetCDF-4 file as data centres publish them (tests/py/netcdf4.py: the field in a group,
+/// unsigned packed bytes, zlib with shuffle in chunks, 32-bit float latitude and longitude, a
+/// 360_day calendar) runs through `fleet experiment` and `fleet up`: the truth equals xarray's
+/// decoding to 1e-12 and the site is where the file says (1e-4 degrees), said in the first lines
+/// and the report. Before, it was refused (NetCDF-4), and once converted its 32-bit longitudes
+/// (spacings 1.5% apart) put the map at the default origin without a word.
+#[test]
+fn a_netcdf4_file_runs_as_xarray_reads_it_and_is_placed_where_it_says() {
+    let dir = scratch("netcdf4");
+    let nc = dir.join("sst4.nc");
+    let py = |args: &[&str]| script("netcdf4.py", args);
+    py(&["write", nc.to_str().unwrap()]);
+    let truth = format!("dataset = {:?}\nvariable = \"ocean/sst\"", nc.to_str().unwrap());
+    let (o, rep) = experiment(&dir, "sst4", 30, &truth);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    no_fill_value_in(&rep);
+    let ep = format!("tcp/127.0.0.1:{}", free_port());
+    let mission = hetfleet_tests::tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
+    hetfleet_tests::edit(&mission, "preset = \"cloud2\"\ngrid = [48, 96]", &truth);
+    hetfleet_tests::edit(&mission, "frames = 40\naverage = 2", "frames = 30\naverage = 1");
+    let out = dir.join("run");
+    let o = Command::new(bin("fleet"))
+        .args(["up", mission.to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .current_dir(root())
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "fleet up: {}", String::from_utf8_lossy(&o.stderr));
+    let first: Vec<&str> = said.lines().take(2).collect();
+    assert!(
+        first[1].starts_with("site: south-west corner 0.01000S 150.00000E")
+            && first[1].contains("from the latitude and longitude of"),
+        "{first:?}"
+    );
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(
+        report.contains("The site's south-west corner 0.01000S 150.00000E"),
+        "{report}"
+    );
+    println!("{}", py(&["check", nc.to_str().unwrap(), out.to_str().unwrap()]));
 }
 
 /// The real rows of `config/experiment-real.toml` (the two files eofs ships, copied by

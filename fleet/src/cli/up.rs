@@ -283,6 +283,7 @@ fn make_truth(mission: &MissionConfig, staging: &Path, t0: Instant) -> anyhow::R
             None => "no truth: instruments only, scored by held-out readings".into(),
         }
     );
+    println!("{}", mission.site_said(&grid));
     Ok((truth, frames))
 }
 
@@ -621,7 +622,8 @@ fn finish(
         out.display()
     );
     gather_readings(out, mission)?;
-    let md = write_mission_report(out, mission, summary, offline.as_ref(), summary.dt, &command, events)?;
+    let (grid, _) = mission.workspace(truth.map(FieldSeries::shape))?;
+    let md = write_mission_report(out, mission, summary, offline.as_ref(), &grid, &command, events)?;
     println!("{md}");
     // Everything else is written first: a NetCDF that cannot be written fails the run at the
     // end, and `fleet export` can write it again from the run directory.

@@ -134,10 +134,11 @@ pub fn write_mission_report(
     mission: &fleet_mission::config::MissionConfig,
     summary: &ServerSummary,
     offline: Option<&crate::experiment::team::TeamOutcome>,
-    dt: f64,
+    grid: &fleet_mission::grid::Grid,
     command: &str,
     events: &[ServerEvent],
 ) -> anyhow::Result<String> {
+    let dt = summary.dt;
     let mut r = MissionReport {
         mission,
         summary,
@@ -145,7 +146,7 @@ pub fn write_mission_report(
         from: 0,
         md: String::new(),
     };
-    r.intro(command)?;
+    r.intro(command, grid)?;
     if let Some(offline) = offline {
         // Every team over the same steps: from the first where all have data (the boats'
         // first sample), never a team without data.
@@ -192,7 +193,7 @@ fn truth_of(mission: &fleet_mission::config::MissionConfig) -> String {
 
 impl MissionReport<'_> {
     /// The heading: what ran, on which truth, and the team's settings.
-    fn intro(&mut self, command: &str) -> anyhow::Result<()> {
+    fn intro(&mut self, command: &str, grid: &fleet_mission::grid::Grid) -> anyhow::Result<()> {
         use std::fmt::Write as _;
         let (mission, summary, md) = (self.mission, self.summary, &mut self.md);
         let t = &mission.team;
@@ -206,6 +207,11 @@ impl MissionReport<'_> {
             t.boats,
             t.radius,
             truth_of(mission)
+        )?;
+        writeln!(
+            md,
+            "The {}.\n",
+            mission.site_said(grid).replacen("site: ", "site's ", 1)
         )?;
         let placement = match t.placement {
             fleet_mission::team::Placement::Horizon => format!("horizon over {} epochs", t.horizon_epochs),

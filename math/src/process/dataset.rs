@@ -1,7 +1,7 @@
 //! Datasets as field sources: any float64 `.npy` array of shape `(frames, rows, cols)` is a
 //! truth field (what `fleet simulate` writes and numpy users load with `np.load`), and a JSON
-//! sidecar beside it records how it was made; or one variable of a NetCDF-3 file (float or
-//! double, dimensions `(time, y, x)` in that order), as environmental data usually comes.
+//! sidecar beside it records how it was made; or one variable of a NetCDF file (classic or
+//! NetCDF-4, [`super::netcdf`]), as environmental data usually comes.
 
 use super::FieldSeries;
 use crate::npy::{self, NpyError};
@@ -22,7 +22,7 @@ pub enum DatasetError {
     },
     #[error("writing {path}: {source}")]
     Io { path: String, source: std::io::Error },
-    #[error("{path}: not a readable NetCDF-3 file ({why})")]
+    #[error("{path}: not a readable NetCDF file ({why})")]
     NetCdf { path: String, why: String },
     #[error("{path}: no variable {variable:?} (it has: {have})")]
     NoVariable {
@@ -122,7 +122,7 @@ fn from_array(a: npy::Array, p: &str, dt: f64, holes: bool) -> Result<FieldSerie
     })
 }
 
-/// Load variable `variable` of a NetCDF-3 file (classic or 64-bit offset) as a field, decoded
+/// Load variable `variable` of a NetCDF file (classic or NetCDF-4) as a field, decoded
 /// as xarray decodes it ([`super::netcdf::read`]): NaN where the file marks a value missing.
 pub fn load_netcdf(
     path: impl AsRef<Path>,
@@ -293,13 +293,13 @@ mod tests {
             "a NetCDF file needs its variable, whatever its name"
         );
         assert!(keys(&npy_nc, Some("density")).is_err(), "an array has no variables");
-        // NetCDF-4 (HDF5): one line saying what it is and how to convert it.
+        // NetCDF-4 (HDF5) is read; one cut after its signature is refused in one line.
         let h5 = dir.join("g.nc");
         std::fs::write(&h5, b"\x89HDF\r\n\x1a\n\0\0\0\0").unwrap();
         assert_eq!(sniff(&h5), Some(FileKind::NetCdf4));
         let e = load_netcdf(&h5, "density", &none).unwrap_err().to_string();
         assert!(
-            e.contains("g.nc") && e.contains("NetCDF-4") && e.contains("nccopy") && !e.contains('\n'),
+            e.contains("g.nc") && e.contains("not a readable NetCDF file") && e.contains("HDF5") && !e.contains('\n'),
             "{e}"
         );
         std::fs::remove_dir_all(&dir).ok();

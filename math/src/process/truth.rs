@@ -51,7 +51,7 @@ impl TruthError {
 }
 
 /// Where the truth comes from: the plasma-cloud simulator's preset, a `(frames, rows, cols)`
-/// `.npy` dataset, or a `(time, y, x)` variable of a NetCDF-3 file. In files it is written as
+/// `.npy` dataset, or a `(time, y, x)` variable of a NetCDF file (classic or NetCDF-4). In files it is written as
 /// one of two keys, `preset = "cloud1"` or `dataset = "path.npy"` (`dataset = "f.nc"` with
 /// `variable = "density"`); giving both or neither is refused where the file is read.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
@@ -152,11 +152,11 @@ impl TruthSource {
         match self {
             Self::Preset(p) => format!("{p:?}"),
             Self::Dataset(d) => stem(d),
-            Self::NetCdf { path, variable, select } => select
-                .iter()
-                .fold(format!("{}-{variable}", stem(path)), |name, (k, v)| {
-                    format!("{name}-{k}{v}")
-                }),
+            // A variable in a group (`ocean/sst`) joined by `-`: the name is part of file names.
+            Self::NetCdf { path, variable, select } => select.iter().fold(
+                format!("{}-{}", stem(path), variable.trim_start_matches('/').replace('/', "-")),
+                |name, (k, v)| format!("{name}-{k}{v}"),
+            ),
         }
     }
 

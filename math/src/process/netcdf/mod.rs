@@ -1,9 +1,6 @@
-//! One variable of a NetCDF-3 file as a field, decoded the way xarray decodes it (CF
-//! conventions): a value equal to `_FillValue` or `missing_value` (compared in the variable's
-//! own type, as xarray casts them) or outside `valid_min`/`valid_max`/`valid_range` (as
-//! netCDF4-python masks them) is missing, never data; integers marked `_Unsigned = "true"` are
-//! read unsigned, and packed integers unpacked with `scale_factor` and `add_offset`; `units` is
-//! carried along.
+//! One variable of a NetCDF file as a field, decoded the way xarray decodes it (CF
+//! conventions, [`decode`]): classic or NetCDF-4, a variable in a group named by its path
+//! (`group/var`), chunked and compressed variables read whole ([`file`]).
 //!
 //! Dimensions are taken the way files have them: `select` fixes a dimension (by coordinate
 //! value where the dimension has a coordinate variable, xarray's `sel`; by index where it has
@@ -18,10 +15,14 @@
 //! A missing value is NaN in the field; a variable missing everywhere, or a frame with no value
 //! at all, is refused.
 
+mod decode;
+mod file;
+
 use super::dataset::DatasetError;
 use super::FieldSeries;
+use decode::Decode;
 use faer::Mat;
-use netcdf3::{DataSet, DataType, DataVector, Variable};
+use file::{NcSource, Var};
 use std::collections::BTreeMap;
 use std::path::Path;
 
@@ -45,60 +46,88 @@ pub struct NetCdfField {
 /// The `(frames, rows, cols)` of `variable` after `select` and squeezing, from the header and
 /// the selected coordinates.
 pub fn shape(path: impl AsRef<Path>, variable: &str, select: &Select) -> Option<Vec<usize>> {
-    let mut reader = netcdf3::FileReader::open(path).ok()?;
-    let named: Vec<String> = select
-        .keys()
-        .filter(|d| is_coordinate(reader.data_set(), d))
-        .cloned()
-        .collect();
-    let coords: BTreeMap<String, Vec<f64>> = named
-        .into_iter()
-        .filter_map(|d| {
-            let raw = reader.read_var(&d).ok()?;
-            Some((d.clone(), coordinate(reader.data_set(), &d, &raw).ok()??))
-        })
-        .collect();
-    let var = reader.data_set().get_var(variable)?;
-    let layout = Layout::of(reader.data_set(), var, select, &coords, &|why| why).ok()?;
+    let src = NcSource::open(path.as_ref()).ok()?;
+    let var = src.var(variable)?;
+    let coords = coordinates(&src, &var, |d| select.contains_key(d)).ok()?;
+    let layout = Layout::of(&src, &var, select, &coords, &|why| why).ok()?;
     Some(layout.kept.iter().map(|&d| layout.sizes[d]).collect())
 }
 
 /// Where `variable` lies on the Earth, `[south, west, north, east]` (degrees, cell edges), when
 /// its `y` and `x` coordinates are latitude and longitude (CF `units` `degrees_north` and
-/// `degrees_east`, or those `standard_name`s) evenly spaced; longitude in [-180, 180).
-pub fn bounds(path: impl AsRef<Path>, variable: &str, select: &Select) -> Option<[f64; 4]> {
-    let mut reader = netcdf3::FileReader::open(path).ok()?;
-    let ds = reader.data_set();
-    let var = ds.get_var(variable)?;
-    let names = var.dim_names();
-    let lat = names.iter().find(|n| is_geographic(ds, n, true))?.clone();
-    let lon = names.iter().find(|n| is_geographic(ds, n, false))?.clone();
-    if select.contains_key(&lat) || select.contains_key(&lon) {
-        return None;
-    }
-    let edges = |v: Vec<f64>| -> Option<(f64, f64)> {
-        let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
-        let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        let step = (hi - lo) / (v.len().max(2) - 1) as f64;
-        let even = v
-            .windows(2)
-            .all(|w| ((w[1] - w[0]).abs() - step).abs() <= 1e-6 * step.max(1e-12));
-        (v.len() >= 2 && step > 0.0 && even).then_some((lo - step / 2.0, hi + step / 2.0))
+/// `degrees_east`, or those `standard_name`s); longitude in [-180, 180). `None` where they are
+/// not (or one is selected). A latitude or longitude that is not evenly spaced within what its
+/// storage can hold ([`regular_span`]) is refused: a site placed from it would be placed wrong.
+pub fn bounds(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<Option<[f64; 4]>, DatasetError> {
+    let path = path.as_ref();
+    let cf = |why: String| DatasetError::Cf {
+        path: path.display().to_string(),
+        variable: variable.into(),
+        why,
     };
-    let (lat_raw, lon_raw) = (reader.read_var(&lat).ok()?, reader.read_var(&lon).ok()?);
-    let ds = reader.data_set();
-    let (south, north) = edges(coordinate(ds, &lat, &lat_raw).ok()??)?;
-    let (west, east) = edges(across_the_dateline(coordinate(ds, &lon, &lon_raw).ok()??))?;
+    let Ok(src) = NcSource::open(path) else { return Ok(None) };
+    let Some(var) = src.var(variable) else { return Ok(None) };
+    let names: Vec<String> = var.dims().into_iter().map(|(n, _)| n).collect();
+    let geographic = |north: bool| {
+        names
+            .iter()
+            .find_map(|n| src.coordinate(var.path(), n).filter(|c| is_geographic(c, north)))
+    };
+    let (Some(lat), Some(lon)) = (geographic(true), geographic(false)) else {
+        return Ok(None);
+    };
+    if [&lat, &lon]
+        .iter()
+        .any(|c| select.contains_key(c.path().rsplit('/').next().unwrap_or("")))
+    {
+        return Ok(None);
+    }
+    let span = |c: &Var<'_>, wrap: bool| -> Result<(f64, f64), DatasetError> {
+        let v = coordinate(&src, c)
+            .map_err(&cf)?
+            .ok_or_else(|| cf(format!("{} is not numbers", c.path())))?;
+        let v = if wrap { across_the_dateline(v) } else { v };
+        let decode = Decode::of(c).map_err(&cf)?;
+        let rounding = |x: f64| decode.rounding(c.dtype(), x).unwrap_or(0.0);
+        regular_span(&v, rounding).map_err(|why| cf(format!("coordinate {:?} {why}", c.path())))
+    };
+    let (south, north) = span(&lat, false)?;
+    let (west, east) = span(&lon, true)?;
     let wrapped = crate::longitude::wrap_longitude(west);
-    Some([south, wrapped, north, wrapped + (east - west)])
+    Ok(Some([south, wrapped, north, wrapped + (east - west)]))
+}
+
+/// The cell edges `(low, high)` of an evenly spaced coordinate `v` (either way round): its
+/// values are taken as even when none is further from the line between the first and the last
+/// than its storage can hold (twice `rounding(value)`, the half-step of its type: a latitude in
+/// 32-bit floats is off by up to 1e-5 of a quarter-degree step, and GDAL and xarray place it as
+/// regular) or a millionth of a step (doubles written as sums). Else refused, naming the
+/// largest departure: the map would be stretched in silence.
+fn regular_span(v: &[f64], rounding: impl Fn(f64) -> f64) -> Result<(f64, f64), String> {
+    let n = v.len();
+    if n < 2 {
+        return Err(format!("has {n} value: a site needs two to be placed"));
+    }
+    let step = (v[n - 1] - v[0]) / (n - 1) as f64;
+    let (worst, at) = (0..n)
+        .map(|i| ((v[i] - (v[0] + step * i as f64)).abs(), i))
+        .fold((0.0, 0), |a, b| if b.0 > a.0 { b } else { a });
+    let allowed = (1e-6 * step.abs()).max(2.0 * rounding(v[at]) + 2.0 * rounding(v[0]).max(rounding(v[n - 1])));
+    if !(step != 0.0 && worst <= allowed) {
+        return Err(format!(
+            "is not evenly spaced: value {at} ({}) is {worst:.3e} from an even step of {step} (allowed \
+             {allowed:.1e}); an irregular or curvilinear grid is not placed: regrid it (`cdo remapbil`) or \
+             give [mavlink] origin and size_m",
+            v[at]
+        ));
+    }
+    let (lo, hi) = if step > 0.0 { (v[0], v[n - 1]) } else { (v[n - 1], v[0]) };
+    Ok((lo - step.abs() / 2.0, hi + step.abs() / 2.0))
 }
 
 /// The `units` attribute of `variable`, from the header.
 pub fn units(path: impl AsRef<Path>, variable: &str) -> Option<String> {
-    netcdf3::FileReader::open(path)
-        .ok()?
-        .data_set()
-        .get_var_attr_as_string(variable, "units")
+    NcSource::open(path.as_ref()).ok()?.var(variable)?.text("units")
 }
 
 /// Whether `units` are degrees north (`north`) or east, in any of CF's spellings
@@ -112,12 +141,11 @@ fn in_degrees(units: &str, north: bool) -> bool {
     spellings.iter().any(|e| u.starts_with(e))
 }
 
-/// Whether dimension `dim` is a latitude (`north`) or a longitude: its coordinate in degrees
-/// north or east, or so named by its `standard_name`.
-fn is_geographic(ds: &DataSet, dim: &str, north: bool) -> bool {
-    let attr = |a: &str| ds.get_var_attr_as_string(dim, a).unwrap_or_default();
+/// Whether a coordinate is a latitude (`north`) or a longitude: in degrees north or east, or
+/// so named by its `standard_name`.
+fn is_geographic(c: &Var<'_>, north: bool) -> bool {
     let name = if north { "latitude" } else { "longitude" };
-    is_coordinate(ds, dim) && (in_degrees(&attr("units"), north) || attr("standard_name").trim() == name)
+    in_degrees(&c.said("units"), north) || c.said("standard_name").trim() == name
 }
 
 /// Longitudes that cross the dateline made continuous: a step of more than 180 degrees is a
@@ -138,26 +166,8 @@ fn across_the_dateline(mut lon: Vec<f64>) -> Vec<f64> {
     lon
 }
 
-/// A coordinate variable: one dimension, named as the variable.
-fn is_coordinate(ds: &DataSet, name: &str) -> bool {
-    ds.get_var(name).is_some_and(|v| v.dim_names() == [name.to_string()])
-}
-
-/// A NetCDF-4 file (HDF5) is refused in one line saying what it is and how to convert it.
-fn refuse_netcdf4(path: &Path) -> Result<(), DatasetError> {
-    if super::truth::sniff(path) != Some(super::truth::FileKind::NetCdf4) {
-        return Ok(());
-    }
-    Err(DatasetError::NetCdf {
-        path: path.display().to_string(),
-        why: "it is NetCDF-4 (HDF5), and only NetCDF-3 is read: convert it with `nccopy -k classic IN OUT` (or \
-              xarray's `open_dataset(IN).to_netcdf(OUT, format=\"NETCDF3_64BIT\")`)"
-            .into(),
-    })
-}
-
-/// Read `variable` of the NetCDF-3 file at `path` (classic or 64-bit offset). Every variable of
-/// the file is read: a file cut short anywhere is refused, not half used.
+/// Read `variable` (a path, `group/var` in a NetCDF-4 file's group) of the NetCDF file at
+/// `path`, classic or NetCDF-4.
 pub fn read(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<NetCdfField, DatasetError> {
     let path = path.as_ref();
     let p = path.display().to_string();
@@ -166,28 +176,29 @@ pub fn read(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<N
         variable: variable.into(),
         why,
     };
-    let unreadable = |e: netcdf3::error::ReadError| DatasetError::NetCdf {
-        path: p.clone(),
-        why: format!("{e:?}"),
-    };
-    refuse_netcdf4(path)?;
-    let mut reader = netcdf3::FileReader::open(path).map_err(unreadable)?;
-    let mut all = reader.read_all_vars().map_err(unreadable)?;
-    let ds = reader.data_set();
-    let Some(var) = ds.get_var(variable) else {
+    let unreadable = |why: String| DatasetError::NetCdf { path: p.clone(), why };
+    let src = NcSource::open(path).map_err(unreadable)?;
+    src.check_whole().map_err(unreadable)?;
+    let Some(var) = src.var(variable) else {
         return Err(DatasetError::NoVariable {
-            path: p,
+            path: p.clone(),
             variable: variable.into(),
-            have: ds.get_var_names().join(", "),
+            have: src.names_near(variable).join(", "),
         });
     };
-    let raw = all.remove(variable).ok_or_else(|| cf("no data".into()))?;
-    let coords = coordinates(ds, &all).map_err(&cf)?;
-    let layout = Layout::of(ds, var, select, &coords, &cf)?;
+    let raw = src.values(&var).map_err(unreadable)?.ok_or_else(|| {
+        cf(format!(
+            "is {:?}; a field needs numbers (byte, short, int, float or double)",
+            var.dtype()
+        ))
+    })?;
+    let coords = coordinates(&src, &var, |_| true).map_err(&cf)?;
+    let layout = Layout::of(&src, &var, select, &coords, &cf)?;
     let coord = |d: usize| coords.get(&layout.names[d]).cloned();
     let [t_dim, y_dim, x_dim] = [layout.kept[0], layout.kept[1], layout.kept[2]];
     let (times, mut y, mut x) = (coord(t_dim), coord(y_dim), coord(x_dim));
-    if is_geographic(ds, &layout.names[x_dim], false) {
+    let coordinate_of = |d: usize| src.coordinate(var.path(), &layout.names[d]);
+    if coordinate_of(x_dim).is_some_and(|c| is_geographic(&c, false)) {
         x = x.map(across_the_dateline);
     }
     let flip_y = orientation(&layout.names[y_dim], y.as_deref()).map_err(&cf)?;
@@ -198,14 +209,8 @@ pub fn read(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<N
     if let (true, Some(v)) = (flip_x, x.as_mut()) {
         v.reverse();
     }
-    let dt = time_step(ds, &layout.names[t_dim], times.as_deref()).map_err(&cf)?;
-    let decode = Decode::of(var, raw_type(&raw)).map_err(&cf)?;
-    let values = decode.values(&raw).ok_or_else(|| {
-        cf(format!(
-            "is {:?}; a field needs numbers (byte, short, int, float or double)",
-            var.data_type()
-        ))
-    })?;
+    let dt = time_step(coordinate_of(t_dim).as_ref(), &layout.names[t_dim], times.as_deref()).map_err(&cf)?;
+    let values = Decode::of(&var).map_err(&cf)?.values(raw);
     let (t, rows, cols) = (layout.sizes[t_dim], layout.sizes[y_dim], layout.sizes[x_dim]);
     let n = rows * cols;
     let mut snapshots = Mat::zeros(n, t);
@@ -228,7 +233,7 @@ pub fn read(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<N
             dt,
             snapshots,
         },
-        units: var.get_attr_as_string("units"),
+        units: var.text("units"),
         y,
         x,
         missing,
@@ -268,14 +273,13 @@ impl Layout {
     /// kept dimensions come out as `(time, y, x)`: in the file's order, or in the order their
     /// coordinates' CF attributes give ([`Axis`]) where those say otherwise.
     fn of<E>(
-        ds: &DataSet,
-        var: &Variable,
+        src: &NcSource,
+        var: &Var<'_>,
         select: &Select,
         coords: &BTreeMap<String, Vec<f64>>,
         err: &dyn Fn(String) -> E,
     ) -> Result<Self, E> {
-        let names: Vec<String> = var.dim_names();
-        let sizes: Vec<usize> = var.get_dims().iter().map(|d| d.size()).collect();
+        let (names, sizes): (Vec<String>, Vec<usize>) = var.dims().into_iter().unzip();
         let listed = || {
             names
                 .iter()
@@ -318,7 +322,7 @@ impl Layout {
         if sizes[kept[0]] < 1 || sizes[kept[1]] == 0 || sizes[kept[2]] == 0 {
             return Err(err(format!("has dimensions ({}): no values", listed())));
         }
-        let axes = [0, 1, 2].map(|i| Axis::of(ds, &names[kept[i]]));
+        let axes = [0, 1, 2].map(|i| Axis::of(src.coordinate(var.path(), &names[kept[i]]).as_ref()));
         let kept = field_order([kept[0], kept[1], kept[2]], axes).ok_or_else(|| {
             let said = (0..3)
                 .map(|i| format!("{} {}", names[kept[i]], axes[i].map_or("?", Axis::name)))
@@ -359,15 +363,12 @@ enum Axis {
 }
 
 impl Axis {
-    /// The axis of dimension `dim`: `None` where it has no coordinate variable or that says none
-    /// of these (a level's `Z`).
-    fn of(ds: &DataSet, dim: &str) -> Option<Self> {
-        if !is_coordinate(ds, dim) {
-            return None;
-        }
-        let attr = |a: &str| ds.get_var_attr_as_string(dim, a).unwrap_or_default();
-        let (axis, units) = (attr("axis").trim().to_ascii_uppercase(), attr("units"));
-        let standard = attr("standard_name");
+    /// The axis of a dimension whose coordinate variable is `c`: `None` where it has none or
+    /// that says none of these (a level's `Z`).
+    fn of(c: Option<&Var<'_>>) -> Option<Self> {
+        let c = c?;
+        let (axis, units) = (c.said("axis").trim().to_ascii_uppercase(), c.said("units"));
+        let standard = c.said("standard_name");
         let is = |letter: &str, north: bool, names: &[&str]| {
             axis == letter || in_degrees(&units, north) || names.contains(&standard.trim())
         };
@@ -435,16 +436,19 @@ fn pick(dim: &str, size: usize, coordinate: Option<&Vec<f64>>, value: f64) -> Re
     })
 }
 
-/// Every coordinate variable's values among `all`, decoded ([`coordinate`]); the error names
-/// the one whose attributes cannot be read.
-fn coordinates<S: std::hash::BuildHasher>(
-    ds: &DataSet,
-    all: &std::collections::HashMap<String, DataVector, S>,
+/// The decoded values of the coordinate variables of `var`'s dimensions that `wanted` names.
+fn coordinates(
+    src: &NcSource,
+    var: &Var<'_>,
+    wanted: impl Fn(&str) -> bool,
 ) -> Result<BTreeMap<String, Vec<f64>>, String> {
     let mut coords = BTreeMap::new();
-    for (name, v) in all.iter().filter(|(name, _)| is_coordinate(ds, name)) {
-        if let Some(values) = coordinate(ds, name, v).map_err(|why| format!("coordinate {name:?}: {why}"))? {
-            coords.insert(name.clone(), values);
+    for (dim, _) in var.dims().into_iter().filter(|(d, _)| wanted(d)) {
+        let Some(c) = src.coordinate(var.path(), &dim) else {
+            continue;
+        };
+        if let Some(values) = coordinate(src, &c).map_err(|why| format!("coordinate {dim:?}: {why}"))? {
+            coords.insert(dim, values);
         }
     }
     Ok(coords)
@@ -453,32 +457,9 @@ fn coordinates<S: std::hash::BuildHasher>(
 /// A coordinate variable's values as xarray decodes them, as the variable's are: packed
 /// integers unpacked (a latitude stored as shorts of 0.01 degrees is 20 to 60, not 2000 to
 /// 6000), a fill value NaN (so refused as not monotonic); `None` for characters.
-fn coordinate(ds: &DataSet, name: &str, raw: &DataVector) -> Result<Option<Vec<f64>>, String> {
-    let Some(var) = ds.get_var(name) else { return Ok(None) };
-    Ok(Decode::of(var, raw_type(raw))?.values(raw))
-}
-
-/// Any numeric vector as doubles (`None` for characters).
-fn numbers(v: &DataVector) -> Option<Vec<f64>> {
-    Some(match v {
-        DataVector::I8(v) => v.iter().map(|&x| f64::from(x)).collect(),
-        DataVector::I16(v) => v.iter().map(|&x| f64::from(x)).collect(),
-        DataVector::I32(v) => v.iter().map(|&x| f64::from(x)).collect(),
-        DataVector::F32(v) => v.iter().map(|&x| f64::from(x)).collect(),
-        DataVector::F64(v) => v.clone(),
-        DataVector::U8(_) => return None,
-    })
-}
-
-fn raw_type(v: &DataVector) -> DataType {
-    match v {
-        DataVector::I8(_) => DataType::I8,
-        DataVector::U8(_) => DataType::U8,
-        DataVector::I16(_) => DataType::I16,
-        DataVector::I32(_) => DataType::I32,
-        DataVector::F32(_) => DataType::F32,
-        DataVector::F64(_) => DataType::F64,
-    }
+fn coordinate(src: &NcSource, c: &Var<'_>) -> Result<Option<Vec<f64>>, String> {
+    let decode = Decode::of(c)?;
+    Ok(src.values(c)?.map(|raw| decode.values(raw)))
 }
 
 /// Whether a coordinate runs backwards (and the axis is to be flipped); refused when it is not
@@ -496,14 +477,14 @@ fn orientation(dim: &str, values: Option<&[f64]>) -> Result<bool, String> {
 /// Seconds between frames: the time coordinate's mean spacing in its CF `units` (`"<unit> since
 /// <date>"`); 1 where the file has no time coordinate or one frame. A time axis that does not
 /// increase is refused, and so are units that are not time.
-fn time_step(ds: &DataSet, dim: &str, times: Option<&[f64]>) -> Result<f64, String> {
-    let Some(t) = times.filter(|t| t.len() > 1) else {
+fn time_step(c: Option<&Var<'_>>, dim: &str, times: Option<&[f64]>) -> Result<f64, String> {
+    let (Some(c), Some(t)) = (c, times.filter(|t| t.len() > 1)) else {
         return Ok(1.0);
     };
     if !t.windows(2).all(|w| w[1] > w[0]) || t.iter().any(|x| !x.is_finite()) {
         return Err(format!("time coordinate {dim:?} does not increase"));
     }
-    let units = ds.get_var_attr_as_string(dim, "units").unwrap_or_default();
+    let units = c.said("units");
     let unit = units.split_whitespace().next().unwrap_or("").to_ascii_lowercase();
     let seconds = match unit.as_str() {
         _ if !units.contains(" since ") => return Ok((t[t.len() - 1] - t[0]) / (t.len() - 1) as f64),
@@ -521,152 +502,10 @@ fn time_step(ds: &DataSet, dim: &str, times: Option<&[f64]>) -> Result<f64, Stri
     Ok((t[t.len() - 1] - t[0]) / (t.len() - 1) as f64 * seconds)
 }
 
-/// How stored values become data: which are missing, and the unpacking.
-struct Decode {
-    missing: Vec<f64>,
-    valid: (f64, f64),
-    /// Whether the valid range is in packed units (its type is the variable's).
-    valid_packed: bool,
-    scale: f64,
-    offset: f64,
-    /// `_Unsigned = "true"`: the stored type's span, `2^bits` (see [`unsigned_span`]).
-    unsigned: Option<f64>,
-}
-
-impl Decode {
-    fn of(var: &Variable, stored: DataType) -> Result<Self, String> {
-        let attr = |name: &str| var.get_attr(name).and_then(attr_numbers);
-        let unsigned = unsigned_span(var, &stored)?;
-        let in_type = |v: f64| match unsigned {
-            // A fill written unsigned (65535 for a short) is already the value as read.
-            Some(_) if v >= 0.0 => v,
-            _ => as_unsigned(unsigned, cast(v, &stored)),
-        };
-        let mut missing: Vec<f64> = vec![];
-        for name in ["_FillValue", "missing_value"] {
-            missing.extend(attr(name).unwrap_or_default().into_iter().map(in_type));
-        }
-        let mut valid = (f64::NEG_INFINITY, f64::INFINITY);
-        let mut typed = vec![];
-        if let Some(r) = attr("valid_range") {
-            let [lo, hi] = r[..] else {
-                return Err(format!("valid_range has {} values, not 2", r.len()));
-            };
-            valid = (lo, hi);
-            typed.push("valid_range");
-        }
-        if let Some(&[lo]) = attr("valid_min").as_deref() {
-            valid.0 = lo;
-            typed.push("valid_min");
-        }
-        if let Some(&[hi]) = attr("valid_max").as_deref() {
-            valid.1 = hi;
-            typed.push("valid_max");
-        }
-        let valid_packed = typed
-            .iter()
-            .all(|n| var.get_attr(n).is_some_and(|a| a.data_type() == stored));
-        if valid_packed {
-            valid = (as_unsigned(unsigned, valid.0), as_unsigned(unsigned, valid.1));
-        }
-        let one = |name: &str, default: f64| -> Result<f64, String> {
-            match attr(name).as_deref() {
-                None => Ok(default),
-                Some(&[v]) if v.is_finite() => Ok(v),
-                Some(v) => Err(format!("{name} is {v:?}; CF wants one finite number")),
-            }
-        };
-        Ok(Self {
-            missing,
-            valid,
-            valid_packed,
-            scale: one("scale_factor", 1.0)?,
-            offset: one("add_offset", 0.0)?,
-            unsigned,
-        })
-    }
-
-    /// The data, NaN where missing (`None`: not numbers).
-    fn values(&self, raw: &DataVector) -> Option<Vec<f64>> {
-        let stored = numbers(raw)?;
-        Some(
-            stored
-                .into_iter()
-                .map(|s| {
-                    let s = as_unsigned(self.unsigned, s);
-                    let v = s * self.scale + self.offset;
-                    let checked = if self.valid_packed { s } else { v };
-                    let out_of_range = checked < self.valid.0 || checked > self.valid.1;
-                    if s.is_nan() || self.missing.contains(&s) || out_of_range || !v.is_finite() {
-                        f64::NAN
-                    } else {
-                        v
-                    }
-                })
-                .collect(),
-        )
-    }
-}
-
-/// `_Unsigned = "true"` (the NUG's way to store unsigned integers in NetCDF-3, which has none:
-/// GOES-R's products are shorts so marked, with `valid_range = 0S, -6S`): the stored type's span
-/// `2^bits`, which a negative stored value is read with, as netCDF4-python and netCDF-Java read
-/// it, and so are its fill values and a valid range in the stored type (xarray converts only
-/// `_FillValue`, leaving a `missing_value` of 254 in a byte as data). Read as signed, a byte of
-/// 200 would be -56: data altered in silence. `"false"` or no attribute: signed. Anything else,
-/// or `"true"` on a type that is not an integer, is refused (no setting ignored).
-fn unsigned_span(var: &Variable, stored: &DataType) -> Result<Option<f64>, String> {
-    let Some(said) = var.get_attr("_Unsigned") else {
-        return Ok(None);
-    };
-    let said = said.get_as_string().unwrap_or_default();
-    match (said.trim().to_ascii_lowercase().as_str(), stored) {
-        ("false", _) => Ok(None),
-        ("true", DataType::I8) => Ok(Some(256.0)),
-        ("true", DataType::I16) => Ok(Some(65_536.0)),
-        ("true", DataType::I32) => Ok(Some(4_294_967_296.0)),
-        ("true", t) => Err(format!(
-            "_Unsigned is \"true\" on a variable of {t:?}: only integers are unsigned"
-        )),
-        _ => Err(format!("_Unsigned is {said:?}; the NUG wants \"true\" or \"false\"")),
-    }
-}
-
-/// A stored integer as `_Unsigned` reads it: a negative one plus the type's span.
-fn as_unsigned(span: Option<f64>, stored: f64) -> f64 {
-    match span {
-        Some(span) if stored < 0.0 => stored + span,
-        _ => stored,
-    }
-}
-
-/// An attribute's numbers as doubles.
-fn attr_numbers(a: &netcdf3::Attribute) -> Option<Vec<f64>> {
-    let f = |v: Option<&[f32]>| v.map(|v| v.iter().map(|&x| f64::from(x)).collect());
-    let i = |v: Option<Vec<f64>>| v;
-    a.get_f64()
-        .map(|v| v.to_vec())
-        .or_else(|| f(a.get_f32()))
-        .or_else(|| i(a.get_i32().map(|v| v.iter().map(|&x| f64::from(x)).collect())))
-        .or_else(|| i(a.get_i16().map(|v| v.iter().map(|&x| f64::from(x)).collect())))
-        .or_else(|| i(a.get_i8().map(|v| v.iter().map(|&x| f64::from(x)).collect())))
-}
-
-/// `v` as the stored type holds it (xarray casts a fill value to the variable's type before
-/// comparing: 1e20 as a float is 100000002004087734272).
-fn cast(v: f64, t: &DataType) -> f64 {
-    match t {
-        DataType::F32 => f64::from(v as f32),
-        DataType::I8 => f64::from(v as i8),
-        DataType::I16 => f64::from(v as i16),
-        DataType::I32 => f64::from(v as i32),
-        DataType::U8 | DataType::F64 => v,
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use netcdf3::DataSet;
 
     /// A fresh directory for one test's files (removed at its end).
     fn scratch(name: &str) -> std::path::PathBuf {
@@ -901,7 +740,10 @@ mod tests {
             );
         }
         assert_eq!(shape(&b, "v", &Select::new()), Some(vec![2, 3, 4]));
-        assert_eq!(bounds(&b, "v", &Select::new()), bounds(&a, "v", &Select::new()));
+        assert_eq!(
+            bounds(&b, "v", &Select::new()).unwrap(),
+            bounds(&a, "v", &Select::new()).unwrap()
+        );
         // Unsaid dimensions keep the file's order; one axis out of place among two unsaid is
         // refused, not guessed.
         let bare = [("t", 2, ""), ("y", 3, ""), ("x", 4, "")];
@@ -933,7 +775,10 @@ mod tests {
         write_dims_with(&p, &dims, &data, lon);
         let f = read(&p, "v", &Select::new()).unwrap();
         assert_eq!(f.x, Some(vec![170.0, 175.0, 180.0, 185.0]));
-        assert_eq!(bounds(&p, "v", &Select::new()), Some([9.5, 167.5, 12.5, 187.5]));
+        assert_eq!(
+            bounds(&p, "v", &Select::new()).unwrap(),
+            Some([9.5, 167.5, 12.5, 187.5])
+        );
         std::fs::remove_dir_all(&dir).ok();
     }
 
@@ -962,7 +807,7 @@ mod tests {
         // the map would have been placed at 100 to 120 degrees of latitude.
         let f = read(&p, "v", &Select::new()).unwrap();
         assert_eq!(f.y, Some(vec![50.0, 60.0]));
-        assert_eq!(bounds(&p, "v", &Select::new()), Some([45.0, 0.5, 65.0, 3.5]));
+        assert_eq!(bounds(&p, "v", &Select::new()).unwrap(), Some([45.0, 0.5, 65.0, 3.5]));
         let at = |lat: f64| Select::from([("lat".to_string(), lat)]);
         assert!(
             read(&p, "v", &at(60.0)).is_err(),

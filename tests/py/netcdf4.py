@@ -1,0 +1,77 @@
+"""NetCDF-4 files as data centres publish them, written by netCDF4-python (tests/tests/netcdf4.rs).
+
+write PATH: a NetCDF-4 (HDF5) file with the field in group `ocean` as `sst(time, lat, lon)`:
+bytes marked `_Unsigned = "true"`, packed with scale_factor and add_offset, a _FillValue, zlib
+with shuffle in chunks of (5, 10, 20); latitude and longitude in 32-bit floats over an
+equatorial band (their spacings differ by about 1e-5 of a step once rounded); time in days of a
+360_day calendar, the unlimited dimension, at the root.
+
+write PATH uneven: the same with latitudes not evenly spaced (a Gaussian grid's kind): a site
+cannot be placed from them.
+
+check PATH RUN: what a run wrote in RUN (`truth.npy`, `estimate.nc`) against xarray's decoding
+of PATH: the truth to 1e-12, the cell centres to 1e-4 degrees. Prints one JSON line of what it
+measured; exits 1 with the reason on a mismatch.
+"""
+import json
+import sys
+
+import netCDF4
+import numpy as np
+import xarray as xr
+from holes import fail, same_truth
+
+T, ROWS, COLS = 30, 20, 40
+
+
+def field():
+    t = np.arange(T)[:, None, None]
+    r = np.arange(ROWS)[None, :, None]
+    c = np.arange(COLS)[None, None, :]
+    x = 26.0 + 2.0 * np.sin(2 * np.pi * (c - 0.6 * t) / 24.0) * np.cos(np.pi * r / 16.0)
+    return x + 0.8 * np.exp(-((r - 6 - 0.2 * t) ** 2 + (c - 10 - 0.5 * t) ** 2) / 18.0)
+
+
+def write(path, uneven=None):
+    with netCDF4.Dataset(path, "w", format="NETCDF4") as ds:
+        ds.Conventions = "CF-1.8"
+        g = ds.createGroup("ocean")
+        ds.createDimension("time", None)
+        g.createDimension("lat", ROWS)
+        g.createDimension("lon", COLS)
+        time = ds.createVariable("time", "f8", ("time",))
+        time.units, time.calendar = "days since 2000-01-01", "360_day"
+        time[:] = np.arange(T, dtype="f8")
+        lat = g.createVariable("lat", "f4", ("lat",))
+        lat.units, lat.standard_name = "degrees_north", "latitude"
+        lat[:] = np.linspace(-0.0095, 0.0095, ROWS).astype("f4")  # cells of 0.001 degrees (111 m)
+        if uneven:
+            lat[:] = (0.0095 * np.sin(np.linspace(-1.2, 1.2, ROWS)) / np.sin(1.2)).astype("f4")
+        lon = g.createVariable("lon", "f4", ("lon",))
+        lon.units = "degrees_east"
+        lon[:] = (150.0005 + 0.001 * np.arange(COLS)).astype("f4")
+        v = g.createVariable(
+            "sst", "i1", ("time", "lat", "lon"), zlib=True, shuffle=True, chunksizes=(5, 10, 20), fill_value=np.int8(-1)
+        )
+        v.setncattr("_Unsigned", "true")
+        v.scale_factor, v.add_offset, v.units = 0.05, 20.0, "degC"
+        v.set_auto_maskandscale(False)
+        raw = np.round((field() - 20.0) / 0.05).astype(np.int64)
+        raw[3, 2:5, 2:5] = 255  # the fill, as unsigned: a patch of cloud
+        assert raw.min() >= 0 and raw.max() <= 255
+        v[:] = raw.astype(np.uint8).view(np.int8)
+
+
+def check(path, run):
+    sst = xr.open_dataset(path, group="ocean", decode_times=False).sst
+    worst = same_truth(sst.values, run)
+    est = xr.open_dataset(f"{run}/estimate.nc")
+    lat_off = float(np.max(np.abs(est.lat.values - sst.lat.values.astype("f8"))))
+    lon_off = float(np.max(np.abs(est.lon.values - sst.lon.values.astype("f8"))))
+    if max(lat_off, lon_off) > 1e-4:
+        fail(f"estimate.nc's cell centres are {lat_off:.2e} (lat) and {lon_off:.2e} (lon) degrees from the file's")
+    print(json.dumps({"truth_max_abs_diff": worst, "lat_off_deg": lat_off, "lon_off_deg": lon_off}))
+
+
+if __name__ == "__main__":
+    {"write": write, "check": check}[sys.argv[1]](*sys.argv[2:])
