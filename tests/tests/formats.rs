@@ -146,6 +146,8 @@ for k, (lon, lat) in want.items():
 wkt = info['coordinateSystem']['wkt']
 assert 'WGS 84' in wkt and '4326' in wkt, wkt[:200]
 assert info['size'] == [48, 24] and info['bands'][0]['type'] == 'Float64', (info['size'], info['bands'][0]['type'])
+nodata = info['bands'][0].get('noDataValue')
+assert isinstance(nodata, str) and nodata.lower() == 'nan' or nodata != nodata, ('no-data', nodata)
 print('ok')
 ",
             corners = corners_py(),

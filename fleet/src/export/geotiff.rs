@@ -1,7 +1,7 @@
 //! The run's final estimate and its variance as georeferenced GeoTIFFs (WGS 84, one float64
 //! band, north up), so GDAL and QGIS place them on the site. The GeoTIFF keys are plain TIFF
 //! tags: a tie point at the north-west corner, the pixel size in degrees, and
-//! EPSG:4326 as the model.
+//! EPSG:4326 as the model; NaN (land, no value) is GDAL's no-data value.
 
 use super::{ExportError, Run};
 use std::path::{Path, PathBuf};
@@ -52,6 +52,9 @@ fn write_one(run: &Run, field: &[f64], path: &Path) -> Result<(), ExportError> {
         image.encoder().write_tag(Tag::ModelPixelScaleTag, &scale[..])?;
         image.encoder().write_tag(Tag::ModelTiepointTag, &tie[..])?;
         image.encoder().write_tag(Tag::GeoKeyDirectoryTag, &GEO_KEYS[..])?;
+        // GDAL's no-data tag, as GDAL writes it for a NaN (ASCII "nan"): land and cells with no
+        // value are NaN, which without it GDAL and QGIS take for data.
+        image.encoder().write_tag(Tag::GdalNodata, "nan")?;
         let last = run.estimate.steps - 1;
         let utc = run.utc_of(last);
         let at = utc.as_ref().map_or(String::new(), |t| format!(" at {t}"));
