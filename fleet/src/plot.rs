@@ -101,6 +101,9 @@ fn layout(panels: &[Panel<'_>]) -> (u32, u32, u32) {
     (s, w, h)
 }
 
+/// A cell with no value (land, cloud): the live view's grey, outside the colour scale.
+const NO_DATA: RGBColor = RGBColor(150, 150, 150);
+
 fn draw<DB: DrawingBackend>(
     area: &DrawingArea<DB, Shift>,
     panels: &[Panel<'_>],
@@ -114,7 +117,7 @@ fn draw<DB: DrawingBackend>(
         if v.is_finite() {
             ViridisRGB::get_color_normalized(v.clamp(lo, hi), lo, hi)
         } else {
-            RGBColor(255, 0, 255)
+            NO_DATA
         }
     };
     let mut y0 = PAD as i32;
@@ -666,5 +669,30 @@ mod tests {
             (0..h).all(|y| at(CHART.0, y) == WHITE),
             "the plot spills into the legend strip"
         );
+    }
+
+    /// A cell with no value is the live view's no-data grey in every panel (it was magenta in
+    /// a truth and, at 0 on land, the colour bar's lowest in an estimate).
+    #[test]
+    fn a_cell_with_no_value_is_no_data_grey() {
+        let values = [f64::NAN, 0.0, 1.0, 0.5];
+        let panels = [Panel {
+            values: &values,
+            rows: 2,
+            cols: 2,
+            title: String::new(),
+            disks: vec![],
+        }];
+        let (s, w, h) = layout(&panels);
+        let mut buf = vec![0u8; (w * h * 3) as usize];
+        {
+            let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+            draw(&root, &panels, (0.0, 1.0), s).unwrap();
+            root.present().unwrap();
+        }
+        // Cell 0 (row 0, the bottom; column 0), at its centre.
+        let (x, y) = (PAD + s / 2, PAD + TITLE_H + 2 * s - s / 2);
+        let i = ((y * w + x) * 3) as usize;
+        assert_eq!(RGBColor(buf[i], buf[i + 1], buf[i + 2]), NO_DATA);
     }
 }

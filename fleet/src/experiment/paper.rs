@@ -136,6 +136,17 @@ fn refuse_row_keys(text: &str) -> anyhow::Result<()> {
     }
 }
 
+/// `values` with NaN where the figure's truth has none: land and cloud drawn the same in every
+/// panel (an estimate is 0 on land, which was the colour bar's lowest colour beside the truth's
+/// no-data).
+fn where_valued(values: &[f64], truth: &[f64]) -> Vec<f64> {
+    values
+        .iter()
+        .zip(truth)
+        .map(|(&v, t)| if t.is_nan() { f64::NAN } else { v })
+        .collect()
+}
+
 impl Row {
     /// The truth's name in tables and figure files: the preset (`Cloud1`) or the file stem.
     pub fn name(&self) -> String {
@@ -1512,12 +1523,17 @@ impl Report<'_> {
         self.fig11_uncertainty(r, &owned)
     }
 
-    /// The truth beside the estimate at the picked boat steps, with the boats' disks.
+    /// The truth beside the estimate at the picked boat steps, with the boats' disks; where the
+    /// truth has no value (land, cloud) every panel is drawn the same, in no-data grey.
     fn fig11_fields(&mut self, r: &RowResult, owned: &[(usize, usize, Vec<f64>)]) -> anyhow::Result<()> {
         let (rows, cols) = (r.model_grid[0], r.model_grid[1]);
         let radius = self.res.config.radius / r.row.mv_space as f64;
+        let estimates: Vec<Vec<f64>> = owned
+            .iter()
+            .map(|(_, i, t)| where_valued(&r.figure.snapshots[*i], t))
+            .collect();
         let mut panels = vec![];
-        for (k, i, t) in owned {
+        for ((k, i, t), estimate) in owned.iter().zip(&estimates) {
             let disks: Vec<(f64, f64, f64)> = r.figure.disks[*i]
                 .iter()
                 .map(|&(a, b)| (a as f64, b as f64, radius))
@@ -1530,7 +1546,7 @@ impl Report<'_> {
                 disks: disks.clone(),
             });
             panels.push(Panel {
-                values: &r.figure.snapshots[*i],
+                values: estimate,
                 rows,
                 cols,
                 title: format!("heterogeneous estimate, step {k}"),
@@ -1555,10 +1571,11 @@ impl Report<'_> {
         let sd: Vec<(usize, Vec<f64>, Vec<f64>)> = owned
             .iter()
             .map(|(k, i, t)| {
-                let std = r.figure.snapshot_variances[*i]
+                let std: Vec<f64> = r.figure.snapshot_variances[*i]
                     .iter()
                     .map(|v| v.max(0.0).sqrt())
                     .collect();
+                let std = where_valued(&std, t);
                 let err = r.figure.snapshots[*i]
                     .iter()
                     .zip(t)
