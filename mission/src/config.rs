@@ -734,7 +734,10 @@ impl MissionConfig {
     /// mission without one.
     pub fn truth(&self, progress: impl FnMut(usize)) -> Result<Option<FieldSeries>, TruthError> {
         let Some(t) = &self.truth else { return Ok(None) };
-        let full = t.source.full(t.sim_grid(), t.frames, self.team.seed, progress)?;
+        let step_s = self.time.as_ref().map(|c| c.step_s);
+        let full = t
+            .source
+            .full((t.sim_grid(), t.frames, self.team.seed), step_s, progress)?;
         averaged_by(&full, t.average).map(Some)
     }
 

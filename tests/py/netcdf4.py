@@ -9,6 +9,9 @@ equatorial band (their spacings differ by about 1e-5 of a step once rounded); ti
 write PATH uneven: the same with latitudes not evenly spaced (a Gaussian grid's kind): a site
 cannot be placed from them.
 
+write PATH unitless: the same with a time coordinate of 6-hourly steps without units (a storm
+file's `timestep`): how long a step is is not in the file.
+
 check PATH RUN: what a run wrote in RUN (`truth.npy`, `estimate.nc`) against xarray's decoding
 of PATH: the truth to 1e-12, the cell centres to 1e-4 degrees. Prints one JSON line of what it
 measured; exits 1 with the reason on a mismatch.
@@ -32,7 +35,7 @@ def field():
     return x + 0.8 * np.exp(-((r - 6 - 0.2 * t) ** 2 + (c - 10 - 0.5 * t) ** 2) / 18.0)
 
 
-def write(path, uneven=None):
+def write(path, variant=None):
     with netCDF4.Dataset(path, "w", format="NETCDF4") as ds:
         ds.Conventions = "CF-1.8"
         g = ds.createGroup("ocean")
@@ -42,10 +45,14 @@ def write(path, uneven=None):
         time = ds.createVariable("time", "f8", ("time",))
         time.units, time.calendar = "days since 2000-01-01", "360_day"
         time[:] = np.arange(T, dtype="f8")
+        if variant == "unitless":
+            time.delncattr("units")
+            time.delncattr("calendar")
+            time[:] = 6.0 * np.arange(T)
         lat = g.createVariable("lat", "f4", ("lat",))
         lat.units, lat.standard_name = "degrees_north", "latitude"
         lat[:] = np.linspace(-0.0095, 0.0095, ROWS).astype("f4")  # cells of 0.001 degrees (111 m)
-        if uneven:
+        if variant == "uneven":
             lat[:] = (0.0095 * np.sin(np.linspace(-1.2, 1.2, ROWS)) / np.sin(1.2)).astype("f4")
         lon = g.createVariable("lon", "f4", ("lon",))
         lon.units = "degrees_east"

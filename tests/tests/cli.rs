@@ -140,6 +140,15 @@ fn assert_refused(binary: &str, args: &[&str], needle: &str) {
     );
 }
 
+/// `fleet up` of mission `m` into `out` refused as bad input ([`assert_refused`]).
+fn up_refused(m: &std::path::Path, out: &std::path::Path, needle: &str) {
+    assert_refused(
+        "fleet",
+        &["up", m.to_str().unwrap(), "--out", out.to_str().unwrap()],
+        needle,
+    );
+}
+
 #[test]
 fn configurations_that_cannot_run_are_refused_up_front_naming_the_field() {
     let dir = hetfleet_tests::scratch("configs");
@@ -178,11 +187,7 @@ fn configurations_that_cannot_run_are_refused_up_front_naming_the_field() {
             hetfleet_tests::edit(&m, "aerials = 2\n", "");
         }
         let out = dir.join(format!("run-{i}"));
-        assert_refused(
-            "fleet",
-            &["up", m.to_str().unwrap(), "--out", out.to_str().unwrap()],
-            needle,
-        );
+        up_refused(&m, &out, needle);
         assert!(!out.join("state").exists(), "{to}: nothing started");
     }
     // A NetCDF-4 (HDF5) truth cut short, whatever its name: one line naming it, before
@@ -200,27 +205,29 @@ fn configurations_that_cannot_run_are_refused_up_front_naming_the_field() {
     );
     // Latitudes not evenly spaced (tests/py/netcdf4.py): the site is not placed from them in
     // silence (it was put at the default origin) but refused, naming the coordinate.
-    let uneven = dir.join("uneven.nc");
-    let o = Command::new("python3")
-        .args(["tests/py/netcdf4.py", "write", uneven.to_str().unwrap(), "uneven"])
-        .current_dir(root())
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let dataset = format!("dataset = {:?}\nvariable = \"ocean/sst\"", uneven.to_str().unwrap());
-    let m = hetfleet_tests::tiny_mission(&dir, &["tcp/127.0.0.1:7461".into()], &["tcp/127.0.0.1:7461".into()]);
-    hetfleet_tests::edit(&m, "preset = \"cloud2\"\ngrid = [48, 96]", &dataset);
-    hetfleet_tests::edit(&m, "frames = 40\naverage = 2", "frames = 30\naverage = 1");
-    assert_refused(
-        "fleet",
-        &[
-            "up",
-            m.to_str().unwrap(),
-            "--out",
-            dir.join("run-uneven").to_str().unwrap(),
-        ],
-        "coordinate \"ocean/lat\" is not evenly spaced: value 4",
-    );
+    // A time coordinate without units: refused, not read as seconds (issue 82).
+    for (variant, needle) in [
+        ("uneven", "coordinate \"ocean/lat\" is not evenly spaced: value 4"),
+        ("unitless", "time coordinate \"time\" has units \"\", not CF's"),
+    ] {
+        let nc = dir.join(format!("{variant}.nc"));
+        let o = Command::new("python3")
+            .args(["tests/py/netcdf4.py", "write", nc.to_str().unwrap(), variant])
+            .current_dir(root())
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let dataset = format!("dataset = {:?}\nvariable = \"ocean/sst\"", nc.to_str().unwrap());
+        let m = hetfleet_tests::tiny_mission(&dir, &["tcp/127.0.0.1:7461".into()], &["tcp/127.0.0.1:7461".into()]);
+        hetfleet_tests::edit(&m, "preset = \"cloud2\"\ngrid = [48, 96]", &dataset);
+        hetfleet_tests::edit(&m, "frames = 40\naverage = 2", "frames = 30\naverage = 1");
+        let out = dir.join(format!("run-{variant}"));
+        assert_refused(
+            "fleet",
+            &["up", m.to_str().unwrap(), "--out", out.to_str().unwrap()],
+            needle,
+        );
+    }
     assert!(!out.join("state").exists(), "a NetCDF-4 truth: nothing started");
     // An integer rank is a rank.
     let m = hetfleet_tests::tiny_mission(&dir, &[], &["tcp/127.0.0.1:7461".into()]);

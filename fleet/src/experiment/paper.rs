@@ -662,7 +662,7 @@ fn make_truths(
     let fulls = parallel(&names, |r| {
         let out = r
             .truth
-            .full(cfg.sim_grid(), cfg.frames, cfg.seed, |_| {})
+            .full((cfg.sim_grid(), cfg.frames, cfg.seed), None, |_| {})
             .with_context(|| r.name());
         say(&format!("truth {}", r.name()));
         out

@@ -124,12 +124,15 @@ fn from_array(a: npy::Array, p: &str, dt: f64, holes: bool) -> Result<FieldSerie
 
 /// Load variable `variable` of a NetCDF file (classic or NetCDF-4) as a field, decoded
 /// as xarray decodes it ([`super::netcdf::read`]): NaN where the file marks a value missing.
+/// `step_s`: the seconds between frames where the file's time coordinate has no CF units
+/// ([`super::netcdf::read_stepped`]).
 pub fn load_netcdf(
     path: impl AsRef<Path>,
     variable: &str,
     select: &super::netcdf::Select,
+    step_s: Option<f64>,
 ) -> Result<FieldSeries, DatasetError> {
-    Ok(super::netcdf::read(path, variable, select)?.field)
+    Ok(super::netcdf::read_stepped(path, variable, select, step_s)?.field)
 }
 
 /// The `(frames, rows, cols)` of a NetCDF variable after `select`, from the header.
@@ -231,33 +234,36 @@ mod tests {
         let npy_path = dir.join("f.npy");
         npy::write(&npy_path, &[4, 2, 3], &data).unwrap();
         let (a, b) = (
-            load_netcdf(&nc, "density", &none).unwrap(),
+            load_netcdf(&nc, "density", &none, None).unwrap(),
             load(&npy_path, 0.5).unwrap(),
         );
         assert_eq!((a.rows, a.cols, a.frames()), (2, 3, 4));
         assert_eq!(a.snapshots, b.snapshots, "the same field as the .npy");
         assert_eq!(netcdf_shape(&nc, "density", &none), Some(vec![4, 2, 3]));
-        let e = load_netcdf(&nc, "temperature", &none).unwrap_err().to_string();
+        let e = load_netcdf(&nc, "temperature", &none, None).unwrap_err().to_string();
         assert!(
             e.contains("no variable \"temperature\"") && e.contains("density") && e.contains("f.nc"),
             "{e}"
         );
-        assert!(matches!(load_netcdf(&nc, "flat", &none), Err(DatasetError::Cf { .. })));
+        assert!(matches!(
+            load_netcdf(&nc, "flat", &none, None),
+            Err(DatasetError::Cf { .. })
+        ));
         let mut bad = data.clone();
         bad[7] = f64::NAN;
         write_nc(&dir.join("nan.nc"), "density", [4, 2, 3], &bad);
         // A NaN is a missing value (xarray's reading too): that cell of that frame only.
-        let holed = load_netcdf(dir.join("nan.nc"), "density", &none).unwrap();
+        let holed = load_netcdf(dir.join("nan.nc"), "density", &none, None).unwrap();
         assert!(holed.snapshots[(1, 1)].is_nan() && holed.snapshots.col(0).iter().all(|v| v.is_finite()));
         // Truncated anywhere (header or data): an error naming the file, never a panic.
         let bytes = std::fs::read(&nc).unwrap();
         for cut in [0, 3, 10, 40, bytes.len() / 2, bytes.len() - 1] {
             let t = dir.join(format!("cut{cut}.nc"));
             std::fs::write(&t, &bytes[..cut]).unwrap();
-            let e = load_netcdf(&t, "density", &none).unwrap_err().to_string();
+            let e = load_netcdf(&t, "density", &none, None).unwrap_err().to_string();
             assert!(e.contains(&format!("cut{cut}.nc")), "{e}");
         }
-        assert!(load_netcdf(dir.join("missing.nc"), "density", &none).is_err());
+        assert!(load_netcdf(dir.join("missing.nc"), "density", &none, None).is_err());
         std::fs::remove_dir_all(&dir).ok();
     }
 
@@ -278,7 +284,7 @@ mod tests {
         );
         assert!(is_netcdf(&dat) && !is_npy(&dat) && is_npy(&npy_nc) && !is_netcdf(&npy_nc));
         let none = crate::process::netcdf::Select::new();
-        assert_eq!(load_netcdf(&dat, "density", &none).unwrap().frames(), 4);
+        assert_eq!(load_netcdf(&dat, "density", &none, None).unwrap().frames(), 4);
         let keys = |d: &std::path::Path, var: Option<&str>| {
             let mut j = serde_json::json!({ "dataset": d });
             if let Some(v) = var {
@@ -297,7 +303,7 @@ mod tests {
         let h5 = dir.join("g.nc");
         std::fs::write(&h5, b"\x89HDF\r\n\x1a\n\0\0\0\0").unwrap();
         assert_eq!(sniff(&h5), Some(FileKind::NetCdf4));
-        let e = load_netcdf(&h5, "density", &none).unwrap_err().to_string();
+        let e = load_netcdf(&h5, "density", &none, None).unwrap_err().to_string();
         assert!(
             e.contains("g.nc") && e.contains("not a readable NetCDF file") && e.contains("HDF5") && !e.contains('\n'),
             "{e}"

@@ -196,12 +196,12 @@ impl TruthSource {
     }
 
     /// The field at full resolution: the simulator at `grid` `[rows, cols]` for `frames`
-    /// frames (seeded), or the dataset as it is.
+    /// frames (seeded), or the dataset as it is. `step_s`: the seconds between frames where a
+    /// NetCDF file's time coordinate does not say them (a mission's `[time] step_s`).
     pub fn full(
         &self,
-        grid: [usize; 2],
-        frames: usize,
-        seed: u64,
+        (grid, frames, seed): ([usize; 2], usize, u64),
+        step_s: Option<f64>,
         progress: impl FnMut(usize),
     ) -> Result<FieldSeries, TruthError> {
         match self {
@@ -222,7 +222,7 @@ impl TruthSource {
                     path: path.clone(),
                     source,
                 }),
-            Self::NetCdf { path, variable, select } => super::dataset::load_netcdf(path, variable, select)
+            Self::NetCdf { path, variable, select } => super::dataset::load_netcdf(path, variable, select, step_s)
                 .and_then(|f| super::dataset::in_units(f, path))
                 .map_err(|source| TruthError::Dataset {
                     path: path.clone(),

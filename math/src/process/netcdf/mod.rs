@@ -167,8 +167,19 @@ fn across_the_dateline(mut lon: Vec<f64>) -> Vec<f64> {
 }
 
 /// Read `variable` (a path, `group/var` in a NetCDF-4 file's group) of the NetCDF file at
-/// `path`, classic or NetCDF-4.
+/// `path`, classic or NetCDF-4; a time coordinate without CF units is refused.
 pub fn read(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<NetCdfField, DatasetError> {
+    read_stepped(path, variable, select, None)
+}
+
+/// [`read`], with `step_s` the seconds between frames where the file's time coordinate does
+/// not say them (a mission's `[time] step_s`).
+pub fn read_stepped(
+    path: impl AsRef<Path>,
+    variable: &str,
+    select: &Select,
+    step_s: Option<f64>,
+) -> Result<NetCdfField, DatasetError> {
     let path = path.as_ref();
     let p = path.display().to_string();
     let cf = |why: String| DatasetError::Cf {
@@ -209,22 +220,16 @@ pub fn read(path: impl AsRef<Path>, variable: &str, select: &Select) -> Result<N
     if let (true, Some(v)) = (flip_x, x.as_mut()) {
         v.reverse();
     }
-    let dt = time_step(coordinate_of(t_dim).as_ref(), &layout.names[t_dim], times.as_deref()).map_err(&cf)?;
+    let dt = time_step(
+        coordinate_of(t_dim).as_ref(),
+        &layout.names[t_dim],
+        times.as_deref(),
+        step_s,
+    )
+    .map_err(&cf)?;
     let values = Decode::of(&var).map_err(&cf)?.values(raw);
-    let (t, rows, cols) = (layout.sizes[t_dim], layout.sizes[y_dim], layout.sizes[x_dim]);
-    let n = rows * cols;
-    let mut snapshots = Mat::zeros(n, t);
-    for k in 0..t {
-        for r in 0..rows {
-            for c in 0..cols {
-                let (fr, fc) = (
-                    if flip_y { rows - 1 - r } else { r },
-                    if flip_x { cols - 1 - c } else { c },
-                );
-                snapshots[(r * cols + c, k)] = values[layout.flat(&[(t_dim, k), (y_dim, fr), (x_dim, fc)])];
-            }
-        }
-    }
+    let (rows, cols) = (layout.sizes[y_dim], layout.sizes[x_dim]);
+    let snapshots = layout.snapshots(&values, (flip_y, flip_x));
     let missing = check_holes(&snapshots).map_err(&cf)?;
     Ok(NetCdfField {
         field: FieldSeries {
@@ -339,6 +344,26 @@ impl Layout {
             fixed,
             kept: kept.to_vec(),
         })
+    }
+
+    /// The kept `(time, y, x)` of the file's `values` as snapshots (a column a frame, rows south
+    /// to north): `flip` says which of `y` and `x` the file stores backwards.
+    fn snapshots(&self, values: &[f64], (flip_y, flip_x): (bool, bool)) -> Mat<f64> {
+        let [t_dim, y_dim, x_dim] = [self.kept[0], self.kept[1], self.kept[2]];
+        let (t, rows, cols) = (self.sizes[t_dim], self.sizes[y_dim], self.sizes[x_dim]);
+        let mut snapshots = Mat::zeros(rows * cols, t);
+        for k in 0..t {
+            for r in 0..rows {
+                for c in 0..cols {
+                    let (fr, fc) = (
+                        if flip_y { rows - 1 - r } else { r },
+                        if flip_x { cols - 1 - c } else { c },
+                    );
+                    snapshots[(r * cols + c, k)] = values[self.flat(&[(t_dim, k), (y_dim, fr), (x_dim, fc)])];
+                }
+            }
+        }
+        snapshots
     }
 
     /// The flat index of a value from the kept dimensions' indices.
@@ -475,19 +500,31 @@ fn orientation(dim: &str, values: Option<&[f64]>) -> Result<bool, String> {
 }
 
 /// Seconds between frames: the time coordinate's mean spacing in its CF `units` (`"<unit> since
-/// <date>"`); 1 where the file has no time coordinate or one frame. A time axis that does not
-/// increase is refused, and so are units that are not time.
-fn time_step(c: Option<&Var<'_>>, dim: &str, times: Option<&[f64]>) -> Result<f64, String> {
+/// <date>"`, any of CF's calendars: a day is 86,400 s in each, so the step is the same); 1 where
+/// the file has no time coordinate or one frame. A time axis that does not increase is refused,
+/// and so are units that are not time, a calendar CF does not name, and a time coordinate
+/// without units unless `step_s` gives the step (its numbers were taken as seconds: a storm's
+/// 6-hourly `timestep` of 6 was a step of 6 s).
+fn time_step(c: Option<&Var<'_>>, dim: &str, times: Option<&[f64]>, step_s: Option<f64>) -> Result<f64, String> {
     let (Some(c), Some(t)) = (c, times.filter(|t| t.len() > 1)) else {
         return Ok(1.0);
     };
     if !t.windows(2).all(|w| w[1] > w[0]) || t.iter().any(|x| !x.is_finite()) {
         return Err(format!("time coordinate {dim:?} does not increase"));
     }
+    check_calendar(dim, &c.said("calendar"))?;
     let units = c.said("units");
     let unit = units.split_whitespace().next().unwrap_or("").to_ascii_lowercase();
     let seconds = match unit.as_str() {
-        _ if !units.contains(" since ") => return Ok((t[t.len() - 1] - t[0]) / (t.len() - 1) as f64),
+        _ if !units.contains(" since ") => {
+            return step_s.ok_or_else(|| {
+                format!(
+                    "time coordinate {dim:?} has units {units:?}, not CF's \"<unit> since <date>\": how long a step \
+                     is is not in the file; give the mission's [time] start and step_s, or the file units \
+                     (`ncatted -a units,{dim},o,c,\"hours since 2000-01-01\" IN`)"
+                )
+            })
+        }
         "days" | "day" | "d" => 86_400.0,
         "hours" | "hour" | "hr" | "h" => 3_600.0,
         "minutes" | "minute" | "min" => 60.0,
@@ -500,6 +537,31 @@ fn time_step(c: Option<&Var<'_>>, dim: &str, times: Option<&[f64]>) -> Result<f6
         }
     };
     Ok((t[t.len() - 1] - t[0]) / (t.len() - 1) as f64 * seconds)
+}
+
+/// A time coordinate's `calendar` is one CF names (CF 1.11, 4.4.2; "" is the default,
+/// `standard`); any other is refused rather than read as one it is not.
+fn check_calendar(dim: &str, calendar: &str) -> Result<(), String> {
+    const CF: [&str; 10] = [
+        "standard",
+        "gregorian",
+        "proleptic_gregorian",
+        "noleap",
+        "365_day",
+        "all_leap",
+        "366_day",
+        "360_day",
+        "julian",
+        "none",
+    ];
+    let c = calendar.trim().to_ascii_lowercase();
+    match c.is_empty() || CF.contains(&c.as_str()) {
+        true => Ok(()),
+        false => Err(format!(
+            "time coordinate {dim:?} has calendar {calendar:?}, which CF does not name (it names {})",
+            CF.join(", ")
+        )),
+    }
 }
 
 #[cfg(test)]
@@ -815,6 +877,52 @@ mod tests {
         );
         let e = read(&p, "v", &at(120.0)).unwrap_err().to_string();
         assert!(e.contains("no such lat (it has: 60, 50)"), "{e}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// `v(time, y, x)` of 2 x 2 doubles over 3 frames, its time coordinate `time` (6-hourly
+    /// numbers) with the attributes given.
+    fn write_timed(path: &Path, attrs: &[(&str, &str)]) {
+        let mut ds = netcdf3::DataSet::new();
+        for (d, n) in [("time", 3), ("y", 2), ("x", 2)] {
+            ds.add_fixed_dim(d, n).unwrap();
+        }
+        ds.add_var_f64("v", &["time", "y", "x"]).unwrap();
+        ds.add_var_f64("time", &["time"]).unwrap();
+        for (k, v) in attrs {
+            ds.add_var_attr_string("time", k, v).unwrap();
+        }
+        let mut w = netcdf3::FileWriter::open(path).unwrap();
+        w.set_def(&ds, netcdf3::Version::Classic, 0).unwrap();
+        w.write_var_f64("v", &(0..12).map(f64::from).collect::<Vec<_>>())
+            .unwrap();
+        w.write_var_f64("time", &[0.0, 6.0, 12.0]).unwrap();
+        w.close().unwrap();
+    }
+
+    #[test]
+    fn time_is_taken_as_cf_says_or_from_the_mission_never_guessed() {
+        let dir = scratch("hetfleet-time");
+        let p = dir.join("t.nc");
+        let none = Select::new();
+        // CF units in any of CF's calendars: 6 hours (a day is 86,400 s in each).
+        for calendar in ["", "360_day", "noleap", "all_leap", "julian", "proleptic_gregorian"] {
+            write_timed(&p, &[("units", "hours since 2000-01-01"), ("calendar", calendar)]);
+            assert_eq!(read(&p, "v", &none).unwrap().field.dt, 21_600.0, "{calendar:?}");
+        }
+        write_timed(&p, &[("units", "hours since 2000-01-01"), ("calendar", "lunar")]);
+        let e = read(&p, "v", &none).unwrap_err().to_string();
+        assert!(e.contains("calendar \"lunar\", which CF does not name"), "{e}");
+        // No units: 6 was taken as 6 seconds; now refused, naming the coordinate, unless the
+        // mission gives the step.
+        write_timed(&p, &[]);
+        let e = read(&p, "v", &none).unwrap_err().to_string();
+        assert!(
+            e.contains("time coordinate \"time\" has units \"\"") && e.contains("[time]"),
+            "{e}"
+        );
+        assert!(!e.contains('\n'), "{e}");
+        assert_eq!(read_stepped(&p, "v", &none, Some(21_600.0)).unwrap().field.dt, 21_600.0);
         std::fs::remove_dir_all(&dir).ok();
     }
 }
