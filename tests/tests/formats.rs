@@ -90,7 +90,7 @@ for name in ('lat', 'lon', 'time', 'x', 'y'):
 assert ds.lat.dims == ('y',) and ds.lon.dims == ('x',)
 assert ds.lat.attrs['units'] == 'degrees_north' and ds.lon.attrs['units'] == 'degrees_east'
 assert ds.x.attrs['units'] == 'm' and ds.y.attrs['units'] == 'm' and ds.time.attrs['units'] == 's'
-assert ds.attrs['Conventions'] == 'CF-1.8' and ds.attrs['mission'] == 'tiny' and ds.attrs['seed'] == '5'
+assert ds.attrs['Conventions'] == 'CF-1.8, ACDD-1.3' and ds.attrs['mission'] == 'tiny' and ds.attrs['seed'] == '5'
 assert ds.attrs['fusion'] and ds.attrs['placement']
 for v in ('estimate', 'variance', 'truth'):
     assert ds[v].attrs['long_name'] and 'units' in ds[v].attrs, v
@@ -302,9 +302,20 @@ assert (ds.time.values == want).all(), ds.time.values[:3]
 md = json.load(open({info:?}))['metadata']['']
 assert md['TIFFTAG_DATETIME'] == '2026:11:25 09:39:00', md
 assert '2026-11-25T09:39:00Z' in md['TIFFTAG_IMAGEDESCRIPTION'], md
+# The IOOS compliance checker, as a data centre runs it: no high-priority failure of CF-1.8;
+# of ACDD-1.3 only the standard_name a simulated field does not have (CF names no variance).
+from compliance_checker.runner import ComplianceChecker, CheckSuite
+CheckSuite.load_all_available_checkers()
+ComplianceChecker.run_checker({nc:?}, ['cf:1.8', 'acdd:1.3'], 0, 'normal', output_filename={cc:?}, output_format='json')
+report = json.load(open({cc:?}))
+failed = {{k: [(h['name'], h.get('msgs')) for h in v['high_priorities'] if h['value'][0] != h['value'][1]] for k, v in report.items()}}
+assert failed['cf:1.8'] == [], failed
+assert all(m == ['standard_name'] for _, m in failed['acdd:1.3']) and len(failed['acdd:1.3']) == 3, failed
+assert ds.attrs['Conventions'] == 'CF-1.8, ACDD-1.3' and ds.estimate.attrs['coverage_content_type'] == 'modelResult'
 print('ok')
 ",
         info = dir.join("timed-info.json"),
+        cc = dir.join("timed-compliance.json"),
     ));
     assert!(said.starts_with("ok"), "{said}");
 

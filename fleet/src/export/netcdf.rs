@@ -56,7 +56,7 @@ fn cf_epoch(t: f64) -> String {
 }
 
 /// Long because it is the file's schema: every dimension, variable and attribute in the order
-/// `ncdump -h` lists them.
+/// `ncdump -h` lists them (the global ones in [`discovery`]).
 fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
     let mut ds = DataSet::new();
     ds.add_fixed_dim("time", run.estimate.steps)?;
@@ -93,7 +93,11 @@ fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
     text(
         &mut ds,
         "step",
-        &[("long_name", "mission step (index of the truth frame)"), ("units", "1")],
+        &[
+            ("long_name", "mission step (index of the truth frame)"),
+            ("units", "1"),
+            ("coverage_content_type", "coordinate"),
+        ],
     )?;
     ds.add_var_f64("x", &["x"])?;
     text(
@@ -149,24 +153,32 @@ fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
         Some(u) => (u.clone(), format!("({u})2")),
         None => ("1".to_string(), "1".to_string()),
     };
-    let fields: &[(&str, &str, &str)] = &[
+    // ACDD's coverage_content_type (ISO 19115-1): the estimate is a model's result, its
+    // variance says how good it is, the truth is what it is checked against.
+    let fields: &[(&str, &str, &str, &str)] = &[
         (
             "estimate",
             "fused estimate of the field (posterior mean of the model server)",
             &value_units,
+            "modelResult",
         ),
         (
             "variance",
             "reported variance of the fused estimate per cell",
             &variance_units,
+            "qualityInformation",
         ),
         (
             "truth",
             "the true field the vehicles sensed (mixed reality)",
             &value_units,
+            "referenceInformation",
         ),
     ];
-    for (name, long, units) in fields {
+    // What the field is in CF's words, where the truth's file says it: the estimate and the
+    // truth are that quantity (the variance is not, and CF has no modifier for a variance).
+    let standard_name = run.mission.truth.as_ref().and_then(|t| t.source.standard_name());
+    for (name, long, units, content) in fields {
         if *name == "truth" && run.truth.is_none() {
             continue;
         }
@@ -177,16 +189,46 @@ fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
             &[
                 ("long_name", long),
                 ("units", units),
-                ("coordinates", "lat lon"),
+                ("coordinates", "step lat lon"),
+                ("coverage_content_type", content),
                 (
                     "comment",
                     "units are the truth's (dimensionless for the simulated fields); variance in their square",
                 ),
             ],
         )?;
+        if let (Some(sn), false) = (&standard_name, *name == "variance") {
+            ds.add_var_attr_string(name, "standard_name", sn)?;
+        }
         ds.add_var_attr_f64(name, "_FillValue", vec![FILL])?;
     }
-    ds.add_global_attr_string("Conventions", "CF-1.8")?;
+    discovery(&mut ds, run)?;
+    Ok(ds)
+}
+
+/// The global attributes a data centre's catalogue reads (CF-1.8 and ACDD-1.3): what the file
+/// is, where and when its data are, and what made it.
+fn discovery(ds: &mut DataSet, run: &Run) -> Result<(), netcdf3::InvalidDataSet> {
+    ds.add_global_attr_string("Conventions", "CF-1.8, ACDD-1.3")?;
+    ds.add_global_attr_string(
+        "summary",
+        format!(
+            "The fused estimate of a field and its reported variance at each of the {} steps of hetfleet mission {}: \
+             aerial frames and boat samples assimilated by a DMD model in a Kalman filter{}.",
+            run.estimate.steps,
+            run.mission.mission,
+            if run.truth.is_some() {
+                ", beside the truth the vehicles sensed"
+            } else {
+                ""
+            }
+        ),
+    )?;
+    ds.add_global_attr_string(
+        "keywords",
+        "data assimilation, dynamic mode decomposition, Kalman filter, heterogeneous robot team, \
+         uncrewed surface vehicle, uncrewed aerial vehicle",
+    )?;
     ds.add_global_attr_string(
         "title",
         format!("hetfleet fused field of mission {}", run.mission.mission),
@@ -208,5 +250,13 @@ fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
     ds.add_global_attr_f64("geospatial_lat_min", vec![s])?;
     ds.add_global_attr_f64("geospatial_lon_max", vec![e])?;
     ds.add_global_attr_f64("geospatial_lat_max", vec![n])?;
-    Ok(ds)
+    ds.add_global_attr_string("geospatial_lat_units", "degrees_north")?;
+    ds.add_global_attr_string("geospatial_lon_units", "degrees_east")?;
+    if let Some(c) = run.mission.clock() {
+        let end = c.start + run.estimate.steps as f64 * c.step_s;
+        let iso = fleet_mission::instrument::MissionClock::rfc3339;
+        ds.add_global_attr_string("time_coverage_start", iso(c.start))?;
+        ds.add_global_attr_string("time_coverage_end", iso(end))?;
+    }
+    Ok(())
 }

@@ -189,8 +189,19 @@ impl TruthSource {
 
     /// The values' units where the file says them (a NetCDF variable's `units`).
     pub fn units(&self) -> Option<String> {
+        self.said("units")
+    }
+
+    /// The variable's CF `standard_name`, where its file says one (what the field is, in the
+    /// CF Standard Name Table's words).
+    pub fn standard_name(&self) -> Option<String> {
+        self.said("standard_name")
+    }
+
+    /// A text attribute of a NetCDF truth's variable.
+    fn said(&self, name: &str) -> Option<String> {
         match self {
-            Self::NetCdf { path, variable, .. } => super::netcdf::units(path, variable),
+            Self::NetCdf { path, variable, .. } => super::netcdf::text_attribute(path, variable, name),
             Self::Preset(_) | Self::Dataset(_) => None,
         }
     }

@@ -127,7 +127,12 @@ fn regular_span(v: &[f64], rounding: impl Fn(f64) -> f64) -> Result<(f64, f64), 
 
 /// The `units` attribute of `variable`, from the header.
 pub fn units(path: impl AsRef<Path>, variable: &str) -> Option<String> {
-    NcSource::open(path.as_ref()).ok()?.var(variable)?.text("units")
+    text_attribute(path, variable, "units")
+}
+
+/// A text attribute of `variable` (`units`, `standard_name`), from the header.
+pub fn text_attribute(path: impl AsRef<Path>, variable: &str, name: &str) -> Option<String> {
+    NcSource::open(path.as_ref()).ok()?.var(variable)?.text(name)
 }
 
 /// Whether `units` are degrees north (`north`) or east, in any of CF's spellings
