@@ -515,6 +515,11 @@ impl MavlinkConfig {
 pub struct MissionConfig {
     /// The mission id: every key lives under `fleet/<mission>/`.
     pub mission: String,
+    /// Whether the truth's latitude and longitude placed the site ([`Self::place_by_truth`]),
+    /// for [`Self::site_said`]: not a key of the file.
+    #[serde(skip)]
+    #[schemars(skip)]
+    pub placed_by_truth: bool,
     /// The mixed-reality truth: the field the simulated sensors sample and the runs are scored
     /// against. Absent in the field (give `[field]` instead).
     #[serde(default)]
@@ -657,6 +662,7 @@ impl MissionConfig {
             return Ok(());
         };
         const R: f64 = crate::site::EARTH_RADIUS_M;
+        self.placed_by_truth = true;
         self.mavlink.origin = [south, west, 0.0];
         self.mavlink.size_m = Some([
             (east - west).to_radians() * R * south.to_radians().cos(),
@@ -673,23 +679,19 @@ impl MissionConfig {
         let m = &self.mavlink;
         let site = m.site(grid);
         let (east, north) = (grid.width_m() * site.scale.x, grid.height_m() * site.scale.y);
-        let from_truth = match self.truth.as_ref().map(|t| &t.source) {
-            Some(TruthSource::NetCdf { path, variable, select }) => {
-                crate::process::netcdf::bounds(path, variable, select)
-                    .ok()
-                    .flatten()
-                    .filter(|b| [b[0], b[1]] == [m.origin[0], m.origin[1]])
-                    .map(|_| format!("from the latitude and longitude of {}", path.display()))
+        let truth = self.truth.as_ref().map(|t| &t.source);
+        let why = match (truth, self.placed_by_truth) {
+            (Some(TruthSource::NetCdf { path, .. }), true) => {
+                format!("from the latitude and longitude of {}", path.display())
             }
-            _ => None,
+            _ if m.origin == MavlinkConfig::default().origin => {
+                "the default origin: give [mavlink] origin and size_m to put it where it is".into()
+            }
+            _ => "the mission's [mavlink] origin".into(),
         };
-        let why = from_truth.unwrap_or_else(|| match m.origin == MavlinkConfig::default().origin {
-            true => "the default origin: give [mavlink] origin and size_m to put it where it is".into(),
-            false => "the mission's [mavlink] origin".into(),
-        });
         let hemi = |v: f64, pos: char, neg: char| format!("{:.5}{}", v.abs(), if v < 0.0 { neg } else { pos });
         format!(
-            "site: south-west corner {} {}, {east:.0} m east x {north:.0} m north, cells of {:.1} x {:.1} m ({why})",
+            "south-west corner {} {}, {east:.0} m east x {north:.0} m north, cells of {:.1} x {:.1} m ({why})",
             hemi(m.origin[0], 'N', 'S'),
             hemi(m.origin[1], 'E', 'W'),
             east / grid.cols as f64,

@@ -283,7 +283,7 @@ fn make_truth(mission: &MissionConfig, staging: &Path, t0: Instant) -> anyhow::R
             None => "no truth: instruments only, scored by held-out readings".into(),
         }
     );
-    println!("{}", mission.site_said(&grid));
+    println!("site: {}", mission.site_said(&grid));
     Ok((truth, frames))
 }
 

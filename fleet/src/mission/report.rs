@@ -208,11 +208,7 @@ impl MissionReport<'_> {
             t.radius,
             truth_of(mission)
         )?;
-        writeln!(
-            md,
-            "The {}.\n",
-            mission.site_said(grid).replacen("site: ", "site's ", 1)
-        )?;
+        writeln!(md, "The site's {}.\n", mission.site_said(grid))?;
         let placement = match t.placement {
             fleet_mission::team::Placement::Horizon => format!("horizon over {} epochs", t.horizon_epochs),
             p => p.to_string(),

@@ -28,12 +28,13 @@ impl NcSource {
     /// A classic file is read to its end, every variable, as the netCDF-C library's `ncdump`
     /// would: one cut short anywhere is refused, not half used (its variables are laid one
     /// after another, so a cut in the one not read is a file damaged in transit). A NetCDF-4
-    /// file's variables are its own objects, each checked as it is read.
-    pub(super) fn check_whole(&self) -> Result<(), String> {
+    /// file's variables are its own objects, each checked as it is read. `except`: the one the
+    /// caller reads itself (not read twice).
+    pub(super) fn check_whole(&self, except: &str) -> Result<(), String> {
         let Some(classic) = self.file.as_classic() else {
             return Ok(());
         };
-        for v in &classic.root_group().variables {
+        for v in classic.root_group().variables.iter().filter(|v| v.name() != except) {
             let read = match is_number(v.dtype()) {
                 true => self.file.read_variable_as_f64(v.name()).map(drop),
                 false => self.file.read_variable_as_strings(v.name()).map(drop),

@@ -194,7 +194,7 @@ pub fn read_stepped(
     };
     let unreadable = |why: String| DatasetError::NetCdf { path: p.clone(), why };
     let src = NcSource::open(path).map_err(unreadable)?;
-    src.check_whole().map_err(unreadable)?;
+    src.check_whole(variable.trim_start_matches('/')).map_err(unreadable)?;
     let Some(var) = src.var(variable) else {
         return Err(DatasetError::NoVariable {
             path: p.clone(),
