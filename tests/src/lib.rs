@@ -206,10 +206,29 @@ impl Server {
             match self.events.recv_timeout(left) {
                 Ok(fleet::mission::report::ServerEvent::Finished { summary }) => return (*summary, seen),
                 Ok(e) => seen.push(e),
-                Err(e) => panic!("the mission did not finish in {secs} s: {e}"),
+                Err(e) => panic!("the mission did not finish in {secs} s: {e}; {}", where_it_stood(&seen)),
             }
         }
     }
+}
+
+/// Where a mission that did not finish stood, from its events: the last epoch in the model,
+/// whom the server said it waited for and why, and what it refused or found lost (so a run
+/// that hangs on a machine nobody watches says why in its failure).
+fn where_it_stood(seen: &[fleet::mission::report::ServerEvent]) -> String {
+    use fleet::mission::report::ServerEvent as E;
+    let last_epoch = seen.iter().rev().find_map(|e| match e {
+        E::Epoch { epoch, .. } => Some(*epoch),
+        _ => None,
+    });
+    let last_wait = seen.iter().rev().find(|e| matches!(e, E::Waiting { .. }));
+    let trouble: Vec<_> = seen
+        .iter()
+        .filter(|e| matches!(e, E::Refused { .. } | E::Lost { .. } | E::Link { alive: false, .. }))
+        .rev()
+        .take(8)
+        .collect();
+    format!("last epoch in the model {last_epoch:?}; last wait {last_wait:?}; latest refusals, losses and lost links {trouble:?}")
 }
 
 /// Start a vehicle node: `prefix` runs it under another command (e.g. `ip netns exec ns`).
