@@ -1,7 +1,8 @@
 //! The documents against what they describe: the command-line reference is what the binaries
 //! say, the files' JSON Schema takes every bundled file and refuses a key it does not know,
-//! troubleshooting names every kind of refusal, and every relative link of the Markdown
-//! resolves. (The files' reference is compared with the types in `fleet`'s own tests.)
+//! troubleshooting names every kind of refusal, the wire protocol's page every key and the
+//! schema version, and every relative link of the Markdown resolves. (The files' reference is
+//! compared with the types in `fleet`'s own tests.)
 
 use hetfleet_tests::{root, run, scratch};
 use std::process::Command;
@@ -153,6 +154,45 @@ print("ok")
         "{}{}",
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// The wire protocol's page names every key the nodes use, the Zenoh encoding and the schema
+/// version, as the code spells them: a key, an encoding or a version changed in the code and not
+/// on the page fails here.
+#[test]
+fn the_protocol_reference_names_every_key_the_encoding_and_the_schema_version() {
+    use fleet::protocol::{keys::Keys, ENCODING, SCHEMA_VERSION};
+    let page = std::fs::read_to_string(root().join("docs/reference/protocol.md")).unwrap();
+    let k = Keys::new("m").unwrap();
+    let id = "<id>";
+    let keys = [
+        k.measurements(id),
+        k.telemetry(id),
+        k.ack(id),
+        k.mavlink(id),
+        k.gcs(id),
+        k.model_latest(),
+        k.plan(id),
+        k.alive(id),
+        k.server_status(),
+        k.sensor_override(id),
+    ];
+    for key in keys {
+        let leaf = key.strip_prefix("fleet/m/").expect("a key under fleet/<mission>/");
+        assert!(
+            page.contains(&format!("`{leaf}`")),
+            "docs/reference/protocol.md does not name `{leaf}`"
+        );
+    }
+    assert!(
+        page.contains(ENCODING),
+        "docs/reference/protocol.md does not give the encoding {ENCODING}"
+    );
+    let version = format!("{{\"v\": {SCHEMA_VERSION},");
+    assert!(
+        page.contains(&version),
+        "docs/reference/protocol.md does not give schema version {SCHEMA_VERSION}"
     );
 }
 
