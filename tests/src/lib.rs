@@ -1,5 +1,6 @@
 //! Helpers for the cross-process tests: where the workspace's binaries and reference data are.
 
+use fleet::mission::report::{ServerEvent, ServerSummary};
 use std::path::PathBuf;
 use std::process::{Command, Output};
 
@@ -116,7 +117,7 @@ impl Drop for Procs {
 
 /// The model server started with `--events`; its events arrive on `events`.
 pub struct Server {
-    pub events: std::sync::mpsc::Receiver<fleet::mission::report::ServerEvent>,
+    pub events: std::sync::mpsc::Receiver<ServerEvent>,
     /// Its place in the `Procs` it was started into.
     pub index: usize,
 }
@@ -166,7 +167,7 @@ impl Server {
                 .events
                 .recv_timeout(deadline.saturating_duration_since(std::time::Instant::now()))
             {
-                Ok(fleet::mission::report::ServerEvent::Epoch { .. }) => return true,
+                Ok(ServerEvent::Epoch { .. }) => return true,
                 Ok(_) => {}
                 Err(_) => return false,
             }
@@ -179,7 +180,7 @@ impl Server {
         loop {
             let left = deadline.saturating_duration_since(std::time::Instant::now());
             match self.events.recv_timeout(left) {
-                Ok(fleet::mission::report::ServerEvent::Epoch { epoch, .. }) if epoch >= e => return,
+                Ok(ServerEvent::Epoch { epoch, .. }) if epoch >= e => return,
                 Ok(_) => {}
                 Err(err) => panic!("epoch {e} not reached in {secs} s: {err}"),
             }
@@ -187,26 +188,31 @@ impl Server {
     }
 
     /// Wait for the mission's summary (panics after `secs`).
-    pub fn finished(&self, secs: u64) -> fleet::mission::report::ServerSummary {
+    pub fn finished(&self, secs: u64) -> ServerSummary {
         self.finished_with_events(secs).0
     }
 
-    /// The summary, and every event before it.
-    pub fn finished_with_events(
-        &self,
-        secs: u64,
-    ) -> (
-        fleet::mission::report::ServerSummary,
-        Vec<fleet::mission::report::ServerEvent>,
-    ) {
+    /// The summary, and every event before it (panics after `secs`).
+    pub fn finished_with_events(&self, secs: u64) -> (ServerSummary, Vec<ServerEvent>) {
+        self.try_finished_with_events(secs)
+            .unwrap_or_else(|why| panic!("{why}"))
+    }
+
+    /// The summary and every event before it, or why the mission did not finish in `secs`.
+    pub fn try_finished_with_events(&self, secs: u64) -> Result<(ServerSummary, Vec<ServerEvent>), String> {
         let deadline = std::time::Instant::now() + std::time::Duration::from_secs(secs);
         let mut seen = vec![];
         loop {
             let left = deadline.saturating_duration_since(std::time::Instant::now());
             match self.events.recv_timeout(left) {
-                Ok(fleet::mission::report::ServerEvent::Finished { summary }) => return (*summary, seen),
+                Ok(ServerEvent::Finished { summary }) => return Ok((*summary, seen)),
                 Ok(e) => seen.push(e),
-                Err(e) => panic!("the mission did not finish in {secs} s: {e}; {}", where_it_stood(&seen)),
+                Err(e) => {
+                    return Err(format!(
+                        "the mission did not finish in {secs} s: {e}; {}",
+                        where_it_stood(&seen)
+                    ))
+                }
             }
         }
     }
@@ -215,8 +221,8 @@ impl Server {
 /// Where a mission that did not finish stood, from its events: the last epoch in the model,
 /// whom the server said it waited for and why, and what it refused or found lost (so a run
 /// that hangs on a machine nobody watches says why in its failure).
-fn where_it_stood(seen: &[fleet::mission::report::ServerEvent]) -> String {
-    use fleet::mission::report::ServerEvent as E;
+fn where_it_stood(seen: &[ServerEvent]) -> String {
+    use ServerEvent as E;
     let last_epoch = seen.iter().rev().find_map(|e| match e {
         E::Epoch { epoch, .. } => Some(*epoch),
         _ => None,

@@ -72,7 +72,9 @@ fn run_behind_radio(dir: &Path, mission: &Path, host: &Host, kbit: f64, loss: u3
         .expect("the gateway");
     procs.0.push(gateway);
     let gateway_index = procs.0.len() - 1;
-    let (_, events) = server.finished_with_events(1500);
+    let (_, events) = server
+        .try_finished_with_events(1500)
+        .unwrap_or_else(|why| panic!("{why}\n{}", log_tails(dir, 6)));
     let wall_s = t0.elapsed().as_secs_f64();
     let after = host.bytes();
     let bytes = (after.0 - before.0) + (after.1 - before.1);
@@ -102,6 +104,25 @@ fn run_behind_radio(dir: &Path, mission: &Path, host: &Host, kbit: f64, loss: u3
         per_boat_epoch: bytes as f64 / (boats.len() as f64 * boat_epochs),
         waiting,
     }
+}
+
+/// The last `n` lines of each node's log in `dir`: what a run that hung on a machine nobody
+/// watches leaves to read.
+fn log_tails(dir: &Path, n: usize) -> String {
+    let mut logs: Vec<_> = std::fs::read_dir(dir)
+        .map(|d| d.flatten().map(|e| e.path()).collect())
+        .unwrap_or_default();
+    logs.retain(|p| p.extension().is_some_and(|x| x == "log"));
+    logs.sort();
+    logs.iter()
+        .map(|p| {
+            let text = std::fs::read_to_string(p).unwrap_or_default();
+            let lines: Vec<&str> = text.lines().collect();
+            let tail = lines[lines.len().saturating_sub(n)..].join("\n");
+            format!("== {}\n{tail}", p.display())
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
 }
 
 #[test]
