@@ -234,7 +234,10 @@ fn where_it_stood(seen: &[ServerEvent]) -> String {
         .rev()
         .take(8)
         .collect();
-    format!("last epoch in the model {last_epoch:?}; last wait {last_wait:?}; latest refusals, losses and lost links {trouble:?}")
+    format!(
+        "last epoch in the model {last_epoch:?}; last wait {last_wait:?}; \
+         latest refusals, losses and lost links {trouble:?}"
+    )
 }
 
 /// Start a vehicle node: `prefix` runs it under another command (e.g. `ip netns exec ns`).
@@ -661,12 +664,7 @@ pub fn eventually(secs: u64, what: &str, mut f: impl FnMut() -> bool) {
 
 impl Server {
     /// Wait for the first event `pick` accepts (panics after `secs`).
-    pub fn wait_for<T>(
-        &self,
-        secs: u64,
-        what: &str,
-        mut pick: impl FnMut(&fleet::mission::report::ServerEvent) -> Option<T>,
-    ) -> T {
+    pub fn wait_for<T>(&self, secs: u64, what: &str, mut pick: impl FnMut(&ServerEvent) -> Option<T>) -> T {
         let deadline = std::time::Instant::now() + std::time::Duration::from_secs(secs);
         loop {
             let left = deadline.saturating_duration_since(std::time::Instant::now());
