@@ -11,13 +11,14 @@ cd "$(dirname "$0")/.."
 # is the Foxglove WebSocket test client); MAVSDK (its native binding, v4)
 # is a second ground-station stack against the simulated autopilot. eofs ships two real NetCDF
 # files with holes (an SST anomaly with land, a 500 hPa height with a singleton level). The IOOS
-# compliance-checker judges estimate.nc by CF-1.8 and ACDD-1.3, as a data centre does; netCDF4
+# compliance-checker judges estimate.nc by CF-1.8 and ACDD-1.3 and readings.nc by CF-1.8, as a
+# data centre does, and cf_xarray finds readings.nc's trajectory roles and flags; netCDF4
 # writes the NetCDF-4 files the reader is tested on, as data centres make them.
-if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pymavlink, xarray, mcap, mavsdk.plugins.geofence, eofs, foxglove_schemas_protobuf, jsonschema, websockets, compliance_checker, netCDF4" 2>/dev/null; then
-  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors eclipse-zenoh cbor2 pymavlink xarray mcap mavsdk eofs foxglove-schemas-protobuf jsonschema websockets compliance-checker netCDF4)"
+if ! python3 -c "import numpy, scipy, pydmd, odmd, pysensors, zenoh, cbor2, pymavlink, xarray, mcap, mavsdk.plugins.geofence, eofs, foxglove_schemas_protobuf, jsonschema, websockets, compliance_checker, netCDF4, cf_xarray" 2>/dev/null; then
+  echo "== installing Python peers (numpy scipy pydmd odmd python-sensors eclipse-zenoh cbor2 pymavlink xarray mcap mavsdk eofs foxglove-schemas-protobuf jsonschema websockets compliance-checker netCDF4 cf_xarray)"
   python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore \
     numpy scipy pydmd odmd python-sensors eclipse-zenoh==1.10.2 cbor2 pymavlink==2.4.50 xarray mcap mavsdk==4.1.0 eofs==2.0.0 \
-    foxglove-schemas-protobuf==0.4.0 jsonschema websockets==15.0.1 compliance-checker==6.1.0 netCDF4
+    foxglove-schemas-protobuf==0.4.0 jsonschema websockets==15.0.1 compliance-checker==6.1.0 netCDF4 cf_xarray==0.11.3
 fi
 # Debian's chromium for the live view's browser test, gdal-bin for the GeoTIFF test, DejaVu
 # for the charts' text, nftables and iproute2's tc for the radio test's shaped link, and the

@@ -113,6 +113,35 @@ print('ok', len(mse))
     ));
     assert!(said.starts_with("ok"), "{said}");
 
+    // The boats' readings: a CF trajectory file xarray and cf_xarray open (its featureType, the
+    // trajectory ids, the coordinates, the flag); each value at a cell centre of the estimate's
+    // grid, at its step, within 5 of its sigmas of the truth there.
+    let said = python(&format!(
+        "import numpy as np, xarray as xr, cf_xarray
+ds = xr.open_dataset({readings:?})
+est = xr.open_dataset({nc:?})
+truth = np.load({out:?} + '/truth.npy')
+assert ds.attrs['featureType'] == 'trajectory' and ds.attrs['Conventions'] == 'CF-1.8, ACDD-1.3'
+assert ds.cf.cf_roles == {{'trajectory_id': ['trajectory']}}, ds.cf.cf_roles
+ids = [t.decode() if isinstance(t, bytes) else str(t) for t in ds.trajectory.values]
+assert ids == ['boat-1', 'boat-2', 'boat-3'], ids
+assert ds.rowSize.attrs['sample_dimension'] == 'obs' and int(ds.rowSize.sum()) == ds.sizes['obs'] > 0
+for key, name in (('latitude', 'lat'), ('longitude', 'lon'), ('time', 'time')):
+    assert ds.cf[key].name == name, (key, ds.cf[key].name)
+assert ds.flag.cf.is_flag_variable and (ds.flag.cf == 'ok').all(), ds.flag.attrs
+rows = np.searchsorted(est.lat.values, ds.lat.values)
+cols = np.searchsorted(est.lon.values, ds.lon.values)
+assert np.allclose(est.lat.values[rows], ds.lat.values, rtol=0, atol=1e-12) and np.allclose(est.lon.values[cols], ds.lon.values, rtol=0, atol=1e-12)
+steps = ds.step.values
+assert np.array_equal(ds.time.values, steps.astype(float) * float(est.time.values[1] - est.time.values[0]))
+z = (ds.value.values - truth[steps, rows, cols]) / ds.sigma.values
+assert (ds.sigma.values > 0).all() and np.abs(z).max() < 5, np.abs(z).max()
+print('ok', ds.sizes['obs'])
+",
+        readings = out.join("readings.nc"),
+    ));
+    assert!(said.starts_with("ok"), "{said}");
+
     // GeoTIFF: GDAL finds WGS 84 and the site's corners within 1e-6 degrees; the band is the
     // final estimate, north up.
     let geo = dir.join("geo");
@@ -271,10 +300,16 @@ print('ok', batches)
     ] {
         std::fs::copy(out.join(f), timed.join(f)).unwrap();
     }
+    std::fs::create_dir_all(timed.join("state")).unwrap();
+    std::fs::copy(out.join("state/tiny.redb"), timed.join("state/tiny.redb")).unwrap();
     let mission = std::fs::read_to_string(out.join("mission.toml")).unwrap();
     let clock = "\n[time]\nstart = \"2026-11-25T09:00:00Z\"\nstep_s = 60.0\n";
     std::fs::write(timed.join("mission.toml"), format!("{mission}{clock}")).unwrap();
-    let (nc, geo) = (dir.join("timed.nc"), dir.join("timed-geo"));
+    let (nc, geo, readings) = (
+        dir.join("timed.nc"),
+        dir.join("timed-geo"),
+        dir.join("timed-readings.nc"),
+    );
     let o = run(
         "fleet",
         &[
@@ -284,6 +319,8 @@ print('ok', batches)
             nc.to_str().unwrap(),
             "--geotiff",
             geo.to_str().unwrap(),
+            "--readings",
+            readings.to_str().unwrap(),
         ],
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -312,10 +349,18 @@ failed = {{k: [(h['name'], h.get('msgs')) for h in v['high_priorities'] if h['va
 assert failed['cf:1.8'] == [], failed
 assert all(m == ['standard_name'] for _, m in failed['acdd:1.3']) and len(failed['acdd:1.3']) == 3, failed
 assert ds.attrs['Conventions'] == 'CF-1.8, ACDD-1.3' and ds.estimate.attrs['coverage_content_type'] == 'modelResult'
+# The trajectory file: CF-1.8's discrete sampling geometry as the checker judges it, its time UTC.
+ComplianceChecker.run_checker({readings:?}, ['cf:1.8'], 0, 'normal', output_filename={rcc:?}, output_format='json')
+report = json.load(open({rcc:?}))
+failed = [(h['name'], h.get('msgs')) for h in report['cf:1.8']['high_priorities'] if h['value'][0] != h['value'][1]]
+assert failed == [], failed
+r = xr.open_dataset({readings:?})
+assert (r.time.values == np.datetime64('2026-11-25T09:00:00') + r.step.values * np.timedelta64(60, 's')).all()
 print('ok')
 ",
         info = dir.join("timed-info.json"),
         cc = dir.join("timed-compliance.json"),
+        rcc = dir.join("timed-readings-compliance.json"),
     ));
     assert!(said.starts_with("ok"), "{said}");
 

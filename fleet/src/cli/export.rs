@@ -11,6 +11,10 @@ pub struct Args {
     /// The estimate, its variance and the truth at every step as CF-1.8 NetCDF (xarray, Panoply).
     #[arg(long, value_name = "FILE.nc")]
     pub netcdf: Option<PathBuf>,
+    /// The boats' readings (value, its sigma, the sensor-health flag) as a CF-1.8 trajectory file,
+    /// one trajectory per boat (ERDDAP, xarray with cf_xarray, Panoply).
+    #[arg(long, value_name = "FILE.nc")]
+    pub readings: Option<PathBuf>,
     /// The final estimate and its variance as GeoTIFFs (WGS 84) in this directory (GDAL, QGIS).
     #[arg(long, value_name = "DIR")]
     pub geotiff: Option<PathBuf>,
@@ -30,9 +34,9 @@ fn classify(e: ExportError) -> anyhow::Error {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    if args.netcdf.is_none() && args.geotiff.is_none() && args.qgc_plan.is_none() {
+    if args.netcdf.is_none() && args.readings.is_none() && args.geotiff.is_none() && args.qgc_plan.is_none() {
         return Err(fleet::exit::bad_input(anyhow::anyhow!(
-            "nothing to export: give --netcdf FILE.nc, --geotiff DIR or --qgc-plan FILE.plan"
+            "nothing to export: give --netcdf FILE.nc, --readings FILE.nc, --geotiff DIR or --qgc-plan FILE.plan"
         )));
     }
     let run = Run::load(&args.run_dir).map_err(classify)?;
@@ -45,6 +49,18 @@ pub fn run(args: Args) -> Result<()> {
             run.grid.rows,
             run.grid.cols
         );
+    }
+    if let Some(path) = &args.readings {
+        match export::trajectory::write(&run, path).map_err(classify)? {
+            Some(n) => println!("wrote {} ({n} boat readings)", path.display()),
+            None => {
+                return Err(fleet::exit::bad_input(anyhow::anyhow!(
+                    "{}: no boat's reading in the run's journal: {} not written",
+                    args.run_dir.display(),
+                    path.display()
+                )))
+            }
+        }
     }
     if let Some(dir) = &args.geotiff {
         let files = export::geotiff::write(&run, dir).map_err(classify)?;

@@ -52,7 +52,7 @@ pub struct Args {
 }
 
 /// What a run leaves in `--out` (replaced as a whole by the next run's).
-const RUN_FILES: [&str; 16] = [
+const RUN_FILES: [&str; 17] = [
     "state",
     "logs",
     "truth.npy",
@@ -68,6 +68,7 @@ const RUN_FILES: [&str; 16] = [
     "variance.npy",
     "plans.json",
     "estimate.nc",
+    "readings.nc",
     "readings.ndjson",
 ];
 
@@ -627,15 +628,23 @@ fn finish(
     println!("{md}");
     // Everything else is written first: a NetCDF that cannot be written fails the run at the
     // end, and `fleet export` can write it again from the run directory.
-    let nc = fleet::export::Run::load(out).and_then(|run| fleet::export::netcdf::write(&run, &out.join("estimate.nc")));
+    let nc = fleet::export::Run::load(out).and_then(|run| {
+        fleet::export::netcdf::write(&run, &out.join("estimate.nc"))?;
+        fleet::export::trajectory::write(&run, &out.join("readings.nc"))
+    });
+    let written = match &nc {
+        Ok(Some(_)) => " estimate.nc, readings.nc,",
+        Ok(None) => " estimate.nc,",
+        Err(_) => "",
+    };
     println!(
-        "wrote {}/report.md, mse.png,{} events.jsonl, summary.json, model.cbor, recording.mcap and logs/ ({:.1} s in \
-            all)",
+        "wrote {}/report.md, mse.png,{written} events.jsonl, summary.json, model.cbor, recording.mcap and logs/ \
+            ({:.1} s in all)",
         out.display(),
-        if nc.is_ok() { " estimate.nc," } else { "" },
         t0.elapsed().as_secs_f64()
     );
-    nc.map_err(|e| anyhow::Error::new(e).context("writing estimate.nc"))
+    nc.map(|_| ())
+        .map_err(|e| anyhow::Error::new(e).context("writing estimate.nc and readings.nc"))
 }
 
 /// The vehicles' readings logs (`state/<id>.readings.ndjson`, instrument vehicles only) as one

@@ -1,5 +1,6 @@
 //! A finished run in the formats field teams open: NetCDF for xarray and Panoply
-//! ([`netcdf`]), GeoTIFF for GDAL and QGIS ([`geotiff`]), QGroundControl plans ([`qgc`]).
+//! ([`netcdf`]), the boats' readings as a CF trajectory file ([`trajectory`]), GeoTIFF for GDAL
+//! and QGIS ([`geotiff`]), QGroundControl plans ([`qgc`]).
 //! Everything is read from the run directory `fleet up` leaves (the server's `estimate.npy`,
 //! `variance.npy`, `plans.json` and `summary.json`, the mission and the truth), so a run can
 //! be exported again later, and by the same code `fleet up` uses at its end.
@@ -7,6 +8,7 @@
 pub mod geotiff;
 pub mod netcdf;
 pub mod qgc;
+pub mod trajectory;
 
 use fleet_math::grid::Grid;
 use fleet_math::npy;

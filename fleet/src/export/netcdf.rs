@@ -4,18 +4,17 @@
 //! (pure Rust: nothing native to install).
 
 use super::{ExportError, Run};
+use netcdf3::error::WriteError;
 use netcdf3::{DataSet, FileWriter, Version};
 use std::path::Path;
 
-/// Write `run` to `path` (through a temporary beside it, so a failed export leaves no half
-/// file under the name).
+/// Write `run` to `path`.
 pub fn write(run: &Run, path: &Path) -> Result<(), ExportError> {
-    let failed = |why: String| ExportError::Write { path: path.into(), why };
-    let ds = define(run).map_err(|e| failed(format!("{e:?}")))?;
-    let tmp = path.with_extension("nc.partial");
-    let written = (|| -> Result<(), netcdf3::error::WriteError> {
-        let mut w = FileWriter::open(&tmp)?;
-        w.set_def(&ds, Version::Classic, 0)?;
+    let ds = define(run).map_err(|e| ExportError::Write {
+        path: path.into(),
+        why: format!("{e:?}"),
+    })?;
+    write_whole(path, &ds, |w| {
         let (x, y) = run.axes_m();
         let (lon, lat) = run.axes_deg();
         let time: Vec<f64> = (0..run.estimate.steps).map(|k| k as f64 * run.step_s()).collect();
@@ -31,6 +30,23 @@ pub fn write(run: &Run, path: &Path) -> Result<(), ExportError> {
         if let Some(t) = &run.truth {
             w.write_var_f64("truth", &filled(&t.data))?;
         }
+        Ok(())
+    })
+}
+
+/// Write the NetCDF-3 classic file of schema `ds` with `values` through a temporary beside
+/// `path`, so a failed export leaves no half file under the name.
+pub(super) fn write_whole(
+    path: &Path,
+    ds: &DataSet,
+    values: impl FnOnce(&mut FileWriter) -> Result<(), WriteError>,
+) -> Result<(), ExportError> {
+    let failed = |why: String| ExportError::Write { path: path.into(), why };
+    let tmp = path.with_extension("nc.partial");
+    let written = (|| -> Result<(), WriteError> {
+        let mut w = FileWriter::open(&tmp)?;
+        w.set_def(ds, Version::Classic, 0)?;
+        values(&mut w)?;
         w.close()
     })();
     if let Err(e) = written {
@@ -42,7 +58,7 @@ pub fn write(run: &Run, path: &Path) -> Result<(), ExportError> {
 
 /// NetCDF's default fill for doubles (`NC_FILL_DOUBLE`), the `_FillValue` of every field:
 /// where there is no value (land, no data), which xarray decodes to NaN and GDAL to nodata.
-const FILL: f64 = 9.969_209_968_386_869e36;
+pub(super) const FILL: f64 = 9.969_209_968_386_869e36;
 
 /// NaN (no value) as the fill value.
 fn filled(v: &[f64]) -> Vec<f64> {
@@ -62,33 +78,9 @@ fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
     ds.add_fixed_dim("time", run.estimate.steps)?;
     ds.add_fixed_dim("y", run.grid.rows)?;
     ds.add_fixed_dim("x", run.grid.cols)?;
-    let text = |ds: &mut DataSet, var: &str, attrs: &[(&str, &str)]| -> Result<(), netcdf3::InvalidDataSet> {
-        for (k, v) in attrs {
-            ds.add_var_attr_string(var, k, v)?;
-        }
-        Ok(())
-    };
     ds.add_var_f64("time", &["time"])?;
-    // With mission time a step is a span of UTC, and the axis is CF time (xarray decodes it to
-    // datetime64); without it, the field's own seconds since the first step.
-    let (long_name, units) = match run.mission.clock() {
-        Some(c) => (
-            "the start of the step in UTC",
-            format!("seconds since {}", cf_epoch(c.start)),
-        ),
-        None => ("the field's own time since the mission's first step", "s".to_string()),
-    };
-    text(
-        &mut ds,
-        "time",
-        &[
-            ("standard_name", "time"),
-            ("long_name", long_name),
-            ("units", &units),
-            ("calendar", "standard"),
-            ("axis", "T"),
-        ],
-    )?;
+    let (long_name, units) = time_words(run);
+    text(&mut ds, "time", &time_attrs(long_name, &units))?;
     ds.add_var_i32("step", &["time"])?;
     text(
         &mut ds,
@@ -147,8 +139,7 @@ fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
             ("units", "degrees_north"),
         ],
     )?;
-    // The truth's units where its file says them (a NetCDF variable's `units`).
-    let unit = run.mission.truth.as_ref().and_then(|t| t.source.units());
+    let (unit, standard_name) = field_words(run);
     let (value_units, variance_units) = match &unit {
         Some(u) => (u.clone(), format!("({u})2")),
         None => ("1".to_string(), "1".to_string()),
@@ -175,9 +166,8 @@ fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
             "referenceInformation",
         ),
     ];
-    // What the field is in CF's words, where the truth's file says it: the estimate and the
-    // truth are that quantity (the variance is not, and CF has no modifier for a variance).
-    let standard_name = run.mission.truth.as_ref().and_then(|t| t.source.standard_name());
+    // The estimate and the truth are the field's quantity (the variance is not, and CF has no
+    // modifier for a variance).
     for (name, long, units, content) in fields {
         if *name == "truth" && run.truth.is_none() {
             continue;
@@ -202,37 +192,76 @@ fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
         }
         ds.add_var_attr_f64(name, "_FillValue", vec![FILL])?;
     }
-    discovery(&mut ds, run)?;
+    let summary = format!(
+        "The fused estimate of a field and its reported variance at each of the {} steps of hetfleet mission {}: \
+         aerial frames and boat samples assimilated by a DMD model in a Kalman filter{}.",
+        run.estimate.steps,
+        run.mission.mission,
+        if run.truth.is_some() {
+            ", beside the truth the vehicles sensed"
+        } else {
+            ""
+        }
+    );
+    let title = format!("hetfleet fused field of mission {}", run.mission.mission);
+    discovery(&mut ds, run, &title, &summary)?;
     Ok(ds)
+}
+
+/// Text attributes of variable `var`.
+pub(super) fn text(ds: &mut DataSet, var: &str, attrs: &[(&str, &str)]) -> Result<(), netcdf3::InvalidDataSet> {
+    for (k, v) in attrs {
+        ds.add_var_attr_string(var, k, v)?;
+    }
+    Ok(())
+}
+
+/// The time axis's `long_name` and `units`: with mission time a step is a span of UTC, and the
+/// axis is CF time (xarray decodes it to datetime64); without it, the field's own seconds
+/// since the mission's first step.
+pub(super) fn time_words(run: &Run) -> (&'static str, String) {
+    match run.mission.clock() {
+        Some(c) => (
+            "the start of the step in UTC",
+            format!("seconds since {}", cf_epoch(c.start)),
+        ),
+        None => ("the field's own time since the mission's first step", "s".to_string()),
+    }
+}
+
+/// A CF time variable's attributes.
+pub(super) fn time_attrs<'a>(long_name: &'a str, units: &'a str) -> [(&'a str, &'a str); 5] {
+    [
+        ("standard_name", "time"),
+        ("long_name", long_name),
+        ("units", units),
+        ("calendar", "standard"),
+        ("axis", "T"),
+    ]
+}
+
+/// What the field is, where the truth's file says it: its `units` and CF `standard_name`.
+pub(super) fn field_words(run: &Run) -> (Option<String>, Option<String>) {
+    let source = run.mission.truth.as_ref().map(|t| &t.source);
+    (source.and_then(|s| s.units()), source.and_then(|s| s.standard_name()))
 }
 
 /// The global attributes a data centre's catalogue reads (CF-1.8 and ACDD-1.3): what the file
 /// is, where and when its data are, and what made it.
-fn discovery(ds: &mut DataSet, run: &Run) -> Result<(), netcdf3::InvalidDataSet> {
+pub(super) fn discovery(
+    ds: &mut DataSet,
+    run: &Run,
+    title: &str,
+    summary: &str,
+) -> Result<(), netcdf3::InvalidDataSet> {
     ds.add_global_attr_string("Conventions", "CF-1.8, ACDD-1.3")?;
-    ds.add_global_attr_string(
-        "summary",
-        format!(
-            "The fused estimate of a field and its reported variance at each of the {} steps of hetfleet mission {}: \
-             aerial frames and boat samples assimilated by a DMD model in a Kalman filter{}.",
-            run.estimate.steps,
-            run.mission.mission,
-            if run.truth.is_some() {
-                ", beside the truth the vehicles sensed"
-            } else {
-                ""
-            }
-        ),
-    )?;
+    ds.add_global_attr_string("summary", summary)?;
     ds.add_global_attr_string(
         "keywords",
         "data assimilation, dynamic mode decomposition, Kalman filter, heterogeneous robot team, \
          uncrewed surface vehicle, uncrewed aerial vehicle",
     )?;
-    ds.add_global_attr_string(
-        "title",
-        format!("hetfleet fused field of mission {}", run.mission.mission),
-    )?;
+    ds.add_global_attr_string("title", title)?;
     ds.add_global_attr_string(
         "history",
         format!("written by hetfleet from the run in {}", run.dir.display()),
