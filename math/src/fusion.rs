@@ -116,21 +116,41 @@ fn check_noise(noise: &AerialNoise) -> Result<(), FusionError> {
     Ok(())
 }
 
-/// The cells of the stride lattice aerial `me` covers: those nearer to it than to any other
-/// aerial (its Voronoi region), in lattice order. The server hands each aerial its region in
-/// its plan; the aerial senses exactly those cells ([`draw`]).
 /// Mean over cells of the squared difference of an estimate and the truth (the paper's MSE),
 /// over the cells where the truth has a value: a NaN in the truth (land, cloud, no data) is
-/// not scored.
+/// not scored. NaN when the truth has no value anywhere in the frame (a fully cloudy image,
+/// an analysis time with every cell missing): the step is not scored, rather than scored a
+/// perfect 0.
 pub fn mse(estimate: &[f64], truth: &[f64]) -> f64 {
     let (sum, n) = estimate
         .iter()
         .zip(truth)
         .filter(|(_, y)| !y.is_nan())
         .fold((0.0, 0usize), |(s, n), (x, y)| (s + (x - y).powi(2), n + 1));
+    if n == 0 {
+        return f64::NAN;
+    }
+    sum / n as f64
+}
+
+/// The mean of per-step scores over the steps that were scored (a NaN is a step whose truth
+/// had no value, [`mse`]); 0 when none was.
+pub fn mean_scored(steps: &[f64]) -> f64 {
+    let (sum, n) = steps
+        .iter()
+        .filter(|v| !v.is_nan())
+        .fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
     sum / n.max(1) as f64
 }
 
+/// How many of the per-step scores are NaN: steps whose truth had no value, not scored.
+pub fn unscored(steps: &[f64]) -> usize {
+    steps.iter().filter(|v| v.is_nan()).count()
+}
+
+/// The cells of the stride lattice aerial `me` covers: those nearer to it than to any other
+/// aerial (its Voronoi region), in lattice order. The server hands each aerial its region in
+/// its plan; the aerial senses exactly those cells ([`draw`]).
 pub fn aerial_region(grid: &Grid, stride: usize, aerials: &[(f64, f64)], me: usize) -> Result<Vec<usize>, FusionError> {
     if me >= aerials.len() {
         return Err(FusionError::Input(format!("aerial {me} of {}", aerials.len())));
@@ -526,6 +546,18 @@ fn scheme_name_error(got: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A frame whose truth has no value is not scored (NaN, not a perfect 0), and the means
+    /// over steps leave it out; a partly missing frame is scored where the truth has a value.
+    #[test]
+    fn a_frame_without_a_truth_is_not_scored() {
+        let nan = f64::NAN;
+        assert_eq!(mse(&[1.0, 2.0, 3.0], &[1.0, nan, 5.0]), 2.0);
+        assert!(mse(&[1.0, 2.0], &[nan, nan]).is_nan());
+        assert_eq!(mean_scored(&[1.0, nan, 3.0]), 2.0);
+        assert_eq!((mean_scored(&[nan]), mean_scored(&[])), (0.0, 0.0));
+        assert_eq!(unscored(&[1.0, nan, 3.0, nan]), 2);
+    }
 
     /// A noiseless frame of `f` on `grid`'s lattice of `stride`: the truth, the upsampled frame,
     /// and the interpolation variance it predicts.

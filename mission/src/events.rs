@@ -120,7 +120,9 @@ pub struct ServerSummary {
     pub counters: Counters,
     /// Last batch of an epoch in to its model update out.
     pub latency_ms: Percentiles,
-    /// Per step, the fused snapshot's mean squared error against the truth (mixed reality).
+    /// Per step, the fused snapshot's mean squared error against the truth (mixed reality); NaN
+    /// (`null` in JSON) at a step whose truth has no value, which is not scored.
+    #[serde(deserialize_with = "null_as_nan")]
     pub mse: Vec<f64>,
     pub mean_mse: Option<f64>,
     /// The final model's discrete-time eigenvalues `[re, im]`.
@@ -158,6 +160,17 @@ pub struct ServerSummary {
     pub sensor_verdicts: Vec<crate::protocol::SensorVerdict>,
     #[serde(default)]
     pub screened: crate::health::Screened,
+}
+
+/// The mean of a run's per-step MSE over its scored steps (`None`: no step was scored).
+pub fn mean_mse(mse: &[f64]) -> Option<f64> {
+    (crate::fusion::unscored(mse) < mse.len()).then(|| crate::fusion::mean_scored(mse))
+}
+
+/// JSON's `null` as NaN: what serde_json writes for a NaN, read back as one.
+fn null_as_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<f64>, D::Error> {
+    let v: Vec<Option<f64>> = serde::Deserialize::deserialize(d)?;
+    Ok(v.into_iter().map(|x| x.unwrap_or(f64::NAN)).collect())
 }
 
 fn is_zero(n: &usize) -> bool {

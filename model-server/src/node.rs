@@ -447,8 +447,8 @@ impl Server {
     /// one).
     fn evaluate(&mut self, steps: std::ops::Range<usize>) -> Option<f64> {
         let truth = self.truth.as_ref()?;
-        let mut sum = 0.0;
-        for k in steps.clone() {
+        let (mut sum, mut scored) = (0.0, 0usize);
+        for k in steps {
             let est = match self.core.history().estimate(k) {
                 Ok(est) => est,
                 Err(e) => {
@@ -467,9 +467,13 @@ impl Server {
             if self.mse.len() == k {
                 self.mse.push(e);
             }
-            sum += e;
+            // A step whose truth has no value is not scored (NaN).
+            if !e.is_nan() {
+                sum += e;
+                scored += 1;
+            }
         }
-        (!steps.is_empty()).then(|| sum / steps.len() as f64)
+        (scored > 0).then(|| sum / scored as f64)
     }
 
     /// The model on `model/latest`: the one the core made beside the placement (encoded there,
@@ -724,7 +728,7 @@ impl Server {
             rank: self.core.assimilator().rank(),
             counters: self.core.counters.clone(),
             latency_ms: Percentiles::of(&self.latencies),
-            mean_mse: (!self.mse.is_empty()).then(|| self.mse.iter().sum::<f64>() / self.mse.len() as f64),
+            mean_mse: fleet_mission::events::mean_mse(&self.mse),
             mse: self.mse.clone(),
             eigenvalues,
             link_ups: self.link_ups.clone(),

@@ -4,7 +4,7 @@ write PATH: a NetCDF-4 (HDF5) file with the field in group `ocean` as `sst(time,
 bytes marked `_Unsigned = "true"`, packed with scale_factor and add_offset, a _FillValue, zlib
 with shuffle in chunks of (5, 10, 20); latitude and longitude in 32-bit floats over an
 equatorial band (their spacings differ by about 1e-5 of a step once rounded); time in days of a
-360_day calendar, the unlimited dimension, at the root.
+360_day calendar, the unlimited dimension, at the root. Frame 17 has no value at any cell.
 
 write PATH uneven: the same with latitudes not evenly spaced (a Gaussian grid's kind): a site
 cannot be placed from them.
@@ -25,6 +25,7 @@ import xarray as xr
 from holes import fail, same_truth
 
 T, ROWS, COLS = 30, 20, 40
+EMPTY = 17
 
 
 def field():
@@ -65,6 +66,7 @@ def write(path, variant=None):
         v.set_auto_maskandscale(False)
         raw = np.round((field() - 20.0) / 0.05).astype(np.int64)
         raw[3, 2:5, 2:5] = 255  # the fill, as unsigned: a patch of cloud
+        raw[EMPTY] = 255  # a time with no value at all: a fully cloudy image
         assert raw.min() >= 0 and raw.max() <= 255
         v[:] = raw.astype(np.uint8).view(np.int8)
 
@@ -72,6 +74,13 @@ def write(path, variant=None):
 def check(path, run):
     sst = xr.open_dataset(path, group="ocean", decode_times=False).sst
     worst = same_truth(sst.values, run)
+    # The frame with no value: nothing to score there (null in summary.json), every other step
+    # scored; the estimate goes on through it.
+    mse = json.load(open(f"{run}/summary.json"))["mse"]
+    if mse[EMPTY] is not None or any(m is None for k, m in enumerate(mse) if k != EMPTY):
+        fail(f"summary.json's per-step MSE is not null exactly at step {EMPTY}: {mse}")
+    if not np.isfinite(np.load(f"{run}/estimate.npy")[EMPTY]).all():
+        fail(f"the estimate at step {EMPTY} has a hole")
     est = xr.open_dataset(f"{run}/estimate.nc")
     lat_off = float(np.max(np.abs(est.lat.values - sst.lat.values.astype("f8"))))
     lon_off = float(np.max(np.abs(est.lon.values - sst.lon.values.astype("f8"))))

@@ -130,9 +130,10 @@ fn a_file_with_land_cloud_packed_shorts_and_a_level_runs_as_xarray_reads_it() {
 
 /// A NetCDF-4 file as data centres publish them (tests/py/netcdf4.py: the field in a group,
 /// unsigned packed bytes, zlib with shuffle in chunks, 32-bit float latitude and longitude, a
-/// 360_day calendar) runs through `fleet experiment` and `fleet up`: the truth equals xarray's
-/// decoding to 1e-12 and the site is where the file says (1e-4 degrees), said in the first lines
-/// and the report. Before, it was refused (NetCDF-4), and once converted its 32-bit longitudes
+/// 360_day calendar, a time with no value at any cell) runs through `fleet experiment` and
+/// `fleet up`: the truth equals xarray's decoding to 1e-12 and the site is where the file says
+/// (1e-4 degrees), said in the first lines and the report; the empty time is a step without
+/// observations, not scored, said in both reports (it refused the file before). Before, it was refused (NetCDF-4), and once converted its 32-bit longitudes
 /// (spacings 1.5% apart) put the map at the default origin without a word.
 #[test]
 fn a_netcdf4_file_runs_as_xarray_reads_it_and_is_placed_where_it_says() {
@@ -144,6 +145,11 @@ fn a_netcdf4_file_runs_as_xarray_reads_it_and_is_placed_where_it_says() {
     let (o, rep) = experiment(&dir, "sst4", 30, &truth);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     no_fill_value_in(&rep);
+    let report = std::fs::read_to_string(rep.join("report.md")).unwrap();
+    assert!(
+        report.contains("at 1 steps ([17]): frames without observations"),
+        "{report}"
+    );
     let ep = format!("tcp/127.0.0.1:{}", free_port());
     let mission = hetfleet_tests::tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
     hetfleet_tests::edit(&mission, "preset = \"cloud2\"\ngrid = [48, 96]", &truth);
@@ -164,7 +170,8 @@ fn a_netcdf4_file_runs_as_xarray_reads_it_and_is_placed_where_it_says() {
     );
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(
-        report.contains("The site's south-west corner 0.01000S 150.00000E"),
+        report.contains("The site's south-west corner 0.01000S 150.00000E")
+            && report.contains("The truth has no value at any cell at 1 steps ([17])"),
         "{report}"
     );
     println!("{}", py(&["check", nc.to_str().unwrap(), out.to_str().unwrap()]));

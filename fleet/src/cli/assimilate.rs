@@ -81,7 +81,7 @@ pub fn run(args: Args) -> Result<()> {
         rank: core.assimilator().rank(),
         counters: core.counters.clone(),
         latency_ms: Percentiles::of(&[]),
-        mean_mse: (!mse.is_empty()).then(|| mse.iter().sum::<f64>() / mse.len() as f64),
+        mean_mse: fleet_mission::events::mean_mse(&mse),
         mse,
         eigenvalues: core.model_update().map(|m| m.eigenvalues).unwrap_or_default(),
         link_ups: BTreeMap::new(),

@@ -303,10 +303,15 @@ impl TeamSteps {
     fn fused(team: &str, o: &TeamOutcome) -> Self {
         Self {
             team: team.into(),
-            mse: o.heterogeneous.iter().map(|&x| Some(x)).collect(),
+            mse: scored(&o.heterogeneous),
             calibration: Some(o.calibration.clone()),
         }
     }
+}
+
+/// Per-step scores with a step whose truth had no value (NaN) as no data.
+fn scored(steps: &[f64]) -> Vec<Option<f64>> {
+    steps.iter().map(|&x| Some(x).filter(|x| !x.is_nan())).collect()
 }
 
 /// One seed of one row: every team's time-averaged MSE over the steps where all have data.
@@ -352,6 +357,10 @@ pub struct RowResult {
     /// The first step every team has data at (the boat-only team's first sample): scoring
     /// starts there for every team.
     pub scored_from: usize,
+    /// Steps whose truth frame has no value at any cell: no vehicle sensed anything there and
+    /// no team is scored there.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub empty_frames: Vec<usize>,
     pub seeds: Vec<SeedResult>,
     /// Mean over seeds with its 95% interval, by team.
     pub teams: BTreeMap<String, Interval>,
@@ -491,7 +500,7 @@ fn run_seed(
         TeamSteps::fused(HETEROGENEOUS, &qr),
         TeamSteps {
             team: AERIAL_ONLY.into(),
-            mse: qr.aerial_only.iter().map(|&x| Some(x)).collect(),
+            mse: scored(&qr.aerial_only),
             calibration: None,
         },
         TeamSteps {
@@ -734,6 +743,9 @@ fn summarise_row(
         }),
         row: r.clone(),
         model_grid: [truth.rows, truth.cols],
+        empty_frames: (0..truth.frames())
+            .filter(|&k| truth.snapshots.col(k).iter().all(|v| v.is_nan()))
+            .collect(),
         scored_from: figure.scored_from,
         heterogeneous_from_step0: step0(|s| s.heterogeneous_from_step0),
         aerial_only_from_step0: step0(|s| s.aerial_only_from_step0),
@@ -1108,6 +1120,16 @@ impl Report<'_> {
                 false => String::new(),
             }
         )?;
+        for r in res.rows.iter().filter(|r| !r.empty_frames.is_empty()) {
+            writeln!(
+                md,
+                "Row {}: the truth has no value at any cell at {} steps ({:?}): frames without observations, no \
+                 team scored there.\n",
+                r.row.name(),
+                r.empty_frames.len(),
+                r.empty_frames
+            )?;
+        }
         let extra = extra_teams(res);
         if res.config.oracle {
             writeln!(

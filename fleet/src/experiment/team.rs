@@ -28,7 +28,7 @@ use crate::process::FieldSeries;
 use crate::protocol::{MeasurementBatch, Sample, VehicleKind};
 use crate::sensing::gappy;
 use faer::Mat;
-use fleet_mission::fusion::mse;
+use fleet_mission::fusion::{mean_scored, mse};
 use serde::Serialize;
 use std::collections::BTreeMap;
 
@@ -129,7 +129,11 @@ fn calibration(estimate: &[f64], variance: &[f64], truth: &[f64]) -> f64 {
         .fold((0.0, 0usize), |(s, n), ((e, v), t)| {
             (s + (e - t).powi(2) / v.max(1e-300), n + 1)
         });
-    sum / n.max(1) as f64
+    // A frame without a truth is not scored, as in `mse`.
+    if n == 0 {
+        return f64::NAN;
+    }
+    sum / n as f64
 }
 
 fn column(m: &Mat<f64>, k: usize) -> Vec<f64> {
@@ -352,7 +356,8 @@ fn run_placing(
             out.aerial_only.push(mse(&server.aerial_estimates[k], &x));
             // Boat-only team, from the same boat samples.
             let here: Vec<&Sample> = boat_samples.iter().filter(|s| s.step as usize == k).collect();
-            out.boat_only.push(boat_only.step(k, &here)?.map(|b| mse(&b, &x)));
+            out.boat_only
+                .push(boat_only.step(k, &here)?.map(|b| mse(&b, &x)).filter(|v| !v.is_nan()));
             if e > 0 && server.schedule().sample_steps(VehicleKind::Boat, e).contains(&k) {
                 out.boat_steps.push(k);
                 out.disks
@@ -488,13 +493,11 @@ impl TeamOutcome {
     /// boat-only team's first estimate), and from step 0 for the teams that have data there.
     fn score(&mut self, frames: usize) {
         self.scored_from = self.boat_only.iter().position(Option::is_some).unwrap_or(frames);
-        let mean_from = |v: &[f64], from: usize| {
-            v[from.min(v.len())..].iter().sum::<f64>() / v.len().saturating_sub(from).max(1) as f64
-        };
+        let mean_from = |v: &[f64], from: usize| mean_scored(&v[from.min(v.len())..]);
         self.mean_heterogeneous = mean_from(&self.heterogeneous, self.scored_from);
         self.mean_aerial_only = mean_from(&self.aerial_only, self.scored_from);
         self.mean_boat_only = mean_from(
-            &self.boat_only.iter().map(|v| v.unwrap_or(0.0)).collect::<Vec<_>>(),
+            &self.boat_only.iter().map(|v| v.unwrap_or(f64::NAN)).collect::<Vec<_>>(),
             self.scored_from,
         );
         self.mean_calibration = mean_from(&self.calibration, self.scored_from);

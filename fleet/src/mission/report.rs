@@ -121,8 +121,9 @@ struct MissionReport<'a> {
 }
 
 /// The mean of `v` from step `k` on.
+/// The mean of the scored steps from step `k` on (a step whose truth had no value is not).
 fn mean_from(v: &[f64], k: usize) -> f64 {
-    v[k.min(v.len())..].iter().sum::<f64>() / v.len().saturating_sub(k).max(1) as f64
+    fleet_mission::fusion::mean_scored(&v[k.min(v.len())..])
 }
 
 /// The report `fleet up` writes: with a truth, the networked mission beside the offline loop
@@ -252,6 +253,14 @@ impl MissionReport<'_> {
                 summary.land_cells
             )?;
         }
+        let empty: Vec<usize> = (0..summary.mse.len()).filter(|&k| summary.mse[k].is_nan()).collect();
+        if !empty.is_empty() {
+            writeln!(
+                md,
+                "The truth has no value at any cell at {} steps ({empty:?}): frames without observations, not scored.\n",
+                empty.len()
+            )?;
+        }
         if let Some(u) = self.mission.truth.as_ref().and_then(|t| t.source.units()) {
             writeln!(md, "Values in {u}, as the truth's file says; MSE in ({u})².\n")?;
         }
@@ -278,7 +287,9 @@ impl MissionReport<'_> {
             offline.mean_boat_only
         )?;
         // Where each team is lower, step by step: the fused map against the better single team.
-        let steps: Vec<usize> = (from..summary.mse.len().min(offline.aerial_only.len())).collect();
+        let steps: Vec<usize> = (from..summary.mse.len().min(offline.aerial_only.len()))
+            .filter(|&k| !summary.mse[k].is_nan())
+            .collect();
         let wins = steps
             .iter()
             .filter(|&&k| offline.boat_only[k].is_some_and(|b| summary.mse[k] <= b.min(offline.aerial_only[k])))

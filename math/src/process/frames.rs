@@ -111,7 +111,6 @@ impl Frames {
         let n = self.dim();
         let mut everywhere = vec![true; n];
         let mut all_missing = true;
-        let mut empty_frame = None;
         let mut spread = super::units::Spread::default();
         for k in 0..self.frames {
             let x = self.frame(k)?;
@@ -127,21 +126,14 @@ impl Frames {
             }
             let missing = x.iter().filter(|v| v.is_nan()).count();
             all_missing &= missing == n;
-            if missing == n && empty_frame.is_none() {
-                empty_frame = Some(k);
-            }
             everywhere.iter_mut().zip(&x).for_each(|(e, v)| *e &= v.is_nan());
         }
-        if let Some(k) = empty_frame {
-            // The messages of `netcdf::check_holes`, which the whole-file load gives.
-            let why = if all_missing {
-                "every value is missing (fill value, missing_value or outside the valid range)".into()
-            } else {
-                format!("frame {k} has no value: every cell is missing")
-            };
+        // The message of `netcdf::check_holes`, which the whole-file load gives. A frame with no
+        // value at all is a frame in which nothing was seen, not a broken file.
+        if all_missing {
             return Err(DatasetError::Holes {
                 path: self.path_name(),
-                why,
+                why: "every value is missing (fill value, missing_value or outside the valid range)".into(),
             });
         }
         spread.check().map_err(|why| DatasetError::Units {
@@ -315,7 +307,8 @@ mod tests {
     }
 
     /// What the whole-file load refuses, opening refuses: an infinity (naming its index), a
-    /// frame without a value, a file cut short of its header's shape.
+    /// file with no value, a file cut short of its header's shape. A frame without a value
+    /// opens: nothing was seen then.
     #[test]
     fn a_bad_truth_file_is_refused_when_it_is_opened() {
         let dir = scratch("bad");
@@ -329,8 +322,13 @@ mod tests {
             s.snapshots[(i, 1)] = f64::NAN;
         }
         let p = write(&dir, "empty.npy", &s);
+        let f = Frames::open_npy(&p, 1.0).unwrap();
+        assert!(f.frame(1).unwrap().iter().all(|v| v.is_nan()) && f.land().is_empty());
+        let mut none = series(4, 2, 3);
+        none.snapshots.fill(f64::NAN);
+        let p = write(&dir, "none.npy", &none);
         let e = Frames::open_npy(&p, 1.0).unwrap_err().to_string();
-        assert!(e.contains("frame 1 has no value"), "{e}");
+        assert!(e.contains("every value is missing"), "{e}");
         let p = write(&dir, "short.npy", &series(4, 2, 3));
         let bytes = std::fs::read(&p).unwrap();
         std::fs::write(&p, &bytes[..bytes.len() - 8]).unwrap();

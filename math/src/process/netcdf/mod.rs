@@ -250,21 +250,16 @@ pub fn read_stepped(
     })
 }
 
-/// Refuse a field missing everywhere or in a whole frame; the number of missing values.
+/// Refuse a field missing everywhere; the number of missing values. A frame missing at every
+/// cell (a fully cloudy image, an analysis time with no value) is a frame in which nothing
+/// was seen: its step has no observation and is not scored, and the file is not refused.
 pub(crate) fn check_holes(snapshots: &Mat<f64>) -> Result<usize, String> {
-    let mut missing = 0;
-    for k in 0..snapshots.ncols() {
-        let here = snapshots.col(k).iter().filter(|v| v.is_nan()).count();
-        if here == snapshots.nrows() {
-            return Err(
-                if k == 0 && (1..snapshots.ncols()).all(|j| snapshots.col(j).iter().all(|v| v.is_nan())) {
-                    "every value is missing (fill value, missing_value or outside the valid range)".into()
-                } else {
-                    format!("frame {k} has no value: every cell is missing")
-                },
-            );
-        }
-        missing += here;
+    let missing = snapshots
+        .col_iter()
+        .map(|c| c.iter().filter(|v| v.is_nan()).count())
+        .sum();
+    if missing == snapshots.nrows() * snapshots.ncols() {
+        return Err("every value is missing (fill value, missing_value or outside the valid range)".into());
     }
     Ok(missing)
 }
@@ -666,14 +661,15 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("not a dimension"), "{e}");
-        // Refused: a frame with no value, a variable with none, coordinates out of order.
+        // A frame with no value is read as one (nothing seen then); refused: a variable with no
+        // value, coordinates out of order.
         let mut holed = data;
         holed[6..].iter_mut().for_each(|v| *v = -999);
         write(&p, &holed, &[60.0, 50.0], &attrs);
-        assert!(read(&p, "v", &Select::new())
-            .unwrap_err()
-            .to_string()
-            .contains("frame 1 has no value"));
+        let f = read(&p, "v", &Select::new()).unwrap();
+        assert_eq!(f.missing, 1 + 6, "frame 0's fill and all of frame 1");
+        assert!(f.field.snapshots.col(1).iter().all(|v| v.is_nan()));
+        assert_eq!(f.field.snapshots.col(0).iter().filter(|v| v.is_finite()).count(), 5);
         write(&p, &[-999; 12], &[60.0, 50.0], &attrs);
         assert!(read(&p, "v", &Select::new())
             .unwrap_err()
