@@ -143,6 +143,12 @@ pub fn mean_scored(steps: &[f64]) -> f64 {
     sum / n.max(1) as f64
 }
 
+/// Per-step scores with a step whose truth had no value (NaN) as no data (`None`): a gap in a
+/// figure, a step left out of a comparison.
+pub fn scored(steps: &[f64]) -> Vec<Option<f64>> {
+    steps.iter().map(|&x| Some(x).filter(|x| !x.is_nan())).collect()
+}
+
 /// How many of the per-step scores are NaN: steps whose truth had no value, not scored.
 pub fn unscored(steps: &[f64]) -> usize {
     steps.iter().filter(|v| v.is_nan()).count()

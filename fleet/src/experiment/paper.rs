@@ -303,15 +303,10 @@ impl TeamSteps {
     fn fused(team: &str, o: &TeamOutcome) -> Self {
         Self {
             team: team.into(),
-            mse: scored(&o.heterogeneous),
+            mse: fleet_mission::fusion::scored(&o.heterogeneous),
             calibration: Some(o.calibration.clone()),
         }
     }
-}
-
-/// Per-step scores with a step whose truth had no value (NaN) as no data.
-fn scored(steps: &[f64]) -> Vec<Option<f64>> {
-    steps.iter().map(|&x| Some(x).filter(|x| !x.is_nan())).collect()
 }
 
 /// One seed of one row: every team's time-averaged MSE over the steps where all have data.
@@ -500,7 +495,7 @@ fn run_seed(
         TeamSteps::fused(HETEROGENEOUS, &qr),
         TeamSteps {
             team: AERIAL_ONLY.into(),
-            mse: scored(&qr.aerial_only),
+            mse: fleet_mission::fusion::scored(&qr.aerial_only),
             calibration: None,
         },
         TeamSteps {

@@ -349,7 +349,8 @@ impl MissionReport<'_> {
         writeln!(
             md,
             "The run's files, beside this report: `estimate.nc` (the fused estimate, its variance and the truth per step, \
-                NetCDF; `fleet export` writes it again), `recording.mcap` (the Zenoh traffic the server saw and sent and \
+                NetCDF; `fleet export` writes it again), `readings.nc` (every boat reading the server accepted, with \
+                its sigma and health flag: a CF trajectory file), `recording.mcap` (the Zenoh traffic the server saw and sent and \
                 its operations, MCAP: Foxglove reads it, `fleet replay` replays it), `events.jsonl`, `summary.json`, \
                 `model.cbor` and `logs/`.\n"
         )?;
@@ -628,7 +629,7 @@ impl MissionReport<'_> {
                 .filter_map(|(k, e)| e.map(|e| (k as f64, e)))
                 .collect(),
         };
-        let some = |v: &[f64]| v.iter().map(|&x| Some(x)).collect::<Vec<_>>();
+        let some = fleet_mission::fusion::scored;
         plot::lines(
             dir.join("mse.png"),
             &format!(
