@@ -58,12 +58,34 @@ pub fn scratch(name: &str) -> PathBuf {
     d
 }
 
-/// A TCP port nobody listens on now.
+/// A loopback port free now over both TCP and UDP, never handed out twice by this process.
+///
+/// A test names the port and its processes bind it seconds later. A port from the kernel's
+/// ephemeral range (what binding port 0 gives) can be taken in between by any socket the kernel
+/// numbers itself (a UDP sender, a simulated autopilot's link): so the port is drawn from below
+/// that range, where only a socket that asks for it by number can land.
 pub fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("a free port")
-        .port()
+    static GIVEN: std::sync::Mutex<std::collections::BTreeSet<u16>> =
+        std::sync::Mutex::new(std::collections::BTreeSet::new());
+    let ephemeral_low = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range")
+        .ok()
+        .and_then(|s| s.split_whitespace().next().and_then(|w| w.parse::<u16>().ok()))
+        .unwrap_or(32768);
+    let (low, high) = (10_000u16, ephemeral_low.max(12_000));
+    let span = u32::from(high - low);
+    let seed = std::process::id().wrapping_mul(2_654_435_761) % span;
+    let mut given = GIVEN.lock().unwrap_or_else(|e| e.into_inner());
+    (0..span)
+        .map(|i| low + ((seed + i) % span) as u16)
+        .find(|&p| {
+            !given.contains(&p)
+                && std::net::TcpListener::bind(("127.0.0.1", p)).is_ok()
+                && std::net::UdpSocket::bind(("127.0.0.1", p)).is_ok()
+        })
+        .inspect(|&p| {
+            given.insert(p);
+        })
+        .expect("a free loopback port below the ephemeral range")
 }
 
 /// `config/mission-tiny.toml` with its endpoints replaced, written into `dir`.
@@ -701,4 +723,28 @@ pub fn http(port: u16, method: &str, path: &str) -> Option<(u16, String)> {
 pub fn web_state(port: u16) -> Option<serde_json::Value> {
     let (status, body) = http(port, "GET", "/api/state")?;
     (status == 200).then(|| serde_json::from_str(&body).expect("/api/state is JSON"))
+}
+
+#[cfg(test)]
+mod port_tests {
+    use super::free_port;
+
+    /// Ports handed out are distinct, bindable over UDP as over TCP, and below the range the
+    /// kernel numbers sockets from, so no socket bound to port 0 can take one meanwhile.
+    #[test]
+    fn free_ports_are_distinct_and_outside_the_ephemeral_range() {
+        let low: u16 = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range")
+            .map(|s| s.split_whitespace().next().unwrap().parse().unwrap())
+            .unwrap_or(32768);
+        let ports: Vec<u16> = (0..64).map(|_| free_port()).collect();
+        let distinct: std::collections::BTreeSet<_> = ports.iter().collect();
+        assert_eq!(distinct.len(), ports.len(), "{ports:?}");
+        assert!(
+            ports.iter().all(|&p| p < low),
+            "{ports:?} reach the ephemeral range from {low}"
+        );
+        assert!(ports
+            .iter()
+            .all(|&p| std::net::UdpSocket::bind(("127.0.0.1", p)).is_ok()));
+    }
 }

@@ -99,31 +99,41 @@ fn autopilot_key(m: &MavlinkConfig, id: &str) -> anyhow::Result<Option<(SigningK
 /// `companion_port` + its system id when the mission asks); the address to reach it.
 /// It runs until the process ends.
 fn start_sim(spec: &BridgeSpec, companion_port: Option<u16>) -> anyhow::Result<String> {
-    let port = std::net::UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
-    let signing = spec
-        .signing
-        .as_ref()
-        .map(|(k, _)| LinkSigning::new(k.clone(), LINK_AUTOPILOT, false));
-    let sim = SimAutopilot::new(spec.vehicle.clone(), spec.home);
     let companion = companion_port
         .map(|p| p.checked_add(spec.vehicle.sysid as u16))
         .map(|p| p.ok_or_else(|| fleet_exit::bad_input(anyhow::anyhow!("[mavlink] sim_companion_port: too high"))))
         .transpose()?
         .map(|p| format!("udpin:127.0.0.1:{p}"));
-    serve::spawn_routed(
-        &format!("udpin:127.0.0.1:{port}"),
-        companion.as_deref(),
-        sim,
-        signing,
-        Arc::new(AtomicBool::new(false)),
-    )
-    .with_context(|| {
-        format!(
-            "the simulated autopilot's companion link {}",
-            companion.unwrap_or_default()
-        )
-    })?;
-    Ok(format!("udpout:127.0.0.1:{port}"))
+    // The kernel numbers the port, and the link binds it a moment after it is let go: another
+    // socket the kernel numbers can land on it in between, so a taken port is drawn again.
+    let mut tries = 0;
+    loop {
+        let port = std::net::UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
+        let signing = spec
+            .signing
+            .as_ref()
+            .map(|(k, _)| LinkSigning::new(k.clone(), LINK_AUTOPILOT, false));
+        let sim = SimAutopilot::new(spec.vehicle.clone(), spec.home);
+        let stop = Arc::new(AtomicBool::new(false));
+        match serve::spawn_routed(
+            &format!("udpin:127.0.0.1:{port}"),
+            companion.as_deref(),
+            sim,
+            signing,
+            stop,
+        ) {
+            Ok(_) => return Ok(format!("udpout:127.0.0.1:{port}")),
+            Err(e) if e.kind() == std::io::ErrorKind::AddrInUse && tries < 8 => tries += 1,
+            Err(e) => {
+                return Err(e).with_context(|| {
+                    format!(
+                        "the simulated autopilot on 127.0.0.1:{port}, its companion link {}",
+                        companion.unwrap_or_default()
+                    )
+                })
+            }
+        }
+    }
 }
 
 /// Messages and bytes a task sent, counted where the node can read them.
