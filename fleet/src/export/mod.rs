@@ -1,4 +1,4 @@
-//! A finished run in the formats field teams open: NetCDF for xarray and Panoply
+//! A finished run in the formats field teams open: NetCDF-4 for xarray and Panoply
 //! ([`netcdf`]), the boats' readings as a CF trajectory file ([`trajectory`]), GeoTIFF for GDAL
 //! and QGIS ([`geotiff`]), QGroundControl plans ([`qgc`]).
 //! Everything is read from the run directory `fleet up` leaves (the server's `estimate.npy`,
@@ -6,6 +6,7 @@
 //! be exported again later, and by the same code `fleet up` uses at its end.
 
 pub mod geotiff;
+mod nc4;
 pub mod netcdf;
 pub mod qgc;
 pub mod trajectory;

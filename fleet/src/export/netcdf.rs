@@ -1,68 +1,45 @@
 //! `estimate.nc`: the run's fused estimate and its variance at every step (and the truth in a
-//! mixed-reality run) as NetCDF-3 classic with CF-1.8 metadata, so `xarray.open_dataset`
-//! gives `(time, y, x)` arrays with latitude and longitude beside them. Written by `netcdf3`
-//! (pure Rust: nothing native to install).
+//! mixed-reality run) as NetCDF-4 with CF-1.8 and ACDD-1.3 metadata, so `xarray.open_dataset`
+//! gives `(time, y, x)` arrays with latitude and longitude beside them, compressed per step.
+//!
+//! Precision is what each variable needs. The estimate and its variance are single precision:
+//! rounding moves a value by at most 2^-24 of itself (6e-8), far below what the estimate says
+//! of its own error (at most 7e-6 of its reported standard deviation on the default mission),
+//! and it halves their share of the file.
+//! The truth stays double, as the file it came from may hold it, so a score recomputed from
+//! this file is the server's; so do the coordinates, which place the cells to a millimetre.
 
+use super::nc4::{schema_error, Error, Nc4};
 use super::{ExportError, Run};
-use netcdf3::error::WriteError;
-use netcdf3::{DataSet, FileWriter, Version};
+use netcdf_writer::{DimensionId, NcAttrValue};
 use std::path::Path;
 
 /// Write `run` to `path`.
 pub fn write(run: &Run, path: &Path) -> Result<(), ExportError> {
-    let ds = define(run).map_err(|e| ExportError::Write {
-        path: path.into(),
-        why: format!("{e:?}"),
-    })?;
-    write_whole(path, &ds, |w| {
-        let (x, y) = run.axes_m();
-        let (lon, lat) = run.axes_deg();
-        let time: Vec<f64> = (0..run.estimate.steps).map(|k| k as f64 * run.step_s()).collect();
-        let step: Vec<i32> = (0..run.estimate.steps).map(|k| k as i32).collect();
-        w.write_var_f64("time", &time)?;
-        w.write_var_i32("step", &step)?;
-        w.write_var_f64("x", &x)?;
-        w.write_var_f64("y", &y)?;
-        w.write_var_f64("lon", &lon)?;
-        w.write_var_f64("lat", &lat)?;
-        w.write_var_f64("estimate", &filled(&run.estimate.data))?;
-        w.write_var_f64("variance", &filled(&run.variance.data))?;
-        if let Some(t) = &run.truth {
-            w.write_var_f64("truth", &filled(&t.data))?;
-        }
-        Ok(())
-    })
+    let mut nc = Nc4::new();
+    define(&mut nc, run).map_err(schema_error(path))?;
+    nc.write(path)
 }
 
-/// Write the NetCDF-3 classic file of schema `ds` with `values` through a temporary beside
-/// `path`, so a failed export leaves no half file under the name.
-pub(super) fn write_whole(
-    path: &Path,
-    ds: &DataSet,
-    values: impl FnOnce(&mut FileWriter) -> Result<(), WriteError>,
-) -> Result<(), ExportError> {
-    let failed = |why: String| ExportError::Write { path: path.into(), why };
-    let tmp = path.with_extension("nc.partial");
-    let written = (|| -> Result<(), WriteError> {
-        let mut w = FileWriter::open(&tmp)?;
-        w.set_def(ds, Version::Classic, 0)?;
-        values(&mut w)?;
-        w.close()
-    })();
-    if let Err(e) = written {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(failed(format!("{e:?}")));
-    }
-    std::fs::rename(&tmp, path).map_err(|e| failed(e.to_string()))
-}
-
-/// NetCDF's default fill for doubles (`NC_FILL_DOUBLE`), the `_FillValue` of every field:
-/// where there is no value (land, no data), which xarray decodes to NaN and GDAL to nodata.
-pub(super) const FILL: f64 = 9.969_209_968_386_869e36;
+/// NetCDF's default fill for doubles (`NC_FILL_DOUBLE`), written where there is no value.
+pub(super) const FILL: f64 = netcdf_writer::NC_FILL_DOUBLE;
 
 /// NaN (no value) as the fill value.
 fn filled(v: &[f64]) -> Vec<f64> {
     v.iter().map(|&x| if x.is_nan() { FILL } else { x }).collect()
+}
+
+/// NaN as the single-precision fill value, every other value rounded to the nearest float.
+fn filled_f32(v: &[f64]) -> Vec<f32> {
+    v.iter()
+        .map(|&x| {
+            if x.is_nan() {
+                netcdf_writer::NC_FILL_FLOAT
+            } else {
+                x as f32
+            }
+        })
+        .collect()
 }
 
 /// A CF `since` date: UTC, `YYYY-MM-DD hh:mm:ss` (CF's own form, which every reader takes).
@@ -71,127 +48,13 @@ fn cf_epoch(t: f64) -> String {
     iso.trim_end_matches('Z').replacen('T', " ", 1)
 }
 
-/// Long because it is the file's schema: every dimension, variable and attribute in the order
-/// `ncdump -h` lists them (the global ones in [`discovery`]).
-fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
-    let mut ds = DataSet::new();
-    ds.add_fixed_dim("time", run.estimate.steps)?;
-    ds.add_fixed_dim("y", run.grid.rows)?;
-    ds.add_fixed_dim("x", run.grid.cols)?;
-    ds.add_var_f64("time", &["time"])?;
-    let (long_name, units) = time_words(run);
-    text(&mut ds, "time", &time_attrs(long_name, &units))?;
-    ds.add_var_i32("step", &["time"])?;
-    text(
-        &mut ds,
-        "step",
-        &[
-            ("long_name", "mission step (index of the truth frame)"),
-            ("units", "1"),
-            ("coverage_content_type", "coordinate"),
-        ],
-    )?;
-    ds.add_var_f64("x", &["x"])?;
-    text(
-        &mut ds,
-        "x",
-        &[
-            ("standard_name", "projection_x_coordinate"),
-            (
-                "long_name",
-                "distance east of the site's south-west corner (cell centre)",
-            ),
-            ("units", "m"),
-            ("axis", "X"),
-        ],
-    )?;
-    ds.add_var_f64("y", &["y"])?;
-    text(
-        &mut ds,
-        "y",
-        &[
-            ("standard_name", "projection_y_coordinate"),
-            (
-                "long_name",
-                "distance north of the site's south-west corner (cell centre)",
-            ),
-            ("units", "m"),
-            ("axis", "Y"),
-        ],
-    )?;
-    ds.add_var_f64("lon", &["x"])?;
-    text(
-        &mut ds,
-        "lon",
-        &[
-            ("standard_name", "longitude"),
-            ("long_name", "longitude of the cell centre (WGS 84)"),
-            ("units", "degrees_east"),
-        ],
-    )?;
-    ds.add_var_f64("lat", &["y"])?;
-    text(
-        &mut ds,
-        "lat",
-        &[
-            ("standard_name", "latitude"),
-            ("long_name", "latitude of the cell centre (WGS 84)"),
-            ("units", "degrees_north"),
-        ],
-    )?;
-    let (unit, standard_name) = field_words(run);
-    let (value_units, variance_units) = match &unit {
-        Some(u) => (u.clone(), format!("({u})2")),
-        None => ("1".to_string(), "1".to_string()),
-    };
-    // ACDD's coverage_content_type (ISO 19115-1): the estimate is a model's result, its
-    // variance says how good it is, the truth is what it is checked against.
-    let fields: &[(&str, &str, &str, &str)] = &[
-        (
-            "estimate",
-            "fused estimate of the field (posterior mean of the model server)",
-            &value_units,
-            "modelResult",
-        ),
-        (
-            "variance",
-            "reported variance of the fused estimate per cell",
-            &variance_units,
-            "qualityInformation",
-        ),
-        (
-            "truth",
-            "the true field the vehicles sensed (mixed reality)",
-            &value_units,
-            "referenceInformation",
-        ),
-    ];
-    // The estimate and the truth are the field's quantity (the variance is not, and CF has no
-    // modifier for a variance).
-    for (name, long, units, content) in fields {
-        if *name == "truth" && run.truth.is_none() {
-            continue;
-        }
-        ds.add_var_f64(name, &["time", "y", "x"])?;
-        text(
-            &mut ds,
-            name,
-            &[
-                ("long_name", long),
-                ("units", units),
-                ("coordinates", "step lat lon"),
-                ("coverage_content_type", content),
-                (
-                    "comment",
-                    "units are the truth's (dimensionless for the simulated fields); variance in their square",
-                ),
-            ],
-        )?;
-        if let (Some(sn), false) = (&standard_name, *name == "variance") {
-            ds.add_var_attr_string(name, "standard_name", sn)?;
-        }
-        ds.add_var_attr_f64(name, "_FillValue", vec![FILL])?;
-    }
+/// The file: its axes, its fields and what a catalogue reads.
+fn define(nc: &mut Nc4, run: &Run) -> Result<(), Error> {
+    let time = (nc.dim("time", run.estimate.steps)?, run.estimate.steps);
+    let y = (nc.dim("y", run.grid.rows)?, run.grid.rows);
+    let x = (nc.dim("x", run.grid.cols)?, run.grid.cols);
+    axes(nc, run, [time, y, x])?;
+    fields(nc, run, &[time, y, x])?;
     let summary = format!(
         "The fused estimate of a field and its reported variance at each of the {} steps of hetfleet mission {}: \
          aerial frames and boat samples assimilated by a DMD model in a Kalman filter{}.",
@@ -204,16 +67,125 @@ fn define(run: &Run) -> Result<DataSet, netcdf3::InvalidDataSet> {
         }
     );
     let title = format!("hetfleet fused field of mission {}", run.mission.mission);
-    discovery(&mut ds, run, &title, &summary)?;
-    Ok(ds)
+    discovery(nc, run, &title, &summary)
 }
 
-/// Text attributes of variable `var`.
-pub(super) fn text(ds: &mut DataSet, var: &str, attrs: &[(&str, &str)]) -> Result<(), netcdf3::InvalidDataSet> {
-    for (k, v) in attrs {
-        ds.add_var_attr_string(var, k, v)?;
+/// The coordinates: time and step, metres from the site's corner, latitude and longitude.
+fn axes(nc: &mut Nc4, run: &Run, [time, y, x]: [(DimensionId, usize); 3]) -> Result<(), Error> {
+    let seconds: Vec<f64> = (0..run.estimate.steps).map(|k| k as f64 * run.step_s()).collect();
+    let v = nc.var("time", &[time], &seconds)?;
+    let (long_name, units) = time_words(run);
+    nc.text(v, &time_attrs(long_name, &units))?;
+    let step: Vec<i32> = (0..run.estimate.steps).map(|k| k as i32).collect();
+    let v = nc.var("step", &[time], &step)?;
+    nc.text(
+        v,
+        &[
+            ("long_name", "mission step (index of the truth frame)"),
+            ("units", "1"),
+            ("coverage_content_type", "coordinate"),
+        ],
+    )?;
+    let (xs, ys) = run.axes_m();
+    let (lon, lat) = run.axes_deg();
+    for (name, dim, values, axis, long) in [
+        (
+            "x",
+            x,
+            &xs,
+            "X",
+            "distance east of the site's south-west corner (cell centre)",
+        ),
+        (
+            "y",
+            y,
+            &ys,
+            "Y",
+            "distance north of the site's south-west corner (cell centre)",
+        ),
+    ] {
+        let v = nc.var(name, &[dim], values)?;
+        let standard_name = format!("projection_{name}_coordinate");
+        nc.text(
+            v,
+            &[
+                ("standard_name", &standard_name),
+                ("long_name", long),
+                ("units", "m"),
+                ("axis", axis),
+            ],
+        )?;
+    }
+    for (name, dim, values, standard_name, units) in [
+        ("lon", x, &lon, "longitude", "degrees_east"),
+        ("lat", y, &lat, "latitude", "degrees_north"),
+    ] {
+        let v = nc.var(name, &[dim], values)?;
+        let long = format!("{standard_name} of the cell centre (WGS 84)");
+        nc.text(
+            v,
+            &[("standard_name", standard_name), ("long_name", &long), ("units", units)],
+        )?;
     }
     Ok(())
+}
+
+/// The estimate, its variance and the truth, `(time, y, x)`.
+fn fields(nc: &mut Nc4, run: &Run, dims: &[(DimensionId, usize); 3]) -> Result<(), Error> {
+    let (unit, standard_name) = field_words(run);
+    let (value_units, variance_units) = match &unit {
+        Some(u) => (u.clone(), format!("({u})2")),
+        None => ("1".to_string(), "1".to_string()),
+    };
+    // ACDD's coverage_content_type (ISO 19115-1): the estimate is a model's result, its
+    // variance says how good it is, the truth is what it is checked against.
+    let estimate = nc.var("estimate", dims, &filled_f32(&run.estimate.data))?;
+    nc.fill_f32(estimate)?;
+    let long = "fused estimate of the field (posterior mean of the model server)";
+    field_attrs(nc, estimate, long, &value_units, "modelResult")?;
+    let variance = nc.var("variance", dims, &filled_f32(&run.variance.data))?;
+    nc.fill_f32(variance)?;
+    let long = "reported variance of the fused estimate per cell";
+    field_attrs(nc, variance, long, &variance_units, "qualityInformation")?;
+    let mut quantities = vec![estimate];
+    if let Some(t) = &run.truth {
+        let truth = nc.var("truth", dims, &filled(&t.data))?;
+        nc.fill_f64(truth)?;
+        let long = "the true field the vehicles sensed (mixed reality)";
+        field_attrs(nc, truth, long, &value_units, "referenceInformation")?;
+        quantities.push(truth);
+    }
+    // The estimate and the truth are the field's quantity (the variance is not, and CF has no
+    // modifier for a variance).
+    if let Some(sn) = &standard_name {
+        for v in quantities {
+            nc.text(v, &[("standard_name", sn)])?;
+        }
+    }
+    Ok(())
+}
+
+/// What a field variable is, in CF's and ACDD's words.
+fn field_attrs(
+    nc: &mut Nc4,
+    var: netcdf_writer::VariableId,
+    long: &str,
+    units: &str,
+    content: &str,
+) -> Result<(), Error> {
+    nc.text(
+        var,
+        &[
+            ("long_name", long),
+            ("units", units),
+            ("coordinates", "step lat lon"),
+            ("coverage_content_type", content),
+            (
+                "comment",
+                "units are the truth's (dimensionless for the simulated fields); variance in their square",
+            ),
+        ],
+    )
 }
 
 /// The time axis's `long_name` and `units`: with mission time a step is a span of UTC, and the
@@ -248,44 +220,43 @@ pub(super) fn field_words(run: &Run) -> (Option<String>, Option<String>) {
 
 /// The global attributes a data centre's catalogue reads (CF-1.8 and ACDD-1.3): what the file
 /// is, where and when its data are, and what made it.
-pub(super) fn discovery(
-    ds: &mut DataSet,
-    run: &Run,
-    title: &str,
-    summary: &str,
-) -> Result<(), netcdf3::InvalidDataSet> {
-    ds.add_global_attr_string("Conventions", "CF-1.8, ACDD-1.3")?;
-    ds.add_global_attr_string("summary", summary)?;
-    ds.add_global_attr_string(
+pub(super) fn discovery(nc: &mut Nc4, run: &Run, title: &str, summary: &str) -> Result<(), Error> {
+    nc.global_text("Conventions", "CF-1.8, ACDD-1.3")?;
+    nc.global_text("summary", summary)?;
+    nc.global_text(
         "keywords",
         "data assimilation, dynamic mode decomposition, Kalman filter, heterogeneous robot team, \
          uncrewed surface vehicle, uncrewed aerial vehicle",
     )?;
-    ds.add_global_attr_string("title", title)?;
-    ds.add_global_attr_string(
+    nc.global_text("title", title)?;
+    nc.global_text(
         "history",
         format!("written by hetfleet from the run in {}", run.dir.display()),
     )?;
-    ds.add_global_attr_string(
+    nc.global_text(
         "references",
         "Salam, T. and Hsieh, M. A.: Heterogeneous robot teams for modeling and prediction of multiscale \
             environmental processes (the method hetfleet implements)",
     )?;
     for (k, v) in run.provenance() {
-        ds.add_global_attr_string(k, v)?;
+        nc.global_text(k, v)?;
     }
     let [w, s, e, n] = run.bounds_deg();
-    ds.add_global_attr_f64("geospatial_lon_min", vec![w])?;
-    ds.add_global_attr_f64("geospatial_lat_min", vec![s])?;
-    ds.add_global_attr_f64("geospatial_lon_max", vec![e])?;
-    ds.add_global_attr_f64("geospatial_lat_max", vec![n])?;
-    ds.add_global_attr_string("geospatial_lat_units", "degrees_north")?;
-    ds.add_global_attr_string("geospatial_lon_units", "degrees_east")?;
+    for (k, v) in [
+        ("geospatial_lon_min", w),
+        ("geospatial_lat_min", s),
+        ("geospatial_lon_max", e),
+        ("geospatial_lat_max", n),
+    ] {
+        nc.global(k, NcAttrValue::Doubles(vec![v]))?;
+    }
+    nc.global_text("geospatial_lat_units", "degrees_north")?;
+    nc.global_text("geospatial_lon_units", "degrees_east")?;
     if let Some(c) = run.mission.clock() {
         let end = c.start + run.estimate.steps as f64 * c.step_s;
         let iso = fleet_mission::instrument::MissionClock::rfc3339;
-        ds.add_global_attr_string("time_coverage_start", iso(c.start))?;
-        ds.add_global_attr_string("time_coverage_end", iso(end))?;
+        nc.global_text("time_coverage_start", iso(c.start))?;
+        nc.global_text("time_coverage_end", iso(end))?;
     }
     Ok(())
 }

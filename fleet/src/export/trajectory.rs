@@ -8,10 +8,11 @@
 //! Read from the model server's journal (`state/<mission>.redb`), which holds every batch it
 //! accepted exactly once; the recording can hold a batch twice (a resend after a lost ack).
 
-use super::netcdf::{discovery, field_words, text, time_attrs, time_words, write_whole};
+use super::nc4::{schema_error, Error, Nc4};
+use super::netcdf::{discovery, field_words, time_attrs, time_words};
 use super::{ExportError, Run};
 use fleet_mission::protocol::{self, Body, Context, Health, MeasurementBatch, SensorVerdict, VehicleId, VehicleKind};
-use netcdf3::DataSet;
+use netcdf_writer::{DimensionId, NcAttrValue};
 use std::path::{Path, PathBuf};
 
 /// One value a boat read.
@@ -129,42 +130,16 @@ fn verdict_at(changes: &[SensorVerdict], vehicle: &VehicleId, step: u64) -> Heal
 
 /// Write the boats' readings of `run` to `path`; how many values. Nothing is written for a run
 /// whose boats read nothing (`None`): a trajectory file of no observation is not one a checker
-/// takes, nor one NetCDF-3 can size.
+/// takes.
 pub fn write(run: &Run, path: &Path) -> Result<Option<usize>, ExportError> {
     let tracks = tracks(run)?;
     let n: usize = tracks.iter().map(|t| t.readings.len()).sum();
     if n == 0 {
         return Ok(None);
     }
-    let ds = define(run, &tracks, n).map_err(|e| ExportError::Write {
-        path: path.into(),
-        why: format!("{e:?}"),
-    })?;
-    let all = || tracks.iter().flat_map(|t| &t.readings);
-    let (lon, lat) = run.axes_deg();
-    let cols = run.grid.cols;
-    let width = name_width(&tracks);
-    write_whole(path, &ds, |w| {
-        let names: Vec<u8> = tracks
-            .iter()
-            .flat_map(|t| {
-                let mut b = t.boat.as_bytes().to_vec();
-                b.resize(width, 0);
-                b
-            })
-            .collect();
-        w.write_var_u8("trajectory", &names)?;
-        let sizes: Vec<i32> = tracks.iter().map(|t| t.readings.len() as i32).collect();
-        w.write_var_i32("rowSize", &sizes)?;
-        let time: Vec<f64> = all().map(|r| r.step as f64 * run.step_s()).collect();
-        w.write_var_f64("time", &time)?;
-        w.write_var_i32("step", &all().map(|r| r.step as i32).collect::<Vec<_>>())?;
-        w.write_var_f64("lat", &all().map(|r| lat[r.cell as usize / cols]).collect::<Vec<_>>())?;
-        w.write_var_f64("lon", &all().map(|r| lon[r.cell as usize % cols]).collect::<Vec<_>>())?;
-        w.write_var_f64("value", &all().map(|r| r.value).collect::<Vec<_>>())?;
-        w.write_var_f64("sigma", &all().map(|r| r.sigma).collect::<Vec<_>>())?;
-        w.write_var_i8("flag", &all().map(|r| flag_value(r.flag)).collect::<Vec<_>>())
-    })?;
+    let mut nc = Nc4::new();
+    define(&mut nc, run, &tracks, n).map_err(schema_error(path))?;
+    nc.write(path)?;
     Ok(Some(n))
 }
 
@@ -173,26 +148,25 @@ fn name_width(tracks: &[Track]) -> usize {
     tracks.iter().map(|t| t.boat.len()).max().unwrap_or(1).max(1)
 }
 
-/// Long because it is the file's schema: every dimension, variable and attribute in the order
-/// `ncdump -h` lists them.
-fn define(run: &Run, tracks: &[Track], n: usize) -> Result<DataSet, netcdf3::InvalidDataSet> {
-    let mut ds = DataSet::new();
-    ds.add_fixed_dim("trajectory", tracks.len())?;
-    ds.add_fixed_dim("obs", n)?;
-    ds.add_fixed_dim("name_strlen", name_width(tracks))?;
-    ds.add_var_u8("trajectory", &["trajectory", "name_strlen"])?;
-    text(
-        &mut ds,
-        "trajectory",
+/// The file: the trajectories, their observations and what a catalogue reads.
+fn define(nc: &mut Nc4, run: &Run, tracks: &[Track], n: usize) -> Result<(), Error> {
+    let trajectory = (nc.dim("trajectory", tracks.len())?, tracks.len());
+    let obs = (nc.dim("obs", n)?, n);
+    let width = name_width(tracks);
+    let strlen = (nc.dim("name_strlen", width)?, width);
+    let names: Vec<String> = tracks.iter().map(|t| t.boat.clone()).collect();
+    let v = nc.strings("vehicle", [trajectory, strlen], &names)?;
+    nc.text(
+        v,
         &[
             ("cf_role", "trajectory_id"),
             ("long_name", "the boat's id in the mission"),
         ],
     )?;
-    ds.add_var_i32("rowSize", &["trajectory"])?;
-    text(
-        &mut ds,
-        "rowSize",
+    let sizes: Vec<i32> = tracks.iter().map(|t| t.readings.len() as i32).collect();
+    let v = nc.var("rowSize", &[trajectory], &sizes)?;
+    nc.text(
+        v,
         &[
             ("sample_dimension", "obs"),
             (
@@ -201,43 +175,60 @@ fn define(run: &Run, tracks: &[Track], n: usize) -> Result<DataSet, netcdf3::Inv
             ),
         ],
     )?;
+    positions(nc, run, tracks, obs)?;
+    values(nc, run, tracks, obs)?;
+    nc.global_text("featureType", "trajectory")?;
+    let summary = format!(
+        "Every value the boats of hetfleet mission {} read and the model server accepted: {n} values from {} \
+         boats, each at the centre of the cell it measured, with its noise standard deviation and the server's \
+         sensor-health verdict on the boat at that step.",
+        run.mission.mission,
+        tracks.len()
+    );
+    let title = format!("hetfleet boats' readings of mission {}", run.mission.mission);
+    discovery(nc, run, &title, &summary)
+}
+
+/// Where and when each reading was: time, step, and the centre of the cell read.
+fn positions(nc: &mut Nc4, run: &Run, tracks: &[Track], obs: (DimensionId, usize)) -> Result<(), Error> {
+    let all = || tracks.iter().flat_map(|t| &t.readings);
+    let time: Vec<f64> = all().map(|r| r.step as f64 * run.step_s()).collect();
+    let v = nc.var("time", &[obs], &time)?;
     let (long_name, units) = time_words(run);
-    ds.add_var_f64("time", &["obs"])?;
-    text(&mut ds, "time", &time_attrs(long_name, &units))?;
-    ds.add_var_i32("step", &["obs"])?;
-    text(
-        &mut ds,
-        "step",
-        &[("long_name", "mission step of the reading"), ("units", "1")],
-    )?;
-    ds.add_var_f64("lat", &["obs"])?;
-    text(
-        &mut ds,
-        "lat",
-        &[
-            ("standard_name", "latitude"),
-            ("long_name", "latitude of the centre of the cell read (WGS 84)"),
-            ("units", "degrees_north"),
-            ("axis", "Y"),
-        ],
-    )?;
-    ds.add_var_f64("lon", &["obs"])?;
-    text(
-        &mut ds,
-        "lon",
-        &[
-            ("standard_name", "longitude"),
-            ("long_name", "longitude of the centre of the cell read (WGS 84)"),
-            ("units", "degrees_east"),
-            ("axis", "X"),
-        ],
-    )?;
+    nc.text(v, &time_attrs(long_name, &units))?;
+    let v = nc.var("step", &[obs], &all().map(|r| r.step as i32).collect::<Vec<_>>())?;
+    nc.text(v, &[("long_name", "mission step of the reading"), ("units", "1")])?;
+    let (lon, lat) = run.axes_deg();
+    let cols = run.grid.cols;
+    let lats: Vec<f64> = all().map(|r| lat[r.cell as usize / cols]).collect();
+    let lons: Vec<f64> = all().map(|r| lon[r.cell as usize % cols]).collect();
+    for (name, values, standard_name, units, axis) in [
+        ("lat", lats, "latitude", "degrees_north", "Y"),
+        ("lon", lons, "longitude", "degrees_east", "X"),
+    ] {
+        let v = nc.var(name, &[obs], &values)?;
+        let long = format!("{standard_name} of the centre of the cell read (WGS 84)");
+        nc.text(
+            v,
+            &[
+                ("standard_name", standard_name),
+                ("long_name", &long),
+                ("units", units),
+                ("axis", axis),
+            ],
+        )?;
+    }
+    Ok(())
+}
+
+/// What each reading said: its value, its noise and the verdict on the boat's sensor.
+fn values(nc: &mut Nc4, run: &Run, tracks: &[Track], obs: (DimensionId, usize)) -> Result<(), Error> {
+    let all = || tracks.iter().flat_map(|t| &t.readings);
     let (unit, standard_name) = field_words(run);
     let unit = unit.unwrap_or_else(|| "1".into());
-    ds.add_var_f64("value", &["obs"])?;
-    text(
-        &mut ds,
-        "value",
+    let v = nc.var("value", &[obs], &all().map(|r| r.value).collect::<Vec<_>>())?;
+    nc.text(
+        v,
         &[
             (
                 "long_name",
@@ -250,12 +241,11 @@ fn define(run: &Run, tracks: &[Track], n: usize) -> Result<DataSet, netcdf3::Inv
         ],
     )?;
     if let Some(sn) = &standard_name {
-        ds.add_var_attr_string("value", "standard_name", sn)?;
+        nc.text(v, &[("standard_name", sn)])?;
     }
-    ds.add_var_f64("sigma", &["obs"])?;
-    text(
-        &mut ds,
-        "sigma",
+    let v = nc.var("sigma", &[obs], &all().map(|r| r.sigma).collect::<Vec<_>>())?;
+    nc.text(
+        v,
         &[
             ("long_name", "noise standard deviation of the reading"),
             ("units", &unit),
@@ -263,10 +253,9 @@ fn define(run: &Run, tracks: &[Track], n: usize) -> Result<DataSet, netcdf3::Inv
             ("coverage_content_type", "qualityInformation"),
         ],
     )?;
-    ds.add_var_i8("flag", &["obs"])?;
-    text(
-        &mut ds,
-        "flag",
+    let v = nc.var("flag", &[obs], &all().map(|r| flag_value(r.flag)).collect::<Vec<_>>())?;
+    nc.text(
+        v,
         &[
             ("standard_name", "status_flag"),
             (
@@ -278,18 +267,7 @@ fn define(run: &Run, tracks: &[Track], n: usize) -> Result<DataSet, netcdf3::Inv
             ("coverage_content_type", "qualityInformation"),
         ],
     )?;
-    ds.add_var_attr_i8("flag", "flag_values", vec![0, 1, 2])?;
-    ds.add_global_attr_string("featureType", "trajectory")?;
-    let summary = format!(
-        "Every value the boats of hetfleet mission {} read and the model server accepted: {n} values from {} \
-         boats, each at the centre of the cell it measured, with its noise standard deviation and the server's \
-         sensor-health verdict on the boat at that step.",
-        run.mission.mission,
-        tracks.len()
-    );
-    let title = format!("hetfleet boats' readings of mission {}", run.mission.mission);
-    discovery(&mut ds, run, &title, &summary)?;
-    Ok(ds)
+    nc.attr(v, "flag_values", NcAttrValue::Bytes(vec![0, 1, 2]))
 }
 
 #[cfg(test)]
