@@ -17,6 +17,7 @@ of PATH: the truth to 1e-12, the cell centres to 1e-4 degrees. Prints one JSON l
 measured; exits 1 with the reason on a mismatch.
 """
 import json
+import os
 import sys
 
 import netCDF4
@@ -86,6 +87,22 @@ def check(path, run):
     lon_off = float(np.max(np.abs(est.lon.values - sst.lon.values.astype("f8"))))
     if max(lat_off, lon_off) > 1e-4:
         fail(f"estimate.nc's cell centres are {lat_off:.2e} (lat) and {lon_off:.2e} (lon) degrees from the file's")
+    # Time as the file says it: estimate.nc's steps are the file's dates in its 360_day calendar
+    # (cftime decodes both), and the report names the first and last as cftime writes them.
+    theirs = xr.open_dataset(path, use_cftime=True).time.values[: len(mse)]
+    ours = est.time.values
+    if list(ours) != list(theirs):
+        fail(f"estimate.nc's times {ours[:3]}... are not the file's {theirs[:3]}...")
+    report = open(f"{run}/report.md").read()
+    said = f"step 0 is {theirs[0].strftime('%Y-%m-%d %H:%M:%S')} and step {len(mse) - 1} is " \
+        f"{theirs[-1].strftime('%Y-%m-%d %H:%M:%S')}, in the `360_day` calendar"
+    if said not in report:
+        fail(f"the report does not say {said!r}")
+    readings = f"{run}/readings.nc"
+    if os.path.exists(readings):
+        r = xr.open_dataset(readings, use_cftime=True)
+        if not set(r.time.values) <= set(theirs):
+            fail(f"readings.nc's times {r.time.values[:3]}... are not the file's dates")
     print(json.dumps({"truth_max_abs_diff": worst, "lat_off_deg": lat_off, "lon_off_deg": lon_off}))
 
 

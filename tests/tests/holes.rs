@@ -171,7 +171,7 @@ fn a_netcdf4_file_runs_as_xarray_reads_it_and_is_placed_where_it_says() {
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(
         report.contains("The site's south-west corner 0.01000S 150.00000E")
-            && report.contains("The truth has no value at any cell at 1 steps ([17])"),
+            && report.contains("The truth has no value at any cell at 1 steps ([17], dated 2000-01-18 00:00:00)"),
         "{report}"
     );
     println!("{}", py(&["check", nc.to_str().unwrap(), out.to_str().unwrap()]));

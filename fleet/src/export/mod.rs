@@ -54,6 +54,78 @@ impl Steps {
     }
 }
 
+/// A run's time axis as CF writes it: a value per step in `units` of `calendar`.
+pub struct RunTime {
+    pub long_name: &'static str,
+    pub units: String,
+    pub calendar: String,
+    pub values: Vec<f64>,
+}
+
+impl RunTime {
+    /// The time axis of `steps` steps of `mission`: its UTC clock where it has one, else the
+    /// truth file's own dates in its own calendar (a climate model's 360-day years stay
+    /// theirs), else `step_s` seconds a step since the first, which name no date.
+    pub fn of(mission: &MissionConfig, steps: usize, step_s: f64) -> Self {
+        if let Some(c) = mission.clock() {
+            let epoch = fleet_mission::instrument::MissionClock::rfc3339(c.start);
+            return Self {
+                long_name: "the start of the step in UTC",
+                units: format!("seconds since {}", epoch.trim_end_matches('Z').replacen('T', " ", 1)),
+                calendar: "standard".into(),
+                values: (0..steps).map(|k| k as f64 * c.step_s).collect(),
+            };
+        }
+        let file = mission.truth.as_ref().and_then(|t| t.source.time_axis());
+        match file.filter(|a| a.values.len() >= steps && a.date_of(a.values[0]).is_some()) {
+            Some(a) => Self {
+                long_name: "the time of the truth's frame, as its file gives it",
+                calendar: a.calendar_name(),
+                values: a.values[..steps].to_vec(),
+                units: a.units,
+            },
+            None => Self {
+                long_name: "the field's own time since the mission's first step",
+                units: "s".into(),
+                calendar: "standard".into(),
+                values: (0..steps).map(|k| k as f64 * step_s).collect(),
+            },
+        }
+    }
+
+    /// The date of step `k` in the axis's calendar (`YYYY-MM-DD hh:mm:ss`), where the axis
+    /// names dates.
+    pub fn date_of(&self, k: usize) -> Option<String> {
+        let axis = fleet_math::process::netcdf::TimeAxis {
+            units: self.units.clone(),
+            calendar: self.calendar.clone(),
+            values: vec![],
+        };
+        axis.date_of(*self.values.get(k)?)
+    }
+
+    /// The value of step `k`, also past the axis's last (one step on from it per step).
+    pub fn at(&self, k: usize) -> f64 {
+        match (self.values.get(k), self.values.as_slice()) {
+            (Some(&v), _) => v,
+            (None, [.., a, b]) => b + (b - a) * (k + 1 - self.values.len()) as f64,
+            (None, [b]) => b + (k as f64),
+            (None, []) => k as f64,
+        }
+    }
+
+    /// CF's attributes of the time variable.
+    pub fn attrs(&self) -> [(&str, &str); 5] {
+        [
+            ("standard_name", "time"),
+            ("long_name", self.long_name),
+            ("units", &self.units),
+            ("calendar", &self.calendar),
+            ("axis", "T"),
+        ]
+    }
+}
+
 /// What a run directory holds, read and checked against itself.
 pub struct Run {
     pub dir: PathBuf,
@@ -75,6 +147,11 @@ impl Run {
             None if self.summary.dt > 0.0 => self.summary.dt,
             None => 1.0,
         }
+    }
+
+    /// The time axis the run's files carry ([`RunTime::of`]).
+    pub fn time(&self) -> RunTime {
+        RunTime::of(&self.mission, self.estimate.steps, self.step_s())
     }
 
     /// UTC of the start of step `k`, with mission time (RFC 3339).

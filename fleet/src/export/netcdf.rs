@@ -42,12 +42,6 @@ fn filled_f32(v: &[f64]) -> Vec<f32> {
         .collect()
 }
 
-/// A CF `since` date: UTC, `YYYY-MM-DD hh:mm:ss` (CF's own form, which every reader takes).
-fn cf_epoch(t: f64) -> String {
-    let iso = fleet_mission::instrument::MissionClock::rfc3339(t);
-    iso.trim_end_matches('Z').replacen('T', " ", 1)
-}
-
 /// The file: its axes, its fields and what a catalogue reads.
 fn define(nc: &mut Nc4, run: &Run) -> Result<(), Error> {
     let time = (nc.dim("time", run.estimate.steps)?, run.estimate.steps);
@@ -72,10 +66,9 @@ fn define(nc: &mut Nc4, run: &Run) -> Result<(), Error> {
 
 /// The coordinates: time and step, metres from the site's corner, latitude and longitude.
 fn axes(nc: &mut Nc4, run: &Run, [time, y, x]: [(DimensionId, usize); 3]) -> Result<(), Error> {
-    let seconds: Vec<f64> = (0..run.estimate.steps).map(|k| k as f64 * run.step_s()).collect();
-    let v = nc.var("time", &[time], &seconds)?;
-    let (long_name, units) = time_words(run);
-    nc.text(v, &time_attrs(long_name, &units))?;
+    let t = run.time();
+    let v = nc.var("time", &[time], &t.values)?;
+    nc.text(v, &t.attrs())?;
     let step: Vec<i32> = (0..run.estimate.steps).map(|k| k as i32).collect();
     let v = nc.var("step", &[time], &step)?;
     nc.text(
@@ -188,30 +181,6 @@ fn field_attrs(
     )
 }
 
-/// The time axis's `long_name` and `units`: with mission time a step is a span of UTC, and the
-/// axis is CF time (xarray decodes it to datetime64); without it, the field's own seconds
-/// since the mission's first step.
-pub(super) fn time_words(run: &Run) -> (&'static str, String) {
-    match run.mission.clock() {
-        Some(c) => (
-            "the start of the step in UTC",
-            format!("seconds since {}", cf_epoch(c.start)),
-        ),
-        None => ("the field's own time since the mission's first step", "s".to_string()),
-    }
-}
-
-/// A CF time variable's attributes.
-pub(super) fn time_attrs<'a>(long_name: &'a str, units: &'a str) -> [(&'a str, &'a str); 5] {
-    [
-        ("standard_name", "time"),
-        ("long_name", long_name),
-        ("units", units),
-        ("calendar", "standard"),
-        ("axis", "T"),
-    ]
-}
-
 /// What the field is, where the truth's file says it: its `units` and CF `standard_name`.
 pub(super) fn field_words(run: &Run) -> (Option<String>, Option<String>) {
     let source = run.mission.truth.as_ref().map(|t| &t.source);
@@ -257,6 +226,10 @@ pub(super) fn discovery(nc: &mut Nc4, run: &Run, title: &str, summary: &str) -> 
         let iso = fleet_mission::instrument::MissionClock::rfc3339;
         nc.global_text("time_coverage_start", iso(c.start))?;
         nc.global_text("time_coverage_end", iso(end))?;
+    } else if let (Some(first), Some(last)) = (run.time().date_of(0), run.time().date_of(run.estimate.steps - 1)) {
+        // ACDD's coverage in the truth file's calendar, which ISO 8601 has no word for.
+        nc.global_text("time_coverage_start", first.replacen(' ', "T", 1))?;
+        nc.global_text("time_coverage_end", last.replacen(' ', "T", 1))?;
     }
     Ok(())
 }

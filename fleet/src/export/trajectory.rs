@@ -9,7 +9,7 @@
 //! accepted exactly once; the recording can hold a batch twice (a resend after a lost ack).
 
 use super::nc4::{schema_error, Error, Nc4};
-use super::netcdf::{discovery, field_words, time_attrs, time_words};
+use super::netcdf::{discovery, field_words};
 use super::{ExportError, Run};
 use fleet_mission::protocol::{self, Body, Context, Health, MeasurementBatch, SensorVerdict, VehicleId, VehicleKind};
 use netcdf_writer::{DimensionId, NcAttrValue};
@@ -192,10 +192,10 @@ fn define(nc: &mut Nc4, run: &Run, tracks: &[Track], n: usize) -> Result<(), Err
 /// Where and when each reading was: time, step, and the centre of the cell read.
 fn positions(nc: &mut Nc4, run: &Run, tracks: &[Track], obs: (DimensionId, usize)) -> Result<(), Error> {
     let all = || tracks.iter().flat_map(|t| &t.readings);
-    let time: Vec<f64> = all().map(|r| r.step as f64 * run.step_s()).collect();
+    let t = run.time();
+    let time: Vec<f64> = all().map(|r| t.at(r.step as usize)).collect();
     let v = nc.var("time", &[obs], &time)?;
-    let (long_name, units) = time_words(run);
-    nc.text(v, &time_attrs(long_name, &units))?;
+    nc.text(v, &t.attrs())?;
     let v = nc.var("step", &[obs], &all().map(|r| r.step as i32).collect::<Vec<_>>())?;
     nc.text(v, &[("long_name", "mission step of the reading"), ("units", "1")])?;
     let (lon, lat) = run.axes_deg();

@@ -210,6 +210,20 @@ impl MissionReport<'_> {
             truth_of(mission)
         )?;
         writeln!(md, "The site's {}.\n", mission.site_said(grid))?;
+        let steps = summary.mse.len();
+        let time = crate::export::RunTime::of(mission, steps, summary.dt);
+        if let (Some(first), Some(last)) = (time.date_of(0), time.date_of(steps.saturating_sub(1))) {
+            writeln!(
+                md,
+                "Time: step 0 is {first} and step {} is {last}, in the `{}` calendar{}.\n",
+                steps.saturating_sub(1),
+                time.calendar,
+                match mission.clock() {
+                    Some(_) => " (UTC, the mission's clock)",
+                    None => " (the truth file's own dates)",
+                }
+            )?;
+        }
         let placement = match t.placement {
             fleet_mission::team::Placement::Horizon => format!("horizon over {} epochs", t.horizon_epochs),
             p => p.to_string(),
@@ -255,10 +269,13 @@ impl MissionReport<'_> {
         }
         let empty: Vec<usize> = (0..summary.mse.len()).filter(|&k| summary.mse[k].is_nan()).collect();
         if !empty.is_empty() {
+            let time = crate::export::RunTime::of(self.mission, summary.mse.len(), summary.dt);
+            let dates: Vec<String> = empty.iter().take(10).filter_map(|&k| time.date_of(k)).collect();
             writeln!(
                 md,
-                "The truth has no value at any cell at {} steps ({empty:?}): frames without observations, not scored.\n",
-                empty.len()
+                "The truth has no value at any cell at {} steps ({empty:?}{}): frames without observations, not scored.\n",
+                empty.len(),
+                if dates.is_empty() { String::new() } else { format!(", dated {}", dates.join(", ")) }
             )?;
         }
         if let Some(u) = self.mission.truth.as_ref().and_then(|t| t.source.units()) {

@@ -198,6 +198,14 @@ impl TruthSource {
         self.said("standard_name")
     }
 
+    /// The dates of a NetCDF truth's frames, where its time coordinate has CF units.
+    pub fn time_axis(&self) -> Option<super::netcdf::TimeAxis> {
+        match self {
+            Self::NetCdf { path, variable, select } => super::netcdf::time_axis(path, variable, select),
+            Self::Preset(_) | Self::Dataset(_) => None,
+        }
+    }
+
     /// A text attribute of a NetCDF truth's variable.
     fn said(&self, name: &str) -> Option<String> {
         match self {

@@ -15,8 +15,11 @@
 //! A missing value is NaN in the field; a variable missing everywhere, or a frame with no value
 //! at all, is refused.
 
+mod calendar;
 mod decode;
 mod file;
+
+pub use calendar::TimeAxis;
 
 use super::dataset::DatasetError;
 use super::FieldSeries;
@@ -123,6 +126,23 @@ fn regular_span(v: &[f64], rounding: impl Fn(f64) -> f64) -> Result<(f64, f64), 
     }
     let (lo, hi) = if step > 0.0 { (v[0], v[n - 1]) } else { (v[n - 1], v[0]) };
     Ok((lo - step.abs() / 2.0, hi + step.abs() / 2.0))
+}
+
+/// The time coordinate of `variable`'s frames (after `select`), where it has CF units
+/// (`"<unit> since <date>"`): what dates the frames are.
+pub fn time_axis(path: impl AsRef<Path>, variable: &str, select: &Select) -> Option<TimeAxis> {
+    let src = NcSource::open(path.as_ref()).ok()?;
+    let var = src.var(variable)?;
+    let coords = coordinates(&src, &var, |d| !select.contains_key(d)).ok()?;
+    let layout = Layout::of(&src, &var, select, &coords, &|why| why).ok()?;
+    let dim = &layout.names[layout.kept[0]];
+    let c = src.coordinate(var.path(), dim)?;
+    let units = c.text("units").filter(|u| u.contains(" since "))?;
+    Some(TimeAxis {
+        units,
+        calendar: c.text("calendar").unwrap_or_default(),
+        values: coords.get(dim)?.clone(),
+    })
 }
 
 /// The `units` attribute of `variable`, from the header.
