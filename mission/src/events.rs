@@ -155,6 +155,10 @@ pub struct ServerSummary {
     /// lattice, and how far the map between the lattice follows the filter.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub skill: Vec<crate::protocol::EpochSkill>,
+    /// Each instrument-fed vehicle's readings as its last telemetry said them (received,
+    /// accepted, refused by kind, frames with no value).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub readings: BTreeMap<VehicleId, crate::protocol::ReadingCounts>,
     /// Every change of a sensor's verdict, and what the health tests did to the readings.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub sensor_verdicts: Vec<crate::protocol::SensorVerdict>,

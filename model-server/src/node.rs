@@ -737,6 +737,7 @@ impl Server {
             holdout: self.core.holdout(),
             innovations: self.core.innovations(),
             traffic: self.traffic.clone(),
+            readings: self.readings.clone(),
             land_cells: self.core.assimilator().land().len(),
             skill: self.core.skills(),
             sensor_verdicts: self.core.verdicts_at(0..usize::MAX),

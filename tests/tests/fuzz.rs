@@ -131,6 +131,7 @@ fn wire_seeds() -> Vec<Vec<u8>> {
                 received: 12,
                 accepted: 10,
                 refused: [("too_old".to_string(), 2)].into(),
+                empty_frames: 1,
             }),
             traffic: Some(fleet::protocol::LinkTraffic {
                 sent: [("batch".to_string(), [3, 12_000])].into(),

@@ -242,7 +242,12 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     let m = timed_mission(&dir, start, &feeds, gcs);
     // boat-1's probe sticks from step 25, and boat-3's (through its standard input) reads 3
     // noise standard deviations high from then on: the server's health tests must find both.
-    let faults = [("--stuck", "boat-1=25"), ("--fault", "boat-3=bias@25")];
+    // av-2's frame of step 20 is cloud throughout: a frame that saw nothing.
+    let faults = [
+        ("--stuck", "boat-1=25"),
+        ("--fault", "boat-3=bias@25"),
+        ("--cloudy", "av-2=20"),
+    ];
     let (mut procs, log, stdout) = start_emulator(&dir, &m, &feeds, gcs, None, true, &faults);
     let out = dir.join("run");
     let stop = Arc::new(AtomicBool::new(false));
@@ -372,6 +377,26 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     assert!(aerial_values >= 2 * 40 * 10, "aerial values checked: {aerial_values}");
     let av1 = av1_counts.expect("av-1's telemetry carries its reading counts");
     assert_eq!(av1.refused, want_av1, "each hostile frame counted by its kind");
+    // av-2's cloudy frame: taken, counted as a frame with no value, said in the report.
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let empty = |id: &str| summary["readings"][id]["empty_frames"].as_u64().unwrap_or(0);
+    assert_eq!((empty("av-1"), empty("av-2")), (0, 1), "{}", summary["readings"]);
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(
+        report.contains("Frames with no value at any cell (no-data throughout, or off the site): av-2 1."),
+        "{report}"
+    );
+    // To the server a frame that saw nothing is a camera that said nothing: suspect (silent) at
+    // its step, ok again after clean steps, and never excluded.
+    let av2: Vec<(u64, String)> = (verdicts(&out).iter())
+        .filter(|v| v["vehicle"] == "av-2")
+        .map(|v| (v["step"].as_u64().unwrap(), v["to"].as_str().unwrap().to_string()))
+        .collect();
+    assert!(
+        matches!(&av2[..], [(20, a), (_, b)] if a == "suspect" && b == "ok"),
+        "{av2:?}"
+    );
     let boat2 = boat2_counts.expect("boat-2's telemetry carries its reading counts");
     assert_eq!(
         boat2.refused, want_boat2,
@@ -382,7 +407,7 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     assert_eq!(counts.received, good("boat-1") + flooded);
     assert_eq!(boat2.accepted, good("boat-2"));
     assert!(good("boat-2") >= 5, "boat-2's sonde sent {} values", good("boat-2"));
-    stuck_probe_is_excluded(&out, "boat-1", 25, &["boat-3"]);
+    stuck_probe_is_excluded(&out, "boat-1", 25, &["boat-3", "av-2"]);
     biased_probe_is_marked(&out, "boat-3", 25);
     // And the ground station heard it from the gateway, under boat-1's system id.
     let sysid = mission.sysid("boat-1").unwrap() as u64;

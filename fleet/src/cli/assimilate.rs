@@ -93,6 +93,7 @@ pub fn run(args: Args) -> Result<()> {
         holdout: core.holdout(),
         innovations: core.innovations(),
         traffic: BTreeMap::new(),
+        readings: BTreeMap::new(),
         land_cells: core.assimilator().land().len(),
         skill: core.skills(),
         sensor_verdicts: core.verdicts_at(0..usize::MAX),

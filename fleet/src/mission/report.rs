@@ -519,6 +519,18 @@ impl MissionReport<'_> {
              (an excluded sensor's), {} aerial frame(s) and {} quadrant(s) refused.\n",
             c.checks, c.spikes_refused, c.down_weighted, c.withheld, c.frames_refused, c.quadrants_refused
         )?;
+        let empty: Vec<String> = (self.summary.readings.iter())
+            .filter(|(_, r)| r.empty_frames > 0)
+            .map(|(v, r)| format!("{v} {}", r.empty_frames))
+            .collect();
+        if !empty.is_empty() {
+            writeln!(
+                self.md,
+                "Frames with no value at any cell (no-data throughout, or off the site): {}. Frames without \
+                 observations: nothing was assimilated from them.\n",
+                empty.join(", ")
+            )?;
+        }
         if verdicts.is_empty() {
             writeln!(self.md, "Every sensor stayed `ok`.\n")?;
             return Ok(());

@@ -96,6 +96,8 @@ impl Collected {
 pub struct Tally {
     pub received: u64,
     pub accepted: u64,
+    /// Accepted frames with no value at any cell.
+    pub empty_frames: u64,
     refused: BTreeMap<Refusal, u64>,
     said: BTreeMap<Refusal, f64>,
 }

@@ -187,6 +187,10 @@ pub struct ReadingCounts {
     pub received: u64,
     pub accepted: u64,
     pub refused: std::collections::BTreeMap<String, u64>,
+    /// Frames taken that had no value at any cell (no-data throughout, or off the site): a
+    /// camera that saw nothing, counted among the accepted, with nothing to assimilate.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub empty_frames: u64,
 }
 
 impl Telemetry {

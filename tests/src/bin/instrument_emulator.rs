@@ -19,7 +19,8 @@
 //! `--fault ID=KIND@STEP` makes that vehicle's instrument fail from step STEP as the fault
 //! study's do (`bias`, `stuck`, `spikes`, `drift` for a boat's disk or sonde, `overexposed` for
 //! an aerial's frames, `silent` for a camera that writes none; `fleet::experiment::faults::Fault`),
-//! through the same interface.
+//! through the same interface. `--cloudy av-2=STEP` writes that aerial's frame of step STEP with
+//! no value at any pixel (NaN throughout: a fully cloudy image), a frame that saw nothing.
 //!
 //! `--mavlink boat-2=PORT` makes it that boat's sonde on its autopilot: a companion computer on
 //! the simulated autopilot's companion link (`udpout:127.0.0.1:PORT`) that hears the autopilot's
@@ -56,6 +57,7 @@ struct Args {
     hostile_mavlink: bool,
     stuck: BTreeMap<String, u64>,
     faults: BTreeMap<String, (FaultKind, u64)>,
+    cloudy: BTreeMap<String, u64>,
     truth: Option<std::path::PathBuf>,
     seed: u64,
     log: std::path::PathBuf,
@@ -72,6 +74,7 @@ fn args() -> Args {
         hostile_mavlink: false,
         stuck: BTreeMap::new(),
         faults: BTreeMap::new(),
+        cloudy: BTreeMap::new(),
         truth: None,
         seed: 0,
         log: "sent.ndjson".into(),
@@ -104,6 +107,10 @@ fn args() -> Args {
                     .unwrap_or_else(|_| panic!("--fault {v}: no fault kind {kind}"));
                 a.faults
                     .insert(id.into(), (kind, step.parse().expect("--fault ID=KIND@STEP")));
+            }
+            "--cloudy" => {
+                let (id, step) = v.split_once('=').expect("--cloudy ID=STEP");
+                a.cloudy.insert(id.into(), step.parse().expect("--cloudy ID=STEP"));
             }
             "--hostile-mavlink" => a.hostile_mavlink = v.parse().expect("--hostile-mavlink true|false"),
             "--mavlink" => {
@@ -225,6 +232,9 @@ fn main() {
                 .collect();
             if let Some(f) = faults.get(id) {
                 f.alter(k, &mut values);
+            }
+            if a.cloudy.get(id) == Some(&k) {
+                values.fill(f64::NAN);
             }
             write_frame(dir, &grid, &site, &values, t);
             sent.insert((k, id.clone()));

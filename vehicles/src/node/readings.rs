@@ -138,6 +138,12 @@ impl Instrument {
             .placer
             .step_at(t, now, self.oldest)
             .map_err(|(kind, why)| (kind, format!("frame {name}: {why}")))?;
+        if values.iter().all(Option::is_none) {
+            // A camera that saw nothing (cloud throughout, or a frame off the site): no
+            // observation at its step, counted so the report can say so.
+            self.tally.empty_frames += 1;
+            tracing::info!(frame = %name, step, "a frame with no value at any cell: nothing observed at its step");
+        }
         self.collected.add_frame(step, &self.placer.grid, &values, self.sigma);
         if let Some(log) = &mut self.log {
             log.write(Entry::Frame { frame: name, t });
@@ -156,6 +162,7 @@ impl Instrument {
             received: self.tally.received,
             accepted: self.tally.accepted,
             refused: self.tally.refusals(),
+            empty_frames: self.tally.empty_frames,
         }
     }
 }
