@@ -64,9 +64,11 @@ impl Estimate {
 pub type AerialNoise = Noise;
 
 /// A sensor's noise: standard deviation `sigma0 + growth_per_m * distance` (boats: growth 0).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Noise {
+    /// The standard deviation at the sensor, in the field's units.
     pub sigma0: f64,
+    /// How much it grows per metre of distance from the sensor.
     pub growth_per_m: f64,
 }
 

@@ -40,9 +40,11 @@ pub enum GridError {
 }
 
 /// A rectangular workspace of `rows x cols` square cells of side `cell_m` metres.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Grid {
+    /// Rows of cells along y (a cell's flat index is `row * cols + col`).
     pub rows: usize,
+    /// Columns of cells along x.
     pub cols: usize,
     /// Side of one cell in metres.
     pub cell_m: f64,

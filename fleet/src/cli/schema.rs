@@ -1,5 +1,5 @@
 //! `fleet schema` and `fleet reference`: the mission and experiment files described by their
-//! own types ([`fleet::reference`]).
+//! own types, and the wire protocol by its message types ([`fleet::reference`]).
 
 use fleet::reference::{self, File};
 
@@ -18,7 +18,8 @@ pub fn run(a: Args) -> anyhow::Result<()> {
 
 #[derive(clap::Args, Debug)]
 pub struct ReferenceArgs {
-    /// Which reference page to print (`files`: the mission and experiment files, in Markdown).
+    /// Which reference page to print, in Markdown (`files`: the mission and experiment files;
+    /// `protocol`: the keys and messages on the wire).
     #[arg(value_enum)]
     page: Page,
 }
@@ -26,12 +27,14 @@ pub struct ReferenceArgs {
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 enum Page {
     Files,
+    Protocol,
 }
 
-/// Print a reference page (`docs/reference/files.md` is this output).
+/// Print a reference page (`docs/reference/files.md` and `protocol.md` are this output).
 pub fn reference(a: ReferenceArgs) -> anyhow::Result<()> {
     match a.page {
         Page::Files => print!("{}", reference::files_markdown()),
+        Page::Protocol => print!("{}", reference::protocol_markdown()),
     }
     Ok(())
 }

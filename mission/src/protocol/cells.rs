@@ -24,6 +24,25 @@ pub fn runs(cells: &[u32]) -> Vec<(u32, u32)> {
     out
 }
 
+/// What a list of cells is in the protocol's schema: runs, not cells.
+pub struct RunsSchema;
+
+impl schemars::JsonSchema for RunsSchema {
+    fn inline_schema() -> bool {
+        true
+    }
+    fn schema_name() -> std::borrow::Cow<'static, str> {
+        "CellRuns".into()
+    }
+    fn json_schema(_: &mut schemars::SchemaGenerator) -> schemars::Schema {
+        schemars::json_schema!({
+            "type": "array",
+            "items": { "type": "integer", "minimum": 0 },
+            "x-wire": "cell runs: `[start, length, start, length, ...]` of flat cell indices (row-major)",
+        })
+    }
+}
+
 pub fn serialize<S: Serializer>(cells: &[u32], s: S) -> Result<S::Ok, S::Error> {
     let runs = runs(cells);
     let mut seq = s.serialize_seq(Some(2 * runs.len()))?;

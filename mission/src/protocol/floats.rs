@@ -39,6 +39,27 @@ macro_rules! float {
 float!(f64);
 float!(f32);
 
+/// What a packed array is in the protocol's schema ([`crate::protocol`]'s reference page): a
+/// byte string of little-endian floats of type `T`, not a list of numbers.
+pub struct PackedSchema<T>(PhantomData<T>);
+
+impl<T: Float> schemars::JsonSchema for PackedSchema<T> {
+    fn inline_schema() -> bool {
+        true
+    }
+    fn schema_name() -> std::borrow::Cow<'static, str> {
+        format!("Packed_{}", T::NAME).into()
+    }
+    fn json_schema(_: &mut schemars::SchemaGenerator) -> schemars::Schema {
+        let width = std::mem::size_of::<T>();
+        schemars::json_schema!({
+            "type": "string",
+            "contentEncoding": "binary",
+            "x-wire": format!("bytes: packed little-endian {} (`np.frombuffer(b, \"<f{width}\")`)", T::NAME),
+        })
+    }
+}
+
 pub fn serialize<T: Float, S: Serializer>(values: &[T], s: S) -> Result<S::Ok, S::Error> {
     if s.is_human_readable() {
         return s.collect_seq(values);

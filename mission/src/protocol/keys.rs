@@ -22,6 +22,16 @@ pub fn check_id(what: &str, id: &str) -> Result<(), ProtocolError> {
     }
 }
 
+/// A key as the protocol's reference lists it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct KeyUse {
+    pub key: String,
+    /// What travels on it: a message's `type`, or what else.
+    pub payload: &'static str,
+    pub put_by: &'static str,
+    pub read_by: &'static str,
+}
+
 /// Keys of one mission.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Keys {
@@ -117,6 +127,69 @@ impl Keys {
 
     pub fn all_sensor_overrides(&self) -> String {
         self.sensor_override("*")
+    }
+
+    /// Every key a node puts or reads, with what travels on it and who puts and reads it (the
+    /// protocol's reference page lists them from here), for the vehicle `id`.
+    pub fn catalogue(&self, id: &str) -> [KeyUse; 10] {
+        let use_ = |key: String, payload, put_by, read_by| KeyUse {
+            key,
+            payload,
+            put_by,
+            read_by,
+        };
+        [
+            use_(self.measurements(id), "`batch`", "the vehicle", "the model server"),
+            use_(
+                self.telemetry(id),
+                "`telemetry`",
+                "the vehicle",
+                "the model server, `fleet-watch`",
+            ),
+            use_(self.ack(id), "`ack`", "the model server", "the vehicle"),
+            use_(
+                self.mavlink(id),
+                "MAVLink 2 frames from its autopilot, as they come",
+                "the vehicle",
+                "`gcs-gateway`",
+            ),
+            use_(
+                self.gcs(id),
+                "MAVLink 2 frames from ground stations to its autopilot",
+                "`gcs-gateway`",
+                "the vehicle",
+            ),
+            use_(
+                self.model_latest(),
+                "`model`, without the modes; a get answers it whole",
+                "the model server (every epoch)",
+                "`fleet-watch`, any observer",
+            ),
+            use_(
+                self.plan(id),
+                "`plan`; a get answers the newest",
+                "the model server",
+                "the vehicle, `fleet-watch`",
+            ),
+            use_(
+                self.alive(id),
+                "a liveliness token (no payload)",
+                "every node",
+                "the model server, `fleet-watch`, `gcs-gateway`",
+            ),
+            use_(
+                self.server_status(),
+                "`status`",
+                "the model server",
+                "`fleet-watch`, `gcs-gateway`, `fleet-operator`",
+            ),
+            use_(
+                self.sensor_override(id),
+                "`override`",
+                "`fleet-operator` (the ground station's seat)",
+                "the model server",
+            ),
+        ]
     }
 
     /// The vehicle id in a concrete key of this mission's vehicle space, if it is one.

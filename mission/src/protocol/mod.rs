@@ -60,7 +60,7 @@ impl ProtocolError {
 }
 
 /// What kind of vehicle.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum VehicleKind {
     Aerial,
@@ -72,17 +72,20 @@ pub enum VehicleKind {
 pub use crate::fusion::Noise;
 
 /// What one vehicle measured at one step.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Sample {
+    /// The mission step the values are of.
     pub step: u64,
     /// Where the vehicle was, metres `(x, y)`.
     pub position: [f64; 2],
     /// Flat grid indices of the measured cells (aerials: the cells their coarse lattice sits on);
     /// on the wire as runs ([`cells`]).
     #[serde(with = "cells")]
+    #[schemars(with = "cells::RunsSchema")]
     pub cells: Vec<u32>,
-    /// On the wire as packed bytes ([`floats`]).
+    /// The values at `cells`, in the field's units; on the wire as packed bytes ([`floats`]).
     #[serde(with = "floats")]
+    #[schemars(with = "floats::PackedSchema<f64>")]
     pub values: Vec<f64>,
     /// Each value's own noise standard deviation, when an instrument said it (readings
     /// averaged in a cell, [`crate::instrument`]); absent, the batch's `noise` applies. Not
@@ -104,33 +107,45 @@ impl crate::fusion::Reading for Sample {
 }
 
 /// A vehicle's batch of samples; `seq` is per vehicle and gap-free from 0.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct MeasurementBatch {
+    /// Who measured.
     pub vehicle: VehicleId,
+    /// What kind of vehicle it is (the server checks it against the mission).
     pub kind: VehicleKind,
+    /// The batch's number, per vehicle, gap-free from 0: the server assimilates each once, in order.
     pub seq: u64,
+    /// The sensor's noise model, for the values without their own `sigma`.
     pub noise: Noise,
+    /// One sample per step of the epoch the batch is for.
     pub samples: Vec<Sample>,
 }
 
 /// Link as a vehicle sees it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum LinkState {
     Up,
     Down,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// A vehicle's state as it reports it (at each epoch's end, and while it waits): where it is,
+/// its battery, link, outbox and autopilot, and what its instrument delivered.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Telemetry {
+    /// Who reports.
     pub vehicle: VehicleId,
+    /// The mission step the vehicle is at.
     pub step: u64,
+    /// Where it is, metres `(x, y)` from the workspace's corner.
     pub position: [f64; 2],
     /// Radians from +x.
     pub heading: f64,
     /// Fraction 0..1.
     pub battery: f64,
+    /// Its link to the base as it sees it.
     pub link: LinkState,
+    /// Batches sent and not yet acknowledged (kept on the vehicle until they are).
     pub outbox_depth: u64,
     /// The vehicle's autopilot as its MAVLink bridge sees it (`None`: no autopilot).
     #[serde(default)]
@@ -153,9 +168,11 @@ pub struct Telemetry {
 /// A vehicle's traffic so far, by what it is (`batch`, `telemetry`, `mavlink`, `plan_query`
 /// out; `ack`, `plan`, `gcs` in): messages and payload bytes (Zenoh's own headers and
 /// keep-alives, and TCP/IP's, are on top: a capture on the link measures those).
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct LinkTraffic {
+    /// Out, by kind: `[messages, bytes]`.
     pub sent: std::collections::BTreeMap<String, [u64; 2]>,
+    /// In, by kind: `[messages, bytes]`.
     pub received: std::collections::BTreeMap<String, [u64; 2]>,
 }
 
@@ -182,10 +199,13 @@ impl LinkTraffic {
 
 /// A vehicle's instrument readings so far: received, accepted, and refused by kind
 /// ([`crate::instrument::Refusal`]'s names).
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct ReadingCounts {
+    /// Readings the instrument delivered.
     pub received: u64,
+    /// Readings taken into samples.
     pub accepted: u64,
+    /// Readings refused, by kind of refusal.
     pub refused: std::collections::BTreeMap<String, u64>,
     /// Frames taken that had no value at any cell (no-data throughout, or off the site): a
     /// camera that saw nothing, counted among the accepted, with nothing to assimilate.
@@ -207,7 +227,7 @@ impl Telemetry {
 }
 
 /// An autopilot's link to its vehicle node.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum AutopilotLink {
     /// No HEARTBEAT yet, or the node is still arming it and setting GUIDED.
@@ -218,19 +238,22 @@ pub enum AutopilotLink {
     Lost,
 }
 
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct AutopilotStatus {
+    /// Whether the node hears the autopilot.
     pub link: AutopilotLink,
     /// MAVLink system id (0 before the first HEARTBEAT).
     pub sysid: u8,
     /// Mode by name (`GUIDED`, `HOLD`, `AUTO`, ...).
     pub mode: String,
+    /// Armed, as its HEARTBEAT says.
     pub armed: bool,
     /// In GUIDED mode, armed: the fleet's planner drives it.
     pub guided: bool,
     /// Frames from the autopilot that did not parse, and ground-station frames refused.
     #[serde(default)]
     pub unreadable: u64,
+    /// Ground-station frames the node did not pass to the autopilot.
     #[serde(default)]
     pub refused_from_gcs: u64,
     /// Why the autopilot left the planner's mode, as it said it (a low battery, a fence
@@ -244,9 +267,11 @@ pub struct AutopilotStatus {
 }
 
 /// The highest gap-free `seq` of a vehicle the server has assimilated.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Ack {
+    /// Whose batches.
     pub vehicle: VehicleId,
+    /// The highest `seq` such that every batch up to it is assimilated (journalled): the vehicle may drop them.
     pub seq: u64,
     /// The vehicle's sensor verdict when it is not ok ([`crate::health`]; absent: ok), so the
     /// vehicle knows, and says in its telemetry, that its readings are doubted.
@@ -255,13 +280,17 @@ pub struct Ack {
 }
 
 /// The model the server publishes on `model/latest`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct ModelUpdate {
+    /// The model's version: one more at every assimilated epoch.
     pub version: u64,
+    /// The newest epoch assimilated.
     pub epoch: u64,
     /// Step of the snapshot the amplitudes are fitted to (forecasts count from it).
     pub step: u64,
+    /// The model grid the per-cell arrays are on (row-major).
     pub grid: Grid,
+    /// Time between the model's snapshots (continuous-time eigenvalues are `ln(lambda) / dt`).
     pub dt: f64,
     /// Discrete-time eigenvalues `[re, im]`, one per mode.
     pub eigenvalues: Vec<[f64; 2]>,
@@ -273,23 +302,30 @@ pub struct ModelUpdate {
     /// rather than 54 at 384 x 768). The eigenvalues and amplitudes, raised to powers in a
     /// forecast, stay `f64`. The server keeps its own `f64` arrays (`estimate.npy`).
     #[serde(with = "floats")]
+    #[schemars(with = "floats::PackedSchema<f32>")]
     pub modes_re: Vec<f32>,
+    /// The modes' imaginary parts, as `modes_re`.
     #[serde(with = "floats")]
+    #[schemars(with = "floats::PackedSchema<f32>")]
     pub modes_im: Vec<f32>,
+    /// Each mode's amplitude `[re, im]` at `step`.
     pub amplitudes: Vec<[f64; 2]>,
     /// The newest fused estimate per cell (step `step`; the filter's posterior mean), which
     /// the modes alone do not hold (they leave out the filter's detail). Empty from a server
     /// that did not send it.
     #[serde(default, with = "floats")]
+    #[schemars(with = "floats::PackedSchema<f32>")]
     pub estimate: Vec<f32>,
     /// Per-cell error variance the newest estimate (step `step`) reports: the fusion's
     /// posterior variance.
     #[serde(with = "floats")]
+    #[schemars(with = "floats::PackedSchema<f32>")]
     pub variance: Vec<f32>,
     /// How many steps after `step` the forecast variance is for (the next boat step).
     pub forecast_steps: u64,
     /// Per-cell variance of the forecast `forecast_steps` ahead.
     #[serde(with = "floats")]
+    #[schemars(with = "floats::PackedSchema<f32>")]
     pub forecast_variance: Vec<f32>,
     /// The cells off the model grid (no data in the truth: land), ascending; their values
     /// above are zeros that stand for nothing. Absent from a server without them.
@@ -318,37 +354,49 @@ impl ModelUpdate {
 }
 
 /// One target of a plan: a sampling step of the vehicle.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Target {
+    /// The epoch the target is for.
     pub epoch: u64,
+    /// The mission step to sense at.
     pub step: u64,
     /// Where to be, metres `(x, y)`, and the sensing radius there (cells; 0 for aerials).
     pub position: [f64; 2],
+    /// The sensing radius there, cells (0 for aerials).
     pub radius: f64,
     /// What to sense there: a boat's disk, an aerial's region of the coarse lattice (flat grid
     /// indices, on the wire as runs; empty: nothing, the vehicle still reports for the epoch).
     #[serde(with = "cells")]
+    #[schemars(with = "cells::RunsSchema")]
     pub cells: Vec<u32>,
 }
 
 /// A vehicle's allocation from `epoch` on, for the next H epochs.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Plan {
+    /// Whose plan.
     pub vehicle: VehicleId,
+    /// The model version the plan was made from.
     pub model_version: u64,
+    /// The first epoch it covers.
     pub epoch: u64,
+    /// One target per sampling step, in step order.
     pub targets: Vec<Target>,
 }
 
 /// The server's own status on `server/status`: model version, counters and its view of the
 /// links.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct ServerStatus {
+    /// The model version published last.
     pub version: u64,
     /// The epoch the server waits for next, and whether the mission is done.
     pub next_epoch: u64,
+    /// Whether every epoch of the mission is assimilated.
     pub finished: bool,
+    /// Batches taken (first copies, replays from the journal included).
     pub batches: u64,
+    /// Batches received again after they were taken (a vehicle resending before its ack).
     pub duplicates: u64,
     /// Refusals by reason.
     pub rejected: std::collections::BTreeMap<String, u64>,
@@ -357,9 +405,12 @@ pub struct ServerStatus {
     /// Vehicles whose batch for the next epoch is missing (the lag), and epochs waiting
     /// complete or in part behind it.
     pub waiting_for: Vec<VehicleId>,
+    /// Epochs with batches waiting behind the next one.
     pub pending_epochs: u64,
-    /// From the last batch of an epoch arriving to its model being published (ms).
+    /// The median time from the last batch of an epoch arriving to its model being published
+    /// (ms).
     pub latency_p50_ms: f64,
+    /// The 99th percentile of the same (ms).
     pub latency_p99_ms: f64,
     /// Each instrument-fed vehicle's readings (received, accepted, refused by kind), from its
     /// telemetry.
@@ -386,8 +437,9 @@ pub struct ServerStatus {
 }
 
 /// The hold-out's figures over a run.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct HoldoutScore {
+    /// Held-out readings scored.
     pub readings: usize,
     /// Mean squared difference between the held-out readings and the estimate.
     pub mse: f64,
@@ -411,8 +463,9 @@ pub struct HoldoutScore {
 }
 
 /// One decile of the held-out readings by reported variance.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct HeldDecile {
+    /// Readings in the decile.
     pub readings: usize,
     /// The mean variance the estimate reported at the readings' cells.
     pub variance: f64,
@@ -440,6 +493,7 @@ fn is_zero(n: &u64) -> bool {
     Ord,
     Serialize,
     Deserialize,
+    schemars::JsonSchema,
     strum::Display,
     strum::EnumString,
 )]
@@ -453,9 +507,11 @@ pub enum Health {
 }
 
 /// A sensor's verdict now, and why (empty when ok).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct SensorHealth {
+    /// The verdict.
     pub state: Health,
+    /// Why, in words (empty when ok).
     #[serde(default, skip_serializing_if = "String::is_empty")]
     pub reason: String,
 }
@@ -475,16 +531,20 @@ pub struct SensorVerdict<V = VehicleId> {
 /// as it came; `excluded`: withheld), `None` hands it back to the tests. Sent by the ground
 /// station's seat on `server/sensor/<vehicle>`; the server journals it and re-fits from its
 /// step when that is already in the model.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct SensorOverride {
+    /// Whose sensor.
     pub vehicle: VehicleId,
+    /// The first step the verdict holds from.
     pub from_step: u64,
+    /// The verdict pinned (`ok` or `excluded`), or absent to hand the sensor back to the tests.
     pub set: Option<Health>,
 }
 
 /// How much the model was worth in one epoch, as the filter measured it (no truth needed).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct EpochSkill {
+    /// The epoch measured.
     pub epoch: u64,
     /// The forecast's skill against the aerials' lattice over the epoch's steps: 1 - (its mean
     /// squared error there, less the aerials' noise) / (the lattice values' variance). 1 is a
@@ -496,7 +556,7 @@ pub struct EpochSkill {
 }
 
 /// Every message, tagged by `type`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(tag = "type", rename_all = "kebab-case")]
 pub enum Body {
     Batch(MeasurementBatch),

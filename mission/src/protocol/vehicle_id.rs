@@ -25,6 +25,20 @@ impl VehicleId {
     }
 }
 
+/// On the wire a string, of the characters and length [`keys::check_id`] takes.
+impl schemars::JsonSchema for VehicleId {
+    fn inline_schema() -> bool {
+        true
+    }
+    fn schema_name() -> std::borrow::Cow<'static, str> {
+        "VehicleId".into()
+    }
+    fn json_schema(_: &mut schemars::SchemaGenerator) -> schemars::Schema {
+        let pattern = format!("^[A-Za-z0-9_-]{{1,{}}}$", keys::MAX_ID_LEN);
+        schemars::json_schema!({ "type": "string", "pattern": pattern })
+    }
+}
+
 impl TryFrom<String> for VehicleId {
     /// What is wrong with it, beginning [`VehicleId::REFUSED`] (serde carries it as text).
     type Error = String;

@@ -5,6 +5,9 @@
 //! page cannot miss one, and a test compares the page in the repository with what this module
 //! makes of the types now.
 
+mod protocol;
+pub use protocol::{protocol_markdown, undocumented as undocumented_protocol};
+
 use schemars::Schema;
 use serde_json::{Map, Value};
 use std::fmt::Write as _;
@@ -333,6 +336,20 @@ fn compact(v: &Value) -> String {
     }
 }
 
+/// That `docs/reference/<page>` is `made`, what `fleet reference <command>` prints.
+#[cfg(test)]
+fn assert_page_is(page: &str, made: &str, command: &str) {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../docs/reference")
+        .join(page);
+    let committed = std::fs::read_to_string(&path).unwrap_or_default();
+    assert!(
+        committed == made,
+        "{} is not what the types say: make it again with `fleet reference {command} > docs/reference/{page}`",
+        path.display()
+    );
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -356,12 +373,6 @@ mod tests {
     /// redocumented without the page made again fails here.
     #[test]
     fn the_files_reference_is_the_types() {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/reference/files.md");
-        let committed = std::fs::read_to_string(&path).unwrap_or_default();
-        assert!(
-            committed == files_markdown(),
-            "{} is not what the types say: make it again with `fleet reference files > docs/reference/files.md`",
-            path.display()
-        );
+        assert_page_is("files.md", &files_markdown(), "files");
     }
 }
