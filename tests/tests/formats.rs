@@ -445,6 +445,67 @@ print('ok')
         err.contains("recording.mcap") && err.trim().lines().count() == 1,
         "{err}"
     );
+    a_run_that_stopped_exports_the_steps_it_made(&out, &dir);
+}
+
+/// A server stopped mid-mission leaves its steps in the `.part` files (written with the
+/// server's own [`StepFile`]), and no summary; stopped between its two files' writes, the
+/// variance has one step more. `fleet export` writes the steps both hold, each the run's own
+/// value, says so, and refuses the readings (whose flags only the summary holds) in one line.
+fn a_run_that_stopped_exports_the_steps_it_made(out: &Path, dir: &Path) {
+    use fleet_mission::step_file::StepFile;
+    let stopped = dir.join("stopped");
+    std::fs::create_dir_all(stopped.join("state")).unwrap();
+    for f in ["mission.toml", "truth.npy", "plans.json", "state/tiny.redb"] {
+        std::fs::copy(out.join(f), stopped.join(f)).unwrap();
+    }
+    let (made, cells) = (17, 24 * 48);
+    for (name, steps) in [("estimate", made), ("variance", made + 1)] {
+        let whole = fleet::npy::read(out.join(format!("{name}.npy"))).unwrap();
+        let mut part = StepFile::create(stopped.join(format!("{name}.npy.part")), 24, 48).unwrap();
+        for k in 0..steps {
+            part.append(whole.data[k * cells..(k + 1) * cells].iter().copied())
+                .unwrap();
+        }
+    }
+    let nc = dir.join("stopped.nc");
+    let o = run(
+        "fleet",
+        &["export", stopped.to_str().unwrap(), "--netcdf", nc.to_str().unwrap()],
+    );
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        said.contains("stopped before the mission's end") && said.contains("the 17 steps"),
+        "{said}"
+    );
+    let said = python(&format!(
+        "import numpy as np, xarray as xr
+ds = xr.open_dataset({nc:?})
+assert ds.sizes['time'] == 17 and 'stopped before' in ds.attrs['summary'], (dict(ds.sizes), ds.attrs['summary'])
+want = np.load({out:?} + '/estimate.npy')[:17]
+assert np.array_equal(ds.estimate.values, want.astype(np.float32), equal_nan=True)
+print('ok')
+"
+    ));
+    assert!(said.starts_with("ok"), "{said}");
+    let readings = dir.join("stopped-readings.nc");
+    let o = run(
+        "fleet",
+        &[
+            "export",
+            stopped.to_str().unwrap(),
+            "--readings",
+            readings.to_str().unwrap(),
+        ],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("quality flags") && err.trim().lines().count() == 1,
+        "{err}"
+    );
+    assert!(!readings.exists());
 }
 
 #[test]

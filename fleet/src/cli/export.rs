@@ -1,4 +1,5 @@
-//! `fleet export <run-dir>`: a finished run as NetCDF, GeoTIFF and QGroundControl plans.
+//! `fleet export <run-dir>`: a run as NetCDF, GeoTIFF and QGroundControl plans; a run whose
+//! server stopped before the mission's end, as far as it went.
 
 use anyhow::Result;
 use fleet::export::{self, ExportError, Run};
@@ -40,6 +41,14 @@ pub fn run(args: Args) -> Result<()> {
         )));
     }
     let run = Run::load(&args.run_dir).map_err(classify)?;
+    if !run.finished {
+        println!(
+            "{}: the model server stopped before the mission's end (no estimate.npy): exporting the {} steps \
+             it made, from estimate.npy.part and variance.npy.part",
+            args.run_dir.display(),
+            run.estimate.steps
+        );
+    }
     if let Some(path) = &args.netcdf {
         export::netcdf::write(&run, path).map_err(classify)?;
         println!(

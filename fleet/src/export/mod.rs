@@ -130,7 +130,11 @@ impl RunTime {
 pub struct Run {
     pub dir: PathBuf,
     pub mission: MissionConfig,
-    pub summary: ServerSummary,
+    /// The server's account of the run (`None`: it stopped before the mission's end).
+    pub summary: Option<ServerSummary>,
+    /// Whether the server wrote the run's outputs (else the steps are those it made before it
+    /// stopped).
+    pub finished: bool,
     pub grid: Grid,
     pub site: Site,
     pub estimate: Steps,
@@ -144,8 +148,10 @@ impl Run {
     pub fn step_s(&self) -> f64 {
         match self.mission.clock() {
             Some(c) => c.step_s,
-            None if self.summary.dt > 0.0 => self.summary.dt,
-            None => 1.0,
+            None => match self.summary.as_ref().map_or(0.0, |s| s.dt) {
+                dt if dt > 0.0 => dt,
+                _ => 1.0,
+            },
         }
     }
 
@@ -160,84 +166,45 @@ impl Run {
         Some(fleet_mission::instrument::MissionClock::rfc3339(c.time_of(k as u64)))
     }
 
+    /// A run directory read and checked: a finished run's, or one whose server stopped before
+    /// the mission's end, which leaves its steps in the `.part` files (written as they were
+    /// made) and no summary: its steps are exported all the same.
     pub fn load(dir: &Path) -> Result<Self> {
-        let need = |name: &'static str| {
-            let p = dir.join(name);
-            if p.is_file() {
-                Ok(p)
-            } else {
-                Err(ExportError::Missing {
-                    dir: dir.into(),
-                    what: name,
-                })
-            }
-        };
-        let bad = |path: &Path, why: String| ExportError::Bad { path: path.into(), why };
-        let mission_path = need("mission.toml")?;
+        let files = RunFiles(dir);
+        let mission_path = files.need("mission.toml")?;
         let text = std::fs::read_to_string(&mission_path).map_err(|e| bad(&mission_path, e.to_string()))?;
         let mission = MissionConfig::from_toml(&text).map_err(|e| bad(&mission_path, e.to_string()))?;
-        let summary_path = need("summary.json")?;
-        let summary: ServerSummary = std::fs::read(&summary_path)
-            .map_err(|e| e.to_string())
-            .and_then(|b| serde_json::from_slice(&b).map_err(|e| e.to_string()))
-            .map_err(|why| bad(&summary_path, why))?;
-        let read = |name: &'static str| -> Result<(Vec<usize>, Vec<f64>)> {
-            let p = need(name)?;
-            let a = npy::read(&p).map_err(|e| bad(&p, e.to_string()))?;
-            // NaN is a cell without a value (land, no data); an infinity is a broken file.
-            if let Some(i) = a.data.iter().position(|v| v.is_infinite()) {
-                return Err(bad(&p, format!("value {i} is {}", a.data[i])));
-            }
-            Ok((a.shape, a.data))
-        };
-        let (shape, estimate) = read("estimate.npy")?;
-        let &[steps, rows, cols] = shape.as_slice() else {
-            return Err(bad(
-                &dir.join("estimate.npy"),
-                format!("expected shape (steps, rows, cols), found {shape:?}"),
-            ));
-        };
-        let grid = Grid::new(rows, cols, 1.0).map_err(|e| bad(&dir.join("estimate.npy"), e.to_string()))?;
-        let (vshape, variance) = read("variance.npy")?;
-        if vshape != shape {
-            return Err(bad(
-                &dir.join("variance.npy"),
-                format!("shape {vshape:?} differs from estimate.npy's {shape:?}"),
-            ));
-        }
-        if steps == 0 {
-            return Err(bad(
-                &dir.join("estimate.npy"),
-                "no steps: the run assimilated nothing".into(),
-            ));
-        }
-        let truth = match dir.join("truth.npy").is_file() {
+        let names = Self::step_files(dir);
+        let finished = names[0] == "estimate.npy";
+        let summary = match finished || dir.join("summary.json").is_file() {
+            true => Some(files.summary()?),
             false => None,
-            true => {
-                let (tshape, data) = read("truth.npy")?;
-                if tshape.len() != 3 || tshape[1..] != shape[1..] || tshape[0] < steps {
-                    return Err(bad(
-                        &dir.join("truth.npy"),
-                        format!("shape {tshape:?} does not cover estimate.npy's {shape:?}"),
-                    ));
-                }
-                Some(Steps {
-                    steps,
-                    data: data[..steps * grid.len()].to_vec(),
-                })
-            }
         };
+        let (grid, [estimate, variance]) = files.fields(names, finished)?;
+        let truth = files.truth(&grid, estimate.steps)?;
         let site = mission.mavlink.site(&grid);
         Ok(Self {
             dir: dir.into(),
             mission,
             summary,
+            finished,
             grid,
             site,
-            estimate: Steps { steps, data: estimate },
-            variance: Steps { steps, data: variance },
+            estimate,
+            variance,
             truth,
         })
+    }
+
+    /// The estimate's and variance's files: a finished run's, else those a server still
+    /// running, or stopped before the mission's end, is writing.
+    fn step_files(dir: &Path) -> [&'static str; 2] {
+        let finished = ["estimate.npy", "variance.npy"];
+        let part = ["estimate.npy.part", "variance.npy.part"];
+        match !dir.join(finished[0]).is_file() && dir.join(part[0]).is_file() {
+            true => part,
+            false => finished,
+        }
     }
 
     /// The plans the server published (`plans.json`).
@@ -346,8 +313,105 @@ impl Run {
             ("seed", t.seed.to_string()),
             ("fusion", name(serde_json::to_value(t.fusion).unwrap_or_default())),
             ("placement", name(serde_json::to_value(t.placement).unwrap_or_default())),
-            ("model_version", self.summary.model_version.to_string()),
+            (
+                "model_version",
+                self.summary
+                    .as_ref()
+                    .map_or("unknown".into(), |s| s.model_version.to_string()),
+            ),
             ("source", format!("hetfleet {} (fleet up)", env!("CARGO_PKG_VERSION"))),
         ]
+    }
+}
+
+/// A file of a run directory at fault, and why.
+fn bad(path: &Path, why: String) -> ExportError {
+    ExportError::Bad { path: path.into(), why }
+}
+
+/// The files of a run directory, each read and checked as [`Run::load`] needs it.
+struct RunFiles<'a>(&'a Path);
+
+impl RunFiles<'_> {
+    fn need(&self, name: &'static str) -> Result<PathBuf> {
+        let p = self.0.join(name);
+        match p.is_file() {
+            true => Ok(p),
+            false => Err(ExportError::Missing {
+                dir: self.0.into(),
+                what: name,
+            }),
+        }
+    }
+
+    fn summary(&self) -> Result<ServerSummary> {
+        let path = self.need("summary.json")?;
+        std::fs::read(&path)
+            .map_err(|e| e.to_string())
+            .and_then(|b| serde_json::from_slice(&b).map_err(|e| e.to_string()))
+            .map_err(|why| bad(&path, why))
+    }
+
+    /// A `(steps, rows, cols)` array: its shape and values.
+    fn array(&self, name: &'static str) -> Result<(Vec<usize>, Vec<f64>)> {
+        let p = self.need(name)?;
+        let a = npy::read(&p).map_err(|e| bad(&p, e.to_string()))?;
+        // NaN is a cell without a value (land, no data); an infinity is a broken file.
+        if let Some(i) = a.data.iter().position(|v| v.is_infinite()) {
+            return Err(bad(&p, format!("value {i} is {}", a.data[i])));
+        }
+        Ok((a.shape, a.data))
+    }
+
+    /// The estimate and its variance, and the grid they are on.
+    fn fields(&self, [estimate_name, variance_name]: [&'static str; 2], finished: bool) -> Result<(Grid, [Steps; 2])> {
+        let (shape, mut estimate) = self.array(estimate_name)?;
+        let &[made, rows, cols] = shape.as_slice() else {
+            return Err(bad(
+                &self.0.join(estimate_name),
+                format!("expected shape (steps, rows, cols), found {shape:?}"),
+            ));
+        };
+        let grid = Grid::new(rows, cols, 1.0).map_err(|e| bad(&self.0.join(estimate_name), e.to_string()))?;
+        let (vshape, mut variance) = self.array(variance_name)?;
+        if vshape.get(1..) != shape.get(1..) || (finished && vshape != shape) {
+            return Err(bad(
+                &self.0.join(variance_name),
+                format!("shape {vshape:?} differs from {estimate_name}'s {shape:?}"),
+            ));
+        }
+        // A server stopped between its two files' writes of a step has one more in the first.
+        let steps = made.min(vshape[0]);
+        if steps == 0 {
+            return Err(bad(
+                &self.0.join(estimate_name),
+                "no steps: the run assimilated nothing".into(),
+            ));
+        }
+        estimate.truncate(steps * grid.len());
+        variance.truncate(steps * grid.len());
+        let steps_of = |data| Steps { steps, data };
+        Ok((grid, [steps_of(estimate), steps_of(variance)]))
+    }
+
+    /// The truth's first `steps` frames, in a mixed-reality run.
+    fn truth(&self, grid: &Grid, steps: usize) -> Result<Option<Steps>> {
+        if !self.0.join("truth.npy").is_file() {
+            return Ok(None);
+        }
+        let (shape, data) = self.array("truth.npy")?;
+        if shape.len() != 3 || shape[1..] != [grid.rows, grid.cols] || shape[0] < steps {
+            return Err(bad(
+                &self.0.join("truth.npy"),
+                format!(
+                    "shape {shape:?} does not cover the estimate's ({steps}, {}, {})",
+                    grid.rows, grid.cols
+                ),
+            ));
+        }
+        Ok(Some(Steps {
+            steps,
+            data: data[..steps * grid.len()].to_vec(),
+        }))
     }
 }

@@ -51,13 +51,18 @@ fn define(nc: &mut Nc4, run: &Run) -> Result<(), Error> {
     fields(nc, run, &[time, y, x])?;
     let summary = format!(
         "The fused estimate of a field and its reported variance at each of the {} steps of hetfleet mission {}: \
-         aerial frames and boat samples assimilated by a DMD model in a Kalman filter{}.",
+         aerial frames and boat samples assimilated by a DMD model in a Kalman filter{}.{}",
         run.estimate.steps,
         run.mission.mission,
         if run.truth.is_some() {
             ", beside the truth the vehicles sensed"
         } else {
             ""
+        },
+        if run.finished {
+            ""
+        } else {
+            " The model server stopped before the mission's end: these are the steps it made."
         }
     );
     let title = format!("hetfleet fused field of mission {}", run.mission.mission);

@@ -53,6 +53,16 @@ pub fn journal_path(run: &Run) -> PathBuf {
 
 /// Every boat of the mission with what its journalled batches hold, in the mission's order.
 pub fn tracks(run: &Run) -> Result<Vec<Track>, ExportError> {
+    // The flags are the server's verdicts, which only its summary holds: a run whose server
+    // stopped before the end has none, and a flag is never guessed.
+    let Some(summary) = &run.summary else {
+        return Err(ExportError::Bad {
+            path: run.dir.join("summary.json"),
+            why: "missing: the server stopped before the mission's end, so the readings' quality flags \
+                  (its sensor verdicts) are not known; the readings are in state/<id>.readings.ndjson and the journal"
+                .into(),
+        });
+    };
     let path = journal_path(run);
     if !path.is_file() {
         return Err(ExportError::Missing {
@@ -82,7 +92,7 @@ pub fn tracks(run: &Run) -> Result<Vec<Track>, ExportError> {
             continue;
         };
         match protocol::decode(&bytes, &ctx) {
-            Ok(Body::Batch(b)) => t.readings.extend(readings_of(run, &b)),
+            Ok(Body::Batch(b)) => t.readings.extend(readings_of(run, &summary.sensor_verdicts, &b)),
             Ok(_) => {}
             Err(e) => return Err(bad(format!("message {seq} of {vehicle}: {e}"))),
         }
@@ -94,9 +104,13 @@ pub fn tracks(run: &Run) -> Result<Vec<Track>, ExportError> {
 }
 
 /// The values of one batch, each with its sigma and the boat's verdict at its step.
-fn readings_of<'a>(run: &'a Run, batch: &'a MeasurementBatch) -> impl Iterator<Item = Reading> + 'a {
+fn readings_of<'a>(
+    run: &'a Run,
+    verdicts: &'a [SensorVerdict],
+    batch: &'a MeasurementBatch,
+) -> impl Iterator<Item = Reading> + 'a {
     batch.samples.iter().flat_map(move |s| {
-        let flag = verdict_at(&run.summary.sensor_verdicts, &batch.vehicle, s.step);
+        let flag = verdict_at(verdicts, &batch.vehicle, s.step);
         s.cells
             .iter()
             .zip(&s.values)
