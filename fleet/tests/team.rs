@@ -39,7 +39,7 @@ fn tiny_config() -> TeamConfig {
 /// docs/results/README.md, "Where they hold"), so that verdict is asserted for inverse-variance only.
 #[test]
 fn over_ten_seeds_the_heterogeneous_team_beats_both_single_kind_teams() {
-    use fleet::experiment::stats::{Interval, Verdict};
+    use fleet::experiment::stats::{Interval, Outcome};
     use fleet::fusion::Scheme;
     let truth = tiny_cloud();
     for fusion in [Scheme::InverseVariance, Scheme::Kalman] {
@@ -82,12 +82,12 @@ fn over_ten_seeds_the_heterogeneous_team_beats_both_single_kind_teams() {
         println!(
             "{fusion}, 10 seeds, paired differences [95%]: heterogeneous - aerial-only {a:?}; heterogeneous - \
             boat-only {b:?}; QR - random {q:?} ({})",
-            Verdict::of(&q).words()
+            Outcome::of(&q).words()
         );
-        assert_eq!(Verdict::of(&a), Verdict::Better, "{fusion}: against aerial-only");
-        assert_eq!(Verdict::of(&b), Verdict::Better, "{fusion}: against boat-only");
+        assert_eq!(Outcome::of(&a), Outcome::Better, "{fusion}: against aerial-only");
+        assert_eq!(Outcome::of(&b), Outcome::Better, "{fusion}: against boat-only");
         if fusion == Scheme::InverseVariance {
-            assert_eq!(Verdict::of(&q), Verdict::Better, "QR disks against random ones");
+            assert_eq!(Outcome::of(&q), Outcome::Better, "QR disks against random ones");
         }
     }
 }
@@ -150,7 +150,7 @@ fn the_oracle_puts_disks_where_the_error_is() {
 /// skill they measure is lower, and the margin fell to -6e-4 [-1.3e-3, 4e-5].)
 #[test]
 fn boats_sent_where_the_error_is_do_at_least_as_well_as_qr() {
-    use fleet::experiment::stats::{Interval, Verdict};
+    use fleet::experiment::stats::{Interval, Outcome};
     use fleet::experiment::team::run_oracle;
     let truth = tiny_cloud();
     let (mut qr, mut oracle) = (vec![], vec![]);
@@ -165,5 +165,5 @@ fn boats_sent_where_the_error_is_do_at_least_as_well_as_qr() {
     }
     let d = Interval::paired(&oracle, &qr);
     println!("oracle - QR, 10 seeds [95%]: {d:?}");
-    assert!(d.mean < 0.0 && Verdict::of(&d) != Verdict::Worse, "{d:?}");
+    assert!(d.mean < 0.0 && Outcome::of(&d) != Outcome::Worse, "{d:?}");
 }

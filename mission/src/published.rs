@@ -92,9 +92,17 @@ pub struct Published {
     pub handed_out: Option<std::time::Instant>,
 }
 
-/// What a published model was made of: the model's version, the next epoch, and the steps in
-/// the history.
-pub(crate) type Made = (u64, u64, usize);
+/// What a published model was made of: a model published earlier is still current while these
+/// are the same.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Made {
+    /// The model's version.
+    pub(crate) version: u64,
+    /// The epoch the server waits for next.
+    pub(crate) next_epoch: u64,
+    /// Steps in the history (a re-fit of the same epoch can change them).
+    pub(crate) steps: usize,
+}
 
 /// The published model's modes: made (a model that came whole), or still in the model.
 #[derive(Debug, Clone)]
@@ -173,7 +181,12 @@ mod tests {
             land: vec![3],
             level: 0.0,
         };
-        let p = Published::of(update.clone(), (3, 3, 41));
+        let made = Made {
+            version: 3,
+            next_epoch: 3,
+            steps: 41,
+        };
+        let p = Published::of(update.clone(), made);
         let ctx = protocol::Context::new(grid);
         let lean = ModelUpdate {
             modes_re: vec![],

@@ -1247,7 +1247,11 @@ impl ServerCore {
     }
 
     fn made(&self) -> Made {
-        (self.version, self.epoch, self.history.len())
+        Made {
+            version: self.version,
+            next_epoch: self.epoch,
+            steps: self.history.len(),
+        }
     }
 
     /// The model as published on `model/latest` and its encoding, taken out to send: the one

@@ -12,7 +12,7 @@ use std::net::UdpSocket;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use vehicles::autopilot::modes::{Frame, Role};
+use vehicles::autopilot::modes::{Control, Frame};
 use vehicles::autopilot::serve;
 use vehicles::autopilot::sim::{SimAutopilot, SimSpec};
 use vehicles::bridge::{Bridge, BridgeSpec};
@@ -110,7 +110,7 @@ fn a_boat_driven_out_of_its_fence_leaves_the_allocation_and_comes_back_guided_an
         &MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
             command: MavCmd::MAV_CMD_DO_SET_MODE,
             param1: 1.0,
-            param2: Frame::Boat.mode(Role::Guided) as f32,
+            param2: Frame::Boat.mode(Control::Guided) as f32,
             target_system: 7,
             target_component: 1,
             ..Default::default()

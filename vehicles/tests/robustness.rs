@@ -14,7 +14,7 @@ use std::net::UdpSocket;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use vehicles::autopilot::modes::{Frame, Role};
+use vehicles::autopilot::modes::{Control, Frame};
 use vehicles::autopilot::serve;
 use vehicles::autopilot::sim::{SimAutopilot, SimSpec};
 use vehicles::bridge::{Bridge, BridgeSpec};
@@ -326,7 +326,7 @@ fn a_lost_mode_change_is_asked_again_until_the_autopilot_shows_it() {
     let mode = heartbeats(&ap, peer, GUIDED);
     wait_for("link up in GUIDED", 3.0, || bridge.drivable());
 
-    assert!(bridge.failsafe(Role::Return, "ground link lost"));
+    assert!(bridge.failsafe(Control::Return, "ground link lost"));
     // The autopilot never hears it (a lost datagram): still GUIDED, asked again.
     let asked = mode_requests(&ap, RTL, 4.5, None);
     assert!(

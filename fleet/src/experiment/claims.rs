@@ -4,7 +4,7 @@
 //! rather than a verdict a reader must assemble from four tables.
 
 use super::paper::{Comparison, AERIAL_ONLY, BOAT_ONLY, HETEROGENEOUS, RANDOM};
-use super::stats::{Interval, Verdict};
+use super::stats::{Interval, Outcome};
 use serde::Serialize;
 use std::collections::BTreeMap;
 
@@ -59,33 +59,33 @@ pub fn of(
             "fused below aerial-only (fused - aerial-only)",
             HETEROGENEOUS,
             AERIAL_ONLY,
-            &[Verdict::Better],
+            &[Outcome::Better],
         ),
         relative.check(
             "fused below boat-only (fused - boat-only)",
             HETEROGENEOUS,
             BOAT_ONLY,
-            &[Verdict::Better],
+            &[Outcome::Better],
         ),
         relative.check(
             "fused below inverse-variance (inverse-variance - fused)",
             INVERSE_VARIANCE,
             HETEROGENEOUS,
-            &[Verdict::Worse],
+            &[Outcome::Worse],
         ),
         steps_check(steps_won.get(HETEROGENEOUS).copied()),
     ];
     for (label, team) in [("QR", HETEROGENEOUS), ("random", RANDOM), ("horizon", HORIZON)] {
         checks.push(decile_check(label, reliability.get(team)));
     }
-    let not_worse = [Verdict::Better, Verdict::NotDistinguishable];
+    let not_worse = [Outcome::Better, Outcome::NotDistinguishable];
     checks.push(relative.check(
         "horizon at least as good as random (horizon - random)",
         HORIZON,
         RANDOM,
         &not_worse,
     ));
-    checks.push(relative.check(HORIZON_OVER_QR, HORIZON, HETEROGENEOUS, &[Verdict::Better]));
+    checks.push(relative.check(HORIZON_OVER_QR, HORIZON, HETEROGENEOUS, &[Outcome::Better]));
     checks
 }
 
@@ -99,7 +99,7 @@ impl Relative<'_> {
     /// The claim holds when `first - second`'s verdict is one of `wanted`; the evidence is the
     /// difference in percent of `second`'s mean with its interval (the claim's words name the
     /// difference).
-    fn check(&self, claim: &str, first: &str, second: &str, wanted: &[Verdict]) -> Check {
+    fn check(&self, claim: &str, first: &str, second: &str, wanted: &[Outcome]) -> Check {
         let found = self.comparisons.iter().find(|c| c.first == first && c.second == second);
         let (Some(c), Some(base)) = (found, self.teams.get(second)) else {
             return Check {
@@ -158,7 +158,7 @@ mod tests {
             first: first.into(),
             second: second.into(),
             difference: d,
-            verdict: Verdict::of(&d),
+            verdict: Outcome::of(&d),
         }
     }
 

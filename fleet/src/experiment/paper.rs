@@ -7,7 +7,7 @@
 
 use super::claims;
 use super::faults::{self, FaultKind, FaultRun};
-use super::stats::{Interval, Verdict as StatVerdict};
+use super::stats::{Interval, Outcome};
 use super::team::{self, Placement, TeamConfig, TeamOutcome};
 use super::{dominant_continuous, eig_study, run_online};
 use crate::dmd::{DmdConfig, Method, RankPolicy};
@@ -342,7 +342,7 @@ pub struct Comparison {
     pub first: String,
     pub second: String,
     pub difference: Interval,
-    pub verdict: StatVerdict,
+    pub verdict: Outcome,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -438,18 +438,18 @@ pub struct Results {
     pub rows: Vec<RowResult>,
     pub eig_study: Vec<EigBox>,
     pub forgetting: Vec<ForgettingCurve>,
-    pub verdict: Verdict,
+    pub verdict: PaperClaims,
 }
 
 /// The two claims the paper makes, checked on the most complex preset run: each verdict read
 /// from the 95% interval of the paired difference over seeds.
 #[derive(Debug, Clone, Serialize)]
-pub struct Verdict {
+pub struct PaperClaims {
     /// The row's truth (the most complex preset run, else the first dataset).
     pub preset: Option<String>,
-    pub heterogeneous_vs_aerial_only: Option<StatVerdict>,
-    pub heterogeneous_vs_boat_only: Option<StatVerdict>,
-    pub qr_vs_random: Option<StatVerdict>,
+    pub heterogeneous_vs_aerial_only: Option<Outcome>,
+    pub heterogeneous_vs_boat_only: Option<Outcome>,
+    pub qr_vs_random: Option<Outcome>,
 }
 
 fn rank_of(p: Preset) -> u8 {
@@ -766,7 +766,7 @@ fn comparisons_of(cfg: &ExperimentConfig, of: &impl Fn(&str) -> Vec<f64>) -> Vec
             first: a.into(),
             second: b.into(),
             difference: d,
-            verdict: StatVerdict::of(&d),
+            verdict: Outcome::of(&d),
         }
     };
     let mut comparisons = vec![
@@ -889,7 +889,7 @@ fn forgetting_curves(cfg: &ExperimentConfig, progress: &impl Fn(&str)) -> anyhow
 }
 
 /// What the paired intervals say on the most complex cloud's first row.
-fn verdict_of(rows: &[RowResult]) -> Verdict {
+fn verdict_of(rows: &[RowResult]) -> PaperClaims {
     let top = rows
         .iter()
         .filter_map(|r| r.row.truth.preset())
@@ -904,7 +904,7 @@ fn verdict_of(rows: &[RowResult]) -> Verdict {
             .find(|c| c.first == HETEROGENEOUS && c.second == second)
             .map(|c| c.verdict)
     };
-    Verdict {
+    PaperClaims {
         preset: first_of_top.map(|r| r.row.name()),
         heterogeneous_vs_aerial_only: first_of_top.and_then(|r| verdict_of(r, AERIAL_ONLY)),
         heterogeneous_vs_boat_only: first_of_top.and_then(|r| verdict_of(r, BOAT_ONLY)),

@@ -62,7 +62,7 @@ impl Interval {
 /// What a paired difference `first - second` of errors says: lower is better.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
-pub enum Verdict {
+pub enum Outcome {
     /// The interval lies below 0: the first has the lower error.
     Better,
     /// Above 0.
@@ -71,7 +71,7 @@ pub enum Verdict {
     NotDistinguishable,
 }
 
-impl Verdict {
+impl Outcome {
     pub fn of(d: &Interval) -> Self {
         if d.hi < 0.0 {
             Self::Better
@@ -103,12 +103,12 @@ mod tests {
         assert!((i.hi - 2.0 - 4.303 / 3f64.sqrt()).abs() < 1e-12);
         assert!((t975(31) - 2.0395).abs() < 1e-3 && (t975(1000) - 1.9623).abs() < 1e-3);
         assert_eq!(
-            Verdict::of(&Interval::paired(&[1.0, 1.1, 0.9], &[2.0, 2.2, 2.1])),
-            Verdict::Better
+            Outcome::of(&Interval::paired(&[1.0, 1.1, 0.9], &[2.0, 2.2, 2.1])),
+            Outcome::Better
         );
         assert_eq!(
-            Verdict::of(&Interval::paired(&[1.0, 2.0, 0.0], &[1.0, 1.0, 1.0])),
-            Verdict::NotDistinguishable
+            Outcome::of(&Interval::paired(&[1.0, 2.0, 0.0], &[1.0, 1.0, 1.0])),
+            Outcome::NotDistinguishable
         );
         assert!(
             Interval::of(&[5.0]).lo.is_infinite(),

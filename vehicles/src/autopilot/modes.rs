@@ -6,9 +6,9 @@
 
 use mavlink::dialects::ardupilotmega::MavType;
 
-/// What a mode means to the fleet and to the simulator.
+/// Who drives the vehicle in a mode: what a mode means to the fleet and to the simulator.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Role {
+pub enum Control {
     /// The fleet's planner sends guided targets.
     Guided,
     /// Flies the uploaded mission.
@@ -42,33 +42,33 @@ impl Frame {
     }
 
     /// (number, name, role) of the modes we know.
-    fn table(self) -> &'static [(u32, &'static str, Role)] {
+    fn table(self) -> &'static [(u32, &'static str, Control)] {
         match self {
             // ArduRover
             Self::Boat => &[
-                (0, "MANUAL", Role::Hold),
-                (4, "HOLD", Role::Hold),
-                (5, "LOITER", Role::Hold),
-                (10, "AUTO", Role::Auto),
-                (11, "RTL", Role::Return),
-                (12, "SMART_RTL", Role::Return),
-                (15, "GUIDED", Role::Guided),
+                (0, "MANUAL", Control::Hold),
+                (4, "HOLD", Control::Hold),
+                (5, "LOITER", Control::Hold),
+                (10, "AUTO", Control::Auto),
+                (11, "RTL", Control::Return),
+                (12, "SMART_RTL", Control::Return),
+                (15, "GUIDED", Control::Guided),
             ],
             // ArduCopter
             Self::Multirotor => &[
-                (0, "STABILIZE", Role::Hold),
-                (2, "ALT_HOLD", Role::Hold),
-                (3, "AUTO", Role::Auto),
-                (4, "GUIDED", Role::Guided),
-                (5, "LOITER", Role::Hold),
-                (6, "RTL", Role::Return),
-                (16, "POSHOLD", Role::Hold),
-                (17, "BRAKE", Role::Hold),
+                (0, "STABILIZE", Control::Hold),
+                (2, "ALT_HOLD", Control::Hold),
+                (3, "AUTO", Control::Auto),
+                (4, "GUIDED", Control::Guided),
+                (5, "LOITER", Control::Hold),
+                (6, "RTL", Control::Return),
+                (16, "POSHOLD", Control::Hold),
+                (17, "BRAKE", Control::Hold),
             ],
         }
     }
 
-    pub fn role(self, custom_mode: u32) -> Option<Role> {
+    pub fn role(self, custom_mode: u32) -> Option<Control> {
         self.table().iter().find(|m| m.0 == custom_mode).map(|m| m.2)
     }
 
@@ -80,7 +80,7 @@ impl Frame {
     }
 
     /// The mode a role is entered by (the first of the table with it).
-    pub fn mode(self, role: Role) -> u32 {
+    pub fn mode(self, role: Control) -> u32 {
         self.table()
             .iter()
             .find(|m| m.2 == role)
@@ -108,10 +108,13 @@ mod tests {
 
     #[test]
     fn modes_have_their_ardupilot_numbers() {
-        assert_eq!(Frame::Boat.mode(Role::Guided), 15);
-        assert_eq!(Frame::Multirotor.mode(Role::Guided), 4);
-        assert_eq!(Frame::Boat.role(4), Some(Role::Hold));
-        assert_eq!(Frame::Multirotor.role(Frame::Multirotor.hold_mode()), Some(Role::Hold));
+        assert_eq!(Frame::Boat.mode(Control::Guided), 15);
+        assert_eq!(Frame::Multirotor.mode(Control::Guided), 4);
+        assert_eq!(Frame::Boat.role(4), Some(Control::Hold));
+        assert_eq!(
+            Frame::Multirotor.role(Frame::Multirotor.hold_mode()),
+            Some(Control::Hold)
+        );
         assert_eq!(Frame::Boat.name(10), "AUTO");
         assert_eq!(Frame::Boat.role(99), None);
     }

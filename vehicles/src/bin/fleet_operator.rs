@@ -32,7 +32,7 @@ enum Command {
     Sensor {
         /// The vehicle's id.
         vehicle: String,
-        verdict: Verdict,
+        verdict: OperatorVerdict,
         /// The mission step it takes effect from (0: the whole mission).
         #[arg(long, default_value_t = 0)]
         from_step: u64,
@@ -40,7 +40,7 @@ enum Command {
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
-enum Verdict {
+enum OperatorVerdict {
     /// Trust every value as it came.
     Ok,
     /// Withhold its values from the model.
@@ -67,9 +67,9 @@ async fn run(args: Args) -> anyhow::Result<()> {
         vehicle: vehicle.parse().map_err(fleet_exit::bad_input)?,
         from_step,
         set: match verdict {
-            Verdict::Ok => Some(Health::Ok),
-            Verdict::Excluded => Some(Health::Excluded),
-            Verdict::Auto => None,
+            OperatorVerdict::Ok => Some(Health::Ok),
+            OperatorVerdict::Excluded => Some(Health::Excluded),
+            OperatorVerdict::Auto => None,
         },
     };
     if !mission.vehicles().iter().any(|v| v.id == o.vehicle) {

@@ -17,7 +17,7 @@ use super::named::NamedSource;
 use super::readiness::{self, is_arming_refusal};
 use super::ROUTE_INSET_M;
 use super::{airborne, guided, AutopilotState, BridgeSpec, Command, GcsSink, LinkCounters, COMPANION_COMPONENT};
-use crate::autopilot::modes::Role;
+use crate::autopilot::modes::Control;
 use crate::link::{frame_bytes, MavLink, Received};
 use crate::upload::{self, Upload};
 use fleet_mission::protocol::{AutopilotLink, AutopilotStatus};
@@ -434,7 +434,7 @@ impl Actor {
         let s = &mut self.state;
         s.sysid = u8::try_from(system_id).ok();
         // GUIDED ends a failsafe, unless it is a heartbeat sent before the failsafe's mode took.
-        if frame.role(hb.custom_mode) == Some(Role::Guided) && self.mode_request.is_none() {
+        if frame.role(hb.custom_mode) == Some(Control::Guided) && self.mode_request.is_none() {
             s.failsafe = None;
         }
         s.mode = Some(hb.custom_mode);
@@ -448,8 +448,10 @@ impl Actor {
     fn note_uncommanded(&mut self, mode: u32) {
         let frame = self.spec.vehicle.frame;
         let s = &mut self.state;
-        let left_guided = s.mode.is_some_and(|m| m != mode && frame.role(m) == Some(Role::Guided))
-            && frame.role(mode) != Some(Role::Guided);
+        let left_guided = s
+            .mode
+            .is_some_and(|m| m != mode && frame.role(m) == Some(Control::Guided))
+            && frame.role(mode) != Some(Control::Guided);
         if !left_guided {
             return;
         }
@@ -499,7 +501,7 @@ impl Actor {
                 self.state.failsafe = Some(why);
                 self.request_mode(target, mode);
             }
-            Command::Rejoin => self.request_mode(target, self.spec.vehicle.frame.mode(Role::Guided)),
+            Command::Rejoin => self.request_mode(target, self.spec.vehicle.frame.mode(Control::Guided)),
             Command::Forward(h, m) => {
                 if is_mode_change(&m) {
                     self.state.operator_mode = true;
@@ -672,7 +674,7 @@ impl Actor {
         if !self.prepared(target, second) {
             return;
         }
-        let guided_mode = self.spec.vehicle.frame.mode(Role::Guided);
+        let guided_mode = self.spec.vehicle.frame.mode(Control::Guided);
         let in_guided = self.state.mode == Some(guided_mode);
         let armed = self.state.armed;
         let ready = self.setup != Setup::NotAsked || self.ready_to_ask();

@@ -18,7 +18,7 @@ mod mode_request;
 mod named;
 pub mod readiness;
 
-use crate::autopilot::modes::{Frame, Role};
+use crate::autopilot::modes::{Control, Frame};
 use crate::autopilot::sim::SimSpec;
 use crate::link::{parse_frame, MavLink};
 use crate::signing::{LinkSigning, LINK_BRIDGE};
@@ -373,12 +373,12 @@ impl Driver {
 
     /// A failsafe of the vehicle's own (its link to the server lost): the autopilot to
     /// `role` (Return or Hold), and `why` in telemetry until it is back in GUIDED.
-    pub fn failsafe(&self, role: Role, why: &str) -> bool {
+    pub fn failsafe(&self, role: Control, why: &str) -> bool {
         if self.state.borrow().sysid.is_none() {
             return false;
         }
         let frame = self.spec.vehicle.frame;
-        let mode = if role == Role::Hold {
+        let mode = if role == Control::Hold {
             frame.hold_mode()
         } else {
             frame.mode(role)
@@ -403,5 +403,8 @@ fn airborne(spec: &BridgeSpec, s: &AutopilotState) -> bool {
 
 /// Whether the autopilot is armed and in GUIDED.
 fn guided(spec: &BridgeSpec, s: &AutopilotState) -> bool {
-    s.mode.is_some_and(|m| spec.vehicle.frame.role(m) == Some(Role::Guided)) && s.armed && s.breach.is_none()
+    s.mode
+        .is_some_and(|m| spec.vehicle.frame.role(m) == Some(Control::Guided))
+        && s.armed
+        && s.breach.is_none()
 }

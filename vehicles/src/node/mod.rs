@@ -26,7 +26,7 @@ use fleet_net::{zenoh, Role, Traffic};
 use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, watch};
 use tracing::{debug, info, warn};
-use vehicles::autopilot::modes::Role as Mode;
+use vehicles::autopilot::modes::Control;
 use vehicles::bridge::Bridge;
 use vehicles::sensor::Input;
 use zenoh::sample::SampleKind;
@@ -351,8 +351,8 @@ impl Vehicle {
     /// with the node.
     async fn end_action(&self) {
         let role = match self.mavlink.end_action.as_str() {
-            "rtl" => Mode::Return,
-            "hold" => Mode::Hold,
+            "rtl" => Control::Return,
+            "hold" => Control::Hold,
             _ => return,
         };
         let Some(b) = self.bridge.as_ref().filter(|b| b.drivable()) else {
@@ -379,8 +379,8 @@ impl Vehicle {
     fn check_link_loss(&mut self) {
         let m = &self.mavlink;
         let role = match m.link_loss_action.as_str() {
-            "rtl" => Mode::Return,
-            "hold" => Mode::Hold,
+            "rtl" => Control::Return,
+            "hold" => Control::Hold,
             _ => return,
         };
         let (Some(since), Some(b)) = (self.link_lost_at, &self.bridge) else {

@@ -37,7 +37,7 @@ impl SimAutopilot {
         let Some(role) = self.spec.frame.role(mode) else {
             return false;
         };
-        if role == Role::Auto && self.mode != mode {
+        if role == Control::Auto && self.mode != mode {
             if self.mission_run == Run::Complete {
                 // AUTO again after the end: from the start, as ArduPilot does.
                 self.current = self.first_item();
@@ -48,7 +48,7 @@ impl SimAutopilot {
             );
             self.mission_run = Run::Started;
         }
-        if role != Role::Guided {
+        if role != Control::Guided {
             self.goal = None;
         }
         self.mode = mode;
@@ -77,8 +77,8 @@ impl SimAutopilot {
             // this autopilot streams (at its own rates), unsupported for others.
             MAV_CMD_SET_MESSAGE_INTERVAL => STREAMED.contains(&(p[0] as u32)),
             MAV_CMD_DO_SET_MODE => self.set_mode(p[1] as u32),
-            MAV_CMD_NAV_RETURN_TO_LAUNCH => self.set_mode(self.spec.frame.mode(Role::Return)),
-            MAV_CMD_MISSION_START => self.mission.len() > 1 && self.set_mode(self.spec.frame.mode(Role::Auto)),
+            MAV_CMD_NAV_RETURN_TO_LAUNCH => self.set_mode(self.spec.frame.mode(Control::Return)),
+            MAV_CMD_MISSION_START => self.mission.len() > 1 && self.set_mode(self.spec.frame.mode(Control::Auto)),
             MAV_CMD_DO_PAUSE_CONTINUE if p[0] < 0.5 => {
                 self.mode_before_pause = Some(self.mode);
                 self.set_mode(self.spec.frame.hold_mode())
@@ -87,7 +87,7 @@ impl SimAutopilot {
                 let back = self
                     .mode_before_pause
                     .take()
-                    .unwrap_or(self.spec.frame.mode(Role::Guided));
+                    .unwrap_or(self.spec.frame.mode(Control::Guided));
                 self.set_mode(back)
             }
             MAV_CMD_DO_REPOSITION => {
@@ -106,7 +106,7 @@ impl SimAutopilot {
                     } else if self.fenced_out(&ned) {
                         false
                     } else {
-                        self.set_mode(self.spec.frame.mode(Role::Guided));
+                        self.set_mode(self.spec.frame.mode(Control::Guided));
                         self.goal = Some(ned);
                         true
                     }

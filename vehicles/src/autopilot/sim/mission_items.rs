@@ -184,7 +184,7 @@ impl SimAutopilot {
 
     /// In AUTO, the DO items at the current place in the sequence are done at once.
     pub(super) fn run_do_items(&mut self) {
-        while self.role() == Some(Role::Auto) {
+        while self.role() == Some(Control::Auto) {
             let Some(item) = self.mission.get(self.current as usize) else {
                 return;
             };

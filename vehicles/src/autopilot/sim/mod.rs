@@ -24,7 +24,7 @@ mod readiness;
 mod telemetry;
 
 use super::geofence::{Geofence, MAX_FENCE_ITEMS};
-use super::modes::{Frame, Role};
+use super::modes::{Control, Frame};
 use super::params;
 use super::safety::{Action, ARMED_DRAW_A, IDLE_DRAW_A, MAX_DRAW_A};
 pub use super::spec::{SimSpec, PIVOT_ANGLE_DEG};
@@ -160,7 +160,7 @@ impl SimAutopilot {
         }
     }
 
-    pub fn role(&self) -> Option<Role> {
+    pub fn role(&self) -> Option<Control> {
         self.spec.frame.role(self.mode)
     }
 
@@ -254,14 +254,14 @@ impl SimAutopilot {
                 self.set_mode(m.custom_mode);
             }
             MavMessage::SET_POSITION_TARGET_LOCAL_NED(t)
-                if self.role() == Some(Role::Guided) && t.coordinate_frame == MavFrame::MAV_FRAME_LOCAL_NED =>
+                if self.role() == Some(Control::Guided) && t.coordinate_frame == MavFrame::MAV_FRAME_LOCAL_NED =>
             {
                 // Relative to the EKF origin (none before the fix: nothing to be relative to).
                 if let Some(o) = self.ekf_origin {
                     self.guided_target(o + Vector3::new(t.x as f64, t.y as f64, t.z as f64));
                 }
             }
-            MavMessage::SET_POSITION_TARGET_GLOBAL_INT(t) if self.role() == Some(Role::Guided) => {
+            MavMessage::SET_POSITION_TARGET_GLOBAL_INT(t) if self.role() == Some(Control::Guided) => {
                 if let Some(p) = self.global_target(t) {
                     self.guided_target(p);
                 }

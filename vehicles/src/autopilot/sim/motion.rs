@@ -12,9 +12,9 @@ impl SimAutopilot {
             return None;
         }
         match self.role()? {
-            Role::Guided => self.goal,
-            Role::Auto => self.mission.get(self.current as usize).map(|i| self.item_position(i)),
-            Role::Return => {
+            Control::Guided => self.goal,
+            Control::Auto => self.mission.get(self.current as usize).map(|i| self.item_position(i)),
+            Control::Return => {
                 let back = self.at_altitude(self.return_point());
                 // ArduCopter's RTL: back at altitude over the return point, then down and land
                 // (`ArduCopter/mode_rtl.cpp`); a boat stops there.
@@ -24,7 +24,7 @@ impl SimAutopilot {
                     _ => back,
                 })
             }
-            Role::Hold => None,
+            Control::Hold => None,
         }
     }
 
@@ -57,7 +57,7 @@ impl SimAutopilot {
             }
             self.vel = (self.pos - before) / dt;
             moved += (self.pos - before).norm();
-            if reached && self.role() == Some(Role::Auto) {
+            if reached && self.role() == Some(Control::Auto) {
                 self.item_reached();
             }
             self.check_landed();
@@ -84,7 +84,7 @@ impl SimAutopilot {
             && self.armed
             && !self.landed
             && down
-            && self.role() == Some(Role::Return)
+            && self.role() == Some(Control::Return)
         {
             self.landed = true;
             self.armed = false;
@@ -116,7 +116,7 @@ impl SimAutopilot {
     /// A failsafe's action: the mode it calls for (none for `Continue`).
     pub(super) fn act_on(&mut self, action: Action) {
         match action {
-            Action::Rtl => self.set_mode(self.spec.frame.mode(Role::Return)),
+            Action::Rtl => self.set_mode(self.spec.frame.mode(Control::Return)),
             Action::Hold => self.set_mode(self.spec.frame.hold_mode()),
             Action::Continue => true,
         };

@@ -107,7 +107,7 @@ impl SimAutopilot {
         let ok = self.spec.frame == Frame::Multirotor
             && self.armed
             && self.landed
-            && self.role() == Some(Role::Guided)
+            && self.role() == Some(Control::Guided)
             && alt.is_finite()
             && alt > 0.0;
         if ok {

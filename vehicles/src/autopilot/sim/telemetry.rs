@@ -14,8 +14,8 @@ impl SimAutopilot {
             base |= MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED;
         }
         match self.role() {
-            Some(Role::Guided) => base |= MavModeFlag::MAV_MODE_FLAG_GUIDED_ENABLED,
-            Some(Role::Auto) => {
+            Some(Control::Guided) => base |= MavModeFlag::MAV_MODE_FLAG_GUIDED_ENABLED,
+            Some(Control::Auto) => {
                 base |= MavModeFlag::MAV_MODE_FLAG_AUTO_ENABLED | MavModeFlag::MAV_MODE_FLAG_GUIDED_ENABLED
             }
             _ => {}
@@ -114,7 +114,7 @@ impl SimAutopilot {
                 vz: self.vel.z as f32,
             }),
         ];
-        if let (Some(Role::Guided), Some(g)) = (self.role(), self.goal) {
+        if let (Some(Control::Guided), Some(g)) = (self.role(), self.goal) {
             let g = g - origin;
             out.push(MavMessage::POSITION_TARGET_LOCAL_NED(POSITION_TARGET_LOCAL_NED_DATA {
                 time_boot_ms: t,
@@ -180,7 +180,7 @@ impl SimAutopilot {
     /// MISSION_CURRENT with the mission's state, as MAVSDK reads progress from it: the total
     /// leaves out home (item 0).
     pub fn mission_current(&self) -> MavMessage {
-        let auto = self.role() == Some(Role::Auto);
+        let auto = self.role() == Some(Control::Auto);
         let mission_state = match (self.mission.len() > 1, self.mission_run) {
             (false, _) => MissionState::MISSION_STATE_NO_MISSION,
             (true, Run::NotStarted) => MissionState::MISSION_STATE_NOT_STARTED,

@@ -235,9 +235,9 @@ fn an_unarmed_or_held_vehicle_does_not_move_and_unknown_commands_are_unsupported
     s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 0.0, 0.0));
     s.step(1.0);
     assert_eq!(s.pos, Vector3::zeros(), "held");
-    assert_eq!(s.role(), Some(Role::Hold));
+    assert_eq!(s.role(), Some(Control::Hold));
     s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 1.0, 0.0));
-    assert_eq!(s.role(), Some(Role::Guided));
+    assert_eq!(s.role(), Some(Control::Guided));
     s.take();
     s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 99.0));
     s.handle(&GCS, &long(MavCmd::MAV_CMD_DO_GRIPPER, 0.0, 0.0));
@@ -317,7 +317,7 @@ fn a_mission_uploads_with_the_handshake_runs_and_reports_each_item() {
     }
     assert_eq!(reached, [1, 3, 4], "the waypoints, from 1 (0 is home)");
     assert!((s.pos - Vector3::new(0.0, 5.0, 0.0)).norm() < 0.05, "{}", s.pos);
-    assert_eq!(s.role(), Some(Role::Hold), "holds at the end");
+    assert_eq!(s.role(), Some(Control::Hold), "holds at the end");
     assert_eq!(s.spec.max_speed, 4.0, "the speed item was done");
     // Download gives the same items back, home as item 0.
     s.handle(
@@ -352,7 +352,11 @@ fn return_to_launch_brings_it_home_and_reposition_sends_it_out() {
     s.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
     s.handle(
         &GCS,
-        &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, s.spec.frame.mode(Role::Guided) as f32),
+        &long(
+            MavCmd::MAV_CMD_DO_SET_MODE,
+            1.0,
+            s.spec.frame.mode(Control::Guided) as f32,
+        ),
     );
     let mut takeoff = long(MavCmd::MAV_CMD_NAV_TAKEOFF, 0.0, 0.0);
     if let MavMessage::COMMAND_LONG(c) = &mut takeoff {
@@ -370,13 +374,13 @@ fn return_to_launch_brings_it_home_and_reposition_sends_it_out() {
         ..Default::default()
     };
     s.handle(&GCS, &MavMessage::COMMAND_INT(c));
-    assert_eq!(s.role(), Some(Role::Guided));
+    assert_eq!(s.role(), Some(Control::Guided));
     for _ in 0..1000 {
         s.step(0.05);
     }
     assert!((s.pos - Vector3::new(40.0, 30.0, -20.0)).norm() < 0.05, "{}", s.pos);
     s.handle(&GCS, &long(MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0, 0.0));
-    assert_eq!(s.role(), Some(Role::Return));
+    assert_eq!(s.role(), Some(Control::Return));
     for _ in 0..1000 {
         s.step(0.05);
     }
@@ -416,7 +420,7 @@ fn rtl_goes_to_the_nearest_of_the_rally_points_and_home_unless_rally_incl_home_i
         // From 15 m north and east of home: home is nearer than the rally point.
         s.pos = Vector3::new(15.0, 15.0, 0.0);
         s.handle(&GCS, &long(MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0, 0.0));
-        assert_eq!(s.role(), Some(Role::Return));
+        assert_eq!(s.role(), Some(Control::Return));
         for _ in 0..1000 {
             s.step(0.05);
         }
@@ -706,7 +710,7 @@ fn an_enforced_fence_refuses_targets_outside_and_a_breach_returns_to_the_nearest
                 .contains(MavSysStatusSensor::MAV_SYS_STATUS_GEOFENCE);
         }
     }
-    assert_eq!(s.role(), Some(Role::Return));
+    assert_eq!(s.role(), Some(Control::Return));
     // A rover breaches in silence, as ArduRover does: FENCE_STATUS and the mode tell.
     assert!(!said.iter().any(|t| t.contains("reach")), "{said:?}");
     assert!(unhealthy && !s.breached, "unhealthy while outside, then back inside");
@@ -756,7 +760,7 @@ fn the_battery_drains_with_use_and_running_low_takes_it_home_once() {
         t += 0.05;
     }
     assert!((17.5..19.5).contains(&t), "ran low after {t} s");
-    assert_eq!(s.role(), Some(Role::Return));
+    assert_eq!(s.role(), Some(Control::Return));
     let said = s.take();
     assert!(
         said.iter().any(|m| matches!(m, MavMessage::STATUSTEXT(x) if x.text.to_str().unwrap().starts_with("Failsafe: battery low") && x.severity == MavSeverity::MAV_SEVERITY_CRITICAL)),
@@ -855,7 +859,7 @@ fn readiness_the_ekf_origin_the_fence_margin_and_a_copters_takeoff_are_ardupilot
     s.spec.turn_radius = 0.9;
     s.pos = Vector3::new(1.2, 10.0, 0.0);
     s.heading = 135f64.to_radians();
-    s.set_mode(s.spec.frame.mode(Role::Guided));
+    s.set_mode(s.spec.frame.mode(Control::Guided));
     s.goal = Some(Vector3::new(1.2, 30.0, 0.0));
     s.step(2.0);
     assert!(s.breach_count > 0, "the turning arc crossed the fence");
@@ -864,7 +868,11 @@ fn readiness_the_ekf_origin_the_fence_margin_and_a_copters_takeoff_are_ardupilot
     let mut c = sim(Frame::Multirotor);
     c.handle(
         &GCS,
-        &long(MavCmd::MAV_CMD_DO_SET_MODE, 1.0, c.spec.frame.mode(Role::Guided) as f32),
+        &long(
+            MavCmd::MAV_CMD_DO_SET_MODE,
+            1.0,
+            c.spec.frame.mode(Control::Guided) as f32,
+        ),
     );
     c.handle(&GCS, &long(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0));
     c.goal = Some(Vector3::new(20.0, 20.0, -30.0));
