@@ -6,6 +6,7 @@
 //! types cannot say (how packed arrays and cell runs are read, an observer in Python) is the
 //! prose of `protocol-notes.md`, beside this file.
 
+use super::{description, properties, required};
 use fleet_mission::protocol::{keys::Keys, Body, ENCODING, SCHEMA_VERSION};
 use schemars::generate::SchemaSettings;
 use serde_json::{Map, Value};
@@ -116,7 +117,7 @@ impl MessageSchema {
             let default = match v.get("default") {
                 Some(Value::Null) => "absent".into(),
                 Some(d) => format!("`{d}`"),
-                None if required.contains(&field) => "required".into(),
+                None if required.contains(field) => "required".into(),
                 None => "absent".into(),
             };
             let meaning = description(v).replace('|', "\\|");
@@ -221,30 +222,6 @@ fn names_of(def: &Value) -> Option<Vec<String>> {
 
 fn is_null(v: &Value) -> bool {
     v.get("type") == Some(&Value::String("null".into()))
-}
-
-fn properties(v: &Value) -> Vec<(&String, &Value)> {
-    v.get("properties")
-        .and_then(Value::as_object)
-        .map(|o| o.iter().collect())
-        .unwrap_or_default()
-}
-
-fn required(v: &Value) -> Vec<&String> {
-    let names = v.get("required").and_then(Value::as_array);
-    let found = names
-        .map(|r| r.iter().filter_map(Value::as_str).collect::<Vec<_>>())
-        .unwrap_or_default();
-    properties(v)
-        .into_iter()
-        .map(|(k, _)| k)
-        .filter(|k| found.contains(&k.as_str()))
-        .collect()
-}
-
-/// A doc comment on one line, its rustdoc links as plain code.
-fn description(v: &Value) -> String {
-    super::description(v)
 }
 
 #[cfg(test)]
