@@ -91,3 +91,83 @@ fn permutations(v: &mut Vec<usize>, k: usize, f: &mut impl FnMut(&[usize])) {
         v.swap(k, i);
     }
 }
+
+/// `fleet bench peers` on Table 1's first case: every cell of ours has its peer's figure in
+/// the same run, and the answers agree (no timing is judged here: the benchmark page holds the
+/// ratios). Full-rank DMD fits the same operator whichever way it is updated, so the
+/// eigenvalues agree to rounding amplified by the data's conditioning (cond(X) about 1e2 here:
+/// 1e-9 leaves a factor of 1e4 over double precision); the rank-10 iSVD is the same recursion
+/// on both sides, and point QR's pivots are the same greedy choice, so none may differ.
+#[test]
+fn bench_peers_times_every_cell_beside_its_peer_and_the_answers_agree() {
+    if !python_available() {
+        return;
+    }
+    let out_json = std::env::temp_dir().join(format!("hetfleet-bench-peers-{}.json", std::process::id()));
+    let out = Command::new(bin("fleet"))
+        .args(["bench", "peers", "--repeats", "1", "--cases", "1", "--out"])
+        .arg(&out_json)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}{}",
+        stdout,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&out_json).unwrap()).unwrap();
+    let _ = std::fs::remove_file(&out_json);
+    let cells = report["cells"].as_array().unwrap();
+    // Case 1: batch (numpy; with eig also PyDMD), general, general r10 (numpy), long-term
+    // (numpy, odmd), each without and with eig: 11 cells; and point QR at r 10 and 20.
+    assert_eq!(cells.len(), 13, "{stdout}");
+    for c in cells {
+        let (what, peer) = (c["what"].as_str().unwrap(), c["peer"].as_str().unwrap());
+        assert!(
+            c["peer_median_s"].as_f64().unwrap() > 0.0,
+            "{what} / {peer}: no peer time"
+        );
+        assert!(stdout.contains(what), "{what} not in the table:\n{stdout}");
+        let agreement = c["agreement"].as_f64().unwrap();
+        let tol = if c["ours"] == "point_qr" { 0.0 } else { 1e-9 };
+        assert!(agreement <= tol, "{what} / {peer}: answers apart by {agreement:e}");
+    }
+}
+
+/// Without the peers the command says in one line how to install them, and exits 2 (the
+/// user's machine lacks them; nothing of ours failed): with no `python3` at all, and with a
+/// Python that cannot import numpy (`-S`: no site-packages).
+#[test]
+fn bench_peers_without_the_peers_says_how_to_install_them() {
+    let dir = std::env::temp_dir().join(format!("hetfleet-no-peers-{}", std::process::id()));
+    let empty = dir.join("empty");
+    let bare = dir.join("bare");
+    std::fs::create_dir_all(&empty).unwrap();
+    std::fs::create_dir_all(&bare).unwrap();
+    let real = Command::new("python3")
+        .args(["-c", "import sys; print(sys.executable)"])
+        .output()
+        .unwrap()
+        .stdout;
+    let real = String::from_utf8(real).unwrap();
+    let python = bare.join("python3");
+    std::fs::write(&python, format!("#!/bin/sh\nexec {} -S \"$@\"\n", real.trim())).unwrap();
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&python, std::fs::Permissions::from_mode(0o755)).unwrap();
+    for path in [&empty, &bare] {
+        let out = Command::new(bin("fleet"))
+            .args(["bench", "peers", "--repeats", "1", "--cases", "1"])
+            .env("PATH", path)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{stderr}");
+        assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+        assert!(
+            stderr.contains("python3 -m pip install numpy scipy pydmd odmd python-sensors"),
+            "{stderr}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -4,7 +4,7 @@
 
 use anyhow::Context;
 use clap::Subcommand;
-use fleet::experiment::{eig_study, sensing_timing, table1};
+use fleet::experiment::{eig_study, peers, sensing_timing, table1};
 use std::path::PathBuf;
 
 #[derive(clap::Args, Debug)]
@@ -66,6 +66,16 @@ enum What {
         #[arg(long, default_value_t = 10)]
         epochs: usize,
     },
+    /// Our kernels beside the Python peers' on the same data in the same run, alternating:
+    /// Table 1 against numpy's references, PyDMD and odmd, point QR against pysensors.
+    Peers {
+        /// Alternating pairs of runs per cell (after a warm-up of each side).
+        #[arg(long, default_value_t = 5)]
+        repeats: usize,
+        /// Table 1 cases to run (1-4).
+        #[arg(long, value_delimiter = ',', default_value = "1,2,3,4")]
+        cases: Vec<usize>,
+    },
     /// Sensor placement (point QR beside pysensors, block QR, D-optimal, horizon) and gappy timings.
     Sensing {
         #[arg(long, default_value_t = 20)]
@@ -93,6 +103,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             epoch_bench(&grid, fleet, epochs)?
         }
         What::Sensing { repeats, no_peers } => sensing_bench(repeats, no_peers)?,
+        What::Peers { repeats, cases } => peers_bench(repeats, &cases)?,
     };
     if let Some(out) = args.out {
         std::fs::write(&out, serde_json::to_string_pretty(&json)?)
@@ -314,4 +325,82 @@ fn sensing_bench(repeats: usize, no_peers: bool) -> anyhow::Result<serde_json::V
         );
     }
     Ok(serde_json::to_value(rows)?)
+}
+
+/// Ours beside the peers, one table of ratios (the peer's seconds over ours: above 1 we are
+/// faster), each with its spread over the alternating pairs.
+fn peers_bench(repeats: usize, cases: &[usize]) -> anyhow::Result<serde_json::Value> {
+    if let Some(c) = cases.iter().find(|&&c| !(1..=4).contains(&c)) {
+        return Err(fleet::exit::bad_input(anyhow::anyhow!(
+            "--cases: {c} is not a Table 1 case (1-4)"
+        )));
+    }
+    let total = cases.len() * 11 + 2;
+    let pb = super::progress_bar(total as u64, "peers");
+    let report = peers::run(repeats, cases, |msg| {
+        pb.set_message(msg.to_string());
+        pb.inc(1);
+    })
+    .map_err(|e| match e.downcast_ref::<peers::PeersError>() {
+        Some(peers::PeersError::Missing(_)) => fleet::exit::bad_input(e),
+        _ => e,
+    })?;
+    pb.finish_and_clear();
+    println!(
+        "Ours: {}. Peers: one BLAS thread ({}).",
+        report.ours_threads,
+        peer_versions(&report.peers)
+    );
+    let peak = report.peak_gflops_per_core;
+    if let Some(p) = peak {
+        println!("One core's peak here: {p:.1} GFLOP/s (clock x the vector units' flops a cycle).");
+    }
+    println!(
+        "{} alternating pairs per cell; ratio = the peer's seconds over ours (above 1: we are faster).",
+        report.repeats
+    );
+    println!();
+    println!("| cell | peer | ours median s | peer median s | ratio median [min, max] | agreement | ours GFLOP/s (of peak) |");
+    println!("|---|---|---|---|---|---|---|");
+    for c in &report.cells {
+        let rate = match (c.gflops, peak) {
+            (Some(g), Some(p)) => format!("{g:.2} ({:.0}%)", 100.0 * g / p),
+            (Some(g), None) => format!("{g:.2}"),
+            _ => String::new(),
+        };
+        let agreement = match c.ours.as_str() {
+            "point_qr" => format!("{} pivots differ", c.agreement),
+            _ => format!("eigenvalues {:.1e} apart", c.agreement),
+        };
+        let r = c.ratio;
+        println!(
+            "| {} | {} | {:.4} | {:.4} | {:.2}x [{:.2}, {:.2}] | {agreement} | {rate} |",
+            c.what, c.peer, c.ours_median_s, c.peer_median_s, r.median, r.min, r.max
+        );
+    }
+    let slower: Vec<&str> = report
+        .cells
+        .iter()
+        .filter(|c| c.ratio.median < 1.0)
+        .map(|c| c.what.as_str())
+        .collect();
+    println!();
+    match slower.is_empty() {
+        true => println!("No cell slower than its peer."),
+        false => println!("Slower than the peer: {}.", slower.join("; ")),
+    }
+    Ok(serde_json::to_value(report)?)
+}
+
+/// The peers' package versions, as the worker reported them.
+fn peer_versions(hello: &serde_json::Value) -> String {
+    hello["versions"]
+        .as_object()
+        .map(|v| {
+            v.iter()
+                .map(|(k, v)| format!("{k} {}", v.as_str().unwrap_or("?")))
+                .collect::<Vec<_>>()
+                .join(", ")
+        })
+        .unwrap_or_default()
 }

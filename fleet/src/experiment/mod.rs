@@ -6,6 +6,7 @@ pub mod eig_study;
 pub mod epoch_timing;
 pub mod faults;
 pub mod paper;
+pub mod peers;
 pub mod phases;
 pub mod refit_timing;
 pub mod sensing_timing;
