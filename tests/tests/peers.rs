@@ -92,12 +92,14 @@ fn permutations(v: &mut Vec<usize>, k: usize, f: &mut impl FnMut(&[usize])) {
     }
 }
 
-/// `fleet bench peers` on Table 1's first case: every cell of ours has its peer's figure in
-/// the same run, and the answers agree (no timing is judged here: the benchmark page holds the
-/// ratios). Full-rank DMD fits the same operator whichever way it is updated, so the
-/// eigenvalues agree to rounding amplified by the data's conditioning (cond(X) about 1e2 here:
-/// 1e-9 leaves a factor of 1e4 over double precision); the rank-10 iSVD is the same recursion
-/// on both sides, and point QR's pivots are the same greedy choice, so none may differ.
+/// `fleet bench peers` on Table 1's second case (100 cells, batches of 100 snapshots: the rank-10
+/// update fills U's whole complement and takes Z's leading triplets without its whole SVD):
+/// every cell of ours has its peer's figure in the same run, and the answers agree (no timing
+/// is judged here: the benchmark page holds the ratios). Both sides fit the same snapshots, so
+/// the final operators' eigenvalues differ by rounding amplified by the first fit's
+/// conditioning, cond(X) about 5e3 on this case: by eps cond(X) for the SVD-based methods (1e-12;
+/// 1e-10 leaves a factor of 100), by eps cond(X)^2 for long-term DMD, which solves with X X^T
+/// (6e-9; 1e-7 leaves 15). Point QR's pivots are the same greedy choice: none may differ.
 #[test]
 fn bench_peers_times_every_cell_beside_its_peer_and_the_answers_agree() {
     if !python_available() {
@@ -105,7 +107,7 @@ fn bench_peers_times_every_cell_beside_its_peer_and_the_answers_agree() {
     }
     let out_json = std::env::temp_dir().join(format!("hetfleet-bench-peers-{}.json", std::process::id()));
     let out = Command::new(bin("fleet"))
-        .args(["bench", "peers", "--repeats", "1", "--cases", "1", "--out"])
+        .args(["bench", "peers", "--repeats", "1", "--cases", "2", "--out"])
         .arg(&out_json)
         .output()
         .unwrap();
@@ -119,7 +121,7 @@ fn bench_peers_times_every_cell_beside_its_peer_and_the_answers_agree() {
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&out_json).unwrap()).unwrap();
     let _ = std::fs::remove_file(&out_json);
     let cells = report["cells"].as_array().unwrap();
-    // Case 1: batch (numpy; with eig also PyDMD), general, general r10 (numpy), long-term
+    // Case 2: batch (numpy; with eig also PyDMD), general, general r10 (numpy), long-term
     // (numpy, odmd), each without and with eig: 11 cells; and point QR at r 10 and 20.
     assert_eq!(cells.len(), 13, "{stdout}");
     for c in cells {
@@ -130,7 +132,11 @@ fn bench_peers_times_every_cell_beside_its_peer_and_the_answers_agree() {
         );
         assert!(stdout.contains(what), "{what} not in the table:\n{stdout}");
         let agreement = c["agreement"].as_f64().unwrap();
-        let tol = if c["ours"] == "point_qr" { 0.0 } else { 1e-9 };
+        let tol = match c["ours"].as_str().unwrap() {
+            "point_qr" => 0.0,
+            "long-term" => 1e-7,
+            _ => 1e-10,
+        };
         assert!(agreement <= tol, "{what} / {peer}: answers apart by {agreement:e}");
     }
 }

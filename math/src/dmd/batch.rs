@@ -3,7 +3,7 @@
 //! `X = U S W^T`, `A~ = U^T Y W S^-1`, `A~ V = V Lambda`, `Phi = Y W S^-1 V`.
 
 use super::debias::{debiased_eig, Debias};
-use super::linalg::{div_cols, eig, pod, scale_rows};
+use super::linalg::{div_cols, eig, leading_svd, pod, scale_rows};
 use super::{Dmd, DmdError, Factored, Method, ModeFactors, Modes, RankPolicy, SnapshotPairs};
 use faer::{Mat, MatRef};
 
@@ -104,7 +104,16 @@ pub(crate) fn exact_fit(
     y: MatRef<'_, f64>,
     rank: RankPolicy,
 ) -> Result<(ProjectedFit, Mat<f64>), DmdError> {
-    let svd = pod(x, |s| rank.select(s, x.nrows(), x.ncols()))?;
+    // A fixed rank of a matrix that is not tall (Table 1's square first fits) needs only the
+    // leading triplets; tall data keeps the method of snapshots (`pod`), the bits it has had.
+    let leading = match rank {
+        RankPolicy::Fixed(r) if x.nrows() < 4 * x.ncols() => leading_svd(x, r)?,
+        _ => None,
+    };
+    let svd = match leading {
+        Some(svd) => svd,
+        None => pod(x, |s| rank.select(s, x.nrows(), x.ncols()))?,
+    };
     if svd.s.is_empty() {
         return Err(DmdError::ZeroRank);
     }

@@ -20,7 +20,7 @@
 
 use super::batch::{exact_fit, ProjectedFit};
 use super::debias::Debias;
-use super::linalg::{div_cols, orthogonality_error, orthonormal_factor, scale_cols_by, thin_svd};
+use super::linalg::{div_cols, leading_svd, orthogonality_error, orthonormal_factor, scale_cols_by, thin_svd};
 use super::snapshots::{check_finite, check_pairs, check_shapes};
 use super::{numerical_rank, Dmd, DmdError, Factored, Method, Modes, Prepared, RankPolicy, SnapshotPairs};
 use crate::par::{product, product_add};
@@ -118,10 +118,12 @@ impl GeneralDmd {
         product_add(h.as_mut(), self.u.as_ref(), l2.as_ref(), -1.0);
         l += &l2;
 
-        // Directions of H that are really new (none when U already spans R^N).
-        let new = match r < n {
-            true => new_directions(h.as_ref(), self.s.first().copied().unwrap_or(0.0), n - r)?,
-            false => NewDirections::none(n, tau),
+        // Directions of H that are really new (none when U already spans R^N; all of U's
+        // complement when the batch could fill it).
+        let new = match (r < n, tau >= n - r) {
+            (false, _) => NewDirections::none(n, tau),
+            (true, true) => complement_directions(self.u.as_ref(), h.as_ref()),
+            (true, false) => new_directions(h.as_ref(), self.s.first().copied().unwrap_or(0.0), n - r)?,
         };
         let (k, p) = (new.k(), &new.p);
 
@@ -131,19 +133,31 @@ impl GeneralDmd {
         }
         z.submatrix_mut(0, r, r, tau).copy_from(&l);
         z.submatrix_mut(r, r, k, tau).copy_from(p);
-        let zs = thin_svd(z.as_ref())?;
-        let keep = match self.rank {
-            RankPolicy::Full => numerical_rank(&zs.s, n, count),
-            policy => policy.select(&zs.s, n, count),
-        }
-        .max(1);
-        let zs = zs.truncate(keep);
+        let leading = match self.rank {
+            RankPolicy::Fixed(keep) => leading_svd(z.as_ref(), keep)?,
+            _ => None,
+        };
+        let zs = match leading {
+            Some(zs) => zs,
+            None => {
+                let zs = thin_svd(z.as_ref())?;
+                let keep = match self.rank {
+                    RankPolicy::Full => numerical_rank(&zs.s, n, count),
+                    policy => policy.select(&zs.s, n, count),
+                }
+                .max(1);
+                zs.truncate(keep)
+            }
+        };
 
         // Each sum made in place (the bits of the two products added).
         let mut u = product(self.u.as_ref(), zs.u.subrows(0, r));
         if k > 0 {
             // J W = Q (U_k W): the small product first.
-            let w = &new.u_k * zs.u.subrows(r, k);
+            let w = match &new.u_k {
+                Some(u_k) => u_k * zs.u.subrows(r, k),
+                None => zs.u.subrows(r, k).to_owned(),
+            };
             product_add(u.as_mut(), new.q.as_ref(), w.as_ref(), 1.0);
         }
         Ok(Ahead { u, s: zs.s, w: zs.v })
@@ -197,6 +211,11 @@ impl GeneralDmd {
 fn new_directions(h: MatRef<'_, f64>, s0: f64, max_k: usize) -> Result<NewDirections, DmdError> {
     let (n, tau) = (h.nrows(), h.ncols());
     let (q, r) = orthonormal_factor(h);
+    if (SKIP_SVD_OF_R_FROM..=max_k).contains(&tau)
+        && surely_full_rank(r.as_ref(), (n.max(tau) as f64) * f64::EPSILON, s0)
+    {
+        return Ok(NewDirections { q, u_k: None, p: r });
+    }
     let svd = thin_svd(r.as_ref())?;
     let scale = s0.max(svd.s.first().copied().unwrap_or(0.0));
     let tol = (n.max(tau) as f64) * f64::EPSILON * scale;
@@ -204,15 +223,53 @@ fn new_directions(h: MatRef<'_, f64>, s0: f64, max_k: usize) -> Result<NewDirect
     let p = Mat::from_fn(k, tau, |i, c| svd.s[i] * svd.v[(c, i)]);
     Ok(NewDirections {
         q,
-        u_k: svd.u.subcols(0, k).to_owned(),
+        u_k: Some(svd.u.subcols(0, k).to_owned()),
         p,
     })
 }
 
-/// [`new_directions`]' answer: `J = Q U_k` (N x k, not made) and `P` (k x tau).
+/// The batch width from which [`new_directions`] skips the SVD of `R` when `R` is surely of
+/// full rank ([`surely_full_rank`]): below it that SVD is microseconds, and the server's
+/// updates (a boat epoch's few snapshots) keep the bits they have always had.
+const SKIP_SVD_OF_R_FROM: usize = 32;
+
+/// `J` an orthonormal basis of all of `U`'s complement (N x (N - r)) and `P = J^T H`, for a
+/// batch at least as wide as that complement (Table 1's case 2 at rank 10: 90 directions left,
+/// 100 snapshots a batch): `H` lies in it, so `H = J P` exactly whatever `H`'s rank, and no
+/// factorisation of `H` is needed to find its directions. The complement is the last `N - r`
+/// columns of the full `Q` of a Householder QR of `U` (N^2 r flops).
+fn complement_directions(u: MatRef<'_, f64>, h: MatRef<'_, f64>) -> NewDirections {
+    let (n, r) = (u.nrows(), u.ncols());
+    let q = u.qr().compute_Q().subcols(r, n - r).to_owned();
+    let p = q.transpose() * h;
+    NewDirections { q, u_k: None, p }
+}
+
+/// Whether every singular value of the triangular `r` is surely above the rank tolerance,
+/// `eps_n` times the larger of `s0` and `r`'s largest singular value, without an SVD of `r`:
+/// `1 / ||r^-1||_F` is below the smallest singular value and `||r||_F` above the largest, so
+/// when the first exceeds `eps_n` times the second (or `s0`), the SVD would keep every direction
+/// too. Then `J = Q`, `P = R` stand for `Q U_R`, `S_R V_R^T`: the rotation `U_R` changes no
+/// span, and `Z`'s SVD absorbs it (`[U, Q U_R] U_Z' = [U, Q] U_Z`). That SVD of a tau x tau
+/// `R` was half of a rank-10 update at tau = 100 (Table 1's cases 2-4), where numpy's
+/// reference takes one SVD, of `Z`; the triangular inverse costs tau^3 / 3 flops, a tenth of
+/// it or less.
+fn surely_full_rank(r: MatRef<'_, f64>, eps_n: f64, s0: f64) -> bool {
+    let tau = r.nrows();
+    if r.ncols() != tau || (0..tau).any(|i| !(r[(i, i)] != 0.0)) {
+        return false;
+    }
+    let mut inv = Mat::<f64>::identity(tau, tau);
+    faer::linalg::triangular_solve::solve_upper_triangular_in_place(r, inv.as_mut(), faer::Par::Seq);
+    let (norm, inv_norm) = (r.norm_l2(), inv.norm_l2());
+    inv_norm.is_finite() && 1.0 / inv_norm > eps_n * s0.max(norm)
+}
+
+/// [`new_directions`]' answer: `J = Q U_k` (N x k, not made; `U_k` `None` for the identity)
+/// and `P` (k x tau).
 struct NewDirections {
     q: Mat<f64>,
-    u_k: Mat<f64>,
+    u_k: Option<Mat<f64>>,
     p: Mat<f64>,
 }
 
@@ -221,7 +278,7 @@ impl NewDirections {
     fn none(n: usize, tau: usize) -> Self {
         Self {
             q: Mat::zeros(n, 0),
-            u_k: Mat::zeros(0, 0),
+            u_k: None,
             p: Mat::zeros(0, tau),
         }
     }
