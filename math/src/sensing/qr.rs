@@ -107,6 +107,12 @@ impl Coords {
     /// the rank's end that is most cells: recomputed [`STALE_AT_ONCE`] at a time
     /// ([`residual_norms`]), the blocks of cells on the cores.
     fn norms(&mut self) -> Vec<f64> {
+        self.refresh();
+        self.n2.iter().map(|v| v.max(0.0).sqrt()).collect()
+    }
+
+    /// Recompute the squared norms cancellation has made unreliable ([`Self::norms`]).
+    fn refresh(&mut self) {
         if !self.removed.is_empty() {
             use rayon::prelude::*;
             let (n, r, rows, removed) = (self.n, self.r, &self.rows, &self.removed);
@@ -122,10 +128,30 @@ impl Coords {
                 }
             };
             let (n2, orig) = (&mut self.n2, &mut self.n2_orig);
-            let pairs = n2.par_chunks_mut(block).zip(orig.par_chunks_mut(block));
-            pairs.enumerate().for_each(|(b, pair)| recompute(b, pair));
+            // One block stays on this thread: a parallel iterator of one item still hands it
+            // to the pool and waits (a wake-up of tens of microseconds at each of r picks).
+            match block >= n {
+                true => recompute(0, (n2, orig)),
+                false => {
+                    let pairs = n2.par_chunks_mut(block).zip(orig.par_chunks_mut(block));
+                    pairs.enumerate().for_each(|(b, pair)| recompute(b, pair));
+                }
+            }
         }
-        self.n2.iter().map(|v| v.max(0.0).sqrt()).collect()
+    }
+
+    /// The cell of largest residual norm not yet `chosen` (the lowest index on ties, the norms
+    /// compared as [`Self::norms`] gives them), and that norm; `None` when every cell is chosen.
+    fn largest(&mut self, chosen: &[bool]) -> Option<(usize, f64)> {
+        self.refresh();
+        let (mut p, mut np) = (usize::MAX, f64::NEG_INFINITY);
+        for (j, v) in self.n2.iter().enumerate() {
+            let v = v.max(0.0).sqrt();
+            if v > np && !chosen[j] {
+                (p, np) = (j, v);
+            }
+        }
+        (p != usize::MAX).then_some((p, np))
     }
 
     /// The residual of column `p` after the removed directions (twice, for orthogonality).
@@ -252,20 +278,14 @@ pub fn point_qr(phi: MatRef<'_, f64>, k: usize) -> (Vec<usize>, Vec<f64>) {
     let mut c = Coords::new(phi);
     let first = c.norms().into_iter().fold(0.0, f64::max);
     let mut chosen: Vec<usize> = vec![];
+    let mut taken = vec![false; phi.nrows()];
     let mut rdiag = vec![];
     for _ in 0..k.min(phi.nrows()) {
-        let norms = c.norms();
-        // The largest residual norm, the lowest index on ties, among cells not yet chosen.
-        let (mut p, mut np) = (usize::MAX, f64::NEG_INFINITY);
-        for (j, &v) in norms.iter().enumerate() {
-            if v > np && !chosen.contains(&j) {
-                (p, np) = (j, v);
-            }
-        }
-        if p == usize::MAX || !(np > 1e-12 * first) {
+        let Some((p, np)) = c.largest(&taken).filter(|&(_, np)| np > 1e-12 * first) else {
             break;
-        }
+        };
         chosen.push(p);
+        taken[p] = true;
         rdiag.push(np);
         let q = c.residual(p);
         c.deflate(&q);
