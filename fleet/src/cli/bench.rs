@@ -360,7 +360,10 @@ fn peers_bench(repeats: usize, cases: &[usize]) -> anyhow::Result<serde_json::Va
         report.repeats
     );
     println!();
-    println!("| cell | peer | ours median s | peer median s | ratio median [min, max] | agreement | ours GFLOP/s (of peak) |");
+    println!(concat!(
+        "| cell | peer | ours median s | peer median s | ratio median [min, max] | agreement |",
+        " ours GFLOP/s (of peak) |"
+    ));
     println!("|---|---|---|---|---|---|---|");
     for c in &report.cells {
         let rate = match (c.gflops, peak) {
