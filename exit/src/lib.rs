@@ -56,7 +56,7 @@ impl<T, E: Into<anyhow::Error>> InputResult<T> for Result<T, E> {
 
 /// The exit status of an error.
 pub fn code_of(e: &anyhow::Error) -> i32 {
-    use fleet_mission::process::{dataset::DatasetError, truth::TruthError};
+    use fleet_mission::process::{error::DatasetError, truth::TruthError};
     // A dataset that cannot be used as it is (unreadable, wrong shape, not finite, no such
     // variable) is the user's input wherever it was read; failing to write one is not. So is a
     // truth the mission's settings cannot make (a grid of 0 rows was exit 1).

@@ -103,7 +103,7 @@ fn troubleshooting_names_every_kind_of_refusal() {
     let page = std::fs::read_to_string(root().join("docs/guide/troubleshooting.md")).unwrap();
     let kinds = [
         ("ConfigError", fleet::mission::config::ConfigError::VARIANTS),
-        ("DatasetError", fleet::process::dataset::DatasetError::VARIANTS),
+        ("DatasetError", fleet::process::error::DatasetError::VARIANTS),
         ("TruthError", fleet::process::truth::TruthError::VARIANTS),
     ];
     let missing: Vec<String> = kinds

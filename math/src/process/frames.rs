@@ -7,7 +7,7 @@
 //! values, NaN where the truth has none, and the whole file is checked once when it is opened,
 //! as [`super::dataset::load_truth`] checks it.
 
-use super::dataset::DatasetError;
+use super::error::DatasetError;
 use super::FieldSeries;
 use crate::npy::{NpyError, MAX_VALUES};
 use std::io::Seek;

@@ -3,6 +3,7 @@
 //! `N x T` matrix on a grid, a step `dt` apart.
 
 pub mod dataset;
+pub mod error;
 pub mod frames;
 pub mod netcdf;
 pub mod plasma;

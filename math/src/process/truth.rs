@@ -28,7 +28,7 @@ pub enum TruthError {
     #[error("loading the dataset {}: {source}", path.display())]
     Dataset {
         path: PathBuf,
-        source: super::dataset::DatasetError,
+        source: super::error::DatasetError,
     },
     #[error("{rows} x {cols} averaged by {factor} leaves less than 4 x 4 cells")]
     TooCoarse { rows: usize, cols: usize, factor: usize },
@@ -44,7 +44,7 @@ impl TruthError {
     pub fn is_input(&self) -> bool {
         match self {
             Self::Simulation { source, .. } => matches!(source, super::plasma::PlasmaError::Param(_)),
-            Self::Dataset { source, .. } => !matches!(source, super::dataset::DatasetError::Io { .. }),
+            Self::Dataset { source, .. } => !matches!(source, super::error::DatasetError::Io { .. }),
             Self::Source | Self::Variable | Self::Select | Self::TooCoarse { .. } | Self::Grid(_) => true,
         }
     }

@@ -21,7 +21,7 @@ mod file;
 
 pub use calendar::TimeAxis;
 
-use super::dataset::DatasetError;
+use super::error::DatasetError;
 use super::FieldSeries;
 use decode::Decode;
 use faer::Mat;
