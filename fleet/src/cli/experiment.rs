@@ -3,6 +3,7 @@
 use anyhow::Context;
 use fleet::exit::bad_input;
 use fleet::experiment::claims;
+use fleet::experiment::comparison;
 use fleet::experiment::paper::{self, ExperimentConfig};
 use std::path::PathBuf;
 
@@ -53,10 +54,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             r.row.noise,
             r.seeds.len(),
             r.scored_from,
-            m(paper::HETEROGENEOUS),
-            m(paper::RANDOM),
-            m(paper::AERIAL_ONLY),
-            m(paper::BOAT_ONLY),
+            m(comparison::HETEROGENEOUS),
+            m(comparison::RANDOM),
+            m(comparison::AERIAL_ONLY),
+            m(comparison::BOAT_ONLY),
             r.comparisons
                 .iter()
                 .map(|c| format!("{} vs {}: {}", c.first, c.second, c.verdict.words()))

@@ -3,7 +3,7 @@
 //! reader sees where each holds and, as plainly, where it does not: a table of verdicts
 //! rather than a verdict a reader must assemble from four tables.
 
-use super::paper::{Comparison, AERIAL_ONLY, BOAT_ONLY, HETEROGENEOUS, RANDOM};
+use super::comparison::{Comparison, AERIAL_ONLY, BOAT_ONLY, HETEROGENEOUS, RANDOM};
 use super::stats::{Interval, Outcome};
 use serde::Serialize;
 use std::collections::BTreeMap;

@@ -7,9 +7,9 @@
 
 use super::team::{TeamConfig, TeamError};
 use crate::grid::Grid;
-use crate::mission::server::{Ingested, ServerCore};
 use crate::process::synthetic::plume_frame;
 use crate::protocol::{self, Body};
+use fleet_mission::server::{Ingested, ServerCore};
 use serde::Serialize;
 use std::time::Instant;
 
@@ -115,7 +115,7 @@ fn timed(
         let mut batches = vec![];
         for brain in brains.iter_mut() {
             let plan = server.plan(&brain.id, e, 2);
-            brain.set_plan(plan.ok_or(TeamError::NotReady(crate::mission::team::Missing::Plan { epoch: e }))?);
+            brain.set_plan(plan.ok_or(TeamError::NotReady(fleet_mission::team::Missing::Plan { epoch: e }))?);
             batches.extend(brain.sense_epoch(e, x)?);
         }
         batch_bytes += batches
@@ -155,7 +155,7 @@ fn timed(
         model_bytes,
         model_full_bytes,
         batch_bytes_per_epoch: batch_bytes as f64 / (n + 1) as f64,
-        peak_resident_kb: crate::mission::memory::peak_resident_kb(),
+        peak_resident_kb: fleet_mission::memory::peak_resident_kb(),
         phases_ms: vec![],
     })
 }

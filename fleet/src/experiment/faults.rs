@@ -2,14 +2,14 @@
 //! one vehicle's readings altered from mid-mission the way a failing instrument alters them,
 //! applied to its batches after it senses and before the server hears them (what a driver
 //! feeding the vehicle would send), and the fleet run with and without the health tests
-//! ([`mission::health`]) on the same truth and noise.
+//! ([`fleet_mission::health`]) on the same truth and noise.
 
 use super::stats::Interval;
 use super::team::{self, TeamOutcome};
-use crate::mission::health::Health;
-use crate::mission::team::{TeamConfig, TeamError};
 use crate::process::FieldSeries;
 use crate::protocol::{MeasurementBatch, VehicleKind};
+use fleet_mission::health::Health;
+use fleet_mission::team::{TeamConfig, TeamError};
 use rand::{RngExt, SeedableRng};
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, BTreeSet};
@@ -231,6 +231,14 @@ fn normal_cdf(x: f64) -> f64 {
     0.5 * libm::erfc(-x / std::f64::consts::SQRT_2)
 }
 
+/// [`team::run`] with `fault`'s sensor failing; with `withhold`, its altered readings withheld
+/// instead.
+fn run_with(cfg: &TeamConfig, truth: &FieldSeries, fault: &Fault, withhold: bool) -> Result<TeamOutcome, TeamError> {
+    team::run_altered(cfg, truth, &|batches, vehicle_of| {
+        fault.apply(batches, withhold, vehicle_of)
+    })
+}
+
 /// Boat epochs after a fault's start within which its sensor counts as marked in time.
 pub const WITHIN: u64 = 3;
 
@@ -258,8 +266,8 @@ pub fn run_faults(
         .iter()
         .map(|&kind| {
             let fault = Fault::mid_mission(kind, cfg, truth.frames());
-            let with = team::run_with_fault(cfg, truth, &fault, false)?;
-            let without = team::run_with_fault(
+            let with = run_with(cfg, truth, &fault, false)?;
+            let without = run_with(
                 &TeamConfig {
                     sensor_health: false,
                     ..cfg.clone()
@@ -268,7 +276,7 @@ pub fn run_faults(
                 &fault,
                 false,
             )?;
-            let withheld = team::run_with_fault(cfg, truth, &fault, true)?;
+            let withheld = run_with(cfg, truth, &fault, true)?;
             let marked = first_marked(&with, &fault, cfg);
             let knowable = fault.knowable(&with, fault.from + WITHIN * cfg.boat_period.max(1) as u64);
             Ok((

@@ -2,6 +2,7 @@
 //! Sect. 5 (eigenvalue accuracy, Fig. 7; execution time, Table 1).
 
 pub mod claims;
+pub mod comparison;
 pub mod eig_study;
 pub mod epoch_timing;
 pub mod faults;

@@ -4,9 +4,9 @@
 
 use super::team::{TeamConfig, TeamError};
 use crate::grid::Grid;
-use crate::mission::server::ServerCore;
-use crate::mission::vehicle::VehicleBrain;
 use crate::process::synthetic::plume_field;
+use fleet_mission::server::ServerCore;
+use fleet_mission::vehicle::VehicleBrain;
 use serde::Serialize;
 
 #[derive(Debug, Clone, Serialize)]
@@ -80,7 +80,7 @@ fn run_with_boat_2_away(
             let gone = brain.id == "boat-2" && away.contains(&e);
             if !gone {
                 let plan = server.plan(&brain.id, e, late + 1);
-                brain.set_plan(plan.ok_or(TeamError::NotReady(crate::mission::team::Missing::Plan { epoch: e }))?);
+                brain.set_plan(plan.ok_or(TeamError::NotReady(fleet_mission::team::Missing::Plan { epoch: e }))?);
             }
             let Some(b) = brain.sense_epoch(e, x)? else { continue };
             if gone {

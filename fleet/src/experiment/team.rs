@@ -19,18 +19,17 @@
 use crate::dmd::{DmdConfig, DmdModel, Method};
 use crate::fusion::AerialNoise;
 use crate::grid::Grid;
-use crate::mission;
-use crate::mission::server::ServerCore;
-pub use crate::mission::team::{Placement, TeamConfig, TeamError};
-use crate::mission::vehicle::VehicleBrain;
-use crate::mission::BoatDisk;
 use crate::process::FieldSeries;
 use crate::protocol::{MeasurementBatch, Sample, VehicleKind};
 use crate::sensing::gappy;
 use faer::Mat;
+use fleet_mission::assimilator::BoatDisk;
 use fleet_mission::fusion::{mean_scored, mse};
+use fleet_mission::server::ServerCore;
+pub use fleet_mission::team::{Placement, TeamConfig, TeamError};
+use fleet_mission::vehicle::VehicleBrain;
 use serde::Serialize;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 /// Per-step mean squared errors of the three teams, and what the fleet did.
 ///
@@ -70,12 +69,12 @@ pub struct TeamOutcome {
     pub snapshot_variances: Vec<Vec<f64>>,
     /// Model rank after the last update.
     pub rank: usize,
-    /// Every change of a sensor's verdict ([`mission::health`]).
-    pub verdicts: Vec<mission::health::Verdict>,
+    /// Every change of a sensor's verdict ([`fleet_mission::health`]).
+    pub verdicts: Vec<fleet_mission::health::Verdict>,
     /// What the health tests did to the readings.
-    pub screened: mission::health::Screened,
+    pub screened: fleet_mission::health::Screened,
     /// With a fault: the steps whose readings it altered (or silenced), and each boat test's
-    /// information on an offset by vehicle and step ([`mission::health::Screen::information`]).
+    /// information on an offset by vehicle and step ([`fleet_mission::health::Screen::information`]).
     #[serde(skip)]
     pub altered: std::collections::BTreeSet<u64>,
     #[serde(skip)]
@@ -171,15 +170,14 @@ fn on_truth(cfg: &TeamConfig, truth: &FieldSeries) -> Result<(Grid, TeamConfig),
     Ok((grid, cfg))
 }
 
-/// [`run`] with one vehicle's sensor failing ([`super::faults::Fault`]); with `withhold`, its
-/// altered readings withheld instead.
-pub fn run_with_fault(
-    cfg: &TeamConfig,
-    truth: &FieldSeries,
-    fault: &super::faults::Fault,
-    withhold: bool,
-) -> Result<TeamOutcome, TeamError> {
-    run_placing(cfg, truth, false, Some((fault, withhold)), |_, _| {})
+/// What a failing sensor does to an epoch's batches before the server hears them: alters them
+/// in place (`vehicle_of` gives a batch's vehicle index) and says which steps it changed.
+pub type Alteration<'a> = &'a dyn Fn(&mut [MeasurementBatch], &dyn Fn(&MeasurementBatch) -> usize) -> BTreeSet<u64>;
+
+/// [`run`] with every epoch's batches altered by `alter` (a sensor failing: the fault study
+/// says how), the health tests' information on an offset kept.
+pub fn run_altered(cfg: &TeamConfig, truth: &FieldSeries, alter: Alteration) -> Result<TeamOutcome, TeamError> {
+    run_placing(cfg, truth, false, Some(alter), |_, _| {})
 }
 
 /// [`run`] with the boats placed by an oracle that knows the truth (a diagnostic, not a
@@ -213,7 +211,7 @@ fn sense(
 fn assimilate(server: &mut ServerCore, batches: Vec<MeasurementBatch>, e: u64) -> Result<(), TeamError> {
     for b in batches {
         server.ingest(b).map_err(|err| match err {
-            crate::mission::server::IngestError::Model(m) => m,
+            fleet_mission::server::IngestError::Model(m) => m,
             other => TeamError::Config(other.to_string()),
         })?;
     }
@@ -312,13 +310,13 @@ fn run_placing(
     cfg: &TeamConfig,
     truth: &FieldSeries,
     oracle: bool,
-    fault: Option<(&super::faults::Fault, bool)>,
+    alter: Option<Alteration>,
     mut progress: impl FnMut(usize, usize),
 ) -> Result<TeamOutcome, TeamError> {
     let (grid, cfg) = on_truth(cfg, truth)?;
     let (cfg, frames) = (&cfg, truth.frames());
     let mut server = ServerCore::new(cfg, grid, frames)?.with_aerial_history();
-    if fault.is_some() {
+    if alter.is_some() {
         server = server.with_screen_information();
     }
     let truth_at = |k: usize| column(&truth.snapshots, k);
@@ -335,8 +333,8 @@ fn run_placing(
             .allocation(e)
             .ok_or_else(|| TeamError::Config(format!("no allocation for epoch {e}")))?;
         let mut batches = sense(&server, &mut brains, e, &truth_at)?;
-        if let Some((f, withhold)) = fault {
-            out.altered.extend(f.apply(&mut batches, withhold, |b| {
+        if let Some(alter) = alter {
+            out.altered.extend(alter(&mut batches, &|b| {
                 server.roster().index_of(&b.vehicle).unwrap_or(usize::MAX)
             }));
         }
@@ -396,7 +394,7 @@ pub(crate) fn brains_of(server: &ServerCore, cfg: &TeamConfig, grid: Grid) -> Ve
                     growth_per_m: 0.0,
                 },
             };
-            let rng = mission::vehicle_rng(cfg.seed, v);
+            let rng = fleet_mission::vehicle::vehicle_rng(cfg.seed, v);
             VehicleBrain::new(&spec.id, spec.kind, grid, *server.schedule(), noise, rng, f64::MAX)
         })
         .collect()
@@ -477,10 +475,10 @@ impl BoatOnly {
         }
         self.snaps.push(est.clone());
         if self.snaps.len() >= 3 {
-            let z = mission::to_mat(&self.snaps);
+            let z = fleet_mission::assimilator::to_mat(&self.snaps);
             let m = self.snaps.len() - 1;
             let bm = self.cfg.init(z.subcols(0, m), z.subcols(1, m))?;
-            let (p, b) = mission::fit_to(bm.as_ref(), &est)?;
+            let (p, b) = fleet_mission::assimilator::fit_to(bm.as_ref(), &est)?;
             self.model = Some((p, b, k));
         }
         self.guess = Some(est.clone());
