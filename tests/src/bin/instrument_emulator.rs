@@ -127,6 +127,10 @@ fn args() -> Args {
     a
 }
 
+/// Long because one loop steps the three kinds of emulated instrument (cameras writing frames,
+/// MAVLink companions, probes on a socket or stdout) on one clock, one truth and one stream of
+/// noise draws, in that order: apart, each would take all of the world's state, and the draws'
+/// order (so the logged values a test compares) is the loop's.
 fn main() {
     let a = args();
     let mission = MissionConfig::load(Some(&a.mission)).expect("the mission");
