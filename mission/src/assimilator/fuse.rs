@@ -4,7 +4,7 @@
 //! the aerial lattice and the disks directly.
 
 use super::between::Sources;
-use super::{aerial_detail_variance, plus, Assimilator, Setup};
+use super::{aerial_detail_variance, plus, Assimilator, Fuser, Setup};
 use crate::fusion::{fuse, AerialFrame, Estimate, Measured, Scheme};
 use crate::kalman::{self, Observation};
 use crate::protocol::Sample;
@@ -173,86 +173,111 @@ impl Assimilator {
         Ok(cells.iter().copied().zip(mean.zip(variance)).collect())
     }
 
-    /// Fuse one step `ahead` steps after the model's newest snapshot: the aerial estimate with
-    /// the boats' gappy estimate (when `boats` has samples) or the model's prediction; or, with
-    /// `fusion = "kalman"`, one step of the filter. Boat steps also re-calibrate each source
-    /// against the boats' measurements.
+    /// Fuse one step `ahead` steps after the model's newest snapshot, as the [`Fuser`] says:
+    /// one step of the filter, or the aerial estimate blended with the boats' gappy estimate
+    /// (when `boats` has samples) or the model's prediction. Boat steps also re-calibrate each
+    /// source against the boats' measurements.
     pub fn fuse_step(&mut self, ahead: u64, sight: &AerialSight, boats: &[Sample]) -> Result<Estimate, TeamError> {
-        let (pred, _) = self.state.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
         // A canonical order (disks do not overlap, so first cells differ): the result does not
         // depend on the order the boats' samples arrived in.
         let mut boats: Vec<&Sample> = boats.iter().collect();
         boats.sort_by_key(|s| (s.cells.first().copied(), s.cells.len()));
-        let cells: Vec<usize> = boats.iter().flat_map(|s| s.cells.iter().map(|&c| c as usize)).collect();
-        // The model's own prediction of the step: for the sources' calibration at the boats'
-        // cells, and for the heuristic schemes as a whole field (N x r complex products; the
-        // boats' gappy estimate falls back on it). The Kalman filter forecasts by itself, so
-        // with it only the boats' cells are predicted.
-        let kalman = self.setup.cfg.fusion == Scheme::Kalman;
-        let predicted = match kalman {
-            true => vec![],
-            false => self.plus_mean(pred.predict(ahead as f64)),
+        let measured = BoatValues {
+            cells: boats.iter().flat_map(|s| s.cells.iter().map(|&c| c as usize)).collect(),
+            values: boats.iter().flat_map(|s| s.values.iter().copied()).collect(),
+            variances: boat_variances(&boats, self.setup.cfg.boat_sigma),
         };
-        let vals: Vec<f64> = boats.iter().flat_map(|s| s.values.iter().copied()).collect();
-        let vars = boat_variances(&boats, self.setup.cfg.boat_sigma);
-        let boat_var = typical(&vars, self.setup.cfg.boat_sigma * self.setup.cfg.boat_sigma);
-        if !cells.is_empty() {
-            let at_cells: Vec<f64> = match kalman {
-                true => {
-                    let at = pred.predict_at(ahead as f64, &cells);
-                    at.iter().zip(self.mean_at(&cells)).map(|(a, m)| a + m).collect()
-                }
-                false => cells.iter().map(|&c| predicted[c]).collect(),
-            };
-            self.calibrate(sight, &at_cells, &cells, &vals, boat_var);
+        match self.setup.fuser {
+            Fuser::Filter => self.fuse_filtered(ahead, sight, &measured),
+            Fuser::Blend(scheme) => self.fuse_blended(scheme, ahead, sight, &measured),
         }
-        if kalman {
-            let fused = self.filter_step(ahead, sight, &cells, &vals, &vars)?;
-            return Ok(self.setup.dry_estimate(fused));
+    }
+
+    /// [`Fuser::Filter`]: the model predicts only the boats' cells (for the sources'
+    /// calibration: the filter forecasts by itself), then one filter step. The aerials' extra
+    /// is their misfit beyond the interpolation's modelled error, measured where there is one
+    /// (between the lattice).
+    fn fuse_filtered(&mut self, ahead: u64, sight: &AerialSight, b: &BoatValues) -> Result<Estimate, TeamError> {
+        let (pred, _) = self.state.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
+        let boat_var = b.typical(self.setup.cfg.boat_sigma);
+        if !b.cells.is_empty() {
+            let at = pred.predict_at(ahead as f64, &b.cells);
+            let at_cells: Vec<f64> = at.iter().zip(self.mean_at(&b.cells)).map(|(a, m)| a + m).collect();
+            self.calibrate_prediction(&at_cells, b, boat_var);
+            let on_lattice = &self.setup.on_lattice;
+            let between: Vec<(usize, f64)> = b.pairs().filter(|&(c, _)| !on_lattice[c]).collect();
+            self.calibrate_aerials(sight, &between, |c| sight.interpolation[c], boat_var);
         }
-        let hifi = self.boats_estimate(predicted, &cells, &vals, boat_var)?;
-        let mut aerial = sight.estimate.clone();
-        let extra = self.state.aerial_extra.mean();
-        aerial.variance.iter_mut().for_each(|v| *v += extra);
-        let measured = (!cells.is_empty()).then_some(Measured {
-            cells: &cells,
-            values: &vals,
-            noise_var: boat_var,
-        });
-        let fused = fuse(
-            self.setup.cfg.fusion,
-            self.setup.grid.len(),
-            &[&aerial, &hifi],
-            measured,
-        )?;
+        let fused = self.filter_step(ahead, sight, &b.cells, &b.values, &b.variances)?;
         Ok(self.setup.dry_estimate(fused))
     }
 
-    /// The sources' errors from the boats' innovations at the measured cells, less the boats'
-    /// own noise: the aerials' error is mostly interpolation and the prediction's mostly model
-    /// error, and neither is in their noise models. (The Kalman filter models the
-    /// interpolation's error itself: the aerials' extra is what is left beyond it.)
-    /// `predicted` is the model's prediction at `cells`, in their order.
-    fn calibrate(&mut self, sight: &AerialSight, predicted: &[f64], cells: &[usize], vals: &[f64], boat_var: f64) {
-        let squared = predicted.iter().zip(vals).map(|(p, v)| (p - v).powi(2)).sum::<f64>();
-        self.state.pred_var = (squared / cells.len() as f64 - boat_var).max(1e-12);
-        let all: Vec<(usize, f64)> = cells.iter().copied().zip(vals.iter().copied()).collect();
-        let kalman = self.setup.cfg.fusion == Scheme::Kalman;
-        // The filter's extra is the interpolation's misfit, so it is measured where there is one.
-        let between: Vec<(usize, f64)> = match kalman {
-            true => all.into_iter().filter(|&(c, _)| !self.setup.on_lattice[c]).collect(),
-            false => all,
-        };
-        if between.is_empty() {
+    /// [`Fuser::Blend`]: the model's prediction of the whole field (N x r complex products;
+    /// the boats' gappy estimate falls back on it), the sources calibrated on the boats'
+    /// cells, then the aerial estimate and the boats' fused by `scheme`.
+    fn fuse_blended(
+        &mut self,
+        scheme: Scheme,
+        ahead: u64,
+        sight: &AerialSight,
+        b: &BoatValues,
+    ) -> Result<Estimate, TeamError> {
+        let (pred, _) = self.state.fitted.as_ref().ok_or(TeamError::NotReady(Missing::Model))?;
+        let predicted = self.plus_mean(pred.predict(ahead as f64));
+        let boat_var = b.typical(self.setup.cfg.boat_sigma);
+        if !b.cells.is_empty() {
+            let at_cells: Vec<f64> = b.cells.iter().map(|&c| predicted[c]).collect();
+            self.calibrate_prediction(&at_cells, b, boat_var);
+            let all: Vec<(usize, f64)> = b.pairs().collect();
+            self.calibrate_aerials(sight, &all, |_| 0.0, boat_var);
+        }
+        let hifi = self.boats_estimate(predicted, &b.cells, &b.values, boat_var)?;
+        let mut aerial = sight.estimate.clone();
+        let extra = self.state.aerial_extra.mean();
+        aerial.variance.iter_mut().for_each(|v| *v += extra);
+        let measured = (!b.cells.is_empty()).then_some(Measured {
+            cells: &b.cells,
+            values: &b.values,
+            noise_var: boat_var,
+        });
+        let fused = fuse(scheme, self.setup.grid.len(), &[&aerial, &hifi], measured)?;
+        Ok(self.setup.dry_estimate(fused))
+    }
+
+    /// The prediction's error from the boats' innovations at the measured cells, less the
+    /// boats' own noise: it is mostly model error, which is not in its noise model.
+    /// `predicted` is the model's prediction at the boats' cells, in their order.
+    fn calibrate_prediction(&mut self, predicted: &[f64], b: &BoatValues, boat_var: f64) {
+        let squared = predicted
+            .iter()
+            .zip(&b.values)
+            .map(|(p, v)| (p - v).powi(2))
+            .sum::<f64>();
+        self.state.pred_var = (squared / b.cells.len() as f64 - boat_var).max(1e-12);
+    }
+
+    /// The aerials' error beyond their noise model from the boats' values at `at` (cell,
+    /// value), beyond `modelled(cell)` (the interpolation's error where the fuser models it):
+    /// the aerials' error is mostly interpolation, which their noise model leaves out.
+    fn calibrate_aerials(
+        &mut self,
+        sight: &AerialSight,
+        at: &[(usize, f64)],
+        modelled: impl Fn(usize) -> f64,
+        boat_var: f64,
+    ) {
+        if at.is_empty() {
             return;
         }
-        let modelled = |c: usize| sight.estimate.variance[c] + if kalman { sight.interpolation[c] } else { 0.0 };
-        let expected = between.iter().map(|&(c, _)| modelled(c) + boat_var).sum::<f64>();
-        let seen = between
+        let expected = at
+            .iter()
+            .map(|&(c, _)| sight.estimate.variance[c] + modelled(c) + boat_var)
+            .sum::<f64>();
+        let seen = at
             .iter()
             .map(|&(c, v)| (sight.estimate.values[c] - v).powi(2))
             .sum::<f64>();
-        self.state.aerial_extra.add(seen - expected, between.len());
+        self.state.aerial_extra.add(seen - expected, at.len());
     }
 
     /// The boats' estimate of the whole field for the heuristic schemes: their gappy
@@ -567,6 +592,26 @@ fn boat_variances(boats: &[&Sample], sigma: f64) -> Vec<f64> {
             None => vec![sigma * sigma; s.values.len()],
         })
         .collect()
+}
+
+/// The boats' values of one step in a canonical order: each cell's value and its noise
+/// variance.
+struct BoatValues {
+    cells: Vec<usize>,
+    values: Vec<f64>,
+    variances: Vec<f64>,
+}
+
+impl BoatValues {
+    /// The one noise variance ([`typical`]; `sigma^2` without values).
+    fn typical(&self, sigma: f64) -> f64 {
+        typical(&self.variances, sigma * sigma)
+    }
+
+    /// Each cell with its value.
+    fn pairs(&self) -> impl Iterator<Item = (usize, f64)> + '_ {
+        self.cells.iter().copied().zip(self.values.iter().copied())
+    }
 }
 
 /// The one noise variance of the steps that take one (the heuristic schemes, the noise

@@ -12,15 +12,15 @@
 mod between;
 mod fuse;
 mod placement;
+mod screening;
 
 pub use fuse::AerialSight;
 pub use placement::{Allocation, BoatDisk};
 
 use crate::dmd::{Dmd, DmdConfig, DmdModel, Factored, Modes, Prepared};
-use crate::fusion::{AerialNoise, Estimate};
+use crate::fusion::{AerialNoise, Estimate, Scheme};
 use crate::grid::Grid;
 use crate::kalman::{self, ModalFilter};
-use crate::protocol::Sample;
 use crate::sensing::{coverage, real_basis, real_basis_coordinates};
 use crate::team::{Missing, TeamConfig, TeamError};
 use faer::Mat;
@@ -49,6 +49,30 @@ pub struct Setup {
     on_lattice: Vec<bool>,
     /// How far a boat goes in one step (m; infinite offline), for `placement = "horizon"`.
     boat_speed: f64,
+    /// How each step is fused: `fusion` read once, here.
+    fuser: Fuser,
+}
+
+/// How the assimilator fuses a step, chosen once from the team's `fusion` when it is made:
+/// every place the two ways differ matches on this, never on the setting.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Fuser {
+    /// `kalman`: the modal filter observes the aerial lattice and the boats' disks and
+    /// forecasts by itself; it is carried into each refitted model's basis.
+    Filter,
+    /// `paper` or `inverse-variance`: the aerial estimate blended with the boats' gappy
+    /// estimate on the model's modes (or the model's prediction without boat data).
+    Blend(Scheme),
+}
+
+impl Fuser {
+    /// The fuser a `fusion` setting names.
+    pub fn of(scheme: Scheme) -> Self {
+        match scheme {
+            Scheme::Kalman => Self::Filter,
+            blend => Self::Blend(blend),
+        }
+    }
 }
 
 /// Everything the assimilator learns as the mission goes: the model, the newest snapshot, the
@@ -177,6 +201,7 @@ impl Assimilator {
             lattice: (0..grid.len()).filter(|&i| on_lattice[i]).collect(),
             on_lattice,
             boat_speed: f64::INFINITY,
+            fuser: Fuser::of(cfg.fusion),
         };
         let state = AssimilatorState {
             model: None,
@@ -285,77 +310,6 @@ impl Assimilator {
 
     pub fn boat_positions(&self) -> &[(f64, f64)] {
         &self.state.boat_positions
-    }
-
-    /// The aerials' samples of a step `ahead` steps after the newest snapshot, each frame
-    /// tested against the model's forecast ([`crate::health::Screen::aerials`]; all of them
-    /// with `sensor_health = false` or before the first model).
-    pub fn screen_aerials(&mut self, step: u64, ahead: u64, samples: Vec<crate::health::Tagged>) -> Vec<Sample> {
-        if !self.setup.cfg.sensor_health {
-            return samples.into_iter().map(|(_, s)| s).collect();
-        }
-        let _span = tracing::info_span!("screen aerials").entered();
-        let cells = cells_of(&samples);
-        let mean = self.mean_at(&cells);
-        let forecast = self.state.fitted.as_ref().map(|(p, _)| {
-            let at = p.predict_at(ahead as f64, &cells);
-            cells
-                .iter()
-                .copied()
-                .zip(at.iter().zip(&mean).map(|(a, m)| a + m))
-                .collect()
-        });
-        let grid = self.setup.grid;
-        self.state.screen.aerials(&grid, step, samples, forecast.as_ref())
-    }
-
-    /// The boats' samples of a step `ahead` steps after the newest snapshot, tested against
-    /// what the fleet knows of it without any boat value of the step
-    /// ([`crate::health::Screen::boats`]).
-    pub fn screen_boats(
-        &mut self,
-        step: u64,
-        ahead: u64,
-        samples: Vec<crate::health::Tagged>,
-        aerial: &AerialSight,
-    ) -> Result<Vec<Sample>, TeamError> {
-        if !self.setup.cfg.sensor_health || samples.is_empty() {
-            return Ok(samples.into_iter().map(|(_, s)| s).collect());
-        }
-        let _span = tracing::info_span!("screen boats").entered();
-        let cells = cells_of(&samples);
-        let field = tracing::info_span!("boat reference").in_scope(|| self.boat_reference(ahead, aerial, &cells))?;
-        let (grid, sigma) = (self.setup.grid, self.setup.cfg.boat_sigma);
-        let lattice = aerial
-            .cells
-            .iter()
-            .zip(aerial.values.iter().zip(&aerial.variance))
-            .map(|(&c, (&y, &v))| (c, (y, v)))
-            .collect();
-        let reference = crate::health::Reference {
-            field: &field,
-            lattice: &lattice,
-        };
-        let _tests = tracing::info_span!("boat tests").entered();
-        Ok(self.state.screen.boats(&grid, step, samples, reference, sigma))
-    }
-
-    /// Vehicles (indices) that sent no reading though they had a disk or a region, judged at
-    /// `step`: marked silent ([`crate::health::Screen::silent`]).
-    pub fn screen_silent(&mut self, step: u64, vehicles: &[usize]) {
-        if self.setup.cfg.sensor_health {
-            vehicles.iter().for_each(|&v| self.state.screen.silent(v, step));
-        }
-    }
-
-    /// Every sensor's health, the verdicts changed since the last call, and the readings'
-    /// counts.
-    pub fn screen(&mut self) -> &mut crate::health::Screen {
-        &mut self.state.screen
-    }
-
-    pub fn screen_state(&self) -> &crate::health::Screen {
-        &self.state.screen
     }
 
     /// The boats' innovations of the last step [`Self::fuse_step`] fused boat values in, once.
@@ -472,12 +426,12 @@ impl Assimilator {
         Ok(())
     }
 
-    /// `fusion = "kalman"`: carry the filter into the refitted model's basis and dynamics (or
+    /// [`Fuser::Filter`]: carry the filter into the refitted model's basis and dynamics (or
     /// start it, at the newest snapshot, with the calibrated prediction variance per cell).
     /// Its state is then at the newest snapshot: the fused one of the last step, which is the
-    /// filter's own posterior mean.
+    /// filter's own posterior mean. A blend has no filter to carry.
     fn move_filter(&mut self) -> Result<(), TeamError> {
-        if self.setup.cfg.fusion != crate::fusion::Scheme::Kalman {
+        if let Fuser::Blend(_) = self.setup.fuser {
             return Ok(());
         }
         let _span = tracing::info_span!("move filter").entered();
