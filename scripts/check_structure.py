@@ -1,6 +1,6 @@
 """Checks of the code's shape a reviewer can repeat (issue 33), run by scripts/test.sh:
 
-1. no import loops: within `vehicles/` and `mission/`, no two sibling modules (files or
+1. no import loops: within every crate of the workspace, no two sibling modules (files or
    directories of one parent) that use each other, directly or round a longer circle (a
    child's `super::` and a parent's `mod child` are containment, not a loop);
 2. no sleeping to wait for a state: no `sleep(` (a fixed nap; `sleep_until` a deadline is a
@@ -13,12 +13,19 @@
 4. functions a reader can hold: no function (tests aside) of more than 80 lines unless its
    doc comment says why, in a sentence that begins "Long because".
 
+5. impls a reader can hold: no impl block (tests aside) of more than 25 methods or 600 lines
+   unless its doc comment says why, in a sentence that begins "Wide because".
+
+The crates are the workspace's members (Cargo.toml), so a new crate is checked as it lands.
+scripts/test_check_structure.py plants each kind of problem in a scratch tree and sees it found.
+
 Prints what it finds, one line each, and exits 1 if anything is found.
 usage: python3 scripts/check_structure.py [repo root]
 """
 import os
 import re
 import sys
+import tomllib
 
 ROOT = os.path.abspath(sys.argv[1] if len(sys.argv) > 1 else os.path.join(os.path.dirname(__file__), ".."))
 problems = []
@@ -209,11 +216,48 @@ def check_lengths(crates, limit=80):
                                     f"(over {limit}; split it, or say why in its doc: \"Long because ...\")")
 
 
-check_loops("vehicles")
-check_loops("mission")
+# 5. Wide impls.
+def check_impls(crates, methods=25, limit=600):
+    for crate in crates:
+        for f in rust_files(os.path.join(ROOT, crate, "src")):
+            if f.endswith("/tests.rs"):
+                continue
+            lines = open(f).read().split("\n")
+            test_from = next((i for i, l in enumerate(lines) if l.startswith("#[cfg(test)]")), len(lines))
+            for i, line in enumerate(lines[:test_from]):
+                m = re.match(r"impl\b.*\{\s*$", line)
+                if not m:
+                    continue
+                end = next((j for j in range(i + 1, len(lines)) if lines[j] == "}"), len(lines) - 1)
+                fns = sum(1 for body in lines[i:end]
+                          if re.match(r"    (?:pub(?:\([^)]*\))?\s+)?(?:const\s+)?(?:async\s+)?fn\s", body))
+                n = end - i + 1
+                if fns <= methods and n <= limit:
+                    continue
+                k, doc = i - 1, []
+                while k >= 0 and re.match(r"\s*(///|#\[)", lines[k]):
+                    doc.append(lines[k])
+                    k -= 1
+                if "Wide because" not in " ".join(d.strip().lstrip("/ ") for d in reversed(doc)):
+                    problems.append(f"{os.path.relpath(f, ROOT)}:{i + 1}: {line.strip()[:-1].strip()} has {fns} "
+                                    f"methods in {n} lines (over {methods} or {limit}; split it by concern, or "
+                                    f"say why in its doc: \"Wide because ...\")")
+
+
+def workspace_crates():
+    """The workspace's members that have a `src/` (Cargo.toml's `[workspace] members`)."""
+    with open(os.path.join(ROOT, "Cargo.toml"), "rb") as f:
+        members = tomllib.load(f)["workspace"]["members"]
+    return [m for m in members if os.path.isdir(os.path.join(ROOT, m, "src"))]
+
+
+CRATES = workspace_crates()
+for crate in CRATES:
+    check_loops(crate)
 check_sleeps(["vehicles/src/node", "vehicles/src/bridge"])
-check_field_lists(["math", "mission", "net", "vehicles", "model-server", "watch", "fleet"])
-check_lengths(["math", "mission", "exit", "net", "vehicles", "model-server", "watch", "fleet"])
+check_field_lists(CRATES)
+check_lengths(CRATES)
+check_impls(CRATES)
 for p in problems:
     print(p)
 print(f"check_structure: {len(problems)} problem(s)")

@@ -47,9 +47,11 @@ mdbook build docs
 python3 scripts/check_links.py
 echo "== house style (rustfmt.toml; the code's shape; clippy runs in the build below)"
 cargo fmt --all --check
-# No import loops in vehicles/ and mission/, no sleeping in a loop in the vehicle node and its
-# bridge, no struct's field list written twice (scripts/check_structure.py says what it checks).
+# No import loops in any crate, no sleeping in a loop in the vehicle node and its bridge, no
+# struct's field list written twice, no over-long function or over-wide impl
+# (scripts/check_structure.py says what it checks; its own test plants each and sees it found).
 python3 scripts/check_structure.py
+python3 scripts/test_check_structure.py
 # Clippy lints the workspace as it is built, with warnings as errors: `clippy-driver` (the
 # compiler `cargo clippy` runs) compiles the workspace's own crates, so one build both lints and
 # makes the binaries the tests run (a separate `cargo clippy` pass type-checked the whole
