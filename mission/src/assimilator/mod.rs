@@ -377,12 +377,12 @@ impl Assimilator {
     /// The part of the model update that needs only the pairs' first snapshots (the newest
     /// one, then `fused`: the epoch's fused steps but its last), as a job to run beside the
     /// epoch's last filter step ([`Dmd::prepare`]). The job takes the model with it: give
-    /// [`Self::model_back`] the model it returns before anything else is asked of this
+    /// [`Self::return_lent_model`] the model it returns before anything else is asked of this
     /// assimilator, and [`Self::assimilate_prepared`] what it made.
-    pub fn update_ahead<'a>(&mut self, fused: &'a [Vec<f64>]) -> Option<UpdateAhead<'a>> {
+    pub fn lend_model_for_update<'a>(&mut self, fused: &'a [Vec<f64>]) -> Option<LentModel<'a>> {
         let newest = self.state.newest.clone()?;
         let model = self.state.model.take()?;
-        Some(UpdateAhead {
+        Some(LentModel {
             model,
             setup: self.setup.clone(),
             mean: self.state.mean.clone(),
@@ -391,12 +391,12 @@ impl Assimilator {
         })
     }
 
-    /// The model an [`UpdateAhead`] took, back.
-    pub fn model_back(&mut self, model: Box<dyn Dmd>) {
+    /// The model a [`LentModel`] took, given back.
+    pub fn return_lent_model(&mut self, model: Box<dyn Dmd>) {
         self.state.model = Some(model);
     }
 
-    /// [`Self::assimilate`] with what an [`UpdateAhead`] made of this epoch's first snapshots
+    /// [`Self::assimilate`] with what a [`LentModel`] made of this epoch's first snapshots
     /// (the same model to the bit; what does not fit them is not taken).
     pub fn assimilate_prepared(&mut self, epoch: Vec<Vec<f64>>, prepared: Option<Prepared>) -> Result<(), TeamError> {
         if epoch.is_empty() {
@@ -566,16 +566,16 @@ fn fit_with_dynamics(model: &dyn Dmd, newest: &[f64]) -> Result<Fitted, TeamErro
 }
 
 /// Every cell the samples cover, in their order.
-fn cells_of(samples: &[crate::health::Tagged]) -> Vec<usize> {
+fn cells_of(samples: &[crate::health::VehicleSample]) -> Vec<usize> {
     samples
         .iter()
-        .flat_map(|(_, s)| s.cells.iter().map(|&c| c as usize))
+        .flat_map(|t| t.sample.cells.iter().map(|&c| c as usize))
         .collect()
 }
 
 /// The model and the snapshots its next update starts from, taken to make that update's
-/// first part on another thread ([`Assimilator::update_ahead`]).
-pub struct UpdateAhead<'a> {
+/// first part on another thread ([`Assimilator::lend_model_for_update`]).
+pub struct LentModel<'a> {
     model: Box<dyn Dmd>,
     setup: Arc<Setup>,
     mean: Option<Arc<Vec<f64>>>,
@@ -583,7 +583,7 @@ pub struct UpdateAhead<'a> {
     fused: &'a [Vec<f64>],
 }
 
-impl UpdateAhead<'_> {
+impl LentModel<'_> {
     /// The model, to be given back, and what it made ahead (`None` where its method makes
     /// nothing ahead, or refuses the snapshots: the update then does it all, or says why).
     pub fn run(self) -> (Box<dyn Dmd>, Option<Prepared>) {

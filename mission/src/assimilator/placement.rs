@@ -81,7 +81,7 @@ impl Assimilator {
         // region is only as good as its frames: a silent one's was lost (+2,526% on the 500 hPa
         // height for a camera dark from mid-mission), an over-exposed one's refused frames too.
         let doubted: BTreeSet<usize> = (0..cfg.aerials)
-            .filter(|&a| self.state.screen.doubted(a).is_some() && !held.contains(&a))
+            .filter(|&a| self.state.screen.verdict_unless_ok(a).is_some() && !held.contains(&a))
             .collect();
         let staying: BTreeSet<usize> = held.union(&doubted).copied().collect();
         let starts = self.state.aerial_positions.clone();

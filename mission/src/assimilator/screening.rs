@@ -10,9 +10,9 @@ impl Assimilator {
     /// The aerials' samples of a step `ahead` steps after the newest snapshot, each frame
     /// tested against the model's forecast ([`crate::health::Screen::aerials`]; all of them
     /// with `sensor_health = false` or before the first model).
-    pub fn screen_aerials(&mut self, step: u64, ahead: u64, samples: Vec<crate::health::Tagged>) -> Vec<Sample> {
+    pub fn screen_aerials(&mut self, step: u64, ahead: u64, samples: Vec<crate::health::VehicleSample>) -> Vec<Sample> {
         if !self.setup.cfg.sensor_health {
-            return samples.into_iter().map(|(_, s)| s).collect();
+            return samples.into_iter().map(|t| t.sample).collect();
         }
         let _span = tracing::info_span!("screen aerials").entered();
         let cells = cells_of(&samples);
@@ -36,11 +36,11 @@ impl Assimilator {
         &mut self,
         step: u64,
         ahead: u64,
-        samples: Vec<crate::health::Tagged>,
+        samples: Vec<crate::health::VehicleSample>,
         aerial: &AerialSight,
     ) -> Result<Vec<Sample>, TeamError> {
         if !self.setup.cfg.sensor_health || samples.is_empty() {
-            return Ok(samples.into_iter().map(|(_, s)| s).collect());
+            return Ok(samples.into_iter().map(|t| t.sample).collect());
         }
         let _span = tracing::info_span!("screen boats").entered();
         let cells = cells_of(&samples);

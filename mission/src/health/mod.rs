@@ -392,8 +392,13 @@ impl Reference<'_> {
 /// The model's forecast of a step at the aerials' cells, by cell.
 pub type Forecast = HashMap<usize, f64>;
 
-/// A vehicle's sample, with the vehicle's index.
-pub type Tagged = (usize, Sample);
+/// A vehicle's sample, with the index of the vehicle that took it (the tests judge each
+/// vehicle's sensor).
+#[derive(Debug, Clone)]
+pub struct VehicleSample {
+    pub vehicle: usize,
+    pub sample: Sample,
+}
 
 impl Screen {
     /// Every sensor's verdict and its reason, by vehicle index (sensors never tested: none).
@@ -405,7 +410,7 @@ impl Screen {
     }
 
     /// Vehicle `v`'s verdict and reason when it is not `ok` (what its ack carries).
-    pub fn doubted(&self, v: usize) -> Option<(Health, String)> {
+    pub fn verdict_unless_ok(&self, v: usize) -> Option<(Health, String)> {
         let s = self.sensors.get(&v).filter(|s| s.health != Health::Ok)?;
         Some((s.health, s.reason.clone()))
     }
@@ -512,12 +517,16 @@ impl Screen {
         &mut self,
         grid: &Grid,
         step: u64,
-        samples: Vec<Tagged>,
+        samples: Vec<VehicleSample>,
         reference: Reference<'_>,
         sigma: f64,
     ) -> Vec<Sample> {
         let mut out = vec![];
-        for (v, mut s) in samples {
+        for VehicleSample {
+            vehicle: v,
+            sample: mut s,
+        } in samples
+        {
             if s.cells.is_empty() {
                 continue; // a reading of no cell says nothing of the sensor ([`Self::silent`])
             }
@@ -583,29 +592,29 @@ impl Screen {
         &mut self,
         grid: &Grid,
         step: u64,
-        samples: Vec<Tagged>,
+        samples: Vec<VehicleSample>,
         forecast: Option<&Forecast>,
     ) -> Vec<Sample> {
         let Some(forecast) = forecast else {
-            return samples.into_iter().map(|(_, s)| s).collect();
+            return samples.into_iter().map(|t| t.sample).collect();
         };
         let (frame_sd, quadrant_sd) = (self.frame_bias.sd(), self.quadrant_bias.sd());
         // A frame of no cell (the aerial saw none of the site that step) says nothing of its
         // sensor: not a frame refused, nor a clean one.
         let measured: Vec<Option<Measured>> = samples
             .iter()
-            .map(|(_, s)| (!s.cells.is_empty()).then(|| Measured::of(grid, s, forecast)))
+            .map(|t| (!t.sample.cells.is_empty()).then(|| Measured::of(grid, &t.sample, forecast)))
             .collect();
         let departures = self.departures(&samples, &measured);
         let tests: Vec<Option<FrameTest>> = samples
             .iter()
             .zip(measured)
-            .map(|((v, _), m)| {
+            .map(|(t, m)| {
                 let quadrant_sd = QuadrantScale {
                     history: quadrant_sd,
                     others: departures
                         .iter()
-                        .filter(|(w, _)| w != v)
+                        .filter(|&&(w, _)| w != t.vehicle)
                         .map(|(_, m)| m.abs())
                         .collect(),
                 };
@@ -614,7 +623,14 @@ impl Screen {
             .collect();
         let forecast_failed = self.forecast_failed(&samples, &tests);
         let mut out = vec![];
-        for ((v, mut s), test) in samples.into_iter().zip(tests) {
+        for (
+            VehicleSample {
+                vehicle: v,
+                sample: mut s,
+            },
+            test,
+        ) in samples.into_iter().zip(tests)
+        {
             let Some(mut test) = test else { continue };
             test.whole_refused &= !forecast_failed;
             let check = Check {
@@ -664,11 +680,11 @@ impl Screen {
     /// 390x worse than with the tests off). A fault is one sensor's: an over-exposed camera is
     /// refused while another aerial's frame agrees with the forecast. A fleet of one aerial has
     /// no witness and is judged on the history alone.
-    fn forecast_failed(&self, samples: &[Tagged], tests: &[Option<FrameTest>]) -> bool {
+    fn forecast_failed(&self, samples: &[VehicleSample], tests: &[Option<FrameTest>]) -> bool {
         let judged: Vec<&FrameTest> = samples
             .iter()
             .zip(tests)
-            .filter(|((v, _), _)| !self.excluded(*v))
+            .filter(|(t, _)| !self.excluded(t.vehicle))
             .filter_map(|(_, t)| t.as_ref())
             .collect();
         let signs: Vec<f64> = judged.iter().filter_map(|t| t.departure().map(f64::signum)).collect();
@@ -680,12 +696,12 @@ impl Screen {
 
     /// Each aerial's quadrants' mean residuals from the forecast this step, by vehicle (not the
     /// excluded ones': their frames witness nothing), for [`QuadrantScale`].
-    fn departures(&self, samples: &[Tagged], measured: &[Option<Measured>]) -> Vec<(usize, f64)> {
+    fn departures(&self, samples: &[VehicleSample], measured: &[Option<Measured>]) -> Vec<(usize, f64)> {
         samples
             .iter()
             .zip(measured)
-            .filter(|((v, _), _)| !self.excluded(*v))
-            .filter_map(|((v, _), m)| m.as_ref().map(|m| (*v, m)))
+            .filter(|(t, _)| !self.excluded(t.vehicle))
+            .filter_map(|(t, m)| m.as_ref().map(|m| (t.vehicle, m)))
             .flat_map(|(v, m)| m.means.iter().flatten().map(move |&q| (v, q)))
             .collect()
     }
@@ -1110,6 +1126,14 @@ fn quadrants(grid: &Grid, cells: &[u32]) -> [Vec<usize>; 4] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Samples tagged with their vehicles' indices.
+    fn tag(samples: Vec<(usize, Sample)>) -> Vec<VehicleSample> {
+        samples
+            .into_iter()
+            .map(|(vehicle, sample)| VehicleSample { vehicle, sample })
+            .collect()
+    }
     use rand::SeedableRng;
     use rand_distr::{Distribution, Normal};
 
@@ -1203,7 +1227,7 @@ mod tests {
                 field: &field,
                 lattice: &lattice,
             };
-            screen.boats(&self.grid, step, samples, reference, SIGMA)
+            screen.boats(&self.grid, step, tag(samples), reference, SIGMA)
         }
     }
 
@@ -1349,7 +1373,7 @@ mod tests {
         let out = screen.boats(
             &w.grid,
             0,
-            vec![(2, front.clone()), (3, spiked.clone())],
+            tag(vec![(2, front.clone()), (3, spiked.clone())]),
             reference,
             SIGMA,
         );
@@ -1373,7 +1397,7 @@ mod tests {
             field: &field,
             lattice: &lattice,
         };
-        let out = screen.boats(&w.grid, 0, vec![(3, spiked.clone())], reference, SIGMA);
+        let out = screen.boats(&w.grid, 0, tag(vec![(3, spiked.clone())]), reference, SIGMA);
         assert_eq!(out[0].values.len(), spiked.values.len() - 2);
         assert_eq!(screen.counts.spikes_refused, 2);
     }
@@ -1421,12 +1445,14 @@ mod tests {
         for k in 0..30 {
             let s = frame(&mut w, k, &|_, v| v);
             assert_eq!(
-                screen.aerials(&w.grid, k, vec![(0, s.clone())], Some(&forecast)),
+                screen.aerials(&w.grid, k, tag(vec![(0, s.clone())]), Some(&forecast)),
                 vec![s]
             );
         }
         let over = frame(&mut w, 30, &|_, v| v + 20.0 * SIGMA);
-        assert!(screen.aerials(&w.grid, 30, vec![(0, over)], Some(&forecast)).is_empty());
+        assert!(screen
+            .aerials(&w.grid, 30, tag(vec![(0, over)]), Some(&forecast))
+            .is_empty());
         assert_eq!(
             health_of(&screen, 0),
             Health::Suspect,
@@ -1439,7 +1465,7 @@ mod tests {
                 v
             }
         });
-        let out = screen.aerials(&w.grid, 31, vec![(0, corner.clone())], Some(&forecast));
+        let out = screen.aerials(&w.grid, 31, tag(vec![(0, corner.clone())]), Some(&forecast));
         assert_eq!(out[0].cells.len(), corner.cells.len() - 25);
         assert_eq!((screen.counts.frames_refused, screen.counts.quadrants_refused), (1, 1));
         assert_eq!(health_of(&screen, 0), Health::Suspect);
@@ -1463,7 +1489,9 @@ mod tests {
             let offsets = [0; 4].map(|_| wander.sample(&mut w.rng));
             let s = frame(&mut w, k, offsets);
             assert_eq!(
-                screen.aerials(&w.grid, k, vec![(0, s.clone())], Some(&forecast)).len(),
+                screen
+                    .aerials(&w.grid, k, tag(vec![(0, s.clone())]), Some(&forecast))
+                    .len(),
                 1
             );
         }
@@ -1474,12 +1502,14 @@ mod tests {
         let high = FRAME_GATE * quadrant_sd - raise + frame_sd;
         let low = 3.6 * frame_sd - raise;
         let over = frame(&mut w, 40, [high + raise, high + raise, low + raise, low + raise]);
-        assert!(screen.aerials(&w.grid, 40, vec![(0, over)], Some(&forecast)).is_empty());
+        assert!(screen
+            .aerials(&w.grid, 40, tag(vec![(0, over)]), Some(&forecast))
+            .is_empty());
         assert_eq!(screen.counts.frames_refused, 1);
         // A glare on two quadrants with the rest as the forecast says keeps the rest.
         let glare = frame(&mut w, 41, [high + raise, high + raise, 0.0, 0.0]);
         assert_eq!(
-            screen.aerials(&w.grid, 41, vec![(0, glare)], Some(&forecast))[0]
+            screen.aerials(&w.grid, 41, tag(vec![(0, glare)]), Some(&forecast))[0]
                 .cells
                 .len(),
             50
@@ -1498,7 +1528,7 @@ mod tests {
         let quadrant = |c: u32| usize::from(c / 30 >= 15) * 2 + usize::from(c % 30 >= 15);
         let frame = |w: &mut World, k: u64, offsets: [f64; 4]| w.frame(k, |c, v| v + offsets[quadrant(c)]);
         let both = |w: &mut World, k: u64, offsets: [[f64; 4]; 2]| {
-            vec![(0, frame(w, k, offsets[0])), (1, frame(w, k, offsets[1]))]
+            tag(vec![(0, frame(w, k, offsets[0])), (1, frame(w, k, offsets[1]))])
         };
         let wander = Normal::new(0.0, 10.0 * SIGMA).unwrap();
         for k in 0..40 {
@@ -1529,10 +1559,10 @@ mod tests {
         let mut screen = Screen::default();
         let forecast: HashMap<usize, f64> = w.truth.iter().copied().enumerate().collect();
         let both = |w: &mut World, k: u64, raise: [f64; 2]| {
-            vec![
+            tag(vec![
                 (0, w.frame(k, |_, v| v + raise[0])),
                 (1, w.frame(k, |_, v| v + raise[1])),
-            ]
+            ])
         };
         for k in 0..30 {
             let frames = both(&mut w, k, [0.0; 2]);
@@ -1546,7 +1576,7 @@ mod tests {
         assert_eq!((health_of(&screen, 0), health_of(&screen, 1)), (Health::Ok, Health::Ok));
         let frames = both(&mut w, 33, [20.0 * SIGMA, 0.0]);
         let kept = screen.aerials(&w.grid, 33, frames.clone(), Some(&forecast));
-        assert_eq!(kept, vec![frames[1].1.clone()]);
+        assert_eq!(kept, vec![frames[1].sample.clone()]);
         assert_eq!(screen.counts.frames_refused, 1);
         assert_eq!(health_of(&screen, 0), Health::Suspect);
     }
@@ -1572,7 +1602,7 @@ mod tests {
                 values,
                 sigma: None,
             };
-            let kept = screen.aerials(&w.grid, k, vec![(0, s.clone())], Some(&forecast));
+            let kept = screen.aerials(&w.grid, k, tag(vec![(0, s.clone())]), Some(&forecast));
             assert_eq!(kept, if k < 30 { vec![s] } else { vec![] }, "step {k}");
         }
         assert_eq!(health_of(&screen, 0), Health::Ok);

@@ -3,7 +3,7 @@
 //! filter step, and the model updated with the fused steps; then the next epoch is placed.
 
 use super::{history_error, ServerCore};
-use crate::health::Tagged;
+use crate::health::VehicleSample;
 use crate::protocol::{MeasurementBatch, Sample, VehicleKind};
 use crate::team::{LearnFrom, TeamError};
 use std::collections::BTreeMap;
@@ -62,7 +62,7 @@ impl ServerCore {
     /// A later epoch `e`: each step's readings screened and fused, the next step's aerial
     /// sight made beside each filter step, then the model updated with the fused steps. The
     /// update's first part needs only the steps before the last
-    /// ([`crate::assimilator::Assimilator::update_ahead`]), so it is made beside the whole of
+    /// ([`crate::assimilator::Assimilator::lend_model_for_update`]), so it is made beside the whole of
     /// the last step, on the other core, idle there (the update's projections, `H`'s factor and
     /// the new `U`: 12 of its 15 ms at 192 x 384); the last step's snapshot is then all the
     /// update waits for.
@@ -78,13 +78,13 @@ impl ServerCore {
             let (learned, sight) = match k + 1 < end {
                 true => self.step_fused(batches, k, k0..end, next.take())?,
                 false => {
-                    let job = self.assim.update_ahead(&learn);
+                    let job = self.assim.lend_model_for_update(&learn);
                     let (done, ahead) = crate::side_by_side::beside(
                         || self.step_fused(batches, k, k0..end, next.take()),
                         || job.map(|j| tracing::info_span!("dmd update ahead").in_scope(|| j.run())),
                     );
                     if let Some((model, made)) = ahead {
-                        self.assim.model_back(model);
+                        self.assim.return_lent_model(model);
                         prepared = made;
                     }
                     done?
@@ -129,7 +129,7 @@ impl ServerCore {
             let later = self.assim.aerial_sight_later(samples);
             move || tracing::info_span!("aerial estimate").in_scope(later)
         });
-        let (fused, next) = self.fuse_beside(ahead, &aerial, &boats, later);
+        let (fused, next) = self.fuse_step_in_parallel_with(ahead, &aerial, &boats, later);
         let fused = fused?;
         if let Some(i) = self.assim.take_innovation() {
             self.ledger.innovations.insert(k, i);
@@ -159,7 +159,7 @@ impl ServerCore {
     /// Step `k`'s filter step, and beside it, on the other core, `job`: the aerial sight of
     /// the next step (it reads the mission's settings and its own samples only, and the
     /// filter's step takes about three times as long: 9 against 3 ms at 192 x 384).
-    pub(super) fn fuse_beside<T: Send>(
+    pub(super) fn fuse_step_in_parallel_with<T: Send>(
         &mut self,
         ahead: u64,
         aerial: &crate::AerialSight,
@@ -175,11 +175,18 @@ impl ServerCore {
 
     /// Samples of every vehicle of a kind at step `k`, in vehicle order.
     pub(super) fn samples_at(batches: &BTreeMap<usize, MeasurementBatch>, kind: VehicleKind, k: usize) -> Vec<Sample> {
-        Self::tagged_at(batches, kind, k).into_iter().map(|(_, s)| s).collect()
+        Self::vehicle_samples_at(batches, kind, k)
+            .into_iter()
+            .map(|t| t.sample)
+            .collect()
     }
 
     /// [`Self::samples_at`] with each sample's vehicle index (for the health tests).
-    pub(super) fn tagged_at(batches: &BTreeMap<usize, MeasurementBatch>, kind: VehicleKind, k: usize) -> Vec<Tagged> {
+    pub(super) fn vehicle_samples_at(
+        batches: &BTreeMap<usize, MeasurementBatch>,
+        kind: VehicleKind,
+        k: usize,
+    ) -> Vec<VehicleSample> {
         batches
             .iter()
             .filter(|(_, b)| b.kind == kind)
@@ -187,7 +194,10 @@ impl ServerCore {
                 b.samples
                     .iter()
                     .filter(|s| s.step as usize == k)
-                    .map(move |s| (v, s.clone()))
+                    .map(move |s| VehicleSample {
+                        vehicle: v,
+                        sample: s.clone(),
+                    })
             })
             .collect()
     }

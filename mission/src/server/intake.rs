@@ -224,8 +224,8 @@ impl ServerCore {
             }
             seq = Some(s);
         }
-        let sensor =
-            (self.assim.screen_state().doubted(index)).map(|(state, reason)| protocol::SensorHealth { state, reason });
+        let sensor = (self.assim.screen_state().verdict_unless_ok(index))
+            .map(|(state, reason)| protocol::SensorHealth { state, reason });
         Some(Ack {
             vehicle: vehicle.clone(),
             seq: seq?,

@@ -99,7 +99,7 @@ impl ServerCore {
         self.assim.screen().pin(pins);
         let silent = self.silent_sensors(batches, k);
         self.assim.screen_silent(k as u64, &silent);
-        let aerials = Self::tagged_at(batches, VehicleKind::Aerial, k);
+        let aerials = Self::vehicle_samples_at(batches, VehicleKind::Aerial, k);
         self.assim.screen_aerials(k as u64, ahead, aerials)
     }
 
@@ -114,7 +114,7 @@ impl ServerCore {
         aerial: &crate::AerialSight,
     ) -> Result<Vec<Sample>, TeamError> {
         let _span = tracing::info_span!("screen").entered();
-        let boats = Self::tagged_at(batches, VehicleKind::Boat, k);
+        let boats = Self::vehicle_samples_at(batches, VehicleKind::Boat, k);
         let boats = self.assim.screen_boats(k as u64, ahead, boats, aerial)?;
         for (v, since) in self.assim.screen().take_readmissions() {
             self.sensors.readmissions.entry(v).or_default().insert(since, k as u64);
