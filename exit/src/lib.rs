@@ -56,7 +56,7 @@ impl<T, E: Into<anyhow::Error>> InputResult<T> for Result<T, E> {
 
 /// The exit status of an error.
 pub fn code_of(e: &anyhow::Error) -> i32 {
-    use fleet_mission::process::{error::DatasetError, truth::TruthError};
+    use fleet_math::process::{error::DatasetError, truth::TruthError};
     // A dataset that cannot be used as it is (unreadable, wrong shape, not finite, no such
     // variable) is the user's input wherever it was read; failing to write one is not. So is a
     // truth the mission's settings cannot make (a grid of 0 rows was exit 1).
@@ -111,7 +111,7 @@ mod tests {
         let r: Result<(), std::io::Error> = Err(std::io::Error::other("x\ny"));
         assert_eq!(one_line(&r.input().unwrap_err()), "x y");
         // A truth the settings cannot make is theirs, wherever it surfaces.
-        use fleet_mission::process::truth::TruthError;
+        use fleet_math::process::truth::TruthError;
         let coarse = TruthError::TooCoarse {
             rows: 4,
             cols: 4,

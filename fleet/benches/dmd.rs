@@ -1,14 +1,14 @@
 //! Criterion benchmarks of the DMD core (the Python side: `bench/peers/`, see docs/benchmarks.md).
 
 #[global_allocator]
-static ALLOCATOR: fleet::Allocator = fleet::Allocator;
+static ALLOCATOR: fleet_math::Allocator = fleet_math::Allocator;
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use fleet::dmd::{pairs_of, Debias, DmdConfig, Method, RankPolicy};
-use fleet::process::synthetic::smooth_sphere_field;
+use fleet_math::dmd::{pairs_of, Debias, DmdConfig, Method, RankPolicy};
+use fleet_math::process::synthetic::smooth_sphere_field;
 
 fn batch_4608x100_r10(c: &mut Criterion) {
-    fleet::configure_linalg_threads();
+    fleet_math::configure_linalg_threads();
     let times: Vec<f64> = (0..101).map(|k| 20.0 * k as f64 / 199.0).collect();
     let field = smooth_sphere_field(&times, 0.01, 42);
     let (x, y) = pairs_of(field.snapshots.as_ref());

@@ -2,15 +2,15 @@
 //! `fleet bench sensing`).
 
 #[global_allocator]
-static ALLOCATOR: fleet::Allocator = fleet::Allocator;
+static ALLOCATOR: fleet_math::Allocator = fleet_math::Allocator;
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use fleet::grid::Grid;
-use fleet::process::synthetic::smooth_basis;
-use fleet::sensing::qr::{block_qr, point_qr};
+use fleet_math::grid::Grid;
+use fleet_math::process::synthetic::smooth_basis;
+use fleet_math::sensing::qr::{block_qr, point_qr};
 
 fn placement(c: &mut Criterion) {
-    fleet::configure_linalg_threads();
+    fleet_math::configure_linalg_threads();
     let grid = Grid::new(48, 96, 1.0).unwrap();
     let phi = smooth_basis(&grid, 10, 7);
     c.bench_function("block QR 48x96 r10 radius 10, 5 boats", |b| {

@@ -3,7 +3,7 @@
 mod cli;
 
 #[global_allocator]
-static ALLOCATOR: fleet::Allocator = fleet::Allocator;
+static ALLOCATOR: fleet_math::Allocator = fleet_math::Allocator;
 
 use clap::Parser;
 
@@ -13,9 +13,9 @@ fn main() {
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_writer(std::io::stderr)
         .init();
-    fleet::configure_linalg_threads();
+    fleet_math::configure_linalg_threads();
     let args = cli::Cli::parse();
     if let Err(e) = cli::run(args) {
-        fleet::exit::fail("fleet", &e);
+        fleet_exit::fail("fleet", &e);
     }
 }

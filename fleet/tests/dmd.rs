@@ -2,12 +2,12 @@
 //! and against the peer libraries' reference outputs in `reference/` (PyDMD, odmd, numpy).
 
 use faer::{c64, Mat, MatRef};
-use fleet::dmd::{
+use fleet::experiment::run_online;
+use fleet_math::dmd::{
     pairs_of, Debias, Dmd, DmdConfig, DmdError, Forgetting, ForgettingDirections, ForgettingUnit, GeneralDmd,
     LongTermDmd, Method, RankPolicy,
 };
-use fleet::dmd::{BatchDmd, Modes};
-use fleet::experiment::run_online;
+use fleet_math::dmd::{BatchDmd, Modes};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal, StandardNormal};
@@ -141,7 +141,7 @@ fn exact_modes_reconstruct_and_forecast_a_noise_free_trajectory() {
 }
 
 fn load_case1() -> Mat<f64> {
-    let a = fleet::npy::read(reference_dir().join("dmd_case1_Z.npy")).unwrap();
+    let a = fleet_math::npy::read(reference_dir().join("dmd_case1_Z.npy")).unwrap();
     assert_eq!(a.shape, vec![100, 501]);
     Mat::from_fn(100, 501, |i, j| a.data[i * 501 + j])
 }
@@ -320,7 +320,7 @@ fn long_term_with_gamma_one_is_the_batch_least_squares_operator() {
     let vs = Mat::from_fn(500, 100, |i, j| svd.V()[(i, j)] / s[j]);
     let a_ls = y * &vs * svd.U().transpose();
     let modes = m.decompose().unwrap();
-    let (ev_ls, _) = fleet::dmd::linalg::eig(a_ls.as_ref()).unwrap();
+    let (ev_ls, _) = fleet_math::dmd::linalg::eig(a_ls.as_ref()).unwrap();
     let d = spectrum_distance(&modes.eigenvalues, &ev_ls);
     assert!(d < 1e-8, "spectrum {d:e}");
 }

@@ -3,8 +3,8 @@
 //! must be at least twice as close in median. Measured when this test was written (same seeds):
 //! exact full rank -1.244 (error 0.244), optimal-rank TLS error ~0.03, forward-backward ~0.02.
 
-use fleet::dmd::{Debias, Method, RankPolicy};
 use fleet::experiment::eig_study::{estimate, median, trial_seed, Variant};
+use fleet_math::dmd::{Debias, Method, RankPolicy};
 
 fn median_error(v: &Variant) -> f64 {
     let mut errs: Vec<f64> = (0..10)

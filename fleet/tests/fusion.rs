@@ -4,9 +4,9 @@
 //! much.
 
 use faer::Mat;
-use fleet::fusion::{fuse, AerialFrame, AerialNoise, Estimate, Measured, Scheme};
-use fleet::grid::{Cell, Grid};
-use fleet::sensing::gappy::reconstruct;
+use fleet_math::fusion::{fuse, AerialFrame, AerialNoise, Estimate, Measured, Scheme};
+use fleet_math::grid::{Cell, Grid};
+use fleet_math::sensing::gappy::reconstruct;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};

@@ -1,7 +1,7 @@
 //! The plasma-cloud specification's sanity checks (`docs/simulator.md`, "Checks"), on
 //! grids small enough for the test suite. Each tolerance says where it comes from.
 
-use fleet::process::plasma::{PlasmaCloud, PlasmaParams};
+use fleet_math::process::plasma::{PlasmaCloud, PlasmaParams};
 
 /// A quiet base: no diffusion, no sponge, tight solves, lab frame.
 fn base(nx: usize, ny: usize, lx: f64) -> PlasmaParams {

@@ -1,11 +1,11 @@
 //! Sensor placement and gappy reconstruction against pysensors' reference and analytic cases.
 
 use faer::Mat;
-use fleet::grid::{Cell, Grid};
-use fleet::process::synthetic::smooth_basis;
-use fleet::sensing::gappy::reconstruct;
-use fleet::sensing::qr::{block_dopt, block_qr, point_qr, Disk};
-use fleet::sensing::SensingError;
+use fleet_math::grid::{Cell, Grid};
+use fleet_math::process::synthetic::smooth_basis;
+use fleet_math::sensing::gappy::reconstruct;
+use fleet_math::sensing::qr::{block_dopt, block_qr, point_qr, Disk};
+use fleet_math::sensing::SensingError;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
@@ -17,7 +17,7 @@ fn reference_dir() -> PathBuf {
 
 /// The POD basis of the reference (4608 x 20, 48 x 96 grid).
 fn pod_basis() -> Mat<f64> {
-    let a = fleet::npy::read(reference_dir().join("phi_pod_r20.npy")).unwrap();
+    let a = fleet_math::npy::read(reference_dir().join("phi_pod_r20.npy")).unwrap();
     assert_eq!(a.shape, vec![4608, 20]);
     Mat::from_fn(4608, 20, |i, j| a.data[i * 20 + j])
 }
@@ -340,7 +340,7 @@ fn real_basis_of_a_conjugate_pair_and_a_real_mode_is_three_orthonormal_direction
         1 => c64::new(b[(i, 0)], -b[(i, 1)]) * phase.conj(),
         _ => c64::new(2.0 * b[(i, 2)], 0.0) * c64::new(0.0, 1.0),
     });
-    let q = fleet::sensing::real_basis(modes.as_ref()).unwrap();
+    let q = fleet_math::sensing::real_basis(modes.as_ref()).unwrap();
     assert_eq!(q.ncols(), 3, "a pair spans two real directions, a real mode one");
     let gram = q.transpose() * &q;
     for i in 0..3 {
@@ -370,7 +370,7 @@ fn real_basis_of_a_conjugate_pair_and_a_real_mode_is_three_orthonormal_direction
 #[test]
 fn the_factored_real_basis_and_amplitudes_are_the_direct_ones() {
     use faer::c64;
-    use fleet::dmd::{ModeFactors, Modes};
+    use fleet_math::dmd::{ModeFactors, Modes};
     let n = 400;
     let entry = |i: usize, j: usize| {
         let a = ((i * 7 + j * 3) % 11) as f64 / 5.0 - 1.0;
@@ -393,14 +393,14 @@ fn the_factored_real_basis_and_amplitudes_are_the_direct_ones() {
     for ((label, scales), (c, rank)) in cases.iter().flat_map(|k| [(k, (&full, 5)), (k, (&repeated, 4))]) {
         let b = random_basis(n, 5, 11);
         let f = Mat::from_fn(n, 5, |i, j| b[(i, j)] * scales[j] + 0.3 * b[(i, (j + 1) % 5)]);
-        let modes = fleet::dmd::linalg::to_complex(f.as_ref()) * c;
-        let direct = fleet::sensing::real_basis(modes.as_ref()).unwrap();
+        let modes = fleet_math::dmd::linalg::to_complex(f.as_ref()) * c;
+        let direct = fleet_math::sensing::real_basis(modes.as_ref()).unwrap();
         let factors = ModeFactors {
             real: f.clone(),
             coefficients: c.clone(),
         };
         let orthogonal = factors.orthogonal();
-        let factored = fleet::sensing::real_basis_factored(&orthogonal).unwrap();
+        let factored = fleet_math::sensing::real_basis_factored(&orthogonal).unwrap();
         assert_eq!(
             (factored.ncols(), direct.ncols()),
             (rank, rank),
@@ -423,10 +423,10 @@ fn the_factored_real_basis_and_amplitudes_are_the_direct_ones() {
         }
         // The filter's dynamics in the basis, from the factors (r x r) and from the N rows.
         let lambdas = [(0.9, 0.1), (0.9, -0.1), (0.7, 0.0), (0.5, 0.0), (0.95, 0.0)].map(|(a, b)| c64::new(a, b));
-        let coordinates = fleet::sensing::real_basis_coordinates(&orthogonal).unwrap();
-        let from_rows = fleet::kalman::modal_dynamics(modes.as_ref(), &lambdas, factored.as_ref()).unwrap();
+        let coordinates = fleet_math::sensing::real_basis_coordinates(&orthogonal).unwrap();
+        let from_rows = fleet_math::kalman::modal_dynamics(modes.as_ref(), &lambdas, factored.as_ref()).unwrap();
         let from_factors =
-            fleet::kalman::modal_dynamics(orthogonal.m.as_ref(), &lambdas, coordinates.as_ref()).unwrap();
+            fleet_math::kalman::modal_dynamics(orthogonal.m.as_ref(), &lambdas, coordinates.as_ref()).unwrap();
         // Both solve with the modes' Gram matrix, whose condition is the square of the scales'
         // spread (1e14 for the ill-conditioned case): each loses about that spread's digits
         // (1e-16 x 1e7), 2.1e-8 here; a wrong formula differs by O(1).

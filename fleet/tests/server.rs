@@ -2,13 +2,13 @@
 //! batch is assimilated once, and the result is the offline experiment's, step for step.
 
 use fleet::experiment::team::{self, TeamConfig};
-use fleet::grid::Grid;
-use fleet::mission::schedule::Schedule;
-use fleet::mission::server::{keep_checkpoint, Ingested, ServerCore, CHECKPOINT_EVERY};
-use fleet::mission::vehicle::VehicleBrain;
-use fleet::mission::vehicle_rng;
-use fleet::process::synthetic::plume_field;
-use fleet::protocol::{MeasurementBatch, Noise, VehicleKind};
+use fleet_math::grid::Grid;
+use fleet_math::process::synthetic::plume_field;
+use fleet_mission::protocol::{MeasurementBatch, Noise, VehicleKind};
+use fleet_mission::schedule::Schedule;
+use fleet_mission::server::{keep_checkpoint, Ingested, ServerCore, CHECKPOINT_EVERY};
+use fleet_mission::vehicle::vehicle_rng;
+use fleet_mission::vehicle::VehicleBrain;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 
@@ -40,12 +40,12 @@ fn brains_of(server: &ServerCore, cfg: &TeamConfig, grid: Grid) -> Vec<VehicleBr
 }
 
 /// A moving plume on a 24 x 48 grid and a team of 2 aerials and 3 boats.
-fn plume_team() -> (fleet::process::FieldSeries, Grid, TeamConfig) {
+fn plume_team() -> (fleet_math::process::FieldSeries, Grid, TeamConfig) {
     let cfg = TeamConfig {
         aerials: 2,
         boats: 3,
         radius: 3.0,
-        rank: fleet::dmd::RankPolicy::Fixed(6),
+        rank: fleet_math::dmd::RankPolicy::Fixed(6),
         init_steps: 10,
         aerial_stride: 3,
         aerial_sigma0: 0.05,
@@ -120,9 +120,9 @@ fn shuffled_and_repeated_batches_give_the_offline_result() {
     // What model/latest carries decodes and validates on a receiver with the same grid.
     let update = server.model_update().unwrap();
     assert_eq!(update.eigenvalues.len(), offline.rank);
-    let bytes = fleet::protocol::encode(&fleet::protocol::Body::Model(update.clone()));
-    let got = fleet::protocol::decode(&bytes, &fleet::protocol::Context::new(grid)).unwrap();
-    assert_eq!(got, fleet::protocol::Body::Model(update));
+    let bytes = fleet_mission::protocol::encode(&fleet_mission::protocol::Body::Model(update.clone()));
+    let got = fleet_mission::protocol::decode(&bytes, &fleet_mission::protocol::Context::new(grid)).unwrap();
+    assert_eq!(got, fleet_mission::protocol::Body::Model(update));
 }
 
 /// `placement = "horizon"` in the server: every planned disk is within the boat's reach
@@ -156,7 +156,7 @@ fn horizon_placement_keeps_each_boat_within_reach_and_the_model_carries_its_vari
         if let Some(a) = server.allocation(e + 1) {
             for (b, disk) in a.boats.iter().enumerate() {
                 if let Some((_, (r, c))) = disk {
-                    let at = grid.centre_m(fleet::grid::Cell::new(*r, *c));
+                    let at = grid.centre_m(fleet_math::grid::Cell::new(*r, *c));
                     let d = (at.0 - before[b].0).hypot(at.1 - before[b].1);
                     assert!(
                         d <= reach + 1e-9,
@@ -194,7 +194,7 @@ fn bad_batches_are_rejected_and_counted() {
         aerials: 1,
         boats: 1,
         radius: 3.0,
-        rank: fleet::dmd::RankPolicy::Fixed(4),
+        rank: fleet_math::dmd::RankPolicy::Fixed(4),
         init_steps: 5,
         ..TeamConfig::default()
     };
@@ -209,7 +209,7 @@ fn bad_batches_are_rejected_and_counted() {
         },
         samples: steps
             .into_iter()
-            .map(|s| fleet::protocol::Sample {
+            .map(|s| fleet_mission::protocol::Sample {
                 step: s,
                 position: [1.0, 1.0],
                 cells: vec![0],
@@ -240,7 +240,7 @@ fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
         aerials: 1,
         boats: 2,
         radius: 3.0,
-        rank: fleet::dmd::RankPolicy::Fixed(6),
+        rank: fleet_math::dmd::RankPolicy::Fixed(6),
         init_steps: 10,
         aerial_stride: 3,
         ..TeamConfig::default()
@@ -296,12 +296,12 @@ fn a_vehicle_cut_off_from_the_server_follows_its_plan_horizon() {
     assert_eq!(again.sense_epoch(1, x).unwrap(), first.sense_epoch(1, x).unwrap());
     assert!(av.sense_epoch(3, x).is_err());
     // A stale plan never replaces a newer one.
-    let newer = fleet::protocol::Plan {
+    let newer = fleet_mission::protocol::Plan {
         model_version: 5,
         ..server.plan(&"av-1".parse().unwrap(), 0, 3).unwrap()
     };
     av.set_plan(newer.clone());
-    av.set_plan(fleet::protocol::Plan {
+    av.set_plan(fleet_mission::protocol::Plan {
         model_version: 4,
         targets: vec![],
         ..newer.clone()
@@ -369,7 +369,7 @@ fn equals_offline(server: &ServerCore, mut all: Vec<MeasurementBatch>, mut offli
     assert_eq!(server.ack(&"boat-2".parse().unwrap()).unwrap().seq, last);
     all.sort_by_key(|b| {
         (
-            fleet::mission::schedule::Schedule::epoch_of(b.kind, b.seq),
+            fleet_mission::schedule::Schedule::epoch_of(b.kind, b.seq),
             b.vehicle.clone(),
         )
     });
@@ -663,7 +663,7 @@ fn a_late_batch_refits_from_the_newest_checkpoint_before_it_to_the_same_model() 
 
 /// The model as `model/latest` would carry it if made now.
 fn encoded_model(server: &ServerCore) -> Vec<u8> {
-    fleet::protocol::encode(&fleet::protocol::Body::Model(server.model_update().unwrap()))
+    fleet_mission::protocol::encode(&fleet_mission::protocol::Body::Model(server.model_update().unwrap()))
 }
 
 /// An experiment that places the boats itself: the plans of the epoch follow, the boats'
@@ -674,7 +674,7 @@ fn boats_redirected_for_an_epoch_sense_the_new_disks() {
     let mut server = ServerCore::new(&cfg, grid, truth.frames()).unwrap();
     let mut brains = brains_of(&server, &cfg, grid);
     let truth_at = |k: usize| truth.snapshots.col(k).iter().copied().collect::<Vec<f64>>();
-    let disk = grid.disk(fleet::grid::Cell::new(12, 24), cfg.radius);
+    let disk = grid.disk(fleet_math::grid::Cell::new(12, 24), cfg.radius);
     let mut redirected = false;
     for e in 0..server.schedule().epochs() {
         if e > 0 && !redirected && !server.schedule().sample_steps(VehicleKind::Boat, e).is_empty() {
@@ -745,7 +745,7 @@ fn run_with_boats(rewrite: impl Fn(MeasurementBatch) -> MeasurementBatch) -> Vec
     server.history().estimates().unwrap()
 }
 
-/// An instrument's readings (each value with its own sigma, [`fleet::mission::instrument`])
+/// An instrument's readings (each value with its own sigma, [`fleet_mission::instrument`])
 /// enter where a simulated boat's do: with every sigma the mission's, the estimate is the
 /// simulated one bit for bit (the per-value noise path is the same arithmetic); with smaller
 /// sigmas the boats weigh more and the estimate differs; readings spread over the epoch's
@@ -771,7 +771,7 @@ fn instrument_readings_enter_at_their_own_steps_with_their_own_noise() {
         let mut out = vec![];
         for s in b.samples.drain(..) {
             let half = s.values.len() / 2;
-            let part = |r: std::ops::Range<usize>, step| fleet::protocol::Sample {
+            let part = |r: std::ops::Range<usize>, step| fleet_mission::protocol::Sample {
                 step,
                 position: s.position,
                 cells: s.cells[r.clone()].to_vec(),
@@ -797,7 +797,7 @@ fn instrument_readings_enter_at_their_own_steps_with_their_own_noise() {
         },
         samples: steps
             .iter()
-            .map(|&step| fleet::protocol::Sample {
+            .map(|&step| fleet_mission::protocol::Sample {
                 step,
                 position: [1.0, 1.0],
                 cells: vec![0],
@@ -825,7 +825,7 @@ fn instrument_readings_enter_at_their_own_steps_with_their_own_noise() {
 /// and every batch it took.
 fn live_loop(
     horizon: u64,
-    mut planned: impl FnMut(&str, u64, &fleet::protocol::Plan),
+    mut planned: impl FnMut(&str, u64, &fleet_mission::protocol::Plan),
     mut alter: impl FnMut(&str, u64, &mut MeasurementBatch),
 ) -> (ServerCore, Vec<MeasurementBatch>, Grid, TeamConfig, usize) {
     let (truth, grid, cfg) = plume_team();
@@ -899,11 +899,11 @@ fn same_model(a: &ServerCore, b: &ServerCore) {
 fn a_sensor_that_reads_true_again_is_readmitted_to_the_model_of_a_fleet_it_never_failed() {
     let (server, all, grid, cfg, frames) = a_probe_stuck_in_epoch_3();
     let health = server.sensor_health();
-    assert_eq!(health["boat-1"].state, fleet::protocol::Health::Ok);
+    assert_eq!(health["boat-1"].state, fleet_mission::protocol::Health::Ok);
     let verdicts = server.verdicts();
     assert!(verdicts
         .iter()
-        .any(|v| v.to == fleet::protocol::Health::Excluded && v.reason.starts_with("stuck")));
+        .any(|v| v.to == fleet_mission::protocol::Health::Excluded && v.reason.starts_with("stuck")));
     assert!(server.counters.readmissions >= 1, "re-admitted with a re-fit");
     let silent: Vec<MeasurementBatch> = all
         .iter()
@@ -928,7 +928,7 @@ fn a_sensor_that_reads_true_again_is_readmitted_to_the_model_of_a_fleet_it_never
         .filter(|v| v.vehicle == "boat-1")
         .collect();
     assert_eq!(boat1(&never_failed), 2, "silent in epoch 3, then ok: {marks:?}");
-    assert!(marks[0].to == fleet::protocol::Health::Suspect && marks[0].reason.starts_with("silent"));
+    assert!(marks[0].to == fleet_mission::protocol::Health::Suspect && marks[0].reason.starts_with("silent"));
     assert_eq!(never_failed.counters.readmissions, 0, "nothing withheld: no re-fit");
     same_model(&server, &never_failed);
 }
@@ -937,7 +937,7 @@ fn a_sensor_that_reads_true_again_is_readmitted_to_the_model_of_a_fleet_it_never
 /// boat-1 sends nothing in epoch 3 (`silent`) or reads as it should, the live loop otherwise.
 fn boats_planned(silent: bool) -> std::collections::BTreeMap<(String, u64), Option<[f64; 2]>> {
     let mut planned = std::collections::BTreeMap::new();
-    let see = |id: &str, e: u64, plan: &fleet::protocol::Plan| {
+    let see = |id: &str, e: u64, plan: &fleet_mission::protocol::Plan| {
         if id.starts_with("boat-") {
             let disk = plan.targets.iter().find(|t| !t.cells.is_empty()).map(|t| t.position);
             planned.insert((id.to_string(), e), disk);
@@ -999,7 +999,7 @@ fn aerial_regions_with_av1_dark(
     dark: std::ops::Range<u64>,
 ) -> (std::collections::BTreeMap<(String, u64), usize>, Vec<String>) {
     let mut regions = std::collections::BTreeMap::new();
-    let see = |id: &str, e: u64, plan: &fleet::protocol::Plan| {
+    let see = |id: &str, e: u64, plan: &fleet_mission::protocol::Plan| {
         if id.starts_with("av-") {
             regions.insert((id.to_string(), e), plan.targets[0].cells.len());
         }
@@ -1068,10 +1068,10 @@ fn a_refit_marks_a_silent_boat_as_the_live_server_did() {
             .count()
     };
     assert_eq!(silent(&server), 1, "marked live");
-    let trust = fleet::protocol::SensorOverride {
+    let trust = fleet_mission::protocol::SensorOverride {
         vehicle: "boat-2".parse().unwrap(),
         from_step: server.steps_of(CHECKPOINT_EVERY).start as u64,
-        set: Some(fleet::protocol::Health::Ok),
+        set: Some(fleet_mission::protocol::Health::Ok),
     };
     server.override_sensor(&trust).unwrap();
     assert!(server.settle().unwrap(), "re-fitted");
@@ -1085,10 +1085,10 @@ fn a_refit_marks_a_silent_boat_as_the_live_server_did() {
 fn an_operators_override_refits_and_survives_a_restart() {
     let (mut server, all, grid, cfg, frames) = a_probe_stuck_in_epoch_3();
     server.take_journal_records();
-    let trust = fleet::protocol::SensorOverride {
+    let trust = fleet_mission::protocol::SensorOverride {
         vehicle: "boat-1".parse().unwrap(),
         from_step: 0,
-        set: Some(fleet::protocol::Health::Ok),
+        set: Some(fleet_mission::protocol::Health::Ok),
     };
     let before = server.history().estimates().unwrap();
     server.override_sensor(&trust).unwrap();
@@ -1115,10 +1115,10 @@ fn an_operators_override_refits_and_survives_a_restart() {
     restored.restore(all.clone(), &records).unwrap();
     same_model(&server, &restored);
     for bad in [
-        ("boat-9", 0, Some(fleet::protocol::Health::Ok)),
+        ("boat-9", 0, Some(fleet_mission::protocol::Health::Ok)),
         ("boat-1", 10_000, None),
     ] {
-        let o = fleet::protocol::SensorOverride {
+        let o = fleet_mission::protocol::SensorOverride {
             vehicle: bad.0.parse().unwrap(),
             from_step: bad.1,
             set: bad.2,
@@ -1136,7 +1136,7 @@ fn each_epochs_model_is_handed_to_the_publisher_once_as_it_is_made() {
     let (truth, grid, cfg) = plume_team();
     let handed: Arc<Mutex<Vec<Vec<u8>>>> = Arc::default();
     let sink = handed.clone();
-    let publisher: fleet::mission::server::Publisher = Arc::new(move |p| sink.lock().unwrap().push(p.bytes.clone()));
+    let publisher: fleet_mission::server::Publisher = Arc::new(move |p| sink.lock().unwrap().push(p.bytes.clone()));
     let mut server = ServerCore::new(&cfg, grid, truth.frames())
         .unwrap()
         .with_publisher(publisher);

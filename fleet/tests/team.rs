@@ -2,8 +2,8 @@
 //! the relations the paper reports, and determinism.
 
 use fleet::experiment::team::{run, Placement, TeamConfig};
-use fleet::process::plasma::{PlasmaCloud, Preset};
-use fleet::process::FieldSeries;
+use fleet_math::process::plasma::{PlasmaCloud, Preset};
+use fleet_math::process::FieldSeries;
 
 fn tiny_cloud() -> FieldSeries {
     let mut p = Preset::Cloud10.params();
@@ -24,7 +24,7 @@ fn tiny_config() -> TeamConfig {
         boat_sigma: 0.15,
         radius: 3.0,
         boats: 4,
-        rank: fleet::dmd::RankPolicy::Fixed(8),
+        rank: fleet_math::dmd::RankPolicy::Fixed(8),
         init_steps: 10,
         boat_period: 5,
         ..TeamConfig::default()
@@ -40,7 +40,7 @@ fn tiny_config() -> TeamConfig {
 #[test]
 fn over_ten_seeds_the_heterogeneous_team_beats_both_single_kind_teams() {
     use fleet::experiment::stats::{Interval, Outcome};
-    use fleet::fusion::Scheme;
+    use fleet_math::fusion::Scheme;
     let truth = tiny_cloud();
     for fusion in [Scheme::InverseVariance, Scheme::Kalman] {
         let (mut het, mut aerial, mut boat, mut random) = (vec![], vec![], vec![], vec![]);
@@ -106,7 +106,7 @@ fn same_seed_same_numbers() {
 #[test]
 fn the_oracle_puts_disks_where_the_error_is() {
     use fleet::experiment::team::where_the_error_is;
-    use fleet::grid::{Cell, Grid};
+    use fleet_math::grid::{Cell, Grid};
     let grid = Grid::new(20, 40, 1.0).unwrap();
     let mut err2 = vec![0.001; grid.len()];
     err2[grid.index(Cell::new(5, 30))] = 7.0;

@@ -3,5 +3,5 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    let _ = fleet_mission::npy::from_bytes(data, "fuzz.npy");
+    let _ = fleet_math::npy::from_bytes(data, "fuzz.npy");
 });

@@ -3,7 +3,7 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    let mut ctx = fleet_mission::protocol::Context::new(fleet_mission::grid::Grid::new(6, 8, 1.0).unwrap());
+    let mut ctx = fleet_mission::protocol::Context::new(fleet_math::grid::Grid::new(6, 8, 1.0).unwrap());
     ctx.vehicles = vec!["boat-1".into(), "av-1".into()];
     let _ = fleet_mission::protocol::decode(data, &ctx);
 });

@@ -2,16 +2,16 @@
 //! other and how fast the mission runs. Every node of a mission reads the same file, so the
 //! server and each vehicle agree on the grid, the schedule and the vehicles without talking.
 
-use crate::grid::Grid;
 use crate::instrument::clock::TimeConfig;
 use crate::instrument::source::Sensors;
 use crate::instrument::{MissionClock, SensorSource};
-use crate::process::truth::{averaged_by, TruthError, TruthSource};
-use crate::process::FieldSeries;
 use crate::protocol::{keys, Noise, VehicleKind};
 use crate::roster::{Roster, VehicleSpec};
 use crate::schedule::Schedule;
 use crate::team::TeamConfig;
+use fleet_math::grid::Grid;
+use fleet_math::process::truth::{averaged_by, TruthError, TruthSource};
+use fleet_math::process::FieldSeries;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -52,7 +52,7 @@ pub enum ConfigError {
     TooManyVehicles { id: String, vehicles: usize },
     /// A truth whose grid is not a grid.
     #[error("the truth's grid: {0}")]
-    TruthGrid(crate::grid::GridError),
+    TruthGrid(fleet_math::grid::GridError),
     /// A node's `--truth` of another shape than the mission senses.
     #[error(
         "--truth {} is {} x {} cells for {} steps, but mission {mission:?} senses {} x {} cells for {} steps: give \
@@ -655,7 +655,7 @@ impl MissionConfig {
         if given {
             return Ok(());
         }
-        let placed = crate::process::netcdf::bounds(path, variable, select);
+        let placed = fleet_math::process::netcdf::bounds(path, variable, select);
         let Some([south, west, north, east]) =
             placed.map_err(|e| field("truth", "dataset".to_string(), e.to_string()))?
         else {
@@ -1019,7 +1019,7 @@ mod tests {
         t.check_choices().unwrap();
         assert_eq!(TeamConfig::default().learn_from, LearnFrom::Posterior);
         let e = TeamConfig {
-            fusion: crate::fusion::Scheme::InverseVariance,
+            fusion: fleet_math::fusion::Scheme::InverseVariance,
             ..t.clone()
         }
         .check_choices()
@@ -1034,7 +1034,7 @@ mod tests {
         .is_err());
         // Further ahead than the run lasts: refused with the run's length (100 frames, 20
         // initial steps, epochs of 5: 16 epochs).
-        let grid = crate::grid::Grid::new(48, 96, 1.0).unwrap();
+        let grid = fleet_math::grid::Grid::new(48, 96, 1.0).unwrap();
         TeamConfig {
             horizon_epochs: 16,
             ..t.clone()

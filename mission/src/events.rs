@@ -168,7 +168,7 @@ pub struct ServerSummary {
 
 /// The mean of a run's per-step MSE over its scored steps (`None`: no step was scored).
 pub fn mean_mse(mse: &[f64]) -> Option<f64> {
-    (crate::fusion::unscored(mse) < mse.len()).then(|| crate::fusion::mean_scored(mse))
+    (fleet_math::fusion::unscored(mse) < mse.len()).then(|| fleet_math::fusion::mean_scored(mse))
 }
 
 /// JSON's `null` as NaN: what serde_json writes for a NaN, read back as one.

@@ -3,8 +3,8 @@
 //! polygon). Read once from latitude and longitude into metres east and north of the site's
 //! origin, so the team carries it without the file; each cell is in or out by its centre.
 
-use crate::grid::Grid;
 use crate::site::Site;
+use fleet_math::grid::Grid;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -290,7 +290,9 @@ mod tests {
         }
         .excluded(&grid);
         assert_eq!(ex.iter().filter(|&&x| x).count(), 25, "the notch is 5 x 5 cells");
-        assert!(ex[grid.index(crate::grid::Cell::new(9, 9))] && !ex[grid.index(crate::grid::Cell::new(9, 0))]);
+        assert!(
+            ex[grid.index(fleet_math::grid::Cell::new(9, 9))] && !ex[grid.index(fleet_math::grid::Cell::new(9, 0))]
+        );
         // On a site scaled to 18 m x 18 m, cell centres are 1.8 m apart from 0.9 m: six per
         // axis inside the square, three of them in the notch, so 36 - 9 cells are in.
         let ex = SiteFence {

@@ -12,9 +12,9 @@
 
 use crate::config::MissionConfig;
 use crate::fence::SiteFence;
-use crate::grid::Grid;
 use crate::protocol::{AutopilotLink, Body, ModelUpdate, Plan, ServerStatus, Telemetry, VehicleId, VehicleKind};
 use crate::site::Site;
+use fleet_math::grid::Grid;
 use foxglove::messages as fx;
 use foxglove::{Encode, Schema};
 use std::collections::BTreeMap;
@@ -100,7 +100,7 @@ pub struct FoxgloveView {
     kinds: BTreeMap<VehicleId, VehicleKind>,
     /// Shared with the server that owns it (a copy was the truth's size again: 238 MB at
     /// 384 x 768, 101 frames).
-    truth: Option<std::sync::Arc<crate::process::frames::Frames>>,
+    truth: Option<std::sync::Arc<fleet_math::process::frames::Frames>>,
 }
 
 impl FoxgloveView {
@@ -109,7 +109,7 @@ impl FoxgloveView {
     pub fn new(
         mission: &MissionConfig,
         grid: Grid,
-        truth: Option<std::sync::Arc<crate::process::frames::Frames>>,
+        truth: Option<std::sync::Arc<fleet_math::process::frames::Frames>>,
     ) -> Self {
         Self {
             site: mission.mavlink.site(&grid),

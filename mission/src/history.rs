@@ -316,7 +316,7 @@ mod tests {
             }
         };
         same(&mem, &files);
-        let a = crate::npy::read(dir.join("estimate.npy.part")).unwrap();
+        let a = fleet_math::npy::read(dir.join("estimate.npy.part")).unwrap();
         assert_eq!(a.shape, vec![4, 2, 3]);
         mem.truncate(2).unwrap();
         files.truncate(2).unwrap();
@@ -334,7 +334,10 @@ mod tests {
         files.publish().unwrap();
         files.push(step(9).0, step(9).1).unwrap();
         assert_eq!(files.variance(2).unwrap()[0], step(9).1[0], "read back once written");
-        assert_eq!(crate::npy::read(dir.join("variance.npy")).unwrap().shape, vec![3, 2, 3]);
+        assert_eq!(
+            fleet_math::npy::read(dir.join("variance.npy")).unwrap().shape,
+            vec![3, 2, 3]
+        );
         assert!(!dir.join("estimate.npy.part").exists());
         std::fs::remove_dir_all(&dir).unwrap();
     }

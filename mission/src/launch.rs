@@ -8,7 +8,7 @@
 
 use crate::config::{ConfigError, MissionConfig};
 use crate::fence::{clearance, inside};
-use crate::grid::Grid;
+use fleet_math::grid::Grid;
 
 /// The site's fence, metres `[east, north]` of the origin: the mission's boundary, or the
 /// grid's extent on the site.

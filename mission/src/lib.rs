@@ -5,10 +5,8 @@
 //! events ([`events`]), the fused map at every step ([`history`]), and the secured configs
 //! ([`security`]). Pure and testable without a socket; the nodes wrap it.
 //!
-//! The mathematics it stands on is re-exported from `fleet-math` at the root (`grid`, `dmd`,
-//! `sensing`, `fusion`, `process`, `npy`).
-
-pub use fleet_math::{configure_linalg_threads, dmd, fusion, grid, kalman, npy, process, sensing, Allocator};
+//! The mathematics it stands on (`grid`, `dmd`, `sensing`, `fusion`, `process`, `npy`) is
+//! `fleet-math`'s, imported from there (one path for every item: nothing is re-exported).
 
 pub mod assimilator;
 pub mod config;
@@ -37,6 +35,3 @@ pub mod step_file;
 pub mod step_writer;
 pub mod team;
 pub mod vehicle;
-
-pub use assimilator::*;
-pub use vehicle::{aerial_region, sense_aerial, sense_boat, sense_cells, vehicle_rng};

@@ -10,12 +10,12 @@
 //! `fleet replay` on its recording is the way to its exact model then.
 
 use crate::config::MissionConfig;
-use crate::grid::Grid;
 use crate::instrument::{Collected, Placer, Reading, Refusal, Tally};
 use crate::protocol::{VehicleId, VehicleKind};
 use crate::server::{IngestError, ServerCore};
 use crate::team::TeamError;
 use crate::vehicle::{vehicle_rng, Fix, VehicleBrain};
+use fleet_math::grid::Grid;
 use std::collections::BTreeMap;
 
 /// What was logged for one vehicle.

@@ -7,8 +7,8 @@
 //! other core ([`crate::server::ServerCore`]); a model asked for at any other time (after a
 //! restore, the last epoch) is made then.
 
-use crate::dmd::DmdModel;
 use crate::protocol::{self, Body, ModelUpdate};
+use fleet_math::dmd::DmdModel;
 use std::sync::Arc;
 
 /// What the published model is made of, read from the server in a moment: everything it knows
@@ -163,7 +163,7 @@ mod tests {
     /// whole model, to the bit.
     #[test]
     fn the_model_is_put_without_its_modes_and_answered_whole() {
-        let grid = crate::grid::Grid::new(4, 5, 1.0).unwrap();
+        let grid = fleet_math::grid::Grid::new(4, 5, 1.0).unwrap();
         let update = ModelUpdate {
             version: 3,
             epoch: 2,

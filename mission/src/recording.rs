@@ -11,9 +11,9 @@
 //! mission file and the workspace, so a recording replays on its own.
 
 use crate::config::MissionConfig;
-use crate::grid::Grid;
 use crate::protocol::{self, Body, Context, MeasurementBatch};
 use crate::server::ServerCore;
+use fleet_math::grid::Grid;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::io::{BufWriter, Seek, Write};

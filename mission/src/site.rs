@@ -3,7 +3,7 @@
 //! longitude. The grid may be scaled onto a physical extent (the paper's 4.5 m x 3.0 m tank, or
 //! a field site); the flat-Earth approximation is well under a centimetre over a few kilometres.
 
-use crate::grid::Grid;
+use fleet_math::grid::Grid;
 use fleet_math::longitude::wrap_longitude;
 use nalgebra::{Vector2, Vector3};
 

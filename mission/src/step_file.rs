@@ -162,17 +162,21 @@ mod tests {
         let p = dir.join("s.npy");
         let step = |k: usize| (0..6).map(move |i| (10 * k + i) as f64 + 0.5);
         let mut f = StepFile::create(&p, 2, 3).unwrap();
-        assert_eq!(crate::npy::read(&p).unwrap().shape, vec![0, 2, 3], "valid when empty");
+        assert_eq!(
+            fleet_math::npy::read(&p).unwrap().shape,
+            vec![0, 2, 3],
+            "valid when empty"
+        );
         for k in 0..3 {
             f.append(step(k)).unwrap();
         }
-        let a = crate::npy::read(&p).unwrap();
+        let a = fleet_math::npy::read(&p).unwrap();
         assert_eq!(a.shape, vec![3, 2, 3]);
         assert_eq!(a.data, (0..3).flat_map(step).collect::<Vec<_>>());
         // A re-fit from step 1: cut back, then the redone steps.
         f.truncate(1).unwrap();
         f.append(step(7).map(|v| -v)).unwrap();
-        let a = crate::npy::read(&p).unwrap();
+        let a = fleet_math::npy::read(&p).unwrap();
         assert_eq!(a.shape, vec![2, 2, 3]);
         assert_eq!(f.read(1).unwrap(), step(7).map(|v| -v).collect::<Vec<_>>());
         assert_eq!(a.data[..6], step(0).collect::<Vec<_>>()[..]);

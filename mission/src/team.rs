@@ -2,9 +2,9 @@
 //! the checks that say up front whether it can run on a grid ([`TeamConfig::validate`]). The
 //! mission file's `[team]` table and the experiment files' rows are this.
 
-use crate::dmd::{Method, RankPolicy};
-use crate::fusion::Scheme;
-use crate::grid::Grid;
+use fleet_math::dmd::{Method, RankPolicy};
+use fleet_math::fusion::Scheme;
+use fleet_math::grid::Grid;
 use serde::{Deserialize, Serialize};
 
 /// Where boats go.
@@ -116,7 +116,7 @@ pub struct TeamConfig {
     #[schemars(skip)]
     pub fence: Option<crate::fence::SiteFence>,
     /// Cells with no data in any frame of the truth (land, for an ocean field; set from the
-    /// truth where it is loaded, [`crate::process::FieldSeries::land`]): off the model grid,
+    /// truth where it is loaded, [`fleet_math::process::FieldSeries::land`]): off the model grid,
     /// like cells outside the fence, and zero in every snapshot the model learns from.
     #[serde(skip_deserializing, skip_serializing_if = "Vec::is_empty")]
     #[schemars(skip)]
@@ -185,15 +185,15 @@ pub enum TeamError {
     #[error("not yet: {0}")]
     NotReady(Missing),
     #[error(transparent)]
-    Dmd(#[from] crate::dmd::DmdError),
+    Dmd(#[from] fleet_math::dmd::DmdError),
     #[error(transparent)]
-    Sensing(#[from] crate::sensing::SensingError),
+    Sensing(#[from] fleet_math::sensing::SensingError),
     #[error(transparent)]
-    Fusion(#[from] crate::fusion::FusionError),
+    Fusion(#[from] fleet_math::fusion::FusionError),
     #[error(transparent)]
-    Filter(#[from] crate::kalman::FilterError),
+    Filter(#[from] fleet_math::kalman::FilterError),
     #[error(transparent)]
-    Grid(#[from] crate::grid::GridError),
+    Grid(#[from] fleet_math::grid::GridError),
     /// The fused map's files in the run directory (`estimate.npy`, `variance.npy`).
     #[error("the run's estimate files: {0}")]
     History(String),
@@ -249,10 +249,11 @@ impl TeamConfig {
         Ok(())
     }
 
-    /// The sensors' noises in units the estimator holds ([`crate::process::units::check_noise`]).
+    /// The sensors' noises in units the estimator holds ([`fleet_math::process::units::check_noise`]).
     fn check_noise(&self) -> Result<(), TeamError> {
         for (what, sigma) in [("aerial_sigma0", self.aerial_sigma0), ("boat_sigma", self.boat_sigma)] {
-            crate::process::units::check_noise(sigma).map_err(|why| TeamError::Config(format!("{what}: {why}")))?;
+            fleet_math::process::units::check_noise(sigma)
+                .map_err(|why| TeamError::Config(format!("{what}: {why}")))?;
         }
         Ok(())
     }
@@ -366,7 +367,7 @@ fn disk_fits(grid: &Grid, boats: usize, radius: f64) -> bool {
     if span > grid.rows.min(grid.cols) {
         return false;
     }
-    let centre = crate::grid::Cell::new(grid.rows / 2, grid.cols / 2);
+    let centre = fleet_math::grid::Cell::new(grid.rows / 2, grid.cols / 2);
     boats.saturating_mul(grid.disk(centre, radius).len()) <= grid.len()
 }
 

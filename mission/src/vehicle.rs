@@ -7,10 +7,10 @@
 //! around its own cell. With speeds that let every vehicle arrive (the default mission) the
 //! samples are exactly the offline experiment's.
 
-use crate::fusion::{draw, AerialNoise, FusionError};
-use crate::grid::Grid;
 use crate::protocol::{MeasurementBatch, Plan, Sample, Target, VehicleId, VehicleKind};
 use crate::schedule::Schedule;
+use fleet_math::fusion::{draw, AerialNoise, FusionError};
+use fleet_math::grid::Grid;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
@@ -23,7 +23,7 @@ pub fn vehicle_rng(seed: u64, vehicle: usize) -> ChaCha8Rng {
 }
 
 /// The cells aerial `me` senses (the sensor model lives with the fusion that inverts it).
-pub use crate::fusion::aerial_region;
+pub use fleet_math::fusion::aerial_region;
 
 /// What a sensor at `pos` (metres) measures of `truth` at `cells` at one `step`, with
 /// `noise` ([`draw`]), as a sample for the wire. A cell where the truth has no value (NaN:

@@ -8,7 +8,7 @@ mod publisher;
 mod replay;
 
 #[global_allocator]
-static ALLOCATOR: fleet_mission::Allocator = fleet_mission::Allocator;
+static ALLOCATOR: fleet_math::Allocator = fleet_math::Allocator;
 
 use clap::Parser;
 

@@ -9,9 +9,9 @@ use crate::publisher::ModelPublisher;
 use crate::Args;
 use anyhow::Context as _;
 use fleet_exit::bad_input;
+use fleet_math::process::frames::Frames;
 use fleet_mission::config::MissionConfig;
 use fleet_mission::events::{Percentiles, ServerEvent, ServerSummary};
-use fleet_mission::process::frames::Frames;
 use fleet_mission::protocol::{self, keys::Keys, AutopilotLink, Body, Context, ServerStatus, VehicleId};
 use fleet_mission::recording::{self, CoreOp, Recorder, RecordingError};
 use fleet_mission::server::{EpochRecord, IngestError, Ingested, ServerCore, OVERRIDE_PREFIX};
@@ -465,7 +465,7 @@ impl Server {
                     return None;
                 }
             };
-            let e = fleet_mission::fusion::mse(&est, &x);
+            let e = fleet_math::fusion::mse(&est, &x);
             if self.mse.len() == k {
                 self.mse.push(e);
             }
@@ -760,7 +760,7 @@ fn open_journal(
 fn open_recorder(
     args: &Args,
     mission: &MissionConfig,
-    grid: &fleet_mission::grid::Grid,
+    grid: &fleet_math::grid::Grid,
     frames: usize,
     truth: Option<std::sync::Arc<Frames>>,
 ) -> anyhow::Result<Option<Recorder<std::io::BufWriter<std::fs::File>>>> {

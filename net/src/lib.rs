@@ -47,7 +47,7 @@ pub enum NetError {
     },
     /// The mission's own truth could not be made.
     #[error("the mission's truth: {0}")]
-    MissionTruth(#[source] fleet_mission::process::truth::TruthError),
+    MissionTruth(#[source] fleet_math::process::truth::TruthError),
     #[error("{what}: {source}")]
     Io {
         what: &'static str,
@@ -342,7 +342,7 @@ pub fn init_node() {
     use tracing_subscriber::layer::SubscriberExt as _;
     use tracing_subscriber::util::SubscriberInitExt as _;
     use tracing_subscriber::Layer as _;
-    fleet_mission::configure_linalg_threads();
+    fleet_math::configure_linalg_threads();
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,zenoh=warn"));
     // Colour only on a terminal: a log file gets plain text.
@@ -483,24 +483,24 @@ pub struct NodeArgs {
 impl NodeArgs {
     /// The mission and its truth on the model grid (`--truth`, else the mission's `[truth]`;
     /// `None`: a mission in the field, without one). A `--truth` file is read a frame at a time
-    /// as the node asks for one ([`Frames`](fleet_mission::process::frames::Frames)), after a
+    /// as the node asks for one ([`Frames`](fleet_math::process::frames::Frames)), after a
     /// check of the whole file; a truth made here (the simulator) is held in memory.
     pub fn load(
         &self,
     ) -> Result<
         (
             fleet_mission::config::MissionConfig,
-            Option<fleet_mission::process::frames::Frames>,
+            Option<fleet_math::process::frames::Frames>,
         ),
         NetError,
     > {
-        use fleet_mission::process::frames::Frames;
+        use fleet_math::process::frames::Frames;
         let mut mission =
             fleet_mission::config::MissionConfig::load(self.mission.as_deref()).map_err(NetError::Mission)?;
         let truth = match &self.truth {
             Some(p) => {
                 // The time between frames from the sidecar `fleet up` and `fleet simulate` write.
-                let dt = fleet_mission::process::dataset::sidecar_dt(p).unwrap_or(1.0);
+                let dt = fleet_math::process::dataset::sidecar_dt(p).unwrap_or(1.0);
                 let t = Frames::open_npy(p, dt).map_err(|e| NetError::Truth {
                     path: p.clone(),
                     source: fleet_exit::BadInput(e.into()),

@@ -323,7 +323,7 @@ pub fn edit(path: &std::path::Path, from: &str, to: &str) {
 }
 
 /// The number of batches a mission's vehicles send (one per epoch each takes part in).
-pub fn expected_batches(m: &fleet::mission::config::MissionConfig, frames: usize) -> u64 {
+pub fn expected_batches(m: &fleet_mission::config::MissionConfig, frames: usize) -> u64 {
     let s = m.schedule(frames);
     m.vehicles()
         .iter()
@@ -467,7 +467,7 @@ pub fn start_vehicles(
     away: &[(&str, &str, &str)],
 ) {
     let m = mission.to_str().expect("utf-8 path");
-    for v in fleet::mission::config::MissionConfig::load(Some(mission))
+    for v in fleet_mission::config::MissionConfig::load(Some(mission))
         .expect("mission")
         .vehicles()
     {
@@ -524,20 +524,22 @@ pub fn start_mission(
 /// The journal holds every batch of the mission once; fed to a fresh core in step order it
 /// gives the model the server published (to 1e-9 relative).
 pub fn check_exactly_once_and_same_model(mission: &std::path::Path, state: &std::path::Path, out: &std::path::Path) {
-    let m = fleet::mission::config::MissionConfig::load(Some(mission)).unwrap();
+    let m = fleet_mission::config::MissionConfig::load(Some(mission)).unwrap();
     let truth = m.truth(|_| {}).unwrap().expect("a truth");
     let (grid, frames) = m.workspace(Some(truth.shape())).unwrap();
     let journal = fleet_net::store::Store::open(&state.join(format!("{}.redb", m.mission))).unwrap();
-    let mut ctx = fleet::protocol::Context::new(grid);
+    let mut ctx = fleet_mission::protocol::Context::new(grid);
     ctx.vehicles = m.vehicles().into_iter().map(|v| v.id).collect();
     let mut batches: Vec<_> = journal
         .messages()
         .unwrap()
         .into_iter()
-        .map(|(_, bytes)| match fleet::protocol::decode(&bytes, &ctx).unwrap() {
-            fleet::protocol::Body::Batch(b) => b,
-            other => panic!("not a batch: {other:?}"),
-        })
+        .map(
+            |(_, bytes)| match fleet_mission::protocol::decode(&bytes, &ctx).unwrap() {
+                fleet_mission::protocol::Body::Batch(b) => b,
+                other => panic!("not a batch: {other:?}"),
+            },
+        )
         .collect();
     assert_eq!(
         batches.len() as u64,
@@ -547,11 +549,11 @@ pub fn check_exactly_once_and_same_model(mission: &std::path::Path, state: &std:
     let order = |id: &str| ctx.vehicles.iter().position(|v| v == id).unwrap();
     batches.sort_by_key(|b| {
         (
-            fleet::mission::schedule::Schedule::epoch_of(b.kind, b.seq),
+            fleet_mission::schedule::Schedule::epoch_of(b.kind, b.seq),
             order(&b.vehicle),
         )
     });
-    let mut core = fleet::mission::server::ServerCore::new(&m.team, grid, frames)
+    let mut core = fleet_mission::server::ServerCore::new(&m.team, grid, frames)
         .unwrap()
         .with_boat_speed(m.motion.boat_speed);
     for b in batches {
@@ -559,8 +561,8 @@ pub fn check_exactly_once_and_same_model(mission: &std::path::Path, state: &std:
     }
     assert!(core.finished());
     let offline = core.model_update().unwrap();
-    let fleet::protocol::Body::Model(served) =
-        fleet::protocol::decode(&std::fs::read(out.join("model.cbor")).unwrap(), &ctx).unwrap()
+    let fleet_mission::protocol::Body::Model(served) =
+        fleet_mission::protocol::decode(&std::fs::read(out.join("model.cbor")).unwrap(), &ctx).unwrap()
     else {
         panic!("model.cbor")
     };
@@ -580,7 +582,7 @@ pub fn check_exactly_once_and_same_model(mission: &std::path::Path, state: &std:
     );
     // Each mode times its amplitude: an eigenvector is only defined up to a complex factor
     // (rounding 1e-19 apart can pick another phase), the model it makes is not.
-    let scaled = |u: &fleet::protocol::ModelUpdate| -> Vec<f64> {
+    let scaled = |u: &fleet_mission::protocol::ModelUpdate| -> Vec<f64> {
         let r = u.amplitudes.len();
         let each = |k: usize| {
             let (mr, mi) = (f64::from(u.modes_re[k]), f64::from(u.modes_im[k]));

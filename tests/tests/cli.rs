@@ -56,7 +56,7 @@ fn bad_input_gets_a_clear_error_and_a_non_zero_exit() {
     let junk = dir.join("junk.npy");
     std::fs::write(&junk, b"\x93NUMPY garbage").unwrap();
     let nan = dir.join("nan.npy");
-    fleet::npy::write(
+    fleet_math::npy::write(
         &nan,
         &[4, 2, 2],
         &[
@@ -233,8 +233,8 @@ fn configurations_that_cannot_run_are_refused_up_front_naming_the_field() {
     let m = hetfleet_tests::tiny_mission(&dir, &[], &["tcp/127.0.0.1:7461".into()]);
     hetfleet_tests::edit(&m, "rank = \"6\"", "rank = 6");
     assert_eq!(
-        fleet::mission::config::MissionConfig::load(Some(&m)).unwrap().team.rank,
-        fleet::dmd::RankPolicy::Fixed(6)
+        fleet_mission::config::MissionConfig::load(Some(&m)).unwrap().team.rank,
+        fleet_math::dmd::RankPolicy::Fixed(6)
     );
 }
 
@@ -243,7 +243,7 @@ fn a_truth_that_is_not_the_missions_and_oversized_or_misnamed_outputs_are_refuse
     let dir = hetfleet_tests::scratch("truths");
     let m = hetfleet_tests::tiny_mission(&dir, &["tcp/127.0.0.1:7461".into()], &["tcp/127.0.0.1:7461".into()]);
     let small = dir.join("small.npy");
-    fleet::npy::write(&small, &[40, 24, 24], &vec![0.5; 40 * 24 * 24]).unwrap();
+    fleet_math::npy::write(&small, &[40, 24, 24], &vec![0.5; 40 * 24 * 24]).unwrap();
     for node in ["vehicle", "model-server"] {
         let mut args = vec![
             "--mission",

@@ -102,9 +102,9 @@ fn the_cli_reference_is_what_the_binaries_say() {
 fn troubleshooting_names_every_kind_of_refusal() {
     let page = std::fs::read_to_string(root().join("docs/guide/troubleshooting.md")).unwrap();
     let kinds = [
-        ("ConfigError", fleet::mission::config::ConfigError::VARIANTS),
-        ("DatasetError", fleet::process::error::DatasetError::VARIANTS),
-        ("TruthError", fleet::process::truth::TruthError::VARIANTS),
+        ("ConfigError", fleet_mission::config::ConfigError::VARIANTS),
+        ("DatasetError", fleet_math::process::error::DatasetError::VARIANTS),
+        ("TruthError", fleet_math::process::truth::TruthError::VARIANTS),
     ];
     let missing: Vec<String> = kinds
         .iter()
@@ -162,7 +162,7 @@ print("ok")
 /// on the page fails here.
 #[test]
 fn the_protocol_reference_names_every_key_the_encoding_and_the_schema_version() {
-    use fleet::protocol::{keys::Keys, ENCODING, SCHEMA_VERSION};
+    use fleet_mission::protocol::{keys::Keys, ENCODING, SCHEMA_VERSION};
     let page = std::fs::read_to_string(root().join("docs/reference/protocol.md")).unwrap();
     let k = Keys::new("m").unwrap();
     let id = "<id>";

@@ -475,7 +475,7 @@ fn a_field_in_other_units_gives_the_same_estimate_in_those_units_or_is_refused()
 fn a_field_plus_a_constant_or_in_other_units_gives_the_same_estimate() {
     let dir = hetfleet_tests::scratch("exp-units");
     let npy = simulated_plume(&dir, "24x48");
-    let field = fleet::process::dataset::load(&npy, 1.0).unwrap();
+    let field = fleet_math::process::dataset::load(&npy, 1.0).unwrap();
     let mut rows = String::new();
     for (name, scale, offset) in [("plume", 1.0, 0.0), ("plus", 1.0, 280.0), ("times", 1000.0, 0.0)] {
         let mut f = field.clone();
@@ -483,7 +483,7 @@ fn a_field_plus_a_constant_or_in_other_units_gives_the_same_estimate() {
             .col_iter_mut()
             .for_each(|c| c.iter_mut().for_each(|x| *x = *x * scale + offset));
         let path = dir.join(format!("{name}.npy"));
-        fleet::process::dataset::save(&path, &f, None).unwrap();
+        fleet_math::process::dataset::save(&path, &f, None).unwrap();
         rows.push_str(&format!(
             "[[row]]\ndataset = {:?}\nav_time = 1\nmv_time = 5\nav_space = 3\nmv_space = 1\nnoise = {}\n",
             path.to_str().unwrap(),

@@ -5,7 +5,7 @@
 //! In every case: each batch is assimilated exactly once, and the server's final model equals
 //! the model computed offline from the same batches fed in step order.
 
-use fleet::mission::config::MissionConfig;
+use fleet_mission::config::MissionConfig;
 use hetfleet_tests::*;
 use std::time::Duration;
 

@@ -2,9 +2,9 @@
 //! `.plan`), every disk and every aerial place of a whole `fleet up` mission is inside it, for
 //! block QR and for horizon placement; without the fence the same missions sense in its notch.
 
-use fleet::protocol::{Body, Context};
 use fleet_mission::config::MissionConfig;
 use fleet_mission::fence::inside;
+use fleet_mission::protocol::{Body, Context};
 use fleet_mission::recording::Recording;
 use fleet_mission::site::Site;
 use hetfleet_tests::*;
@@ -29,7 +29,7 @@ fn planned(run_dir: &Path) -> Vec<([f64; 2], Vec<u32>, String)> {
     rec.messages
         .iter()
         .filter(|m| m.topic.contains("/plan/"))
-        .flat_map(|m| match fleet::protocol::decode(&m.data, &ctx).unwrap() {
+        .flat_map(|m| match fleet_mission::protocol::decode(&m.data, &ctx).unwrap() {
             Body::Plan(p) => p
                 .targets
                 .into_iter()
@@ -192,7 +192,7 @@ fn a_concave_fence_keeps_every_disk_and_aerial_place_inside_for_qr_and_horizon()
     // The launch points (the autopilots' homes and rally points) clear the margin plus the turn,
     // and boat-3's autopilot boots 30 m and more from the grid's corner, where its EKF origin is.
     let m = MissionConfig::load(Some(&dir.join("qr-true/mission.toml"))).unwrap();
-    let grid = fleet_mission::grid::Grid::new(24, 48, 1.0).unwrap();
+    let grid = fleet_math::grid::Grid::new(24, 48, 1.0).unwrap();
     let launch = fleet_mission::launch::launch_points(&m, &grid).unwrap();
     assert!(launch.iter().all(|p| fleet_mission::fence::clearance(&ELL, *p) >= 2.9));
     assert!(launch[4][0].hypot(launch[4][1]) >= 30.0, "{launch:?}");

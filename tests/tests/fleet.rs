@@ -2,8 +2,8 @@
 //! eclipse-zenoh client, and a vehicle on another network namespace.
 
 use fleet::experiment::team;
-use fleet::mission::config::MissionConfig;
 use fleet::mission::report::ServerSummary;
+use fleet_mission::config::MissionConfig;
 use hetfleet_tests::*;
 use std::path::Path;
 

@@ -461,7 +461,7 @@ fn a_run_that_stopped_exports_the_steps_it_made(out: &Path, dir: &Path) {
     }
     let (made, cells) = (17, 24 * 48);
     for (name, steps) in [("estimate", made), ("variance", made + 1)] {
-        let whole = fleet::npy::read(out.join(format!("{name}.npy"))).unwrap();
+        let whole = fleet_math::npy::read(out.join(format!("{name}.npy"))).unwrap();
         let mut part = StepFile::create(stopped.join(format!("{name}.npy.part")), 24, 48).unwrap();
         for k in 0..steps {
             part.append(whole.data[k * cells..(k + 1) * cells].iter().copied())

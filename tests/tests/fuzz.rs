@@ -6,9 +6,9 @@
 //! checks (finite values, cells on the grid, shapes that match their data). The total count is
 //! printed.
 
-use fleet::grid::Grid;
-use fleet::mission::config::MissionConfig;
-use fleet::protocol::*;
+use fleet_math::grid::Grid;
+use fleet_mission::config::MissionConfig;
+use fleet_mission::protocol::*;
 use mavlink::dialects::ardupilotmega::*;
 use mavlink::MavHeader;
 use proptest::prelude::*;
@@ -127,18 +127,18 @@ fn wire_seeds() -> Vec<Vec<u8>> {
                 waiting: Some("GPS fix".into()),
             }),
             acked: Some(4),
-            readings: Some(fleet::protocol::ReadingCounts {
+            readings: Some(fleet_mission::protocol::ReadingCounts {
                 received: 12,
                 accepted: 10,
                 refused: [("too_old".to_string(), 2)].into(),
                 empty_frames: 1,
             }),
-            traffic: Some(fleet::protocol::LinkTraffic {
+            traffic: Some(fleet_mission::protocol::LinkTraffic {
                 sent: [("batch".to_string(), [3, 12_000])].into(),
                 received: [("ack".to_string(), [3, 90])].into(),
             }),
-            sensor: Some(fleet::protocol::SensorHealth {
-                state: fleet::protocol::Health::Suspect,
+            sensor: Some(fleet_mission::protocol::SensorHealth {
+                state: fleet_mission::protocol::Health::Suspect,
                 reason: "biased high (CUSUM 7.0)".into(),
             }),
         }),
@@ -265,11 +265,11 @@ fn malformed_inputs_never_panic_a_decoder() {
     for (k, shape) in [vec![3usize, 4], vec![2, 3, 2], vec![5]].into_iter().enumerate() {
         let n: usize = shape.iter().product();
         let p = dir.join(format!("{k}.npy"));
-        fleet::npy::write(&p, &shape, &(0..n).map(|i| i as f64 * 0.5).collect::<Vec<_>>()).unwrap();
+        fleet_math::npy::write(&p, &shape, &(0..n).map(|i| i as f64 * 0.5).collect::<Vec<_>>()).unwrap();
         npys.push(std::fs::read(&p).unwrap());
     }
     fuzz(".npy files", &npys, |bytes| {
-        if let Ok(a) = fleet::npy::from_bytes(bytes, "fuzz.npy") {
+        if let Ok(a) = fleet_math::npy::from_bytes(bytes, "fuzz.npy") {
             prop_assert_eq!(a.data.len(), a.shape.iter().product::<usize>());
         }
         Ok(())

@@ -9,7 +9,7 @@
 //! the one the good readings alone give. Each hostile line and frame is counted by its kind in
 //! the vehicle's telemetry.
 
-use fleet::protocol::{Body, Context};
+use fleet_mission::protocol::{Body, Context};
 use fleet_mission::recording::Recording;
 use hetfleet_tests::*;
 use std::collections::BTreeMap;
@@ -259,7 +259,7 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     // A flood of hostile lines to boat-1 at ten times its instrument's rate, for 30 s from step 2.
     let mission = fleet_mission::config::MissionConfig::load(Some(&m)).unwrap();
     let clock = mission.clock().unwrap();
-    let grid = fleet::grid::Grid::new(24, 48, 1.0).unwrap();
+    let grid = fleet_math::grid::Grid::new(24, 48, 1.0).unwrap();
     let disk = grid.disk(grid.cell(grid.len() / 2), mission.team.radius).len() as f64;
     let normal_per_s = disk / (mission.team.boat_period as f64 * clock.step_s);
     while fleet_mission::instrument::MissionClock::now() < clock.time_of(2) {
@@ -326,8 +326,8 @@ fn an_outside_instrument_feeds_the_boats_and_hostile_lines_are_counted_not_used(
     let (mut received, mut last_counts, mut av1_counts, mut boat2_counts) = (BTreeMap::new(), None, None, None);
     let (mut aerial_values, mut status) = (0, None);
     for msg in &rec.messages {
-        match fleet::protocol::decode(&msg.data, &ctx) {
-            Ok(Body::Batch(b)) if b.kind == fleet::protocol::VehicleKind::Boat => {
+        match fleet_mission::protocol::decode(&msg.data, &ctx) {
+            Ok(Body::Batch(b)) if b.kind == fleet_mission::protocol::VehicleKind::Boat => {
                 for s in &b.samples {
                     assert!(s.sigma.is_some(), "an instrument's sample carries its sigma");
                     for (&c, &v) in s.cells.iter().zip(&s.values) {
@@ -532,7 +532,7 @@ fn frame_at(
     dir: &Path,
     step: u64,
     mission: &fleet_mission::config::MissionConfig,
-    grid: &fleet::grid::Grid,
+    grid: &fleet_math::grid::Grid,
 ) -> Vec<Option<f64>> {
     let clock = mission.clock().unwrap();
     let stamp = fleet_mission::instrument::MissionClock::rfc3339(clock.time_of(step)).replace(['-', ':'], "");
@@ -602,7 +602,7 @@ fn the_real_site_mission_runs_without_a_truth_and_is_scored_by_held_out_readings
     let tiny = fleet_mission::config::MissionConfig::load(Some(&root().join("config/mission-tiny.toml"))).unwrap();
     let world = tiny.truth(|_| {}).unwrap().expect("a truth");
     let world_path = dir.join("world.npy");
-    fleet::process::dataset::save(&world_path, &world, None).unwrap();
+    fleet_math::process::dataset::save(&world_path, &world, None).unwrap();
     let feeds = Feeds {
         udp: vec![("boat-1", udp_port()), ("boat-3", udp_port())],
         stdin: None,
@@ -649,9 +649,9 @@ fn the_real_site_mission_runs_without_a_truth_and_is_scored_by_held_out_readings
     );
 
     // The true error at the held-out cells, from the field kept aside.
-    let est = fleet::process::dataset::load(out.join("estimate.npy"), 1.0).unwrap();
+    let est = fleet_math::process::dataset::load(out.join("estimate.npy"), 1.0).unwrap();
     // (A disk instrument's reading whose cell lies outside the fence is refused: not scored.)
-    let grid = fleet::grid::Grid::new(world.rows, world.cols, 1.0).unwrap();
+    let grid = fleet_math::grid::Grid::new(world.rows, world.cols, 1.0).unwrap();
     let (site, fence) = (mission.mavlink.site(&grid), mission.team.fence.clone().unwrap());
     let fenced = |c: u64| {
         let ned = site.ned_of(grid.centre_m(grid.cell(c as usize)), 0.0);

@@ -2,9 +2,9 @@
 //! discovers every vehicle, watches them drive to their allocated places, uploads a mission
 //! to one and holds another, and the server leaves both out of the next allocation.
 
-use fleet::mission::config::MissionConfig;
 use fleet::mission::report::ServerEvent;
-use fleet::protocol::VehicleKind;
+use fleet_mission::config::MissionConfig;
+use fleet_mission::protocol::VehicleKind;
 use hetfleet_tests::*;
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
@@ -49,7 +49,7 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
             format!(
                 "{}:{}",
                 m.sysid(&v.id).unwrap(),
-                if v.kind == fleet::protocol::VehicleKind::Boat {
+                if v.kind == fleet_mission::protocol::VehicleKind::Boat {
                     11
                 } else {
                     2
@@ -99,7 +99,7 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
     // Every vehicle, by its system id, as its type, from an ArduPilot-style autopilot.
     for v in m.vehicles() {
         let hb = &gs["heartbeats"][m.sysid(&v.id).unwrap().to_string()];
-        let want = if v.kind == fleet::protocol::VehicleKind::Boat {
+        let want = if v.kind == fleet_mission::protocol::VehicleKind::Boat {
             11
         } else {
             2
@@ -146,7 +146,7 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
         "{p}"
     );
     let (rows, cols, _) = m.model_shape().unwrap();
-    let site = m.mavlink.site(&fleet::grid::Grid::new(rows, cols, 1.0).unwrap());
+    let site = m.mavlink.site(&fleet_math::grid::Grid::new(rows, cols, 1.0).unwrap());
     let corner = |x: f64, y: f64| {
         let (lat, lon, _) = site.global_of(&site.ned_of((x, y), 0.0));
         [(lat * 1e7).round() as i64, (lon * 1e7).round() as i64]
@@ -230,7 +230,7 @@ fn a_pymavlink_ground_station_sees_the_fleet_uploads_a_mission_and_holds_a_vehic
             origin.is_array(),
             "{v} has targets but the ground station heard no GPS_GLOBAL_ORIGIN: {gs}"
         );
-        let site = m.mavlink.site(&fleet_mission::grid::Grid::new(24, 48, 1.0).unwrap());
+        let site = m.mavlink.site(&fleet_math::grid::Grid::new(24, 48, 1.0).unwrap());
         let o = site.ned_of_global(
             origin[0].as_f64().unwrap() * 1e-7,
             origin[1].as_f64().unwrap() * 1e-7,
@@ -556,7 +556,7 @@ fn a_boat_whose_battery_runs_low_returns_to_launch_and_the_others_share_the_disk
             boats,
             m.vehicles()
                 .iter()
-                .filter(|v| v.kind == fleet::protocol::VehicleKind::Boat)
+                .filter(|v| v.kind == fleet_mission::protocol::VehicleKind::Boat)
                 .count()
                 - 1,
             "epoch {epoch}: the other boats take the disks: {places:?}"
@@ -578,14 +578,14 @@ fn a_boat_whose_battery_runs_low_returns_to_launch_and_the_others_share_the_disk
     // It went back to a launch point (the nearest rally point the bridge uploaded): its last
     // telemetry puts it there, in RTL, with the low battery it reported.
     let recording = fleet_mission::recording::Recording::read(&rec).unwrap();
-    let mut ctx = fleet::protocol::Context::new(recording.grid);
+    let mut ctx = fleet_mission::protocol::Context::new(recording.grid);
     ctx.vehicles = m.vehicles().into_iter().map(|v| v.id).collect();
     let last = recording
         .messages
         .iter()
         .filter(|r| r.topic.ends_with(&format!("{low}/telemetry")))
         .filter_map(|r| {
-            if let Ok(fleet::protocol::Body::Telemetry(t)) = fleet::protocol::decode(&r.data, &ctx) {
+            if let Ok(fleet_mission::protocol::Body::Telemetry(t)) = fleet_mission::protocol::decode(&r.data, &ctx) {
                 Some(t)
             } else {
                 None
@@ -746,7 +746,7 @@ fn vehicles_out_of_range_take_the_link_loss_failsafe_and_rejoin_when_the_server_
     let boats = m
         .vehicles()
         .iter()
-        .filter(|v| v.kind == fleet::protocol::VehicleKind::Boat)
+        .filter(|v| v.kind == fleet_mission::protocol::VehicleKind::Boat)
         .count();
     let all_back = events.iter().any(|e| matches!(e, ServerEvent::Epoch { places, held, .. } if held.is_empty() && places.keys().filter(|v| v.starts_with("boat")).count() == boats));
     assert!(
@@ -821,7 +821,7 @@ fn at_the_end_a_boat_switched_on_elsewhere_returns_to_the_nearest_launch_point()
     let mp = mission.to_str().unwrap().to_string();
     let (state, ap_port) = (dir.join("state"), free_udp_port());
     let st = state.to_str().unwrap().to_string();
-    let grid = fleet_mission::grid::Grid::new(24, 48, 1.0).unwrap();
+    let grid = fleet_math::grid::Grid::new(24, 48, 1.0).unwrap();
     let site = m.mavlink.site(&grid);
     let launch = fleet_mission::launch::launch_points(&m, &grid).unwrap();
     let (boot, sysid) = ((24.0, 12.0), m.sysid("boat-3").unwrap());

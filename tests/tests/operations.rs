@@ -3,8 +3,8 @@
 //! outboxes are refused and left as they are; the ground-station gateway pins system ids from
 //! the mission; `fleet up` keeps every notice without a terminal and owns its nodes.
 
-use fleet::mission::config::MissionConfig;
 use fleet::mission::report::ServerEvent;
+use fleet_mission::config::MissionConfig;
 use hetfleet_tests::*;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -71,7 +71,7 @@ fn a_server_that_held_vehicles_restarts_after_kill_9_and_the_mission_completes()
     // switched on at boat-3's launch point (inside the fence by its margin, as the fleet keeps
     // every launch point; the site's corner is on the fence).
     let ap_port = free_udp_port();
-    let grid = fleet_mission::grid::Grid::new(24, 48, 1.0).unwrap();
+    let grid = fleet_math::grid::Grid::new(24, 48, 1.0).unwrap();
     let at = fleet_mission::launch::launch_points(&m, &grid).unwrap()[m.vehicle("boat-3").unwrap().0];
     let home = [at[0].to_string(), at[1].to_string()];
     let autopilot = procs.0.len();
@@ -319,7 +319,7 @@ fn the_gateway_pins_system_ids_from_the_mission_whatever_arrives_first() {
     );
     let gs = GroundStation::listen(gcs_port);
     let (boat1, boat2) = (m.sysid("boat-1").unwrap(), m.sysid("boat-2").unwrap());
-    let keys = fleet::protocol::keys::Keys::new("tiny").unwrap();
+    let keys = fleet_mission::protocol::keys::Keys::new("tiny").unwrap();
     let rt = tokio::runtime::Runtime::new().unwrap();
     let session = rt.block_on(async {
         let cfg = fleet_net::config(
@@ -428,7 +428,7 @@ fn fleet_up_without_a_terminal_keeps_every_notice_and_the_report_says_why_it_dif
             let cfg = fleet_net::config(
                 fleet_net::Role::Vehicle,
                 &net,
-                &fleet::mission::config::Link::default(),
+                &fleet_mission::config::Link::default(),
                 None,
                 &fleet_net::Endpoints {
                     listen: vec![],
@@ -439,9 +439,9 @@ fn fleet_up_without_a_terminal_keeps_every_notice_and_the_report_says_why_it_dif
             let session = fleet_net::open(cfg).await.unwrap();
             let sub = session.declare_subscriber("fleet/tiny/server/status").await.unwrap();
             while let Ok(s) = sub.recv_async().await {
-                if let Ok(fleet::protocol::Body::Status(st)) = fleet::protocol::decode(
+                if let Ok(fleet_mission::protocol::Body::Status(st)) = fleet_mission::protocol::decode(
                     &s.payload().to_bytes(),
-                    &fleet::protocol::Context::new(fleet::grid::Grid::new(24, 48, 1.0).unwrap()),
+                    &fleet_mission::protocol::Context::new(fleet_math::grid::Grid::new(24, 48, 1.0).unwrap()),
                 ) {
                     seen.lock().unwrap().push(st);
                 }
@@ -607,7 +607,7 @@ fn a_failed_start_leaves_the_previous_run_and_a_dead_node_is_reported_in_its_own
 
 #[test]
 fn a_batch_that_decodes_but_is_invalid_is_counted_once_in_the_status() {
-    use fleet::protocol::{Body, MeasurementBatch, Noise, Sample, VehicleKind};
+    use fleet_mission::protocol::{Body, MeasurementBatch, Noise, Sample, VehicleKind};
     let dir = scratch("counted-once");
     let ep = format!("tcp/127.0.0.1:{}", free_port());
     let mission = tiny_mission(&dir, std::slice::from_ref(&ep), std::slice::from_ref(&ep));
@@ -627,7 +627,7 @@ fn a_batch_that_decodes_but_is_invalid_is_counted_once_in_the_status() {
         matches!(e, ServerEvent::Ready { .. }).then_some(())
     });
     let rt = tokio::runtime::Runtime::new().unwrap();
-    let keys = fleet::protocol::keys::Keys::new("tiny").unwrap();
+    let keys = fleet_mission::protocol::keys::Keys::new("tiny").unwrap();
     let status = rt.block_on(async {
         let cfg = fleet_net::config(
             fleet_net::Role::Vehicle,
@@ -667,7 +667,7 @@ fn a_batch_that_decodes_but_is_invalid_is_counted_once_in_the_status() {
                 .await
                 .unwrap();
         }
-        let ctx = fleet::protocol::Context::new(fleet::grid::Grid::new(24, 48, 1.0).unwrap());
+        let ctx = fleet_mission::protocol::Context::new(fleet_math::grid::Grid::new(24, 48, 1.0).unwrap());
         loop {
             let s = tokio::time::timeout(Duration::from_secs(10), statuses.recv_async())
                 .await

@@ -21,14 +21,14 @@ fn pydmd_and_fleet_agree_on_a_field_we_generate() {
     let dir = std::env::temp_dir().join(format!("hetfleet-peers-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     // A (frames, rows, cols) field: the Fig. 7 field, 201 frames, via the library.
-    let f = fleet::process::synthetic::EigStudy::field(0.01, 7);
+    let f = fleet_math::process::synthetic::EigStudy::field(0.01, 7);
     let (n, t) = (f.dim(), 201);
     let mut data = Vec::with_capacity(n * t);
     for j in 0..t {
         data.extend(f.snapshots.col(j).iter().copied());
     }
     let npy = dir.join("field.npy");
-    fleet::npy::write(&npy, &[t, f.rows, f.cols], &data).unwrap();
+    fleet_math::npy::write(&npy, &[t, f.rows, f.cols], &data).unwrap();
     let ours = dir.join("ours.json");
     let out = Command::new(bin("fleet"))
         .args([

@@ -5,8 +5,8 @@
 //! the same mission makes over loopback, and what crossed the link (measured on it: payloads,
 //! Zenoh's and TCP/IP's headers, keep-alives and resends) per boat per epoch is within budget.
 
-use fleet::mission::config::MissionConfig;
 use fleet::mission::report::ServerEvent;
+use fleet_mission::config::MissionConfig;
 use hetfleet_tests::*;
 use std::path::Path;
 use std::time::Instant;
@@ -41,7 +41,10 @@ struct Radio {
     /// Bytes that crossed the link (both ways) per boat per epoch the boats sense.
     per_boat_epoch: f64,
     /// The server's `waiting` events: the vehicles an epoch waited for, each with why.
-    waiting: Vec<(u64, std::collections::BTreeMap<fleet::protocol::VehicleId, String>)>,
+    waiting: Vec<(
+        u64,
+        std::collections::BTreeMap<fleet_mission::protocol::VehicleId, String>,
+    )>,
 }
 
 /// `mission` run with its boats behind `kbit` kbit/s and `loss`% loss each way (the server,
@@ -80,7 +83,7 @@ fn run_behind_radio(dir: &Path, mission: &Path, host: &Host, kbit: f64, loss: u3
     let bytes = (after.0 - before.0) + (after.1 - before.1);
     let schedule = config.schedule(config.frames_hint());
     let boat_epochs = (0..schedule.epochs())
-        .filter(|&e| schedule.seq_of(fleet::protocol::VehicleKind::Boat, e).is_some())
+        .filter(|&e| schedule.seq_of(fleet_mission::protocol::VehicleKind::Boat, e).is_some())
         .count() as f64;
     let waiting = events
         .into_iter()
@@ -143,8 +146,8 @@ fn the_bundled_mission_completes_with_its_boats_behind_a_64_kbit_radio_with_5_pe
     let loopback = dir.join("loopback");
     let o = run("fleet", &["up", "--out", loopback.to_str().unwrap()]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let over_radio = fleet::process::dataset::load(radio.out.join("estimate.npy"), 1.0).unwrap();
-    let local = fleet::process::dataset::load(loopback.join("estimate.npy"), 1.0).unwrap();
+    let over_radio = fleet_math::process::dataset::load(radio.out.join("estimate.npy"), 1.0).unwrap();
+    let local = fleet_math::process::dataset::load(loopback.join("estimate.npy"), 1.0).unwrap();
     let (n, steps) = (local.snapshots.nrows(), local.snapshots.ncols());
     assert_eq!((over_radio.snapshots.nrows(), over_radio.snapshots.ncols()), (n, steps));
     let (mut scale, mut diff) = (0.0f64, 0.0f64);

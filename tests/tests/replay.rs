@@ -2,7 +2,7 @@
 //! recorded operations (`fleet replay`) gives the recorded final model bit for bit, through a
 //! killed and restarted server and boat; a recording cut short is one clear line.
 
-use fleet::mission::config::MissionConfig;
+use fleet_mission::config::MissionConfig;
 use fleet_mission::recording::Recording;
 use hetfleet_tests::*;
 

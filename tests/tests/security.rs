@@ -3,8 +3,8 @@
 //! neither feed the server nor read the model; a vehicle authenticated as boat-1 cannot publish
 //! as boat-2 or read another's plan; a replayed old batch is not assimilated twice.
 
-use fleet::mission::config::MissionConfig;
-use fleet::protocol::{self, Body, Context, MeasurementBatch, Noise, Sample, VehicleKind};
+use fleet_mission::config::MissionConfig;
+use fleet_mission::protocol::{self, Body, Context, MeasurementBatch, Noise, Sample, VehicleKind};
 use fleet_net::zenoh;
 use hetfleet_tests::*;
 use std::path::{Path, PathBuf};
@@ -24,7 +24,7 @@ fn secure_mission(dir: &Path, tls: bool) -> (PathBuf, PathBuf) {
     if tls {
         let ca = dir.join("ca");
         let m = MissionConfig::load(Some(&mission)).unwrap();
-        let mut names: Vec<String> = fleet::mission::security::users(&m);
+        let mut names: Vec<String> = fleet_mission::security::users(&m);
         names.insert(0, ca.display().to_string());
         let o = std::process::Command::new("bash")
             .arg(root().join("scripts/make-test-ca.sh"))
@@ -245,7 +245,7 @@ fn secured_fleet(tls: bool) {
                 panic!("not a model")
             }
         };
-        let ctx = Context::new(fleet::grid::Grid::new(24, 48, 1.0).unwrap());
+        let ctx = Context::new(fleet_math::grid::Grid::new(24, 48, 1.0).unwrap());
         let get_version = || async {
             let replies = observer.get(&model).await.unwrap();
             let r = replies.recv_async().await.unwrap();
@@ -290,10 +290,10 @@ fn secured_fleet(tls: bool) {
         assert_eq!(dup, c.duplicates + 1, "the replay was seen as a duplicate");
         assert_eq!(get_version().await, before, "and not assimilated");
         // A vehicle may not set its own sensor's verdict: the router drops it.
-        let trust = fleet::protocol::SensorOverride {
+        let trust = fleet_mission::protocol::SensorOverride {
             vehicle: "boat-1".parse().unwrap(),
             from_step: 0,
-            set: Some(fleet::protocol::Health::Ok),
+            set: Some(fleet_mission::protocol::Health::Ok),
         };
         let key = format!("{root_key}/server/sensor/boat-1");
         put(&boat1, &key, protocol::encode(&Body::Override(trust))).await;

@@ -32,7 +32,7 @@ fn plasma_cloud_writes_npy_and_sidecar_then_renders() {
         ],
     );
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let a = fleet::npy::read(&npy).unwrap();
+    let a = fleet_math::npy::read(&npy).unwrap();
     assert_eq!(a.shape, vec![4, 24, 96]);
     assert!(a.data.iter().all(|v| v.is_finite() && *v > 0.0));
     let side: serde_json::Value =
@@ -63,7 +63,7 @@ fn plasma_cloud_writes_npy_and_sidecar_then_renders() {
         ],
     );
     assert!(out.status.success());
-    assert_eq!(fleet::npy::read(&again).unwrap().data, a.data);
+    assert_eq!(fleet_math::npy::read(&again).unwrap().data, a.data);
 
     let png = dir.join("f.png");
     let out = run(
@@ -106,7 +106,7 @@ fn synthetic_processes_are_written_with_their_shapes() {
             "{args:?}: {}",
             String::from_utf8_lossy(&out.stderr)
         );
-        assert_eq!(fleet::npy::read(&out_path).unwrap().shape, shape, "{args:?}");
+        assert_eq!(fleet_math::npy::read(&out_path).unwrap().shape, shape, "{args:?}");
     }
 }
 
@@ -115,7 +115,7 @@ fn bad_simulate_and_render_input_is_a_clear_error() {
     let dir = tmp("bad");
     let o = |n: &str| dir.join(n).display().to_string();
     let flat = dir.join("flat.npy");
-    fleet::npy::write(&flat, &[4, 6], &[0.0; 24]).unwrap();
+    fleet_math::npy::write(&flat, &[4, 6], &[0.0; 24]).unwrap();
     let cases: Vec<(Vec<String>, &str)> = vec![
         (
             vec![

@@ -5,7 +5,7 @@
 //! `/api/state` says the same; bad requests get 4xx; a lost vehicle is marked; a view that
 //! missed the model's puts catches up.
 
-use fleet::mission::config::MissionConfig;
+use fleet_mission::config::MissionConfig;
 use hetfleet_tests::*;
 use std::io::Write;
 use std::path::Path;

@@ -4,7 +4,7 @@
 //! are acknowledged.
 
 #[global_allocator]
-static ALLOCATOR: fleet_mission::Allocator = fleet_mission::Allocator;
+static ALLOCATOR: fleet_math::Allocator = fleet_math::Allocator;
 
 mod node;
 

@@ -11,7 +11,7 @@
 //! still between two looks (a writer should still write elsewhere and rename it in), and
 //! resamples it onto the model grid there, so the node's loop receives a value per cell.
 
-use fleet_mission::grid::Grid;
+use fleet_math::grid::Grid;
 use fleet_mission::instrument::raster;
 use fleet_mission::instrument::{SensorSource, MAX_LINE};
 use fleet_mission::site::Site;

@@ -3,8 +3,8 @@
 //! that, take the vehicle out of the allocation with the reason, and put it back only when the
 //! autopilot is GUIDED and inside again.
 
+use fleet_math::grid::Grid;
 use fleet_mission::config::MavlinkConfig;
-use fleet_mission::grid::Grid;
 use mavlink::dialects::ardupilotmega::*;
 use mavlink::MavHeader;
 use nalgebra::Vector3;

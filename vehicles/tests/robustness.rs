@@ -2,8 +2,8 @@
 //! truncated frames and a silent autopilot must leave the bridge and the simulated autopilot
 //! working, with the loss shown on the bridge's status.
 
+use fleet_math::grid::Grid;
 use fleet_mission::config::MavlinkConfig;
-use fleet_mission::grid::Grid;
 use fleet_mission::protocol::AutopilotLink;
 use fleet_mission::site::Site;
 use mavlink::dialects::ardupilotmega::*;

@@ -4,8 +4,8 @@
 //! it; a bridge with another key gets nothing from it; an autopilot that cannot sign is taken
 //! only when the mission says so.
 
+use fleet_math::grid::Grid;
 use fleet_mission::config::MavlinkConfig;
-use fleet_mission::grid::Grid;
 use fleet_mission::protocol::AutopilotLink;
 use fleet_mission::signing_key::SigningKey;
 

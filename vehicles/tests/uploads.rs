@@ -3,8 +3,8 @@
 //! rules, over a slow link that loses messages; and a bridge whose fence upload fails never
 //! arms its vehicle.
 
+use fleet_math::grid::Grid;
 use fleet_mission::config::MavlinkConfig;
-use fleet_mission::grid::Grid;
 use mavlink::dialects::ardupilotmega::*;
 use mavlink::MavHeader;
 use nalgebra::Vector3;

@@ -256,7 +256,7 @@ mod tests {
     #[test]
     fn the_npy_export_reads_back_with_its_shape_and_values() {
         let data = [0.0, 1.5, -2.0, 3.0, 4.0, 5e-300];
-        let back = fleet_mission::npy::from_bytes(&npy_bytes(&[2, 3], &data), "export").unwrap();
+        let back = fleet_math::npy::from_bytes(&npy_bytes(&[2, 3], &data), "export").unwrap();
         assert_eq!((back.shape, back.data), (vec![2, 3], data.to_vec()));
     }
 

@@ -1,7 +1,7 @@
 //! `fleet-watch`: the live operations view (see the crate's documentation).
 
 #[global_allocator]
-static ALLOCATOR: fleet_mission::Allocator = fleet_mission::Allocator;
+static ALLOCATOR: fleet_math::Allocator = fleet_math::Allocator;
 
 use clap::Parser;
 

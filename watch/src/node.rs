@@ -5,9 +5,9 @@
 use crate::http::{self, Snapshot};
 use crate::state::{Geo, View};
 use anyhow::Context as _;
+use fleet_math::grid::Grid;
+use fleet_math::process::frames::Frames;
 use fleet_mission::config::MissionConfig;
-use fleet_mission::grid::Grid;
-use fleet_mission::process::frames::Frames;
 use fleet_mission::protocol::{keys::Keys, Body, Context};
 use fleet_net::Role;
 use std::net::SocketAddr;

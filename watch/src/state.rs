@@ -2,8 +2,8 @@
 //! network, no clock of its own; times are seconds since the watch started, passed in).
 //! `/api/state` is [`View::state`]; the heat maps are [`View::fields`].
 
-use fleet_mission::grid::Grid;
-use fleet_mission::process::frames::Frames;
+use fleet_math::grid::Grid;
+use fleet_math::process::frames::Frames;
 use fleet_mission::protocol::VehicleId;
 use fleet_mission::protocol::{
     AutopilotLink, Body, LinkState, ModelUpdate, Plan, ServerStatus, Telemetry, VehicleKind,
@@ -305,7 +305,7 @@ impl View {
                 }
             });
         if let Some(t) = &truth {
-            let mse = fleet_mission::fusion::mse(&estimate, t);
+            let mse = fleet_math::fusion::mse(&estimate, t);
             self.mse.retain(|(e, _)| *e != m.epoch);
             self.mse.push((m.epoch, mse));
         }
@@ -402,7 +402,7 @@ impl View {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use fleet_mission::process::FieldSeries;
+    use fleet_math::process::FieldSeries;
 
     fn view() -> View {
         let grid = Grid::new(2, 3, 1.0).unwrap();

@@ -5,8 +5,8 @@
 //! for byte.
 
 use anyhow::{Context as _, Result};
-use fleet::mission::config::MissionConfig;
-use fleet::process::FieldSeries;
+use fleet_math::process::FieldSeries;
+use fleet_mission::config::MissionConfig;
 use fleet_mission::events::{Percentiles, ServerSummary};
 use fleet_mission::instrument::{raster, Entry, Logged, SensorSource};
 use fleet_mission::offline::{self, VehicleLog};
@@ -34,20 +34,20 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     let t0 = std::time::Instant::now();
-    let mut mission = MissionConfig::load(Some(&args.mission)).map_err(fleet::exit::bad_input)?;
+    let mut mission = MissionConfig::load(Some(&args.mission)).map_err(fleet_exit::bad_input)?;
     let pb = super::progress_bar(mission.frames_hint() as u64, "truth");
     let truth = mission.truth(|k| pb.set_position(k as u64))?;
     mission.adopt_land(truth.as_ref().map_or_else(Vec::new, FieldSeries::land));
     pb.finish_and_clear();
     let (grid, frames) = mission
         .workspace(truth.as_ref().map(FieldSeries::shape))
-        .map_err(fleet::exit::bad_input)?;
+        .map_err(fleet_exit::bad_input)?;
     if let Some(v) = mission
         .vehicles()
         .iter()
         .find(|v| mission.sensor_of(&v.id) == SensorSource::Sim)
     {
-        return Err(fleet::exit::bad_input(anyhow::anyhow!(
+        return Err(fleet_exit::bad_input(anyhow::anyhow!(
             "{}: {} reads the simulated sensor, whose values are in no log: fleet assimilate takes missions whose \
              vehicles all read instruments",
             args.mission.display(),
@@ -67,7 +67,7 @@ pub fn run(args: Args) -> Result<()> {
         Some(t) => (0..core.history().len())
             .map(|k| {
                 let truth: Vec<f64> = t.snapshots.col(k).iter().copied().collect();
-                Ok(fleet::fusion::mse(&core.history().estimate(k)?, &truth))
+                Ok(fleet_math::fusion::mse(&core.history().estimate(k)?, &truth))
             })
             .collect::<std::io::Result<_>>()
             .context("reading the estimate back")?,
@@ -86,7 +86,7 @@ pub fn run(args: Args) -> Result<()> {
         eigenvalues: core.model_update().map(|m| m.eigenvalues).unwrap_or_default(),
         link_ups: BTreeMap::new(),
         wall_s: t0.elapsed().as_secs_f64(),
-        peak_resident_mib: fleet::mission::memory::peak_resident_mib(),
+        peak_resident_mib: fleet_mission::memory::peak_resident_mib(),
         dt: truth
             .as_ref()
             .map_or_else(|| mission.clock().map_or(1.0, |c| c.step_s), |t| t.dt),
@@ -139,11 +139,11 @@ fn say(done: &offline::Offline, skipped: BTreeMap<String, u64>, summary: &Server
 /// vehicle of the mission). A log that cannot be read is bad input.
 fn read_log(path: &Path, mission: &MissionConfig) -> Result<(BTreeMap<String, VehicleLog>, BTreeMap<String, u64>)> {
     let file = std::fs::File::open(path)
-        .map_err(|e| fleet::exit::bad_input(anyhow::anyhow!("--readings {}: {e}", path.display())))?;
+        .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("--readings {}: {e}", path.display())))?;
     let ids: BTreeSet<String> = mission.vehicles().iter().map(|v| v.id.to_string()).collect();
     let (mut logs, mut skipped) = (BTreeMap::<String, VehicleLog>::new(), BTreeMap::<String, u64>::new());
     for line in std::io::BufReader::new(file).lines() {
-        let line = line.map_err(|e| fleet::exit::bad_input(anyhow::anyhow!("--readings {}: {e}", path.display())))?;
+        let line = line.map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("--readings {}: {e}", path.display())))?;
         if line.trim().is_empty() {
             continue;
         }
@@ -174,7 +174,7 @@ fn read_frames(
     mission: &MissionConfig,
     base: Option<&Path>,
     logs: &mut BTreeMap<String, VehicleLog>,
-    (grid, mission_path): (&fleet::grid::Grid, &Path),
+    (grid, mission_path): (&fleet_math::grid::Grid, &Path),
 ) -> Result<()> {
     let site = mission.mavlink.site(grid);
     for v in mission.vehicles().iter().filter(|v| v.kind == VehicleKind::Aerial) {
@@ -207,7 +207,7 @@ fn read_frames(
 /// The `.tif`/`.tiff` files in `dir`.
 fn tiffs_in(dir: &Path) -> Result<Vec<String>> {
     let entries = std::fs::read_dir(dir)
-        .map_err(|e| fleet::exit::bad_input(anyhow::anyhow!("the frames directory {}: {e}", dir.display())))?;
+        .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("the frames directory {}: {e}", dir.display())))?;
     Ok(entries
         .flatten()
         .map(|e| e.file_name().to_string_lossy().to_string())
@@ -222,7 +222,7 @@ fn tiffs_in(dir: &Path) -> Result<Vec<String>> {
 fn read_frame(
     path: &Path,
     site: &fleet_mission::site::Site,
-    grid: &fleet::grid::Grid,
+    grid: &fleet_math::grid::Grid,
 ) -> Result<(f64, Vec<Option<f64>>), String> {
     let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
     let name = path.file_name().unwrap_or_default().to_string_lossy();

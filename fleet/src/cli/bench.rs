@@ -162,10 +162,10 @@ fn eig_study_bench(trials: usize, seed: u64) -> anyhow::Result<serde_json::Value
 fn team_bench(repeats: usize, truth: Option<PathBuf>) -> anyhow::Result<serde_json::Value> {
     use fleet::experiment::team::{self, TeamConfig};
     let full = match truth {
-        Some(p) => fleet::process::dataset::load(&p, 1.0)?,
+        Some(p) => fleet_math::process::dataset::load(&p, 1.0)?,
         None => {
             eprintln!("simulating cloud1 at 96 x 384, 100 frames (not timed)...");
-            fleet::process::plasma::PlasmaCloud::new(fleet::process::plasma::Preset::Cloud1.params())?
+            fleet_math::process::plasma::PlasmaCloud::new(fleet_math::process::plasma::Preset::Cloud1.params())?
                 .run(100, |_| {})?
         }
     };
@@ -203,7 +203,7 @@ fn team_bench(repeats: usize, truth: Option<PathBuf>) -> anyhow::Result<serde_js
 fn grid_size(grid: &str) -> anyhow::Result<(usize, usize)> {
     grid.split_once('x')
         .and_then(|(r, c)| Some((r.parse().ok()?, c.parse().ok()?)))
-        .ok_or_else(|| fleet::exit::bad_input(anyhow::anyhow!("--grid {grid}: expected ROWSxCOLS")))
+        .ok_or_else(|| fleet_exit::bad_input(anyhow::anyhow!("--grid {grid}: expected ROWSxCOLS")))
 }
 
 /// The epoch's critical path at each size, as a Markdown table.
@@ -331,7 +331,7 @@ fn sensing_bench(repeats: usize, no_peers: bool) -> anyhow::Result<serde_json::V
 /// faster), each with its spread over the alternating pairs.
 fn peers_bench(repeats: usize, cases: &[usize]) -> anyhow::Result<serde_json::Value> {
     if let Some(c) = cases.iter().find(|&&c| !(1..=4).contains(&c)) {
-        return Err(fleet::exit::bad_input(anyhow::anyhow!(
+        return Err(fleet_exit::bad_input(anyhow::anyhow!(
             "--cases: {c} is not a Table 1 case (1-4)"
         )));
     }
@@ -342,7 +342,7 @@ fn peers_bench(repeats: usize, cases: &[usize]) -> anyhow::Result<serde_json::Va
         pb.inc(1);
     })
     .map_err(|e| match e.downcast_ref::<peers::PeersError>() {
-        Some(peers::PeersError::Missing(_)) => fleet::exit::bad_input(e),
+        Some(peers::PeersError::Missing(_)) => fleet_exit::bad_input(e),
         _ => e,
     })?;
     pb.finish_and_clear();

@@ -3,12 +3,12 @@
 use anyhow::{bail, Context};
 use clap::ValueEnum;
 use faer::Mat;
-use fleet::dmd::{Debias, DmdConfig, Method, RankPolicy};
-use fleet::dmd::{Forgetting, ForgettingDirections, ForgettingUnit};
-use fleet::exit::{bad_input, InputResult};
 use fleet::experiment::run_online;
-use fleet::process::synthetic::{table1_field, EigStudy, Table1Profile, TABLE1_CASES};
-use fleet::process::FieldSeries;
+use fleet_exit::{bad_input, InputResult};
+use fleet_math::dmd::{Debias, DmdConfig, Method, RankPolicy};
+use fleet_math::dmd::{Forgetting, ForgettingDirections, ForgettingUnit};
+use fleet_math::process::synthetic::{table1_field, EigStudy, Table1Profile, TABLE1_CASES};
+use fleet_math::process::FieldSeries;
 use serde_json::json;
 use std::path::PathBuf;
 
@@ -88,7 +88,7 @@ fn load(args: &Args) -> anyhow::Result<FieldSeries> {
             Example::EigStudy => EigStudy::field(0.01, 1234),
         });
     };
-    let a = fleet::npy::read(path)?;
+    let a = fleet_math::npy::read(path)?;
     let p = path.display().to_string();
     a.check_finite(&p)?;
     let dt = 1.0;
@@ -158,7 +158,7 @@ fn check(args: &Args, field: &FieldSeries) -> anyhow::Result<usize> {
 
 /// The relative error of the model's reconstruction of the whole record from its first
 /// snapshot (PyDMD's convention).
-fn reconstruction_error(fitted: &fleet::dmd::DmdModel, field: &FieldSeries) -> f64 {
+fn reconstruction_error(fitted: &fleet_math::dmd::DmdModel, field: &FieldSeries) -> f64 {
     let (mut err2, mut norm2) = (0.0, 0.0);
     for t in 0..field.frames() {
         let p = fitted.predict(t as f64);
@@ -171,7 +171,7 @@ fn reconstruction_error(fitted: &fleet::dmd::DmdModel, field: &FieldSeries) -> f
 }
 
 /// The `top` eigenvalues, discrete and continuous.
-fn print_eigenvalues(summary: &fleet::dmd::ModelSummary, top: usize) {
+fn print_eigenvalues(summary: &fleet_math::dmd::ModelSummary, top: usize) {
     println!(
         "{:>4}  {:>24}  {:>10}  {:>26}",
         "#", "lambda (discrete)", "|lambda|", "ln(lambda)/dt"
@@ -196,7 +196,11 @@ fn print_eigenvalues(summary: &fleet::dmd::ModelSummary, top: usize) {
 }
 
 /// `--save DIR`: the eigenvalues, modes and amplitudes as complex128 `.npy`, and the summary.
-fn save_model(dir: &std::path::Path, fitted: &fleet::dmd::DmdModel, doc: &serde_json::Value) -> anyhow::Result<()> {
+fn save_model(
+    dir: &std::path::Path,
+    fitted: &fleet_math::dmd::DmdModel,
+    doc: &serde_json::Value,
+) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let m = &fitted.modes.modes;
     let (rows, r) = (m.nrows(), m.ncols());
@@ -209,9 +213,9 @@ fn save_model(dir: &std::path::Path, fitted: &fleet::dmd::DmdModel, doc: &serde_
             .map(|z| num_complex::Complex64::new(z.re, z.im))
             .collect::<Vec<_>>()
     };
-    fleet::npy::write(dir.join("eigenvalues.npy"), &[r], &c(&fitted.modes.eigenvalues))?;
-    fleet::npy::write(dir.join("modes.npy"), &[rows, r], &modes)?;
-    fleet::npy::write(dir.join("amplitudes.npy"), &[r], &c(&fitted.amplitudes))?;
+    fleet_math::npy::write(dir.join("eigenvalues.npy"), &[r], &c(&fitted.modes.eigenvalues))?;
+    fleet_math::npy::write(dir.join("modes.npy"), &[rows, r], &modes)?;
+    fleet_math::npy::write(dir.join("amplitudes.npy"), &[r], &c(&fitted.amplitudes))?;
     std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(&doc)?)
         .with_context(|| format!("writing {}", dir.join("summary.json").display()))?;
     println!(

@@ -1,10 +1,10 @@
 //! `fleet experiment [config.toml] --out <dir>`: the paper's evaluation as a report.
 
 use anyhow::Context;
-use fleet::exit::bad_input;
 use fleet::experiment::claims;
 use fleet::experiment::comparison;
 use fleet::experiment::paper::{self, ExperimentConfig};
+use fleet_exit::bad_input;
 use std::path::PathBuf;
 
 #[derive(clap::Args, Debug)]

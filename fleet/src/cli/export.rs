@@ -31,12 +31,12 @@ pub struct Args {
 /// An export's error as the exit code wants it: the run directory's fault is bad input.
 fn classify(e: ExportError) -> anyhow::Error {
     let bad = e.is_bad_input();
-    fleet::exit::bad_input_if(e, bad)
+    fleet_exit::bad_input_if(e, bad)
 }
 
 pub fn run(args: Args) -> Result<()> {
     if args.netcdf.is_none() && args.readings.is_none() && args.geotiff.is_none() && args.qgc_plan.is_none() {
-        return Err(fleet::exit::bad_input(anyhow::anyhow!(
+        return Err(fleet_exit::bad_input(anyhow::anyhow!(
             "nothing to export: give --netcdf FILE.nc, --readings FILE.nc, --geotiff DIR or --qgc-plan FILE.plan"
         )));
     }
@@ -63,7 +63,7 @@ pub fn run(args: Args) -> Result<()> {
         match export::trajectory::write(&run, path).map_err(classify)? {
             Some(n) => println!("wrote {} ({n} boat readings)", path.display()),
             None => {
-                return Err(fleet::exit::bad_input(anyhow::anyhow!(
+                return Err(fleet_exit::bad_input(anyhow::anyhow!(
                     "{}: no boat's reading in the run's journal: {} not written",
                     args.run_dir.display(),
                     path.display()

@@ -1,9 +1,9 @@
 //! `fleet render`: a frame of a `(frames, rows, cols)` `.npy` as a PNG (viridis, colour bar),
 //! or the whole sequence as a GIF.
 
-use fleet::exit::bad_input;
 use fleet::plot::{self, Panel};
-use fleet::process::dataset;
+use fleet_exit::bad_input;
+use fleet_math::process::dataset;
 use std::path::PathBuf;
 
 #[derive(clap::Args, Debug)]

@@ -2,7 +2,7 @@
 //! recorded operations, offline; the final model must equal the recorded one bit for bit.
 
 use anyhow::{bail, Result};
-use fleet::protocol::{self, Body};
+use fleet_mission::protocol::{self, Body};
 use fleet_mission::recording::{CoreOp, Recording, RecordingError};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -82,13 +82,13 @@ fn start_live(args: &Args, rec: &Recording, speed: f64) -> Result<super::supervi
 
 fn classify(e: RecordingError) -> anyhow::Error {
     let bad = e.is_bad_file();
-    fleet::exit::bad_input_if(e, bad)
+    fleet_exit::bad_input_if(e, bad)
 }
 
 pub fn run(args: Args) -> Result<()> {
     if let Some(s) = args.speed {
         if !(s.is_finite() && s > 0.0) {
-            return Err(fleet::exit::bad_input(anyhow::anyhow!(
+            return Err(fleet_exit::bad_input(anyhow::anyhow!(
                 "--speed {s}: give a positive factor (1: the recorded pace)"
             )));
         }
@@ -96,7 +96,7 @@ pub fn run(args: Args) -> Result<()> {
     let rec = Recording::read(&args.recording).map_err(classify)?;
     if let Some(addr) = args.web {
         std::net::TcpListener::bind(addr).map_err(|e| {
-            fleet::exit::bad_input(anyhow::anyhow!("--web {addr}: cannot serve the live view there ({e})"))
+            fleet_exit::bad_input(anyhow::anyhow!("--web {addr}: cannot serve the live view there ({e})"))
         })?;
     }
     let speed = args.speed.or(args.web.map(|_| 1.0));

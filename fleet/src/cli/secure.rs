@@ -1,15 +1,15 @@
 //! `fleet secure [mission] --out DIR [--tls CERTDIR]`: the Zenoh configs of a secured mission
-//! (see `fleet::mission::security`): `router.json5` for the model server, `<user>.json5` for
+//! (see `fleet_mission::security`): `router.json5` for the model server, `<user>.json5` for
 //! each vehicle, the ground-station gateway and an observer, `credentials.txt` (the
 //! router's password dictionary, fresh random passwords, mode 0600), and the MAVLink 2 signing
-//! keys (`fleet::mission::signing_key`): `mavlink-signing.key` for the ground-station link and
+//! keys (`fleet_mission::signing_key`): `mavlink-signing.key` for the ground-station link and
 //! `autopilot/<id>.key` for each vehicle's autopilot link, each with its `.passphrase` (what
 //! MAVProxy and QGroundControl take), mode 0600.
 
 use anyhow::Context;
-use fleet::mission::config::MissionConfig;
-use fleet::mission::security::{client_config, router_config, users, Tls};
-use fleet::mission::signing_key::{write_private, SigningKey};
+use fleet_mission::config::MissionConfig;
+use fleet_mission::security::{client_config, router_config, users, Tls};
+use fleet_mission::signing_key::{write_private, SigningKey};
 use std::io::Read;
 use std::path::PathBuf;
 
@@ -45,7 +45,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let tls = match &args.tls {
         Some(d) => Some(Tls {
             dir: std::fs::canonicalize(d)
-                .map_err(|e| fleet::exit::bad_input(anyhow::anyhow!("--tls {}: {e}", d.display())))?,
+                .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("--tls {}: {e}", d.display())))?,
         }),
         None => None,
     };

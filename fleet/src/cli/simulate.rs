@@ -3,10 +3,10 @@
 
 use anyhow::{bail, Context};
 use clap::ValueEnum;
-use fleet::exit::InputResult;
-use fleet::process::plasma::{PlasmaCloud, Preset};
-use fleet::process::synthetic::{plume_field, table1_field, EigStudy, Table1Profile, TABLE1_CASES};
-use fleet::process::{dataset, FieldSeries};
+use fleet_exit::InputResult;
+use fleet_math::process::plasma::{PlasmaCloud, Preset};
+use fleet_math::process::synthetic::{plume_field, table1_field, EigStudy, Table1Profile, TABLE1_CASES};
+use fleet_math::process::{dataset, FieldSeries};
 use serde_json::json;
 use std::path::PathBuf;
 
@@ -83,7 +83,8 @@ fn plasma_cloud(args: &Args, t0: std::time::Instant) -> anyhow::Result<(FieldSer
     if frames == 0 {
         bail!("--frames must be at least 1");
     }
-    fleet::process::check_size(params.ny, params.nx, frames).map_err(|e| anyhow::anyhow!("--grid/--frames: {e}"))?;
+    fleet_math::process::check_size(params.ny, params.nx, frames)
+        .map_err(|e| anyhow::anyhow!("--grid/--frames: {e}"))?;
     let mut sim = PlasmaCloud::new(params.clone()).context("setting up the plasma cloud")?;
     let pb = super::progress_bar(frames as u64, "plasma cloud");
     let field = sim
@@ -152,7 +153,7 @@ fn simulate(args: Args) -> anyhow::Result<()> {
             if frames == 0 {
                 bail!("--frames must be at least 1");
             }
-            fleet::process::check_size(rows, cols, frames).map_err(|e| anyhow::anyhow!("--grid/--frames: {e}"))?;
+            fleet_math::process::check_size(rows, cols, frames).map_err(|e| anyhow::anyhow!("--grid/--frames: {e}"))?;
             let f = plume_field(rows, cols, frames, args.noise, args.seed);
             let meta = json!({
                 "process": "plume", "grid": [rows, cols], "frames": frames, "noise_var": args.noise,

@@ -31,8 +31,8 @@ impl Exited {
             describe(self.status),
             self.log.display()
         );
-        if self.status.code() == Some(fleet::exit::BAD_INPUT) {
-            fleet::exit::bad_input(e)
+        if self.status.code() == Some(fleet_exit::BAD_INPUT) {
+            fleet_exit::bad_input(e)
         } else {
             e
         }

@@ -11,11 +11,11 @@
 
 use super::supervise::{self, Supervisor};
 use anyhow::{bail, Context};
-use fleet::exit::InputResult;
 use fleet::experiment::team;
-use fleet::mission::config::{MissionConfig, DEFAULT_MISSION};
 use fleet::mission::report::{write_mission_report, ServerEvent, ServerSummary};
-use fleet::process::FieldSeries;
+use fleet_exit::InputResult;
+use fleet_math::process::FieldSeries;
+use fleet_mission::config::{MissionConfig, DEFAULT_MISSION};
 use std::io::{BufRead, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -121,7 +121,7 @@ fn check_ports_free(mission: &MissionConfig) -> anyhow::Result<()> {
             continue;
         };
         if let Err(e) = std::net::TcpListener::bind(addr) {
-            return Err(fleet::exit::bad_input(anyhow::anyhow!(
+            return Err(fleet_exit::bad_input(anyhow::anyhow!(
                 "[network] listen {ep}: {e} (another fleet or program is using it; stop it or change the endpoint)"
             )));
         }
@@ -133,7 +133,7 @@ fn check_ports_free(mission: &MissionConfig) -> anyhow::Result<()> {
         .and_then(|a| a.parse::<std::net::SocketAddr>().ok())
     {
         if let Err(e) = std::net::UdpSocket::bind(addr) {
-            return Err(fleet::exit::bad_input(anyhow::anyhow!(
+            return Err(fleet_exit::bad_input(anyhow::anyhow!(
                 "[mavlink] gcs {}: {e}",
                 mission.mavlink.gcs
             )));
@@ -195,7 +195,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     if let Some(addr) = args.foxglove {
         if !addr.ip().is_loopback() {
-            return Err(fleet::exit::bad_input(anyhow::anyhow!(
+            return Err(fleet_exit::bad_input(anyhow::anyhow!(
                 "--foxglove {addr}: fleet up serves Foxglove on loopback only; for another address run \
                 `fleet-watch --foxglove {addr} --credential user:password` beside it"
             )));
@@ -264,10 +264,10 @@ fn make_truth(mission: &MissionConfig, staging: &Path, t0: Instant) -> anyhow::R
     let (grid, frames) = mission.workspace(truth.as_ref().map(FieldSeries::shape))?;
     // The autopilots' launch points must clear the fence's margin: refused here, not at the shore.
     if mission.mavlink.autopilot != "none" {
-        fleet::mission::launch::launch_points(mission, &grid)?;
+        fleet_mission::launch::launch_points(mission, &grid)?;
     }
     if let Some(truth) = &truth {
-        fleet::process::dataset::save(
+        fleet_math::process::dataset::save(
             staging.join("truth.npy"),
             truth,
             Some(&serde_json::json!({"process": "fleet up", "mission": mission.mission, "dt": truth.dt})),

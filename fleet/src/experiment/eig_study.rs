@@ -3,8 +3,8 @@
 //! 400 pairs and updated every 10, over seeded trials at noise variances 0.01, 0.04, 0.1.
 
 use super::{dominant_continuous, run_online};
-use crate::dmd::{Debias, DmdConfig, DmdError, Method, RankPolicy};
-use crate::process::synthetic::EigStudy;
+use fleet_math::dmd::{Debias, DmdConfig, DmdError, Method, RankPolicy};
+use fleet_math::process::synthetic::EigStudy;
 use serde::Serialize;
 
 /// One way of estimating the eigenvalue.
@@ -78,7 +78,7 @@ pub fn estimate(v: &Variant, noise_var: f64, seed: u64) -> Result<[f64; 2], DmdE
     let z = field.snapshots.as_ref();
     let model = match v.config.method {
         Method::Batch => {
-            let (x, y) = crate::dmd::pairs_of(z);
+            let (x, y) = fleet_math::dmd::pairs_of(z);
             v.config.init(x, y)?
         }
         _ => run_online(&v.config, z, EigStudy::INIT, EigStudy::TAU, |_| Ok(()))?,

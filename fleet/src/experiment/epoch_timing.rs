@@ -6,9 +6,9 @@
 //! `fleet bench epoch`.
 
 use super::team::{TeamConfig, TeamError};
-use crate::grid::Grid;
-use crate::process::synthetic::plume_frame;
-use crate::protocol::{self, Body};
+use fleet_math::grid::Grid;
+use fleet_math::process::synthetic::plume_frame;
+use fleet_mission::protocol::{self, Body};
 use fleet_mission::server::{Ingested, ServerCore};
 use serde::Serialize;
 use std::time::Instant;

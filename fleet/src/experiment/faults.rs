@@ -6,9 +6,9 @@
 
 use super::stats::Interval;
 use super::team::{self, TeamOutcome};
-use crate::process::FieldSeries;
-use crate::protocol::{MeasurementBatch, VehicleKind};
+use fleet_math::process::FieldSeries;
 use fleet_mission::health::Health;
+use fleet_mission::protocol::{MeasurementBatch, VehicleKind};
 use fleet_mission::team::{TeamConfig, TeamError};
 use rand::{RngExt, SeedableRng};
 use serde::{Deserialize, Serialize};
@@ -423,7 +423,7 @@ mod tests {
     /// step from the start, an over-exposure only its frames.
     #[test]
     fn apply_reports_the_steps_it_altered() {
-        use crate::protocol::{Noise, Sample, VehicleId};
+        use fleet_mission::protocol::{Noise, Sample, VehicleId};
         let batch = |vehicle: &str| MeasurementBatch {
             vehicle: vehicle.parse::<VehicleId>().unwrap(),
             kind: VehicleKind::Boat,

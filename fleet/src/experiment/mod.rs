@@ -15,8 +15,8 @@ pub mod stats;
 pub mod table1;
 pub mod team;
 
-use crate::dmd::{Dmd, DmdConfig, DmdError, Modes};
 use faer::MatRef;
+use fleet_math::dmd::{Dmd, DmdConfig, DmdError, Modes};
 
 /// Fit `cfg` to the first `init` pairs of the snapshot sequence `z` (columns in time order),
 /// then feed the remaining pairs in batches of `tau`, calling `after_each` with the model after

@@ -13,13 +13,13 @@ use super::faults::{self, FaultKind, FaultRun};
 use super::stats::{Interval, Outcome};
 use super::team::{self, Placement, TeamConfig, TeamOutcome};
 use super::{dominant_continuous, eig_study, run_online};
-use crate::dmd::{DmdConfig, Method, RankPolicy};
 use crate::plot::{self, Series};
-use crate::process::plasma::Preset;
-use crate::process::synthetic::EigStudy;
-use crate::process::truth::{averaged_by, TruthSource};
-use crate::process::FieldSeries;
 use anyhow::{bail, Context};
+use fleet_math::dmd::{DmdConfig, Method, RankPolicy};
+use fleet_math::process::plasma::Preset;
+use fleet_math::process::synthetic::EigStudy;
+use fleet_math::process::truth::{averaged_by, TruthSource};
+use fleet_math::process::FieldSeries;
 use fleet_mission::health::Health;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -67,7 +67,7 @@ pub struct ExperimentConfig {
     /// Fusion schemes run besides the team's (the heterogeneous team, QR disks), reported as
     /// `heterogeneous-<scheme>`.
     #[serde(default)]
-    pub extra_fusions: Vec<crate::fusion::Scheme>,
+    pub extra_fusions: Vec<fleet_math::fusion::Scheme>,
     /// Placements run besides QR and random (with the team's fusion), reported as
     /// `heterogeneous-<placement>` and compared with both.
     #[serde(default)]
@@ -104,7 +104,7 @@ pub struct ExperimentConfig {
     /// What Fig. 8's factors multiply: the past once per update (`batch`, the paper's
     /// reading, default) or each pair by its age (`pair`, odmd's).
     #[serde(default)]
-    pub forgetting_unit: crate::dmd::ForgettingUnit,
+    pub forgetting_unit: fleet_math::dmd::ForgettingUnit,
     /// Whether `[team]` gives `aerial_growth_per_cell` (in the field's units, for every row);
     /// otherwise each row's is [`fleet_mission::team::default_growth`] of its `noise`.
     #[serde(skip)]
@@ -305,7 +305,7 @@ impl TeamSteps {
     fn fused(team: &str, o: &TeamOutcome) -> Self {
         Self {
             team: team.into(),
-            mse: fleet_mission::fusion::scored(&o.heterogeneous),
+            mse: fleet_math::fusion::scored(&o.heterogeneous),
             calibration: Some(o.calibration.clone()),
         }
     }
@@ -481,7 +481,7 @@ fn run_seed(
         TeamSteps::fused(HETEROGENEOUS, &qr),
         TeamSteps {
             team: AERIAL_ONLY.into(),
-            mse: fleet_mission::fusion::scored(&qr.aerial_only),
+            mse: fleet_math::fusion::scored(&qr.aerial_only),
             calibration: None,
         },
         TeamSteps {
@@ -629,11 +629,11 @@ fn check_rows(cfg: &ExperimentConfig, truths: &[FieldSeries]) -> anyhow::Result<
         .into_iter()
         .chain(cfg.extra_placements.iter().copied());
     for (r, truth) in cfg.rows.iter().zip(truths) {
-        crate::process::units::check_noise(r.noise)
-            .map_err(|why| crate::exit::bad_input(anyhow::anyhow!("{}: {why}", r.name())))?;
+        fleet_math::process::units::check_noise(r.noise)
+            .map_err(|why| fleet_exit::bad_input(anyhow::anyhow!("{}: {why}", r.name())))?;
         for p in placements.clone() {
             team::check(&cfg.team_for_seed(r, p, cfg.seeds()[0]), truth)
-                .map_err(|e| crate::exit::bad_input(anyhow::anyhow!("{}: {e}", r.name())))?;
+                .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("{}: {e}", r.name())))?;
         }
     }
     Ok(())

@@ -12,11 +12,11 @@ use super::eig_study::median;
 use super::run_online;
 use super::sensing_timing::pod_basis_48x96;
 use super::table1;
-use crate::dmd::{Dmd, DmdConfig, DmdError};
-use crate::process::synthetic::{table1_field, Table1Case, Table1Profile, TABLE1_CASES};
-use crate::sensing::qr::point_qr;
 use anyhow::Context;
 use faer::{c64, MatRef};
+use fleet_math::dmd::{Dmd, DmdConfig, DmdError};
+use fleet_math::process::synthetic::{table1_field, Table1Case, Table1Profile, TABLE1_CASES};
+use fleet_math::sensing::qr::point_qr;
 use serde::Serialize;
 use serde_json::{json, Value};
 use std::io::{BufRead, BufReader, Write};
@@ -406,7 +406,8 @@ fn write_matrix(dir: &Path, name: &str, m: MatRef<'_, f64>) -> anyhow::Result<St
     let data: Vec<f64> = (0..m.nrows())
         .flat_map(|i| (0..m.ncols()).map(move |j| m[(i, j)]))
         .collect();
-    crate::npy::write(&path, &[m.nrows(), m.ncols()], &data).with_context(|| format!("writing {}", path.display()))?;
+    fleet_math::npy::write(&path, &[m.nrows(), m.ncols()], &data)
+        .with_context(|| format!("writing {}", path.display()))?;
     Ok(path.display().to_string())
 }
 

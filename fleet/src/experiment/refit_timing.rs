@@ -3,8 +3,8 @@
 //! epoch 0 (the server without checkpoints). Timings for `fleet bench refit`.
 
 use super::team::{TeamConfig, TeamError};
-use crate::grid::Grid;
-use crate::process::synthetic::plume_field;
+use fleet_math::grid::Grid;
+use fleet_math::process::synthetic::plume_field;
 use fleet_mission::server::ServerCore;
 use fleet_mission::vehicle::VehicleBrain;
 use serde::Serialize;

@@ -2,14 +2,14 @@
 //! `QR.fit` timed on the very same basis in the same run when Python and pysensors are there.
 
 use super::eig_study::median;
-use crate::dmd::linalg::thin_svd;
-use crate::grid::Grid;
-use crate::kalman::{ModalFilter, Scheduled};
-use crate::process::synthetic::{smooth_basis, smooth_sphere_field};
-use crate::sensing::gappy::reconstruct;
-use crate::sensing::horizon::{plan, Boat, Forecast};
-use crate::sensing::qr::{block_dopt, block_qr, point_qr};
 use faer::Mat;
+use fleet_math::dmd::linalg::thin_svd;
+use fleet_math::grid::Grid;
+use fleet_math::kalman::{ModalFilter, Scheduled};
+use fleet_math::process::synthetic::{smooth_basis, smooth_sphere_field};
+use fleet_math::sensing::gappy::reconstruct;
+use fleet_math::sensing::horizon::{plan, Boat, Forecast};
+use fleet_math::sensing::qr::{block_dopt, block_qr, point_qr};
 use serde::Serialize;
 use std::time::Instant;
 
@@ -58,7 +58,7 @@ pub fn pysensors_qr_ms(basis: &Mat<f64>, repeats: usize) -> Option<f64> {
         .flat_map(|i| (0..basis.ncols()).map(move |j| (i, j)))
         .map(|(i, j)| basis[(i, j)])
         .collect();
-    crate::npy::write(&path, &[basis.nrows(), basis.ncols()], &data).ok()?;
+    fleet_math::npy::write(&path, &[basis.nrows(), basis.ncols()], &data).ok()?;
     let script = format!(
         "import time, numpy as np, pysensors as ps\n\
          b = np.load(r'{}')\n\

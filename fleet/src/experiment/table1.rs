@@ -3,8 +3,8 @@
 //! synthetic cases. Times are measured here, never asserted in tests (see `fleet bench`).
 
 use super::run_online;
-use crate::dmd::{Debias, DmdConfig, DmdError, Method, RankPolicy};
-use crate::process::synthetic::{table1_field, Table1Case, Table1Profile};
+use fleet_math::dmd::{Debias, DmdConfig, DmdError, Method, RankPolicy};
+use fleet_math::process::synthetic::{table1_field, Table1Case, Table1Profile};
 use serde::Serialize;
 use std::time::Instant;
 
@@ -65,7 +65,7 @@ pub fn run_once(case: &Table1Case, cfg: &DmdConfig, with_eig: bool, z: faer::Mat
 /// Time every method on every case `repeats` times (after one warm-up run).
 pub fn run(repeats: usize, mut progress: impl FnMut(&str)) -> Result<Vec<Timing>, DmdError> {
     let mut out = vec![];
-    for (ci, case) in crate::process::synthetic::TABLE1_CASES.iter().enumerate() {
+    for (ci, case) in fleet_math::process::synthetic::TABLE1_CASES.iter().enumerate() {
         let field = table1_field(case, Table1Profile::Sech, 0.4, 1 + ci as u64);
         let z = field.snapshots.as_ref();
         for (label, cfg, col) in methods() {

@@ -16,15 +16,15 @@
 //!   their fit leaves the range of every value measured so far (widened by that range), the
 //!   measured cells' mean fills the grid.
 
-use crate::dmd::{DmdConfig, DmdModel, Method};
-use crate::fusion::AerialNoise;
-use crate::grid::Grid;
-use crate::process::FieldSeries;
-use crate::protocol::{MeasurementBatch, Sample, VehicleKind};
-use crate::sensing::gappy;
 use faer::Mat;
+use fleet_math::dmd::{DmdConfig, DmdModel, Method};
+use fleet_math::fusion::AerialNoise;
+use fleet_math::fusion::{mean_scored, mse};
+use fleet_math::grid::Grid;
+use fleet_math::process::FieldSeries;
+use fleet_math::sensing::gappy;
 use fleet_mission::assimilator::BoatDisk;
-use fleet_mission::fusion::{mean_scored, mse};
+use fleet_mission::protocol::{MeasurementBatch, Sample, VehicleKind};
 use fleet_mission::server::ServerCore;
 pub use fleet_mission::team::{Placement, TeamConfig, TeamError};
 use fleet_mission::vehicle::VehicleBrain;

@@ -1,8 +1,8 @@
 //! The report `fleet up` writes from the server's summary and events (the event and summary
 //! types live with the server, in `fleet-mission`'s `events`).
 
+use fleet_math::process::truth::TruthSource;
 pub use fleet_mission::events::*;
-use fleet_mission::process::truth::TruthSource;
 use fleet_mission::server::Counters;
 use std::collections::BTreeMap;
 
@@ -123,7 +123,7 @@ struct MissionReport<'a> {
 /// The mean of `v` from step `k` on.
 /// The mean of the scored steps from step `k` on (a step whose truth had no value is not).
 fn mean_from(v: &[f64], k: usize) -> f64 {
-    fleet_mission::fusion::mean_scored(&v[k.min(v.len())..])
+    fleet_math::fusion::mean_scored(&v[k.min(v.len())..])
 }
 
 /// The report `fleet up` writes: with a truth, the networked mission beside the offline loop
@@ -135,7 +135,7 @@ pub fn write_mission_report(
     mission: &fleet_mission::config::MissionConfig,
     summary: &ServerSummary,
     offline: Option<&crate::experiment::team::TeamOutcome>,
-    grid: &fleet_mission::grid::Grid,
+    grid: &fleet_math::grid::Grid,
     command: &str,
     events: &[ServerEvent],
 ) -> anyhow::Result<String> {
@@ -194,7 +194,7 @@ fn truth_of(mission: &fleet_mission::config::MissionConfig) -> String {
 
 impl MissionReport<'_> {
     /// The heading: what ran, on which truth, and the team's settings.
-    fn intro(&mut self, command: &str, grid: &fleet_mission::grid::Grid) -> anyhow::Result<()> {
+    fn intro(&mut self, command: &str, grid: &fleet_math::grid::Grid) -> anyhow::Result<()> {
         use std::fmt::Write as _;
         let (mission, summary, md) = (self.mission, self.summary, &mut self.md);
         let t = &mission.team;
@@ -658,7 +658,7 @@ impl MissionReport<'_> {
                 .filter_map(|(k, e)| e.map(|e| (k as f64, e)))
                 .collect(),
         };
-        let some = fleet_mission::fusion::scored;
+        let some = fleet_math::fusion::scored;
         plot::lines(
             dir.join("mse.png"),
             &format!(

@@ -19,7 +19,7 @@
 //! two errors measured at the boats: it rests on the filter's variances being right in scale,
 //! and was worse than the aerials on both real fields.)
 
-use crate::kalman::{FilterError, ModalFilter, Observation};
+use fleet_math::kalman::{FilterError, ModalFilter, Observation};
 
 /// What the boats have shown of the filter between the lattice (a value: part of the
 /// assimilator's state).

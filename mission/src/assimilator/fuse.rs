@@ -5,11 +5,11 @@
 
 use super::between::Sources;
 use super::{aerial_detail_variance, plus, Assimilator, Fuser, Setup};
-use crate::fusion::{fuse, AerialFrame, Estimate, Measured, Scheme};
-use crate::kalman::{self, Observation};
 use crate::protocol::Sample;
-use crate::sensing::gappy;
 use crate::team::{Missing, TeamError};
+use fleet_math::fusion::{fuse, AerialFrame, Estimate, Measured, Scheme};
+use fleet_math::kalman::{self, Observation};
+use fleet_math::sensing::gappy;
 use std::collections::HashMap;
 use std::sync::Arc;
 
@@ -319,7 +319,7 @@ impl Assimilator {
                 })
             }
             // Too few independent cells for the modes: keep the prediction.
-            Err(crate::sensing::SensingError::Underdetermined { .. }) => Ok(prediction(predicted)),
+            Err(fleet_math::sensing::SensingError::Underdetermined { .. }) => Ok(prediction(predicted)),
             Err(e) => Err(e.into()),
         }
     }
@@ -557,7 +557,7 @@ fn fill_unseen(frame: &mut AerialFrame, unseen: &[usize]) -> Vec<bool> {
 /// is, and never more than the grid's own extent (it cannot run away).
 fn learn_displacement(
     displacement: f64,
-    grid: &crate::grid::Grid,
+    grid: &fleet_math::grid::Grid,
     prior: &kalman::Prior,
     mean: Option<&Vec<f64>>,
     vals: &[f64],

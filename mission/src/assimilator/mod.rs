@@ -17,13 +17,13 @@ mod screening;
 pub use fuse::AerialSight;
 pub use placement::{Allocation, BoatDisk};
 
-use crate::dmd::{Dmd, DmdConfig, DmdModel, Factored, Modes, Prepared};
-use crate::fusion::{AerialNoise, Estimate, Scheme};
-use crate::grid::Grid;
-use crate::kalman::{self, ModalFilter};
-use crate::sensing::{coverage, real_basis, real_basis_coordinates};
 use crate::team::{Missing, TeamConfig, TeamError};
 use faer::Mat;
+use fleet_math::dmd::{Dmd, DmdConfig, DmdModel, Factored, Modes, Prepared};
+use fleet_math::fusion::{AerialNoise, Estimate, Scheme};
+use fleet_math::grid::Grid;
+use fleet_math::kalman::{self, ModalFilter};
+use fleet_math::sensing::{coverage, real_basis, real_basis_coordinates};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::sync::Arc;
@@ -38,7 +38,7 @@ pub struct Setup {
     /// Cells outside the site's fence or on land (empty: neither): never an aerial place.
     excluded: Vec<bool>,
     /// Cells outside the fence (no disk touches one) and on land (no disk is centred on one,
-    /// and a disk holds only its wet cells): [`crate::sensing::Room`]. Empty: none.
+    /// and a disk holds only its wet cells): [`fleet_math::sensing::Room`]. Empty: none.
     outside: Vec<bool>,
     dry: Vec<bool>,
     /// The cells with no data (`TeamConfig::land`): zero in every snapshot the model learns
@@ -618,10 +618,10 @@ fn aerial_detail_variance(noise: &[f64], interpolation: &[f64], extra: f64, on_l
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::fusion::AerialNoise;
-    use crate::process::synthetic::plume_field;
     use crate::protocol::Sample;
     use crate::vehicle::{sense_aerial, sense_boat, vehicle_rng};
+    use fleet_math::fusion::AerialNoise;
+    use fleet_math::process::synthetic::plume_field;
     use rand::seq::SliceRandom;
 
     /// A small mission: a plume at 24 x 48, 3 aerials on a lattice of stride 3, 4 boats, rank
@@ -632,7 +632,7 @@ mod tests {
             aerials: 3,
             boats: 4,
             radius: 3.0,
-            rank: crate::dmd::RankPolicy::Fixed(6),
+            rank: fleet_math::dmd::RankPolicy::Fixed(6),
             init_steps: 10,
             aerial_stride: 3,
             ..TeamConfig::default()
@@ -740,7 +740,7 @@ mod tests {
     /// rank-4 linear system (a damped rotation and two decays) on 30 wet cells of 40.
     #[test]
     fn land_as_zero_rows_is_the_dmd_of_the_wet_cells() {
-        use crate::dmd::{DmdConfig, Method, RankPolicy};
+        use fleet_math::dmd::{DmdConfig, Method, RankPolicy};
         let (n, t) = (40, 25);
         let wet: Vec<usize> = (0..n).filter(|i| i % 4 != 1).collect();
         let f = |k: usize, s: f64| {

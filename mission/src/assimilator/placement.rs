@@ -4,11 +4,11 @@
 //! coverage under a density (the model's temporal modes, or the forecast's variance).
 
 use super::{aerial_detail_variance, Assimilator, AssimilatorState, Setup};
-use crate::dmd::DmdModel;
-use crate::grid::{Cell, Grid};
-use crate::kalman::{self, Lookahead, ModalFilter};
-use crate::sensing::{assign::assign, coverage, horizon, qr};
 use crate::team::{Missing, Placement, TeamError};
+use fleet_math::dmd::DmdModel;
+use fleet_math::grid::{Cell, Grid};
+use fleet_math::kalman::{self, Lookahead, ModalFilter};
+use fleet_math::sensing::{assign::assign, coverage, horizon, qr};
 use rand::RngExt;
 use rand_chacha::ChaCha8Rng;
 use std::collections::BTreeSet;
@@ -43,7 +43,7 @@ impl Allocation {
             .map(|b| (b, self.aerials[b]))
             .unzip();
         let me = ids.iter().position(|&b| b == a)?;
-        crate::fusion::aerial_region(grid, stride, &positions, me).ok()
+        fleet_math::fusion::aerial_region(grid, stride, &positions, me).ok()
     }
 }
 
@@ -256,8 +256,8 @@ fn place_boats_on_modes(
 
 impl Setup {
     /// Where the boats' disks may go: inside the fence, centred on water.
-    fn room(&self) -> crate::sensing::Room<'_> {
-        crate::sensing::Room {
+    fn room(&self) -> fleet_math::sensing::Room<'_> {
+        fleet_math::sensing::Room {
             outside: &self.outside,
             dry: &self.dry,
         }
@@ -306,7 +306,7 @@ impl Setup {
 
 /// A disk's centre, the boat's target: the mean of its cells' rows and columns, rounded; where
 /// that is dry (a disk wrapped round a headland), the disk's cell nearest it.
-fn centre_of(grid: &Grid, disk: &[usize], room: crate::sensing::Room<'_>) -> (usize, usize) {
+fn centre_of(grid: &Grid, disk: &[usize], room: fleet_math::sensing::Room<'_>) -> (usize, usize) {
     let (r, c) = disk.iter().fold((0.0, 0.0), |(r, c), &i| {
         (r + grid.cell(i).row as f64, c + grid.cell(i).col as f64)
     });
@@ -326,7 +326,7 @@ fn random_disks(
     grid: &Grid,
     m: usize,
     radius: f64,
-    room: crate::sensing::Room<'_>,
+    room: fleet_math::sensing::Room<'_>,
     rng: &mut ChaCha8Rng,
 ) -> Vec<Vec<usize>> {
     let mut taken: Vec<bool> = (0..grid.len()).map(|i| room.is_outside(i)).collect();

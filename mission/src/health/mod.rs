@@ -51,9 +51,9 @@
 
 mod change;
 
-use crate::grid::Grid;
 use crate::protocol::Sample;
 use change::ChangeTest;
+use fleet_math::grid::Grid;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap, VecDeque};
 
@@ -1191,7 +1191,7 @@ mod tests {
         fn disk(&mut self, step: u64, at: (usize, usize), fault: impl Fn(usize, f64) -> f64) -> Sample {
             let cells: Vec<u32> = self
                 .grid
-                .disk(crate::grid::Cell::new(at.0, at.1), 4.0)
+                .disk(fleet_math::grid::Cell::new(at.0, at.1), 4.0)
                 .iter()
                 .map(|&c| c as u32)
                 .collect();

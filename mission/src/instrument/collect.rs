@@ -45,7 +45,7 @@ impl Collected {
 
     /// A frame of `step` on `grid` (a value per cell, `None` where it has none): each value a
     /// reading at its cell's centre with the noise `sigma`.
-    pub fn add_frame(&mut self, step: u64, grid: &crate::grid::Grid, values: &[Option<f64>], sigma: f64) {
+    pub fn add_frame(&mut self, step: u64, grid: &fleet_math::grid::Grid, values: &[Option<f64>], sigma: f64) {
         for (cell, v) in values.iter().enumerate().filter_map(|(c, v)| Some((c, (*v)?))) {
             let p = Placed {
                 step,

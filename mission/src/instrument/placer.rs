@@ -4,8 +4,8 @@
 use super::clock::MissionClock;
 use super::reading::{Reading, Refusal};
 use crate::fence::{inside, SiteFence};
-use crate::grid::Grid;
 use crate::site::Site;
+use fleet_math::grid::Grid;
 
 /// How far ahead of this machine's clock a reading may be timed (an instrument's clock a
 /// little fast, or a reading taken as the step turns).

@@ -6,8 +6,8 @@
 //! value. A frame is timed by its TIFF `DateTime` (UTC) or a `_YYYYMMDDTHHMMSSZ` suffix in its
 //! file name.
 
-use crate::grid::Grid;
 use crate::site::Site;
+use fleet_math::grid::Grid;
 use tiff::decoder::{Decoder, DecodingResult, Limits};
 use tiff::tags::Tag;
 

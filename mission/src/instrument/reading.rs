@@ -48,7 +48,7 @@ pub enum Refusal {
     WrongType,
     /// A time, position or value that is not a finite number.
     NotFinite,
-    /// `sigma` not a finite number of at least [`crate::process::units::SMALLEST_NOISE`] (below,
+    /// `sigma` not a finite number of at least [`fleet_math::process::units::SMALLEST_NOISE`] (below,
     /// the estimator's variance floor is not negligible beside it: a reading so sure of itself
     /// would be taken as exact).
     BadSigma,
@@ -94,8 +94,8 @@ pub fn parse_line(line: &[u8]) -> Result<Reading, (Refusal, String)> {
         return Err((Refusal::OutsideSite, format!("({lat}, {lon}) is not a WGS 84 position")));
     }
     if let Some(s) = r.sigma {
-        if !(s.is_finite() && s >= crate::process::units::SMALLEST_NOISE) {
-            let least = crate::process::units::SMALLEST_NOISE;
+        if !(s.is_finite() && s >= fleet_math::process::units::SMALLEST_NOISE) {
+            let least = fleet_math::process::units::SMALLEST_NOISE;
             return Err((Refusal::BadSigma, format!("sigma {s} must be at least {least:e}")));
         }
     }

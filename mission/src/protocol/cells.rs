@@ -113,7 +113,7 @@ mod tests {
 
     #[test]
     fn a_disk_is_a_run_a_row() {
-        let grid = crate::grid::Grid::new(48, 96, 1.0).unwrap();
+        let grid = fleet_math::grid::Grid::new(48, 96, 1.0).unwrap();
         let disk: Vec<u32> = grid
             .disk(grid.cell(20 * 96 + 40), 10.0)
             .into_iter()

@@ -18,7 +18,7 @@ mod vehicle_id;
 
 pub use vehicle_id::VehicleId;
 
-use crate::grid::Grid;
+use fleet_math::grid::Grid;
 use serde::{Deserialize, Serialize};
 
 /// Schema version carried by every message; bumped on any incompatible change.
@@ -69,7 +69,7 @@ pub enum VehicleKind {
 
 /// A sensor's noise: the sensor model's type, defined with it in `fleet-math` and carried on
 /// the wire as it is.
-pub use crate::fusion::Noise;
+pub use fleet_math::fusion::Noise;
 
 /// What one vehicle measured at one step.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
@@ -94,7 +94,7 @@ pub struct Sample {
     pub sigma: Option<Vec<f64>>,
 }
 
-impl crate::fusion::Reading for Sample {
+impl fleet_math::fusion::Reading for Sample {
     fn position(&self) -> [f64; 2] {
         self.position
     }

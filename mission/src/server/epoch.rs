@@ -162,10 +162,10 @@ impl ServerCore {
     pub(super) fn fuse_step_in_parallel_with<T: Send>(
         &mut self,
         ahead: u64,
-        aerial: &crate::AerialSight,
+        aerial: &crate::assimilator::AerialSight,
         boats: &[Sample],
         job: Option<impl FnOnce() -> T + Send>,
-    ) -> (Result<crate::fusion::Estimate, TeamError>, Option<T>) {
+    ) -> (Result<fleet_math::fusion::Estimate, TeamError>, Option<T>) {
         let assim = &mut self.assim;
         crate::side_by_side::beside(
             || tracing::info_span!("fuse").in_scope(|| assim.fuse_step(ahead, aerial, boats)),
@@ -204,4 +204,4 @@ impl ServerCore {
 }
 
 /// A step's aerial sight made apart (`None`: the step had no aerial samples).
-type Sight = Result<Option<crate::AerialSight>, TeamError>;
+type Sight = Result<Option<crate::assimilator::AerialSight>, TeamError>;

@@ -15,7 +15,7 @@ pub(super) struct Ledger {
     pub(super) holdout_share: f64,
     pub(super) held_out: BTreeMap<usize, Vec<crate::holdout::HeldOut>>,
     /// The boats' innovations against the forecast, by step.
-    pub(super) innovations: BTreeMap<usize, crate::kalman::Innovation>,
+    pub(super) innovations: BTreeMap<usize, fleet_math::kalman::Innovation>,
     /// The model's skill by epoch.
     pub(super) skills: BTreeMap<u64, crate::protocol::EpochSkill>,
     /// The sensors' verdicts that changed, by step.

@@ -38,11 +38,12 @@ pub use journal::{EpochRecord, RestoreError, OVERRIDE_PREFIX};
 pub use publish::Publisher;
 pub use refit::{keep_checkpoint, CHECKPOINT_EVERY};
 
-use crate::grid::Grid;
+use crate::assimilator::Assimilator;
 use crate::history::History;
 use crate::protocol;
+use crate::schedule::Schedule;
 use crate::team::{TeamConfig, TeamError};
-use crate::{schedule::Schedule, Assimilator};
+use fleet_math::grid::Grid;
 use std::collections::BTreeMap;
 
 /// What happened to one batch.

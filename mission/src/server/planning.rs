@@ -2,9 +2,9 @@
 //! epoch before), the vehicles held out of it, and each vehicle's plan from them.
 
 use super::{ServerCore, VehicleSpec};
+use crate::assimilator::Allocation;
 use crate::protocol::{Plan, Target, VehicleId, VehicleKind};
 use crate::team::TeamError;
-use crate::Allocation;
 use std::collections::{BTreeMap, BTreeSet};
 
 /// The plans handed out and the vehicles held.
@@ -81,7 +81,7 @@ impl ServerCore {
             )));
         }
         if let Some((_, (r, c))) = boats.iter().flatten().find(|(cells, (r, c))| {
-            cells.iter().any(|&i| i >= grid.len()) || !grid.contains(crate::grid::Cell::new(*r, *c))
+            cells.iter().any(|&i| i >= grid.len()) || !grid.contains(fleet_math::grid::Cell::new(*r, *c))
         }) {
             return Err(TeamError::Config(format!(
                 "redirect_boats: the disk at ({r}, {c}) leaves the {} x {} grid",
@@ -102,7 +102,7 @@ impl ServerCore {
         for (slot, b) in boats.iter().enumerate() {
             if let Some((_, (r, c))) = b {
                 self.assim
-                    .set_boat_position(slot, grid.centre_m(crate::grid::Cell::new(*r, *c)));
+                    .set_boat_position(slot, grid.centre_m(fleet_math::grid::Cell::new(*r, *c)));
             }
         }
         plan.boats = boats;
@@ -127,7 +127,7 @@ impl ServerCore {
             }
             VehicleKind::Boat => match &alloc.boats[slot] {
                 Some((cells, (r, c))) => (
-                    grid.centre_m(crate::grid::Cell::new(*r, *c)),
+                    grid.centre_m(fleet_math::grid::Cell::new(*r, *c)),
                     self.cfg.radius,
                     cells.clone(),
                 ),

@@ -3,10 +3,10 @@
 //! model changed since.
 
 use super::ServerCore;
+use crate::assimilator::Allocation;
 use crate::protocol::ModelUpdate;
 use crate::published::{Made, ModelParts, Published};
 use crate::team::TeamError;
-use crate::Allocation;
 
 /// Takes an epoch's model the moment it is made, on the thread that made it (the node's hands
 /// it to its Zenoh publisher): observers need not wait for the placement, which takes longer

@@ -4,8 +4,8 @@
 //! with age ([`keep_checkpoint`]).
 
 use super::{history_error, ServerCore};
+use crate::assimilator::Assimilator;
 use crate::team::TeamError;
-use crate::Assimilator;
 use std::collections::BTreeMap;
 
 /// Epochs between checkpoints of the model state (each holds the model's factors and the
@@ -34,7 +34,7 @@ pub fn keep_checkpoint(at: u64, newest: u64) -> bool {
 pub(super) struct Checkpoints {
     /// By epoch, the state and the steps in the history then (`None`: checkpoints off, every
     /// re-fit from epoch 0).
-    pub(super) kept: Option<BTreeMap<u64, (crate::AssimilatorCheckpoint, usize)>>,
+    pub(super) kept: Option<BTreeMap<u64, (crate::assimilator::AssimilatorCheckpoint, usize)>>,
 }
 
 impl Default for Checkpoints {

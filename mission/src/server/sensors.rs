@@ -111,7 +111,7 @@ impl ServerCore {
         batches: &BTreeMap<usize, MeasurementBatch>,
         k: usize,
         ahead: u64,
-        aerial: &crate::AerialSight,
+        aerial: &crate::assimilator::AerialSight,
     ) -> Result<Vec<Sample>, TeamError> {
         let _span = tracing::info_span!("screen").entered();
         let boats = Self::vehicle_samples_at(batches, VehicleKind::Boat, k);

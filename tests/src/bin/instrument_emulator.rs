@@ -137,14 +137,14 @@ fn main() {
     // The world: a truth file kept aside from the mission (a run without a truth), or the
     // mission's own.
     let truth = match &a.truth {
-        Some(p) => fleet_mission::process::dataset::load(p, 1.0).expect("the truth file"),
+        Some(p) => fleet_math::process::dataset::load(p, 1.0).expect("the truth file"),
         None => mission
             .truth(|_| {})
             .expect("the truth")
             .expect("a mission with a truth"),
     };
     let (grid, frames) = (
-        fleet_mission::grid::Grid::new(truth.rows, truth.cols, 1.0).expect("a grid"),
+        fleet_math::grid::Grid::new(truth.rows, truth.cols, 1.0).expect("a grid"),
         truth.frames(),
     );
     let clock = mission.clock().expect("a mission with [time]");
@@ -312,7 +312,7 @@ fn main() {
 /// written aside, then renamed into `dir` (as a camera pipeline should).
 fn write_frame(
     dir: &std::path::Path,
-    grid: &fleet_mission::grid::Grid,
+    grid: &fleet_math::grid::Grid,
     site: &fleet_mission::site::Site,
     values: &[f64],
     t: f64,

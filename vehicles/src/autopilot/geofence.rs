@@ -111,8 +111,8 @@ impl Geofence {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use fleet_math::grid::Grid;
     use fleet_mission::config::MavlinkConfig;
-    use fleet_mission::grid::Grid;
 
     fn item(site: &Site, command: MavCmd, param1: f32, north: f64, east: f64) -> MISSION_ITEM_INT_DATA {
         let (lat, lon, _) = site.global_of(&Vector3::new(north, east, 0.0));

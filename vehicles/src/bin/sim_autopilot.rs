@@ -4,8 +4,8 @@
 
 use anyhow::Context as _;
 use clap::{Parser, ValueEnum};
+use fleet_math::grid::Grid;
 use fleet_mission::config::MissionConfig;
-use fleet_mission::grid::Grid;
 use fleet_mission::signing_key::SigningKey;
 
 use nalgebra::Vector3;

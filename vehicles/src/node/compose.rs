@@ -6,8 +6,8 @@
 
 use crate::Args;
 use anyhow::Context as _;
+use fleet_math::grid::Grid;
 use fleet_mission::config::{MavlinkConfig, MissionConfig};
-use fleet_mission::grid::Grid;
 use fleet_mission::protocol::keys::Keys;
 use fleet_mission::signing_key::SigningKey;
 use fleet_net::zenoh;

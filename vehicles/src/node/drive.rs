@@ -2,7 +2,7 @@
 //! loop: the drive sends the autopilot to each sensing place and wakes on the autopilot's
 //! changes of state (its position at the rate it reports it), never on a polling timer.
 
-use fleet_mission::grid::Grid;
+use fleet_math::grid::Grid;
 use fleet_mission::protocol::{AutopilotLink, Body, Context, Plan, Target};
 use fleet_mission::vehicle::Fix;
 use fleet_net::zenoh;

@@ -14,13 +14,13 @@ mod shown;
 
 use crate::Args;
 use drive::{drive, query_plan, Drive};
+use fleet_math::grid::Grid;
+use fleet_math::process::frames::Frames;
 use fleet_mission::config::MissionConfig;
-use fleet_mission::grid::Grid;
 use fleet_mission::instrument::{check_source, MissionClock, SensorSource};
-use fleet_mission::process::frames::Frames;
 use fleet_mission::protocol::{self, keys::Keys, AutopilotStatus, Body, Context, LinkState, Plan, Telemetry};
+use fleet_mission::vehicle::vehicle_rng;
 use fleet_mission::vehicle::{BrainState, VehicleBrain};
-use fleet_mission::vehicle_rng;
 use fleet_net::outbox::{Outbox, OutboxError};
 use fleet_net::{zenoh, Role, Traffic};
 use std::time::{Duration, Instant};

@@ -4,8 +4,8 @@
 //! log at most once in a while per kind.
 
 use super::readings_log::ReadingsLog;
+use fleet_math::grid::Grid;
 use fleet_mission::config::MissionConfig;
-use fleet_mission::grid::Grid;
 use fleet_mission::instrument::{parse_line, Collected, Entry, Placer, Reading, Refusal, Tally};
 use fleet_mission::protocol::{ReadingCounts, Sample, VehicleKind};
 use std::ops::Range;

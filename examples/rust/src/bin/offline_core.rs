@@ -7,8 +7,8 @@
 //! `config/mission-tiny.toml` takes a few seconds). Exit 0 when every epoch is assimilated,
 //! 2 when the mission cannot run (its one line says why).
 
+use fleet_math::fusion::AerialNoise;
 use fleet_mission::config::MissionConfig;
-use fleet_mission::fusion::AerialNoise;
 use fleet_mission::protocol::VehicleKind;
 use fleet_mission::server::ServerCore;
 use fleet_mission::vehicle::{vehicle_rng, VehicleBrain};

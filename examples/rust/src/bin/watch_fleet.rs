@@ -29,7 +29,7 @@ async fn run() -> anyhow::Result<()> {
     let (rows, cols, _) = mission
         .model_shape()
         .ok_or_else(|| anyhow::anyhow!("the mission's grid is its truth file's: give the truth's mission"))?;
-    let ctx = Context::new(fleet_mission::grid::Grid::new(rows, cols, 1.0)?);
+    let ctx = Context::new(fleet_math::grid::Grid::new(rows, cols, 1.0)?);
 
     // A client of the server's router: no scouting, the one endpoint, waiting for it to come up
     // (a client exits when it cannot connect unless told to keep trying).

@@ -4,8 +4,8 @@
 
 use super::{where_valued, Report, RowResult};
 use crate::experiment::eig_study;
-use crate::grid::area_average;
 use crate::plot::{self, Panel, Series};
+use fleet_math::grid::area_average;
 use std::fmt::Write as _;
 
 impl Report<'_> {
@@ -255,10 +255,10 @@ impl Report<'_> {
         } = self;
         if !res.forgetting.is_empty() {
             let unit = match res.config.forgetting_unit {
-                crate::dmd::ForgettingUnit::Batch => {
+                fleet_math::dmd::ForgettingUnit::Batch => {
                     "per update of 60 pairs (the paper's reading: each update multiplies the past by gamma)"
                 }
-                crate::dmd::ForgettingUnit::Pair => "per pair (odmd's: each pair weighs gamma^age)",
+                fleet_math::dmd::ForgettingUnit::Pair => "per pair (odmd's: each pair weighs gamma^age)",
             };
             writeln!(
                 md,

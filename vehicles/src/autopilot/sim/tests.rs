@@ -1,8 +1,8 @@
 //! The simulated autopilot against what ArduPilot does, message by message.
 
 use super::*;
+use fleet_math::grid::Grid;
 use fleet_mission::config::MavlinkConfig;
-use fleet_mission::grid::Grid;
 use fleet_mission::site::Site;
 
 fn sim(frame: Frame) -> SimAutopilot {
