@@ -38,7 +38,7 @@ pub struct Args {
     /// bit, the Foxglove channels, one model in ten and the last, compressed) or `full`
     /// (every model as published, uncompressed).
     #[arg(long, default_value = "lean")]
-    pub record_mode: fleet_mission::recording::RecordMode,
+    pub record_mode: fleet_records::recording::RecordMode,
     /// Where the journal of accepted batches lives (`<state-dir>/<mission>.redb`); a restart
     /// replays it and carries on.
     #[arg(long, default_value = "server-state")]

@@ -13,10 +13,10 @@ use fleet_math::process::frames::Frames;
 use fleet_mission::config::MissionConfig;
 use fleet_mission::events::{Percentiles, ServerEvent, ServerSummary};
 use fleet_mission::protocol::{self, keys::Keys, AutopilotLink, Body, Context, ServerStatus, VehicleId};
-use fleet_mission::recording::{self, CoreOp, Recorder, RecordingError};
 use fleet_mission::server::{EpochRecord, IngestError, Ingested, ServerCore, OVERRIDE_PREFIX};
 use fleet_net::store::{Store, StoreError};
 use fleet_net::{zenoh, Role};
+use fleet_records::recording::{self, CoreOp, Recorder, RecordingError};
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::Write as _;
 use std::time::{Duration, Instant};
@@ -769,7 +769,7 @@ fn open_recorder(
         Some(p) => std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?,
         None => fleet_mission::config::DEFAULT_MISSION.to_string(),
     };
-    let view = fleet_mission::foxglove::FoxgloveView::new(mission, *grid, truth);
+    let view = fleet_records::foxglove::FoxgloveView::new(mission, *grid, truth);
     let r = Recorder::create(path, args.record_mode, mission, &text, grid, frames)?.with_foxglove(view)?;
     info!(recording = %r.path().display(), mode = %args.record_mode, "recording the mission");
     Ok(Some(r))
@@ -1064,14 +1064,14 @@ async fn reply(q: zenoh::query::Query, answer: Result<Vec<u8>, String>) {
 }
 
 /// What a finished run leaves for export (`fleet export`): the summary, and the core's
-/// outputs (`fleet_mission::outputs`).
+/// outputs (`fleet_records::outputs`).
 fn write_outputs(
     dir: &std::path::Path,
     summary: &ServerSummary,
     core: &ServerCore,
     horizon: u64,
 ) -> anyhow::Result<()> {
-    fleet_mission::outputs::write(dir, core, horizon)?;
+    fleet_records::outputs::write(dir, core, horizon)?;
     std::fs::write(dir.join("summary.json"), serde_json::to_string_pretty(summary)?)
         .with_context(|| format!("writing {}/summary.json", dir.display()))
 }

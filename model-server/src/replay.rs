@@ -10,8 +10,8 @@ use crate::Args;
 use fleet_exit::bad_input;
 use fleet_mission::events::ServerEvent;
 use fleet_mission::protocol::{self, keys::Keys, Body, Context};
-use fleet_mission::recording::{Recording, CORE_TOPIC, EVENTS_TOPIC};
 use fleet_net::{zenoh, Role};
+use fleet_records::recording::{Recording, CORE_TOPIC, EVENTS_TOPIC};
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::time::Duration;
@@ -147,7 +147,7 @@ impl Replay {
 
     /// One recorded message, played: a vehicle's link as a liveliness token, a plan kept to
     /// answer queries with, anything else put on its key.
-    async fn play(&mut self, m: &fleet_mission::recording::Recorded) -> anyhow::Result<()> {
+    async fn play(&mut self, m: &fleet_records::recording::Recorded) -> anyhow::Result<()> {
         match m.topic.as_str() {
             EVENTS_TOPIC => {
                 if let Ok(ServerEvent::Link { vehicle, alive }) = serde_json::from_slice(&m.data) {

@@ -5,8 +5,8 @@
 use fleet_mission::config::MissionConfig;
 use fleet_mission::fence::inside;
 use fleet_mission::protocol::{Body, Context};
-use fleet_mission::recording::Recording;
 use fleet_mission::site::Site;
+use fleet_records::recording::Recording;
 use hetfleet_tests::*;
 use std::path::Path;
 

@@ -10,7 +10,7 @@
 //! the vehicle's telemetry.
 
 use fleet_mission::protocol::{Body, Context};
-use fleet_mission::recording::Recording;
+use fleet_records::recording::Recording;
 use hetfleet_tests::*;
 use std::collections::BTreeMap;
 use std::net::UdpSocket;

@@ -577,7 +577,7 @@ fn a_boat_whose_battery_runs_low_returns_to_launch_and_the_others_share_the_disk
 
     // It went back to a launch point (the nearest rally point the bridge uploaded): its last
     // telemetry puts it there, in RTL, with the low battery it reported.
-    let recording = fleet_mission::recording::Recording::read(&rec).unwrap();
+    let recording = fleet_records::recording::Recording::read(&rec).unwrap();
     let mut ctx = fleet_mission::protocol::Context::new(recording.grid);
     ctx.vehicles = m.vehicles().into_iter().map(|v| v.id).collect();
     let last = recording

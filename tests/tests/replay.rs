@@ -3,7 +3,7 @@
 //! killed and restarted server and boat; a recording cut short is one clear line.
 
 use fleet_mission::config::MissionConfig;
-use fleet_mission::recording::Recording;
+use fleet_records::recording::Recording;
 use hetfleet_tests::*;
 
 #[test]

@@ -1,5 +1,5 @@
 //! `--foxglove ADDR`: the mission live in Foxglove. The same channels a recording carries
-//! ([`fleet_mission::foxglove`]) are served over Foxglove's WebSocket protocol by the Foxglove
+//! ([`fleet_records::foxglove`]) are served over Foxglove's WebSocket protocol by the Foxglove
 //! SDK's own server, as the view hears them.
 //!
 //! The SDK's server has no authentication, so it listens on an ephemeral loopback port and
@@ -15,8 +15,8 @@
 //! never get it (seen in CI, on a loaded machine). Made at start, the channels reach each client
 //! in the advertisement that follows its handshake, not one by one while it is subscribing.
 
-use fleet_mission::foxglove::{FoxChannel, FoxMessage, FoxgloveView};
 use fleet_mission::protocol::Body;
+use fleet_records::foxglove::{FoxChannel, FoxMessage, FoxgloveView};
 use foxglove::{ChannelBuilder, Context, RawChannel, Schema};
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -65,7 +65,7 @@ impl FoxLive {
         {
             live.channel(&topic, &encoding, &schema);
         }
-        let now = fleet_mission::recording::now_ns();
+        let now = fleet_records::recording::now_ns();
         for m in live.view.start() {
             live.log(&m, now);
         }
@@ -77,7 +77,7 @@ impl FoxLive {
     /// A message the view heard, on the Foxglove channels (the site again with each model, for
     /// clients that connected since).
     pub fn heard(&self, body: &Body) {
-        let now = fleet_mission::recording::now_ns();
+        let now = fleet_records::recording::now_ns();
         if matches!(body, Body::Model(_)) {
             for m in self.view.start() {
                 self.log(&m, now);

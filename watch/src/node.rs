@@ -177,7 +177,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let (tx, rx) = tokio::sync::watch::channel(Arc::new(Snapshot::of(&view.lock().expect("view lock"))));
     let fox = match args.foxglove {
         Some(addr) => {
-            let fv = fleet_mission::foxglove::FoxgloveView::new(&mission, grid, truth.clone());
+            let fv = fleet_records::foxglove::FoxgloveView::new(&mission, grid, truth.clone());
             Some(crate::foxglove::FoxLive::start(addr, credential.clone(), fv).await?)
         }
         None => None,

@@ -61,7 +61,7 @@ pub fn run(args: Args) -> Result<()> {
     pb.finish_and_clear();
     let core = &done.core;
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
-    fleet_mission::outputs::write(&args.out, core, mission.pace.horizon)?;
+    fleet_records::outputs::write(&args.out, core, mission.pace.horizon)?;
     std::fs::copy(&args.mission, args.out.join("mission.toml")).context("copying the mission into the run")?;
     let mse: Vec<f64> = match truth.as_ref() {
         Some(t) => (0..core.history().len())

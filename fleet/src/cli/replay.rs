@@ -3,7 +3,7 @@
 
 use anyhow::{bail, Result};
 use fleet_mission::protocol::{self, Body};
-use fleet_mission::recording::{CoreOp, Recording, RecordingError};
+use fleet_records::recording::{CoreOp, Recording, RecordingError};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -109,7 +109,7 @@ pub fn run(args: Args) -> Result<()> {
     let ops = rec
         .messages
         .iter()
-        .filter(|m| m.topic == fleet_mission::recording::CORE_TOPIC)
+        .filter(|m| m.topic == fleet_records::recording::CORE_TOPIC)
         .count();
     let pb = super::progress_bar(ops as u64, "replay");
     let (mut first, start) = (None, Instant::now());
@@ -132,7 +132,7 @@ pub fn run(args: Args) -> Result<()> {
         })
         .map_err(classify)?;
     pb.finish_and_clear();
-    fleet_mission::outputs::write(&args.out, &core, rec.mission.pace.horizon)?;
+    fleet_records::outputs::write(&args.out, &core, rec.mission.pace.horizon)?;
     if let Some(fleet) = live.as_mut() {
         // The view follows the played-back traffic; when that ends, the view stays a while.
         fleet.wait_nodes(Duration::from_secs(120), &["fleet-watch"])?;

@@ -44,7 +44,7 @@ pub struct Args {
     /// for bit and the Foxglove channels, compressed; one model in ten and the last) or `full`
     /// (also every model as published, uncompressed).
     #[arg(long, default_value = "lean")]
-    record: fleet_mission::recording::RecordMode,
+    record: fleet_records::recording::RecordMode,
     /// Serve the mission to Foxglove here while it runs (its WebSocket protocol, loopback; e.g.
     /// 127.0.0.1:8765): `fleet-watch --foxglove`, with the channels a recording has.
     #[arg(long)]

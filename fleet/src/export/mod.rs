@@ -274,7 +274,7 @@ impl Run {
         if !recording.is_file() {
             return Ok(None);
         }
-        let rec = fleet_mission::recording::Recording::read(&recording).map_err(|e| ExportError::Bad {
+        let rec = fleet_records::recording::Recording::read(&recording).map_err(|e| ExportError::Bad {
             path: recording.clone(),
             why: format!("the site's boundary is read from it: {e}"),
         })?;

@@ -3,10 +3,10 @@
 //! the fused estimate and its reported variance at every step (`estimate.npy`, `variance.npy`,
 //! `(steps, rows, cols)` float64) and every plan published (`plans.json`).
 
-use crate::events::{PlanPlaces, PublishedPlans};
-use crate::protocol::{self, Body};
-use crate::server::ServerCore;
 use anyhow::Context as _;
+use fleet_mission::events::{PlanPlaces, PublishedPlans};
+use fleet_mission::protocol::{self, Body};
+use fleet_mission::server::ServerCore;
 use std::path::Path;
 
 /// `estimate.npy` and `variance.npy`: already written step by step when the core keeps its
@@ -21,7 +21,7 @@ fn write_history(dir: &Path, core: &ServerCore) -> anyhow::Result<()> {
     // The same writer the server uses (land NaN, the header, the names at the end).
     let grid = core.assimilator().grid();
     let context = || format!("writing {}/estimate.npy and variance.npy", dir.display());
-    let mut files = crate::history::History::in_files(dir, grid.rows, grid.cols, core.assimilator().land())
+    let mut files = fleet_mission::history::History::in_files(dir, grid.rows, grid.cols, core.assimilator().land())
         .with_context(context)?;
     for k in 0..history.len() {
         let (estimate, variance) = (history.estimate(k)?, history.variance(k)?);

@@ -10,10 +10,10 @@
 //! [`CORE_TOPIC`] with the [`CoreOp`]s in `cbor`. A metadata record [`HEADER`] carries the
 //! mission file and the workspace, so a recording replays on its own.
 
-use crate::config::MissionConfig;
-use crate::protocol::{self, Body, Context, MeasurementBatch};
-use crate::server::ServerCore;
 use fleet_math::grid::Grid;
+use fleet_mission::config::MissionConfig;
+use fleet_mission::protocol::{self, Body, Context, MeasurementBatch};
+use fleet_mission::server::ServerCore;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::io::{BufWriter, Seek, Write};
@@ -54,11 +54,11 @@ pub enum CoreOp {
     Force,
     /// `ServerCore::set_available` from a vehicle's telemetry.
     Available {
-        vehicle: crate::protocol::VehicleId,
+        vehicle: fleet_mission::protocol::VehicleId,
         available: bool,
     },
     /// `ServerCore::override_sensor` from the operator, then `ServerCore::settle`.
-    Override(crate::protocol::SensorOverride),
+    Override(fleet_mission::protocol::SensorOverride),
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -522,8 +522,8 @@ impl Replayer<'_> {
                 // Refusals are part of what happened: the core counts them as it did live.
                 match core.ingest_deferred(batch) {
                     Ok(_)
-                    | Err(crate::server::IngestError::Rejected { .. })
-                    | Err(crate::server::IngestError::Protocol(_)) => {}
+                    | Err(fleet_mission::server::IngestError::Rejected { .. })
+                    | Err(fleet_mission::server::IngestError::Protocol(_)) => {}
                     Err(e) => return Err(fail(e.to_string())),
                 }
             }

@@ -10,11 +10,13 @@
 //! `Grid`s in the site's frame (x east, y north, metres of the grid, cell (0, 0) at the origin),
 //! land cells NaN; the model's state and the server's counters as JSON.
 
-use crate::config::MissionConfig;
-use crate::fence::SiteFence;
-use crate::protocol::{AutopilotLink, Body, ModelUpdate, Plan, ServerStatus, Telemetry, VehicleId, VehicleKind};
-use crate::site::Site;
 use fleet_math::grid::Grid;
+use fleet_mission::config::MissionConfig;
+use fleet_mission::fence::SiteFence;
+use fleet_mission::protocol::{
+    AutopilotLink, Body, ModelUpdate, Plan, ServerStatus, Telemetry, VehicleId, VehicleKind,
+};
+use fleet_mission::site::Site;
 use foxglove::messages as fx;
 use foxglove::{Encode, Schema};
 use std::collections::BTreeMap;
@@ -445,7 +447,7 @@ mod tests {
             position: [1.0, 2.0],
             heading: 0.5,
             battery: 0.9,
-            link: crate::protocol::LinkState::Up,
+            link: fleet_mission::protocol::LinkState::Up,
             outbox_depth: 0,
             autopilot: None,
             acked: None,
