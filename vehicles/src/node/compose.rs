@@ -4,9 +4,9 @@
 //! frames to the ground-station gateway over Zenoh. The bridge never knows whether its
 //! autopilot is simulated.
 
+use super::setup::Setup;
 use crate::Args;
 use anyhow::Context as _;
-use fleet_math::grid::Grid;
 use fleet_mission::config::{MavlinkConfig, MissionConfig};
 use fleet_mission::protocol::keys::Keys;
 use fleet_mission::signing_key::SigningKey;
@@ -26,29 +26,26 @@ use vehicles::signing::{LinkSigning, LINK_AUTOPILOT};
 /// The MAVLink bridge, unless the autopilot is `none`, and the autopilot's frames for the
 /// ground-station side.
 pub fn open_bridge(
+    setup: &Setup,
     args: &Args,
     mission: &MissionConfig,
-    grid: &Grid,
 ) -> anyhow::Result<Option<(Bridge, mpsc::UnboundedReceiver<ToGcs>)>> {
-    let m = &mission.mavlink;
-    let address = args.autopilot.clone().unwrap_or_else(|| m.autopilot.clone());
-    if address == "none" {
+    if !setup.has_autopilot() {
         return Ok(None);
     }
-    let spec = bridge_spec(args, mission, grid)?;
-    let address = if address == "sim" {
-        start_sim(&spec, m.sim_companion_port)?
+    let spec = bridge_spec(setup, args, mission)?;
+    let address = if setup.autopilot == "sim" {
+        start_sim(&spec, mission.mavlink.sim_companion_port)?
     } else {
-        address
+        setup.autopilot.clone()
     };
     let (gcs_tx, gcs_rx) = mpsc::unbounded_channel();
     Ok(Some((Bridge::connect(&address, spec, Some(gcs_tx))?, gcs_rx)))
 }
 
 /// What the bridge needs to know of its vehicle and the site.
-fn bridge_spec(args: &Args, mission: &MissionConfig, grid: &Grid) -> anyhow::Result<BridgeSpec> {
-    let m = &mission.mavlink;
-    let (index, kind) = mission.vehicle(&args.id)?;
+fn bridge_spec(setup: &Setup, args: &Args, mission: &MissionConfig) -> anyhow::Result<BridgeSpec> {
+    let (m, grid, index) = (&mission.mavlink, &setup.grid, setup.index);
     let site = m.site(grid);
     // Launched from points along the south shore, inside the fence by the margin and the turn.
     let launch: Vec<Vector3<f64>> = fleet_mission::launch::launch_points(mission, grid)
@@ -56,7 +53,7 @@ fn bridge_spec(args: &Args, mission: &MissionConfig, grid: &Grid) -> anyhow::Res
         .iter()
         .map(|&[e, n]| Vector3::new(n, e, 0.0))
         .collect();
-    let mut vehicle = SimSpec::from_config(Frame::of(kind), mission.sysid(&args.id)?, site, m);
+    let mut vehicle = SimSpec::from_config(Frame::of(setup.kind), mission.sysid(&setup.id)?, site, m);
     if let Some(mah) = args.sim_battery_start_mah {
         if !(mah.is_finite() && (0.0..=m.battery_mah).contains(&mah)) {
             return Err(fleet_exit::bad_input(anyhow::anyhow!(
@@ -76,7 +73,7 @@ fn bridge_spec(args: &Args, mission: &MissionConfig, grid: &Grid) -> anyhow::Res
         fence_action: Action::from_name(&m.fence_action).unwrap_or(Action::Continue) as u8 as f32,
         drive_without_fence: m.drive_without_fence,
         rally: launch,
-        signing: autopilot_key(m, &args.id)?,
+        signing: autopilot_key(m, &setup.id)?,
         mavlink_hz: mission.link.mavlink_hz,
         ready_timeout: Duration::from_secs_f64(m.ready_timeout_s),
         clearance_m: fleet_mission::launch::required_clearance(mission),

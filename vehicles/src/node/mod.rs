@@ -10,6 +10,7 @@ mod compose;
 mod drive;
 mod readings;
 mod readings_log;
+mod setup;
 mod shown;
 
 use crate::Args;
@@ -23,6 +24,7 @@ use fleet_mission::vehicle::vehicle_rng;
 use fleet_mission::vehicle::{BrainState, VehicleBrain};
 use fleet_net::outbox::{Outbox, OutboxError};
 use fleet_net::{zenoh, Role, Traffic};
+use setup::Setup;
 use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, watch};
 use tracing::{debug, info, warn};
@@ -735,17 +737,16 @@ impl Vehicle {
 }
 
 /// The brain of this vehicle, from the mission.
-fn brain_of(args: &Args, mission: &MissionConfig, grid: Grid, frames: usize) -> anyhow::Result<VehicleBrain> {
-    let (index, kind) = mission.vehicle(&args.id)?;
-    Ok(VehicleBrain::new(
-        &args.id,
-        kind,
-        grid,
-        mission.schedule(frames),
-        mission.noise(kind),
-        vehicle_rng(mission.team.seed, index),
-        mission.speed(kind),
-    ))
+fn brain_of(setup: &Setup, mission: &MissionConfig) -> VehicleBrain {
+    VehicleBrain::new(
+        &setup.id,
+        setup.kind,
+        setup.grid,
+        mission.schedule(setup.frames),
+        mission.noise(setup.kind),
+        vehicle_rng(mission.team.seed, setup.index),
+        mission.speed(setup.kind),
+    )
 }
 
 /// Whether a vehicle whose server was last seen `lost_at` (or never, since it started then) is
@@ -793,9 +794,10 @@ type SampleSub = zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<z
 
 pub async fn run(args: Args) -> anyhow::Result<()> {
     let (mission, truth) = args.node.load()?;
-    let (grid, frames) = mission.workspace(truth.as_ref().map(Frames::shape))?;
+    let setup = Setup::resolve(&args, &mission, truth.as_ref())?;
+    let grid = setup.grid;
     let keys = Keys::new(&mission.mission)?;
-    let brain = brain_of(&args, &mission, grid, frames)?;
+    let brain = brain_of(&setup, &mission);
     let mut ctx = Context::new(grid);
     ctx.vehicles = mission.vehicles().into_iter().map(|v| v.id).collect();
 
@@ -803,7 +805,7 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
     let path = args.state_dir.join(format!("{}.redb", args.id));
     let outbox = Outbox::open(&path, &args.id, args.outbox_limit_mb << 20).map_err(outbox_error)?;
     let state: Option<BrainState> = outbox.state().map_err(outbox_error)?;
-    let bridge = compose::open_bridge(&args, &mission, &grid)?;
+    let bridge = compose::open_bridge(&setup, &args, &mission)?;
     let (session, _token, [acks, links, gcs], grace) = join(&args, &mission, &keys).await?;
     let mavlink_out = compose::Counted::default();
     let bridge = bridge.map(|(b, frames)| {
@@ -811,7 +813,8 @@ pub async fn run(args: Args) -> anyhow::Result<()> {
         compose::pipe_to_gateway(&session, &keys, &args.id, frames, linger, mavlink_out.clone());
         b
     });
-    let (source, instrument) = instrument_of(&args, &mission, &brain, (grid, frames), truth.is_some())?;
+    let instrument = instrument_of(&setup, &args, &mission, &brain, truth.is_some())?;
+    let source = setup.sensor.clone();
     let lines = open_source(&source, bridge.as_ref(), &mission, grid)?;
     let (plans_tx, plans) = mpsc::unbounded_channel();
     let (driven_tx, driven) = mpsc::unbounded_channel();
@@ -882,52 +885,46 @@ fn open_source(
     }
 }
 
-/// This vehicle's sensor source (`--sensor`, else the mission's `[sensors]`) and, unless it
-/// is the simulated one, its instrument.
+/// Unless the sensor source is the simulated one, this vehicle's instrument (the source
+/// checked against the mission first).
 fn instrument_of(
+    setup: &Setup,
     args: &Args,
     mission: &MissionConfig,
     brain: &VehicleBrain,
-    (grid, frames): (Grid, usize),
     has_truth: bool,
-) -> anyhow::Result<(SensorSource, Option<readings::Instrument>)> {
-    let source = match &args.sensor {
-        Some(s) => s
-            .parse()
-            .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("--sensor {e}")))?,
-        None => mission.sensor_of(&args.id),
-    };
-    let autopilot = args.autopilot.as_deref().unwrap_or(&mission.mavlink.autopilot) != "none";
+) -> anyhow::Result<Option<readings::Instrument>> {
+    let source = &setup.sensor;
     let m = fleet_mission::instrument::source::Mission {
         timed: mission.clock().is_some(),
         truth: has_truth,
-        autopilot,
+        autopilot: setup.has_autopilot(),
     };
-    check_source(&source, brain.kind, m)
-        .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("sensor source {source} for {}: {e}", args.id)))?;
-    if source == SensorSource::Sim && !has_truth {
+    check_source(source, brain.kind, m)
+        .map_err(|e| fleet_exit::bad_input(anyhow::anyhow!("sensor source {source} for {}: {e}", setup.id)))?;
+    if *source == SensorSource::Sim && !has_truth {
         return Err(fleet_exit::bad_input(anyhow::anyhow!(
             "sensor source sim for {}: the simulated sensor samples a truth; the mission has no [truth] and no \
              --truth was given",
-            args.id
+            setup.id
         )));
     }
-    let instrument = if source == SensorSource::Sim {
+    let instrument = if *source == SensorSource::Sim {
         None
     } else {
-        let path = args.state_dir.join(format!("{}.readings.ndjson", args.id));
-        let log = readings_log::ReadingsLog::open(&path, &args.id)
+        let path = args.state_dir.join(format!("{}.readings.ndjson", setup.id));
+        let log = readings_log::ReadingsLog::open(&path, &setup.id)
             .map_err(|e| anyhow::anyhow!("the readings log {}: {e}", path.display()))?;
         readings::Instrument::new(
             mission,
-            (grid, frames),
+            (setup.grid, setup.frames),
             brain.kind,
             brain.first_sensed_step(),
             Some(log),
         )
     };
-    info!(vehicle = %args.id, %source, "sensor source");
-    Ok((source, instrument))
+    info!(vehicle = %setup.id, %source, "sensor source");
+    Ok(instrument)
 }
 
 impl Vehicle {
