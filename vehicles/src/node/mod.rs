@@ -1,10 +1,10 @@
-//! The vehicle's loop over the mission's epochs, one `select!` over what can happen: an ack
-//! (trim the outbox; the model moved, so ask for the plan again), the server's liveliness (a
-//! returned link sends the whole backlog), the resend tick (re-send what is due; ask for the
-//! plan every 250 ms; after `plan_timeout_ms` without an answer, follow the horizon of the plan
-//! held), a plan reply (drive and sense the epoch) and the end of an epoch's drive and step
-//! timer (commit the batch, send it, go on). Every batch is kept until the server's ack covers
-//! it.
+//! The vehicle's loop over the mission's epochs, one `select!` over what can happen, each an
+//! [`Event`]: an ack (trim the outbox; the model moved, so ask for the plan again), the
+//! server's liveliness (a returned link sends the whole backlog), the resend tick (re-send what
+//! is due; ask for the plan every 250 ms; after `plan_timeout_ms` without an answer, follow the
+//! horizon of the plan held), a plan reply (drive and sense the epoch) and the end of an
+//! epoch's drive and step timer (commit the batch, send it, go on). Every batch is kept until
+//! the server's ack covers it.
 
 mod compose;
 mod drive;
@@ -713,6 +713,42 @@ fn closed(what: &str) -> impl Fn(zenoh::Error) -> anyhow::Error + '_ {
     move |e| anyhow::anyhow!("{what} subscriber closed: {e}")
 }
 
+/// Everything the vehicle's loop reacts to, one at a time, as it arrives.
+enum Event {
+    /// A message on this vehicle's ack key (the server's ack of a batch).
+    Ack(zenoh::sample::Sample),
+    /// The server's liveliness token, put or deleted.
+    ServerLink(zenoh::sample::Sample),
+    /// A ground station's MAVLink frame for this vehicle's autopilot.
+    Gcs(zenoh::sample::Sample),
+    /// The autopilot's status changed.
+    Autopilot(AutopilotStatus),
+    /// The resend and deadline tick ([`ASK_EVERY`]).
+    Tick,
+    /// A plan query's answer for an epoch: the plan, if there was one, and its bytes.
+    Plan(u64, (Option<Plan>, usize)),
+    /// An epoch's drive ended.
+    Driven(Driven),
+    /// The instrument's next line or frame.
+    Input(Input),
+}
+
+impl Inputs {
+    /// The next event (an error once one of the Zenoh subscribers is closed).
+    async fn next(&mut self, tick: &mut tokio::time::Interval) -> anyhow::Result<Event> {
+        Ok(tokio::select! {
+            r = self.acks.recv_async() => Event::Ack(r.map_err(closed("ack"))?),
+            r = self.links.recv_async() => Event::ServerLink(r.map_err(closed("liveliness"))?),
+            r = self.gcs.recv_async() => Event::Gcs(r.map_err(closed("ground-station"))?),
+            status = autopilot_changed(&mut self.autopilot) => Event::Autopilot(status),
+            _ = tick.tick() => Event::Tick,
+            Some((e, plan)) = self.plans.recv() => Event::Plan(e, plan),
+            Some(d) = self.driven.recv() => Event::Driven(d),
+            input = next_input(&mut self.lines) => Event::Input(input),
+        })
+    }
+}
+
 impl Vehicle {
     /// The node's one loop: every event, one at a time, until every batch is acknowledged.
     async fn run_loop(&mut self, mut inputs: Inputs, truth: Option<&Frames>) -> anyhow::Result<()> {
@@ -721,16 +757,22 @@ impl Vehicle {
         let mut tick = tokio::time::interval(ASK_EVERY);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         while self.phase != Phase::Done {
-            tokio::select! {
-                r = inputs.acks.recv_async() => self.on_ack(&r.map_err(closed("ack"))?)?,
-                r = inputs.links.recv_async() => self.on_link(&r.map_err(closed("liveliness"))?),
-                r = inputs.gcs.recv_async() => self.on_gcs(&r.map_err(closed("ground-station"))?),
-                status = autopilot_changed(&mut inputs.autopilot) => self.on_autopilot(status).await,
-                _ = tick.tick() => self.on_tick().await?,
-                Some((e, plan)) = inputs.plans.recv() => self.on_plan(e, plan),
-                Some(d) = inputs.driven.recv() => self.on_driven(d, truth).await?,
-                input = next_input(&mut inputs.lines) => self.on_input(input),
-            }
+            let event = inputs.next(&mut tick).await?;
+            self.on_event(event, truth).await?;
+        }
+        Ok(())
+    }
+
+    async fn on_event(&mut self, event: Event, truth: Option<&Frames>) -> anyhow::Result<()> {
+        match event {
+            Event::Ack(sample) => self.on_ack(&sample)?,
+            Event::ServerLink(sample) => self.on_link(&sample),
+            Event::Gcs(sample) => self.on_gcs(&sample),
+            Event::Autopilot(status) => self.on_autopilot(status).await,
+            Event::Tick => self.on_tick().await?,
+            Event::Plan(e, plan) => self.on_plan(e, plan),
+            Event::Driven(d) => self.on_driven(d, truth).await?,
+            Event::Input(input) => self.on_input(input),
         }
         Ok(())
     }
