@@ -789,6 +789,56 @@ struct Inputs {
     _token: zenoh::liveliness::LivelinessToken,
 }
 
+/// Everything the server's loop reacts to, one at a time, as it arrives.
+enum Event {
+    /// A measurement batch (what is queued behind it is taken with it).
+    Batch(zenoh::sample::Sample),
+    /// A vehicle asks for its plan.
+    PlanQuery(zenoh::query::Query),
+    /// A reader asks for the model.
+    ModelQuery(zenoh::query::Query),
+    /// A vehicle's telemetry (its holds).
+    Telemetry(zenoh::sample::Sample),
+    /// An operator's sensor override.
+    Override(zenoh::sample::Sample),
+    /// A node's liveliness token, put or deleted.
+    Liveliness(zenoh::sample::Sample),
+    /// Time to see whether the epoch waited for is due to be forced (every 50 ms).
+    Check,
+    /// Time to answer held plan queries and put the status (every second).
+    StatusTick,
+    /// A stop signal, by name.
+    Stop(&'static str),
+    /// A queryable or subscriber other than the batches' gave nothing (it is closing).
+    Nothing,
+}
+
+/// The loop's clocks and the stop signals it listens to beside Zenoh.
+struct Clocks {
+    stop: fleet_net::StopSignals,
+    status: tokio::time::Interval,
+    check: tokio::time::Interval,
+}
+
+impl Inputs {
+    /// The next event (an error once the batch subscriber is closed).
+    async fn next(&self, clocks: &mut Clocks) -> anyhow::Result<Event> {
+        Ok(tokio::select! {
+            r = self.batches.recv_async() => {
+                Event::Batch(r.map_err(|e| anyhow::anyhow!("batch subscriber closed: {e}"))?)
+            }
+            r = self.plans.recv_async() => r.map_or(Event::Nothing, Event::PlanQuery),
+            r = self.models.recv_async() => r.map_or(Event::Nothing, Event::ModelQuery),
+            r = self.telemetry.recv_async() => r.map_or(Event::Nothing, Event::Telemetry),
+            r = self.overrides.recv_async() => r.map_or(Event::Nothing, Event::Override),
+            r = self.links.recv_async() => r.map_or(Event::Nothing, Event::Liveliness),
+            _ = clocks.check.tick() => Event::Check,
+            _ = clocks.status.tick() => Event::StatusTick,
+            signal = clocks.stop.recv() => Event::Stop(signal),
+        })
+    }
+}
+
 impl Inputs {
     async fn declare(session: &zenoh::Session, keys: &Keys) -> Result<Self, fleet_net::NetError> {
         let e = fleet_net::NetError::zenoh;
@@ -919,9 +969,11 @@ impl Server {
         inputs: &Inputs,
         args: &Args,
     ) -> anyhow::Result<Option<ServerSummary>> {
-        let mut stop = fleet_net::StopSignals::new()?;
-        let mut tick = tokio::time::interval(Duration::from_secs(1));
-        let mut check = tokio::time::interval(Duration::from_millis(50));
+        let mut clocks = Clocks {
+            stop: fleet_net::StopSignals::new()?,
+            status: tokio::time::interval(Duration::from_secs(1)),
+            check: tokio::time::interval(Duration::from_millis(50)),
+        };
         let pace = &self.mission.pace;
         let epoch_timeout = (pace.epoch_timeout_ms > 0).then(|| Duration::from_millis(pace.epoch_timeout_ms));
         let mut since = (self.core.next_epoch(), Instant::now());
@@ -931,33 +983,21 @@ impl Server {
         let mut finished = None;
         let mut departure = Departure::new(Duration::from_millis(args.linger_ms));
         loop {
-            tokio::select! {
-                r = inputs.batches.recv_async() => {
-                    let sample = r.map_err(|e| anyhow::anyhow!("batch subscriber closed: {e}"))?;
+            match inputs.next(&mut clocks).await? {
+                Event::Stop(signal) => {
+                    info!(
+                        signal,
+                        "stopping: the journal holds every accepted batch, a restart resumes"
+                    );
+                    break;
+                }
+                Event::Batch(sample) => {
                     self.on_batches(session, &inputs.batches, &sample).await?;
                     departure.heard_batch(Instant::now());
                 }
-                r = inputs.plans.recv_async() => if let Ok(q) = r { self.on_plan_query(q).await },
-                r = inputs.models.recv_async() => if let Ok(q) = r { self.on_model_query(q).await },
-                r = inputs.telemetry.recv_async() => if let Ok(sample) = r { self.on_telemetry(&sample) },
-                r = inputs.overrides.recv_async() => if let Ok(sample) = r {
-                    self.on_override(session, &sample).await?
-                },
-                r = inputs.links.recv_async() => if let Ok(sample) = r {
-                    self.on_liveliness(sample.key_expr().as_str(), sample.kind())
-                },
-                _ = check.tick() => self.force_if_due(session, &mut since, epoch_timeout).await?,
-                _ = tick.tick() => {
-                    self.answer_held().await;
-                    self.say_behind(&since);
-                    self.note_session_refusals();
-                    self.recording(|r| r.flush());
-                    self.put(session, &self.keys.server_status(), &Body::Status(self.status())).await?;
-                }
-                sig = stop.recv() => {
-                    info!(signal = sig, "stopping: the journal holds every accepted batch, a restart resumes");
-                    break;
-                }
+                Event::Check => self.force_if_due(session, &mut since, epoch_timeout).await?,
+                Event::StatusTick => self.on_status_tick(session, &since).await?,
+                event => self.on_event(session, event).await?,
             }
             if self.core.finished() && finished.is_none() {
                 departure.mission_done(Instant::now());
@@ -968,6 +1008,29 @@ impl Server {
             }
         }
         Ok(finished)
+    }
+
+    /// An event that needs neither the batch queue nor the epoch's clock.
+    async fn on_event(&mut self, session: &zenoh::Session, event: Event) -> anyhow::Result<()> {
+        match event {
+            Event::PlanQuery(q) => self.on_plan_query(q).await,
+            Event::ModelQuery(q) => self.on_model_query(q).await,
+            Event::Telemetry(sample) => self.on_telemetry(&sample),
+            Event::Override(sample) => self.on_override(session, &sample).await?,
+            Event::Liveliness(sample) => self.on_liveliness(sample.key_expr().as_str(), sample.kind()),
+            Event::Batch(_) | Event::Check | Event::StatusTick | Event::Stop(_) | Event::Nothing => {}
+        }
+        Ok(())
+    }
+
+    /// Every second: held plan queries answered, a slow epoch said, the status put.
+    async fn on_status_tick(&mut self, session: &zenoh::Session, since: &(u64, Instant)) -> anyhow::Result<()> {
+        self.answer_held().await;
+        self.say_behind(since);
+        self.note_session_refusals();
+        self.recording(|r| r.flush());
+        self.put(session, &self.keys.server_status(), &Body::Status(self.status()))
+            .await
     }
 
     /// A batch, and what is queued behind it (a backlog comes as a burst: take what is queued
