@@ -183,65 +183,63 @@ def check_field_lists(crates):
                         f"{len(shared)} fields: one field list written twice")
 
 
-# 4. Long functions.
-def check_lengths(crates, limit=80):
+def code_lines(crates):
+    """Each non-test source file of `crates` with its lines before any `#[cfg(test)]` (the
+    length and width rules are for the code, not its tests)."""
     for crate in crates:
         for f in rust_files(os.path.join(ROOT, crate, "src")):
             if f.endswith("/tests.rs"):
                 continue
             lines = open(f).read().split("\n")
             test_from = next((i for i, l in enumerate(lines) if l.startswith("#[cfg(test)]")), len(lines))
-            for i, line in enumerate(lines[:test_from]):
-                m = re.match(r"\s*(?:pub(?:\([^)]*\))?\s+)?(?:async\s+)?fn\s+(\w+)", line)
-                if not m:
-                    continue
-                depth, started, end = 0, False, i
-                for j in range(i, len(lines)):
-                    depth += lines[j].count("{") - lines[j].count("}")
-                    started = started or "{" in lines[j]
-                    if not started and lines[j].rstrip().endswith(";"):
-                        break
-                    if started and depth <= 0:
-                        end = j
-                        break
-                n = end - i + 1
-                if n <= limit:
-                    continue
-                k, doc = i - 1, []
-                while k >= 0 and re.match(r"\s*(///|#\[)", lines[k]):
-                    doc.append(lines[k])
-                    k -= 1
-                if "Long because" not in " ".join(d.strip().lstrip("/ ") for d in reversed(doc)):
-                    problems.append(f"{os.path.relpath(f, ROOT)}:{i + 1}: fn {m.group(1)} is {n} lines "
-                                    f"(over {limit}; split it, or say why in its doc: \"Long because ...\")")
+            yield f, lines, test_from
+
+
+def doc_says(lines, i, phrase):
+    """Whether the doc comments and attributes above line `i` contain `phrase`."""
+    k, doc = i - 1, []
+    while k >= 0 and re.match(r"\s*(///|#\[)", lines[k]):
+        doc.append(lines[k])
+        k -= 1
+    return phrase in " ".join(d.strip().lstrip("/ ") for d in reversed(doc))
+
+
+# 4. Long functions.
+def check_lengths(crates, limit=80):
+    for f, lines, test_from in code_lines(crates):
+        for i, line in enumerate(lines[:test_from]):
+            m = re.match(r"\s*(?:pub(?:\([^)]*\))?\s+)?(?:async\s+)?fn\s+(\w+)", line)
+            if not m:
+                continue
+            depth, started, end = 0, False, i
+            for j in range(i, len(lines)):
+                depth += lines[j].count("{") - lines[j].count("}")
+                started = started or "{" in lines[j]
+                if not started and lines[j].rstrip().endswith(";"):
+                    break
+                if started and depth <= 0:
+                    end = j
+                    break
+            n = end - i + 1
+            if n > limit and not doc_says(lines, i, "Long because"):
+                problems.append(f"{os.path.relpath(f, ROOT)}:{i + 1}: fn {m.group(1)} is {n} lines "
+                                f"(over {limit}; split it, or say why in its doc: \"Long because ...\")")
 
 
 # 5. Wide impls.
 def check_impls(crates, methods=25, limit=600):
-    for crate in crates:
-        for f in rust_files(os.path.join(ROOT, crate, "src")):
-            if f.endswith("/tests.rs"):
+    for f, lines, test_from in code_lines(crates):
+        for i, line in enumerate(lines[:test_from]):
+            if not re.match(r"impl\b.*\{\s*$", line):
                 continue
-            lines = open(f).read().split("\n")
-            test_from = next((i for i, l in enumerate(lines) if l.startswith("#[cfg(test)]")), len(lines))
-            for i, line in enumerate(lines[:test_from]):
-                m = re.match(r"impl\b.*\{\s*$", line)
-                if not m:
-                    continue
-                end = next((j for j in range(i + 1, len(lines)) if lines[j] == "}"), len(lines) - 1)
-                fns = sum(1 for body in lines[i:end]
-                          if re.match(r"    (?:pub(?:\([^)]*\))?\s+)?(?:const\s+)?(?:async\s+)?fn\s", body))
-                n = end - i + 1
-                if fns <= methods and n <= limit:
-                    continue
-                k, doc = i - 1, []
-                while k >= 0 and re.match(r"\s*(///|#\[)", lines[k]):
-                    doc.append(lines[k])
-                    k -= 1
-                if "Wide because" not in " ".join(d.strip().lstrip("/ ") for d in reversed(doc)):
-                    problems.append(f"{os.path.relpath(f, ROOT)}:{i + 1}: {line.strip()[:-1].strip()} has {fns} "
-                                    f"methods in {n} lines (over {methods} or {limit}; split it by concern, or "
-                                    f"say why in its doc: \"Wide because ...\")")
+            end = next((j for j in range(i + 1, len(lines)) if lines[j] == "}"), len(lines) - 1)
+            fns = sum(1 for body in lines[i:end]
+                      if re.match(r"    (?:pub(?:\([^)]*\))?\s+)?(?:const\s+)?(?:async\s+)?fn\s", body))
+            n = end - i + 1
+            if (fns > methods or n > limit) and not doc_says(lines, i, "Wide because"):
+                problems.append(f"{os.path.relpath(f, ROOT)}:{i + 1}: {line.strip()[:-1].strip()} has {fns} "
+                                f"methods in {n} lines (over {methods} or {limit}; split it by concern, or "
+                                f"say why in its doc: \"Wide because ...\")")
 
 
 def workspace_crates():
